@@ -269,6 +269,9 @@ class FlowField:
         with ds:
             if "passt_grid" not in ds.attrs:
                 raise FieldError(f"{path} is not a passt_mav field file (no passt_grid attribute); use 'passt-mav data import'")
+            missing = [k for k in ("u", "v", "time") if k not in ds.variables]
+            if missing:
+                raise FieldError(f"{path} lacks the variable(s) {', '.join(missing)} of a passt_mav field file")
             grid = grid_from_dict(json.loads(ds.attrs["passt_grid"]))
             u = ds["u"].values.astype(np.float32)
             v = ds["v"].values.astype(np.float32)

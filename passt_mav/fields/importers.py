@@ -1,0 +1,416 @@
+"""Import real ocean-model and HF-radar current files onto a region grid.
+
+Supported layouts (detected from variable names, CF ``standard_name`` and
+coordinate attributes, not from the product name):
+
+* HYCOM / RTOFS: ``water_u``/``water_v`` (or ``u_velocity``/``v_velocity``),
+  ``depth`` (or ``Depth``/``MT``), longitudes 0..360 or -180..180;
+* Copernicus Marine: ``uo``/``vo`` with a ``depth`` dimension;
+* HF radar (e.g. MARACOOS totals): ``u``/``v`` in cm/s with NaN gaps and a
+  length-1 ``z`` or ``depth`` dimension;
+* anything else whose velocity variables carry the CF standard names
+  ``(surface_)eastward_sea_water_velocity`` / ``northward_...``, or whose names
+  are given explicitly with ``variables=(u_name, v_name)``.
+
+What :func:`import_currents` does, in order:
+
+1. **Units** from the variables' ``units`` attribute (m/s, cm/s, mm/s, knots in
+   their usual spellings) converted to m/s; a missing or unknown unit is a
+   :class:`FieldError` (pass ``units=`` to override). Values outside the CF
+   ``valid_min``/``valid_max`` are treated as missing.
+2. **Surface**: a depth-like dimension (``depth``, ``z``, ``lev``, ...; or
+   ``axis="Z"`` / ``positive``) is reduced to its level of smallest ``|depth|``.
+3. **Time**: CF times are decoded by xarray; the window is
+   ``start <= t < start + hours`` (``start`` defaults to the first time,
+   ``hours`` to the rest of the file). An hourly or coarser file keeps its own
+   snapshot times inside the window (no temporal interpolation: nothing is
+   invented between model outputs); a finer file keeps only the snapshots on
+   whole hours after ``start`` (+-60 s). The output's ``time_origin`` is the first
+   kept snapshot.
+4. **Region**: longitudes are wrapped to -180..180 and sorted, latitudes sorted
+   south to north, and only the source window covering the grid (plus one node)
+   is read.
+5. **Regridding**: bilinear in lat/lon with :class:`scipy.interpolate.RegularGridInterpolator`
+   (rectilinear, possibly non-uniform source nodes). A target cell whose
+   bilinear stencil touches a missing source node stays NaN (masked); a missing
+   node with weight below 1e-3 (target within 0.1 % of a cell of a valid node) is
+   ignored and the rest renormalised, so grids that coincide with the source
+   nodes reproduce them exactly. Cells outside the file's extent are NaN too.
+   NaN is never turned into a current.
+
+The coverage of the result (fraction of cells with data) is in
+``field.attrs["coverage"]`` and :func:`coverage_report`.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import math
+import re
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from passt_mav.errors import FieldError
+from passt_mav.fields.field import FlowField, _parse_iso
+
+__all__ = ["import_currents", "coverage_report", "velocity_scale", "U_NAMES", "V_NAMES"]
+
+#: candidate variable names, tried in order after CF standard names
+U_NAMES = ("water_u", "uo", "u", "u_velocity", "ugos", "ucur", "U", "east_vel", "eastward_velocity")
+V_NAMES = ("water_v", "vo", "v", "v_velocity", "vgos", "vcur", "V", "north_vel", "northward_velocity")
+_U_STD = ("eastward_sea_water_velocity", "surface_eastward_sea_water_velocity", "sea_water_x_velocity",
+          "baroclinic_eastward_sea_water_velocity", "eastward_sea_water_velocity_assuming_no_tide")
+_V_STD = ("northward_sea_water_velocity", "surface_northward_sea_water_velocity", "sea_water_y_velocity",
+          "baroclinic_northward_sea_water_velocity", "northward_sea_water_velocity_assuming_no_tide")
+_LAT_NAMES = ("lat", "latitude", "Latitude", "LATITUDE", "nav_lat", "lat_rho")
+_LON_NAMES = ("lon", "longitude", "Longitude", "LONGITUDE", "nav_lon", "lon_rho")
+_DEPTH_NAMES = ("depth", "z", "Depth", "lev", "level", "deptht", "depthu", "depthv", "s_rho", "altitude", "height")
+_TIME_NAMES = ("time", "MT", "t", "ocean_time", "Time", "TIME")
+
+_KNOT = 1852.0 / 3600.0
+_MISSING_WEIGHT_TOL = 1e-3  # see module docstring, step 5
+
+
+def velocity_scale(units: str | None) -> float:
+    """Factor converting a velocity in ``units`` to m/s; FieldError if unknown.
+
+    Accepts e.g. ``m/s``, ``m s-1``, ``m s**-1``, ``m.s-1``, ``meter second-1``,
+    ``meters per second``, ``cm/s``, ``cm s-1``, ``mm/s``, ``knots``/``kt``.
+    """
+    if units is None or not str(units).strip():
+        raise FieldError("velocity variable has no 'units' attribute (pass units=, e.g. 'm/s' or 'cm/s')")
+    s = str(units).strip().lower()
+    s = s.replace("**", "").replace("^", "").replace("·", " ").replace(".", " ").replace("_", " ")
+    s = re.sub(r"\s+per\s+", "/", s)
+    s = re.sub(r"\s*/\s*", "/", s)
+    s = re.sub(r"\s+", " ", s).strip()
+    lengths = {"m": 1.0, "meter": 1.0, "meters": 1.0, "metre": 1.0, "metres": 1.0,
+               "cm": 0.01, "centimeter": 0.01, "centimeters": 0.01, "centimetre": 0.01, "centimetres": 0.01,
+               "mm": 0.001, "millimeter": 0.001, "millimeters": 0.001, "km": 1000.0}
+    seconds = ("s", "sec", "second", "seconds")
+    if s in ("kt", "kts", "knot", "knots", "kn"):
+        return _KNOT
+    m = re.fullmatch(r"([a-z]+)(?:/([a-z]+)| ([a-z]+)-1|/([a-z]+)1)", s)
+    if m:
+        length, sec = m.group(1), m.group(2) or m.group(3) or m.group(4)
+        if length in lengths and sec in seconds:
+            return lengths[length]
+    raise FieldError(f"unknown velocity units {units!r} (expected m/s, cm/s, mm/s or knots; pass units= to override)")
+
+
+# -- detection ------------------------------------------------------------------
+def _find_velocity(ds, variables) -> tuple[str, str]:
+    if variables is not None:
+        if len(variables) != 2:
+            raise FieldError(f"variables must be two names (u, v), got {variables!r}")
+        for name in variables:
+            if name not in ds.variables:
+                raise FieldError(f"variable {name!r} not in file (has: {', '.join(map(str, ds.data_vars))})")
+        return str(variables[0]), str(variables[1])
+    by_std = {str(ds[k].attrs.get("standard_name", "")): str(k) for k in ds.data_vars}
+    for su, sv in zip(_U_STD, _V_STD):
+        if su in by_std and sv in by_std:
+            return by_std[su], by_std[sv]
+    for nu, nv in zip(U_NAMES, V_NAMES):
+        if nu in ds.data_vars and nv in ds.data_vars:
+            return nu, nv
+    raise FieldError(
+        "no current variables found (looked for CF eastward/northward_sea_water_velocity and "
+        f"{'/'.join(U_NAMES[:4])}...); file has: {', '.join(map(str, ds.data_vars)) or 'no variables'}"
+    )
+
+
+def _is_lat(name: str, var) -> bool:
+    a = var.attrs
+    return a.get("standard_name") == "latitude" or str(a.get("units", "")).lower() in (
+        "degrees_north", "degree_north", "degrees_n", "degree_n") or name in _LAT_NAMES
+
+
+def _is_lon(name: str, var) -> bool:
+    a = var.attrs
+    return a.get("standard_name") == "longitude" or str(a.get("units", "")).lower() in (
+        "degrees_east", "degree_east", "degrees_e", "degree_e") or name in _LON_NAMES
+
+
+def _horizontal(ds, u) -> tuple[str, str, np.ndarray, np.ndarray]:
+    """(lat_dim, lon_dim, lat_1d, lon_1d) for the velocity variable ``u``."""
+    lat_var = lon_var = None
+    for name in list(u.coords) + list(ds.variables):
+        var = ds[name]
+        if lat_var is None and _is_lat(str(name), var) and set(var.dims) <= set(u.dims) and var.ndim in (1, 2):
+            lat_var = var
+        if lon_var is None and _is_lon(str(name), var) and set(var.dims) <= set(u.dims) and var.ndim in (1, 2):
+            lon_var = var
+    if lat_var is None or lon_var is None:
+        raise FieldError(f"cannot find latitude/longitude coordinates of {u.name!r} (dims {u.dims})")
+    if lat_var.ndim == 1 and lon_var.ndim == 1:
+        return lat_var.dims[0], lon_var.dims[0], lat_var.values.astype(float), lon_var.values.astype(float)
+    # 2-D lat/lon (RTOFS, NEMO): usable when separable, i.e. a rectilinear grid stored as 2-D
+    if lat_var.dims != lon_var.dims or lat_var.ndim != 2:
+        raise FieldError("latitude/longitude coordinates have inconsistent shapes")
+    la, lo = lat_var.values.astype(float), lon_var.values.astype(float)
+    ydim, xdim = lat_var.dims
+    if np.allclose(la, la[:, :1], atol=1e-6) and np.allclose(lo, lo[:1, :], atol=1e-6):
+        return ydim, xdim, la[:, 0], lo[0, :]
+    if np.allclose(la, la[:1, :], atol=1e-6) and np.allclose(lo, lo[:, :1], atol=1e-6):
+        return xdim, ydim, la[0, :], lo[:, 0]
+    raise FieldError("curvilinear source grids (2-D latitude/longitude that are not separable) are not supported")
+
+
+def _time_dim(ds, u) -> str | None:
+    for d in u.dims:
+        if d in ds.coords and np.issubdtype(ds[d].dtype, np.datetime64):
+            return str(d)
+        if d in ds.variables and (str(d) in _TIME_NAMES or ds[d].attrs.get("axis") == "T" or ds[d].attrs.get("standard_name") == "time"):
+            return str(d)
+    return None
+
+
+def _is_depth(name: str, ds) -> bool:
+    if name in _DEPTH_NAMES:
+        return True
+    if name in ds.variables:
+        a = ds[name].attrs
+        return a.get("axis") == "Z" or "positive" in a or a.get("standard_name") in ("depth", "height", "altitude")
+    return False
+
+
+def _to_datetime64(values) -> np.ndarray:
+    """Decoded time values (datetime64 or cftime) -> datetime64[ns] UTC-naive."""
+    v = np.asarray(values)
+    if np.issubdtype(v.dtype, np.datetime64):
+        return v.astype("datetime64[ns]")
+    if v.dtype == object and v.size and hasattr(v.flat[0], "year"):
+        return np.array([np.datetime64(_dt.datetime(t.year, t.month, t.day, t.hour, t.minute, t.second), "ns") for t in v.flat]).reshape(v.shape)
+    raise FieldError("the time coordinate is not CF-encoded (needs units like 'hours since 2018-03-01')")
+
+
+def _select_times(t64: np.ndarray, start, hours) -> tuple[np.ndarray, str]:
+    """Indices of the snapshots kept (see module docstring, step 3) and a note saying how."""
+    order_ok = t64.size < 2 or np.all(np.diff(t64) > np.timedelta64(0))
+    if not order_ok:
+        raise FieldError("file times are not strictly increasing")
+    first, last = t64[0], t64[-1]
+    if start is None:
+        t0 = first
+    else:
+        try:
+            t0 = np.datetime64(_parse_iso(str(start)).replace(tzinfo=None), "ns")
+        except ValueError:
+            raise FieldError(f"--start must be an ISO-8601 time like 2018-03-01T00:00Z, got {start!r}") from None
+    if hours is not None and (int(hours) != hours or hours < 1):
+        raise FieldError(f"hours must be a positive integer, got {hours!r}")
+    t1 = t64[-1] + np.timedelta64(1, "s") if hours is None else t0 + np.timedelta64(int(hours) * 3600, "s")
+    sel = np.nonzero((t64 >= t0) & (t64 < t1))[0]
+    span = f"{str(first)[:19]}Z..{str(last)[:19]}Z"
+    if sel.size == 0:
+        raise FieldError(f"no snapshot in {str(t0)[:19]}Z + {hours} h; the file covers {span}")
+    step = np.median(np.diff(t64[sel]).astype("timedelta64[s]").astype(float)) if sel.size > 1 else 3600.0
+    if sel.size == 1:
+        note = "one snapshot in the window"
+    elif step < 3600.0 - 60.0:
+        off = (t64[sel] - t0).astype("timedelta64[s]").astype(float)
+        r = np.mod(off + 60.0, 3600.0)
+        sel = sel[r <= 120.0]
+        note = f"file step {step:.0f} s is finer than hourly: kept the snapshots on whole hours after start"
+        if sel.size == 0:
+            raise FieldError(f"no snapshot of the file ({span}) falls on a whole hour after {str(t0)[:19]}Z")
+    elif step > 3600.0 + 60.0:
+        note = f"file step {step / 3600:.3g} h is coarser than hourly: kept the file's own times (no temporal interpolation)"
+    else:
+        note = "hourly file: kept its snapshots"
+    if hours is not None and step <= 3600.0 + 60.0 and sel.size < int(hours):
+        note += f"; only {sel.size} of the {int(hours)} hourly snapshots asked for are in the file ({span})"
+    return sel, note
+
+
+# -- the importer -----------------------------------------------------------------
+def import_currents(path, grid, *, start=None, hours=None, variables=None, units=None) -> FlowField:
+    """Read a model/radar current file and regrid its surface currents onto ``grid``.
+
+    Args:
+        path: NetCDF file (HYCOM/RTOFS, Copernicus Marine, HF radar, ...).
+        grid: target :class:`geo.RegionGrid` (cell centres, -180..180 longitudes).
+        start: first time to keep, ISO-8601 UTC string (default: the file's first).
+        hours: length of the time window in hours (default: to the end of the file).
+        variables: ``(u_name, v_name)`` to bypass detection.
+        units: override the files' velocity units (e.g. ``"cm/s"``).
+
+    Returns:
+        A :class:`FlowField` ``(time, 2, rows, cols)`` float32 in m/s, NaN where the
+        source has no data; ``attrs`` record the source, variables, unit factor,
+        depth, time selection and ``coverage``.
+    """
+    import xarray as xr
+    from scipy.interpolate import RegularGridInterpolator
+
+    import geo
+
+    if not isinstance(grid, geo.RegionGrid) or isinstance(grid, geo.MetricRegionGrid):
+        raise FieldError("importing needs a geographic RegionGrid (lat/lon) as target")
+    path = Path(path)
+    if not path.exists():
+        raise FieldError(f"current file not found: {path}")
+    try:
+        ds = xr.open_dataset(path)
+    except Exception as exc:  # noqa: BLE001 - every reader failure means a bad file for the user
+        msg = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        raise FieldError(f"cannot read {path} as NetCDF: {msg}") from None
+    with ds:
+        u_name, v_name = _find_velocity(ds, variables)
+        u, v = ds[u_name], ds[v_name]
+        if u.dims != v.dims:
+            raise FieldError(f"{u_name} and {v_name} have different dimensions {u.dims} vs {v.dims}")
+        if units is not None:
+            su = sv = velocity_scale(units)
+        else:
+            su, sv = velocity_scale(u.attrs.get("units")), velocity_scale(v.attrs.get("units"))
+        lat_dim, lon_dim, lat, lon = _horizontal(ds, u)
+        tdim = _time_dim(ds, u)
+
+        # -- reduce extra dimensions to the surface ------------------------------
+        isel: dict[str, Any] = {}
+        depth_used = None
+        for d in u.dims:
+            if d in (lat_dim, lon_dim, tdim):
+                continue
+            if _is_depth(str(d), ds):
+                z = ds[d].values.astype(float) if d in ds.variables else np.arange(u.sizes[d], dtype=float)
+                k = int(np.nanargmin(np.abs(z)))
+                isel[d] = k
+                depth_used = float(z[k])
+            elif u.sizes[d] == 1:
+                isel[d] = 0
+            else:
+                raise FieldError(f"{u_name} has an extra dimension {d!r} of size {u.sizes[d]} that is not depth")
+
+        # -- times ---------------------------------------------------------------
+        if tdim is not None:
+            t64 = _to_datetime64(ds[tdim].values)
+        else:
+            tc = [c for c in u.coords if u[c].ndim == 0 and (np.issubdtype(u[c].dtype, np.datetime64) or str(c) in _TIME_NAMES)]
+            if not tc:
+                raise FieldError(f"{u_name} has no time coordinate")
+            t64 = _to_datetime64(np.atleast_1d(u[tc[0]].values))
+        tsel, time_note = _select_times(t64, start, hours)
+        if tdim is not None:
+            isel[tdim] = tsel
+
+        # -- region window (lon wrapped to -180..180, both axes ascending) ---------
+        lon_w = (lon + 180.0) % 360.0 - 180.0
+        lon_order = np.argsort(lon_w, kind="stable")
+        lat_order = np.argsort(lat, kind="stable")
+        lon_s, lat_s = lon_w[lon_order], lat[lat_order]
+        if np.any(np.diff(lon_s) <= 0) or np.any(np.diff(lat_s) <= 0):
+            raise FieldError("source latitudes/longitudes contain duplicates")
+        glat, glon = grid.lats, grid.lons
+        i0 = max(int(np.searchsorted(lat_s, glat[0], side="right")) - 1, 0)
+        i1 = min(int(np.searchsorted(lat_s, glat[-1], side="left")) + 1, lat_s.size)
+        j0 = max(int(np.searchsorted(lon_s, glon[0], side="right")) - 1, 0)
+        j1 = min(int(np.searchsorted(lon_s, glon[-1], side="left")) + 1, lon_s.size)
+        if i1 - i0 < 2 or j1 - j0 < 2 or lat_s[-1] < glat[0] or lat_s[0] > glat[-1] or lon_s[-1] < glon[0] or lon_s[0] > glon[-1]:
+            raise FieldError(
+                f"region lat {glat[0]:.3f}..{glat[-1]:.3f}, lon {glon[0]:.3f}..{glon[-1]:.3f} does not overlap the file "
+                f"(lat {lat_s[0]:.3f}..{lat_s[-1]:.3f}, lon {lon_s[0]:.3f}..{lon_s[-1]:.3f})"
+            )
+        isel[lat_dim] = lat_order[i0:i1]
+        isel[lon_dim] = lon_order[j0:j1]
+        order = [tdim, lat_dim, lon_dim] if tdim is not None else [lat_dim, lon_dim]
+        arrays = []
+        for var, scale in ((u, su), (v, sv)):
+            a = var.isel(isel).transpose(*order).values.astype(np.float64)
+            if tdim is None:
+                a = a[None]
+            lo_v, hi_v = _valid_range(var)
+            a = np.where((a < lo_v) | (a > hi_v), np.nan, a) * scale
+            arrays.append(a)
+        src = np.stack(arrays, axis=-1)  # (T, nlat, nlon, 2) m/s, NaN = missing
+        sub_lat, sub_lon = lat_s[i0:i1], lon_s[j0:j1]
+        attrs_src = {k: str(v_) for k, v_ in ds.attrs.items() if k in ("title", "institution", "source", "product_id")}
+
+    # -- bilinear regridding ------------------------------------------------------
+    T = src.shape[0]
+    valid = np.isfinite(src).all(axis=-1)  # (T, nlat, nlon)
+    # RegularGridInterpolator interpolates trailing dims together: values (nlat, nlon, T*2)
+    vals = np.where(valid[..., None], src, 0.0).transpose(1, 2, 0, 3).reshape(sub_lat.size, sub_lon.size, T * 2)
+    wval = valid.transpose(1, 2, 0).astype(np.float64)
+    # a centre within 1e-6 deg (0.1 m) of the source's outer nodes is on them, not outside
+    # (grids written with the source's own extent must not lose their edge to rounding)
+    glat_c = _snap_to_edges(glat, sub_lat)
+    glon_c = _snap_to_edges(glon, sub_lon)
+    pts = np.stack(np.meshgrid(glat_c, glon_c, indexing="ij"), axis=-1).reshape(-1, 2)
+    kw = dict(method="linear", bounds_error=False, fill_value=np.nan)
+    num = RegularGridInterpolator((sub_lat, sub_lon), vals, **kw)(pts)  # (cells, T*2)
+    wv = RegularGridInterpolator((sub_lat, sub_lon), wval, **kw)(pts)  # (cells, T): weight on valid nodes
+    # the 0 placeholder at missing nodes only ever meets weight < tol: below it the
+    # valid weights are renormalised, above it the cell is NaN (module docstring, step 5)
+    ok = np.isfinite(wv) & (wv >= 1.0 - _MISSING_WEIGHT_TOL)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        out = num.reshape(-1, T, 2) / wv[..., None]
+    out = np.where(ok[..., None], out, np.nan)
+    data = out.reshape(grid.rows, grid.cols, T, 2).transpose(2, 3, 0, 1).astype(np.float32)
+
+    t_kept = t64[tsel]
+    origin = str(t_kept[0].astype("datetime64[s]")) + "Z"
+    times = (t_kept - t_kept[0]).astype("timedelta64[ms]").astype(np.float64) / 1000.0
+    attrs: dict[str, Any] = {
+        "title": "imported surface currents",
+        "generator": "passt_mav.fields.importers.import_currents",
+        "source_file": path.name,
+        "source_attrs": attrs_src,
+        "variables": [u_name, v_name],
+        "units_factor_to_m_s": [su, sv],
+        "depth_m": depth_used,
+        "time_selection": time_note,
+        "start": None if start is None else str(start),
+        "hours": None if hours is None else int(hours),
+        "regrid": "bilinear (scipy RegularGridInterpolator); stencils touching missing nodes stay NaN",
+    }
+    field = FlowField(data, grid, times, origin, "m s-1", attrs)
+    field.attrs["coverage"] = round(field.coverage, 6)
+    return field
+
+
+def _snap_to_edges(x: np.ndarray, nodes: np.ndarray, tol: float = 1e-6) -> np.ndarray:
+    x = x.copy()
+    x[(x < nodes[0]) & (x > nodes[0] - tol)] = nodes[0]
+    x[(x > nodes[-1]) & (x < nodes[-1] + tol)] = nodes[-1]
+    return x
+
+
+def _valid_range(var) -> tuple[float, float]:
+    """CF valid range of a variable in its stored (unpacked, since unscaled) units."""
+    a = var.attrs
+    enc = var.encoding
+    if "scale_factor" in enc or "add_offset" in enc:
+        # valid_* of packed variables are in packed units; xarray already masked _FillValue
+        return -math.inf, math.inf
+    lo, hi = -math.inf, math.inf
+    if "valid_range" in a:
+        lo, hi = (float(x) for x in np.asarray(a["valid_range"]).ravel()[:2])
+    lo = float(a.get("valid_min", lo))
+    hi = float(a.get("valid_max", hi))
+    return lo, hi
+
+
+def coverage_report(field: FlowField) -> dict[str, Any]:
+    """How much of a field holds data.
+
+    Returns a JSON-able dict: ``coverage`` (fraction of (time, cell) pairs with
+    data), ``cells_any`` / ``cells_all`` (fraction of cells with data at some /
+    every time), ``per_time_min`` / ``per_time_max`` (range of the per-snapshot
+    coverage), ``n_times``, ``shape``.
+    """
+    m = field.mask
+    per_t = 1.0 - m.reshape(m.shape[0], -1).mean(axis=1)
+    return {
+        "coverage": float(1.0 - m.mean()),
+        "cells_any": float((~m).any(axis=0).mean()),
+        "cells_all": float((~m).all(axis=0).mean()),
+        "per_time_min": float(per_t.min()),
+        "per_time_max": float(per_t.max()),
+        "n_times": int(field.n_times),
+        "shape": list(field.shape),
+    }

@@ -1,0 +1,418 @@
+"""The :class:`Simulator`: clock, links, transports (in-process and sockets).
+
+Two ways to run it:
+
+* **Lockstep** (tests): nothing happens until you call :meth:`Simulator.step` /
+  :meth:`Simulator.run_until`; messages written by an in-process GCS endpoint are
+  taken in at the next step, replies are readable once their (simulated)
+  delivery time has passed.
+* **Served** (:meth:`Simulator.serve`): a background thread advances simulated
+  time at ``speedup`` x wall-clock time and moves bytes between the links and
+  TCP/UDP sockets (and in-process endpoints). :meth:`Simulator.stop` ends it.
+
+All stream rates, timeouts and link impairments are in simulated time, so a
+speedup of 100 behaves like real time, only faster.
+"""
+
+from __future__ import annotations
+
+import collections
+import select
+import socket
+import threading
+import time
+from typing import Iterable
+
+from vehicle_sim.autopilot import Autopilot
+from vehicle_sim.boat import CurrentModel
+from vehicle_sim.config import LinkConfig, SimConfig
+from vehicle_sim.link import Link, TlogWriter, parse_link_spec
+
+__all__ = ["Simulator", "InProcessEndpoint"]
+
+
+class InProcessEndpoint:
+    """GCS side of an in-memory link: ``write(bytes)`` to the vehicle, ``read() -> bytes`` from it.
+
+    Thread-safe. ``read`` returns at once (``b""`` when nothing has arrived); in
+    lockstep nothing arrives until the simulator steps. A pymavlink ``MAVLink``
+    object can use the endpoint as its file (it calls ``write``).
+    """
+
+    def __init__(self, sim: "Simulator", link: Link):
+        self.sim = sim
+        self.link = link
+        self._lock = threading.Lock()
+        self._inbox: collections.deque[bytes] = collections.deque()  # GCS -> vehicle, not yet taken
+        self._outbox = bytearray()  # vehicle -> GCS, delivered
+        self.closed = False
+
+    def write(self, buf: bytes) -> int:
+        if self.closed:
+            return 0
+        with self._lock:
+            self._inbox.append(bytes(buf))
+        return len(buf)
+
+    def read(self, n: int | None = None) -> bytes:
+        with self._lock:
+            if n is None or n >= len(self._outbox):
+                out = bytes(self._outbox)
+                self._outbox.clear()
+            else:
+                out = bytes(self._outbox[:n])
+                del self._outbox[:n]
+            return out
+
+    def pending(self) -> int:
+        """Bytes delivered and not read yet."""
+        with self._lock:
+            return len(self._outbox)
+
+    # simulator side
+    def _take_inbox(self) -> bytes:
+        with self._lock:
+            data = b"".join(self._inbox)
+            self._inbox.clear()
+            return data
+
+    def _deliver(self, data: bytes) -> None:
+        if data:
+            with self._lock:
+                self._outbox += data
+
+    def close(self) -> None:
+        self.closed = True
+        self.sim._remove_link(self.link)
+
+    def mavlink_connection(self, **kw):
+        """A pymavlink ``mavutil``-compatible connection on this endpoint (see :mod:`vehicle_sim.inprocess`)."""
+        from vehicle_sim.inprocess import InProcessMavfile
+
+        return InProcessMavfile(self, **kw)
+
+
+class Simulator:
+    """A simulated ArduPilot Rover boat in a current field.
+
+    Args:
+        field: a :class:`passt_mav.fields.FlowField`, or None for still water.
+        home: ``(lat, lon)`` degrees where the boat starts (and home).
+        config: :class:`SimConfig`.
+        velocity_scale, time_scale, start_time, uniform_current: see
+            :class:`vehicle_sim.boat.CurrentModel`.
+        link_config: default impairment for new links.
+        epoch0: UTC epoch seconds at boot (default: now).
+    """
+
+    def __init__(self, field=None, *, home: tuple[float, float], config: SimConfig | None = None,
+                 velocity_scale: float = 1.0, time_scale: float = 1.0, start_time: float | None = None,
+                 uniform_current: tuple[float, float] = (0.0, 0.0), link_config: LinkConfig | None = None,
+                 epoch0: float | None = None):
+        self.config = config or SimConfig()
+        self.field = field
+        self.current = CurrentModel(field, start_time=start_time, velocity_scale=velocity_scale,
+                                    time_scale=time_scale, uniform=uniform_current)
+        self.link_config = link_config or LinkConfig()
+        self.epoch0 = time.time() if epoch0 is None else float(epoch0)
+        self.links: list[Link] = []
+        self._endpoints: dict[int, InProcessEndpoint] = {}
+        self.tlog = TlogWriter(self.config.tlog, self.epoch0) if self.config.tlog else None
+        self.autopilot = Autopilot(home, self.current, self.config, self._send, lambda: self.links, epoch0=self.epoch0)
+        self._lock = threading.RLock()
+        self._next_index = 0
+        self._thread: threading.Thread | None = None
+        self._stop = threading.Event()
+        self._sockets: list = []
+        self.running = False
+        self.error: BaseException | None = None
+
+    # -- clock -------------------------------------------------------------------------
+    @property
+    def t(self) -> float:
+        """Simulated seconds since boot."""
+        return self.autopilot.t
+
+    def step(self, dt: float | None = None) -> None:
+        """Advance simulated time by ``dt`` (default one physics step), in physics sub-steps."""
+        dt = self.config.physics_dt if dt is None else float(dt)
+        with self._lock:
+            remaining = dt
+            while remaining > 1e-12:
+                h = min(self.config.physics_dt, remaining)
+                self._tick(h)
+                remaining -= h
+
+    def run_until(self, t: float) -> None:
+        """Advance until simulated time ``t``."""
+        if t > self.t:
+            self.step(t - self.t)
+
+    def run_until_condition(self, cond, timeout: float, dt: float | None = None) -> bool:
+        """Step until ``cond()`` is true or ``timeout`` simulated seconds pass; returns cond()."""
+        end = self.t + timeout
+        while not cond():
+            if self.t >= end:
+                return bool(cond())
+            self.step(dt)
+        return True
+
+    def _tick(self, h: float) -> None:
+        ap = self.autopilot
+        for link in list(self.links):
+            ep = self._endpoints.get(id(link))
+            if ep is not None:
+                data = ep._take_inbox()
+                if data:
+                    link.feed(data, ap.t)
+            for msg in link.pop_incoming(ap.t):
+                ap.handle(link, msg)
+        ap.update(h)
+        for link in list(self.links):
+            ep = self._endpoints.get(id(link))
+            if ep is not None:
+                ep._deliver(link.pop_outgoing(ap.t))
+
+    # -- links --------------------------------------------------------------------------
+    def _send(self, link: Link, msg) -> None:
+        link.send(msg, self.autopilot.t)
+
+    def add_link(self, name: str = "", config: LinkConfig | None = None) -> Link:
+        """A new link (channel); its index picks its MAVn_* stream parameters."""
+        with self._lock:
+            cfg = config or self.link_config
+            link = Link(self._next_index, cfg, sysid=self.config.sysid, compid=self.config.compid, tlog=self.tlog,
+                        signing_secret=self.config.signing_key, name=name)
+            self._next_index += 1
+            self.links.append(link)
+            return link
+
+    def _remove_link(self, link: Link) -> None:
+        with self._lock:
+            link.close()
+            if link in self.links:
+                self.links.remove(link)
+            self._endpoints.pop(id(link), None)
+            self.autopilot.forget_link(link)
+
+    def connect_inprocess(self, config: LinkConfig | None = None) -> InProcessEndpoint:
+        """A new in-memory link; returns its GCS-side endpoint (``write``/``read`` bytes)."""
+        with self._lock:
+            link = self.add_link("inprocess", config)
+            ep = InProcessEndpoint(self, link)
+            self._endpoints[id(link)] = ep
+            return ep
+
+    # -- serving over sockets -------------------------------------------------------------
+    def serve(self, listen: Iterable[str] = (), speedup: float = 1.0, wait_for_client: bool = False,
+              link_configs: dict[str, LinkConfig] | None = None, poll_s: float = 0.002) -> None:
+        """Run in a background thread: simulated time = ``speedup`` x wall time.
+
+        ``listen``: ``tcp:HOST:PORT`` (server; every client is its own link),
+        ``udpin:HOST:PORT`` (bind; reply to the last sender), ``udpout:HOST:PORT``
+        (send to it, like SITL's GCS output). ``wait_for_client``: hold the clock at
+        0 until a first TCP client connects (like SITL).
+        Sockets are opened before this returns (bind errors raise here).
+        """
+        if self._thread is not None:
+            raise RuntimeError("simulator already serving")
+        if speedup <= 0:
+            raise ValueError("speedup must be positive")
+        link_configs = link_configs or {}
+        self._sockets = []
+        for spec in listen:
+            kind, host, port = parse_link_spec(spec)
+            cfg = link_configs.get(spec)
+            if kind == "tcp":
+                s = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+                s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+                s.bind((host, port))
+                s.listen(8)
+                s.setblocking(False)
+                self._sockets.append({"kind": "tcp-listen", "sock": s, "spec": spec, "cfg": cfg})
+            else:
+                s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+                s.setblocking(False)
+                if kind == "udpin":
+                    s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+                    s.bind((host, port))
+                    peer = None
+                else:
+                    s.bind(("127.0.0.1" if host in ("127.0.0.1", "localhost") else "", 0))
+                    peer = (host, port)
+                link = self.add_link(spec, cfg)
+                self._sockets.append({"kind": kind, "sock": s, "spec": spec, "peer": peer, "link": link})
+        self._stop.clear()
+        self.running = True
+        self._thread = threading.Thread(target=self._serve_loop, args=(speedup, wait_for_client, poll_s),
+                                        name="vehicle-sim", daemon=True)
+        self._thread.start()
+
+    def ports(self) -> list[tuple[str, int]]:
+        """(spec, bound port) of each socket (useful with port 0)."""
+        return [(e["spec"], e["sock"].getsockname()[1]) for e in self._sockets if e["kind"] in ("tcp-listen", "udpin")]
+
+    def _serve_loop(self, speedup: float, wait_for_client: bool, poll_s: float) -> None:
+        try:
+            have_tcp = any(e["kind"] == "tcp-listen" for e in self._sockets)
+            waiting = wait_for_client and have_tcp
+            wall0 = time.monotonic()
+            sim0 = self.t
+            max_dt = max(self.config.physics_dt, 0.0)
+            while not self._stop.is_set():
+                self._poll_sockets(poll_s)
+                if waiting:
+                    if any(e["kind"] == "tcp-client" for e in self._sockets):
+                        waiting = False
+                        wall0, sim0 = time.monotonic(), self.t
+                    continue
+                target = sim0 + (time.monotonic() - wall0) * speedup
+                behind = target - self.t
+                if behind > 5.0 + 50 * max_dt:
+                    # too slow to keep up: let the clock slip rather than spiral
+                    sim0 += behind - 5.0
+                    target = sim0 + (time.monotonic() - wall0) * speedup
+                steps = 0
+                while self.t + 1e-9 < target and steps < 200 and not self._stop.is_set():
+                    self.step(min(max_dt, target - self.t))
+                    steps += 1
+                    if steps % 20 == 0:
+                        self._flush_sockets()
+                self._flush_sockets()
+        except BaseException as exc:  # noqa: BLE001 - recorded and re-raised by stop()
+            self.error = exc
+        finally:
+            for e in self._sockets:
+                try:
+                    e["sock"].close()
+                except OSError:
+                    pass
+            self.running = False
+
+    def _poll_sockets(self, timeout: float) -> None:
+        socks = [e["sock"] for e in self._sockets]
+        if not socks:
+            time.sleep(timeout)
+            return
+        try:
+            ready, _, _ = select.select(socks, [], [], timeout)
+        except (OSError, ValueError):
+            ready = []
+        for e in list(self._sockets):
+            if e["sock"] not in ready:
+                continue
+            kind = e["kind"]
+            if kind == "tcp-listen":
+                try:
+                    c, addr = e["sock"].accept()
+                except OSError:
+                    continue
+                c.setblocking(False)
+                c.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+                link = self.add_link(f"{e['spec']} {addr[0]}:{addr[1]}", e.get("cfg"))
+                self._sockets.append({"kind": "tcp-client", "sock": c, "spec": e["spec"], "link": link, "pending": b""})
+            elif kind == "tcp-client":
+                try:
+                    data = e["sock"].recv(65536)
+                except (BlockingIOError, InterruptedError):
+                    continue
+                except OSError:
+                    data = b""
+                if not data:
+                    self._close_entry(e)
+                    continue
+                with self._lock:
+                    e["link"].feed(data, self.t)
+            else:
+                while True:
+                    try:
+                        data, addr = e["sock"].recvfrom(65536)
+                    except (BlockingIOError, InterruptedError, ConnectionRefusedError):
+                        break
+                    except OSError:
+                        break
+                    if kind == "udpin":
+                        e["peer"] = addr
+                    with self._lock:
+                        e["link"].feed(data, self.t)
+
+    def _close_entry(self, e) -> None:
+        try:
+            e["sock"].close()
+        except OSError:
+            pass
+        if e in self._sockets:
+            self._sockets.remove(e)
+        self._remove_link(e["link"])
+
+    def _flush_sockets(self) -> None:
+        t = self.t
+        for e in list(self._sockets):
+            kind = e["kind"]
+            if kind == "tcp-client":
+                data = e["pending"] + e["link"].pop_outgoing(t)
+                if data:
+                    try:
+                        n = e["sock"].send(data)
+                    except (BlockingIOError, InterruptedError):
+                        n = 0
+                    except OSError:
+                        self._close_entry(e)
+                        continue
+                    # a client that does not read: keep at most 1 MB, then drop (a radio would too)
+                    e["pending"] = data[n:][-1_000_000:]
+            elif kind in ("udpin", "udpout"):
+                data = e["link"].pop_outgoing(t)
+                if data and e["peer"] is not None:
+                    # one datagram per frame, as MAVLink UDP peers expect
+                    for frame in _split_frames(data):
+                        try:
+                            e["sock"].sendto(frame, e["peer"])
+                        except OSError:
+                            break
+        for link in list(self.links):
+            ep = self._endpoints.get(id(link))
+            if ep is not None:
+                ep._deliver(link.pop_outgoing(t))
+                data = ep._take_inbox()
+                if data:
+                    with self._lock:
+                        link.feed(data, t)
+
+    def stop(self) -> None:
+        """Stop serving (joins the thread); closes sockets and the tlog."""
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=10)
+            self._thread = None
+        if self.tlog is not None:
+            self.tlog.close()
+        if self.error is not None:
+            err, self.error = self.error, None
+            raise err
+
+    def close(self) -> None:
+        self.stop()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.stop()
+
+
+def _split_frames(data: bytes) -> list[bytes]:
+    """Split a run of whole MAVLink frames (v1/v2, signed or not) into frames."""
+    out, i, n = [], 0, len(data)
+    while i < n:
+        magic = data[i]
+        if magic == 0xFD and i + 10 <= n:
+            ln = 12 + data[i + 1] + (13 if data[i + 2] & 0x01 else 0)
+        elif magic == 0xFE and i + 6 <= n:
+            ln = 8 + data[i + 1]
+        else:
+            out.append(data[i:])
+            break
+        out.append(data[i:i + ln])
+        i += ln
+    return out
