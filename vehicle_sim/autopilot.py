@@ -83,8 +83,8 @@ for _n in range(1, 5):
 
 #: stream group -> messages (ArduPilot's ap_message groups, reduced to what we send)
 STREAM_GROUPS = {
-    "EXT_STAT": ("SYS_STATUS", "GPS_RAW_INT", "MISSION_CURRENT", "NAV_CONTROLLER_OUTPUT"),
-    "POSITION": ("GLOBAL_POSITION_INT",),
+    "EXT_STAT": ("SYS_STATUS", "GPS_RAW_INT", "MISSION_CURRENT", "NAV_CONTROLLER_OUTPUT", "POWER_STATUS", "MEMINFO"),
+    "POSITION": ("GLOBAL_POSITION_INT", "LOCAL_POSITION_NED"),
     "EXTRA1": ("ATTITUDE",),
     "EXTRA2": ("VFR_HUD",),
     "EXTRA3": ("SYSTEM_TIME", "BATTERY_STATUS", "EKF_STATUS_REPORT"),
@@ -118,6 +118,8 @@ class Autopilot:
         links: ``links() -> list`` of the live links (telemetry goes to all).
         epoch0: UTC epoch seconds at boot (SYSTEM_TIME, tlog).
     """
+
+    MAVLINK = mavlink2
 
     def __init__(self, home: tuple[float, float], current: CurrentModel, config: SimConfig,
                  send: Callable, links: Callable[[], list], epoch0: float | None = None, home_alt: float = 0.0):
@@ -272,7 +274,8 @@ class Autopilot:
         if cmd == R.MAV_CMD_DO_SET_MODE:
             result = self.set_mode(int(p[1]), link) if int(p[0]) & R.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED else R.MAV_RESULT_UNSUPPORTED
         elif cmd == R.MAV_CMD_MISSION_START:
-            result = self.set_mode(MODES["AUTO"], link)
+            # first/last item arguments are not supported by ArduPilot: DENIED unless both are 0
+            result = self.set_mode(MODES["AUTO"], link) if p[0] == 0 and p[1] == 0 else R.MAV_RESULT_DENIED
         elif cmd == R.MAV_CMD_COMPONENT_ARM_DISARM:
             result = self.arm(link) if p[0] >= 0.5 else self.disarm()
             if p[0] >= 0.5 and int(round(p[1])) == ARM_FORCE_MAGIC and result != R.MAV_RESULT_ACCEPTED:
@@ -391,6 +394,8 @@ class Autopilot:
         if self.armed and mode in NEEDS_POSITION and not self.ekf_abs:
             self.text(link, M.MAV_SEVERITY_WARNING, "Flight mode change failed")
             return M.MAV_RESULT_FAILED
+        if mode == self.mode:
+            return M.MAV_RESULT_ACCEPTED  # like ArduPilot: asking for the current mode does not re-enter it
         self._enter_mode(mode)
         return M.MAV_RESULT_ACCEPTED
 
@@ -422,6 +427,7 @@ class Autopilot:
     def _mission_changed(self, mtype: int) -> None:
         if mtype != 0:
             return
+        self.params["MIS_TOTAL"] = float(self.store.count(0))  # ArduPilot's read-only count (incl. home)
         if self.store.count(0) <= 1:
             self.mission_state = "stopped"
             self.mission_started = False
@@ -573,23 +579,25 @@ class Autopilot:
 
     def _auto_motion(self, current) -> tuple[float, float]:
         b = self.boat
-        it = self.active_item
-        tgt = self._item_xy(it)
-        d = math.hypot(tgt[0] - b.x, tgt[1] - b.y)
-        if not self.reached_current:
+        # several items may be reached at once (stacked waypoints): bounded, the rest waits for the next step
+        for _ in range(32):
+            it = self.active_item
+            if it is None or self.mission_state != "running":
+                return self._station_keep(current)
+            tgt = self._item_xy(it)
+            if self.reached_current:
+                self.station = tgt
+                return self._station_keep(current)
+            d = math.hypot(tgt[0] - b.x, tgt[1] - b.y)
             passed = False
             if self.cfg.boat.nav == "crosstrack" and self.leg_origin is not None:
                 ox, oy = self.leg_origin
                 lx, ly = tgt[0] - ox, tgt[1] - oy
                 leg = math.hypot(lx, ly)
                 passed = leg > 1e-6 and ((b.x - ox) * lx + (b.y - oy) * ly) / leg >= leg
-            if d <= self.p("WP_RADIUS") or passed:
-                self._reached(it, d)
-                if self.active_item is None or self.active_item is not it or self.mission_state != "running":
-                    return (b.heading, 0.0) if self.active_item is None else self._auto_motion(current)
-            else:
+            if not (d <= self.p("WP_RADIUS") or passed):
                 return guidance(b, tgt, self.wp_speed(), current, self.cfg.boat, self.leg_origin)
-        self.station = tgt
+            self._reached(it, d)
         return self._station_keep(current)
 
     def _reached(self, it, dist: float) -> None:
@@ -687,7 +695,8 @@ class Autopilot:
         return -1.0
 
     STREAMED = ("HEARTBEAT", "SYS_STATUS", "GPS_RAW_INT", "GLOBAL_POSITION_INT", "ATTITUDE", "VFR_HUD",
-                "MISSION_CURRENT", "EKF_STATUS_REPORT", "BATTERY_STATUS", "SYSTEM_TIME", "TIMESYNC")
+                "MISSION_CURRENT", "EKF_STATUS_REPORT", "BATTERY_STATUS", "SYSTEM_TIME", "TIMESYNC",
+                "NAV_CONTROLLER_OUTPUT", "LOCAL_POSITION_NED", "POWER_STATUS", "MEMINFO")
 
     def _telemetry(self) -> None:
         cache: dict[str, object] = {}
@@ -747,7 +756,7 @@ class Autopilot:
 
     def _send_one(self, link, msgid: int, req, send: bool = False) -> bool:
         name = _msg_name(msgid)
-        if name is None:
+        if name is None or (name == "HOME_POSITION" and not self.home_set):
             return False
         m = self._make(name)
         if m is None:
@@ -862,6 +871,19 @@ class Autopilot:
         else:
             brg, dist = int(round(math.degrees(b.heading))) % 360, 0
         return M.MAVLink_nav_controller_output_message(0.0, 0.0, int(round(math.degrees(b.heading))), brg, dist, 0.0, 0.0, 0.0)
+
+    def _local_position_ned(self):
+        if not self.ekf_abs:
+            return None  # no EKF origin yet
+        b = self.boat
+        hx, hy = self.frame.to_xy(*self.home_latlon)
+        return M.MAVLink_local_position_ned_message(self.time_boot_ms, b.y - hy, b.x - hx, 0.0, b.ground_vn, b.ground_ve, 0.0)
+
+    def _power_status(self):
+        return M.MAVLink_power_status_message(5000, 0, M.MAV_POWER_STATUS_BRICK_VALID)
+
+    def _meminfo(self):
+        return M.MAVLink_meminfo_message(0, 65535, 131072)
 
     def _home_position(self):
         lat, lon, alt = self.home()

@@ -62,9 +62,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--anchor", default=None, help="LAT,LON of a metric field's centre (re-anchors it)")
     p.add_argument("--scale", type=float, default=None, help="Earth metres per data metre of a metric field")
     p.add_argument("--rotation", type=float, default=None, help="counter-clockwise rotation of a metric field, degrees")
-    p.add_argument("--start-time", type=float, default=None, help="field time at boot (field units; default first snapshot)")
+    p.add_argument("--start-time", default=None,
+                   help="field time at boot: a number in the field's time units, or an ISO UTC time for geographic fields (default: first snapshot)")
     p.add_argument("--speedup", type=float, default=1.0, help="simulated seconds per wall second (default 1)")
-    p.add_argument("--wait", action="store_true", help="hold the clock until the first TCP client connects (like SITL)")
+    p.add_argument("--lockstep", action="store_true",
+                   help="time stands still until a GCS sends COMMAND_LONG 31010 (MAV_CMD_USER_1) with param1 = seconds to run")
+    p.add_argument("--no-wait", action="store_true",
+                   help="start the clock at once (default with a tcp listener: hold it until the first TCP client connects, like SITL)")
     p.add_argument("--loss", type=float, default=0.0, help="frame loss probability each way (0..1)")
     p.add_argument("--latency", type=float, default=0.0, help="one-way latency, simulated seconds")
     p.add_argument("--baud", type=int, default=0, help="emulate a serial radio of this many bit/s (0 = unlimited)")
@@ -88,7 +92,10 @@ def _load_field(args):
         return None
     from passt_mav.fields.datasets import resolve_field
 
-    field = resolve_field(args.field, seed=args.seed)
+    try:
+        field = resolve_field(args.field, seed=args.seed)
+    except ImportError as exc:
+        raise _Bad(f"field {args.field!r} is not available in this installation ({exc})") from None
     g = field.grid
     if any(v is not None for v in (args.anchor, args.scale, args.rotation)):
         if field.is_geographic:
@@ -117,6 +124,32 @@ def _load_field(args):
             raise _Bad(f"--region {args.region} keeps fewer than 2x2 cells of the field")
         field = field.isel(rows=slice(int(rows[0]), int(rows[-1]) + 1), cols=slice(int(cols[0]), int(cols[-1]) + 1))
     return field
+
+
+def _start_time(value, field) -> float | None:
+    if value is None:
+        return None
+    try:
+        return float(value)
+    except ValueError:
+        pass
+    if field is None or field.time_origin is None:
+        raise _Bad(f"--start-time {value!r}: an ISO time needs a geographic field with a time origin")
+    import datetime as dt
+
+    try:
+        t = dt.datetime.fromisoformat(value.replace("Z", "+00:00"))
+        t0 = dt.datetime.fromisoformat(field.time_origin.replace("Z", "+00:00"))
+    except ValueError:
+        raise _Bad(f"--start-time must be a number or an ISO time, got {value!r}") from None
+    if t.tzinfo is None:
+        t = t.replace(tzinfo=dt.timezone.utc)
+    if t0.tzinfo is None:
+        t0 = t0.replace(tzinfo=dt.timezone.utc)
+    sec = (t - t0).total_seconds()
+    if not field.times[0] <= sec <= field.times[-1]:
+        raise _Bad(f"--start-time {value} lies outside the field's time range")
+    return sec
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -183,9 +216,9 @@ def _run(args) -> int:
     )
     link_cfg = LinkConfig(loss=args.loss, latency_s=args.latency, baud=args.baud,
                           drops=tuple(_drop(d) for d in args.drop), seed=args.seed)
-    sim = Simulator(field, home=home, config=cfg, velocity_scale=vs, time_scale=ts, start_time=args.start_time,
-                    link_config=link_cfg)
-    sim.serve(listen, speedup=args.speedup, wait_for_client=args.wait)
+    sim = Simulator(field, home=home, config=cfg, velocity_scale=vs, time_scale=ts,
+                    start_time=_start_time(args.start_time, field), link_config=link_cfg)
+    sim.serve(listen, speedup=args.speedup, wait_for_client=not args.no_wait, lockstep=args.lockstep)
     stop = {"flag": False}
 
     def _sigterm(*_):
@@ -193,7 +226,9 @@ def _run(args) -> int:
 
     signal.signal(signal.SIGTERM, _sigterm)
     if not args.quiet:
-        print(f"vehicle-sim: boat at {home[0]:.6f},{home[1]:.6f}; listening on {', '.join(listen)}; "
+        bound = {spec: port for spec, port in sim.ports()}
+        where = ", ".join(f"{s} (port {bound[s]})" if s.endswith(":0") and s in bound else s for s in listen)
+        print(f"vehicle-sim: boat at {home[0]:.6f},{home[1]:.6f}; listening on {where}; "
               f"speedup {args.speedup:g}" + (" (signed)" if cfg.signing_key else ""), file=sys.stderr)
     try:
         last = 0.0

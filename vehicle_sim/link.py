@@ -205,11 +205,11 @@ class Link:
                 if m.get_type() == "BAD_DATA":
                     self.stats["rx_bad"] += 1
                     continue
-                if self.tlog is not None:
-                    self.tlog.write(t, m.get_msgbuf())
                 if self.is_down(t) or (self.config.loss > 0 and self._rng.random() < self.config.loss):
                     self.stats["rx_lost"] += 1
                     continue
+                if self.tlog is not None:  # what the vehicle really received (after the radio's losses)
+                    self.tlog.write(t, m.get_msgbuf())
                 done = self._serialise(t, len(m.get_msgbuf()), self._rx_free)
                 if done is None:
                     self.stats["rx_overflow"] += 1
@@ -243,6 +243,6 @@ def parse_link_spec(spec: str) -> tuple[str, str, int]:
         port = int(parts[2])
     except ValueError:
         raise ValueError(f"bad port in {spec!r}") from None
-    if not 0 < port < 65536:
+    if not (0 <= port < 65536) or (port == 0 and kind == "udpout"):
         raise ValueError(f"port out of range in {spec!r}")
     return kind, parts[1] or "127.0.0.1", port

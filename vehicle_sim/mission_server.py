@@ -168,6 +168,10 @@ class MissionServer:
         self.sysid, self.compid = sysid, compid
         self.uploads: dict[int, _Upload] = {}
         self._warned_request = False
+        # download replies go out at the vehicle's pace too (ArduPilot answers one request per loop)
+        self._dl_queue: list[tuple[object, object]] = []
+        self._dl_last = -1e9
+        self._now = 0.0
 
     # -- helpers ----------------------------------------------------------------
     def _ack(self, link, msg, mtype: int, result: int) -> None:
@@ -205,6 +209,7 @@ class MissionServer:
         if mtype not in TYPES:
             self._ack(link, msg, mtype, M.MAV_MISSION_UNSUPPORTED)
             return True
+        self._now = t
         getattr(self, "_on_" + typ.lower())(link, msg, mtype, t)
         return True
 
@@ -289,7 +294,12 @@ class MissionServer:
             return
         it = self.item_for_download(mtype, seq)
         ts, tc = msg.get_srcSystem(), msg.get_srcComponent()
-        self._send(link, it.to_float_msg(ts, tc) if as_float else it.to_int_msg(ts, tc))
+        reply = it.to_float_msg(ts, tc) if as_float else it.to_int_msg(ts, tc)
+        if not self._dl_queue and self._now - self._dl_last >= self.cfg.mission_request_interval_s - 1e-9:
+            self._dl_last = self._now
+            self._send(link, reply)
+        elif len(self._dl_queue) < 64:  # a flood of requests is answered at pace, the excess dropped
+            self._dl_queue.append((link, reply))
 
     def _on_mission_request_int(self, link, msg, mtype, t):
         self._download_item(link, msg, mtype, as_float=False)
@@ -330,7 +340,12 @@ class MissionServer:
         self._send(up.link, M.MAVLink_mission_request_message(up.sysid, up.compid, up.next_seq, mtype))
 
     def update(self, t: float) -> None:
-        """Paced requests, re-requests after silence, cancellation after the timeout."""
+        """Paced requests and download replies, re-requests after silence, cancellation after the timeout."""
+        self._now = t
+        if self._dl_queue and t - self._dl_last >= self.cfg.mission_request_interval_s - 1e-9:
+            self._dl_last = t
+            link, reply = self._dl_queue.pop(0)
+            self._send(link, reply)
         for mtype in list(self.uploads):
             up = self.uploads[mtype]
             if t - up.last_rx > self.cfg.mission_timeout_s:

@@ -28,7 +28,10 @@ from vehicle_sim.boat import CurrentModel
 from vehicle_sim.config import LinkConfig, SimConfig
 from vehicle_sim.link import Link, TlogWriter, parse_link_spec
 
-__all__ = ["Simulator", "InProcessEndpoint"]
+__all__ = ["Simulator", "InProcessEndpoint", "STEP_COMMAND"]
+
+#: COMMAND_LONG id a GCS sends to advance a lockstep-served simulator (MAV_CMD_USER_1)
+STEP_COMMAND = 31010
 
 
 class InProcessEndpoint:
@@ -126,6 +129,9 @@ class Simulator:
         self._sockets: list = []
         self.running = False
         self.error: BaseException | None = None
+        self._lockstep = False
+        self._step_budget = 0.0
+        self._step_waiters: list = []
 
     # -- clock -------------------------------------------------------------------------
     @property
@@ -158,6 +164,11 @@ class Simulator:
         return True
 
     def _tick(self, h: float) -> None:
+        self._process_incoming()
+        self.autopilot.update(h)
+        self._deliver_inprocess()
+
+    def _process_incoming(self) -> None:
         ap = self.autopilot
         for link in list(self.links):
             ep = self._endpoints.get(id(link))
@@ -166,12 +177,19 @@ class Simulator:
                 if data:
                     link.feed(data, ap.t)
             for msg in link.pop_incoming(ap.t):
+                if self._lockstep and msg.get_type() == "COMMAND_LONG" and msg.command == STEP_COMMAND \
+                        and msg.target_system in (0, self.config.sysid):
+                    self._step_budget += max(0.0, float(msg.param1)) if msg.param1 == msg.param1 else 0.0
+                    self._step_waiters.append((link, msg))
+                    continue
                 ap.handle(link, msg)
-        ap.update(h)
+
+    def _deliver_inprocess(self) -> None:
+        t = self.autopilot.t
         for link in list(self.links):
             ep = self._endpoints.get(id(link))
             if ep is not None:
-                ep._deliver(link.pop_outgoing(ap.t))
+                ep._deliver(link.pop_outgoing(t))
 
     # -- links --------------------------------------------------------------------------
     def _send(self, link: Link, msg) -> None:
@@ -205,8 +223,14 @@ class Simulator:
 
     # -- serving over sockets -------------------------------------------------------------
     def serve(self, listen: Iterable[str] = (), speedup: float = 1.0, wait_for_client: bool = False,
-              link_configs: dict[str, LinkConfig] | None = None, poll_s: float = 0.002) -> None:
+              link_configs: dict[str, LinkConfig] | None = None, poll_s: float = 0.002, lockstep: bool = False) -> None:
         """Run in a background thread: simulated time = ``speedup`` x wall time.
+
+        ``lockstep``: the clock stands still (messages are still answered at the
+        frozen time) until a GCS sends COMMAND_LONG ``MAV_CMD_USER_1`` (31010) with
+        ``param1`` = seconds to advance; the simulator then runs those seconds as
+        fast as it can and acknowledges the command (COMMAND_ACK ACCEPTED) when
+        done. ``speedup`` is ignored.
 
         ``listen``: ``tcp:HOST:PORT`` (server; every client is its own link),
         ``udpin:HOST:PORT`` (bind; reply to the last sender), ``udpout:HOST:PORT``
@@ -244,6 +268,7 @@ class Simulator:
                 self._sockets.append({"kind": kind, "sock": s, "spec": spec, "peer": peer, "link": link})
         self._stop.clear()
         self.running = True
+        self._lockstep = bool(lockstep)
         self._thread = threading.Thread(target=self._serve_loop, args=(speedup, wait_for_client, poll_s),
                                         name="vehicle-sim", daemon=True)
         self._thread.start()
@@ -260,7 +285,10 @@ class Simulator:
             sim0 = self.t
             max_dt = max(self.config.physics_dt, 0.0)
             while not self._stop.is_set():
-                self._poll_sockets(poll_s)
+                self._poll_sockets(poll_s if not (self._lockstep and self._step_budget > 0) else 0.0)
+                if self._lockstep:
+                    self._lockstep_round(max_dt)
+                    continue
                 if waiting:
                     if any(e["kind"] == "tcp-client" for e in self._sockets):
                         waiting = False
@@ -288,6 +316,24 @@ class Simulator:
                 except OSError:
                     pass
             self.running = False
+
+    def _lockstep_round(self, max_dt: float) -> None:
+        with self._lock:
+            self._process_incoming()
+            steps = 0
+            while self._step_budget > 1e-9 and steps < 200:
+                h = min(max_dt, self._step_budget)
+                self._tick(h)
+                self._step_budget -= h
+                steps += 1
+            if self._step_budget <= 1e-9 and self._step_waiters:
+                self._step_budget = 0.0
+                for link, msg in self._step_waiters:
+                    link.send(self.autopilot.MAVLINK.MAVLink_command_ack_message(
+                        STEP_COMMAND, 0, 0, 0, msg.get_srcSystem(), msg.get_srcComponent()), self.autopilot.t)
+                self._step_waiters.clear()
+            self._deliver_inprocess()
+        self._flush_sockets()
 
     def _poll_sockets(self, timeout: float) -> None:
         socks = [e["sock"] for e in self._sockets]

@@ -1,18 +1,381 @@
-"""passt-mav evaluate: Offline PASST campaign: trials x path lengths, RMSE over time and POD energy."""
+"""passt-mav evaluate: offline PASST campaign - trials x path lengths, RMSE over time and POD energy.
+
+For every path length L (area covered per re-initialisation) and every trial
+(seed ``seed + trial``, random water start cell), the field is estimated over
+``--steps`` snapshots from the true state at ``--t0`` by:
+
+* ``passt``        - the PASST loop: model forecast, one-step reward, planner, GP on
+                     the residual vs the forecast, re-initialise, repeat;
+* ``model``        - the model alone from the true initial state (no re-initialisation);
+* ``lawnmower_gp`` / ``greedy_gp`` / ``random_gp`` - that planner's samples
+                     reconstructed by a GP alone (constant prior mean), the estimate
+                     held between legs (the paper's baselines); with
+                     ``--baseline-prior forecast`` they instead run the full loop with
+                     the model, so only the planner differs.
+
+Reported: RMSE over time (mean +- std over trials), POD energy of the estimated
+vs true series, and the ratio of each method's final-window RMSE to PASST's.
+Written under --out: ``results.json`` and PNG figures; the directory is named at the end.
+"""
 
 from __future__ import annotations
 
 import argparse
+import sys
 
 HELP = "Offline PASST campaign: trials x path lengths, RMSE over time and POD energy"
-EXAMPLES = None
+EXAMPLES = """examples:
+  passt-mav evaluate --data builtin:cylinder --model builtin:cylinder --out runs/eval_cyl
+  passt-mav evaluate --data builtin:oscillating --model builtin:cylinder --trials 10 --path-lengths 50,100 --out runs/eval_osc
+  passt-mav evaluate --data builtin:ocean --model dmd --reward vorticity --workers 2 --json --out runs/eval_ocean
+  passt-mav evaluate --data builtin:cylinder --model builtin:cylinder --scheduler tcp://127.0.0.1:8786 --out runs/eval_dask
+"""
+
+METHODS = ("passt", "model", "lawnmower_gp", "greedy_gp", "random_gp")
+DEFAULT_PATH_LENGTHS = "25,50,75,100,150,200"
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("rest", nargs=argparse.REMAINDER, help=argparse.SUPPRESS)
+    p.add_argument("--data", required=True, help="field: builtin:cylinder | builtin:oscillating | builtin:ocean | FILE.nc")
+    p.add_argument("--model", required=True, help="predictor: builtin:cylinder | builtin:ocean | CHECKPOINT | a predictor name (fitted on --data)")
+    p.add_argument("--trials", type=int, default=30, help="trials per path length (default 30)")
+    p.add_argument("--path-lengths", default=DEFAULT_PATH_LENGTHS, help=f"comma-separated moves per leg (default {DEFAULT_PATH_LENGTHS})")
+    p.add_argument("--planner", default="policy_gradient", help="PASST's planner (default policy_gradient)")
+    p.add_argument("--reward", default="speed", help="reward map: speed | vorticity | std | speed_std (default speed)")
+    p.add_argument("--steps", type=int, default=300, help="snapshots estimated after the start (default 300, clipped to the data)")
+    p.add_argument("--t0", type=int, default=0, help="start snapshot index (default 0)")
+    p.add_argument("--steps-per-leg", type=int, default=10, help="snapshots one leg spans = re-initialisation interval (default 10)")
+    p.add_argument("--noise", type=float, default=0.02, help="sensor noise std, field units (default 0.02)")
+    p.add_argument("--sampling", choices=("end", "spread"), default="end", help="when a leg's cells are read: all at the leg's end (default; the paper's offline protocol, one snapshot per leg) or spread over the leg at constant speed")
+    p.add_argument("--hyper", default="every_leg", help="GP hyper-parameter fits: every_leg | first_leg | state (default every_leg)")
+    p.add_argument("--baseline-prior", choices=("none", "forecast"), default="none", help="baselines: GP alone (none, default) or the full loop with the model (forecast)")
+    p.add_argument("--methods", default=",".join(METHODS), help=f"subset of {','.join(METHODS)}")
+    p.add_argument("--window", type=int, default=50, help="final window (steps) for the ratio table (default 50)")
+    p.add_argument("--snapshot-step", type=int, default=250, help="step of the 2-D snapshot figure (default 250, clipped)")
+    p.add_argument("--seed", type=int, default=0, help="base seed (trial i uses seed + i)")
+    p.add_argument("--workers", type=int, default=1, help="local worker processes (joblib; default 1)")
+    p.add_argument("--scheduler", default=None, help="address of an existing Dask distributed scheduler (runs trials there)")
+    p.add_argument("--json", action="store_true", help="print the summary as JSON on stdout")
+    p.add_argument("--out", required=True, help="output directory")
+
+
+# -- campaign (importable; numpy etc. imported inside) ---------------------------
+
+
+def _rmse_series(est, truth):
+    import numpy as np
+
+    d = (est.astype(np.float64) - truth) ** 2
+    return np.sqrt(np.nanmean(d.reshape(d.shape[0], -1), axis=1))
+
+
+def _trial(field, predictor, cfg: dict, L: int, trial: int) -> dict:
+    """One trial at path length L: every loop method's RMSE series (+ snapshots for trial 0).
+
+    Runs with one BLAS thread wherever it runs: a multi-threaded BLAS sums in a
+    different order, and a last-bit difference can flip a planner's argmax, so the
+    same seeds would give different numbers in the main process, a joblib worker
+    and a Dask worker.
+    """
+    from threadpoolctl import threadpool_limits
+
+    torch = sys.modules.get("torch")  # a torch predictor: its reductions too
+    prev = torch.get_num_threads() if torch is not None else None
+    try:
+        if torch is not None:
+            torch.set_num_threads(1)
+        with threadpool_limits(1):
+            return _trial_body(field, predictor, cfg, L, trial)
+    finally:
+        if torch is not None:
+            torch.set_num_threads(prev)
+
+
+def _trial_body(field, predictor, cfg: dict, L: int, trial: int) -> dict:
+    import numpy as np
+
+    from passt_mav.fields.analysis import pod_energy
+    from passt_mav.passt import run_offline
+
+    seed = int(cfg["seed"]) + trial
+    rng = np.random.default_rng([seed, L])
+    water = np.argwhere(~field.land_mask)
+    start = tuple(int(x) for x in water[rng.integers(len(water))])
+    t0, T = cfg["t0"], cfg["steps"]
+    truth = field.data[t0 : t0 + T + 1].astype(np.float64)
+    common = dict(start_cell=start, t0=t0, n_steps=T, path_length=L, steps_per_leg=cfg["steps_per_leg"], noise_std=cfg["noise"], hyper=cfg["hyper"], sample_at=cfg.get("sampling", "end"), seed=seed)
+    out: dict = {"L": L, "trial": trial, "start": list(start), "rmse": {}, "pod": {}, "snap": {}, "plan_ms": {}}
+    for m in cfg["methods"]:
+        if m == "model":
+            continue
+        if m == "passt":
+            r = run_offline(field, predictor, planner=cfg["planner"], reward=cfg["reward"], prior="forecast", **common)
+        else:
+            planner = m[: -len("_gp")]
+            if cfg["baseline_prior"] == "forecast":
+                r = run_offline(field, predictor, planner=planner, reward=cfg["reward"], prior="forecast", **common)
+            else:
+                r = run_offline(field, None, planner=planner, reward="speed", prior="none", **common)
+        out["rmse"][m] = _rmse_series(r.estimate, truth).tolist()
+        out["pod"][m] = pod_energy(r.estimate, cfg["pod_modes"], cumulative=False).tolist()
+        out["plan_ms"][m] = float(np.mean([leg["timings"]["plan"] for leg in r.legs]) * 1e3)
+        if trial == 0:
+            k = min(cfg["snapshot_step"], T)
+            out["snap"][m] = r.estimate[k].tolist()
+    return out
+
+
+def run_campaign(field, predictor, *, path_lengths=(25, 50, 75, 100, 150, 200), trials: int = 30, planner: str = "policy_gradient", reward: str = "speed", steps: int = 300, t0: int = 0, steps_per_leg: int = 10, noise: float = 0.02, hyper: str = "every_leg", sampling: str = "end", baseline_prior: str = "none", methods=METHODS, window: int = 50, snapshot_step: int = 250, seed: int = 0, pod_modes: int = 6, workers: int = 1, scheduler=None, progress: bool = True) -> dict:
+    """Run the campaign; returns the results dict (JSON-able). ``scheduler``: a Dask
+    address string or a ``distributed.Client``. Same seeds give the same numbers
+    whichever way the trials are spread."""
+    import numpy as np
+
+    from passt_mav.errors import PlannerError
+    from passt_mav.fields.analysis import pod_energy
+    from passt_mav.passt import run_pure_model
+    from passt_mav.planning import PLANNERS, REWARDS
+
+    methods = list(methods)
+    bad = [m for m in methods if m not in METHODS]
+    if bad or not methods:
+        raise PlannerError(f"unknown method(s) {bad}; choose from {', '.join(METHODS)}")
+    if planner not in PLANNERS and planner != "pg":
+        raise PlannerError(f"unknown planner {planner!r}; choose one of {', '.join(PLANNERS)}")
+    if reward not in REWARDS:
+        raise PlannerError(f"unknown reward {reward!r}; choose one of {', '.join(REWARDS)}")
+    if predictor is None and {"passt", "model"} & set(methods):
+        from passt_mav.errors import ModelError
+
+        raise ModelError("methods 'passt' and 'model' need a predictor")
+    if trials < 1 or not path_lengths or min(path_lengths) < 1:
+        raise PlannerError("need at least one trial and positive path lengths")
+    if not (0 <= t0 < field.n_times - 1):
+        raise PlannerError(f"--t0 {t0} must lie in [0, {field.n_times - 2}]")
+    steps = int(min(steps, field.n_times - 1 - t0))
+    cfg = dict(seed=seed, t0=t0, steps=steps, steps_per_leg=steps_per_leg, noise=noise, hyper=hyper, sampling=sampling, planner=planner, reward=reward, baseline_prior=baseline_prior, methods=methods, snapshot_step=snapshot_step, pod_modes=pod_modes)
+    truth = field.data[t0 : t0 + steps + 1].astype(np.float64)
+    pure = run_pure_model(field, predictor, t0=t0, n_steps=steps) if "model" in methods else None
+    tasks = [(int(L), i) for L in path_lengths for i in range(trials)]
+    results = _execute(field, predictor, cfg, tasks, workers=workers, scheduler=scheduler, progress=progress)
+    results.sort(key=lambda r: (r["L"], r["trial"]))
+
+    w = max(1, min(window, steps))
+    summary: dict = {"config": dict(cfg, path_lengths=list(map(int, path_lengths)), trials=trials, window=w, n_times=field.n_times), "per_L": {}}
+    summary["pod_truth"] = pod_energy(truth, pod_modes, cumulative=False).tolist()
+    snaps = {"truth": truth[min(snapshot_step, steps)].tolist()}
+    if pure is not None:
+        pure_rmse = _rmse_series(pure, truth)
+        summary["pod_model"] = pod_energy(pure, pod_modes, cumulative=False).tolist()
+        snaps["model"] = pure[min(snapshot_step, steps)].tolist()
+    for L in path_lengths:
+        rs = [r for r in results if r["L"] == L]
+        per: dict = {"rmse_mean": {}, "rmse_std": {}, "final_rmse": {}, "final_rmse_std": {}, "pod": {}, "plan_ms": {}}
+        for m in methods:
+            if m == "model":
+                a = np.repeat(pure_rmse[None], len(rs), axis=0)
+                per["pod"][m] = summary["pod_model"]
+            else:
+                a = np.array([r["rmse"][m] for r in rs])
+                per["pod"][m] = np.mean([r["pod"][m] for r in rs], axis=0).tolist()
+                per["plan_ms"][m] = float(np.mean([r["plan_ms"][m] for r in rs]))
+            per["rmse_mean"][m] = a.mean(0).tolist()
+            per["rmse_std"][m] = a.std(0).tolist()
+            fin = a[:, -w:].mean(1)
+            per["final_rmse"][m] = float(fin.mean())
+            per["final_rmse_std"][m] = float(fin.std())
+        if "passt" in methods:
+            per["ratio_to_passt"] = {m: per["final_rmse"][m] / per["final_rmse"]["passt"] for m in methods}
+        per["starts"] = [r["start"] for r in rs]
+        summary["per_L"][str(L)] = per
+        r0 = [r for r in rs if r["trial"] == 0][0]
+        snaps.update({f"{m}@L{L}": r0["snap"][m] for m in r0["snap"]})
+    summary["_snapshots"] = snaps
+    return summary
+
+
+def _execute(field, predictor, cfg, tasks, *, workers, scheduler, progress) -> list[dict]:
+    from tqdm import tqdm
+
+    bar = tqdm(total=len(tasks), desc="evaluate", unit="trial", disable=not progress, file=sys.stderr)
+    out = []
+    try:
+        if scheduler is not None:
+            from distributed import Client, as_completed
+
+            client = scheduler if isinstance(scheduler, Client) else Client(scheduler)
+            try:
+                f_fut = client.scatter(field, broadcast=True)
+                p_fut = client.scatter(predictor, broadcast=True)
+                futs = [client.submit(_trial, f_fut, p_fut, cfg, L, i, pure=False) for L, i in tasks]
+                for fut in as_completed(futs):
+                    out.append(fut.result())
+                    bar.update()
+            finally:
+                if client is not scheduler:
+                    client.close()
+        elif workers > 1:
+            from joblib import Parallel, delayed
+
+            for r in Parallel(n_jobs=workers, return_as="generator_unordered")(delayed(_trial)(field, predictor, cfg, L, i) for L, i in tasks):
+                out.append(r)
+                bar.update()
+        else:
+            for L, i in tasks:
+                out.append(_trial(field, predictor, cfg, L, i))
+                bar.update()
+    finally:
+        bar.close()
+    return out
+
+
+# -- figures -------------------------------------------------------------------
+
+
+def write_figures(summary: dict, out_dir) -> list:
+    """RMSE vs time per path length, POD energy bars, snapshots (truth / PASST / model)."""
+    from pathlib import Path
+
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import numpy as np
+
+    out_dir = Path(out_dir)
+    files = []
+    Ls = list(summary["per_L"])
+    n = len(Ls)
+    ncol = min(3, n)
+    nrow = (n + ncol - 1) // ncol
+    fig, axes = plt.subplots(nrow, ncol, figsize=(5 * ncol, 3.6 * nrow), squeeze=False, sharey=True)
+    for ax, L in zip(axes.ravel(), Ls):
+        per = summary["per_L"][L]
+        for m, mu in per["rmse_mean"].items():
+            mu = np.asarray(mu)
+            sd = np.asarray(per["rmse_std"][m])
+            t = np.arange(mu.size)
+            ax.plot(t, mu, label=m, lw=1.4 if m == "passt" else 1.0)
+            ax.fill_between(t, mu - sd, mu + sd, alpha=0.15)
+        ax.set_title(f"L = {L} moves per leg")
+        ax.set_xlabel("steps after start")
+        ax.set_ylabel("RMSE")
+        ax.grid(alpha=0.3)
+    for ax in axes.ravel()[n:]:
+        ax.axis("off")
+    axes[0, 0].legend(fontsize=8)
+    fig.tight_layout()
+    p = out_dir / "rmse_vs_time.png"
+    fig.savefig(p, dpi=110)
+    plt.close(fig)
+    files.append(p)
+
+    fig, axes = plt.subplots(1, n, figsize=(4.5 * n, 3.4), squeeze=False)
+    for ax, L in zip(axes[0], Ls):
+        pod = {"truth": summary["pod_truth"], **summary["per_L"][L]["pod"]}
+        k = len(pod["truth"])
+        width = 0.8 / len(pod)
+        for j, (m, e) in enumerate(pod.items()):
+            ax.bar(np.arange(k) + j * width, e, width, label=m)
+        ax.set_xticks(np.arange(k) + 0.4 - width / 2, [str(i + 1) for i in range(k)])
+        ax.set_xlabel("POD mode")
+        ax.set_ylabel("energy fraction")
+        ax.set_title(f"L = {L}")
+    axes[0, 0].legend(fontsize=7)
+    fig.tight_layout()
+    p = out_dir / "pod_energy.png"
+    fig.savefig(p, dpi=110)
+    plt.close(fig)
+    files.append(p)
+
+    snaps = summary.get("_snapshots", {})
+    step = min(summary["config"]["snapshot_step"], summary["config"]["steps"])
+    for L in Ls:
+        panels = [("truth", snaps.get("truth")), ("PASST", snaps.get(f"passt@L{L}")), ("pure model", snaps.get("model"))]
+        panels = [(t, np.asarray(a)) for t, a in panels if a is not None]
+        if len(panels) < 2:
+            continue
+        spd = [np.hypot(a[0], a[1]) for _, a in panels]
+        vmax = np.nanmax(spd[0])
+        fig, axes = plt.subplots(1, len(panels), figsize=(4.2 * len(panels), 3.8), squeeze=False)
+        for ax, (title, a), s in zip(axes[0], panels, spd):
+            im = ax.imshow(s, origin="lower", vmin=0, vmax=vmax, cmap="viridis")
+            R, C = s.shape
+            q = max(1, R // 15)
+            yy, xx = np.mgrid[0:R:q, 0:C:q]
+            ax.quiver(xx, yy, a[0][::q, ::q], a[1][::q, ::q], color="w", scale=None, width=0.004)
+            ax.set_title(f"{title}, t = {step}")
+        fig.colorbar(im, ax=axes[0].tolist(), shrink=0.8, label="speed")
+        p = out_dir / f"snapshots_L{L}.png"
+        fig.savefig(p, dpi=110)
+        plt.close(fig)
+        files.append(p)
+    return files
+
+
+# -- CLI -----------------------------------------------------------------------
+
+
+def _load_predictor(spec: str, field):
+    from passt_mav.errors import ModelError
+
+    try:
+        from passt_mav.models.base import PREDICTORS, load_predictor, make_predictor
+    except ImportError as exc:  # the predictors package is not installed in this build
+        raise ModelError(f"predictors are not available ({exc})") from None
+    if spec in PREDICTORS:
+        return make_predictor(spec).fit(field)
+    return load_predictor(spec)
+
+
+def _parse_lengths(s: str) -> list[int]:
+    from passt_mav.errors import PlannerError
+
+    try:
+        out = [int(x) for x in s.split(",") if x.strip()]
+    except ValueError:
+        raise PlannerError(f"--path-lengths must be comma-separated integers, got {s!r}") from None
+    if not out or min(out) < 1:
+        raise PlannerError(f"--path-lengths must be positive integers, got {s!r}")
+    return out
 
 
 def run(args: argparse.Namespace) -> int:
-    from passt_mav.errors import UserError
+    import json
+    from pathlib import Path
 
-    raise UserError("'passt-mav evaluate' is not implemented yet in this version")
+    from passt_mav.errors import PlannerError
+    from passt_mav.fields.datasets import resolve_field
+
+    lengths = _parse_lengths(args.path_lengths)
+    methods = [m.strip() for m in args.methods.split(",") if m.strip()]
+    if args.workers < 1:
+        raise PlannerError("--workers must be >= 1")
+    if args.steps < 1 or args.steps_per_leg < 1:
+        raise PlannerError("--steps and --steps-per-leg must be >= 1")
+    field = resolve_field(args.data)
+    predictor = _load_predictor(args.model, field)
+    out_dir = Path(args.out)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    summary = run_campaign(field, predictor, path_lengths=lengths, trials=args.trials, planner=args.planner, reward=args.reward, steps=args.steps, t0=args.t0, steps_per_leg=args.steps_per_leg, noise=args.noise, hyper=args.hyper, sampling=args.sampling, baseline_prior=args.baseline_prior, methods=methods, window=args.window, snapshot_step=args.snapshot_step, seed=args.seed, workers=args.workers, scheduler=args.scheduler)
+    summary["config"].update(data=args.data, model=args.model, command="passt-mav evaluate " + " ".join(sys.argv[2:]) if sys.argv[1:2] == ["evaluate"] else None)
+    files = write_figures(summary, out_dir)
+    snaps = summary.pop("_snapshots")
+    (out_dir / "results.json").write_text(json.dumps(summary) + "\n")
+    (out_dir / "snapshots.json").write_text(json.dumps(snaps) + "\n")
+    table = {L: {"final_rmse": per["final_rmse"], "ratio_to_passt": per.get("ratio_to_passt")} for L, per in summary["per_L"].items()}
+    if args.json:
+        print(json.dumps({"out": str(out_dir), "window": summary["config"]["window"], "per_L": table}))
+    else:
+        ms = list(next(iter(table.values()))["final_rmse"])
+        print(f"final-window RMSE (last {summary['config']['window']} steps), mean over {args.trials} trials; ratio = method / passt")
+        print("L".rjust(6) + "".join(m.rjust(16) for m in ms))
+        for L, row in table.items():
+            cells = []
+            for m in ms:
+                r = row["ratio_to_passt"][m] if row["ratio_to_passt"] else float("nan")
+                cells.append(f"{row['final_rmse'][m]:.4f} ({r:.2f})".rjust(16))
+            print(str(L).rjust(6) + "".join(cells))
+        print(f"figures: {', '.join(f.name for f in files)}")
+    print(f"results written to {out_dir}", file=sys.stderr if args.json else sys.stdout)
+    return 0

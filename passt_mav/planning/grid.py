@@ -1,0 +1,205 @@
+"""Grid-path helpers shared by every planner: moves, input validation, scoring.
+
+Conventions (DESIGN.md): a reward map is ``(rows, cols)`` float, row 0 = south;
+a path is an ``(L+1, 2)`` int array of ``(row, col)`` whose consecutive cells are
+8-neighbours. ``traversable`` is an ``(rows, cols)`` bool array, True where the
+robot may go (water). Pure numpy; no I/O.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from passt_mav.errors import PlannerError
+
+__all__ = [
+    "MOVES8",
+    "MOVES4",
+    "check_inputs",
+    "path_reward",
+    "top_l_bound",
+    "check_path",
+    "bfs_path",
+    "cheapest_path",
+]
+
+#: The 8 king moves (drow, dcol), counter-clockwise from east. Index = action id.
+MOVES8 = np.array([(0, 1), (1, 1), (1, 0), (1, -1), (0, -1), (-1, -1), (-1, 0), (-1, 1)], dtype=np.int64)
+#: The 4 rook moves (subset of MOVES8).
+MOVES4 = MOVES8[::2].copy()
+
+
+def check_inputs(reward, start, budget, mask=None) -> tuple[np.ndarray, tuple[int, int], int, np.ndarray]:
+    """Validate and normalise a planning request once, at the edge.
+
+    Returns ``(reward float64 (R,C) with blocked cells = 0, start (r, c), budget int,
+    traversable bool (R,C))``. Non-finite reward cells are blocked (land), as are
+    cells where ``mask`` (traversable, True = water) is False.
+    Raises :class:`PlannerError` naming the problem.
+    """
+    q = np.asarray(reward, dtype=np.float64)
+    if q.ndim != 2 or min(q.shape) < 2:
+        raise PlannerError(f"reward map must be a 2-D (rows, cols) array of at least 2x2, got shape {q.shape}")
+    trav = np.isfinite(q)
+    if mask is not None:
+        m = np.asarray(mask, dtype=bool)
+        if m.shape != q.shape:
+            raise PlannerError(f"traversable mask shape {m.shape} does not match the reward map {q.shape}")
+        trav &= m
+    q = np.where(trav, q, 0.0)
+    if np.any(q < 0):
+        raise PlannerError("reward map must be non-negative")
+    try:
+        r, c = (int(v) for v in np.asarray(start).reshape(-1)[:2])
+        if np.asarray(start).size != 2:
+            raise ValueError
+    except (TypeError, ValueError):
+        raise PlannerError(f"start must be a (row, col) cell, got {start!r}") from None
+    R, C = q.shape
+    if not (0 <= r < R and 0 <= c < C):
+        raise PlannerError(f"start cell ({r}, {c}) lies outside the {R}x{C} grid")
+    if not trav[r, c]:
+        raise PlannerError(f"start cell ({r}, {c}) is land / not traversable")
+    if int(budget) != budget or int(budget) < 1:
+        raise PlannerError(f"path budget must be a positive integer number of moves, got {budget!r}")
+    nb = np.array([r, c]) + MOVES8
+    ok = (nb[:, 0] >= 0) & (nb[:, 0] < R) & (nb[:, 1] >= 0) & (nb[:, 1] < C)
+    if not np.any(trav[nb[ok, 0], nb[ok, 1]]):
+        raise PlannerError(f"start cell ({r}, {c}) has no traversable neighbour")
+    return q, (r, c), int(budget), trav
+
+
+def path_reward(reward, path, *, include_start: bool = False) -> float:
+    """Reward a path collects: the sum over its DISTINCT cells (a cell pays once).
+
+    The start cell is excluded unless ``include_start`` (the robot is already
+    there when the leg is planned). NaN rewards count as 0.
+    """
+    q = np.nan_to_num(np.asarray(reward, dtype=np.float64), nan=0.0)
+    p = np.asarray(path, dtype=np.int64)
+    cells = {(int(a), int(b)) for a, b in (p if include_start else p[1:])}
+    if not include_start:
+        cells.discard((int(p[0, 0]), int(p[0, 1])))
+    return float(sum(q[a, b] for a, b in cells))
+
+
+def top_l_bound(reward, start, budget) -> float:
+    """Upper bound on :func:`path_reward`: the sum of the ``budget`` largest rewards
+    over all cells except the start (a path of L moves visits at most L new cells)."""
+    q = np.nan_to_num(np.asarray(reward, dtype=np.float64), nan=0.0).copy()
+    q[int(start[0]), int(start[1])] = -np.inf
+    flat = np.sort(q.ravel())[::-1]
+    flat = flat[np.isfinite(flat)]
+    return float(flat[: int(budget)].sum())
+
+
+def check_path(path, rows: int, cols: int, *, traversable=None, budget: int | None = None, start=None) -> None:
+    """Raise ``PlannerError`` unless ``path`` is a valid grid path.
+
+    Valid: integer ``(L+1, 2)``; every cell inside the grid (and traversable when
+    given); consecutive cells are distinct 8-neighbours; ``L == budget`` and
+    ``path[0] == start`` when given; a cell is revisited only when every
+    traversable neighbour of the previous cell had already been visited.
+    """
+    p = np.asarray(path)
+    if p.ndim != 2 or p.shape[1] != 2 or not np.issubdtype(p.dtype, np.integer):
+        raise PlannerError(f"path must be an integer (L+1, 2) array, got {p.dtype} {p.shape}")
+    if budget is not None and p.shape[0] != budget + 1:
+        raise PlannerError(f"path has {p.shape[0] - 1} moves, expected {budget}")
+    if start is not None and tuple(p[0]) != tuple(int(s) for s in start):
+        raise PlannerError(f"path starts at {tuple(p[0])}, expected {tuple(start)}")
+    if np.any(p[:, 0] < 0) or np.any(p[:, 0] >= rows) or np.any(p[:, 1] < 0) or np.any(p[:, 1] >= cols):
+        raise PlannerError("path leaves the grid")
+    d = np.abs(np.diff(p, axis=0))
+    if np.any(d.max(axis=1) != 1):
+        raise PlannerError("consecutive path cells must be distinct 8-neighbours")
+    trav = None if traversable is None else np.asarray(traversable, bool)
+    if trav is not None and not np.all(trav[p[:, 0], p[:, 1]]):
+        raise PlannerError("path crosses a non-traversable cell")
+    seen = {tuple(p[0])}
+    for i in range(1, len(p)):
+        cell = tuple(p[i])
+        if cell in seen:
+            prev = p[i - 1]
+            nb = prev + MOVES8
+            ok = (nb[:, 0] >= 0) & (nb[:, 0] < rows) & (nb[:, 1] >= 0) & (nb[:, 1] < cols)
+            nb = nb[ok]
+            if trav is not None:
+                nb = nb[trav[nb[:, 0], nb[:, 1]]]
+            if any(tuple(n) not in seen for n in nb):
+                raise PlannerError(f"path revisits {cell} at move {i} although an unvisited neighbour existed")
+        seen.add(cell)
+
+
+def neighbours(cell, traversable: np.ndarray) -> np.ndarray:
+    """Traversable 8-neighbours of ``cell`` as a (k, 2) int array (MOVES8 order)."""
+    R, C = traversable.shape
+    nb = np.asarray(cell, dtype=np.int64) + MOVES8
+    ok = (nb[:, 0] >= 0) & (nb[:, 0] < R) & (nb[:, 1] >= 0) & (nb[:, 1] < C)
+    nb = nb[ok]
+    return nb[traversable[nb[:, 0], nb[:, 1]]]
+
+
+def bfs_path(src, dst, traversable: np.ndarray) -> list[tuple[int, int]] | None:
+    """Shortest 8-connected cell sequence from ``src`` to ``dst`` (both included)
+    over traversable cells, or None when unreachable. Plain BFS: 30x30 grids are tiny."""
+    src, dst = (int(src[0]), int(src[1])), (int(dst[0]), int(dst[1]))
+    if src == dst:
+        return [src]
+    if not traversable[dst]:
+        return None
+    prev = {src: None}
+    frontier = [src]
+    while frontier:
+        nxt = []
+        for cell in frontier:
+            for n in neighbours(cell, traversable):
+                t = (int(n[0]), int(n[1]))
+                if t in prev:
+                    continue
+                prev[t] = cell
+                if t == dst:
+                    out = [t]
+                    while prev[out[-1]] is not None:
+                        out.append(prev[out[-1]])
+                    return out[::-1]
+                nxt.append(t)
+        frontier = nxt
+    return None
+
+
+def cheapest_path(src, dst, traversable: np.ndarray, visited: np.ndarray, *, revisit_cost: float = 8.0) -> list[tuple[int, int]] | None:
+    """Dijkstra over traversable cells from ``src`` to ``dst`` (both included), where
+    a move costs its length (1 or sqrt 2) times ``revisit_cost`` when it enters a visited
+    cell, so a transfer between
+    lanes crosses new water rather than old track whenever a short detour exists."""
+    import heapq
+
+    src, dst = (int(src[0]), int(src[1])), (int(dst[0]), int(dst[1]))
+    if src == dst:
+        return [src]
+    if not traversable[dst]:
+        return None
+    dist = {src: 0.0}
+    prev: dict = {src: None}
+    heap = [(0.0, src)]
+    while heap:
+        d, cell = heapq.heappop(heap)
+        if cell == dst:
+            out = [cell]
+            while prev[out[-1]] is not None:
+                out.append(prev[out[-1]])
+            return out[::-1]
+        if d > dist.get(cell, np.inf):
+            continue
+        for n in neighbours(cell, traversable):
+            t = (int(n[0]), int(n[1]))
+            # Euclidean step length: among equally short 8-connected routes prefer the
+            # straight one (a lawnmower lane stays on its row)
+            step = 1.4142135623730951 if (t[0] != cell[0] and t[1] != cell[1]) else 1.0
+            nd = d + step * (revisit_cost if visited[t] else 1.0)
+            if nd < dist.get(t, np.inf):
+                dist[t] = nd
+                prev[t] = cell
+                heapq.heappush(heap, (nd, t))
+    return None

@@ -1,0 +1,339 @@
+"""Policy-gradient planner (the paper's planner, after Manjanna et al. 2018,
+"Reinforcement learning with non-uniform state representations for adaptive search").
+
+MDP: state = (robot cell, visited set, steps left) on a reward map ``q`` (rows, cols)
+in [0, 1]; actions = the 8 king moves (or 4); a move into an unvisited cell earns
+``q`` there, a visited cell earns 0; horizon = the path budget L.
+
+Non-uniform state representation: for each move direction ``d`` the policy sees the
+not-yet-collected reward in windows along that direction, fine near the robot and
+coarser farther out - the neighbour cell itself, then square blocks of side 3, 7 and
+15 centred 3, 7 and 15 cells away (:data:`SCALES`). Each block's feature is its sum of
+uncollected reward divided by its full area (cells off the grid or on land count 0,
+so the edge of the world looks poor). The same per-direction features are also given
+relative to their maximum over the 8 directions, plus the fraction of budget left.
+
+Policy: one small MLP scores every direction from that direction's features (weights
+shared across directions, so the policy is rotation-equivariant and tiny); a softmax
+over the scores of the ALLOWED moves gives the move distribution. Invalid moves
+(off-grid, land) are masked rather than penalised - the policy never proposes them,
+so no training signal is spent learning walls. Visited neighbours are masked too
+whenever an unvisited one exists (the path contract: revisit only when boxed in).
+
+Training (:func:`train_policy`): REINFORCE with a per-time-step batch-mean baseline
+on random Gaussian-mixture reward maps (torch, seeded). Test phase
+(:class:`PolicyGradientPlanner`): the best of ``n_rollouts`` stochastic roll-outs and
+the greedy (argmax) roll-out on the actual reward map, all batched in numpy.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from passt_mav.errors import PlannerError
+from passt_mav.planning.grid import MOVES4, MOVES8, check_inputs, top_l_bound
+
+__all__ = [
+    "SCALES",
+    "N_FEATURES",
+    "PolicyGradientPlanner",
+    "PolicyWeights",
+    "features",
+    "rollout",
+    "random_reward_map",
+    "train_policy",
+    "save_policy",
+    "load_policy",
+    "DEFAULT_CHECKPOINT",
+]
+
+#: (distance of the window centre along the direction, half-size) per scale level
+SCALES = ((1, 0), (3, 1), (7, 3), (15, 7))
+#: per-direction features: absolute and relative window means, plus budget fraction left
+N_FEATURES = 2 * len(SCALES) + 1
+DEFAULT_CHECKPOINT = Path(__file__).resolve().parent.parent / "assets" / "pg_planner.pt"
+
+
+@dataclass
+class PolicyWeights:
+    """Per-direction scorer ``s = w2 . tanh(W1 x + b1) + b2`` (numpy float64)."""
+
+    W1: np.ndarray  # (hidden, N_FEATURES)
+    b1: np.ndarray  # (hidden,)
+    w2: np.ndarray  # (hidden,)
+    b2: float
+
+    def scores(self, feats: np.ndarray) -> np.ndarray:
+        """feats (..., 8, F) -> scores (..., 8)."""
+        h = np.tanh(feats @ self.W1.T + self.b1)
+        return h @ self.w2 + self.b2
+
+
+def _integral(eff: np.ndarray) -> np.ndarray:
+    """(B, R, C) -> (B, R+1, C+1) summed-area table with a zero first row/col."""
+    B, R, C = eff.shape
+    S = np.zeros((B, R + 1, C + 1))
+    S[:, 1:, 1:] = eff.cumsum(1).cumsum(2)
+    return S
+
+
+def features(q: np.ndarray, trav: np.ndarray, visited: np.ndarray, pos: np.ndarray, frac_left: float, moves: np.ndarray = MOVES8) -> np.ndarray:
+    """Per-direction features, batched.
+
+    q, trav: (R, C) reward (0 on land) and traversable mask, shared by the batch, or
+    (B, R, C) each; visited: (B, R, C) bool; pos: (B, 2) int cells; frac_left: budget
+    fraction left in [0, 1]. Returns (B, n_moves, N_FEATURES) float64.
+    """
+    B = visited.shape[0]
+    R, C = visited.shape[1:]
+    eff = np.broadcast_to(q * trav, visited.shape) * ~visited
+    S = _integral(eff)
+    K = len(SCALES)
+    D = np.array([s[0] for s in SCALES])
+    H = np.array([s[1] for s in SCALES])
+    # window centres (B, M, K, 2)
+    cen = pos[:, None, None, :] + moves[None, :, None, :] * D[None, None, :, None]
+    r0 = np.clip(cen[..., 0] - H, 0, R)
+    r1 = np.clip(cen[..., 0] + H + 1, 0, R)
+    c0 = np.clip(cen[..., 1] - H, 0, C)
+    c1 = np.clip(cen[..., 1] + H + 1, 0, C)
+    b = np.arange(B)[:, None, None]
+    tot = S[b, r1, c1] - S[b, r0, c1] - S[b, r1, c0] + S[b, r0, c0]
+    area = (2 * H + 1) ** 2
+    absf = tot / area  # (B, M, K)
+    rel = absf / (absf.max(axis=1, keepdims=True) + 1e-6)
+    left = np.full(absf.shape[:2] + (1,), float(frac_left))
+    return np.concatenate([absf, rel, left], axis=-1)
+
+
+def _allowed(trav: np.ndarray, visited: np.ndarray, pos: np.ndarray, moves: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(B, M) allowed-move mask and the (B, M, 2) target cells (clipped)."""
+    R, C = visited.shape[1:]
+    nb = pos[:, None, :] + moves[None]
+    inside = (nb[..., 0] >= 0) & (nb[..., 0] < R) & (nb[..., 1] >= 0) & (nb[..., 1] < C)
+    rr = np.clip(nb[..., 0], 0, R - 1)
+    cc = np.clip(nb[..., 1], 0, C - 1)
+    b = np.arange(pos.shape[0])[:, None]
+    tr = trav[rr, cc] if trav.ndim == 2 else trav[b, rr, cc]
+    ok = inside & tr
+    fresh = ok & ~visited[b, rr, cc]
+    allowed = np.where(fresh.any(axis=1, keepdims=True), fresh, ok)
+    return allowed, np.stack([rr, cc], axis=-1)
+
+
+def rollout(weights: PolicyWeights, q, trav, start, budget: int, *, n: int, rng: np.random.Generator, greedy_first: bool = False, moves: np.ndarray = MOVES8, record: bool = False, temperature: float = 1.0):
+    """Run ``n`` roll-outs of ``budget`` moves in parallel.
+
+    q, trav: (R, C) or (B=n, R, C); start: (2,) or (n, 2). With ``greedy_first`` the
+    first roll-out takes the argmax move every step. Returns ``paths (n, L+1, 2)``,
+    ``returns (n,)`` and, with ``record``, ``(feats (L, n, M, F), allowed (L, n, M),
+    actions (L, n), rewards (L, n))`` for training.
+    """
+    R, C = q.shape[-2:]
+    L = int(budget)
+    pos = np.broadcast_to(np.asarray(start, dtype=np.int64), (n, 2)).copy()
+    visited = np.zeros((n, R, C), bool)
+    b = np.arange(n)
+    visited[b, pos[:, 0], pos[:, 1]] = True
+    paths = np.empty((n, L + 1, 2), np.int64)
+    paths[:, 0] = pos
+    rets = np.zeros(n)
+    rec = ([], [], [], []) if record else None
+    for t in range(L):
+        f = features(q, trav, visited, pos, 1.0 - t / L, moves)
+        allowed, tgt = _allowed(trav, visited, pos, moves)
+        s = weights.scores(f) / max(temperature, 1e-6)
+        s = np.where(allowed, s, -np.inf)
+        s = s - s.max(axis=1, keepdims=True)
+        p = np.exp(s)
+        p /= p.sum(axis=1, keepdims=True)
+        u = rng.random((n, 1))
+        a = np.minimum((p.cumsum(axis=1) < u).sum(axis=1), len(moves) - 1)
+        a = np.where(allowed[b, a], a, np.argmax(p, axis=1))  # guard against round-off at the top end
+        if greedy_first:
+            a[0] = int(np.argmax(s[0]))
+        new = tgt[b, a]
+        qv = q[new[:, 0], new[:, 1]] if q.ndim == 2 else q[b, new[:, 0], new[:, 1]]
+        gain = np.where(visited[b, new[:, 0], new[:, 1]], 0.0, qv)
+        rets += gain
+        if record:
+            rec[0].append(f)
+            rec[1].append(allowed)
+            rec[2].append(a)
+            rec[3].append(gain)
+        visited[b, new[:, 0], new[:, 1]] = True
+        pos = new
+        paths[:, t + 1] = pos
+    if record:
+        return paths, rets, tuple(np.stack(x) for x in rec)
+    return paths, rets
+
+
+# -- training -------------------------------------------------------------------
+
+
+def random_reward_map(rng: np.random.Generator, rows: int, cols: int, *, land: bool = True) -> tuple[np.ndarray, np.ndarray]:
+    """A random Gaussian-mixture reward map in [0, 1] and its traversable mask.
+
+    1-6 Gaussian bumps (widths 1.5-8 cells, amplitudes 0.2-1), a weak random
+    background, and with probability 0.3 (when ``land``) a disc of land.
+    """
+    rr, cc = np.meshgrid(np.arange(rows), np.arange(cols), indexing="ij")
+    q = np.zeros((rows, cols))
+    for _ in range(int(rng.integers(1, 7))):
+        r0, c0 = rng.uniform(0, rows - 1), rng.uniform(0, cols - 1)
+        w = rng.uniform(1.5, 8.0)
+        q += rng.uniform(0.2, 1.0) * np.exp(-((rr - r0) ** 2 + (cc - c0) ** 2) / (2 * w * w))
+    q += rng.uniform(0, 0.1) * rng.random((rows, cols))
+    trav = np.ones((rows, cols), bool)
+    if land and rng.random() < 0.3:
+        r0, c0 = rng.uniform(0, rows - 1), rng.uniform(0, cols - 1)
+        trav &= (rr - r0) ** 2 + (cc - c0) ** 2 > rng.uniform(2, 6) ** 2
+    q = np.where(trav, q, 0.0)
+    return q / q.max(), trav
+
+
+def _init_weights(rng: np.random.Generator, hidden: int) -> PolicyWeights:
+    return PolicyWeights(
+        W1=rng.normal(0, 1 / np.sqrt(N_FEATURES), (hidden, N_FEATURES)),
+        b1=np.zeros(hidden),
+        w2=rng.normal(0, 1 / np.sqrt(hidden), hidden),
+        b2=0.0,
+    )
+
+
+def train_policy(*, episodes: int = 6000, batch: int = 32, hidden: int = 16, lr: float = 0.01, gamma: float = 0.97, entropy: float = 0.01, seed: int = 0, grid_range=(16, 36), budget_range=(10, 120), progress: bool = True):
+    """REINFORCE on random Gaussian-mixture maps. Returns ``(weights, curve)``.
+
+    Each iteration draws one grid size and budget, ``batch`` maps and start cells,
+    rolls the current policy out (numpy), then takes one Adam step on
+    ``-mean(log pi(a|s) * A) - entropy * H`` with ``A`` the discounted return-to-go
+    minus its batch mean at that step, divided by the batch std. ``curve`` holds per
+    iteration: episodes so far, mean return / top-L bound (fraction collected).
+    """
+    import torch
+
+    torch.manual_seed(seed)
+    rng = np.random.default_rng(seed)
+    w = _init_weights(rng, hidden)
+    params = [torch.tensor(x, dtype=torch.float64, requires_grad=True) for x in (w.W1, w.b1, w.w2, np.array(w.b2))]
+    opt = torch.optim.Adam(params, lr=lr)
+    n_iter = max(1, episodes // batch)
+    curve = []
+    it_range = range(n_iter)
+    if progress:
+        from tqdm import tqdm
+
+        it_range = tqdm(it_range, desc="train policy", unit="it")
+    for it in it_range:
+        rows, cols = (int(x) for x in rng.integers(grid_range[0], grid_range[1] + 1, 2))
+        L = int(rng.integers(budget_range[0], budget_range[1] + 1))
+        maps = [random_reward_map(rng, rows, cols) for _ in range(batch)]
+        q = np.stack([m[0] for m in maps])
+        trav = np.stack([m[1] for m in maps])
+        starts = np.empty((batch, 2), np.int64)
+        for i in range(batch):
+            cells = np.argwhere(trav[i])
+            starts[i] = cells[rng.integers(len(cells))]
+        cur = PolicyWeights(*(p.detach().numpy().copy() for p in params[:3]), float(params[3].detach()))
+        _, rets, (F, A, act, rew) = rollout(cur, q, trav, starts, L, n=batch, rng=rng, record=True)
+        G = np.zeros_like(rew)
+        acc = np.zeros(batch)
+        for t in range(L - 1, -1, -1):
+            acc = rew[t] + gamma * acc
+            G[t] = acc
+        adv = G - G.mean(axis=1, keepdims=True)
+        adv = adv / (adv.std() + 1e-8)
+        Ft = torch.from_numpy(F)
+        h = torch.tanh(Ft @ params[0].T + params[1])
+        s = h @ params[2] + params[3]
+        s = s.masked_fill(~torch.from_numpy(A), -1e9)
+        logp = torch.log_softmax(s, dim=-1)
+        lp = logp.gather(-1, torch.from_numpy(act)[..., None])[..., 0]
+        ent = -(logp.exp() * logp).sum(-1).mean()
+        loss = -(lp * torch.from_numpy(adv)).mean() - entropy * ent
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        bound = np.mean([top_l_bound(q[i], starts[i], L) for i in range(batch)])
+        curve.append([(it + 1) * batch, float(rets.mean() / max(bound, 1e-9))])
+    final = PolicyWeights(*(p.detach().numpy().copy() for p in params[:3]), float(params[3].detach()))
+    return final, curve
+
+
+def save_policy(weights: PolicyWeights, path: str | Path, meta: dict) -> tuple[Path, Path]:
+    """Write ``path`` (.pt state_dict of float32 tensors) and ``path.json`` (metadata)."""
+    import torch
+
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    sd = {
+        "W1": torch.tensor(weights.W1, dtype=torch.float32),
+        "b1": torch.tensor(weights.b1, dtype=torch.float32),
+        "w2": torch.tensor(weights.w2, dtype=torch.float32),
+        "b2": torch.tensor([weights.b2], dtype=torch.float32),
+    }
+    torch.save(sd, path)
+    meta = dict(meta, architecture={"type": "per-direction MLP", "hidden": int(weights.W1.shape[0]), "n_features": N_FEATURES, "scales": [list(s) for s in SCALES]})
+    jpath = path.with_suffix(".json")
+    jpath.write_text(json.dumps(meta, indent=1) + "\n")
+    return path, jpath
+
+
+def load_policy(path: str | Path | None = None) -> PolicyWeights:
+    """Load a checkpoint written by :func:`save_policy` (``weights_only=True``)."""
+    path = Path(path) if path is not None else DEFAULT_CHECKPOINT
+    if not path.exists():
+        raise PlannerError(f"policy checkpoint {path} not found; train one with 'python -m passt_mav.planning.train --out {path}'")
+    import torch
+
+    try:
+        sd = torch.load(path, map_location="cpu", weights_only=True)
+        w = PolicyWeights(sd["W1"].double().numpy(), sd["b1"].double().numpy(), sd["w2"].double().numpy(), float(sd["b2"][0]))
+    except Exception as exc:  # noqa: BLE001 - any unreadable checkpoint is a user error
+        raise PlannerError(f"cannot read policy checkpoint {path}: {exc}") from None
+    if w.W1.shape[1] != N_FEATURES:
+        raise PlannerError(f"policy checkpoint {path} expects {w.W1.shape[1]} features, this version computes {N_FEATURES}")
+    return w
+
+
+_CACHE: dict[str, PolicyWeights] = {}
+
+
+class PolicyGradientPlanner:
+    """Test phase of the policy-gradient planner.
+
+    Options (keyword-only): ``checkpoint`` (path; default the shipped
+    ``passt_mav/assets/pg_planner.pt``), ``n_rollouts`` stochastic roll-outs (the
+    greedy argmax roll-out is always added), ``moves`` (8 or 4), ``temperature``.
+    ``plan`` returns the roll-out collecting the most reward (ties: the greedy one).
+    """
+
+    def __init__(self, *, checkpoint: str | Path | None = None, n_rollouts: int = 12, moves: int = 8, temperature: float = 1.0):
+        self.checkpoint = checkpoint
+        self.n_rollouts = n_rollouts
+        self.moves = moves
+        self.temperature = temperature
+
+    def _weights(self) -> PolicyWeights:
+        key = str(self.checkpoint or DEFAULT_CHECKPOINT)
+        if key not in _CACHE:
+            _CACHE[key] = load_policy(self.checkpoint)
+        return _CACHE[key]
+
+    def plan(self, reward, start, budget, seed=0, mask=None) -> np.ndarray:
+        q, start, L, trav = check_inputs(reward, start, budget, mask)
+        if self.moves not in (4, 8):
+            raise PlannerError(f"moves must be 4 or 8, got {self.moves!r}")
+        if int(self.n_rollouts) < 0:
+            raise PlannerError(f"n_rollouts must be >= 0, got {self.n_rollouts!r}")
+        moves = MOVES8 if self.moves == 8 else MOVES4
+        m = q.max()
+        qn = q / m if m > 0 else q  # the policy was trained on maps scaled to [0, 1]
+        rng = np.random.default_rng(seed)
+        paths, rets = rollout(self._weights(), qn, trav, np.array(start), L, n=1 + int(self.n_rollouts), rng=rng, greedy_first=True, moves=moves, temperature=self.temperature)
+        return paths[int(np.argmax(rets))]

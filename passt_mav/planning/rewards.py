@@ -1,0 +1,100 @@
+"""Reward maps: what a leg of the PASST loop tries to sample.
+
+Every reward is a function ``f(prediction, *, cell_size_m=(dy, dx), std=None)``
+returning a ``(rows, cols)`` float32 array in ``[0, 1]``. ``prediction`` is the
+model's one-step-ahead field, ``(2, rows, cols)`` (u east, v north; row 0 south).
+Cells where the prediction is NaN (land / missing) get reward 0; they are also
+not traversable - :func:`traversable` gives that mask and the planners take it.
+
+Registry: :data:`REWARDS`; :func:`compute_reward` is the one entry point.
+Pure numpy; no I/O.
+"""
+
+from __future__ import annotations
+
+from typing import Callable
+
+import numpy as np
+
+from passt_mav.errors import PlannerError
+
+__all__ = ["REWARDS", "compute_reward", "traversable", "speed", "vorticity", "std", "speed_std"]
+
+
+def _check(prediction) -> np.ndarray:
+    p = np.asarray(prediction, dtype=np.float64)
+    if p.ndim != 3 or p.shape[0] != 2:
+        raise PlannerError(f"reward needs a (2, rows, cols) prediction, got shape {p.shape}")
+    return p
+
+
+def traversable(prediction) -> np.ndarray:
+    """``(rows, cols)`` bool: True where both components of the prediction are finite."""
+    return np.isfinite(_check(prediction)).all(axis=0)
+
+
+def _normalise(a: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    a = np.where(valid & np.isfinite(a), np.abs(a), 0.0)
+    m = a.max() if a.size else 0.0
+    return (a / m if m > 0 else a).astype(np.float32)
+
+
+def _std_mag(std, shape) -> np.ndarray:
+    if std is None:
+        raise PlannerError("this reward needs the GP posterior std (std=...); none is available yet")
+    s = np.asarray(std, dtype=np.float64)
+    if s.ndim == 3 and s.shape[0] == 2:
+        s = np.hypot(s[0], s[1])
+    if s.shape != shape:
+        raise PlannerError(f"std map shape {s.shape} does not match the grid {shape}")
+    return s
+
+
+def speed(prediction, *, cell_size_m=None, std=None) -> np.ndarray:
+    """Predicted speed magnitude ``|u|`` normalised by its maximum (default reward)."""
+    p = _check(prediction)
+    return _normalise(np.hypot(p[0], p[1]), traversable(p))
+
+
+def vorticity(prediction, *, cell_size_m=None, std=None) -> np.ndarray:
+    """``|dv/dx - du/dy|`` by central differences (one-sided at edges) in metres.
+
+    ``cell_size_m`` = (north-south, east-west) spacing in metres (default 1, 1).
+    NaN neighbours make the derivative NaN there (reward 0), never zero-filled.
+    """
+    p = _check(prediction)
+    dy, dx = (1.0, 1.0) if cell_size_m is None else (float(cell_size_m[0]), float(cell_size_m[1]))
+    dv_dx = np.gradient(p[1], dx, axis=1)
+    du_dy = np.gradient(p[0], dy, axis=0)
+    return _normalise(dv_dx - du_dy, traversable(p))
+
+
+def std(prediction, *, cell_size_m=None, std=None) -> np.ndarray:
+    """GP posterior standard deviation ``hypot(std_u, std_v)``, normalised."""
+    p = _check(prediction)
+    return _normalise(_std_mag(std, p.shape[1:]), traversable(p))
+
+
+def speed_std(prediction, *, cell_size_m=None, std=None) -> np.ndarray:
+    """Product of the normalised speed and normalised GP std (fast AND uncertain)."""
+    p = _check(prediction)
+    s = speed(p).astype(np.float64) * _std_mag(std, p.shape[1:])
+    return _normalise(s, traversable(p))
+
+
+#: name -> reward function
+REWARDS: dict[str, Callable[..., np.ndarray]] = {
+    "speed": speed,
+    "vorticity": vorticity,
+    "std": std,
+    "speed_std": speed_std,
+}
+
+
+def compute_reward(name: str, prediction, *, cell_size_m=None, std=None) -> np.ndarray:
+    """The reward map ``(rows, cols)`` float32 in [0, 1] named ``name`` (see :data:`REWARDS`)."""
+    try:
+        fn = REWARDS[name]
+    except KeyError:
+        raise PlannerError(f"unknown reward {name!r}; choose one of {', '.join(REWARDS)}") from None
+    return fn(prediction, cell_size_m=cell_size_m, std=std)

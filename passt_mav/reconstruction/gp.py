@@ -1,0 +1,322 @@
+"""Gaussian-process reconstruction of one field snapshot from scattered samples.
+
+Frames and units: sample and grid positions are local east/north metres
+(``grid.centres_xy()``, ``grid.latlon_to_xy``); velocities in the field's units
+(m/s). One scikit-learn ``GaussianProcessRegressor`` per velocity component.
+
+Kernel: ``ConstantKernel * Matern(nu) + WhiteKernel`` (or RBF). Hyper-parameters
+are fitted once per campaign (:meth:`GPReconstructor.fit`, normally on the first
+leg's samples) and then held fixed (``optimizer=None``), so every later leg's fit
+is one Cholesky of an n x n matrix - milliseconds for the few hundred samples of
+a leg.
+
+Prior mean:
+
+* ``prior="forecast"`` (default): the GP models the residual ``samples - forecast``
+  (forecast at each sample's position and time, given by the caller) with zero
+  mean, and the reconstruction is ``forecast + residual``; far from any sample it
+  returns the forecast.
+* ``prior="none"`` (the paper's literal variant): the GP models the samples alone
+  with a constant mean (their average); far from samples it returns that mean.
+
+Hyper-parameters: :meth:`GPReconstructor.fit` fits them on one leg's samples
+(the residuals in forecast mode); :meth:`GPReconstructor.fit_field` on a gridded
+snapshot. The WhiteKernel noise never drops below ``(noise_std / 2)**2``: repeated
+or nearby samples taken at different times would otherwise make the kernel matrix
+near-singular and the posterior mean wild.
+
+Land / missing cells (NaN in the forecast, or ``mask`` False) stay NaN.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from passt_mav.errors import ReconstructionError
+
+__all__ = ["GPReconstructor"]
+
+_PRIORS = ("forecast", "none")
+_KERNELS = ("matern32", "matern52", "rbf")
+
+
+class GPReconstructor:
+    """GP reconstruction of a ``(2, rows, cols)`` snapshot (sklearn estimator contract).
+
+    Hyper-parameters (keyword-only, stored unchanged):
+        grid_xy: ``(X, Y)`` each ``(rows, cols)`` metres - the cell centres to predict at
+            (e.g. ``grid.centres_xy()``). Required.
+        kernel: "matern52" (default), "matern32" or "rbf".
+        length_scale: initial length scale in metres (default: 3 mean cell sizes);
+            bounds are [0.5 cell, min(max_length_cells cells, half the grid's diagonal)].
+        max_length_cells: upper bound of the length scale in cells (default 6).
+        max_fit_points: at most this many samples (evenly spread) enter a
+            hyper-parameter fit (default 60); reconstruction uses all.
+        space_time: when sample times are given, the kernel also spans time
+            (anisotropic Matern/RBF over east, north, time) and the snapshot is
+            predicted at the query time, so a residual seen early in a leg counts
+            less than a fresh one when the flow moves on within the leg.
+        noise_std: initial sensor-noise std (velocity units) of the WhiteKernel.
+        alpha: jitter added to the kernel diagonal (raise it if Cholesky fails).
+        prior: "forecast" (GP on residuals vs the forecast) or "none".
+        n_restarts: optimizer restarts for the one hyper-parameter fit.
+        seed: seed of those restarts.
+
+    Learned state: ``kernels_`` (fitted kernel per component), ``cell_m_``,
+    ``n_inputs_`` (2 = space, 3 = space-time).
+    """
+
+    def __init__(self, *, grid_xy, kernel: str = "matern52", length_scale: float | None = None, noise_std: float = 0.02, alpha: float = 1e-8, prior: str = "forecast", max_length_cells: float = 6.0, max_fit_points: int = 60, space_time: bool = True, n_restarts: int = 0, seed: int = 0):
+        self.grid_xy = grid_xy
+        self.space_time = space_time
+        self.max_fit_points = max_fit_points
+        self.max_length_cells = max_length_cells
+        self.kernel = kernel
+        self.length_scale = length_scale
+        self.noise_std = noise_std
+        self.alpha = alpha
+        self.prior = prior
+        self.n_restarts = n_restarts
+        self.seed = seed
+
+    # -- validation -------------------------------------------------------------
+    def _grid(self) -> tuple[np.ndarray, np.ndarray]:
+        X, Y = (np.asarray(a, dtype=np.float64) for a in self.grid_xy)
+        if X.shape != Y.shape or X.ndim != 2:
+            raise ReconstructionError(f"grid_xy must be two (rows, cols) arrays, got {X.shape} and {Y.shape}")
+        return X, Y
+
+    def _check(self, samples_xy, samples_uv, forecast_at_samples, samples_t=None):
+        if self.prior not in _PRIORS:
+            raise ReconstructionError(f"unknown GP prior {self.prior!r}; choose one of {', '.join(_PRIORS)}")
+        if self.kernel not in _KERNELS:
+            raise ReconstructionError(f"unknown GP kernel {self.kernel!r}; choose one of {', '.join(_KERNELS)}")
+        xy = np.asarray(samples_xy, dtype=np.float64).reshape(-1, 2)
+        uv = np.asarray(samples_uv, dtype=np.float64).reshape(-1, 2)
+        if xy.shape != uv.shape:
+            raise ReconstructionError(f"{len(xy)} sample positions for {len(uv)} velocity samples")
+        fa = None
+        if self.prior == "forecast":
+            if forecast_at_samples is None:
+                raise ReconstructionError("prior='forecast' needs the forecast at the sample positions (forecast_at_samples)")
+            fa = np.asarray(forecast_at_samples, dtype=np.float64).reshape(-1, 2)
+            if fa.shape != uv.shape:
+                raise ReconstructionError("forecast_at_samples must have one (u, v) per sample")
+        if samples_t is not None:
+            t = np.asarray(samples_t, dtype=np.float64).reshape(-1)
+            if t.size != len(xy):
+                raise ReconstructionError(f"{t.size} sample times for {len(xy)} samples")
+            xy = np.column_stack([xy, t])
+        ok = np.isfinite(xy).all(1) & np.isfinite(uv).all(1)
+        if fa is not None:
+            ok &= np.isfinite(fa).all(1)
+        if ok.sum() < 2:
+            raise ReconstructionError(f"need at least 2 valid samples to reconstruct, got {int(ok.sum())}")
+        target = uv[ok] - (fa[ok] if fa is not None else 0.0)
+        return xy[ok], target
+
+    def _base_kernel(self, t_span: float | None = None):
+        from sklearn.gaussian_process.kernels import RBF, ConstantKernel, Matern, WhiteKernel
+
+        X, Y = self._grid()
+        R, C = X.shape
+        # mean spacing of neighbouring centres, metres
+        dx = np.nanmean(np.hypot(np.diff(X, axis=1), np.diff(Y, axis=1))) if C > 1 else 1.0
+        dy = np.nanmean(np.hypot(np.diff(X, axis=0), np.diff(Y, axis=0))) if R > 1 else 1.0
+        cell = float(np.sqrt(dx * dy))
+        diag = float(np.hypot(np.ptp(X), np.ptp(Y)))
+        ls = float(self.length_scale) if self.length_scale is not None else 3.0 * cell
+        # An upper bound of a few cells keeps a correction local: fitted on samples
+        # along one leg (a line), the likelihood often prefers a length scale as long
+        # as allowed, and the GP then extrapolates the residual across the region
+        # (measured on a drifting-model test: the estimate's RMSE tripled in one leg).
+        bounds = (0.5 * cell, max(min(float(self.max_length_cells) * cell, 0.5 * diag), 1.0 * cell))
+        ls = float(np.clip(ls, *bounds))
+        if t_span is not None:  # anisotropic over (east, north, time)
+            ls = [ls, ls, float(t_span)]
+            bounds = [bounds, bounds, (t_span / 50.0, t_span * 1e3)]
+        if self.kernel == "rbf":
+            k = RBF(ls, bounds)
+        else:
+            k = Matern(ls, bounds, nu=1.5 if self.kernel == "matern32" else 2.5)
+        nl = max(float(self.noise_std) ** 2, 1e-10)
+        return ConstantKernel(1.0, (1e-8, 1e3)) * k + WhiteKernel(nl, (max(nl / 4, 1e-10), max(nl * 100, 1.0))), cell
+
+    def _regressor(self, kernel, optimize: bool):
+        from sklearn.gaussian_process import GaussianProcessRegressor
+
+        return GaussianProcessRegressor(
+            kernel=kernel,
+            alpha=float(self.alpha),
+            optimizer="fmin_l_bfgs_b" if optimize else None,
+            n_restarts_optimizer=int(self.n_restarts) if optimize else 0,
+            # kernels stay in physical units: the caller removes the prior mean itself
+            normalize_y=False,
+            random_state=int(self.seed),
+        )
+
+    def _fit_gp(self, kernel, xy, y, optimize: bool):
+        from threadpoolctl import threadpool_limits
+
+        try:
+            # one BLAS thread: these matrices are small (n <= a few hundred) and a
+            # multi-threaded BLAS on a busy machine was measured 25x slower (290 vs 11 ms
+            # per hyper-parameter fit of 51 samples on 2 shared cores)
+            with threadpool_limits(1):
+                return self._regressor(kernel, optimize).fit(xy, y)
+        except np.linalg.LinAlgError as exc:
+            raise ReconstructionError(f"GP fit failed (Cholesky: {exc}); increase the noise level: alpha (now {self.alpha:g}) or noise_std") from None
+        except ValueError as exc:
+            if "alpha" in str(exc) or "positive definite" in str(exc):
+                raise ReconstructionError(f"GP fit failed ({str(exc).splitlines()[0]}); increase the noise level: alpha (now {self.alpha:g}) or noise_std") from None
+            raise
+
+    # -- public -----------------------------------------------------------------
+    def _inputs(self, xy, samples_t, n_ok_mask=None):
+        if samples_t is None or not self.space_time:
+            return xy, None
+        t = np.asarray(samples_t, dtype=np.float64).reshape(-1)
+        span = float(np.ptp(t)) if t.size else 0.0
+        return np.column_stack([xy, t]), (span if span > 0 else None)
+
+    def fit(self, samples_xy, samples_uv, forecast_at_samples=None, *, samples_t=None) -> "GPReconstructor":
+        """Fit the kernel hyper-parameters (marginal likelihood) on one set of samples.
+
+        samples_xy: (n, 2) east/north metres; samples_uv: (n, 2) u/v;
+        forecast_at_samples: (n, 2), required for ``prior="forecast"``;
+        samples_t: (n,) sample times (field time units) for a space-time kernel.
+        """
+        import warnings
+
+        xy, target = self._check(samples_xy, samples_uv, forecast_at_samples, samples_t)
+        xy, t_span = self._inputs(xy[:, :2], xy[:, 2] if xy.shape[1] == 3 else None)
+        if t_span is None:
+            xy = xy[:, :2]
+        if self.prior == "none":
+            target = target - target.mean(axis=0)
+        if len(xy) > int(self.max_fit_points):
+            # hyper-parameters from an evenly spread subset (in sample order = along the
+            # track): the likelihood's gradient costs O(n^3) per iteration, and 60 points
+            # pin three hyper-parameters well; the reconstruction still uses every sample
+            keep = np.unique(np.linspace(0, len(xy) - 1, int(self.max_fit_points)).round().astype(int))
+            xy, target = xy[keep], target[keep]
+        base, cell = self._base_kernel(t_span)
+        kernels = []
+        with warnings.catch_warnings():
+            # a length scale at its bound is a legitimate answer for a smooth residual
+            warnings.simplefilter("ignore", category=UserWarning)
+            from sklearn.exceptions import ConvergenceWarning
+
+            warnings.simplefilter("ignore", category=ConvergenceWarning)
+            prev = getattr(self, "kernels_", None)
+            for k in range(2):
+                # Start the signal variance at the targets' own variance (a residual that
+                # was ~0 on the first leg must not leave it stuck at its lower bound) and
+                # the length scale at the last fit's (fewer iterations when re-fitting).
+                init = base.clone_with_theta(base.theta)
+                init.set_params(k1__k1__constant_value=float(np.clip(np.var(target[:, k]), 1e-6, 1e2)))
+                if prev is not None and np.size(prev[k].k1.k2.length_scale) == np.size(init.k1.k2.length_scale):
+                    init.set_params(k1__k2__length_scale=prev[k].k1.k2.length_scale)
+                gp = self._fit_gp(init, xy, target[:, k], optimize=True)
+                kernels.append(gp.kernel_)
+        self.kernels_ = kernels
+        self.cell_m_ = cell
+        self.n_inputs_ = xy.shape[1]
+        return self
+
+    fit_hyperparameters = fit
+
+    def fit_field(self, snapshot, *, max_points: int = 150) -> "GPReconstructor":
+        """Fit the signal variance and length scale on a gridded snapshot ``(2, R, C)``.
+
+        The preferred once-per-campaign fit: the model's initial state shows the
+        field's full 2-D structure, whereas one leg's samples lie along a line
+        (and, in residual mode, are ~0 on the first leg). Up to ``max_points``
+        water cells (seeded subsample) minus their mean are used; the WhiteKernel
+        is held at ``noise_std**2`` since a gridded state carries no sensor noise.
+        """
+        import warnings
+
+        from sklearn.exceptions import ConvergenceWarning
+        from sklearn.gaussian_process.kernels import WhiteKernel
+
+        X, Y = self._grid()
+        a = np.asarray(snapshot, dtype=np.float64)
+        if a.shape != (2,) + X.shape:
+            raise ReconstructionError(f"snapshot must have shape {(2,) + X.shape}, got {a.shape}")
+        ok = np.isfinite(a).all(axis=0).ravel()
+        idx = np.flatnonzero(ok)
+        if idx.size < 4:
+            raise ReconstructionError("snapshot has fewer than 4 water cells to fit the GP on")
+        rng = np.random.default_rng(self.seed)
+        if idx.size > max_points:
+            idx = np.sort(rng.choice(idx, max_points, replace=False))
+        xy = np.column_stack([X.ravel()[idx], Y.ravel()[idx]])
+        base, cell = self._base_kernel()
+        base = base.k1 + WhiteKernel(max(float(self.noise_std) ** 2, 1e-10), "fixed")
+        kernels = []
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", category=ConvergenceWarning)
+            for k in range(2):
+                y = a[k].ravel()[idx]
+                gp = self._fit_gp(base, xy, y - y.mean(), optimize=True)
+                kernels.append(gp.kernel_)
+        self.kernels_ = kernels
+        self.cell_m_ = cell
+        self.n_inputs_ = 2
+        return self
+
+    def reconstruct(self, samples_xy, samples_uv, forecast=None, *, forecast_at_samples=None, mask=None, samples_t=None, t=None) -> tuple[np.ndarray, np.ndarray]:
+        """Posterior mean and std on the grid, with the fitted kernels held fixed.
+
+        forecast: (2, rows, cols) prior mean on the grid (required for
+        ``prior="forecast"``; NaN there = land). ``forecast_at_samples`` (n, 2):
+        the forecast at each sample's position and time; if omitted it is taken
+        from ``forecast`` at the nearest cell centre. mask: (rows, cols) bool,
+        True = water (optional). Fits the hyper-parameters first if :meth:`fit`
+        was never called. ``samples_t`` (n,) and ``t`` (the snapshot's time) switch on
+        the space-time kernel (see ``space_time``). Returns ``(mean (2, R, C)
+        float32, std (2, R, C) float32)``.
+        """
+        X, Y = self._grid()
+        land = np.zeros(X.shape, bool)
+        if mask is not None:
+            land |= ~np.asarray(mask, bool)
+        fc = None
+        if forecast is not None:
+            fc = np.asarray(forecast, dtype=np.float64)
+            if fc.shape != (2,) + X.shape:
+                raise ReconstructionError(f"forecast must have shape {(2,) + X.shape}, got {fc.shape}")
+            land |= ~np.isfinite(fc).all(axis=0)
+        if self.prior == "forecast":
+            if fc is None:
+                raise ReconstructionError("prior='forecast' needs the forecast field (forecast=...)")
+            if forecast_at_samples is None:
+                xy = np.asarray(samples_xy, dtype=np.float64).reshape(-1, 2)
+                d2 = (xy[:, 0, None] - X.ravel()[None]) ** 2 + (xy[:, 1, None] - Y.ravel()[None]) ** 2
+                idx = np.argmin(d2, axis=1)
+                forecast_at_samples = fc.reshape(2, -1)[:, idx].T
+        if not hasattr(self, "kernels_"):
+            self.fit(samples_xy, samples_uv, forecast_at_samples, samples_t=samples_t)
+        use_t = getattr(self, "n_inputs_", 2) == 3
+        if use_t and (samples_t is None or t is None):
+            raise ReconstructionError("this GP was fitted over space and time: pass samples_t and t")
+        xy, target = self._check(samples_xy, samples_uv, forecast_at_samples, samples_t if use_t else None)
+        offset = np.zeros(2) if self.prior == "forecast" else target.mean(axis=0)  # constant prior mean
+        target = target - offset
+        grid_pts = np.column_stack([X.ravel(), Y.ravel()] + ([np.full(X.size, float(t))] if use_t else []))
+        mean = np.empty((2,) + X.shape)
+        std = np.empty((2,) + X.shape)
+        for k in range(2):
+            gp = self._fit_gp(self.kernels_[k], xy, target[:, k], optimize=False)
+            from threadpoolctl import threadpool_limits
+
+            with threadpool_limits(1):
+                m, s = gp.predict(grid_pts, return_std=True)
+            mean[k] = m.reshape(X.shape) + offset[k]
+            std[k] = s.reshape(X.shape)
+        if self.prior == "forecast":
+            mean = mean + fc
+        mean[:, land] = np.nan
+        std[:, land] = np.nan
+        return mean.astype(np.float32), std.astype(np.float32)

@@ -1,0 +1,315 @@
+"""The run report (passt_mav.runs.report) and `passt-mav report`, on synthetic run directories."""
+
+from __future__ import annotations
+
+import base64
+import os
+import re
+import shutil
+import struct
+import subprocess
+import sys
+import types
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import geo
+from passt_mav.cli import main
+from passt_mav.errors import UserError
+from passt_mav.fields.field import FlowField
+from passt_mav.runs.report import load_run, recon_rmse, write_report
+from passt_mav.runs.rundir import RunDir
+
+GRID = geo.RegionGrid(40.0, -63.0, 40.45, -62.45, 10, 12)
+T0 = "2018-03-01T00:00:00Z"
+SECTIONS = ("track_field.png", "legs.png", "samples.png", "reconstruction.png", "rmse.png", "pod.png")
+
+
+def _truth_field() -> FlowField:
+    """8 hourly snapshots of a smooth eddy plus a uniform drift rotating in time (m/s)."""
+    lat, lon = GRID.centres_latlon()
+    x = (lon - lon.mean()) / (lon.max() - lon.min())
+    y = (lat - lat.mean()) / (lat.max() - lat.min())
+    times = np.arange(8) * 3600.0
+    data = np.empty((8, 2, GRID.rows, GRID.cols), np.float32)
+    for k, t in enumerate(times):
+        a = 2 * np.pi * t / (12 * 3600)
+        data[k, 0] = -0.6 * y * np.exp(-(x**2 + y**2) * 4) + 0.2 * np.cos(a)
+        data[k, 1] = 0.6 * x * np.exp(-(x**2 + y**2) * 4) + 0.2 * np.sin(a)
+    return FlowField(data, GRID, times, T0)
+
+
+def _leg(i: int, cells: list[tuple[int, int]], t_start: float, t_end: float) -> dict:
+    path = np.array(cells)
+    lat, lon = GRID.cell_to_latlon(path[:, 0], path[:, 1])
+    return {
+        "index": i, "start_cell": list(cells[0]), "path": path.tolist(),
+        "waypoints": np.column_stack([lat, lon]).tolist(),
+        "t_start": t_start, "t_end": t_end, "planning_s": 1.5 + i, "upload_s": 0.25 * (i + 1),
+        "duration_s": 600.0 + 10 * i, "n_samples": len(cells), "rmse_passt": 0.05 - 0.01 * i,
+        "rmse_model": 0.08, "link": {"rtt_ms": 12.5, "loss": 0.01 * i, "messages": 400 + i},
+    }
+
+
+LEG_CELLS = [[(1, 1), (2, 2), (3, 3), (3, 4), (4, 5), (5, 6), (6, 6)],
+             [(6, 6), (6, 7), (7, 8), (8, 9), (8, 10), (7, 11), (6, 11)]]
+
+
+def _samples_for(legs):
+    """One sample per planned cell, measured = truth at the cell at the leg's mid time (+ fixed offsets)."""
+    fld = _truth_field()
+    out, tb = [], 5000
+    for leg in legs:
+        tm = 0.5 * (leg["t_start"] + leg["t_end"])
+        for r, c in leg["path"]:
+            u, v = fld.interp(tm, r, c)
+            lat, lon = GRID.cell_to_latlon(r, c)
+            out.append(dict(time_boot_ms=tb, utc=1.5e9 + tb / 1000, lat=float(lat), lon=float(lon),
+                            u=float(u), v=float(v), leg=leg["index"], source="test"))
+            tb += 1000
+    return out
+
+
+def make_run(root: Path, *, estimate=True, summary_extras=True, field_path=None) -> RunDir:
+    rd = RunDir(root).create()
+    fld = _truth_field()
+    fpath = field_path or (root / "field.nc")
+    fld.to_netcdf(fpath)
+    legs = [_leg(0, LEG_CELLS[0], 3600.0, 7200.0), _leg(1, LEG_CELLS[1], 7200.0, 10800.0)]
+    for leg in legs:
+        rd.write_leg(leg["index"], leg)
+    if estimate:
+        # the reconstruction after leg 1: truth at its t_end plus 0.1 m/s eastward everywhere
+        truth = fld.interp(10800.0, *np.meshgrid(np.arange(10.0), np.arange(12.0), indexing="ij"))
+        est = np.moveaxis(truth, -1, 0)[None].astype(np.float32)
+        est[:, 0] += 0.1
+        FlowField(est, GRID, np.array([10800.0]), T0).to_netcdf(rd.leg_dir(1) / "estimate.nc")
+    summary = {
+        "mission": "synthetic-test", "status": "complete", "started_utc": "2026-01-01T10:00:00Z",
+        "finished_utc": "2026-01-01T10:25:00Z", "field": str(fpath), "model": "knode", "planner": "policy_gradient",
+        "reward": "speed", "seeds": {"planner": 3, "gp": 4}, "grid": GRID.describe(), "field_time_origin": T0,
+        "legs": legs, "n_samples": 14,
+    }
+    if summary_extras:
+        summary["rmse"] = {"t": [3600.0, 7200.0, 10800.0], "passt": [0.09, 0.05, 0.04], "model": [0.09, None, 0.085]}
+        summary["pod"] = {"truth": [0.6, 0.85, 0.95], "passt": [0.55, 0.8, 0.93], "model": [0.5, 0.7, 0.9]}
+    rd.write_summary(summary)
+    return rd
+
+
+@pytest.fixture
+def fake_store(monkeypatch):
+    """Stands in for passt_mav.runs.store (another engineer's module): SampleStore(path).all()."""
+    records: dict[str, list] = {}
+
+    class SampleStore:
+        def __init__(self, path):
+            self.path = str(path)
+
+        def all(self):
+            return [types.SimpleNamespace(**r) for r in records.get(self.path, [])]
+
+        def count(self):
+            return len(records.get(self.path, []))
+
+        def close(self):
+            pass
+
+    mod = types.ModuleType("passt_mav.runs.store")
+    mod.SampleStore = SampleStore
+    monkeypatch.setitem(sys.modules, "passt_mav.runs.store", mod)
+    return records
+
+
+def _embedded_pngs(text: str) -> list[bytes]:
+    return [base64.b64decode(m) for m in re.findall(r'src="data:image/png;base64,([A-Za-z0-9+/=]+)"', text)]
+
+
+def test_full_report(tmp_path, fake_store):
+    rd = make_run(tmp_path / "run")
+    rd.samples_db.write_bytes(b"")  # the store's file; the fake store serves the records
+    fake_store[str(rd.samples_db)] = _samples_for(rd.read_summary()["legs"])
+    path = write_report(rd.root)
+    assert path == rd.report_dir / "report.html"
+    text = path.read_text()
+    pngs = _embedded_pngs(text)
+    assert len(pngs) == len(SECTIONS)
+    for name, data in zip(SECTIONS, pngs):
+        assert data[:8] == b"\x89PNG\r\n\x1a\n"
+        assert (rd.report_dir / name).read_bytes() == data  # same figure embedded and on disk
+    # the page needs nothing from outside
+    assert not re.search(r'(src|href)="(https?:|//|file:)', text)
+    assert text.count("not recorded") == 1  # only the telemetry log, which this run lacks
+    # reconstruction error: +0.1 m/s on u only -> RMSE over pooled components = sqrt(0.1^2 / 2)
+    run = load_run(rd.root)
+    assert run.samples is not None and len(run.samples["u"]) == 14
+    assert "samples.sqlite (14 samples)" in text
+    assert "Telemetry log not recorded" in text
+    assert f"{np.sqrt(0.005):.4g}" in text
+    # summary and timings tables carry the recorded figures
+    for s in ("synthetic-test", "25.0 min", "policy_gradient", "10 x 12 cells", "12.5", "1.0 %", "401", ">0.75<", ">1210<"):
+        assert s in text, s
+
+
+def test_recon_rmse_known_answer():
+    truth = np.zeros((2, 3, 4))
+    est = truth.copy()
+    est[0] += 0.3
+    est[1, 0, 0] = np.nan  # a missing cell is left out, not counted as zero error
+    assert recon_rmse(est, truth) == pytest.approx(np.sqrt(0.09 / 2))
+
+
+def test_minimal_and_partial_runs(tmp_path):
+    rd = RunDir(tmp_path / "bare").create()
+    rd.write_summary({"mission": "m", "status": "aborted"})
+    text = write_report(rd.root).read_text()
+    assert _embedded_pngs(text) == []
+    assert text.count("not recorded") >= 6
+    assert "aborted" in text
+    assert not list(rd.report_dir.glob("*.png"))
+
+    # legs written, no summary yet (run in progress), field file missing, no samples, no tlog
+    rd2 = make_run(tmp_path / "partial", estimate=False, summary_extras=False)
+    rd2.summary_file.unlink()
+    (rd2.root / "field.nc").unlink()
+    text2 = write_report(rd2.root, out=tmp_path / "out").read_text()
+    assert "still in progress" in text2
+    assert "legs.png" in text2 and (tmp_path / "out" / "legs.png").exists()
+    for missing in ("RMSE over time not recorded", "POD energy not recorded", "samples not recorded"):
+        assert missing in text2
+    assert "Reconstruction vs truth: reconstruction (estimate.nc) not recorded" in text2
+
+
+def _write_tlog(path: Path, samples: list[dict], legs: list[dict]) -> None:
+    """A tlog (8-byte big-endian µs + MAVLink 2 frame) with two accepted uploads, positions and samples."""
+    os.environ.setdefault("MAVLINK20", "1")
+    from pymavlink import mavutil
+
+    ml = mavutil.mavlink
+    veh, gcs = ml.MAVLink(None, srcSystem=1, srcComponent=1), ml.MAVLink(None, srcSystem=255, srcComponent=190)
+    out = bytearray()
+    t = [1_700_000_000_000_000]
+
+    def put(msg, enc):
+        t[0] += 10_000
+        out.extend(struct.pack(">Q", t[0]) + bytes(msg.pack(enc)))
+
+    put(veh.heartbeat_encode(11, 3, 129, 10, 4), veh)
+    for leg in legs:
+        wps = leg["waypoints"]
+        put(gcs.mission_count_encode(1, 1, len(wps) + 1), gcs)
+        for seq, (la, lo) in enumerate([wps[0]] + wps):
+            put(gcs.mission_item_int_encode(1, 1, seq, 6, 16, 0, 1, 0, 2, 0, 0, int(la * 1e7), int(lo * 1e7), 0), gcs)
+        put(veh.mission_ack_encode(255, 190, 0), veh)
+        put(veh.mission_current_encode(1, len(wps), 3), veh)
+        for s in (x for x in samples if x["leg"] == leg["index"]):
+            put(veh.global_position_int_encode(s["time_boot_ms"], int(s["lat"] * 1e7), int(s["lon"] * 1e7), 0, 0, 0, 0, 0, 0), veh)
+            put(veh.named_value_float_encode(s["time_boot_ms"], b"CUR_U", s["u"]), veh)
+            put(veh.named_value_float_encode(s["time_boot_ms"], b"CUR_V", s["v"]), veh)
+        put(veh.mission_current_encode(len(wps), len(wps), 5), veh)
+    path.write_bytes(bytes(out))
+
+
+def test_samples_and_track_from_tlog(tmp_path):
+    rd = make_run(tmp_path / "run")
+    legs = rd.read_summary()["legs"]
+    samples = _samples_for(legs)
+    _write_tlog(rd.tlog, samples, legs)
+    run = load_run(rd.root)
+    assert run.samples_source == "flight.tlog"
+    assert len(run.samples["u"]) == 14
+    np.testing.assert_allclose(run.samples["u"], [s["u"] for s in samples], atol=1e-6)
+    assert list(run.samples["leg"]) == [s["leg"] for s in samples]
+    # executed track of each leg = the positions logged during that leg
+    for leg in legs:
+        np.testing.assert_allclose(run.leg_tracks[leg["index"]], np.array(leg["waypoints"]), atol=1e-6)
+    text = write_report(rd.root).read_text()
+    assert "flight.tlog GLOBAL_POSITION_INT (14 points)" in text
+    assert "2 uploads, 0 bad frames, 0 bytes skipped" in text
+    assert text.count("mission complete") == 2 and "mission 1: 8 items, 7 waypoints, accepted" in text
+
+
+def test_builtin_field(tmp_path):
+    """summary['field'] = 'builtin:ocean' resolves through the dataset registry."""
+    rd = make_run(tmp_path / "run", estimate=False)
+    s = rd.read_summary()
+    s["field"] = "builtin:ocean"
+    s["grid"] = geo.north_atlantic_grid().describe()
+    rd.write_summary(s)
+    run = load_run(rd.root)
+    assert run.field is not None and run.field.grid.shape == (30, 30)
+    assert "field" not in run.notes
+    # a field path relative to the run directory
+    s["field"], s["grid"] = "field.nc", GRID.describe()
+    rd.write_summary(s)
+    run = load_run(rd.root)
+    assert run.field is not None and run.field.grid == GRID
+
+
+def test_errors_and_cli(tmp_path, capsys):
+    with pytest.raises(UserError):
+        write_report(tmp_path / "missing")
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(UserError, match="not a run directory"):
+        load_run(tmp_path / "empty")
+    assert main(["report", str(tmp_path / "empty")]) == 2
+    assert "not a run directory" in capsys.readouterr().err
+    rd = make_run(tmp_path / "run")
+    assert main(["report", str(rd.root), "--out", str(tmp_path / "rep")]) == 0
+    printed = capsys.readouterr().out.strip().splitlines()[-1]
+    assert Path(printed) == tmp_path / "rep" / "report.html" and Path(printed).exists()
+    bad = RunDir(tmp_path / "badjson").create()
+    bad.summary_file.write_text("{not json")
+    assert main(["report", str(bad.root)]) == 2
+
+
+def _distinct_colours(png: Path) -> int:
+    import matplotlib.image as mpimg
+
+    img = (mpimg.imread(png)[..., :3] * 255).astype(np.uint8).reshape(-1, 3)
+    return len(np.unique(img, axis=0))
+
+
+@pytest.mark.skipif(shutil.which("chromium") is None, reason="chromium not installed")
+def test_renders_in_headless_chromium(tmp_path, fake_store):
+    rd = make_run(tmp_path / "run")
+    rd.samples_db.write_bytes(b"")
+    fake_store[str(rd.samples_db)] = _samples_for(rd.read_summary()["legs"])
+    html_path = write_report(rd.root)
+    shot = tmp_path / "shot.png"
+    cmd = [shutil.which("chromium"), "--headless", "--no-sandbox", "--disable-gpu", "--disable-background-networking",
+           "--disable-component-update", "--disable-sync", "--no-first-run", "--hide-scrollbars",
+           f"--user-data-dir={tmp_path / 'profile'}", f"--screenshot={shot}", "--window-size=1200,2600",
+           html_path.resolve().as_uri()]
+    subprocess.run(cmd, check=True, capture_output=True, timeout=120)
+    assert shot.exists()
+    # a blank or broken page has a handful of colours; colour maps and text give thousands
+    assert _distinct_colours(shot) > 500
+
+
+def test_metric_grid_run(tmp_path):
+    """A cylinder-like run: metric grid placed on Earth (rotated), non-dimensional time and units."""
+    grid = geo.MetricRegionGrid(0.0, 9.0, -4.0, 4.0, 9, 10, anchor_lat=40.0, anchor_lon=-63.0,
+                                rotation_deg=30.0, scale=500.0)
+    times = np.arange(6) * 0.4
+    ys, xs = np.meshgrid(grid.ys, grid.xs, indexing="ij")
+    data = np.stack([np.stack([1.0 + 0 * xs + 0.1 * np.sin(t), 0.2 * np.sin(xs + t)]) for t in times]).astype(np.float32)
+    data[:, :, 4, 2] = np.nan  # the cylinder: no data inside it
+    fpath = tmp_path / "cyl.nc"
+    FlowField(data, grid, times, None, units="1").to_netcdf(fpath)
+    rd = RunDir(tmp_path / "run").create()
+    path = [[1, 1], [2, 2], [3, 3], [3, 4]]
+    lat, lon = grid.cell_to_latlon(np.array(path)[:, 0], np.array(path)[:, 1])
+    leg = {"index": 0, "path": path, "waypoints": np.column_stack([lat, lon]).tolist(), "t_start": 0.4, "t_end": 1.2}
+    FlowField(data[3:4] + np.float32(0.05), grid, times[3:4], None, units="1").to_netcdf(rd.leg_dir(0) / "estimate.nc")
+    rd.write_summary({"mission": "cyl", "status": "complete", "field": str(fpath), "grid": grid.describe(),
+                      "field_time_origin": None, "legs": [leg],
+                      "rmse": {"t": [0.4, 0.8, 1.2], "passt": [0.1, 0.08, 0.05], "model": [0.1, 0.1, 0.1]}})
+    text = write_report(rd.root).read_text()
+    assert len(_embedded_pngs(text)) == 4  # all but samples and POD (not recorded)
+    assert "non-dimensional" in text
+    # +0.05 on both components everywhere the cylinder is not
+    assert "reconstruction RMSE vs truth, leg 0</th><td>0.05 non-dimensional" in text
+    assert "non-dimensional field time" in text

@@ -1,0 +1,228 @@
+"""Boat physics and the current sensor against closed-form answers."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+import geo
+from passt_mav.fields import FlowField
+from simclient import SimClient
+from vehicle_sim import MODES, BoatParams, CurrentModel, SimConfig, Simulator
+from vehicle_sim.boat import BoatState, guidance, step_boat
+
+HOME = (40.0, -63.0)
+M_PER_DEG_LAT = 111_035.0  # WGS84 meridian arc per degree near 40 N (pyproj: 111034.6)
+
+
+def uniform_field(u, v, half_deg=0.05, n=5):
+    grid = geo.RegionGrid(HOME[0] - half_deg, HOME[1] - half_deg, HOME[0] + half_deg, HOME[1] + half_deg, n, n)
+    data = np.zeros((2, 2, n, n), np.float32)
+    data[:, 0], data[:, 1] = u, v
+    return FlowField(data, grid, np.array([0.0, 86400.0]), time_origin="2020-01-01T00:00:00Z")
+
+
+def sim_with(field=None, nav="pursuit", **kw):
+    cfg = SimConfig.fast(boat=BoatParams(nav=nav), **kw)
+    sim = Simulator(field, home=HOME, config=cfg)
+    sim.run_until(2.0)
+    return sim, SimClient(sim)
+
+
+def go(sim, c, north_m, dt=0.1):
+    lat = HOME[0] + north_m / M_PER_DEG_LAT
+    assert c.upload([SimClient.waypoint(0, *HOME), SimClient.waypoint(1, lat, HOME[1])]).type == 0
+    assert c.arm().result == 0
+    assert c.set_mode(MODES["AUTO"]).result == 0
+    t0 = sim.t
+    track = []
+    while sim.autopilot.mission_state != "complete" and sim.t - t0 < 2000:
+        sim.step(dt)
+        track.append((sim.t - t0, sim.autopilot.boat.x, sim.autopilot.boat.y))
+    return sim.t - t0, np.array(track)
+
+
+def test_zero_current_1km_takes_1000_over_wp_speed():
+    sim, c = sim_with()
+    t, _ = go(sim, c, 1000.0)
+    assert t == pytest.approx(1000.0 / 2.0, rel=0.05)
+    assert t == pytest.approx((1000.0 - 2.0) / 2.0, abs=2.0)  # tighter: minus WP_RADIUS, plus the 0.5 s speed lag
+
+
+def test_cross_current_uncompensated_follows_the_pursuit_curve():
+    """Bow on the waypoint, current w across the leg: the river-crossing curve.
+
+    With k = w/V: remaining distance x along the leg and offset y satisfy
+    y = a/2 [(x/a)^(1-k) - (x/a)^(1+k)], the largest offset is at
+    x/a = ((1-k)/(1+k))^(1/(2k)), and the leg takes a V / (V^2 - w^2).
+    """
+    a, V, w = 500.0, 2.0, 0.5
+    k = w / V
+    sim, c = sim_with(uniform_field(w, 0.0))
+    t, track = go(sim, c, a)
+    assert t == pytest.approx(a * V / (V * V - w * w), rel=0.02)
+    xr = ((1 - k) / (1 + k)) ** (1 / (2 * k))
+    y_max = a / 2 * (xr ** (1 - k) - xr ** (1 + k))
+    assert track[:, 1].max() == pytest.approx(y_max, rel=0.03)  # drift east, down-current
+    # the whole curve, at a few remaining distances
+    for frac in (0.8, 0.5, 0.2):
+        i = np.argmin(np.abs((a - track[:, 2]) / a - frac))
+        xa = (a - track[i, 2]) / a
+        assert track[i, 1] == pytest.approx(a / 2 * (xa ** (1 - k) - xa ** (1 + k)), abs=1.5)
+
+
+def test_cross_current_crosstrack_option_holds_the_line():
+    a, V, w = 500.0, 2.0, 0.5
+    sim, c = sim_with(uniform_field(w, 0.0), nav="crosstrack")
+    t, track = go(sim, c, a)
+    assert np.abs(track[:, 1]).max() < 2.0
+    assert t == pytest.approx(a / math.sqrt(V * V - w * w), rel=0.02)
+
+
+def test_manual_drifts_with_the_current():
+    sim, c = sim_with(uniform_field(0.3, -0.2))
+    assert c.arm().result == 0  # armed in MANUAL, no RC input: no thrust
+    x0, y0 = sim.autopilot.boat.x, sim.autopilot.boat.y
+    sim.step(100.0)
+    b = sim.autopilot.boat
+    assert (b.x - x0, b.y - y0) == pytest.approx((30.0, -20.0), abs=0.3)
+
+
+@pytest.mark.parametrize("mode", ["HOLD", "LOITER"])
+def test_hold_and_loiter_keep_station_against_current(mode):
+    sim, c = sim_with(uniform_field(0.6, 0.3))
+    assert c.arm().result == 0
+    assert c.set_mode(MODES[mode]).result == 0
+    x0, y0 = sim.autopilot.boat.x, sim.autopilot.boat.y
+    dmax = 0.0
+    for _ in range(3000):
+        sim.step(0.1)
+        b = sim.autopilot.boat
+        dmax = max(dmax, math.hypot(b.x - x0, b.y - y0))
+    assert dmax < 2.0 + 1.0  # LOIT_RADIUS 2 m plus what one overshoot at 0.67 m/s adds
+    assert dmax > 1.0  # it does drift inside the circle (motor off there)
+
+
+def test_disarmed_in_auto_drifts():
+    sim, c = sim_with(uniform_field(0.0, 0.5))
+    c.set_mode(MODES["AUTO"])
+    y0 = sim.autopilot.boat.y
+    sim.step(20)
+    assert sim.autopilot.boat.y - y0 == pytest.approx(10.0, abs=0.1)
+
+
+def linear_field():
+    """u, v linear in lon/lat and time: bilinear + linear-in-time interpolation is exact."""
+    n = 6
+    grid = geo.RegionGrid(HOME[0] - 0.01, HOME[1] - 0.01, HOME[0] + 0.01, HOME[1] + 0.01, n, n)
+    lats, lons = grid.centres_latlon()
+    times = np.array([0.0, 600.0, 1200.0])
+    data = np.zeros((3, 2, n, n), np.float32)
+    for i, tt in enumerate(times):
+        data[i, 0] = 0.2 + 10.0 * (lons - HOME[1]) + tt / 6000.0
+        data[i, 1] = -0.1 + 15.0 * (lats - HOME[0]) - tt / 12000.0
+    return FlowField(data, grid, times, time_origin="2020-01-01T00:00:00Z")
+
+
+def _samples(c):
+    gpi = {m.time_boot_ms: m for _, m in c.log if m.get_type() == "GLOBAL_POSITION_INT"}
+    cu = {m.time_boot_ms: m.value for _, m in c.log if m.get_type() == "NAMED_VALUE_FLOAT" and m.name == "CUR_U"}
+    cv = {m.time_boot_ms: m.value for _, m in c.log if m.get_type() == "NAMED_VALUE_FLOAT" and m.name == "CUR_V"}
+    out = []
+    for ms in sorted(cu):
+        assert ms in cv and ms in gpi, "CUR_U/CUR_V without a GLOBAL_POSITION_INT at the same time_boot_ms"
+        g = gpi[ms]
+        out.append((ms / 1000.0, g.lat / 1e7, g.lon / 1e7, cu[ms], cv[ms]))
+    return np.array(out)
+
+
+def _run_survey(sim, c):
+    items = [SimClient.waypoint(0, *HOME)] + [SimClient.waypoint(i + 1, HOME[0] + d[0], HOME[1] + d[1])
+                                             for i, d in enumerate([(0.003, 0.0), (0.003, 0.004), (-0.002, 0.004)])]
+    assert c.upload(items).type == 0
+    c.arm()
+    c.set_mode(MODES["AUTO"])
+    c.collect(300.0, dt=0.1)
+
+
+def test_current_sensor_reads_the_field_at_the_boat():
+    field = linear_field()
+    sim, c = sim_with(field)
+    _run_survey(sim, c)
+    s = _samples(c)
+    assert len(s) >= 295  # 1 Hz
+    truth = field.sample_latlon(s[:, 0], s[:, 1], s[:, 2])  # start_time = first snapshot = 0
+    assert np.abs(s[:, 3] - truth[:, 0]).max() < 1e-4
+    assert np.abs(s[:, 4] - truth[:, 1]).max() < 1e-4
+    assert np.ptp(s[:, 3]) > 0.05  # the boat did see a varying field
+
+
+def test_current_sensor_noise_is_seeded_gaussian():
+    field = linear_field()
+    runs = []
+    for _ in range(2):
+        sim, c = sim_with(field, current_noise_std=0.05, seed=7)
+        _run_survey(sim, c)
+        runs.append(_samples(c))
+    s = runs[0]
+    np.testing.assert_array_equal(runs[0], runs[1])  # same seed, same readings
+    truth = field.sample_latlon(s[:, 0], s[:, 1], s[:, 2])
+    res = np.concatenate([s[:, 3] - truth[:, 0], s[:, 4] - truth[:, 1]])
+    assert res.std() == pytest.approx(0.05, rel=0.15)
+    assert abs(res.mean()) < 0.01
+
+
+def test_metric_field_rotation_velocity_and_time_scale():
+    g = geo.MetricRegionGrid(0.0, 10.0, 0.0, 10.0, 11, 11, anchor_lat=HOME[0], anchor_lon=HOME[1], rotation_deg=90.0, scale=50.0)
+    data = np.zeros((2, 2, 11, 11), np.float32)
+    data[0, 0] = 0.0
+    data[1, 0] = 1.0  # u ramps 0 -> 1 (inflow direction) over one time unit
+    field = FlowField(data, g, np.array([0.0, 1.0]), None, "1")
+    cm = CurrentModel(field, velocity_scale=0.5, time_scale=10.0)
+    u, v = cm.at(5.0, HOME[0], HOME[1])  # field time 0.5 -> u_data = 0.5; x 0.5 m/s per unit; rotated 90 deg CCW -> north
+    assert (u, v) == pytest.approx((0.0, 0.25), abs=1e-9)
+    # clamped in time: after the last snapshot it holds the last one
+    assert cm.at(1000.0, HOME[0], HOME[1]) == pytest.approx((0.0, 0.5), abs=1e-9)
+    # outside the region (a 500 m square): still water
+    assert cm.at(5.0, HOME[0] + 0.01, HOME[1]) == (0.0, 0.0)
+
+
+def test_missing_cells_are_still_water():
+    f = uniform_field(0.4, 0.0)
+    f.data[:, :, 2, 2] = np.nan
+    cm = CurrentModel(f)
+    assert cm.at(0.0, HOME[0], HOME[1]) == (0.0, 0.0)
+    lat, lon = f.grid.cell_to_latlon(0, 0)
+    assert cm.at(0.0, float(lat), float(lon)) == pytest.approx((0.4, 0.0))
+
+
+def test_turn_rate_limit_and_speed_lag():
+    p = BoatParams(max_turn_rate_dps=30.0, speed_tau_s=1.0, max_accel=10.0)
+    s = BoatState(heading=0.0)
+    for _ in range(10):
+        step_boat(s, math.pi / 2, 2.0, (0.0, 0.0), 0.1, p)
+    assert math.degrees(s.heading) == pytest.approx(30.0, abs=1e-6)
+    assert s.speed == pytest.approx(2.0 * (1 - math.exp(-1.0)), rel=1e-6)
+    h, sp = guidance(BoatState(x=0, y=0), (10.0, 10.0), 2.0, (0, 0), p)
+    assert math.degrees(h) == pytest.approx(45.0) and sp == 2.0
+
+
+def test_scalar_current_sampler_matches_flowfield_interp():
+    rng = np.random.default_rng(0)
+    f = linear_field()
+    f.data[:] += rng.normal(0, 0.3, f.data.shape).astype(np.float32)
+    f.data[1, :, 2, 3] = np.nan
+    cm = CurrentModel(f)
+    R, C = f.grid.shape
+    ts = np.concatenate([rng.uniform(-100, 1300, 400), f.times])
+    rs = np.concatenate([rng.uniform(-0.5, R - 0.5, 400), [0, R - 1, 0]])
+    cs = np.concatenate([rng.uniform(-0.5, C - 0.5, 400), [C - 1, 0, 0]])
+    for t, r, c in zip(ts, rs, cs):
+        ref = f.interp(t, r, c)
+        got = cm._interp1(float(t), float(r), float(c))
+        if np.isnan(ref).any():
+            assert np.isnan(got).any()
+        else:
+            assert got == pytest.approx(tuple(ref), abs=1e-9)
