@@ -1,0 +1,431 @@
+"""Mission configuration: one YAML file per mission, validated with pydantic.
+
+Example (``missions/north_atlantic.yaml``)::
+
+    name: north_atlantic
+    region: {south: 39.360065, west: -64.24, north: 41.130714, east: -61.92004, rows: 30, cols: 30}
+    field: {source: "builtin:ocean"}
+    model: builtin:ocean            # default: the shipped model of the field's scenario
+    planner: {name: policy_gradient, path_length: 50, reward: speed, options: {}}
+    legs: 4
+    start_cell: [15, 15]
+    t0: 0
+    vehicle: {connect: "tcp:127.0.0.1:5760", speed_mps: 2.0, wp_radius_m: 5.0}
+    sensors: {u: CUR_U, v: CUR_V, noise_std: 0.02}
+    geofence_margin_m: 500
+    gp: {prior: forecast, hyper: every_leg, options: {}}
+    seeds: {planner: 0, gp: 0, sensor: 0, field: 0}
+
+``region`` is geographic (south/west/north/east/rows/cols: the lat/lon of the
+corner cell *centres*, :class:`geo.RegionGrid`) or metric (x0/x1/y0/y1/rows/cols
++ anchor_lat/anchor_lon/rotation_deg/scale, :class:`geo.MetricRegionGrid`); an
+optional ``kind: geographic|metric`` may say which, otherwise the keys do.
+
+``model`` is ``builtin:NAME`` (a shipped checkpoint; ``shipped:NAME`` is accepted
+and normalised to ``builtin:NAME``, the spelling ``passt-mav evaluate --model``
+uses), a checkpoint path (``.pt``) or a predictor registry name (``knode``,
+``dmd``, ``persistence``; fitted on the field). It is resolved by the commands,
+not here.
+
+Every problem raises :class:`passt_mav.errors.MissionConfigError` with ONE line
+``FILE: key.path: problem (got VALUE)``. Relative paths in the file (field
+source, model checkpoint) are relative to the YAML file's directory.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated, Any, Literal, Union
+
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Discriminator,
+    Field,
+    Tag,
+    ValidationError,
+    ValidationInfo,
+    field_validator,
+    model_validator,
+)
+
+from passt_mav.errors import MissionConfigError
+
+__all__ = [
+    "MissionConfig",
+    "GeographicRegion",
+    "MetricRegion",
+    "FieldConfig",
+    "PlannerConfig",
+    "VehicleConfig",
+    "SensorConfig",
+    "GPConfig",
+    "SeedConfig",
+    "load_mission",
+    "BUILTIN_FIELDS",
+    "SHIPPED_MODELS",
+    "DEFAULT_MODEL",
+]
+
+BUILTIN_FIELDS = ("ocean", "cylinder", "oscillating")
+#: shipped predictor checkpoints (resolved by passt_mav.models)
+SHIPPED_MODELS = ("cylinder", "ocean")
+#: the default model of each built-in field: the oscillating cylinder uses the static one (paper)
+DEFAULT_MODEL = {"ocean": "builtin:ocean", "cylinder": "builtin:cylinder", "oscillating": "builtin:cylinder"}
+#: predictor registry names accepted when passt_mav.models cannot be imported (yet)
+_KNOWN_PREDICTORS = ("knode", "dmd", "persistence")
+_NAMED_VALUE_MAX = 10  # NAMED_VALUE_FLOAT.name is char[10]
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+def _base_dir(info: ValidationInfo) -> Path:
+    ctx = info.context or {}
+    return Path(ctx.get("base_dir", "."))
+
+
+class GeographicRegion(_Strict):
+    """Lat/lon of the corner cell centres (degrees) and the grid shape."""
+
+    kind: Literal["geographic"] = "geographic"
+    south: float
+    west: float
+    north: float
+    east: float
+    rows: int = Field(ge=2)
+    cols: int = Field(ge=2)
+
+    @model_validator(mode="after")
+    def _check(self):
+        self.grid()  # GeoError (a ValueError) -> reported at "region"
+        return self
+
+    def grid(self):
+        """The :class:`geo.RegionGrid`."""
+        from geo import RegionGrid
+
+        return RegionGrid(self.south, self.west, self.north, self.east, self.rows, self.cols)
+
+
+class MetricRegion(_Strict):
+    """A metric data grid (cylinder crop) placed on Earth, see :class:`geo.MetricRegionGrid`."""
+
+    kind: Literal["metric"] = "metric"
+    x0: float
+    x1: float
+    y0: float
+    y1: float
+    rows: int = Field(ge=2)
+    cols: int = Field(ge=2)
+    anchor_lat: float
+    anchor_lon: float
+    rotation_deg: float = 0.0
+    scale: float = Field(default=1.0, gt=0)
+
+    @model_validator(mode="after")
+    def _check(self):
+        self.grid()
+        return self
+
+    def grid(self):
+        """The :class:`geo.MetricRegionGrid`."""
+        from geo import MetricRegionGrid
+
+        return MetricRegionGrid(self.x0, self.x1, self.y0, self.y1, self.rows, self.cols, anchor_lat=self.anchor_lat,
+                                anchor_lon=self.anchor_lon, rotation_deg=self.rotation_deg, scale=self.scale)
+
+
+def _region_kind(v: Any) -> str | None:
+    if isinstance(v, dict):
+        if "kind" in v:
+            return v["kind"] if v["kind"] in ("geographic", "metric") else None
+        return "metric" if ({"x0", "x1", "y0", "y1", "anchor_lat", "anchor_lon"} & set(v)) else "geographic"
+    if isinstance(v, (GeographicRegion, MetricRegion)):
+        return v.kind
+    return None
+
+
+Region = Annotated[
+    Union[Annotated[GeographicRegion, Tag("geographic")], Annotated[MetricRegion, Tag("metric")]],
+    Discriminator(_region_kind, custom_error_type="region_kind",
+                  custom_error_message="must be a mapping with south/west/north/east/rows/cols (geographic) "
+                                       "or x0/x1/y0/y1/rows/cols/anchor_lat/anchor_lon (metric)"),
+]
+
+
+class FieldConfig(_Strict):
+    """Where the current field comes from.
+
+    source: ``builtin:ocean`` | ``builtin:cylinder`` | ``builtin:oscillating`` | a ``.nc``
+    path. velocity_scale: m/s per field velocity unit (the cylinder is non-dimensional,
+    inflow = 1; geographic fields are already in m/s: 1). time_scale: seconds per field
+    time unit (geographic fields count seconds: 1; for a scaled cylinder
+    ``region.scale / velocity_scale``).
+    """
+
+    source: str
+    velocity_scale: float = Field(default=1.0, gt=0)
+    time_scale: float = Field(default=1.0, gt=0)
+
+    @field_validator("source")
+    @classmethod
+    def _source(cls, v: str, info: ValidationInfo) -> str:
+        if v.startswith("builtin:"):
+            name = v.split(":", 1)[1]
+            if name not in BUILTIN_FIELDS:
+                raise ValueError(f"unknown built-in field {name!r}; choose one of "
+                                 + ", ".join(f"builtin:{n}" for n in BUILTIN_FIELDS) + " or a .nc file")
+            return v
+        if not v.endswith(".nc"):
+            raise ValueError("must be builtin:ocean, builtin:cylinder, builtin:oscillating or a path to a .nc file")
+        p = Path(v)
+        p = p if p.is_absolute() else _base_dir(info) / p
+        if not p.exists():
+            raise ValueError(f"field file not found: {p}")
+        return str(p)
+
+    @property
+    def builtin(self) -> str | None:
+        """The built-in scenario name, or None for a file."""
+        return self.source.split(":", 1)[1] if self.source.startswith("builtin:") else None
+
+
+class PlannerConfig(_Strict):
+    """Planner name (``passt_mav.planning.PLANNERS``), moves per leg L, reward, planner options."""
+
+    name: str = "policy_gradient"
+    path_length: int = Field(default=50, ge=1)
+    reward: str = "speed"
+    options: dict[str, Any] = Field(default_factory=dict)
+
+    @field_validator("name")
+    @classmethod
+    def _name(cls, v: str) -> str:
+        from passt_mav.planning import PLANNERS
+
+        if v == "pg":
+            return "policy_gradient"
+        if v not in PLANNERS:
+            raise ValueError(f"unknown planner {v!r}; choose one of {', '.join(PLANNERS)}")
+        return v
+
+    @field_validator("reward")
+    @classmethod
+    def _reward(cls, v: str) -> str:
+        from passt_mav.planning import REWARDS
+
+        if v not in REWARDS:
+            raise ValueError(f"unknown reward {v!r}; choose one of {', '.join(REWARDS)}")
+        return v
+
+
+class VehicleConfig(_Strict):
+    """MAVLink connection string, cruise speed (m/s, sent as DO_CHANGE_SPEED) and waypoint radius (m)."""
+
+    connect: str = "tcp:127.0.0.1:5760"
+    speed_mps: float = Field(default=2.0, gt=0)
+    wp_radius_m: float = Field(default=2.0, ge=0)
+
+
+class SensorConfig(_Strict):
+    """NAMED_VALUE_FLOAT names of the current sensor's east/north components, and its noise std (m/s)."""
+
+    u: str = Field(default="CUR_U", min_length=1, max_length=_NAMED_VALUE_MAX)
+    v: str = Field(default="CUR_V", min_length=1, max_length=_NAMED_VALUE_MAX)
+    noise_std: float = Field(default=0.0, ge=0)
+
+
+class GPConfig(_Strict):
+    """GP reconstruction: prior ``forecast`` (residual vs the model forecast) or ``constant``
+    (the paper's GP on samples alone); hyper-parameter schedule; GPReconstructor options."""
+
+    prior: Literal["forecast", "constant"] = "forecast"
+    hyper: Literal["first_leg", "state", "every_leg"] = "every_leg"
+    options: dict[str, Any] = Field(default_factory=dict)
+
+    @property
+    def loop_prior(self) -> str:
+        """The name :class:`passt_mav.passt.PasstLoop` uses ("forecast" or "none")."""
+        return "forecast" if self.prior == "forecast" else "none"
+
+
+class SeedConfig(_Strict):
+    """Seeds of everything random (recorded with the run)."""
+
+    planner: int = 0
+    gp: int = 0
+    sensor: int = 0
+    field: int = 0
+
+
+class MissionConfig(_Strict):
+    """A validated mission file (see the module docstring for the keys)."""
+
+    name: str = Field(min_length=1)
+    region: Region
+    field: FieldConfig
+    model: str | None = None
+    planner: PlannerConfig = Field(default_factory=PlannerConfig)
+    legs: int = Field(default=1, ge=1)
+    start_cell: tuple[int, int] | None = None
+    t0: int = Field(default=0, ge=0)
+    steps_per_leg: int | None = Field(default=None, ge=1)
+    vehicle: VehicleConfig = Field(default_factory=VehicleConfig)
+    sensors: SensorConfig = Field(default_factory=SensorConfig)
+    geofence_margin_m: float = Field(default=0.0, ge=0)
+    gp: GPConfig = Field(default_factory=GPConfig)
+    seeds: SeedConfig = Field(default_factory=SeedConfig)
+
+    @field_validator("field", mode="before")
+    @classmethod
+    def _field_shorthand(cls, v: Any) -> Any:
+        return {"source": v} if isinstance(v, str) else v
+
+    @field_validator("model")
+    @classmethod
+    def _model(cls, v: str | None, info: ValidationInfo) -> str | None:
+        if v is None:
+            return None
+        if v.startswith(("builtin:", "shipped:")):
+            name = v.split(":", 1)[1]
+            if name not in SHIPPED_MODELS:
+                raise ValueError(f"unknown shipped model {name!r}; choose one of "
+                                 + ", ".join(f"builtin:{n}" for n in SHIPPED_MODELS))
+            return f"builtin:{name}"
+        if v.endswith((".pt", ".pth")):
+            p = Path(v)
+            p = p if p.is_absolute() else _base_dir(info) / p
+            if not p.exists():
+                raise ValueError(f"model checkpoint not found: {p}")
+            return str(p)
+        names = _predictor_names()
+        if v not in names:
+            raise ValueError(f"unknown model {v!r}; use builtin:cylinder, builtin:ocean, a .pt checkpoint or one of "
+                             + ", ".join(names))
+        return v
+
+    @model_validator(mode="after")
+    def _cross(self):
+        if self.model is None:
+            src = self.field.builtin
+            object.__setattr__(self, "model", DEFAULT_MODEL[src] if src else "dmd")
+        if self.start_cell is not None:
+            r, c = self.start_cell
+            g = self.region
+            if not (0 <= r < g.rows and 0 <= c < g.cols):
+                raise ValueError(f"start_cell {list(self.start_cell)} lies outside the {g.rows}x{g.cols} grid")
+        return self
+
+    def grid(self):
+        """The region's :mod:`geo` grid object."""
+        return self.region.grid()
+
+
+def _predictor_names() -> tuple[str, ...]:
+    """Predictor registry names, from passt_mav.models when it imports (lazily), else the known ones."""
+    try:
+        from passt_mav.models.base import PREDICTORS  # noqa: PLC0415 - optional, heavy
+    except Exception:  # noqa: BLE001 - the predictors package may be absent or broken in this build
+        return _KNOWN_PREDICTORS
+    return tuple(PREDICTORS)
+
+
+# -- loading and one-line errors ------------------------------------------------------
+
+
+def _fmt_loc(loc: tuple) -> str:
+    parts = []
+    for i, p in enumerate(loc):
+        # drop the union tag pydantic inserts after "region", and the validator-function markers
+        if i == 1 and loc[0] == "region" and p in ("geographic", "metric"):
+            continue
+        if isinstance(p, int):
+            parts.append(f"[{p}]")
+        else:
+            parts.append(("." if parts else "") + str(p))
+    return "".join(parts)
+
+
+def _short(v: Any) -> str:
+    s = repr(v)
+    return s if len(s) <= 60 else s[:57] + "..."
+
+
+def _fmt_error(e: dict, model_cls: type[BaseModel]) -> str:
+    loc, typ, ctx, inp = tuple(e["loc"]), e["type"], e.get("ctx") or {}, e.get("input")
+    where = _fmt_loc(loc)
+    if typ == "missing":
+        return f"{where}: required key is missing"
+    if typ == "extra_forbidden":
+        allowed = _allowed_keys(model_cls, loc[:-1])
+        hint = f" (allowed: {', '.join(allowed)})" if allowed else ""
+        return f"{where}: unknown key{hint}"
+    bounds = {"greater_than_equal": ">=", "greater_than": ">", "less_than_equal": "<=", "less_than": "<"}
+    if typ in bounds:
+        key = {"greater_than_equal": "ge", "greater_than": "gt", "less_than_equal": "le", "less_than": "lt"}[typ]
+        b = ctx.get(key)
+        b = int(b) if isinstance(b, float) and b.is_integer() else b
+        return f"{where}: must be {bounds[typ]} {b} (got {_short(inp)})"
+    msg = str(e["msg"])
+    if msg.startswith("Value error, "):
+        msg = msg[len("Value error, "):]
+    msg = msg[0].lower() + msg[1:] if msg else msg
+    if typ in ("value_error", "assertion_error"):
+        return f"{where}: {msg}" if where else msg
+    return f"{where}: {msg} (got {_short(inp)})"
+
+
+def _allowed_keys(model_cls: type[BaseModel], loc: tuple) -> list[str]:
+    """Keys allowed in the mapping at ``loc`` (for the "unknown key" message)."""
+    tags = {"geographic": GeographicRegion, "metric": MetricRegion}
+    cls: Any = model_cls
+    i = 0
+    while i < len(loc):
+        if cls is model_cls and loc[i] == "region":
+            if i + 1 < len(loc) and loc[i + 1] in tags:
+                cls, i = tags[loc[i + 1]], i + 2
+                continue
+            return []
+        f = cls.model_fields.get(loc[i]) if isinstance(loc[i], str) else None
+        ann = getattr(f, "annotation", None)
+        if not (isinstance(ann, type) and issubclass(ann, BaseModel)):
+            return []
+        cls, i = ann, i + 1
+    return list(cls.model_fields)
+
+
+def validate_mission(data: Any, *, source: str = "mission", base_dir: str | Path = ".") -> MissionConfig:
+    """Validate a parsed mapping; errors raise :class:`MissionConfigError` ``"SOURCE: key: problem"``."""
+    if not isinstance(data, dict):
+        raise MissionConfigError(f"{source}: the mission file must be a YAML mapping of keys, got {type(data).__name__}")
+    try:
+        return MissionConfig.model_validate(data, context={"base_dir": str(base_dir)})
+    except ValidationError as exc:
+        errs = exc.errors()
+        more = f" (and {len(errs) - 1} more problem{'s' if len(errs) > 2 else ''})" if len(errs) > 1 else ""
+        raise MissionConfigError(f"{source}: {_fmt_error(errs[0], MissionConfig)}{more}".replace("\n", " ")) from None
+
+
+def load_mission(path: str | Path) -> MissionConfig:
+    """Read and validate a mission YAML file (see module docstring)."""
+    import yaml
+
+    p = Path(path)
+    try:
+        text = p.read_text()
+    except FileNotFoundError:
+        raise MissionConfigError(f"{p}: no such mission file") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise MissionConfigError(f"{p}: cannot read the mission file ({exc})") from None
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark is not None else ""
+        problem = getattr(exc, "problem", None) or str(exc).splitlines()[0]
+        raise MissionConfigError(f"{p}: invalid YAML{where}: {problem}") from None
+    if data is None:
+        raise MissionConfigError(f"{p}: the mission file is empty")
+    return validate_mission(data, source=str(p), base_dir=p.parent)
