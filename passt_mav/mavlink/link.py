@@ -1,0 +1,637 @@
+"""The MAVLink link to one vehicle: connection, reader thread, heartbeats, commands.
+
+A :class:`Link` wraps one pymavlink ``mavutil`` connection (MAVLink 2,
+ardupilotmega dialect). One background thread reads every message and
+dispatches it (subscriber queues, listener callbacks, latest message per type,
+statistics, tlog); a second thread sends the GCS HEARTBEAT at 1 Hz. Sending is
+thread-safe. All times here are wall-clock seconds (``time.monotonic``).
+
+Written to shared/ARDUPILOT_ROVER.md, independently of ``vehicle_sim``::
+
+    link = Link(LinkConfig("tcp:127.0.0.1:5760")).connect()
+    ack = link.command_long(mavlink2.MAV_CMD_DO_SET_MODE, 1, 4)   # HOLD
+    link.close()
+
+Tests hand the link any ``mavutil.mavfile`` (e.g. an in-process simulator
+endpoint) through ``connection_factory``.
+"""
+
+from __future__ import annotations
+
+import collections
+import hashlib
+import logging
+import os
+import queue
+import struct
+import threading
+import time
+import warnings
+from dataclasses import dataclass, field
+from typing import Callable, Iterable
+
+os.environ.setdefault("MAVLINK20", "1")  # before pymavlink is imported: talk MAVLink 2
+from pymavlink import mavutil  # noqa: E402
+from pymavlink.dialects.v20 import ardupilotmega as mavlink2  # noqa: E402
+
+from passt_mav.errors import CommandRejected, LinkTimeout, MavlinkError, UserError  # noqa: E402
+
+__all__ = ["LinkConfig", "Link", "Subscription", "LinkStats", "secret_from_key", "result_name", "mavlink2"]
+
+log = logging.getLogger(__name__)
+
+_CONNECT_PREFIXES = ("tcp:", "tcpin:", "udp:", "udpin:", "udpout:", "udpbcast:")
+#: messages a signing GCS still accepts unsigned (as ArduPilot does: the radio's own reports)
+_UNSIGNED_OK = frozenset({mavlink2.MAVLINK_MSG_ID_RADIO_STATUS})
+_DEFAULT_STREAMS = (("GLOBAL_POSITION_INT", 1.0), ("MISSION_CURRENT", 1.0), ("EKF_STATUS_REPORT", 1.0),
+                    ("SYSTEM_TIME", 1.0))
+
+
+def secret_from_key(key: str | bytes) -> bytes:
+    """32-byte MAVLink 2 signing secret: 64 hex digits taken as is, else sha256 of the passphrase.
+
+    Same rule as MAVProxy's ``signing setup PASSPHRASE``, so one passphrase works on both ends.
+    """
+    if isinstance(key, bytes):
+        return key if len(key) == 32 else hashlib.sha256(key).digest()
+    s = key.strip()
+    if len(s) == 64:
+        try:
+            return bytes.fromhex(s)
+        except ValueError:
+            pass
+    return hashlib.sha256(s.encode("utf-8")).digest()
+
+
+def result_name(enum: str, value: int) -> str:
+    """Name of a MAVLink enum value from pymavlink (``MAV_MISSION_RESULT``, 4 -> ``MAV_MISSION_NO_SPACE``)."""
+    entry = mavlink2.enums.get(enum, {}).get(int(value))
+    return entry.name if entry is not None else f"{enum} {value}"
+
+
+@dataclass(frozen=True)
+class LinkConfig:
+    """How to reach the vehicle and how patient to be (seconds are wall-clock).
+
+    Attributes:
+        connect: pymavlink connection string as MAVProxy users write it:
+            ``tcp:HOST:PORT``, ``udpin:HOST:PORT``, ``udpout:HOST:PORT``, ``udp:HOST:PORT``
+            or a serial device ``/dev/ttyUSB0,57600`` (``DEVICE,BAUD``; default ``baud``).
+        source_system, source_component: our identity (255/190 like a GCS / MAVSDK).
+        target_system: the vehicle's sysid, or None for the first vehicle heartbeat.
+        heartbeat_period_s: GCS heartbeat period.
+        link_lost_s: no vehicle heartbeat for this long = link lost.
+        signing_key: MAVLink 2 signing passphrase or 64 hex digits (None = unsigned).
+        timeout_s: smallest reply timeout; the link raises it to 4 x measured RTT + 0.1 s.
+        retries: resends of a command / protocol step before :class:`LinkTimeout`.
+        connect_timeout_s: how long :meth:`Link.connect` waits for a vehicle heartbeat.
+        reconnect_backoff_s: ``(first, max)`` delays between reconnect attempts (doubling).
+        reconnect_attempts: attempts of :meth:`Link.reconnect`.
+        tlog: path of a telemetry log (MAVProxy ``.tlog`` format, in and out), or None.
+        stream_rates_hz: ``((MESSAGE_NAME, hz), ...)`` requested with SET_MESSAGE_INTERVAL.
+        baud: serial baud when ``connect`` names a device without one.
+    """
+
+    connect: str = "tcp:127.0.0.1:5760"
+    source_system: int = 255
+    source_component: int = 190
+    target_system: int | None = None
+    heartbeat_period_s: float = 1.0
+    link_lost_s: float = 5.0
+    signing_key: str | bytes | None = field(default=None, repr=False)
+    timeout_s: float = 1.5
+    retries: int = 5
+    connect_timeout_s: float = 30.0
+    reconnect_backoff_s: tuple[float, float] = (0.5, 8.0)
+    reconnect_attempts: int = 6
+    tlog: str | None = None
+    stream_rates_hz: tuple[tuple[str, float], ...] = _DEFAULT_STREAMS
+    baud: int = 57600
+
+    def __post_init__(self) -> None:
+        c = self.connect.strip()
+        if not c:
+            raise UserError("connection string is empty; expected e.g. tcp:127.0.0.1:5760")
+        if c.startswith(_CONNECT_PREFIXES):
+            parts = c.split(":")
+            if len(parts) != 3 or not parts[2].isdigit() or not 0 < int(parts[2]) < 65536:
+                raise UserError(f"bad connection string {c!r}; expected KIND:HOST:PORT, e.g. tcp:127.0.0.1:5760")
+        elif "," in c:
+            dev, _, baud = c.rpartition(",")
+            if not dev or not baud.isdigit():
+                raise UserError(f"bad serial connection {c!r}; expected DEVICE,BAUD e.g. /dev/ttyUSB0,57600")
+        elif not (c.startswith("/") or c.upper().startswith("COM")):
+            raise UserError(f"bad connection string {c!r}; expected tcp:HOST:PORT, udpin:HOST:PORT, "
+                            "udpout:HOST:PORT or a serial DEVICE[,BAUD]")
+        for name in ("source_system", "source_component"):
+            if not 1 <= getattr(self, name) <= 255:
+                raise UserError(f"{name} must be in 1..255")
+        if self.heartbeat_period_s <= 0 or self.link_lost_s <= 0 or self.timeout_s <= 0:
+            raise UserError("heartbeat_period_s, link_lost_s and timeout_s must be positive")
+        if self.retries < 0:
+            raise UserError("retries must be >= 0")
+
+    def open(self):
+        """A new pymavlink connection for :attr:`connect` (MAVLink 2, ardupilotmega)."""
+        c = self.connect.strip()
+        kw = dict(source_system=self.source_system, source_component=self.source_component, dialect="ardupilotmega",
+                  autoreconnect=False)
+        if c.startswith(_CONNECT_PREFIXES):
+            return mavutil.mavlink_connection(c, **kw)
+        dev, _, baud = c.rpartition(",") if "," in c else (c, "", str(self.baud))
+        return mavutil.mavlink_connection(dev, baud=int(baud), **kw)
+
+
+@dataclass
+class LinkStats:
+    """Counters of one link (since :meth:`Link.connect`)."""
+
+    received: int = 0
+    sent: int = 0
+    bad: int = 0
+    drops: int = 0  # frames missing from the vehicle's sequence numbers
+    rtt_s: float | None = None
+    by_type: collections.Counter = field(default_factory=collections.Counter)
+
+    @property
+    def loss(self) -> float:
+        """Fraction of the vehicle's frames that never arrived (from sequence gaps)."""
+        total = self.received + self.drops
+        return self.drops / total if total else 0.0
+
+
+class Subscription:
+    """A queue of the messages of some types, filled by the reader thread.
+
+    Use as a context manager (unsubscribes on exit). ``get(timeout)`` returns the
+    next message or None.
+    """
+
+    def __init__(self, link: "Link", types: frozenset[str] | None, maxsize: int = 10000):
+        self._link, self.types = link, types
+        self._q: queue.Queue = queue.Queue(maxsize)
+
+    def _offer(self, msg) -> None:
+        try:
+            self._q.put_nowait(msg)
+        except queue.Full:  # a consumer that stopped reading must not stall the reader
+            pass
+
+    def get(self, timeout: float | None) -> object | None:
+        try:
+            return self._q.get(timeout=max(timeout, 0.0) if timeout is not None else None)
+        except queue.Empty:
+            return None
+
+    def drain(self) -> list:
+        out = []
+        while True:
+            try:
+                out.append(self._q.get_nowait())
+            except queue.Empty:
+                return out
+
+    def close(self) -> None:
+        self._link._unsubscribe(self)
+
+    def __enter__(self) -> "Subscription":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+class _Tlog:
+    """MAVProxy/pymavlink ``.tlog``: 8-byte big-endian µs UTC timestamp + frame, both directions.
+
+    pymavlink's ``setup_logfile`` writes only received frames, from the reader;
+    sent frames come from other threads, so one locked writer records both.
+    """
+
+    def __init__(self, path: str):
+        self._f = open(path, "ab")
+        self._lock = threading.Lock()
+
+    def write(self, frame: bytes) -> None:
+        usec = int(time.time() * 1e6) & ~3
+        with self._lock:
+            if not self._f.closed:
+                self._f.write(struct.pack(">Q", usec) + bytes(frame))
+
+    def close(self) -> None:
+        with self._lock:
+            if not self._f.closed:
+                self._f.close()
+
+
+def _is_vehicle_heartbeat(msg) -> bool:
+    return msg.type not in (mavlink2.MAV_TYPE_GCS, mavlink2.MAV_TYPE_GIMBAL, mavlink2.MAV_TYPE_ADSB,
+                            mavlink2.MAV_TYPE_ONBOARD_CONTROLLER) and msg.autopilot != mavlink2.MAV_AUTOPILOT_INVALID
+
+
+class Link:
+    """A MAVLink 2 link to one vehicle (see the module docstring).
+
+    Args:
+        config: :class:`LinkConfig`.
+        connection_factory: ``() -> mavutil.mavfile`` to use instead of opening
+            ``config.connect`` (tests: an in-process simulator endpoint). Called again
+            by :meth:`reconnect`.
+    """
+
+    def __init__(self, config: LinkConfig | None = None, *, connection_factory: Callable[[], object] | None = None):
+        self.config = config or LinkConfig()
+        self._factory = connection_factory or self.config.open
+        self.conn = None
+        self.target_system: int | None = self.config.target_system
+        self.target_component: int = 1
+        self.vehicle_type: int | None = None
+        self.autopilot: int | None = None
+        self.stats = LinkStats()
+        self._send_lock = threading.Lock()
+        self._sub_lock = threading.Lock()
+        self._subs: list[Subscription] = []
+        self._listeners: list[tuple[Callable, frozenset[str] | None]] = []
+        self._latest: dict[str, object] = {}
+        self._last_seq: dict[tuple[int, int], int] = {}
+        self._last_hb: float | None = None
+        self._stop = threading.Event()
+        self._threads: list[threading.Thread] = []
+        self._tlog = _Tlog(self.config.tlog) if self.config.tlog else None
+        self._rtt_samples: collections.deque[float] = collections.deque(maxlen=16)
+        self._timesync_pending: dict[int, float] = {}
+        self.texts: collections.deque[tuple[float, int, str]] = collections.deque(maxlen=200)
+        self.error: BaseException | None = None
+
+    # -- lifecycle -------------------------------------------------------------------
+    def connect(self, timeout: float | None = None) -> "Link":
+        """Open the connection, find the vehicle by its HEARTBEAT, start the threads,
+        request the telemetry streams and measure the round trip. Returns self.
+
+        Raises :class:`LinkTimeout` if no vehicle heartbeat arrives in time.
+        """
+        self._open()
+        try:
+            self._find_vehicle(self.config.connect_timeout_s if timeout is None else timeout)
+            self.measure_rtt()
+            self.request_streams()
+        except BaseException:
+            self._shutdown()
+            raise
+        return self
+
+    def _open(self) -> None:
+        conn = self._factory()
+        if getattr(conn, "WIRE_PROTOCOL_VERSION", "2.0") != "2.0":
+            # pymavlink was imported elsewhere before MAVLINK20 was set: force MAVLink 2 on this connection
+            conn.mav = mavlink2.MAVLink(conn, srcSystem=self.config.source_system,
+                                        srcComponent=self.config.source_component, use_native=False)
+            conn.mav.robust_parsing = True
+            conn.WIRE_PROTOCOL_VERSION = "2.0"
+            conn.first_byte = False
+        conn.mav.srcSystem, conn.mav.srcComponent = self.config.source_system, self.config.source_component
+        if self.config.signing_key is not None:
+            conn.setup_signing(secret_from_key(self.config.signing_key), sign_outgoing=True,
+                               allow_unsigned_callback=lambda _mav, msgid: msgid in _UNSIGNED_OK)
+        if self._tlog is not None:
+            conn.mav.set_send_callback(lambda m: self._tlog.write(m.get_msgbuf()))
+        self.conn = conn
+        self._stop.clear()
+        self._last_hb = None
+        self._threads = [threading.Thread(target=self._reader, name="mavlink-reader", daemon=True),
+                         threading.Thread(target=self._heartbeat_loop, name="mavlink-heartbeat", daemon=True)]
+        for th in self._threads:
+            th.start()
+
+    def _find_vehicle(self, timeout: float) -> None:
+        with self.subscribe("HEARTBEAT") as sub:
+            end = time.monotonic() + timeout
+            while True:
+                m = sub.get(end - time.monotonic())
+                if m is None:
+                    raise LinkTimeout(f"no vehicle heartbeat on {self.config.connect} within {timeout:.1f} s")
+                if not _is_vehicle_heartbeat(m):
+                    continue  # another GCS
+                if self.target_system is not None and m.get_srcSystem() != self.target_system:
+                    continue
+                break
+        self.target_system, self.target_component = m.get_srcSystem(), m.get_srcComponent()
+        self.vehicle_type, self.autopilot = m.type, m.autopilot
+        self._last_hb = time.monotonic()
+        if m.type != mavlink2.MAV_TYPE_SURFACE_BOAT or m.autopilot != mavlink2.MAV_AUTOPILOT_ARDUPILOTMEGA:
+            warnings.warn(f"vehicle {self.target_system} is {result_name('MAV_TYPE', m.type)} on "
+                          f"{result_name('MAV_AUTOPILOT', m.autopilot)}, not a boat on ArduPilot; continuing",
+                          RuntimeWarning, stacklevel=3)
+
+    def close(self) -> None:
+        """Stop the threads and close the connection and the tlog."""
+        self._shutdown()
+        if self._tlog is not None:
+            self._tlog.close()
+
+    def _shutdown(self) -> None:
+        self._stop.set()
+        for th in self._threads:
+            if th is not threading.current_thread():
+                th.join(timeout=2.0)
+        self._threads = []
+        if self.conn is not None:
+            try:
+                self.conn.close()
+            except Exception:  # noqa: BLE001 - closing a dead transport must not raise
+                pass
+            self.conn = None
+
+    def reconnect(self, attempts: int | None = None) -> "Link":
+        """Close and reopen, with doubling back-off between attempts; re-finds the vehicle
+        and re-requests the streams. Subscriptions and listeners carry over.
+
+        Raises :class:`LinkTimeout` when every attempt failed.
+        """
+        attempts = self.config.reconnect_attempts if attempts is None else attempts
+        delay, max_delay = self.config.reconnect_backoff_s
+        last: BaseException | None = None
+        for i in range(max(attempts, 1)):
+            self._shutdown()
+            try:
+                self._open()
+                self._find_vehicle(max(self.config.link_lost_s, self.reply_timeout))
+                self.request_streams()
+                return self
+            except (OSError, MavlinkError) as exc:
+                last = exc
+                log.warning("reconnect attempt %d/%d failed: %s", i + 1, attempts, exc)
+                if i + 1 < attempts:
+                    time.sleep(delay)
+                    delay = min(delay * 2.0, max_delay)
+        self._shutdown()
+        raise LinkTimeout(f"could not reconnect to {self.config.connect} after {attempts} attempts: {last}")
+
+    def __enter__(self) -> "Link":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    # -- threads -----------------------------------------------------------------------
+    def _reader(self) -> None:
+        conn = self.conn
+        while not self._stop.is_set():
+            try:
+                msg = conn.recv_msg()
+            except (OSError, ValueError) as exc:  # transport died: the caller sees a lost link
+                self.error = exc
+                log.warning("link read failed: %s", exc)
+                self._stop.wait(0.1)
+                continue
+            except Exception as exc:  # noqa: BLE001 - pymavlink may raise on garbage; keep reading
+                self.stats.bad += 1
+                log.debug("parse error: %s", exc)
+                continue
+            if msg is None:
+                conn.select(0.01)
+                continue
+            self._dispatch(msg)
+
+    def _dispatch(self, msg) -> None:
+        typ = msg.get_type()
+        if typ == "BAD_DATA":
+            self.stats.bad += 1
+            return
+        now = time.monotonic()
+        if self._tlog is not None:
+            self._tlog.write(msg.get_msgbuf())
+        st = self.stats
+        st.received += 1
+        st.by_type[typ] += 1
+        src = (msg.get_srcSystem(), msg.get_srcComponent())
+        if self.target_system is None or src[0] == self.target_system:
+            last = self._last_seq.get(src)
+            if last is not None:
+                st.drops += (msg.get_seq() - last - 1) % 256
+            self._last_seq[src] = msg.get_seq()
+        from_vehicle = self.target_system is not None and src[0] == self.target_system
+        if typ == "HEARTBEAT" and from_vehicle and _is_vehicle_heartbeat(msg):
+            self._last_hb = now
+        elif typ == "TIMESYNC" and msg.tc1 != 0:
+            sent = self._timesync_pending.pop(int(msg.ts1), None)
+            if sent is not None:
+                self._add_rtt(now - sent)
+        elif typ == "STATUSTEXT":
+            text = msg.text if isinstance(msg.text, str) else bytes(msg.text).decode("ascii", "replace")
+            self.texts.append((now, int(msg.severity), text.rstrip("\x00")))
+        if from_vehicle or self.target_system is None:
+            self._latest[typ] = msg
+        with self._sub_lock:
+            subs = list(self._subs)
+            listeners = list(self._listeners)
+        for s in subs:
+            if s.types is None or typ in s.types:
+                s._offer(msg)
+        for cb, types in listeners:
+            if types is None or typ in types:
+                try:
+                    cb(msg)
+                except Exception:  # noqa: BLE001 - one faulty listener must not kill the reader
+                    log.exception("listener %r failed on %s", cb, typ)
+
+    def _heartbeat_loop(self) -> None:
+        while not self._stop.is_set():
+            try:
+                self.send(mavlink2.MAVLink_heartbeat_message(mavlink2.MAV_TYPE_GCS, mavlink2.MAV_AUTOPILOT_INVALID,
+                                                             0, 0, mavlink2.MAV_STATE_ACTIVE, 3))
+            except (OSError, MavlinkError) as exc:
+                log.debug("heartbeat send failed: %s", exc)
+            self._stop.wait(self.config.heartbeat_period_s)
+
+    # -- subscribers -----------------------------------------------------------------------
+    def subscribe(self, types: str | Iterable[str] | None = None) -> Subscription:
+        """A queue of every message of ``types`` (None = all) received from now on."""
+        if isinstance(types, str):
+            types = (types,)
+        sub = Subscription(self, frozenset(types) if types is not None else None)
+        with self._sub_lock:
+            self._subs.append(sub)
+        return sub
+
+    def _unsubscribe(self, sub: Subscription) -> None:
+        with self._sub_lock:
+            if sub in self._subs:
+                self._subs.remove(sub)
+
+    def add_listener(self, callback: Callable[[object], None], types: str | Iterable[str] | None = None) -> None:
+        """Call ``callback(msg)`` from the reader thread for each message of ``types`` (keep it quick)."""
+        if isinstance(types, str):
+            types = (types,)
+        with self._sub_lock:
+            self._listeners.append((callback, frozenset(types) if types is not None else None))
+
+    def remove_listener(self, callback: Callable[[object], None]) -> None:
+        with self._sub_lock:
+            self._listeners = [(c, t) for c, t in self._listeners if c is not callback]
+
+    def latest(self, typ: str):
+        """The last message of type ``typ`` from the vehicle, or None."""
+        return self._latest.get(typ)
+
+    # -- state -------------------------------------------------------------------------------
+    @property
+    def seconds_since_heartbeat(self) -> float:
+        return float("inf") if self._last_hb is None else time.monotonic() - self._last_hb
+
+    @property
+    def lost(self) -> bool:
+        """No vehicle heartbeat for ``config.link_lost_s``."""
+        return self.seconds_since_heartbeat > self.config.link_lost_s
+
+    @property
+    def rtt(self) -> float | None:
+        """Median measured round-trip time, seconds (None before any sample)."""
+        if not self._rtt_samples:
+            return None
+        s = sorted(self._rtt_samples)
+        return s[len(s) // 2]
+
+    def _add_rtt(self, dt: float) -> None:
+        self._rtt_samples.append(dt)
+        self.stats.rtt_s = self.rtt
+
+    @property
+    def reply_timeout(self) -> float:
+        """How long to wait for one reply: ``max(config.timeout_s, 4 x RTT + 0.1 s)``."""
+        rtt = self.rtt
+        return self.config.timeout_s if rtt is None else max(self.config.timeout_s, 4.0 * rtt + 0.1)
+
+    def vehicle_uptime_s(self) -> float | None:
+        """Vehicle time since boot from the newest ``time_boot_ms`` seen, seconds."""
+        best = None
+        for typ in ("SYSTEM_TIME", "GLOBAL_POSITION_INT", "ATTITUDE", "NAMED_VALUE_FLOAT"):
+            m = self._latest.get(typ)
+            if m is not None:
+                best = max(best or 0, m.time_boot_ms)
+        return None if best is None else best / 1000.0
+
+    # -- sending -------------------------------------------------------------------------------
+    def send(self, msg) -> None:
+        """Send one pymavlink message object (thread-safe)."""
+        conn = self.conn
+        if conn is None:
+            raise MavlinkError("link is not open")
+        with self._send_lock:
+            conn.mav.send(msg)
+            self.stats.sent += 1
+
+    def wait(self, types: str | Iterable[str], condition: Callable[[object], bool] | None = None,
+             timeout: float | None = None):
+        """Next message of ``types`` satisfying ``condition`` within ``timeout`` s; raises LinkTimeout."""
+        timeout = self.reply_timeout if timeout is None else timeout
+        with self.subscribe(types) as sub:
+            end = time.monotonic() + timeout
+            while True:
+                m = sub.get(end - time.monotonic())
+                if m is None:
+                    raise LinkTimeout(f"no {types} within {timeout:.2f} s" + (" (link lost)" if self.lost else ""))
+                if condition is None or condition(m):
+                    return m
+
+    def _for_us(self, msg) -> bool:
+        ts = getattr(msg, "target_system", 0)
+        tc = getattr(msg, "target_component", 0)
+        return ts in (0, self.config.source_system) and tc in (0, self.config.source_component)
+
+    def command_long(self, command: int, *params: float, timeout: float | None = None, retries: int | None = None,
+                     target_component: int | None = None, accept: Iterable[int] = (0,)):
+        """Send COMMAND_LONG and wait for its COMMAND_ACK.
+
+        Resends (``confirmation`` + 1) when no ACK arrives within the reply timeout,
+        ``retries`` times, then raises :class:`LinkTimeout`. A result outside
+        ``accept`` raises :class:`CommandRejected` carrying the STATUSTEXT(s) the
+        vehicle sent with the refusal. Returns the ACK.
+        """
+        if self.target_system is None:
+            raise MavlinkError("no vehicle: call connect() first")
+        p = [float(x) for x in params] + [0.0] * (7 - len(params))
+        retries = self.config.retries if retries is None else retries
+        tc = self.target_component if target_component is None else target_component
+        with self.subscribe(("COMMAND_ACK", "STATUSTEXT")) as sub:
+            for attempt in range(retries + 1):
+                timeout_ = self.reply_timeout if timeout is None else timeout
+                texts: list[tuple[int, str]] = []
+                t_sent = time.monotonic()
+                self.send(mavlink2.MAVLink_command_long_message(self.target_system, tc, int(command), attempt % 256, *p))
+                end = t_sent + timeout_
+                while True:
+                    m = sub.get(end - time.monotonic())
+                    if m is None:
+                        break
+                    if m.get_type() == "STATUSTEXT":
+                        texts.append((int(m.severity), _text(m)))
+                        continue
+                    if m.command != int(command) or not self._for_us(m):
+                        continue
+                    if m.result == mavlink2.MAV_RESULT_IN_PROGRESS:
+                        end = time.monotonic() + timeout_
+                        continue
+                    self._add_rtt(time.monotonic() - t_sent)
+                    if m.result in tuple(accept):
+                        return m
+                    # the STATUSTEXT explaining a refusal may follow the ACK by a moment
+                    grace_end = time.monotonic() + min(0.3, 2 * (self.rtt or 0.05) + 0.05)
+                    while True:
+                        t = sub.get(grace_end - time.monotonic())
+                        if t is None:
+                            break
+                        if t.get_type() == "STATUSTEXT":
+                            texts.append((int(t.severity), _text(t)))
+                    important = [s for sev, s in texts if sev <= mavlink2.MAV_SEVERITY_WARNING] or [s for _, s in texts]
+                    raise CommandRejected(result_name("MAV_CMD", command).removeprefix("MAV_CMD_"), m.result,
+                                          "; ".join(important))
+        raise LinkTimeout(f"no COMMAND_ACK for {result_name('MAV_CMD', command)} after {retries + 1} tries"
+                          + (" (link lost)" if self.lost else ""))
+
+    # -- streams and round trip ------------------------------------------------------------------
+    def request_streams(self, rates: Iterable[tuple[str, float]] | None = None) -> dict[str, bool]:
+        """SET_MESSAGE_INTERVAL for each ``(MESSAGE_NAME, hz)``; returns name -> accepted.
+
+        A refusal is logged, not raised: telemetry at the vehicle's default rate still works.
+        """
+        out = {}
+        for name, hz in (self.config.stream_rates_hz if rates is None else rates):
+            msgid = getattr(mavlink2, f"MAVLINK_MSG_ID_{name}", None)
+            if msgid is None:
+                raise UserError(f"unknown MAVLink message {name!r} in stream_rates_hz")
+            interval_us = -1 if hz <= 0 else 1e6 / hz
+            try:
+                self.command_long(mavlink2.MAV_CMD_SET_MESSAGE_INTERVAL, msgid, interval_us, retries=2)
+                out[name] = True
+            except (CommandRejected, LinkTimeout) as exc:
+                log.warning("stream %s at %.1f Hz not set: %s", name, hz, exc)
+                out[name] = False
+        return out
+
+    def measure_rtt(self, samples: int = 3) -> float | None:
+        """Round trip by TIMESYNC (``tc1 = 0`` request, the vehicle echoes ``ts1``); falls back to
+        a COMMAND_LONG round trip (REQUEST_MESSAGE HEARTBEAT). Returns the median in seconds."""
+        for _ in range(samples):
+            ts1 = time.time_ns()
+            with self.subscribe("TIMESYNC") as sub:
+                self._timesync_pending[ts1] = time.monotonic()
+                self.send(mavlink2.MAVLink_timesync_message(0, ts1))
+                end = time.monotonic() + self.config.timeout_s
+                while (m := sub.get(end - time.monotonic())) is not None:
+                    if m.tc1 != 0 and m.ts1 == ts1:
+                        break
+            self._timesync_pending.pop(ts1, None)
+        if not self._rtt_samples:
+            try:
+                self.command_long(mavlink2.MAV_CMD_REQUEST_MESSAGE, mavlink2.MAVLINK_MSG_ID_HEARTBEAT, retries=1)
+            except (CommandRejected, LinkTimeout) as exc:
+                log.warning("round trip not measured: %s", exc)
+        return self.rtt
+
+
+def _text(m) -> str:
+    t = m.text
+    if isinstance(t, (bytes, bytearray)):
+        t = bytes(t).decode("ascii", "replace")
+    return t.rstrip("\x00")

@@ -1,0 +1,342 @@
+"""MAVLink mission protocol, client side: upload, download, read-back verification.
+
+Written to shared/ARDUPILOT_ROVER.md (ArduPilot Rover 4.x):
+
+* seq 0 is home: upload a placeholder there (:func:`with_home`), waypoints from 1;
+* the vehicle asks with MISSION_REQUEST (id 40) *or* MISSION_REQUEST_INT; both
+  are answered with MISSION_ITEM_INT (coordinates int32 degE7);
+* success is only MISSION_ACK ACCEPTED; any other result raises
+  :class:`MissionRejected` naming it, except NO_SPACE while the vehicle is still
+  initialising (retried) and INVALID_SEQUENCE mid-transfer (the transfer goes on);
+* the vehicle paces the transfer and re-requests on silence; the client resends
+  MISSION_COUNT while no request comes, re-sends the last requested item on
+  silence, and every call is bounded by an overall deadline (:class:`LinkTimeout`);
+* an upload that fails midway leaves a mix of old and new items on the vehicle,
+  so :meth:`MissionClient.upload_verified` reads the list back and compares.
+
+A lost final ACK is recovered like MAVProxy does: the last item is re-sent; a
+vehicle that has already closed the transfer answers ERROR, and the upload is
+then confirmed (or refuted) by reading the mission back.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from typing import Sequence
+
+from passt_mav.errors import CommandRejected, LinkTimeout, MissionRejected, MissionVerifyError
+from passt_mav.mavlink.link import Link, mavlink2, result_name
+from passt_mav.mission.items import GLOBAL_FRAMES, MAV_FRAME_GLOBAL, MAV_MISSION_TYPE_MISSION, MissionItem
+
+__all__ = ["MissionClient", "with_home", "to_msg", "from_msg", "UploadResult"]
+
+log = logging.getLogger(__name__)
+M = mavlink2
+_ACCEPTED = M.MAV_MISSION_ACCEPTED
+
+
+def with_home(waypoints: Sequence[MissionItem], home: tuple[float, float] = (0.0, 0.0),
+              mission_type: int = MAV_MISSION_TYPE_MISSION) -> list[MissionItem]:
+    """Items ready to upload: a home placeholder at seq 0 (mission type 0 only) and
+    ``waypoints`` renumbered from 1. ArduPilot overwrites seq 0 with its own home."""
+    out = []
+    if mission_type == MAV_MISSION_TYPE_MISSION:
+        out.append(MissionItem(0, frame=MAV_FRAME_GLOBAL, lat=home[0], lon=home[1], mission_type=mission_type))
+    for w in waypoints:
+        out.append(MissionItem(len(out), w.frame, w.command, 0, w.autocontinue, w.param1, w.param2, w.param3,
+                               w.param4, w.lat, w.lon, w.alt, mission_type))
+    return out
+
+
+def to_msg(item: MissionItem, target_system: int, target_component: int):
+    """MISSION_ITEM_INT for ``item`` (lat/lon -> int32 degE7 for global frames)."""
+    return M.MAVLink_mission_item_int_message(
+        target_system, target_component, item.seq, item.frame, item.command, item.current, item.autocontinue,
+        item.param1, item.param2, item.param3, item.param4, item.x_int, item.y_int, item.alt, item.mission_type)
+
+
+def from_msg(m) -> MissionItem:
+    """MissionItem from a MISSION_ITEM_INT (or float MISSION_ITEM)."""
+    g = int(m.frame) in GLOBAL_FRAMES
+    if m.get_type() == "MISSION_ITEM_INT":
+        lat, lon = (m.x / 1e7, m.y / 1e7) if g else (float(m.x), float(m.y))
+    else:
+        lat, lon = float(m.x), float(m.y)
+    return MissionItem(int(m.seq), int(m.frame), int(m.command), int(m.current), int(m.autocontinue),
+                       float(m.param1), float(m.param2), float(m.param3), float(m.param4), lat, lon, float(m.z),
+                       int(getattr(m, "mission_type", 0)))
+
+
+class UploadResult:
+    """What an upload did: ``count`` items, ``ack_lost`` (ACCEPTED never seen; confirmed by
+    read-back), ``no_space_retries``, ``count_sends``, ``items_sent`` (incl. resends), ``seconds``."""
+
+    def __init__(self, **kw):
+        self.count = kw.get("count", 0)
+        self.ack_lost = kw.get("ack_lost", False)
+        self.no_space_retries = kw.get("no_space_retries", 0)
+        self.count_sends = kw.get("count_sends", 0)
+        self.items_sent = kw.get("items_sent", 0)
+        self.seconds = kw.get("seconds", 0.0)
+
+    def __repr__(self) -> str:
+        return "UploadResult(" + ", ".join(f"{k}={v!r}" for k, v in vars(self).items()) + ")"
+
+
+class MissionClient:
+    """Mission protocol over a connected :class:`Link`.
+
+    Args:
+        link: a connected link.
+        item_timeout_s: wait for the next request/reply (default: the link's reply timeout).
+        retries: resends of MISSION_COUNT / one item request / the last item before giving up
+            (default: the link's retries, at least 10: at 20 % loss each way a round trip
+            fails 36 % of the time, and 0.36**11 is about 1e-5). The overall deadline bounds it all.
+        no_space_retries, no_space_delay_s: NO_SPACE retries while the vehicle is initialising.
+        boot_grace_s: a vehicle up for less than this (time_boot_ms), or in INITIALISING
+            (custom mode 16), is "still initialising": its NO_SPACE is retried. Later a
+            NO_SPACE is a real capacity limit and raised at once.
+    """
+
+    def __init__(self, link: Link, *, item_timeout_s: float | None = None, retries: int | None = None,
+                 no_space_retries: int = 5, no_space_delay_s: float = 1.0, boot_grace_s: float = 30.0):
+        self.link = link
+        self.item_timeout_s = item_timeout_s
+        self.retries = max(link.config.retries, 10) if retries is None else retries
+        self.no_space_retries = no_space_retries
+        self.no_space_delay_s = no_space_delay_s
+        self.boot_grace_s = boot_grace_s
+
+    # -- helpers --------------------------------------------------------------------------------
+    @property
+    def _t_item(self) -> float:
+        return self.item_timeout_s if self.item_timeout_s is not None else self.link.reply_timeout
+
+    def _deadline(self, n: int, timeout: float | None) -> float:
+        if timeout is None:
+            # the vehicle's own pace (~48 items/s on ArduPilot) with generous slack, plus NO_SPACE retries
+            timeout = 4 * (self.retries + 1) * self._t_item + n * (0.1 + self._t_item / 4) \
+                + self.no_space_retries * self.no_space_delay_s
+        return time.monotonic() + timeout
+
+    def _initialising(self) -> bool:
+        hb = self.link.latest("HEARTBEAT")
+        if hb is not None and hb.custom_mode == 16:
+            return True
+        up = self.link.vehicle_uptime_s()
+        return up is None or up < self.boot_grace_s
+
+    def _ours(self, m, mission_type: int) -> bool:
+        return int(getattr(m, "mission_type", 0)) == mission_type and self.link._for_us(m)
+
+    def _recent_text(self, since: float) -> str:
+        return "; ".join(t for when, sev, t in list(self.link.texts) if when >= since and sev <= M.MAV_SEVERITY_WARNING)
+
+    def _reject(self, result: int, since: float, detail: str = "") -> MissionRejected:
+        text = self._recent_text(since)
+        return MissionRejected(result, result_name("MAV_MISSION_RESULT", result),
+                               "; ".join(x for x in (detail, text) if x))
+
+    # -- upload ---------------------------------------------------------------------------------
+    def upload(self, items: Sequence[MissionItem], mission_type: int = MAV_MISSION_TYPE_MISSION, *,
+               timeout: float | None = None) -> UploadResult:
+        """Upload ``items`` (seq 0..n-1; for mission type 0, seq 0 is the home placeholder).
+
+        Returns an :class:`UploadResult` once the vehicle answered MISSION_ACK ACCEPTED.
+        Raises :class:`MissionRejected` (any other result), :class:`LinkTimeout` (no
+        answer, or the overall deadline passed) or ValueError (badly numbered items).
+        """
+        items = list(items)
+        for i, it in enumerate(items):
+            if it.seq != i:
+                raise ValueError(f"item {i} has seq {it.seq}; items must be numbered 0..n-1 (see with_home)")
+            if it.mission_type != mission_type:
+                raise ValueError(f"item {i} has mission_type {it.mission_type}, uploading type {mission_type}")
+        n = len(items)
+        link = self.link
+        t0 = time.monotonic()
+        deadline = self._deadline(n, timeout)
+        res = UploadResult(count=n)
+        ts, tc = link.target_system, link.target_component
+        types = ("MISSION_REQUEST", "MISSION_REQUEST_INT", "MISSION_ACK")
+        with link.subscribe(types) as sub:
+            def send_count():
+                res.count_sends += 1
+                link.send(M.MAVLink_mission_count_message(ts, tc, n, mission_type))
+
+            def send_item(seq):
+                res.items_sent += 1
+                link.send(to_msg(items[seq], ts, tc))
+
+            send_count()
+            requested = False   # a request of this transfer has arrived
+            last_seq = -1       # last item requested and sent
+            silent = 0          # consecutive silent periods
+            last_resends = 0
+            while True:
+                remaining = deadline - time.monotonic()
+                if remaining <= 0:
+                    raise LinkTimeout(f"mission upload of {n} items not finished within the deadline "
+                                      f"({time.monotonic() - t0:.1f} s; last item sent {last_seq})")
+                m = sub.get(min(self._t_item, remaining))
+                if m is None:
+                    silent += 1
+                    if silent > self.retries:
+                        raise LinkTimeout(f"vehicle silent during mission upload (item {last_seq + 1}/{n})"
+                                          + (" (link lost)" if link.lost else ""))
+                    if not requested:
+                        send_count()
+                    elif last_seq == n - 1:
+                        last_resends += 1
+                        send_item(n - 1)  # the final ACK may be lost: the vehicle answers ERROR if it is done
+                    else:
+                        send_item(last_seq)  # our item may be lost (the vehicle re-requests too)
+                    continue
+                if not self._ours(m, mission_type):
+                    continue
+                if m.get_type() != "MISSION_ACK":
+                    seq = int(m.seq)
+                    if 0 <= seq < n:
+                        silent, requested, last_seq = 0, True, seq
+                        send_item(seq)
+                    continue
+                result = int(m.type)
+                if result == _ACCEPTED:
+                    if n == 0 or last_seq == n - 1:
+                        res.seconds = time.monotonic() - t0
+                        return res
+                    continue  # a stale ACK from an earlier transfer
+                if result == M.MAV_MISSION_INVALID_SEQUENCE and requested:
+                    continue  # a duplicate item after a lost request: ArduPilot goes on with the transfer
+                if result == M.MAV_MISSION_ERROR and last_seq == n - 1 and (last_resends or silent):
+                    # the vehicle is no longer receiving: it closed the transfer and its ACK was lost
+                    got = self.download(mission_type, timeout=max(deadline - time.monotonic(), self._t_item * 4))
+                    bad = _differences(items, got, mission_type)
+                    if bad:
+                        raise self._reject(result, t0, f"final ACK lost and the read-back differs: {bad}")
+                    res.ack_lost = True
+                    res.seconds = time.monotonic() - t0
+                    log.info("mission upload: final ACK lost, confirmed by read-back")
+                    return res
+                if result == M.MAV_MISSION_NO_SPACE and not requested:
+                    if self._initialising() and res.no_space_retries < self.no_space_retries:
+                        res.no_space_retries += 1
+                        log.info("NO_SPACE while the vehicle initialises; retry %d in %.1f s",
+                                 res.no_space_retries, self.no_space_delay_s)
+                        time.sleep(min(self.no_space_delay_s, max(deadline - time.monotonic(), 0)))
+                        sub.drain()
+                        silent = 0
+                        send_count()
+                        continue
+                    detail = (f"still NO_SPACE after {res.no_space_retries} retries" if res.no_space_retries
+                              else f"the vehicle has no room for {n} items (capacity limit)")
+                    raise self._reject(result, t0, detail)
+                raise self._reject(result, t0)
+
+    # -- download -------------------------------------------------------------------------------
+    def download(self, mission_type: int = MAV_MISSION_TYPE_MISSION, *, timeout: float | None = None) -> list[MissionItem]:
+        """Read the list back: MISSION_REQUEST_LIST -> COUNT -> REQUEST_INT/ITEM_INT per item -> ACK.
+
+        For mission type 0 item 0 is the vehicle's home. Raises MissionRejected / LinkTimeout.
+        """
+        link = self.link
+        ts, tc = link.target_system, link.target_component
+        t0 = time.monotonic()
+        deadline = self._deadline(0, timeout)
+        with link.subscribe(("MISSION_COUNT", "MISSION_ITEM_INT", "MISSION_ACK")) as sub:
+            def wait(pred, send, what):
+                for _ in range(self.retries + 1):
+                    send()
+                    end = min(time.monotonic() + self._t_item, deadline)
+                    while (m := sub.get(end - time.monotonic())) is not None:
+                        if not self._ours(m, mission_type):
+                            continue
+                        if m.get_type() == "MISSION_ACK":
+                            if m.type != _ACCEPTED:
+                                raise self._reject(m.type, t0, f"while downloading ({what})")
+                            continue
+                        if pred(m):
+                            return m
+                    if time.monotonic() >= deadline:
+                        break
+                raise LinkTimeout(f"mission download: no {what}" + (" (link lost)" if link.lost else ""))
+
+            cm = wait(lambda m: m.get_type() == "MISSION_COUNT",
+                      lambda: link.send(M.MAVLink_mission_request_list_message(ts, tc, mission_type)), "MISSION_COUNT")
+            count = int(cm.count)
+            if timeout is None:
+                deadline = max(deadline, self._deadline(count, None))
+            out = []
+            for seq in range(count):
+                m = wait(lambda m, s=seq: m.get_type() == "MISSION_ITEM_INT" and m.seq == s,
+                         lambda s=seq: link.send(M.MAVLink_mission_request_int_message(ts, tc, s, mission_type)),
+                         f"item {seq}/{count}")
+                out.append(from_msg(m))
+            link.send(M.MAVLink_mission_ack_message(ts, tc, _ACCEPTED, mission_type))
+        return out
+
+    def upload_verified(self, items: Sequence[MissionItem], mission_type: int = MAV_MISSION_TYPE_MISSION, *,
+                        timeout: float | None = None) -> list[MissionItem]:
+        """Upload, then read back and compare (command, frame, lat/lon to 1e-7 deg, params, alt;
+        seq 0 of mission type 0 is home and skipped). Returns the list read back.
+
+        Raises :class:`MissionVerifyError` naming the first differing items.
+        """
+        self.upload(items, mission_type, timeout=timeout)
+        got = self.download(mission_type, timeout=timeout)
+        bad = _differences(list(items), got, mission_type)
+        if bad:
+            raise MissionVerifyError(f"mission read back differs from the upload: {bad}")
+        return got
+
+    # -- other operations -----------------------------------------------------------------------
+    def clear(self, mission_type: int = MAV_MISSION_TYPE_MISSION, *, timeout: float | None = None) -> None:
+        """MISSION_CLEAR_ALL for one mission type; waits for MISSION_ACK ACCEPTED."""
+        link = self.link
+        t0 = time.monotonic()
+        deadline = self._deadline(0, timeout)
+        with link.subscribe("MISSION_ACK") as sub:
+            for _ in range(self.retries + 1):
+                link.send(M.MAVLink_mission_clear_all_message(link.target_system, link.target_component, mission_type))
+                end = min(time.monotonic() + self._t_item, deadline)
+                while (m := sub.get(end - time.monotonic())) is not None:
+                    if self._ours(m, mission_type):
+                        if m.type != _ACCEPTED:
+                            raise self._reject(m.type, t0, "clearing the mission")
+                        return
+                if time.monotonic() >= deadline:
+                    break
+        raise LinkTimeout("no MISSION_ACK for MISSION_CLEAR_ALL" + (" (link lost)" if link.lost else ""))
+
+    def set_current(self, seq: int, *, timeout: float | None = None) -> None:
+        """Make item ``seq`` current: MAV_CMD_DO_SET_MISSION_CURRENT (224); a vehicle that does
+        not support it gets MISSION_SET_CURRENT, confirmed by MISSION_CURRENT.seq."""
+        link = self.link
+        try:
+            link.command_long(M.MAV_CMD_DO_SET_MISSION_CURRENT, seq, 0, timeout=timeout)
+            return
+        except CommandRejected as exc:
+            if exc.result != M.MAV_RESULT_UNSUPPORTED:
+                raise
+        for _ in range(self.retries + 1):
+            link.send(M.MAVLink_mission_set_current_message(link.target_system, link.target_component, seq))
+            try:
+                link.wait("MISSION_CURRENT", lambda m: m.seq == seq, timeout=timeout or self._t_item)
+                return
+            except LinkTimeout:
+                continue
+        raise LinkTimeout(f"MISSION_CURRENT never showed seq {seq}")
+
+
+def _differences(sent: list[MissionItem], got: list[MissionItem], mission_type: int) -> str:
+    """'' if equal within wire tolerance, else a short description of what differs."""
+    if len(sent) != len(got):
+        return f"{len(got)} items on the vehicle, {len(sent)} uploaded"
+    bad = []
+    for a, b in zip(sent, got):
+        if mission_type == MAV_MISSION_TYPE_MISSION and a.seq == 0:
+            continue  # home: the vehicle writes its own
+        if not a.same_as(b):
+            bad.append(f"seq {a.seq}: sent {a}, vehicle has {b}")
+    return "; ".join(bad[:3]) + (f" (+{len(bad) - 3} more)" if len(bad) > 3 else "")

@@ -1,0 +1,227 @@
+"""Vehicle control for an ArduPilot Rover boat: readiness, modes, arming, mission progress.
+
+Written to shared/ARDUPILOT_ROVER.md. Every command checks its COMMAND_ACK and a
+refusal raises :class:`CommandRejected` carrying the STATUSTEXT that came with
+it ("Arm: System not initialised", "Flight mode change failed", ...). A mode
+change counts only once the vehicle's HEARTBEAT shows the new custom mode.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+
+from passt_mav.errors import CommandRejected, LinkTimeout, UserError, VehicleNotReady
+from passt_mav.mavlink.link import Link, mavlink2
+from passt_mav.mavlink.mission_client import MissionClient
+
+__all__ = ["Vehicle", "ROVER_MODES", "ROVER_MODE_NAMES", "mode_number", "MissionProgress"]
+
+log = logging.getLogger(__name__)
+M = mavlink2
+
+#: ArduPilot Rover 4.x custom modes (pymavlink still lists LEARNING = 2; Rover no longer has it)
+ROVER_MODES = {
+    "MANUAL": 0, "ACRO": 1, "STEERING": 3, "HOLD": 4, "LOITER": 5, "FOLLOW": 6, "SIMPLE": 7, "DOCK": 8,
+    "CIRCLE": 9, "AUTO": 10, "RTL": 11, "SMART_RTL": 12, "GUIDED": 15, "INITIALISING": 16,
+}
+ROVER_MODE_NAMES = {v: k for k, v in ROVER_MODES.items()}
+
+#: EKF_STATUS_REPORT flags: absolute horizontal position; constant-position (not yet navigating) mode
+EKF_POS_HORIZ_ABS = 16
+EKF_CONST_POS_MODE = 128
+#: STATUSTEXT fragments of a vehicle that will accept arming a little later
+_NOT_YET = ("not initialised", "not initialized", "initialising", "accels inconsistent", "waiting for")
+
+
+def mode_number(mode: str | int) -> int:
+    """Rover custom mode number from a name (case-insensitive) or a number; UserError if unknown."""
+    if isinstance(mode, int) or (isinstance(mode, str) and mode.strip().isdigit()):
+        num = int(mode)
+        if num not in ROVER_MODE_NAMES:
+            raise UserError(f"unknown Rover mode number {num}; valid: {sorted(ROVER_MODE_NAMES)}")
+        return num
+    key = str(mode).strip().upper()
+    if key not in ROVER_MODES:
+        raise UserError(f"unknown Rover mode {mode!r}; valid: {', '.join(ROVER_MODES)}")
+    return ROVER_MODES[key]
+
+
+class MissionProgress:
+    """Mission progress seen since :meth:`Vehicle.start_mission` (updated by the reader thread).
+
+    ``current``: MISSION_CURRENT.seq; ``total``: MISSION_CURRENT.total (excludes home);
+    ``state``: mission_state (1 none, 2 not started, 3 active, 5 complete, 0 unknown);
+    ``reached``: seqs of MISSION_ITEM_REACHED in arrival order.
+    """
+
+    def __init__(self):
+        self.current = 0
+        self.total = 0
+        self.state = 0
+        self.reached: list[int] = []
+        self.changed = threading.Condition()
+
+    def on_message(self, m) -> None:
+        with self.changed:
+            if m.get_type() == "MISSION_CURRENT":
+                self.current, self.total = int(m.seq), int(getattr(m, "total", 0))
+                self.state = int(getattr(m, "mission_state", 0))
+            elif m.get_type() == "MISSION_ITEM_REACHED":
+                if not self.reached or self.reached[-1] != int(m.seq):
+                    self.reached.append(int(m.seq))
+            self.changed.notify_all()
+
+
+class Vehicle:
+    """Commands and state of one Rover boat over a connected :class:`Link`.
+
+    Args:
+        link: connected link.
+        mission: mission client (default: one on ``link``).
+        retry_delay_s: pause between arming attempts while the vehicle initialises.
+    """
+
+    def __init__(self, link: Link, mission: MissionClient | None = None, *, retry_delay_s: float = 1.0):
+        self.link = link
+        self.mission = mission or MissionClient(link)
+        self.retry_delay_s = retry_delay_s
+        self.progress = MissionProgress()
+        self._listening = False
+
+    # -- state ---------------------------------------------------------------------------------
+    @property
+    def mode(self) -> int | None:
+        hb = self.link.latest("HEARTBEAT")
+        return None if hb is None else int(hb.custom_mode)
+
+    @property
+    def mode_name(self) -> str | None:
+        m = self.mode
+        return None if m is None else ROVER_MODE_NAMES.get(m, str(m))
+
+    @property
+    def armed(self) -> bool:
+        hb = self.link.latest("HEARTBEAT")
+        return bool(hb is not None and hb.base_mode & M.MAV_MODE_FLAG_SAFETY_ARMED)
+
+    def position(self) -> tuple[float, float] | None:
+        """Last GLOBAL_POSITION_INT (lat, lon) degrees, None before a GPS fix (lat/lon 0)."""
+        g = self.link.latest("GLOBAL_POSITION_INT")
+        if g is None or (g.lat == 0 and g.lon == 0):
+            return None
+        return g.lat / 1e7, g.lon / 1e7
+
+    def _ready_reason(self) -> str:
+        ekf = self.link.latest("EKF_STATUS_REPORT")
+        if ekf is None:
+            return "no EKF_STATUS_REPORT yet"
+        if not ekf.flags & EKF_POS_HORIZ_ABS:
+            return f"EKF has no absolute horizontal position (flags {ekf.flags})"
+        if ekf.flags & EKF_CONST_POS_MODE:
+            return f"EKF in constant-position mode (flags {ekf.flags})"
+        if self.position() is None:
+            return "GLOBAL_POSITION_INT has no fix (lat/lon 0)"
+        return ""
+
+    def wait_ready(self, timeout: float = 60.0) -> None:
+        """Wait until EKF_STATUS_REPORT has flags & 16 set and & 128 clear and
+        GLOBAL_POSITION_INT is non-zero; raises :class:`VehicleNotReady` naming what is missing."""
+        end = time.monotonic() + timeout
+        with self.link.subscribe(("EKF_STATUS_REPORT", "GLOBAL_POSITION_INT")) as sub:
+            while (reason := self._ready_reason()):
+                if time.monotonic() >= end:
+                    raise VehicleNotReady(f"vehicle not ready after {timeout:.1f} s: {reason}"
+                                          + (" (link lost)" if self.link.lost else ""))
+                sub.get(end - time.monotonic())
+
+    # -- modes ---------------------------------------------------------------------------------
+    def _wait_heartbeat(self, cond, what: str, timeout: float | None) -> None:
+        timeout = max(3 * self.link.config.heartbeat_period_s, self.link.reply_timeout) if timeout is None else timeout
+        hb = self.link.latest("HEARTBEAT")
+        if hb is not None and cond(hb):
+            return
+        try:
+            self.link.wait("HEARTBEAT", lambda m: m.get_srcSystem() == self.link.target_system and cond(m), timeout)
+        except LinkTimeout:
+            raise LinkTimeout(f"vehicle heartbeat never showed {what} within {timeout:.1f} s") from None
+
+    def set_mode(self, mode: str | int, *, timeout: float | None = None) -> int:
+        """MAV_CMD_DO_SET_MODE (176, param1 = 1 custom) and wait until the HEARTBEAT shows it.
+
+        Returns the mode number. Raises CommandRejected (with the vehicle's STATUSTEXT),
+        LinkTimeout, or UserError for an unknown mode name.
+        """
+        num = mode_number(mode)
+        self.link.command_long(M.MAV_CMD_DO_SET_MODE, M.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, num)
+        self._wait_heartbeat(lambda m: m.custom_mode == num, f"mode {ROVER_MODE_NAMES[num]}", timeout)
+        return num
+
+    def hold(self) -> None:
+        self.set_mode("HOLD")
+
+    # -- arming --------------------------------------------------------------------------------
+    def arm(self, *, timeout: float = 60.0, force: bool = False) -> None:
+        """Arm; while the vehicle refuses because it is still initialising ("Arm: System not
+        initialised", ...) retry every ``retry_delay_s`` until ``timeout``. Other refusals
+        raise CommandRejected at once. Confirmed by the HEARTBEAT armed flag."""
+        end = time.monotonic() + timeout
+        while True:
+            try:
+                self.link.command_long(M.MAV_CMD_COMPONENT_ARM_DISARM, 1, 2989 if force else 0)
+                break
+            except CommandRejected as exc:
+                transient = any(s in exc.text.lower() for s in _NOT_YET) or exc.result == M.MAV_RESULT_TEMPORARILY_REJECTED
+                if not transient or time.monotonic() + self.retry_delay_s > end:
+                    raise
+                log.info("arming refused (%s); retrying", exc.text)
+                time.sleep(self.retry_delay_s)
+        self._wait_heartbeat(lambda m: bool(m.base_mode & M.MAV_MODE_FLAG_SAFETY_ARMED), "armed", None)
+
+    def disarm(self, *, force: bool = False) -> None:
+        self.link.command_long(M.MAV_CMD_COMPONENT_ARM_DISARM, 0, 21196 if force else 0)
+        self._wait_heartbeat(lambda m: not m.base_mode & M.MAV_MODE_FLAG_SAFETY_ARMED, "disarmed", None)
+
+    # -- missions --------------------------------------------------------------------------------
+    def _listen(self) -> None:
+        if not self._listening:
+            self.link.add_listener(self.progress.on_message, ("MISSION_CURRENT", "MISSION_ITEM_REACHED"))
+            self._listening = True
+
+    def start_mission(self, *, use_mission_start: bool = False) -> None:
+        """Enter AUTO (DO_SET_MODE), or MAV_CMD_MISSION_START (300, first = last = 0); confirmed by
+        the HEARTBEAT. Progress is tracked in :attr:`progress` from here on."""
+        self._listen()
+        with self.progress.changed:
+            self.progress.reached.clear()
+            self.progress.state = 0
+        if use_mission_start:
+            self.link.command_long(M.MAV_CMD_MISSION_START, 0, 0)
+            self._wait_heartbeat(lambda m: m.custom_mode == ROVER_MODES["AUTO"], "mode AUTO", None)
+        else:
+            self.set_mode("AUTO")
+
+    def wait_mission_complete(self, n_items: int, *, timeout: float = 3600.0, hold: bool = True,
+                              on_progress=None) -> MissionProgress:
+        """Wait until MISSION_CURRENT says complete (mission_state 5 with ``total == n_items``) or
+        item ``n_items`` is reached (``n_items`` excludes home); then switch to HOLD (a boat
+        otherwise stays armed in AUTO, loitering). ``on_progress(progress)`` on each update.
+
+        Raises LinkTimeout if not complete within ``timeout`` seconds.
+        """
+        self._listen()
+        p = self.progress
+        end = time.monotonic() + timeout
+        with p.changed:
+            while not ((p.state == M.MISSION_STATE_COMPLETE and p.total == n_items) or n_items in p.reached):
+                left = end - time.monotonic()
+                if left <= 0:
+                    raise LinkTimeout(f"mission not complete after {timeout:.0f} s (item {p.current}/{p.total}, "
+                                      f"reached {p.reached[-5:]})" + (" (link lost)" if self.link.lost else ""))
+                p.changed.wait(min(left, 0.5))
+                if on_progress is not None:
+                    on_progress(p)
+        if hold:
+            self.hold()
+        return p

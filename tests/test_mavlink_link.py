@@ -1,0 +1,146 @@
+"""Link: connection strings, vehicle discovery, streams, RTT, tlog, lost link, reconnect, signing."""
+
+from __future__ import annotations
+
+import socket
+import time
+
+import pytest
+from pymavlink import mavutil
+from pymavlink.dialects.v20 import ardupilotmega as M
+
+from mavlink_helpers import HOME, inprocess_factory, link_config, served
+from passt_mav.errors import LinkTimeout, UserError
+from passt_mav.mavlink import Link, LinkConfig, MissionClient, secret_from_key, with_home
+from passt_mav.mavlink.link import _is_vehicle_heartbeat
+from passt_mav.mission.items import MissionItem
+from vehicle_sim import LinkConfig as SimLinkConfig
+from vehicle_sim import SimConfig, Simulator
+
+
+@pytest.mark.parametrize("good", ["tcp:127.0.0.1:5760", "udpin:0.0.0.0:14550", "udpout:127.0.0.1:14550",
+                                  "udp:127.0.0.1:14550", "/dev/ttyUSB0,57600", "/dev/ttyACM0", "COM3,115200"])
+def test_connection_strings_as_mavproxy_users_write_them(good):
+    assert LinkConfig(good).connect == good
+
+
+@pytest.mark.parametrize("bad", ["", "tcp:127.0.0.1", "tcp:host:99999", "http://x", "/dev/ttyUSB0,fast", "localhost:5760"])
+def test_bad_connection_strings_are_user_errors(bad):
+    with pytest.raises(UserError):
+        LinkConfig(bad)
+
+
+def test_defaults_match_a_gcs():
+    c = LinkConfig()
+    assert (c.source_system, c.source_component, c.heartbeat_period_s) == (255, 190, 1.0)
+    with pytest.raises(Exception):
+        c.timeout_s = 3  # frozen
+
+
+def test_gcs_heartbeats_are_not_vehicles():
+    assert not _is_vehicle_heartbeat(M.MAVLink_heartbeat_message(M.MAV_TYPE_GCS, M.MAV_AUTOPILOT_INVALID, 0, 0, 0, 3))
+    assert _is_vehicle_heartbeat(M.MAVLink_heartbeat_message(M.MAV_TYPE_SURFACE_BOAT, M.MAV_AUTOPILOT_ARDUPILOTMEGA, 0, 0, 0, 3))
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def test_tcp_loopback_connect_streams_rtt_tlog_and_gcs_heartbeats(tmp_path):
+    port = _free_port()
+    sim = Simulator(None, home=HOME, config=SimConfig.fast())
+    sim.serve([f"tcp:127.0.0.1:{port}"], speedup=20)
+    tlog = tmp_path / "gcs.tlog"
+    try:
+        link = Link(link_config(connect=f"tcp:127.0.0.1:{port}", tlog=str(tlog),
+                                stream_rates_hz=(("GLOBAL_POSITION_INT", 5.0), ("MISSION_CURRENT", 1.0))))
+        link.connect()
+        assert (link.target_system, link.target_component, link.vehicle_type) == (1, 1, M.MAV_TYPE_SURFACE_BOAT)
+        assert link.rtt is not None and 0 < link.rtt < 0.5
+        # GLOBAL_POSITION_INT at 5 Hz of simulated time (the 1 Hz sensor fixes come on top)
+        with link.subscribe("GLOBAL_POSITION_INT") as sub:
+            time.sleep(0.6)
+            got = sub.drain()
+        tb = sorted({m.time_boot_ms for m in got})
+        span = (tb[-1] - tb[0]) / 1000.0
+        assert (len(tb) - 1) / span == pytest.approx(6.0, abs=1.0)
+        # our heartbeats reach the vehicle as GCS heartbeats from sysid 255
+        assert sim.autopilot.last_gcs_hb is not None and sim.t - sim.autopilot.last_gcs_hb < 2.0
+        link.command_long(M.MAV_CMD_DO_SET_MODE, 1, 4)
+        st = link.stats
+        assert st.received > 50 and st.drops == 0 and st.by_type["HEARTBEAT"] >= 1
+        link.close()
+    finally:
+        sim.stop()
+    log = mavutil.mavlink_connection(str(tlog))
+    seen = []
+    while (m := log.recv_match()) is not None:
+        seen.append((m.get_srcSystem(), m.get_type()))
+    assert (1, "HEARTBEAT") in seen and (255, "HEARTBEAT") in seen  # both directions
+    assert (255, "COMMAND_LONG") in seen and (1, "COMMAND_ACK") in seen
+
+
+def test_no_vehicle_raises_link_timeout_quickly():
+    port = _free_port()
+    srv = socket.socket()
+    srv.bind(("127.0.0.1", port))
+    srv.listen(1)  # accepts, never speaks
+    try:
+        t0 = time.monotonic()
+        with pytest.raises(LinkTimeout, match="no vehicle heartbeat"):
+            Link(link_config(connect=f"tcp:127.0.0.1:{port}", connect_timeout_s=0.3)).connect()
+        assert time.monotonic() - t0 < 2.0
+    finally:
+        srv.close()
+
+
+def test_lost_link_detected_and_reconnect_recovers():
+    with served(sim_link=SimLinkConfig(drops=((30.0, 1e9),))) as (sim, link):  # the first link dies at 30 s sim
+        assert sim.t < 30.0 and not link.lost
+        t0 = time.monotonic()
+        while not link.lost and time.monotonic() - t0 < 5:
+            time.sleep(0.02)
+        assert link.lost and sim.t > 30.0
+        # the old factory would open another link with the same outage: reconnect through an unimpaired one
+        link._factory = inprocess_factory(sim)
+        link.reconnect()
+        assert not link.lost and link.target_system == 1
+        assert link.command_long(M.MAV_CMD_DO_SET_MODE, 1, 4).result == 0
+        assert len(sim.links) == 1  # the dead link was closed
+
+
+def test_reconnect_gives_up_with_back_off():
+    with served() as (sim, link):
+        sim.stop()
+        t0 = time.monotonic()
+        with pytest.raises(LinkTimeout, match="could not reconnect"):
+            link.reconnect(attempts=3)
+        # three attempts of link_lost_s (0.5 s) each plus back-off 0.05 + 0.1
+        assert 1.5 <= time.monotonic() - t0 < 3.0
+
+
+def test_signing_key_on_both_sides_uploads_and_a_keyless_client_is_ignored():
+    key = "correct horse battery staple"
+    cfg = SimConfig.fast(signing_key=secret_from_key(key))
+    with served(cfg, link_kw=dict(signing_key=key)) as (sim, link):
+        items = with_home([MissionItem(0, lat=HOME[0] + 1e-4, lon=HOME[1])])
+        MissionClient(link).upload_verified(items)
+        assert len(sim.autopilot.store.items[0]) == 2
+        # a client without the key sees the vehicle (signed frames parse) but is ignored by it
+        plain = Link(link_config(stream_rates_hz=(), retries=1), connection_factory=inprocess_factory(sim)).connect()
+        try:
+            with pytest.raises(LinkTimeout):
+                plain.command_long(M.MAV_CMD_DO_SET_MODE, 1, 4)
+            with pytest.raises(LinkTimeout):
+                MissionClient(plain, retries=1).upload(items)
+            assert sim.autopilot.mode != 4
+        finally:
+            plain.close()
+        # a wrong key is ignored too
+        wrong = Link(link_config(stream_rates_hz=(), retries=1, signing_key="wrong", connect_timeout_s=0.5),
+                     connection_factory=inprocess_factory(sim))
+        with pytest.raises(LinkTimeout):
+            wrong.connect()  # the vehicle's frames fail our signature check: no heartbeat at all
+        wrong.close()

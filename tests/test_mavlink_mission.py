@@ -1,0 +1,139 @@
+"""Mission protocol client against the simulator (served at high speed-up, in-process link)."""
+
+from __future__ import annotations
+
+import threading
+import time
+
+import pytest
+from pymavlink.dialects.v20 import ardupilotmega as M
+
+from mavlink_helpers import HOME, served, vehicle, waypoints
+from passt_mav.errors import LinkTimeout, MissionRejected
+from passt_mav.mavlink import MissionClient, with_home
+from passt_mav.mission.items import MissionItem
+from vehicle_sim import LinkConfig as SimLinkConfig
+from vehicle_sim import SimConfig
+
+OFFSETS = [(1e-4 * i, -1.3e-4 * i + 3e-7) for i in range(1, 9)]
+
+
+def test_with_home_numbers_from_one_and_puts_a_placeholder_at_zero():
+    items = with_home(waypoints(OFFSETS[:3]), home=HOME)
+    assert [i.seq for i in items] == [0, 1, 2, 3]
+    assert (items[0].lat, items[0].lon, items[0].frame) == (HOME[0], HOME[1], 0)
+    fence = with_home(waypoints(OFFSETS[:2], mission_type=1), mission_type=1)
+    assert [i.seq for i in fence] == [0, 1]  # no home in fence/rally lists
+
+
+def test_upload_then_read_back_equals_and_seq0_is_the_vehicles_home():
+    with served() as (sim, link):
+        mc = MissionClient(link)
+        items = with_home(waypoints(OFFSETS), home=(0.0, 0.0))  # placeholder 0,0: the vehicle writes home
+        got = mc.upload_verified(items)
+        assert len(got) == len(items)
+        assert all(a.same_as(b) for a, b in zip(items[1:], got[1:]))
+        # exact int32 degE7 round trip
+        assert [(g.x_int, g.y_int) for g in got[1:]] == [(i.x_int, i.y_int) for i in items[1:]]
+        assert got[0].lat == pytest.approx(HOME[0], abs=1e-7) and got[0].lon == pytest.approx(HOME[1], abs=1e-7)
+        # the vehicle's own state agrees (seq 0 home, the rest ours)
+        stored = sim.autopilot.store.items[0]
+        assert [(s.x, s.y) for s in stored[1:]] == [(i.x_int, i.y_int) for i in items[1:]]
+
+
+def test_fence_type_round_trips_and_clear_and_set_current():
+    with served() as (sim, link):
+        mc = MissionClient(link)
+        fence = [MissionItem(i, command=5001, frame=0, param1=3, lat=HOME[0] + d[0], lon=HOME[1] + d[1], mission_type=1)
+                 for i, d in enumerate([(0.01, 0.01), (0.01, -0.01), (-0.01, 0.0)])]
+        got = mc.upload_verified(fence, mission_type=1)
+        assert [g.command for g in got] == [5001] * 3
+        mc.upload_verified(with_home(waypoints(OFFSETS[:4])))
+        mc.set_current(3)
+        assert sim.autopilot.mission_index == 3
+        mc.clear(0)
+        assert len(mc.download(0)) == 1  # only home is left
+        assert len(mc.download(1)) == 3  # the fence is separate
+
+
+def test_no_space_over_capacity_is_rejected_and_named():
+    with served(SimConfig.fast(mission_capacity=(5, 84, 20))) as (sim, link):
+        mc = MissionClient(link, boot_grace_s=0.0)  # past boot: NO_SPACE is a real limit, raised at once
+        with pytest.raises(MissionRejected) as ei:
+            mc.upload(with_home(waypoints(OFFSETS[:6])))
+        assert ei.value.result == M.MAV_MISSION_NO_SPACE and ei.value.name == "MAV_MISSION_NO_SPACE"
+        assert "capacity" in str(ei.value)
+        mc.upload(with_home(waypoints(OFFSETS[:4])))  # 5 items fit
+
+
+def test_no_space_right_after_boot_is_retried():
+    # storage ready at 4 s of simulated time = 0.2 s of wall time at 20x: connect takes less
+    cfg = SimConfig.fast(storage_ready_s=4.0)
+    with served(cfg, speedup=20, link_kw=dict(stream_rates_hz=())) as (sim, link):
+        mc = MissionClient(link, no_space_delay_s=0.1, no_space_retries=10)
+        assert sim.t < 4.0
+        res = mc.upload(with_home(waypoints(OFFSETS[:3])))
+        assert res.no_space_retries >= 1 and sim.t >= 4.0
+        assert len(mc.download()) == 4
+
+
+def test_second_gcs_mid_transfer_gets_denied():
+    with served() as (sim, link):
+        other = sim.connect_inprocess()
+        mav = M.MAVLink(other, srcSystem=250, srcComponent=190, use_native=False)
+        mav.mission_count_send(1, 1, 10, 0)  # starts a transfer it never finishes
+        time.sleep(0.05)
+        with pytest.raises(MissionRejected) as ei:
+            MissionClient(link).upload(with_home(waypoints(OFFSETS[:3])))
+        assert ei.value.result == M.MAV_MISSION_DENIED and "DENIED" in str(ei.value)
+
+
+@pytest.mark.parametrize("seed", [1, 7])
+def test_upload_completes_under_20_percent_loss_each_way(seed):
+    with served(sim_link=SimLinkConfig(loss=0.2, seed=seed), link_kw=dict(timeout_s=0.1)) as (sim, link):
+        mc = MissionClient(link)
+        items = with_home(waypoints(OFFSETS))  # 9 items
+        got = mc.upload_verified(items)
+        assert [(g.x_int, g.y_int) for g in got[1:]] == [(i.x_int, i.y_int) for i in items[1:]]
+        s = sim.links[0].stats
+        assert s["tx_lost"] > 0 and s["rx_lost"] > 0  # loss really happened both ways
+        # the link's sequence-gap count sees the vehicle->GCS loss
+        assert link.stats.loss == pytest.approx(s["tx_lost"] / s["tx_frames"], abs=0.05)
+
+
+def test_upload_never_hangs_when_the_vehicle_goes_silent():
+    with served() as (sim, link):
+        mc = MissionClient(link)
+        sim.stop()  # the vehicle stops answering (and heartbeating)
+        t0 = time.monotonic()
+        with pytest.raises(LinkTimeout):
+            mc.upload(with_home(waypoints(OFFSETS)), timeout=1.0)
+        assert time.monotonic() - t0 < 1.0 + 2 * link.reply_timeout
+        # without an explicit timeout the bound is retries x item timeout
+        mc = MissionClient(link, retries=3)
+        t0 = time.monotonic()
+        with pytest.raises(LinkTimeout, match="silent|deadline"):
+            mc.upload(with_home(waypoints(OFFSETS)))
+        assert time.monotonic() - t0 <= (mc.retries + 2) * link.reply_timeout
+
+
+def test_upload_times_out_when_vehicle_goes_silent_mid_transfer():
+    # the vehicle keeps its clock but the link drops everything from 1 s of sim time after the first request
+    with served(SimConfig.fast(mission_request_interval_s=0.5)) as (sim, link):
+        mc = MissionClient(link, retries=3)
+        done = threading.Event()
+        errors = []
+
+        def run():
+            try:
+                mc.upload(with_home(waypoints(OFFSETS)), timeout=3.0)
+            except Exception as exc:  # noqa: BLE001 - inspected below
+                errors.append(exc)
+            done.set()
+
+        th = threading.Thread(target=run)
+        th.start()
+        time.sleep(0.05)
+        sim.links[0].config = SimLinkConfig(drops=((0.0, 1e9),))  # cut the radio mid-transfer
+        assert done.wait(5.0)
+        assert errors and isinstance(errors[0], LinkTimeout)
