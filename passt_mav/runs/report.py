@@ -1,0 +1,748 @@
+"""The run report: one self-contained HTML page (figures embedded as base64 PNG) plus the PNG files.
+
+:func:`load_run` gathers what a run directory (:mod:`passt_mav.runs.rundir`)
+recorded; :func:`write_report` draws and writes it. Sections, in page order:
+
+1. summary table (mission, status, times, field, grid, model, planner, seeds);
+2. ``track_field.png``: the executed track over the truth current field (speed
+   colour map) on lon/lat axes, with the planned waypoints;
+3. ``legs.png``: per leg, planned path vs executed positions;
+4. ``samples.png``: sample positions coloured by measured speed, with arrows;
+5. ``reconstruction.png``: the last reconstruction (``legs/NNN/estimate.nc``) vs
+   the truth at its time, and the error; RMSE per leg in a table;
+6. ``rmse.png``: RMSE over field time and per leg, PASST vs pure model;
+7. ``pod.png``: cumulative POD energy vs number of modes;
+8. timings (planning, upload, leg duration) and link quality tables;
+9. the telemetry log (``flight.tlog``): uploads, damage, mode changes.
+
+Any part the run did not record is stated as "... not recorded" instead of drawn.
+The page loads nothing from outside (no scripts, no URLs). Matplotlib runs with
+the Agg backend.
+
+Time axes are *field time*: seconds since the field's ``time_origin`` (drawn in
+hours) for geographic fields, non-dimensional time for the cylinder.
+"""
+
+from __future__ import annotations
+
+import base64
+import datetime as _dt
+import html
+import io
+import json
+import math
+from dataclasses import dataclass
+from dataclasses import field as _dcfield
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from passt_mav.errors import UserError
+from passt_mav.runs.rundir import RunDir, RunDirError
+
+__all__ = ["Run", "load_run", "recon_rmse", "samples_as_arrays", "truth_at", "write_report"]
+
+NOT_RECORDED = "not recorded"
+
+
+# -- metrics ----------------------------------------------------------------------------
+def recon_rmse(estimate, truth) -> float:
+    """Root mean square error over u and v pooled, of cells known in both.
+
+    ``estimate``, ``truth``: arrays ``(..., 2, rows, cols)`` (channel axis -3). A
+    cell where any component is missing (NaN) in either array is left out, not
+    counted as zero error. Returns NaN if no cell is left.
+    """
+    e, t = np.asarray(estimate, np.float64), np.asarray(truth, np.float64)
+    if e.shape != t.shape:
+        raise UserError(f"estimate shape {e.shape} does not match truth shape {t.shape}")
+    if e.ndim < 3 or e.shape[-3] != 2:
+        raise UserError(f"expected arrays (..., 2, rows, cols), got {e.shape}")
+    ok = np.isfinite(e).all(axis=-3) & np.isfinite(t).all(axis=-3)  # (..., rows, cols)
+    if not ok.any():
+        return float("nan")
+    d = (e - t) ** 2
+    sq = np.moveaxis(d, -3, -1)[ok]  # (n_cells, 2)
+    return float(np.sqrt(sq.mean()))
+
+
+# -- loading ------------------------------------------------------------------------------
+@dataclass
+class Run:
+    """What a run directory recorded (None / empty where it did not).
+
+    ``samples``: dict of arrays (``time_boot_ms``, ``utc``, ``lat``, ``lon``, ``u``,
+    ``v`` m/s east/north, ``leg``); ``track``: ``(n, 2)`` lat/lon; ``leg_tracks``:
+    leg index -> ``(n, 2)`` lat/lon executed positions; ``estimates``: leg index
+    -> reconstruction FlowField; ``notes``: part -> why it is missing.
+    """
+
+    rundir: RunDir
+    summary: dict[str, Any] | None
+    legs: list[dict[str, Any]]
+    field: Any = None
+    grid: Any = None
+    samples: dict[str, np.ndarray] | None = None
+    samples_source: str | None = None
+    tlog: Any = None
+    track: np.ndarray | None = None
+    track_source: str | None = None
+    leg_tracks: dict[int, np.ndarray] = _dcfield(default_factory=dict)
+    leg_tracks_source: str | None = None
+    estimates: dict[int, Any] = _dcfield(default_factory=dict)
+    notes: dict[str, str] = _dcfield(default_factory=dict)
+
+    @property
+    def root(self) -> Path:
+        return self.rundir.root
+
+    @property
+    def in_progress(self) -> bool:
+        return self.summary is None
+
+    @property
+    def units(self) -> str:
+        u = self.field.units if self.field is not None else "m s-1"
+        return "m/s" if u in ("m s-1", "m/s") else ("non-dimensional" if u == "1" else u)
+
+    @property
+    def time_origin(self) -> str | None:
+        if self.field is not None:
+            return self.field.time_origin
+        return (self.summary or {}).get("field_time_origin")
+
+
+def load_run(root: str | Path) -> Run:
+    """Read everything a run directory holds (see :class:`Run`).
+
+    Raises:
+        RunDirError: ``root`` is missing, not a run directory, or its summary/leg
+            JSON is invalid.
+    """
+    rd = RunDir(root)
+    if not rd.root.exists():
+        raise RunDirError(f"run directory not found: {rd.root}")
+    if not rd.is_run_dir():
+        raise RunDirError(f"{rd.root} is not a run directory (no summary.json, legs/, samples or flight.tlog)")
+    summary = rd.read_summary() if rd.summary_file.exists() else None
+    legs = summary.get("legs") if summary else None
+    if not legs:
+        legs = rd.read_legs()
+    legs = sorted((dict(x) for x in legs if isinstance(x, dict)), key=lambda x: int(x.get("index", 0)))
+    run = Run(rd, summary, legs)
+    _load_field(run)
+    _load_tlog(run)
+    _load_samples(run)
+    _load_tracks(run)
+    _load_estimates(run)
+    return run
+
+
+def _load_field(run: Run) -> None:
+    import geo
+
+    s = run.summary or {}
+    if isinstance(s.get("grid"), dict):
+        try:
+            run.grid = geo.grid_from_dict(s["grid"])
+        except (geo.GeoError, TypeError) as exc:
+            run.notes["grid"] = f"grid in summary.json is invalid: {exc}"
+    spec = s.get("field")
+    if not spec:
+        run.notes["field"] = "truth field " + NOT_RECORDED
+        return
+    from passt_mav.fields.datasets import resolve_field
+
+    spec = str(spec)
+    if not spec.startswith("builtin:") and not Path(spec).is_absolute():
+        spec = str(run.root / spec)
+    seed = int((s.get("seeds") or {}).get("field", 0)) if isinstance(s.get("seeds"), dict) else 0
+    try:
+        run.field = resolve_field(spec, seed=seed)
+    except UserError as exc:
+        run.notes["field"] = f"truth field unavailable: {exc}"
+        return
+    if run.grid is None:
+        run.grid = run.field.grid
+    elif run.field.grid != run.grid:
+        run.notes["field"] = f"truth field {s.get('field')} is on another grid than the run"
+        run.field = None
+
+
+def _load_tlog(run: Run) -> None:
+    if not run.rundir.tlog.exists():
+        run.notes["tlog"] = "Telemetry log " + NOT_RECORDED
+        return
+    from passt_mav.runs.tlog import read_tlog
+
+    try:
+        run.tlog = read_tlog(run.rundir.tlog)
+    except UserError as exc:
+        run.notes["tlog"] = f"telemetry log unreadable: {exc}"
+
+
+def samples_as_arrays(samples) -> dict[str, np.ndarray]:
+    """Columns of sample records (anything with the ``Sample`` attributes) as arrays.
+
+    Keys ``time_boot_ms`` (int64), ``utc``, ``lat``, ``lon``, ``u``, ``v`` (float64), ``leg`` (int64).
+    """
+    recs = list(samples)
+    return {name: np.array([getattr(r, name) for r in recs], dtype=dtype)
+            for name, dtype in (("time_boot_ms", np.int64), ("utc", np.float64), ("lat", np.float64),
+                                ("lon", np.float64), ("u", np.float64), ("v", np.float64), ("leg", np.int64))}
+
+
+def _load_samples(run: Run) -> None:
+    rd = run.rundir
+    if rd.samples_db.exists():
+        from passt_mav.runs.store import SampleStore  # resolved at call time (tests substitute it)
+
+        try:
+            store = SampleStore(rd.samples_db)
+            try:
+                recs = store.all()
+            finally:
+                store.close()
+        except UserError as exc:
+            run.notes["samples_db"] = f"sample store unreadable: {exc}"
+            recs = []
+        if recs:
+            run.samples, run.samples_source = samples_as_arrays(recs), rd.SAMPLES
+            return
+    if run.tlog is not None and run.tlog.samples:
+        run.samples, run.samples_source = samples_as_arrays(run.tlog.samples), rd.TLOG
+
+
+def _load_tracks(run: Run) -> None:
+    tl = run.tlog
+    if tl is not None and tl.track:
+        run.track = np.array([(p.lat, p.lon) for p in tl.track], np.float64)
+        run.track_source = f"{run.rundir.TLOG} GLOBAL_POSITION_INT ({len(tl.track)} points)"
+        # tlog legs are numbered by accepted upload, as the controller numbers its legs
+        idx = [int(leg.get("index", k)) for k, leg in enumerate(run.legs)] or list(range(len(tl.legs)))
+        for k, lg in enumerate(tl.legs):
+            if k < len(idx):
+                pts = tl.leg_track(lg.index)
+                if len(pts):
+                    run.leg_tracks[idx[k]] = pts
+        run.leg_tracks_source = f"positions from {run.rundir.TLOG}"
+    elif run.samples is not None:
+        s = run.samples
+        run.track = np.column_stack([s["lat"], s["lon"]])
+        run.track_source = f"{run.samples_source} sample positions ({len(s['lat'])} points)"
+        for i in np.unique(s["leg"]):
+            if i >= 0:
+                sel = s["leg"] == i
+                run.leg_tracks[int(i)] = np.column_stack([s["lat"][sel], s["lon"][sel]])
+        run.leg_tracks_source = f"sample positions from {run.samples_source}"
+
+
+def _load_estimates(run: Run) -> None:
+    from passt_mav.fields.field import load_field
+
+    rd = run.rundir
+    for i in rd.leg_indices():
+        p = rd.estimate_file(i)
+        if p.exists():
+            try:
+                run.estimates[i] = load_field(p)
+            except UserError as exc:
+                run.notes[f"estimate{i}"] = f"leg {i} reconstruction unreadable: {exc}"
+
+
+def truth_at(fld, t: float) -> np.ndarray | None:
+    """Truth snapshot ``(2, rows, cols)`` at field time ``t``: the snapshot itself or linear in time; None outside."""
+    times = fld.times
+    k = np.flatnonzero(np.isclose(times, t, rtol=1e-9, atol=1e-9 * max(1.0, abs(t))))
+    if k.size:
+        return fld.data[k[0]].astype(np.float64)
+    if fld.n_times < 2 or not times[0] <= t <= times[-1]:
+        return None
+    j = int(np.searchsorted(times, t)) - 1
+    w = (t - times[j]) / (times[j + 1] - times[j])
+    return (1 - w) * fld.data[j].astype(np.float64) + w * fld.data[j + 1].astype(np.float64)
+
+
+# -- figures ----------------------------------------------------------------------------------
+def _plt():
+    import matplotlib
+
+    matplotlib.use("Agg", force=True)
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def _aspect(lat: np.ndarray) -> float:
+    return 1.0 / max(0.05, math.cos(math.radians(float(np.nanmean(lat)))))
+
+
+def _centres(grid) -> tuple[np.ndarray, np.ndarray]:
+    """2-D cell-centre lat, lon ``(rows, cols)`` of any grid (metric grids are rotated on Earth)."""
+    r, c = np.meshgrid(np.arange(grid.rows, dtype=float), np.arange(grid.cols, dtype=float), indexing="ij")
+    return grid.fcell_to_latlon(r, c)
+
+
+def _speed_map(ax, fig, grid, uv: np.ndarray, units: str, vmax: float | None = None, label: str = "speed"):
+    lat, lon = _centres(grid)
+    sp = np.hypot(uv[0], uv[1])
+    vmax = vmax if vmax is not None else (float(np.nanmax(sp)) if np.isfinite(sp).any() else 1.0)
+    ax.set_facecolor("0.85")
+    pc = ax.pcolormesh(lon, lat, np.ma.masked_invalid(sp), shading="nearest", cmap="viridis", vmin=0.0, vmax=vmax)
+    fig.colorbar(pc, ax=ax, label=f"{label} ({units})", shrink=0.85)
+    ax.set_aspect(_aspect(lat))
+    ax.set_xlabel("longitude (deg E)")
+    ax.set_ylabel("latitude (deg N)")
+    return pc
+
+
+def _leg_time(leg: dict, key: str) -> float | None:
+    x = leg.get(key)
+    return float(x) if isinstance(x, (int, float)) and math.isfinite(x) else None
+
+
+def _time_label(run: Run) -> tuple[float, str]:
+    """(divisor, axis label) for field times."""
+    origin = run.time_origin
+    if run.field is not None:
+        nondim = run.field.time_origin is None
+    else:
+        nondim = origin is None and run.grid is not None and run.grid.kind == "metric"
+    if nondim:
+        return 1.0, "non-dimensional field time"
+    if origin:
+        return 3600.0, f"field time (h since {origin})"
+    return 3600.0, "field time (h)"
+
+
+def _fig_track(run: Run, plt):
+    fld = run.field
+    t_end = [t for t in (_leg_time(leg, "t_end") for leg in run.legs) if t is not None]
+    t = t_end[-1] if t_end else float(fld.times[0])
+    k = int(np.argmin(np.abs(fld.times - t)))
+    fig, ax = plt.subplots(figsize=(7.5, 6.0), constrained_layout=True)
+    _speed_map(ax, fig, fld.grid, fld.data[k].astype(float), run.units)
+    for leg in run.legs:
+        wp = np.asarray(leg.get("waypoints") or [], float).reshape(-1, 2)
+        if len(wp):
+            ax.plot(wp[:, 1], wp[:, 0], "w--", lw=1.0, marker="o", ms=3, mfc="white", mec="k",
+                    label="planned waypoints" if leg is run.legs[0] else None)
+    if run.track is not None and len(run.track):
+        ax.plot(run.track[:, 1], run.track[:, 0], "-", color="tab:red", lw=1.6, label="executed track")
+        ax.plot(run.track[0, 1], run.track[0, 0], "^", color="tab:red", mec="k", ms=8, label="start")
+    div, lab = _time_label(run)
+    ax.set_title(f"Track over the truth field, snapshot {k} ({lab} {fld.times[k] / div:.3g})", fontsize=10)
+    if ax.get_legend_handles_labels()[0]:
+        ax.legend(loc="best", fontsize=8, framealpha=0.8)
+    return fig
+
+
+def _fig_legs(run: Run, plt):
+    fig, ax = plt.subplots(figsize=(7.5, 6.0), constrained_layout=True)
+    colours = plt.get_cmap("tab10")
+    lats = []
+    for n, leg in enumerate(run.legs):
+        i = int(leg.get("index", n))
+        c = colours(n % 10)
+        wp = np.asarray(leg.get("waypoints") or [], float).reshape(-1, 2)
+        if len(wp):
+            ax.plot(wp[:, 1], wp[:, 0], "--", color=c, marker="o", ms=4, lw=1.2, label=f"leg {i} planned")
+            ax.plot(wp[0, 1], wp[0, 0], "s", color=c, mec="k", ms=7)
+            lats.append(wp[:, 0])
+        ex = run.leg_tracks.get(i)
+        if ex is not None and len(ex):
+            ax.plot(ex[:, 1], ex[:, 0], "-", color=c, lw=2.2, alpha=0.7, label=f"leg {i} executed")
+            lats.append(ex[:, 0])
+    if lats:
+        ax.set_aspect(_aspect(np.concatenate(lats)))
+    ax.set_xlabel("longitude (deg E)")
+    ax.set_ylabel("latitude (deg N)")
+    ax.grid(alpha=0.3)
+    ax.set_title("Planned (dashed, square = start) vs executed path per leg", fontsize=10)
+    ax.legend(loc="best", fontsize=8)
+    return fig
+
+
+def _fig_samples(run: Run, plt):
+    s = run.samples
+    sp = np.hypot(s["u"], s["v"])
+    fig, ax = plt.subplots(figsize=(7.5, 6.0), constrained_layout=True)
+    if run.field is not None:
+        lat, lon = _centres(run.field.grid)
+        ax.plot(lon.ravel(), lat.ravel(), ".", color="0.8", ms=2, zorder=0)
+    sc = ax.scatter(s["lon"], s["lat"], c=sp, cmap="plasma", s=36, edgecolors="k", linewidths=0.4, zorder=2)
+    fig.colorbar(sc, ax=ax, label=f"measured speed ({run.units})", shrink=0.85)
+    vmax = float(np.nanmax(sp)) if np.isfinite(sp).any() and np.nanmax(sp) > 0 else 1.0
+    ax.quiver(s["lon"], s["lat"], s["u"], s["v"], angles="uv", scale_units="inches", scale=vmax / 0.3,
+              width=0.003, color="k", zorder=3)
+    ax.set_aspect(_aspect(s["lat"]))
+    ax.set_xlabel("longitude (deg E)")
+    ax.set_ylabel("latitude (deg N)")
+    ax.set_title(f"{len(sp)} samples coloured by speed (arrows: measured u, v)", fontsize=10)
+    ax.grid(alpha=0.3)
+    return fig
+
+
+def _fig_recon(run: Run, plt, i: int, est, truth: np.ndarray | None):
+    e = est.data[0].astype(float)
+    panels = 3 if truth is not None else 1
+    fig, axes = plt.subplots(1, panels, figsize=(5.2 * panels, 4.6), constrained_layout=True, squeeze=False)
+    sp_e = np.hypot(e[0], e[1])
+    vmax = float(np.nanmax(sp_e)) if np.isfinite(sp_e).any() else 1.0
+    if truth is not None:
+        sp_t = np.hypot(truth[0], truth[1])
+        vmax = max(vmax, float(np.nanmax(sp_t)) if np.isfinite(sp_t).any() else 0.0)
+        _speed_map(axes[0, 0], fig, est.grid, truth, run.units, vmax)
+        axes[0, 0].set_title("truth", fontsize=10)
+        _speed_map(axes[0, 1], fig, est.grid, e, run.units, vmax)
+        axes[0, 1].set_title(f"reconstruction after leg {i}", fontsize=10)
+        err = e - truth
+        _speed_map(axes[0, 2], fig, est.grid, err, run.units, label="|error|")
+        axes[0, 2].set_title(f"error, RMSE {recon_rmse(e, truth):.3g} {run.units}", fontsize=10)
+    else:
+        _speed_map(axes[0, 0], fig, est.grid, e, run.units, vmax)
+        axes[0, 0].set_title(f"reconstruction after leg {i} (no truth)", fontsize=10)
+    return fig
+
+
+def _series(xs) -> np.ndarray:
+    return np.array([np.nan if x is None else float(x) for x in xs], float)
+
+
+def _fig_rmse(run: Run, plt, over_time: dict | None, per_leg: list[tuple[int, float, float]]):
+    panels = (over_time is not None) + bool(per_leg)
+    fig, axes = plt.subplots(1, panels, figsize=(6.0 * panels, 4.2), constrained_layout=True, squeeze=False)
+    k = 0
+    if over_time is not None:
+        ax = axes[0, k]
+        k += 1
+        div, lab = _time_label(run)
+        t = _series(over_time["t"]) / div
+        for key, style, name in (("passt", "o-", "PASST"), ("model", "s--", "pure model")):
+            if key in over_time:
+                y = _series(over_time[key])
+                ok = np.isfinite(y)
+                ax.plot(t[ok], y[ok], style, label=name)
+        ax.set_xlabel(lab)
+        ax.set_ylabel(f"RMSE ({run.units})")
+        ax.set_title("RMSE over time", fontsize=10)
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=8)
+    if per_leg:
+        ax = axes[0, k]
+        idx = np.arange(len(per_leg))
+        ax.bar(idx - 0.2, [p[1] for p in per_leg], 0.4, label="PASST")
+        ax.bar(idx + 0.2, [p[2] for p in per_leg], 0.4, label="pure model")
+        ax.set_xticks(idx, [f"leg {p[0]}" for p in per_leg])
+        ax.set_ylabel(f"RMSE ({run.units})")
+        ax.set_title("RMSE after each leg", fontsize=10)
+        ax.grid(alpha=0.3, axis="y")
+        ax.legend(fontsize=8)
+    return fig
+
+
+def _fig_pod(run: Run, plt, pod: dict):
+    fig, ax = plt.subplots(figsize=(6.5, 4.2), constrained_layout=True)
+    for key, style, name in (("truth", "k-o", "truth"), ("passt", "o-", "PASST"), ("model", "s--", "pure model")):
+        if key in pod:
+            y = _series(pod[key])
+            ax.plot(np.arange(1, len(y) + 1), y, style, label=name)
+    ax.set_xlabel("number of POD modes")
+    ax.set_ylabel("cumulative energy fraction")
+    ax.set_ylim(0, 1.02)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    ax.set_title("POD energy", fontsize=10)
+    return fig
+
+
+# -- HTML -----------------------------------------------------------------------------------------
+_CSS = """
+body{font-family:system-ui,-apple-system,'Segoe UI',sans-serif;margin:2em auto;max-width:1100px;color:#222;padding:0 1em}
+h1{font-size:1.6em;margin-bottom:.2em}h2{font-size:1.2em;border-bottom:1px solid #ccc;margin-top:1.8em}
+table{border-collapse:collapse;margin:.6em 0}th,td{border:1px solid #ccc;padding:.25em .6em;text-align:left}
+th{background:#f3f3f3;font-weight:600}td.num{text-align:right}img{max-width:100%;border:1px solid #ddd}
+.missing{color:#a33;font-style:italic}.note{color:#555}.status{font-weight:600}
+"""
+
+
+def _fmt(x: Any) -> str:
+    if x is None:
+        return "&ndash;"
+    if isinstance(x, bool):
+        return "yes" if x else "no"
+    if isinstance(x, (int, np.integer)):
+        return str(int(x))
+    if isinstance(x, (float, np.floating)):
+        return "&ndash;" if not math.isfinite(x) else f"{float(x):.4g}"
+    return html.escape(str(x))
+
+
+def _iso(s: Any) -> _dt.datetime | None:
+    if not isinstance(s, str):
+        return None
+    try:
+        d = _dt.datetime.fromisoformat(s.strip().replace("Z", "+00:00"))
+    except ValueError:
+        return None
+    return d if d.tzinfo else d.replace(tzinfo=_dt.timezone.utc)
+
+
+class _Page:
+    def __init__(self, out: Path):
+        self.out = out
+        self.parts: list[str] = []
+        self.figures: list[Path] = []
+
+    def add(self, s: str) -> None:
+        self.parts.append(s)
+
+    def h2(self, s: str) -> None:
+        self.add(f"<h2>{html.escape(s)}</h2>")
+
+    def missing(self, s: str) -> None:
+        self.add(f'<p class="missing">{html.escape(s)}</p>')
+
+    def note(self, s: str) -> None:
+        self.add(f'<p class="note">{html.escape(s)}</p>')
+
+    def figure(self, fig, name: str, alt: str, plt) -> None:
+        buf = io.BytesIO()
+        try:
+            fig.savefig(buf, format="png", dpi=100)
+        finally:
+            plt.close(fig)
+        data = buf.getvalue()
+        path = self.out / name
+        path.write_bytes(data)  # the same bytes on disk and in the page
+        self.figures.append(path)
+        b64 = base64.b64encode(data).decode("ascii")
+        self.add(f'<figure><img alt="{html.escape(alt)}" src="data:image/png;base64,{b64}">'
+                 f"<figcaption>{html.escape(alt)} ({html.escape(name)})</figcaption></figure>")
+
+    def table(self, rows: list[tuple[str, str]]) -> None:
+        body = "".join(f"<tr><th>{html.escape(k)}</th><td>{v}</td></tr>" for k, v in rows)
+        self.add(f"<table>{body}</table>")
+
+
+def write_report(run_dir: str | Path, out: str | Path | None = None) -> Path:
+    """Write ``report.html`` and the figure PNGs for ``run_dir``; returns the HTML path.
+
+    ``out`` defaults to ``RUN_DIR/report``. Raises :class:`RunDirError` (a
+    UserError) if ``run_dir`` is not a run directory.
+    """
+    run = load_run(run_dir)
+    out_dir = Path(out) if out is not None else run.rundir.report_dir
+    out_dir.mkdir(parents=True, exist_ok=True)
+    for name in ("track_field.png", "legs.png", "samples.png", "reconstruction.png", "rmse.png", "pod.png"):
+        (out_dir / name).unlink(missing_ok=True)  # a figure from an earlier report must not outlive its data
+    plt = _plt()
+    page = _Page(out_dir)
+    s = run.summary or {}
+    title = str(s.get("mission") or run.root.name)
+    page.add(f"<h1>Run report: {html.escape(title)}</h1>")
+    if run.in_progress:
+        page.add('<p class="status">No summary.json yet: the run is still in progress (or stopped before writing it). '
+                 "Shown: what the legs and logs recorded so far.</p>")
+    else:
+        page.add(f'<p class="status">Status: {html.escape(str(s.get("status", "unknown")))}</p>')
+    _section_summary(page, run)
+    _section_track(page, run, plt)
+    _section_legs(page, run, plt)
+    _section_samples(page, run, plt)
+    _section_recon(page, run, plt)
+    _section_rmse(page, run, plt)
+    _section_pod(page, run, plt)
+    _section_timings(page, run)
+    _section_tlog(page, run)
+    gen = _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
+    page.add(f'<p class="note">Written by passt-mav report from {html.escape(str(run.root))} at {gen}.</p>')
+    doc = ("<!DOCTYPE html>\n<html lang=\"en\"><head><meta charset=\"utf-8\">"
+           f"<title>{html.escape(title)} - passt-mav report</title><style>{_CSS}</style></head><body>\n"
+           + "\n".join(page.parts) + "\n</body></html>\n")
+    path = out_dir / "report.html"
+    path.write_text(doc, encoding="utf-8")
+    return path
+
+
+def _section_summary(page: _Page, run: Run) -> None:
+    s = run.summary or {}
+    rows: list[tuple[str, str]] = []
+    for key, label in (("mission", "mission"), ("status", "status"), ("started_utc", "started (UTC)"),
+                       ("finished_utc", "finished (UTC)")):
+        if key in s:
+            rows.append((label, _fmt(s[key])))
+    a, b = _iso(s.get("started_utc")), _iso(s.get("finished_utc"))
+    if a and b:
+        rows.append(("duration", f"{(b - a).total_seconds() / 60:.1f} min"))
+    if "field" in s:
+        rows.append(("truth field", _fmt(s["field"]) + (f" ({html.escape(run.notes['field'])})" if "field" in run.notes else "")))
+    g = run.grid
+    if g is not None:
+        desc = f"{g.rows} x {g.cols} cells, {g.kind}"
+        if g.kind == "geographic":
+            desc += f", lat {g.south:.4f}..{g.north:.4f}, lon {g.west:.4f}..{g.east:.4f}"
+        else:
+            desc += f", anchored at {g.anchor_lat:.4f}, {g.anchor_lon:.4f}, scale {g.scale:g}, rotation {g.rotation_deg:g} deg"
+        rows.append(("grid", desc))
+    if run.field is not None or run.grid is not None:
+        div, lab = _time_label(run)
+        rows.append(("time axis", html.escape(lab if div == 1.0 else f"seconds since {run.time_origin} (UTC)")))
+        rows.append(("velocity units", html.escape(run.units)))
+    for key in ("model", "planner", "reward"):
+        if key in s:
+            rows.append((key, _fmt(s[key])))
+    if "seeds" in s:
+        rows.append(("seeds", html.escape(json.dumps(s["seeds"], sort_keys=True))))
+    rows.append(("legs", str(len(run.legs))))
+    if run.samples is not None:
+        rows.append(("samples", f"{html.escape(run.samples_source)} ({len(run.samples['u'])} samples)"))
+    page.h2("Summary")
+    page.table(rows)
+
+
+def _section_track(page: _Page, run: Run, plt) -> None:
+    page.h2("Track over the current field")
+    if run.field is None:
+        page.missing("Track over the current field: " + run.notes.get("field", "truth field " + NOT_RECORDED))
+        return
+    page.figure(_fig_track(run, plt), "track_field.png", "track over the current field", plt)
+    if run.track_source:
+        page.note(f"Executed track: {run.track_source}.")
+    else:
+        page.note("Planned waypoints only: no positions were logged.")
+
+
+def _section_legs(page: _Page, run: Run, plt) -> None:
+    page.h2("Legs: planned vs executed")
+    if not any(leg.get("waypoints") for leg in run.legs):
+        page.missing("Planned legs " + NOT_RECORDED)
+        return
+    page.figure(_fig_legs(run, plt), "legs.png", "planned vs executed path per leg", plt)
+    if run.leg_tracks:
+        page.note(f"Executed: {run.leg_tracks_source}.")
+    else:
+        page.missing("Executed track per leg " + NOT_RECORDED)
+
+
+def _section_samples(page: _Page, run: Run, plt) -> None:
+    page.h2("Samples")
+    if run.samples is None or len(run.samples["u"]) == 0:
+        page.missing("Samples coloured by speed: samples " + NOT_RECORDED)
+        return
+    page.figure(_fig_samples(run, plt), "samples.png", "samples coloured by speed", plt)
+    page.note(f"Source: {run.samples_source} ({len(run.samples['u'])} samples).")
+
+
+def _section_recon(page: _Page, run: Run, plt) -> None:
+    page.h2("Reconstruction vs truth")
+    if not run.estimates:
+        page.missing("Reconstruction vs truth: reconstruction (estimate.nc) " + NOT_RECORDED)
+        return
+    rows, last = [], None
+    for i, est in sorted(run.estimates.items()):
+        truth = None
+        if run.field is not None and est.grid == run.field.grid:
+            truth = truth_at(run.field, float(est.times[-1]))
+        if truth is not None:
+            rmse = recon_rmse(est.data[-1], truth)
+            rows.append((f"reconstruction RMSE vs truth, leg {i}", f"{rmse:.4g} {html.escape(run.units)}"))
+        last = (i, est.isel(time=est.n_times - 1), truth)
+    i, est, truth = last
+    page.figure(_fig_recon(run, plt, i, est, truth), "reconstruction.png", "reconstruction vs truth", plt)
+    if rows:
+        page.table(rows)
+    else:
+        page.missing("Truth at the reconstruction times " + NOT_RECORDED + f" ({run.notes.get('field', 'outside the field')})")
+
+
+def _section_rmse(page: _Page, run: Run, plt) -> None:
+    page.h2("RMSE: PASST vs pure model")
+    s = run.summary or {}
+    over = s.get("rmse") if isinstance(s.get("rmse"), dict) and s["rmse"].get("t") else None
+    per_leg = []
+    for n, leg in enumerate(run.legs):
+        a, b = leg.get("rmse_passt"), leg.get("rmse_model")
+        if isinstance(a, (int, float)) or isinstance(b, (int, float)):
+            per_leg.append((int(leg.get("index", n)), float(a) if a is not None else np.nan, float(b) if b is not None else np.nan))
+    if over is None and not per_leg:
+        page.missing("RMSE over time " + NOT_RECORDED + "; RMSE per leg " + NOT_RECORDED)
+        return
+    page.figure(_fig_rmse(run, plt, over, per_leg), "rmse.png", "RMSE over time and per leg", plt)
+    if over is None:
+        page.missing("RMSE over time " + NOT_RECORDED)
+
+
+def _section_pod(page: _Page, run: Run, plt) -> None:
+    page.h2("POD energy")
+    pod = (run.summary or {}).get("pod")
+    if not isinstance(pod, dict) or not any(pod.get(k) for k in ("truth", "passt", "model")):
+        page.missing("POD energy " + NOT_RECORDED)
+        return
+    page.figure(_fig_pod(run, plt, pod), "pod.png", "POD energy", plt)
+
+
+def _section_timings(page: _Page, run: Run) -> None:
+    page.h2("Timings and link quality")
+    keys = ("planning_s", "upload_s", "duration_s")
+    if not any(k in leg for leg in run.legs for k in keys):
+        page.missing("Timings (planning, upload, leg duration) " + NOT_RECORDED)
+    else:
+        head = "<tr><th>leg</th><th>planning (s)</th><th>upload (s)</th><th>leg duration (s)</th><th>samples</th></tr>"
+        body, tot = [], [0.0, 0.0, 0.0, 0]
+        for n, leg in enumerate(run.legs):
+            vals = [leg.get(k) for k in keys]
+            for j, v in enumerate(vals):
+                if isinstance(v, (int, float)):
+                    tot[j] += float(v)
+            ns = leg.get("n_samples")
+            tot[3] += int(ns) if isinstance(ns, int) else 0
+            body.append("<tr><td>" + _fmt(leg.get("index", n)) + "</td>"
+                        + "".join(f'<td class="num">{_fmt(v)}</td>' for v in vals + [ns]) + "</tr>")
+        body.append("<tr><th>total</th>" + "".join(f'<td class="num">{_fmt(v)}</td>' for v in tot) + "</tr>")
+        page.add(f"<table>{head}{''.join(body)}</table>")
+    links = [(leg.get("index", n), leg["link"]) for n, leg in enumerate(run.legs) if isinstance(leg.get("link"), dict)]
+    tl = run.tlog
+    if links:
+        head = "<tr><th>leg</th><th>round trip (ms)</th><th>loss</th><th>messages</th></tr>"
+        body = []
+        for i, ln in links:
+            loss = ln.get("loss")
+            loss_s = f"{100 * float(loss):.1f} %" if isinstance(loss, (int, float)) else "&ndash;"
+            body.append(f"<tr><td>{_fmt(i)}</td><td class=\"num\">{_fmt(ln.get('rtt_ms'))}</td>"
+                        f"<td class=\"num\">{loss_s}</td><td class=\"num\">{_fmt(ln.get('messages'))}</td></tr>")
+        page.add(f"<table>{head}{''.join(body)}</table>")
+    elif tl is not None and tl.link_loss is not None:
+        page.note(f"Link (from {run.rundir.TLOG}): {tl.message_counts.get('_vehicle_frames', 0)} vehicle frames, "
+                  f"{tl.seq_lost} missing by sequence number ({100 * tl.link_loss:.1f} %).")
+    else:
+        page.missing("Link quality " + NOT_RECORDED)
+
+
+def _section_tlog(page: _Page, run: Run) -> None:
+    page.h2("Telemetry log")
+    tl = run.tlog
+    if tl is None:
+        page.missing(run.notes.get("tlog", "Telemetry log " + NOT_RECORDED))
+        return
+    dur = (tl.utc_last - tl.utc_first) / 60 if tl.utc_first is not None else 0.0
+    page.note(f"{run.rundir.TLOG}: {tl.n_messages} messages over {dur:.1f} min, vehicle system "
+              f"{tl.vehicle_sysid if tl.vehicle_sysid is not None else 'unknown'}; "
+              f"{len(tl.missions)} uploads, {tl.bad_frames} bad frames, {tl.skipped_bytes} bytes skipped.")
+    leg_of = {lg.mission: lg for lg in tl.legs}
+    items = []
+    for m in tl.missions:
+        state = "accepted" if m.accepted else ("no answer" if m.result is None else f"rejected (result {m.result})")
+        line = f"mission {m.index + 1}: {len(m.items)} items, {m.n_waypoints} waypoints, {state}"
+        lg = leg_of.get(m.index)
+        if lg is not None:
+            line += ", mission complete" if lg.complete else ", not completed"
+        items.append(f"<li>{html.escape(line)}</li>")
+    if items:
+        page.add("<ul>" + "".join(items) + "</ul>")
+    modes = [e.detail for e in tl.events if e.kind == "mode"]
+    if modes:
+        page.note("Modes: " + " \u2192 ".join(modes) + ".")
+    if run.track_source:
+        page.note(f"Track: {run.track_source}.")

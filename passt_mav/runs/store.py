@@ -1,0 +1,226 @@
+"""The crash-safe sample store of a run: one SQLite file, one row per measurement.
+
+Every current measurement the controller receives (a ``CUR_U``/``CUR_V`` pair
+matched with the vehicle's position) is appended here the moment it arrives, so
+that a controller killed mid-mission (``kill -9``, a flat laptop battery) keeps
+every sample it had acknowledged.
+
+Durability: the database runs in WAL mode with ``synchronous=FULL``. In WAL mode
+``NORMAL`` would already survive a crash of the *process* (a committed
+transaction is in the WAL file, i.e. in the OS page cache), but not a crash of
+the *machine* or a power cut: the last transactions could be lost. ``FULL``
+fsyncs the WAL at each commit, so an acknowledged ``append`` survives a power
+cut too. Samples arrive at a few per second; an fsync each is cheap next to the
+cost of the field work that produced them.
+
+Duplicates: a measurement is identified by ``(source, boot, time_boot_ms)``: the
+sending system, the vehicle's boot counter (the controller bumps it when
+``time_boot_ms`` jumps backwards, i.e. the autopilot rebooted) and the
+autopilot's timestamp. A MAVLink retransmission, a message seen on two links, or
+the same message replayed after a reconnect therefore lands once
+(``INSERT OR IGNORE`` on a UNIQUE constraint). The leg index is deliberately not
+part of the key: a late copy that arrives after the leg switched is still the
+same measurement.
+
+Threads: one connection guarded by a lock, so a telemetry reader thread may
+append while the main thread reads. Other processes (``passt-mav report`` on a
+run in progress) can read concurrently: WAL readers never block the writer.
+
+Record format (:class:`Sample`): ``time_boot_ms`` (int, ms since autopilot
+boot), ``utc`` (float, UNIX epoch seconds of reception), ``lat``/``lon``
+(WGS84 degrees), ``u``/``v`` (m/s, east/north), ``leg`` (int, -1 outside any
+leg), ``source`` (str, e.g. ``"mav:1/1"`` or ``"sim"``), optional ``row``/``col``
+(grid cell, or None).
+"""
+
+from __future__ import annotations
+
+import math
+import sqlite3
+import threading
+from dataclasses import dataclass, fields
+from pathlib import Path
+from typing import Any, Iterable, Mapping
+
+from passt_mav.errors import UserError
+
+__all__ = ["Sample", "SampleStore", "SampleStoreError"]
+
+
+class SampleStoreError(UserError):
+    """The sample store file cannot be opened or is not a sample store."""
+
+
+@dataclass(frozen=True)
+class Sample:
+    """One current measurement (see module docstring for units and frames)."""
+
+    time_boot_ms: int
+    utc: float
+    lat: float
+    lon: float
+    u: float
+    v: float
+    leg: int = -1
+    source: str = "sim"
+    row: int | None = None
+    col: int | None = None
+    boot: int = 0
+
+    @classmethod
+    def coerce(cls, obj: "Sample | Mapping[str, Any]") -> "Sample":
+        """A :class:`Sample` from a Sample or a mapping with the same keys."""
+        if isinstance(obj, Sample):
+            return obj
+        if isinstance(obj, Mapping):
+            names = {f.name for f in fields(cls)}
+            unknown = set(obj) - names
+            if unknown:
+                raise SampleStoreError(f"unknown sample field(s): {', '.join(sorted(unknown))}")
+            return cls(**obj)
+        raise SampleStoreError(f"cannot store a {type(obj).__name__} as a sample")
+
+
+_COLUMNS = ("time_boot_ms", "utc", "lat", "lon", "u", "v", "leg", "source", "row", "col", "boot")
+
+_SCHEMA = """
+CREATE TABLE IF NOT EXISTS samples (
+    id INTEGER PRIMARY KEY AUTOINCREMENT,
+    time_boot_ms INTEGER NOT NULL,
+    utc REAL NOT NULL,
+    lat REAL NOT NULL,
+    lon REAL NOT NULL,
+    u REAL NOT NULL,
+    v REAL NOT NULL,
+    leg INTEGER NOT NULL,
+    source TEXT NOT NULL,
+    row INTEGER,
+    col INTEGER,
+    boot INTEGER NOT NULL DEFAULT 0,
+    UNIQUE (source, boot, time_boot_ms)
+);
+CREATE INDEX IF NOT EXISTS samples_leg ON samples (leg);
+"""
+
+_SCHEMA_VERSION = 1
+
+
+def _row_values(s: Sample) -> tuple:
+    for name in ("utc", "lat", "lon", "u", "v"):
+        x = getattr(s, name)
+        if not isinstance(x, (int, float)) or not math.isfinite(x):
+            raise SampleStoreError(f"sample {name} must be a finite number, got {x!r}")
+    return (int(s.time_boot_ms), float(s.utc), float(s.lat), float(s.lon), float(s.u), float(s.v), int(s.leg),
+            str(s.source), None if s.row is None else int(s.row), None if s.col is None else int(s.col), int(s.boot))
+
+
+class SampleStore:
+    """Append-only SQLite store of :class:`Sample` records (see module docstring).
+
+    Args:
+        path: the database file (created with its table if absent).
+        readonly: open without creating or changing anything (for reports).
+    """
+
+    def __init__(self, path: str | Path, *, readonly: bool = False):
+        self.path = Path(path)
+        self.readonly = readonly
+        self._lock = threading.RLock()
+        try:
+            if readonly:
+                if not self.path.exists():
+                    raise SampleStoreError(f"sample store not found: {self.path}")
+                self._con = sqlite3.connect(f"{self.path.resolve().as_uri()}?mode=ro", uri=True,
+                                            check_same_thread=False, isolation_level=None)
+            else:
+                self.path.parent.mkdir(parents=True, exist_ok=True)
+                # autocommit mode: every statement outside an explicit BEGIN is its own committed transaction
+                self._con = sqlite3.connect(str(self.path), check_same_thread=False, isolation_level=None, timeout=10.0)
+                self._con.execute("PRAGMA journal_mode=WAL")
+                self._con.execute("PRAGMA synchronous=FULL")
+                self._con.executescript(_SCHEMA)
+                self._con.execute(f"PRAGMA user_version={_SCHEMA_VERSION}")
+            # fail now, with the file's name, if it is not a sample store
+            self._con.execute("SELECT time_boot_ms, utc, lat, lon, u, v, leg, source FROM samples LIMIT 1").fetchall()
+        except sqlite3.DatabaseError as exc:
+            raise SampleStoreError(f"{self.path} is not a readable sample store: {exc}") from None
+
+    # -- writing ---------------------------------------------------------------
+    def append(self, sample: "Sample | Mapping[str, Any] | None" = None, /, **kw: Any) -> bool:
+        """Store one sample (a :class:`Sample`, a mapping, or keyword fields); committed on return.
+
+        Returns True if it was new, False if the same ``(source, boot,
+        time_boot_ms)`` was already stored (the stored row is kept).
+        """
+        s = Sample.coerce(kw if sample is None else sample)
+        vals = _row_values(s)
+        with self._lock:
+            cur = self._execute(f"INSERT OR IGNORE INTO samples ({', '.join(_COLUMNS)}) VALUES ({', '.join('?' * len(_COLUMNS))})", vals)
+            return cur.rowcount == 1
+
+    def append_many(self, samples: Iterable["Sample | Mapping[str, Any]"]) -> int:
+        """Store several samples in one transaction (all or none); returns how many were new."""
+        rows = [_row_values(Sample.coerce(s)) for s in samples]
+        with self._lock:
+            before = self._con.total_changes
+            try:
+                self._execute("BEGIN IMMEDIATE")
+                self._con.executemany(
+                    f"INSERT OR IGNORE INTO samples ({', '.join(_COLUMNS)}) VALUES ({', '.join('?' * len(_COLUMNS))})", rows)
+                self._execute("COMMIT")
+            except BaseException:
+                if self._con.in_transaction:
+                    self._con.execute("ROLLBACK")
+                raise
+            return self._con.total_changes - before
+
+    def _execute(self, sql: str, params: tuple = ()):
+        if self.readonly and not sql.lstrip().upper().startswith("SELECT"):
+            raise SampleStoreError(f"sample store {self.path} was opened read-only")
+        try:
+            return self._con.execute(sql, params)
+        except sqlite3.ProgrammingError as exc:  # closed store
+            raise SampleStoreError(f"sample store {self.path}: {exc}") from None
+
+    # -- reading ---------------------------------------------------------------
+    def _select(self, where: str = "", params: tuple = ()) -> list[Sample]:
+        with self._lock:
+            rows = self._execute(f"SELECT {', '.join(_COLUMNS)} FROM samples {where} ORDER BY id", params).fetchall()
+        return [Sample(*r) for r in rows]
+
+    def all(self) -> list[Sample]:
+        """Every stored sample, in arrival order."""
+        return self._select()
+
+    def for_leg(self, leg: int) -> list[Sample]:
+        """The samples of leg ``leg`` (-1: those taken outside any leg), in arrival order."""
+        return self._select("WHERE leg = ?", (int(leg),))
+
+    def count(self, leg: int | None = None) -> int:
+        """Number of stored samples (of one leg if ``leg`` is given)."""
+        with self._lock:
+            if leg is None:
+                return int(self._execute("SELECT COUNT(*) FROM samples").fetchone()[0])
+            return int(self._execute("SELECT COUNT(*) FROM samples WHERE leg = ?", (int(leg),)).fetchone()[0])
+
+    def __len__(self) -> int:
+        return self.count()
+
+    # -- lifetime ----------------------------------------------------------------
+    def close(self) -> None:
+        """Close the connection (idempotent). Committed samples are already on disk."""
+        with self._lock:
+            try:
+                self._con.close()
+            except sqlite3.Error:  # pragma: no cover - closing twice is harmless
+                pass
+
+    def __enter__(self) -> "SampleStore":
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def __repr__(self) -> str:
+        return f"SampleStore({str(self.path)!r})"
+

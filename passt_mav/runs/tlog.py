@@ -1,0 +1,733 @@
+"""Read a run back from its logs: MAVLink telemetry logs (.tlog) and ArduPilot DataFlash logs (.bin).
+
+:func:`read_tlog` reads the ``.tlog`` format written by MAVProxy, pymavlink
+(``mavfile.setup_logfile``) and the simulator: each record is an 8-byte
+big-endian UTC timestamp in microseconds followed by one MAVLink 1 or 2 frame.
+From it, it rebuilds
+
+* ``track``: the vehicle's GLOBAL_POSITION_INT positions (0/0 before a GPS fix is
+  ignored);
+* ``samples``: current measurements, a NAMED_VALUE_FLOAT ``CUR_U`` paired with
+  the ``CUR_V`` nearest in ``time_boot_ms`` and the GLOBAL_POSITION_INT nearest in
+  ``time_boot_ms``, each within ``pair_tolerance_ms`` (names configurable);
+* ``missions``: mission uploads from a GCS (MISSION_COUNT + MISSION_ITEM_INT or
+  MISSION_ITEM, re-sent items kept once) and the vehicle's MISSION_ACK result;
+* ``legs``: one per accepted upload (MISSION_ACK 0). A leg is complete at
+  "Mission Complete" (STATUSTEXT) or MISSION_CURRENT ``mission_state`` 5 - the
+  latter only once the leg was seen running (state 3 or an item reached), since
+  right after an upload the vehicle still reports the old mission complete;
+* ``events``: mode and arming changes, uploads, waypoints reached, completions,
+  status texts.
+
+Each sample and track point carries the leg open when it was received (-1 outside
+any leg), so a reader sees exactly what the GCS saw.
+
+Damaged logs: a file cut mid-record or with junk bytes in it is read as far as it
+is readable. Every record is checked (MAVLink CRC with the message's CRC_EXTRA,
+exact frame length); after a bad record the reader searches forward for the next
+position where a plausible timestamp is followed by a valid frame, and counts
+the bytes it passed over (``skipped_bytes``) and the damaged stretches
+(``bad_frames``). pymavlink's ``mavlogfile`` decodes the frames but neither
+resynchronises a timestamped stream nor reports what it skipped, hence this
+small scanner around pymavlink's own frame decoder.
+
+:func:`read_dataflash` reads ArduPilot DataFlash ``.bin`` logs the same way
+(FMT records, then fixed-length records; decoding through ``DFReader``'s format
+classes): positions from ``POS`` (or ``GPS``), samples from a ``CUR`` message
+(columns ``U``, ``V``, written by an on-board Lua script) or from ``NVF`` named
+values, paired by ``TimeUS``. DataFlash records have no checksum, so a record is
+accepted only when it is followed by another valid record header (or the end of
+the file); a record with junk inside it is dropped rather than misread.
+"""
+
+from __future__ import annotations
+
+import re
+import struct
+from collections import Counter
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from passt_mav.errors import UserError
+from passt_mav.runs.store import Sample
+
+__all__ = [
+    "LogReadError",
+    "TrackPoint",
+    "MissionItem",
+    "MissionUpload",
+    "LegRecord",
+    "LogEvent",
+    "TelemetryLog",
+    "read_tlog",
+    "read_dataflash",
+]
+
+
+class LogReadError(UserError):
+    """A log file is missing or cannot be read at all."""
+
+
+# -- records -------------------------------------------------------------------------
+@dataclass(frozen=True)
+class TrackPoint:
+    """A vehicle position: ``time_boot_ms``, WGS84 ``lat``/``lon`` (deg), reception ``utc`` (epoch s), ``leg``."""
+
+    time_boot_ms: int
+    lat: float
+    lon: float
+    utc: float
+    leg: int = -1
+
+
+@dataclass(frozen=True)
+class MissionItem:
+    """One uploaded mission item; ``lat``/``lon`` in degrees (int32 degE7 or float32 on the wire)."""
+
+    seq: int
+    command: int
+    frame: int
+    lat: float
+    lon: float
+    alt: float
+    is_int: bool
+
+
+#: MAV_CMD_NAV_* commands that carry a position the vehicle drives to
+_NAV_POSITION_CMDS = frozenset({16, 17, 18, 19, 21, 31, 82})
+
+
+@dataclass
+class MissionUpload:
+    """A mission upload seen in the log (mission_type 0).
+
+    ``result`` is the vehicle's MISSION_ACK type (None: no answer in the log);
+    ``items`` hold each sequence number once (a re-sent item overwrites, as on the
+    vehicle). ``waypoints`` are the positions of the navigation items after seq 0
+    (seq 0 is the home placeholder).
+    """
+
+    index: int
+    gcs: tuple[int, int]
+    count: int
+    utc_start: float
+    items_by_seq: dict[int, MissionItem] = field(default_factory=dict)
+    result: int | None = None
+    utc_end: float | None = None
+
+    @property
+    def accepted(self) -> bool:
+        return self.result == 0
+
+    @property
+    def items(self) -> list[MissionItem]:
+        return [self.items_by_seq[k] for k in sorted(self.items_by_seq)]
+
+    @property
+    def complete(self) -> bool:
+        """Every item 0..count-1 was sent."""
+        return set(self.items_by_seq) == set(range(self.count))
+
+    @property
+    def int_items(self) -> bool:
+        """All items were MISSION_ITEM_INT (exact degE7); False if any was a float MISSION_ITEM."""
+        return bool(self.items_by_seq) and all(it.is_int for it in self.items_by_seq.values())
+
+    @property
+    def waypoints(self) -> list[tuple[float, float]]:
+        return [(it.lat, it.lon) for it in self.items if it.seq >= 1 and it.command in _NAV_POSITION_CMDS]
+
+    @property
+    def n_waypoints(self) -> int:
+        return len(self.waypoints)
+
+
+@dataclass
+class LegRecord:
+    """One leg: from an accepted upload to its completion (or the next accepted upload / end of log).
+
+    Times are reception UTC (epoch s); ``t_end`` is None while the leg was still open
+    at the end of the log.
+    """
+
+    index: int
+    mission: int
+    t_start: float
+    t_end: float | None = None
+    complete: bool = False
+    n_waypoints: int = 0
+    n_samples: int = 0
+    active: bool = False
+
+
+@dataclass(frozen=True)
+class LogEvent:
+    """Something that happened: ``kind`` in mode, armed, upload, item_reached, complete, text."""
+
+    utc: float
+    kind: str
+    value: int | None = None
+    detail: str = ""
+
+
+@dataclass
+class TelemetryLog:
+    """What a log holds (see module docstring). ``utc`` values are UNIX epoch seconds."""
+
+    path: Path
+    kind: str
+    samples: list[Sample] = field(default_factory=list)
+    track: list[TrackPoint] = field(default_factory=list)
+    missions: list[MissionUpload] = field(default_factory=list)
+    legs: list[LegRecord] = field(default_factory=list)
+    events: list[LogEvent] = field(default_factory=list)
+    n_messages: int = 0
+    bad_frames: int = 0
+    skipped_bytes: int = 0
+    n_bytes: int = 0
+    vehicle_sysid: int | None = None
+    vehicle_compid: int | None = None
+    message_counts: Counter = field(default_factory=Counter)
+    #: vehicle frames missing by MAVLink sequence numbers (lost before logging; an
+    #: over-estimate when the log interleaves several links of one vehicle)
+    seq_lost: int = 0
+    utc_first: float | None = None
+    utc_last: float | None = None
+
+    def track_array(self):
+        """``(n, 3)`` float64: time_boot_ms, lat, lon (deg)."""
+        import numpy as np
+
+        return np.array([(p.time_boot_ms, p.lat, p.lon) for p in self.track], dtype=np.float64).reshape(-1, 3)
+
+    def leg_track(self, leg: int):
+        """``(n, 2)`` lat/lon of the positions received during leg ``leg``."""
+        import numpy as np
+
+        return np.array([(p.lat, p.lon) for p in self.track if p.leg == leg], dtype=np.float64).reshape(-1, 2)
+
+    @property
+    def link_loss(self) -> float | None:
+        """Fraction of vehicle frames lost before they reached the log (from sequence gaps), or None."""
+        n = self.message_counts.get("_vehicle_frames", 0)
+        return None if n == 0 else self.seq_lost / (n + self.seq_lost)
+
+
+# -- tlog scanning ---------------------------------------------------------------------
+_MAGIC_V1, _MAGIC_V2 = 0xFE, 0xFD
+_TS_MIN, _TS_MAX = 946_684_800_000_000, 4_102_444_800_000_000  # 2000-01-01 .. 2100-01-01 in µs
+_INTERESTING = frozenset({
+    "HEARTBEAT", "GLOBAL_POSITION_INT", "NAMED_VALUE_FLOAT", "MISSION_COUNT", "MISSION_ITEM", "MISSION_ITEM_INT",
+    "MISSION_ACK", "MISSION_CURRENT", "MISSION_ITEM_REACHED", "STATUSTEXT",
+})
+
+
+def _check_file(path: str | Path, what: str) -> bytes:
+    p = Path(path)
+    if not p.exists():
+        raise LogReadError(f"{what} not found: {p}")
+    if not p.is_file():
+        raise LogReadError(f"{what} {p} is not a file")
+    try:
+        return p.read_bytes()
+    except OSError as exc:
+        raise LogReadError(f"cannot read {what} {p}: {exc.strerror or exc}") from None
+
+
+def _frame_len(data: bytes, p: int) -> int | None:
+    """Length of the MAVLink frame starting at ``p`` from its header, or None if not a frame start."""
+    n = len(data)
+    if p >= n:
+        return None
+    m = data[p]
+    if m == _MAGIC_V2:
+        if p + 3 > n:
+            return None
+        incompat = data[p + 2]
+        if incompat & ~0x01:
+            return None  # unknown incompatibility flags: no receiver can read it
+        return 10 + data[p + 1] + 2 + (13 if incompat & 0x01 else 0)
+    if m == _MAGIC_V1:
+        if p + 2 > n:
+            return None
+        return 6 + data[p + 1] + 2
+    return None
+
+
+class _TlogScanner:
+    """Walks the records of a tlog, validating each, resynchronising after damage."""
+
+    def __init__(self, data: bytes):
+        from pymavlink.dialects.v20 import ardupilotmega as mavlink2
+
+        self.data = data
+        self.mav = mavlink2.MAVLink(None)
+        self.MAVError = mavlink2.MAVError
+        self.unknown_cls = mavlink2.MAVLink_unknown
+        self.skipped = 0
+        self.bad = 0
+        self.last_ts: int | None = None
+
+    def _try(self, p: int, resync: bool):
+        """(timestamp µs, message, end) if a valid record starts at ``p``; 'short' if cut by EOF; else None."""
+        data = self.data
+        n = len(data)
+        if p + 8 >= n:
+            return "short"
+        ts = struct.unpack_from(">Q", data, p)[0]
+        if resync and not (_TS_MIN <= ts <= _TS_MAX or (self.last_ts is not None and abs(ts - self.last_ts) < 3_600_000_000)):
+            return None
+        flen = _frame_len(data, p + 8)
+        if flen is None:
+            return None
+        end = p + 8 + flen
+        if end > n:
+            return "short"
+        try:
+            msg = self.mav.decode(bytearray(data[p + 8 : end]))
+        except (self.MAVError, struct.error, IndexError, ValueError, TypeError, UnicodeDecodeError):
+            return None
+        if isinstance(msg, self.unknown_cls):
+            # a message id this dialect lacks has no checkable CRC: accept it only in step with the
+            # stream and when the next record starts where it should (or the file ends)
+            if resync or not (end == n or (end + 8 < n and data[end + 8] in (_MAGIC_V1, _MAGIC_V2))):
+                return None
+        return ts, msg, end
+
+    def __iter__(self):
+        data, n, p = self.data, len(self.data), 0
+        candidates = re.compile(b"[\xfd\xfe]")
+        while p < n:
+            r = self._try(p, resync=False)
+            if isinstance(r, tuple):
+                ts, msg, p = r
+                self.last_ts = ts
+                yield ts, msg
+                continue
+            # damaged here: find the next position where a whole valid record starts
+            self.bad += 1
+            q, found = p + 1, None
+            for m in candidates.finditer(data, p + 9):
+                q = m.start() - 8
+                r2 = self._try(q, resync=True)
+                if isinstance(r2, tuple):
+                    found = q
+                    break
+            if found is None:
+                self.skipped += n - p
+                return
+            self.skipped += found - p
+            p = found
+
+
+def _mode_names(mav_type: int) -> dict[int, str]:
+    from pymavlink import mavutil
+
+    try:
+        return dict(mavutil.mode_mapping_bynumber(mav_type) or {})
+    except Exception:  # noqa: BLE001 - unknown vehicle type: numbers only
+        return {}
+
+
+def read_tlog(path: str | Path, *, u_name: str = "CUR_U", v_name: str = "CUR_V", pair_tolerance_ms: int = 200,
+              vehicle_sysid: int | None = None) -> TelemetryLog:
+    """Read a ``.tlog`` (see module docstring).
+
+    Args:
+        path: the telemetry log.
+        u_name, v_name: NAMED_VALUE_FLOAT names of the eastward/northward current (m/s).
+        pair_tolerance_ms: largest ``time_boot_ms`` difference between a u reading and
+            its v reading, and between the u reading and the position it is placed at.
+        vehicle_sysid: the vehicle's system id; default: the system sending vehicle
+            HEARTBEATs (autopilot not INVALID, type not GCS), else the one sending positions.
+
+    Raises:
+        LogReadError: the file is missing or unreadable (a damaged file is read as far as possible).
+    """
+    path = Path(path)
+    data = _check_file(path, "telemetry log")
+    scan = _TlogScanner(data)
+    out = TelemetryLog(path=path, kind="tlog", n_bytes=len(data))
+    kept: list[tuple[float, Any]] = []
+    hb_count: Counter = Counter()
+    pos_count: Counter = Counter()
+    last_seq: dict[tuple[int, int], int] = {}
+    frames: Counter = Counter()
+    lost: Counter = Counter()
+    for ts, msg in scan:
+        out.n_messages += 1
+        t = msg.get_type()
+        key = (msg.get_srcSystem(), msg.get_srcComponent())
+        seq = msg.get_seq()
+        if key in last_seq:
+            lost[key[0]] += (seq - last_seq[key] - 1) % 256
+        last_seq[key] = seq
+        frames[key[0]] += 1
+        out.message_counts[t] += 1
+        utc = ts * 1e-6
+        out.utc_first = utc if out.utc_first is None else out.utc_first
+        out.utc_last = utc
+        if t in _INTERESTING:
+            kept.append((utc, msg))
+            if t == "HEARTBEAT" and msg.autopilot != 8 and msg.type != 6:  # not INVALID autopilot, not a GCS
+                hb_count[msg.get_srcSystem()] += 1
+            elif t == "GLOBAL_POSITION_INT":
+                pos_count[msg.get_srcSystem()] += 1
+    out.bad_frames, out.skipped_bytes = scan.bad, scan.skipped
+    if vehicle_sysid is None and (hb_count or pos_count):
+        vehicle_sysid = (hb_count or pos_count).most_common(1)[0][0]
+    out.vehicle_sysid = vehicle_sysid
+    if vehicle_sysid is not None:
+        out.message_counts["_vehicle_frames"] = frames[vehicle_sysid]
+        out.seq_lost = lost[vehicle_sysid]
+    if vehicle_sysid is not None:
+        _Interpreter(out, vehicle_sysid, u_name, v_name, int(pair_tolerance_ms)).run(kept)
+    return out
+
+
+class _Interpreter:
+    """Turns the ordered vehicle/GCS messages into track, samples, uploads, legs, events."""
+
+    def __init__(self, out: TelemetryLog, veh: int, u_name: str, v_name: str, tol_ms: int):
+        self.out, self.veh, self.u_name, self.v_name, self.tol = out, veh, u_name, v_name, tol_ms
+        self.leg: LegRecord | None = None
+        self.upload: MissionUpload | None = None
+        self.mode: int | None = None
+        self.armed: int | None = None
+        self.boot = 0
+        self.max_tb: int | None = None
+        self.u: list[tuple[int, int, float, float, int, str]] = []  # (boot, tb, value, utc, leg, source)
+        self.v: list[tuple[int, int, float]] = []
+        self.pos: list[tuple[int, int, float, float]] = []  # (boot, tb, lat, lon)
+        self.seen: set = set()
+
+    def _boot_of(self, tb: int) -> int:
+        # time_boot_ms jumping back by more than 10 s: the autopilot rebooted
+        if self.max_tb is not None and tb < self.max_tb - 10_000:
+            self.boot += 1
+            self.max_tb = tb
+        else:
+            self.max_tb = tb if self.max_tb is None else max(self.max_tb, tb)
+        return self.boot
+
+    def _event(self, utc: float, kind: str, value: int | None = None, detail: str = "") -> None:
+        self.out.events.append(LogEvent(utc, kind, value, detail))
+
+    def _complete(self, utc: float) -> None:
+        leg = self.leg
+        if leg is None:
+            return
+        leg.complete, leg.t_end = True, utc
+        self._event(utc, "complete", leg.index)
+        self.leg = None
+
+    def run(self, msgs: list[tuple[float, Any]]) -> None:
+        out = self.out
+        for utc, m in msgs:
+            t = m.get_type()
+            src = m.get_srcSystem()
+            if src == self.veh:
+                getattr(self, "_veh_" + t.lower(), _ignore)(utc, m)
+            else:
+                getattr(self, "_gcs_" + t.lower(), _ignore)(utc, m)
+        self._pair()
+        for leg in out.legs:
+            leg.n_samples = sum(1 for s in out.samples if s.leg == leg.index)
+
+    # -- vehicle messages
+    def _veh_heartbeat(self, utc: float, m) -> None:
+        if m.type == 6 or m.autopilot == 8:
+            return
+        if self.out.vehicle_compid is None:
+            self.out.vehicle_compid = m.get_srcComponent()
+        if m.custom_mode != self.mode:
+            self.mode = m.custom_mode
+            self._event(utc, "mode", m.custom_mode, _mode_names(m.type).get(m.custom_mode, f"MODE{m.custom_mode}"))
+        armed = int(bool(m.base_mode & 128))
+        if armed != self.armed:
+            self.armed = armed
+            self._event(utc, "armed", armed)
+
+    def _veh_global_position_int(self, utc: float, m) -> None:
+        if m.lat == 0 and m.lon == 0:
+            return  # no GPS fix yet
+        boot = self._boot_of(m.time_boot_ms)
+        k = ("pos", boot, m.time_boot_ms)
+        if k in self.seen:
+            return  # the same frame logged twice (two links)
+        self.seen.add(k)
+        lat, lon = m.lat * 1e-7, m.lon * 1e-7
+        leg = self.leg.index if self.leg else -1
+        self.out.track.append(TrackPoint(int(m.time_boot_ms), lat, lon, utc, leg))
+        self.pos.append((boot, int(m.time_boot_ms), lat, lon))
+
+    def _veh_named_value_float(self, utc: float, m) -> None:
+        name = m.name if isinstance(m.name, str) else m.name.decode(errors="replace")
+        name = name.rstrip("\x00")
+        if name not in (self.u_name, self.v_name):
+            return
+        boot = self._boot_of(m.time_boot_ms)
+        k = (name, boot, m.time_boot_ms)
+        if k in self.seen:
+            return
+        self.seen.add(k)
+        if name == self.u_name:
+            leg = self.leg.index if self.leg else -1
+            self.u.append((boot, int(m.time_boot_ms), float(m.value), utc, leg, f"mav:{m.get_srcSystem()}/{m.get_srcComponent()}"))
+        else:
+            self.v.append((boot, int(m.time_boot_ms), float(m.value)))
+
+    def _veh_mission_ack(self, utc: float, m) -> None:
+        up = self.upload
+        if up is None or getattr(m, "mission_type", 0) != 0:
+            return
+        if m.target_system not in (0, up.gcs[0]):
+            return
+        up.result, up.utc_end = int(m.type), utc
+        self.upload = None
+        self._event(utc, "upload", int(m.type), f"mission {up.index + 1}: {up.count} items")
+        if up.accepted:
+            if self.leg is not None:  # replaced before it completed
+                self.leg.t_end = utc
+            self.leg = LegRecord(len(self.out.legs), up.index, utc, n_waypoints=up.n_waypoints)
+            self.out.legs.append(self.leg)
+
+    def _veh_mission_current(self, utc: float, m) -> None:
+        if self.leg is None:
+            return
+        state = getattr(m, "mission_state", 0)
+        if state == 3:
+            self.leg.active = True
+        elif state == 5 and self.leg.active:
+            self._complete(utc)
+
+    def _veh_mission_item_reached(self, utc: float, m) -> None:
+        self._event(utc, "item_reached", int(m.seq))
+        if self.leg is not None:
+            self.leg.active = True
+
+    def _veh_statustext(self, utc: float, m) -> None:
+        text = m.text if isinstance(m.text, str) else m.text.decode(errors="replace")
+        text = text.rstrip("\x00")
+        self._event(utc, "text", int(m.severity), text)
+        if text.startswith("Mission Complete"):
+            self._complete(utc)
+
+    # -- GCS messages (mission upload)
+    def _gcs_mission_count(self, utc: float, m) -> None:
+        if getattr(m, "mission_type", 0) != 0 or m.target_system not in (0, self.veh):
+            return
+        up = MissionUpload(len(self.out.missions), (m.get_srcSystem(), m.get_srcComponent()), int(m.count), utc)
+        self.out.missions.append(up)
+        self.upload = up
+
+    def _gcs_mission_item_int(self, utc: float, m, is_int: bool = True) -> None:
+        up = self.upload
+        if up is None or getattr(m, "mission_type", 0) != 0 or m.get_srcSystem() != up.gcs[0]:
+            return
+        if not 0 <= m.seq < up.count:
+            return
+        scale = 1e-7 if is_int else 1.0
+        up.items_by_seq[int(m.seq)] = MissionItem(int(m.seq), int(m.command), int(m.frame), m.x * scale, m.y * scale,
+                                                  float(m.z), is_int)
+
+    def _gcs_mission_item(self, utc: float, m) -> None:
+        self._gcs_mission_item_int(utc, m, is_int=False)
+
+    # -- pairing
+    def _pair(self) -> None:
+        import numpy as np
+
+        tol = self.tol
+        v_by_boot: dict[int, tuple[Any, list]] = {}
+        for b in {x[0] for x in self.v}:
+            rows = sorted((tb, val) for bb, tb, val in self.v if bb == b)
+            v_by_boot[b] = (np.array([r[0] for r in rows], np.int64), [r[1] for r in rows], np.zeros(len(rows), bool))
+        p_by_boot: dict[int, tuple[Any, list]] = {}
+        for b in {x[0] for x in self.pos}:
+            rows = sorted((tb, la, lo) for bb, tb, la, lo in self.pos if bb == b)
+            p_by_boot[b] = (np.array([r[0] for r in rows], np.int64), rows)
+        for boot, tb, u, utc, leg, source in self.u:
+            if boot not in v_by_boot or boot not in p_by_boot:
+                continue
+            vt, vv, used = v_by_boot[boot]
+            j = _nearest(vt, tb, tol, used)
+            if j is None:
+                continue
+            pt, prow = p_by_boot[boot]
+            k = _nearest(pt, tb, tol, None)
+            if k is None:
+                continue
+            used[j] = True
+            self.out.samples.append(Sample(tb, utc, prow[k][1], prow[k][2], u, vv[j], leg, source, boot=boot))
+
+
+def _nearest(times, t: int, tol: int, used) -> int | None:
+    """Index of the entry of sorted ``times`` nearest ``t`` within ``tol`` (skipping ``used``), or None."""
+    import numpy as np
+
+    lo = int(np.searchsorted(times, t - tol, side="left"))
+    hi = int(np.searchsorted(times, t + tol, side="right"))
+    best, bd = None, None
+    for i in range(lo, hi):
+        if used is not None and used[i]:
+            continue
+        d = abs(int(times[i]) - t)
+        if bd is None or d < bd:
+            best, bd = i, d
+    return best
+
+
+def _ignore(*_: Any) -> None:
+    return None
+
+
+# -- DataFlash -----------------------------------------------------------------------------
+_DF_HEAD = b"\xa3\x95"
+
+
+def read_dataflash(path: str | Path, *, u_name: str = "CUR_U", v_name: str = "CUR_V", cur_message: str = "CUR",
+                   pair_tolerance_ms: int = 200) -> TelemetryLog:
+    """Read an ArduPilot DataFlash ``.bin`` log (see module docstring).
+
+    Positions come from ``POS`` (``Lat``/``Lng``), or ``GPS`` when the log has no
+    ``POS``. Samples come from ``cur_message`` records (columns ``U``, ``V``) or
+    from ``NVF`` named values ``u_name``/``v_name``, paired by ``TimeUS`` with the
+    nearest position within ``pair_tolerance_ms``. ``time_boot_ms`` = ``TimeUS //
+    1000``; a DataFlash log holds no reception time, so ``utc`` is NaN. Legs are not
+    reconstructed from DataFlash (``leg`` = -1).
+
+    Raises:
+        LogReadError: the file is missing or unreadable.
+    """
+    from pymavlink import DFReader
+
+    path = Path(path)
+    data = _check_file(path, "DataFlash log")
+    n = len(data)
+    fmt_fmt = DFReader.DFFormat(0x80, "FMT", 89, "BBnNZ", "Type,Length,Name,Format,Columns")
+    formats: dict[int, Any] = {0x80: fmt_fmt}
+    out = TelemetryLog(path=path, kind="dataflash", n_bytes=n)
+    records: dict[str, list] = {}
+
+    def header_ok(p: int) -> bool:
+        return p + 3 <= n and data[p : p + 2] == _DF_HEAD and data[p + 2] in formats
+
+    def follows_ok(p: int) -> bool:
+        """A valid record of known length starts at ``p`` and ends at EOF or before another header."""
+        if not header_ok(p):
+            return False
+        end = p + formats[data[p + 2]].len
+        return end == n or header_ok(end)
+
+    def fmt_record(body: bytes):
+        try:
+            ftype, flen, name, fmt, cols = struct.unpack(fmt_fmt.msg_struct, body)
+            f = DFReader.DFFormat(ftype, DFReader.null_term(name), flen, DFReader.null_term(fmt), DFReader.null_term(cols))
+            if struct.calcsize(f.msg_struct) + 3 != flen:
+                return None
+            return f
+        except Exception:  # noqa: BLE001 - an FMT that does not describe itself consistently is damage
+            return None
+
+    p = 0
+    while p < n:
+        if header_ok(p):
+            fmt = formats[data[p + 2]]
+            end = p + fmt.len
+            if end > n:  # cut off by the end of the file
+                out.bad_frames += 1
+                out.skipped_bytes += n - p
+                break
+            body = data[p + 3 : end]
+            newfmt = fmt_record(body) if fmt.type == 0x80 else None
+            if fmt.type == 0x80 and newfmt is None:
+                ok = False
+            else:
+                saved = formats.get(newfmt.type) if newfmt else None
+                if newfmt:
+                    formats[newfmt.type] = newfmt
+                ok = end == n or header_ok(end)
+                if not ok and newfmt:
+                    if saved is None:
+                        formats.pop(newfmt.type, None)
+                    else:
+                        formats[newfmt.type] = saved
+            if ok:
+                if fmt.type != 0x80:
+                    try:
+                        elements = list(struct.unpack(fmt.msg_struct, body))
+                    except struct.error:
+                        elements = None
+                    if elements is not None:
+                        m = DFReader.DFMessage(fmt, elements, True, None)
+                        records.setdefault(fmt.name, []).append(m)
+                out.n_messages += 1
+                out.message_counts[fmt.name] += 1
+                p = end
+                continue
+        # damaged: skip to the next record header that is followed by another one
+        out.bad_frames += 1
+        q = data.find(_DF_HEAD, p + 1)
+        while q != -1 and not follows_ok(q):
+            q = data.find(_DF_HEAD, q + 1)
+        if q == -1:
+            out.skipped_bytes += n - p
+            break
+        out.skipped_bytes += q - p
+        p = q
+
+    _df_interpret(out, records, u_name, v_name, cur_message, int(pair_tolerance_ms))
+    return out
+
+
+def _df_interpret(out: TelemetryLog, records: dict[str, list], u_name: str, v_name: str, cur_message: str, tol: int) -> None:
+    import numpy as np
+
+    nan = float("nan")
+    pos_name = "POS" if records.get("POS") else "GPS"
+    for m in records.get(pos_name, []):
+        try:
+            lat, lon, tus = float(m.Lat), float(m.Lng), int(m.TimeUS)
+        except (AttributeError, TypeError, ValueError):
+            continue
+        if pos_name == "GPS" and getattr(m, "Status", 3) < 3:
+            continue  # no 3D fix
+        if lat == 0 and lon == 0:
+            continue
+        out.track.append(TrackPoint(tus // 1000, lat, lon, nan))
+    out.track.sort(key=lambda p: p.time_boot_ms)
+    pt = np.array([p.time_boot_ms for p in out.track], np.int64)
+
+    pairs: list[tuple[int, float, float]] = []  # (tb, u, v)
+    for m in records.get(cur_message, []):
+        try:
+            pairs.append((int(m.TimeUS) // 1000, float(m.U), float(m.V)))
+        except (AttributeError, TypeError, ValueError):
+            continue
+    us, vs = [], []
+    for m in records.get("NVF", []):
+        try:
+            name, tb, val = str(m.Name), int(m.TimeUS) // 1000, float(m.Value)
+        except (AttributeError, TypeError, ValueError):
+            continue
+        if name == u_name:
+            us.append((tb, val))
+        elif name == v_name:
+            vs.append((tb, val))
+    vs.sort()
+    vt = np.array([x[0] for x in vs], np.int64)
+    used = np.zeros(len(vs), bool)
+    for tb, u in us:
+        j = _nearest(vt, tb, tol, used)
+        if j is not None:
+            used[j] = True
+            pairs.append((tb, u, vs[j][1]))
+    pairs.sort(key=lambda x: x[0])
+    for tb, u, v in pairs:
+        k = _nearest(pt, tb, tol, None)
+        if k is None:
+            continue
+        out.samples.append(Sample(tb, nan, out.track[k].lat, out.track[k].lon, u, v, -1, "dataflash"))
+
