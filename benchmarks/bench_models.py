@@ -1,0 +1,98 @@
+"""Benchmark: KNODE prediction throughput and training time per epoch, vs the CFD solver.
+
+    .venv/bin/python benchmarks/bench_models.py --json          # shipped cylinder KNODE if present
+    .venv/bin/python benchmarks/bench_models.py --quick --json
+
+``predict_time_per_snapshot_batch1`` / ``..._batched`` are seconds of wall time per
+predicted snapshot (one ``predict`` step = one snapshot interval, 6 Euler sub-steps);
+``passt-mav bench`` divides the CFD's ``time_per_snapshot`` by the first one. The CFD
+figure printed here is the shipped cylinder's recorded wall time per snapshot
+(passt_mav/assets/README.md: 314 s for 500 snapshots + spin-up) unless
+``benchmarks/bench_cfd.py`` is run alongside.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+
+# passt_mav/assets/README.md, cylinder.nc: 314 s wall for 31,961 lattice steps, 40 per snapshot
+CFD_RECORDED_S_PER_SNAPSHOT = 314.0 / 31961 * 40
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--quick", action="store_true", help="fewer repetitions")
+    p.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
+    p.add_argument("--batch", type=int, default=64, help="initial conditions in the batched run (default 64)")
+    p.add_argument("--json", action="store_true", help="print JSON")
+    a = p.parse_args(argv)
+
+    import numpy as np
+    import torch
+
+    torch.set_num_threads(a.threads)
+    from passt_mav.fields.datasets import load_dataset
+    from passt_mav.models import make_predictor
+    from passt_mav.models.base import load_predictor
+
+    f = load_dataset("cylinder")
+    try:
+        model, source = load_predictor("shipped:cylinder"), "shipped:cylinder"
+    except Exception:  # noqa: BLE001 - untrained weights time the same
+        model, source = make_predictor("knode", epochs=0, progress=False).fit(f, start=200, stop=300), "untrained (no shipped model)"
+    steps = 5 if a.quick else 20
+    x1 = np.nan_to_num(f.data[300])
+    model.predict(x1, 1)  # warm-up
+    t0 = time.perf_counter()
+    model.predict(x1, steps)
+    t_b1 = (time.perf_counter() - t0) / steps
+    xb = np.nan_to_num(f.data[300 : 300 + a.batch])
+    bsteps = 2 if a.quick else 5
+    t0 = time.perf_counter()
+    model.predict(xb, bsteps)
+    t_bb = (time.perf_counter() - t0) / (bsteps * len(xb))
+    epochs = 1 if a.quick else 3
+    tr = make_predictor("knode", epochs=epochs, progress=False, seed=0)
+    t0 = time.perf_counter()
+    tr.fit(f, start=200, stop=300)
+    t_ep = (time.perf_counter() - t0) / epochs
+    t0 = time.perf_counter()
+    dmd = make_predictor("dmd").fit(f, start=200, stop=300)
+    t_dmd_fit = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    dmd.predict(xb, bsteps)
+    t_dmd = (time.perf_counter() - t0) / (bsteps * len(xb))
+    cfd = CFD_RECORDED_S_PER_SNAPSHOT
+    res = {
+        "benchmark": "KNODE (30x30 cylinder, Euler x6 per snapshot, torch CPU)",
+        "model": source,
+        "threads": torch.get_num_threads(),
+        "predict_time_per_snapshot_batch1": t_b1,
+        "predict_snapshots_per_s_batch1": 1.0 / t_b1,
+        "predict_time_per_snapshot_batched": t_bb,
+        "predict_snapshots_per_s_batched": 1.0 / t_bb,
+        "batch": len(xb),
+        "train_s_per_epoch_100_snapshots": t_ep,
+        "dmd_fit_s": t_dmd_fit,
+        "dmd_predict_time_per_snapshot_batched": t_dmd,
+        "cfd_recorded_time_per_snapshot": cfd,
+        "cfd_over_knode_batch1": cfd / t_b1,
+        "cfd_over_knode_batched": cfd / t_bb,
+    }
+    if a.json:
+        print(json.dumps(res))
+    else:
+        for k, v in res.items():
+            print(f"{k:>40}: {v:.4g}" if isinstance(v, float) else f"{k:>40}: {v}")
+        print(f"KNODE predicts a snapshot {cfd / t_b1:.0f}x (batch 1) / {cfd / t_bb:.0f}x (batched) faster than the CFD makes one")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

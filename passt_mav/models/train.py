@@ -1,0 +1,48 @@
+"""Train a predictor on a field window and write its checkpoint (used by ``passt-mav model train``).
+
+    python -m passt_mav.models.train --data builtin:cylinder --start 200 --stop 300 --epochs 200 --out DIR/knode_cylinder
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+import time
+
+
+def train(data: str, *, out: str, model: str = "knode", start: int | None = None, stop: int | None = None, epochs: int = 100, seed: int = 0, lr: float = 1e-3, n_batches: int = 1, substeps: int = 6, method: str = "euler", kernel_variance: float = 0.1, noise_var: float = 1e-3, device: str = "cpu", threads: int | None = None, progress: bool = True, command: str | None = None, log=None) -> dict:
+    """Fit predictor ``model`` on ``data`` (``builtin:NAME`` or a .nc path), save it to ``out``; returns the summary.
+
+    ``log(epoch, loss)`` is called after every KNODE epoch (e.g. to write a log file).
+    """
+    import numpy as np
+    import torch
+
+    from passt_mav.fields.datasets import resolve_field
+    from passt_mav.models.base import make_predictor
+
+    if threads is not None:
+        torch.set_num_threads(int(threads))
+    np.random.seed(seed)
+    torch.manual_seed(seed)
+    field = resolve_field(data)
+    if model == "knode":
+        p = make_predictor("knode", epochs=epochs, seed=seed, lr=lr, n_batches=n_batches, substeps=substeps, method=method, kernel_variance=kernel_variance, noise_var=noise_var, device=device, progress=progress)
+        t0 = time.perf_counter()
+        p.fit(field, start=start, stop=stop, callback=log)
+        wall = time.perf_counter() - t0
+        path = p.save(out, command=command, extra={"data": data, "threads": torch.get_num_threads()})
+        return {"out": str(path), "model": model, "data": data, "data_hash": p.data_hash_, "epochs": p.epochs_trained_, "seed": seed, "final_loss": p.final_loss_, "final_epoch_loss": p.loss_curve_[-1] if p.loss_curve_ else None, "first_epoch_loss": p.loss_curve_[0] if p.loss_curve_ else None, "n_params": p.n_params(), "wall_s": round(wall, 2), "s_per_epoch": round(wall / max(1, p.epochs_trained_), 3)}
+    p = make_predictor(model).fit(field, start=start, stop=stop)
+    path = p.save(out, command=command, extra={"data": data})
+    return {"out": str(path), "model": model, "data": data, "data_hash": field.data_hash()}
+
+
+def main(argv=None) -> int:
+    from passt_mav.cli import main as cli_main
+
+    return cli_main(["model", "train", *(sys.argv[1:] if argv is None else argv)])
+
+
+if __name__ == "__main__":
+    sys.exit(main())
