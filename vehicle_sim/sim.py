@@ -306,6 +306,9 @@ class Simulator:
                     steps += 1
                     if steps % 20 == 0:
                         self._flush_sockets()
+                        # read the GCS too while catching up: 200 steps are 10 s of simulated time, longer
+                        # than the vehicle's 8 s mission-transfer timeout (uploads were cancelled at >100x)
+                        self._poll_sockets(0.0)
                 self._flush_sockets()
         except BaseException as exc:  # noqa: BLE001 - recorded and re-raised by stop()
             self.error = exc

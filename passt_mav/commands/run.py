@@ -5,14 +5,127 @@ from __future__ import annotations
 import argparse
 
 HELP = "Run a PASST mission on a vehicle (real or simulated) over MAVLink"
-EXAMPLES = None
+EXAMPLES = """examples:
+
+    vehicle-sim --field builtin:ocean --listen tcp:127.0.0.1:5760 --speedup 300 &
+    passt-mav run missions/north_atlantic.yaml --connect tcp:127.0.0.1:5760 --speedup-hint 300
+    passt-mav run missions/cylinder.yaml --connect /dev/ttyUSB0,57600 --out runs/cyl1
+    passt-mav run missions/cylinder.yaml --connect /dev/ttyUSB0,57600 --out runs/cyl1 --resume
+"""
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("rest", nargs=argparse.REMAINDER, help=argparse.SUPPRESS)
+    p.add_argument("mission", help="mission file (YAML, see missions/)")
+    p.add_argument("--connect", help="MAVLink connection: tcp:HOST:PORT, udpin:HOST:PORT, DEVICE,BAUD "
+                                     "(default: the mission's vehicle.connect)")
+    p.add_argument("--out", help="run directory (default runs/<UTC>_<mission name>); with --resume: the run to continue")
+    p.add_argument("--legs", type=int, help="number of legs (default: the mission's legs)")
+    p.add_argument("--resume", action="store_true", help="continue the run in --out after the controller stopped")
+    p.add_argument("--speedup-hint", type=float, default=1.0,
+                   help="simulated seconds per wall second of a simulator (scales wall-clock timeouts; default 1)")
+    p.add_argument("--field-time-at-boot", type=float,
+                   help="field time at vehicle boot (default: the field's snapshot t0); "
+                        "field time = this + time_boot_ms/1000/field.time_scale")
+    p.add_argument("--signing-key", help="MAVLink 2 signing passphrase or 64 hex digits")
+    p.add_argument("--pause-timeout", type=float, default=300.0,
+                   help="wall seconds to wait for AUTO after a pilot takes over before stopping in HOLD (default 300)")
+    p.add_argument("--ready-timeout", type=float, default=120.0, help="wall seconds to wait for EKF/GPS (default 120)")
+    p.add_argument("--no-report", action="store_true", help="do not write report/report.html at the end")
+    p.add_argument("--quiet", action="store_true", help="no per-leg status lines")
+
+
+def link_config_for(connect: str, *, speedup: float = 1.0, tlog=None, signing_key=None):
+    """LinkConfig for a vehicle running ``speedup`` x real time (the vehicle's 1 Hz telemetry then comes
+    ``speedup`` times a second; our timeouts stay wall-clock)."""
+    from passt_mav.mavlink import LinkConfig
+
+    kw = {}
+    if speedup > 1.0:
+        # a simulator at 300x sends its ~15 default 1 Hz streams 4500 times a wall second: more than a
+        # Python reader parses on a loaded core, and the reply to a mission request then comes later than
+        # the vehicle's 8 s (simulated) transfer timeout. Ask only for what the controller uses.
+        kw["stream_rates_hz"] = LEAN_STREAMS
+    return LinkConfig(connect, tlog=None if tlog is None else str(tlog), signing_key=signing_key,
+                      connect_timeout_s=30.0, link_lost_s=5.0 if speedup <= 1.0 else 2.0, **kw)
+
+
+#: telemetry the controller needs (Hz of vehicle time; 0 = off), used for fast simulators
+LEAN_STREAMS = (("GLOBAL_POSITION_INT", 1.0), ("MISSION_CURRENT", 1.0), ("EKF_STATUS_REPORT", 0.5),
+                ("SYSTEM_TIME", 0.2), ("TIMESYNC", 0.2), ("SYS_STATUS", 0), ("GPS_RAW_INT", 0), ("ATTITUDE", 0),
+                ("VFR_HUD", 0), ("BATTERY_STATUS", 0), ("NAV_CONTROLLER_OUTPUT", 0), ("LOCAL_POSITION_NED", 0),
+                ("POWER_STATUS", 0), ("MEMINFO", 0))
+
+
+def execute(config, *, connect: str, run_dir, mission_text: str | None, legs=None, resume=False, speedup=1.0,
+            field_time_at_boot=None, signing_key=None, pause_timeout=300.0, ready_timeout=120.0, echo=print,
+            extra_summary=None, report=True, link_factory=None) -> dict:
+    """Everything ``run`` does after parsing: field, predictor, link, controller, report. Returns the summary."""
+    from passt_mav.controller import MissionController, build_predictor
+    from passt_mav.fields.datasets import resolve_field
+    from passt_mav.mavlink import Link, MissionClient, Vehicle
+
+    import sys
+
+    if speedup > 1.0:
+        # hand the GIL over faster (default 5 ms): a mission request must be answered within the
+        # vehicle's 1 s re-request time, which a simulator at 150x compresses to ~7 ms of wall time
+        sys.setswitchinterval(min(sys.getswitchinterval(), 0.001))
+    field = resolve_field(config.field.source, seed=config.seeds.field)
+    if field.grid != config.grid():
+        raise _user(f"the mission's region is not the grid of its field {config.field.source}")
+    predictor, pinfo = build_predictor(config.model, field, echo=echo)
+    link = Link(link_config_for(connect, speedup=speedup, tlog=run_dir.tlog, signing_key=signing_key),
+                connection_factory=link_factory)
+    echo(f"connecting to {connect} ...")
+    link.connect()
+    try:
+        mc = MissionClient(link, no_space_delay_s=max(0.05, 1.0 / max(speedup, 1.0) ** 0.5))
+        veh = Vehicle(link, mc, retry_delay_s=max(0.02, 1.0 / max(speedup, 1.0)))
+        ctl = MissionController(config, link, run_dir, field=field, predictor=predictor, predictor_info=pinfo,
+                                vehicle=veh, legs=legs, field_time_at_boot=field_time_at_boot, speedup_hint=speedup,
+                                pause_timeout_s=pause_timeout, ready_timeout_s=ready_timeout, resume=resume,
+                                echo=echo, mission_text=mission_text, extra_summary=extra_summary)
+        summary = ctl.run()
+    finally:
+        link.close()
+    if report:
+        from passt_mav.runs.report import write_report
+
+        html = write_report(run_dir.root)
+        summary["report"] = str(html)
+    return summary
+
+
+def _user(msg):
+    from passt_mav.errors import UserError
+
+    return UserError(msg)
 
 
 def run(args: argparse.Namespace) -> int:
-    from passt_mav.errors import UserError
+    from pathlib import Path
 
-    raise UserError("'passt-mav run' is not implemented yet in this version")
+    from passt_mav.mission.config import load_mission
+    from passt_mav.runs.rundir import RunDir
+
+    config = load_mission(args.mission)
+    if args.legs is not None and args.legs < 1:
+        raise _user("--legs must be >= 1")
+    if args.resume:
+        if not args.out:
+            raise _user("--resume needs --out RUN_DIR (the run to continue)")
+        rd = RunDir(args.out)
+        if not rd.is_run_dir():
+            raise _user(f"--resume: {args.out} is not a run directory")
+    else:
+        rd = RunDir(args.out).create() if args.out else RunDir.new("runs", config.name)
+    echo = (lambda s: None) if args.quiet else (lambda s: print(s, flush=True))
+    summary = execute(config, connect=args.connect or config.vehicle.connect, run_dir=rd,
+                      mission_text=Path(args.mission).read_text(), legs=args.legs, resume=args.resume,
+                      speedup=args.speedup_hint, field_time_at_boot=args.field_time_at_boot,
+                      signing_key=args.signing_key, pause_timeout=args.pause_timeout,
+                      ready_timeout=args.ready_timeout, echo=echo, report=not args.no_report)
+    print(f"run {summary['status']}: {len(summary['legs'])} legs, {summary['n_samples']} samples -> {rd.root}")
+    if summary.get("report"):
+        print(f"report: {summary['report']}")
+    return 0 if summary["status"] == "complete" else 1

@@ -1,0 +1,741 @@
+"""The mission controller: the PASST loop flown by a live vehicle over MAVLink.
+
+One :class:`MissionController` runs one mission (``passt-mav run`` / ``passt-mav
+demo``). It reuses :class:`passt_mav.passt.PasstLoop` unchanged; only the sampler
+differs: instead of reading the ground-truth field, each leg is uploaded to the
+vehicle and flown, and the current samples it streams back are the leg's samples.
+
+Per leg ``i``::
+
+    position -> start cell -> [forecast the state to now] -> plan_leg -> WaypointMission
+      -> geofence check of every waypoint (abort before upload if one fails)
+      -> HOLD, upload_verified (read-back), set_current(1), arm if needed, AUTO
+      -> collect samples until the mission completes (faults handled, see below) -> HOLD
+      -> thin samples -> loop.update -> state at the leg's end -> leg record, summary
+
+Clock (vehicle time -> field time). Every sample carries the autopilot's
+``time_boot_ms``. Field time is ``t = t_boot0 + time_boot_ms / 1000 / time_scale``,
+with ``t_boot0`` the field time at vehicle boot (``--field-time-at-boot``, default
+``field.times[config.t0]``; ``passt-mav demo`` starts the simulator with exactly
+that ``--start-time``) and ``time_scale`` the mission's ``field.time_scale``
+(seconds per field time unit: 1 for geographic fields, e.g. 200 for the scaled
+cylinder). This is the simulator's own clock rule, so field times agree exactly.
+A real boat would map UTC instead (SYSTEM_TIME ``time_unix_usec``; the samples
+carry it as ``utc``): not implemented here.
+
+Legs in time. The state is the estimate at field time ``t_state``. When a leg
+starts at a later ``t_now`` the state is first forecast ``round((t_now -
+t_state) / dt)`` snapshots forward. A leg spans ``steps_for_leg(L, cell_size,
+speed, dt * time_scale)`` snapshots (at least 1); after it the reconstruction is
+the state at ``t_start + steps * dt`` (the planned end, as the loop defines it).
+
+Samples. Each sample is appended to the run's :class:`~passt_mav.runs.SampleStore`
+as it arrives (a writer thread commits whatever has queued, usually one sample,
+in one transaction; duplicates are ignored by the store). The GP gets them
+*thinned*: averaged per (nearest grid cell, snapshot-time bin ``round((t -
+t_start) / dt)``), position, time and velocity averaged in each group. A sensor
+at 1 Hz on an ocean leg of hours would otherwise hand the GP thousands of points
+of which all but a few per cell and snapshot are redundant (the GP's cost is
+cubic in their number). Velocities are converted from m/s east/north to field
+units (divided by ``field.velocity_scale``, rotated into a metric grid's frame).
+
+Faults. Link loss during a leg: the link is reconnected with back-off
+(:meth:`Link.reconnect`), the mission is downloaded and compared with the one
+uploaded (re-uploaded if it differs) and the leg goes on from MISSION_CURRENT;
+samples keep flowing into the store (the collector listens on the same link
+object). The vehicle leaving AUTO (a pilot takes over): the controller says so and
+waits until AUTO comes back or ``pause_timeout_s`` passes, then switches to HOLD
+and stops cleanly (status ``paused``). ``resume=True`` continues a run directory
+after the controller was killed: completed legs come from their leg records,
+samples from the store, the state from the last leg's ``estimate.nc``; the leg
+that was in flight is re-planned from the current position.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import logging
+import math
+import queue
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+
+from passt_mav.errors import LinkTimeout, MavlinkError, PlannerError, UserError
+
+__all__ = [
+    "FieldClock",
+    "MissionController",
+    "thin_samples",
+    "build_predictor",
+    "build_loop",
+    "rmse",
+    "THINNING",
+]
+
+log = logging.getLogger(__name__)
+
+THINNING = ("samples averaged per (nearest grid cell, snapshot bin round((t - t_start)/dt)); "
+            "position, time and velocity averaged in each group")
+
+
+# -- clock and sample preparation -------------------------------------------------------------
+@dataclass(frozen=True)
+class FieldClock:
+    """Vehicle time since boot -> field time: ``t_boot0 + time_boot_ms / 1000 / time_scale``."""
+
+    t_boot0: float
+    time_scale: float = 1.0
+
+    def field_time(self, time_boot_ms):
+        return self.t_boot0 + np.asarray(time_boot_ms, dtype=np.float64) / 1000.0 / self.time_scale
+
+    def describe(self) -> dict[str, Any]:
+        return {"rule": "t_field = t_boot0 + time_boot_ms / 1000 / time_scale", "t_boot0": self.t_boot0,
+                "time_scale": self.time_scale}
+
+
+def to_field_units(grid, u, v, velocity_scale: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+    """East/north m/s -> the field's velocity units and frame (inverse of the simulator's mapping)."""
+    u = np.asarray(u, float) / velocity_scale
+    v = np.asarray(v, float) / velocity_scale
+    rot = float(getattr(grid, "rotation_deg", 0.0) or 0.0)
+    if rot:
+        th = math.radians(rot)
+        u, v = u * math.cos(th) + v * math.sin(th), -u * math.sin(th) + v * math.cos(th)
+    return u, v
+
+
+def thin_samples(grid, t, lat, lon, u, v, *, t_start: float, dt: float):
+    """:class:`~passt_mav.passt.Samples` averaged per (nearest cell, snapshot bin); see module doc.
+
+    t: field time of each sample; lat/lon degrees; u/v in field units. Samples off
+    the grid are dropped. Returns Samples with fractional cells (mean position).
+    """
+    from passt_mav.passt import Samples
+
+    t, lat, lon, u, v = (np.asarray(a, float).reshape(-1) for a in (t, lat, lon, u, v))
+    if t.size == 0:
+        return Samples(t, t, t, t, t)
+    r, c = grid.latlon_to_fcell(lat, lon)
+    r, c = np.asarray(r, float), np.asarray(c, float)
+    inside = (r >= 0) & (r <= grid.rows - 1) & (c >= 0) & (c <= grid.cols - 1) & np.isfinite(u) & np.isfinite(v)
+    t, r, c, u, v = t[inside], r[inside], c[inside], u[inside], v[inside]
+    key = np.stack([np.floor(r + 0.5), np.floor(c + 0.5), np.round((t - t_start) / dt)], axis=1).astype(np.int64)
+    _, inv = np.unique(key, axis=0, return_inverse=True)
+    inv = inv.reshape(-1)
+    n = np.bincount(inv)
+
+    def mean(a):
+        return np.bincount(inv, weights=a) / n
+
+    return Samples(mean(t), mean(r), mean(c), mean(u), mean(v))
+
+
+def rmse(a, b) -> float | None:
+    """RMS difference over the cells finite in both (both components); None if none are."""
+    a, b = np.asarray(a, float), np.asarray(b, float)
+    ok = np.isfinite(a) & np.isfinite(b)
+    return float(np.sqrt(np.mean((a[ok] - b[ok]) ** 2))) if ok.any() else None
+
+
+def truth_at(field, t: float) -> np.ndarray | None:
+    """(2, R, C) snapshot at field time ``t`` (linear in time), None outside the data."""
+    times = field.times
+    if not times[0] - 1e-9 <= t <= times[-1] + 1e-9:
+        return None
+    if field.n_times == 1:
+        return field.data[0].astype(np.float64)
+    j = int(np.clip(np.searchsorted(times, t) - 1, 0, field.n_times - 2))
+    w = float(np.clip((t - times[j]) / (times[j + 1] - times[j]), 0.0, 1.0))
+    return (1 - w) * field.data[j].astype(np.float64) + w * field.data[j + 1].astype(np.float64)
+
+
+# -- building blocks from a mission config --------------------------------------------------------
+def build_predictor(spec: str, field, *, echo: Callable[[str], None] = print) -> tuple[object | None, dict]:
+    """The predictor named by a mission's ``model`` and what was used.
+
+    ``builtin:*`` / ``.pt``: loaded; if that fails, a warning is printed and DMD is
+    fitted on ``field`` instead (recorded as ``fallback``). Registry names are fitted on
+    ``field``. Returns ``(predictor, info)`` with info keys ``requested``, ``used``, ``fallback``.
+    """
+    from passt_mav.models.base import PREDICTORS, load_predictor, make_predictor
+
+    info: dict[str, Any] = {"requested": spec, "used": spec, "fallback": None}
+    if spec in PREDICTORS:
+        return make_predictor(spec).fit(field), info
+    try:
+        pred = load_predictor(spec)
+        shape = getattr(pred, "grid_shape_", None)
+        if shape is not None and tuple(shape)[-2:] != tuple(field.grid.shape):
+            raise UserError(f"model {spec} is for a {tuple(shape)[-2:]} grid, the mission's is {field.grid.shape}")
+        return pred, info
+    except (UserError, OSError, RuntimeError, KeyError, ValueError) as exc:
+        msg = f"WARNING: model {spec} could not be loaded ({exc}); falling back to DMD fitted on the mission's field"
+        echo(msg)
+        log.warning(msg)
+        info.update(used="dmd", fallback=str(exc))
+        return make_predictor("dmd").fit(field), info
+
+
+def build_loop(config, predictor, grid, land=None):
+    """:class:`PasstLoop` from a mission config (planner, reward, L, GP prior/options, seeds)."""
+    from passt_mav.passt import PasstLoop
+
+    gp_kw = {"seed": config.seeds.gp}
+    if config.sensors.noise_std > 0:
+        gp_kw["noise_std"] = config.sensors.noise_std
+    gp_kw.update(config.gp.options)
+    return PasstLoop(predictor, grid, planner=config.planner.name, planner_kw=dict(config.planner.options),
+                     reward=config.planner.reward, path_length=config.planner.path_length,
+                     steps_per_leg=config.steps_per_leg or 1, prior=config.gp.loop_prior, gp_kw=gp_kw,
+                     hyper=config.gp.hyper, land=land, seed=config.seeds.planner)
+
+
+def _utc_now() -> str:
+    return _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds").replace("+00:00", "Z")
+
+
+class _StoreWriter:
+    """Appends samples to the store from a thread of its own: the link's reader thread only queues them."""
+
+    def __init__(self, store, grid):
+        self.store, self.grid = store, grid
+        self.q: queue.Queue = queue.Queue()
+        self.new = 0
+        self._stop = threading.Event()
+        self._th = threading.Thread(target=self._loop, name="sample-store", daemon=True)
+        self._th.start()
+
+    def __call__(self, rec: dict) -> None:
+        self.q.put(rec)
+
+    def _loop(self) -> None:
+        while not (self._stop.is_set() and self.q.empty()):
+            try:
+                first = self.q.get(timeout=0.05)
+            except queue.Empty:
+                continue
+            batch = [first]
+            while True:
+                try:
+                    batch.append(self.q.get_nowait())
+                except queue.Empty:
+                    break
+            rows = []
+            for rec in batch:
+                r, c = self.grid.latlon_to_cell(rec["lat"], rec["lon"], clip=True)
+                rows.append({"time_boot_ms": int(rec["time_boot_ms"]), "utc": float(rec["utc"]), "lat": rec["lat"],
+                             "lon": rec["lon"], "u": rec["u"], "v": rec["v"], "leg": int(rec.get("leg", -1)),
+                             "source": rec.get("source", "mavlink"), "row": int(r), "col": int(c)})
+            try:
+                self.new += self.store.append_many(rows)
+            except Exception:  # noqa: BLE001 - a store failure must be seen, but must not kill the thread
+                log.exception("could not store %d samples", len(rows))
+
+    def flush(self, timeout: float = 5.0) -> None:
+        end = time.monotonic() + timeout
+        while (not self.q.empty()) and time.monotonic() < end:
+            time.sleep(0.01)
+        time.sleep(0.02)  # the batch taken last is being committed
+
+    def close(self) -> None:
+        self.flush()
+        self._stop.set()
+        self._th.join(timeout=5.0)
+
+
+class _Paused(Exception):
+    """The vehicle left AUTO and did not come back in time."""
+
+
+# -- the controller ---------------------------------------------------------------------------
+class MissionController:
+    """Runs a mission config on a connected vehicle, writing a run directory.
+
+    Args:
+        config: :class:`~passt_mav.mission.MissionConfig`.
+        link: a connected :class:`~passt_mav.mavlink.Link` (tlog set by the caller).
+        run_dir: :class:`~passt_mav.runs.RunDir` (created).
+        field: the mission's field (initial state, dt, and the truth for RMSE).
+        predictor / predictor_info: from :func:`build_predictor`.
+        vehicle: a :class:`~passt_mav.mavlink.Vehicle` on ``link`` (default: one with defaults).
+        legs: number of legs (default ``config.legs``).
+        field_time_at_boot: field time at vehicle boot (default ``field.times[config.t0]``).
+        speedup_hint: simulated / wall seconds of the vehicle (1 for a real boat); scales wall timeouts.
+        pause_timeout_s: wall seconds to wait for AUTO to come back after a pilot took over.
+        ready_timeout_s: wall seconds to wait for EKF/GPS readiness.
+        resume: continue the run in ``run_dir`` (see module docstring).
+        truth_known: compute RMSE vs ``field`` (it is what the vehicle's sensor measures).
+        echo: where one-line progress goes (print; None = silent).
+        mission_text: text of the mission file as run (written to the run directory).
+        extra_summary: merged into summary.json (e.g. the demo's simulator settings).
+    """
+
+    def __init__(self, config, link, run_dir, *, field, predictor, predictor_info: dict | None = None, vehicle=None,
+                 legs: int | None = None, field_time_at_boot: float | None = None, speedup_hint: float = 1.0,
+                 pause_timeout_s: float = 300.0, ready_timeout_s: float = 120.0, resume: bool = False,
+                 truth_known: bool = True, echo: Callable[[str], None] | None = print, mission_text: str | None = None,
+                 extra_summary: dict | None = None):
+        from passt_mav.mavlink import Vehicle
+
+        self.config = config
+        self.link = link
+        self.rd = run_dir
+        self.field = field
+        self.grid = field.grid
+        self.predictor = predictor
+        self.predictor_info = predictor_info or {"requested": config.model, "used": config.model, "fallback": None}
+        self.vehicle = vehicle or Vehicle(link)
+        self.n_legs = int(legs or config.legs)
+        if field.n_times < 2:
+            raise UserError("the mission's field needs at least 2 snapshots (dt)")
+        if not 0 <= config.t0 < field.n_times - 1:
+            raise UserError(f"t0={config.t0} lies outside the field's {field.n_times} snapshots")
+        self.dt = float(field.dt)
+        self.clock = FieldClock(float(field.times[config.t0]) if field_time_at_boot is None else float(field_time_at_boot),
+                                float(config.field.time_scale))
+        self.speedup = max(float(speedup_hint), 1e-6)
+        self.pause_timeout_s = float(pause_timeout_s)
+        self.ready_timeout_s = float(ready_timeout_s)
+        self.resume = resume
+        self.truth_known = truth_known
+        self.echo = echo or (lambda s: None)
+        self.mission_text = mission_text
+        self.extra_summary = dict(extra_summary or {})
+        self.land = field.land_mask
+        self.loop = build_loop(config, predictor, self.grid, land=self.land)
+        self.leg_records: list[dict] = []
+        self.status = "running"
+        self.started_utc = _utc_now()
+        self._pure: np.ndarray | None = None
+        self.store = None
+        self.collector = None
+        self.writer = None
+        self.events: list[str] = []
+
+    # -- helpers --------------------------------------------------------------------------
+    def _say(self, s: str) -> None:
+        self.echo(s)
+        log.info(s)
+
+    @property
+    def speed(self) -> float:
+        return float(self.config.vehicle.speed_mps)
+
+    def _now_field(self) -> float:
+        up = self.link.vehicle_uptime_s()
+        if up is None:
+            raise MavlinkError("no vehicle time (time_boot_ms) received yet")
+        return float(self.clock.field_time(up * 1000.0))
+
+    def _position(self, timeout: float = 10.0) -> tuple[float, float]:
+        end = time.monotonic() + timeout
+        while (p := self.vehicle.position()) is None:
+            if time.monotonic() > end:
+                raise MavlinkError("no GPS position from the vehicle")
+            time.sleep(0.02)
+        return p
+
+    def _pure_model_at(self, t: float) -> np.ndarray | None:
+        """The model alone from the truth at t0 (no re-initialisation), linear between its steps."""
+        if self.predictor is None:
+            return None
+        t0 = float(self.field.times[self.config.t0])
+        x = (t - t0) / self.dt
+        if x < 0:
+            return None
+        need = int(math.ceil(x)) + 1
+        if self._pure is None or len(self._pure) <= need:
+            s = np.array(self.field.data[self.config.t0], dtype=np.float32)
+            self._pure = self.loop.forecast(s, max(need, 2 * (need // 2 + 1)))
+        k = int(math.floor(x))
+        w = x - k
+        return (1 - w) * self._pure[k].astype(float) + w * self._pure[min(k + 1, len(self._pure) - 1)].astype(float)
+
+    def _link_snapshot(self) -> tuple[int, int]:
+        return self.link.stats.received, self.link.stats.drops
+
+    def _link_record(self, before: tuple[int, int]) -> dict:
+        rec, drops = self.link.stats.received - before[0], self.link.stats.drops - before[1]
+        rtt = self.link.rtt
+        return {"rtt_ms": None if rtt is None else round(rtt * 1000.0, 3),
+                "loss": (drops / (rec + drops)) if rec + drops else 0.0, "messages": int(rec), "drops": int(drops)}
+
+    # -- summary ------------------------------------------------------------------------------
+    def summary(self) -> dict:
+        cfg = self.config
+        legs = [dict(x) for x in self.leg_records]
+        rm = {"t": [x.get("t_end") for x in legs], "passt": [x.get("rmse_passt") for x in legs],
+              "model": [x.get("rmse_model") for x in legs]}
+        s = {
+            "mission": cfg.name, "status": self.status, "started_utc": self.started_utc,
+            "finished_utc": _utc_now() if self.status != "running" else None,
+            "field": cfg.field.source, "field_time_origin": self.field.time_origin, "grid": self.grid.describe(),
+            "model": self.predictor_info.get("used"), "model_requested": self.predictor_info.get("requested"),
+            "model_fallback": self.predictor_info.get("fallback"), "planner": cfg.planner.name,
+            "reward": cfg.planner.reward, "path_length": cfg.planner.path_length,
+            "seeds": cfg.seeds.model_dump(), "config": cfg.model_dump(mode="json"),
+            "legs_planned": self.n_legs, "legs": legs,
+            "n_samples": self._n_samples(),
+            "rmse": rm if self.truth_known else None,
+            "rmse_note": "RMSE over water cells vs the mission's field at the state time; 'model' = the predictor "
+                         "alone from the true state at t0, never re-initialised" if self.truth_known else None,
+            "clock": self.clock.describe() | {"note": "a real boat would map UTC (SYSTEM_TIME) instead"},
+            "thinning": THINNING, "dt": self.dt, "connect": self.link.config.connect,
+            "events": list(self.events),
+        }
+        s.update(self.extra_summary)
+        return s
+
+    def _n_samples(self) -> int:
+        try:
+            self._n_stored = self.store.count()
+        except Exception:  # noqa: BLE001 - closed at the end of run(): the last count stands
+            pass
+        return int(getattr(self, "_n_stored", sum(int(x.get("n_samples", 0)) for x in self.leg_records)))
+
+    def _write_summary(self) -> None:
+        self.rd.write_summary(self.summary())
+
+    # -- resume ------------------------------------------------------------------------------------
+    def _initial_state(self) -> tuple[np.ndarray, float, int]:
+        """(state, t_state, first leg index)."""
+        state = np.array(self.field.data[self.config.t0], dtype=np.float32)
+        state[:, self.land] = np.nan
+        t_state = float(self.field.times[self.config.t0])
+        if not self.resume:
+            return state, t_state, 0
+        from passt_mav.fields.field import load_field
+
+        done = [r for r in self.rd.read_legs() if r.get("status") == "complete"]
+        done.sort(key=lambda r: int(r["index"]))
+        # legs must be contiguous from 0: a gap means the directory is not one run
+        done = [r for k, r in enumerate(done) if int(r["index"]) == k]
+        if self.rd.summary_file.exists():
+            old = self.rd.read_summary()
+            clk = old.get("clock") or {}
+            if "t_boot0" in clk:
+                self.clock = FieldClock(float(clk["t_boot0"]), float(clk.get("time_scale", self.clock.time_scale)))
+            self.started_utc = old.get("started_utc") or self.started_utc
+            self.events = list(old.get("events") or [])
+        self.leg_records = done
+        if not done:
+            return state, t_state, 0
+        last = done[-1]
+        est = self.rd.estimate_file(int(last["index"]))
+        if not est.exists():
+            raise UserError(f"cannot resume: {est} is missing")
+        fld = load_field(est)
+        self.loop.leg_index = len(done)
+        self._say(f"resuming {self.rd.root}: {len(done)} leg(s) done, state at field time {last['t_state']:.1f}")
+        self.events.append(f"resumed after leg {len(done) - 1} at {_utc_now()}")
+        return np.array(fld.data[0], dtype=np.float32), float(last["t_state"]), len(done)
+
+    # -- the mission -----------------------------------------------------------------------------
+    def run(self) -> dict:
+        """Fly every leg; returns the summary (also in ``summary.json``)."""
+        from passt_mav.mavlink import SampleCollector
+        from passt_mav.runs.store import SampleStore
+
+        rd = self.rd.create()
+        if self.mission_text is not None and not (self.resume and rd.mission_file.exists()):
+            rd.mission_file.write_text(self.mission_text)
+        self.store = SampleStore(rd.samples_db)
+        self.writer = _StoreWriter(self.store, self.grid)
+        sens = self.config.sensors
+        self.collector = SampleCollector(self.writer, u_name=sens.u, v_name=sens.v,
+                                         source=f"mav:{self.link.target_system}/{self.link.target_component}")
+        self.collector.attach(self.link)
+        try:
+            state, t_state, first = self._initial_state()
+            self._say(f"mission {self.config.name}: {self.n_legs} legs of {self.config.planner.path_length} moves, "
+                      f"model {self.predictor_info.get('used')}, planner {self.config.planner.name}; waiting for the vehicle")
+            self.vehicle.wait_ready(timeout=self.ready_timeout_s)
+            for i in range(first, self.n_legs):
+                state, t_state = self._leg(i, state, t_state)
+            self.status = "complete"
+        except _Paused as exc:
+            self.status = "paused"
+            self.events.append(str(exc))
+            self._say(f"stopped: {exc}")
+            try:  # the pilot's RC still overrides HOLD; a vehicle left in an unknown mode would not stop
+                self.vehicle.hold()
+            except MavlinkError as e2:
+                log.warning("could not switch to HOLD: %s", e2)
+        except BaseException as exc:
+            self.status = "aborted"
+            self.events.append(f"aborted: {type(exc).__name__}: {exc}")
+            self._safe_hold()
+            raise
+        finally:
+            self.collector.detach()
+            self.writer.close()
+            self._write_summary()
+            self.store.close()
+        return self.summary()
+
+    def _safe_hold(self) -> None:
+        try:
+            if self.vehicle.mode == 10:  # AUTO
+                self.vehicle.hold()
+        except MavlinkError as exc:
+            log.warning("could not switch to HOLD: %s", exc)
+
+    def _leg(self, i: int, state: np.ndarray, t_state: float) -> tuple[np.ndarray, float]:
+        import geo
+        from passt_mav.fields.field import FlowField
+        from passt_mav.mission.waypoints import WaypointMission
+        from passt_mav.passt import steps_for_leg
+
+        cfg, grid, rd = self.config, self.grid, self.rd
+        margin = float(cfg.geofence_margin_m)
+        lat, lon = self._position()
+        if not bool(grid.contains(lat, lon, margin)):
+            raise UserError(f"the vehicle at {lat:.6f},{lon:.6f} is outside the mission region (+{margin:g} m); "
+                            "bring it into the region before starting a leg")
+        r, c = grid.latlon_to_cell(lat, lon, clip=True)
+        start = (int(r), int(c))
+        if self.land[start]:
+            raise UserError(f"the vehicle is in cell {start}, which is land in the mission's field")
+        # bring the state forward to now (the vehicle may have waited or the last leg overran)
+        t_now = self._now_field()
+        k = max(0, int(round((t_now - t_state) / self.dt)))
+        if k:
+            state = self.loop.forecast(state, k)[-1]
+            t_state += k * self.dt
+        steps = steps_for_leg(cfg.planner.path_length, grid.mean_cell_size_m, self.speed,
+                              self.dt * self.clock.time_scale)
+        t0w = time.perf_counter()
+        plan = self.loop.plan_leg(state, start, t_state, self.dt, steps=steps)
+        planning_s = time.perf_counter() - t0w
+        geo.validate_path(grid, plan.path)
+        wm = WaypointMission.from_path(grid, plan.path, speed=self.speed, wp_radius_m=cfg.vehicle.wp_radius_m,
+                                       fence_margin_m=margin)
+        inside = np.asarray(grid.contains(wm.waypoints[:, 0], wm.waypoints[:, 1], margin), bool)
+        if not inside.all():
+            bad = int(np.flatnonzero(~inside)[0])
+            raise PlannerError(f"leg {i}: waypoint {bad} at {wm.waypoints[bad, 0]:.6f},{wm.waypoints[bad, 1]:.6f} "
+                               f"lies outside the geofence (region + {margin:g} m); nothing uploaded")
+        d = rd.leg_dir(i)
+        wm.to_wpl(rd.waypoints_file(i))
+        wm.to_plan(rd.plan_file(i))
+        times = t_state + self.dt * np.arange(plan.forecast.shape[0])
+        FlowField(plan.forecast, grid, times, self.field.time_origin, self.field.units).to_netcdf(rd.prediction_file(i))
+        rec: dict[str, Any] = {
+            "index": i, "status": "flying", "start_cell": list(start), "start_latlon": [lat, lon],
+            "path": plan.path.tolist(), "waypoints": wm.waypoints.tolist(), "waypoint_seqs": wm.waypoint_seqs(),
+            "t_start": t_state, "t_end": t_state + steps * self.dt, "steps": steps, "forecast_steps_before": k,
+            "planning_s": planning_s, "planning_timings": dict(plan.timings),
+        }
+        upload_tries = 0
+        rd.write_leg(i, rec)
+        link0 = self._link_snapshot()
+        store0 = self.store.count(i)
+        # -- transactional swap: never start a mission that was not read back equal -----------
+        t0w = time.perf_counter()
+        v = self.vehicle
+        if v.mode == 10:
+            v.hold()
+        items = wm.items()
+        upload_tries = self._upload(i, items)
+        # seq 1 is the first mission item (DO_CHANGE_SPEED, then the waypoints): start there
+        v.mission.set_current(1)
+        upload_s = time.perf_counter() - t0w
+        if not v.armed:
+            v.arm(timeout=max(30.0, 120.0 / self.speedup))
+        self.collector.leg = i
+        t_fly = time.perf_counter()
+        tb_fly = self.link.vehicle_uptime_s()
+        v.start_mission()
+        n_items = len(items) - 1  # MISSION_CURRENT.total excludes home
+        try:
+            self._fly(i, wm, items, n_items)
+        finally:
+            self.collector.leg = None
+        v.hold()
+        duration_s = time.perf_counter() - t_fly
+        tb_end = self.link.vehicle_uptime_s()
+        self.writer.flush()
+        # -- samples -> GP -------------------------------------------------------------------------
+        recs = self.store.for_leg(i)
+        tb = np.array([s.time_boot_ms for s in recs], float)
+        u, vv = to_field_units(grid, [s.u for s in recs], [s.v for s in recs], cfg.field.velocity_scale)
+        t_s = self.clock.field_time(tb)
+        samples = thin_samples(grid, t_s, [s.lat for s in recs], [s.lon for s in recs], u, vv,
+                               t_start=plan.t_start, dt=self.dt)
+        if len(samples) == 0:
+            raise MavlinkError(f"leg {i}: no current samples arrived (is the sensor sending "
+                               f"{cfg.sensors.u}/{cfg.sensors.v}?)")
+        t0w = time.perf_counter()
+        new_state = self.loop.update(plan, samples)
+        gp_s = time.perf_counter() - t0w
+        t_new = plan.t_start + steps * self.dt
+        FlowField(new_state[None], grid, np.array([t_new]), self.field.time_origin, self.field.units).to_netcdf(rd.estimate_file(i))
+        r_passt = r_model = None
+        if self.truth_known:
+            tr = truth_at(self.field, t_new)
+            if tr is not None:
+                r_passt = rmse(new_state, tr)
+                pm = self._pure_model_at(t_new)
+                r_model = rmse(pm, tr) if pm is not None else None
+        link = self._link_record(link0)
+        rec.update({
+            "status": "complete", "t_state": t_new, "upload_s": upload_s, "upload_tries": upload_tries, "duration_s": duration_s,
+            "duration_vehicle_s": (tb_end - tb_fly) if (tb_end is not None and tb_fly is not None) else None,
+            "gp_s": gp_s, "n_samples": len(recs), "n_samples_new": self.store.count(i) - store0,
+            "n_gp_points": len(samples), "rmse_passt": r_passt, "rmse_model": r_model, "link": link,
+        })
+        rd.write_leg(i, rec)
+        rd.write_timings(i, {"planning_s": planning_s, **{f"{k}_s": x for k, x in plan.timings.items()},
+                             "upload_s": upload_s, "leg_s": duration_s})
+        self.leg_records = [x for x in self.leg_records if int(x["index"]) != i] + [rec]
+        self._write_summary()
+        rm = "" if r_passt is None else f", RMSE passt {r_passt:.4f} model {r_model if r_model is None else round(r_model, 4)}"
+        rtt = "-" if link["rtt_ms"] is None else f"{link['rtt_ms']:.1f} ms"
+        self._say(f"leg {i + 1}/{self.n_legs}: {len(recs)} samples ({len(samples)} to the GP), "
+                  f"{duration_s:.1f} s wall ({rec['duration_vehicle_s'] or 0:.0f} s vehicle), planning "
+                  f"{planning_s * 1000:.0f} ms, upload {upload_s:.2f} s{rm}, link RTT {rtt} loss {100 * link['loss']:.1f} %")
+        return new_state, t_new
+
+    def _upload(self, i: int, items, tries: int = 4) -> int:
+        """Upload, then read back and compare (as ``MissionClient.upload_verified``), with retries.
+
+        Retried (the vehicle is in HOLD meanwhile): a transfer the vehicle cancelled (its 8 s
+        timeout) or answered ERROR, a timeout, and a read-back that differs. A read-back that
+        fails is re-read first: at a high simulator speed-up the vehicle re-requests items after
+        1 s of *its* time, our duplicate answers then draw a late MISSION_ACK ERROR that lands in
+        the download. Capacity (NO_SPACE), DENIED and other refusals raise at once.
+        """
+        from passt_mav.errors import MissionRejected, MissionVerifyError
+        from passt_mav.mavlink.mission_client import _differences  # upload_verified's own comparison
+
+        mc = self.vehicle.mission
+        retry = (15, 1)  # MAV_MISSION_OPERATION_CANCELLED, MAV_MISSION_ERROR
+        last: Exception | None = None
+        for k in range(1, tries + 1):
+            try:
+                mc.upload(items)
+            except (MissionRejected, LinkTimeout) as exc:
+                if isinstance(exc, MissionRejected) and exc.result not in retry:
+                    raise
+                last = exc
+            else:
+                got = None
+                for _ in range(3):
+                    try:
+                        got = mc.download()
+                        break
+                    except (MissionRejected, LinkTimeout) as exc:
+                        last = exc
+                        time.sleep(0.05)
+                if got is not None:
+                    diff = _differences(list(items), got, 0)
+                    if not diff:
+                        return k
+                    last = MissionVerifyError(f"mission read back differs from the upload: {diff}")
+            self._say(f"leg {i + 1}: upload try {k} failed ({last}); retrying" if k < tries else
+                      f"leg {i + 1}: upload failed {tries} times ({last})")
+            self.events.append(f"leg {i}: upload try {k} failed: {last}")
+            time.sleep(0.05)
+        assert last is not None
+        raise last
+
+    # -- flying one leg, with its faults ------------------------------------------------------------
+    def _expected_wall_s(self, wm) -> float:
+        import geo
+
+        wp = wm.waypoints
+        dist = float(np.sum(geo.geodesic_distance_m(wp[:-1, 0], wp[:-1, 1], wp[1:, 0], wp[1:, 1]))) if len(wp) > 1 else 0.0
+        dist += self.grid.mean_cell_size_m  # reaching the first waypoint from anywhere in the start cell
+        return dist / self.speed / self.speedup
+
+    def _fly(self, i: int, wm, items, n_items: int) -> None:
+        """Wait for the leg to complete: reconnect on link loss, pause when the vehicle leaves AUTO."""
+        v = self.vehicle
+        p = v.progress
+        deadline = time.monotonic() + 4.0 * self._expected_wall_s(wm) + 30.0
+        while True:
+            with p.changed:
+                done = (p.state == 5 and p.total == n_items) or n_items in p.reached
+                if not done:
+                    p.changed.wait(0.1)
+                    done = (p.state == 5 and p.total == n_items) or n_items in p.reached
+            if done:
+                return
+            if time.monotonic() > deadline:
+                raise LinkTimeout(f"leg {i} not complete in time (item {p.current}/{p.total})")
+            if self.link.lost or self.link.error is not None:
+                self._recover_link(i, items)
+                deadline += 30.0
+                continue
+            mode = v.mode
+            if mode is not None and mode != 10:
+                waited = self._pause(i, mode)
+                deadline += waited
+
+    def _recover_link(self, i: int, items) -> None:
+        v = self.vehicle
+        self._say(f"leg {i + 1}: link lost ({self.link.seconds_since_heartbeat:.1f} s without heartbeat); reconnecting")
+        self.events.append(f"leg {i}: link lost at {_utc_now()}")
+        self.link.error = None
+        self.link.reconnect()
+        got = v.mission.download()
+        from passt_mav.mavlink.mission_client import _differences  # the same comparison as upload_verified
+
+        diff = _differences(list(items), got, 0)
+        cur = self.link.wait("MISSION_CURRENT", timeout=max(2.0, self.link.reply_timeout))
+        if diff:
+            self._say(f"leg {i + 1}: the vehicle's mission differs after the reconnect ({diff}); re-uploading")
+            was_auto = v.mode == 10
+            if was_auto:
+                v.hold()
+            v.mission.upload_verified(items)
+            v.mission.set_current(max(1, min(int(cur.seq), len(items) - 1)))
+            if was_auto:
+                v.set_mode("AUTO")
+        self.events.append(f"leg {i}: reconnected, mission verified, item {cur.seq}/{cur.total}")
+        self._say(f"leg {i + 1}: reconnected; mission on the vehicle verified, at item {cur.seq}/{getattr(cur, 'total', '?')}")
+
+    def _pause(self, i: int, mode: int) -> float:
+        from passt_mav.mavlink import ROVER_MODE_NAMES
+
+        name = ROVER_MODE_NAMES.get(mode, str(mode))
+        self._say(f"leg {i + 1}: the vehicle left AUTO (mode {name}): a pilot has control; pausing "
+                  f"(waiting up to {self.pause_timeout_s:.0f} s for AUTO)")
+        self.events.append(f"leg {i}: vehicle left AUTO (mode {name}) at {_utc_now()}")
+        t0 = time.monotonic()
+        while time.monotonic() - t0 < self.pause_timeout_s:
+            if self.vehicle.mode == 10:
+                self._say(f"leg {i + 1}: back in AUTO; continuing")
+                self.events.append(f"leg {i}: back in AUTO")
+                return time.monotonic() - t0
+            if self.link.lost:
+                self.link.reconnect()
+            time.sleep(0.05)
+        raise _Paused(f"leg {i}: the vehicle stayed in {name} for {self.pause_timeout_s:.0f} s; stopping in HOLD")
+
+
+def mission_overrides(data: dict, overrides: dict) -> dict:
+    """A copy of a mission mapping with dotted-key overrides (``{"planner.path_length": 6}``)."""
+    import copy
+
+    out = copy.deepcopy(data)
+    for key, val in overrides.items():
+        cur = out
+        parts = key.split(".")
+        for p in parts[:-1]:
+            cur = cur.setdefault(p, {})
+        cur[parts[-1]] = val
+    return out
+
+
+def load_mission_text(path: str | Path) -> tuple[str, dict]:
+    import yaml
+
+    text = Path(path).read_text()
+    return text, yaml.safe_load(text)
