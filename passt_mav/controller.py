@@ -425,6 +425,9 @@ class MissionController:
             self.events = list(old.get("events") or [])
         self.leg_records = done
         if not done:
+            # killed during leg 0: still say so (the store keeps that leg's samples; it is re-planned)
+            self._say(f"resuming {self.rd.root}: no leg completed yet; leg 0 is re-planned from here")
+            self.events.append(f"resumed before leg 0 completed at {_utc_now()}")
             return state, t_state, 0
         last = done[-1]
         est = self.rd.estimate_file(int(last["index"]))
@@ -571,6 +574,15 @@ class MissionController:
         if len(samples) == 0:
             raise MavlinkError(f"leg {i}: no current samples arrived (is the sensor sending "
                                f"{cfg.sensors.u}/{cfg.sensors.v}?)")
+        # The leg was sized before it flew (L x mean cell / speed); diagonal moves, turns and
+        # the current make the real leg longer. Reconstruct at the time the leg really ended,
+        # so late samples are compared with the forecast of their own time, not clipped to
+        # the planned end (which made the GP fit stale residuals).
+        steps_actual = max(1, int(round((float(np.max(t_s)) - plan.t_start) / self.dt))) if len(t_s) else steps
+        if steps_actual > steps:
+            plan.forecast = self.loop.forecast(plan.forecast[0], steps_actual)
+            plan.steps = steps = steps_actual
+            rec.update(steps=steps, t_end=plan.t_start + steps * self.dt)
         t0w = time.perf_counter()
         new_state = self.loop.update(plan, samples)
         gp_s = time.perf_counter() - t0w

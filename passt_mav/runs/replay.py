@@ -1,0 +1,650 @@
+"""Replay a mission from its telemetry log: rebuild every leg and recompute every decision offline.
+
+``replay(source)`` takes a run directory (``passt-mav run``/``demo``) or a bare
+``.tlog`` plus the mission file, and
+
+1. rebuilds the mission from the telemetry log alone: per leg the position and
+   vehicle time the controller planned from, the samples it collected, the
+   waypoints it uploaded. Samples are rebuilt by feeding the logged frames, in
+   order, through the controller's own :class:`~passt_mav.mavlink.SampleCollector`
+   (so the pairing of CUR_U/CUR_V with positions is the controller's, not an
+   approximation of it). Leg windows follow the controller's: a leg's samples are
+   those emitted between the GCS's switch to AUTO and its next mode command (HOLD);
+2. re-runs the between-leg step offline with the controller's code: the same
+   :func:`~passt_mav.controller.build_loop` / :func:`build_predictor`,
+   :class:`FieldClock`, :func:`to_field_units`, :func:`thin_samples`,
+   :func:`rmse`/:func:`truth_at` and ``PasstLoop.plan_leg``/``update``, legs in
+   order through one loop (its GP hyper-parameters, posterior std and planner seed
+   carry from leg to leg exactly as in the controller);
+3. compares leg by leg: the re-planned grid path against the recorded one
+   (``leg.json``, or for a bare tlog the uploaded waypoints expanded back into
+   cells), the RMSE figures against ``summary.json``.
+
+With ``model``/``planner``/``reward`` overrides it is a counterfactual: the same
+legs and samples, planned with another choice (the samples are still the ones the
+vehicle collected on its real path: a counterfactual path's reward is collected on
+the replayed forecast, its RMSE uses the real samples).
+
+The controller has no public function for its between-leg step (it is inline in
+``MissionController._leg``); :func:`plan_step` / :func:`update_step` are the minimal
+adapter that repeats it, and :func:`_pure_model_at` repeats
+``MissionController._pure_model_at``. A ``controller.plan_step`` / ``update_step``
+pair used by both would remove the duplication.
+
+The clock. The controller reads the vehicle's clock (newest ``time_boot_ms``) after
+the previous leg's GP update and before planning, and logs nothing at that moment:
+the number of snapshots it forecast before planning (``forecast_steps_before``) is
+bracketed by the log, not given. For a run directory the recorded value is used
+(and checked against the log's bracket); for a bare log every value in the bracket
+is tried and the one whose plan is the uploaded path is kept (said in the leg's notes).
+The start cell likewise: ``leg.json``'s, else the first uploaded waypoint's.
+
+DataFlash ``.bin`` logs hold no mission uploads or GCS mode commands that this
+reader exposes, so legs cannot be rebuilt from them: replaying a ``.bin`` is
+refused with a one-line error.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from passt_mav.errors import UserError
+
+__all__ = ["ReplayError", "LoggedLeg", "LogRebuild", "ReplayLeg", "ReplayResult", "rebuild_from_tlog",
+           "waypoints_to_path", "plan_step", "update_step", "leg_step", "replay"]
+
+_AUTO, _DO_SET_MODE, _MISSION_START = 10, 176, 300
+_NAV_WAYPOINT, _DO_CHANGE_SPEED = 16, 178
+
+
+class ReplayError(UserError):
+    """The replay's input is missing, not a run, or does not hold what a replay needs."""
+
+
+# -- rebuilding legs from the log ---------------------------------------------------------------
+@dataclass
+class LoggedLeg:
+    """One leg as the log shows it.
+
+    ``start_latlon``: the newest position before the leg's first upload (what the controller
+    planned from); ``t_now_ms``: the newest vehicle ``time_boot_ms`` then. The controller
+    read its clock somewhere between ``t_lo_ms`` (the newest ``time_boot_ms`` when the
+    previous leg ended, or the first of the log) and ``t_now_ms``: the log does not say
+    where (it reads it after the GP update, before planning, and sends nothing then);
+    ``waypoints``: (lat, lon) deg of the NAV_WAYPOINTs of the last upload before AUTO;
+    ``samples``: collector records (``time_boot_ms``, ``lat``, ``lon``, ``u``, ``v`` m/s east/north).
+    """
+
+    index: int
+    start_latlon: tuple[float, float] | None = None
+    t_now_ms: int | None = None
+    t_lo_ms: int | None = None
+    waypoints: list[tuple[float, float]] = field(default_factory=list)
+    samples: list[dict] = field(default_factory=list)
+    closed: bool = False
+
+
+@dataclass
+class LogRebuild:
+    """Legs plus what the reader had to skip (``bad_frames`` stretches, ``skipped_bytes``)."""
+
+    path: Path
+    legs: list[LoggedLeg]
+    n_messages: int = 0
+    bad_frames: int = 0
+    skipped_bytes: int = 0
+    n_bytes: int = 0
+    n_samples_outside_legs: int = 0
+
+
+def rebuild_from_tlog(path: str | Path, *, u_name: str = "CUR_U", v_name: str = "CUR_V") -> LogRebuild:
+    """Legs, positions, clock and samples from a ``.tlog`` (ours, MAVProxy's, pymavlink's).
+
+    Damaged logs are read as far as they are readable (the scanner of
+    :mod:`passt_mav.runs.tlog`: CRC-checked records, resynchronisation after junk).
+    """
+    from passt_mav.mavlink import SampleCollector
+    from passt_mav.runs.tlog import _TlogScanner, _check_file, read_tlog
+
+    path = Path(path)
+    data = _check_file(path, "telemetry log")
+    veh = read_tlog(path, u_name=u_name, v_name=v_name).vehicle_sysid  # the vehicle's system id
+    if veh is None:
+        raise ReplayError(f"{path}: no vehicle messages (HEARTBEAT or GLOBAL_POSITION_INT) in the log")
+    legs: list[LoggedLeg] = []
+    state: dict[str, Any] = {"cur": None, "pending": None, "upload": None, "pos": None, "tb": None, "outside": 0,
+                             "tb_lo": None}
+
+    def on_sample(rec: dict) -> None:
+        leg = state["cur"]
+        if leg is None:
+            state["outside"] += 1
+        else:
+            leg.samples.append(rec)
+
+    col = SampleCollector(on_sample, u_name=u_name, v_name=v_name)
+    scan = _TlogScanner(data)
+    n = 0
+    for ts, m in scan:
+        n += 1
+        typ = m.get_type()
+        src = m.get_srcSystem()
+        if src == veh:
+            if typ in SampleCollector.TYPES:
+                m._timestamp = ts * 1e-6  # reception time, as pymavlink stamps a live message
+                col.handle(m)
+            if typ in ("SYSTEM_TIME", "GLOBAL_POSITION_INT", "ATTITUDE", "NAMED_VALUE_FLOAT"):
+                state["tb"] = max(state["tb"] or 0, int(m.time_boot_ms))  # Link.vehicle_uptime_s
+                if state["tb_lo"] is None:
+                    state["tb_lo"] = state["tb"]
+            if typ == "GLOBAL_POSITION_INT" and not (m.lat == 0 and m.lon == 0):
+                state["pos"] = (m.lat * 1e-7, m.lon * 1e-7)
+            continue
+        # -- GCS side: uploads and mode commands, as the controller sends them
+        if typ == "MISSION_COUNT" and getattr(m, "mission_type", 0) == 0 and m.target_system in (0, veh):
+            if state["pending"] is None and state["cur"] is None:  # first upload of a new leg: planned just before
+                state["pending"] = LoggedLeg(len(legs), state["pos"], state["tb"], state["tb_lo"])
+            state["upload"] = {"count": int(m.count), "items": {}}
+        elif typ in ("MISSION_ITEM_INT", "MISSION_ITEM") and state["upload"] is not None \
+                and getattr(m, "mission_type", 0) == 0 and 0 <= m.seq < state["upload"]["count"]:
+            scale = 1e-7 if typ == "MISSION_ITEM_INT" else 1.0
+            state["upload"]["items"][int(m.seq)] = (int(m.command), m.x * scale, m.y * scale)
+        else:
+            mode = None
+            if typ == "COMMAND_LONG" and m.target_system in (0, veh):
+                if m.command == _DO_SET_MODE:
+                    mode = int(m.param2)
+                elif m.command == _MISSION_START:
+                    mode = _AUTO
+            elif typ == "SET_MODE" and m.target_system in (0, veh):
+                mode = int(m.custom_mode)
+            if mode is None:
+                continue
+            if mode == _AUTO and state["cur"] is None and state["pending"] is not None:
+                leg = state["pending"]
+                up = state["upload"] or {"items": {}}
+                leg.waypoints = [(la, lo) for s, (cmd, la, lo) in sorted(up["items"].items())
+                                 if s >= 1 and cmd == _NAV_WAYPOINT]
+                legs.append(leg)
+                state["cur"], state["pending"] = leg, None
+                col.leg = leg.index
+            elif mode != _AUTO and state["cur"] is not None:
+                state["cur"].closed = True
+                state["cur"] = None
+                state["tb_lo"] = state["tb"]
+                col.leg = None
+    return LogRebuild(path, legs, n, scan.bad, scan.skipped, len(data), state["outside"])
+
+
+def waypoints_to_path(grid, waypoints) -> np.ndarray | None:
+    """(L+1, 2) grid path from merged waypoints (the inverse of :func:`geo.path_to_waypoints`).
+
+    Waypoints are the corners of straight 8-neighbour runs, so each segment expands
+    exactly into unit steps. None if a segment is not a straight 8-direction run.
+    """
+    wp = np.asarray(waypoints, float).reshape(-1, 2)
+    if len(wp) == 0:
+        return None
+    r, c = grid.latlon_to_cell(wp[:, 0], wp[:, 1], clip=True)
+    cells = np.column_stack([np.asarray(r, int).reshape(-1), np.asarray(c, int).reshape(-1)])
+    out = [cells[0]]
+    for a, b in zip(cells[:-1], cells[1:]):
+        d = b - a
+        n = int(max(abs(d[0]), abs(d[1])))
+        if n == 0:
+            continue
+        if d[0] and d[1] and abs(d[0]) != abs(d[1]):
+            return None
+        step = np.sign(d)
+        out.extend(a + step * k for k in range(1, n + 1))
+    return np.array(out, int)
+
+
+# -- the between-leg step (adapter around the controller's building blocks) ---------------------
+def plan_step(loop, cfg, grid, clock, dt: float, state, t_state: float, start, k: int, *, speed: float):
+    """The planning half of ``MissionController._leg``: forecast ``k`` snapshots to now, plan the leg.
+
+    Does not change ``loop`` (planner seeds depend on ``loop.leg_index``, advanced by the update).
+    """
+    from passt_mav.passt import steps_for_leg
+
+    if k:
+        state = loop.forecast(state, k)[-1]
+        t_state += k * dt
+    steps = steps_for_leg(cfg.planner.path_length, grid.mean_cell_size_m, speed, dt * clock.time_scale)
+    return loop.plan_leg(state, tuple(int(x) for x in start), t_state, dt, steps=steps)
+
+
+def update_step(loop, cfg, grid, clock, dt: float, plan, recs):
+    """The sample half of ``MissionController._leg``: m/s -> field units, clock, thinning, GP update.
+
+    ``recs``: sample records (dicts with time_boot_ms, lat, lon, u, v in m/s east/north).
+    Returns ``(samples, new_state, t_new)``; with no samples the state is the forecast at the leg's
+    end (the controller would have stopped there: it needs samples).
+    """
+    from passt_mav.controller import thin_samples, to_field_units
+
+    tb = np.array([r["time_boot_ms"] for r in recs], float)
+    u, v = to_field_units(grid, [r["u"] for r in recs], [r["v"] for r in recs], cfg.field.velocity_scale)
+    samples = thin_samples(grid, clock.field_time(tb), [r["lat"] for r in recs], [r["lon"] for r in recs], u, v,
+                           t_start=plan.t_start, dt=dt)
+    from passt_mav.errors import ReconstructionError
+
+    # as the controller (since it extends legs): reconstruct at the time the leg really ended
+    t_s = clock.field_time(tb)
+    if len(t_s):
+        steps_actual = max(1, int(round((float(np.max(t_s)) - plan.t_start) / dt)))
+        if steps_actual > plan.steps:
+            plan.forecast = loop.forecast(plan.forecast[0], steps_actual)
+            plan.steps = steps_actual
+    t_new = plan.t_start + plan.steps * dt
+    if len(samples) == 0:
+        loop.leg_index += 1  # keep the planner seeds of later legs aligned with the run's
+        return samples, np.asarray(plan.forecast[-1], np.float32), t_new
+    try:
+        return samples, loop.update(plan, samples), t_new
+    except ReconstructionError:
+        # too few usable samples (a damaged log): the controller would have stopped here
+        loop.leg_index += 1
+        return type(samples)(*(np.empty(0),) * 5), np.asarray(plan.forecast[-1], np.float32), t_new
+
+
+def leg_step(loop, cfg, grid, clock, dt: float, state, t_state: float, start, t_now: float, recs, *,
+             speed: float, k: int | None = None):
+    """One leg of ``MissionController._leg`` without the vehicle: forecast to now, plan, thin, update.
+
+    ``k`` (snapshots forecast before planning) is ``round((t_now - t_state) / dt)`` unless given.
+    Returns ``(plan, samples, new_state, t_new, k)``.
+    """
+    if k is None:
+        k = max(0, int(round((t_now - t_state) / dt)))
+    plan = plan_step(loop, cfg, grid, clock, dt, state, t_state, start, k, speed=speed)
+    samples, new_state, t_new = update_step(loop, cfg, grid, clock, dt, plan, recs)
+    return plan, samples, new_state, t_new, k
+
+
+def _pure_model_at(loop, field, t0_index: int, dt: float, t: float, cache: dict):
+    """``MissionController._pure_model_at``: the model alone from the truth at t0, linear between steps."""
+    if loop.predictor is None:
+        return None
+    t0 = float(field.times[t0_index])
+    x = (t - t0) / dt
+    if x < 0:
+        return None
+    need = int(math.ceil(x)) + 1
+    pure = cache.get("pure")
+    if pure is None or len(pure) <= need:
+        s = np.array(field.data[t0_index], dtype=np.float32)
+        pure = cache["pure"] = loop.forecast(s, max(need, 2 * (need // 2 + 1)))
+    k = int(math.floor(x))
+    w = x - k
+    return (1 - w) * pure[k].astype(float) + w * pure[min(k + 1, len(pure) - 1)].astype(float)
+
+
+def _clock_bracket(lg, clock, t_state: float, dt: float) -> list[int]:
+    """Forecast steps the controller may have taken before planning ``lg`` (see :class:`LoggedLeg`)."""
+    k_lo = max(0, int(round((float(clock.field_time(lg.t_lo_ms)) - t_state) / dt)))
+    k_hi = max(k_lo, int(round((float(clock.field_time(lg.t_now_ms)) - t_state) / dt)))
+    return list(range(k_lo, k_hi + 1))
+
+
+def _search_clock(loop, cfg, grid, clock, dt, state, t_state, legs, starts, paths, budget: int = 200):
+    """Forecast steps per leg such that every leg's plan is its uploaded path (depth first).
+
+    A wrong choice on one leg can still plan the same path but leaves another state, which
+    shows on a later leg: hence the search over the whole sequence. Returns a list (one
+    per leg, None where nothing matched) or None when the budget of plans ran out.
+    """
+    import copy
+
+    left = [budget]
+    speed = float(cfg.vehicle.speed_mps)
+
+    def dfs(i, lp, st, ts):
+        if i == len(legs):
+            return []
+        cands = _clock_bracket(legs[i], clock, ts, dt)
+        mid = (cands[0] + cands[-1]) / 2
+        cands.sort(key=lambda x: abs(x - mid))
+        for cand in cands:
+            if left[0] <= 0:
+                return None
+            left[0] -= 1
+            plan = plan_step(lp, cfg, grid, clock, dt, st, ts, starts[i], cand, speed=speed)
+            if paths[i] is not None and plan.path.tolist() != paths[i]:
+                continue
+            nxt = copy.deepcopy(lp, {id(lp.predictor): lp.predictor})
+            _, new, t_new = update_step(nxt, cfg, grid, clock, dt, plan, legs[i].samples)
+            rest = dfs(i + 1, nxt, new, t_new)
+            if rest is not None:
+                return [cand] + rest
+        return None
+
+    return dfs(0, copy.deepcopy(loop, {id(loop.predictor): loop.predictor}), state, t_state)
+
+
+# -- results --------------------------------------------------------------------------------------
+@dataclass
+class ReplayLeg:
+    """Replay of one leg. Paths are lists of [row, col]; RMSE in field units (None = not known)."""
+
+    index: int
+    n_samples: int
+    n_gp_points: int
+    start_cell: list[int]
+    t_start: float
+    steps: int
+    forecast_steps_before: int
+    path: list[list[int]]
+    recorded_path: list[list[int]] | None
+    path_identical: bool | None
+    differing_cells: list[dict]
+    reward_collected: float
+    rmse_passt: float | None
+    rmse_model: float | None
+    rmse_passt_recorded: float | None = None
+    rmse_model_recorded: float | None = None
+    rmse_identical: bool | None = None
+    notes: list[str] = field(default_factory=list)
+
+
+@dataclass
+class ReplayResult:
+    """Replay of a run: per-leg results, what the log reader skipped, and the verdict.
+
+    ``reproduced``: every leg's path equals the recorded one and every recorded RMSE is
+    matched within ``rmse_tol`` (None for a counterfactual, which is not expected to).
+    ``first_divergence``: index of the first leg that differs, or None.
+    """
+
+    source: str
+    kind: str
+    counterfactual: dict[str, str]
+    legs: list[ReplayLeg]
+    log: dict[str, Any]
+    reproduced: bool | None
+    first_divergence: int | None
+    rmse_tol: float
+    settings: dict[str, Any]
+    out_dir: str | None = None
+    notes: list[str] = field(default_factory=list)
+
+    @property
+    def exit_code(self) -> int:
+        """0 reproduced or counterfactual, 1 diverged with the run's own settings."""
+        return 1 if self.reproduced is False else 0
+
+    def to_dict(self) -> dict[str, Any]:
+        d = asdict(self)
+        d["exit_code"] = self.exit_code
+        return d
+
+
+# -- replay ---------------------------------------------------------------------------------------
+def _load_config(mission, summary: dict | None, rd) -> tuple[Any, str]:
+    from passt_mav.mission.config import load_mission, validate_mission
+
+    if mission is not None:
+        p = Path(mission)
+        if not p.is_file():
+            raise ReplayError(f"mission file not found: {p}")
+        return load_mission(p), str(p)
+    if rd is not None and rd.mission_file.is_file():
+        return load_mission(rd.mission_file), str(rd.mission_file)
+    if summary and isinstance(summary.get("config"), dict):
+        return validate_mission(summary["config"], source=f"{rd.summary_file}:config"), f"{rd.summary_file}:config"
+    raise ReplayError("no mission: the run directory has neither mission.yaml nor a config in summary.json; "
+                      "pass --mission M.yaml")
+
+
+def _diff_paths(rec, new) -> list[dict]:
+    rec = [list(map(int, x)) for x in rec]
+    new = [list(map(int, x)) for x in new]
+    out = []
+    for k in range(max(len(rec), len(new))):
+        a = rec[k] if k < len(rec) else None
+        b = new[k] if k < len(new) else None
+        if a != b:
+            out.append({"step": k, "recorded": a, "replayed": b})
+    return out
+
+
+def replay(source, *, out=None, model: str | None = None, planner: str | None = None, reward: str | None = None,
+           mission=None, rmse_tol: float = 1e-6, echo=None) -> ReplayResult:
+    """Replay ``source`` (run directory, or ``.tlog`` with ``mission``); see the module docstring.
+
+    Args:
+        source: run directory or telemetry log path.
+        out: directory for ``replay.json`` (default ``RUN_DIR/replay``, or ``FILE.replay/`` beside a log);
+            ``False`` writes nothing.
+        model, planner, reward: counterfactual choices (predictor spec, planner name, reward name).
+        mission: mission file (required for a bare log; overrides the run's own otherwise).
+        rmse_tol: largest |recorded - replayed| RMSE still counted as reproduced.
+
+    Raises:
+        ReplayError / UserError: bad input (the CLI prints one line, exit 2).
+    """
+    from passt_mav.controller import FieldClock, build_loop, build_predictor, rmse, truth_at
+    from passt_mav.fields.datasets import resolve_field
+    from passt_mav.planning import PLANNERS, REWARDS, path_reward
+    from passt_mav.runs.rundir import RunDir, RunDirError, write_json_atomic
+
+    say = echo or (lambda s: None)
+    src = Path(source)
+    if not src.exists():
+        raise ReplayError(f"replay source not found: {src}")
+    rd = summary = None
+    if src.is_dir():
+        rd = RunDir(src)
+        if not rd.is_run_dir():
+            raise ReplayError(f"{src} is not a run directory")
+        if not rd.tlog.is_file():
+            raise ReplayError(f"{rd.tlog} not found: the run has no telemetry log to replay")
+        tlog = rd.tlog
+        if rd.summary_file.exists():
+            try:
+                summary = rd.read_summary()
+            except RunDirError as exc:
+                raise ReplayError(str(exc)) from None
+        kind = "run"
+    else:
+        if src.suffix.lower() == ".bin":
+            raise ReplayError(f"{src}: DataFlash logs hold no mission uploads or mode commands to rebuild legs from; "
+                              "replay the run's .tlog")
+        if src.suffix.lower() != ".tlog":
+            raise ReplayError(f"{src}: expected a run directory or a .tlog file")
+        if mission is None:
+            raise ReplayError(f"replaying a bare log needs --mission M.yaml (region, model, planner): {src}")
+        tlog, kind = src, "tlog"
+    cfg, mission_src = _load_config(mission, summary, rd)
+    if planner is not None and planner not in PLANNERS:
+        raise ReplayError(f"unknown planner {planner!r}; choose one of {', '.join(PLANNERS)}")
+    if reward is not None and reward not in REWARDS:
+        raise ReplayError(f"unknown reward {reward!r}; choose one of {', '.join(REWARDS)}")
+    cf = {k: v for k, v in (("model", model), ("planner", planner), ("reward", reward)) if v is not None}
+    if cf:
+        upd: dict[str, Any] = {}
+        if "model" in cf:
+            upd["model"] = model
+        if planner is not None or reward is not None:
+            pl = {"name": planner or cfg.planner.name, "reward": reward or cfg.planner.reward}
+            if planner is not None and planner != cfg.planner.name:
+                pl["options"] = {}  # the run's planner options belong to its planner
+            upd["planner"] = cfg.planner.model_copy(update=pl)
+        cfg = cfg.model_copy(update=upd)
+
+    base = None if rd is None else rd.root
+    fsrc = cfg.field.source
+    if base is not None and not str(fsrc).startswith("builtin:") and not Path(fsrc).is_absolute():
+        fsrc = str(base / fsrc) if (base / fsrc).exists() else fsrc
+    field = resolve_field(fsrc, seed=cfg.seeds.field)
+    grid = field.grid
+    if field.n_times < 2:
+        raise ReplayError("the mission's field needs at least 2 snapshots (dt)")
+    spec = cfg.model
+    if summary and not cf.get("model") and summary.get("model") and summary.get("model_fallback"):
+        spec = summary["model"]  # the run fell back (e.g. to dmd): replay what it used
+    predictor, pinfo = build_predictor(spec, field, echo=say)
+    dt = float(field.dt)
+    clk = (summary or {}).get("clock") or {}
+    clock = FieldClock(float(clk.get("t_boot0", field.times[cfg.t0])), float(clk.get("time_scale", cfg.field.time_scale)))
+    loop = build_loop(cfg, predictor, grid, land=field.land_mask)
+    truth_known = summary is None or summary.get("rmse") is not None
+
+    log = rebuild_from_tlog(tlog, u_name=cfg.sensors.u, v_name=cfg.sensors.v)
+    recorded = {}
+    if rd is not None:
+        try:
+            recorded = {int(r["index"]): r for r in rd.read_legs()}
+        except RunDirError as exc:
+            raise ReplayError(str(exc)) from None
+    notes: list[str] = []
+    store_legs: dict[int, set] = {}
+    if rd is not None and rd.samples_db.is_file():
+        from passt_mav.runs.store import SampleStore
+
+        st = SampleStore(rd.samples_db, readonly=True)
+        try:
+            for x in st.all():
+                store_legs.setdefault(int(x.leg), set()).add((int(x.time_boot_ms), x.lat, x.lon, x.u, x.v))
+        finally:
+            st.close()
+    if log.bad_frames:
+        notes.append(f"the log is damaged: {log.bad_frames} bad stretch(es), {log.skipped_bytes} byte(s) skipped; "
+                     "replayed what was readable")
+    if not log.legs:
+        notes.append("no leg (upload followed by AUTO) found in the log")
+
+    state = np.array(field.data[cfg.t0], dtype=np.float32)
+    state[:, field.land_mask] = np.nan
+    t_state = float(field.times[cfg.t0])
+    chosen = None
+    usable = [lg for lg in log.legs if lg.start_latlon is not None and lg.t_now_ms is not None]
+    if rd is None and usable and len(usable) == len(log.legs):
+        starts, paths = [], []
+        for lg in usable:
+            p = waypoints_to_path(grid, lg.waypoints)
+            paths.append(None if p is None else p.tolist())
+            pr, pc = grid.latlon_to_cell(lg.start_latlon[0], lg.start_latlon[1], clip=True)
+            starts.append(tuple(paths[-1][0]) if paths[-1] else (int(pr), int(pc)))
+        chosen = _search_clock(loop, cfg, grid, clock, dt, state, t_state, usable, starts, paths)
+        if chosen is None:
+            notes.append("no sequence of clock readings in the log's brackets reproduces every uploaded path; "
+                         "each leg takes the first that reproduces its own")
+    cache: dict = {}
+    legs: list[ReplayLeg] = []
+    first_div = None
+    for lg in log.legs:
+        lnotes: list[str] = []
+        rec = recorded.get(lg.index)
+        if lg.start_latlon is None or lg.t_now_ms is None:
+            lnotes.append("no position or vehicle time before the upload: leg skipped")
+            legs.append(ReplayLeg(lg.index, len(lg.samples), 0, [], float("nan"), 0, 0, [], None, None, [], 0.0,
+                                  None, None, notes=lnotes))
+            if not cf and first_div is None:
+                first_div = lg.index
+            break  # the state after it is unknown
+        r, c = grid.latlon_to_cell(lg.start_latlon[0], lg.start_latlon[1], clip=True)
+        pos_cell = (int(r), int(c))
+        if not lg.closed:
+            lnotes.append("the log ends inside this leg (no HOLD after it): its samples may be incomplete")
+        # the controller's clock reading before planning lies between two log times (see LoggedLeg)
+        k_lo = max(0, int(round((float(clock.field_time(lg.t_lo_ms)) - t_state) / dt)))
+        k_hi = max(k_lo, int(round((float(clock.field_time(lg.t_now_ms)) - t_state) / dt)))
+        if rec is not None:
+            rec_path = rec.get("path")
+            start = tuple(int(x) for x in (rec.get("start_cell") or pos_cell))
+            if start != pos_cell:
+                lnotes.append(f"recorded start cell {list(start)}, the log's last position before the upload is in "
+                              f"{list(pos_cell)}")
+            if rec.get("forecast_steps_before") is not None:
+                ks = [int(rec["forecast_steps_before"])]
+                if not k_lo <= ks[0] <= k_hi:
+                    lnotes.append(f"recorded forecast steps before planning {ks[0]} outside the log's [{k_lo}, {k_hi}]")
+            else:
+                ks = list(range(k_lo, k_hi + 1))
+        else:
+            p = waypoints_to_path(grid, lg.waypoints)
+            rec_path = None if p is None else p.tolist()
+            if rec_path is None:
+                lnotes.append("no recorded path (no uploaded waypoints that expand into a grid path)")
+            # the uploaded path starts at the cell the controller planned from
+            start = tuple(rec_path[0]) if rec_path else pos_cell
+            ks = sorted(range(k_lo, k_hi + 1), key=lambda x: abs(x - (k_lo + k_hi) / 2))
+            if chosen is not None:
+                ks = [chosen[lg.index]]
+        plan, k = None, ks[0]
+        for cand in ks:  # the clock reading whose plan is the uploaded one
+            pl = plan_step(loop, cfg, grid, clock, dt, state, t_state, start, cand,
+                           speed=float(cfg.vehicle.speed_mps))
+            if plan is None:
+                plan, k = pl, cand
+            if rec_path is not None and pl.path.tolist() == rec_path:
+                plan, k = pl, cand
+                break
+        if rec is None and k_hi > k_lo:
+            lnotes.append(f"the log brackets the controller's clock reading by {k_lo}..{k_hi} forecast steps; "
+                          f"used {k}")
+        samples, new_state, t_new = update_step(loop, cfg, grid, clock, dt, plan, lg.samples)
+        if len(samples) == 0:
+            lnotes.append("too few samples in this leg to reconstruct: the state is the forecast "
+                          "(the controller would have stopped)")
+        diffs = [] if rec_path is None else _diff_paths(rec_path, plan.path.tolist())
+        same = None if rec_path is None else not diffs
+        r_p = r_m = None
+        if truth_known:
+            tr = truth_at(field, t_new)
+            if tr is not None:
+                r_p = rmse(new_state, tr)
+                pm = _pure_model_at(loop, field, cfg.t0, dt, t_new, cache)
+                r_m = rmse(pm, tr) if pm is not None else None
+        rp_rec = None if rec is None else rec.get("rmse_passt")
+        rm_rec = None if rec is None else rec.get("rmse_model")
+        r_same = None
+        if rp_rec is not None or rm_rec is not None:
+            r_same = all(a is None or (b is not None and abs(a - b) <= rmse_tol) for a, b in ((rp_rec, r_p), (rm_rec, r_m)))
+        if lg.index in store_legs:  # the controller's own store: the log must give the same measurements
+            a = store_legs[lg.index]
+            b = {(int(x["time_boot_ms"]), x["lat"], x["lon"], x["u"], x["v"]) for x in lg.samples}
+            if a != b:
+                lnotes.append(f"samples differ from the run's store: {len(a - b)} only in the store, "
+                              f"{len(b - a)} only in the log")
+        if rec is not None and rec.get("n_samples") is not None and int(rec["n_samples"]) != len(lg.samples):
+            lnotes.append(f"{len(lg.samples)} samples rebuilt from the log, {rec['n_samples']} recorded")
+        leg = ReplayLeg(lg.index, len(lg.samples), len(samples), list(start), float(plan.t_start), int(plan.steps), int(k),
+                        plan.path.tolist(), rec_path, same, diffs, float(path_reward(plan.reward, plan.path)),
+                        r_p, r_m, rp_rec, rm_rec, r_same, lnotes)
+        legs.append(leg)
+        if first_div is None and (same is False or r_same is False):
+            first_div = lg.index
+        state, t_state = new_state, t_new
+        say(f"leg {lg.index}: {len(lg.samples)} samples, path {'identical' if same else 'differs' if same is False else '?'}"
+            + ("" if r_p is None else f", RMSE {r_p:.6f}"))
+    if rd is not None and len(recorded) > len(legs):
+        notes.append(f"{len(recorded)} legs recorded, {len(legs)} rebuilt from the log")
+    if cf:
+        reproduced = None
+    else:
+        reproduced = first_div is None and bool(legs) and all(x.path_identical is not False for x in legs)
+        if rd is not None and len(recorded) > len(legs):
+            reproduced = False
+            if first_div is None:
+                first_div = len(legs)
+    settings = {"mission": mission_src, "model": pinfo.get("used"), "planner": cfg.planner.name,
+                "reward": cfg.planner.reward, "path_length": cfg.planner.path_length, "clock": clock.describe(),
+                "field": str(cfg.field.source)}
+    result = ReplayResult(str(src), kind, cf, legs, {"path": str(tlog), "n_messages": log.n_messages,
+                          "bad_frames": log.bad_frames, "skipped_bytes": log.skipped_bytes, "n_bytes": log.n_bytes,
+                          "samples_outside_legs": log.n_samples_outside_legs}, reproduced,
+                          None if cf else first_div, float(rmse_tol), settings, notes=notes)
+    if out is not False:
+        od = Path(out) if out is not None else ((rd.root / "replay") if rd is not None else src.with_suffix(".replay"))
+        od.mkdir(parents=True, exist_ok=True)
+        result.out_dir = str(od)
+        write_json_atomic(od / "replay.json", result.to_dict())
+    return result
