@@ -417,3 +417,27 @@ def test_read_dataflash_truncated_and_junk(tmp_path):
     assert {(s.time_boot_ms, s.u, s.v) for s in c2.samples} <= ref and len(c2.samples) >= 17
     with pytest.raises(UserError):
         read_dataflash(tmp_path / "none.bin")
+
+
+def test_invalid_sequence_ack_mid_upload_does_not_end_it(tmp_path):
+    """ArduPilot answers a duplicate/out-of-order item with MISSION_ACK 13 (INVALID_SEQUENCE)
+    and keeps the transfer open; the upload is accepted by the final ACK 0, so the reader
+    must not close it at the first ack."""
+    ml = mavutil.mavlink
+    veh = ml.MAVLink(None, srcSystem=VEH, srcComponent=1)
+    gcs = ml.MAVLink(None, srcSystem=GCS, srcComponent=190)
+    wps = [(LAT0 + 0.01, LON0), (LAT0 + 0.02, LON0 + 0.01)]
+    items = [(LAT0, LON0)] + wps
+    frames = [bytes(veh.heartbeat_encode(11, 3, 1, 0, 4).pack(veh)),
+              bytes(gcs.mission_count_encode(VEH, 1, len(items)).pack(gcs))]
+    for seq, (la, lo) in enumerate(items):
+        frames.append(bytes(veh.mission_request_encode(GCS, 190, seq).pack(veh)))
+        frames.append(bytes(gcs.mission_item_int_encode(VEH, 1, seq, 6, 16, 0, 1, 0, 2, 0, 0, _deg7(la), _deg7(lo), 0).pack(gcs)))
+        if seq == 1:  # a late duplicate of item 0 is refused, the transfer goes on
+            frames.append(bytes(gcs.mission_item_int_encode(VEH, 1, 0, 6, 16, 0, 1, 0, 2, 0, 0, _deg7(LAT0), _deg7(LON0), 0).pack(gcs)))
+            frames.append(bytes(veh.mission_ack_encode(GCS, 190, 13).pack(veh)))
+    frames.append(bytes(veh.mission_ack_encode(GCS, 190, 0).pack(veh)))
+    c = read_tlog(_record_tlog(frames, tmp_path))
+    assert len(c.missions) == 1 and c.missions[0].accepted
+    assert len(c.legs) == 1
+    np.testing.assert_allclose(np.array(c.missions[0].waypoints), np.array([(_deg7(a) * 1e-7, _deg7(b) * 1e-7) for a, b in wps]), atol=1e-9)

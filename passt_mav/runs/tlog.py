@@ -484,6 +484,10 @@ class _Interpreter:
             return
         if m.target_system not in (0, up.gcs[0]):
             return
+        # INVALID_SEQUENCE (13) answers a re-sent or out-of-order item: ArduPilot keeps the
+        # transfer open and the upload goes on, so it does not end the upload here.
+        if int(m.type) == 13 and not up.complete:
+            return
         up.result, up.utc_end = int(m.type), utc
         self.upload = None
         self._event(utc, "upload", int(m.type), f"mission {up.index + 1}: {up.count} items")
