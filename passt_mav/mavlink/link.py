@@ -51,6 +51,8 @@ def secret_from_key(key: str | bytes) -> bytes:
     """32-byte MAVLink 2 signing secret: 64 hex digits taken as is, else sha256 of the passphrase.
 
     Same rule as MAVProxy's ``signing setup PASSPHRASE``, so one passphrase works on both ends.
+    (vehicle_sim has its own copy on purpose: DESIGN.md keeps the two sides of the protocol
+    independent, so neither imports the other.)
     """
     if isinstance(key, bytes):
         return key if len(key) == 32 else hashlib.sha256(key).digest()
