@@ -21,13 +21,12 @@ from passt_mav.planning.policy_gradient import DEFAULT_CHECKPOINT, random_reward
 
 
 def _validate(path, rows, cols, **kw):
-    """The geo package's validator when it exists, plus our stricter contract check."""
-    try:
-        from geo.path import validate_path  # written by another engineer
+    """The geo package's validator (what the controller runs before upload) plus our stricter contract check."""
+    from types import SimpleNamespace
 
-        validate_path(path, rows, cols)
-    except ImportError:
-        pass
+    from geo.path import validate_path
+
+    validate_path(SimpleNamespace(rows=rows, cols=cols), path)  # needs only the grid's shape
     check_path(path, rows, cols, **kw)
 
 
