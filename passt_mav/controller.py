@@ -136,6 +136,34 @@ def thin_samples(grid, t, lat, lon, u, v, *, t_start: float, dt: float):
     return Samples(mean(t), mean(r), mean(c), mean(u), mean(v))
 
 
+def leg_steps(config, grid, speed: float, dt: float, time_scale: float) -> int:
+    """Snapshots a leg is planned to span: L moves x mean cell size / speed (see passt.steps_for_leg).
+
+    speed in m/s, dt in field time units, time_scale in vehicle seconds per field time unit.
+    """
+    from passt_mav.passt import steps_for_leg
+
+    return steps_for_leg(config.planner.path_length, grid.mean_cell_size_m, speed, dt * time_scale)
+
+
+def extend_leg_to_end(loop, plan, t_samples, dt: float) -> int:
+    """Stretch ``plan`` (a :class:`~passt_mav.passt.LegPlan`) to the time the leg really ended.
+
+    The leg was sized before it flew (L x mean cell / speed); diagonal moves, turns and the
+    current make the real leg longer. Reconstructing at the planned end would compare late
+    samples with a forecast clipped to that end (stale residuals), so the forecast is
+    extended to the last sample's field time ``t_samples`` (field units). Returns the
+    leg's steps. Shared by the controller and replay, which must agree exactly.
+    """
+    t = np.asarray(t_samples, float)
+    if t.size:
+        steps_actual = max(1, int(round((float(np.max(t)) - plan.t_start) / dt)))
+        if steps_actual > plan.steps:
+            plan.forecast = loop.forecast(plan.forecast[0], steps_actual)
+            plan.steps = steps_actual
+    return int(plan.steps)
+
+
 def rmse(a, b) -> float | None:
     """RMS difference over the cells finite in both (both components); None if none are."""
     a, b = np.asarray(a, float), np.asarray(b, float)
@@ -493,8 +521,6 @@ class MissionController:
         import geo
         from passt_mav.fields.field import FlowField
         from passt_mav.mission.waypoints import WaypointMission
-        from passt_mav.passt import steps_for_leg
-
         cfg, grid, rd = self.config, self.grid, self.rd
         margin = float(cfg.geofence_margin_m)
         lat, lon = self._position()
@@ -511,8 +537,7 @@ class MissionController:
         if k:
             state = self.loop.forecast(state, k)[-1]
             t_state += k * self.dt
-        steps = steps_for_leg(cfg.planner.path_length, grid.mean_cell_size_m, self.speed,
-                              self.dt * self.clock.time_scale)
+        steps = leg_steps(cfg, grid, self.speed, self.dt, self.clock.time_scale)
         t0w = time.perf_counter()
         plan = self.loop.plan_leg(state, start, t_state, self.dt, steps=steps)
         planning_s = time.perf_counter() - t0w
@@ -574,14 +599,8 @@ class MissionController:
         if len(samples) == 0:
             raise MavlinkError(f"leg {i}: no current samples arrived (is the sensor sending "
                                f"{cfg.sensors.u}/{cfg.sensors.v}?)")
-        # The leg was sized before it flew (L x mean cell / speed); diagonal moves, turns and
-        # the current make the real leg longer. Reconstruct at the time the leg really ended,
-        # so late samples are compared with the forecast of their own time, not clipped to
-        # the planned end (which made the GP fit stale residuals).
-        steps_actual = max(1, int(round((float(np.max(t_s)) - plan.t_start) / self.dt))) if len(t_s) else steps
-        if steps_actual > steps:
-            plan.forecast = self.loop.forecast(plan.forecast[0], steps_actual)
-            plan.steps = steps = steps_actual
+        if extend_leg_to_end(self.loop, plan, t_s, self.dt) != steps:
+            steps = plan.steps
             rec.update(steps=steps, t_end=plan.t_start + steps * self.dt)
         t0w = time.perf_counter()
         new_state = self.loop.update(plan, samples)

@@ -211,12 +211,12 @@ def plan_step(loop, cfg, grid, clock, dt: float, state, t_state: float, start, k
 
     Does not change ``loop`` (planner seeds depend on ``loop.leg_index``, advanced by the update).
     """
-    from passt_mav.passt import steps_for_leg
+    from passt_mav.controller import leg_steps
 
     if k:
         state = loop.forecast(state, k)[-1]
         t_state += k * dt
-    steps = steps_for_leg(cfg.planner.path_length, grid.mean_cell_size_m, speed, dt * clock.time_scale)
+    steps = leg_steps(cfg, grid, speed, dt, clock.time_scale)
     return loop.plan_leg(state, tuple(int(x) for x in start), t_state, dt, steps=steps)
 
 
@@ -227,7 +227,7 @@ def update_step(loop, cfg, grid, clock, dt: float, plan, recs):
     Returns ``(samples, new_state, t_new)``; with no samples the state is the forecast at the leg's
     end (the controller would have stopped there: it needs samples).
     """
-    from passt_mav.controller import thin_samples, to_field_units
+    from passt_mav.controller import extend_leg_to_end, thin_samples, to_field_units
 
     tb = np.array([r["time_boot_ms"] for r in recs], float)
     u, v = to_field_units(grid, [r["u"] for r in recs], [r["v"] for r in recs], cfg.field.velocity_scale)
@@ -235,13 +235,7 @@ def update_step(loop, cfg, grid, clock, dt: float, plan, recs):
                            t_start=plan.t_start, dt=dt)
     from passt_mav.errors import ReconstructionError
 
-    # as the controller (since it extends legs): reconstruct at the time the leg really ended
-    t_s = clock.field_time(tb)
-    if len(t_s):
-        steps_actual = max(1, int(round((float(np.max(t_s)) - plan.t_start) / dt)))
-        if steps_actual > plan.steps:
-            plan.forecast = loop.forecast(plan.forecast[0], steps_actual)
-            plan.steps = steps_actual
+    extend_leg_to_end(loop, plan, clock.field_time(tb), dt)  # the controller's own rule
     t_new = plan.t_start + plan.steps * dt
     if len(samples) == 0:
         loop.leg_index += 1  # keep the planner seeds of later legs aligned with the run's
