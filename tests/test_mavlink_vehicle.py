@@ -31,15 +31,21 @@ def test_three_waypoint_mission_ready_arm_auto_complete_then_hold(use_mission_st
         v.wait_ready(timeout=5)
         v.arm(timeout=5)
         assert v.armed and sim.autopilot.armed
-        v.start_mission(use_mission_start=use_mission_start)
-        assert v.mode_name == "AUTO"
-        p = v.wait_mission_complete(3, timeout=10)
+        with link.subscribe("GLOBAL_POSITION_INT") as track:
+            v.start_mission(use_mission_start=use_mission_start)
+            assert v.mode_name == "AUTO"
+            p = v.wait_mission_complete(3, timeout=10)
+            fixes = track.drain()
         assert p.reached == [1, 2, 3]
         assert v.mode == ROVER_MODES["HOLD"] and sim.autopilot.mode == ROVER_MODES["HOLD"]
-        # the boat really is at the last waypoint (WP_RADIUS 2 m)
-        lat, lon = v.position()
-        _, _, dist = GEOD.inv(lon, lat, wps[-1].lon, wps[-1].lat)
-        assert dist < 2.0 + 1.0
+        # the boat really came to the last waypoint (WP_RADIUS 2 m, + 1 m for a 5 m/s boat
+        # between fixes). Its position after HOLD depends on how much simulated time the
+        # HOLD command took to arrive at 50x under load, so the closest approach is tested.
+        lats = [m.lat * 1e-7 for m in fixes]
+        lons = [m.lon * 1e-7 for m in fixes]
+        assert len(fixes) >= 3
+        _, _, dist = GEOD.inv(lons, lats, [wps[-1].lon] * len(fixes), [wps[-1].lat] * len(fixes))
+        assert min(dist) < 2.0 + 1.0
         assert "Mission Complete" in [t for _, _, t in link.texts]
 
 
