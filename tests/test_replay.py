@@ -17,7 +17,6 @@ import shutil
 import numpy as np
 import pytest
 import yaml
-from pymavlink import mavutil
 
 import test_controller as tc
 from mavlink_helpers import served
@@ -170,17 +169,9 @@ def test_pymavlink_logger_tlog_replays_into_the_same_samples(flown, tmp_path):
     """Re-record the flight through pymavlink's own tlog writer (as MAVProxy logs)."""
     rd, mfile, summary = flown
     frames = [m.get_msgbuf() for _, m in _TlogScanner(rd.tlog.read_bytes())]
-    raw = tmp_path / "frames.raw"
-    raw.write_bytes(b"".join(bytes(f) for f in frames))
-    out = tmp_path / "mavproxy.tlog"
-    src = mavutil.mavlogfile(str(raw), notimestamps=True)
-    src.setup_logfile(str(out))
-    n = 0
-    while src.recv_msg() is not None:
-        n += 1
-    src.logfile.close()
-    src.close()
-    assert n == len(frames)
+    from test_tlog import _record_tlog  # pymavlink's own tlog writer, as MAVProxy records
+
+    out = _record_tlog([bytes(f) for f in frames], tmp_path, name="mavproxy.tlog")
     log = rebuild_from_tlog(out)
     store = _store_legs(rd)
     assert [_tuples(lg.samples) for lg in log.legs] == [store[0], store[1]]
