@@ -176,3 +176,14 @@ class SimClient:
             return None
         self.mav.mission_ack_send(1, 1, M.MAV_MISSION_ACCEPTED, mission_type)
         return items
+
+
+def free_port() -> int:
+    """A loopback TCP port nobody listens on right now (the OS picks it)."""
+    import socket
+
+    s = socket.socket()
+    s.bind(("127.0.0.1", 0))
+    p = s.getsockname()[1]
+    s.close()
+    return p

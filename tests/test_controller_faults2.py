@@ -31,15 +31,10 @@ from passt_mav.runs.rundir import RunDir
 from passt_mav.runs.store import SampleStore
 from test_controller import SPEEDUP, controller, mission, sim_config, wave_field
 from vehicle_sim.link import secret_from_key
+from simclient import free_port
+from test_controller_faults import _modes
 
 AUTO = 10  # ArduPilot Rover custom_mode
-
-
-def _modes(link) -> list[int]:
-    """Every custom_mode the vehicle's heartbeats show from now on."""
-    seen: list[int] = []
-    link.add_listener(lambda m: seen.append(int(m.custom_mode)) if m.get_srcSystem() == 1 else None, "HEARTBEAT")
-    return seen
 
 
 # -- 1. DENIED: another GCS holds a mission transfer open ------------------------------------
@@ -132,12 +127,6 @@ def test_controller_without_the_key_is_ignored_and_times_out(tmp_path):
 KILL_SPEEDUP = 20  # a leg of ~30 s vehicle time lasts ~1.5 s of wall time: room to kill it mid-leg
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 def _wait_port(port: int, proc, timeout: float = 30.0) -> None:
     end = time.monotonic() + timeout
     while time.monotonic() < end:
@@ -174,7 +163,7 @@ def test_run_killed_mid_leg_then_resume_finishes_and_keeps_samples(tmp_path):
     cfg = mission(tmp_path, field, legs=2)  # writes wave.nc; validates the mapping we write below
     mfile = tmp_path / "wave.yaml"
     mfile.write_text(yaml.safe_dump(cfg.model_dump(mode="json"), sort_keys=False))
-    port = _free_port()
+    port = free_port()
     run_dir = tmp_path / "run"
     env = dict(os.environ, OMP_NUM_THREADS="1", PYTHONUNBUFFERED="1")
     bindir = Path(sys.executable).parent

@@ -16,6 +16,7 @@ from passt_mav.mavlink.link import _is_vehicle_heartbeat
 from passt_mav.mission.items import MissionItem
 from vehicle_sim import LinkConfig as SimLinkConfig
 from vehicle_sim import SimConfig, Simulator
+from simclient import free_port
 
 
 @pytest.mark.parametrize("good", ["tcp:127.0.0.1:5760", "udpin:0.0.0.0:14550", "udpout:127.0.0.1:14550",
@@ -42,14 +43,8 @@ def test_gcs_heartbeats_are_not_vehicles():
     assert _is_vehicle_heartbeat(M.MAVLink_heartbeat_message(M.MAV_TYPE_SURFACE_BOAT, M.MAV_AUTOPILOT_ARDUPILOTMEGA, 0, 0, 0, 3))
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 def test_tcp_loopback_connect_streams_rtt_tlog_and_gcs_heartbeats(tmp_path):
-    port = _free_port()
+    port = free_port()
     sim = Simulator(None, home=HOME, config=SimConfig.fast())
     sim.serve([f"tcp:127.0.0.1:{port}"], speedup=20)
     tlog = tmp_path / "gcs.tlog"
@@ -83,7 +78,7 @@ def test_tcp_loopback_connect_streams_rtt_tlog_and_gcs_heartbeats(tmp_path):
 
 
 def test_no_vehicle_raises_link_timeout_quickly():
-    port = _free_port()
+    port = free_port()
     srv = socket.socket()
     srv.bind(("127.0.0.1", port))
     srv.listen(1)  # accepts, never speaks

@@ -12,7 +12,7 @@ import pytest
 from pymavlink import mavutil
 from pymavlink.dialects.v20 import ardupilotmega as M
 
-from simclient import SimClient
+from simclient import SimClient, free_port
 from vehicle_sim import LinkConfig, MODES, SimConfig, Simulator
 from vehicle_sim.cli import main as cli_main
 
@@ -166,16 +166,8 @@ def test_fuzz_inprocess_1e5_frames():
     _still_works(sim)
 
 
-def _free_port() -> int:
-    s = socket.socket()
-    s.bind(("127.0.0.1", 0))
-    p = s.getsockname()[1]
-    s.close()
-    return p
-
-
 def test_tcp_two_clients_and_socket_fuzz_smoke():
-    port = _free_port()
+    port = free_port()
     sim = Simulator(None, home=HOME, config=SimConfig.fast())
     sim.serve([f"tcp:127.0.0.1:{port}"], speedup=20)
     try:
@@ -203,7 +195,7 @@ def test_tcp_two_clients_and_socket_fuzz_smoke():
 
 
 def test_udpout_like_sitl_gcs_output():
-    port = _free_port()
+    port = free_port()
     gcs = mavutil.mavlink_connection(f"udpin:127.0.0.1:{port}", source_system=255)
     sim = Simulator(None, home=HOME, config=SimConfig.fast())
     sim.serve([f"udpout:127.0.0.1:{port}"], speedup=20)
@@ -232,7 +224,7 @@ def test_cli_help_and_bad_input(capsys):
 
 
 def test_cli_serves_and_stops(tmp_path):
-    port = _free_port()
+    port = free_port()
     tlog = tmp_path / "cli.tlog"
     proc = subprocess.Popen([sys.executable, "-m", "vehicle_sim.cli", "--home", "40,-63", "--listen", f"tcp:127.0.0.1:{port}",
                              "--speedup", "10", "--fast-boot", "--tlog", str(tlog), "--quiet"],
@@ -284,7 +276,7 @@ def test_cli_field_options_metric_anchor_region_and_start_time(tmp_path):
 def test_lockstep_over_tcp_advances_only_when_asked():
     from vehicle_sim.sim import STEP_COMMAND
 
-    port = _free_port()
+    port = free_port()
     sim = Simulator(None, home=HOME, config=SimConfig.fast())
     sim.serve([f"tcp:127.0.0.1:{port}"], lockstep=True)
     try:

@@ -7,24 +7,16 @@ runs with a speedup and the test is marked slow (~10 s).
 from __future__ import annotations
 
 import math
-import socket
 import time
 
 import pytest
 
 from vehicle_sim import SimConfig, Simulator
+from simclient import free_port
 
 mavsdk = pytest.importorskip("mavsdk")
 
 HOME = (40.0, -63.0)
-
-
-def _free_port() -> int:
-    s = socket.socket()
-    s.bind(("127.0.0.1", 0))
-    p = s.getsockname()[1]
-    s.close()
-    return p
 
 
 @pytest.mark.slow
@@ -34,7 +26,7 @@ def test_mavsdk_mission_raw_upload_download_arm_start_and_progress():
     from mavsdk.plugins.mission_raw import MissionItem, MissionRaw, MissionRawResult
     from mavsdk.plugins.telemetry import Telemetry
 
-    port = _free_port()
+    port = free_port()
     # storage initialises 15 s (1.5 s wall) after boot: MAVSDK's first upload meets NO_SPACE,
     # which it reports as TOO_MANY_MISSION_ITEMS (ARDUPILOT_ROVER.md); a retry later succeeds
     sim = Simulator(None, home=HOME, config=SimConfig.fast(storage_ready_s=15.0, ekf_gps_s=1.5))
