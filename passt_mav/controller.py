@@ -164,6 +164,29 @@ def extend_leg_to_end(loop, plan, t_samples, dt: float) -> int:
     return int(plan.steps)
 
 
+def pure_model_at(loop, field, t0_index: int, dt: float, t: float, cache: dict) -> np.ndarray | None:
+    """The model alone from the truth at snapshot ``t0_index`` (no re-initialisation), at field time ``t``.
+
+    Linear between the model's steps; (2, R, C) float64, or None before t0 or without a model.
+    ``cache`` (a dict the caller keeps) holds the trajectory so later calls only extend it.
+    Shared by the controller and replay, whose RMSE figures must agree to 1e-6.
+    """
+    if loop.predictor is None:
+        return None
+    t0 = float(field.times[t0_index])
+    x = (t - t0) / dt
+    if x < 0:
+        return None
+    need = int(math.ceil(x)) + 1
+    pure = cache.get("pure")
+    if pure is None or len(pure) <= need:
+        s = np.array(field.data[t0_index], dtype=np.float32)
+        pure = cache["pure"] = loop.forecast(s, max(need, 2 * (need // 2 + 1)))
+    k = int(math.floor(x))
+    w = x - k
+    return (1 - w) * pure[k].astype(float) + w * pure[min(k + 1, len(pure) - 1)].astype(float)
+
+
 def rmse(a, b) -> float | None:
     """RMS difference over the cells finite in both (both components); None if none are."""
     a, b = np.asarray(a, float), np.asarray(b, float)
@@ -340,7 +363,7 @@ class MissionController:
         self.leg_records: list[dict] = []
         self.status = "running"
         self.started_utc = _utc_now()
-        self._pure: np.ndarray | None = None
+        self._pure_cache: dict = {}  # pure_model_at's trajectory of the model alone
         self.store = None
         self.collector = None
         self.writer = None
@@ -370,20 +393,7 @@ class MissionController:
         return p
 
     def _pure_model_at(self, t: float) -> np.ndarray | None:
-        """The model alone from the truth at t0 (no re-initialisation), linear between its steps."""
-        if self.predictor is None:
-            return None
-        t0 = float(self.field.times[self.config.t0])
-        x = (t - t0) / self.dt
-        if x < 0:
-            return None
-        need = int(math.ceil(x)) + 1
-        if self._pure is None or len(self._pure) <= need:
-            s = np.array(self.field.data[self.config.t0], dtype=np.float32)
-            self._pure = self.loop.forecast(s, max(need, 2 * (need // 2 + 1)))
-        k = int(math.floor(x))
-        w = x - k
-        return (1 - w) * self._pure[k].astype(float) + w * self._pure[min(k + 1, len(self._pure) - 1)].astype(float)
+        return pure_model_at(self.loop, self.field, self.config.t0, self.dt, t, self._pure_cache)
 
     def _link_snapshot(self) -> tuple[int, int]:
         return self.link.stats.received, self.link.stats.drops

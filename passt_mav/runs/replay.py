@@ -27,8 +27,8 @@ the replayed forecast, its RMSE uses the real samples).
 
 The controller has no public function for its between-leg step (it is inline in
 ``MissionController._leg``); :func:`plan_step` / :func:`update_step` are the minimal
-adapter that repeats it, and :func:`_pure_model_at` repeats
-``MissionController._pure_model_at``. A ``controller.plan_step`` / ``update_step``
+adapter that repeats it (the model-alone baseline is the controller's own
+:func:`~passt_mav.controller.pure_model_at`). A ``controller.plan_step`` / ``update_step``
 pair used by both would remove the duplication.
 
 The clock. The controller reads the vehicle's clock (newest ``time_boot_ms``) after
@@ -46,7 +46,6 @@ refused with a one-line error.
 
 from __future__ import annotations
 
-import math
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -262,24 +261,6 @@ def leg_step(loop, cfg, grid, clock, dt: float, state, t_state: float, start, t_
     return plan, samples, new_state, t_new, k
 
 
-def _pure_model_at(loop, field, t0_index: int, dt: float, t: float, cache: dict):
-    """``MissionController._pure_model_at``: the model alone from the truth at t0, linear between steps."""
-    if loop.predictor is None:
-        return None
-    t0 = float(field.times[t0_index])
-    x = (t - t0) / dt
-    if x < 0:
-        return None
-    need = int(math.ceil(x)) + 1
-    pure = cache.get("pure")
-    if pure is None or len(pure) <= need:
-        s = np.array(field.data[t0_index], dtype=np.float32)
-        pure = cache["pure"] = loop.forecast(s, max(need, 2 * (need // 2 + 1)))
-    k = int(math.floor(x))
-    w = x - k
-    return (1 - w) * pure[k].astype(float) + w * pure[min(k + 1, len(pure) - 1)].astype(float)
-
-
 def _clock_bracket(lg, clock, t_state: float, dt: float) -> list[int]:
     """Forecast steps the controller may have taken before planning ``lg`` (see :class:`LoggedLeg`)."""
     k_lo = max(0, int(round((float(clock.field_time(lg.t_lo_ms)) - t_state) / dt)))
@@ -423,7 +404,7 @@ def replay(source, *, out=None, model: str | None = None, planner: str | None = 
     Raises:
         ReplayError / UserError: bad input (the CLI prints one line, exit 2).
     """
-    from passt_mav.controller import FieldClock, build_loop, build_predictor, rmse, truth_at
+    from passt_mav.controller import FieldClock, build_loop, build_predictor, pure_model_at, rmse, truth_at
     from passt_mav.fields.datasets import resolve_field
     from passt_mav.planning import PLANNERS, REWARDS, path_reward
     from passt_mav.runs.rundir import RunDir, RunDirError, write_json_atomic
@@ -595,7 +576,7 @@ def replay(source, *, out=None, model: str | None = None, planner: str | None = 
             tr = truth_at(field, t_new)
             if tr is not None:
                 r_p = rmse(new_state, tr)
-                pm = _pure_model_at(loop, field, cfg.t0, dt, t_new, cache)
+                pm = pure_model_at(loop, field, cfg.t0, dt, t_new, cache)
                 r_m = rmse(pm, tr) if pm is not None else None
         rp_rec = None if rec is None else rec.get("rmse_passt")
         rm_rec = None if rec is None else rec.get("rmse_model")
