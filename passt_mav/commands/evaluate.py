@@ -325,7 +325,12 @@ def _load_predictor(spec: str, field):
         raise ModelError(f"predictors are not available ({exc})") from None
     if spec in PREDICTORS:
         return make_predictor(spec).fit(field)
-    return load_predictor(spec)
+    p = load_predictor(spec)
+    from passt_mav.models.evaluate import echo_skill
+
+    # the skill line goes to stderr so that --json output stays one JSON document
+    echo_skill(spec, getattr(p, "metadata_", None), lambda m: print(m, file=sys.stderr))
+    return p
 
 
 def _parse_lengths(s: str) -> list[int]:

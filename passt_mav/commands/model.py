@@ -37,7 +37,20 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     t.add_argument("--substeps", type=int, default=6, help="integrator steps per snapshot interval (default 6)")
     t.add_argument("--method", default="euler", help="integrator: euler (default) | rk4")
     t.add_argument("--kernel-variance", type=float, default=0.1, help="smoothing K variance in cell^2 (default 0.1, as the paper)")
-    t.add_argument("--noise-var", type=float, default=1e-3, help="training input-noise variance, scaled units (default 1e-3)")
+    t.add_argument("--noise-var", type=float, default=1e-3, help="white training input-noise variance, scaled units (default 1e-3)")
+    t.add_argument("--recipe", default="loop", choices=("loop", "paper"), help="loop (default): roll-out loss over a leg, GP-residual noise, validation with best-epoch selection, start from persistence; paper: one-step loss, white noise, no validation (the options below override either)")
+    t.add_argument("--loss", default=None, choices=("one_step", "rollout"), help="training loss (recipe loop: rollout; paper: one_step)")
+    t.add_argument("--horizon", type=int, default=None, help="roll-out length in snapshots for --loss rollout (default 10, a PASST leg)")
+    t.add_argument("--curriculum", type=float, default=None, help="fraction of epochs over which the roll-out grows from 1 to --horizon (default 0.3)")
+    t.add_argument("--noise", default=None, choices=("white", "gp"), help="input noise: gp = size/correlation measured from GP reconstructions (loop) | white (paper)")
+    t.add_argument("--noise-scale", type=float, default=None, help="multiplier on the measured GP-residual noise (default 1)")
+    t.add_argument("--val-frac", type=float, default=None, help="last fraction of the window held out for validation and the skill report (loop: 0.2; paper: 0)")
+    t.add_argument("--val-every", type=int, default=None, help="epochs between validations (default 1)")
+    t.add_argument("--patience", type=int, default=None, help="stop after this many epochs without a better validation loss (default 60; 0 = never)")
+    t.add_argument("--train-batch", type=int, default=None, help="initial conditions per optimiser step (default 32)")
+    t.add_argument("--max-ics", type=int, default=None, help="initial conditions drawn per epoch (default 0 = all)")
+    t.add_argument("--compile", action="store_true", help="train through torch.compile where it works (falls back to eager)")
+    t.add_argument("--no-skill", action="store_true", help="skip the skill report on the validation window")
     t.add_argument("--device", default="cpu", help="torch device (default cpu)")
     t.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's)")
     t.add_argument("--log", default=None, help="append 'epoch loss' lines to this file")
@@ -55,6 +68,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     e.add_argument("--ic-stride", type=int, default=1, help="use every n-th snapshot as initial condition (default 1: all)")
     e.add_argument("--pod-window", default="300:350", help="window for POD energy of predicted vs true (default 300:350)")
     e.add_argument("--pod-modes", type=int, default=6, help="POD modes reported (default 6)")
+    e.add_argument("--no-gp-starts", action="store_true", help="skip the errors from GP-reconstructed initial states (the states the PASST loop starts from)")
+    e.add_argument("--gp-ic-stride", type=int, default=4, help="every n-th test snapshot is GP-reconstructed as an initial condition (default 4)")
+    e.add_argument("--gp-path-length", type=int, default=50, help="moves of the random sampling path per reconstruction (default 50)")
+    e.add_argument("--gp-noise", type=float, default=0.02, help="sensor noise std of the samples, field units (default 0.02)")
+    e.add_argument("--seed", type=int, default=0, help="seed of the sampling paths and noise (default 0)")
     e.add_argument("--threads", type=int, default=None, help="torch CPU threads")
     e.add_argument("--json", action="store_true", help="print the results as JSON")
     e.add_argument("--out", default=None, help="output directory for results.json and PNG plots")
@@ -86,7 +104,7 @@ def _train(args) -> int:
 
     try:
         cmd = "passt-mav model " + " ".join(sys.argv[2:]) if sys.argv[1:2] == ["model"] else None
-        s = train(args.data, out=args.out, model=args.model, start=args.start, stop=args.stop, epochs=args.epochs, seed=args.seed, lr=args.lr, n_batches=args.n_batches, substeps=args.substeps, method=args.method, kernel_variance=args.kernel_variance, noise_var=args.noise_var, device=args.device, threads=args.threads, progress=not args.no_progress, command=cmd, log=log)
+        s = train(args.data, out=args.out, model=args.model, start=args.start, stop=args.stop, epochs=args.epochs, seed=args.seed, lr=args.lr, n_batches=args.n_batches, substeps=args.substeps, method=args.method, kernel_variance=args.kernel_variance, noise_var=args.noise_var, device=args.device, threads=args.threads, progress=not args.no_progress, command=cmd, log=log, recipe=args.recipe, overrides={k: getattr(args, k) for k in ("loss", "horizon", "curriculum", "noise", "noise_scale", "val_frac", "val_every", "patience", "train_batch", "max_ics") if getattr(args, k) is not None} | ({"compile": True} if args.compile else {}), skill=not args.no_skill)
     finally:
         if logf is not None:
             logf.close()
@@ -94,7 +112,15 @@ def _train(args) -> int:
         print(json.dumps(s))
     else:
         for k, v in s.items():
-            print(f"{k:>18}: {v}")
+            if k != "skill":
+                print(f"{k:>18}: {v}")
+        if s.get("skill"):
+            from passt_mav.models.evaluate import skill_lines, skill_warning
+
+            print("\n".join(skill_lines(s["skill"])))
+            w = skill_warning({"skill": s["skill"]})
+            if w:
+                print(w)
         print(f"checkpoint written: {s['out']} (+ .json)")
     return 0
 
@@ -113,13 +139,19 @@ def _evaluate(args) -> int:
                 from passt_mav.errors import ModelError
 
                 raise ModelError(f"--lookaheads must be comma-separated integers, got {args.lookaheads!r}") from None
-    res = evaluate_command(model=args.model, data=args.data, train=_window(args.train, "train"), test=_window(args.test, "test"), oscillating=args.oscillating, lookaheads=lookaheads, baselines=[b for b in args.baselines.split(",") if b.strip()], ic_stride=args.ic_stride, pod_window=_window(args.pod_window, "pod-window"), pod_modes=args.pod_modes, threads=args.threads, out=args.out)
+    res = evaluate_command(model=args.model, data=args.data, train=_window(args.train, "train"), test=_window(args.test, "test"), oscillating=args.oscillating, lookaheads=lookaheads, baselines=[b for b in args.baselines.split(",") if b.strip()], ic_stride=args.ic_stride, pod_window=_window(args.pod_window, "pod-window"), pod_modes=args.pod_modes, threads=args.threads, out=args.out, gp_starts=not args.no_gp_starts, gp_ic_stride=args.gp_ic_stride, gp_path_length=args.gp_path_length, gp_noise=args.gp_noise, seed=args.seed)
     if args.json:
         print(json.dumps(res))
     else:
         from passt_mav.models.evaluate import format_table
 
         print(format_table(res))
+        if res.get("skill"):
+            from passt_mav.models.evaluate import skill_lines
+
+            print("\n".join(skill_lines(res["skill"])))
+        if res.get("skill_warning"):
+            print(res["skill_warning"])
         if args.out:
             print(f"results written to {args.out}")
     return 0

@@ -18,21 +18,24 @@ from __future__ import annotations
 import json
 import time
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 
 from passt_mav.errors import ModelError
 from passt_mav.models.metrics import cosine_distance, mse
 
-__all__ = ["LOOKAHEADS", "lookahead_errors", "pod_comparison", "evaluate_predictors", "evaluate_command", "format_table", "write_plots"]
+__all__ = ["LOOKAHEADS", "lookahead_errors", "gp_initial_states", "skill_report", "skill_lines", "skill_warning", "echo_skill", "pod_comparison", "evaluate_predictors", "evaluate_command", "format_table", "write_plots"]
 
 LOOKAHEADS = (1, 2, 5, 10, 20, 50, 100)
 
 
-def lookahead_errors(predictor, data: np.ndarray, window: tuple[int, int], lookaheads=LOOKAHEADS, *, ic_stride: int = 1) -> dict:
+def lookahead_errors(predictor, data: np.ndarray, window: tuple[int, int], lookaheads=LOOKAHEADS, *, ic_stride: int = 1, initial_states: dict | None = None) -> dict:
     """``{h: {"mse", "cosine", "n_ic"}}`` for the lookaheads the window allows (see module docstring).
 
     ``data``: ``(time, 2, rows, cols)`` float32 (NaN = land/missing).
+    ``initial_states``: ``{t: (2, R, C)}`` states to start from instead of the truth at
+    ``t`` (e.g. GP reconstructions, :func:`gp_initial_states`); then only those ``t`` are used.
     """
     a, b = int(window[0]), int(window[1])
     if not (0 <= a < b <= data.shape[0]):
@@ -41,6 +44,8 @@ def lookahead_errors(predictor, data: np.ndarray, window: tuple[int, int], looka
     if not hs:
         raise ModelError(f"no lookahead in {list(lookaheads)} fits window {a}:{b}")
     ics = np.arange(a, b - 1, max(1, int(ic_stride)))
+    if initial_states is not None:
+        ics = np.array(sorted(t for t in initial_states if a <= t < b - 1), dtype=int)
     # steps each initial condition needs: the largest lookahead it can be scored on
     need = np.array([max([h for h in hs if t + h < b], default=0) for t in ics])
     preds: dict[int, np.ndarray] = {}
@@ -48,7 +53,7 @@ def lookahead_errors(predictor, data: np.ndarray, window: tuple[int, int], looka
         if H == 0:
             continue
         sel = ics[need == H]
-        x = np.nan_to_num(data[sel], nan=0.0)
+        x = np.nan_to_num(data[sel], nan=0.0) if initial_states is None else np.stack([initial_states[int(t)] for t in sel])
         p = predictor.predict(x, H)  # (n, H, 2, R, C)
         for t, pt in zip(sel, p):
             preds[int(t)] = pt
@@ -59,6 +64,96 @@ def lookahead_errors(predictor, data: np.ndarray, window: tuple[int, int], looka
         Tr = data[np.array(ts) + h]
         out[h] = {"mse": mse(P, Tr), "cosine": cosine_distance(P, Tr), "n_ic": len(ts)}
     return out
+
+
+def gp_initial_states(field, window: tuple[int, int], *, ic_stride: int = 1, path_length: int = 50, noise_std: float = 0.02, seed: int = 0, progress: bool = False) -> dict:
+    """``{t: (2, R, C)}``: GP reconstructions of snapshots of ``window`` as the loop makes them.
+
+    Samples along a random ``path_length``-move path at ``t`` with sensor noise
+    ``noise_std`` (field units), GP prior the truth at ``t - 1``
+    (:func:`passt_mav.models.noise.reconstruct_states`); the same states are given to
+    every predictor, so their errors compare.
+    """
+    from passt_mav.models.noise import reconstruct_states
+
+    a, b = int(window[0]), int(window[1])
+    ts = np.arange(max(a, 1), b - 1, max(1, int(ic_stride)))
+    rec = reconstruct_states(field.data, field.grid, field.times, ts, path_length=path_length, noise_std=noise_std, seed=seed, land=field.land_mask, progress=progress)
+    return {int(t): r for t, r in zip(ts, rec)}
+
+
+def skill_report(predictor, field, *, train: tuple[int, int], val: tuple[int, int], horizon: int = 10, seed: int = 0, lookaheads=(1, 2, 5, 10, 20, 50)) -> dict:
+    """Skill of ``predictor`` on the held-out window ``val``: MSE vs lookahead beside persistence and DMD.
+
+    DMD is fitted on the training part ``(train[0], val[0])``. Errors from the true states
+    (``"true"``) and from GP reconstructions (``"gp"``, see :func:`gp_initial_states`).
+    ``"verdict"``: per start, whether the model's mean MSE over lookaheads ``<= horizon``
+    is below persistence's (``"beats_persistence"``), and the ratio.
+    """
+    from passt_mav.models.base import make_predictor
+
+    fit_win = (int(train[0]), int(val[0]))
+    others = {"persistence": make_predictor("persistence").fit(field, start=fit_win[0], stop=fit_win[1])}
+    try:
+        others["dmd"] = make_predictor("dmd").fit(field, start=fit_win[0], stop=fit_win[1])
+    except Exception:  # noqa: BLE001 - DMD needs enough snapshots; the report says when it could not be fitted
+        others["dmd"] = None
+    preds = {"model": predictor, **{k: v for k, v in others.items() if v is not None}}
+    win = (int(val[0]), int(val[1]))
+    hs = [h for h in lookaheads if h <= win[1] - win[0] - 1]
+    gp_states = gp_initial_states(field, win, seed=seed + 31)
+    rep: dict = {"window": list(win), "fit_window": list(fit_win), "lookaheads": hs, "horizon": int(horizon)}
+    for start, init in (("true", None), ("gp", gp_states)):
+        rep[start] = {n: {str(h): v["mse"] for h, v in lookahead_errors(p, field.data, win, hs, initial_states=init).items()} for n, p in preds.items()}
+    verdict = {}
+    for start in ("true", "gp"):
+        keep = [str(h) for h in hs if h <= horizon] or [str(hs[0])]
+        m = float(np.mean([rep[start]["model"][h] for h in keep]))
+        pz = float(np.mean([rep[start]["persistence"][h] for h in keep]))
+        verdict[start] = {"model": m, "persistence": pz, "ratio": m / pz if pz > 0 else None, "beats_persistence": bool(m < pz)}
+    rep["verdict"] = verdict
+    return rep
+
+
+def skill_lines(rep: dict) -> list[str]:
+    """A printable table of a :func:`skill_report`."""
+    lines = [f"skill on the held-out window {rep['window'][0]}:{rep['window'][1]} (MSE in field units^2, e.g. (m/s)^2)"]
+    for start in ("true", "gp"):
+        names = list(rep[start])
+        lines.append(f"  {'from true states' if start == 'true' else 'from GP reconstructions'}".ljust(28) + "".join(f"{n:>13}" for n in names))
+        for h in rep["lookaheads"]:
+            lines.append(f"    h={h}".ljust(28) + "".join(f"{rep[start][n][str(h)]:>13.3e}" for n in names))
+    v = rep["verdict"]
+    lines.append(f"  over the leg horizon (h <= {rep['horizon']}): model/persistence = {v['true']['ratio']:.3f} from true states, {v['gp']['ratio']:.3f} from GP states")
+    return lines
+
+
+def skill_warning(meta: dict) -> str | None:
+    """One line when a checkpoint's stored skill says it is worse than persistence over the leg horizon."""
+    rep = (meta or {}).get("skill")
+    if not rep:
+        return None
+    bad = [s for s in ("true", "gp") if not rep["verdict"][s]["beats_persistence"]]
+    if not bad:
+        return None
+    v = rep["verdict"][bad[-1]]
+    return (f"warning: this model is worse than persistence over the leg horizon on its validation window "
+            f"({'GP-reconstructed' if bad[-1] == 'gp' else 'true'} starts: MSE {v['model']:.3g} vs {v['persistence']:.3g}); "
+            f"consider --model persistence or more training data")
+
+
+def echo_skill(spec: str, meta: dict | None, echo: Callable[[str], None]) -> None:
+    """Print a checkpoint's stored validation skill, and a one-line warning when it loses to persistence."""
+    rep = (meta or {}).get("skill")
+    if not rep:
+        echo(f"model {spec}: no skill report stored (trained before skill reports, or without a validation window)")
+        return
+    v = rep["verdict"]
+    echo(f"model {spec}: skill on its validation window {rep['window'][0]}:{rep['window'][1]}, MSE model/persistence over "
+         f"h <= {rep['horizon']}: {v['true']['ratio']:.3f} from true states, {v['gp']['ratio']:.3f} from GP reconstructions")
+    w = skill_warning(meta)
+    if w:
+        echo(w)
 
 
 def pod_comparison(predictor, data: np.ndarray, window: tuple[int, int], n_modes: int = 6) -> dict:
@@ -84,15 +179,16 @@ def pod_comparison(predictor, data: np.ndarray, window: tuple[int, int], n_modes
 def evaluate_predictors(predictors: dict, windows: dict, lookaheads=LOOKAHEADS, *, ic_stride: int = 1, pod: tuple | None = None, pod_modes: int = 6) -> dict:
     """Every predictor on every window.
 
-    ``windows``: ``{label: (data (T,2,R,C), (a, b))}``. ``pod``: ``(data, (a, b))`` or None.
+    ``windows``: ``{label: (data (T,2,R,C), (a, b))}`` or ``{label: (data, (a, b), initial_states)}``
+    (``initial_states`` as in :func:`lookahead_errors`). ``pod``: ``(data, (a, b))`` or None.
     Returns ``{"lookahead": {label: {predictor: {h: {...}}}}, "pod": {predictor: {...}}, "seconds": {...}}``.
     """
     res: dict = {"lookahead": {}, "pod": {}, "seconds": {}}
-    for label, (data, win) in windows.items():
+    for label, (data, win, *init) in windows.items():
         res["lookahead"][label] = {}
         for name, p in predictors.items():
             t0 = time.perf_counter()
-            res["lookahead"][label][name] = {str(h): v for h, v in lookahead_errors(p, data, win, lookaheads, ic_stride=ic_stride).items()}
+            res["lookahead"][label][name] = {str(h): v for h, v in lookahead_errors(p, data, win, lookaheads, ic_stride=ic_stride, initial_states=init[0] if init else None).items()}
             res["seconds"][f"{label}/{name}"] = round(time.perf_counter() - t0, 3)
     if pod is not None:
         for name, p in predictors.items():
@@ -140,7 +236,7 @@ def write_plots(res: dict, out_dir: Path) -> list[str]:
         ax[0].legend()
         fig.suptitle(f"prediction error vs lookahead - {label}")
         fig.tight_layout()
-        p = out_dir / f"error_vs_lookahead_{label}.png"
+        p = out_dir / f"error_vs_lookahead_{label.replace('/', '_')}.png"
         fig.savefig(p, dpi=110)
         plt.close(fig)
         files.append(str(p))
@@ -175,8 +271,14 @@ def _model_from_spec(spec: str, field, train: tuple[int, int]):
     return p.name, p
 
 
-def evaluate_command(*, model: str, data: str, train=(200, 300), test=(300, 400), oscillating: str | None = None, lookaheads=LOOKAHEADS, baselines=("dmd", "persistence"), ic_stride: int = 1, pod_window=(300, 350), pod_modes: int = 6, threads: int | None = None, out: str | None = None) -> dict:
-    """What ``passt-mav model evaluate`` does; returns the JSON-able results (and writes them under ``out``)."""
+def evaluate_command(*, model: str, data: str, train=(200, 300), test=(300, 400), oscillating: str | None = None, lookaheads=LOOKAHEADS, baselines=("dmd", "persistence"), ic_stride: int = 1, pod_window=(300, 350), pod_modes: int = 6, threads: int | None = None, out: str | None = None, gp_starts: bool = True, gp_ic_stride: int = 4, gp_path_length: int = 50, gp_noise: float = 0.02, seed: int = 0) -> dict:
+    """What ``passt-mav model evaluate`` does; returns the JSON-able results (and writes them under ``out``).
+
+    With ``gp_starts``, every test window is also scored from GP reconstructions of its
+    snapshots (label ``WINDOW/gp``; every ``gp_ic_stride``-th snapshot, ``gp_path_length``-move
+    random paths, sensor noise ``gp_noise``; see :func:`gp_initial_states`): the states the
+    PASST loop starts its model from.
+    """
     from passt_mav.fields.datasets import resolve_field
     from passt_mav.models.base import make_predictor
 
@@ -198,9 +300,18 @@ def evaluate_command(*, model: str, data: str, train=(200, 300), test=(300, 400)
         if osc.data.shape[2:] != field.data.shape[2:]:
             raise ModelError(f"--oscillating grid {osc.data.shape[2:]} differs from --data's {field.data.shape[2:]}")
         windows["oscillating"] = (osc.data, test)
+    if gp_starts:
+        for label, fld in (("test", field), ("oscillating", osc if oscillating else None)):
+            if fld is not None:
+                init = gp_initial_states(fld, test, ic_stride=gp_ic_stride, path_length=gp_path_length, noise_std=gp_noise, seed=seed)
+                windows[f"{label}/gp"] = (fld.data, test, init)
     pw = (pod_window[0], min(pod_window[1], field.n_times))
     res = evaluate_predictors(predictors, windows, lookaheads, ic_stride=ic_stride, pod=(field.data, pw), pod_modes=pod_modes)
-    res["config"] = {"model": model, "data": data, "train": list(train), "test": list(test), "oscillating": oscillating, "lookaheads": list(lookaheads), "ic_stride": ic_stride, "pod_window": list(pw), "baselines": list(baselines), "data_hash": field.data_hash()}
+    meta = getattr(m, "metadata_", None)
+    if meta and meta.get("skill"):
+        res["skill"] = meta["skill"]
+        res["skill_warning"] = skill_warning(meta)
+    res["config"] = {"gp_starts": gp_starts, "gp_ic_stride": gp_ic_stride, "gp_path_length": gp_path_length, "gp_noise": gp_noise, "seed": seed, "model": model, "data": data, "train": list(train), "test": list(test), "oscillating": oscillating, "lookaheads": list(lookaheads), "ic_stride": ic_stride, "pod_window": list(pw), "baselines": list(baselines), "data_hash": field.data_hash()}
     if out:
         od = Path(out)
         od.mkdir(parents=True, exist_ok=True)

@@ -37,6 +37,7 @@ import numpy as np
 
 from passt_mav.errors import ModelError
 from passt_mav.models.base import Predictor, load_state_dict, read_metadata, write_checkpoint
+from passt_mav.models.noise import CorrelatedNoise, measure_residual, reconstruct_states
 
 __all__ = ["KnodePredictor", "KnodeNet", "gaussian_kernel", "ode_step", "odeint_fixed", "conv_output_shape", "INTEGRATORS"]
 
@@ -102,8 +103,12 @@ def _build_net_class():
         def forward(self, z):
             n = self.vector_field(z)
             pad = self.smooth.shape[-1] // 2
-            # replicate padding: a constant field stays constant at the edges too
-            return torch.nn.functional.conv2d(torch.nn.functional.pad(n, (pad, pad, pad, pad), mode="replicate"), self.smooth, groups=2)
+            # replicate padding (a constant field stays constant at the edges too), built from
+            # slices and torch.cat: the same values as F.pad(mode="replicate"), but torch.compile
+            # can differentiate it (inductor has no replication_pad2d_backward)
+            n = torch.cat([n[:, :, :1]] * pad + [n] + [n[:, :, -1:]] * pad, dim=2)
+            n = torch.cat([n[:, :, :, :1]] * pad + [n] + [n[:, :, :, -1:]] * pad, dim=3)
+            return torch.nn.functional.conv2d(n, self.smooth, groups=2)
 
     return _KnodeNet
 
@@ -170,11 +175,30 @@ class KnodePredictor(Predictor):
         device: torch device for training and prediction (``"cpu"`` default).
         progress: tqdm bar with the loss (shown only on a TTY).
         batch_size: initial conditions per forward pass in ``predict``.
+        loss: ``"one_step"`` (the paper: MSE one snapshot ahead over all pairs) or
+            ``"rollout"``: mean MSE over an unrolled roll-out of ``horizon`` snapshots (a
+            PASST leg), back-propagated through every step, with a curriculum that grows
+            the roll-out from 1 to ``horizon`` over the first ``curriculum`` fraction of epochs.
+        noise: ``"white"`` (the paper: variance ``noise_var``) or ``"gp"``: noise whose
+            per-pixel size and spatial correlation are measured from GP reconstructions
+            of the training window (``noise_samples`` of them, ``noise_path_length``-move
+            random paths, sensor noise ``noise_sensor_std`` field units), times
+            ``noise_scale``, plus the white part; see :mod:`passt_mav.models.noise`.
+        val_frac: last fraction of the window held out for validation (0 = none); the
+            epoch with the lowest validation roll-out loss (from true and from GP-
+            reconstructed states) is kept. ``val_every``: epochs between validations;
+            ``patience``: stop after this many epochs without improvement (0 = never).
+        train_batch: initial conditions per optimiser step (when ``n_batches`` is 1);
+            ``max_ics``: initial conditions drawn per epoch (0 = all).
+        clip_grad: gradient-norm clip (0 = off); roll-outs through many Euler steps can spike.
+        zero_init: start the last layer at zero, i.e. from persistence (dz/dt = 0).
+        compile: train through ``torch.compile`` when it works here (falls back to eager).
     """
 
     name = "knode"
 
-    def __init__(self, *, epochs: int = 100, lr: float = 1e-3, noise_var: float = 1e-3, n_batches: int = 1, substeps: int = 6, method: str = "euler", channels: tuple = CHANNELS, hidden: int = 128, kernel_size: int = 5, kernel_variance: float = 0.1, seed: int = 0, device: str = "cpu", progress: bool = True, batch_size: int = 256):
+    def __init__(self, *, epochs: int = 100, lr: float = 1e-3, noise_var: float = 1e-3, n_batches: int = 1, substeps: int = 6, method: str = "euler", channels: tuple = CHANNELS, hidden: int = 128, kernel_size: int = 5, kernel_variance: float = 0.1, seed: int = 0, device: str = "cpu", progress: bool = True, batch_size: int = 256,
+                 loss: str = "one_step", horizon: int = 10, curriculum: float = 0.5, noise: str = "white", noise_scale: float = 1.0, noise_samples: int = 12, noise_path_length: int = 50, noise_sensor_std: float = 0.02, val_frac: float = 0.0, val_every: int = 1, patience: int = 0, train_batch: int = 64, max_ics: int = 0, clip_grad: float = 1.0, zero_init: bool = False, compile: bool = False):
         self.epochs = epochs
         self.lr = lr
         self.noise_var = noise_var
@@ -189,11 +213,31 @@ class KnodePredictor(Predictor):
         self.device = device
         self.progress = progress
         self.batch_size = batch_size
+        self.loss = loss
+        self.horizon = horizon
+        self.curriculum = curriculum
+        self.noise = noise
+        self.noise_scale = noise_scale
+        self.noise_samples = noise_samples
+        self.noise_path_length = noise_path_length
+        self.noise_sensor_std = noise_sensor_std
+        self.val_frac = val_frac
+        self.val_every = val_every
+        self.patience = patience
+        self.train_batch = train_batch
+        self.max_ics = max_ics
+        self.clip_grad = clip_grad
+        self.zero_init = zero_init
+        self.compile = compile
         self.grid_shape_ = None
 
     # -- hyper-parameters that define the model (saved) --------------------------------
     def _arch(self) -> dict:
         return {"channels": list(self.channels), "hidden": self.hidden, "kernel_size": self.kernel_size, "kernel_variance": self.kernel_variance, "substeps": self.substeps, "method": self.method}
+
+    def _train_params(self) -> dict:
+        keys = ("loss", "horizon", "curriculum", "noise", "noise_scale", "noise_samples", "noise_path_length", "noise_sensor_std", "val_frac", "val_every", "patience", "train_batch", "max_ics", "clip_grad", "zero_init")
+        return {k: getattr(self, k) for k in keys}
 
     def _check_params(self) -> None:
         if self.method not in INTEGRATORS:
@@ -202,6 +246,14 @@ class KnodePredictor(Predictor):
             v = getattr(self, k)
             if int(v) != v or v < (0 if k == "epochs" else 1):
                 raise ModelError(f"{k} must be a {'non-negative' if k == 'epochs' else 'positive'} integer, got {v!r}")
+        if self.loss not in ("one_step", "rollout"):
+            raise ModelError(f"unknown loss {self.loss!r}; choose one_step or rollout")
+        if self.noise not in ("white", "gp"):
+            raise ModelError(f"unknown noise {self.noise!r}; choose white or gp")
+        if int(self.horizon) != self.horizon or self.horizon < 1:
+            raise ModelError(f"horizon must be a positive integer, got {self.horizon!r}")
+        if not 0 <= float(self.val_frac) < 0.9:
+            raise ModelError(f"val_frac must be in [0, 0.9), got {self.val_frac!r}")
         if len(self.channels) != len(CONV_SPEC):
             raise ModelError(f"channels must list {len(CONV_SPEC)} widths, got {self.channels}")
 
@@ -212,83 +264,202 @@ class KnodePredictor(Predictor):
         return ode_step(net, z, 1.0, int(self.substeps), self.method)
 
     # -- fit ------------------------------------------------------------------------
+    def _split(self, n: int) -> int:
+        """Snapshots of an ``n``-snapshot window used for training (the rest validates)."""
+        if not self.val_frac:
+            return n
+        n_val = max(int(round(n * float(self.val_frac))), 2 if self.loss == "one_step" else min(int(self.horizon), 10) + 1)
+        if n - n_val < 3:
+            raise ModelError(f"window of {n} snapshots is too short for a validation part of {n_val}; give more data or val_frac=0")
+        return n - n_val
+
+    def _horizon_at(self, ep: int, n_ep: int) -> int:
+        """Roll-out length of epoch ``ep``: 1 for the one-step loss, else a linear curriculum 1 -> horizon."""
+        if self.loss == "one_step":
+            return 1
+        if self.curriculum <= 0:
+            return int(self.horizon)
+        ramp = max(1, int(round(n_ep * float(self.curriculum))))
+        return int(min(self.horizon, 1 + (self.horizon - 1) * ep // ramp)) if ep < ramp else int(self.horizon)
+
+    def _rollout_loss(self, net, z0, target, w, n_w):
+        """Mean over the ``H = target.shape[1]`` steps of the water-masked MSE (scaled units)."""
+        z, tot = z0, 0.0
+        H = target.shape[1]
+        for k in range(H):
+            z = self._step(z)
+            tot = tot + (((z - target[:, k]) ** 2) * w).sum() / (n_w * len(z0))
+        return tot / H
+
     def fit(self, field, *, start: int | None = None, stop: int | None = None, epochs: int | None = None, callback=None) -> "KnodePredictor":
         """Train on snapshots ``start..stop-1`` of ``field`` (a FlowField or ``(T,2,R,C)`` array).
 
-        ``epochs`` overrides the constructor's. ``callback(epoch, loss)`` is called after
-        every epoch. Sets ``net_``, ``mean_``, ``std_``, ``water_``, ``loss_curve_``,
-        ``final_loss_`` (noise-free, scaled units), ``train_seconds_``, ``data_hash_``, ``dt_``.
+        The last ``val_frac`` of the window is held out for validation (early stopping,
+        best-epoch selection); the rest trains. ``epochs`` overrides the constructor's.
+        ``callback(epoch, loss)`` is called after every epoch. Sets ``net_``, ``mean_``,
+        ``std_``, ``water_``, ``loss_curve_`` (training), ``val_curve_`` (validation
+        roll-out loss from GP-reconstructed states, or ``[]``), ``best_epoch_``,
+        ``noise_info_``, ``final_loss_`` (noise-free one-step, scaled units),
+        ``train_seconds_``, ``data_hash_``, ``dt_``.
         """
         torch = _torch()
         self._check_params()
         data = self._training_window(field, start, stop)
         n_ep = int(self.epochs if epochs is None else epochs)
-        T, _, R, C = data.shape
-        water = np.isfinite(data).all(axis=(0, 1))  # (R, C): cells with data at every training time
+        s0 = 0 if start is None else int(start)
+        n_tr = self._split(data.shape[0])
+        train, val = data[:n_tr], data[n_tr:]
+        T, _, R, C = train.shape
+        water = np.isfinite(data).all(axis=(0, 1))  # (R, C): cells with data at every time
         if not water.any():
             raise ModelError("training window has no cell with data at every time")
-        filled = np.where(np.isfinite(data), data, np.float32(0))
+        filled = np.where(np.isfinite(train), train, np.float32(0))
         mean = np.where(water, filled.mean(axis=0), 0).astype(np.float32)
         std = filled.std(axis=0)
         # land and constant cells get std 1 so scaling stays finite
         std = np.where(water & (std > 1e-8), std, 1.0).astype(np.float32)
-        z = ((filled - mean) / std) * water
+        scale = lambda a: ((np.where(np.isfinite(a), a, np.float32(0)) - mean) / std * water).astype(np.float32)  # noqa: E731
         dev = torch.device(self.device)
         with torch.random.fork_rng(devices=[]):
             torch.manual_seed(int(self.seed))
             net = KnodeNet(R, C, channels=self.channels, hidden=self.hidden, kernel_size=self.kernel_size, kernel_variance=self.kernel_variance).to(dev)
+            if self.zero_init:
+                # dz/dt = 0 at the start: the untrained model is persistence, and training
+                # (with best-epoch selection on validation) departs from it only where that helps
+                torch.nn.init.zeros_(net.fc2.weight)
+                torch.nn.init.zeros_(net.fc2.bias)
         gen = torch.Generator(device=dev).manual_seed(int(self.seed) + 1)
-        X = torch.from_numpy(z[:-1].astype(np.float32)).to(dev)
-        Y = torch.from_numpy(z[1:].astype(np.float32)).to(dev)
+        Z = torch.from_numpy(scale(train)).to(dev)
         w = torch.from_numpy(water.astype(np.float32)).to(dev)
         n_w = float(water.sum()) * 2
+        self.mean_, self.std_, self.water_, self.grid_shape_ = mean, std, water, (R, C)
+        noise = self._make_noise(field, data, s0, n_tr, dev)
+        val_sets = self._validation_sets(field, data, s0, n_tr, scale, dev)
         opt = torch.optim.Adam(net.parameters(), lr=self.lr)
-        idx_all = np.arange(T - 1)
-        batches = [idx_all[idx_all % self.n_batches == k] for k in range(self.n_batches)]
-        batches = [torch.from_numpy(b).to(dev) for b in batches if len(b)]
-        sd_noise = math.sqrt(self.noise_var)
+        self._step = self._stepper(net)
         curve: list[float] = []
+        vcurve: list[float] = []
+        best = (math.inf, -1, None)
+        if val_sets and self.zero_init:
+            # epoch 0 (persistence) competes too: a network that never beats it on validation is not kept
+            best = (self._val_loss(net, val_sets, w, n_w), 0, {k: t.detach().clone() for k, t in net.state_dict().items()})
+            vcurve.append(best[0])
         from tqdm.auto import tqdm
 
         bar = tqdm(range(n_ep), desc="KNODE", disable=not (self.progress and sys.stderr.isatty()), leave=False)
         t0 = time.perf_counter()
-        net.train()
+        since_best = 0
         for ep in bar:
+            H = self._horizon_at(ep, n_ep)
+            ics = np.arange(T - H)
+            if self.max_ics and len(ics) > self.max_ics:
+                ics = np.sort(np.random.default_rng(int(self.seed) * 7919 + ep).choice(ics, self.max_ics, replace=False))
+            order = np.random.default_rng(int(self.seed) + 104729 * (ep + 1)).permutation(ics) if self.n_batches > 1 or self.train_batch < len(ics) else ics
+            bs = int(math.ceil(len(order) / self.n_batches)) if self.n_batches > 1 else int(self.train_batch)
             tot = 0.0
-            for b in batches:
-                x = X[b]
-                if sd_noise > 0:
-                    x = x + sd_noise * torch.randn(x.shape, generator=gen, device=dev)
-                pred = self._advance(net, x)
-                loss = (((pred - Y[b]) ** 2) * w).sum() / (n_w * len(b))
+            net.train()
+            for a in range(0, len(order), bs):
+                b = torch.from_numpy(order[a : a + bs]).to(dev)
+                x = Z[b]
+                x = x + noise(x.shape, gen)
+                target = torch.stack([Z[b + k] for k in range(1, H + 1)], dim=1)
+                loss = self._rollout_loss(net, x, target, w, n_w)
                 opt.zero_grad()
                 loss.backward()
+                if self.clip_grad:
+                    torch.nn.utils.clip_grad_norm_(net.parameters(), float(self.clip_grad))
                 opt.step()
                 tot += float(loss.detach()) * len(b)
-            curve.append(tot / (T - 1))
-            bar.set_postfix(loss=f"{curve[-1]:.3e}")
-            if callback is not None:
-                callback(ep, curve[-1])
+            curve.append(tot / len(order))
             if not math.isfinite(curve[-1]):
                 raise ModelError(f"KNODE training diverged at epoch {ep + 1} (loss {curve[-1]}); lower lr or raise substeps")
+            if val_sets and (ep + 1) % self.val_every == 0 or (val_sets and ep == n_ep - 1):
+                v = self._val_loss(net, val_sets, w, n_w)
+                vcurve.append(v)
+                # the best epoch is chosen once the roll-out length is the full horizon
+                if H == self._horizon_at(n_ep - 1, n_ep) and v < best[0]:
+                    best = (v, ep + 1, {k: t.detach().clone() for k, t in net.state_dict().items()})
+                    since_best = 0
+                elif H == self._horizon_at(n_ep - 1, n_ep):
+                    since_best += self.val_every
+            bar.set_postfix(loss=f"{curve[-1]:.3e}", H=H)
+            if callback is not None:
+                callback(ep, curve[-1])
+            if self.patience and since_best >= self.patience:
+                break
         self.train_seconds_ = time.perf_counter() - t0
+        if best[2] is not None:
+            net.load_state_dict(best[2])
         net.eval()
         self.net_ = net
-        self.mean_, self.std_, self.water_ = mean, std, water
-        self.grid_shape_ = (R, C)
+        self._step = None
         self.loss_curve_ = curve
+        self.val_curve_ = vcurve
+        self.best_epoch_ = best[1] if best[2] is not None else len(curve)
         with torch.no_grad():
-            pred = self._advance(net, X)
-            self.final_loss_ = float((((pred - Y) ** 2) * w).sum() / (n_w * (T - 1)))
-        self.epochs_trained_ = n_ep
+            pred = self._advance(net, Z[:-1])
+            self.final_loss_ = float((((pred - Z[1:]) ** 2) * w).sum() / (n_w * (T - 1)))
+        self.epochs_trained_ = len(curve)
         self.n_train_ = T
         self.data_hash_ = field.data_hash() if hasattr(field, "data_hash") else None
         try:
             self.dt_ = float(field.dt)
         except Exception:  # noqa: BLE001 - a bare array or irregular times: no physical dt
             self.dt_ = None
-        self.train_window_ = [0 if start is None else int(start), (field.data.shape[0] if hasattr(field, "data") else len(field)) if stop is None else int(stop)]
+        self.train_window_ = [s0, s0 + data.shape[0]]
+        self.val_window_ = [s0 + n_tr, s0 + data.shape[0]] if n_tr < data.shape[0] else None
         return self
+
+    def _stepper(self, net):
+        """One snapshot step ``z -> z(t+1)`` for training: compiled when asked and it works, else eager."""
+        eager = lambda z: self._advance(net, z)  # noqa: E731
+        if not self.compile:
+            return eager
+        from passt_mav.models.fast import compiled_or_eager
+
+        return compiled_or_eager(eager, net)
+
+    def _make_noise(self, field, data, s0: int, n_tr: int, dev):
+        """The training input-noise sampler ``noise(shape, generator)`` (see ``noise`` param)."""
+        torch = _torch()
+        sd = math.sqrt(self.noise_var)
+        white = (lambda shape, gen: sd * torch.randn(shape, generator=gen, device=dev)) if sd > 0 else (lambda shape, gen: 0.0)
+        self.noise_info_ = {"kind": self.noise, "white_var": self.noise_var}
+        if self.noise != "gp":
+            return white
+        grid = getattr(field, "grid", None)
+        if grid is None:
+            raise ModelError("noise='gp' needs a FlowField (its grid) to measure the GP-reconstruction residual; use noise='white' for a bare array")
+        land = ~self.water_
+        times = np.asarray(field.times)[s0 : s0 + data.shape[0]]
+        m = measure_residual(data[:n_tr], grid, times[:n_tr], (0, n_tr), self.mean_, self.std_, n=self.noise_samples, path_length=self.noise_path_length, lag=1, noise_std=self.noise_sensor_std, seed=int(self.seed) + 17, land=land)
+        cn = CorrelatedNoise(m["amplitude"] * float(self.noise_scale), m["corr_cells"], device=dev)
+        self.noise_info_.update({k: v for k, v in m.items() if k != "amplitude"}, scale=float(self.noise_scale))
+        return lambda shape, gen: cn.sample(shape, gen) + white(shape, gen)
+
+    def _validation_sets(self, field, data, s0: int, n_tr: int, scale, dev):
+        """``[(z0, targets)]``: validation ICs from true states and from GP reconstructions."""
+        torch = _torch()
+        val = data[n_tr:]
+        H = 1 if self.loss == "one_step" else int(self.horizon)
+        H = min(H, len(val) - 1)
+        if H < 1:
+            return []
+        ics = np.arange(n_tr, data.shape[0] - H)
+        tgt = torch.from_numpy(np.stack([scale(data[ics + k]) for k in range(1, H + 1)], axis=1)).to(dev)
+        sets = [(torch.from_numpy(scale(data[ics])).to(dev), tgt)]
+        grid = getattr(field, "grid", None)
+        if grid is not None and self.noise == "gp":
+            times = np.asarray(field.times)[s0 : s0 + data.shape[0]]
+            rec = reconstruct_states(data, grid, times, ics, path_length=self.noise_path_length, lag=1, noise_std=self.noise_sensor_std, seed=int(self.seed) + 29, land=~self.water_)
+            sets.append((torch.from_numpy(scale(rec)).to(dev), tgt))
+        return sets
+
+    def _val_loss(self, net, sets, w, n_w) -> float:
+        torch = _torch()
+        net.eval()
+        with torch.no_grad():
+            return float(np.mean([float(self._rollout_loss(net, z0, tgt, w, n_w)) for z0, tgt in sets]))
 
     # -- predict ----------------------------------------------------------------------
     def _predict_batch(self, states: np.ndarray, steps: int) -> np.ndarray:
@@ -322,7 +493,7 @@ class KnodePredictor(Predictor):
             "predictor": self.name,
             "format": 1,
             "architecture": dict(self._arch(), conv_spec=[list(c) for c in CONV_SPEC], flatten=int(self.channels[-1] * np.prod(conv_output_shape(*self.grid_shape_))), n_params=self.n_params(), time_unit="one snapshot interval per predict step"),
-            "params": {"epochs": self.epochs_trained_, "lr": self.lr, "noise_var": self.noise_var, "n_batches": self.n_batches, "seed": self.seed, **self._arch()},
+            "params": {"epochs": self.epochs_trained_, "lr": self.lr, "noise_var": self.noise_var, "n_batches": self.n_batches, "seed": self.seed, **self._train_params(), **self._arch()},
             "grid_shape": list(self.grid_shape_),
             "dt": self.dt_,
             "scaler": "per-pixel standard scaling over the training window (tensors scaler.mean/scaler.std in the .pt)",
@@ -331,6 +502,10 @@ class KnodePredictor(Predictor):
             "epochs": self.epochs_trained_,
             "seed": self.seed,
             "final_loss": self.final_loss_,
+            "val_window": getattr(self, "val_window_", None),
+            "best_epoch": getattr(self, "best_epoch_", None),
+            "val_curve": [float(f"{x:.6g}") for x in getattr(self, "val_curve_", [])],
+            "noise_info": getattr(self, "noise_info_", None),
             "final_epoch_loss": self.loss_curve_[-1] if self.loss_curve_ else None,
             "loss_curve": [float(f"{x:.6g}") for x in self.loss_curve_],
             "train_seconds": round(self.train_seconds_, 2),
@@ -369,5 +544,9 @@ class KnodePredictor(Predictor):
         self.dt_ = meta.get("dt")
         self.train_window_ = meta.get("train_window")
         self.train_seconds_ = meta.get("train_seconds", 0.0)
+        self.val_window_ = meta.get("val_window")
+        self.best_epoch_ = meta.get("best_epoch")
+        self.val_curve_ = meta.get("val_curve", [])
+        self.noise_info_ = meta.get("noise_info")
         self.metadata_ = meta
         return self

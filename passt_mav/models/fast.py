@@ -1,0 +1,46 @@
+"""The fast path for KNODE training and batched prediction: ``torch.compile`` with a clean fallback.
+
+Measured on this project's 2-core CPU machines (``benchmarks/bench_models.py``, the
+same network and batch, side by side): compiling the whole snapshot step (6 Euler
+sub-steps of the network plus the smoothing K) with inductor gains little in training
+because the step is dominated by convolutions that eager mode already runs through
+oneDNN; the benchmark prints the ratio. The compiled step is exact to fp32 rounding
+(checked against eager in ``tests/test_models.py``).
+
+Compilation needs a C++ compiler and may fail on an unusual machine: any exception at
+the first call falls back to the eager function, once, with a one-line warning.
+"""
+
+from __future__ import annotations
+
+import sys
+from typing import Callable
+
+__all__ = ["compiled_or_eager"]
+
+
+def compiled_or_eager(eager: Callable, module=None, *, warn=None) -> Callable:
+    """A function with ``eager``'s signature that runs ``torch.compile(eager)`` when it works.
+
+    ``module``: the ``nn.Module`` whose parameters ``eager`` closes over (kept for
+    reference; inductor guards on it). ``warn(msg)``: where the fallback is reported
+    (default stderr).
+    """
+    import torch
+
+    state = {"fn": None}
+
+    def call(*args, **kw):
+        if state["fn"] is None:
+            try:
+                fn = torch.compile(eager, dynamic=False)
+                out = fn(*args, **kw)
+                state["fn"] = fn
+                return out
+            except Exception as exc:  # noqa: BLE001 - any compiler failure: run eager instead
+                (warn or (lambda m: print(m, file=sys.stderr)))(f"torch.compile unavailable ({type(exc).__name__}: {str(exc).splitlines()[0][:120]}); using the eager path")
+                state["fn"] = eager
+        return state["fn"](*args, **kw)
+
+    call.module = module
+    return call
