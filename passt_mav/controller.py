@@ -224,6 +224,9 @@ def build_predictor(spec: str, field, *, echo: Callable[[str], None] = print) ->
         shape = getattr(pred, "grid_shape_", None)
         if shape is not None and tuple(shape)[-2:] != tuple(field.grid.shape):
             raise UserError(f"model {spec} is for a {tuple(shape)[-2:]} grid, the mission's is {field.grid.shape}")
+        from passt_mav.models.evaluate import echo_skill
+
+        echo_skill(spec, getattr(pred, "metadata_", None), echo)
         return pred, info
     except (UserError, OSError, RuntimeError, KeyError, ValueError) as exc:
         msg = f"WARNING: model {spec} could not be loaded ({exc}); falling back to DMD fitted on the mission's field"

@@ -419,7 +419,7 @@ def _fig_rmse(run: Run, plt, over_time: dict | None, per_leg: list[tuple[int, fl
         k += 1
         div, lab = _time_label(run)
         t = _series(over_time["t"]) / div
-        for key, style, name in (("passt", "o-", "PASST"), ("model", "s--", "pure model")):
+        for key, style, name in (("passt", "o-", "PASST"), ("model", "s--", "pure model"), ("lawnmower", "^:", "lawnmower+GP (counterfactual, offline)")):
             if key in over_time:
                 y = _series(over_time[key])
                 ok = np.isfinite(y)
