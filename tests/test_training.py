@@ -12,17 +12,9 @@ from passt_mav.models.base import load_predictor, make_predictor
 
 torch = pytest.importorskip("torch")
 
-from test_models import SMALL, wave_field  # noqa: E402
+from test_models import SMALL, _one_thread, wave_field  # noqa: E402,F401 - _one_thread: the same autouse fixture here
 
 LOOP = dict(loss="rollout", horizon=4, curriculum=0.5, noise="gp", noise_samples=4, noise_path_length=20, val_frac=0.25, zero_init=True, train_batch=16)
-
-
-@pytest.fixture(autouse=True, scope="module")
-def _one_thread():
-    prev = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(prev)
 
 
 @pytest.fixture(scope="module")
