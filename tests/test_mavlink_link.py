@@ -126,16 +126,92 @@ def test_signing_key_on_both_sides_uploads_and_a_keyless_client_is_ignored():
         # a client without the key sees the vehicle (signed frames parse) but is ignored by it
         plain = Link(link_config(stream_rates_hz=(), retries=1), connection_factory=inprocess_factory(sim)).connect()
         try:
-            with pytest.raises(LinkTimeout):
+            with pytest.raises(LinkTimeout, match="may require MAVLink 2 signing"):
                 plain.command_long(M.MAV_CMD_DO_SET_MODE, 1, 4)
             with pytest.raises(LinkTimeout):
                 MissionClient(plain, retries=1).upload(items)
+            assert "signing key" in plain.signing_hint()
             assert sim.autopilot.mode != 4
         finally:
             plain.close()
         # a wrong key is ignored too
         wrong = Link(link_config(stream_rates_hz=(), retries=1, signing_key="wrong", connect_timeout_s=0.5),
                      connection_factory=inprocess_factory(sim))
-        with pytest.raises(LinkTimeout):
+        with pytest.raises(LinkTimeout, match="signing key differs"):
             wrong.connect()  # the vehicle's frames fail our signature check: no heartbeat at all
         wrong.close()
+
+
+def test_timesync_is_requested_not_streamed_and_keeps_the_rtt_current():
+    sent: list = []
+    with served(link_kw=dict(stream_rates_hz=(("GLOBAL_POSITION_INT", 1.0), ("TIMESYNC", 1.0)),
+                             timesync_period_s=0.1)) as (sim, link):
+        orig = link.send
+        link.send = lambda m: (sent.append(m), orig(m))[1]
+        assert link.request_streams() == {"GLOBAL_POSITION_INT": True}  # TIMESYNC skipped, not refused
+        n0 = len(link._rtt_samples)
+        time.sleep(0.6)
+        link.send = orig
+    intervals = [int(m.param1) for m in sent if m.get_type() == "COMMAND_LONG"
+                 and m.command == M.MAV_CMD_SET_MESSAGE_INTERVAL]
+    assert intervals == [M.MAVLINK_MSG_ID_GLOBAL_POSITION_INT]
+    requests = [m for m in sent if m.get_type() == "TIMESYNC" and m.tc1 == 0]
+    assert 3 <= len(requests) <= 8  # one per 0.1 s on the heartbeat thread (0.05 s period)
+    assert len(link._rtt_samples) > n0  # answered and measured
+
+
+def test_sim_refuses_timesync_as_a_stream_like_the_firmware():
+    with served(link_kw=dict(stream_rates_hz=())) as (sim, link):
+        from passt_mav.errors import CommandRejected
+
+        with pytest.raises(CommandRejected) as ei:
+            link.command_long(M.MAV_CMD_SET_MESSAGE_INTERVAL, M.MAVLINK_MSG_ID_TIMESYNC, 1e6, retries=1)
+        assert ei.value.result == M.MAV_RESULT_DENIED and "No ap_message for mavlink id (111)" in str(ei.value)
+
+
+def test_tcp_eof_is_seen_at_once_without_a_flood_and_reconnect_backs_off(capfd, caplog):
+    import logging
+
+    port = free_port()
+    sim = Simulator(None, home=HOME, config=SimConfig.fast())
+    sim.serve([f"tcp:127.0.0.1:{port}"], speedup=20)
+    link = Link(link_config(connect=f"tcp:127.0.0.1:{port}", link_lost_s=3.0, stream_rates_hz=()))
+    try:
+        link.connect()
+        assert not link.lost
+        sim.stop()  # the vehicle goes away: its socket closes, our reads reach EOF
+        t0 = time.monotonic()
+        while not link.lost and time.monotonic() - t0 < 2.0:
+            time.sleep(0.005)
+        took = time.monotonic() - t0
+        assert link.lost and took < 0.5, took  # at once, not after link_lost_s (3 s) of silence
+        assert "EOF" in link.closed_reason
+        with pytest.raises(LinkTimeout, match="is closed .EOF"):
+            link.command_long(M.MAV_CMD_DO_SET_MODE, 1, 4, retries=0)
+        time.sleep(0.3)
+        out = capfd.readouterr()
+        assert "EOF on TCP socket" not in out.out + out.err  # pymavlink's per-read print is gone
+        # nobody listens: each attempt fails at once and is logged once, with the back-off between
+        caplog.clear()
+        with caplog.at_level(logging.WARNING, logger="passt_mav.mavlink.link"):
+            t0 = time.monotonic()
+            with pytest.raises(LinkTimeout, match="could not reconnect"):
+                link.reconnect(attempts=3)
+            took = time.monotonic() - t0
+        lines = [r.getMessage() for r in caplog.records if "reconnect attempt" in r.getMessage()]
+        assert len(lines) == 3 and "1/3" in lines[0] and "next in 0.05 s" in lines[0] and "next in 0.1 s" in lines[1]
+        assert 0.14 <= took < 1.0  # back-off 0.05 + 0.1 s between three refused connects
+        out = capfd.readouterr()
+        assert "sleeping" not in out.out + out.err  # no pymavlink connect-retry prints either
+        # the vehicle comes back on the same port: reconnect finds it
+        sim2 = Simulator(None, home=HOME, config=SimConfig.fast())
+        sim2.serve([f"tcp:127.0.0.1:{port}"], speedup=20)
+        try:
+            link.reconnect(attempts=3)
+            assert not link.lost and link.closed_reason is None
+            assert link.command_long(M.MAV_CMD_REQUEST_MESSAGE, M.MAVLINK_MSG_ID_HEARTBEAT).result == 0
+        finally:
+            link.close()
+            sim2.stop()
+    finally:
+        link.close()

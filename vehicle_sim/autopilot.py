@@ -94,6 +94,9 @@ DATA_STREAM_IDS = {2: "EXT_STAT", 6: "POSITION", 10: "EXTRA1", 11: "EXTRA2", 12:
 #: messages always sent at 1 Hz unless SET_MESSAGE_INTERVAL says otherwise
 FIXED_STREAMS = ("HEARTBEAT", "TIMESYNC")
 
+#: messages SET_MESSAGE_INTERVAL refuses (Rover 4.7: result 2, "No ap_message for mavlink id (111)")
+NOT_STREAMS = frozenset({"TIMESYNC"})
+
 ARM_FORCE_MAGIC = 2989
 DISARM_FORCE_MAGIC = 21196
 
@@ -738,7 +741,9 @@ class Autopilot:
 
     def _set_message_interval(self, link, msgid: int, interval_us: float) -> int:
         name = _msg_name(msgid)
-        if name is None:
+        if name is None or name in NOT_STREAMS:
+            # ArduPilot has no ap_message for it (TIMESYNC is answered per request, not streamed)
+            self.text(link, M.MAV_SEVERITY_INFO, f"No ap_message for mavlink id ({int(msgid)})")
             return M.MAV_RESULT_DENIED
         ls = self._streams(link)
         if interval_us < 0:

@@ -51,7 +51,7 @@ def link_config_for(connect: str, *, speedup: float = 1.0, tlog=None, signing_ke
 
 #: telemetry the controller needs (Hz of vehicle time; 0 = off), used for fast simulators
 LEAN_STREAMS = (("GLOBAL_POSITION_INT", 1.0), ("MISSION_CURRENT", 1.0), ("EKF_STATUS_REPORT", 0.5),
-                ("SYSTEM_TIME", 0.2), ("TIMESYNC", 0.2), ("SYS_STATUS", 0), ("GPS_RAW_INT", 0), ("ATTITUDE", 0),
+                ("SYSTEM_TIME", 0.2), ("SYS_STATUS", 0), ("GPS_RAW_INT", 0), ("ATTITUDE", 0),
                 ("VFR_HUD", 0), ("BATTERY_STATUS", 0), ("NAV_CONTROLLER_OUTPUT", 0), ("LOCAL_POSITION_NED", 0),
                 ("POWER_STATUS", 0), ("MEMINFO", 0))
 
