@@ -291,3 +291,102 @@ def test_mission_start_arguments_and_mis_total():
     assert c.command(M.MAV_CMD_MISSION_START, 1, 2).result == M.MAV_RESULT_DENIED  # first/last item: unsupported
     assert sim.autopilot.mode == MODES["MANUAL"]
     assert c.command(M.MAV_CMD_MISSION_START, 0, 0).result == 0 and sim.autopilot.mode == MODES["AUTO"]
+
+
+# -- reboot (brown-out / commanded) ---------------------------------------------------------------
+def _ready_with_mission(c, sim):
+    sim.run_until(3.0)
+    c.drain()
+    items = [c.waypoint(0, *HOME)] + [c.waypoint(k, HOME[0] + 1e-3 * k, HOME[1]) for k in (1, 2, 3)]
+    assert c.upload(items).type == M.MAV_MISSION_ACCEPTED
+    return items
+
+
+def test_reboot_command_refused_armed_accepted_disarmed_and_keeps_mission_and_params():
+    """Like Rover 4.7 SITL: 246 param1=1 while armed -> FAILED; disarmed -> ACCEPTED, then a reboot."""
+    sim, c = make()
+    _ready_with_mission(c, sim)
+    assert c.command(M.MAV_CMD_DO_SET_PARAMETER, 0) is not None  # any command works before
+    c.mav.param_set_send(1, 1, b"WP_SPEED", 3.5, M.MAV_PARAM_TYPE_REAL32)
+    assert c.wait("PARAM_VALUE", lambda m: m.param_id == "WP_SPEED", timeout=1).param_value == 3.5
+    assert c.arm().result == M.MAV_RESULT_ACCEPTED
+    assert c.command(M.MAV_CMD_PREFLIGHT_REBOOT_SHUTDOWN, 1).result == M.MAV_RESULT_FAILED
+    assert sim.autopilot.boot_count == 0 and sim.autopilot.armed
+    c.command(M.MAV_CMD_COMPONENT_ARM_DISARM, 0)
+    c.mav.system_time_send(0, 0)  # (ignored: only to show the vehicle still listens)
+    st0 = c.wait("SYSTEM_TIME", lambda m: m.time_unix_usec > 0, timeout=2)
+    t_reboot = sim.t
+    assert c.command(M.MAV_CMD_PREFLIGHT_REBOOT_SHUTDOWN, 1).result == M.MAV_RESULT_ACCEPTED
+    ap = sim.autopilot
+    assert ap.boot_count == 1 and ap.down and not ap.armed
+    # silent while down (2 s), then boots again: INITIALISING, time_boot_ms from 0
+    assert c.wait(("HEARTBEAT", "SYSTEM_TIME"), timeout=1.5) is None
+    hb = c.wait("HEARTBEAT", timeout=1.0)
+    assert hb is not None and hb.custom_mode == MODES["INITIALISING"]
+    st = c.wait("SYSTEM_TIME", lambda m: m.time_unix_usec > 0, timeout=2)
+    assert st.time_boot_ms < 2000 and sim.t - t_reboot > 2.0
+    # UTC runs on through the reboot (the GPS clock); the boot time restarted
+    utc_boot0 = st0.time_unix_usec / 1e6 - st0.time_boot_ms / 1e3
+    utc_boot1 = st.time_unix_usec / 1e6 - st.time_boot_ms / 1e3
+    assert utc_boot1 - utc_boot0 == pytest.approx(t_reboot + 2.0, abs=0.1)
+    # parameters and the stored mission survived (eeprom)
+    assert ap.p("WP_SPEED") == 3.5 and ap.store.count(0) == 4
+    got = c.download()
+    assert got is not None and len(got) == 4 and got[3].x == int(round((HOME[0] + 3e-3) * 1e7))
+    cur = c.wait("MISSION_CURRENT", timeout=2)
+    assert cur.total == 3 and cur.mission_state == M.MISSION_STATE_NOT_STARTED
+
+
+def test_brownout_reboot_mid_mission_stops_the_boat_and_forgets_progress():
+    sim, c = make()
+    _ready_with_mission(c, sim)
+    assert c.arm().result == 0 and c.set_mode(MODES["AUTO"]).result == 0
+    assert c.wait("MISSION_ITEM_REACHED", lambda m: m.seq == 1, timeout=120) is not None
+    sim.reboot(downtime_s=1.0)  # a brown-out: no command, no ACK
+    ap = sim.autopilot
+    assert not ap.armed and ap.mode == MODES["INITIALISING"] and ap.mission_index == 0
+    sim.run_until(sim.t + 3.0)
+    assert ap.mode == MODES["MANUAL"] and ap.boat.speed < 0.5  # disarmed: drifting, motor off
+    c.drain()
+    cur = c.wait("MISSION_CURRENT", timeout=2)
+    assert cur.mission_state == M.MISSION_STATE_NOT_STARTED and cur.total == 3
+
+
+def test_gps_noise_is_seeded_correlated_and_of_the_configured_size():
+    import numpy as np
+
+    def track(seed):
+        sim = Simulator(None, home=HOME, config=SimConfig.fast(gps_noise_m=3.0, gps_noise_tau_s=20.0, seed=seed))
+        ap, out = sim.autopilot, []
+        for _ in range(4000):
+            sim.step(0.5)
+            lat, lon = ap.reported_position()
+            tl, tn = ap.position()
+            out.append(((lat - tl) * 111_000.0, (lon - tn) * 111_000.0 * np.cos(np.radians(HOME[0]))))
+        return np.array(out)
+
+    a, b, c = track(1), track(1), track(2)
+    assert np.array_equal(a, b) and not np.array_equal(a, c)  # seeded
+    # 2000 s / 20 s correlation time = ~100 independent values per axis: std within ~20 %
+    assert a.std(axis=0) == pytest.approx([3.0, 3.0], rel=0.25)
+    lag1 = np.corrcoef(a[:-1, 0], a[1:, 0])[0, 1]
+    assert lag1 == pytest.approx(np.exp(-0.5 / 20.0), abs=0.02)  # Gauss-Markov: exp(-dt/tau)
+    # and the reported fix carries it
+    sim = Simulator(None, home=HOME, config=SimConfig.fast(gps_noise_m=3.0, seed=1))
+    cl = SimClient(sim)
+    sim.run_until(2.0)
+    cl.drain()
+    g = cl.wait("GLOBAL_POSITION_INT", lambda m: m.lat != 0, timeout=2)
+    lat, lon = sim.autopilot.reported_position()
+    assert abs(g.lat / 1e7 - lat) < 2e-6 and (g.lat, g.lon) != (int(round(HOME[0] * 1e7)), int(round(HOME[1] * 1e7)))
+
+
+def test_system_time_utc_settable_and_off_for_a_vehicle_without_a_clock():
+    sim = Simulator(None, home=HOME, config=SimConfig.fast(), epoch0=1714521600.0)  # 2024-05-01T00:00:00Z
+    c = SimClient(sim)
+    st = c.wait("SYSTEM_TIME", lambda m: m.time_unix_usec > 0, timeout=3)
+    assert st.time_unix_usec / 1e6 - st.time_boot_ms / 1e3 == pytest.approx(1714521600.0, abs=0.002)
+    sim = Simulator(None, home=HOME, config=SimConfig.fast(utc_clock=False))
+    c = SimClient(sim)
+    sts = [m for m in c.collect(3.0) if m.get_type() == "SYSTEM_TIME"]
+    assert sts and all(m.time_unix_usec == 0 for m in sts) and sts[-1].time_boot_ms > 2000

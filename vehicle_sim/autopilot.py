@@ -22,6 +22,19 @@ Behaviour follows shared/ARDUPILOT_ROVER.md; choices where it is silent:
   bypasses it.
 * The GCS failsafe acts only while armed and only after a heartbeat from
   MAV_GCS_SYSID has been seen.
+* Two clocks: ``t`` is the time since the last boot (``time_boot_ms``, the boot
+  timeline); ``clock`` runs on through reboots (the world: the current field, UTC in
+  SYSTEM_TIME, link timing). They are equal until :meth:`Autopilot.reboot`.
+* Reboot (:meth:`Autopilot.reboot`, or MAV_CMD_PREFLIGHT_REBOOT_SHUTDOWN 246 with
+  param1 = 1 while disarmed; Rover 4.7 SITL answered FAILED while armed and, disarmed,
+  ACCEPTED then closed its TCP links): parameters and the stored mission survive (they
+  are in eeprom), everything else restarts: INITIALISING, disarmed, no home, the boot
+  timeline from 0, SET_MESSAGE_INTERVAL rates and mission transfers forgotten. The
+  vehicle is silent for ``downtime_s`` while the boat drifts.
+* GPS noise (``gps_noise_m`` > 0): reported positions (GLOBAL_POSITION_INT,
+  GPS_RAW_INT, the current sensor's fix) carry a first-order Gauss-Markov error per
+  axis (std ``gps_noise_m``, correlation time ``gps_noise_tau_s``), seeded; the boat
+  navigates on its true position.
 """
 
 from __future__ import annotations
@@ -135,7 +148,10 @@ class Autopilot:
         self.home_alt = float(home_alt)
         self.frame = LocalFrame(*self.home_latlon)
         self.boat = BoatState()
-        self.t = 0.0
+        self.t = 0.0      # seconds since the last boot (time_boot_ms)
+        self.clock = 0.0  # seconds since the simulation started: runs on through reboots
+        self.boot_count = 0
+        self.down_until: float | None = None  # clock time a rebooting vehicle speaks again
         self.sysid, self.compid = config.sysid, config.compid
         self.params: dict[str, float] = {k: float(v) for k, (v, _) in DEFAULT_PARAMS.items()}
         self.params["MAV_SYSID"] = float(config.sysid)
@@ -167,12 +183,16 @@ class Autopilot:
         self.failsafe = False
         # sensors
         self._rng = random.Random(config.seed)
+        self._gps_rng = random.Random(config.seed * 7919 + 17)  # its own stream: adding GPS noise keeps the current noise
+        self._gps_err = [self._gps_rng.gauss(0.0, config.gps_noise_m), self._gps_rng.gauss(0.0, config.gps_noise_m)] \
+            if config.gps_noise_m > 0 else [0.0, 0.0]
         self._next_sample = 0.0
         self.samples_sent = 0
         self._energy_wh = 0.0
         self.streams: dict[int, LinkStreams] = {}
         self.texts: list[tuple[float, str]] = []  # every STATUSTEXT sent (tests, console)
         self._boot_events_done: set[str] = set()
+        self.reboot_requested = False
 
     # -- parameters ---------------------------------------------------------------
     def p(self, name: str) -> float:
@@ -208,8 +228,61 @@ class Autopilot:
         return self.t >= self.cfg.ekf_gps_s
 
     def position(self) -> tuple[float, float]:
-        """Boat (lat, lon) degrees."""
+        """Boat (lat, lon) degrees (true position)."""
         return self.frame.to_latlon(self.boat.x, self.boat.y)
+
+    def reported_position(self) -> tuple[float, float]:
+        """What the GPS reports, (lat, lon) degrees: the true position plus the GPS error (``gps_noise_m``)."""
+        if self.cfg.gps_noise_m <= 0:
+            return self.position()
+        return self.frame.to_latlon(self.boat.x + self._gps_err[0], self.boat.y + self._gps_err[1])
+
+    def _gps_noise_step(self, dt: float) -> None:
+        sd = self.cfg.gps_noise_m
+        if sd <= 0:
+            return
+        # first-order Gauss-Markov: stationary std sd, correlation time tau (a GPS error wanders, it is not white)
+        a = math.exp(-dt / max(self.cfg.gps_noise_tau_s, 1e-6))
+        q = sd * math.sqrt(max(1.0 - a * a, 0.0))
+        self._gps_err = [a * e + self._gps_rng.gauss(0.0, q) for e in self._gps_err]
+
+    @property
+    def down(self) -> bool:
+        """Rebooting: the vehicle neither sends nor hears anything."""
+        return self.down_until is not None and self.clock < self.down_until
+
+    def reboot(self, downtime_s: float = 2.0) -> None:
+        """Restart the autopilot (brown-out, watchdog, or a commanded reboot); see the module docstring.
+
+        Kept: parameters, the stored missions (eeprom), the boat where it is, ``clock``. Reset: the
+        boot timeline (``t`` = 0), mode INITIALISING, disarmed, home unset, mission progress, stream
+        rates set by SET_MESSAGE_INTERVAL, open mission transfers, failsafe. Silent for ``downtime_s``.
+        """
+        self.boot_count += 1
+        self.down_until = self.clock + max(float(downtime_s), 0.0)
+        self.t = 0.0
+        self.mode = MODES["INITIALISING"]
+        self.armed = False
+        self.home_set = False
+        self.home_latlon = self.position()  # the new home is where the boat is when GPS comes back
+        self.missions = MissionServer(self.store, self.cfg, self.send, self.text, self.home, self._mission_changed,
+                                      sysid=self.sysid, compid=self.compid)
+        self.mission_index = 0
+        self.mission_state = "stopped"
+        self.mission_started = False
+        self.active_item = None
+        self.leg_origin = None
+        self.loiter_until = None
+        self.reached_current = False
+        self.jump_counts.clear()
+        self.speed_override = None
+        self.station = None
+        self.guided_target = None
+        self.last_gcs_hb = None
+        self.failsafe = False
+        self._next_sample = 0.0
+        self.streams.clear()
+        self._boot_events_done.clear()
 
     def home(self) -> tuple[float, float, float]:
         if not self.home_set:
@@ -234,6 +307,8 @@ class Autopilot:
     # -- message handling ----------------------------------------------------------------
     def handle(self, link, msg) -> None:
         """React to one received message (already through the link's impairment)."""
+        if self.down:
+            return
         typ = msg.get_type()
         if typ == "HEARTBEAT":
             if msg.get_srcSystem() == int(self.p("MAV_GCS_SYSID")):
@@ -290,6 +365,16 @@ class Autopilot:
             if result == R.MAV_RESULT_ACCEPTED:
                 self._ack(link, msg, cmd, result)  # ArduPilot acks first, then the message follows
                 self._send_one(link, int(p[0]), msg, send=True)
+                return
+        elif cmd == R.MAV_CMD_PREFLIGHT_REBOOT_SHUTDOWN:
+            # Rover 4.7 SITL: FAILED while armed (no STATUSTEXT); disarmed, ACCEPTED and then the reboot
+            if int(p[0]) != 1:
+                result = R.MAV_RESULT_UNSUPPORTED
+            elif self.armed:
+                result = R.MAV_RESULT_FAILED
+            else:
+                self._ack(link, msg, cmd, R.MAV_RESULT_ACCEPTED)
+                self.reboot_requested = True  # the Simulator reboots after this step (it owns the links)
                 return
         elif cmd == R.MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES:
             self._ack(link, msg, cmd, R.MAV_RESULT_ACCEPTED)
@@ -625,18 +710,27 @@ class Autopilot:
 
     def update(self, dt: float) -> None:
         """Advance the vehicle by ``dt`` simulated seconds (physics, mission, failsafe, streams)."""
+        if self.down:
+            # powered off: the boat drifts with the motor off; the boot timeline starts when it is back
+            lat, lon = self.position()
+            step_boat(self.boat, self.boat.heading, 0.0, self.current_model.at(self.clock, lat, lon), dt, self.cfg.boat)
+            self._gps_noise_step(dt)
+            self.clock += dt
+            return
         self._boot_events()
         self.missions.update(self.t)
         self._failsafe_check()
         if self.mode == MODES["AUTO"] and self.mission_state == "running" and self.loiter_until is not None and self.t >= self.loiter_until:
             self._advance()
         lat, lon = self.position()
-        current = self.current_model.at(self.t, lat, lon)
+        current = self.current_model.at(self.clock, lat, lon)
         heading, speed = self._command_motion(current)
         step_boat(self.boat, heading, speed, current, dt, self.cfg.boat)
+        self._gps_noise_step(dt)
         power_w = 5.0 + 40.0 * (self.boat.speed / 2.0) ** 2
         self._energy_wh += power_w * dt / 3600.0
         self.t += dt
+        self.clock += dt
         self._boot_events()
         self._telemetry()
 
@@ -728,7 +822,7 @@ class Autopilot:
             return
         self._next_sample = max(self._next_sample + 1.0 / rate, self.t) if self._next_sample > 0 else self.t + 1.0 / rate
         lat, lon = self.position()
-        u, v = self.current_model.at(self.t, lat, lon)
+        u, v = self.current_model.at(self.clock, lat, lon)  # measured where the boat really is
         sd = self.cfg.current_noise_std
         if sd > 0:
             u, v = u + self._rng.gauss(0.0, sd), v + self._rng.gauss(0.0, sd)
@@ -817,7 +911,7 @@ class Autopilot:
     def _gps_raw_int(self):
         if not self.gps_ok:
             return M.MAVLink_gps_raw_int_message(int(self.t * 1e6), M.GPS_FIX_TYPE_NO_GPS, 0, 0, 0, 65535, 65535, 0, 65535, 0)
-        lat, lon = self.position()
+        lat, lon = self.reported_position()
         b = self.boat
         gs = math.hypot(b.ground_ve, b.ground_vn)
         cog = (math.degrees(math.atan2(b.ground_ve, b.ground_vn)) % 360.0) if gs > 0.05 else 0.0
@@ -829,7 +923,7 @@ class Autopilot:
         hdg = int(round(math.degrees(b.heading) % 360.0 * 100)) % 36000
         if not self.gps_ok:
             return M.MAVLink_global_position_int_message(self.time_boot_ms, 0, 0, 0, 0, 0, 0, 0, hdg)
-        lat, lon = self.position()
+        lat, lon = self.reported_position()
         return M.MAVLink_global_position_int_message(
             self.time_boot_ms, int(round(lat * 1e7)), int(round(lon * 1e7)), int(self.home_alt * 1000), 0,
             int(round(b.ground_vn * 100)), int(round(b.ground_ve * 100)), 0, hdg)
@@ -845,7 +939,8 @@ class Autopilot:
         return M.MAVLink_vfr_hud_message(b.speed, gs, int(round(math.degrees(b.heading))) % 360, thr, self.home_alt, 0.0)
 
     def _system_time(self):
-        unix = int((self.epoch0 + self.t) * 1e6) if self.gps_ok else 0
+        # UTC comes from the GPS (0 before a fix, as on Rover) and runs on through reboots
+        unix = int((self.epoch0 + self.clock) * 1e6) if self.gps_ok and self.cfg.utc_clock else 0
         return M.MAVLink_system_time_message(unix, self.time_boot_ms)
 
     def _timesync(self):

@@ -7,6 +7,8 @@ Examples::
         --listen udpout:127.0.0.1:14550 --loss 0.1 --baud 57600 --tlog sim.tlog
     vehicle-sim --field builtin:cylinder --anchor 40,-63 --scale 200 --velocity-scale 0.5 \\
         --time-scale 20 --listen tcp:127.0.0.1:5760
+    vehicle-sim --field currents.nc --start-time 2024-05-01T06:00:00Z --utc-at-boot field \\
+        --gps-noise 2 --current-noise 0.02 --seed 1
 
 Bad input exits with code 2 and a one-line message; Ctrl-C exits cleanly (0).
 """
@@ -76,6 +78,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0, help="seed of link loss and sensor noise")
     p.add_argument("--current-noise", type=float, default=0.0, help="std of Gaussian noise on CUR_U/CUR_V, m/s")
     p.add_argument("--current-rate", type=float, default=1.0, help="CUR_U/CUR_V rate, Hz of simulated time (0 = off)")
+    p.add_argument("--gps-noise", type=float, default=0.0,
+                   help="std of the reported position's error, m per axis (Gauss-Markov, 60 s correlation; seeded by --seed)")
+    p.add_argument("--utc-at-boot", default=None,
+                   help="UTC of the vehicle clock at boot (SYSTEM_TIME): an ISO time, 'field' (the field's time at "
+                        "--start-time, so a controller mapping UTC samples the same hour), or 'none' (no clock: "
+                        "time_unix_usec stays 0); default: now")
     p.add_argument("--nav", choices=("pursuit", "crosstrack"), default="pursuit",
                    help="pursuit: crab not compensated (default); crosstrack: hold the line like L1")
     p.add_argument("--param", action="append", default=[], help="NAME=VALUE initial parameter; repeatable")
@@ -152,6 +160,27 @@ def _start_time(value, field) -> float | None:
     return sec
 
 
+def _utc_at_boot(value, field, start: float | None, time_scale: float) -> float | None:
+    """Simulator ``epoch0`` (UTC epoch seconds at boot) from ``--utc-at-boot``; None = now (or no clock)."""
+    if value is None or value.strip().lower() == "none":
+        return None
+    import datetime as dt
+
+    if value.strip().lower() == "field":
+        if field is None or field.time_origin is None:
+            raise _Bad("--utc-at-boot field needs a geographic field with a time origin")
+        if time_scale != 1.0:
+            raise _Bad("--utc-at-boot field needs a field in seconds (--time-scale 1)")
+        t0 = dt.datetime.fromisoformat(field.time_origin.replace("Z", "+00:00"))
+        t0 = t0 if t0.tzinfo else t0.replace(tzinfo=dt.timezone.utc)
+        return t0.timestamp() + (float(field.times[0]) if start is None else start)
+    try:
+        t = dt.datetime.fromisoformat(value.replace("Z", "+00:00"))
+    except ValueError:
+        raise _Bad(f"--utc-at-boot must be an ISO UTC time, 'field' or 'none', got {value!r}") from None
+    return (t if t.tzinfo else t.replace(tzinfo=dt.timezone.utc)).timestamp()
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
@@ -211,13 +240,15 @@ def _run(args) -> int:
     base = SimConfig.fast() if args.fast_boot else SimConfig()
     cfg = base.replace(
         seed=args.seed, current_noise_std=args.current_noise, current_rate_hz=args.current_rate,
+        gps_noise_m=args.gps_noise, utc_clock=(args.utc_at_boot or "").strip().lower() != "none",
         boat=BoatParams(nav=args.nav), params=tuple(params), tlog=args.tlog,
         signing_key=secret_from_key(args.signing_key) if args.signing_key else None,
     )
     link_cfg = LinkConfig(loss=args.loss, latency_s=args.latency, baud=args.baud,
                           drops=tuple(_drop(d) for d in args.drop), seed=args.seed)
+    start = _start_time(args.start_time, field)
     sim = Simulator(field, home=home, config=cfg, velocity_scale=vs, time_scale=ts,
-                    start_time=_start_time(args.start_time, field), link_config=link_cfg)
+                    start_time=start, link_config=link_cfg, epoch0=_utc_at_boot(args.utc_at_boot, field, start, ts))
     sim.serve(listen, speedup=args.speedup, wait_for_client=not args.no_wait, lockstep=args.lockstep)
     stop = {"flag": False}
 

@@ -63,7 +63,12 @@ class SimConfig:
         seed: seed of the sensor noise.
         boat: hull/controller limits and the navigation law.
         params: initial parameter overrides (name -> value).
-        gps_noise_m: not used for navigation; reported positions are exact.
+        gps_noise_m: std (m, per axis) of the error of reported positions (0 = exact); a
+            first-order Gauss-Markov process seeded from ``seed``; the boat navigates on
+            its true position.
+        gps_noise_tau_s: correlation time of that error, simulated seconds.
+        utc_clock: SYSTEM_TIME carries UTC (``epoch0`` + simulated time) once GPS is
+            detected; False: ``time_unix_usec`` stays 0 (a vehicle without a clock).
         start_armed: arm at once when ready (tests).
         tlog: path of a telemetry log of everything sent and received, or None.
         signing_key: 32-byte secret: sign everything, drop unsigned input.
@@ -85,6 +90,9 @@ class SimConfig:
     current_rate_hz: float = 1.0
     current_noise_std: float = 0.0
     seed: int = 0
+    gps_noise_m: float = 0.0
+    gps_noise_tau_s: float = 60.0
+    utc_clock: bool = True
     boat: BoatParams = field(default_factory=BoatParams)
     params: tuple[tuple[str, float], ...] = ()
     tlog: str | None = None

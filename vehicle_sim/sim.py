@@ -136,8 +136,21 @@ class Simulator:
     # -- clock -------------------------------------------------------------------------
     @property
     def t(self) -> float:
-        """Simulated seconds since boot."""
-        return self.autopilot.t
+        """Simulated seconds since the simulator started (= since boot until a :meth:`reboot`)."""
+        return self.autopilot.clock
+
+    def reboot(self, downtime_s: float = 2.0, drop_tcp: bool = True) -> None:
+        """Reboot the autopilot now (a brown-out or watchdog reset; see :meth:`Autopilot.reboot`).
+
+        ``drop_tcp``: close every TCP client connection, as SITL does when it restarts (its
+        clients see EOF and must reconnect); in-process and UDP links stay (a radio link does).
+        """
+        with self._lock:
+            self.autopilot.reboot_requested = False
+            if drop_tcp:
+                for e in [e for e in self._sockets if e["kind"] == "tcp-client"]:
+                    self._close_entry(e)
+            self.autopilot.reboot(downtime_s)
 
     def step(self, dt: float | None = None) -> None:
         """Advance simulated time by ``dt`` (default one physics step), in physics sub-steps."""
@@ -167,6 +180,9 @@ class Simulator:
         self._process_incoming()
         self.autopilot.update(h)
         self._deliver_inprocess()
+        if self.autopilot.reboot_requested:  # MAV_CMD_PREFLIGHT_REBOOT_SHUTDOWN, acknowledged above
+            self._flush_sockets()  # the ACK goes out before the links drop, as on ArduPilot
+            self.reboot()
 
     def _process_incoming(self) -> None:
         ap = self.autopilot
@@ -175,8 +191,8 @@ class Simulator:
             if ep is not None:
                 data = ep._take_inbox()
                 if data:
-                    link.feed(data, ap.t)
-            for msg in link.pop_incoming(ap.t):
+                    link.feed(data, ap.clock)
+            for msg in link.pop_incoming(ap.clock):
                 if self._lockstep and msg.get_type() == "COMMAND_LONG" and msg.command == STEP_COMMAND \
                         and msg.target_system in (0, self.config.sysid):
                     self._step_budget += max(0.0, float(msg.param1)) if msg.param1 == msg.param1 else 0.0
@@ -185,7 +201,7 @@ class Simulator:
                 ap.handle(link, msg)
 
     def _deliver_inprocess(self) -> None:
-        t = self.autopilot.t
+        t = self.autopilot.clock
         for link in list(self.links):
             ep = self._endpoints.get(id(link))
             if ep is not None:
@@ -193,7 +209,7 @@ class Simulator:
 
     # -- links --------------------------------------------------------------------------
     def _send(self, link: Link, msg) -> None:
-        link.send(msg, self.autopilot.t)
+        link.send(msg, self.autopilot.clock)
 
     def add_link(self, name: str = "", config: LinkConfig | None = None) -> Link:
         """A new link (channel); its index picks its MAVn_* stream parameters."""
@@ -333,7 +349,7 @@ class Simulator:
                 self._step_budget = 0.0
                 for link, msg in self._step_waiters:
                     link.send(self.autopilot.MAVLINK.MAVLink_command_ack_message(
-                        STEP_COMMAND, 0, 0, 0, msg.get_srcSystem(), msg.get_srcComponent()), self.autopilot.t)
+                        STEP_COMMAND, 0, 0, 0, msg.get_srcSystem(), msg.get_srcComponent()), self.autopilot.clock)
                 self._step_waiters.clear()
             self._deliver_inprocess()
         self._flush_sockets()
