@@ -1,7 +1,7 @@
-"""The controller against real ArduPilot Rover SITL (marker ``sitl``; skipped unless ``ARDUROVER``
-points at an ``ardurover`` binary, e.g. ``build/sitl/bin/ardurover`` of an ArduPilot checkout).
+"""The controller against real ArduPilot Rover SITL (marker ``sitl``: runs when ../shared/sitl holds
+the build, skips with the reason otherwise; fixtures ``sitl`` / ``sitl_factory`` in conftest.py).
 
-SITL has no current sensor (that needs the Lua script of ARDUPILOT_ROVER.md), so the leg is
+SITL has no current sensor here (that needs the Lua script of ARDUPILOT_ROVER.md), so the leg is
 planned, uploaded, verified by read-back, flown in AUTO to "Mission Complete" and switched to
 HOLD; then the controller stops with its "no current samples" error. That exercises
 everything vehicle-facing against the real firmware.
@@ -9,10 +9,6 @@ everything vehicle-facing against the real firmware.
 
 from __future__ import annotations
 
-import os
-import shutil
-import socket
-import subprocess
 import time
 from pathlib import Path
 
@@ -23,19 +19,44 @@ import geo
 
 pytestmark = pytest.mark.sitl
 
-ARDUROVER = os.environ.get("ARDUROVER")
 HOME = (40.0, -63.0)
 
 
-def _port_open(port: int) -> bool:
-    with socket.socket() as s:
-        s.settimeout(0.2)
-        return s.connect_ex(("127.0.0.1", port)) == 0
+def _param(m, name: str, timeout: float = 20.0):
+    """PARAM_VALUE of ``name`` read with PARAM_REQUEST_READ (resent each second), or None."""
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        m.mav.param_request_read_send(m.target_system, 1, name.encode(), -1)
+        r = m.recv_match(type="PARAM_VALUE", blocking=True, timeout=1.0)
+        if r is not None and r.param_id == name:
+            return r.param_value
+    return None
 
 
-@pytest.mark.skipif(not ARDUROVER or not shutil.which(ARDUROVER) and not Path(ARDUROVER or "").exists(),
-                    reason="set ARDUROVER to an ardurover SITL binary")
-def test_one_leg_on_ardurover_sitl(tmp_path):
+def test_fixture_restart_keeps_eeprom(sitl):
+    """kill9() + restart() is a reboot: same port, new process, parameters kept in eeprom.bin."""
+    m = sitl.mavlink()
+    try:
+        assert m.target_system == 1
+        m.mav.param_set_send(1, 1, b"WP_RADIUS", 4.5, 9)
+        assert _param(m, "WP_RADIUS") == pytest.approx(4.5)
+    finally:
+        m.close()
+    # parameters are written to eeprom.bin asynchronously (~1 s of wall time is ample)
+    time.sleep(2.0)
+    old = sitl.pid
+    sitl.kill9()
+    assert not sitl.alive()
+    sitl.restart()
+    assert sitl.alive() and sitl.pid != old
+    m = sitl.mavlink()
+    try:
+        assert _param(m, "WP_RADIUS") == pytest.approx(4.5)
+    finally:
+        m.close()
+
+
+def test_one_leg_on_ardurover_sitl(tmp_path, sitl):
     from passt_mav.controller import MissionController
     from passt_mav.errors import MavlinkError
     from passt_mav.fields import FlowField
@@ -53,29 +74,16 @@ def test_one_leg_on_ardurover_sitl(tmp_path):
                             "model": "persistence", "planner": {"name": "greedy", "path_length": 2}, "legs": 1,
                             "vehicle": {"speed_mps": 2.0, "wp_radius_m": 3.0}, "geofence_margin_m": 20.0},
                            source="sitl test")
-    cmd = [ARDUROVER, "-S", "--model", "motorboat", "--speedup", "5", "-I0", "--home", f"{HOME[0]},{HOME[1]},0,0"]
-    if os.environ.get("ARDUROVER_PARAMS"):  # e.g. Tools/autotest/default_params/rover.parm,motorboat.parm
-        cmd += ["--defaults", os.environ["ARDUROVER_PARAMS"]]
-    proc = subprocess.Popen(cmd,
-                            cwd=tmp_path, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    link = Link(LinkConfig(sitl.connect, connect_timeout_s=60)).connect()
     try:
-        end = time.monotonic() + 30
-        while not _port_open(5760):
-            assert proc.poll() is None and time.monotonic() < end, "SITL did not open tcp:5760"
-            time.sleep(0.2)
-        link = Link(LinkConfig("tcp:127.0.0.1:5760", connect_timeout_s=60)).connect()
-        try:
-            rd = RunDir(tmp_path / "run").create()
-            ctl = MissionController(cfg, link, rd, field=field, predictor=None, vehicle=Vehicle(link),
-                                    speedup_hint=5.0, ready_timeout_s=120.0, echo=print)
-            with pytest.raises(MavlinkError, match="no current samples"):
-                ctl.run()
-            leg = rd.read_leg(0)
-            assert leg["status"] == "flying" and Path(rd.waypoints_file(0)).exists()
-            assert ctl.vehicle.mode == 4  # HOLD after "Mission Complete"
-            assert any("Mission Complete" in t for _, _, t in link.texts)
-        finally:
-            link.close()
+        rd = RunDir(tmp_path / "run").create()
+        ctl = MissionController(cfg, link, rd, field=field, predictor=None, vehicle=Vehicle(link),
+                                speedup_hint=sitl.speedup, ready_timeout_s=120.0, echo=print)
+        with pytest.raises(MavlinkError, match="no current samples"):
+            ctl.run()
+        leg = rd.read_leg(0)
+        assert leg["status"] == "flying" and Path(rd.waypoints_file(0)).exists()
+        assert ctl.vehicle.mode == 4  # HOLD after "Mission Complete"
+        assert any("Mission Complete" in t for _, _, t in link.texts)
     finally:
-        proc.terminate()
-        proc.wait(10)
+        link.close()
