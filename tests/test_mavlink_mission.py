@@ -1,21 +1,66 @@
-"""Mission protocol client against the simulator (served at high speed-up, in-process link)."""
+"""Mission protocol client against the simulator (served at high speed-up, in-process link).
+
+Tests whose outcome depends on the vehicle's own timers (re-request after 1 s, cancel after 8 s)
+run the simulator *paced* (:func:`paced`) instead of served at a wall-clock speed-up: it advances
+one small step at a time and only once the client has read everything the vehicle sent, so the
+simulated clock can never run ahead of a client that the machine's load has slowed down.
+"""
 
 from __future__ import annotations
 
+import contextlib
 import threading
 import time
 
 import pytest
 from pymavlink.dialects.v20 import ardupilotmega as M
 
-from mavlink_helpers import HOME, served, vehicle, waypoints
+from mavlink_helpers import HOME, inprocess_factory, link_config, served, vehicle, waypoints
 from passt_mav.errors import LinkTimeout, MissionRejected
-from passt_mav.mavlink import MissionClient, with_home
+from passt_mav.mavlink import Link, MissionClient, with_home
 from passt_mav.mission.items import MissionItem
 from vehicle_sim import LinkConfig as SimLinkConfig
-from vehicle_sim import SimConfig
+from vehicle_sim import SimConfig, Simulator
 
 OFFSETS = [(1e-4 * i, -1.3e-4 * i + 3e-7) for i in range(1, 9)]
+
+
+@contextlib.contextmanager
+def paced(config: SimConfig | None = None, *, sim_link: SimLinkConfig | None = None, dt: float = 0.01,
+          wall_per_step_s: float = 0.001, link_kw: dict | None = None):
+    """(sim, link): the simulator advanced by a thread in steps of ``dt`` simulated seconds, each
+    after the client has read all the vehicle sent and at least ``wall_per_step_s`` of wall time
+    (so at most ``dt / wall_per_step_s`` = 10x). A loaded machine makes the vehicle slower, never
+    faster, relative to the client's wall-clock timeouts: its 8 s transfer timeout needs the client
+    silent for >= 0.8 s of wall time."""
+    sim = Simulator(None, home=HOME, config=config or SimConfig.fast())
+    eps = []
+
+    def factory():
+        conn = inprocess_factory(sim, sim_link)()
+        eps.append(conn.endpoint)
+        return conn
+
+    stop = threading.Event()
+
+    def stepper():
+        while not stop.is_set():
+            t_wait = time.monotonic() + 1.0
+            while any(e.pending() for e in eps if not e.closed) and time.monotonic() < t_wait and not stop.is_set():
+                time.sleep(0.0005)
+            sim.step(dt)
+            time.sleep(wall_per_step_s)
+
+    th = threading.Thread(target=stepper, daemon=True)
+    th.start()
+    link = Link(link_config(**({"stream_rates_hz": ()} | (link_kw or {}))), connection_factory=factory)
+    try:
+        link.connect()
+        yield sim, link
+    finally:
+        link.close()
+        stop.set()
+        th.join(5)
 
 
 def test_with_home_numbers_from_one_and_puts_a_placeholder_at_zero():
@@ -90,7 +135,9 @@ def test_second_gcs_mid_transfer_gets_denied():
 
 @pytest.mark.parametrize("seed", [1, 7])
 def test_upload_completes_under_20_percent_loss_each_way(seed):
-    with served(sim_link=SimLinkConfig(loss=0.2, seed=seed), link_kw=dict(timeout_s=0.1)) as (sim, link):
+    # paced: the vehicle's 8 s transfer timeout is simulated time and cannot race the client's
+    # wall-clock item timeout (served at 50x it ran out under load: OPERATION_CANCELLED)
+    with paced(sim_link=SimLinkConfig(loss=0.2, seed=seed), link_kw=dict(timeout_s=0.1)) as (sim, link):
         mc = MissionClient(link)
         items = with_home(waypoints(OFFSETS))  # 9 items
         got = mc.upload_verified(items)
@@ -137,3 +184,40 @@ def test_upload_times_out_when_vehicle_goes_silent_mid_transfer():
         sim.links[0].config = SimLinkConfig(drops=((0.0, 1e9),))  # cut the radio mid-transfer
         assert done.wait(5.0)
         assert errors and isinstance(errors[0], LinkTimeout)
+
+
+def test_a_transfer_the_vehicle_cancels_is_restarted():
+    """The vehicle cancels an upload after 8 s without the next item (OPERATION_CANCELLED): the
+    client starts the transfer again from MISSION_COUNT instead of failing."""
+    with paced(link_kw=dict(timeout_s=0.1)) as (sim, link):
+        mc = MissionClient(link)
+        items = with_home(waypoints(OFFSETS[:5]))
+        send = link.send
+        swallowed = []
+
+        def lossy_send(msg):
+            # every copy of item 3 is lost for 8.5 s of simulated time: the vehicle gives up (at 8 s)
+            if msg.get_type() == "MISSION_ITEM_INT" and msg.seq == 3 and (not swallowed or sim.t < swallowed[0] + 8.5):
+                swallowed.append(sim.t)
+                return
+            send(msg)
+
+        link.send = lossy_send
+        res = mc.upload(items)
+        assert res.cancel_restarts == 1 and len(swallowed) >= 5  # the vehicle re-requested item 3 each second
+        assert sim.t >= swallowed[0] + 8.0  # the cancellation came from the vehicle's own timeout
+        assert "Mission upload timeout" in [t for _, _, t in link.texts]
+        got = mc.download()
+        assert [(g.x_int, g.y_int) for g in got[1:]] == [(i.x_int, i.y_int) for i in items[1:]]
+
+
+def test_cancel_restarts_are_bounded():
+    """A vehicle that cancels every transfer is not retried forever: the cancel is raised, named."""
+    with paced(link_kw=dict(timeout_s=0.1)) as (sim, link):
+        mc = MissionClient(link, cancel_restarts=1)
+        send = link.send
+        link.send = lambda msg: None if msg.get_type() == "MISSION_ITEM_INT" and msg.seq == 2 else send(msg)
+        with pytest.raises(MissionRejected) as ei:
+            mc.upload(with_home(waypoints(OFFSETS[:4])), timeout=60.0)
+        assert ei.value.result == M.MAV_MISSION_OPERATION_CANCELLED
+        assert "Mission upload timeout" in str(ei.value)

@@ -17,23 +17,135 @@ Written to shared/ARDUPILOT_ROVER.md (ArduPilot Rover 4.x):
 A lost final ACK is recovered like MAVProxy does: the last item is re-sent; a
 vehicle that has already closed the transfer answers ERROR, and the upload is
 then confirmed (or refuted) by reading the mission back.
+
+The vehicle does not store items verbatim (ARDUPILOT_ROVER.md, "The vehicle does not
+store items verbatim"): :func:`rover_stored` is the one description of what Rover 4.7
+keeps of an item (table :data:`ROVER_STORAGE`), and the read-back comparison uses it,
+so it compares what the firmware keeps and never a field it drops. A transfer the
+vehicle cancels (MISSION_ACK OPERATION_CANCELLED after its own 8 s timeout, e.g. under
+heavy loss) is restarted from MISSION_COUNT, up to ``cancel_restarts`` times.
 """
 
 from __future__ import annotations
 
 import logging
+import math
+import struct
 import time
-from typing import Sequence
+from dataclasses import replace
+from typing import Callable, Sequence
 
 from passt_mav.errors import CommandRejected, LinkTimeout, MissionRejected, MissionVerifyError
 from passt_mav.mavlink.link import Link, mavlink2, result_name
 from passt_mav.mission.items import GLOBAL_FRAMES, MAV_FRAME_GLOBAL, MAV_MISSION_TYPE_MISSION, MissionItem
 
-__all__ = ["MissionClient", "with_home", "to_msg", "from_msg", "UploadResult"]
+__all__ = ["MissionClient", "with_home", "to_msg", "from_msg", "UploadResult", "rover_stored", "ROVER_STORAGE"]
 
 log = logging.getLogger(__name__)
 M = mavlink2
 _ACCEPTED = M.MAV_MISSION_ACCEPTED
+
+
+# -- what ArduPilot Rover 4.7 stores of an item ----------------------------------------------------
+# AP_Mission packs an item into a 15-byte command: each param goes through a C conversion to a
+# small field (or is dropped), and only "location" commands keep x/y/z and an altitude frame.
+# Measured on the SITL build in ../shared/sitl (tests/test_sitl_differential.py checks this
+# table against it item by item); the command list follows AP_Mission::mavlink_int_to_mission_cmd.
+
+def _f32(v: float) -> float:
+    """A float param stored as float32 (NaN stays NaN)."""
+    return struct.unpack("<f", struct.pack("<f", v))[0] if math.isfinite(v) else v
+
+
+def _int_wrap(bits: int, signed: bool) -> Callable[[float], float]:
+    def conv(v: float) -> float:
+        # C float -> small int: truncation toward zero, then the bits that fit (65535 for -1 as u16,
+        # 4464 for 70000, as the firmware returns them); NaN/inf are undefined in C: 0 here
+        if not math.isfinite(v):
+            return 0.0
+        n = int(v) & ((1 << bits) - 1)
+        if signed and n >= 1 << (bits - 1):
+            n -= 1 << bits
+        return float(n)
+    return conv
+
+
+def _sign(v: float) -> float:
+    return -1.0 if v < 0 else 1.0       # loiter direction kept as a flag: radius 10 reads back 1
+
+
+def _positive(v: float) -> float:
+    return 1.0 if v > 0 else 0.0        # e.g. LOITER_TIME param4 "xtrack" kept as a flag
+
+
+def _signed_abs(conv: Callable[[float], float]) -> Callable[[float], float]:
+    return lambda v: -conv(abs(v)) if v < 0 else conv(abs(v))   # magnitude in a field, sign as "ccw"
+
+
+_U8, _U16, _I8, _I16 = _int_wrap(8, False), _int_wrap(16, False), _int_wrap(8, True), _int_wrap(16, True)
+_F = _f32
+_0 = None  # dropped: reads back 0
+
+#: MAV_CMD -> (keeps a location (x, y, z, altitude frame), (param1..param4 conversions or None = dropped)).
+#: Commands not listed are refused by Rover with MAV_MISSION_UNSUPPORTED.
+ROVER_STORAGE: dict[int, tuple[bool, tuple]] = {
+    16: (True, (_U16, _0, _0, _0)),                         # NAV_WAYPOINT: hold s; radius/pass-by/yaw dropped
+    17: (True, (_0, _0, _signed_abs(_U16), _0)),            # NAV_LOITER_UNLIM: radius (sign = ccw)
+    18: (True, (_U8, _0, _signed_abs(_U8), _positive)),     # NAV_LOITER_TURNS: turns, radius in one byte each
+    19: (True, (_U16, _0, _sign, _positive)),               # NAV_LOITER_TIME: time s; param3 only its sign
+    20: (False, (_0, _0, _0, _0)),                          # NAV_RETURN_TO_LAUNCH: nothing, not even frame/x/y
+    21: (True, (_U16, _0, _0, _sign)),                      # NAV_LAND
+    22: (True, (_U16, _0, _0, _0)),                         # NAV_TAKEOFF
+    82: (True, (_U16, _0, _0, _0)),                         # NAV_SPLINE_WAYPOINT: hold s
+    93: (False, (_F, _I8, _I8, _I8)),                       # NAV_DELAY: s, hour/min/sec UTC
+    112: (False, (_F, _0, _0, _0)),                         # CONDITION_DELAY: s
+    114: (False, (_F, _0, _0, _0)),                         # CONDITION_DISTANCE: m
+    115: (False, (_F, _F, _I8, _U8)),                       # CONDITION_YAW
+    176: (False, (_U16, _0, _0, _0)),                       # DO_SET_MODE
+    177: (False, (_U16, _I16, _0, _0)),                     # DO_JUMP: target seq, repeat count
+    178: (False, (_U8, _F, _F, _0)),                        # DO_CHANGE_SPEED: type, m/s, throttle %
+    179: (True, (_U16, _0, _0, _0)),                        # DO_SET_HOME
+    181: (False, (_U8, _U8, _0, _0)),                       # DO_SET_RELAY
+    182: (False, (_U8, _I16, _F, _0)),                      # DO_REPEAT_RELAY
+    183: (False, (_U16, _U16, _0, _0)),                     # DO_SET_SERVO: channel, PWM
+    184: (False, (_U16, _U16, _I16, _F)),                   # DO_REPEAT_SERVO
+    189: (True, (_0, _0, _0, _0)),                          # DO_LAND_START
+    194: (False, (_U16, _0, _0, _0)),                       # DO_SET_REVERSE
+    201: (True, (_U16, _0, _0, _0)),                        # DO_SET_ROI
+    206: (False, (_F, _0, _0, _0)),                         # DO_SET_CAM_TRIGG_DIST
+    207: (False, (_U16, _0, _0, _0)),                       # DO_FENCE_ENABLE
+    211: (False, (_U8, _U8, _0, _0)),                       # DO_GRIPPER
+    215: (False, (_U16, _0, _0, _0)),                       # DO_SET_RESUME_REPEAT_DIST
+}
+#: altitude frame a location command is stored and read back in (the _INT frames and MISSION fold)
+_STORED_FRAME = {0: 0, 2: 0, 5: 0, 3: 3, 6: 3, 10: 10, 11: 10}
+
+
+def _alt_cm(z: float) -> float:
+    """Altitude kept in whole centimetres (float32 metres * 100, truncated), read back as metres."""
+    return _f32(math.trunc(_f32(_f32(z) * 100.0)) / 100.0) if math.isfinite(z) else z
+
+
+def rover_stored(item: MissionItem) -> MissionItem:
+    """What Rover 4.7 stores for ``item`` and returns on download (mission type 0; others unchanged).
+
+    Per :data:`ROVER_STORAGE`: each param converted to the field it is kept in, dropped params 0;
+    location commands keep lat/lon (degE7) and the altitude in cm with frame 0/3/10 (GLOBAL,
+    RELATIVE_ALT, TERRAIN: the _INT frames and MISSION fold into these); other commands read back
+    frame 0 with x = y = z = 0; ``current`` 0, ``autocontinue`` 1. A command Rover does not know
+    (it refuses it with UNSUPPORTED) is returned unchanged.
+    """
+    if item.mission_type != MAV_MISSION_TYPE_MISSION or item.command not in ROVER_STORAGE:
+        return item
+    located, convs = ROVER_STORAGE[item.command]
+    p = [0.0 if c is None else c(float(v)) for c, v in zip(convs, (item.param1, item.param2, item.param3, item.param4))]
+    if located:
+        # x/y travel and are kept as int32 degE7
+        frame, lat, lon, alt = _STORED_FRAME.get(item.frame, item.frame), item.x_int / 1e7, item.y_int / 1e7, _alt_cm(item.alt)
+    else:
+        frame, lat, lon, alt = MAV_FRAME_GLOBAL, 0.0, 0.0, 0.0
+    return replace(item, frame=frame, current=0, autocontinue=1, param1=p[0], param2=p[1], param3=p[2],
+                   param4=p[3], lat=lat, lon=lon, alt=alt)
 
 
 def with_home(waypoints: Sequence[MissionItem], home: tuple[float, float] = (0.0, 0.0),
@@ -70,12 +182,14 @@ def from_msg(m) -> MissionItem:
 
 class UploadResult:
     """What an upload did: ``count`` items, ``ack_lost`` (ACCEPTED never seen; confirmed by
-    read-back), ``no_space_retries``, ``count_sends``, ``items_sent`` (incl. resends), ``seconds``."""
+    read-back), ``no_space_retries``, ``cancel_restarts`` (transfers restarted after the vehicle
+    cancelled them), ``count_sends``, ``items_sent`` (incl. resends), ``seconds``."""
 
     def __init__(self, **kw):
         self.count = kw.get("count", 0)
         self.ack_lost = kw.get("ack_lost", False)
         self.no_space_retries = kw.get("no_space_retries", 0)
+        self.cancel_restarts = kw.get("cancel_restarts", 0)
         self.count_sends = kw.get("count_sends", 0)
         self.items_sent = kw.get("items_sent", 0)
         self.seconds = kw.get("seconds", 0.0)
@@ -97,13 +211,17 @@ class MissionClient:
         boot_grace_s: a vehicle up for less than this (time_boot_ms), or in INITIALISING
             (custom mode 16), is "still initialising": its NO_SPACE is retried. Later a
             NO_SPACE is a real capacity limit and raised at once.
+        cancel_restarts: a transfer the vehicle cancelled (OPERATION_CANCELLED: its own 8 s item
+            timeout ran out, e.g. under heavy loss) is started again from MISSION_COUNT this many times.
     """
 
     def __init__(self, link: Link, *, item_timeout_s: float | None = None, retries: int | None = None,
-                 no_space_retries: int = 5, no_space_delay_s: float = 1.0, boot_grace_s: float = 30.0):
+                 no_space_retries: int = 5, no_space_delay_s: float = 1.0, boot_grace_s: float = 30.0,
+                 cancel_restarts: int = 3):
         self.link = link
         self.item_timeout_s = item_timeout_s
         self.retries = max(link.config.retries, 10) if retries is None else retries
+        self.cancel_restarts = cancel_restarts
         self.no_space_retries = no_space_retries
         self.no_space_delay_s = no_space_delay_s
         self.boot_grace_s = boot_grace_s
@@ -219,6 +337,19 @@ class MissionClient:
                     res.seconds = time.monotonic() - t0
                     log.info("mission upload: final ACK lost, confirmed by read-back")
                     return res
+                if (result == M.MAV_MISSION_OPERATION_CANCELLED and requested
+                        and res.cancel_restarts < self.cancel_restarts):
+                    # the vehicle gave up waiting (its 8 s item timeout); the stored list is now a
+                    # mix of old and new items, so start the whole transfer again
+                    res.cancel_restarts += 1
+                    log.info("mission upload cancelled by the vehicle at item %d/%d; restarting (%d)",
+                             last_seq + 1, n, res.cancel_restarts)
+                    sub.drain()
+                    requested, last_seq, silent, last_resends = False, -1, 0, 0
+                    if timeout is None:
+                        deadline = self._deadline(n, None)  # a fresh transfer gets a fresh budget
+                    send_count()
+                    continue
                 if result == M.MAV_MISSION_NO_SPACE and not requested:
                     if self._initialising() and res.no_space_retries < self.no_space_retries:
                         res.no_space_retries += 1
@@ -330,13 +461,15 @@ class MissionClient:
 
 
 def _differences(sent: list[MissionItem], got: list[MissionItem], mission_type: int) -> str:
-    """'' if equal within wire tolerance, else a short description of what differs."""
+    """'' if the vehicle holds what it would store of ``sent`` (:func:`rover_stored`, within wire
+    tolerance), else a short description of what differs."""
     if len(sent) != len(got):
         return f"{len(got)} items on the vehicle, {len(sent)} uploaded"
     bad = []
     for a, b in zip(sent, got):
         if mission_type == MAV_MISSION_TYPE_MISSION and a.seq == 0:
             continue  # home: the vehicle writes its own
-        if not a.same_as(b):
+        # what the vehicle keeps of each (rover_stored), never a field it drops; lat/lon to 1e-7 deg
+        if not rover_stored(a).same_as(rover_stored(b)):
             bad.append(f"seq {a.seq}: sent {a}, vehicle has {b}")
     return "; ".join(bad[:3]) + (f" (+{len(bad) - 3} more)" if len(bad) > 3 else "")
