@@ -426,6 +426,10 @@ def _fig_rmse(run: Run, plt, over_time: dict | None, per_leg: list[tuple[int, fl
                 ax.plot(t[ok], y[ok], style, label=name)
         ax.set_xlabel(lab)
         ax.set_ylabel(f"RMSE ({run.units})")
+        ys = np.concatenate([_series(over_time[k]) for k in ("passt", "model", "lawnmower") if k in over_time])
+        ys = ys[np.isfinite(ys) & (ys > 0)]
+        if ys.size and ys.max() > 20 * ys.min():  # curves an order of magnitude apart: log scale shows all of them
+            ax.set_yscale("log")
         ax.set_title("RMSE over time", fontsize=10)
         ax.grid(alpha=0.3)
         ax.legend(fontsize=8)
