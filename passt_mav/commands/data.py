@@ -2,7 +2,8 @@
 
 Subcommands: ``cylinder`` and ``oscillating`` (CFD, from
 :mod:`passt_mav.fields.cylinder_cli`), ``ocean`` (synthetic North Atlantic),
-``import`` (real model/radar files), ``info`` and ``show``.
+``import`` (real model/radar files), ``info``, ``show`` and ``export-lua`` (the grid
+file of the ArduPilot Lua current sensor ``vehicle_sim/lua/current_sensor.lua``).
 
 Only the standard library is imported at module level (``passt-mav --help``
 must stay fast); numpy, xarray and matplotlib are imported inside the handlers.
@@ -21,6 +22,8 @@ EXAMPLES = """examples:
   passt-mav data import hycom.nc --region north_atlantic --start 2018-03-01T00:00Z --hours 504 --out na.nc
   passt-mav data info ocean.nc --json
   passt-mav data show ocean.nc --out ocean.png --time 100
+  passt-mav data export-lua builtin:ocean --snapshots 0:48 --scripts-dir sitl_scripts
+  passt-mav data export-lua builtin:cylinder --mission missions/cylinder.yaml --out current_grid.bin
   passt-mav data cylinder --help
 """
 
@@ -98,13 +101,40 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     s.add_argument("--time", type=int, default=0, help="snapshot index (negative counts from the end; default 0)")
     s.set_defaults(_data_run=_run_show)
 
+    x = sub.add_parser("export-lua", help="write the binary grid file read by the ArduPilot Lua current sensor",
+                       formatter_class=argparse.RawDescriptionHelpFormatter,
+                       description="Write a field as the little-endian grid file that vehicle_sim/lua/current_sensor.lua "
+                       "reads on ArduPilot (SITL or a real autopilot): a 128-byte header (lat/lon -> cell map, "
+                       "field time at boot, snapshot times) and float32 u/v (m/s east/north, NaN = land). The "
+                       "script sends CUR_U/CUR_V for field time = time_at_boot + millis()/1000.",
+                       epilog="Copy the file next to the script: SITL reads WORKDIR/scripts/current_grid.bin "
+                       "(start-sitl --scripts DIR copies only *.lua, so put the .bin in WORKDIR/scripts yourself, "
+                       "or use --scripts-dir and copy that folder), a real autopilot APM/scripts/current_grid.bin.")
+    x.add_argument("file", help="field .nc file or builtin:NAME")
+    x.add_argument("--out", default=None, help="output file (default current_grid.bin, or DIR/current_grid.bin "
+                   "with --scripts-dir)")
+    x.add_argument("--scripts-dir", default=None, help="also copy current_sensor.lua into this folder "
+                   "(ready for start-sitl --scripts DIR / the autopilot's scripts folder)")
+    x.add_argument("--time-at-boot", type=float, default=None, help="field time (field units, like the mission's "
+                   "--field-time-at-boot) at vehicle boot (default: the mission's snapshot t0, else the first snapshot)")
+    x.add_argument("--region", default=None, help="crop to the cells whose centres lie in S,W,N,E degrees "
+                   "(write --region=S,W,N,E when S is negative)")
+    x.add_argument("--snapshots", default=None, help="START:STOP snapshot indices to keep (Python slice, "
+                   "e.g. 0:48); the vehicle holds the last one after the span")
+    x.add_argument("--mission", default=None, help="mission YAML: its field velocity_scale/time_scale, t0 and, "
+                   "for a metric field, the region that places it on Earth")
+    x.add_argument("--anchor", default=None, help="LAT,LON: put a metric field's centre here (overrides its anchor)")
+    x.add_argument("--json", action="store_true", help="print a JSON summary")
+    x.set_defaults(_data_run=_run_export_lua)
+
 
 def run(args: argparse.Namespace) -> int:
     fn = getattr(args, "_data_run", None)
     if fn is None:
         from passt_mav.errors import UserError
 
-        raise UserError("choose a subcommand: cylinder, oscillating, ocean, import, info, show (see 'passt-mav data --help')")
+        raise UserError("choose a subcommand: cylinder, oscillating, ocean, import, info, show, export-lua "
+                        "(see 'passt-mav data --help')")
     return int(fn(args) or 0)
 
 
@@ -294,4 +324,211 @@ def _run_show(args) -> int:
     f = resolve_field(args.file)
     path = plot_snapshot(f, args.time, args.out)
     print(f"wrote {path}")
+    return 0
+
+
+# -- the Lua sensor's grid file ----------------------------------------------------
+#: layout documented in vehicle_sim/lua/current_sensor.lua (keep both in step)
+LUA_MAGIC = b"PCUR"
+LUA_VERSION = 1
+LUA_HEADER_BYTES = 128
+_LUA_HEADER_FMT = "<4sHHHHI11d"  # 104 bytes, zero-padded to LUA_HEADER_BYTES
+
+
+def lua_script_path():
+    """Path of the shipped ``current_sensor.lua`` (package data of vehicle_sim), found without importing it."""
+    import importlib.util
+    from pathlib import Path
+
+    spec = importlib.util.find_spec("vehicle_sim")
+    if spec is None or not spec.submodule_search_locations:
+        from passt_mav.errors import UserError
+
+        raise UserError("vehicle_sim is not installed: current_sensor.lua ships with it")
+    return Path(list(spec.submodule_search_locations)[0]) / "lua" / "current_sensor.lua"
+
+
+def export_lua_grid(field, path, *, time_at_boot: float | None = None, velocity_scale: float = 1.0,
+                    time_scale: float = 1.0, grid=None) -> dict:
+    """Write ``field`` as the Lua current sensor's grid file; returns a JSON-able summary.
+
+    Args:
+        field: a :class:`FlowField` (geographic, or metric with an Earth placement).
+        path: output file.
+        time_at_boot: field time (field units) at vehicle boot; default the first snapshot.
+        velocity_scale: m/s per field velocity unit (mission ``field.velocity_scale``).
+        time_scale: seconds per field time unit (mission ``field.time_scale``).
+        grid: placement of a metric field (a :class:`geo.MetricRegionGrid` of the field's
+            shape); default the field's own grid.
+
+    The file stores u/v in m/s east/north (metric fields are rotated to east/north and
+    scaled), times in seconds (field units x ``time_scale``) and an affine map from lat/lon
+    (degrees) to fractional cell. For lat/lon grids the map is exact; for metric grids it is
+    the tangent map at the grid centre and ``max_map_error_cells`` says how far it is off at
+    the corners (it must stay below 0.01 cell).
+    """
+    import struct
+    from pathlib import Path
+
+    import numpy as np
+
+    from passt_mav.errors import FieldError
+
+    g = field.grid if grid is None else grid
+    if g.shape != field.grid.shape:
+        raise FieldError(f"placement grid {g.shape} does not match the field's {field.grid.shape}")
+    R, C = g.shape
+    T = field.n_times
+    data = field.data.astype(np.float64) * float(velocity_scale)
+    if field.is_geographic and grid is None:
+        lat_ref, lon_ref, r_ref, c_ref = g.south, g.west, 0.0, 0.0
+        jac = np.array([[1.0 / g.dlat, 0.0], [0.0, 1.0 / g.dlon]])
+        map_err = 0.0
+    else:
+        rot = getattr(g, "velocity_to_local", None)
+        if rot is not None:
+            u, v = rot(data[:, 0], data[:, 1])
+            data = np.stack([u, v], axis=1)
+        r_ref, c_ref = (R - 1) / 2.0, (C - 1) / 2.0
+        lat_ref, lon_ref = (float(x) for x in g.fcell_to_latlon(r_ref, c_ref))
+        h = 1e-4  # degrees: central differences of a smooth projection, error ~h^2
+        jac = np.empty((2, 2))
+        for j, (dla, dlo) in enumerate(((h, 0.0), (0.0, h))):
+            rp, cp = g.latlon_to_fcell(lat_ref + dla, lon_ref + dlo)
+            rm, cm = g.latlon_to_fcell(lat_ref - dla, lon_ref - dlo)
+            jac[0, j] = (float(rp) - float(rm)) / (2 * h)
+            jac[1, j] = (float(cp) - float(cm)) / (2 * h)
+        cr = np.array([0.0, 0.0, R - 1.0, R - 1.0])
+        cc = np.array([0.0, C - 1.0, 0.0, C - 1.0])
+        la, lo = g.fcell_to_latlon(cr, cc)
+        ra = r_ref + jac[0, 0] * (la - lat_ref) + jac[0, 1] * (lo - lon_ref)
+        ca = c_ref + jac[1, 0] * (la - lat_ref) + jac[1, 1] * (lo - lon_ref)
+        map_err = float(np.max(np.hypot(ra - cr, ca - cc)))
+        if map_err > 0.01:
+            raise FieldError(f"the metric grid is too large for a linear lat/lon map ({map_err:.3f} cells off at "
+                             "a corner); export a smaller --region or a smaller scale")
+    times_s = field.times * float(time_scale)
+    if T > 1:
+        dt_s = field.dt * float(time_scale)
+    else:
+        dt_s = 0.0
+    t_boot = float(field.times[0] if time_at_boot is None else time_at_boot) * float(time_scale)
+    header = struct.pack(_LUA_HEADER_FMT, LUA_MAGIC, LUA_VERSION, LUA_HEADER_BYTES, R, C, T,
+                         float(lat_ref), float(lon_ref), float(r_ref), float(c_ref),
+                         float(jac[0, 0]), float(jac[0, 1]), float(jac[1, 0]), float(jac[1, 1]),
+                         t_boot, float(times_s[0]), float(dt_s))
+    header = header.ljust(LUA_HEADER_BYTES, b"\0")
+    body = np.ascontiguousarray(data.astype("<f4")).tobytes()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_bytes(header + body)
+    return {"out": str(path), "bytes": len(header) + len(body), "rows": R, "cols": C, "snapshots": T,
+            "time_at_boot_s": t_boot, "t0_s": float(times_s[0]), "dt_s": float(dt_s),
+            "span_s": float(times_s[-1] - times_s[0]), "max_map_error_cells": map_err,
+            "land_cells": int(field.land_mask.sum())}
+
+
+def read_lua_grid(path) -> dict:
+    """Read a grid file written by :func:`export_lua_grid` (header dict + ``data`` (T, 2, rows, cols) float32)."""
+    import struct
+    from pathlib import Path
+
+    import numpy as np
+
+    from passt_mav.errors import FieldError
+
+    b = Path(path).read_bytes()
+    n = struct.calcsize(_LUA_HEADER_FMT)
+    if len(b) < n or b[:4] != LUA_MAGIC:
+        raise FieldError(f"{path} is not a Lua current grid file")
+    keys = ("magic", "version", "header", "rows", "cols", "snapshots", "lat_ref", "lon_ref", "r_ref", "c_ref",
+            "drdlat", "drdlon", "dcdlat", "dcdlon", "time_at_boot_s", "t0_s", "dt_s")
+    h = dict(zip(keys, struct.unpack(_LUA_HEADER_FMT, b[:n])))
+    shape = (h["snapshots"], 2, h["rows"], h["cols"])
+    h["data"] = np.frombuffer(b, dtype="<f4", offset=h["header"]).reshape(shape)
+    return h
+
+
+def _run_export_lua(args) -> int:
+    import shutil
+    from pathlib import Path
+
+    import geo
+    from passt_mav.errors import UserError
+    from passt_mav.fields.datasets import resolve_field
+
+    velocity_scale, time_scale, t0, placement = 1.0, 1.0, None, None
+    if args.mission:
+        from passt_mav.mission.config import load_mission
+
+        cfg = load_mission(args.mission)
+        velocity_scale, time_scale, t0 = cfg.field.velocity_scale, cfg.field.time_scale, cfg.t0
+        placement = cfg.grid()
+    f = resolve_field(args.file)
+    if placement is not None and placement.shape != f.grid.shape:
+        raise UserError(f"the mission's region is {placement.shape[0]}x{placement.shape[1]} but the field is "
+                        f"{f.grid.shape[0]}x{f.grid.shape[1]}")
+    if f.is_geographic:
+        placement = None  # a lat/lon field places itself
+        if args.anchor:
+            raise UserError("--anchor is for metric fields (x/y metres); this field is already on lat/lon")
+    else:
+        g = placement or f.grid
+        if args.anchor:
+            try:
+                alat, alon = (float(x) for x in args.anchor.split(","))
+            except ValueError:
+                raise UserError(f"--anchor must be LAT,LON in degrees, got {args.anchor!r}") from None
+            d = g.describe()
+            d.update(anchor_lat=alat, anchor_lon=alon)
+            d.pop("kind")
+            g = geo.MetricRegionGrid(**d)
+        placement = g
+    time_at_boot = args.time_at_boot
+    if time_at_boot is None and t0 is not None:
+        if not 0 <= t0 < f.n_times:
+            raise UserError(f"the mission's t0 {t0} is outside the field's {f.n_times} snapshots")
+        time_at_boot = float(f.times[t0])
+    if args.snapshots:
+        try:
+            a, b = (int(x) if x.strip() else None for x in args.snapshots.split(":"))
+        except ValueError:
+            raise UserError(f"--snapshots must be START:STOP snapshot indices, got {args.snapshots!r}") from None
+        sl = slice(a, b)
+        if len(range(f.n_times)[sl]) < 1:
+            raise UserError(f"--snapshots {args.snapshots} keeps none of the field's {f.n_times} snapshots")
+        f = f.isel(time=sl)
+    if args.region:
+        if not f.is_geographic:
+            raise UserError("--region crops lat/lon fields; for a metric field export its mission region")
+        import numpy as np
+
+        try:
+            s_, w_, n_, e_ = (float(x) for x in args.region.split(","))
+        except ValueError:
+            raise UserError(f"--region must be S,W,N,E in degrees, got {args.region!r}") from None
+        rows = np.nonzero((f.grid.lats >= s_) & (f.grid.lats <= n_))[0]
+        cols = np.nonzero((f.grid.lons >= w_) & (f.grid.lons <= e_))[0]
+        if rows.size < 2 or cols.size < 2:
+            raise UserError(f"--region {args.region} holds fewer than 2x2 cell centres of the field")
+        f = f.isel(rows=slice(int(rows[0]), int(rows[-1]) + 1), cols=slice(int(cols[0]), int(cols[-1]) + 1))
+    if time_at_boot is None:
+        time_at_boot = float(f.times[0])
+    out = Path(args.out) if args.out else (Path(args.scripts_dir) if args.scripts_dir else Path(".")) / "current_grid.bin"
+    summary = export_lua_grid(f, out, time_at_boot=time_at_boot, velocity_scale=velocity_scale,
+                              time_scale=time_scale, grid=placement)
+    if args.scripts_dir:
+        d = Path(args.scripts_dir)
+        d.mkdir(parents=True, exist_ok=True)
+        shutil.copyfile(lua_script_path(), d / "current_sensor.lua")
+        summary["script"] = str(d / "current_sensor.lua")
+    if args.json:
+        print(json.dumps(summary, indent=2))
+    else:
+        print(f"Lua grid {summary['rows']}x{summary['cols']}, {summary['snapshots']} snapshots every "
+              f"{summary['dt_s']:g} s, field time at boot {summary['time_at_boot_s']:g} s, "
+              f"{summary['bytes'] / 1024:.1f} KiB")
+        if "script" in summary:
+            print(f"wrote {summary['script']}")
+        print(f"wrote {summary['out']}")
     return 0
