@@ -15,13 +15,23 @@ Per leg ``i``::
 
 Clock (vehicle time -> field time). Every sample carries the autopilot's
 ``time_boot_ms``. Field time is ``t = t_boot0 + time_boot_ms / 1000 / time_scale``,
-with ``t_boot0`` the field time at vehicle boot (``--field-time-at-boot``, default
-``field.times[config.t0]``; ``passt-mav demo`` starts the simulator with exactly
-that ``--start-time``) and ``time_scale`` the mission's ``field.time_scale``
-(seconds per field time unit: 1 for geographic fields, e.g. 200 for the scaled
-cylinder). This is the simulator's own clock rule, so field times agree exactly.
-A real boat would map UTC instead (SYSTEM_TIME ``time_unix_usec``; the samples
-carry it as ``utc``): not implemented here.
+with ``time_scale`` the mission's ``field.time_scale`` (seconds per field time unit:
+1 for geographic fields, e.g. 200 for the scaled cylinder) and ``t_boot0`` the field
+time at vehicle boot, chosen once the vehicle is ready (mission ``field.clock``):
+
+* ``utc`` (a real boat): from the vehicle's UTC, SYSTEM_TIME ``time_unix_usec -
+  time_boot_ms`` (its GPS clock), as seconds since the field's ``time_origin``: a
+  forecast of a date (RTOFS) is sampled at the hour the boat is there;
+* ``boot`` (a simulator without a clock): ``--field-time-at-boot`` (``passt-mav demo``
+  starts the simulator with exactly that ``--start-time``), default
+  ``field.times[config.t0]``: the simulator's own clock rule, so field times agree exactly;
+* ``auto``: ``utc`` when the field has a time origin and the vehicle's UTC lies inside
+  its snapshots, else ``boot`` (the reason is printed). ``--field-time-at-boot`` forces ``boot``.
+
+A reboot restarts ``time_boot_ms``: each later boot gets its own ``t_boot0`` (from the
+vehicle's UTC at that boot when it has one, else continuing from the last time seen
+before the reboot, the down time not counted); samples carry their boot (the store's
+``boot`` column, counted by :class:`~passt_mav.mavlink.SampleCollector` from this run's start).
 
 Legs in time. The state is the estimate at field time ``t_state``. When a leg
 starts at a later ``t_now`` the state is first forecast ``round((t_now -
@@ -43,7 +53,14 @@ Faults. Link loss during a leg: the link is reconnected with back-off
 (:meth:`Link.reconnect`), the mission is downloaded and compared with the one
 uploaded (re-uploaded if it differs) and the leg goes on from MISSION_CURRENT;
 samples keep flowing into the store (the collector listens on the same link
-object). The vehicle leaving AUTO (a pilot takes over): the controller says so and
+object). Link loss during the leg swap (HOLD, upload, set-current, arm, AUTO): the
+link is reconnected and the swap is done again from HOLD (the upload is verified by
+reading back, the other steps are idempotent), up to 3 times. A reboot of the
+autopilot (``time_boot_ms`` going back; the vehicle comes back disarmed in
+INITIALISING/MANUAL, which is not a pilot's doing): wait for the EKF, verify the
+stored mission (re-upload if lost), re-arm, set the interrupted item current and
+AUTO; or, with ``vehicle.on_reboot: hold``, HOLD and stop (status ``paused``).
+The vehicle leaving AUTO while armed (a pilot takes over): the controller says so and
 waits until AUTO comes back or ``pause_timeout_s`` passes, then switches to HOLD
 and stops cleanly (status ``paused``). ``resume=True`` continues a run directory
 after the controller was killed: completed legs come from their leg records,
@@ -86,17 +103,36 @@ THINNING = ("samples averaged per (nearest grid cell, snapshot bin round((t - t_
 # -- clock and sample preparation -------------------------------------------------------------
 @dataclass(frozen=True)
 class FieldClock:
-    """Vehicle time since boot -> field time: ``t_boot0 + time_boot_ms / 1000 / time_scale``."""
+    """Vehicle time since boot -> field time: ``t_boot0 + time_boot_ms / 1000 / time_scale``.
+
+    ``source``: how ``t_boot0`` was found (``utc``: the vehicle's UTC at boot; ``boot``: given
+    or snapshot t0). ``later_boots``: ``t_boot0`` of each boot after a reboot (boot 1, 2, ...).
+    """
 
     t_boot0: float
     time_scale: float = 1.0
+    source: str = "boot"
+    later_boots: tuple[float, ...] = ()
 
-    def field_time(self, time_boot_ms):
-        return self.t_boot0 + np.asarray(time_boot_ms, dtype=np.float64) / 1000.0 / self.time_scale
+    def field_time(self, time_boot_ms, boot=0):
+        """Field time of ``time_boot_ms`` (ms) of boot ``boot`` (0 = the first; scalar or array)."""
+        tb = np.asarray(time_boot_ms, dtype=np.float64)
+        anchors = np.array((self.t_boot0,) + tuple(self.later_boots), dtype=np.float64)
+        b = np.clip(np.asarray(boot, dtype=np.int64), 0, len(anchors) - 1)
+        return anchors[b] + tb / 1000.0 / self.time_scale
 
     def describe(self) -> dict[str, Any]:
-        return {"rule": "t_field = t_boot0 + time_boot_ms / 1000 / time_scale", "t_boot0": self.t_boot0,
-                "time_scale": self.time_scale}
+        d = {"rule": "t_field = t_boot0 + time_boot_ms / 1000 / time_scale", "t_boot0": self.t_boot0,
+             "time_scale": self.time_scale, "source": self.source}
+        if self.later_boots:
+            d["later_boots"] = list(self.later_boots)
+        return d
+
+
+def utc_epoch(iso: str) -> float:
+    """Epoch seconds of an ISO-8601 UTC time (a field's ``time_origin``)."""
+    t = _dt.datetime.fromisoformat(iso.replace("Z", "+00:00"))
+    return (t if t.tzinfo else t.replace(tzinfo=_dt.timezone.utc)).timestamp()
 
 
 def to_field_units(grid, u, v, velocity_scale: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
@@ -285,7 +321,8 @@ class _StoreWriter:
                 r, c = self.grid.latlon_to_cell(rec["lat"], rec["lon"], clip=True)
                 rows.append({"time_boot_ms": int(rec["time_boot_ms"]), "utc": float(rec["utc"]), "lat": rec["lat"],
                              "lon": rec["lon"], "u": rec["u"], "v": rec["v"], "leg": int(rec.get("leg", -1)),
-                             "source": rec.get("source", "mavlink"), "row": int(r), "col": int(c)})
+                             "source": rec.get("source", "mavlink"), "row": int(r), "col": int(c),
+                             "boot": int(rec.get("boot", 0))})
             try:
                 self.new += self.store.append_many(rows)
             except Exception:  # noqa: BLE001 - a store failure must be seen, but must not kill the thread
@@ -304,7 +341,11 @@ class _StoreWriter:
 
 
 class _Paused(Exception):
-    """The vehicle left AUTO and did not come back in time."""
+    """The vehicle left AUTO and did not come back in time (or rebooted with on_reboot: hold)."""
+
+
+class _Rebooted(Exception):
+    """The autopilot rebooted: handled by the leg in flight."""
 
 
 # -- the controller ---------------------------------------------------------------------------
@@ -371,6 +412,10 @@ class MissionController:
         self.collector = None
         self.writer = None
         self.events: list[str] = []
+        self._time_at_boot_arg = field_time_at_boot
+        self._rebooted = threading.Event()
+        self._reboot_info: tuple[int, int, int] | None = None
+        self._resume_seq = 1
 
     # -- helpers --------------------------------------------------------------------------
     def _say(self, s: str) -> None:
@@ -385,7 +430,8 @@ class MissionController:
         up = self.link.vehicle_uptime_s()
         if up is None:
             raise MavlinkError("no vehicle time (time_boot_ms) received yet")
-        return float(self.clock.field_time(up * 1000.0))
+        boot = self.collector.boot if self.collector is not None else 0
+        return float(self._clock_with_boots().field_time(up * 1000.0, boot))
 
     def _position(self, timeout: float = 10.0) -> tuple[float, float]:
         end = time.monotonic() + timeout
@@ -426,7 +472,7 @@ class MissionController:
             "rmse": rm if self.truth_known else None,
             "rmse_note": "RMSE over water cells vs the mission's field at the state time; 'model' = the predictor "
                          "alone from the true state at t0, never re-initialised" if self.truth_known else None,
-            "clock": self.clock.describe() | {"note": "a real boat would map UTC (SYSTEM_TIME) instead"},
+            "clock": self._clock_with_boots().describe(),
             "thinning": THINNING, "dt": self.dt, "connect": self.link.config.connect,
             "events": list(self.events),
         }
@@ -460,8 +506,10 @@ class MissionController:
         if self.rd.summary_file.exists():
             old = self.rd.read_summary()
             clk = old.get("clock") or {}
-            if "t_boot0" in clk:
+            if "t_boot0" in clk and clk.get("source", "boot") == "boot" and self._time_at_boot_arg is None:
+                # a boot clock cannot be re-read from the vehicle: keep it (a UTC clock is read again)
                 self.clock = FieldClock(float(clk["t_boot0"]), float(clk.get("time_scale", self.clock.time_scale)))
+                self._clock_fixed = True
             self.started_utc = old.get("started_utc") or self.started_utc
             self.events = list(old.get("events") or [])
         self.leg_records = done
@@ -480,6 +528,88 @@ class MissionController:
         self.events.append(f"resumed after leg {len(done) - 1} at {_utc_now()}")
         return np.array(fld.data[0], dtype=np.float32), float(last["t_state"]), len(done)
 
+    # -- clock -------------------------------------------------------------------------------------
+    def _vehicle_utc_boot(self, timeout: float) -> float | None:
+        """The vehicle's UTC at boot (SYSTEM_TIME ``time_unix_usec/1e6 - time_boot_ms/1e3``), None without one."""
+        end = time.monotonic() + timeout
+        while True:
+            st = self.link.latest("SYSTEM_TIME")
+            if st is not None and st.time_unix_usec > 0:
+                return st.time_unix_usec / 1e6 - st.time_boot_ms / 1e3
+            if time.monotonic() >= end:
+                return None
+            time.sleep(0.02)
+
+    def _choose_clock(self) -> None:
+        """Set :attr:`clock` (module docstring, "Clock") once the vehicle is ready."""
+        mode = getattr(self.config.field, "clock", "auto")
+        scale = float(self.config.field.time_scale)
+        if self._time_at_boot_arg is not None or getattr(self, "_clock_fixed", False):
+            self._say_clock()
+            return
+        if mode == "boot":
+            self._say_clock()
+            return
+        origin = self.field.time_origin
+        why = None
+        utc_boot = None
+        if origin is None:
+            why = "the field has no UTC time origin"
+        else:
+            # SYSTEM_TIME comes at 1 Hz of vehicle time by default (0.2 Hz in LEAN_STREAMS)
+            utc_boot = self._vehicle_utc_boot(max(1.0, 6.0 / self.speedup))
+            if utc_boot is None:
+                why = "the vehicle sends no UTC (SYSTEM_TIME time_unix_usec = 0)"
+        if why is None:
+            t_boot0 = (utc_boot - utc_epoch(origin)) / scale
+            up = self.link.vehicle_uptime_s() or 0.0
+            t_now = t_boot0 + up / scale
+            times = self.field.times
+            if not times[0] <= t_now <= times[-1]:
+                when = _dt.datetime.fromtimestamp(utc_boot + up, _dt.timezone.utc).isoformat(timespec="seconds")
+                why = f"the vehicle's UTC {when} lies outside the field's snapshots ({origin} + {times[0]:g}..{times[-1]:g} s)"
+            else:
+                self.clock = FieldClock(float(t_boot0), scale, source="utc")
+                self._say_clock()
+                return
+        if mode == "utc":
+            raise UserError(f"field.clock is utc but {why}; set field.clock: boot (or give --field-time-at-boot) "
+                            "to map the vehicle's time since boot instead")
+        self._say(f"clock: {why}; field time at vehicle boot = snapshot t0 ({self.clock.t_boot0:g})")
+        self.events.append(f"clock: boot ({why})")
+
+    def _say_clock(self) -> None:
+        c = self.clock
+        up = self.link.vehicle_uptime_s()
+        now = "" if up is None else f", now {float(c.field_time(up * 1000.0)):.1f}"
+        self._say(f"clock: {c.source}; field time at vehicle boot {c.t_boot0:.1f}{now}")
+
+    def _clock_with_boots(self) -> FieldClock:
+        """:attr:`clock` with a ``t_boot0`` for every boot the collector has seen (see module docstring)."""
+        boots = list(self.collector.boots) if self.collector is not None else []
+        if len(boots) <= 1:
+            return self.clock
+        c, scale = self.clock, self.clock.time_scale
+        anchors = [c.t_boot0]
+        for k in range(1, len(boots)):
+            b0, bk = boots[0].get("utc_boot"), boots[k].get("utc_boot")
+            if c.source == "utc" and bk is not None and self.field.time_origin is not None:
+                anchors.append((bk - utc_epoch(self.field.time_origin)) / scale)
+            elif b0 is not None and bk is not None:
+                anchors.append(c.t_boot0 + (bk - b0) / scale)
+            else:
+                # no clock on the vehicle: continue from the last time seen (the down time is not counted)
+                prev = boots[k - 1]
+                anchors.append(anchors[-1] + (prev["last_tb"] - boots[k].get("first_tb", 0)) / 1000.0 / scale)
+        return FieldClock(c.t_boot0, scale, c.source, tuple(anchors[1:]))
+
+    def _on_reboot(self, boot: int, last_tb: int, first_tb: int) -> None:
+        """From the reader thread (SampleCollector): the vehicle's time since boot went back."""
+        if self.collector is not None and self.collector.boots:
+            self.collector.boots[-1].setdefault("first_tb", first_tb)
+        self._reboot_info = (boot, last_tb, first_tb)
+        self._rebooted.set()
+
     # -- the mission -----------------------------------------------------------------------------
     def run(self) -> dict:
         """Fly every leg; returns the summary (also in ``summary.json``)."""
@@ -493,13 +623,15 @@ class MissionController:
         self.writer = _StoreWriter(self.store, self.grid)
         sens = self.config.sensors
         self.collector = SampleCollector(self.writer, u_name=sens.u, v_name=sens.v,
-                                         source=f"mav:{self.link.target_system}/{self.link.target_component}")
+                                         source=f"mav:{self.link.target_system}/{self.link.target_component}",
+                                         on_reboot=self._on_reboot)
         self.collector.attach(self.link)
         try:
             state, t_state, first = self._initial_state()
             self._say(f"mission {self.config.name}: {self.n_legs} legs of {self.config.planner.path_length} moves, "
                       f"model {self.predictor_info.get('used')}, planner {self.config.planner.name}; waiting for the vehicle")
             self.vehicle.wait_ready(timeout=self.ready_timeout_s)
+            self._choose_clock()
             for i in range(first, self.n_legs):
                 state, t_state = self._leg(i, state, t_state)
             self.status = "complete"
@@ -513,9 +645,12 @@ class MissionController:
                 log.warning("could not switch to HOLD: %s", e2)
         except BaseException as exc:
             self.status = "aborted"
+            if isinstance(exc, LinkTimeout) and "signing" not in str(exc) and "signing" in self.link.signing_hint():
+                # a vehicle that requires signing ignores a keyless controller: say so, not just "timed out"
+                exc = LinkTimeout(f"{exc}{self.link.signing_hint()}")
             self.events.append(f"aborted: {type(exc).__name__}: {exc}")
             self._safe_hold()
-            raise
+            raise exc
         finally:
             self.collector.detach()
             self.writer.close()
@@ -580,19 +715,8 @@ class MissionController:
         # -- transactional swap: never start a mission that was not read back equal -----------
         t0w = time.perf_counter()
         v = self.vehicle
-        if v.mode == 10:
-            v.hold()
         items = wm.items()
-        upload_tries = self._upload(i, items)
-        # seq 1 is the first mission item (DO_CHANGE_SPEED, then the waypoints): start there
-        v.mission.set_current(1)
-        upload_s = time.perf_counter() - t0w
-        if not v.armed:
-            v.arm(timeout=max(30.0, 120.0 / self.speedup))
-        self.collector.leg = i
-        t_fly = time.perf_counter()
-        tb_fly = self.link.vehicle_uptime_s()
-        v.start_mission()
+        upload_tries, upload_s, t_fly, tb_fly = self._swap(i, items, t0w)
         n_items = len(items) - 1  # MISSION_CURRENT.total excludes home
         try:
             self._fly(i, wm, items, n_items)
@@ -606,7 +730,8 @@ class MissionController:
         recs = self.store.for_leg(i)
         tb = np.array([s.time_boot_ms for s in recs], float)
         u, vv = to_field_units(grid, [s.u for s in recs], [s.v for s in recs], cfg.field.velocity_scale)
-        t_s = self.clock.field_time(tb)
+        clock = self._clock_with_boots()
+        t_s = clock.field_time(tb, np.array([int(getattr(s, "boot", 0) or 0) for s in recs], np.int64))
         samples = thin_samples(grid, t_s, [s.lat for s in recs], [s.lon for s in recs], u, vv,
                                t_start=plan.t_start, dt=self.dt)
         if len(samples) == 0:
@@ -630,7 +755,8 @@ class MissionController:
         link = self._link_record(link0)
         rec.update({
             "status": "complete", "t_state": t_new, "upload_s": upload_s, "upload_tries": upload_tries, "duration_s": duration_s,
-            "duration_vehicle_s": (tb_end - tb_fly) if (tb_end is not None and tb_fly is not None) else None,
+            "duration_vehicle_s": (tb_end - tb_fly) if (tb_end is not None and tb_fly is not None and tb_end >= tb_fly)
+            else None,
             "gp_s": gp_s, "n_samples": len(recs), "n_samples_new": self.store.count(i) - store0,
             "n_gp_points": len(samples), "rmse_passt": r_passt, "rmse_model": r_model, "link": link,
         })
@@ -645,6 +771,44 @@ class MissionController:
                   f"{duration_s:.1f} s wall ({rec['duration_vehicle_s'] or 0:.0f} s vehicle), planning "
                   f"{planning_s * 1000:.0f} ms, upload {upload_s:.2f} s{rm}, link RTT {rtt} loss {100 * link['loss']:.1f} %")
         return new_state, t_new
+
+    def _swap(self, i: int, items, t0w: float, attempts: int = 3) -> tuple[int, float, float, float | None]:
+        """HOLD, verified upload, set-current 1, arm, AUTO: the transactional leg swap.
+
+        A link lost on the way (LinkTimeout while the link is lost or closed) is reconnected and
+        the swap starts again from HOLD, up to ``attempts`` times: the upload is verified by
+        reading back, the other steps are idempotent, so a swap half done is never flown.
+        Returns ``(upload_tries, upload_s, t_fly (perf_counter), vehicle uptime at AUTO)``.
+        """
+        v = self.vehicle
+        for attempt in range(1, attempts + 1):
+            try:
+                if self._rebooted.is_set():
+                    self._rebooted.clear()
+                    v.wait_ready(timeout=self.ready_timeout_s)
+                if v.mode == 10:
+                    v.hold()
+                tries = self._upload(i, items)
+                # seq 1 is the first mission item (DO_CHANGE_SPEED, then the waypoints): start there
+                v.mission.set_current(1)
+                upload_s = time.perf_counter() - t0w
+                if not v.armed:
+                    v.arm(timeout=max(30.0, 120.0 / self.speedup))
+                self.collector.leg = i
+                self._resume_seq = 1
+                t_fly = time.perf_counter()
+                tb_fly = self.link.vehicle_uptime_s()
+                v.start_mission()
+                return tries, upload_s, t_fly, tb_fly
+            except MavlinkError as exc:
+                if not (isinstance(exc, LinkTimeout) or self.link.closed_reason is not None) or not self.link.lost \
+                        or attempt == attempts:
+                    raise
+                self._say(f"leg {i + 1}: link lost during the leg swap ({exc}); reconnecting and starting the swap "
+                          f"again from HOLD (attempt {attempt + 1}/{attempts})")
+                self.events.append(f"leg {i}: link lost during the swap at {_utc_now()}: {exc}")
+                self.link.reconnect()
+        raise AssertionError("unreachable")
 
     def _upload(self, i: int, items, tries: int = 4) -> int:
         """Upload, then read back and compare (as ``MissionClient.upload_verified``), with retries.
@@ -667,6 +831,8 @@ class MissionController:
             except (MissionRejected, LinkTimeout) as exc:
                 if isinstance(exc, MissionRejected) and exc.result not in retry:
                     raise
+                if self.link.lost:
+                    raise  # the swap reconnects and starts again; retrying on a dead link only waits
                 last = exc
             else:
                 got = None
@@ -699,7 +865,8 @@ class MissionController:
         return dist / self.speed / self.speedup
 
     def _fly(self, i: int, wm, items, n_items: int) -> None:
-        """Wait for the leg to complete: reconnect on link loss, pause when the vehicle leaves AUTO."""
+        """Wait for the leg to complete: reconnect on link loss, resume after a reboot, pause when a
+        pilot takes the vehicle out of AUTO."""
         v = self.vehicle
         p = v.progress
         deadline = time.monotonic() + 4.0 * self._expected_wall_s(wm) + 30.0
@@ -713,21 +880,86 @@ class MissionController:
                 return
             if time.monotonic() > deadline:
                 raise LinkTimeout(f"leg {i} not complete in time (item {p.current}/{p.total})")
+            if self._rebooted.is_set():
+                deadline += self._after_reboot(i, items, n_items)
+                continue
             if self.link.lost or self.link.error is not None:
                 self._recover_link(i, items)
                 deadline += 30.0
                 continue
             mode = v.mode
-            if mode is not None and mode != 10:
-                waited = self._pause(i, mode)
+            if mode == 10 and v.armed:
+                # the item to come back to if the autopilot reboots (it forgets its progress)
+                nxt = max([p.current] + [r + 1 for r in p.reached[-1:]])
+                self._resume_seq = int(min(max(nxt, 1), n_items))
+            elif mode is not None and mode != 10:
+                if self._reboot_suspected(mode):
+                    continue
+                try:
+                    waited = self._pause(i, mode)
+                except _Rebooted:
+                    continue
                 deadline += waited
+
+    def _reboot_grace_s(self) -> float:
+        """Wall seconds to wait for a reboot's signature (time going back): ~3 s of vehicle time."""
+        return max(0.3, 3.0 / self.speedup)
+
+    def _reboot_suspected(self, mode: int) -> bool:
+        """Out of AUTO and disarmed (or INITIALISING): a rebooted autopilot looks like this before its
+        first time stamp arrives. Wait a moment for the signature; True if it came."""
+        if self.vehicle.armed and mode != 16:
+            return False  # a pilot's mode change: the vehicle stays armed
+        return self._rebooted.wait(self._reboot_grace_s())
+
+    def _after_reboot(self, i: int, items, n_items: int) -> float:
+        """The autopilot rebooted mid-leg: wait, verify, re-arm, resume at the interrupted item (or HOLD
+        and stop with ``vehicle.on_reboot: hold``). Returns the wall seconds it took."""
+        t0 = time.monotonic()
+        v = self.vehicle
+        self._rebooted.clear()
+        boot, last_tb, first_tb = self._reboot_info or (0, 0, 0)
+        seq = int(self._resume_seq)
+        self._say(f"leg {i + 1}: the autopilot rebooted (its time since boot went from {last_tb / 1000:.1f} s back to "
+                  f"{first_tb / 1000:.1f} s): not a pilot; waiting for it to be ready (EKF)")
+        self.events.append(f"leg {i}: vehicle rebooted at {_utc_now()} (boot {boot}, was at item {seq})")
+        if self.link.lost:
+            self.link.reconnect()
+        self.link.request_streams()  # a reboot forgets the rates set by SET_MESSAGE_INTERVAL
+        v.wait_ready(timeout=self.ready_timeout_s)
+        if self.config.vehicle.on_reboot == "hold":
+            v.hold()
+            raise _Paused(f"leg {i}: the autopilot rebooted mid-leg; vehicle.on_reboot is 'hold': stopped in HOLD "
+                          f"(the leg was at item {seq}/{n_items}; continue with --resume)")
+        from passt_mav.mavlink.mission_client import _differences  # the same comparison as upload_verified
+
+        got = v.mission.download()
+        diff = _differences(list(items), got, 0)
+        if diff:
+            self._say(f"leg {i + 1}: the mission on the vehicle differs after the reboot ({diff}); re-uploading")
+            self._upload(i, items)
+        v.mission.set_current(seq)
+        v.arm(timeout=max(30.0, 120.0 / self.speedup))
+        v.start_mission()
+        self._say(f"leg {i + 1}: mission verified after the reboot; re-armed, AUTO again at item {seq}/{n_items}")
+        self.events.append(f"leg {i}: resumed after the reboot at item {seq}/{n_items}"
+                           + (" (mission re-uploaded)" if diff else " (stored mission verified)"))
+        return time.monotonic() - t0
 
     def _recover_link(self, i: int, items) -> None:
         v = self.vehicle
-        self._say(f"leg {i + 1}: link lost ({self.link.seconds_since_heartbeat:.1f} s without heartbeat); reconnecting")
+        why = self.link.closed_reason or f"{self.link.seconds_since_heartbeat:.1f} s without heartbeat"
+        self._say(f"leg {i + 1}: link lost ({why}); reconnecting")
         self.events.append(f"leg {i}: link lost at {_utc_now()}")
         self.link.error = None
         self.link.reconnect()
+        # a rebooted autopilot also drops its links: look at its time before treating this as a link fault
+        try:
+            self.link.wait("GLOBAL_POSITION_INT", timeout=max(1.0, 3.0 / self.speedup) + self.link.reply_timeout)
+        except LinkTimeout:
+            pass
+        if self._rebooted.wait(0.1):
+            return  # _fly handles the reboot (it verifies the mission itself)
         got = v.mission.download()
         from passt_mav.mavlink.mission_client import _differences  # the same comparison as upload_verified
 
@@ -758,6 +990,8 @@ class MissionController:
                 self._say(f"leg {i + 1}: back in AUTO; continuing")
                 self.events.append(f"leg {i}: back in AUTO")
                 return time.monotonic() - t0
+            if self._rebooted.is_set():
+                raise _Rebooted()  # not the pilot after all (or the pilot rebooted it): _fly resumes
             if self.link.lost:
                 self.link.reconnect()
             time.sleep(0.05)

@@ -100,7 +100,7 @@ BROKEN = [
     ("field_not_nc", _with(field__source="data.csv"), "field.source: must be builtin:ocean"),
     ("field_missing_file", _with(field__source="no/such.nc"), "field.source: field file not found"),
     ("extra_key", _with(colour="red"), "colour: unknown key (allowed: name, region"),
-    ("extra_nested_key", _with(vehicle__sped_mps=2), "vehicle.sped_mps: unknown key (allowed: connect, speed_mps, wp_radius_m)"),
+    ("extra_nested_key", _with(vehicle__sped_mps=2), "vehicle.sped_mps: unknown key (allowed: connect, speed_mps, wp_radius_m"),
     ("extra_region_key", _with(region__depth=3), "region.depth: unknown key (allowed: kind, south"),
     ("negative_margin", _with(geofence_margin_m=-5), "geofence_margin_m: must be >= 0 (got -5)"),
     ("start_outside", _with(start_cell=[30, 0]), "start_cell [30, 0] lies outside the 30x30 grid"),

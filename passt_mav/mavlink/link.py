@@ -570,13 +570,18 @@ class Link:
         return self.config.timeout_s if rtt is None else max(self.config.timeout_s, 4.0 * rtt + 0.1)
 
     def vehicle_uptime_s(self) -> float | None:
-        """Vehicle time since boot from the newest ``time_boot_ms`` seen, seconds."""
-        best = None
-        for typ in ("SYSTEM_TIME", "GLOBAL_POSITION_INT", "ATTITUDE", "NAMED_VALUE_FLOAT"):
-            m = self._latest.get(typ)
-            if m is not None:
-                best = max(best or 0, m.time_boot_ms)
-        return None if best is None else best / 1000.0
+        """Vehicle time since boot, seconds: the largest ``time_boot_ms`` among the last second of messages.
+
+        Only recent messages count: after a reboot a stream that stopped (e.g. ATTITUDE switched off)
+        would otherwise keep the old boot's larger time.
+        """
+        msgs = [m for typ in ("SYSTEM_TIME", "GLOBAL_POSITION_INT", "ATTITUDE", "NAMED_VALUE_FLOAT")
+                if (m := self._latest.get(typ)) is not None]
+        if not msgs:
+            return None
+        newest = max((getattr(m, "_timestamp", None) or 0.0) for m in msgs)
+        recent = [m for m in msgs if (getattr(m, "_timestamp", None) or 0.0) >= newest - 1.0]
+        return max(m.time_boot_ms for m in recent) / 1000.0
 
     # -- sending -------------------------------------------------------------------------------
     def send(self, msg) -> None:

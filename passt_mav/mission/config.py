@@ -163,11 +163,22 @@ class FieldConfig(_Strict):
     inflow = 1; geographic fields are already in m/s: 1). time_scale: seconds per field
     time unit (geographic fields count seconds: 1; for a scaled cylinder
     ``region.scale / velocity_scale``).
+
+    clock: how vehicle time maps to field time.
+      ``utc``: through the vehicle's UTC (SYSTEM_TIME ``time_unix_usec - time_boot_ms``):
+      field time = seconds since the field's ``time_origin`` (a real forecast, e.g. RTOFS of a
+      date, sampled at the right hour); the run stops with a one-line error if the vehicle has
+      no UTC or its time lies outside the field's snapshots.
+      ``boot``: field time at vehicle boot = snapshot ``t0`` (or ``--field-time-at-boot``), then
+      ``time_boot_ms`` (simulators without a clock).
+      ``auto`` (default): ``utc`` when the field has a time origin, the vehicle sends UTC and
+      that UTC lies within the field's snapshots; otherwise ``boot``, saying why.
     """
 
     source: str
     velocity_scale: float = Field(default=1.0, gt=0)
     time_scale: float = Field(default=1.0, gt=0)
+    clock: Literal["auto", "utc", "boot"] = "auto"
 
     @field_validator("source")
     @classmethod
@@ -222,11 +233,19 @@ class PlannerConfig(_Strict):
 
 
 class VehicleConfig(_Strict):
-    """MAVLink connection string, cruise speed (m/s, sent as DO_CHANGE_SPEED) and waypoint radius (m)."""
+    """MAVLink connection string, cruise speed (m/s, sent as DO_CHANGE_SPEED) and waypoint radius (m).
+
+    on_reboot: what the controller does when the autopilot reboots mid-leg (brown-out,
+    watchdog; recognised by ``time_boot_ms`` going back, not taken for a pilot's mode change):
+    ``resume`` (default) waits for the EKF, verifies the stored mission (re-uploads it if
+    lost), re-arms and continues AUTO at the interrupted item; ``hold`` waits for the vehicle,
+    switches it to HOLD and stops the run (status ``paused``) for a person to look first.
+    """
 
     connect: str = "tcp:127.0.0.1:5760"
     speed_mps: float = Field(default=2.0, gt=0)
     wp_radius_m: float = Field(default=2.0, ge=0)
+    on_reboot: Literal["resume", "hold"] = "resume"
 
 
 class SensorConfig(_Strict):
