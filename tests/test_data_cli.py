@@ -181,3 +181,37 @@ def test_cylinder_wiring(capsys):
     else:
         code, _, err = _cli(capsys, "cylinder")
         assert code == 2 and "cylinder_cli.py is missing" in err
+
+
+def test_import_cli_finds_cf_named_variables_and_names_units_flag(tmp_path, capsys):
+    """The 504-hour file of issue 13: CF names as variable names, float32 coordinates, units "1"."""
+    from test_import import _paper_grid_file
+
+    src, _, _ = _paper_grid_file(tmp_path / "paper.nc")
+    out = tmp_path / "o.nc"
+    code, _, err = _cli(capsys, "import", src, "--out", out)
+    assert code == 2 and "unknown velocity units '1'" in err and "--units" in err and len(err.strip().splitlines()) == 1
+    code, text, _ = _cli(capsys, "import", src, "--units", "m/s", "--out", out)
+    assert code == 0 and "imported eastward_sea_water_velocity/northward_sea_water_velocity" in text
+    assert "coverage 100.0% of cell-times" in text
+    assert load_field(out).coverage == 1.0
+
+
+def test_model_train_log_into_missing_folder(tmp_path, capsys):
+    """A recorded training command (knode_*.json) may log into a folder that does not exist yet."""
+    from passt_mav.fields.field import FlowField
+
+    g = geo.RegionGrid(40.0, -63.0, 40.5, -62.5, 6, 6)
+    t = np.arange(30.0)
+    d = np.stack([np.sin(0.3 * t), np.cos(0.3 * t)], axis=1)[:, :, None, None] * np.ones((1, 2, 6, 6))
+    nc = FlowField(d.astype(np.float32), g, t * 3600.0, "2020-01-01T00:00:00Z").to_netcdf(tmp_path / "w.nc")
+    log = tmp_path / "new" / "logs" / "train.log"
+    rc = main(["model", "train", "--data", str(nc), "--model", "dmd", "--start", "0", "--stop", "20", "--json",
+               "--log", str(log), "--out", str(tmp_path / "ck")])
+    capsys.readouterr()
+    assert rc == 0 and log.exists()
+    (tmp_path / "afile").write_text("x")
+    rc = main(["model", "train", "--data", str(nc), "--model", "dmd", "--start", "0", "--stop", "20",
+               "--log", str(tmp_path / "afile" / "train.log"), "--out", str(tmp_path / "ck2")])
+    err = capsys.readouterr().err
+    assert rc == 2 and "--log" in err and len(err.strip().splitlines()) == 1

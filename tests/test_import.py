@@ -324,3 +324,128 @@ def test_non_standard_calendar_times(tmp_path):
     assert f.time_origin == "2018-03-01T06:00:00Z"
     np.testing.assert_allclose(f.times, [0.0, 3600.0, 7200.0])
     np.testing.assert_allclose(f.v, -0.1, atol=1e-7)
+
+
+# -- issue 13 item 6: a real 504-hour file already on the paper's grid imports without loss ------
+def _paper_grid_file(path, *, units="1", lon_shift=1e-5, fill=None, lon_offset=0.0):
+    """Like the file that lost 6.7 %: the 30x30 North Atlantic grid, velocity variables *named*
+    eastward/northward_sea_water_velocity with no standard_name attribute, float32 coordinates
+    whose edge longitudes lie ``lon_shift`` deg inside the grid's edges, hourly times."""
+    na = geo.north_atlantic_grid()
+    lat = na.lats.astype(np.float32)
+    lon = na.lons.copy() + lon_offset
+    lon[0] += lon_shift
+    lon[-1] -= lon_shift
+    lon = lon.astype(np.float32)
+    rng = np.random.default_rng(3)
+    u = rng.normal(0, 0.3, (6, 30, 30)).astype(np.float32)
+    v = rng.normal(0, 0.3, (6, 30, 30)).astype(np.float32)
+    if fill is not None:
+        u[:, 0:3, 0:4] = fill
+        v[:, 0:3, 0:4] = fill
+    times = pd.Timestamp("2018-03-01T00:00:00") + pd.to_timedelta(np.arange(6), unit="h")
+    attrs = {} if units is None else {"units": units}
+    ds = xr.Dataset(
+        {"eastward_sea_water_velocity": (("time", "lat", "lon"), u, dict(attrs)),
+         "northward_sea_water_velocity": (("time", "lat", "lon"), v, dict(attrs))},
+        coords={"time": ("time", times), "lat": ("lat", lat), "lon": ("lon", lon)},
+    )
+    enc = {k: {"_FillValue": None} for k in ("eastward_sea_water_velocity", "northward_sea_water_velocity", "lat", "lon")}
+    ds.to_netcdf(path, encoding=enc)
+    return path, u, v
+
+
+def test_cf_names_as_variable_names_float32_edges_keep_every_cell(tmp_path):
+    p, u, v = _paper_grid_file(tmp_path / "paper.nc")
+    na = geo.north_atlantic_grid()
+    # units "1": the error names the real flag
+    with pytest.raises(FieldError, match="--units"):
+        import_currents(p, na)
+    f = import_currents(p, na, units="m/s")  # no variables= needed: found by name
+    assert f.attrs["variables"] == ["eastward_sea_water_velocity", "northward_sea_water_velocity"]
+    assert f.coverage == 1.0  # was 0.933: columns 0 and 29 were NaN
+    assert "the file's own grid" in f.attrs["edges"]
+    # the file's own values, cell for cell (centres within float32 rounding of the nodes)
+    np.testing.assert_allclose(f.u, u, atol=1e-5)
+    np.testing.assert_allclose(f.v, v, atol=1e-5)
+
+
+def test_half_cell_rule_and_no_extrapolation(tmp_path):
+    na = geo.north_atlantic_grid()
+    dlon = na.lons[1] - na.lons[0]
+    # the file's nodes 0.3 cell east of the target's centres: the same grid within half a cell ->
+    # column 0 (0.3 cell west of the file) keeps the file's edge values, the rest is interpolated
+    p, u, _ = _paper_grid_file(tmp_path / "a.nc", units="m/s", lon_shift=0.0, lon_offset=0.3 * dlon)
+    f = import_currents(p, na)
+    assert f.coverage == 1.0 and "within half a cell" in f.attrs["edges"]
+    np.testing.assert_allclose(f.u[:, :, 0], u[:, :, 0], atol=1e-5)
+    np.testing.assert_allclose(f.u[:, :, 5], 0.3 * u[:, :, 4] + 0.7 * u[:, :, 5], atol=1e-4)
+    # a target that is not the file's grid (other spacing) reaching 0.3 cell past the file: NaN there
+    p, _, _ = _paper_grid_file(tmp_path / "b.nc", units="m/s", lon_shift=0.0)
+    lons = na.lons.astype(np.float32).astype(float)
+    wide = geo.RegionGrid(na.south, lons[0] - 0.3 * dlon, na.north, lons[-1], 30, 25)
+    g = import_currents(p, wide)
+    assert np.isnan(g.u[:, :, 0]).all() and np.isfinite(g.u[:, :, 1:]).all()
+    assert "lon:" not in g.attrs["edges"]
+
+
+def test_undeclared_fill_value_is_missing(tmp_path):
+    p, u, _ = _paper_grid_file(tmp_path / "fill.nc", units="m s-1", fill=np.float32(1.26765e30))
+    f = import_currents(p, geo.north_atlantic_grid())
+    assert f.attrs["undeclared_fill_values"] == 2 * 6 * 12
+    assert np.isnan(f.u[:, 0:3, 0:4]).all()
+    assert np.nanmax(np.abs(f.data)) < 2.0
+    # cells next to the fill block are not contaminated (their stencils hold no fill node)
+    np.testing.assert_allclose(f.u[:, 5:, 5:], u[:, 5:, 5:], atol=1e-5)
+
+
+def _shared(name):
+    from conftest import SHARED_DATA
+
+    p = SHARED_DATA / name
+    if not p.exists():
+        pytest.skip(f"real data file not found at {p} (../shared/data is not beside the checkout)")
+    return p
+
+
+def test_real_rtofs_without_units_attribute(tmp_path, capsys):
+    """NOAA Global RTOFS off Washington: water_u/water_v with no units attribute, float32 lat/lon, land NaN."""
+    p = _shared("wa_RTOFS_global.nc")
+    with xr.open_dataset(p) as ds:
+        lat = ds["lat"].values.astype(float)
+        lon = ds["lon"].values.astype(float)
+        raw_u = ds["water_u"].values
+    own = geo.RegionGrid(lat[0], lon[0], lat[-1], lon[-1], lat.size, lon.size)
+    with pytest.raises(FieldError, match="no 'units' attribute: give them with --units"):
+        import_currents(p, own)
+    from passt_mav.cli import main
+
+    code = main(["data", "import", str(p), f"--region={lat[0]},{lon[0]},{lat[-1]},{lon[-1]}", "--grid", "38x34",
+                 "--out", str(tmp_path / "x.nc")])
+    err = capsys.readouterr().err
+    assert code == 2 and "--units" in err and len(err.strip().splitlines()) == 1
+    f = import_currents(p, own, units="m/s")
+    assert f.n_times == 64 and f.time_origin == "2024-10-28T03:00:00Z"
+    np.testing.assert_allclose(f.times[:3], [0.0, 10800.0, 21600.0])
+    # the file's own grid (spacing uniform to 4e-6 deg): every sea node kept, land exactly the file's NaN
+    np.testing.assert_array_equal(f.mask, np.isnan(raw_u))
+    np.testing.assert_allclose(f.u, raw_u, atol=2e-4, equal_nan=True)
+    assert 0.64 < f.coverage < 0.66  # ~35 % land
+    assert np.nanmax(np.abs(f.data)) < 1.5
+
+
+def test_real_gridded_current_fill_on_land(tmp_path):
+    """HYCOM-like file (fill value on land): land cells are NaN, never a huge or zero current."""
+    p = _shared("gridded_current.nc")
+    with xr.open_dataset(p) as ds:
+        lat = ds["lat"].values.astype(float)
+        lon = ds["lon"].values.astype(float)
+        raw_u = ds["water_u"].values
+        n_raw = int(np.isnan(raw_u).sum())
+    assert n_raw > 0
+    own = geo.RegionGrid(lat[0], lon[0], lat[-1], lon[-1], lat.size, lon.size)
+    f = import_currents(p, own)
+    assert f.n_times == 17 and f.coverage == pytest.approx(1 - np.isnan(raw_u).mean())
+    np.testing.assert_array_equal(f.mask, np.isnan(raw_u))
+    np.testing.assert_allclose(f.u, raw_u, atol=1e-4, equal_nan=True)
+    assert np.nanmax(np.abs(f.data)) < 1.0

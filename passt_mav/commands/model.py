@@ -95,7 +95,18 @@ def _train(args) -> int:
 
     from passt_mav.models.train import train
 
-    logf = open(args.log, "a") if args.log else None  # noqa: SIM115 - closed below
+    logf = None
+    if args.log:
+        from pathlib import Path
+
+        from passt_mav.errors import UserError
+
+        # a recorded command may log into a folder this checkout does not have yet
+        try:
+            Path(args.log).parent.mkdir(parents=True, exist_ok=True)
+            logf = open(args.log, "a")  # noqa: SIM115 - closed below
+        except OSError as exc:
+            raise UserError(f"--log {args.log}: cannot write it ({exc.strerror})") from None
 
     def log(ep, loss):
         if logf is not None:

@@ -9,15 +9,17 @@ coordinate attributes, not from the product name):
 * HF radar (e.g. MARACOOS totals): ``u``/``v`` in cm/s with NaN gaps and a
   length-1 ``z`` or ``depth`` dimension;
 * anything else whose velocity variables carry the CF standard names
-  ``(surface_)eastward_sea_water_velocity`` / ``northward_...``, or whose names
-  are given explicitly with ``variables=(u_name, v_name)``.
+  ``(surface_)eastward_sea_water_velocity`` / ``northward_...`` as their
+  ``standard_name`` attribute or as their variable name, or whose names are
+  given explicitly with ``variables=(u_name, v_name)``.
 
 What :func:`import_currents` does, in order:
 
 1. **Units** from the variables' ``units`` attribute (m/s, cm/s, mm/s, knots in
    their usual spellings) converted to m/s; a missing or unknown unit is a
-   :class:`FieldError` (pass ``units=`` to override). Values outside the CF
-   ``valid_min``/``valid_max`` are treated as missing.
+   :class:`FieldError` naming ``--units`` (``units=`` in Python) to override. Values
+   outside the CF ``valid_min``/``valid_max``, and magnitudes >= 1e10 (fill values the
+   file does not declare, e.g. 1.26765e30), are treated as missing.
 2. **Surface**: a depth-like dimension (``depth``, ``z``, ``lev``, ...; or
    ``axis="Z"`` / ``positive``) is reduced to its level of smallest ``|depth|``.
 3. **Time**: CF times are decoded by xarray; the window is
@@ -29,7 +31,13 @@ What :func:`import_currents` does, in order:
    kept snapshot.
 4. **Region**: longitudes are wrapped to -180..180 and sorted, latitudes sorted
    south to north, and only the source window covering the grid (plus one node)
-   is read.
+   is read. Coordinate rounding is tolerated, per axis: a target axis matching a
+   run of the file's nodes within 1 % of a cell (the file's own grid, coordinates
+   stored as float32 or rounded) takes those nodes, so its cells are the file's
+   values exactly; one matching within half a cell keeps its first/last centres
+   that lie beyond the outer nodes on them, so every cell keeps its data;
+   otherwise only 0.1 % of a cell (at least 1e-6 deg) is forgiven. What was
+   adjusted is in ``attrs["edges"]``.
 5. **Regridding**: bilinear in lat/lon with :class:`scipy.interpolate.RegularGridInterpolator`
    (rectilinear, possibly non-uniform source nodes). A target cell whose
    bilinear stencil touches a missing source node stays NaN (masked); a missing
@@ -71,6 +79,7 @@ _TIME_NAMES = ("time", "MT", "t", "ocean_time", "Time", "TIME")
 
 _KNOT = 1852.0 / 3600.0
 _MISSING_WEIGHT_TOL = 1e-3  # see module docstring, step 5
+_UNDECLARED_FILL = 1e10  # see module docstring, step 1
 
 
 def velocity_scale(units: str | None) -> float:
@@ -80,7 +89,8 @@ def velocity_scale(units: str | None) -> float:
     ``meters per second``, ``cm/s``, ``cm s-1``, ``mm/s``, ``knots``/``kt``.
     """
     if units is None or not str(units).strip():
-        raise FieldError("velocity variable has no 'units' attribute (pass units=, e.g. 'm/s' or 'cm/s')")
+        raise FieldError("velocity variable has no 'units' attribute: give them with --units (e.g. --units m/s "
+                         "or --units cm/s; units= in Python)")
     s = str(units).strip().lower()
     s = s.replace("**", "").replace("^", "").replace("·", " ").replace(".", " ").replace("_", " ")
     s = re.sub(r"\s+per\s+", "/", s)
@@ -97,7 +107,8 @@ def velocity_scale(units: str | None) -> float:
         length, sec = m.group(1), m.group(2) or m.group(3) or m.group(4)
         if length in lengths and sec in seconds:
             return lengths[length]
-    raise FieldError(f"unknown velocity units {units!r} (expected m/s, cm/s, mm/s or knots; pass units= to override)")
+    raise FieldError(f"unknown velocity units {units!r} (expected m/s, cm/s, mm/s or knots): give the real ones "
+                     "with --units (e.g. --units m/s; units= in Python)")
 
 
 # -- detection ------------------------------------------------------------------
@@ -110,6 +121,10 @@ def _find_velocity(ds, variables) -> tuple[str, str]:
                 raise FieldError(f"variable {name!r} not in file (has: {', '.join(map(str, ds.data_vars))})")
         return str(variables[0]), str(variables[1])
     by_std = {str(ds[k].attrs.get("standard_name", "")): str(k) for k in ds.data_vars}
+    # a CF standard name used as the variable's name (no standard_name attribute) counts too;
+    # an attribute wins when both exist
+    for k in ds.data_vars:
+        by_std.setdefault(str(k), str(k))
     for su, sv in zip(_U_STD, _V_STD):
         if su in by_std and sv in by_std:
             return by_std[su], by_std[sv]
@@ -266,7 +281,10 @@ def import_currents(path, grid, *, start=None, hours=None, variables=None, units
         if units is not None:
             su = sv = velocity_scale(units)
         else:
-            su, sv = velocity_scale(u.attrs.get("units")), velocity_scale(v.attrs.get("units"))
+            try:
+                su, sv = velocity_scale(u.attrs.get("units")), velocity_scale(v.attrs.get("units"))
+            except FieldError as exc:
+                raise FieldError(f"{path.name} ({u_name}/{v_name}): {exc}") from None
         lat_dim, lon_dim, lat, lon = _horizontal(ds, u)
         tdim = _time_dim(ds, u)
 
@@ -305,7 +323,10 @@ def import_currents(path, grid, *, start=None, hours=None, variables=None, units
         lon_s, lat_s = lon_w[lon_order], lat[lat_order]
         if np.any(np.diff(lon_s) <= 0) or np.any(np.diff(lat_s) <= 0):
             raise FieldError("source latitudes/longitudes contain duplicates")
-        glat, glon = grid.lats, grid.lons
+        # target centres that the file's float32 (or rounded) coordinates put just outside its
+        # outer nodes are on them (module docstring, step 4)
+        glat, lat_note = _align_to_nodes(grid.lats, lat_s)
+        glon, lon_note = _align_to_nodes(grid.lons, lon_s)
         i0 = max(int(np.searchsorted(lat_s, glat[0], side="right")) - 1, 0)
         i1 = min(int(np.searchsorted(lat_s, glat[-1], side="left")) + 1, lat_s.size)
         j0 = max(int(np.searchsorted(lon_s, glon[0], side="right")) - 1, 0)
@@ -319,13 +340,18 @@ def import_currents(path, grid, *, start=None, hours=None, variables=None, units
         isel[lon_dim] = lon_order[j0:j1]
         order = [tdim, lat_dim, lon_dim] if tdim is not None else [lat_dim, lon_dim]
         arrays = []
+        n_fill = 0
         for var, scale in ((u, su), (v, sv)):
             a = var.isel(isel).transpose(*order).values.astype(np.float64)
             if tdim is None:
                 a = a[None]
             lo_v, hi_v = _valid_range(var)
-            a = np.where((a < lo_v) | (a > hi_v), np.nan, a) * scale
-            arrays.append(a)
+            a = np.where((a < lo_v) | (a > hi_v), np.nan, a)
+            # fill values a file does not declare (1.26765e30 of GrADS/OPeNDAP, 9.96921e36 of
+            # netCDF, 1e20 ...) are no current: |v| >= 1e10 in any unit is missing, never data
+            fill = np.abs(a) >= _UNDECLARED_FILL
+            n_fill += int(np.count_nonzero(fill))
+            arrays.append(np.where(fill, np.nan, a) * scale)
         src = np.stack(arrays, axis=-1)  # (T, nlat, nlon, 2) m/s, NaN = missing
         sub_lat, sub_lon = lat_s[i0:i1], lon_s[j0:j1]
         attrs_src = {k: str(v_) for k, v_ in ds.attrs.items() if k in ("title", "institution", "source", "product_id")}
@@ -336,11 +362,7 @@ def import_currents(path, grid, *, start=None, hours=None, variables=None, units
     # RegularGridInterpolator interpolates trailing dims together: values (nlat, nlon, T*2)
     vals = np.where(valid[..., None], src, 0.0).transpose(1, 2, 0, 3).reshape(sub_lat.size, sub_lon.size, T * 2)
     wval = valid.transpose(1, 2, 0).astype(np.float64)
-    # a centre within 1e-6 deg (0.1 m) of the source's outer nodes is on them, not outside
-    # (grids written with the source's own extent must not lose their edge to rounding)
-    glat_c = _snap_to_edges(glat, sub_lat)
-    glon_c = _snap_to_edges(glon, sub_lon)
-    pts = np.stack(np.meshgrid(glat_c, glon_c, indexing="ij"), axis=-1).reshape(-1, 2)
+    pts = np.stack(np.meshgrid(glat, glon, indexing="ij"), axis=-1).reshape(-1, 2)
     kw = dict(method="linear", bounds_error=False, fill_value=np.nan)
     num = RegularGridInterpolator((sub_lat, sub_lon), vals, **kw)(pts)  # (cells, T*2)
     wv = RegularGridInterpolator((sub_lat, sub_lon), wval, **kw)(pts)  # (cells, T): weight on valid nodes
@@ -367,17 +389,57 @@ def import_currents(path, grid, *, start=None, hours=None, variables=None, units
         "start": None if start is None else str(start),
         "hours": None if hours is None else int(hours),
         "regrid": "bilinear (scipy RegularGridInterpolator); stencils touching missing nodes stay NaN",
+        "edges": "; ".join(f"{ax}: {x}" for ax, x in (("lat", lat_note), ("lon", lon_note)) if x) or "no edge adjustment",
+        "undeclared_fill_values": n_fill,
     }
     field = FlowField(data, grid, times, origin, "m s-1", attrs)
     field.attrs["coverage"] = round(field.coverage, 6)
     return field
 
 
-def _snap_to_edges(x: np.ndarray, nodes: np.ndarray, tol: float = 1e-6) -> np.ndarray:
-    x = x.copy()
-    x[(x < nodes[0]) & (x > nodes[0] - tol)] = nodes[0]
-    x[(x > nodes[-1]) & (x < nodes[-1] + tol)] = nodes[-1]
-    return x
+def _align_to_nodes(x: np.ndarray, nodes: np.ndarray) -> tuple[np.ndarray, str]:
+    """Target centres ``x`` (ascending, degrees) adjusted to the source's ``nodes`` (ascending),
+    and a note saying what was adjusted (module docstring, step 4).
+
+    * The file's own grid: when ``x`` matches a run of consecutive nodes, each within 1 % of
+      the local node spacing (coordinates stored as float32 or rounded), the centres are those
+      nodes: the cells are the file's values, exactly.
+    * Aligned within half a cell: a first/last centre beyond the outer node is that node, so
+      every cell keeps its data; inner centres are interpolated where they are.
+    * Otherwise a centre within 0.1 % of the edge spacing (at least 1e-6 deg, ~0.1 m) outside
+      is on the edge (rounding); anything farther stays outside (NaN): nothing is extrapolated.
+    """
+    x = np.asarray(x, float).copy()
+    if nodes.size < 2:
+        return x, ""
+    n = x.size
+    k = int(np.argmin(np.abs(nodes - x[0])))
+    dev = np.inf
+    if k + n <= nodes.size:
+        run = nodes[k : k + n]
+        local = np.diff(nodes[max(k - 1, 0) : min(k + n + 1, nodes.size)]).min()
+        dev = float(np.max(np.abs(x - run)) / local)
+    if dev < 0.01:
+        return run.copy(), (f"the file's own grid (centres within {dev:.2g} cell of its nodes): its node values used"
+                            if dev > 0 else "")
+    if dev < 0.5:
+        lo_tol = hi_tol = 0.5 * float(np.diff(nodes).min())
+    else:
+        lo_tol = max(1e-6, 1e-3 * float(nodes[1] - nodes[0]))
+        hi_tol = max(1e-6, 1e-3 * float(nodes[-1] - nodes[-2]))
+    moved = []
+    lo = (x < nodes[0]) & (x > nodes[0] - lo_tol)
+    hi = (x > nodes[-1]) & (x < nodes[-1] + hi_tol)
+    if lo.any():
+        moved.append(f"{float(np.max(nodes[0] - x[lo])):.3g} deg below")
+        x[lo] = nodes[0]
+    if hi.any():
+        moved.append(f"{float(np.max(x[hi] - nodes[-1])):.3g} deg above")
+        x[hi] = nodes[-1]
+    if not moved:
+        return x, ""
+    why = "the target matches the file's nodes within half a cell" if dev < 0.5 else "coordinate rounding"
+    return x, f"edge centres up to {' and '.join(moved)} the file's outer nodes taken as on them ({why})"
 
 
 def _valid_range(var) -> tuple[float, float]:
