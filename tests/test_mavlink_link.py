@@ -215,3 +215,37 @@ def test_tcp_eof_is_seen_at_once_without_a_flood_and_reconnect_backs_off(capfd, 
             sim2.stop()
     finally:
         link.close()
+
+
+def test_reboot_command_over_tcp_acks_then_drops_the_link_like_sitl():
+    """vehicle_sim answers MAV_CMD_PREFLIGHT_REBOOT_SHUTDOWN like Rover 4.7 SITL: FAILED while armed;
+    disarmed, ACCEPTED, then its TCP clients see EOF; after reconnecting, time since boot restarted."""
+    from passt_mav.errors import CommandRejected
+
+    port = free_port()
+    sim = Simulator(None, home=HOME, config=SimConfig.fast())
+    sim.serve([f"tcp:127.0.0.1:{port}"], speedup=20)
+    link = Link(link_config(connect=f"tcp:127.0.0.1:{port}", link_lost_s=3.0, stream_rates_hz=()))
+    try:
+        link.connect()
+        end = time.monotonic() + 5
+        while sim.autopilot.t < 2.0 and time.monotonic() < end:
+            time.sleep(0.02)
+        link.command_long(M.MAV_CMD_COMPONENT_ARM_DISARM, 1)
+        with pytest.raises(CommandRejected) as ei:
+            link.command_long(M.MAV_CMD_PREFLIGHT_REBOOT_SHUTDOWN, 1, retries=0)
+        assert ei.value.result == M.MAV_RESULT_FAILED
+        link.command_long(M.MAV_CMD_COMPONENT_ARM_DISARM, 0)
+        up = link.vehicle_uptime_s()
+        assert link.command_long(M.MAV_CMD_PREFLIGHT_REBOOT_SHUTDOWN, 1).result == 0
+        t0 = time.monotonic()
+        while not link.lost and time.monotonic() - t0 < 2.0:
+            time.sleep(0.005)
+        assert link.lost and "EOF" in (link.closed_reason or "") and time.monotonic() - t0 < 0.5
+        link.reconnect(attempts=3)
+        with link.subscribe("SYSTEM_TIME") as sub:
+            st = sub.get(2.0)
+        assert st is not None and st.time_boot_ms / 1000.0 < up and sim.autopilot.boot_count == 1
+    finally:
+        link.close()
+        sim.stop()
