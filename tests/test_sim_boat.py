@@ -174,6 +174,25 @@ def test_current_sensor_noise_is_seeded_gaussian():
     assert abs(res.mean()) < 0.01
 
 
+def test_gps_noise_moves_the_reported_fix_not_the_measurement():
+    """With GPS noise the sensor still measures where the boat is; only the fix it is paired with is off
+    (by ~gps_noise_m), and the current noise (same seed) is unchanged: the two generators are separate."""
+    field = linear_field()
+    runs = []
+    for gps in (0.0, 4.0):
+        sim, c = sim_with(field, current_noise_std=0.05, seed=7, gps_noise_m=gps)
+        _run_survey(sim, c)
+        runs.append((_samples(c), sim))
+    (a, _), (b, sim_b) = runs
+    n = min(len(a), len(b))
+    np.testing.assert_array_equal(a[:n, 3:], b[:n, 3:])  # same readings: same true track, same current noise
+    d_north = (b[:n, 1] - a[:n, 1]) * 111_000.0
+    d_east = (b[:n, 2] - a[:n, 2]) * 111_000.0 * np.cos(np.radians(HOME[0]))
+    err = np.concatenate([d_north, d_east])
+    # ~300 s with a 60 s correlation time: ~10 independent values per axis, so a loose band around 4 m
+    assert 1.5 < err.std() < 7.0 and np.abs(err).max() < 25.0
+
+
 def test_metric_field_rotation_velocity_and_time_scale():
     g = geo.MetricRegionGrid(0.0, 10.0, 0.0, 10.0, 11, 11, anchor_lat=HOME[0], anchor_lon=HOME[1], rotation_deg=90.0, scale=50.0)
     data = np.zeros((2, 2, 11, 11), np.float32)
