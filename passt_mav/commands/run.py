@@ -24,8 +24,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--speedup-hint", type=float, default=1.0,
                    help="simulated seconds per wall second of a simulator (scales wall-clock timeouts; default 1)")
     p.add_argument("--field-time-at-boot", type=float,
-                   help="field time at vehicle boot (default: the field's snapshot t0); "
-                        "field time = this + time_boot_ms/1000/field.time_scale")
+                   help="field time at vehicle boot, for simulators without a clock: field time = this + "
+                        "time_boot_ms/1000/field.time_scale (default: the mission's field.clock: the vehicle's UTC "
+                        "when it lies inside the field's snapshots, else snapshot t0)")
     p.add_argument("--signing-key", help="MAVLink 2 signing passphrase or 64 hex digits")
     p.add_argument("--pause-timeout", type=float, default=300.0,
                    help="wall seconds to wait for AUTO after a pilot takes over before stopping in HOLD (default 300)")
