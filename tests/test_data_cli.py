@@ -215,3 +215,28 @@ def test_model_train_log_into_missing_folder(tmp_path, capsys):
                "--log", str(tmp_path / "afile" / "train.log"), "--out", str(tmp_path / "ck2")])
     err = capsys.readouterr().err
     assert rc == 2 and "--log" in err and len(err.strip().splitlines()) == 1
+
+
+def test_builtin_rtofs_real_currents_with_land(capsys):
+    """builtin:rtofs (real NOAA RTOFS, public domain crop): the mission file validates, and an
+    offline PASST run never plans onto land nor puts an estimate there."""
+    from pathlib import Path
+
+    from passt_mav.fields.datasets import load_dataset
+    from passt_mav.mission.config import load_mission
+    from passt_mav.models.base import make_predictor
+    from passt_mav.passt import run_offline
+
+    code, text, _ = _cli(capsys, "info", "builtin:rtofs", "--json")
+    info = json.loads(text)
+    assert code == 0 and info["shape"] == [64, 2, 30, 30] and info["time_origin"] == "2024-10-28T03:00:00Z"
+    assert info["coverage"]["cells_all"] == pytest.approx(1 - 0.344444, abs=1e-5)  # 310 land cells
+    f = load_dataset("rtofs")
+    cfg = load_mission(Path(__file__).resolve().parent.parent / "missions" / "rtofs.yaml")
+    assert cfg.grid() == f.grid and cfg.model == "persistence" and not f.land_mask[tuple(cfg.start_cell)]
+    res = run_offline(f, make_predictor("persistence").fit(f), start_cell=cfg.start_cell, n_steps=8, path_length=10,
+                      steps_per_leg=4, noise_std=0.02, seed=0)
+    cells = np.array([c for leg in res.legs for c in leg["path"]])
+    assert len(cells) == 22 and not f.land_mask[cells[:, 0], cells[:, 1]].any()
+    land = f.land_mask
+    assert np.isnan(res.estimate[:, :, land]).all() and np.isfinite(res.estimate[:, :, ~land]).all()

@@ -324,3 +324,34 @@ def test_lua_sensor_on_ardurover_sitl(tmp_path, sitl_factory):
     assert 3.0 < rate < 4.5, rate  # PERIOD_MS 250 in vehicle time
     # the field really changes over the samples' span (so the time mapping was tested)
     assert abs(got[-1][2] - got[0][2]) > 0.01 or (tus[-1] - tus[0]) > 3000
+
+
+# -- vehicle_sim's own sensor: nothing on land either -------------------------------------
+def test_vehicle_sim_sensor_silent_on_land():
+    """builtin:rtofs: a boat on a land cell gets no CUR_U/CUR_V from vehicle_sim, one at sea does
+    (the Lua sensor behaves the same: test_vehicle_loop_with_mocked_bindings)."""
+    from vehicle_sim import CurrentModel, SimConfig, Simulator
+    from passt_mav.fields.datasets import load_dataset
+
+    f = load_dataset("rtofs")
+    cm = CurrentModel(f)
+    land_cell, sea_cell = (25, 20), (14, 18)
+    assert f.land_mask[land_cell] and not f.land_mask[sea_cell]
+    counts = {}
+    for cell in (land_cell, sea_cell):
+        lat, lon = (float(x) for x in f.grid.cell_to_latlon(*cell))
+        if cell == land_cell:
+            assert cm.measure(3600.0, lat, lon) is None and cm.at(3600.0, lat, lon) == (0.0, 0.0)
+        else:
+            np.testing.assert_allclose(cm.measure(3600.0, lat, lon), f.sample_latlon(3600.0, lat, lon), atol=1e-6)
+        sim = Simulator(f, home=(lat, lon), config=SimConfig.fast(current_rate_hz=2.0))
+        ep = sim.connect_inprocess()
+        m = ep.mavlink_connection()
+        m.mav.heartbeat_send(6, 8, 0, 0, 0)
+        sim.run_until(10.0)
+        n = 0
+        while (msg := m.recv_match(type="NAMED_VALUE_FLOAT", blocking=False)) is not None:
+            n += msg.name == "CUR_U"
+        counts[cell] = n
+        sim.close()
+    assert counts[land_cell] == 0 and counts[sea_cell] >= 15, counts

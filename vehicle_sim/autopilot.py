@@ -822,7 +822,10 @@ class Autopilot:
             return
         self._next_sample = max(self._next_sample + 1.0 / rate, self.t) if self._next_sample > 0 else self.t + 1.0 / rate
         lat, lon = self.position()
-        u, v = self.current_model.at(self.clock, lat, lon)  # measured where the boat really is
+        uv = self.current_model.measure(self.clock, lat, lon)  # measured where the boat really is
+        if uv is None:
+            return  # on land / off the field: the sensor has nothing to say (like the Lua sensor)
+        u, v = uv
         sd = self.cfg.current_noise_std
         if sd > 0:
             u, v = u + self._rng.gauss(0.0, sd), v + self._rng.gauss(0.0, sd)

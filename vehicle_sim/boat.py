@@ -31,7 +31,8 @@ Navigation (:func:`guidance`):
 
 Current sampling (:class:`CurrentModel`): bilinear in space and linear in time
 through :meth:`FlowField.sample_latlon`. Outside the field's spatial coverage, on
-land/missing cells, the current is **zero**; in time the field is held at its
+land/missing cells, the current moving the boat is **zero** and the current sensor
+(:meth:`CurrentModel.measure`) reads nothing; in time the field is held at its
 first/last snapshot (clamped), so a simulation may outlast the data.
 """
 
@@ -156,6 +157,17 @@ class CurrentModel:
         """Field time at simulated time ``t_sim`` (s since boot), clamped to the data."""
         ft = self.start_time + t_sim / self.time_scale
         return float(np.clip(ft, self.field.times[0], self.field.times[-1])) if self.field is not None else ft
+
+    def measure(self, t_sim: float, lat: float, lon: float) -> tuple[float, float] | None:
+        """What a current sensor reads at ``(lat, lon)``: ``(u_east, v_north)`` m/s, or None
+        where the field has no data (land, a missing cell, outside its coverage): a sensor on
+        land or off the map measures nothing, it does not measure still water."""
+        if self.field is not None:
+            r, c = self.field.grid.latlon_to_fcell(lat, lon)
+            fu, _ = self._interp1(self.field_time(t_sim), float(r), float(c))
+            if not math.isfinite(fu):
+                return None
+        return self.at(t_sim, lat, lon)
 
     def at(self, t_sim: float, lat: float, lon: float) -> tuple[float, float]:
         """``(u_east, v_north)`` m/s at ``(lat, lon)`` and simulated time ``t_sim``."""

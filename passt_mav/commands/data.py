@@ -191,7 +191,8 @@ def _run_import(args) -> int:
     f = import_currents(args.file, grid, start=args.start, hours=args.hours, variables=variables, units=args.units)
     f.attrs["command"] = "passt-mav data import " + " ".join(
         [str(args.file), "--region", args.region, "--grid", args.grid]
-        + (["--start", args.start] if args.start else []) + (["--hours", str(args.hours)] if args.hours else []))
+        + (["--start", args.start] if args.start else []) + (["--hours", str(args.hours)] if args.hours else [])
+        + (["--variables", args.variables] if args.variables else []) + (["--units", args.units] if args.units else []))
     path = f.to_netcdf(args.out)
     rep = coverage_report(f)
     rep.update(out=str(path), time_origin=f.time_origin, variables=f.attrs["variables"],

@@ -23,6 +23,8 @@ EXAMPLES = """examples:
     passt-mav demo
     passt-mav demo --legs 1 --out runs/demo1
     passt-mav demo --speedup 200 --moves 4
+    passt-mav demo --field builtin:rtofs          # real NOAA currents with a coastline (missions/rtofs.yaml)
+    passt-mav demo --mission missions/cylinder.yaml
 """
 
 #: the demo's changes to missions/north_atlantic.yaml
@@ -56,6 +58,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "mission-transfer timeouts (8 s) run in simulated time: at 250x and more on two cores "
                         "uploads are cancelled before the controller can answer")
     p.add_argument("--model", help="predictor instead of the shipped KNODE (dmd, persistence, a .pt)")
+    p.add_argument("--mission", help="base mission file instead of missions/north_atlantic.yaml")
+    p.add_argument("--field", help="field to replay: builtin:NAME uses missions/NAME.yaml when it exists "
+                   "(builtin:rtofs: real NOAA currents with land); a .nc replaces the base mission's field and "
+                   "region (model persistence unless --model)")
     p.add_argument("--no-report", action="store_true", help="skip the HTML report")
 
 
@@ -67,16 +73,55 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
-def mission_mapping() -> tuple[dict, str]:
-    """(mapping, where from) of the demo's base mission."""
+def mission_mapping(mission: str | None = None, field: str | None = None) -> tuple[dict, str]:
+    """(mapping, where from) of the demo's base mission.
+
+    ``mission``: a mission file; ``field``: ``builtin:NAME`` picks ``missions/NAME.yaml``
+    (``builtin:ocean``: north_atlantic) when it exists; any other field replaces the base
+    mission's ``field.source`` and region (from the field's grid), with persistence as the model
+    and the water cell nearest the centre as the start.
+    """
     from pathlib import Path
 
     import yaml
 
-    f = Path(__file__).resolve().parents[2] / "missions" / "north_atlantic.yaml"
-    if f.exists():
-        return yaml.safe_load(f.read_text()), str(f)
-    return dict(_EMBEDDED), "embedded copy of missions/north_atlantic.yaml"
+    from passt_mav.errors import UserError
+
+    missions = Path(__file__).resolve().parents[2] / "missions"
+    if mission is None and field is not None and field.startswith("builtin:"):
+        name = {"ocean": "north_atlantic"}.get(field.split(":", 1)[1], field.split(":", 1)[1])
+        if (missions / f"{name}.yaml").exists():
+            mission = str(missions / f"{name}.yaml")
+    if mission is not None:
+        f = Path(mission)
+        if not f.exists():
+            raise UserError(f"mission file not found: {f}")
+        data, origin = yaml.safe_load(f.read_text()), str(f)
+    elif (missions / "north_atlantic.yaml").exists():
+        f = missions / "north_atlantic.yaml"
+        data, origin = yaml.safe_load(f.read_text()), str(f)
+    else:
+        data, origin = dict(_EMBEDDED), "embedded copy of missions/north_atlantic.yaml"
+    src = (data.get("field") or {}).get("source") if isinstance(data.get("field"), dict) else data.get("field")
+    if field is not None and field != src:
+        import numpy as np
+
+        from passt_mav.fields.datasets import resolve_field
+
+        fl = resolve_field(field)
+        data = dict(data)
+        data["field"] = {"source": str(Path(field).resolve()) if not field.startswith("builtin:") else field,
+                         "velocity_scale": 1.0, "time_scale": 1.0}
+        data["region"] = fl.grid.describe()
+        data["model"] = "persistence"
+        water = np.argwhere(~fl.land_mask)
+        if water.size == 0:
+            raise UserError(f"field {field} has no water cell")
+        centre = np.array(fl.grid.shape) / 2.0
+        data["start_cell"] = [int(x) for x in water[np.argmin(((water - centre) ** 2).sum(axis=1))]]
+        data["t0"] = 0
+        origin += f" with field {field}"
+    return data, origin
 
 
 def run(args: argparse.Namespace) -> int:
@@ -98,7 +143,7 @@ def run(args: argparse.Namespace) -> int:
         raise UserError("--legs and --moves must be >= 1")
     if args.speedup <= 0:
         raise UserError("--speedup must be positive")
-    base, origin = mission_mapping()
+    base, origin = mission_mapping(args.mission, args.field)
     over = dict(DEMO_OVERRIDES, legs=args.legs, **{"planner.path_length": args.moves})
     if args.model:
         over["model"] = args.model

@@ -8,6 +8,10 @@
   snapshots (shipped file, ``passt-mav data oscillating``).
 * ``"ocean"`` - the embedded synthetic North Atlantic default (generated in
   seconds from a seed, ``passt-mav data ocean``).
+* ``"rtofs"`` - real NOAA Global RTOFS surface currents off Washington State and
+  Vancouver Island, 2024-10-28T03Z + 64 x 3 h, 30x30 cells of 9.3 x 6.2 km, 34 %
+  land (NaN); a crop of ``wa_RTOFS_global.nc`` (public domain; source and command in
+  ``passt_mav/assets/README.md``).
 """
 
 from __future__ import annotations
@@ -19,7 +23,7 @@ from passt_mav.errors import FieldError
 __all__ = ["DATASETS", "ASSETS", "load_dataset", "resolve_field"]
 
 ASSETS = Path(__file__).resolve().parent.parent / "assets"
-DATASETS = ("cylinder", "oscillating", "ocean")
+DATASETS = ("cylinder", "oscillating", "ocean", "rtofs")
 
 
 def load_dataset(name: str, *, seed: int = 0):
@@ -34,6 +38,11 @@ def load_dataset(name: str, *, seed: int = 0):
         path = ASSETS / f"{name}.nc"
         if not path.exists():
             raise FieldError(f"shipped dataset {path.name} is missing; regenerate it with 'passt-mav data {name} --out {path}'")
+        return load_field(path)
+    if name == "rtofs":
+        path = ASSETS / "rtofs.nc"
+        if not path.exists():
+            raise FieldError(f"shipped dataset {path.name} is missing; see passt_mav/assets/README.md for the command that makes it")
         return load_field(path)
     raise FieldError(f"unknown dataset {name!r}; choose one of {', '.join(DATASETS)}")
 

@@ -67,11 +67,12 @@ __all__ = [
     "DEFAULT_MODEL",
 ]
 
-BUILTIN_FIELDS = ("ocean", "cylinder", "oscillating")
+BUILTIN_FIELDS = ("ocean", "cylinder", "oscillating", "rtofs")
 #: shipped predictor checkpoints (resolved by passt_mav.models)
 SHIPPED_MODELS = ("cylinder", "ocean")
 #: the default model of each built-in field: the oscillating cylinder uses the static one (paper)
-DEFAULT_MODEL = {"ocean": "builtin:ocean", "cylinder": "builtin:cylinder", "oscillating": "builtin:cylinder"}
+DEFAULT_MODEL = {"ocean": "builtin:ocean", "cylinder": "builtin:cylinder", "oscillating": "builtin:cylinder",
+                 "rtofs": "persistence"}  # no KNODE is trained on the real RTOFS currents
 #: predictor registry names accepted when passt_mav.models cannot be imported (yet)
 _KNOWN_PREDICTORS = ("knode", "dmd", "persistence")
 _NAMED_VALUE_MAX = 10  # NAMED_VALUE_FLOAT.name is char[10]
@@ -190,7 +191,7 @@ class FieldConfig(_Strict):
                                  + ", ".join(f"builtin:{n}" for n in BUILTIN_FIELDS) + " or a .nc file")
             return v
         if not v.endswith(".nc"):
-            raise ValueError("must be builtin:ocean, builtin:cylinder, builtin:oscillating or a path to a .nc file")
+            raise ValueError("must be builtin:ocean, builtin:cylinder, builtin:oscillating, builtin:rtofs or a path to a .nc file")
         p = Path(v)
         p = p if p.is_absolute() else _base_dir(info) / p
         if not p.exists():

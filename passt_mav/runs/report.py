@@ -290,6 +290,11 @@ def _speed_map(ax, fig, grid, uv: np.ndarray, units: str, vmax: float | None = N
     vmax = vmax if vmax is not None else (float(np.nanmax(sp)) if np.isfinite(sp).any() else 1.0)
     ax.set_facecolor("0.85")
     pc = ax.pcolormesh(lon, lat, np.ma.masked_invalid(sp), shading="nearest", cmap="viridis", vmin=0.0, vmax=vmax)
+    missing = ~np.isfinite(sp)
+    if missing.any() and (~missing).any():
+        # land (NaN in the field) is grey; its edge drawn between cell centres is the coastline
+        ax.contour(lon, lat, missing.astype(float), levels=[0.5], colors="k", linewidths=1.2)
+        ax.plot([], [], "k-", lw=1.2, label="coastline (land grey)")
     fig.colorbar(pc, ax=ax, label=f"{label} ({units})", shrink=0.85)
     ax.set_aspect(_aspect(lat))
     ax.set_xlabel("longitude (deg E)")
