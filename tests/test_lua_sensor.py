@@ -355,3 +355,15 @@ def test_vehicle_sim_sensor_silent_on_land():
         counts[cell] = n
         sim.close()
     assert counts[land_cell] == 0 and counts[sea_cell] >= 15, counts
+
+
+def test_shipped_grid_is_the_north_atlantic_export(tmp_path):
+    """vehicle_sim/lua/current_grid.bin: the embedded ocean (seed 0) for missions/north_atlantic.yaml,
+    first 48 h, field time 0 at boot - what the controller's boot clock assumes for that mission."""
+    mission = SCRIPT.parents[2] / "missions" / "north_atlantic.yaml"
+    out = tmp_path / "g.bin"
+    assert main(["data", "export-lua", "builtin:ocean", "--mission", str(mission), "--snapshots", "0:48",
+                 "--out", str(out)]) == 0
+    assert out.read_bytes() == (SCRIPT.parent / "current_grid.bin").read_bytes()
+    h = read_lua_grid(out)
+    assert (h["rows"], h["cols"], h["snapshots"], h["time_at_boot_s"], h["dt_s"]) == (30, 30, 48, 0.0, 3600.0)

@@ -458,14 +458,14 @@ def _run_export_lua(args) -> int:
     from passt_mav.errors import UserError
     from passt_mav.fields.datasets import resolve_field
 
-    velocity_scale, time_scale, t0, placement = 1.0, 1.0, None, None
+    velocity_scale, time_scale, t0, placement, seed = 1.0, 1.0, None, None, 0
     if args.mission:
         from passt_mav.mission.config import load_mission
 
         cfg = load_mission(args.mission)
         velocity_scale, time_scale, t0 = cfg.field.velocity_scale, cfg.field.time_scale, cfg.t0
-        placement = cfg.grid()
-    f = resolve_field(args.file)
+        placement, seed = cfg.grid(), cfg.seeds.field
+    f = resolve_field(args.file, seed=seed)
     if placement is not None and placement.shape != f.grid.shape:
         raise UserError(f"the mission's region is {placement.shape[0]}x{placement.shape[1]} but the field is "
                         f"{f.grid.shape[0]}x{f.grid.shape[1]}")
