@@ -367,3 +367,52 @@ def test_shipped_grid_is_the_north_atlantic_export(tmp_path):
     assert out.read_bytes() == (SCRIPT.parent / "current_grid.bin").read_bytes()
     h = read_lua_grid(out)
     assert (h["rows"], h["cols"], h["snapshots"], h["time_at_boot_s"], h["dt_s"]) == (30, 30, 48, 0.0, 3600.0)
+
+
+@pytest.mark.sitl
+def test_lua_serial_sensor_on_ardurover_sitl(tmp_path, sitl_factory):
+    """The serial variant on the real firmware: SITL's SERIAL1 is TCP port+2; with
+    SERIAL1_PROTOCOL 28 the script reads "$CUR,u,v*hh" lines from it and forwards them."""
+    import socket
+
+    scripts = tmp_path / "scripts"
+    scripts.mkdir()
+    src = SCRIPT.read_text()
+    assert src.count('local SOURCE = "grid"') == 1
+    (scripts / SCRIPT.name).write_text(src.replace('local SOURCE = "grid"', 'local SOURCE = "serial"'))  # the README's edit
+    parm = tmp_path / "serial.parm"
+    parm.write_text("SERIAL1_PROTOCOL 28\n")
+    s = sitl_factory(scripts=scripts, params=parm, speedup=10)
+    m = s.mavlink()
+
+    def line(u, v, good=True):
+        body = f"CUR,{u},{v}"
+        cs = 0
+        for b in body.encode():
+            cs ^= b
+        return f"${body}*{(cs if good else cs ^ 1):02X}\r\n".encode()
+
+    got = []
+    try:
+        sock = socket.create_connection(("127.0.0.1", s.port + 2), timeout=30)
+        try:
+            end = time.monotonic() + 60.0
+            k = 0
+            while time.monotonic() < end and len(got) < 20:
+                m.mav.heartbeat_send(6, 8, 0, 0, 0)
+                # a bad checksum line between two good ones must be dropped
+                sock.sendall(line(0.125, -0.5) + line(9.0, 9.0, good=False) + line(-0.25, 0.75))
+                k += 1
+                stop = time.monotonic() + 0.3
+                while time.monotonic() < stop:
+                    msg = m.recv_match(type="NAMED_VALUE_FLOAT", blocking=True, timeout=0.1)
+                    if msg is not None and msg.name in ("CUR_U", "CUR_V"):
+                        got.append((msg.name, msg.value))
+        finally:
+            sock.close()
+    finally:
+        m.close()
+    assert len(got) >= 20, f"{len(got)} readings; {s.log_tail()}"
+    us = {round(v, 6) for n, v in got if n == "CUR_U"}
+    vs = {round(v, 6) for n, v in got if n == "CUR_V"}
+    assert us <= {0.125, -0.25} and vs <= {-0.5, 0.75} and len(us) == 2, (us, vs)
