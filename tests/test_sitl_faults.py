@@ -155,7 +155,7 @@ def test_autopilot_killed_and_restarted_mid_leg_resumes_and_completes_without_a_
     finally:
         link.close()
     out = capfd.readouterr()
-    console = "\n".join(lines) + "\n" + out.out + "\n" + out.err
+    console = out.out + out.err  # everything printed: the controller's lines (echo prints) and pymavlink's
     assert "pid" in crash, console
     _complete(summary)
     ev = " | ".join(summary["events"])
@@ -163,12 +163,13 @@ def test_autopilot_killed_and_restarted_mid_leg_resumes_and_completes_without_a_
     assert "left AUTO" not in ev and "pilot has control" not in console
     # pymavlink's own per-read print is gone; our one line says why the link dropped
     assert not any(s.strip() == "EOF on TCP socket" for s in console.splitlines())
-    assert console.count("EOF on TCP socket") <= 2
+    assert console.count("EOF on TCP socket") <= 3  # our say line and the link's log line (when logging shows)
     assert _max_repeats(console) <= 3, collections.Counter(console.splitlines()).most_common(3)
     with SampleStore(rd.samples_db, readonly=True) as st:
         boots = {s.boot for s in st.for_leg(0)}
     assert boots == {0, 1}  # leg 0 has samples from before and after the crash
-    print(f"crashed at item {crash['item']}; events: {ev}")
+    print(f"crashed at item {crash['item']}; console {len(console.splitlines())} lines, the most repeated "
+          f"{_max_repeats(console)}x; events: {ev}")
 
 
 # -- a pilot takes AUTO away from a second GCS link -------------------------------------------------------
@@ -241,7 +242,7 @@ def test_link_cut_mid_leg_reconnects_and_completes(tmp_path, sitl_factory, capfd
     finally:
         link.close()
     out = capfd.readouterr()
-    console = "\n".join(lines) + out.out + out.err
+    console = out.out + out.err
     assert "at" in cut
     _complete(summary, legs=1)
     ev = " | ".join(summary["events"])

@@ -315,6 +315,9 @@ class Link:
         _hook_transport_end(conn)
         self.conn = conn
         self.closed_reason = None
+        # a new transport (or a rebooted vehicle) restarts the sequence numbers: frames missed during an
+        # outage are not loss on the link
+        self._last_seq.clear()
         self._stop.clear()
         self._last_hb = None
         self._threads = [threading.Thread(target=self._reader, name="mavlink-reader", daemon=True),
