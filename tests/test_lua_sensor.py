@@ -262,6 +262,15 @@ def test_export_lua_metric_with_mission(tmp_path, capsys):
     # t0 = 300 of the mission: field time at boot = times[300] * 200 s; snapshots 0.4 * 200 = 80 s apart
     assert h["dt_s"] == pytest.approx(80.0) and h["time_at_boot_s"] == pytest.approx(h["t0_s"])
     assert h["lat_ref"] == pytest.approx(40.2, abs=1e-6) and h["lon_ref"] == pytest.approx(-63.1, abs=1e-6)
+    # --anchor moves it; the map keeps its shape (cells per degree at 41 N vs 40.2 N)
+    assert main(["data", "export-lua", "builtin:cylinder", "--mission", str(mission), "--snapshots", "300:302",
+                 "--anchor", "41,-60", "--out", str(tmp_path / "a.bin")]) == 0
+    capsys.readouterr()
+    a = read_lua_grid(tmp_path / "a.bin")
+    assert a["lat_ref"] == pytest.approx(41.0, abs=1e-6) and a["lon_ref"] == pytest.approx(-60.0, abs=1e-6)
+    assert a["drdlat"] == pytest.approx(h["drdlat"], rel=1e-3)
+    assert a["dcdlon"] == pytest.approx(h["dcdlon"] * np.cos(np.radians(41.0)) / np.cos(np.radians(40.2)), rel=1e-3)
+    np.testing.assert_array_equal(a["data"], h["data"])
 
 
 # -- on the real firmware ----------------------------------------------------------------
