@@ -140,6 +140,13 @@ def test_signing_key_on_both_sides_uploads_and_a_keyless_client_is_ignored():
         with pytest.raises(LinkTimeout, match="signing key differs"):
             wrong.connect()  # the vehicle's frames fail our signature check: no heartbeat at all
         wrong.close()
+    # and a key for a vehicle that does not sign: its unsigned frames are dropped, the message says why
+    with served(SimConfig.fast(), connect=False) as (sim, _):
+        keyed = Link(link_config(stream_rates_hz=(), signing_key=key, connect_timeout_s=0.5),
+                     connection_factory=inprocess_factory(sim))
+        with pytest.raises(LinkTimeout, match="unsigned frames.*no signing key set"):
+            keyed.connect()
+        keyed.close()
 
 
 def test_timesync_is_requested_not_streamed_and_keeps_the_rtt_current():

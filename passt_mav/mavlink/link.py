@@ -548,6 +548,9 @@ class Link:
                 parts.append(f"it sends signed frames: {_SIGNING_HINT}")
             elif sg.secret_key is not None and sg.badsig_count > 0 and sg.goodsig_count == 0:
                 parts.append("its frames fail our signature check: the signing key differs from the vehicle's")
+            elif sg.secret_key is not None and sg.goodsig_count == 0 and sg.reject_count > 0:
+                parts.append("it sends unsigned frames, which a signing link drops: the vehicle has no signing key "
+                             "set; connect without one, or set it on the vehicle")
         return f" ({'; '.join(parts)})" if parts else ""
 
     def signing_hint(self) -> str:
