@@ -4,13 +4,13 @@ Example (``missions/north_atlantic.yaml``)::
 
     name: north_atlantic
     region: {south: 39.360065, west: -64.24, north: 41.130714, east: -61.92004, rows: 30, cols: 30}
-    field: {source: "builtin:ocean"}
+    field: {source: "builtin:ocean", clock: auto}   # clock: auto | utc | boot (see FieldConfig)
     model: builtin:ocean            # default: the shipped model of the field's scenario
     planner: {name: policy_gradient, path_length: 50, reward: speed, options: {}}
     legs: 4
     start_cell: [15, 15]
     t0: 0
-    vehicle: {connect: "tcp:127.0.0.1:5760", speed_mps: 2.0, wp_radius_m: 5.0}
+    vehicle: {connect: "tcp:127.0.0.1:5760", speed_mps: 2.0, wp_radius_m: 5.0, on_reboot: resume}
     sensors: {u: CUR_U, v: CUR_V, noise_std: 0.02}
     geofence_margin_m: 500
     gp: {prior: forecast, hyper: every_leg, options: {}}
