@@ -608,6 +608,8 @@ class MissionController:
         if self.collector is not None and self.collector.boots:
             self.collector.boots[-1].setdefault("first_tb", first_tb)
         self._reboot_info = (boot, last_tb, first_tb)
+        # the old boot's EKF report would make wait_ready() pass at once, before the new EKF has a position
+        self.link.forget("EKF_STATUS_REPORT")
         self._rebooted.set()
 
     # -- the mission -----------------------------------------------------------------------------
@@ -783,7 +785,9 @@ class MissionController:
         v = self.vehicle
         for attempt in range(1, attempts + 1):
             try:
-                if self._rebooted.is_set():
+                if self._rebooted.is_set() or attempt > 1:
+                    # after a reconnect the vehicle may have rebooted (its first time stamps may not be here
+                    # yet): an upload right after boot is refused and AUTO needs the EKF, so wait for it first
                     self._rebooted.clear()
                     v.wait_ready(timeout=self.ready_timeout_s)
                 if v.mode == 10:

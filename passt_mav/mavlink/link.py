@@ -523,6 +523,11 @@ class Link:
         """The last message of type ``typ`` from the vehicle, or None."""
         return self._latest.get(typ)
 
+    def forget(self, *types: str) -> None:
+        """Drop the last message of each of ``types`` (e.g. after a reboot made them stale)."""
+        for t in types:
+            self._latest.pop(t, None)
+
     # -- state -------------------------------------------------------------------------------
     @property
     def seconds_since_heartbeat(self) -> float:
