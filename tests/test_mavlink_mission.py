@@ -18,6 +18,7 @@ from pymavlink.dialects.v20 import ardupilotmega as M
 from mavlink_helpers import HOME, inprocess_factory, link_config, served, vehicle, waypoints
 from passt_mav.errors import LinkTimeout, MissionRejected
 from passt_mav.mavlink import Link, MissionClient, with_home
+from passt_mav.mavlink.mission_client import rover_stored
 from passt_mav.mission.items import MissionItem
 from vehicle_sim import LinkConfig as SimLinkConfig
 from vehicle_sim import SimConfig, Simulator
@@ -77,7 +78,9 @@ def test_upload_then_read_back_equals_and_seq0_is_the_vehicles_home():
         items = with_home(waypoints(OFFSETS), home=(0.0, 0.0))  # placeholder 0,0: the vehicle writes home
         got = mc.upload_verified(items)
         assert len(got) == len(items)
-        assert all(a.same_as(b) for a, b in zip(items[1:], got[1:]))
+        # the vehicle keeps its own form of each item (Rover drops NAV_WAYPOINT's param2 radius)
+        assert all(rover_stored(a) == b for a, b in zip(items[1:], got[1:]))
+        assert {g.param2 for g in got[1:]} == {0.0} and {i.param2 for i in items[1:]} == {2.0}
         # exact int32 degE7 round trip
         assert [(g.x_int, g.y_int) for g in got[1:]] == [(i.x_int, i.y_int) for i in items[1:]]
         assert got[0].lat == pytest.approx(HOME[0], abs=1e-7) and got[0].lon == pytest.approx(HOME[1], abs=1e-7)

@@ -293,3 +293,91 @@ def test_item_without_upload_gets_error():
     sim, c = make()
     c.mav.send(wps(1)[0])
     assert c.wait("MISSION_ACK").type == M.MAV_MISSION_ERROR
+
+
+# Items sent -> what Rover 4.7 SITL (../shared/sitl) returned on download, recorded with pymavlink:
+# (frame, command, autocontinue, p1, p2, p3, p4, x, y, z)
+_LAT, _LON = 400001000, -630001000
+FIRMWARE_READBACK = [
+    ((2, 178, 1, 1, 2.5, -1, 9, 123, 456, 7.5), (0, 178, 1, 1.0, 2.5, -1.0, 0.0, 0, 0, 0.0)),
+    ((3, 16, 1, 5.7, 25, 3, 7, _LAT, _LON, 12.345), (3, 16, 1, 5.0, 0.0, 0.0, 0.0, _LAT, _LON, 12.34)),
+    ((6, 16, 1, 0, 25, 0, 0, _LAT + 100, _LON, 1), (3, 16, 1, 0.0, 0.0, 0.0, 0.0, _LAT + 100, _LON, 1.0)),
+    ((3, 19, 1, 10, 4, 10, 0.5, _LAT, _LON + 100, 0), (3, 19, 1, 10.0, 0.0, 1.0, 1.0, _LAT, _LON + 100, 0.0)),
+    ((3, 19, 1, 10.9, 0, -10, 0, _LAT, _LON + 100, 0), (3, 19, 1, 10.0, 0.0, -1.0, 0.0, _LAT, _LON + 100, 0.0)),
+    ((3, 20, 1, 1, 2, 3, 4, _LAT, _LON, 5), (0, 20, 1, 0.0, 0.0, 0.0, 0.0, 0, 0, 0.0)),
+    ((0, 183, 1, 5, 1500.7, 3, 4, 7, 8, 9), (0, 183, 1, 5.0, 1500.0, 0.0, 0.0, 0, 0, 0.0)),
+    ((0, 177, 0, 2, 3.6, 5, 6, 7, 8, 9), (0, 177, 1, 2.0, 3.0, 0.0, 0.0, 0, 0, 0.0)),
+    ((5, 16, 1, -1, 0, 0, 0, _LAT, _LON, -3.339), (0, 16, 1, 65535.0, 0.0, 0.0, 0.0, _LAT, _LON, -3.33)),
+    ((2, 16, 1, 70000, 0, 0, 0, _LAT, _LON, 3), (0, 16, 1, 4464.0, 0.0, 0.0, 0.0, _LAT, _LON, 3.0)),
+    ((0, 17, 1, 1, 2, -30, 4, _LAT, _LON, 3), (0, 17, 1, 0.0, 0.0, -30.0, 0.0, _LAT, _LON, 3.0)),
+    ((0, 112, 1, 4.5, 2, 3, 4, _LAT, _LON, 3), (0, 112, 1, 4.5, 0.0, 0.0, 0.0, 0, 0, 0.0)),
+]
+
+
+def _item_msg(seq, sent):
+    frame, cmd, auto, p1, p2, p3, p4, x, y, z = sent
+    return M.MAVLink_mission_item_int_message(1, 1, seq, frame, cmd, 0, auto, p1, p2, p3, p4, x, y, z, 0)
+
+
+def _readback(m):
+    return (m.frame, m.command, m.autocontinue, m.param1, m.param2, m.param3, m.param4, m.x, m.y, m.z)
+
+
+def test_items_are_stored_in_the_firmwares_form():
+    """ARDUPILOT_ROVER.md's table and more: each item reads back as Rover 4.7 SITL returned it."""
+    sim, c = make()
+    items = [SimClient.waypoint(0, *HOME)] + [_item_msg(i + 1, s) for i, (s, _) in enumerate(FIRMWARE_READBACK)]
+    assert c.upload(items).type == M.MAV_MISSION_ACCEPTED
+    got = c.download()
+    for (sent, want), back in zip(FIRMWARE_READBACK, got[1:]):
+        assert _readback(back) == pytest.approx(want, abs=1e-6), sent
+
+
+def test_verbatim_storage_when_normalisation_is_off():
+    sim, c = make()
+    sim.autopilot.missions.normalise = False
+    items = [SimClient.waypoint(0, *HOME)] + [_item_msg(i + 1, s) for i, (s, _) in enumerate(FIRMWARE_READBACK[:2])]
+    assert c.upload(items).type == M.MAV_MISSION_ACCEPTED
+    got = c.download()
+    assert (got[1].frame, got[1].param4) == (2, 9.0) and (got[2].param2, got[2].param1) == (25.0, pytest.approx(5.7))
+
+
+@pytest.mark.parametrize("bad, result", [
+    ((0, 31999, 1, 0, 0, 0, 0, 0, 0, 0), M.MAV_MISSION_UNSUPPORTED),
+    ((1, 16, 1, 0, 0, 0, 0, _LAT, _LON, 0), M.MAV_MISSION_UNSUPPORTED_FRAME),
+    ((0, 16, 1, 0, 0, 0, 0, 910000000, _LON, 0), M.MAV_MISSION_INVALID_PARAM5_X),
+    ((0, 16, 1, 0, 0, 0, 0, _LAT, 1810000000, 0), M.MAV_MISSION_INVALID_PARAM6_Y),
+    ((0, 16, 1, 0, 0, 0, 0, _LAT, _LON, float("nan")), M.MAV_MISSION_INVALID_PARAM7),
+    ((0, 178, 1, 1, float("nan"), 0, 0, 0, 0, 0), M.MAV_MISSION_INVALID_PARAM2),
+    ((0, 183, 1, 1, 2, 3, float("nan"), 0, 0, 0), M.MAV_MISSION_INVALID_PARAM4),
+    ((0, 177, 1, 0, 1, 0, 0, 0, 0, 0), M.MAV_MISSION_ERROR),   # jump to home
+    ((0, 177, 1, 3, 1, 0, 0, 0, 0, 0), M.MAV_MISSION_ERROR),   # jump past the 3-item list
+])
+def test_items_the_firmware_refuses_end_the_transfer_with_its_result(bad, result):
+    """Results as Rover 4.7 SITL answered (no STATUSTEXT); the transfer is over: a next item gets ERROR."""
+    sim, c = make()
+    c.drain()
+    c.mav.mission_count_send(1, 1, 3, 0)
+    assert c.wait("MISSION_REQUEST").seq == 0
+    c.mav.send(SimClient.waypoint(0, *HOME))
+    assert c.wait("MISSION_REQUEST").seq == 1
+    c.mav.send(_item_msg(1, bad))
+    assert c.wait("MISSION_ACK").type == result
+    c.mav.send(_item_msg(2, FIRMWARE_READBACK[1][0]))
+    assert c.wait("MISSION_ACK").type == M.MAV_MISSION_ERROR
+    assert not [t for t in c.texts() if "ission" in t]
+
+
+def test_nan_yaw_of_a_waypoint_is_accepted():
+    sim, c = make()
+    items = [SimClient.waypoint(0, *HOME), _item_msg(1, (3, 16, 1, 0, 0, 0, float("nan"), _LAT, _LON, 0))]
+    assert c.upload(items).type == M.MAV_MISSION_ACCEPTED
+
+
+def test_no_space_comes_with_the_firmwares_warning():
+    sim, c = make(mission_capacity=(5, 84, 20))
+    c.drain()
+    c.mav.mission_count_send(1, 1, 6, 0)
+    assert c.wait("MISSION_ACK").type == M.MAV_MISSION_NO_SPACE
+    c.collect(0.2)
+    assert "Only 5 items are supported" in c.texts()

@@ -14,31 +14,146 @@ re-sent after ``mission_rerequest_s`` of silence; the upload is cancelled
 ``mission_timeout_s``. Out-of-sequence items get INVALID_SEQUENCE (the transfer
 continues); a second GCS (other sysid/compid) mid-transfer gets DENIED, as does a
 download of the type being uploaded; a count above capacity, and any count before
-storage is initialised (first ``storage_ready_s``), gets NO_SPACE; an item while no
+storage is initialised (first ``storage_ready_s``), gets NO_SPACE and the warning
+"Only N items are supported" (N = 0 while initialising); an item while no
 upload is running gets ERROR.
 
 Download: MISSION_REQUEST_LIST -> MISSION_COUNT (type 0 counts home) ->
 MISSION_REQUEST_INT -> MISSION_ITEM_INT (int32 degE7 exactly as stored); the legacy
 MISSION_REQUEST is answered with a float MISSION_ITEM (and a one-time warning).
 
-Stored frames: the ``_INT`` global frames are stored as their plain equivalents
-(5 -> 0, 6 -> 3, 11 -> 10), as ArduPilot returns them.
+Stored form (``normalise``, on by default): like Rover 4.7 the vehicle keeps an item in
+its own packed form, not verbatim (ARDUPILOT_ROVER.md table; :data:`STORED_FIELDS`):
+each param is cast to the small field the firmware keeps it in (uint16 hold time,
+uint8 speed type, a loiter radius reduced to its sign, ...) or dropped (reads back 0);
+only location commands keep x/y/z, with the altitude in whole centimetres and the
+frame folded to 0 / 3 / 10 (GLOBAL, RELATIVE_ALT, TERRAIN); every other command reads
+back frame 0 with x = y = z = 0; ``autocontinue`` reads back 1. Items the firmware
+refuses are refused with its MISSION_ACK result and no STATUSTEXT, ending the
+transfer: an unknown command UNSUPPORTED, a location command in another frame
+UNSUPPORTED_FRAME, latitude beyond 90° INVALID_PARAM5_X, longitude beyond 180°
+INVALID_PARAM6_Y, a NaN or >= 83 km altitude INVALID_PARAM7, a NaN param k
+INVALID_PARAMk (except a waypoint's param4 yaw), a DO_JUMP whose target is 0 or not in the
+list ERROR. With
+``MissionServer.normalise = False`` items are stored verbatim (only the ``_INT``
+frames folded), which the differential test uses to show it would catch the difference.
 """
 
 from __future__ import annotations
 
+import math
+import struct
 from dataclasses import dataclass, replace
 from typing import Callable
 
 from pymavlink.dialects.v20 import ardupilotmega as mavlink2
 
-__all__ = ["Item", "MissionStore", "MissionServer", "GLOBAL_FRAMES"]
+__all__ = ["Item", "MissionStore", "MissionServer", "GLOBAL_FRAMES", "STORED_FIELDS", "firmware_form"]
 
 M = mavlink2
 #: frames whose x/y are latitude/longitude
 GLOBAL_FRAMES = frozenset({0, 3, 5, 6, 10, 11})
 _INT_TO_PLAIN = {5: 0, 6: 3, 11: 10}
 TYPES = (0, 1, 2)
+
+
+# What Rover 4.7's AP_Mission keeps of each param, per command (measured on the SITL build in
+# ../shared/sitl: an item packs into 15 bytes, so most params live in small integer fields):
+#   "f" float32 | "u8"/"u16"/"i8"/"i16" C cast (truncate toward zero, keep the low bits)
+#   "sign" -1 if < 0 else 1 | "flag" 1 if > 0 else 0 | "+u8"/"+u16" magnitude in the field, sign kept
+#   "" dropped (reads back 0)
+#: command -> (stores a location, kinds of param1..param4)
+STORED_FIELDS: dict[int, tuple[bool, tuple[str, str, str, str]]] = {
+    16: (True, ("u16", "", "", "")),          # NAV_WAYPOINT: hold time; acceptance radius is WP_RADIUS
+    17: (True, ("", "", "+u16", "")),         # NAV_LOITER_UNLIM
+    18: (True, ("u8", "", "+u8", "flag")),    # NAV_LOITER_TURNS
+    19: (True, ("u16", "", "sign", "flag")),  # NAV_LOITER_TIME: the radius keeps only its direction
+    20: (False, ("", "", "", "")),            # NAV_RETURN_TO_LAUNCH
+    21: (True, ("u16", "", "", "sign")),      # NAV_LAND
+    22: (True, ("u16", "", "", "")),          # NAV_TAKEOFF
+    82: (True, ("u16", "", "", "")),          # NAV_SPLINE_WAYPOINT
+    93: (False, ("f", "i8", "i8", "i8")),     # NAV_DELAY
+    112: (False, ("f", "", "", "")),          # CONDITION_DELAY
+    114: (False, ("f", "", "", "")),          # CONDITION_DISTANCE
+    115: (False, ("f", "f", "i8", "u8")),     # CONDITION_YAW
+    177: (False, ("u16", "i16", "", "")),     # DO_JUMP
+    178: (False, ("u8", "f", "f", "")),       # DO_CHANGE_SPEED
+    179: (True, ("u16", "", "", "")),         # DO_SET_HOME
+    181: (False, ("u8", "u8", "", "")),       # DO_SET_RELAY
+    182: (False, ("u8", "i16", "f", "")),     # DO_REPEAT_RELAY
+    183: (False, ("u16", "u16", "", "")),     # DO_SET_SERVO
+    184: (False, ("u16", "u16", "i16", "f")), # DO_REPEAT_SERVO
+    189: (True, ("", "", "", "")),            # DO_LAND_START
+    194: (False, ("u16", "", "", "")),        # DO_SET_REVERSE
+    201: (True, ("u16", "", "", "")),         # DO_SET_ROI
+    206: (False, ("f", "", "", "")),          # DO_SET_CAM_TRIGG_DIST
+    207: (False, ("u16", "", "", "")),        # DO_FENCE_ENABLE
+    211: (False, ("u8", "u8", "", "")),       # DO_GRIPPER
+    215: (False, ("u16", "", "", "")),        # DO_SET_RESUME_REPEAT_DIST
+}
+#: frames a location command may use, and the frame it reads back in
+_LOCATION_FRAMES = {0: 0, 2: 0, 5: 0, 3: 3, 6: 3, 10: 10, 11: 10}
+_ALT_MAX_M = 83000.0  # ArduPilot's LOCATION_ALT_MAX_M (24-bit centimetres)
+
+
+def _as_f32(v: float) -> float:
+    return struct.unpack("<f", struct.pack("<f", v))[0] if math.isfinite(v) else v
+
+
+def _cast(kind: str, v: float) -> float:
+    if kind == "":
+        return 0.0
+    if kind == "f":
+        return _as_f32(v)
+    if kind == "sign":
+        return -1.0 if v < 0 else 1.0
+    if kind == "flag":
+        return 1.0 if v > 0 else 0.0
+    if kind[0] == "+":
+        mag = _cast(kind[1:], abs(v))
+        return -mag if v < 0 else mag
+    if not math.isfinite(v):
+        return 0.0  # undefined in C; the firmware's result is not modelled
+    bits = int(kind[1:])
+    n = int(v) % (1 << bits)
+    if kind[0] == "i" and n >= 1 << (bits - 1):
+        n -= 1 << bits
+    return float(n)
+
+
+def firmware_form(item: "Item", count: int) -> "Item | int":
+    """The item as Rover 4.7 stores it (mission type 0) in a list of ``count`` items, or the
+    MAV_MISSION_RESULT refusing it."""
+    if item.mission_type != 0:
+        return item
+    spec = STORED_FIELDS.get(item.command)
+    if spec is None:
+        return M.MAV_MISSION_UNSUPPORTED
+    located, kinds = spec
+    raw = (item.param1, item.param2, item.param3, item.param4)
+    for k, v in enumerate(raw):
+        # NaN is refused in every param except a waypoint's yaw (param4, "unchanged")
+        if math.isnan(v) and not (item.command == 16 and k == 3):
+            return M.MAV_MISSION_INVALID_PARAM1 + k
+    if item.command == 177 and not 1 <= _cast("u16", float(item.param1)) < count:
+        return M.MAV_MISSION_ERROR  # a jump must land inside the list being uploaded, never on home
+    params = [_cast(k, float(v)) for k, v in zip(kinds, (item.param1, item.param2, item.param3, item.param4))]
+    if located:
+        if item.frame not in _LOCATION_FRAMES:
+            return M.MAV_MISSION_UNSUPPORTED_FRAME
+        if abs(item.x) > 900000000:
+            return M.MAV_MISSION_INVALID_PARAM5_X
+        if abs(item.y) > 1800000000:
+            return M.MAV_MISSION_INVALID_PARAM6_Y
+        if not math.isfinite(item.z) or abs(item.z) >= _ALT_MAX_M:
+            return M.MAV_MISSION_INVALID_PARAM7
+        # altitude kept as int32 centimetres: float32 metres x 100, truncated toward zero
+        cm = math.trunc(_as_f32(_as_f32(item.z) * 100.0))
+        frame, x, y, z = _LOCATION_FRAMES[item.frame], item.x, item.y, _as_f32(cm / 100.0)
+    else:
+        frame, x, y, z = 0, 0, 0, 0.0
+    return replace(item, frame=frame, current=0, autocontinue=1, param1=params[0], param2=params[1],
+                   param3=params[2], param4=params[3], x=x, y=y, z=z)
 
 
 @dataclass(frozen=True)
@@ -158,11 +273,15 @@ class MissionServer:
         home: ``home() -> (lat, lon, alt)`` the current home.
         on_change: ``on_change(mission_type)`` after an upload completes or a clear.
         sysid, compid: our identity (messages addressed elsewhere are ignored).
+        normalise: store items in Rover 4.7's form and refuse what it refuses (:func:`firmware_form`);
+            False stores them verbatim (settable later as the attribute of the same name).
     """
 
     def __init__(self, store: MissionStore, config, send: Callable, text: Callable, home: Callable,
-                 on_change: Callable[[int], None] | None = None, sysid: int = 1, compid: int = 1):
+                 on_change: Callable[[int], None] | None = None, sysid: int = 1, compid: int = 1,
+                 normalise: bool = True):
         self.store, self.cfg = store, config
+        self.normalise = bool(normalise)
         self._send, self._text, self._home = send, text, home
         self._on_change = on_change or (lambda _t: None)
         self.sysid, self.compid = sysid, compid
@@ -221,15 +340,14 @@ class MissionServer:
         if up is not None and not self._is_owner(up, msg):
             self._ack(link, msg, mtype, M.MAV_MISSION_DENIED)
             return
-        if t < self.cfg.storage_ready_s:
-            # ArduPilot answers NO_SPACE until its storage is initialised; a retry later succeeds
-            self.uploads.pop(mtype, None)
-            self._ack(link, msg, mtype, M.MAV_MISSION_NO_SPACE)
-            return
         count = int(msg.count)
-        if count > self.store.capacity[mtype]:
+        # ArduPilot answers NO_SPACE until its storage is initialised (capacity 0 then; a retry
+        # later succeeds), and above its capacity; both with the same warning
+        capacity = 0 if t < self.cfg.storage_ready_s else self.store.capacity[mtype]
+        if count > capacity:
             self.uploads.pop(mtype, None)
             self._ack(link, msg, mtype, M.MAV_MISSION_NO_SPACE)
+            self._text(link, M.MAV_SEVERITY_WARNING, f"Only {capacity} items are supported")
             return
         self.store.truncate(mtype, count)
         if count == 0:
@@ -260,6 +378,16 @@ class MissionServer:
             self._ack(link, msg, mtype, M.MAV_MISSION_INVALID_SEQUENCE)
             return
         item = Item.from_msg(msg)
+        if self.normalise:
+            stored = firmware_form(replace(item, mission_type=mtype), up.count)
+            if isinstance(stored, int):
+                # the firmware refuses the item and ends the transfer (no STATUSTEXT); the list stays
+                # truncated to the count, holding whatever arrived before
+                del self.uploads[mtype]
+                self._ack(link, msg, mtype, stored)
+                self._on_change(mtype)
+                return
+            item = stored
         if mtype == 0 and item.seq == 0:
             lat, lon, alt = self._home()
             item = self.store.home_item(lat, lon, alt)  # seq 0 is home, whatever was sent
