@@ -634,6 +634,9 @@ class MissionController:
                       f"model {self.predictor_info.get('used')}, planner {self.config.planner.name}; waiting for the vehicle")
             self.vehicle.wait_ready(timeout=self.ready_timeout_s)
             self._choose_clock()
+            if self.config.vehicle.wp_radius_m > 0:
+                # a Rover's acceptance radius is WP_RADIUS (it drops a waypoint's param2); put back in finally
+                self.vehicle.set_wp_radius(self.config.vehicle.wp_radius_m)
             for i in range(first, self.n_legs):
                 state, t_state = self._leg(i, state, t_state)
             self.status = "complete"
@@ -654,6 +657,10 @@ class MissionController:
             self._safe_hold()
             raise exc
         finally:
+            if self.vehicle.changed_params and not self.link.lost:
+                restored = self.vehicle.restore_params()
+                if restored:
+                    self._say("restored " + ", ".join(f"{k} = {v:g}" for k, v in restored.items()))
             self.collector.detach()
             self.writer.close()
             self._write_summary()

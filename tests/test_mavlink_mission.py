@@ -224,3 +224,18 @@ def test_cancel_restarts_are_bounded():
             mc.upload(with_home(waypoints(OFFSETS[:4])), timeout=60.0)
         assert ei.value.result == M.MAV_MISSION_OPERATION_CANCELLED
         assert "Mission upload timeout" in str(ei.value)
+
+
+def test_wp_radius_goes_through_the_parameter_and_is_restored():
+    """Rover's acceptance radius is WP_RADIUS: set by PARAM_SET, confirmed by the PARAM_VALUE echo,
+    and put back afterwards; the simulator's boat uses it (not the waypoint's param2)."""
+    with served() as (sim, link):
+        v = vehicle(link)
+        assert v.get_param("WP_RADIUS") == pytest.approx(2.0)  # Rover's default
+        assert v.set_wp_radius(7.5) == pytest.approx(7.5)
+        assert sim.autopilot.params["WP_RADIUS"] == pytest.approx(7.5)
+        assert v.changed_params == {"WP_RADIUS": pytest.approx(2.0)}
+        assert v.restore_params() == {"WP_RADIUS": pytest.approx(2.0)}
+        assert sim.autopilot.params["WP_RADIUS"] == pytest.approx(2.0) and v.changed_params == {}
+        with pytest.raises(LinkTimeout, match="ARMING_CHECK"):
+            v.get_param("ARMING_CHECK", timeout=0.5)  # 4.7 has no such parameter: no answer at all

@@ -101,7 +101,6 @@ ROVER_STORAGE: dict[int, tuple[bool, tuple]] = {
     112: (False, (_F, _0, _0, _0)),                         # CONDITION_DELAY: s
     114: (False, (_F, _0, _0, _0)),                         # CONDITION_DISTANCE: m
     115: (False, (_F, _F, _I8, _U8)),                       # CONDITION_YAW
-    176: (False, (_U16, _0, _0, _0)),                       # DO_SET_MODE
     177: (False, (_U16, _I16, _0, _0)),                     # DO_JUMP: target seq, repeat count
     178: (False, (_U8, _F, _F, _0)),                        # DO_CHANGE_SPEED: type, m/s, throttle %
     179: (True, (_U16, _0, _0, _0)),                        # DO_SET_HOME

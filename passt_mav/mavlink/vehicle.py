@@ -4,6 +4,12 @@ Written to shared/ARDUPILOT_ROVER.md. Every command checks its COMMAND_ACK and a
 refusal raises :class:`CommandRejected` carrying the STATUSTEXT that came with
 it ("Arm: System not initialised", "Flight mode change failed", ...). A mode
 change counts only once the vehicle's HEARTBEAT shows the new custom mode.
+
+Parameters (PARAM_SET / PARAM_REQUEST_READ) count only once the vehicle's PARAM_VALUE
+echo carries the value. The waypoint acceptance radius of a Rover is its WP_RADIUS
+parameter (a NAV_WAYPOINT's param2 is dropped by the firmware): :meth:`Vehicle.set_wp_radius`
+sets it, remembering the vehicle's own value, and :meth:`Vehicle.restore_params` puts
+back whatever this object changed.
 """
 
 from __future__ import annotations
@@ -16,7 +22,7 @@ from passt_mav.errors import CommandRejected, LinkTimeout, UserError, VehicleNot
 from passt_mav.mavlink.link import Link, mavlink2
 from passt_mav.mavlink.mission_client import MissionClient
 
-__all__ = ["Vehicle", "ROVER_MODES", "ROVER_MODE_NAMES", "mode_number", "MissionProgress"]
+__all__ = ["Vehicle", "ROVER_MODES", "ROVER_MODE_NAMES", "mode_number", "MissionProgress", "PARAM_TYPES"]
 
 log = logging.getLogger(__name__)
 M = mavlink2
@@ -28,11 +34,21 @@ ROVER_MODES = {
 }
 ROVER_MODE_NAMES = {v: k for k, v in ROVER_MODES.items()}
 
+#: MAV_PARAM_TYPE of the parameters this module sets (ArduPilot keeps WP_RADIUS/WP_SPEED as float)
+PARAM_TYPES = {"WP_RADIUS": M.MAV_PARAM_TYPE_REAL32, "WP_SPEED": M.MAV_PARAM_TYPE_REAL32}
+
 #: EKF_STATUS_REPORT flags: absolute horizontal position; constant-position (not yet navigating) mode
 EKF_POS_HORIZ_ABS = 16
 EKF_CONST_POS_MODE = 128
 #: STATUSTEXT fragments of a vehicle that will accept arming a little later
 _NOT_YET = ("not initialised", "not initialized", "initialising", "accels inconsistent", "waiting for")
+
+
+def _param_name(raw) -> str:
+    """PARAM_VALUE.param_id as text (pymavlink gives str or bytes, NUL padded)."""
+    if isinstance(raw, bytes):
+        raw = raw.decode("ascii", "replace")
+    return raw.split("\x00", 1)[0]
 
 
 def mode_number(mode: str | int) -> int:
@@ -89,6 +105,8 @@ class Vehicle:
         self.retry_delay_s = retry_delay_s
         self.progress = MissionProgress()
         self._listening = False
+        #: name -> the vehicle's value before this object first changed it (see restore_params)
+        self.changed_params: dict[str, float] = {}
 
     # -- state ---------------------------------------------------------------------------------
     @property
@@ -182,6 +200,77 @@ class Vehicle:
     def disarm(self, *, force: bool = False) -> None:
         self.link.command_long(M.MAV_CMD_COMPONENT_ARM_DISARM, 0, 21196 if force else 0)
         self._wait_heartbeat(lambda m: not m.base_mode & M.MAV_MODE_FLAG_SAFETY_ARMED, "disarmed", None)
+
+    # -- parameters ------------------------------------------------------------------------------
+    def _param_exchange(self, name: str, send, accept, what: str, timeout: float | None) -> float:
+        """Send (and resend on silence) until a PARAM_VALUE for ``name`` satisfies ``accept``."""
+        link = self.link
+        per_try = link.reply_timeout if timeout is None else timeout / (link.config.retries + 1)
+        last = None
+        with link.subscribe("PARAM_VALUE") as sub:
+            for _ in range(link.config.retries + 1):
+                send()
+                end = time.monotonic() + per_try
+                while (m := sub.get(end - time.monotonic())) is not None:
+                    if m.get_srcSystem() != link.target_system or _param_name(m.param_id) != name:
+                        continue
+                    last = float(m.param_value)
+                    if accept(last):
+                        return last
+        if last is not None:
+            raise CommandRejected(f"PARAM_SET {name}", M.MAV_RESULT_DENIED, f"{what}: the vehicle keeps {name} = {last:g}")
+        raise LinkTimeout(f"{what}: no PARAM_VALUE for {name} (unknown parameter on this firmware?)"
+                          + (" (link lost)" if link.lost else ""))
+
+    def get_param(self, name: str, *, timeout: float | None = None) -> float:
+        """Value of parameter ``name`` (PARAM_REQUEST_READ -> PARAM_VALUE). LinkTimeout if the
+        vehicle never answers (ArduPilot stays silent for names it does not have)."""
+        link = self.link
+        return self._param_exchange(
+            name, lambda: link.send(M.MAVLink_param_request_read_message(
+                link.target_system, link.target_component, name.encode(), -1)),
+            lambda v: True, f"reading {name}", timeout)
+
+    def set_param(self, name: str, value: float, *, timeout: float | None = None, tol: float = 1e-4) -> float:
+        """PARAM_SET ``name`` = ``value``, confirmed by the PARAM_VALUE echo (float32, ``tol``
+        relative). Returns the echoed value. The first change of each name remembers the
+        vehicle's previous value in :attr:`changed_params` for :meth:`restore_params`.
+
+        Raises CommandRejected when the vehicle echoes another value, LinkTimeout when it
+        never echoes (ArduPilot ignores unknown names).
+        """
+        value = float(value)
+        if name not in self.changed_params:
+            self.changed_params[name] = self.get_param(name, timeout=timeout)
+        link = self.link
+        ptype = PARAM_TYPES.get(name, M.MAV_PARAM_TYPE_REAL32)
+        return self._param_exchange(
+            name, lambda: link.send(M.MAVLink_param_set_message(
+                link.target_system, link.target_component, name.encode(), value, ptype)),
+            lambda v: abs(v - value) <= tol * max(1.0, abs(value)), f"setting {name} to {value:g}", timeout)
+
+    def set_wp_radius(self, radius_m: float) -> float:
+        """Waypoint acceptance radius (m) through WP_RADIUS (Rover ignores a waypoint's param2).
+        Only sent when the vehicle holds another value; returns the vehicle's value now."""
+        if radius_m <= 0:
+            raise UserError(f"waypoint radius must be > 0 m, got {radius_m:g}")
+        current = self.get_param("WP_RADIUS")
+        if abs(current - radius_m) <= 1e-4 * max(1.0, radius_m):
+            return current
+        return self.set_param("WP_RADIUS", radius_m)
+
+    def restore_params(self) -> dict[str, float]:
+        """Set every parameter changed through :meth:`set_param` back to the vehicle's own
+        value; returns what was restored. Errors are logged, not raised (used on the way out)."""
+        done = {}
+        for name, old in list(self.changed_params.items()):
+            try:
+                self.set_param(name, old)
+                done[name] = old
+                del self.changed_params[name]
+            except Exception as exc:  # noqa: BLE001 - a failed restore must not hide the run's own outcome
+                log.warning("could not restore %s to %g: %s", name, old, exc)
+        return done
 
     # -- missions --------------------------------------------------------------------------------
     def _listen(self) -> None:
