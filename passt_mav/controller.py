@@ -952,6 +952,18 @@ class MissionController:
         v.mission.set_current(seq)
         v.arm(timeout=max(30.0, 120.0 / self.speedup))
         v.start_mission()
+        if seq > 1:
+            # the mission's DO_CHANGE_SPEED (seq 1) lies behind the resumed item and the reboot forgot it:
+            # without this the boat would go on at the WP_SPEED parameter
+            from passt_mav.errors import CommandRejected
+            from passt_mav.mavlink.link import mavlink2
+
+            try:
+                self.link.command_long(mavlink2.MAV_CMD_DO_CHANGE_SPEED, 1, self.speed, -1)
+            except (CommandRejected, LinkTimeout) as exc:
+                self._say(f"leg {i + 1}: WARNING: the leg's speed {self.speed:g} m/s was not set again after the "
+                          f"reboot ({exc}); the vehicle goes on at its WP_SPEED")
+                self.events.append(f"leg {i}: speed not set again after the reboot: {exc}")
         self._say(f"leg {i + 1}: mission verified after the reboot; re-armed, AUTO again at item {seq}/{n_items}")
         self.events.append(f"leg {i}: resumed after the reboot at item {seq}/{n_items}"
                            + (" (mission re-uploaded)" if diff else " (stored mission verified)"))

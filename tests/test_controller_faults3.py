@@ -145,6 +145,7 @@ def test_reboot_mid_leg_is_not_a_pilot_resumes_at_the_interrupted_item(tmp_path)
     ev = " | ".join(summary["events"])
     assert "vehicle rebooted" in ev and "resumed after the reboot at item" in ev and "stored mission verified" in ev
     assert "left AUTO" not in ev and not any("pilot has control" in s for s in lines)
+    assert "speed not set again" not in ev  # DO_CHANGE_SPEED (item 1, behind the resumed item) sent as a command
     assert 16 in modes  # it really came back INITIALISING
     item = int(ev.split("resumed after the reboot at item ")[1].split("/")[0])
     assert item >= 3  # two waypoints were reached before the reboot: it did not start over at 1

@@ -161,6 +161,7 @@ def test_autopilot_killed_and_restarted_mid_leg_resumes_and_completes_without_a_
     ev = " | ".join(summary["events"])
     assert "vehicle rebooted" in ev and "resumed after the reboot at item" in ev, ev
     assert "left AUTO" not in ev and "pilot has control" not in console
+    assert "speed not set again" not in ev  # Rover accepted DO_CHANGE_SPEED as a command in AUTO
     # pymavlink's own per-read print is gone; our one line says why the link dropped
     assert not any(s.strip() == "EOF on TCP socket" for s in console.splitlines())
     assert console.count("EOF on TCP socket") <= 3  # our say line and the link's log line (when logging shows)
