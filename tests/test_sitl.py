@@ -56,6 +56,74 @@ def test_fixture_restart_keeps_eeprom(sitl):
         m.close()
 
 
+def _waypoints(n: int):
+    """n NAV_WAYPOINTs on a 10 x k lattice ~11 m apart around HOME, with a radius in param2."""
+    from passt_mav.mission.items import MissionItem
+
+    return [MissionItem(0, lat=HOME[0] + 1e-4 * (i % 10), lon=HOME[1] + 1e-4 * (i // 10) + 3e-7, param2=5.0,
+                        alt=1.25) for i in range(n)]
+
+
+def test_no_space_at_boot_is_retried(sitl_factory):
+    """Right after boot Rover answers an upload NO_SPACE ("Only 0 items are supported") until its
+    storage is initialised; the mission client retries while the vehicle is initialising and succeeds."""
+    from passt_mav.mavlink import Link, LinkConfig, MissionClient, with_home
+
+    s = sitl_factory(speedup=1)  # real time: the upload starts well inside the vehicle's storage init
+    link = Link(LinkConfig(s.connect, connect_timeout_s=60, stream_rates_hz=())).connect()
+    try:
+        mc = MissionClient(link, no_space_delay_s=0.5, no_space_retries=20)
+        items = with_home(_waypoints(5), home=HOME)
+        res = mc.upload(items)
+        assert res.no_space_retries >= 1, res  # the NO_SPACE path was really taken
+        assert any(t == "Only 0 items are supported" for _, _, t in link.texts)
+        got = mc.download()
+        assert [(g.x_int, g.y_int) for g in got[1:]] == [(i.x_int, i.y_int) for i in items[1:]]
+    finally:
+        link.close()
+
+
+def test_verified_upload_of_100_items(sitl_factory):
+    """100 waypoints (+ home) uploaded, read back and compared with what Rover keeps (the radius in
+    param2 is dropped by the firmware and is not compared)."""
+    from passt_mav.mavlink import Link, LinkConfig, MissionClient, with_home
+    from passt_mav.mavlink.mission_client import rover_stored
+
+    s = sitl_factory(speedup=20)
+    link = Link(LinkConfig(s.connect, connect_timeout_s=60)).connect()
+    try:
+        mc = MissionClient(link, no_space_delay_s=0.5, no_space_retries=20)
+        items = with_home(_waypoints(100), home=HOME)
+        t0 = time.monotonic()
+        got = mc.upload_verified(items)
+        took = time.monotonic() - t0
+        assert len(got) == 101
+        assert all(rover_stored(a) == b for a, b in zip(items[1:], got[1:]))
+        assert {g.param2 for g in got[1:]} == {0.0} and {round(g.alt, 4) for g in got[1:]} == {1.25}
+        print(f"100-item verified upload on SITL x{s.speedup:g}: {took:.2f} s wall")
+    finally:
+        link.close()
+
+
+def test_wp_radius_parameter_on_the_firmware(sitl):
+    """WP_RADIUS is set through PARAM_SET (PARAM_VALUE echo) and restored; an unknown name gets no reply."""
+    from passt_mav.errors import LinkTimeout
+    from passt_mav.mavlink import Link, LinkConfig, Vehicle
+
+    link = Link(LinkConfig(sitl.connect, connect_timeout_s=60)).connect()
+    try:
+        v = Vehicle(link)
+        before = v.get_param("WP_RADIUS")
+        assert v.set_wp_radius(before + 4.5) == pytest.approx(before + 4.5)
+        assert v.get_param("WP_RADIUS") == pytest.approx(before + 4.5)
+        assert v.restore_params() == {"WP_RADIUS": pytest.approx(before)}
+        assert v.get_param("WP_RADIUS") == pytest.approx(before)
+        with pytest.raises(LinkTimeout, match="ARMING_CHECK"):
+            v.get_param("ARMING_CHECK", timeout=2.0)  # gone in 4.7: no PARAM_VALUE at all
+    finally:
+        link.close()
+
+
 def test_one_leg_on_ardurover_sitl(tmp_path, sitl):
     from passt_mav.controller import MissionController
     from passt_mav.errors import MavlinkError

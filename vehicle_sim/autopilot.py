@@ -551,6 +551,8 @@ class Autopilot:
             if it.command == M.MAV_CMD_DO_CHANGE_SPEED:
                 if it.param2 > 0:
                     self.speed_override = float(it.param2)
+                # Rover verifies DO_CHANGE_SPEED itself and reports it reached (servo/relay items it does not)
+                self.send(None, M.MAVLink_mission_item_reached_message(idx))
                 idx += 1
                 continue
             if it.command == M.MAV_CMD_DO_JUMP:
@@ -697,14 +699,16 @@ class Autopilot:
                 self.reached_current = True
                 self.send(None, M.MAVLink_mission_item_reached_message(idx))
             return
+        # texts as Rover 4.7 SITL words them (tests/test_sitl_differential.py); RTL reaches home silently
         if cmd in (M.MAV_CMD_NAV_LOITER_TIME,) or (cmd == M.MAV_CMD_NAV_WAYPOINT and it.param1 > 0):
             if self.loiter_until is None:
                 self.loiter_until = self.t + max(float(it.param1), 0.0)
                 self.reached_current = True
-                self.text(None, M.MAV_SEVERITY_INFO, f"Reached waypoint #{idx} dist {int(round(dist))}m")
+                self.text(None, M.MAV_SEVERITY_INFO, f"Reached waypoint #{idx}. Loiter for {int(it.param1)} seconds")
                 self.send(None, M.MAVLink_mission_item_reached_message(idx))
             return
-        self.text(None, M.MAV_SEVERITY_INFO, f"Reached waypoint #{idx} dist {int(round(dist))}m")
+        if cmd != M.MAV_CMD_NAV_RETURN_TO_LAUNCH:
+            self.text(None, M.MAV_SEVERITY_INFO, f"Reached waypoint #{idx}")
         self.send(None, M.MAVLink_mission_item_reached_message(idx))
         self._advance()
 
