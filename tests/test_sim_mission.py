@@ -381,3 +381,21 @@ def test_no_space_comes_with_the_firmwares_warning():
     assert c.wait("MISSION_ACK").type == M.MAV_MISSION_NO_SPACE
     c.collect(0.2)
     assert "Only 5 items are supported" in c.texts()
+
+
+def test_acceptance_radius_is_the_wp_radius_parameter_not_param2():
+    """Like Rover, the boat reaches a waypoint within WP_RADIUS; a waypoint's param2 (dropped on
+    upload) changes nothing."""
+    for radius in (2.0, 9.0):
+        sim, c = make()
+        c.mav.param_set_send(1, 1, b"WP_RADIUS", radius, M.MAV_PARAM_TYPE_REAL32)
+        echo = c.wait("PARAM_VALUE", lambda m: m.param_id == "WP_RADIUS")
+        assert echo.param_value == pytest.approx(radius)
+        items = wps(2, dlat=4e-4)  # one waypoint 44 m north
+        items[1].param2 = 30.0  # asks for 30 m: ignored
+        assert c.upload(items).type == M.MAV_MISSION_ACCEPTED
+        assert c.arm().result == 0 and c.set_mode(MODES["AUTO"]).result == 0
+        assert c.wait("MISSION_ITEM_REACHED", lambda m: m.seq == 1, timeout=120) is not None
+        lat, lon = sim.autopilot.position()
+        dist = abs(lat - (HOME[0] + 4e-4)) * 111.2e3
+        assert radius - 1.0 <= dist <= radius + 1e-6, (radius, dist)  # reached on crossing WP_RADIUS

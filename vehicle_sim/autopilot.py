@@ -266,7 +266,7 @@ class Autopilot:
         self.home_set = False
         self.home_latlon = self.position()  # the new home is where the boat is when GPS comes back
         self.missions = MissionServer(self.store, self.cfg, self.send, self.text, self.home, self._mission_changed,
-                                      sysid=self.sysid, compid=self.compid)
+                                      sysid=self.sysid, compid=self.compid, normalise=self.missions.normalise)
         self.mission_index = 0
         self.mission_state = "stopped"
         self.mission_started = False

@@ -83,9 +83,13 @@ class WaypointMission:
     waypoints: (n, 2) [lat, lon] degrees, n >= 1. home: (lat, lon, alt) or None
     (seq 0 then holds the first waypoint as a placeholder; the vehicle replaces it
     anyway). alt: m relative to home for every waypoint. speed: m/s, adds a
-    DO_CHANGE_SPEED item at seq 1 when given. wp_radius_m: acceptance radius
-    (NAV_WAYPOINT param2; 0 = the vehicle's WP_RADIUS). fence: (k, 2) [lat, lon]
-    inclusion polygon (k >= 3) or None.
+    DO_CHANGE_SPEED item at seq 1 when given. wp_radius_m: acceptance radius (m),
+    written to NAV_WAYPOINT param2 for the files and for autopilots that read it; an
+    ArduPilot Rover drops param2 when it stores the item and uses its WP_RADIUS
+    parameter instead, so the controller sets WP_RADIUS (``Vehicle.set_wp_radius``)
+    and the read-back check never expects param2 back (``mission_client.rover_stored``);
+    0 = leave the vehicle's WP_RADIUS. fence: (k, 2) [lat, lon] inclusion polygon
+    (k >= 3) or None.
     """
 
     waypoints: np.ndarray
