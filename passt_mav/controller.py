@@ -416,6 +416,11 @@ class MissionController:
         self._rebooted = threading.Event()
         self._reboot_info: tuple[int, int, int] | None = None
         self._resume_seq = 1
+        # resume: samples of earlier sessions keep their boot numbers; this session's boots count from
+        # _boot_base (so a vehicle rebooted while we were away cannot reuse their keys), and
+        # _old_anchors holds t_boot0 of boots 0.._boot_base-1 (from the old summary)
+        self._boot_base = 0
+        self._old_anchors: list[float] = []
 
     # -- helpers --------------------------------------------------------------------------
     def _say(self, s: str) -> None:
@@ -430,7 +435,7 @@ class MissionController:
         up = self.link.vehicle_uptime_s()
         if up is None:
             raise MavlinkError("no vehicle time (time_boot_ms) received yet")
-        boot = self.collector.boot if self.collector is not None else 0
+        boot = self._boot_base + (self.collector.boot if self.collector is not None else 0)
         return float(self._clock_with_boots().field_time(up * 1000.0, boot))
 
     def _position(self, timeout: float = 10.0) -> tuple[float, float]:
@@ -506,12 +511,21 @@ class MissionController:
         if self.rd.summary_file.exists():
             old = self.rd.read_summary()
             clk = old.get("clock") or {}
-            if "t_boot0" in clk and clk.get("source", "boot") == "boot" and self._time_at_boot_arg is None:
-                # a boot clock cannot be re-read from the vehicle: keep it (a UTC clock is read again)
-                self.clock = FieldClock(float(clk["t_boot0"]), float(clk.get("time_scale", self.clock.time_scale)))
+            if "t_boot0" in clk and clk.get("source", "boot") == "boot":
+                # a boot clock cannot be re-read from the vehicle: keep the run's own (a UTC clock is read
+                # again), for the boot the vehicle was on when the run stopped (see _resume_boots)
+                t_boot0 = self._old_anchors[-1] if self._old_anchors else float(clk["t_boot0"])
+                if getattr(self, "_rebooted_since", None) is not None:
+                    tb_last, up_now = self._rebooted_since
+                    # no clock to tell how long it was off: continue from the last sample (the gap is not counted)
+                    t_boot0 += tb_last / 1000.0 / self.clock.time_scale
+                    self._say(f"WARNING: the vehicle rebooted since the run stopped and the mission maps time since "
+                              f"boot: field time continues from the last sample ({t_boot0:.1f}); the time it was "
+                              "off is not counted")
+                self.clock = FieldClock(t_boot0, float(clk.get("time_scale", self.clock.time_scale)))
                 self._clock_fixed = True
             self.started_utc = old.get("started_utc") or self.started_utc
-            self.events = list(old.get("events") or [])
+            self.events = list(old.get("events") or []) + self.events  # (+ what _resume_boots found)
         self.leg_records = done
         if not done:
             # killed during leg 0: still say so (the store keeps that leg's samples; it is re-planned)
@@ -584,11 +598,38 @@ class MissionController:
         now = "" if up is None else f", now {float(c.field_time(up * 1000.0)):.1f}"
         self._say(f"clock: {c.source}; field time at vehicle boot {c.t_boot0:.1f}{now}")
 
+    def _resume_boots(self) -> None:
+        """On resume: boot numbering and earlier boots' anchors from the store and the old summary."""
+        recs = self.store.all()
+        if not recs:
+            return
+        b_last = max(int(r.boot or 0) for r in recs)
+        tb_last = max(int(r.time_boot_ms) for r in recs if int(r.boot or 0) == b_last)
+        clk = (self.rd.read_summary().get("clock") or {}) if self.rd.summary_file.exists() else {}
+        anchors = [float(clk.get("t_boot0", self.clock.t_boot0))] + [float(x) for x in clk.get("later_boots") or []]
+        anchors += [anchors[-1]] * (b_last + 1 - len(anchors))  # boots the old summary never recorded
+        self._old_anchors = anchors[:b_last + 1]
+        self._boot_base = b_last + 1
+        up = self.link.vehicle_uptime_s()
+        if up is not None and up * 1000.0 + 3000.0 < tb_last:
+            self._rebooted_since = (tb_last, up)
+            self.events.append(f"resume: the vehicle rebooted since the run stopped (uptime {up:.0f} s, last "
+                               f"sample at {tb_last / 1000:.0f} s)")
+
     def _clock_with_boots(self) -> FieldClock:
-        """:attr:`clock` with a ``t_boot0`` for every boot the collector has seen (see module docstring)."""
+        """:attr:`clock` with a ``t_boot0`` for every boot (earlier sessions', then the collector's; see
+        module docstring)."""
         boots = list(self.collector.boots) if self.collector is not None else []
-        if len(boots) <= 1:
+        if len(boots) <= 1 and not self._old_anchors:
             return self.clock
+        session = self._session_anchors(boots)
+        full = self._old_anchors + session
+        return FieldClock(full[0], self.clock.time_scale, self.clock.source, tuple(full[1:]))
+
+    def _session_anchors(self, boots: list[dict]) -> list[float]:
+        """``t_boot0`` of each boot this session has seen (the first is :attr:`clock`'s)."""
+        if len(boots) <= 1:
+            return [self.clock.t_boot0]
         c, scale = self.clock, self.clock.time_scale
         anchors = [c.t_boot0]
         for k in range(1, len(boots)):
@@ -601,7 +642,7 @@ class MissionController:
                 # no clock on the vehicle: continue from the last time seen (the down time is not counted)
                 prev = boots[k - 1]
                 anchors.append(anchors[-1] + (prev["last_tb"] - boots[k].get("first_tb", 0)) / 1000.0 / scale)
-        return FieldClock(c.t_boot0, scale, c.source, tuple(anchors[1:]))
+        return anchors
 
     def _on_reboot(self, boot: int, last_tb: int, first_tb: int) -> None:
         """From the reader thread (SampleCollector): the vehicle's time since boot went back."""
@@ -622,11 +663,13 @@ class MissionController:
         if self.mission_text is not None and not (self.resume and rd.mission_file.exists()):
             rd.mission_file.write_text(self.mission_text)
         self.store = SampleStore(rd.samples_db)
+        if self.resume:
+            self._resume_boots()
         self.writer = _StoreWriter(self.store, self.grid)
         sens = self.config.sensors
         self.collector = SampleCollector(self.writer, u_name=sens.u, v_name=sens.v,
                                          source=f"mav:{self.link.target_system}/{self.link.target_component}",
-                                         on_reboot=self._on_reboot)
+                                         on_reboot=self._on_reboot, boot_base=self._boot_base)
         self.collector.attach(self.link)
         try:
             state, t_state, first = self._initial_state()

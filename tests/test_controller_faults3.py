@@ -173,7 +173,8 @@ def test_reboot_mid_leg_with_on_reboot_hold_stops_in_hold(tmp_path):
 
 
 # -- resume after the controller died in a later leg --------------------------------------------------
-def test_resume_after_a_kill_in_leg_2_reloads_the_estimate_and_keeps_samples(tmp_path):
+@pytest.mark.parametrize("reboot_between", [False, True], ids=["same_boot", "vehicle_rebooted_meanwhile"])
+def test_resume_after_a_kill_in_leg_2_reloads_the_estimate_and_keeps_samples(tmp_path, reboot_between):
     field = wave_field()
     cfg = mission(tmp_path, field, legs=3)
     rd = RunDir(tmp_path / "run").create()
@@ -194,6 +195,9 @@ def test_resume_after_a_kill_in_leg_2_reloads_the_estimate_and_keeps_samples(tmp
         with SampleStore(rd.samples_db, readonly=True) as st:
             before = {(s.time_boot_ms, s.boot) for s in st.for_leg(1)}
         est0 = load_field(rd.estimate_file(0)).data[0]
+        if reboot_between:  # the autopilot restarts while no controller runs: its clock starts again at 0
+            sim.reboot(downtime_s=1.0)
+            _when(ctl, lambda: sim.autopilot.t > 3.0 and not link.lost, 10)
         lines: list[str] = []
         ctl2 = controller(cfg, field, link, rd, echo=lines.append, resume=True)
         seen = {}
@@ -212,8 +216,17 @@ def test_resume_after_a_kill_in_leg_2_reloads_the_estimate_and_keeps_samples(tmp
     np.testing.assert_allclose(seen["state"], est0, rtol=0, atol=1e-6, equal_nan=True)
     with SampleStore(rd.samples_db, readonly=True) as st:
         after = {(s.time_boot_ms, s.boot) for s in st.for_leg(1)}
+        leg2 = st.for_leg(2)
     assert len(before) >= 3 and before <= after  # the interrupted flight's samples count for the re-flown leg
     assert summary["legs"][1]["n_samples"] >= len(after)
+    # the resumed session numbers its boots after the stored ones: a rebooted vehicle's new times
+    # cannot collide with (and be dropped as duplicates of) the first session's
+    assert {b for _, b in before} == {0} and {b for _, b in after} == {0, 1}
+    assert {s.boot for s in leg2} == {1} and len(leg2) > 5
+    rebooted = any("rebooted since the run stopped" in e for e in summary["events"])
+    assert rebooted == reboot_between
+    if reboot_between:  # the boot clock continues from the last sample (the time off is not counted)
+        assert summary["clock"]["later_boots"][0] > summary["clock"]["t_boot0"]
 
 
 def test_collector_counts_a_reboot_and_keeps_the_new_boots_readings_apart():

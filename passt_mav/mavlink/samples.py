@@ -52,13 +52,17 @@ class SampleCollector:
         tolerance_ms: largest |time_boot_ms difference| between a reading and its position.
         expire_ms: drop unmatched halves / positions older than this (vehicle time).
         source: the record's ``source`` field (e.g. "mavlink:tcp:127.0.0.1:5760").
+        reboot_back_ms: ``time_boot_ms`` going back by more than this is a reboot.
+        on_reboot: ``(boot, last_tb_ms, first_tb_ms)`` callback on a reboot (reader thread).
+        boot_base: added to the boot number in records (a resumed run continues the stored numbering).
     """
 
     TYPES = ("NAMED_VALUE_FLOAT", "GLOBAL_POSITION_INT", "SYSTEM_TIME")
 
     def __init__(self, on_sample: Callable[[dict], None], *, u_name: str = "CUR_U", v_name: str = "CUR_V",
                  tolerance_ms: int = 100, expire_ms: int = 10_000, source: str = "mavlink",
-                 reboot_back_ms: int = 3000, on_reboot: Callable[[int, int, int], None] | None = None):
+                 reboot_back_ms: int = 3000, on_reboot: Callable[[int, int, int], None] | None = None,
+                 boot_base: int = 0):
         if u_name == v_name:
             raise ValueError("u_name and v_name must differ")
         self.on_sample = on_sample
@@ -79,6 +83,7 @@ class SampleCollector:
         self.reboot_back_ms = int(reboot_back_ms)
         self.on_reboot = on_reboot
         self.boot = 0                                        # reboots seen since attach
+        self.boot_base = int(boot_base)                      # records carry boot_base + boot
         #: per boot: {"utc_boot": vehicle UTC at boot (s) or None, "wall": wall time first seen, "last_tb": ms}
         self.boots: list[dict] = [{"utc_boot": None, "wall": time.time(), "last_tb": 0}]
 
@@ -184,7 +189,7 @@ class SampleCollector:
         else:
             utc = rx_time if rx_time is not None else time.time()
         rec = {"time_boot_ms": tb, "utc": utc, "lat": pos[0], "lon": pos[1], "u": h["u"], "v": h["v"],
-               "source": self.source, "boot": self.boot}
+               "source": self.source, "boot": self.boot_base + self.boot}
         if self.leg is not None:
             rec["leg"] = self.leg
         self.counts["emitted"] += 1
