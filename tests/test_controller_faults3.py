@@ -157,6 +157,29 @@ def test_reboot_mid_leg_is_not_a_pilot_resumes_at_the_interrupted_item(tmp_path)
     assert summary["legs"][0]["rmse_passt"] is not None
 
 
+def test_reboot_that_lost_the_mission_re_uploads_it_then_resumes(tmp_path):
+    field = wave_field()
+    cfg = mission(tmp_path, field, legs=1)
+    rd = RunDir(tmp_path / "run").create()
+    with served(sim_config(), field=field, link_kw=LEAN) as (sim, link):
+        ctl = controller(cfg, field, link, rd, echo=None, pause_timeout_s=5.0)
+
+        def run():
+            if _when(ctl, _in_leg(ctl, 0, reached=2)):
+                sim.reboot(downtime_s=1.0)
+                sim.autopilot.store.clear(0)  # the eeprom lost the mission (home stays)
+
+        th = threading.Thread(target=run, daemon=True)
+        th.start()
+        summary = ctl.run()
+        th.join(5)
+        stored = sim.autopilot.store.count(0)
+    assert summary["status"] == "complete"
+    ev = " | ".join(summary["events"])
+    assert "resumed after the reboot at item" in ev and "(mission re-uploaded)" in ev
+    assert stored == len(summary["legs"][0]["waypoints"]) + 2
+
+
 def test_reboot_mid_leg_with_on_reboot_hold_stops_in_hold(tmp_path):
     field = wave_field()
     cfg = mission(tmp_path, field, legs=2, vehicle={"speed_mps": 5.0, "wp_radius_m": 3.0, "on_reboot": "hold"})
