@@ -43,6 +43,7 @@ __all__ = [
     "PasstLoop",
     "OfflineResult",
     "run_offline",
+    "run_offline_lockstep",
     "run_pure_model",
     "steps_for_leg",
     "HYPER",
@@ -244,14 +245,18 @@ class PasstLoop:
         out[:, :, self.land] = np.nan
         return out
 
-    def plan_leg(self, state, start, t_start: float, dt: float = 1.0, *, steps: int | None = None) -> LegPlan:
-        """Predict the leg, build the one-step reward map, plan ``path_length`` moves from ``start``."""
+    def plan_leg(self, state, start, t_start: float, dt: float = 1.0, *, steps: int | None = None, forecast=None) -> LegPlan:
+        """Predict the leg, build the one-step reward map, plan ``path_length`` moves from ``start``.
+
+        ``forecast``: a ready (S+1, 2, R, C) forecast from ``state`` (the lockstep engine
+        predicts a whole batch of trials at once); the predictor is then not called.
+        """
         from passt_mav.planning import compute_reward
 
         S = self.steps_per_leg if steps is None else int(steps)
         tm: dict[str, float] = {}
         t0 = time.perf_counter()
-        fc = self.forecast(state, max(S, 1))
+        fc = self.forecast(state, max(S, 1)) if forecast is None else forecast
         tm["predict"] = time.perf_counter() - t0
         t0 = time.perf_counter()
         std = self.std if self.std is not None else np.ones((2,) + self.grid.shape, np.float32)
@@ -344,6 +349,92 @@ def run_offline(field, predictor, *, start_cell, t0: int = 0, n_steps: int, plan
         start = tuple(int(x) for x in leg.path[-1])
         k += S
     return OfflineResult(estimate=est, legs=legs)
+
+
+def _batch_forecast(predictor, states: np.ndarray, steps: int, land: np.ndarray) -> np.ndarray:
+    """(B, steps+1, 2, R, C) float32: each state then its ``steps`` predictions, NaN on land.
+
+    One predictor call for the whole batch when the predictor takes ``(B, 2, R, C)``
+    (every :class:`passt_mav.models.base.Predictor` does); otherwise one call per state.
+    Per row the same arithmetic as :meth:`PasstLoop.forecast`.
+    """
+    s = np.asarray(states, dtype=np.float32)
+    B = s.shape[0]
+    if predictor is None:
+        pred = np.repeat(s[:, None], steps, axis=1)
+    else:
+        x = np.where(land, np.float32(0), s)
+        pred = None
+        if getattr(predictor, "_predict_batch", None) is not None:
+            pred = np.asarray(predictor.predict(x, steps), dtype=np.float32)
+        if pred is None or pred.shape != (B, steps) + s.shape[1:]:
+            pred = np.stack([np.asarray(predictor.predict(x[b], steps), dtype=np.float32) for b in range(B)])
+    out = np.concatenate([s[:, None], pred], axis=1)
+    out[:, :, :, land] = np.nan
+    return out
+
+
+def run_offline_lockstep(field, predictor, *, start_cells, seeds, t0: int = 0, n_steps: int, planner: str = "policy_gradient", planner_kw: dict | None = None, reward: str = "speed", path_length: int = 50, steps_per_leg: int = 10, prior: str = "forecast", gp_kw: dict | None = None, hyper: str = "every_leg", noise_std: float = 0.0, sample_at: str = "end", initial_state=None, kernel_cache: dict | None = None) -> list[OfflineResult]:
+    """:func:`run_offline` for B trials at once (``start_cells[b]``, ``seeds[b]``), in lockstep.
+
+    All trials start from the same state and share every option but the start cell and
+    seed, so their legs begin at the same step: each leg runs the predictor ONCE for the
+    whole batch, then every trial plans, samples and reconstructs as in
+    :func:`run_offline` (same seeds, same order of random draws). Returns one
+    :class:`OfflineResult` per trial, equal to ``run_offline(..., start_cell=start_cells[b],
+    seed=seeds[b])`` up to the predictor's batch-vs-single rounding (exactly equal for a
+    predictor whose rows do not interact; tested).
+
+    ``hyper="state"``: the GP kernel is fitted on the initial state, which every trial
+    shares, so it is fitted once and reused (and once per ``kernel_cache`` dict across
+    calls: key = GP options + initial state bytes). Leg timings: ``predict`` is the
+    batch's time divided by B.
+    """
+    if not (0 <= t0 < field.n_times - 1):
+        raise PlannerError(f"start snapshot t0={t0} must lie in [0, {field.n_times - 2}]")
+    if len(start_cells) != len(seeds) or not len(seeds):
+        raise PlannerError("run_offline_lockstep needs one seed per start cell (at least one)")
+    from passt_mav.planning import path_reward
+
+    n_steps = int(min(n_steps, field.n_times - 1 - t0))
+    land = field.land_mask
+    B = len(seeds)
+    loops = [PasstLoop(predictor, field.grid, planner=planner, planner_kw=planner_kw, reward=reward, path_length=path_length, steps_per_leg=steps_per_leg, prior=prior, gp_kw=gp_kw, hyper=hyper, land=land, seed=int(sd)) for sd in seeds]
+    samplers = [FieldSampler(field, noise_std=noise_std, seed=int(sd) + 7919, steps_per_leg=steps_per_leg, sample_at=sample_at) for sd in seeds]
+    dt = field.dt
+    state0 = np.array(field.data[t0] if initial_state is None else initial_state, dtype=np.float32)
+    state0[:, land] = np.nan
+    if hyper == "state":
+        # the serial loop fits on the first leg's forecast[0] = this state: fit it once
+        key = (repr(sorted((gp_kw or {}).items())), prior, state0.tobytes())
+        cache = kernel_cache if kernel_cache is not None else {}
+        if key not in cache:
+            loops[0].gp.fit_field(state0)
+            cache[key] = (loops[0].gp.kernels_, loops[0].gp.cell_m_, loops[0].gp.n_inputs_)
+        for lp in loops:
+            lp.gp.kernels_, lp.gp.cell_m_, lp.gp.n_inputs_ = cache[key]
+    states = np.repeat(state0[None], B, axis=0)
+    est = np.empty((B, n_steps + 1, 2) + field.grid.shape, np.float32)
+    est[:, 0] = state0
+    starts = [tuple(int(x) for x in c) for c in start_cells]
+    legs: list[list[dict]] = [[] for _ in range(B)]
+    k = 0
+    while k < n_steps:
+        S = min(steps_per_leg, n_steps - k)
+        tp = time.perf_counter()
+        fcs = _batch_forecast(predictor, states, max(S, 1), land)
+        t_pred = (time.perf_counter() - tp) / B
+        for b in range(B):
+            leg = loops[b].plan_leg(states[b], starts[b], field.times[t0] + k * dt, dt, steps=S, forecast=fcs[b])
+            leg.timings["predict"] = t_pred
+            samples = samplers[b].sample_path(leg.path, leg.t_start)
+            est[b, k + 1 : k + S] = leg.forecast[1:S]
+            states[b] = loops[b].update(leg, samples) if S == steps_per_leg else leg.forecast[S]
+            est[b, k + S] = states[b]
+            legs[b].append({"step": k, "path": leg.path.tolist(), "timings": dict(leg.timings), "reward_collected": path_reward(leg.reward, leg.path), "n_samples": len(samples)})
+            starts[b] = tuple(int(x) for x in leg.path[-1])
+        k += S
+    return [OfflineResult(estimate=est[b], legs=legs[b]) for b in range(B)]
 
 
 def run_pure_model(field, predictor, *, t0: int = 0, n_steps: int) -> np.ndarray:

@@ -21,7 +21,8 @@ def field():
 
 @pytest.fixture(scope="module")
 def serial(field):
-    return run_campaign(field, ShiftPredictor(WRONG_VEL), **SMALL)
+    """The original one-trial-at-a-time path; the parallel back-ends run the lockstep engine."""
+    return run_campaign(field, ShiftPredictor(WRONG_VEL), engine="serial", keep_trials=True, **SMALL)
 
 
 def test_campaign_structure_and_ratios(serial, tmp_path):
@@ -66,6 +67,45 @@ def test_dask_local_cluster_gives_same_numbers(field, serial):
         # by address, as `--scheduler tcp://...` does
         par = run_campaign(field, ShiftPredictor(WRONG_VEL), scheduler=cluster.scheduler_address, **dict(SMALL, path_lengths=(12,)))
     assert _numbers(par)["12"] == _numbers(serial)["12"]
+
+
+def _paths(s):
+    return {(r["L"], r["trial"]): r["paths"] for r in s["_trials"]}
+
+
+@pytest.mark.parametrize("batch", [None, 1])
+def test_lockstep_engine_equals_serial(field, serial, batch):
+    """Batched (lockstep) and serial runs of the same configuration: identical paths, RMSE to 1e-6."""
+    from test_passt import BatchShiftPredictor
+
+    lock = run_campaign(field, BatchShiftPredictor(WRONG_VEL), engine="lockstep", batch=batch, keep_trials=True, **SMALL)
+    assert _paths(lock) == _paths(serial) and len(_paths(lock)) == 4
+    for L in serial["per_L"]:
+        for m in METHODS:
+            np.testing.assert_allclose(lock["per_L"][L]["rmse_mean"][m], serial["per_L"][L]["rmse_mean"][m], atol=1e-6, rtol=0)
+    assert lock["trial_legs"] == 4 * 4 * 2 and set(lock["timings_s"]["passt"]) == {"predict", "reward", "plan", "gp"}
+
+
+def test_fixed_kernel_campaign_solvers_agree(field):
+    """hyper='state' (kernel fitted once on the initial state): sklearn per-leg regressors and the
+    direct Cholesky posterior give the same paths and RMSE (1e-6), lockstep vs serial."""
+    kw = dict(SMALL, path_lengths=(12,), hyper="state", keep_trials=True)
+    a = run_campaign(field, ShiftPredictor(WRONG_VEL), engine="serial", gp_solver="sklearn", **kw)
+    b = run_campaign(field, ShiftPredictor(WRONG_VEL), engine="lockstep", gp_solver="cholesky", **kw)
+    assert _paths(a) == _paths(b)
+    for m in METHODS:
+        np.testing.assert_allclose(b["per_L"]["12"]["rmse_mean"][m], a["per_L"]["12"]["rmse_mean"][m], atol=1e-6, rtol=0)
+
+
+def test_lockstep_with_a_real_batched_predictor(field):
+    """A passt_mav Predictor (DMD) takes the whole batch in one call; lockstep = serial to 1e-6."""
+    base = pytest.importorskip("passt_mav.models.base", reason="predictors (passt_mav.models) not available")
+    dmd = base.make_predictor("dmd").fit(field)
+    kw = dict(SMALL, path_lengths=(12,), hyper="state", methods=["passt", "model"], keep_trials=True)
+    a = run_campaign(field, dmd, engine="serial", **kw)
+    b = run_campaign(field, dmd, engine="lockstep", **kw)
+    assert _paths(a) == _paths(b)
+    np.testing.assert_allclose(b["per_L"]["12"]["rmse_mean"]["passt"], a["per_L"]["12"]["rmse_mean"]["passt"], atol=1e-6, rtol=0)
 
 
 def test_bad_inputs_exit_2(tmp_path, capsys):

@@ -32,6 +32,7 @@ EXAMPLES = """examples:
 """
 
 METHODS = ("passt", "model", "lawnmower_gp", "greedy_gp", "random_gp")
+ENGINES = ("lockstep", "serial")
 DEFAULT_PATH_LENGTHS = "25,50,75,100,150,200"
 
 
@@ -55,6 +56,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seed", type=int, default=0, help="base seed (trial i uses seed + i)")
     p.add_argument("--workers", type=int, default=1, help="local worker processes (joblib; default 1)")
     p.add_argument("--scheduler", default=None, help="address of an existing Dask distributed scheduler (runs trials there)")
+    p.add_argument("--engine", choices=ENGINES, default="lockstep", help="lockstep (default: a path length's trials advance together, one predictor call per leg for the batch) or serial (one trial at a time); same numbers")
+    p.add_argument("--batch", type=int, default=None, help="lockstep: trials per batch = unit of work for --workers/--scheduler (default: all trials of a path length)")
+    p.add_argument("--gp-solver", choices=("cholesky", "sklearn"), default="cholesky", help="GP posterior with the fitted kernel: direct Cholesky (default) or sklearn's regressor; same numbers")
     p.add_argument("--json", action="store_true", help="print the summary as JSON on stdout")
     p.add_argument("--out", required=True, help="output directory")
 
@@ -70,7 +74,16 @@ def _rmse_series(est, truth):
 
 
 def _trial(field, predictor, cfg: dict, L: int, trial: int) -> dict:
-    """One trial at path length L: every loop method's RMSE series (+ snapshots for trial 0).
+    """One trial at path length L: every loop method's RMSE series (+ snapshots for trial 0)."""
+    return _task(field, predictor, cfg, L, (trial,))[0]
+
+
+def _task(field, predictor, cfg: dict, L: int, trials) -> list[dict]:
+    """Trials ``trials`` at path length L, one result dict per trial (see :func:`_trial_body`).
+
+    ``cfg["engine"] == "lockstep"``: the trials advance together, one predictor call
+    per leg for all of them (:func:`passt_mav.passt.run_offline_lockstep`); "serial":
+    one trial after another (the original path).
 
     Runs with one BLAS thread wherever it runs: a multi-threaded BLAS sums in a
     different order, and a last-bit difference can flip a planner's argmax, so the
@@ -85,50 +98,103 @@ def _trial(field, predictor, cfg: dict, L: int, trial: int) -> dict:
         if torch is not None:
             torch.set_num_threads(1)
         with threadpool_limits(1):
-            return _trial_body(field, predictor, cfg, L, trial)
+            if cfg.get("engine", "serial") == "lockstep":
+                return _lockstep_body(field, predictor, cfg, L, list(trials))
+            return [_trial_body(field, predictor, cfg, L, i) for i in trials]
     finally:
         if torch is not None:
             torch.set_num_threads(prev)
 
 
-def _trial_body(field, predictor, cfg: dict, L: int, trial: int) -> dict:
+#: GP kernels fitted on a campaign's initial state, per process (hyper="state": one fit
+#: per configuration, shared by every trial and method with the same GP options)
+_KERNEL_CACHE: dict = {}
+
+
+def _start_cell(field, cfg: dict, L: int, trial: int) -> tuple[int, int]:
+    import numpy as np
+
+    rng = np.random.default_rng([int(cfg["seed"]) + trial, L])
+    water = np.argwhere(~field.land_mask)
+    return tuple(int(x) for x in water[rng.integers(len(water))])
+
+
+def _method_kw(cfg: dict, m: str, predictor) -> tuple:
+    """(predictor, run_offline options) of loop method ``m``."""
+    if m == "passt":
+        return predictor, dict(planner=cfg["planner"], reward=cfg["reward"], prior="forecast")
+    planner = m[: -len("_gp")]
+    if cfg["baseline_prior"] == "forecast":
+        return predictor, dict(planner=planner, reward=cfg["reward"], prior="forecast")
+    return None, dict(planner=planner, reward="speed", prior="none")
+
+
+def _summarise_trial(out: dict, m: str, r, truth, cfg: dict, trial: int) -> None:
     import numpy as np
 
     from passt_mav.fields.analysis import pod_energy
+
+    out["rmse"][m] = _rmse_series(r.estimate, truth).tolist()
+    out["pod"][m] = pod_energy(r.estimate, cfg["pod_modes"], cumulative=False).tolist()
+    out["plan_ms"][m] = float(np.mean([leg["timings"]["plan"] for leg in r.legs]) * 1e3)
+    out.setdefault("timings_s", {})[m] = {k: float(sum(leg["timings"].get(k, 0.0) for leg in r.legs)) for k in ("predict", "reward", "plan", "gp")}
+    if cfg.get("keep_paths"):
+        out.setdefault("paths", {})[m] = [leg["path"] for leg in r.legs]
+    if trial == 0:
+        k = min(cfg["snapshot_step"], cfg["steps"])
+        out["snap"][m] = r.estimate[k].tolist()
+
+
+def _lockstep_body(field, predictor, cfg: dict, L: int, trials: list[int]) -> list[dict]:
+    from passt_mav.passt import run_offline_lockstep
+
+    t0, T = cfg["t0"], cfg["steps"]
+    truth = field.data[t0 : t0 + T + 1].astype("float64")
+    starts = [_start_cell(field, cfg, L, i) for i in trials]
+    seeds = [int(cfg["seed"]) + i for i in trials]
+    outs = [{"L": L, "trial": i, "start": list(st), "rmse": {}, "pod": {}, "snap": {}, "plan_ms": {}} for i, st in zip(trials, starts)]
+    common = dict(t0=t0, n_steps=T, path_length=L, steps_per_leg=cfg["steps_per_leg"], noise_std=cfg["noise"], hyper=cfg["hyper"], sample_at=cfg.get("sampling", "end"), gp_kw=cfg.get("gp_kw"), kernel_cache=_KERNEL_CACHE)
+    for m in cfg["methods"]:
+        if m == "model":
+            continue
+        pred, kw = _method_kw(cfg, m, predictor)
+        res = run_offline_lockstep(field, pred, start_cells=starts, seeds=seeds, **kw, **common)
+        for out, r, i in zip(outs, res, trials):
+            _summarise_trial(out, m, r, truth, cfg, i)
+    return outs
+
+
+def _trial_body(field, predictor, cfg: dict, L: int, trial: int) -> dict:
     from passt_mav.passt import run_offline
 
     seed = int(cfg["seed"]) + trial
-    rng = np.random.default_rng([seed, L])
-    water = np.argwhere(~field.land_mask)
-    start = tuple(int(x) for x in water[rng.integers(len(water))])
+    start = _start_cell(field, cfg, L, trial)
     t0, T = cfg["t0"], cfg["steps"]
-    truth = field.data[t0 : t0 + T + 1].astype(np.float64)
-    common = dict(start_cell=start, t0=t0, n_steps=T, path_length=L, steps_per_leg=cfg["steps_per_leg"], noise_std=cfg["noise"], hyper=cfg["hyper"], sample_at=cfg.get("sampling", "end"), seed=seed)
+    truth = field.data[t0 : t0 + T + 1].astype("float64")
+    common = dict(start_cell=start, t0=t0, n_steps=T, path_length=L, steps_per_leg=cfg["steps_per_leg"], noise_std=cfg["noise"], hyper=cfg["hyper"], sample_at=cfg.get("sampling", "end"), gp_kw=cfg.get("gp_kw"), seed=seed)
     out: dict = {"L": L, "trial": trial, "start": list(start), "rmse": {}, "pod": {}, "snap": {}, "plan_ms": {}}
     for m in cfg["methods"]:
         if m == "model":
             continue
-        if m == "passt":
-            r = run_offline(field, predictor, planner=cfg["planner"], reward=cfg["reward"], prior="forecast", **common)
-        else:
-            planner = m[: -len("_gp")]
-            if cfg["baseline_prior"] == "forecast":
-                r = run_offline(field, predictor, planner=planner, reward=cfg["reward"], prior="forecast", **common)
-            else:
-                r = run_offline(field, None, planner=planner, reward="speed", prior="none", **common)
-        out["rmse"][m] = _rmse_series(r.estimate, truth).tolist()
-        out["pod"][m] = pod_energy(r.estimate, cfg["pod_modes"], cumulative=False).tolist()
-        out["plan_ms"][m] = float(np.mean([leg["timings"]["plan"] for leg in r.legs]) * 1e3)
-        if trial == 0:
-            k = min(cfg["snapshot_step"], T)
-            out["snap"][m] = r.estimate[k].tolist()
+        pred, kw = _method_kw(cfg, m, predictor)
+        r = run_offline(field, pred, **kw, **common)
+        _summarise_trial(out, m, r, truth, cfg, trial)
     return out
 
 
-def run_campaign(field, predictor, *, path_lengths=(25, 50, 75, 100, 150, 200), trials: int = 30, planner: str = "policy_gradient", reward: str = "speed", steps: int = 300, t0: int = 0, steps_per_leg: int = 10, noise: float = 0.02, hyper: str = "every_leg", sampling: str = "end", baseline_prior: str = "none", methods=METHODS, window: int = 50, snapshot_step: int = 250, seed: int = 0, pod_modes: int = 6, workers: int = 1, scheduler=None, progress: bool = True) -> dict:
+def run_campaign(field, predictor, *, path_lengths=(25, 50, 75, 100, 150, 200), trials: int = 30, planner: str = "policy_gradient", reward: str = "speed", steps: int = 300, t0: int = 0, steps_per_leg: int = 10, noise: float = 0.02, hyper: str = "every_leg", sampling: str = "end", baseline_prior: str = "none", methods=METHODS, window: int = 50, snapshot_step: int = 250, seed: int = 0, pod_modes: int = 6, workers: int = 1, scheduler=None, progress: bool = True, engine: str = "lockstep", batch: int | None = None, gp_solver: str = "cholesky", keep_trials: bool = False) -> dict:
     """Run the campaign; returns the results dict (JSON-able). ``scheduler``: a Dask
     address string or a ``distributed.Client``. Same seeds give the same numbers
-    whichever way the trials are spread."""
+    whichever way the trials are spread.
+
+    engine: "lockstep" (default: the trials of one path length advance together in
+    batches of ``batch`` (default: all), one predictor call per leg for the batch) or
+    "serial" (one trial after another, the original path). A unit of work sent to a
+    worker is one batch. gp_solver: "cholesky" (default; direct posterior with the
+    fitted kernel) or "sklearn" (a GaussianProcessRegressor per leg) - the same
+    numbers to ~1e-12. keep_trials: also return the per-trial records (``_trials``,
+    with every leg's path) for tests and debugging.
+    """
     import numpy as np
 
     from passt_mav.errors import PlannerError
@@ -152,11 +218,15 @@ def run_campaign(field, predictor, *, path_lengths=(25, 50, 75, 100, 150, 200), 
         raise PlannerError("need at least one trial and positive path lengths")
     if not (0 <= t0 < field.n_times - 1):
         raise PlannerError(f"--t0 {t0} must lie in [0, {field.n_times - 2}]")
+    if engine not in ENGINES:
+        raise PlannerError(f"unknown engine {engine!r}; choose one of {', '.join(ENGINES)}")
+    if batch is not None and int(batch) < 1:
+        raise PlannerError("--batch must be >= 1")
     steps = int(min(steps, field.n_times - 1 - t0))
-    cfg = dict(seed=seed, t0=t0, steps=steps, steps_per_leg=steps_per_leg, noise=noise, hyper=hyper, sampling=sampling, planner=planner, reward=reward, baseline_prior=baseline_prior, methods=methods, snapshot_step=snapshot_step, pod_modes=pod_modes)
+    cfg = dict(seed=seed, t0=t0, steps=steps, steps_per_leg=steps_per_leg, noise=noise, hyper=hyper, sampling=sampling, planner=planner, reward=reward, baseline_prior=baseline_prior, methods=methods, snapshot_step=snapshot_step, pod_modes=pod_modes, engine=engine, gp_kw={"solver": gp_solver}, keep_paths=bool(keep_trials))
     truth = field.data[t0 : t0 + steps + 1].astype(np.float64)
     pure = run_pure_model(field, predictor, t0=t0, n_steps=steps) if "model" in methods else None
-    tasks = [(int(L), i) for L in path_lengths for i in range(trials)]
+    tasks = campaign_tasks(path_lengths, trials, engine, batch)
     results = _execute(field, predictor, cfg, tasks, workers=workers, scheduler=scheduler, progress=progress)
     results.sort(key=lambda r: (r["L"], r["trial"]))
 
@@ -191,7 +261,26 @@ def run_campaign(field, predictor, *, path_lengths=(25, 50, 75, 100, 150, 200), 
         r0 = [r for r in rs if r["trial"] == 0][0]
         snaps.update({f"{m}@L{L}": r0["snap"][m] for m in r0["snap"]})
     summary["_snapshots"] = snaps
+    # compute seconds per component summed over every trial-leg (predict: a batch's time / B)
+    tim: dict = {}
+    for r in results:
+        for m, d in r.get("timings_s", {}).items():
+            for k, v in d.items():
+                tim.setdefault(m, {}).setdefault(k, 0.0)
+                tim[m][k] += v
+    summary["timings_s"] = tim
+    summary["trial_legs"] = len(results) * sum(1 for m in methods if m != "model") * -(-steps // steps_per_leg)
+    if keep_trials:
+        summary["_trials"] = results
     return summary
+
+
+def campaign_tasks(path_lengths, trials: int, engine: str = "lockstep", batch: int | None = None) -> list[tuple[int, tuple[int, ...]]]:
+    """Units of work: (L, trial indices). Serial engine: one trial each; lockstep: batches."""
+    if engine == "serial":
+        return [(int(L), (i,)) for L in path_lengths for i in range(trials)]
+    b = int(batch) if batch else trials
+    return [(int(L), tuple(range(a, min(a + b, trials)))) for L in path_lengths for a in range(0, trials, b)]
 
 
 def _execute(field, predictor, cfg, tasks, *, workers, scheduler, progress) -> list[dict]:
@@ -207,23 +296,25 @@ def _execute(field, predictor, cfg, tasks, *, workers, scheduler, progress) -> l
             try:
                 f_fut = client.scatter(field, broadcast=True)
                 p_fut = client.scatter(predictor, broadcast=True)
-                futs = [client.submit(_trial, f_fut, p_fut, cfg, L, i, pure=False) for L, i in tasks]
+                futs = [client.submit(_task, f_fut, p_fut, cfg, L, tr, pure=False) for L, tr in tasks]
                 for fut in as_completed(futs):
-                    out.append(fut.result())
-                    bar.update()
+                    rs = fut.result()
+                    out.extend(rs)
+                    bar.update(len(rs))
             finally:
                 if client is not scheduler:
                     client.close()
         elif workers > 1:
             from joblib import Parallel, delayed
 
-            for r in Parallel(n_jobs=workers, return_as="generator_unordered")(delayed(_trial)(field, predictor, cfg, L, i) for L, i in tasks):
-                out.append(r)
-                bar.update()
+            for rs in Parallel(n_jobs=workers, return_as="generator_unordered")(delayed(_task)(field, predictor, cfg, L, tr) for L, tr in tasks):
+                out.extend(rs)
+                bar.update(len(rs))
         else:
-            for L, i in tasks:
-                out.append(_trial(field, predictor, cfg, L, i))
-                bar.update()
+            for L, tr in tasks:
+                rs = _task(field, predictor, cfg, L, tr)
+                out.extend(rs)
+                bar.update(len(rs))
     finally:
         bar.close()
     return out
@@ -362,7 +453,7 @@ def run(args: argparse.Namespace) -> int:
     predictor = _load_predictor(args.model, field)
     out_dir = Path(args.out)
     out_dir.mkdir(parents=True, exist_ok=True)
-    summary = run_campaign(field, predictor, path_lengths=lengths, trials=args.trials, planner=args.planner, reward=args.reward, steps=args.steps, t0=args.t0, steps_per_leg=args.steps_per_leg, noise=args.noise, hyper=args.hyper, sampling=args.sampling, baseline_prior=args.baseline_prior, methods=methods, window=args.window, snapshot_step=args.snapshot_step, seed=args.seed, workers=args.workers, scheduler=args.scheduler)
+    summary = run_campaign(field, predictor, path_lengths=lengths, trials=args.trials, planner=args.planner, reward=args.reward, steps=args.steps, t0=args.t0, steps_per_leg=args.steps_per_leg, noise=args.noise, hyper=args.hyper, sampling=args.sampling, baseline_prior=args.baseline_prior, methods=methods, window=args.window, snapshot_step=args.snapshot_step, seed=args.seed, workers=args.workers, scheduler=args.scheduler, engine=args.engine, batch=args.batch, gp_solver=args.gp_solver)
     summary["config"].update(data=args.data, model=args.model, command="passt-mav evaluate " + " ".join(sys.argv[2:]) if sys.argv[1:2] == ["evaluate"] else None)
     files = write_figures(summary, out_dir)
     snaps = summary.pop("_snapshots")
