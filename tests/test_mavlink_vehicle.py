@@ -27,6 +27,16 @@ def test_three_waypoint_mission_ready_arm_auto_complete_then_hold(use_mission_st
     with served(FAST_BOAT) as (sim, link):
         v = vehicle(link)
         wps = waypoints([(3e-4, 0.0), (3e-4, 4e-4), (-2e-4, 4e-4)])
+        # the boat's true track, every physics step (telemetry fixes arrive at a rate that
+        # depends on how the sim thread catches up under load: 5 m/s between 1 Hz fixes)
+        true_track = []
+        update = sim.autopilot.update
+
+        def update_and_record(h):
+            update(h)
+            true_track.append(sim.autopilot.position())
+
+        sim.autopilot.update = update_and_record
         v.mission.upload_verified(with_home(wps))
         v.wait_ready(timeout=5)
         v.arm(timeout=5)
@@ -38,14 +48,14 @@ def test_three_waypoint_mission_ready_arm_auto_complete_then_hold(use_mission_st
             fixes = track.drain()
         assert p.reached == [1, 2, 3]
         assert v.mode == ROVER_MODES["HOLD"] and sim.autopilot.mode == ROVER_MODES["HOLD"]
-        # the boat really came to the last waypoint (WP_RADIUS 2 m, + 1 m for a 5 m/s boat
-        # between fixes). Its position after HOLD depends on how much simulated time the
-        # HOLD command took to arrive at 50x under load, so the closest approach is tested.
-        lats = [m.lat * 1e-7 for m in fixes]
-        lons = [m.lon * 1e-7 for m in fixes]
+        # the boat really came to the last waypoint: its true closest approach is within
+        # WP_RADIUS (2 m) + one physics step at 5 m/s. Its position after HOLD depends on how
+        # much simulated time the HOLD command took to arrive at 50x under load, so the
+        # closest approach is tested, on the true track rather than on load-dependent fixes.
         assert len(fixes) >= 3
-        _, _, dist = GEOD.inv(lons, lats, [wps[-1].lon] * len(fixes), [wps[-1].lat] * len(fixes))
-        assert min(dist) < 2.0 + 1.0
+        lats, lons = zip(*true_track)
+        _, _, dist = GEOD.inv(lons, lats, [wps[-1].lon] * len(lats), [wps[-1].lat] * len(lats))
+        assert min(dist) < 2.0 + 5.0 * FAST_BOAT.physics_dt + 0.05
         assert "Mission Complete" in [t for _, _, t in link.texts]
 
 
