@@ -3,8 +3,19 @@
 1. Per-leg compute in milliseconds at 30x30 for L = 50, 100, 200 moves (one sample per
    cell): predict (steps_per_leg snapshots), reward, plan (policy gradient: 12 stochastic
    roll-outs + greedy), GP (hyper-parameter fit + reconstruction). Median over legs.
-2. Wall time of a reduced campaign (passt-mav evaluate's run_campaign) run serially,
-   with joblib on 2 local workers, and on a 2-worker Dask LocalCluster; ratios to serial.
+2. Engine throughput, side by side in one run, on the same reduced campaign (all five
+   methods, ``--campaign-lengths`` x ``--trials`` x ``--steps``): trial-legs per second of
+   - ``today``: the original path - one trial after another, GP hyper-parameters refitted
+     every leg with sklearn (``engine="serial", hyper="every_leg", gp_solver="sklearn"``);
+   - ``serial_fixed``: the same serial path with the paper's fixed kernel (fitted once on
+     the initial state, ``hyper="state"``) and the direct Cholesky posterior;
+   - ``lockstep``: the campaign engine - the trials of a path length in lockstep, one
+     batched predictor call per leg, fixed kernel, Cholesky posterior.
+   Ratios to ``today`` and the per-component split (seconds summed over trial-legs).
+   A trial-leg = one leg of one loop method (passt / lawnmower_gp / greedy_gp / random_gp)
+   of one trial; the "model" method is one roll-out per campaign.
+3. Scale-out of the lockstep engine: serial, joblib x2 and Dask LocalCluster with 1 and 2
+   worker processes; whether the numbers are identical.
 
     .venv/bin/python benchmarks/bench_passt.py [--data builtin:cylinder] [--model builtin:cylinder] [--json]
 
@@ -56,30 +67,59 @@ def per_leg(field, predictor, L: int, legs: int, steps_per_leg: int) -> dict:
     return {k: round(float(np.median(v[1:] if len(v) > 1 else v)), 2) for k, v in rec.items()}
 
 
-def campaign(field, predictor, args) -> dict:
+def _timed(field, predictor, **kw) -> tuple[float, dict]:
     from passt_mav.commands.evaluate import run_campaign
 
+    t = time.perf_counter()
+    out = run_campaign(field, predictor, **kw)
+    return time.perf_counter() - t, out
+
+
+def _split(summary: dict) -> dict:
+    tot: dict = {}
+    for d in summary["timings_s"].values():
+        for k, v in d.items():
+            tot[k] = round(tot.get(k, 0.0) + v, 2)
+    return tot
+
+
+def throughput(field, predictor, args) -> dict:
     kw = dict(path_lengths=tuple(args.campaign_lengths), trials=args.trials, steps=args.steps, steps_per_leg=args.steps_per_leg, progress=False)
     if predictor is None:  # hold mode: only the GP-only baselines can run
         kw["methods"] = ("lawnmower_gp", "greedy_gp", "random_gp")
-    out = {}
-    t = time.perf_counter()
-    serial = run_campaign(field, predictor, **kw)
-    out["serial_s"] = round(time.perf_counter() - t, 2)
-    t = time.perf_counter()
-    par = run_campaign(field, predictor, workers=2, **kw)
-    out["joblib_2_s"] = round(time.perf_counter() - t, 2)
+    variants = {
+        "today": dict(engine="serial", hyper="every_leg", gp_solver="sklearn"),
+        "serial_fixed": dict(engine="serial", hyper="state", gp_solver="cholesky"),
+        "lockstep": dict(engine="lockstep", hyper="state", gp_solver="cholesky"),
+    }
+    out: dict = {}
+    for name, v in variants.items():
+        wall, s = _timed(field, predictor, **kw, **v)
+        out[name] = {"wall_s": round(wall, 2), "trial_legs": s["trial_legs"], "trial_legs_per_s": round(s["trial_legs"] / wall, 2), "split_s": _split(s), "final_rmse": {L: {m: round(x, 4) for m, x in per["final_rmse"].items()} for L, per in s["per_L"].items()}}
+    for name in ("serial_fixed", "lockstep"):
+        out[name]["speedup_vs_today"] = round(out[name]["trial_legs_per_s"] / out["today"]["trial_legs_per_s"], 2)
+    return out
+
+
+def scale_out(field, predictor, args) -> dict:
     from distributed import LocalCluster
 
-    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None) as cluster:
-        t = time.perf_counter()
-        dk = run_campaign(field, predictor, scheduler=cluster.scheduler_address, **kw)
-        out["dask_2_s"] = round(time.perf_counter() - t, 2)
-    same = all(serial["per_L"][L]["rmse_mean"] == o["per_L"][L]["rmse_mean"] for o in (par, dk) for L in serial["per_L"])
-    out["identical_numbers"] = same
-    out["ratio_joblib_to_serial"] = round(out["joblib_2_s"] / out["serial_s"], 3)
-    out["ratio_dask_to_serial"] = round(out["dask_2_s"] / out["serial_s"], 3)
-    out["tasks"] = len(args.campaign_lengths) * args.trials
+    kw = dict(path_lengths=tuple(args.campaign_lengths), trials=args.trials, steps=args.steps, steps_per_leg=args.steps_per_leg, progress=False, hyper="state", engine="lockstep", batch=max(1, args.trials // 2))
+    if predictor is None:
+        kw["methods"] = ("lawnmower_gp", "greedy_gp", "random_gp")
+    out = {}
+    wall, serial = _timed(field, predictor, **kw)
+    out["serial_s"] = round(wall, 2)
+    wall, par = _timed(field, predictor, workers=2, **kw)
+    out["joblib_2_s"] = round(wall, 2)
+    runs = [par]
+    for n in (1, 2):
+        with LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=None) as cluster:
+            wall, dk = _timed(field, predictor, scheduler=cluster.scheduler_address, **kw)
+        out[f"dask_{n}_s"] = round(wall, 2)
+        runs.append(dk)
+    out["identical_numbers"] = all(serial["per_L"][L]["rmse_mean"] == o["per_L"][L]["rmse_mean"] for o in runs for L in serial["per_L"])
+    out["tasks"] = len(args.campaign_lengths) * len(range(0, args.trials, kw["batch"]))
     return out
 
 
@@ -93,7 +133,8 @@ def main(argv=None) -> int:
     ap.add_argument("--trials", type=int, default=4)
     ap.add_argument("--steps", type=int, default=60)
     ap.add_argument("--campaign-lengths", default="50")
-    ap.add_argument("--no-campaign", action="store_true")
+    ap.add_argument("--no-campaign", action="store_true", help="skip the throughput comparison")
+    ap.add_argument("--no-scale", action="store_true", help="skip the joblib / Dask scale-out")
     ap.add_argument("--json", action="store_true")
     args = ap.parse_args(argv)
     args.campaign_lengths = [int(x) for x in args.campaign_lengths.split(",")]
@@ -109,7 +150,9 @@ def main(argv=None) -> int:
     for L in (int(x) for x in args.lengths.split(",")):
         res["per_leg_ms"][str(L)] = per_leg(field, predictor, L, args.legs, args.steps_per_leg)
     if not args.no_campaign:
-        res["campaign"] = campaign(field, predictor, args)
+        res["throughput"] = throughput(field, predictor, args)
+    if not args.no_scale:
+        res["scale_out"] = scale_out(field, predictor, args)
     if args.json:
         print(json.dumps(res))
     else:
@@ -117,9 +160,14 @@ def main(argv=None) -> int:
         print("per-leg compute, ms (median):")
         for L, r in res["per_leg_ms"].items():
             print(f"  L={L:>4}: " + "  ".join(f"{k} {v:8.1f}" for k, v in r.items()))
-        if "campaign" in res:
-            c = res["campaign"]
-            print(f"campaign ({c['tasks']} trials): serial {c['serial_s']} s, joblib x2 {c['joblib_2_s']} s ({c['ratio_joblib_to_serial']}), dask LocalCluster x2 {c['dask_2_s']} s ({c['ratio_dask_to_serial']}); identical numbers: {c['identical_numbers']}")
+        if "throughput" in res:
+            print(f"engine throughput, L={args.campaign_lengths}, {args.trials} trials x {args.steps} steps (trial-legs/s; split = seconds summed over trial-legs):")
+            for name, r in res["throughput"].items():
+                sp = f"  x{r['speedup_vs_today']} vs today" if "speedup_vs_today" in r else ""
+                print(f"  {name:>12}: {r['wall_s']:7.2f} s  {r['trial_legs']} trial-legs  {r['trial_legs_per_s']:7.2f}/s{sp}  split {r['split_s']}")
+        if "scale_out" in res:
+            c = res["scale_out"]
+            print(f"lockstep scale-out ({c['tasks']} batches): serial {c['serial_s']} s, joblib x2 {c['joblib_2_s']} s, dask LocalCluster x1 {c['dask_1_s']} s, x2 {c['dask_2_s']} s; identical numbers: {c['identical_numbers']}")
     return 0
 
 

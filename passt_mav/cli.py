@@ -24,6 +24,7 @@ COMMANDS: dict[str, str] = {
     "data": "data",
     "model": "model",
     "evaluate": "evaluate",
+    "paper": "paper",
     "plan": "plan",
     "run": "run",
     "replay": "replay",

@@ -286,7 +286,7 @@ def campaign_tasks(path_lengths, trials: int, engine: str = "lockstep", batch: i
 def _execute(field, predictor, cfg, tasks, *, workers, scheduler, progress) -> list[dict]:
     from tqdm import tqdm
 
-    bar = tqdm(total=len(tasks), desc="evaluate", unit="trial", disable=not progress, file=sys.stderr)
+    bar = tqdm(total=sum(len(tr) for _, tr in tasks), desc="evaluate", unit="trial", disable=not progress, file=sys.stderr)
     out = []
     try:
         if scheduler is not None:

@@ -1,0 +1,375 @@
+"""passt-mav paper: the paper's whole offline evaluation in one command, one HTML page.
+
+Protocol (the paper's): three scenarios - the static cylinder wake and the oscillating
+cylinder wake with the shipped cylinder KNODE (``builtin:cylinder``), the ocean field
+with the shipped ocean KNODE (``builtin:ocean``) - x path lengths (25, 50, 75, 100, 150,
+200 moves per leg) x 30 trials x 300 steps from snapshot 0, legs of 10 snapshots, sensor
+noise 0.02; methods PASST / model alone / lawnmower+GP / greedy+GP / random+GP. The GP
+kernel is fitted once per configuration on the initial state and then held fixed (the
+paper's fixed kernel; ``--hyper every_leg`` refits it every leg, slower).
+
+The campaign runs on the lockstep engine (:func:`passt_mav.commands.evaluate.run_campaign`):
+a path length's trials advance together, one batched model call per leg. With
+``--scheduler ADDRESS`` the batches run on a Dask distributed cluster.
+
+Written under ``--out``: ``paper.html`` (self-contained: figures as base64 PNGs, the
+same style as ``passt-mav report``), the PNGs, and ``results.json`` (every number on
+the page). ``--dry-run`` prints the work (trial-legs) and a wall-time estimate from a
+short calibration run, and runs nothing else.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+HELP = "The paper's offline evaluation (3 scenarios x path lengths x 30 trials, 5 methods) -> one HTML page with its claims checked"
+EXAMPLES = """examples:
+  passt-mav paper --out runs/paper --dry-run         # work and wall-time estimate only
+  passt-mav paper --out runs/paper                   # the full protocol (long: see --dry-run)
+  passt-mav paper --out runs/paper_quick --quick     # a ~2-minute version (CI)
+  passt-mav paper --out runs/paper --scheduler tcp://10.0.0.5:8786   # on a Dask cluster
+"""
+
+#: (name, field, model) of the paper's three scenarios
+SCENARIOS = (("cylinder", "builtin:cylinder", "builtin:cylinder"), ("oscillating", "builtin:oscillating", "builtin:cylinder"), ("ocean", "builtin:ocean", "builtin:ocean"))
+PATH_LENGTHS = (25, 50, 75, 100, 150, 200)
+#: the paper's POD figure: cumulative energy of the first 4 modes, predicted vs true (snapshots 300-350)
+PAPER_POD4 = (0.898, 0.918)
+POD_TOL = 0.05  # |predicted - true| of the first-4-mode energy counted as "close" (the paper's gap: 0.02)
+QUICK = dict(trials=2, steps=30, path_lengths=(50,), lookaheads=(1, 5, 20), ic_stride=10)
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--out", required=True, help="output directory (paper.html, figures, results.json)")
+    p.add_argument("--quick", action="store_true", help=f"a short version for CI: {QUICK['trials']} trials, {QUICK['steps']} steps, L={QUICK['path_lengths'][0]}, coarse model evaluation")
+    p.add_argument("--trials", type=int, default=None, help="trials per scenario and path length (default 30; --quick 2)")
+    p.add_argument("--steps", type=int, default=None, help="snapshots estimated after the start (default 300; --quick 30)")
+    p.add_argument("--path-lengths", default=None, help="comma-separated moves per leg (default 25,50,75,100,150,200; --quick 50)")
+    p.add_argument("--scenarios", default=",".join(s[0] for s in SCENARIOS), help="subset of cylinder,oscillating,ocean")
+    p.add_argument("--hyper", default="state", help="GP hyper-parameters: state (default: fitted once on the initial state) | first_leg | every_leg")
+    p.add_argument("--scheduler", default=None, help="address of a Dask distributed scheduler: the campaign's batches run there")
+    p.add_argument("--workers", type=int, default=1, help="local worker processes (joblib) when no --scheduler (default 1)")
+    p.add_argument("--batch", type=int, default=None, help="trials per lockstep batch = unit of work on a cluster (default: all trials of a path length)")
+    p.add_argument("--seed", type=int, default=0, help="base seed (trial i uses seed + i)")
+    p.add_argument("--dry-run", action="store_true", help="print the work and a wall-time estimate (short calibration run), run nothing else")
+
+
+def _protocol(args) -> dict:
+    from passt_mav.commands.evaluate import _parse_lengths
+    from passt_mav.errors import PlannerError
+
+    q = args.quick
+    trials = args.trials if args.trials is not None else (QUICK["trials"] if q else 30)
+    steps = args.steps if args.steps is not None else (QUICK["steps"] if q else 300)
+    lengths = _parse_lengths(args.path_lengths) if args.path_lengths else list(QUICK["path_lengths"] if q else PATH_LENGTHS)
+    names = [s.strip() for s in args.scenarios.split(",") if s.strip()]
+    known = {s[0]: s for s in SCENARIOS}
+    bad = [n for n in names if n not in known]
+    if bad or not names:
+        raise PlannerError(f"unknown scenario(s) {bad}; choose from {', '.join(known)}")
+    if trials < 1 or steps < 1:
+        raise PlannerError("--trials and --steps must be >= 1")
+    if args.batch is not None and args.batch < 1:
+        raise PlannerError("--batch must be >= 1")
+    if args.workers < 1:
+        raise PlannerError("--workers must be >= 1")
+    return dict(trials=trials, steps=steps, path_lengths=lengths, scenarios=[known[n] for n in names], steps_per_leg=10, noise=0.02, t0=0, hyper=args.hyper, seed=args.seed, snapshot_step=250, window=50)
+
+
+def _trial_legs(proto: dict) -> int:
+    """Loop legs to run: scenarios x L x trials x 4 loop methods x legs (the model alone is one roll-out)."""
+    legs = -(-proto["steps"] // proto["steps_per_leg"])
+    return len(proto["scenarios"]) * len(proto["path_lengths"]) * proto["trials"] * 4 * legs
+
+
+def _campaign(field, predictor, proto: dict, path_lengths, trials: int, steps: int, *, scheduler=None, workers: int = 1, batch=None, progress=True) -> dict:
+    from passt_mav.commands.evaluate import run_campaign
+
+    return run_campaign(field, predictor, path_lengths=tuple(path_lengths), trials=trials, steps=steps, t0=proto["t0"], steps_per_leg=proto["steps_per_leg"], noise=proto["noise"], hyper=proto["hyper"], seed=proto["seed"], snapshot_step=proto["snapshot_step"], window=proto["window"], engine="lockstep", batch=batch, scheduler=scheduler, workers=workers, progress=progress)
+
+
+def _load(spec_field: str, spec_model: str, cache: dict):
+    from passt_mav.commands.evaluate import _load_predictor
+    from passt_mav.fields.datasets import resolve_field
+
+    field = resolve_field(spec_field)
+    if spec_model not in cache:
+        cache[spec_model] = _load_predictor(spec_model, field)
+    return field, cache[spec_model]
+
+
+def estimate(proto: dict, echo=print) -> dict:
+    """Calibrate on a short lockstep run per scenario (shortest and longest L, 4 trials, 2 legs)
+    and scale to the protocol: seconds per trial-leg x trial-legs. Serial, this machine."""
+    import time
+
+    cache: dict = {}
+    per: dict = {}
+    total = 0.0
+    legs = -(-proto["steps"] // proto["steps_per_leg"])
+    for name, fs, ms in proto["scenarios"]:
+        field, pred = _load(fs, ms, cache)
+        Ls = sorted({min(proto["path_lengths"]), max(proto["path_lengths"])})
+        _campaign(field, pred, proto, Ls[:1], 1, proto["steps_per_leg"], progress=False)  # warm-up (imports, first kernel fit)
+        t = time.perf_counter()
+        s = _campaign(field, pred, proto, Ls, 4, 2 * proto["steps_per_leg"], progress=False)
+        c = (time.perf_counter() - t) / s["trial_legs"]
+        n = len(proto["path_lengths"]) * proto["trials"] * 4 * legs
+        per[name] = {"s_per_trial_leg": round(c, 4), "trial_legs": n, "estimate_s": round(c * n)}
+        total += c * n
+        echo(f"  {name}: {c * 1e3:.1f} ms per trial-leg (calibrated on L={Ls}, 4 trials x 2 legs) x {n} trial-legs = {c * n / 60:.1f} min")
+    return {"per_scenario": per, "trial_legs": _trial_legs(proto), "estimate_s": round(total)}
+
+
+# -- claims ------------------------------------------------------------------------
+
+
+def claims(res: dict) -> list[dict]:
+    """The paper's claims beside our numbers: ``[{claim, paper, ours, held}]`` (held: True/False/None = not measured)."""
+    out = []
+    camp = res.get("campaigns", {})
+
+    def fin(sc, L, m):
+        return camp[sc]["per_L"][L]["final_rmse"][m]
+
+    if "cylinder" in camp:
+        r = {L: fin("cylinder", L, "passt") / fin("cylinder", L, "model") for L in camp["cylinder"]["per_L"]}
+        out.append({"claim": "static cylinder: PASST final RMSE <= 0.5 x the model alone", "paper": "<= 0.5", "ours": ", ".join(f"L={L}: {v:.2f}" for L, v in r.items()), "held": all(v <= 0.5 for v in r.values())})
+    else:
+        out.append({"claim": "static cylinder: PASST final RMSE <= 0.5 x the model alone", "paper": "<= 0.5", "ours": "not run", "held": None})
+    for other, label in (("model", "the model alone"), ("lawnmower_gp", "lawnmower+GP")):
+        parts, ok = [], True
+        for sc in ("cylinder", "oscillating", "ocean"):
+            if sc not in camp:
+                parts.append(f"{sc}: not run")
+                ok = None if ok is not False else False
+                continue
+            worst = max(fin(sc, L, "passt") / fin(sc, L, other) for L in camp[sc]["per_L"])
+            parts.append(f"{sc}: PASST/{other} <= {worst:.2f}")
+            if worst >= 1.0:
+                ok = False
+        out.append({"claim": f"PASST < {label} in all three scenarios (every path length)", "paper": "< 1 everywhere", "ours": "; ".join(parts), "held": ok})
+    me = res.get("model_eval")
+    if me:
+        la = me["lookahead"].get("test", {})
+        model = me.get("model_name")
+        if model in la and "persistence" in la:
+            hs = [h for h in la[model] if int(h) <= 20 and h in la["persistence"]]
+            r = {h: la[model][h]["mse"] / la["persistence"][h]["mse"] for h in hs}
+            out.append({"claim": "cylinder KNODE more accurate than persistence for lookahead <= 20 (test window, MSE)", "paper": "KNODE < persistence", "ours": ", ".join(f"h={h}: {v:.2f}" for h, v in r.items()) + " (KNODE/persistence)", "held": bool(r) and all(v < 1 for v in r.values())})
+        pod = me.get("pod", {}).get(model)
+        if pod and pod.get("predicted") and len(pod["predicted"]) >= 4 and pod["predicted"][3] is not None:
+            p4, t4 = pod["predicted"][3], pod["true"][3]
+            out.append({"claim": f"POD: first-4-mode energy of the KNODE roll-out close to the truth (|diff| <= {POD_TOL})", "paper": f"{PAPER_POD4[0]} vs {PAPER_POD4[1]}", "ours": f"{p4:.3f} vs {t4:.3f}", "held": abs(p4 - t4) <= POD_TOL})
+    return out
+
+
+# -- page --------------------------------------------------------------------------
+
+_METHOD_STYLE = {"passt": ("C3", 1.8), "model": ("C0", 1.2), "lawnmower_gp": ("C2", 1.0), "greedy_gp": ("C1", 1.0), "random_gp": ("C7", 1.0)}
+
+
+def _fig_lookahead(me: dict, plt):
+    labels = [w for w in ("train", "test", "oscillating", "test/gp", "oscillating/gp") if w in me["lookahead"]]
+    fig, axes = plt.subplots(2, len(labels), figsize=(3.6 * len(labels), 6.0), squeeze=False)
+    for j, w in enumerate(labels):
+        for name, d in me["lookahead"][w].items():
+            hs = sorted(int(h) for h in d)
+            for i, key in enumerate(("mse", "cosine")):
+                axes[i, j].plot(hs, [d[str(h)][key] for h in hs], "o-", ms=3, label=name)
+        axes[0, j].set_title(w)
+        axes[0, j].set_yscale("log")
+        axes[1, j].set_xlabel("lookahead (snapshots)")
+        for i in range(2):
+            axes[i, j].set_xscale("log")
+            axes[i, j].grid(alpha=0.3)
+    axes[0, 0].set_ylabel("MSE")
+    axes[1, 0].set_ylabel("cosine distance")
+    axes[0, 0].legend(fontsize=7)
+    fig.tight_layout()
+    return fig
+
+
+def _fig_pod(me: dict, plt):
+    import numpy as np
+
+    fig, ax = plt.subplots(figsize=(6.0, 3.6))
+    pods = me.get("pod", {})
+    true = next(iter(pods.values()))["true"] if pods else []
+    k = np.arange(1, len(true) + 1)
+    ax.plot(k, true, "k-o", label="truth")
+    for name, d in pods.items():
+        ax.plot(k, [np.nan if x is None else x for x in d["predicted"]], "o--", ms=3, label=f"{name} roll-out")
+    ax.plot([4], [PAPER_POD4[0]], "r*", ms=10, label="paper: KNODE, 4 modes")
+    ax.plot([4], [PAPER_POD4[1]], "k*", ms=10, label="paper: truth, 4 modes")
+    ax.set_xlabel("POD modes")
+    ax.set_ylabel("cumulative energy")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    return fig
+
+
+def _fig_rmse(camp: dict, name: str, plt):
+    import numpy as np
+
+    Ls = list(camp["per_L"])
+    ncol = min(3, len(Ls))
+    nrow = -(-len(Ls) // ncol)
+    fig, axes = plt.subplots(nrow, ncol, figsize=(4.6 * ncol, 3.2 * nrow), squeeze=False, sharey=True)
+    for ax, L in zip(axes.ravel(), Ls):
+        per = camp["per_L"][L]
+        for m, mu in per["rmse_mean"].items():
+            mu, sd = np.asarray(mu), np.asarray(per["rmse_std"][m])
+            c, lw = _METHOD_STYLE.get(m, ("C4", 1.0))
+            t = np.arange(mu.size)
+            ax.plot(t, mu, color=c, lw=lw, label=m)
+            ax.fill_between(t, mu - sd, mu + sd, color=c, alpha=0.12)
+        ax.set_title(f"{name}, L = {L}")
+        ax.set_xlabel("steps after start")
+        ax.grid(alpha=0.3)
+    for ax in axes.ravel()[len(Ls):]:
+        ax.axis("off")
+    axes[0, 0].set_ylabel("RMSE")
+    axes[0, 0].legend(fontsize=7)
+    fig.tight_layout()
+    return fig
+
+
+def _fig_snapshots(camp: dict, name: str, plt):
+    import numpy as np
+
+    snaps = camp.get("_snapshots", {})
+    Ls = list(camp["per_L"])
+    L = "50" if "50" in Ls else Ls[0]
+    panels = [(t, snaps.get(k)) for t, k in (("truth", "truth"), ("PASST", f"passt@L{L}"), ("model alone", "model"), ("lawnmower+GP", f"lawnmower_gp@L{L}"), ("greedy+GP", f"greedy_gp@L{L}"), ("random+GP", f"random_gp@L{L}"))]
+    panels = [(t, np.asarray(a, float)) for t, a in panels if a is not None]
+    step = min(camp["config"]["snapshot_step"], camp["config"]["steps"])
+    fig, axes = plt.subplots(1, len(panels), figsize=(2.9 * len(panels), 3.0), squeeze=False)
+    vmax = float(np.nanmax(np.hypot(*panels[0][1]))) if panels else 1.0
+    im = None
+    for ax, (title, a) in zip(axes[0], panels):
+        im = ax.imshow(np.hypot(a[0], a[1]), origin="lower", vmin=0, vmax=vmax, cmap="viridis")
+        ax.set_title(f"{title}", fontsize=9)
+        ax.set_xticks([])
+        ax.set_yticks([])
+    if im is not None:
+        fig.colorbar(im, ax=axes[0].tolist(), shrink=0.8, label="speed")
+    fig.suptitle(f"{name}: speed at t = {step} (trial 0, L = {L})", fontsize=10)
+    return fig
+
+
+def write_page(res: dict, out_dir) -> "Path":  # noqa: F821 - pathlib imported inside
+    """Write ``paper.html`` (+ PNGs) from the results dict of :func:`run_paper`; returns its path."""
+    import datetime as _dt
+    import html
+    from pathlib import Path
+
+    from passt_mav.runs.report import _CSS, _Page, _plt
+
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    plt = _plt()
+    page = _Page(out)
+    proto = res["protocol"]
+    page.add("<h1>PASST: the paper's offline evaluation</h1>")
+    page.add(f'<p class="status">{"Quick version (CI): few trials and steps - not the paper&#39;s numbers. " if proto.get("quick") else ""}'
+             f'{len(proto["scenarios"])} scenario(s) x L = {html.escape(str(proto["path_lengths"]))} x {proto["trials"]} trials x {proto["steps"]} steps; '
+             f'GP hyper-parameters: {html.escape(proto["hyper"])}; {res.get("trial_legs", 0)} trial-legs in {res.get("wall_s", 0):.0f} s.</p>')
+    page.h2("The paper's claims beside our numbers")
+    rows = "".join(
+        f"<tr><td>{html.escape(c['claim'])}</td><td>{html.escape(str(c['paper']))}</td><td>{html.escape(c['ours'])}</td>"
+        f"<td class=\"{ {True: 'held', False: 'notheld', None: 'missing'}[c['held']] }\">{ {True: '&#10004; held', False: '&#10008; not held', None: '- not measured'}[c['held']] }</td></tr>"
+        for c in res["claims"])
+    page.add(f'<table class="claims"><tr><th>claim</th><th>paper</th><th>ours</th><th>verdict</th></tr>{rows}</table>')
+    me = res.get("model_eval")
+    if me:
+        page.h2("Model error vs lookahead (train / test / oscillating)")
+        page.figure(_fig_lookahead(me, plt), "lookahead.png", "MSE and cosine distance vs lookahead, per window and predictor", plt)
+        if me.get("pod"):
+            page.h2("POD energy: model roll-out vs truth")
+            page.figure(_fig_pod(me, plt), "pod.png", f"cumulative POD energy, snapshots {me['pod'][next(iter(me['pod']))]['window']}", plt)
+    else:
+        page.missing("model evaluation not run")
+    for name, camp in res["campaigns"].items():
+        page.h2(f"RMSE over time: {name} ({camp['config'].get('data')}, model {camp['config'].get('model')})")
+        page.figure(_fig_rmse(camp, name, plt), f"rmse_{name}.png", f"{name}: RMSE over time, mean +- std over {proto['trials']} trials", plt)
+        body = "".join(f"<tr><th>L = {L}</th>" + "".join(f"<td>{per['final_rmse'][m]:.4f}</td>" for m in per["final_rmse"]) + "</tr>" for L, per in camp["per_L"].items())
+        ms = list(next(iter(camp["per_L"].values()))["final_rmse"])
+        page.add(f"<table><tr><th>final-window RMSE (last {camp['config']['window']} steps)</th>" + "".join(f"<th>{html.escape(m)}</th>" for m in ms) + f"</tr>{body}</table>")
+        if camp.get("_snapshots"):
+            page.figure(_fig_snapshots(camp, name, plt), f"snapshots_{name}.png", f"{name}: 2-D snapshots", plt)
+    if res.get("timings"):
+        page.h2("Compute")
+        page.table([(k, html.escape(str(v))) for k, v in res["timings"].items()])
+    gen = _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
+    page.add(f'<p class="note">Written by {html.escape(res.get("command") or "passt-mav paper")} at {gen}.</p>')
+    css = _CSS + "td.held{color:#1a7f37;font-weight:600}td.notheld{color:#b42318;font-weight:600}td.missing{color:#888}"
+    doc = ("<!DOCTYPE html>\n<html lang=\"en\"><head><meta charset=\"utf-8\"><title>PASST paper evaluation - passt-mav</title>"
+           f"<style>{css}</style></head><body>\n" + "\n".join(page.parts) + "\n</body></html>\n")
+    path = out / "paper.html"
+    path.write_text(doc, encoding="utf-8")
+    return path
+
+
+def run_paper(proto: dict, *, quick: bool = False, scheduler=None, workers: int = 1, batch=None, progress: bool = True, echo=print) -> dict:
+    """Model evaluation + the three campaigns; returns the JSON-able results (with ``_snapshots``)."""
+    import time
+
+    from passt_mav.models.evaluate import evaluate_command
+
+    res: dict = {"protocol": {k: (v if k != "scenarios" else [s[0] for s in v]) for k, v in proto.items()}, "campaigns": {}, "timings": {}}
+    res["protocol"]["quick"] = quick
+    t_all = time.perf_counter()
+    if any(s[2] == "builtin:cylinder" for s in proto["scenarios"]):
+        echo("model evaluation: cylinder KNODE vs DMD and persistence (train / test / oscillating)")
+        t = time.perf_counter()
+        kw = dict(lookaheads=QUICK["lookaheads"], ic_stride=QUICK["ic_stride"], gp_starts=False) if quick else {}
+        me = evaluate_command(model="builtin:cylinder", data="builtin:cylinder", oscillating="builtin:oscillating", **kw)
+        me["model_name"] = next(iter(me["pod"])) if me.get("pod") else None
+        res["model_eval"] = me
+        res["timings"]["model evaluation (s)"] = round(time.perf_counter() - t, 1)
+    cache: dict = {}
+    legs = 0
+    for name, fs, ms in proto["scenarios"]:
+        echo(f"campaign {name}: {fs} with {ms}, L = {proto['path_lengths']}, {proto['trials']} trials x {proto['steps']} steps")
+        t = time.perf_counter()
+        field, pred = _load(fs, ms, cache)
+        s = _campaign(field, pred, proto, proto["path_lengths"], proto["trials"], proto["steps"], scheduler=scheduler, workers=workers, batch=batch, progress=progress)
+        s["config"].update(data=fs, model=ms)
+        res["campaigns"][name] = s
+        legs += s["trial_legs"]
+        res["timings"][f"campaign {name} (s)"] = round(time.perf_counter() - t, 1)
+        res["timings"][f"campaign {name}: compute split (s, summed over trial-legs)"] = {k: round(sum(d[k] for d in s["timings_s"].values()), 1) for k in ("predict", "reward", "plan", "gp")}
+    res["trial_legs"] = legs
+    res["wall_s"] = time.perf_counter() - t_all
+    res["claims"] = claims(res)
+    return res
+
+
+def run(args: argparse.Namespace) -> int:
+    import json
+    from pathlib import Path
+
+    proto = _protocol(args)
+    out = Path(args.out)
+    if args.dry_run:
+        n = _trial_legs(proto)
+        print(f"protocol: {len(proto['scenarios'])} scenarios x L={proto['path_lengths']} x {proto['trials']} trials x {proto['steps']} steps x 4 loop methods = {n} trial-legs (+ model evaluation)")
+        print("calibrating (serial, this machine):")
+        est = estimate(proto)
+        print(f"estimated campaign wall time, serial: {est['estimate_s'] / 60:.1f} min ({est['estimate_s']} s); with N workers on N free cores about 1/N of that")
+        return 0
+    out.mkdir(parents=True, exist_ok=True)
+    res = run_paper(proto, quick=args.quick, scheduler=args.scheduler, workers=args.workers, batch=args.batch, echo=lambda m: print(m, file=sys.stderr))
+    res["command"] = "passt-mav paper " + " ".join(sys.argv[2:]) if sys.argv[1:2] == ["paper"] else None
+    path = write_page(res, out)
+    snaps = {n: c.pop("_snapshots", None) for n, c in res["campaigns"].items()}
+    (out / "results.json").write_text(json.dumps(res) + "\n")
+    (out / "snapshots.json").write_text(json.dumps(snaps) + "\n")
+    for c in res["claims"]:
+        mark = {True: "held", False: "NOT held", None: "not measured"}[c["held"]]
+        print(f"[{mark}] {c['claim']}: paper {c['paper']}; ours {c['ours']}")
+    print(f"page written to {path}")
+    return 0
