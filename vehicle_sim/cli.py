@@ -249,13 +249,22 @@ def _run(args) -> int:
     start = _start_time(args.start_time, field)
     sim = Simulator(field, home=home, config=cfg, velocity_scale=vs, time_scale=ts,
                     start_time=start, link_config=link_cfg, epoch0=_utc_at_boot(args.utc_at_boot, field, start, ts))
-    sim.serve(listen, speedup=args.speedup, wait_for_client=not args.no_wait, lockstep=args.lockstep)
     stop = {"flag": False}
 
-    def _sigterm(*_):
+    def _stop(*_):
         stop["flag"] = True
 
-    signal.signal(signal.SIGTERM, _sigterm)
+    # SIGINT and SIGTERM only set a flag, installed before the serving thread starts: a
+    # KeyboardInterrupt raised between serve() and the loop below (seen on a loaded machine,
+    # where the main thread can be starved for seconds) would skip sim.stop() and leave the
+    # serving thread holding the process open
+    signal.signal(signal.SIGTERM, _stop)
+    signal.signal(signal.SIGINT, _stop)
+    try:
+        sim.serve(listen, speedup=args.speedup, wait_for_client=not args.no_wait, lockstep=args.lockstep)
+    except BaseException:
+        sim.stop()
+        raise
     if not args.quiet:
         bound = {spec: port for spec, port in sim.ports()}
         where = ", ".join(f"{s} (port {bound[s]})" if s.endswith(":0") and s in bound else s for s in listen)
