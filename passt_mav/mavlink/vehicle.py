@@ -157,13 +157,18 @@ class Vehicle:
     # -- modes ---------------------------------------------------------------------------------
     def _wait_heartbeat(self, cond, what: str, timeout: float | None) -> None:
         timeout = max(3 * self.link.config.heartbeat_period_s, self.link.reply_timeout) if timeout is None else timeout
-        hb = self.link.latest("HEARTBEAT")
-        if hb is not None and cond(hb):
-            return
-        try:
-            self.link.wait("HEARTBEAT", lambda m: m.get_srcSystem() == self.link.target_system and cond(m), timeout)
-        except LinkTimeout:
-            raise LinkTimeout(f"vehicle heartbeat never showed {what} within {timeout:.1f} s") from None
+        # Subscribe before looking at the latest HEARTBEAT: one that lands between the two
+        # would otherwise be missed and the wait would hang on for the next one.
+        with self.link.subscribe("HEARTBEAT") as sub:
+            hb = self.link.latest("HEARTBEAT")
+            if hb is not None and cond(hb):
+                return
+            end = time.monotonic() + timeout
+            while (m := sub.get(end - time.monotonic())) is not None:
+                if m.get_srcSystem() == self.link.target_system and cond(m):
+                    return
+        raise LinkTimeout(f"vehicle heartbeat never showed {what} within {timeout:.1f} s"
+                          + (" (link lost)" if self.link.lost else ""))
 
     def set_mode(self, mode: str | int, *, timeout: float | None = None) -> int:
         """MAV_CMD_DO_SET_MODE (176, param1 = 1 custom) and wait until the HEARTBEAT shows it.
@@ -195,7 +200,12 @@ class Vehicle:
                     raise
                 log.info("arming refused (%s); retrying", exc.text)
                 time.sleep(self.retry_delay_s)
-        self._wait_heartbeat(lambda m: bool(m.base_mode & M.MAV_MODE_FLAG_SAFETY_ARMED), "armed", None)
+        # The ACK says the vehicle armed; its HEARTBEAT may lag on a loaded machine (a
+        # sped-up SITL starved of CPU). Wait for it within what is left of ``timeout``,
+        # never less than the default heartbeat wait.
+        default = max(3 * self.link.config.heartbeat_period_s, self.link.reply_timeout)
+        self._wait_heartbeat(lambda m: bool(m.base_mode & M.MAV_MODE_FLAG_SAFETY_ARMED), "armed",
+                             max(default, end - time.monotonic()))
 
     def disarm(self, *, force: bool = False) -> None:
         self.link.command_long(M.MAV_CMD_COMPONENT_ARM_DISARM, 0, 21196 if force else 0)
