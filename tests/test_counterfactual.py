@@ -1,4 +1,4 @@
-"""The lawnmower counterfactual of a live run (passt_mav.runs.counterfactual)."""
+"""The lawnmower counterfactual of a live run (passt_mav.analysis.counterfactual)."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import pytest
 
 import geo
 from passt_mav.fields.field import FlowField
-from passt_mav.runs.counterfactual import lawnmower_counterfactual
+from passt_mav.analysis.counterfactual import lawnmower_counterfactual
 
 
 def _field(kind: str) -> FlowField:

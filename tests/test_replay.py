@@ -1,4 +1,4 @@
-"""Replaying a run from its telemetry log (passt_mav.runs.replay, ``passt-mav replay``).
+"""Replaying a run from its telemetry log (passt_mav.analysis.replay, ``passt-mav replay``).
 
 One real run is flown once per module with the controller's in-process test setup
 (tests/test_controller.py: vehicle_sim at 50x, 8x8 grid of ~40 m cells, greedy
@@ -23,7 +23,7 @@ from mavlink_helpers import served
 from passt_mav.cli import main
 from passt_mav.commands.run import LEAN_STREAMS
 from passt_mav.mission.config import validate_mission
-from passt_mav.runs.replay import ReplayError, rebuild_from_tlog, replay, waypoints_to_path
+from passt_mav.analysis.replay import ReplayError, rebuild_from_tlog, replay, waypoints_to_path
 from passt_mav.runs.rundir import RunDir
 from passt_mav.runs.store import SampleStore
 from passt_mav.runs.tlog import _TlogScanner

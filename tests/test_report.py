@@ -1,4 +1,4 @@
-"""The run report (passt_mav.runs.report) and `passt-mav report`, on synthetic run directories."""
+"""The run report (passt_mav.analysis.report) and `passt-mav report`, on synthetic run directories."""
 
 from __future__ import annotations
 
@@ -19,7 +19,7 @@ import geo
 from passt_mav.cli import main
 from passt_mav.errors import UserError
 from passt_mav.fields.field import FlowField
-from passt_mav.runs.report import load_run, recon_rmse, write_report
+from passt_mav.analysis.report import load_run, recon_rmse, write_report
 from passt_mav.runs.rundir import RunDir
 
 GRID = geo.RegionGrid(40.0, -63.0, 40.45, -62.45, 10, 12)

@@ -201,9 +201,9 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _counterfactual(config, field, summary: dict, rd, *, report: bool) -> float | None:
-    """Lawnmower+GP over the run's legs (passt_mav.runs.counterfactual); stored in summary.json
+    """Lawnmower+GP over the run's legs (passt_mav.analysis.counterfactual); stored in summary.json
     beside PASST and the model alone, and the report redrawn with it. Returns the last leg's RMSE."""
-    from passt_mav.runs.counterfactual import lawnmower_counterfactual
+    from passt_mav.analysis.counterfactual import lawnmower_counterfactual
 
     legs = summary["legs"]
     r0, c0 = config.start_cell or (config.grid().rows // 2, config.grid().cols // 2)
@@ -217,7 +217,7 @@ def _counterfactual(config, field, summary: dict, rd, *, report: bool) -> float 
     rd.write_summary(s)
     summary.update(rmse=s["rmse"], counterfactual=s["counterfactual"])
     if report:
-        from passt_mav.runs.report import write_report
+        from passt_mav.analysis.report import write_report
 
         summary["report"] = str(write_report(rd.root))
     return cf[-1] if cf else None

@@ -272,7 +272,7 @@ def write_page(res: dict, out_dir) -> "Path":  # noqa: F821 - pathlib imported i
     import html
     from pathlib import Path
 
-    from passt_mav.runs.report import _CSS, _Page, _plt
+    from passt_mav.analysis.report import _CSS, _Page, _plt
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)

@@ -38,7 +38,7 @@ def _f(x) -> str:
 def run(args: argparse.Namespace) -> int:
     import json
 
-    from passt_mav.runs.replay import replay
+    from passt_mav.analysis.replay import replay
 
     res = replay(args.source, out=args.out, model=args.model, planner=args.planner, reward=args.reward,
                  mission=args.mission)

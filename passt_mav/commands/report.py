@@ -21,7 +21,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from passt_mav.runs.report import write_report
+    from passt_mav.analysis.report import write_report
 
     path = write_report(args.run_dir, out=args.out)
     print(path)

@@ -90,7 +90,7 @@ def execute(config, *, connect: str, run_dir, mission_text: str | None, legs=Non
     finally:
         link.close()
     if report:
-        from passt_mav.runs.report import write_report
+        from passt_mav.analysis.report import write_report
 
         html = write_report(run_dir.root)
         summary["report"] = str(html)

@@ -1,21 +1,24 @@
-"""Runs: the run directory, the crash-safe sample store, log readers and the report.
+"""Runs, the storage layer: the run directory, the crash-safe sample store and the log readers.
 
 * :class:`RunDir` (``rundir``): the layout of a run directory on disk.
 * :class:`SampleStore` (``store``): SQLite (WAL) store of current samples.
 * :func:`read_tlog`, :func:`read_dataflash` (``tlog``): rebuild samples, track,
   uploads and legs from MAVLink ``.tlog`` / ArduPilot ``.bin`` logs.
-* :func:`write_report`, :func:`load_run` (``report``): the self-contained HTML report.
+
+The controller writes into these modules; nothing here imports the controller, the
+MAVLink client or the analysis built on top (:mod:`passt_mav.analysis`: replay, report,
+counterfactual). ``tests/test_layers.py`` keeps it so.
 
 Submodules are imported on demand: ``import passt_mav.runs`` stays light.
 """
 
 from __future__ import annotations
 
-__all__ = ["RunDir", "SampleStore", "Sample", "read_tlog", "read_dataflash", "load_run", "write_report"]
+__all__ = ["RunDir", "SampleStore", "Sample", "read_tlog", "read_dataflash"]
 
 _WHERE = {
     "RunDir": "rundir", "SampleStore": "store", "Sample": "store", "read_tlog": "tlog",
-    "read_dataflash": "tlog", "load_run": "report", "write_report": "report",
+    "read_dataflash": "tlog",
 }
 
 

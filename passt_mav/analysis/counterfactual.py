@@ -33,7 +33,7 @@ def lawnmower_counterfactual(field, legs: list[dict], *, path_length: int, start
     """
     from passt_mav.controller import rmse
     from passt_mav.passt import FieldSampler, PasstLoop
-    from passt_mav.runs.report import truth_at
+    from passt_mav.analysis.report import truth_at
 
     land = field.land_mask
     loop = PasstLoop(None, field.grid, planner="lawnmower", path_length=int(path_length), prior="none", land=land, gp_kw={"seed": gp_seed}, seed=seed)
