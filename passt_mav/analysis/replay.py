@@ -53,131 +53,14 @@ from typing import Any
 import numpy as np
 
 from passt_mav.errors import UserError
+from passt_mav.runs.legs import LoggedLeg, LogRebuild, rebuild_from_tlog  # noqa: F401 - re-exported
 
-__all__ = ["ReplayError", "LoggedLeg", "LogRebuild", "ReplayLeg", "ReplayResult", "rebuild_from_tlog",
-           "waypoints_to_path", "plan_step", "update_step", "leg_step", "replay"]
+__all__ = ["ReplayError", "ReplayLeg", "ReplayResult", "waypoints_to_path", "replay"]
 
-_AUTO, _DO_SET_MODE, _MISSION_START = 10, 176, 300
-_NAV_WAYPOINT, _DO_CHANGE_SPEED = 16, 178
 
 
 class ReplayError(UserError):
     """The replay's input is missing, not a run, or does not hold what a replay needs."""
-
-
-# -- rebuilding legs from the log ---------------------------------------------------------------
-@dataclass
-class LoggedLeg:
-    """One leg as the log shows it.
-
-    ``start_latlon``: the newest position before the leg's first upload (what the controller
-    planned from); ``t_now_ms``: the newest vehicle ``time_boot_ms`` then. The controller
-    read its clock somewhere between ``t_lo_ms`` (the newest ``time_boot_ms`` when the
-    previous leg ended, or the first of the log) and ``t_now_ms``: the log does not say
-    where (it reads it after the GP update, before planning, and sends nothing then);
-    ``waypoints``: (lat, lon) deg of the NAV_WAYPOINTs of the last upload before AUTO;
-    ``samples``: collector records (``time_boot_ms``, ``lat``, ``lon``, ``u``, ``v`` m/s east/north).
-    """
-
-    index: int
-    start_latlon: tuple[float, float] | None = None
-    t_now_ms: int | None = None
-    t_lo_ms: int | None = None
-    waypoints: list[tuple[float, float]] = field(default_factory=list)
-    samples: list[dict] = field(default_factory=list)
-    closed: bool = False
-
-
-@dataclass
-class LogRebuild:
-    """Legs plus what the reader had to skip (``bad_frames`` stretches, ``skipped_bytes``)."""
-
-    path: Path
-    legs: list[LoggedLeg]
-    n_messages: int = 0
-    bad_frames: int = 0
-    skipped_bytes: int = 0
-    n_bytes: int = 0
-    n_samples_outside_legs: int = 0
-
-
-def rebuild_from_tlog(path: str | Path, *, u_name: str = "CUR_U", v_name: str = "CUR_V") -> LogRebuild:
-    """Legs, positions, clock and samples from a ``.tlog`` (ours, MAVProxy's, pymavlink's).
-
-    Damaged logs are read as far as they are readable (the scanner of
-    :mod:`passt_mav.runs.tlog`: CRC-checked records, resynchronisation after junk).
-    """
-    from passt_mav.mavlink import SampleCollector
-    from passt_mav.runs.tlog import _TlogScanner, _check_file, read_tlog
-
-    path = Path(path)
-    data = _check_file(path, "telemetry log")
-    veh = read_tlog(path, u_name=u_name, v_name=v_name).vehicle_sysid  # the vehicle's system id
-    if veh is None:
-        raise ReplayError(f"{path}: no vehicle messages (HEARTBEAT or GLOBAL_POSITION_INT) in the log")
-    legs: list[LoggedLeg] = []
-    state: dict[str, Any] = {"cur": None, "pending": None, "upload": None, "pos": None, "tb": None, "outside": 0,
-                             "tb_lo": None}
-
-    def on_sample(rec: dict) -> None:
-        leg = state["cur"]
-        if leg is None:
-            state["outside"] += 1
-        else:
-            leg.samples.append(rec)
-
-    col = SampleCollector(on_sample, u_name=u_name, v_name=v_name)
-    scan = _TlogScanner(data)
-    n = 0
-    for ts, m in scan:
-        n += 1
-        typ = m.get_type()
-        src = m.get_srcSystem()
-        if src == veh:
-            if typ in SampleCollector.TYPES:
-                m._timestamp = ts * 1e-6  # reception time, as pymavlink stamps a live message
-                col.handle(m)
-            if typ in ("SYSTEM_TIME", "GLOBAL_POSITION_INT", "ATTITUDE", "NAMED_VALUE_FLOAT"):
-                state["tb"] = max(state["tb"] or 0, int(m.time_boot_ms))  # Link.vehicle_uptime_s
-                if state["tb_lo"] is None:
-                    state["tb_lo"] = state["tb"]
-            if typ == "GLOBAL_POSITION_INT" and not (m.lat == 0 and m.lon == 0):
-                state["pos"] = (m.lat * 1e-7, m.lon * 1e-7)
-            continue
-        # -- GCS side: uploads and mode commands, as the controller sends them
-        if typ == "MISSION_COUNT" and getattr(m, "mission_type", 0) == 0 and m.target_system in (0, veh):
-            if state["pending"] is None and state["cur"] is None:  # first upload of a new leg: planned just before
-                state["pending"] = LoggedLeg(len(legs), state["pos"], state["tb"], state["tb_lo"])
-            state["upload"] = {"count": int(m.count), "items": {}}
-        elif typ in ("MISSION_ITEM_INT", "MISSION_ITEM") and state["upload"] is not None \
-                and getattr(m, "mission_type", 0) == 0 and 0 <= m.seq < state["upload"]["count"]:
-            scale = 1e-7 if typ == "MISSION_ITEM_INT" else 1.0
-            state["upload"]["items"][int(m.seq)] = (int(m.command), m.x * scale, m.y * scale)
-        else:
-            mode = None
-            if typ == "COMMAND_LONG" and m.target_system in (0, veh):
-                if m.command == _DO_SET_MODE:
-                    mode = int(m.param2)
-                elif m.command == _MISSION_START:
-                    mode = _AUTO
-            elif typ == "SET_MODE" and m.target_system in (0, veh):
-                mode = int(m.custom_mode)
-            if mode is None:
-                continue
-            if mode == _AUTO and state["cur"] is None and state["pending"] is not None:
-                leg = state["pending"]
-                up = state["upload"] or {"items": {}}
-                leg.waypoints = [(la, lo) for s, (cmd, la, lo) in sorted(up["items"].items())
-                                 if s >= 1 and cmd == _NAV_WAYPOINT]
-                legs.append(leg)
-                state["cur"], state["pending"] = leg, None
-                col.leg = leg.index
-            elif mode != _AUTO and state["cur"] is not None:
-                state["cur"].closed = True
-                state["cur"] = None
-                state["tb_lo"] = state["tb"]
-                col.leg = None
-    return LogRebuild(path, legs, n, scan.bad, scan.skipped, len(data), state["outside"])
 
 
 def waypoints_to_path(grid, waypoints) -> np.ndarray | None:
@@ -471,7 +354,12 @@ def replay(source, *, out=None, model: str | None = None, planner: str | None = 
     loop = build_loop(cfg, predictor, grid, land=field.land_mask)
     truth_known = summary is None or summary.get("rmse") is not None
 
-    log = rebuild_from_tlog(tlog, u_name=cfg.sensors.u, v_name=cfg.sensors.v)
+    from passt_mav.runs.tlog import LogReadError
+
+    try:
+        log = rebuild_from_tlog(tlog, u_name=cfg.sensors.u, v_name=cfg.sensors.v)
+    except LogReadError as exc:
+        raise ReplayError(str(exc)) from None
     recorded = {}
     if rd is not None:
         try:
