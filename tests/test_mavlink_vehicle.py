@@ -92,3 +92,39 @@ def test_auto_while_armed_before_ekf_ready_is_refused():
             v.wait_ready(timeout=0.2)
         v.set_mode("HOLD")  # position-free modes still work
         assert v.mode_name == "HOLD"
+
+
+def _cpu_failsafe(sim, times: int):
+    """Make the sim's autopilot behave like ArduPilot Rover whose main loop stalled at arming:
+    ACCEPTED, "Throttle armed", then at once "Throttle disarmed" (the CPU failsafe), ``times`` times."""
+    real = sim.autopilot.arm
+    calls = []
+
+    def arm(link=None, force=False):
+        calls.append(sim.t)
+        r = real(link, force)
+        if r == M.MAV_RESULT_ACCEPTED and len(calls) <= times:
+            sim.autopilot.text(link, M.MAV_SEVERITY_INFO, "Throttle armed")
+            sim.autopilot.disarm()
+            sim.autopilot.text(link, M.MAV_SEVERITY_INFO, "Throttle disarmed")
+        return r
+
+    sim.autopilot.arm = arm
+    return calls
+
+
+def test_arm_accepted_then_disarmed_at_once_is_armed_again():
+    with served() as (sim, link):
+        calls = _cpu_failsafe(sim, times=1)
+        v = vehicle(link)
+        v.arm(timeout=5)
+        assert len(calls) == 2 and sim.autopilot.armed and v.armed
+
+
+def test_arm_that_never_sticks_fails_after_three_attempts_with_a_clear_message():
+    with served() as (sim, link):
+        calls = _cpu_failsafe(sim, times=99)
+        v = vehicle(link)
+        with pytest.raises(CommandRejected, match="accepted arming 3 times but disarmed again"):
+            v.arm(timeout=5)
+        assert len(calls) == 3 and not sim.autopilot.armed

@@ -185,27 +185,59 @@ class Vehicle:
         self.set_mode("HOLD")
 
     # -- arming --------------------------------------------------------------------------------
-    def arm(self, *, timeout: float = 60.0, force: bool = False) -> None:
+    def arm(self, *, timeout: float = 60.0, force: bool = False, attempts: int = 3) -> None:
         """Arm; while the vehicle refuses because it is still initialising ("Arm: System not
         initialised", ...) retry every ``retry_delay_s`` until ``timeout``. Other refusals
-        raise CommandRejected at once. Confirmed by the HEARTBEAT armed flag."""
+        raise CommandRejected at once. Confirmed by the HEARTBEAT armed flag.
+
+        An accepted arm whose next HEARTBEAT already says disarmed is sent again, up to
+        ``attempts`` times: ArduPilot arms, then disarms within the same tick when its main
+        loop stalls for 0.2 s of its time (Rover's CPU failsafe, "Throttle armed" followed at
+        once by "Throttle disarmed"); on SITL sped up 20x on a loaded machine the stall of
+        opening the DataFlash log at arming is enough. We armed it a moment ago ourselves, so
+        arming again overrides no one.
+        """
         end = time.monotonic() + timeout
+        default = max(3 * self.link.config.heartbeat_period_s, self.link.reply_timeout)
+        armed = M.MAV_MODE_FLAG_SAFETY_ARMED
+        for attempt in range(1, attempts + 1):
+            self._arm_command(force, end)
+            # the first HEARTBEAT after the ACK was made after arming (one ordered stream);
+            # it may lag on a loaded machine: wait within what is left of ``timeout``
+            wait = max(default, end - time.monotonic())
+            hb = self._next_heartbeat(wait)
+            if hb is None:
+                raise LinkTimeout(f"vehicle heartbeat never showed armed within {wait:.1f} s"
+                                  + (" (link lost)" if self.link.lost else ""))
+            if hb.base_mode & armed:
+                return
+            log.warning("the vehicle accepted arming but its heartbeat says disarmed (attempt %d/%d)",
+                        attempt, attempts)
+        raise CommandRejected(M.MAV_CMD_COMPONENT_ARM_DISARM, M.MAV_RESULT_FAILED,
+                              f"the vehicle accepted arming {attempts} times but disarmed again each time "
+                              "(an autopilot failsafe; see its messages)")
+
+    def _arm_command(self, force: bool, end: float) -> None:
+        """MAV_CMD_COMPONENT_ARM_DISARM(1) until accepted; transient refusals retried until ``end``."""
         while True:
             try:
                 self.link.command_long(M.MAV_CMD_COMPONENT_ARM_DISARM, 1, 2989 if force else 0)
-                break
+                return
             except CommandRejected as exc:
                 transient = any(s in exc.text.lower() for s in _NOT_YET) or exc.result == M.MAV_RESULT_TEMPORARILY_REJECTED
                 if not transient or time.monotonic() + self.retry_delay_s > end:
                     raise
                 log.info("arming refused (%s); retrying", exc.text)
                 time.sleep(self.retry_delay_s)
-        # The ACK says the vehicle armed; its HEARTBEAT may lag on a loaded machine (a
-        # sped-up SITL starved of CPU). Wait for it within what is left of ``timeout``,
-        # never less than the default heartbeat wait.
-        default = max(3 * self.link.config.heartbeat_period_s, self.link.reply_timeout)
-        self._wait_heartbeat(lambda m: bool(m.base_mode & M.MAV_MODE_FLAG_SAFETY_ARMED), "armed",
-                             max(default, end - time.monotonic()))
+
+    def _next_heartbeat(self, timeout: float):
+        """The vehicle's next HEARTBEAT (arriving from now on) within ``timeout`` s, or None."""
+        with self.link.subscribe("HEARTBEAT") as sub:
+            end = time.monotonic() + timeout
+            while (m := sub.get(end - time.monotonic())) is not None:
+                if m.get_srcSystem() == self.link.target_system:
+                    return m
+        return None
 
     def disarm(self, *, force: bool = False) -> None:
         self.link.command_long(M.MAV_CMD_COMPONENT_ARM_DISARM, 0, 21196 if force else 0)
