@@ -1,12 +1,11 @@
 """Train a predictor on a field window and write its checkpoint (used by ``passt-mav model train``).
 
-    python -m passt_mav.models.train --data builtin:cylinder --start 200 --stop 300 --epochs 200 --out DIR/knode_cylinder
+    passt-mav model train --data builtin:cylinder --start 200 --stop 300 --epochs 200 --out DIR/knode_cylinder
 """
 
 from __future__ import annotations
 
 import json
-import sys
 import time
 
 
@@ -63,12 +62,3 @@ def train(data: str, *, out: str, model: str = "knode", start: int | None = None
     path = p.save(out, command=command, extra={"data": data})
     return {"out": str(path), "model": model, "data": data, "data_hash": field.data_hash()}
 
-
-def main(argv=None) -> int:
-    from passt_mav.cli import main as cli_main
-
-    return cli_main(["model", "train", *(sys.argv[1:] if argv is None else argv)])
-
-
-if __name__ == "__main__":
-    sys.exit(main())

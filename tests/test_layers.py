@@ -1,0 +1,113 @@
+"""The house's layers: which package may import which (issue 14).
+
+Every ``import`` / ``from ... import`` in the source tree is read from the syntax tree,
+including imports inside functions (the project imports heavy modules lazily, so a
+top-level-only check would miss most of them). Layers, bottom to top::
+
+    geo, math (fields, models, planning, reconstruction, passt, legstep, mission)
+    mavlink (the MAVLink client)            runs (storage: run dir, sample store, log readers)
+    controller
+    analysis (replay, report, counterfactual)
+    commands, cli
+
+and, beside them, ``vehicle_sim``, which must stand alone from the client side.
+"""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+
+MATH = ("passt_mav.passt", "passt_mav.legstep", "passt_mav.fields", "passt_mav.models", "passt_mav.planning",
+        "passt_mav.reconstruction", "passt_mav.mission", "geo")
+ABOVE_CONTROLLER = ("passt_mav.analysis", "passt_mav.commands", "passt_mav.cli")
+
+# (modules the rule applies to, imports they must not make, why)
+RULES = [
+    (MATH, ("passt_mav.mavlink", "passt_mav.controller", "passt_mav.runs", "vehicle_sim") + ABOVE_CONTROLLER,
+     "the math never talks MAVLink nor reaches up into the vehicle side"),
+    (("vehicle_sim",), ("passt_mav.mavlink", "passt_mav.models", "passt_mav.planning", "passt_mav.runs",
+                        "passt_mav.controller", "passt_mav.passt", "passt_mav.legstep", "passt_mav.reconstruction")
+     + ABOVE_CONTROLLER, "the simulator plays the autopilot: it knows nothing of the controller's side"),
+    (("passt_mav.runs",), ("passt_mav.controller", "vehicle_sim") + ABOVE_CONTROLLER,
+     "storage lies below the controller"),
+    (("passt_mav.mavlink",), ("passt_mav.controller", "passt_mav.runs", "passt_mav.models", "passt_mav.planning",
+                              "vehicle_sim") + ABOVE_CONTROLLER, "the MAVLink client knows no mission logic"),
+    (("passt_mav.controller",), ABOVE_CONTROLLER, "the controller does not import what is built on top of it"),
+    (("passt_mav.analysis",), ("passt_mav.commands", "passt_mav.cli"), "analysis is a library under the CLI"),
+]
+
+
+def _module_name(path: Path, root: Path = ROOT) -> str:
+    parts = list(path.relative_to(root).with_suffix("").parts)
+    if parts[-1] == "__init__":
+        parts = parts[:-1]
+    return ".".join(parts)
+
+
+def _imports(path: Path, root: Path = ROOT) -> list[tuple[int, str]]:
+    """(line, absolute module name) of every import in ``path``; relative imports resolved."""
+    me = _module_name(path, root)
+    pkg = me if path.name == "__init__.py" else me.rpartition(".")[0]
+    out = []
+    for node in ast.walk(ast.parse(path.read_text(), str(path))):
+        if isinstance(node, ast.Import):
+            out += [(node.lineno, a.name) for a in node.names]
+        elif isinstance(node, ast.ImportFrom):
+            base = node.module or ""
+            if node.level:
+                up = pkg.split(".")
+                up = up[: len(up) - (node.level - 1)]
+                base = ".".join(up + ([base] if base else []))
+            # "from passt_mav import controller" imports passt_mav.controller
+            out += [(node.lineno, f"{base}.{a.name}") for a in node.names] + [(node.lineno, base)]
+    return out
+
+
+def _under(name: str, prefixes) -> bool:
+    return any(name == p or name.startswith(p + ".") for p in prefixes)
+
+
+def layer_violations(root: Path = ROOT) -> list[str]:
+    """Every import that breaks a rule, as 'file:line: module imports X (why)'."""
+    bad = []
+    for src in sorted(list((root / "passt_mav").rglob("*.py")) + list((root / "vehicle_sim").rglob("*.py"))
+                      + list((root / "geo").rglob("*.py"))):
+        me = _module_name(src, root)
+        for who, banned, why in RULES:
+            if not _under(me, who):
+                continue
+            for line, name in _imports(src, root):
+                if _under(name, banned):
+                    bad.append(f"{src.relative_to(root)}:{line}: {me} imports {name} ({why})")
+    return sorted(set(bad))
+
+
+def test_no_import_runs_back_up():
+    bad = layer_violations()
+    assert not bad, "layer violations:\n" + "\n".join(bad)
+
+
+@pytest.mark.parametrize("target, line", [
+    ("passt_mav/runs/store.py", "import passt_mav.controller"),
+    ("passt_mav/runs/rundir.py", "from passt_mav.analysis.replay import replay"),
+    ("passt_mav/planning/grid.py", "from passt_mav.mavlink import Link"),
+    ("vehicle_sim/boat.py", "from passt_mav.models import base"),
+    ("passt_mav/controller.py", "from . import analysis"),
+])
+def test_the_check_catches_a_forbidden_import(tmp_path, target, line):
+    """A copy of the tree with one forbidden import added (inside a function, as the
+    project's lazy imports are) must fail the check, naming the file."""
+    import shutil
+
+    for pkg in ("passt_mav", "vehicle_sim", "geo"):
+        shutil.copytree(ROOT / pkg, tmp_path / pkg, ignore=shutil.ignore_patterns("__pycache__", "assets", "*.bin"))
+    assert layer_violations(tmp_path) == []
+    f = tmp_path / target
+    f.write_text(f.read_text() + f"\n\ndef _sneaky():\n    {line}\n")
+    bad = layer_violations(tmp_path)
+    assert len(bad) >= 1 and all(b.startswith(target) for b in bad), bad
