@@ -92,7 +92,7 @@ def main(argv=None) -> int:
 
     f = load_dataset("cylinder")
     try:
-        model, source = load_predictor("shipped:cylinder"), "shipped:cylinder"
+        model, source = load_predictor("builtin:cylinder"), "builtin:cylinder"
     except Exception:  # noqa: BLE001 - untrained weights time the same
         model, source = make_predictor("knode", epochs=0, progress=False).fit(f, start=200, stop=300), "untrained (no shipped model)"
     steps = 5 if a.quick else 20

@@ -277,7 +277,7 @@ def test_shipped_cylinder_beats_persistence_on_test_window():
 
     _shipped_or_skip("cylinder")
     f = load_dataset("cylinder")
-    knode = load_predictor("shipped:cylinder")
+    knode = load_predictor("builtin:cylinder")
     pers = make_predictor("persistence").fit(f, start=200, stop=300)
     hs = (1, 2, 5, 10, 20)
     k = lookahead_errors(knode, f.data, (300, 400), hs, ic_stride=2)

@@ -104,7 +104,7 @@ def test_knode_beats_persistence_to_lookahead_20_on_both_wakes(window):
     from true states and from GP reconstructions (snapshots 300-400, never trained on)."""
     from passt_mav.models.evaluate import evaluate_command
 
-    res = evaluate_command(model="shipped:cylinder", data="builtin:cylinder", oscillating="builtin:oscillating", lookaheads=(1, 2, 5, 10, 20), baselines=("persistence",), ic_stride=4, pod_window=(300, 320), gp_ic_stride=8)
+    res = evaluate_command(model="builtin:cylinder", data="builtin:cylinder", oscillating="builtin:oscillating", lookaheads=(1, 2, 5, 10, 20), baselines=("persistence",), ic_stride=4, pod_window=(300, 320), gp_ic_stride=8)
     for label in (window, window.replace("test", "oscillating")):
         per = res["lookahead"][label]
         for h, v in per["knode"].items():
@@ -120,7 +120,7 @@ def test_knode_beats_dmd_on_the_oscillating_wake_to_lookahead_10(window):
     Holds for h <= 2 only (ic stride 2 / GP stride 4 in the note's run)."""
     from passt_mav.models.evaluate import evaluate_command
 
-    res = evaluate_command(model="shipped:cylinder", data="builtin:cylinder", oscillating="builtin:oscillating", lookaheads=(1, 2, 5, 10), baselines=("dmd",), ic_stride=2, pod_window=(300, 320), gp_ic_stride=4)
+    res = evaluate_command(model="builtin:cylinder", data="builtin:cylinder", oscillating="builtin:oscillating", lookaheads=(1, 2, 5, 10), baselines=("dmd",), ic_stride=2, pod_window=(300, 320), gp_ic_stride=4)
     per = res["lookahead"][window]
     for h, v in per["knode"].items():
         assert v["mse"] < per["dmd"][h]["mse"], h

@@ -17,7 +17,7 @@ EXAMPLES = """examples:
   passt-mav model train --data builtin:cylinder --start 200 --stop 300 --epochs 200 --seed 0 --out runs/knode_cyl
   passt-mav model train --data builtin:ocean --stop 400 --epochs 40 --n-batches 3 --out runs/knode_ocean
   passt-mav model train --model dmd --data builtin:cylinder --start 200 --stop 300 --out runs/dmd_cyl
-  passt-mav model evaluate --model shipped:cylinder --data builtin:cylinder --oscillating builtin:oscillating --out runs/eval_knode
+  passt-mav model evaluate --model builtin:cylinder --data builtin:cylinder --oscillating builtin:oscillating --out runs/eval_knode
   passt-mav model evaluate --model runs/knode_cyl.pt --data builtin:cylinder --json --out runs/eval
 """
 
@@ -58,7 +58,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     t.add_argument("--json", action="store_true", help="print the summary as JSON")
     t.add_argument("--out", required=True, help="checkpoint path without suffix (writes OUT.pt and OUT.json)")
     e = sub.add_parser("evaluate", help="prediction error vs lookahead, cosine distance, POD energy vs DMD and persistence", formatter_class=argparse.RawDescriptionHelpFormatter, epilog=EXAMPLES)
-    e.add_argument("--model", required=True, help="checkpoint | shipped:cylinder | shipped:ocean | a predictor name (fitted on the train window)")
+    e.add_argument("--model", required=True, help="checkpoint | builtin:cylinder | builtin:ocean (shipped KNODEs; the old spelling shipped:NAME is deprecated, still accepted) | a predictor name (fitted on the train window)")
     e.add_argument("--data", required=True, help="field (builtin:NAME or FILE.nc)")
     e.add_argument("--train", default="200:300", help="train window START:STOP (default 200:300)")
     e.add_argument("--test", default="300:400", help="test window START:STOP (default 300:400)")

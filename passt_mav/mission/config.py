@@ -21,9 +21,9 @@ corner cell *centres*, :class:`geo.RegionGrid`) or metric (x0/x1/y0/y1/rows/cols
 + anchor_lat/anchor_lon/rotation_deg/scale, :class:`geo.MetricRegionGrid`); an
 optional ``kind: geographic|metric`` may say which, otherwise the keys do.
 
-``model`` is ``builtin:NAME`` (a shipped checkpoint; ``shipped:NAME`` is accepted
-and normalised to ``builtin:NAME``, the spelling ``passt-mav evaluate --model``
-uses), a checkpoint path (``.pt``) or a predictor registry name (``knode``,
+``model`` is ``builtin:NAME`` (a shipped checkpoint; the deprecated spelling
+``shipped:NAME`` is accepted and normalised to ``builtin:NAME``, the one spelling every
+command uses), a checkpoint path (``.pt``) or a predictor registry name (``knode``,
 ``dmd``, ``persistence``; fitted on the field). It is resolved by the commands,
 not here.
 

@@ -4,7 +4,7 @@ Importing this package is cheap (no torch): classes load on first use through
 :data:`PREDICTORS` (see :mod:`passt_mav.models.base`).
 
     from passt_mav.models import make_predictor, load_predictor, shipped_model
-    knode = load_predictor("shipped:cylinder")          # or a checkpoint path
+    knode = load_predictor("builtin:cylinder")          # or a checkpoint path
     pred = knode.predict(state, 10)                     # (10, 2, R, C) float32
     dmd = make_predictor("dmd").fit(field, start=200, stop=300)
 """

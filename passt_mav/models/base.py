@@ -90,9 +90,11 @@ def read_metadata(path: str | Path) -> dict:
 
 
 def load_predictor(spec: str | Path) -> "Predictor":
-    """A fitted predictor from a checkpoint path, ``shipped:NAME`` or ``builtin:NAME``.
+    """A fitted predictor from a checkpoint path or ``builtin:NAME``.
 
-    ``NAME`` is ``cylinder`` or ``ocean`` (the shipped KNODE checkpoints).
+    ``NAME`` is ``cylinder`` or ``ocean`` (the shipped KNODE checkpoints). ``shipped:NAME``
+    is the old spelling, still accepted (deprecated; one spelling everywhere: ``builtin:``,
+    as in mission files and ``passt-mav evaluate``).
     """
     s = str(spec)
     for prefix in ("shipped:", "builtin:"):
