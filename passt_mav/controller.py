@@ -4,14 +4,17 @@ One :class:`MissionController` runs one mission (``passt-mav run`` / ``passt-mav
 demo``). It reuses :class:`passt_mav.passt.PasstLoop` unchanged; only the sampler
 differs: instead of reading the ground-truth field, each leg is uploaded to the
 vehicle and flown, and the current samples it streams back are the leg's samples.
+Everything between two legs is :class:`passt_mav.legstep.LegStep` (pure, shared with
+``passt-mav replay``); this module adds the vehicle.
 
-Per leg ``i``::
+Per leg ``i`` (:meth:`MissionController._leg`: plan -> check -> upload -> fly -> absorb)::
 
-    position -> start cell -> [forecast the state to now] -> plan_leg -> WaypointMission
-      -> geofence check of every waypoint (abort before upload if one fails)
-      -> HOLD, upload_verified (read-back), set_current(1), arm if needed, AUTO
-      -> collect samples until the mission completes (faults handled, see below) -> HOLD
-      -> thin samples -> loop.update -> state at the leg's end -> leg record, summary
+    _plan:   position -> start cell; clock reading -> STATUSTEXT "PASST leg i tb T b B k K"
+             (kept by the tlog and ArduPilot's DataFlash log) -> LegStep.plan
+    _checked_mission: WaypointMission, geofence check of every waypoint (abort before upload)
+    _swap:   HOLD, upload + read-back, set_current(1), arm if needed, AUTO (transactional)
+    _fly_leg: collect samples until the mission completes (faults handled, see below) -> HOLD
+    _absorb: LegStep.absorb (thin, GP update, RMSE) -> estimate.nc; _finish_leg: records
 
 Clock (vehicle time -> field time). Every sample carries the autopilot's
 ``time_boot_ms``. Field time is ``t = t_boot0 + time_boot_ms / 1000 / time_scale``,
@@ -82,7 +85,11 @@ from typing import Any, Callable
 
 import numpy as np
 
-from passt_mav.errors import LinkTimeout, MavlinkError, PlannerError, UserError
+from passt_mav.errors import LinkTimeout, MavlinkError, PlannerError, ReconstructionError, UserError
+from passt_mav.runs.legs import clock_statustext
+from passt_mav.legstep import (  # noqa: F401 - the between-leg step's building blocks, re-exported
+    THINNING, FieldClock, LegStep, build_loop, build_predictor, extend_leg_to_end, leg_steps, pure_model_at, rmse,
+    thin_samples, to_field_units, truth_at, utc_epoch)
 
 __all__ = [
     "FieldClock",
@@ -95,196 +102,6 @@ __all__ = [
 ]
 
 log = logging.getLogger(__name__)
-
-THINNING = ("samples averaged per (nearest grid cell, snapshot bin round((t - t_start)/dt)); "
-            "position, time and velocity averaged in each group")
-
-
-# -- clock and sample preparation -------------------------------------------------------------
-@dataclass(frozen=True)
-class FieldClock:
-    """Vehicle time since boot -> field time: ``t_boot0 + time_boot_ms / 1000 / time_scale``.
-
-    ``source``: how ``t_boot0`` was found (``utc``: the vehicle's UTC at boot; ``boot``: given
-    or snapshot t0). ``later_boots``: ``t_boot0`` of each boot after a reboot (boot 1, 2, ...).
-    """
-
-    t_boot0: float
-    time_scale: float = 1.0
-    source: str = "boot"
-    later_boots: tuple[float, ...] = ()
-
-    def field_time(self, time_boot_ms, boot=0):
-        """Field time of ``time_boot_ms`` (ms) of boot ``boot`` (0 = the first; scalar or array)."""
-        tb = np.asarray(time_boot_ms, dtype=np.float64)
-        anchors = np.array((self.t_boot0,) + tuple(self.later_boots), dtype=np.float64)
-        b = np.clip(np.asarray(boot, dtype=np.int64), 0, len(anchors) - 1)
-        return anchors[b] + tb / 1000.0 / self.time_scale
-
-    def describe(self) -> dict[str, Any]:
-        d = {"rule": "t_field = t_boot0 + time_boot_ms / 1000 / time_scale", "t_boot0": self.t_boot0,
-             "time_scale": self.time_scale, "source": self.source}
-        if self.later_boots:
-            d["later_boots"] = list(self.later_boots)
-        return d
-
-
-def utc_epoch(iso: str) -> float:
-    """Epoch seconds of an ISO-8601 UTC time (a field's ``time_origin``)."""
-    t = _dt.datetime.fromisoformat(iso.replace("Z", "+00:00"))
-    return (t if t.tzinfo else t.replace(tzinfo=_dt.timezone.utc)).timestamp()
-
-
-def to_field_units(grid, u, v, velocity_scale: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
-    """East/north m/s -> the field's velocity units and frame (inverse of the simulator's mapping)."""
-    u = np.asarray(u, float) / velocity_scale
-    v = np.asarray(v, float) / velocity_scale
-    rot = float(getattr(grid, "rotation_deg", 0.0) or 0.0)
-    if rot:
-        th = math.radians(rot)
-        u, v = u * math.cos(th) + v * math.sin(th), -u * math.sin(th) + v * math.cos(th)
-    return u, v
-
-
-def thin_samples(grid, t, lat, lon, u, v, *, t_start: float, dt: float):
-    """:class:`~passt_mav.passt.Samples` averaged per (nearest cell, snapshot bin); see module doc.
-
-    t: field time of each sample; lat/lon degrees; u/v in field units. Samples off
-    the grid are dropped. Returns Samples with fractional cells (mean position).
-    """
-    from passt_mav.passt import Samples
-
-    t, lat, lon, u, v = (np.asarray(a, float).reshape(-1) for a in (t, lat, lon, u, v))
-    if t.size == 0:
-        return Samples(t, t, t, t, t)
-    r, c = grid.latlon_to_fcell(lat, lon)
-    r, c = np.asarray(r, float), np.asarray(c, float)
-    inside = (r >= 0) & (r <= grid.rows - 1) & (c >= 0) & (c <= grid.cols - 1) & np.isfinite(u) & np.isfinite(v)
-    t, r, c, u, v = t[inside], r[inside], c[inside], u[inside], v[inside]
-    key = np.stack([np.floor(r + 0.5), np.floor(c + 0.5), np.round((t - t_start) / dt)], axis=1).astype(np.int64)
-    _, inv = np.unique(key, axis=0, return_inverse=True)
-    inv = inv.reshape(-1)
-    n = np.bincount(inv)
-
-    def mean(a):
-        return np.bincount(inv, weights=a) / n
-
-    return Samples(mean(t), mean(r), mean(c), mean(u), mean(v))
-
-
-def leg_steps(config, grid, speed: float, dt: float, time_scale: float) -> int:
-    """Snapshots a leg is planned to span: L moves x mean cell size / speed (see passt.steps_for_leg).
-
-    speed in m/s, dt in field time units, time_scale in vehicle seconds per field time unit.
-    """
-    from passt_mav.passt import steps_for_leg
-
-    return steps_for_leg(config.planner.path_length, grid.mean_cell_size_m, speed, dt * time_scale)
-
-
-def extend_leg_to_end(loop, plan, t_samples, dt: float) -> int:
-    """Stretch ``plan`` (a :class:`~passt_mav.passt.LegPlan`) to the time the leg really ended.
-
-    The leg was sized before it flew (L x mean cell / speed); diagonal moves, turns and the
-    current make the real leg longer. Reconstructing at the planned end would compare late
-    samples with a forecast clipped to that end (stale residuals), so the forecast is
-    extended to the last sample's field time ``t_samples`` (field units). Returns the
-    leg's steps. Shared by the controller and replay, which must agree exactly.
-    """
-    t = np.asarray(t_samples, float)
-    if t.size:
-        steps_actual = max(1, int(round((float(np.max(t)) - plan.t_start) / dt)))
-        if steps_actual > plan.steps:
-            plan.forecast = loop.forecast(plan.forecast[0], steps_actual)
-            plan.steps = steps_actual
-    return int(plan.steps)
-
-
-def pure_model_at(loop, field, t0_index: int, dt: float, t: float, cache: dict) -> np.ndarray | None:
-    """The model alone from the truth at snapshot ``t0_index`` (no re-initialisation), at field time ``t``.
-
-    Linear between the model's steps; (2, R, C) float64, or None before t0 or without a model.
-    ``cache`` (a dict the caller keeps) holds the trajectory so later calls only extend it.
-    Shared by the controller and replay, whose RMSE figures must agree to 1e-6.
-    """
-    if loop.predictor is None:
-        return None
-    t0 = float(field.times[t0_index])
-    x = (t - t0) / dt
-    if x < 0:
-        return None
-    need = int(math.ceil(x)) + 1
-    pure = cache.get("pure")
-    if pure is None or len(pure) <= need:
-        s = np.array(field.data[t0_index], dtype=np.float32)
-        pure = cache["pure"] = loop.forecast(s, max(need, 2 * (need // 2 + 1)))
-    k = int(math.floor(x))
-    w = x - k
-    return (1 - w) * pure[k].astype(float) + w * pure[min(k + 1, len(pure) - 1)].astype(float)
-
-
-def rmse(a, b) -> float | None:
-    """RMS difference over the cells finite in both (both components); None if none are."""
-    a, b = np.asarray(a, float), np.asarray(b, float)
-    ok = np.isfinite(a) & np.isfinite(b)
-    return float(np.sqrt(np.mean((a[ok] - b[ok]) ** 2))) if ok.any() else None
-
-
-def truth_at(field, t: float) -> np.ndarray | None:
-    """(2, R, C) snapshot at field time ``t`` (linear in time), None outside the data."""
-    times = field.times
-    if not times[0] - 1e-9 <= t <= times[-1] + 1e-9:
-        return None
-    if field.n_times == 1:
-        return field.data[0].astype(np.float64)
-    j = int(np.clip(np.searchsorted(times, t) - 1, 0, field.n_times - 2))
-    w = float(np.clip((t - times[j]) / (times[j + 1] - times[j]), 0.0, 1.0))
-    return (1 - w) * field.data[j].astype(np.float64) + w * field.data[j + 1].astype(np.float64)
-
-
-# -- building blocks from a mission config --------------------------------------------------------
-def build_predictor(spec: str, field, *, echo: Callable[[str], None] = print) -> tuple[object | None, dict]:
-    """The predictor named by a mission's ``model`` and what was used.
-
-    ``builtin:*`` / ``.pt``: loaded; if that fails, a warning is printed and DMD is
-    fitted on ``field`` instead (recorded as ``fallback``). Registry names are fitted on
-    ``field``. Returns ``(predictor, info)`` with info keys ``requested``, ``used``, ``fallback``.
-    """
-    from passt_mav.models.base import PREDICTORS, load_predictor, make_predictor
-
-    info: dict[str, Any] = {"requested": spec, "used": spec, "fallback": None}
-    if spec in PREDICTORS:
-        return make_predictor(spec).fit(field), info
-    try:
-        pred = load_predictor(spec)
-        shape = getattr(pred, "grid_shape_", None)
-        if shape is not None and tuple(shape)[-2:] != tuple(field.grid.shape):
-            raise UserError(f"model {spec} is for a {tuple(shape)[-2:]} grid, the mission's is {field.grid.shape}")
-        from passt_mav.models.evaluate import echo_skill
-
-        echo_skill(spec, getattr(pred, "metadata_", None), echo)
-        return pred, info
-    except (UserError, OSError, RuntimeError, KeyError, ValueError) as exc:
-        msg = f"WARNING: model {spec} could not be loaded ({exc}); falling back to DMD fitted on the mission's field"
-        echo(msg)
-        log.warning(msg)
-        info.update(used="dmd", fallback=str(exc))
-        return make_predictor("dmd").fit(field), info
-
-
-def build_loop(config, predictor, grid, land=None):
-    """:class:`PasstLoop` from a mission config (planner, reward, L, GP prior/options, seeds)."""
-    from passt_mav.passt import PasstLoop
-
-    gp_kw = {"seed": config.seeds.gp}
-    if config.sensors.noise_std > 0:
-        gp_kw["noise_std"] = config.sensors.noise_std
-    gp_kw.update(config.gp.options)
-    return PasstLoop(predictor, grid, planner=config.planner.name, planner_kw=dict(config.planner.options),
-                     reward=config.planner.reward, path_length=config.planner.path_length,
-                     steps_per_leg=config.steps_per_leg or 1, prior=config.gp.loop_prior, gp_kw=gp_kw,
-                     hyper=config.gp.hyper, land=land, seed=config.seeds.planner)
-
 
 def _utc_now() -> str:
     return _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds").replace("+00:00", "Z")
@@ -404,10 +221,10 @@ class MissionController:
         self.extra_summary = dict(extra_summary or {})
         self.land = field.land_mask
         self.loop = build_loop(config, predictor, self.grid, land=self.land)
+        self.step = LegStep(config, field, self.loop, truth_known=truth_known)
         self.leg_records: list[dict] = []
         self.status = "running"
         self.started_utc = _utc_now()
-        self._pure_cache: dict = {}  # pure_model_at's trajectory of the model alone
         self.store = None
         self.collector = None
         self.writer = None
@@ -431,13 +248,6 @@ class MissionController:
     def speed(self) -> float:
         return float(self.config.vehicle.speed_mps)
 
-    def _now_field(self) -> float:
-        up = self.link.vehicle_uptime_s()
-        if up is None:
-            raise MavlinkError("no vehicle time (time_boot_ms) received yet")
-        boot = self._boot_base + (self.collector.boot if self.collector is not None else 0)
-        return float(self._clock_with_boots().field_time(up * 1000.0, boot))
-
     def _position(self, timeout: float = 10.0) -> tuple[float, float]:
         end = time.monotonic() + timeout
         while (p := self.vehicle.position()) is None:
@@ -445,9 +255,6 @@ class MissionController:
                 raise MavlinkError("no GPS position from the vehicle")
             time.sleep(0.02)
         return p
-
-    def _pure_model_at(self, t: float) -> np.ndarray | None:
-        return pure_model_at(self.loop, self.field, self.config.t0, self.dt, t, self._pure_cache)
 
     def _link_snapshot(self) -> tuple[int, int]:
         return self.link.stats.received, self.link.stats.drops
@@ -497,9 +304,7 @@ class MissionController:
     # -- resume ------------------------------------------------------------------------------------
     def _initial_state(self) -> tuple[np.ndarray, float, int]:
         """(state, t_state, first leg index)."""
-        state = np.array(self.field.data[self.config.t0], dtype=np.float32)
-        state[:, self.land] = np.nan
-        t_state = float(self.field.times[self.config.t0])
+        state, t_state = self.step.initial_state()
         if not self.resume:
             return state, t_state, 0
         from passt_mav.fields.field import load_field
@@ -717,112 +522,125 @@ class MissionController:
         except MavlinkError as exc:
             log.warning("could not switch to HOLD: %s", exc)
 
+    # -- one leg: plan -> check -> upload (transactional) -> fly -> absorb ---------------------------
     def _leg(self, i: int, state: np.ndarray, t_state: float) -> tuple[np.ndarray, float]:
-        import geo
-        from passt_mav.fields.field import FlowField
-        from passt_mav.mission.waypoints import WaypointMission
-        cfg, grid, rd = self.config, self.grid, self.rd
-        margin = float(cfg.geofence_margin_m)
+        planned = self._plan(i, state, t_state)
+        wm = self._checked_mission(i, planned)
+        rec = self._write_plan(i, planned, wm)
+        link0, store0 = self._link_snapshot(), self.store.count(i)
+        items = wm.items()
+        upload_tries, upload_s, t_fly, tb_fly = self._swap(i, items, time.perf_counter())
+        duration_s, tb_end = self._fly_leg(i, wm, items, t_fly)
+        absorbed = self._absorb(i, planned)
+        rec.update(absorbed.record())
+        rec.update({
+            "status": "complete", "t_end": absorbed.t_state, "upload_s": upload_s, "upload_tries": upload_tries,
+            "duration_s": duration_s, "duration_vehicle_s": (tb_end - tb_fly) if (
+                tb_end is not None and tb_fly is not None and tb_end >= tb_fly) else None,
+            "n_samples_new": self.store.count(i) - store0, "link": self._link_record(link0),
+        })
+        self._finish_leg(i, rec, planned)
+        return absorbed.state, absorbed.t_state
+
+    def _plan(self, i: int, state: np.ndarray, t_state: float):
+        """Position -> start cell; the vehicle's clock -> forecast the state to now; plan the leg.
+
+        The clock reading is sent to the vehicle as a STATUSTEXT first (:func:`clock_statustext`):
+        the telemetry log and ArduPilot's DataFlash log keep it for a replay.
+        """
         lat, lon = self._position()
-        if not bool(grid.contains(lat, lon, margin)):
-            raise UserError(f"the vehicle at {lat:.6f},{lon:.6f} is outside the mission region (+{margin:g} m); "
-                            "bring it into the region before starting a leg")
-        r, c = grid.latlon_to_cell(lat, lon, clip=True)
-        start = (int(r), int(c))
-        if self.land[start]:
-            raise UserError(f"the vehicle is in cell {start}, which is land in the mission's field")
-        # bring the state forward to now (the vehicle may have waited or the last leg overran)
-        t_now = self._now_field()
-        k = max(0, int(round((t_now - t_state) / self.dt)))
-        if k:
-            state = self.loop.forecast(state, k)[-1]
-            t_state += k * self.dt
-        steps = leg_steps(cfg, grid, self.speed, self.dt, self.clock.time_scale)
-        t0w = time.perf_counter()
-        plan = self.loop.plan_leg(state, start, t_state, self.dt, steps=steps)
-        planning_s = time.perf_counter() - t0w
-        geo.validate_path(grid, plan.path)
-        wm = WaypointMission.from_path(grid, plan.path, speed=self.speed, wp_radius_m=cfg.vehicle.wp_radius_m,
-                                       fence_margin_m=margin)
+        start = self.step.start_cell(lat, lon)
+        tb, boot = self._clock_reading()
+        t_now = float(self._clock_with_boots().field_time(tb, boot))
+        k = self.step.forecast_steps(t_now, t_state)
+        text = clock_statustext(i, tb, boot, k)
+        try:
+            self.link.send(self.link.conn.mav.statustext_encode(6, text.encode()))  # MAV_SEVERITY_INFO
+        except MavlinkError as exc:  # a log record, not a command: a dead link shows up at the upload
+            log.warning("clock STATUSTEXT not sent: %s", exc)
+        return self.step.plan(i, state, t_state, start, t_now=t_now, k=k, start_latlon=(lat, lon),
+                              clock_reading=(tb, boot))
+
+    def _clock_reading(self) -> tuple[int, int]:
+        """The vehicle's newest ``time_boot_ms`` and the run's boot number it belongs to."""
+        up = self.link.vehicle_uptime_s()
+        if up is None:
+            raise MavlinkError("no vehicle time (time_boot_ms) received yet")
+        return int(round(up * 1000.0)), self._boot_base + (self.collector.boot if self.collector is not None else 0)
+
+    def _checked_mission(self, i: int, planned):
+        """The leg's :class:`WaypointMission`; raises before anything is uploaded when the path or a
+        waypoint leaves the grid or the geofence (region + ``geofence_margin_m``)."""
+        import geo
+        from passt_mav.mission.waypoints import WaypointMission
+
+        grid, margin = self.grid, float(self.config.geofence_margin_m)
+        geo.validate_path(grid, planned.plan.path)
+        wm = WaypointMission.from_path(grid, planned.plan.path, speed=self.speed,
+                                       wp_radius_m=self.config.vehicle.wp_radius_m, fence_margin_m=margin)
         inside = np.asarray(grid.contains(wm.waypoints[:, 0], wm.waypoints[:, 1], margin), bool)
         if not inside.all():
             bad = int(np.flatnonzero(~inside)[0])
             raise PlannerError(f"leg {i}: waypoint {bad} at {wm.waypoints[bad, 0]:.6f},{wm.waypoints[bad, 1]:.6f} "
                                f"lies outside the geofence (region + {margin:g} m); nothing uploaded")
-        d = rd.leg_dir(i)
+        return wm
+
+    def _write_plan(self, i: int, planned, wm) -> dict:
+        """Waypoints (.waypoints, .plan), the forecast (prediction.nc) and leg.json (status flying)."""
+        from passt_mav.fields.field import FlowField
+
+        rd, plan = self.rd, planned.plan
+        rd.leg_dir(i)
         wm.to_wpl(rd.waypoints_file(i))
         wm.to_plan(rd.plan_file(i))
-        times = t_state + self.dt * np.arange(plan.forecast.shape[0])
-        FlowField(plan.forecast, grid, times, self.field.time_origin, self.field.units).to_netcdf(rd.prediction_file(i))
-        rec: dict[str, Any] = {
-            "index": i, "status": "flying", "start_cell": list(start), "start_latlon": [lat, lon],
-            "path": plan.path.tolist(), "waypoints": wm.waypoints.tolist(), "waypoint_seqs": wm.waypoint_seqs(),
-            "t_start": t_state, "t_end": t_state + steps * self.dt, "steps": steps, "forecast_steps_before": k,
-            "planning_s": planning_s, "planning_timings": dict(plan.timings),
-        }
-        upload_tries = 0
+        times = plan.t_start + self.dt * np.arange(plan.forecast.shape[0])
+        FlowField(plan.forecast, self.grid, times, self.field.time_origin, self.field.units).to_netcdf(
+            rd.prediction_file(i))
+        rec = {**planned.record(self.dt), "status": "flying", "waypoints": wm.waypoints.tolist(),
+               "waypoint_seqs": wm.waypoint_seqs(), "t_now": planned.t_now}
         rd.write_leg(i, rec)
-        link0 = self._link_snapshot()
-        store0 = self.store.count(i)
-        # -- transactional swap: never start a mission that was not read back equal -----------
-        t0w = time.perf_counter()
-        v = self.vehicle
-        items = wm.items()
-        upload_tries, upload_s, t_fly, tb_fly = self._swap(i, items, t0w)
-        n_items = len(items) - 1  # MISSION_CURRENT.total excludes home
+        return rec
+
+    def _fly_leg(self, i: int, wm, items, t_fly: float) -> tuple[float, float | None]:
+        """Fly until the mission completes, then HOLD; returns (wall s, vehicle uptime s at the end)."""
         try:
-            self._fly(i, wm, items, n_items)
+            self._fly(i, wm, items, len(items) - 1)  # MISSION_CURRENT.total excludes home
         finally:
             self.collector.leg = None
-        v.hold()
+        self.vehicle.hold()
         duration_s = time.perf_counter() - t_fly
         tb_end = self.link.vehicle_uptime_s()
         self.writer.flush()
-        # -- samples -> GP -------------------------------------------------------------------------
-        recs = self.store.for_leg(i)
-        tb = np.array([s.time_boot_ms for s in recs], float)
-        u, vv = to_field_units(grid, [s.u for s in recs], [s.v for s in recs], cfg.field.velocity_scale)
-        clock = self._clock_with_boots()
-        t_s = clock.field_time(tb, np.array([int(getattr(s, "boot", 0) or 0) for s in recs], np.int64))
-        samples = thin_samples(grid, t_s, [s.lat for s in recs], [s.lon for s in recs], u, vv,
-                               t_start=plan.t_start, dt=self.dt)
-        if len(samples) == 0:
+        return duration_s, tb_end
+
+    def _absorb(self, i: int, planned):
+        """The leg's stored samples through :meth:`LegStep.absorb`; the estimate to estimate.nc."""
+        from passt_mav.fields.field import FlowField
+
+        try:
+            absorbed = self.step.absorb(planned, self.store.for_leg(i), self._clock_with_boots())
+        except ReconstructionError as exc:
             raise MavlinkError(f"leg {i}: no current samples arrived (is the sensor sending "
-                               f"{cfg.sensors.u}/{cfg.sensors.v}?)")
-        if extend_leg_to_end(self.loop, plan, t_s, self.dt) != steps:
-            steps = plan.steps
-            rec.update(steps=steps, t_end=plan.t_start + steps * self.dt)
-        t0w = time.perf_counter()
-        new_state = self.loop.update(plan, samples)
-        gp_s = time.perf_counter() - t0w
-        t_new = plan.t_start + steps * self.dt
-        FlowField(new_state[None], grid, np.array([t_new]), self.field.time_origin, self.field.units).to_netcdf(rd.estimate_file(i))
-        r_passt = r_model = None
-        if self.truth_known:
-            tr = truth_at(self.field, t_new)
-            if tr is not None:
-                r_passt = rmse(new_state, tr)
-                pm = self._pure_model_at(t_new)
-                r_model = rmse(pm, tr) if pm is not None else None
-        link = self._link_record(link0)
-        rec.update({
-            "status": "complete", "t_state": t_new, "upload_s": upload_s, "upload_tries": upload_tries, "duration_s": duration_s,
-            "duration_vehicle_s": (tb_end - tb_fly) if (tb_end is not None and tb_fly is not None and tb_end >= tb_fly)
-            else None,
-            "gp_s": gp_s, "n_samples": len(recs), "n_samples_new": self.store.count(i) - store0,
-            "n_gp_points": len(samples), "rmse_passt": r_passt, "rmse_model": r_model, "link": link,
-        })
-        rd.write_leg(i, rec)
-        rd.write_timings(i, {"planning_s": planning_s, **{f"{k}_s": x for k, x in plan.timings.items()},
-                             "upload_s": upload_s, "leg_s": duration_s})
+                               f"{self.config.sensors.u}/{self.config.sensors.v}?): {exc}") from None
+        FlowField(absorbed.state[None], self.grid, np.array([absorbed.t_state]), self.field.time_origin,
+                  self.field.units).to_netcdf(self.rd.estimate_file(i))
+        return absorbed
+
+    def _finish_leg(self, i: int, rec: dict, planned) -> None:
+        """leg.json (complete), timings.json, summary.json, and one line of progress."""
+        self.rd.write_leg(i, rec)
+        self.rd.write_timings(i, {"planning_s": rec["planning_s"],
+                                  **{f"{k}_s": x for k, x in planned.plan.timings.items()},
+                                  "upload_s": rec["upload_s"], "leg_s": rec["duration_s"]})
         self.leg_records = [x for x in self.leg_records if int(x["index"]) != i] + [rec]
         self._write_summary()
-        rm = "" if r_passt is None else f", RMSE passt {r_passt:.4f} model {r_model if r_model is None else round(r_model, 4)}"
+        r_p, r_m, link = rec["rmse_passt"], rec["rmse_model"], rec["link"]
+        rm = "" if r_p is None else f", RMSE passt {r_p:.4f} model {r_m if r_m is None else round(r_m, 4)}"
         rtt = "-" if link["rtt_ms"] is None else f"{link['rtt_ms']:.1f} ms"
-        self._say(f"leg {i + 1}/{self.n_legs}: {len(recs)} samples ({len(samples)} to the GP), "
-                  f"{duration_s:.1f} s wall ({rec['duration_vehicle_s'] or 0:.0f} s vehicle), planning "
-                  f"{planning_s * 1000:.0f} ms, upload {upload_s:.2f} s{rm}, link RTT {rtt} loss {100 * link['loss']:.1f} %")
-        return new_state, t_new
+        self._say(f"leg {i + 1}/{self.n_legs}: {rec['n_samples']} samples ({rec['n_gp_points']} to the GP), "
+                  f"{rec['duration_s']:.1f} s wall ({rec['duration_vehicle_s'] or 0:.0f} s vehicle), planning "
+                  f"{rec['planning_s'] * 1000:.0f} ms, upload {rec['upload_s']:.2f} s{rm}, link RTT {rtt} "
+                  f"loss {100 * link['loss']:.1f} %")
 
     def _swap(self, i: int, items, t0w: float, attempts: int = 3) -> tuple[int, float, float, float | None]:
         """HOLD, verified upload, set-current 1, arm, AUTO: the transactional leg swap.

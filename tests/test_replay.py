@@ -156,13 +156,40 @@ def test_bare_tlog_with_mission_reproduces_from_waypoints(flown, tmp_path):
     assert res.kind == "tlog" and res.reproduced is True and (tmp_path / "o" / "replay.json").exists()
     assert [x.path for x in res.legs] == [x["path"] for x in summary["legs"]]
     assert [x.path_identical for x in res.legs] == [True, True]
-    # no summary: RMSE recomputed against the mission's field. The log only brackets the controller's
-    # clock reading; while the replay picked the recorded forecast steps, RMSE equals the recorded one
-    for got, want in zip(res.legs, summary["legs"]):
-        if got.forecast_steps_before != want["forecast_steps_before"]:
-            assert any("brackets" in n for n in got.notes)
-            break
+    # no summary: RMSE recomputed against the mission's field. The controller's clock STATUSTEXT in the
+    # log says which vehicle time it planned from: no search, the recorded forecast steps, RMSE to 1e-6
+    log_legs = rebuild_from_tlog(log).legs
+    assert all(lg.clock is not None for lg in log_legs)
+    for got, want, lg in zip(res.legs, summary["legs"], log_legs):
+        assert got.forecast_steps_before == want["forecast_steps_before"] == lg.clock[2]
+        assert lg.clock[0] == want["clock_reading"]["time_boot_ms"]
+        assert not any("brackets" in n for n in got.notes)
         assert got.rmse_passt == pytest.approx(want["rmse_passt"], abs=1e-6)
+        assert got.rmse_model == pytest.approx(want["rmse_model"], abs=1e-6)
+
+
+def test_bare_tlog_of_an_older_controller_searches_the_clock_bracket(flown, tmp_path):
+    """A log without the clock STATUSTEXT (controllers before it was sent): the replay tries the
+    forecast steps the log brackets and keeps those whose plans are the uploaded paths."""
+    rd, mfile, summary = flown
+    data = rd.tlog.read_bytes()
+    keep, n_cut, pos = bytearray(), 0, 0
+    for _, m in _TlogScanner(data):
+        buf = m.get_msgbuf()
+        at = data.index(buf, pos)
+        rec = data[at - 8: at + len(buf)]  # 8-byte timestamp + frame
+        pos = at + len(buf)
+        if m.get_type() == "STATUSTEXT" and "PASST leg" in str(m.text):
+            n_cut += 1
+            continue
+        keep += rec
+    assert n_cut == len(summary["legs"])
+    old = tmp_path / "old.tlog"
+    old.write_bytes(bytes(keep))
+    assert all(lg.clock is None for lg in rebuild_from_tlog(old).legs)
+    res = replay(old, mission=mfile, out=False)
+    assert res.reproduced is True
+    assert [x.path for x in res.legs] == [x["path"] for x in summary["legs"]]
 
 
 def test_pymavlink_logger_tlog_replays_into_the_same_samples(flown, tmp_path):

@@ -10,12 +10,10 @@
    (so the pairing of CUR_U/CUR_V with positions is the controller's, not an
    approximation of it). Leg windows follow the controller's: a leg's samples are
    those emitted between the GCS's switch to AUTO and its next mode command (HOLD);
-2. re-runs the between-leg step offline with the controller's code: the same
-   :func:`~passt_mav.controller.build_loop` / :func:`build_predictor`,
-   :class:`FieldClock`, :func:`to_field_units`, :func:`thin_samples`,
-   :func:`rmse`/:func:`truth_at` and ``PasstLoop.plan_leg``/``update``, legs in
-   order through one loop (its GP hyper-parameters, posterior std and planner seed
-   carry from leg to leg exactly as in the controller);
+2. re-runs the between-leg step offline with the controller's own code,
+   :class:`~passt_mav.legstep.LegStep` (``plan`` / ``absorb``), legs in order through one
+   loop (its GP hyper-parameters, posterior std and planner seed carry from leg to leg
+   exactly as in the controller);
 3. compares leg by leg: the re-planned grid path against the recorded one
    (``leg.json``, or for a bare tlog the uploaded waypoints expanded back into
    cells), the RMSE figures against ``summary.json``.
@@ -25,17 +23,12 @@ legs and samples, planned with another choice (the samples are still the ones th
 vehicle collected on its real path: a counterfactual path's reward is collected on
 the replayed forecast, its RMSE uses the real samples).
 
-The controller has no public function for its between-leg step (it is inline in
-``MissionController._leg``); :func:`plan_step` / :func:`update_step` are the minimal
-adapter that repeats it (the model-alone baseline is the controller's own
-:func:`~passt_mav.controller.pure_model_at`). A ``controller.plan_step`` / ``update_step``
-pair used by both would remove the duplication.
-
-The clock. The controller reads the vehicle's clock (newest ``time_boot_ms``) after
-the previous leg's GP update and before planning, and logs nothing at that moment:
-the number of snapshots it forecast before planning (``forecast_steps_before``) is
-bracketed by the log, not given. For a run directory the recorded value is used
-(and checked against the log's bracket); for a bare log every value in the bracket
+The clock. The controller sends, right before planning a leg, a STATUSTEXT with the
+vehicle clock reading it planned from and the snapshots it forecast before planning
+(:func:`~passt_mav.runs.legs.clock_statustext`); the replay uses it. Logs of older
+controllers lack it: the reading is then only bracketed by the log (between the previous
+leg's end and the upload). For a run directory the recorded ``forecast_steps_before`` is
+used (and checked against the log's bracket); for a bare log every value in the bracket
 is tried and the one whose plan is the uploaded path is kept (said in the leg's notes).
 The start cell likewise: ``leg.json``'s, else the first uploaded waypoint's.
 
@@ -87,63 +80,6 @@ def waypoints_to_path(grid, waypoints) -> np.ndarray | None:
     return np.array(out, int)
 
 
-# -- the between-leg step (adapter around the controller's building blocks) ---------------------
-def plan_step(loop, cfg, grid, clock, dt: float, state, t_state: float, start, k: int, *, speed: float):
-    """The planning half of ``MissionController._leg``: forecast ``k`` snapshots to now, plan the leg.
-
-    Does not change ``loop`` (planner seeds depend on ``loop.leg_index``, advanced by the update).
-    """
-    from passt_mav.controller import leg_steps
-
-    if k:
-        state = loop.forecast(state, k)[-1]
-        t_state += k * dt
-    steps = leg_steps(cfg, grid, speed, dt, clock.time_scale)
-    return loop.plan_leg(state, tuple(int(x) for x in start), t_state, dt, steps=steps)
-
-
-def update_step(loop, cfg, grid, clock, dt: float, plan, recs):
-    """The sample half of ``MissionController._leg``: m/s -> field units, clock, thinning, GP update.
-
-    ``recs``: sample records (dicts with time_boot_ms, lat, lon, u, v in m/s east/north).
-    Returns ``(samples, new_state, t_new)``; with no samples the state is the forecast at the leg's
-    end (the controller would have stopped there: it needs samples).
-    """
-    from passt_mav.controller import extend_leg_to_end, thin_samples, to_field_units
-
-    tb = np.array([r["time_boot_ms"] for r in recs], float)
-    u, v = to_field_units(grid, [r["u"] for r in recs], [r["v"] for r in recs], cfg.field.velocity_scale)
-    samples = thin_samples(grid, clock.field_time(tb), [r["lat"] for r in recs], [r["lon"] for r in recs], u, v,
-                           t_start=plan.t_start, dt=dt)
-    from passt_mav.errors import ReconstructionError
-
-    extend_leg_to_end(loop, plan, clock.field_time(tb), dt)  # the controller's own rule
-    t_new = plan.t_start + plan.steps * dt
-    if len(samples) == 0:
-        loop.leg_index += 1  # keep the planner seeds of later legs aligned with the run's
-        return samples, np.asarray(plan.forecast[-1], np.float32), t_new
-    try:
-        return samples, loop.update(plan, samples), t_new
-    except ReconstructionError:
-        # too few usable samples (a damaged log): the controller would have stopped here
-        loop.leg_index += 1
-        return type(samples)(*(np.empty(0),) * 5), np.asarray(plan.forecast[-1], np.float32), t_new
-
-
-def leg_step(loop, cfg, grid, clock, dt: float, state, t_state: float, start, t_now: float, recs, *,
-             speed: float, k: int | None = None):
-    """One leg of ``MissionController._leg`` without the vehicle: forecast to now, plan, thin, update.
-
-    ``k`` (snapshots forecast before planning) is ``round((t_now - t_state) / dt)`` unless given.
-    Returns ``(plan, samples, new_state, t_new, k)``.
-    """
-    if k is None:
-        k = max(0, int(round((t_now - t_state) / dt)))
-    plan = plan_step(loop, cfg, grid, clock, dt, state, t_state, start, k, speed=speed)
-    samples, new_state, t_new = update_step(loop, cfg, grid, clock, dt, plan, recs)
-    return plan, samples, new_state, t_new, k
-
-
 def _clock_bracket(lg, clock, t_state: float, dt: float) -> list[int]:
     """Forecast steps the controller may have taken before planning ``lg`` (see :class:`LoggedLeg`)."""
     k_lo = max(0, int(round((float(clock.field_time(lg.t_lo_ms)) - t_state) / dt)))
@@ -151,39 +87,40 @@ def _clock_bracket(lg, clock, t_state: float, dt: float) -> list[int]:
     return list(range(k_lo, k_hi + 1))
 
 
-def _search_clock(loop, cfg, grid, clock, dt, state, t_state, legs, starts, paths, budget: int = 200):
+def _search_clock(step, clock, state, t_state, legs, starts, paths, budget: int = 200):
     """Forecast steps per leg such that every leg's plan is its uploaded path (depth first).
 
-    A wrong choice on one leg can still plan the same path but leaves another state, which
-    shows on a later leg: hence the search over the whole sequence. Returns a list (one
-    per leg, None where nothing matched) or None when the budget of plans ran out.
+    For logs without the controller's clock STATUSTEXT. A wrong choice on one leg can still
+    plan the same path but leaves another state, which shows on a later leg: hence the
+    search over the whole sequence. Returns a list (one per leg, None where nothing
+    matched) or None when the budget of plans ran out.
     """
     import copy
 
     left = [budget]
-    speed = float(cfg.vehicle.speed_mps)
 
-    def dfs(i, lp, st, ts):
+    def dfs(i, st_, x, ts):
         if i == len(legs):
             return []
-        cands = _clock_bracket(legs[i], clock, ts, dt)
+        cands = _clock_bracket(legs[i], clock, ts, st_.dt)
         mid = (cands[0] + cands[-1]) / 2
-        cands.sort(key=lambda x: abs(x - mid))
+        cands.sort(key=lambda c: abs(c - mid))
         for cand in cands:
             if left[0] <= 0:
                 return None
             left[0] -= 1
-            plan = plan_step(lp, cfg, grid, clock, dt, st, ts, starts[i], cand, speed=speed)
-            if paths[i] is not None and plan.path.tolist() != paths[i]:
+            planned = st_.plan(i, x, ts, starts[i], k=cand)
+            if paths[i] is not None and planned.plan.path.tolist() != paths[i]:
                 continue
-            nxt = copy.deepcopy(lp, {id(lp.predictor): lp.predictor})
-            _, new, t_new = update_step(nxt, cfg, grid, clock, dt, plan, legs[i].samples)
-            rest = dfs(i + 1, nxt, new, t_new)
+            nxt = copy.deepcopy(st_, {id(st_.loop.predictor): st_.loop.predictor, id(st_.field): st_.field})
+            ab = nxt.absorb(planned, legs[i].samples, clock, strict=False)
+            rest = dfs(i + 1, nxt, ab.state, ab.t_state)
             if rest is not None:
                 return [cand] + rest
         return None
 
-    return dfs(0, copy.deepcopy(loop, {id(loop.predictor): loop.predictor}), state, t_state)
+    return dfs(0, copy.deepcopy(step, {id(step.loop.predictor): step.loop.predictor, id(step.field): step.field}),
+               state, t_state)
 
 
 # -- results --------------------------------------------------------------------------------------
@@ -287,7 +224,7 @@ def replay(source, *, out=None, model: str | None = None, planner: str | None = 
     Raises:
         ReplayError / UserError: bad input (the CLI prints one line, exit 2).
     """
-    from passt_mav.controller import FieldClock, build_loop, build_predictor, pure_model_at, rmse, truth_at
+    from passt_mav.legstep import FieldClock, LegStep, build_loop, build_predictor
     from passt_mav.fields.datasets import resolve_field
     from passt_mav.planning import PLANNERS, REWARDS, path_reward
     from passt_mav.runs.rundir import RunDir, RunDirError, write_json_atomic
@@ -350,9 +287,10 @@ def replay(source, *, out=None, model: str | None = None, planner: str | None = 
     predictor, pinfo = build_predictor(spec, field, echo=say)
     dt = float(field.dt)
     clk = (summary or {}).get("clock") or {}
-    clock = FieldClock(float(clk.get("t_boot0", field.times[cfg.t0])), float(clk.get("time_scale", cfg.field.time_scale)))
+    clock = FieldClock(float(clk.get("t_boot0", field.times[cfg.t0])), float(clk.get("time_scale", cfg.field.time_scale)),
+                       later_boots=tuple(float(x) for x in clk.get("later_boots") or ()))
     loop = build_loop(cfg, predictor, grid, land=field.land_mask)
-    truth_known = summary is None or summary.get("rmse") is not None
+    step = LegStep(cfg, field, loop, truth_known=summary is None or summary.get("rmse") is not None)
 
     from passt_mav.runs.tlog import LogReadError
 
@@ -383,23 +321,20 @@ def replay(source, *, out=None, model: str | None = None, planner: str | None = 
     if not log.legs:
         notes.append("no leg (upload followed by AUTO) found in the log")
 
-    state = np.array(field.data[cfg.t0], dtype=np.float32)
-    state[:, field.land_mask] = np.nan
-    t_state = float(field.times[cfg.t0])
+    state, t_state = step.initial_state()
     chosen = None
     usable = [lg for lg in log.legs if lg.start_latlon is not None and lg.t_now_ms is not None]
-    if rd is None and usable and len(usable) == len(log.legs):
+    if rd is None and usable and len(usable) == len(log.legs) and any(lg.clock is None for lg in usable):
         starts, paths = [], []
         for lg in usable:
             p = waypoints_to_path(grid, lg.waypoints)
             paths.append(None if p is None else p.tolist())
             pr, pc = grid.latlon_to_cell(lg.start_latlon[0], lg.start_latlon[1], clip=True)
             starts.append(tuple(paths[-1][0]) if paths[-1] else (int(pr), int(pc)))
-        chosen = _search_clock(loop, cfg, grid, clock, dt, state, t_state, usable, starts, paths)
+        chosen = _search_clock(step, clock, state, t_state, usable, starts, paths)
         if chosen is None:
             notes.append("no sequence of clock readings in the log's brackets reproduces every uploaded path; "
                          "each leg takes the first that reproduces its own")
-    cache: dict = {}
     legs: list[ReplayLeg] = []
     first_div = None
     for lg in log.legs:
@@ -417,8 +352,8 @@ def replay(source, *, out=None, model: str | None = None, planner: str | None = 
         if not lg.closed:
             lnotes.append("the log ends inside this leg (no HOLD after it): its samples may be incomplete")
         # the controller's clock reading before planning lies between two log times (see LoggedLeg)
-        k_lo = max(0, int(round((float(clock.field_time(lg.t_lo_ms)) - t_state) / dt)))
-        k_hi = max(k_lo, int(round((float(clock.field_time(lg.t_now_ms)) - t_state) / dt)))
+        bracket = _clock_bracket(lg, clock, t_state, dt)
+        k_lo, k_hi = bracket[0], bracket[-1]
         if rec is not None:
             rec_path = rec.get("path")
             start = tuple(int(x) for x in (rec.get("start_cell") or pos_cell))
@@ -427,7 +362,10 @@ def replay(source, *, out=None, model: str | None = None, planner: str | None = 
                               f"{list(pos_cell)}")
             if rec.get("forecast_steps_before") is not None:
                 ks = [int(rec["forecast_steps_before"])]
-                if not k_lo <= ks[0] <= k_hi:
+                if lg.clock is not None and int(lg.clock[2]) != ks[0]:
+                    lnotes.append(f"recorded forecast steps before planning {ks[0]}, the log's clock STATUSTEXT "
+                                  f"says {lg.clock[2]}")
+                elif not k_lo <= ks[0] <= k_hi:
                     lnotes.append(f"recorded forecast steps before planning {ks[0]} outside the log's [{k_lo}, {k_hi}]")
             else:
                 ks = list(range(k_lo, k_hi + 1))
@@ -439,33 +377,28 @@ def replay(source, *, out=None, model: str | None = None, planner: str | None = 
             # the uploaded path starts at the cell the controller planned from
             start = tuple(rec_path[0]) if rec_path else pos_cell
             ks = sorted(range(k_lo, k_hi + 1), key=lambda x: abs(x - (k_lo + k_hi) / 2))
-            if chosen is not None:
+            if lg.clock is not None:
+                ks = [int(lg.clock[2])]  # the controller said which (its clock STATUSTEXT)
+            elif chosen is not None:
                 ks = [chosen[lg.index]]
-        plan, k = None, ks[0]
+        planned, k = None, ks[0]
         for cand in ks:  # the clock reading whose plan is the uploaded one
-            pl = plan_step(loop, cfg, grid, clock, dt, state, t_state, start, cand,
-                           speed=float(cfg.vehicle.speed_mps))
-            if plan is None:
-                plan, k = pl, cand
-            if rec_path is not None and pl.path.tolist() == rec_path:
-                plan, k = pl, cand
+            pl = step.plan(lg.index, state, t_state, start, k=cand)
+            if planned is None:
+                planned, k = pl, cand
+            if rec_path is not None and pl.plan.path.tolist() == rec_path:
+                planned, k = pl, cand
                 break
-        if rec is None and k_hi > k_lo:
+        if rec is None and lg.clock is None and k_hi > k_lo:
             lnotes.append(f"the log brackets the controller's clock reading by {k_lo}..{k_hi} forecast steps; "
                           f"used {k}")
-        samples, new_state, t_new = update_step(loop, cfg, grid, clock, dt, plan, lg.samples)
-        if len(samples) == 0:
-            lnotes.append("too few samples in this leg to reconstruct: the state is the forecast "
-                          "(the controller would have stopped)")
+        ab = step.absorb(planned, lg.samples, clock, strict=False)
+        plan, samples, new_state, t_new, r_p, r_m = planned.plan, ab.samples, ab.state, ab.t_state, ab.rmse_passt, \
+            ab.rmse_model
+        if ab.note:
+            lnotes.append(ab.note + " (the controller would have stopped)")
         diffs = [] if rec_path is None else _diff_paths(rec_path, plan.path.tolist())
         same = None if rec_path is None else not diffs
-        r_p = r_m = None
-        if truth_known:
-            tr = truth_at(field, t_new)
-            if tr is not None:
-                r_p = rmse(new_state, tr)
-                pm = pure_model_at(loop, field, cfg.t0, dt, t_new, cache)
-                r_m = rmse(pm, tr) if pm is not None else None
         rp_rec = None if rec is None else rec.get("rmse_passt")
         rm_rec = None if rec is None else rec.get("rmse_model")
         r_same = None

@@ -16,10 +16,34 @@ from typing import Any
 
 from passt_mav.runs.tlog import LogReadError
 
-__all__ = ["LoggedLeg", "LogRebuild", "rebuild_from_tlog"]
+__all__ = ["LoggedLeg", "LogRebuild", "rebuild_from_tlog", "clock_statustext", "parse_clock_statustext"]
 
 _AUTO, _DO_SET_MODE, _MISSION_START = 10, 176, 300
 _NAV_WAYPOINT = 16
+_CLOCK_TEXT = "PASST leg {i} tb {tb} b {boot} k {k}"
+
+
+def clock_statustext(i: int, tb_ms: int, boot: int, k: int) -> str:
+    """The STATUSTEXT the controller sends (GCS -> vehicle) right before it plans leg ``i``.
+
+    ``tb_ms``: the vehicle's ``time_boot_ms`` it read as "now"; ``boot``: which boot of the
+    vehicle that time belongs to (0 = the first of the run); ``k``: snapshots forecast
+    before planning. It lands in the telemetry log (and ArduPilot writes a GCS's
+    STATUSTEXT into its DataFlash log as a MSG), so a replay of a bare log reads the
+    clock reading instead of searching for it. At most 50 characters (STATUSTEXT.text).
+    """
+    s = _CLOCK_TEXT.format(i=int(i), tb=int(tb_ms), boot=int(boot), k=int(k))
+    assert len(s) <= 50, s
+    return s
+
+
+def parse_clock_statustext(text: str) -> tuple[int, int, int, int] | None:
+    """``(leg, time_boot_ms, boot, k)`` from :func:`clock_statustext`'s text (any prefix, e.g.
+    DataFlash's ``SRC=255/190:``), None for any other text."""
+    import re
+
+    m = re.search(r"PASST leg (\d+) tb (\d+) b (\d+) k (\d+)", text or "")
+    return None if m is None else tuple(int(x) for x in m.groups())  # type: ignore[return-value]
 
 
 @dataclass
@@ -32,7 +56,10 @@ class LoggedLeg:
     previous leg ended, or the first of the log) and ``t_now_ms``: the log does not say
     where (it reads it after the GP update, before planning, and sends nothing then);
     ``waypoints``: (lat, lon) deg of the NAV_WAYPOINTs of the last upload before AUTO;
-    ``samples``: collector records (``time_boot_ms``, ``lat``, ``lon``, ``u``, ``v`` m/s east/north).
+    ``samples``: collector records (``time_boot_ms``, ``lat``, ``lon``, ``u``, ``v`` m/s east/north);
+    ``clock``: ``(time_boot_ms, boot, k)`` the controller planned from, read from its
+    :func:`clock_statustext` (None in logs of controllers that did not send it: then only the
+    bracket ``t_lo_ms``..``t_now_ms`` is known).
     """
 
     index: int
@@ -42,6 +69,7 @@ class LoggedLeg:
     waypoints: list[tuple[float, float]] = field(default_factory=list)
     samples: list[dict] = field(default_factory=list)
     closed: bool = False
+    clock: tuple[int, int, int] | None = None
 
 
 @dataclass
@@ -73,7 +101,7 @@ def rebuild_from_tlog(path: str | Path, *, u_name: str = "CUR_U", v_name: str = 
         raise LogReadError(f"{path}: no vehicle messages (HEARTBEAT or GLOBAL_POSITION_INT) in the log")
     legs: list[LoggedLeg] = []
     state: dict[str, Any] = {"cur": None, "pending": None, "upload": None, "pos": None, "tb": None, "outside": 0,
-                             "tb_lo": None}
+                             "tb_lo": None, "clock": None}
 
     def on_sample(rec: dict) -> None:
         leg = state["cur"]
@@ -100,10 +128,18 @@ def rebuild_from_tlog(path: str | Path, *, u_name: str = "CUR_U", v_name: str = 
             if typ == "GLOBAL_POSITION_INT" and not (m.lat == 0 and m.lon == 0):
                 state["pos"] = (m.lat * 1e-7, m.lon * 1e-7)
             continue
-        # -- GCS side: uploads and mode commands, as the controller sends them
+        # -- GCS side: the clock reading, uploads and mode commands, as the controller sends them
+        if typ == "STATUSTEXT":
+            parsed = parse_clock_statustext(m.text if isinstance(m.text, str) else m.text.decode(errors="replace"))
+            if parsed is not None and state["cur"] is None:
+                state["clock"] = parsed[1:]
+                if state["pending"] is not None:
+                    state["pending"].clock = state["clock"]
+            continue
         if typ == "MISSION_COUNT" and getattr(m, "mission_type", 0) == 0 and m.target_system in (0, veh):
             if state["pending"] is None and state["cur"] is None:  # first upload of a new leg: planned just before
-                state["pending"] = LoggedLeg(len(legs), state["pos"], state["tb"], state["tb_lo"])
+                state["pending"] = LoggedLeg(len(legs), state["pos"], state["tb"], state["tb_lo"], clock=state["clock"])
+                state["clock"] = None
             state["upload"] = {"count": int(m.count), "items": {}}
         elif typ in ("MISSION_ITEM_INT", "MISSION_ITEM") and state["upload"] is not None \
                 and getattr(m, "mission_type", 0) == 0 and 0 <= m.seq < state["upload"]["count"]:

@@ -1,0 +1,429 @@
+"""The between-leg step of PASST on a vehicle: one implementation for the controller and the replay.
+
+Pure: no MAVLink, no vehicle, no files. :class:`LegStep` takes the loop
+(:class:`~passt_mav.passt.PasstLoop`), the state, the vehicle's position and clock
+reading, and the leg's samples, and returns the plan and the new state with every
+figure the controller records. :class:`passt_mav.controller.MissionController` calls it
+between the legs it flies; :func:`passt_mav.analysis.replay.replay` calls it on legs
+rebuilt from a log, so a replay repeats the controller's decisions exactly.
+
+One leg::
+
+    position (lat, lon deg) -> start cell (region + margin and land checked)
+    clock reading (time_boot_ms, boot) -> field time t_now -> forecast the state
+        k = round((t_now - t_state) / dt) snapshots forward        [LegStep.plan]
+    -> PasstLoop.plan_leg over leg_steps(...) snapshots -> PlannedLeg
+    ... the vehicle flies it ...
+    samples (time_boot_ms, boot, lat, lon, u, v m/s east/north)
+    -> field units and frame, field time, thinning per (cell, snapshot bin)
+    -> the leg stretched to its last sample -> GP update -> state at the leg's end
+    -> RMSE vs the truth (PASST, and the model alone from t0)           [LegStep.absorb]
+
+Units: positions in degrees (WGS84), velocities in m/s east/north on the vehicle side
+and in the field's units and grid frame on the model side; field time in the field's
+units (s for geographic fields; scaled units for the cylinder, ``field.time_scale``
+vehicle seconds per unit).
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import logging
+import math
+import time
+from dataclasses import dataclass, field as _dcfield
+from typing import Any, Callable
+
+import numpy as np
+
+from passt_mav.errors import ReconstructionError, UserError
+
+__all__ = ["THINNING", "FieldClock", "LegStep", "PlannedLeg", "AbsorbedLeg", "utc_epoch", "to_field_units",
+           "thin_samples", "leg_steps", "extend_leg_to_end", "pure_model_at", "rmse", "truth_at",
+           "build_predictor", "build_loop"]
+
+log = logging.getLogger(__name__)
+
+THINNING = ("samples averaged per (nearest grid cell, snapshot bin round((t - t_start)/dt)); "
+            "position, time and velocity averaged in each group")
+
+
+# -- clock and sample preparation -------------------------------------------------------------
+@dataclass(frozen=True)
+class FieldClock:
+    """Vehicle time since boot -> field time: ``t_boot0 + time_boot_ms / 1000 / time_scale``.
+
+    ``source``: how ``t_boot0`` was found (``utc``: the vehicle's UTC at boot; ``boot``: given
+    or snapshot t0). ``later_boots``: ``t_boot0`` of each boot after a reboot (boot 1, 2, ...).
+    """
+
+    t_boot0: float
+    time_scale: float = 1.0
+    source: str = "boot"
+    later_boots: tuple[float, ...] = ()
+
+    def field_time(self, time_boot_ms, boot=0):
+        """Field time of ``time_boot_ms`` (ms) of boot ``boot`` (0 = the first; scalar or array)."""
+        tb = np.asarray(time_boot_ms, dtype=np.float64)
+        anchors = np.array((self.t_boot0,) + tuple(self.later_boots), dtype=np.float64)
+        b = np.clip(np.asarray(boot, dtype=np.int64), 0, len(anchors) - 1)
+        return anchors[b] + tb / 1000.0 / self.time_scale
+
+    def describe(self) -> dict[str, Any]:
+        d = {"rule": "t_field = t_boot0 + time_boot_ms / 1000 / time_scale", "t_boot0": self.t_boot0,
+             "time_scale": self.time_scale, "source": self.source}
+        if self.later_boots:
+            d["later_boots"] = list(self.later_boots)
+        return d
+
+
+def utc_epoch(iso: str) -> float:
+    """Epoch seconds of an ISO-8601 UTC time (a field's ``time_origin``)."""
+    t = _dt.datetime.fromisoformat(iso.replace("Z", "+00:00"))
+    return (t if t.tzinfo else t.replace(tzinfo=_dt.timezone.utc)).timestamp()
+
+
+def to_field_units(grid, u, v, velocity_scale: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+    """East/north m/s -> the field's velocity units and frame (inverse of the simulator's mapping)."""
+    u = np.asarray(u, float) / velocity_scale
+    v = np.asarray(v, float) / velocity_scale
+    rot = float(getattr(grid, "rotation_deg", 0.0) or 0.0)
+    if rot:
+        th = math.radians(rot)
+        u, v = u * math.cos(th) + v * math.sin(th), -u * math.sin(th) + v * math.cos(th)
+    return u, v
+
+
+def thin_samples(grid, t, lat, lon, u, v, *, t_start: float, dt: float):
+    """:class:`~passt_mav.passt.Samples` averaged per (nearest cell, snapshot bin); see module doc.
+
+    t: field time of each sample; lat/lon degrees; u/v in field units. Samples off
+    the grid are dropped. Returns Samples with fractional cells (mean position).
+    """
+    from passt_mav.passt import Samples
+
+    t, lat, lon, u, v = (np.asarray(a, float).reshape(-1) for a in (t, lat, lon, u, v))
+    if t.size == 0:
+        return Samples(t, t, t, t, t)
+    r, c = grid.latlon_to_fcell(lat, lon)
+    r, c = np.asarray(r, float), np.asarray(c, float)
+    inside = (r >= 0) & (r <= grid.rows - 1) & (c >= 0) & (c <= grid.cols - 1) & np.isfinite(u) & np.isfinite(v)
+    t, r, c, u, v = t[inside], r[inside], c[inside], u[inside], v[inside]
+    key = np.stack([np.floor(r + 0.5), np.floor(c + 0.5), np.round((t - t_start) / dt)], axis=1).astype(np.int64)
+    _, inv = np.unique(key, axis=0, return_inverse=True)
+    inv = inv.reshape(-1)
+    n = np.bincount(inv)
+
+    def mean(a):
+        return np.bincount(inv, weights=a) / n
+
+    return Samples(mean(t), mean(r), mean(c), mean(u), mean(v))
+
+
+def leg_steps(config, grid, speed: float, dt: float, time_scale: float) -> int:
+    """Snapshots a leg is planned to span: L moves x mean cell size / speed (see passt.steps_for_leg).
+
+    speed in m/s, dt in field time units, time_scale in vehicle seconds per field time unit.
+    """
+    from passt_mav.passt import steps_for_leg
+
+    return steps_for_leg(config.planner.path_length, grid.mean_cell_size_m, speed, dt * time_scale)
+
+
+def extend_leg_to_end(loop, plan, t_samples, dt: float) -> int:
+    """Stretch ``plan`` (a :class:`~passt_mav.passt.LegPlan`) to the time the leg really ended.
+
+    The leg was sized before it flew (L x mean cell / speed); diagonal moves, turns and the
+    current make the real leg longer. Reconstructing at the planned end would compare late
+    samples with a forecast clipped to that end (stale residuals), so the forecast is
+    extended to the last sample's field time ``t_samples`` (field units). Returns the
+    leg's steps. Shared by the controller and replay, which must agree exactly.
+    """
+    t = np.asarray(t_samples, float)
+    if t.size:
+        steps_actual = max(1, int(round((float(np.max(t)) - plan.t_start) / dt)))
+        if steps_actual > plan.steps:
+            plan.forecast = loop.forecast(plan.forecast[0], steps_actual)
+            plan.steps = steps_actual
+    return int(plan.steps)
+
+
+def pure_model_at(loop, field, t0_index: int, dt: float, t: float, cache: dict) -> np.ndarray | None:
+    """The model alone from the truth at snapshot ``t0_index`` (no re-initialisation), at field time ``t``.
+
+    Linear between the model's steps; (2, R, C) float64, or None before t0 or without a model.
+    ``cache`` (a dict the caller keeps) holds the trajectory so later calls only extend it.
+    Shared by the controller and replay, whose RMSE figures must agree to 1e-6.
+    """
+    if loop.predictor is None:
+        return None
+    t0 = float(field.times[t0_index])
+    x = (t - t0) / dt
+    if x < 0:
+        return None
+    need = int(math.ceil(x)) + 1
+    pure = cache.get("pure")
+    if pure is None or len(pure) <= need:
+        s = np.array(field.data[t0_index], dtype=np.float32)
+        pure = cache["pure"] = loop.forecast(s, max(need, 2 * (need // 2 + 1)))
+    k = int(math.floor(x))
+    w = x - k
+    return (1 - w) * pure[k].astype(float) + w * pure[min(k + 1, len(pure) - 1)].astype(float)
+
+
+def rmse(a, b) -> float | None:
+    """RMS difference over the cells finite in both (both components); None if none are."""
+    a, b = np.asarray(a, float), np.asarray(b, float)
+    ok = np.isfinite(a) & np.isfinite(b)
+    return float(np.sqrt(np.mean((a[ok] - b[ok]) ** 2))) if ok.any() else None
+
+
+def truth_at(field, t: float) -> np.ndarray | None:
+    """(2, R, C) snapshot at field time ``t`` (linear in time), None outside the data."""
+    times = field.times
+    if not times[0] - 1e-9 <= t <= times[-1] + 1e-9:
+        return None
+    if field.n_times == 1:
+        return field.data[0].astype(np.float64)
+    j = int(np.clip(np.searchsorted(times, t) - 1, 0, field.n_times - 2))
+    w = float(np.clip((t - times[j]) / (times[j + 1] - times[j]), 0.0, 1.0))
+    return (1 - w) * field.data[j].astype(np.float64) + w * field.data[j + 1].astype(np.float64)
+
+
+# -- building blocks from a mission config --------------------------------------------------------
+def build_predictor(spec: str, field, *, echo: Callable[[str], None] = print) -> tuple[object | None, dict]:
+    """The predictor named by a mission's ``model`` and what was used.
+
+    ``builtin:*`` / ``.pt``: loaded; if that fails, a warning is printed and DMD is
+    fitted on ``field`` instead (recorded as ``fallback``). Registry names are fitted on
+    ``field``. Returns ``(predictor, info)`` with info keys ``requested``, ``used``, ``fallback``.
+    """
+    from passt_mav.models.base import PREDICTORS, load_predictor, make_predictor
+
+    info: dict[str, Any] = {"requested": spec, "used": spec, "fallback": None}
+    if spec in PREDICTORS:
+        return make_predictor(spec).fit(field), info
+    try:
+        pred = load_predictor(spec)
+        shape = getattr(pred, "grid_shape_", None)
+        if shape is not None and tuple(shape)[-2:] != tuple(field.grid.shape):
+            raise UserError(f"model {spec} is for a {tuple(shape)[-2:]} grid, the mission's is {field.grid.shape}")
+        from passt_mav.models.evaluate import echo_skill
+
+        echo_skill(spec, getattr(pred, "metadata_", None), echo)
+        return pred, info
+    except (UserError, OSError, RuntimeError, KeyError, ValueError) as exc:
+        msg = f"WARNING: model {spec} could not be loaded ({exc}); falling back to DMD fitted on the mission's field"
+        echo(msg)
+        log.warning(msg)
+        info.update(used="dmd", fallback=str(exc))
+        return make_predictor("dmd").fit(field), info
+
+
+def build_loop(config, predictor, grid, land=None):
+    """:class:`PasstLoop` from a mission config (planner, reward, L, GP prior/options, seeds)."""
+    from passt_mav.passt import PasstLoop
+
+    gp_kw = {"seed": config.seeds.gp}
+    if config.sensors.noise_std > 0:
+        gp_kw["noise_std"] = config.sensors.noise_std
+    gp_kw.update(config.gp.options)
+    return PasstLoop(predictor, grid, planner=config.planner.name, planner_kw=dict(config.planner.options),
+                     reward=config.planner.reward, path_length=config.planner.path_length,
+                     steps_per_leg=config.steps_per_leg or 1, prior=config.gp.loop_prior, gp_kw=gp_kw,
+                     hyper=config.gp.hyper, land=land, seed=config.seeds.planner)
+
+
+
+
+# -- the step -------------------------------------------------------------------------------------
+@dataclass
+class PlannedLeg:
+    """A leg as planned: where from, when, and the plan (:class:`~passt_mav.passt.LegPlan`).
+
+    ``start_cell`` (row, col); ``start_latlon`` deg or None; ``t_now`` field time of the
+    clock reading (None when ``k`` was given); ``k`` snapshots forecast before planning;
+    ``steps`` snapshots the leg is planned to span (stretched by :meth:`LegStep.absorb`
+    when the leg really took longer); ``planning_s`` wall seconds of ``plan_leg``.
+    """
+
+    index: int
+    start_cell: tuple[int, int]
+    start_latlon: tuple[float, float] | None
+    t_now: float | None
+    k: int
+    plan: Any
+    steps: int
+    planning_s: float
+    clock_reading: tuple[int, int] | None = None  # (time_boot_ms, boot) the vehicle's clock said at t_now
+
+    @property
+    def t_start(self) -> float:
+        return float(self.plan.t_start)
+
+    def record(self, dt: float) -> dict[str, Any]:
+        """The leg record's planning fields (``leg.json``)."""
+        return {"index": self.index, "start_cell": list(self.start_cell),
+                "start_latlon": None if self.start_latlon is None else list(self.start_latlon),
+                "path": self.plan.path.tolist(), "t_start": self.t_start, "t_end": self.t_start + self.steps * dt,
+                "steps": self.steps, "forecast_steps_before": self.k, "planning_s": self.planning_s,
+                "planning_timings": dict(self.plan.timings),
+                "clock_reading": None if self.clock_reading is None else
+                {"time_boot_ms": self.clock_reading[0], "boot": self.clock_reading[1]}}
+
+
+@dataclass
+class AbsorbedLeg:
+    """What a leg's samples made of the state.
+
+    ``samples``: the thinned :class:`~passt_mav.passt.Samples` the GP got (field units);
+    ``state`` (2, R, C) float32 at field time ``t_state`` (the leg's end); ``steps`` the
+    leg's snapshots after stretching to its last sample; ``gp_s`` wall seconds of the
+    update; RMSE in field units over water cells vs the truth at ``t_state`` (None when
+    unknown); ``note`` says why the state is the forecast (no usable samples).
+    """
+
+    samples: Any
+    state: np.ndarray
+    t_state: float
+    steps: int
+    n_samples: int
+    gp_s: float = 0.0
+    rmse_passt: float | None = None
+    rmse_model: float | None = None
+    note: str | None = None
+
+    def record(self) -> dict[str, Any]:
+        return {"t_state": self.t_state, "steps": self.steps, "gp_s": self.gp_s, "n_samples": self.n_samples,
+                "n_gp_points": len(self.samples), "rmse_passt": self.rmse_passt, "rmse_model": self.rmse_model}
+
+
+def _columns(recs) -> dict[str, np.ndarray]:
+    """Sample records (store :class:`~passt_mav.runs.store.Sample` objects or dicts) as arrays."""
+    def get(r, k, default=None):
+        return r.get(k, default) if isinstance(r, dict) else getattr(r, k, default)
+
+    out = {k: np.array([get(r, k) for r in recs], float) for k in ("time_boot_ms", "lat", "lon", "u", "v")}
+    out["boot"] = np.array([int(get(r, "boot", 0) or 0) for r in recs], np.int64)
+    return out
+
+
+@dataclass
+class LegStep:
+    """The between-leg step (module docstring) for one mission.
+
+    Args:
+        config: :class:`~passt_mav.mission.MissionConfig` (planner, vehicle speed, margins, units).
+        field: the mission's field (dt, land, and the truth for RMSE).
+        loop: the :class:`~passt_mav.passt.PasstLoop` (:func:`build_loop`); its GP
+            hyper-parameters and planner seeds carry from leg to leg.
+        truth_known: compute RMSE vs ``field`` (the field is what the vehicle measures).
+    """
+
+    config: Any
+    field: Any
+    loop: Any
+    truth_known: bool = True
+    _pure: dict = _dcfield(default_factory=dict, repr=False)
+
+    @property
+    def grid(self):
+        return self.field.grid
+
+    @property
+    def dt(self) -> float:
+        return float(self.field.dt)
+
+    @property
+    def speed(self) -> float:
+        """Vehicle speed in m/s (the mission's ``vehicle.speed_mps``)."""
+        return float(self.config.vehicle.speed_mps)
+
+    def initial_state(self) -> tuple[np.ndarray, float]:
+        """The truth at snapshot ``config.t0`` (land NaN) and its field time."""
+        t0 = self.config.t0
+        state = np.array(self.field.data[t0], dtype=np.float32)
+        state[:, self.field.land_mask] = np.nan
+        return state, float(self.field.times[t0])
+
+    def start_cell(self, lat: float, lon: float, *, check: bool = True) -> tuple[int, int]:
+        """The grid cell of a position (deg); with ``check`` a position outside the region (+ the
+        mission's geofence margin, m) or on land raises :class:`UserError`."""
+        grid, margin = self.grid, float(self.config.geofence_margin_m)
+        if check and not bool(grid.contains(lat, lon, margin)):
+            raise UserError(f"the vehicle at {lat:.6f},{lon:.6f} is outside the mission region (+{margin:g} m); "
+                            "bring it into the region before starting a leg")
+        r, c = grid.latlon_to_cell(lat, lon, clip=True)
+        start = (int(r), int(c))
+        if check and self.field.land_mask[start]:
+            raise UserError(f"the vehicle is in cell {start}, which is land in the mission's field")
+        return start
+
+    def forecast_steps(self, t_now: float, t_state: float) -> int:
+        """Snapshots to bring a state at ``t_state`` forward to ``t_now`` (field time, never negative)."""
+        return max(0, int(round((t_now - t_state) / self.dt)))
+
+    def plan(self, index: int, state, t_state: float, start_cell, *, t_now: float | None = None,
+             k: int | None = None, start_latlon=None, clock_reading=None) -> PlannedLeg:
+        """Forecast the state to now (``k`` snapshots, from ``t_now`` unless given) and plan leg ``index``.
+
+        Does not advance the loop's leg counter (its planner seeds follow the update).
+        """
+        if k is None:
+            if t_now is None:
+                raise ValueError("plan() needs t_now or k")
+            k = self.forecast_steps(t_now, t_state)
+        if k:
+            state = self.loop.forecast(state, k)[-1]
+            t_state += k * self.dt
+        steps = leg_steps(self.config, self.grid, self.speed, self.dt, float(self.config.field.time_scale))
+        t0 = time.perf_counter()
+        plan = self.loop.plan_leg(state, tuple(int(x) for x in start_cell), t_state, self.dt, steps=steps)
+        return PlannedLeg(int(index), tuple(int(x) for x in start_cell),
+                          None if start_latlon is None else (float(start_latlon[0]), float(start_latlon[1])),
+                          t_now, int(k), plan, int(steps), time.perf_counter() - t0, clock_reading)
+
+    def absorb(self, planned: PlannedLeg, recs, clock: "FieldClock", *, strict: bool = True) -> AbsorbedLeg:
+        """The leg's samples into the state: field units, field time, thinning, stretch, GP update, RMSE.
+
+        ``recs``: sample records (``time_boot_ms``, ``boot``, ``lat``, ``lon``, ``u``, ``v`` in m/s
+        east/north; store rows or dicts). ``clock``: vehicle time -> field time (with every boot's
+        anchor). Without usable samples: ``strict`` raises :class:`ReconstructionError`; otherwise
+        the state is the forecast at the leg's end (a damaged log's replay) and ``note`` says so.
+        The loop's leg counter advances either way (later legs' planner seeds stay aligned).
+        """
+        plan, dt, grid = planned.plan, self.dt, self.grid
+        col = _columns(recs)
+        u, v = to_field_units(grid, col["u"], col["v"], self.config.field.velocity_scale)
+        t_s = clock.field_time(col["time_boot_ms"], col["boot"])
+        samples = thin_samples(grid, t_s, col["lat"], col["lon"], u, v, t_start=plan.t_start, dt=dt)
+        if strict and len(samples) == 0:
+            raise ReconstructionError(f"leg {planned.index}: no usable current samples")
+        planned.steps = extend_leg_to_end(self.loop, plan, t_s, dt)
+        t_new = plan.t_start + planned.steps * dt
+        note, t0 = None, time.perf_counter()
+        try:
+            if len(samples) == 0:
+                raise ReconstructionError("no samples")
+            state = self.loop.update(plan, samples)
+        except ReconstructionError:
+            if strict:
+                raise
+            self.loop.leg_index += 1
+            samples = type(samples)(*(np.empty(0),) * 5)
+            state = np.asarray(plan.forecast[-1], np.float32)
+            note = "too few samples in this leg to reconstruct: the state is the forecast"
+        gp_s = time.perf_counter() - t0
+        r_p, r_m = self.rmse_at(state, t_new)
+        return AbsorbedLeg(samples, state, float(t_new), int(planned.steps), len(recs), gp_s, r_p, r_m, note)
+
+    def rmse_at(self, state, t: float) -> tuple[float | None, float | None]:
+        """RMSE (field units) of ``state`` and of the model alone (from the truth at t0, never
+        re-initialised) vs the truth at field time ``t``; (None, None) when the truth is unknown."""
+        if not self.truth_known:
+            return None, None
+        tr = truth_at(self.field, t)
+        if tr is None:
+            return None, None
+        pm = pure_model_at(self.loop, self.field, self.config.t0, self.dt, t, self._pure)
+        return rmse(state, tr), (rmse(pm, tr) if pm is not None else None)
