@@ -111,3 +111,11 @@ def test_the_check_catches_a_forbidden_import(tmp_path, target, line):
     f.write_text(f.read_text() + f"\n\ndef _sneaky():\n    {line}\n")
     bad = layer_violations(tmp_path)
     assert len(bad) >= 1 and all(b.startswith(target) for b in bad), bad
+
+
+def test_controller_methods_fit_on_one_screen():
+    """Each method of the controller does one thing: none is longer than 60 lines (issue 14)."""
+    tree = ast.parse((ROOT / "passt_mav" / "controller.py").read_text())
+    long = [f"{n.name} ({n.end_lineno - n.lineno + 1} lines)" for n in ast.walk(tree)
+            if isinstance(n, (ast.FunctionDef, ast.AsyncFunctionDef)) and n.end_lineno - n.lineno + 1 > 60]
+    assert not long, long
