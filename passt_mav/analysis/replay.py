@@ -32,9 +32,10 @@ used (and checked against the log's bracket); for a bare log every value in the 
 is tried and the one whose plan is the uploaded path is kept (said in the leg's notes).
 The start cell likewise: ``leg.json``'s, else the first uploaded waypoint's.
 
-DataFlash ``.bin`` logs hold no mission uploads or GCS mode commands that this
-reader exposes, so legs cannot be rebuilt from them: replaying a ``.bin`` is
-refused with a one-line error.
+A bare ArduPilot DataFlash ``.bin`` (the autopilot's own log; ``--mission`` needed) is
+replayed the same way, its legs rebuilt by
+:func:`~passt_mav.runs.dataflash_legs.rebuild_from_dataflash` (mission blocks, mode
+changes, the clock STATUSTEXT as a MSG, NVF readings with POS/GPS positions).
 """
 
 from __future__ import annotations
@@ -248,14 +249,11 @@ def replay(source, *, out=None, model: str | None = None, planner: str | None = 
                 raise ReplayError(str(exc)) from None
         kind = "run"
     else:
-        if src.suffix.lower() == ".bin":
-            raise ReplayError(f"{src}: DataFlash logs hold no mission uploads or mode commands to rebuild legs from; "
-                              "replay the run's .tlog")
-        if src.suffix.lower() != ".tlog":
-            raise ReplayError(f"{src}: expected a run directory or a .tlog file")
+        if src.suffix.lower() not in (".tlog", ".bin"):
+            raise ReplayError(f"{src}: expected a run directory, a .tlog or an ArduPilot DataFlash .bin file")
         if mission is None:
             raise ReplayError(f"replaying a bare log needs --mission M.yaml (region, model, planner): {src}")
-        tlog, kind = src, "tlog"
+        tlog, kind = src, "dataflash" if src.suffix.lower() == ".bin" else "tlog"
     cfg, mission_src = _load_config(mission, summary, rd)
     if planner is not None and planner not in PLANNERS:
         raise ReplayError(f"unknown planner {planner!r}; choose one of {', '.join(PLANNERS)}")
@@ -295,7 +293,12 @@ def replay(source, *, out=None, model: str | None = None, planner: str | None = 
     from passt_mav.runs.tlog import LogReadError
 
     try:
-        log = rebuild_from_tlog(tlog, u_name=cfg.sensors.u, v_name=cfg.sensors.v)
+        if kind == "dataflash":
+            from passt_mav.runs.dataflash_legs import rebuild_from_dataflash
+
+            log = rebuild_from_dataflash(tlog, u_name=cfg.sensors.u, v_name=cfg.sensors.v)
+        else:
+            log = rebuild_from_tlog(tlog, u_name=cfg.sensors.u, v_name=cfg.sensors.v)
     except LogReadError as exc:
         raise ReplayError(str(exc)) from None
     recorded = {}

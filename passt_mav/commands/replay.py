@@ -9,6 +9,7 @@ EXAMPLES = """examples:
   passt-mav replay runs/2026-05-01_ocean                      # same settings: does it reproduce?
   passt-mav replay runs/2026-05-01_ocean --planner lawnmower  # what lawnmower would have planned
   passt-mav replay flight.tlog --mission missions/ocean.yaml  # a bare telemetry log (ours, MAVProxy, QGC)
+  passt-mav replay 00000042.BIN --mission missions/ocean.yaml # the autopilot's own ArduPilot DataFlash log
   passt-mav replay runs/2026-05-01_ocean --json
 
 The legs, the samples and the vehicle's clock are rebuilt from the telemetry log
@@ -21,7 +22,8 @@ Exit 0: reproduced (or a counterfactual run), 1: diverged with the same settings
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("source", metavar="RUN_DIR|FILE.tlog", help="run directory, or a telemetry log (needs --mission)")
+    p.add_argument("source", metavar="RUN_DIR|FILE.tlog|FILE.bin",
+                   help="run directory, or a telemetry log or ArduPilot DataFlash log (needs --mission)")
     p.add_argument("--mission", metavar="M.yaml", default=None,
                    help="mission file (region, field, model, planner); required for a bare log")
     p.add_argument("--model", metavar="SPEC", default=None, help="counterfactual predictor (registry name, builtin:*, .pt)")
