@@ -5,6 +5,11 @@
    a lockstep in-process link whose GCS side parses everything; and the clock
    a served simulator (TCP, pymavlink client) actually achieves at a large
    ``--speedup``.
+   Beside it, the same with several boats in one process (``vehicle-sim --boats N``,
+   :class:`vehicle_sim.fleet.Fleet`: one field, one clock): the fleet's real-time
+   factor with 1 and with 3 boats flying missions side by side (simulated seconds
+   of the whole fleet per wall second; per-boat cost = 1/rtf), and the clock 3
+   boats served over TCP achieve at a large ``--speedup``.
 2. Mission-upload throughput (items per simulated second) with a client that
    answers each request at once: at loopback, and over an emulated 57600-baud
    radio (with and without the default telemetry competing for the bytes),
@@ -77,6 +82,82 @@ def bench_rtf(sim_seconds: float) -> dict:
             "physics_dt": sim.config.physics_dt}
 
 
+def bench_rtf_fleet(n_boats: int, sim_seconds: float) -> dict:
+    """Real-time factor of ``n_boats`` in one :class:`Fleet` (lockstep, in-process links).
+
+    Each boat flies its own 31-waypoint mission (a 200 m x 100 m lawnmower from its own
+    spread start) with the default 1 Hz streams and the current sensor on; one GCS per
+    boat parses everything it sends, as :func:`bench_rtf` does for one boat.
+    """
+    from pymavlink.dialects.v20 import ardupilotmega as M
+
+    from vehicle_sim import MODES, SimConfig
+    from vehicle_sim.fleet import Fleet, spread_starts
+    from vehicle_sim.mission_server import Item
+
+    field = _field()
+    starts = spread_starts(field, n_boats)
+    fleet = Fleet(field, starts=starts, config=SimConfig.fast())
+    eps = [b.connect_inprocess() for b in fleet.boats]
+    gcs = [M.MAVLink(ep, srcSystem=255, srcComponent=190) for ep in eps]
+    fleet.run_until(2.0)
+    for b, home in zip(fleet.boats, starts):
+        ap = b.autopilot
+        for it in _mission(home, 31):
+            ap.store.put(Item.from_msg(it))
+        ap.arm()
+        ap.set_mode(MODES["AUTO"])
+    n_msgs = 0
+    t0, s0 = time.perf_counter(), fleet.t
+    while fleet.t - s0 < sim_seconds:
+        fleet.step(0.25)
+        for g, ep in zip(gcs, eps):
+            n_msgs += len(g.parse_buffer(ep.read()) or [])
+    wall = time.perf_counter() - t0
+    sim_s = fleet.t - s0
+    running = sum(b.autopilot.mission_state == "running" for b in fleet.boats)
+    return {"boats": n_boats, "sim_s": sim_s, "wall_s": wall, "rtf": sim_s / wall,
+            "boat_sim_s_per_wall_s": n_boats * sim_s / wall, "msgs_per_sim_s": n_msgs / sim_s,
+            "boats_still_on_mission": running}
+
+
+def bench_served_fleet(n_boats: int, speedup: float, wall_s: float) -> dict:
+    """Clock a TCP-served fleet achieves while one client per boat drains its socket (bytes only)."""
+    from vehicle_sim import SimConfig
+    from vehicle_sim.fleet import Fleet, spread_starts
+
+    field = _field()
+    fleet = Fleet(field, starts=spread_starts(field, n_boats), config=SimConfig.fast())
+    fleet.serve(["tcp:127.0.0.1:0"], speedup=speedup)  # OS-chosen ports (the +10 layout may be taken)
+    conns = [socket.create_connection(("127.0.0.1", p)) for p in fleet.tcp_ports()]
+    for c in conns:
+        c.setblocking(False)
+
+    def drain(seconds):
+        import select
+
+        n, t_end = 0, time.perf_counter() + seconds
+        while time.perf_counter() < t_end:
+            ready, _, _ = select.select(conns, [], [], 0.2)
+            for c in ready:
+                try:
+                    n += len(c.recv(1 << 16))
+                except BlockingIOError:
+                    pass
+        return n
+
+    drain(1.0)
+    t0, s0 = time.perf_counter(), fleet.t
+    nbytes = drain(wall_s)
+    wall = time.perf_counter() - t0
+    achieved = (fleet.t - s0) / wall
+    for c in conns:
+        c.close()
+    fleet.stop()
+    return {"boats": n_boats, "speedup_requested": speedup, "speedup_achieved": achieved,
+            "bytes_per_wall_s": nbytes / wall}
+
+
 def bench_served(speedup: float, wall_s: float) -> dict:
     """Clock a TCP-served simulator achieves while a client drains its socket.
 
@@ -147,7 +228,9 @@ def main(argv=None) -> int:
     q = args.quick
     out = {
         "rtf_lockstep": bench_rtf(300.0 if q else 1800.0),
+        "rtf_fleet": [bench_rtf_fleet(1, 300.0 if q else 1800.0), bench_rtf_fleet(3, 300.0 if q else 1800.0)],
         "served": [bench_served(200.0, 2.0 if q else 5.0), bench_served(1000.0, 2.0 if q else 5.0)],
+        "served_fleet": [bench_served_fleet(3, 200.0, 2.0 if q else 5.0), bench_served_fleet(3, 1000.0, 2.0 if q else 5.0)],
         "upload": [
             bench_upload(101, 0, True, True),
             bench_upload(101, 0, False, True),
@@ -163,6 +246,13 @@ def main(argv=None) -> int:
         r = out["rtf_lockstep"]
         print(f"real-time factor (lockstep, default streams, field sampling): {r['rtf']:.0f}x "
               f"({r['sim_s']:.0f} sim s in {r['wall_s']:.2f} s; {r['msgs_per_sim_s']:.1f} msgs/sim s)")
+        f1, f3 = out["rtf_fleet"]
+        print(f"real-time factor of a fleet (lockstep, each boat on its own mission): 1 boat {f1['rtf']:.0f}x, "
+              f"3 boats {f3['rtf']:.0f}x ({f3['boat_sim_s_per_wall_s']:.0f} boat-s per wall s vs "
+              f"{f1['boat_sim_s_per_wall_s']:.0f}; {f3['sim_s']:.0f} sim s in {f3['wall_s']:.2f} s)")
+        for s in out["served_fleet"]:
+            print(f"3 boats served over TCP at --speedup {s['speedup_requested']:.0f}: achieved {s['speedup_achieved']:.0f}x "
+                  f"({s['bytes_per_wall_s'] / 1e3:.0f} kB/s to the clients)")
         for s in out["served"]:
             print(f"served over TCP at --speedup {s['speedup_requested']:.0f}: achieved {s['speedup_achieved']:.0f}x "
                   f"({s['bytes_per_wall_s'] / 1e3:.0f} kB/s to the client)")

@@ -8,17 +8,20 @@ Package layout: :mod:`~vehicle_sim.boat` (pure kinematics and current sampling),
 :mod:`~vehicle_sim.mission_server` (mission protocol), :mod:`~vehicle_sim.autopilot`
 (modes, arming, commands, parameters, telemetry, failsafe), :mod:`~vehicle_sim.link`
 (framing via pymavlink, signing, impairment, tlog), :mod:`~vehicle_sim.sim`
-(clock and transports), :mod:`~vehicle_sim.inprocess` (a ``mavutil`` connection
+(clock and transports), :mod:`~vehicle_sim.fleet` (several boats on one field and one
+clock, ``vehicle-sim --boats N``), :mod:`~vehicle_sim.inprocess` (a ``mavutil`` connection
 class over an in-process link), :mod:`~vehicle_sim.cli` (``vehicle-sim``).
 """
 
 from vehicle_sim.autopilot import MODES, MODE_NAMES, Autopilot
 from vehicle_sim.boat import BoatParams, CurrentModel
 from vehicle_sim.config import LinkConfig, SimConfig
+from vehicle_sim.fleet import Fleet
 from vehicle_sim.sim import InProcessEndpoint, Simulator
 
 __all__ = [
     "Simulator",
+    "Fleet",
     "SimConfig",
     "LinkConfig",
     "BoatParams",

@@ -9,6 +9,16 @@ Examples::
         --time-scale 20 --listen tcp:127.0.0.1:5760
     vehicle-sim --field currents.nc --start-time 2024-05-01T06:00:00Z --utc-at-boot field \\
         --gps-noise 2 --current-noise 0.02 --seed 1
+    vehicle-sim --field builtin:ocean --boats 3 --speedup 10     # boats on 5760, 5770, 5780; sysids 1, 2, 3
+    vehicle-sim --field builtin:ocean --boats 2 --base-port 6000 --start 40.1,-63.0 --start 40.2,-62.8 \\
+        --boat-param 1:FS_GCS_ENABLE=1 --boat-drop 1:300:60
+
+Several boats (--boats N): one process, one current field, one clock; boat I (0..N-1, like
+SITL's -I I) listens on every --listen port + 10*I (default tcp:127.0.0.1:5760 + 10*I),
+has system id I+1 (parameter MAV_SYSID), its own autopilot, mission, modes and arming, and
+starts at its --start/--start-cell or spread over the field's region (without a field:
+20 m apart east of --home). In --lockstep, a 31010 command to any boat advances all.
+--tlog NAME.tlog writes NAME-<sysid>.tlog per boat.
 
 Bad input exits with code 2 and a one-line message; Ctrl-C exits cleanly (0).
 """
@@ -47,6 +57,30 @@ def _drop(s: str) -> tuple[float, float]:
     return a, b
 
 
+def _boat_prefixed(s: str, what: str, n: int) -> tuple[int, str]:
+    """``I:REST`` of a per-boat option -> (boat index 0..n-1, REST)."""
+    i, sep, rest = s.partition(":")
+    try:
+        idx = int(i)
+    except ValueError:
+        idx = -1
+    if not sep or not rest or idx < 0:
+        raise _Bad(f"{what} must start with a boat index I: (0..{n - 1}), got {s!r}")
+    if idx >= n:
+        raise _Bad(f"{what} {s!r}: no boat {idx} among --boats {n} (boats are numbered 0..{n - 1})")
+    return idx, rest
+
+
+def _param_kv(kv: str, what: str) -> tuple[str, float]:
+    if "=" not in kv:
+        raise _Bad(f"{what} must be NAME=VALUE, got {kv!r}")
+    k, v = kv.split("=", 1)
+    try:
+        return k.strip().upper(), float(v)
+    except ValueError:
+        raise _Bad(f"{what} {k} value must be a number, got {v!r}") from None
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="vehicle-sim",
@@ -57,7 +91,20 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--field", default=None, help="FILE.nc | builtin:ocean | builtin:cylinder | builtin:oscillating | none (still water)")
     p.add_argument("--home", default=None, help="start/home LAT,LON (default: centre of the field's region)")
     p.add_argument("--listen", action="append", default=None,
-                   help="tcp:HOST:PORT, udpin:HOST:PORT or udpout:HOST:PORT; repeatable (default tcp:127.0.0.1:5760)")
+                   help="tcp:HOST:PORT, udpin:HOST:PORT or udpout:HOST:PORT; repeatable (default tcp:127.0.0.1:5760); "
+                        "with --boats, boat I gets PORT + 10*I")
+    p.add_argument("--boats", type=int, default=1,
+                   help="number of boats N (default 1): boat I on port + 10*I with system id I+1, all in one field and clock")
+    p.add_argument("--base-port", type=int, default=None,
+                   help="boat 0's TCP port (boat I: BASE + 10*I), i.e. --listen tcp:127.0.0.1:BASE; 0 = OS-chosen ports (printed)")
+    p.add_argument("--start", action="append", default=[],
+                   help="a boat's start/home LAT,LON; repeatable, once per boat (default: spread over the field's region)")
+    p.add_argument("--start-cell", action="append", default=[],
+                   help="a boat's start as ROW,COL of the field's grid (cell centre; row 0 = south); repeatable, once per boat")
+    p.add_argument("--boat-param", action="append", default=[],
+                   help="I:NAME=VALUE parameter of boat I only (after --param); repeatable; I:MAV_SYSID=S sets its system id")
+    p.add_argument("--boat-drop", action="append", default=[],
+                   help="I:START:DURATION link outage of boat I only (sim seconds); repeatable")
     p.add_argument("--region", default=None, help="crop the field to SOUTH,WEST,NORTH,EAST degrees (default: whole grid)")
     p.add_argument("--velocity-scale", type=float, default=None, help="m/s per field velocity unit (metric fields; default 1)")
     p.add_argument("--time-scale", type=float, default=None, help="seconds per field time unit (metric fields; default 1)")
@@ -194,6 +241,47 @@ def main(argv: list[str] | None = None) -> int:
         return 2
 
 
+def _starts(args, field, n: int) -> list[tuple[float, float]]:
+    """Each boat's start/home (lat, lon) from --home / --start / --start-cell / the field."""
+    if args.start and args.start_cell:
+        raise _Bad("give --start or --start-cell, not both")
+    if args.home and (args.start or args.start_cell):
+        raise _Bad("give --home or --start/--start-cell, not both")
+    given = args.start or args.start_cell
+    if given and len(given) != n:
+        opt = "--start" if args.start else "--start-cell"
+        raise _Bad(f"{opt} given {len(given)} times for --boats {n}: give it once per boat")
+    if args.start:
+        return [_latlon(s, "--start") for s in args.start]
+    if args.start_cell:
+        if field is None:
+            raise _Bad("--start-cell needs a field")
+        R, C = field.grid.shape
+        out = []
+        for s in args.start_cell:
+            try:
+                r, c = (float(x) for x in s.split(","))
+            except ValueError:
+                raise _Bad(f"--start-cell must be ROW,COL, got {s!r}") from None
+            if not (0 <= r <= R - 1 and 0 <= c <= C - 1):
+                raise _Bad(f"--start-cell {s} lies outside the field's {R}x{C} grid")
+            lat, lon = field.grid.fcell_to_latlon(r, c)
+            out.append((float(lat), float(lon)))
+        return out
+    from vehicle_sim.fleet import line_starts, spread_starts
+
+    if args.home:
+        home = _latlon(args.home, "--home")
+        return [home] if n == 1 else line_starts(home, n)
+    if field is None:
+        raise _Bad("--home LAT,LON is required without a field")
+    if n == 1:
+        g = field.grid
+        lat, lon = g.fcell_to_latlon((g.rows - 1) / 2.0, (g.cols - 1) / 2.0)
+        return [(float(lat), float(lon))]
+    return spread_starts(field, n)
+
+
 def _run(args) -> int:
     from vehicle_sim.boat import BoatParams
     from vehicle_sim.config import LinkConfig, SimConfig
@@ -204,37 +292,45 @@ def _run(args) -> int:
         raise _Bad(f"--loss must be in [0, 1), got {args.loss}")
     if args.speedup <= 0:
         raise _Bad(f"--speedup must be positive, got {args.speedup}")
-    listen = args.listen or ["tcp:127.0.0.1:5760"]
+    n = args.boats
+    if not 1 <= n <= 100:
+        raise _Bad(f"--boats must be 1..100, got {n}")
+    if args.base_port is not None:
+        if args.listen:
+            raise _Bad("give --base-port or --listen, not both")
+        if not 0 <= args.base_port < 65536:
+            raise _Bad(f"--base-port out of range: {args.base_port}")
+        listen = [f"tcp:127.0.0.1:{args.base_port}"]
+    else:
+        listen = args.listen or ["tcp:127.0.0.1:5760"]
     for spec in listen:
         try:
-            parse_link_spec(spec)
+            _, _, port = parse_link_spec(spec)
         except ValueError as exc:
             raise _Bad(str(exc)) from None
-    params = []
-    for kv in args.param:
-        if "=" not in kv:
-            raise _Bad(f"--param must be NAME=VALUE, got {kv!r}")
-        k, v = kv.split("=", 1)
-        try:
-            params.append((k.strip().upper(), float(v)))
-        except ValueError:
-            raise _Bad(f"--param {k} value must be a number, got {v!r}") from None
+        if port and port + 10 * (n - 1) > 65535:
+            raise _Bad(f"{spec}: boat {n - 1}'s port {port + 10 * (n - 1)} would be out of range")
+    params = [_param_kv(kv, "--param") for kv in args.param]
+    boat_params: list[list[tuple[str, float]]] = [[] for _ in range(n)]
+    for s in args.boat_param:
+        i, kv = _boat_prefixed(s, "--boat-param", n)
+        boat_params[i].append(_param_kv(kv, "--boat-param"))
+    boat_drops: list[list[tuple[float, float]]] = [[] for _ in range(n)]
+    for s in args.boat_drop:
+        i, d = _boat_prefixed(s, "--boat-drop", n)
+        boat_drops[i].append(_drop(d))
+    if n > 1 and any(k == "MAV_SYSID" for k, _ in params):
+        raise _Bad("--param MAV_SYSID would give every boat the same system id; use --boat-param I:MAV_SYSID=S")
     field = _load_field(args)
-    if args.home:
-        home = _latlon(args.home, "--home")
-    elif field is not None:
-        g = field.grid
-        lat, lon = g.fcell_to_latlon((g.rows - 1) / 2.0, (g.cols - 1) / 2.0)
-        home = (float(lat), float(lon))
-    else:
-        raise _Bad("--home LAT,LON is required without a field")
+    starts = _starts(args, field, n)
+    home = starts[0]
     vs = args.velocity_scale if args.velocity_scale is not None else 1.0
     ts = args.time_scale if args.time_scale is not None else 1.0
     if vs <= 0 or ts <= 0:
         raise _Bad("--velocity-scale and --time-scale must be positive")
     from vehicle_sim.autopilot import DEFAULT_PARAMS
 
-    for k, _ in params:
+    for k, _ in params + [kv for bp in boat_params for kv in bp]:
         if k not in DEFAULT_PARAMS:
             raise _Bad(f"unknown parameter {k!r} in --param")
     base = SimConfig.fast() if args.fast_boot else SimConfig()
@@ -244,11 +340,30 @@ def _run(args) -> int:
         boat=BoatParams(nav=args.nav), params=tuple(params), tlog=args.tlog,
         signing_key=secret_from_key(args.signing_key) if args.signing_key else None,
     )
-    link_cfg = LinkConfig(loss=args.loss, latency_s=args.latency, baud=args.baud,
-                          drops=tuple(_drop(d) for d in args.drop), seed=args.seed)
+    drops = tuple(_drop(d) for d in args.drop)
     start = _start_time(args.start_time, field)
-    sim = Simulator(field, home=home, config=cfg, velocity_scale=vs, time_scale=ts,
-                    start_time=start, link_config=link_cfg, epoch0=_utc_at_boot(args.utc_at_boot, field, start, ts))
+    epoch0 = _utc_at_boot(args.utc_at_boot, field, start, ts)
+    if n == 1:
+        p0 = dict(params + boat_params[0])
+        # MAV_SYSID is the system id, as in a SITL params file (ArduPilot reads it at boot)
+        cfg = cfg.replace(params=tuple(params + boat_params[0]), sysid=int(p0.get("MAV_SYSID", cfg.sysid)))
+        link_cfg = LinkConfig(loss=args.loss, latency_s=args.latency, baud=args.baud,
+                              drops=drops + tuple(boat_drops[0]), seed=args.seed)
+        server = Simulator(field, home=home, config=cfg, velocity_scale=vs, time_scale=ts,
+                           start_time=start, link_config=link_cfg, epoch0=epoch0)
+        boats = [server]
+    else:
+        from vehicle_sim.fleet import Fleet, boat_config
+
+        try:
+            configs = [boat_config(cfg.replace(params=tuple(params + boat_params[i])), i) for i in range(n)]
+        except ValueError as exc:
+            raise _Bad(str(exc)) from None
+        link_cfgs = [LinkConfig(loss=args.loss, latency_s=args.latency, baud=args.baud,
+                                drops=drops + tuple(boat_drops[i]), seed=args.seed + i) for i in range(n)]
+        server = Fleet(field, starts=starts, configs=configs, velocity_scale=vs, time_scale=ts, start_time=start,
+                       link_configs=link_cfgs, epoch0=epoch0)
+        boats = server.boats
     stop = {"flag": False}
 
     def _stop(*_):
@@ -261,35 +376,44 @@ def _run(args) -> int:
     signal.signal(signal.SIGTERM, _stop)
     signal.signal(signal.SIGINT, _stop)
     try:
-        sim.serve(listen, speedup=args.speedup, wait_for_client=not args.no_wait, lockstep=args.lockstep)
+        server.serve(listen, speedup=args.speedup, wait_for_client=not args.no_wait, lockstep=args.lockstep)
     except BaseException:
-        sim.stop()
+        server.stop()
         raise
     if not args.quiet:
-        bound = {spec: port for spec, port in sim.ports()}
-        where = ", ".join(f"{s} (port {bound[s]})" if s.endswith(":0") and s in bound else s for s in listen)
-        print(f"vehicle-sim: boat at {home[0]:.6f},{home[1]:.6f}; listening on {where}; "
-              f"speedup {args.speedup:g}" + (" (signed)" if cfg.signing_key else ""), file=sys.stderr)
+        from vehicle_sim.fleet import boat_listen
+
+        for i, b in enumerate(boats):
+            specs = boat_listen(listen, i) if n > 1 else listen
+            bound = dict(b.ports())
+            where = ", ".join(f"{s} (port {bound[s]})" if s.endswith(":0") and s in bound else s for s in specs)
+            lat, lon = starts[i]
+            who = "boat" if n == 1 else f"boat {i} (sysid {b.config.sysid})"
+            print(f"vehicle-sim: {who} at {lat:.6f},{lon:.6f}; listening on {where}; "
+                  f"speedup {args.speedup:g}" + (" (signed)" if cfg.signing_key else ""), file=sys.stderr, flush=True)
     try:
         last = 0.0
-        while not stop["flag"] and sim.running:
+        while not stop["flag"] and server.running:
             time.sleep(0.1)
-            if args.duration is not None and sim.t >= args.duration:
+            if args.duration is not None and server.t >= args.duration:
                 break
             if not args.quiet and time.monotonic() - last > 10:
                 last = time.monotonic()
-                ap = sim.autopilot
                 from vehicle_sim.autopilot import MODE_NAMES
 
-                lat, lon = ap.position()
-                print(f"t={ap.t:8.1f}s mode={MODE_NAMES.get(ap.mode, ap.mode)} armed={ap.armed} "
-                      f"pos={lat:.6f},{lon:.6f} links={len(sim.links)}", file=sys.stderr)
+                for i, b in enumerate(boats):
+                    ap = b.autopilot
+                    lat, lon = ap.position()
+                    who = "" if n == 1 else f"boat {i} "
+                    print(f"{who}t={ap.t:8.1f}s mode={MODE_NAMES.get(ap.mode, ap.mode)} armed={ap.armed} "
+                          f"pos={lat:.6f},{lon:.6f} links={len(b.links)}", file=sys.stderr)
     except KeyboardInterrupt:
         pass
     finally:
-        sim.stop()
+        server.stop()
     if not args.quiet:
-        print("vehicle-sim: stopped" + (f"; tlog written to {args.tlog}" if args.tlog else ""), file=sys.stderr)
+        tl = args.tlog if n == 1 else ", ".join(b.config.tlog for b in boats) if args.tlog else None
+        print("vehicle-sim: stopped" + (f"; tlog written to {tl}" if args.tlog else ""), file=sys.stderr)
     return 0
 
 

@@ -111,11 +111,13 @@ class Simulator:
     def __init__(self, field=None, *, home: tuple[float, float], config: SimConfig | None = None,
                  velocity_scale: float = 1.0, time_scale: float = 1.0, start_time: float | None = None,
                  uniform_current: tuple[float, float] = (0.0, 0.0), link_config: LinkConfig | None = None,
-                 epoch0: float | None = None):
+                 epoch0: float | None = None, current: CurrentModel | None = None):
         self.config = config or SimConfig()
         self.field = field
-        self.current = CurrentModel(field, start_time=start_time, velocity_scale=velocity_scale,
-                                    time_scale=time_scale, uniform=uniform_current)
+        # ``current``: a CurrentModel shared with other boats (a Fleet); it replaces the one
+        # built from field/start_time/velocity_scale/time_scale/uniform_current
+        self.current = current if current is not None else CurrentModel(
+            field, start_time=start_time, velocity_scale=velocity_scale, time_scale=time_scale, uniform=uniform_current)
         self.link_config = link_config or LinkConfig()
         self.epoch0 = time.time() if epoch0 is None else float(epoch0)
         self.links: list[Link] = []
@@ -132,6 +134,7 @@ class Simulator:
         self._lockstep = False
         self._step_budget = 0.0
         self._step_waiters: list = []
+        self._fleet = None  # set by vehicle_sim.fleet.Fleet: step() then advances every boat of the fleet
 
     # -- clock -------------------------------------------------------------------------
     @property
@@ -153,7 +156,15 @@ class Simulator:
             self.autopilot.reboot(downtime_s)
 
     def step(self, dt: float | None = None) -> None:
-        """Advance simulated time by ``dt`` (default one physics step), in physics sub-steps."""
+        """Advance simulated time by ``dt`` (default one physics step), in physics sub-steps.
+
+        A boat of a :class:`vehicle_sim.fleet.Fleet` has no clock of its own: this advances
+        the whole fleet (every boat, the same ``dt``), so a client stepping "its" boat keeps
+        the others in time.
+        """
+        if self._fleet is not None:
+            self._fleet.step(dt)
+            return
         dt = self.config.physics_dt if dt is None else float(dt)
         with self._lock:
             remaining = dt
@@ -258,8 +269,27 @@ class Simulator:
             raise RuntimeError("simulator already serving")
         if speedup <= 0:
             raise ValueError("speedup must be positive")
+        self._open_listeners(listen, link_configs)
+        self._stop.clear()
+        self.running = True
+        self._lockstep = bool(lockstep)
+        self._thread = threading.Thread(target=self._serve_loop, args=(speedup, wait_for_client, poll_s),
+                                        name="vehicle-sim", daemon=True)
+        self._thread.start()
+
+    def _open_listeners(self, listen: Iterable[str], link_configs: dict[str, LinkConfig] | None) -> None:
+        """Open the sockets of ``listen`` (see :meth:`serve`); bind errors raise here (nothing stays open)."""
         link_configs = link_configs or {}
         self._sockets = []
+        try:
+            self._open_each(listen, link_configs)
+        except BaseException:
+            for e in self._sockets:
+                e["sock"].close()
+            self._sockets = []
+            raise
+
+    def _open_each(self, listen: Iterable[str], link_configs: dict[str, LinkConfig]) -> None:
         for spec in listen:
             kind, host, port = parse_link_spec(spec)
             cfg = link_configs.get(spec)
@@ -282,12 +312,6 @@ class Simulator:
                     peer = (host, port)
                 link = self.add_link(spec, cfg)
                 self._sockets.append({"kind": kind, "sock": s, "spec": spec, "peer": peer, "link": link})
-        self._stop.clear()
-        self.running = True
-        self._lockstep = bool(lockstep)
-        self._thread = threading.Thread(target=self._serve_loop, args=(speedup, wait_for_client, poll_s),
-                                        name="vehicle-sim", daemon=True)
-        self._thread.start()
 
     def ports(self) -> list[tuple[str, int]]:
         """(spec, bound port) of each socket (useful with port 0)."""
@@ -363,6 +387,10 @@ class Simulator:
             ready, _, _ = select.select(socks, [], [], timeout)
         except (OSError, ValueError):
             ready = []
+        self._handle_ready(ready)
+
+    def _handle_ready(self, ready) -> None:
+        """Accept, read and receive on the sockets in ``ready`` (from a select over ours, or a fleet's)."""
         for e in list(self._sockets):
             if e["sock"] not in ready:
                 continue
