@@ -19,23 +19,29 @@ MAVLink stamp of the same event):
 * mode changes: ``MODE`` (``ModeNum``: 10 = AUTO, 4 = HOLD, 0 = MANUAL; ``Rsn``:
   ``ModeReason``, 2 = GCS_COMMAND, 26 = initialised). The current mode is written
   again without a change (e.g. right after a mission block): only a change counts.
-* the controller's clock reading, a GCS STATUSTEXT received by the vehicle:
-  ``MSG "GCS:PASST leg 0 tb 43411 b 0 k 0"`` (``GCS:`` + the text; no sender
-  id in this firmware), parsed by
-  :func:`~passt_mav.runs.legs.parse_clock_statustext`.
+* the controller's clock reading, a STATUSTEXT the vehicle received:
+  ``MSG "GCS:PASST leg 0 tb 43411 b 0 k 0"`` (``GCS:`` + the text when the sender's
+  system id is the vehicle's MAV_GCS_SYSID, 255 by default as ours; else
+  ``SRC=sysid/compid:`` + the text), parsed by
+  :func:`~passt_mav.runs.legs.parse_clock_statustext`. Sent before leg 0's upload, it
+  is in the log only when logging ran before arming (``LOG_DISARMED 1``).
 * ``MSG "Reached waypoint #N"`` (N = mission seq) and ``MSG "Mission Complete"``;
   Rover stays in AUTO after the mission's end until the GCS sends HOLD.
 * the Lua sensor's ``gcs:send_named_float``: ``NVF`` records (``Name`` CUR_U /
   CUR_V, ``Value`` m/s east / north), logged whatever ``LOG_BITMASK`` says;
 * positions: ``POS`` (the AHRS position, as GLOBAL_POSITION_INT; ``LOG_BITMASK``
-  bit 1, ATTITUDE_MED, 10 Hz) or, without POS, ``GPS`` (bit 2, 5 Hz).
+  bit 1, ATTITUDE_MED, 10 Hz) or, without POS, ``GPS`` (bit 2, 5 Hz). Both are
+  thinned by ``LOG_FILE_RATEMAX``, as is NVF (more than ~4 Hz keeps every reading).
 
-A leg opens at a change to AUTO that follows a mission upload and closes at the next
+A leg opens at a change to AUTO that follows a mission upload (anchored at its ``New
+mission``; in a log begun after the upload, at AUTO) and closes at the next
 GCS-commanded change away from AUTO (``Rsn`` 2): as in the tlog, where a leg ends at
 the GCS's next mode command and a pilot's RC takeover does not end it. Samples
 (:func:`~passt_mav.runs.tlog.read_dataflash`: an NVF CUR_U paired with the CUR_V and
 the position nearest in time, each within ``pair_tolerance_ms``) belong to the leg
-whose [AUTO, close) span holds their time.
+whose [AUTO, close) span holds their time. ``pair_tolerance_ms`` is 150 by default, not the
+live collector's 100: POS thinned to 5 Hz comes up to 300 ms apart in SITL (150 ms is
+0.6 m at 4 m/s).
 
 Differences from the tlog rebuild (measured on SITL, see tests/test_dataflash_legs.py):
 
@@ -43,12 +49,14 @@ Differences from the tlog rebuild (measured on SITL, see tests/test_dataflash_le
   every reading gets a position; the tlog pairs a reading only with a
   GLOBAL_POSITION_INT within 100 ms, which at the controller's 1 Hz stream is about
   one reading in five. Where both have a sample of the same reading (same time
-  within 3 ms) u and v are equal and the positions agree to the distance the boat
-  moves in <= 100 ms;
+  within 3 ms) u and v are equal and the positions agree to ~1 m (<= 150 ms of
+  travel); the tlog's leg also keeps the few readings paired between the GCS's AUTO
+  command and the vehicle's MODE record;
 * ``t_now_ms`` / ``start_latlon``: taken at the ``New mission`` record, which is
   written when the upload is complete (the tlog takes them at the upload's
   MISSION_COUNT: a few hundred ms of vehicle time earlier); ``t_lo_ms`` of leg 0 is
-  the log's first position (the tlog's is its first message);
+  the log's first position (the tlog's is its first message), of later legs the
+  GCS's mode change that closed the previous one;
 * the sample records carry ``utc`` NaN (DataFlash has no reception time) and
   ``boot`` from the log's clock STATUSTEXT (0 without one): one ``.bin`` is one boot.
 """
