@@ -461,7 +461,6 @@ class MissionController:
     # -- the mission -----------------------------------------------------------------------------
     def run(self) -> dict:
         """Fly every leg; returns the summary (also in ``summary.json``)."""
-        from passt_mav.mavlink import SampleCollector
         from passt_mav.runs.store import SampleStore
 
         rd = self.rd.create()
@@ -470,21 +469,12 @@ class MissionController:
         self.store = SampleStore(rd.samples_db)
         if self.resume:
             self._resume_boots()
-        self.writer = _StoreWriter(self.store, self.grid)
-        sens = self.config.sensors
-        self.collector = SampleCollector(self.writer, u_name=sens.u, v_name=sens.v,
-                                         source=f"mav:{self.link.target_system}/{self.link.target_component}",
-                                         on_reboot=self._on_reboot, boot_base=self._boot_base)
-        self.collector.attach(self.link)
+        self._attach(_StoreWriter(self.store, self.grid))
         try:
             state, t_state, first = self._initial_state()
             self._say(f"mission {self.config.name}: {self.n_legs} legs of {self.config.planner.path_length} moves, "
                       f"model {self.predictor_info.get('used')}, planner {self.config.planner.name}; waiting for the vehicle")
-            self.vehicle.wait_ready(timeout=self.ready_timeout_s)
-            self._choose_clock()
-            if self.config.vehicle.wp_radius_m > 0:
-                # a Rover's acceptance radius is WP_RADIUS (it drops a waypoint's param2); put back in finally
-                self.vehicle.set_wp_radius(self.config.vehicle.wp_radius_m)
+            self._prepare_vehicle()
             for i in range(first, self.n_legs):
                 state, t_state = self._leg(i, state, t_state)
             self.status = "complete"
@@ -505,15 +495,42 @@ class MissionController:
             self._safe_hold()
             raise exc
         finally:
-            if self.vehicle.changed_params and not self.link.lost:
-                restored = self.vehicle.restore_params()
-                if restored:
-                    self._say("restored " + ", ".join(f"{k} = {v:g}" for k, v in restored.items()))
-            self.collector.detach()
+            self._detach()
             self.writer.close()
             self._write_summary()
             self.store.close()
         return self.summary()
+
+    def _attach(self, writer) -> None:
+        """A :class:`SampleCollector` on this link, feeding ``writer`` (samples keyed by the vehicle's system id)."""
+        from passt_mav.mavlink import SampleCollector
+
+        self.writer = writer
+        sens = self.config.sensors
+        self.collector = SampleCollector(writer, u_name=sens.u, v_name=sens.v,
+                                         source=f"mav:{self.link.target_system}/{self.link.target_component}",
+                                         on_reboot=self._on_reboot, boot_base=self._boot_base)
+        self.collector.attach(self.link)
+
+    def _prepare_vehicle(self) -> None:
+        """Wait for the EKF, choose the clock, set WP_RADIUS (put back by :meth:`_detach`)."""
+        self.vehicle.wait_ready(timeout=self.ready_timeout_s)
+        self._choose_clock()
+        if self.config.vehicle.wp_radius_m > 0:
+            # a Rover's acceptance radius is WP_RADIUS (it drops a waypoint's param2); put back at the end
+            self.vehicle.set_wp_radius(self.config.vehicle.wp_radius_m)
+
+    def _detach(self) -> None:
+        """Put back the parameters we changed; stop collecting."""
+        if self.vehicle.changed_params and not self.link.lost:
+            try:
+                restored = self.vehicle.restore_params()
+            except MavlinkError as exc:
+                log.warning("parameters not restored: %s", exc)
+                restored = {}
+            if restored:
+                self._say("restored " + ", ".join(f"{k} = {v:g}" for k, v in restored.items()))
+        self.collector.detach()
 
     def _safe_hold(self) -> None:
         try:
@@ -548,18 +565,26 @@ class MissionController:
         The clock reading is sent to the vehicle as a STATUSTEXT first (:func:`clock_statustext`):
         the telemetry log and ArduPilot's DataFlash log keep it for a replay.
         """
+        lat, lon, start, tb, boot, t_now = self._where_and_when()
+        k = self.step.forecast_steps(t_now, t_state)
+        self._send_clock(i, tb, boot, k)
+        return self.step.plan(i, state, t_state, start, t_now=t_now, k=k, start_latlon=(lat, lon),
+                              clock_reading=(tb, boot))
+
+    def _where_and_when(self) -> tuple[float, float, tuple[int, int], int, int, float]:
+        """(lat, lon, start cell, time_boot_ms, boot, field time now) of the vehicle; position checked."""
         lat, lon = self._position()
         start = self.step.start_cell(lat, lon)
         tb, boot = self._clock_reading()
-        t_now = float(self._clock_with_boots().field_time(tb, boot))
-        k = self.step.forecast_steps(t_now, t_state)
+        return lat, lon, start, tb, boot, float(self._clock_with_boots().field_time(tb, boot))
+
+    def _send_clock(self, i: int, tb: int, boot: int, k: int) -> None:
+        """The clock reading leg ``i`` is planned from, as a STATUSTEXT (:func:`clock_statustext`)."""
         text = clock_statustext(i, tb, boot, k)
         try:
             self.link.send(self.link.conn.mav.statustext_encode(6, text.encode()))  # MAV_SEVERITY_INFO
         except MavlinkError as exc:  # a log record, not a command: a dead link shows up at the upload
             log.warning("clock STATUSTEXT not sent: %s", exc)
-        return self.step.plan(i, state, t_state, start, t_now=t_now, k=k, start_latlon=(lat, lon),
-                              clock_reading=(tb, boot))
 
     def _clock_reading(self) -> tuple[int, int]:
         """The vehicle's newest ``time_boot_ms`` and the run's boot number it belongs to."""
@@ -618,13 +643,17 @@ class MissionController:
         from passt_mav.fields.field import FlowField
 
         try:
-            absorbed = self.step.absorb(planned, self.store.for_leg(i), self._clock_with_boots())
+            absorbed = self._update(planned, self.store.for_leg(i), self._clock_with_boots())
         except ReconstructionError as exc:
             raise MavlinkError(f"leg {i}: no current samples arrived (is the sensor sending "
                                f"{self.config.sensors.u}/{self.config.sensors.v}?): {exc}") from None
         FlowField(absorbed.state[None], self.grid, np.array([absorbed.t_state]), self.field.time_origin,
                   self.field.units).to_netcdf(self.rd.estimate_file(i))
         return absorbed
+
+    def _update(self, planned, recs, clock):
+        """The state update of a leg (:meth:`LegStep.absorb`; a fleet's boat shares one state)."""
+        return self.step.absorb(planned, recs, clock)
 
     def _finish_leg(self, i: int, rec: dict, planned) -> None:
         """leg.json (complete), timings.json, summary.json, and one line of progress."""

@@ -364,10 +364,11 @@ class LegStep:
         return max(0, int(round((t_now - t_state) / self.dt)))
 
     def plan(self, index: int, state, t_state: float, start_cell, *, t_now: float | None = None,
-             k: int | None = None, start_latlon=None, clock_reading=None) -> PlannedLeg:
+             k: int | None = None, start_latlon=None, clock_reading=None, taken=None, avoid=None) -> PlannedLeg:
         """Forecast the state to now (``k`` snapshots, from ``t_now`` unless given) and plan leg ``index``.
 
         Does not advance the loop's leg counter (its planner seeds follow the update).
+        ``taken`` / ``avoid``: a fleet's other boats (see :meth:`PasstLoop.plan_leg`).
         """
         if k is None:
             if t_now is None:
@@ -378,7 +379,8 @@ class LegStep:
             t_state += k * self.dt
         steps = leg_steps(self.config, self.grid, self.speed, self.dt, float(self.config.field.time_scale))
         t0 = time.perf_counter()
-        plan = self.loop.plan_leg(state, tuple(int(x) for x in start_cell), t_state, self.dt, steps=steps)
+        plan = self.loop.plan_leg(state, tuple(int(x) for x in start_cell), t_state, self.dt, steps=steps,
+                                  taken=taken, avoid=avoid)
         return PlannedLeg(int(index), tuple(int(x) for x in start_cell),
                           None if start_latlon is None else (float(start_latlon[0]), float(start_latlon[1])),
                           t_now, int(k), plan, int(steps), time.perf_counter() - t0, clock_reading)

@@ -245,11 +245,16 @@ class PasstLoop:
         out[:, :, self.land] = np.nan
         return out
 
-    def plan_leg(self, state, start, t_start: float, dt: float = 1.0, *, steps: int | None = None, forecast=None) -> LegPlan:
+    def plan_leg(self, state, start, t_start: float, dt: float = 1.0, *, steps: int | None = None, forecast=None,
+                 taken=None, avoid=None) -> LegPlan:
         """Predict the leg, build the one-step reward map, plan ``path_length`` moves from ``start``.
 
         ``forecast``: a ready (S+1, 2, R, C) forecast from ``state`` (the lockstep engine
         predicts a whole batch of trials at once); the predictor is then not called.
+        ``taken`` / ``avoid``: (R, C) bool, for a fleet's joint planning: cells other boats
+        sample during this leg (their reward is zeroed, so two boats do not collect the
+        same cells) and cells never to enter (another boat is there at the same time).
+        The start cell is always allowed.
         """
         from passt_mav.planning import compute_reward
 
@@ -262,6 +267,11 @@ class PasstLoop:
         std = self.std if self.std is not None else np.ones((2,) + self.grid.shape, np.float32)
         q = compute_reward(self.reward_name, fc[1], cell_size_m=self._cell, std=std)
         mask = ~self.land & np.isfinite(fc[1]).all(axis=0)
+        if taken is not None:
+            q = np.where(np.asarray(taken, bool), np.zeros_like(q), q)
+        if avoid is not None:
+            mask = mask & ~np.asarray(avoid, bool)
+            mask[tuple(start)] = True
         tm["reward"] = time.perf_counter() - t0
         t0 = time.perf_counter()
         path = self.planner.plan(q, start, self.path_length, seed=self.seed + self.leg_index, mask=mask)

@@ -63,7 +63,7 @@ def execute(config, *, connect: str, run_dir, mission_text: str | None, legs=Non
     """Everything ``run`` does after parsing: field, predictor, link, controller, report. Returns the summary."""
     from passt_mav.controller import MissionController, build_predictor
     from passt_mav.fields.datasets import resolve_field
-    from passt_mav.mavlink import Link, MissionClient, Vehicle
+    from passt_mav.mavlink import Link
 
     import sys
 
@@ -75,13 +75,20 @@ def execute(config, *, connect: str, run_dir, mission_text: str | None, legs=Non
     if field.grid != config.grid():
         raise _user(f"the mission's region is not the grid of its field {config.field.source}")
     predictor, pinfo = build_predictor(config.model, field, echo=echo)
+    if config.vehicles is not None:
+        if resume:
+            raise _user("--resume is not supported for a fleet (vehicles:) yet")
+        summary = _execute_fleet(config, run_dir, field, predictor, pinfo, mission_text=mission_text, legs=legs,
+                                 speedup=speedup, field_time_at_boot=field_time_at_boot, signing_key=signing_key,
+                                 pause_timeout=pause_timeout, ready_timeout=ready_timeout, echo=echo,
+                                 extra_summary=extra_summary, link_factory=link_factory)
+        return _report(summary, run_dir, report)
     link = Link(link_config_for(connect, speedup=speedup, tlog=run_dir.tlog, signing_key=signing_key),
                 connection_factory=link_factory)
     echo(f"connecting to {connect} ...")
     link.connect()
     try:
-        mc = MissionClient(link, no_space_delay_s=max(0.05, 1.0 / max(speedup, 1.0) ** 0.5))
-        veh = Vehicle(link, mc, retry_delay_s=max(0.02, 1.0 / max(speedup, 1.0)))
+        veh = _vehicle_for(link, speedup)
         ctl = MissionController(config, link, run_dir, field=field, predictor=predictor, predictor_info=pinfo,
                                 vehicle=veh, legs=legs, field_time_at_boot=field_time_at_boot, speedup_hint=speedup,
                                 pause_timeout_s=pause_timeout, ready_timeout_s=ready_timeout, resume=resume,
@@ -89,12 +96,48 @@ def execute(config, *, connect: str, run_dir, mission_text: str | None, legs=Non
         summary = ctl.run()
     finally:
         link.close()
+    return _report(summary, run_dir, report)
+
+
+def _report(summary: dict, run_dir, report: bool) -> dict:
     if report:
         from passt_mav.analysis.report import write_report
 
         html = write_report(run_dir.root)
         summary["report"] = str(html)
     return summary
+
+
+def _vehicle_for(link, speedup: float):
+    from passt_mav.mavlink import MissionClient, Vehicle
+
+    mc = MissionClient(link, no_space_delay_s=max(0.05, 1.0 / max(speedup, 1.0) ** 0.5))
+    return Vehicle(link, mc, retry_delay_s=max(0.02, 1.0 / max(speedup, 1.0)))
+
+
+def _execute_fleet(config, run_dir, field, predictor, pinfo, *, mission_text, legs, speedup, field_time_at_boot,
+                   signing_key, pause_timeout, ready_timeout, echo, extra_summary, link_factory) -> dict:
+    """``vehicles:``: one link per boat (its own tlog), one :class:`FleetController`."""
+    from passt_mav.fleet_controller import FleetController
+    from passt_mav.mavlink import Link
+
+    links = []
+    try:
+        for k, vc in enumerate(config.fleet):
+            factory = None if link_factory is None else (lambda f=link_factory, c=vc.connect: f(c))
+            link = Link(link_config_for(vc.connect, speedup=speedup, tlog=run_dir.boat_tlog(k),
+                                        signing_key=signing_key), connection_factory=factory)
+            echo(f"boat {k}: connecting to {vc.connect} ...")
+            links.append(link.connect())
+        fleet = FleetController(config, links, run_dir, field=field, predictor=predictor, predictor_info=pinfo,
+                                vehicles=[_vehicle_for(x, speedup) for x in links], legs=legs, echo=echo,
+                                mission_text=mission_text, extra_summary=extra_summary,
+                                field_time_at_boot=field_time_at_boot, speedup_hint=speedup,
+                                pause_timeout_s=pause_timeout, ready_timeout_s=ready_timeout)
+        return fleet.run()
+    finally:
+        for link in links:
+            link.close()
 
 
 def _user(msg):
@@ -121,6 +164,8 @@ def run(args: argparse.Namespace) -> int:
     else:
         rd = RunDir(args.out).create() if args.out else RunDir.new("runs", config.name)
     echo = (lambda s: None) if args.quiet else (lambda s: print(s, flush=True))
+    if args.connect and config.vehicles is not None:
+        raise _user("--connect names one vehicle; a fleet's connections are in the mission's vehicles:")
     summary = execute(config, connect=args.connect or config.vehicle.connect, run_dir=rd,
                       mission_text=Path(args.mission).read_text(), legs=args.legs, resume=args.resume,
                       speedup=args.speedup_hint, field_time_at_boot=args.field_time_at_boot,

@@ -11,6 +11,8 @@ Example (``missions/north_atlantic.yaml``)::
     start_cell: [15, 15]
     t0: 0
     vehicle: {connect: "tcp:127.0.0.1:5760", speed_mps: 2.0, wp_radius_m: 5.0, on_reboot: resume}
+    # or a fleet sharing one field estimate (passt_mav.fleet_controller), one entry per boat:
+    # vehicles: [{connect: "tcp:127.0.0.1:5760"}, {connect: "tcp:127.0.0.1:5770", start_cell: [5, 5]}]
     sensors: {u: CUR_U, v: CUR_V, noise_std: 0.02}
     geofence_margin_m: 500
     gp: {prior: forecast, hyper: every_leg, options: {}}
@@ -247,6 +249,7 @@ class VehicleConfig(_Strict):
     speed_mps: float = Field(default=2.0, gt=0)
     wp_radius_m: float = Field(default=2.0, ge=0)
     on_reboot: Literal["resume", "hold"] = "resume"
+    start_cell: tuple[int, int] | None = None  # where a simulator starts this boat (a fleet's demo); else unused
 
 
 class SensorConfig(_Strict):
@@ -293,6 +296,7 @@ class MissionConfig(_Strict):
     t0: int = Field(default=0, ge=0)
     steps_per_leg: int | None = Field(default=None, ge=1)
     vehicle: VehicleConfig = Field(default_factory=VehicleConfig)
+    vehicles: list[VehicleConfig] | None = None
     sensors: SensorConfig = Field(default_factory=SensorConfig)
     geofence_margin_m: float = Field(default=0.0, ge=0)
     gp: GPConfig = Field(default_factory=GPConfig)
@@ -331,12 +335,27 @@ class MissionConfig(_Strict):
         if self.model is None:
             src = self.field.builtin
             object.__setattr__(self, "model", DEFAULT_MODEL[src] if src else "dmd")
-        if self.start_cell is not None:
-            r, c = self.start_cell
-            g = self.region
-            if not (0 <= r < g.rows and 0 <= c < g.cols):
-                raise ValueError(f"start_cell {list(self.start_cell)} lies outside the {g.rows}x{g.cols} grid")
+        g = self.region
+        cells = [("start_cell", self.start_cell)] + [(f"vehicles[{k}].start_cell", v.start_cell)
+                                                     for k, v in enumerate(self.vehicles or ())]
+        for key, cell in cells:
+            if cell is not None and not (0 <= cell[0] < g.rows and 0 <= cell[1] < g.cols):
+                raise ValueError(f"{key} {list(cell)} lies outside the {g.rows}x{g.cols} grid")
+        if self.vehicles is not None:
+            if not self.vehicles:
+                raise ValueError("vehicles: give at least one vehicle (or use vehicle: for one)")
+            # (a dumped config carries the default vehicle beside vehicles: that one is fine)
+            if "vehicle" in self.model_fields_set and self.vehicle != VehicleConfig():
+                raise ValueError("give either vehicle: (one boat) or vehicles: (a fleet), not both")
+            conns = [v.connect for v in self.vehicles]
+            if len(set(conns)) != len(conns):
+                raise ValueError(f"vehicles: two boats share a connection string ({conns})")
         return self
+
+    @property
+    def fleet(self) -> list[VehicleConfig]:
+        """Every boat of the mission: ``vehicles``, or the one ``vehicle``."""
+        return list(self.vehicles) if self.vehicles is not None else [self.vehicle]
 
     def grid(self):
         """The region's :mod:`geo` grid object."""

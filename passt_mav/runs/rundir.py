@@ -7,6 +7,8 @@ Layout (``RunDir(root)``)::
       flight.tlog             every MAVLink frame sent/received, pymavlink    .tlog
                               tlog format (8-byte big-endian µs UTC + frame),
                               readable by MAVExplorer / mavlogdump
+      flight_boatN.tlog       a fleet run: one telemetry log per boat N       .boat_tlog(N)
+                              (0-based; leg records then name their "boat")
       samples.sqlite          the crash-safe sample store (SQLite, WAL)       .samples_db
       summary.json            written at the end (and updated after each      .summary_file
                               leg); absent while the first leg is running
@@ -138,6 +140,8 @@ class RunDir:
             return False
         if any(p.exists() for p in (self.summary_file, self.samples_db, self.tlog, self.mission_file)):
             return True
+        if self.boat_tlogs():
+            return True
         return bool(self.leg_indices()) or (self.root / self.LEGS).is_dir()
 
     # -- top-level paths -----------------------------------------------------------
@@ -148,6 +152,14 @@ class RunDir:
     @property
     def tlog(self) -> Path:
         return self.root / self.TLOG
+
+    def boat_tlog(self, boat: int) -> Path:
+        """The telemetry log of boat ``boat`` (0-based) of a fleet run: ``flight_boatN.tlog``."""
+        return self.root / f"flight_boat{int(boat)}.tlog"
+
+    def boat_tlogs(self) -> list[Path]:
+        """Every boat's telemetry log of a fleet run, in boat order (empty for a one-boat run)."""
+        return sorted(self.root.glob("flight_boat*.tlog"), key=lambda p: int(p.stem[len("flight_boat"):] or 0))
 
     @property
     def samples_db(self) -> Path:

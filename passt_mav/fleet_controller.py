@@ -1,0 +1,385 @@
+"""A fleet: several boats flying one PASST loop, sharing one field estimate.
+
+:class:`FleetController` runs a mission whose ``vehicles:`` lists N boats (``passt-mav
+run``). Each boat is a :class:`BoatController` (a :class:`~passt_mav.controller.MissionController`
+on its own link, with all of its fault handling: reconnects, reboots, a pilot taking over)
+working in a thread of its own; what they share lives here, under one lock:
+
+* **one state**: the field estimate and its field time. Every boat plans from it and
+  every boat's samples update it (:meth:`FleetController.absorb`). The samples of all
+  boats go to one :class:`~passt_mav.runs.store.SampleStore` (keyed by the sending
+  system id), each boat's frames to its own tlog (``flight_boatN.tlog``).
+* **asynchronous legs**: a boat that finishes its leg gets the next one planned from
+  the newest estimate at once; it never waits for slower boats. Leg numbers are global
+  (``legs/NNN`` in the order legs are planned); each leg record names its ``boat``.
+* **joint planning** (:meth:`FleetController.plan_for`), sequential allocation: a boat
+  plans keeping out of every cell of the other boats' current paths (two boats never
+  collect the same cells in the same leg interval; its own start cell excepted: it is
+  where it is). Boxed in by their paths, it plans with those cells' reward zeroed
+  instead and keeps out of any cell another boat's path reaches at the same time
+  (within one move's duration; predicted from the paths, the boats' speeds and their
+  legs' start times). Every path is checked against the geofence by the boat before
+  upload, as for one boat.
+* **a boat that drops out** (link lost beyond the reconnect, a pilot who keeps it, a
+  failsafe): it is reported (``boats[k].status``, the run's ``events``), its path is
+  released and the others go on; the samples it stored stay in the store and those of
+  its interrupted leg still update the state. A boat whose link comes back while the
+  others still fly rejoins with a new leg.
+
+Absorbing a leg whose plan is older than the state (another boat updated it meanwhile):
+the leg's GP prior is the forecast from the *current* state to the leg's end, not the
+leg's own (stale) forecast, so one boat's update is never thrown away by another's.
+Samples taken before the state's time are compared with the forecast at that time.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import threading
+import time
+from typing import Any, Callable
+
+import numpy as np
+
+from passt_mav.controller import MissionController, _Paused, _StoreWriter, _utc_now
+from passt_mav.errors import MavlinkError, PlannerError, ReconstructionError
+from passt_mav.legstep import LegStep, build_loop
+
+__all__ = ["FleetController", "BoatController"]
+
+log = logging.getLogger(__name__)
+
+
+class BoatController(MissionController):
+    """One boat of a fleet: the one-boat controller whose planning and state update go through the fleet."""
+
+    def __init__(self, fleet: "FleetController", boat: int, vehicle_config, link, vehicle, **kw):
+        cfg = fleet.config.model_copy(update={"vehicle": vehicle_config})
+        echo = fleet.echo
+        super().__init__(cfg, link, fleet.rd, field=fleet.field, predictor=fleet.predictor,
+                         predictor_info=fleet.predictor_info, vehicle=vehicle, legs=fleet.n_legs,
+                         echo=lambda s: echo(f"boat {boat}: {s}"), **kw)
+        self.fleet, self.boat = fleet, int(boat)
+        self.loop, self.step = fleet.loop, fleet.step  # one loop, one state for the fleet
+        self.store = fleet.store
+        self.status = "waiting"
+        self.legs_done = 0
+        self._current = None
+
+    # -- the shared parts ----------------------------------------------------------------------
+    def _plan(self, i: int, state, t_state):
+        lat, lon, start, tb, boot, t_now = self._where_and_when()
+        with self.fleet.lock:
+            state, t_state = self.fleet.state, self.fleet.t_state
+            k = self.step.forecast_steps(t_now, t_state)
+            self._send_clock(i, tb, boot, k)
+            self._current = self.fleet.plan_for(self.boat, i, state, t_state, start, t_now=t_now, k=k,
+                                                start_latlon=(lat, lon), clock_reading=(tb, boot))
+        return self._current
+
+    # netCDF4/HDF5 (prediction.nc, estimate.nc) and the torch predictor are not thread-safe: the
+    # boats' threads write and predict one at a time
+    def _checked_mission(self, i: int, planned):
+        with self.fleet.lock:
+            return super()._checked_mission(i, planned)
+
+    def _write_plan(self, i: int, planned, wm) -> dict:
+        with self.fleet.lock:
+            return super()._write_plan(i, planned, wm)
+
+    def _absorb(self, i: int, planned):
+        with self.fleet.lock:
+            return super()._absorb(i, planned)
+
+    def _update(self, planned, recs, clock):
+        with self.fleet.lock:
+            return self.fleet.absorb(self.boat, planned, recs, clock)
+
+    def _finish_leg(self, i: int, rec: dict, planned) -> None:
+        rec["boat"], rec["sysid"] = self.boat, int(self.link.target_system)
+        super()._finish_leg(i, rec, planned)
+        self.legs_done += 1
+
+    def _write_summary(self) -> None:
+        self.fleet.write_summary()
+
+    # -- one boat's mission --------------------------------------------------------------------
+    def fly(self) -> None:
+        """All of this boat's legs (in its thread); a drop-out is reported and, while the
+        others fly, the boat waits for its link to come back and rejoins."""
+        self._attach(self.fleet.writer)
+        ready = False
+        try:
+            while self.legs_done < self.n_legs and not self.fleet.stopping.is_set():
+                try:
+                    if not ready:
+                        self.status = "preparing"
+                        self._prepare_vehicle()
+                        ready = True
+                    self.status = "flying"
+                    self._leg(self.fleet.claim_leg(), None, None)
+                except _Paused as exc:
+                    self._stop("paused", exc)
+                    return
+                except (MavlinkError, PlannerError) as exc:
+                    self._drop(exc)
+                    ready = False
+                    if not self._rejoin():
+                        return
+            self.status = "complete" if self.legs_done >= self.n_legs else "stopped"
+        except BaseException as exc:  # noqa: BLE001 - a boat's error must not take the fleet down
+            self._stop("aborted", exc)
+        finally:
+            self.fleet.release(self.boat)
+            self._detach()
+
+    def _stop(self, status: str, exc: BaseException) -> None:
+        self.status = status
+        self.fleet.event(f"boat {self.boat}: {status}: {type(exc).__name__}: {exc}")
+        self._say(f"stopped ({status}): {exc}")
+        if not self.link.lost:
+            try:
+                self.vehicle.hold()
+            except MavlinkError as e2:
+                log.warning("boat %d: could not switch to HOLD: %s", self.boat, e2)
+
+    def _drop(self, exc: Exception) -> None:
+        """The boat dropped out mid-leg: report, release its path, keep what it sampled."""
+        self.status = "lost"
+        self.fleet.release(self.boat)
+        self.fleet.event(f"boat {self.boat} (sysid {self.link.target_system}) dropped out at {_utc_now()}: "
+                         f"{type(exc).__name__}: {exc}")
+        self._say(f"dropped out ({exc}); the other boats go on")
+        self._safe_hold()
+        planned, self._current = self._current, None
+        if planned is None:
+            return
+        self.collector.leg = None
+        self.writer.flush()
+        recs = self.store.for_leg(planned.index)
+        try:  # what it sampled before dropping out still updates the state
+            if recs:
+                self._update(planned, recs, self._clock_with_boots())
+        except ReconstructionError as e2:
+            log.info("boat %d: the interrupted leg's %d samples not absorbed: %s", self.boat, len(recs), e2)
+
+    def _rejoin(self) -> bool:
+        """Reconnect while any other boat still flies; True when this boat is back."""
+        while self.fleet.others_flying(self.boat) and not self.fleet.stopping.is_set():
+            try:
+                self.link.reconnect(attempts=1)
+            except MavlinkError:
+                time.sleep(0.2)
+                continue
+            self.fleet.event(f"boat {self.boat} back at {_utc_now()}: rejoins")
+            self._say("link back; rejoining the fleet")
+            return True
+        return False
+
+
+class FleetController:
+    """Runs a mission on every boat of ``config.fleet`` (module docstring).
+
+    Args:
+        config: :class:`~passt_mav.mission.MissionConfig` with ``vehicles``.
+        links: one connected :class:`~passt_mav.mavlink.Link` per boat (tlogs set by the caller).
+        run_dir: :class:`~passt_mav.runs.RunDir` (created).
+        field, predictor, predictor_info: as for :class:`MissionController`.
+        vehicles: one :class:`~passt_mav.mavlink.Vehicle` per link (default: defaults).
+        legs: legs per boat (default ``config.legs``).
+        Other keyword arguments (speedup_hint, pause/ready timeouts, field_time_at_boot,
+        truth_known) are passed to every :class:`BoatController`.
+    """
+
+    def __init__(self, config, links, run_dir, *, field, predictor, predictor_info: dict | None = None,
+                 vehicles=None, legs: int | None = None, echo: Callable[[str], None] | None = print,
+                 mission_text: str | None = None, extra_summary: dict | None = None, truth_known: bool = True,
+                 **boat_kw):
+        from passt_mav.mavlink import Vehicle
+        from passt_mav.runs.store import SampleStore
+
+        fleet = config.fleet
+        if len(links) != len(fleet):
+            raise ValueError(f"{len(fleet)} vehicles in the mission, {len(links)} links")
+        self.config, self.field, self.rd = config, field, run_dir.create()
+        self.predictor = predictor
+        self.predictor_info = predictor_info or {"requested": config.model, "used": config.model, "fallback": None}
+        self.n_legs = int(legs or config.legs)
+        self.echo = echo or (lambda s: None)
+        self.mission_text, self.extra_summary = mission_text, dict(extra_summary or {})
+        self.loop = build_loop(config, predictor, field.grid, land=field.land_mask)
+        self.step = LegStep(config, field, self.loop, truth_known=truth_known)
+        self.state, self.t_state = self.step.initial_state()
+        self.lock = threading.RLock()
+        self.stopping = threading.Event()
+        self.events: list[str] = []
+        self.started_utc = _utc_now()
+        self.status = "running"
+        self._next_leg = 0
+        self._version = 0  # bumped at every state update
+        self._reserved: dict[int, dict[str, Any]] = {}
+        self.store = SampleStore(self.rd.samples_db)
+        self.writer = _StoreWriter(self.store, field.grid)
+        vehicles = vehicles or [Vehicle(link) for link in links]
+        self.boats = [BoatController(self, k, vc, link, veh, truth_known=truth_known, **boat_kw)
+                      for k, (vc, link, veh) in enumerate(zip(fleet, links, vehicles))]
+
+    # -- shared state ----------------------------------------------------------------------------
+    def claim_leg(self) -> int:
+        with self.lock:
+            i, self._next_leg = self._next_leg, self._next_leg + 1
+            return i
+
+    def event(self, text: str) -> None:
+        with self.lock:
+            self.events.append(text)
+        log.info(text)
+
+    def release(self, boat: int) -> None:
+        with self.lock:
+            self._reserved.pop(boat, None)
+
+    def others_flying(self, boat: int) -> bool:
+        return any(b.status in ("waiting", "preparing", "flying") for b in self.boats if b.boat != boat)
+
+    def _timeline(self, path, t_start: float, speed: float) -> np.ndarray:
+        """Field time at which a boat at ``speed`` m/s reaches each cell of ``path`` from ``t_start``."""
+        grid = self.field.grid
+        steps = np.linalg.norm(np.diff(np.asarray(path, float), axis=0), axis=1) * grid.mean_cell_size_m
+        secs = np.concatenate([[0.0], np.cumsum(steps)]) / speed
+        return t_start + secs / float(self.config.field.time_scale)
+
+    def _move_time(self, speed: float) -> float:
+        return self.field.grid.mean_cell_size_m / speed / float(self.config.field.time_scale)
+
+    def _conflicts(self, boat: int, path, t_start: float) -> np.ndarray:
+        """(R, C) bool: cells of ``path`` (after its start) that another boat's path reaches at
+        the same time (within one move of either boat)."""
+        grid = self.field.grid
+        out = np.zeros(grid.shape, bool)
+        speed = float(self.config.fleet[boat].speed_mps)
+        mine = self._timeline(path, t_start, speed)
+        for other, res in self._reserved.items():
+            if other == boat:
+                continue
+            tol = max(self._move_time(speed), self._move_time(res["speed"]))
+            theirs = self._timeline(res["path"], res["t_start"], res["speed"])
+            for j in range(1, len(path)):
+                r, c = path[j]
+                hit = (res["path"][:, 0] == r) & (res["path"][:, 1] == c) & (np.abs(theirs - mine[j]) < tol)
+                if hit.any():
+                    out[r, c] = True
+        return out
+
+    def plan_for(self, boat: int, i: int, state, t_state: float, start, **kw):
+        """Plan leg ``i`` of ``boat`` from the shared ``state`` (module docstring, "joint planning").
+
+        Raises :class:`PlannerError` if no path avoids the other boats in time.
+        """
+        taken = np.zeros(self.field.grid.shape, bool)
+        for other, res in self._reserved.items():
+            if other != boat:
+                taken[res["path"][:, 0], res["path"][:, 1]] = True
+        taken[tuple(start)] = False
+        self.loop.leg_index = i  # planner seeds by global leg number
+        try:  # first choice: none of the cells the others hold this leg
+            planned = self.step.plan(i, state, t_state, start, avoid=taken, **kw)
+        except PlannerError:  # boxed in by their paths: collect nothing twice, cross them at other times only
+            planned = None
+        avoid = np.zeros_like(taken)
+        for _ in range(3):
+            if planned is not None and not self._conflicts(boat, planned.plan.path, planned.t_start).any():
+                break
+            if planned is not None:
+                avoid |= self._conflicts(boat, planned.plan.path, planned.t_start)
+            planned = self.step.plan(i, state, t_state, start, taken=taken, avoid=avoid, **kw)
+        else:
+            if self._conflicts(boat, planned.plan.path, planned.t_start).any():
+                raise PlannerError(f"leg {i}: boat {boat} finds no path that keeps out of the other boats' way")
+        self._reserved[boat] = {"path": np.asarray(planned.plan.path, int), "t_start": planned.t_start,
+                                "speed": float(self.config.fleet[boat].speed_mps), "version": self._version}
+        return planned
+
+    def absorb(self, boat: int, planned, recs, clock):
+        """A boat's leg samples into the shared state (module docstring); returns the AbsorbedLeg."""
+        from passt_mav.passt import LegPlan
+
+        res = self._reserved.get(boat)
+        if res is not None and res["version"] != self._version:
+            # another boat updated the state since this leg was planned: the prior is the forecast
+            # from the state as it is now to the leg's end
+            t_s = clock.field_time(np.array([float(r.time_boot_ms) for r in recs]),
+                                   np.array([int(r.boot or 0) for r in recs], np.int64))
+            t_last = max([planned.t_start + planned.steps * self.step.dt] + ([float(np.max(t_s))] if len(recs) else []))
+            n = max(1, int(round((t_last - self.t_state) / self.step.dt)))
+            old = planned.plan
+            plan = LegPlan(path=old.path, reward=old.reward, forecast=self.loop.forecast(self.state, n),
+                           t_start=self.t_state, dt=old.dt, steps=n, timings=old.timings)
+            planned = dataclasses.replace(planned, plan=plan, steps=n)
+        self.loop.leg_index = planned.index
+        absorbed = self.step.absorb(planned, recs, clock)
+        if absorbed.t_state >= self.t_state:
+            self.state, self.t_state = absorbed.state, absorbed.t_state
+            self._version += 1
+        self._reserved.pop(boat, None)
+        return absorbed
+
+    # -- the run ---------------------------------------------------------------------------------
+    def run(self) -> dict:
+        """Fly every boat's legs; returns the summary (also in ``summary.json``)."""
+        if self.mission_text is not None:
+            self.rd.mission_file.write_text(self.mission_text)
+        cfg = self.config
+        self.echo(f"mission {cfg.name}: {len(self.boats)} boats x {self.n_legs} legs of {cfg.planner.path_length} "
+                  f"moves, model {self.predictor_info.get('used')}, planner {cfg.planner.name}; one shared estimate")
+        threads = [threading.Thread(target=b.fly, name=f"boat-{b.boat}", daemon=True) for b in self.boats]
+        try:
+            for t in threads:
+                t.start()
+            for t in threads:
+                while t.is_alive():
+                    t.join(0.2)
+        except BaseException:
+            self.stopping.set()
+            for t in threads:
+                t.join(30.0)
+            raise
+        finally:
+            done = [b.status == "complete" for b in self.boats]
+            self.status = "complete" if all(done) else ("partial" if any(done) else "aborted")
+            self.writer.close()
+            self.write_summary()
+            self.store.close()
+        lost = [b.boat for b in self.boats if b.status != "complete"]
+        self.echo(f"fleet {self.status}: " + ", ".join(f"boat {b.boat} {b.status} ({b.legs_done} legs)"
+                                                     for b in self.boats))
+        if lost:
+            self.echo(f"boats that did not finish: {lost} (see events in summary.json)")
+        return self.summary()
+
+    def summary(self) -> dict:
+        with self.lock:
+            legs = sorted((dict(x) for b in self.boats for x in b.leg_records), key=lambda r: int(r["index"]))
+            s = self.boats[0].summary()
+            truth = s.get("rmse") is not None
+            s.update({
+                "status": self.status, "started_utc": self.started_utc,
+                "finished_utc": _utc_now() if self.status != "running" else None,
+                "legs": legs, "legs_planned": self.n_legs * len(self.boats),
+                "rmse": {"t": [x.get("t_end") for x in legs], "passt": [x.get("rmse_passt") for x in legs],
+                         "model": [x.get("rmse_model") for x in legs]} if truth else None,
+                "connect": [b.link.config.connect for b in self.boats],
+                "boats": [{"boat": b.boat, "sysid": b.link.target_system, "connect": b.link.config.connect,
+                           "status": b.status, "legs": b.legs_done, "clock": b._clock_with_boots().describe()}
+                          for b in self.boats],
+                "lost_boats": [b.boat for b in self.boats if b.status not in ("complete", "running", "flying",
+                                                                                "waiting", "preparing")],
+                "events": list(self.events),
+            })
+            s.update(self.extra_summary)
+            return s
+
+    def write_summary(self) -> None:
+        with self.lock:
+            self.rd.write_summary(self.summary())

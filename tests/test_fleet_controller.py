@@ -1,0 +1,142 @@
+"""A fleet of three boats flying one PASST loop (passt_mav.fleet_controller) against vehicle_sim.
+
+Three simulators in-process (one per boat, system ids 1-3, started in different cells of
+the wave field of test_controller), each served at a speed-up in its own thread; the
+controller talks to each over its own link, as ``passt-mav run`` does with ``vehicles:``.
+"""
+
+from __future__ import annotations
+
+import contextlib
+
+import numpy as np
+import pytest
+
+from mavlink_helpers import inprocess_factory, link_config, vehicle
+from passt_mav.commands.run import LEAN_STREAMS
+from passt_mav.controller import build_predictor
+from passt_mav.fleet_controller import FleetController
+from passt_mav.mavlink import Link
+from passt_mav.runs.rundir import RunDir
+from passt_mav.runs.store import SampleStore
+from test_controller import mission, sim_config, wave_field
+from vehicle_sim import Simulator
+
+SPEEDUP = 20.0  # three simulators and three boat threads share the GIL: slower than one boat's 50x
+STARTS = [(1, 1), (6, 6), (1, 6)]
+
+
+@contextlib.contextmanager
+def fleet_served(field, starts=STARTS):
+    sims, links = [], []
+    try:
+        for k, (r, c) in enumerate(starts):
+            lat, lon = field.grid.cell_to_latlon(r, c)
+            sim = Simulator(field, home=(float(lat), float(lon)), config=sim_config().replace(sysid=k + 1))
+            link = Link(link_config(stream_rates_hz=LEAN_STREAMS, timeout_s=0.5, link_lost_s=1.0),
+                        connection_factory=inprocess_factory(sim))
+            sim.serve([], speedup=SPEEDUP)
+            sims.append(sim)
+            links.append(link.connect())
+        yield sims, links
+    finally:
+        for link in links:
+            link.close()
+        for sim in sims:
+            sim.stop()
+
+
+def fleet_mission(tmp_path, field, **over):
+    vehicles = [{"connect": f"tcp:127.0.0.1:{5760 + 10 * k}", "speed_mps": 5.0, "wp_radius_m": 3.0,
+                 "start_cell": list(s)} for k, s in enumerate(STARTS)]
+    from passt_mav.mission.config import validate_mission
+
+    data = {"vehicles": vehicles, "legs": 2}
+    data.update(over)
+    base = mission(tmp_path, field).model_dump(mode="json")
+    base.pop("vehicle")
+    base.update(data)
+    return validate_mission(base, source="fleet test")
+
+
+def run_fleet(tmp_path, field, cfg, links, **kw):
+    pred, info = build_predictor(cfg.model, field, echo=lambda s: None)
+    rd = RunDir(tmp_path / "run").create()
+    fleet = FleetController(cfg, links, rd, field=field, predictor=pred, predictor_info=info,
+                            vehicles=[vehicle(x) for x in links], field_time_at_boot=0.0, speedup_hint=SPEEDUP,
+                            ready_timeout_s=20.0, pause_timeout_s=5.0, **kw)
+    return fleet, rd
+
+
+def _overlap(a, b) -> bool:
+    return a["t_start"] < b["t_end"] and b["t_start"] < a["t_end"]
+
+
+def test_three_boats_fly_one_loop_with_disjoint_paths_and_one_store(tmp_path):
+    field = wave_field()
+    cfg = fleet_mission(tmp_path, field)
+    with fleet_served(field) as (sims, links):
+        fleet, rd = run_fleet(tmp_path, field, cfg, links)
+        summary = fleet.run()
+    assert summary["status"] == "complete", summary["events"]
+    assert [b["status"] for b in summary["boats"]] == ["complete"] * 3
+    assert sorted(b["sysid"] for b in summary["boats"]) == [1, 2, 3]
+    legs = summary["legs"]
+    assert len(legs) == 6 and sorted(x["index"] for x in legs) == list(range(6))
+    assert sorted(x["boat"] for x in legs) == [0, 0, 1, 1, 2, 2]
+    # every boat's samples reach the one store, keyed by its system id
+    with SampleStore(rd.samples_db, readonly=True) as st:
+        recs = st.all()
+    by_src = {s: sum(1 for r in recs if r.source == s) for s in {r.source for r in recs}}
+    assert set(by_src) == {"mav:1/1", "mav:2/1", "mav:3/1"} and min(by_src.values()) > 20, by_src
+    for leg in legs:  # a leg's samples are its own boat's
+        assert {r.source for r in recs if r.leg == leg["index"]} == {f"mav:{leg['sysid']}/1"}
+        assert leg["n_samples"] > 5 and leg["rmse_passt"] is not None
+    # no two boats are given the same cell while their legs overlap in time (start cells excepted:
+    # a boat starts where it is)
+    for a in legs:
+        for b in legs:
+            if a["boat"] < b["boat"] and _overlap(a, b):
+                ca = {tuple(x) for x in a["path"][1:]}
+                cb = {tuple(x) for x in b["path"][1:]}
+                assert not ca & cb, (a["index"], b["index"], ca & cb)
+    # one shared estimate: the field estimate after the last leg beats the model alone
+    last = max(legs, key=lambda x: x["t_end"])
+    assert last["rmse_passt"] < last["rmse_model"]
+    assert len(rd.boat_tlogs()) == 0  # the caller sets tlogs (passt-mav run does, one per boat)
+
+
+def test_a_boat_whose_link_dies_mid_leg_is_reported_and_the_others_complete(tmp_path):
+    field = wave_field()
+    cfg = fleet_mission(tmp_path, field)
+    with fleet_served(field) as (sims, links):
+        fleet, rd = run_fleet(tmp_path, field, cfg, links)
+        killed = {}
+
+        def kill_when_flying():
+            import time
+
+            while not killed:
+                b = fleet.boats[1]
+                if b.status == "flying" and b.collector is not None and b.collector.leg is not None \
+                        and fleet.store.count(b.collector.leg) >= 3:
+                    killed["leg"] = b.collector.leg
+                    sims[1].stop()  # the boat's autopilot goes silent for good
+                    return
+                time.sleep(0.01)
+
+        import threading
+
+        t = threading.Thread(target=kill_when_flying, daemon=True)
+        t.start()
+        summary = fleet.run()
+        t.join(1.0)
+    assert killed, "boat 1 never got into a leg"
+    status = {b["boat"]: b["status"] for b in summary["boats"]}
+    assert status[0] == status[2] == "complete" and status[1] != "complete", status
+    assert summary["status"] == "partial" and 1 in summary["lost_boats"]
+    assert any("boat 1" in e and "dropped out" in e for e in summary["events"])
+    assert sum(1 for x in summary["legs"] if x["boat"] in (0, 2)) == 4
+    # nothing stored is lost: the interrupted leg's samples are in the store
+    with SampleStore(rd.samples_db, readonly=True) as st:
+        assert st.count(killed["leg"]) >= 3
