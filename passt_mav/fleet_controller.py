@@ -29,7 +29,9 @@ working in a thread of its own; what they share lives here, under one lock:
 Absorbing a leg whose plan is older than the state (another boat updated it meanwhile):
 the leg's GP prior is the forecast from the *current* state to the leg's end, not the
 leg's own (stale) forecast, so one boat's update is never thrown away by another's.
-Samples taken before the state's time are compared with the forecast at that time.
+Samples taken before the state's time are compared with the forecast at that time; a
+leg that ends before the state's time conditions the state where it is (the state's
+time never runs ahead because several boats finished legs).
 """
 
 from __future__ import annotations
@@ -312,10 +314,16 @@ class FleetController:
             t_s = clock.field_time(np.array([float(r.time_boot_ms) for r in recs]),
                                    np.array([int(r.boot or 0) for r in recs], np.int64))
             t_last = max([planned.t_start + planned.steps * self.step.dt] + ([float(np.max(t_s))] if len(recs) else []))
-            n = max(1, int(round((t_last - self.t_state) / self.step.dt)))
+            n = int(round((t_last - self.t_state) / self.step.dt))
             old = planned.plan
-            plan = LegPlan(path=old.path, reward=old.reward, forecast=self.loop.forecast(self.state, n),
-                           t_start=self.t_state, dt=old.dt, steps=n, timings=old.timings)
+            if n >= 1:
+                fc, t0 = self.loop.forecast(self.state, n), self.t_state
+            else:
+                # the state is already at (or past) this leg's end: condition it where it is (a leg spans
+                # whole snapshots, so several boats' short legs would otherwise run the state ahead of time)
+                n, fc, t0 = 1, np.stack([self.state, self.state]).astype(np.float32), self.t_state - self.step.dt
+            plan = LegPlan(path=old.path, reward=old.reward, forecast=fc, t_start=t0, dt=old.dt, steps=n,
+                           timings=old.timings)
             planned = dataclasses.replace(planned, plan=plan, steps=n)
         self.loop.leg_index = planned.index
         absorbed = self.step.absorb(planned, recs, clock)
