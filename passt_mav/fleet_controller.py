@@ -383,7 +383,7 @@ class FleetController:
                           for b in self.boats],
                 "lost_boats": [b.boat for b in self.boats if b.status not in ("complete", "running", "flying",
                                                                                 "waiting", "preparing")],
-                "events": list(self.events),
+                "events": list(self.events) + [f"boat {b.boat}: {e}" for b in self.boats for e in b.events],
             })
             s.update(self.extra_summary)
             return s

@@ -1,8 +1,10 @@
 """A fleet of three boats flying one PASST loop (passt_mav.fleet_controller) against vehicle_sim.
 
-Three simulators in-process (one per boat, system ids 1-3, started in different cells of
-the wave field of test_controller), each served at a speed-up in its own thread; the
-controller talks to each over its own link, as ``passt-mav run`` does with ``vehicles:``.
+``vehicle-sim --boats 3`` (:class:`vehicle_sim.fleet.Fleet`: one field, one clock, system
+ids 1-3, started in different cells of the wave field of test_controller) served on
+loopback TCP; the controller talks to each boat over its own link, as ``passt-mav run``
+does with ``vehicles:``. A boat that goes silent for good is simulated with three
+separate in-process simulators (one of them stopped mid-leg).
 """
 
 from __future__ import annotations
@@ -24,6 +26,26 @@ from vehicle_sim import Simulator
 
 SPEEDUP = 20.0  # three simulators and three boat threads share the GIL: slower than one boat's 50x
 STARTS = [(1, 1), (6, 6), (1, 6)]
+
+
+@contextlib.contextmanager
+def fleet_on_loopback(field, starts=STARTS):
+    """``vehicle-sim --boats 3`` in-process, each boat on an OS-chosen loopback TCP port; links to each."""
+    from vehicle_sim.fleet import Fleet
+
+    latlon = [tuple(float(x) for x in field.grid.cell_to_latlon(r, c)) for r, c in starts]
+    fleet = Fleet(field, starts=latlon, config=sim_config())
+    fleet.serve(["tcp:127.0.0.1:0"], speedup=SPEEDUP)
+    links = []
+    try:
+        for port in fleet.tcp_ports():
+            links.append(Link(link_config(connect=f"tcp:127.0.0.1:{port}", stream_rates_hz=LEAN_STREAMS,
+                                          timeout_s=0.5, link_lost_s=1.0)).connect())
+        yield fleet, links
+    finally:
+        for link in links:
+            link.close()
+        fleet.stop()
 
 
 @contextlib.contextmanager
@@ -75,7 +97,7 @@ def _overlap(a, b) -> bool:
 def test_three_boats_fly_one_loop_with_disjoint_paths_and_one_store(tmp_path):
     field = wave_field()
     cfg = fleet_mission(tmp_path, field)
-    with fleet_served(field) as (sims, links):
+    with fleet_on_loopback(field) as (sim, links):
         fleet, rd = run_fleet(tmp_path, field, cfg, links)
         summary = fleet.run()
     assert summary["status"] == "complete", summary["events"]
@@ -140,3 +162,34 @@ def test_a_boat_whose_link_dies_mid_leg_is_reported_and_the_others_complete(tmp_
     # nothing stored is lost: the interrupted leg's samples are in the store
     with SampleStore(rd.samples_db, readonly=True) as st:
         assert st.count(killed["leg"]) >= 3
+
+
+def test_a_boat_whose_link_drops_mid_leg_reconnects_and_the_fleet_completes(tmp_path):
+    field = wave_field()
+    cfg = fleet_mission(tmp_path, field)
+    with fleet_on_loopback(field) as (sim, links):
+        fleet, rd = run_fleet(tmp_path, field, cfg, links)
+        dropped = {}
+
+        def drop_when_flying():
+            import time
+
+            while not dropped and fleet.status == "running":
+                b = fleet.boats[2]
+                if b.collector is not None and b.collector.leg is not None and fleet.store.count(b.collector.leg) >= 3:
+                    dropped["leg"] = b.collector.leg
+                    sim.drop_clients(2)  # the vehicle side closes boat 2's TCP link
+                    return
+                time.sleep(0.01)
+
+        import threading
+
+        t = threading.Thread(target=drop_when_flying, daemon=True)
+        t.start()
+        summary = fleet.run()
+        t.join(1.0)
+    assert dropped, "boat 2 never got into a leg"
+    assert summary["status"] == "complete", summary["events"]
+    assert [b["status"] for b in summary["boats"]] == ["complete"] * 3
+    assert len(summary["legs"]) == 6
+    assert any(e.startswith(f"boat 2: leg {dropped['leg']}: link lost") for e in summary["events"]), summary["events"]
