@@ -133,6 +133,34 @@ def test_inprocess_boats_share_one_clock_and_field_and_have_their_own_ids():
         Fleet(f, starts=spread_starts(f, 2), config=SimConfig.fast(params=(("MAV_SYSID", 3.0),)))
 
 
+def test_inprocess_fault_injection_and_tlogs_are_per_boat(tmp_path):
+    """A link outage scheduled for boat 1 silences boat 1 only; each boat writes its own tlog."""
+    from vehicle_sim import LinkConfig
+
+    f = linear_field()
+    fleet = Fleet(f, starts=spread_starts(f, 3), config=SimConfig.fast(tlog=str(tmp_path / "sim.tlog")),
+                  link_configs=[LinkConfig(), LinkConfig(drops=((5.0, 10.0),)), LinkConfig()])
+    clients = [SimClient(b) for b in fleet.boats]
+    heard: dict[int, list[float]] = {i: [] for i in range(3)}
+    while fleet.t < 20.0:
+        fleet.step(0.5)
+        for i, c in enumerate(clients):
+            c.pump()
+            heard[i] += [fleet.t for m in c.queue if m.get_type() == "HEARTBEAT"]
+            c.queue.clear()
+    silent = lambda ts: not any(5.5 < t < 15.0 for t in ts)  # noqa: E731 - heartbeats are 1 Hz
+    assert silent(heard[1]) and not silent(heard[0]) and not silent(heard[2])
+    assert any(t > 15.0 for t in heard[1])  # back after the outage
+    fleet.stop()
+    for sysid in (1, 2, 3):
+        log = mavutil.mavlink_connection(str(tmp_path / f"sim-{sysid}.tlog"))
+        srcs = set()
+        while (m := log.recv_match(type="HEARTBEAT")) is not None:
+            srcs.add(m.get_srcSystem())
+        log.close()
+        assert srcs == {sysid}
+
+
 # -- over TCP, lockstep: three boats fly their own missions; one client link is killed -------------
 class FleetGCS:
     """One pymavlink TCP connection per boat; the clock is stepped through one of them (31010)."""
@@ -314,6 +342,10 @@ def test_three_boats_over_tcp_fly_their_missions_and_one_lost_link_stops_no_othe
         g = [m for m in gcs.msgs[1] if m.get_type() == "GLOBAL_POSITION_INT"]
         assert g and g[-1].get_srcSystem() == 2
         assert _dist_m((g[-1].lat / 1e7, g[-1].lon / 1e7), missions[1][2]) < 5.0
+        # the vehicle side can drop one boat's clients too (the serving thread closes them)
+        fleet.drop_clients(1)
+        gcs.step(0.5)
+        assert not fleet.boats[1].links and fleet.boats[0].links and fleet.boats[2].links
     finally:
         gcs.close()
         fleet.stop()
