@@ -26,17 +26,17 @@ working in a thread of its own; what they share lives here, under one lock:
   its interrupted leg still update the state. A boat whose link comes back while the
   others still fly rejoins with a new leg.
 
-Absorbing a leg whose plan is older than the state (another boat updated it meanwhile):
-the leg's GP prior is the forecast from the *current* state to the leg's end, not the
-leg's own (stale) forecast, so one boat's update is never thrown away by another's.
-Samples taken before the state's time are compared with the forecast at that time; a
-leg that ends before the state's time conditions the state where it is (the state's
-time never runs ahead because several boats finished legs).
+Absorbing a leg (:meth:`FleetController.absorb`): the GP prior is the leg's own forecast
+(from the state it was planned from, so every sample is compared with the forecast at
+its own time), and the GP gets this leg's samples *and* those of every leg absorbed
+since this one was planned (their information is not in its forecast). The result
+replaces the shared state, at the leg's end or at the state's time if that is later
+(the state never goes back in time, and concurrent legs never run it ahead). With one
+boat this is exactly :class:`~passt_mav.controller.MissionController`'s update.
 """
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 import threading
 import time
@@ -51,6 +51,26 @@ from passt_mav.legstep import LegStep, build_loop
 __all__ = ["FleetController", "BoatController"]
 
 log = logging.getLogger(__name__)
+
+
+def _in_field_time(recs, clock) -> list[dict]:
+    """Sample records with ``time_boot_ms`` replaced by their field time (read with :data:`_FIELD_TIME`):
+    legs of boats with different clocks can then go to one GP update."""
+    if not recs:
+        return []
+    t = clock.field_time(np.array([float(r.time_boot_ms) for r in recs]),
+                         np.array([int(r.boot or 0) for r in recs], np.int64))
+    return [{"time_boot_ms": float(tf), "boot": 0, "lat": r.lat, "lon": r.lon, "u": r.u, "v": r.v}
+            for tf, r in zip(np.atleast_1d(t), recs)]
+
+
+def _field_time_clock():
+    from passt_mav.legstep import FieldClock
+
+    return FieldClock(0.0, 1e-3)  # t_boot0 + time_boot_ms / 1000 / 1e-3 = time_boot_ms: already field time
+
+
+_FIELD_TIME = _field_time_clock()
 
 
 class BoatController(MissionController):
@@ -161,8 +181,7 @@ class BoatController(MissionController):
         self.writer.flush()
         recs = self.store.for_leg(planned.index)
         try:  # what it sampled before dropping out still updates the state
-            if recs:
-                self._update(planned, recs, self._clock_with_boots())
+            self._update(planned, recs, self._clock_with_boots())
         except ReconstructionError as e2:
             log.info("boat %d: the interrupted leg's %d samples not absorbed: %s", self.boat, len(recs), e2)
 
@@ -221,6 +240,8 @@ class FleetController:
         self._next_leg = 0
         self._version = 0  # bumped at every state update
         self._reserved: dict[int, dict[str, Any]] = {}
+        self._plan_version: dict[int, int] = {}  # leg in flight -> the state version it was planned from
+        self._absorbed: list[tuple[int, int, list[dict]]] = []  # (version after, leg, its samples in field time)
         self.store = SampleStore(self.rd.samples_db)
         self.writer = _StoreWriter(self.store, field.grid)
         vehicles = vehicles or [Vehicle(link) for link in links]
@@ -300,36 +321,35 @@ class FleetController:
             if self._conflicts(boat, planned.plan.path, planned.t_start).any():
                 raise PlannerError(f"leg {i}: boat {boat} finds no path that keeps out of the other boats' way")
         self._reserved[boat] = {"path": np.asarray(planned.plan.path, int), "t_start": planned.t_start,
-                                "speed": float(self.config.fleet[boat].speed_mps), "version": self._version}
+                                "speed": float(self.config.fleet[boat].speed_mps)}
+        self._plan_version[i] = self._version  # the state this leg was planned from
         return planned
 
     def absorb(self, boat: int, planned, recs, clock):
-        """A boat's leg samples into the shared state (module docstring); returns the AbsorbedLeg."""
-        from passt_mav.passt import LegPlan
-
-        res = self._reserved.get(boat)
-        if res is not None and res["version"] != self._version:
-            # another boat updated the state since this leg was planned: the prior is the forecast
-            # from the state as it is now to the leg's end
-            t_s = clock.field_time(np.array([float(r.time_boot_ms) for r in recs]),
-                                   np.array([int(r.boot or 0) for r in recs], np.int64))
-            t_last = max([planned.t_start + planned.steps * self.step.dt] + ([float(np.max(t_s))] if len(recs) else []))
-            n = int(round((t_last - self.t_state) / self.step.dt))
-            old = planned.plan
-            if n >= 1:
-                fc, t0 = self.loop.forecast(self.state, n), self.t_state
-            else:
-                # the state is already at (or past) this leg's end: condition it where it is (a leg spans
-                # whole snapshots, so several boats' short legs would otherwise run the state ahead of time)
-                n, fc, t0 = 1, np.stack([self.state, self.state]).astype(np.float32), self.t_state - self.step.dt
-            plan = LegPlan(path=old.path, reward=old.reward, forecast=fc, t_start=t0, dt=old.dt, steps=n,
-                           timings=old.timings)
-            planned = dataclasses.replace(planned, plan=plan, steps=n)
+        """A boat's leg samples into the shared state (module docstring, "absorbing"); returns the
+        AbsorbedLeg (``n_samples``: this leg's; ``n_gp_points``: every thinned sample the GP got).
+        Raises :class:`ReconstructionError` when the leg brought no samples (as for one boat)."""
+        dt = self.step.dt
+        own = _in_field_time(recs, clock)
+        if not own:
+            self._plan_version.pop(planned.index, None)
+            raise ReconstructionError(f"leg {planned.index}: no usable current samples")
+        since = self._plan_version.pop(planned.index, self._version)
+        extra = [r for v, leg, rr in self._absorbed if v > since and leg != planned.index for r in rr]
+        # the state never goes back in time: reconstruct at its time at least
+        need = int(round((self.t_state - planned.t_start) / dt))
+        if need > planned.plan.steps:
+            planned.plan.forecast = self.loop.forecast(planned.plan.forecast[0], need)
+            planned.plan.steps = planned.steps = need
         self.loop.leg_index = planned.index
-        absorbed = self.step.absorb(planned, recs, clock)
-        if absorbed.t_state >= self.t_state:
-            self.state, self.t_state = absorbed.state, absorbed.t_state
-            self._version += 1
+        absorbed = self.step.absorb(planned, own + extra, _FIELD_TIME)
+        absorbed.n_samples = len(recs)
+        self.state, self.t_state = absorbed.state, absorbed.t_state
+        self._version += 1
+        self._absorbed.append((self._version, planned.index, own))
+        # what no leg in flight was planned without is in the state for good
+        oldest = min(self._plan_version.values(), default=self._version)
+        self._absorbed = [x for x in self._absorbed if x[0] > oldest]
         self._reserved.pop(boat, None)
         return absorbed
 

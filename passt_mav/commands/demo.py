@@ -25,6 +25,7 @@ EXAMPLES = """examples:
     passt-mav demo --speedup 200 --moves 4
     passt-mav demo --field builtin:rtofs          # real NOAA currents with a coastline (missions/rtofs.yaml)
     passt-mav demo --mission missions/cylinder.yaml
+    passt-mav demo --boats 3                      # a fleet: three boats, one shared estimate
 """
 
 #: the demo's changes to missions/north_atlantic.yaml
@@ -62,15 +63,53 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--field", help="field to replay: builtin:NAME uses missions/NAME.yaml when it exists "
                    "(builtin:rtofs: real NOAA currents with land); a .nc replaces the base mission's field and "
                    "region (model persistence unless --model)")
+    p.add_argument("--boats", type=int, default=1,
+                   help="a fleet of N boats sharing one estimate (vehicle-sim --boats N, mission vehicles:; "
+                        "default 1)")
     p.add_argument("--no-report", action="store_true", help="skip the HTML report")
 
 
-def _free_port() -> int:
+def _free_port(boats: int = 1) -> int:
+    """A free loopback TCP port P with P + 10*i free too for every boat i (vehicle-sim --boats)."""
     import socket
 
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
+    for _ in range(200):
+        with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+            s.bind(("127.0.0.1", 0))
+            port = s.getsockname()[1]
+        if port + 10 * (boats - 1) > 65535:
+            continue
+        ok = True
+        for i in range(1, boats):
+            with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as t:
+                try:
+                    t.bind(("127.0.0.1", port + 10 * i))
+                except OSError:
+                    ok = False
+                    break
+        if ok:
+            return port
+    raise OSError("no free loopback ports for the simulator")
+
+
+def fleet_starts(grid, land, start, boats: int, spacing: int = 6) -> list[tuple[int, int]]:
+    """Start cells of a demo fleet: the mission's start, then cells ``spacing`` apart west/east,
+    south/north of it (clipped to the grid; land and repeats skipped: the nearest free water cell)."""
+    import numpy as np
+
+    r0, c0 = start
+    offsets = [(0, 0), (0, -spacing), (0, spacing), (-spacing, 0), (spacing, 0), (-spacing, -spacing),
+               (spacing, spacing), (-spacing, spacing), (spacing, -spacing)]
+    water = np.argwhere(~np.asarray(land, bool))
+    out: list[tuple[int, int]] = []
+    for k in range(boats):
+        dr, dc = offsets[k % len(offsets)]
+        want = np.array([min(max(r0 + dr * (1 + k // len(offsets)), 0), grid.rows - 1),
+                         min(max(c0 + dc * (1 + k // len(offsets)), 0), grid.cols - 1)])
+        order = np.argsort(((water - want) ** 2).sum(axis=1), kind="stable")
+        cell = next(tuple(int(x) for x in water[j]) for j in order if tuple(int(x) for x in water[j]) not in out)
+        out.append(cell)
+    return out
 
 
 def mission_mapping(mission: str | None = None, field: str | None = None) -> tuple[dict, str]:
@@ -141,6 +180,8 @@ def run(args: argparse.Namespace) -> int:
 
     if args.legs < 1 or args.moves < 1:
         raise UserError("--legs and --moves must be >= 1")
+    if not 1 <= args.boats <= 9:
+        raise UserError("--boats must be 1..9")
     if args.speedup <= 0:
         raise UserError("--speedup must be positive")
     base, origin = mission_mapping(args.mission, args.field)
@@ -159,14 +200,18 @@ def run(args: argparse.Namespace) -> int:
     t_boot0 = float(field.times[config.t0])
     r0, c0 = config.start_cell or (grid.rows // 2, grid.cols // 2)
     hlat, hlon = (float(x) for x in grid.cell_to_latlon(r0, c0))
-    port = _free_port()
+    port = _free_port(args.boats)
+    fleet_args: list[str] = []
+    if args.boats > 1:
+        data, config, fleet_args = _as_fleet(data, config, field, (r0, c0), args.boats, port, origin)
     sim_cmd = [sys.executable, "-c", "import sys; from vehicle_sim.cli import main; sys.exit(main())",
-               "--field", config.field.source, "--home", f"{hlat:.7f},{hlon:.7f}", "--listen", f"tcp:127.0.0.1:{port}",
+               "--field", config.field.source, "--listen", f"tcp:127.0.0.1:{port}",
+               *(fleet_args or ["--home", f"{hlat:.7f},{hlon:.7f}"]),
                "--start-time", repr(t_boot0), "--speedup", repr(args.speedup),
-               "--param", f"WP_SPEED={config.vehicle.speed_mps}", "--current-noise", repr(config.sensors.noise_std),
+               "--param", f"WP_SPEED={config.fleet[0].speed_mps}", "--current-noise", repr(config.sensors.noise_std),
                "--current-rate", repr(SENSOR_RATE_HZ), "--seed", str(config.seeds.sensor), "--quiet"]
     print(f"demo: mission {config.name} ({origin} + {over}); {config.legs} legs of {config.planner.path_length} moves "
-          f"at {config.vehicle.speed_mps} m/s", flush=True)
+          f"at {config.fleet[0].speed_mps} m/s", flush=True)
     print(f"demo: starting vehicle-sim on tcp:127.0.0.1:{port} at {args.speedup:g}x", flush=True)
     sim_log = open(rd.root / "vehicle_sim.log", "w")
     sim = subprocess.Popen(sim_cmd, stdout=sim_log, stderr=subprocess.STDOUT)
@@ -190,7 +235,11 @@ def run(args: argparse.Namespace) -> int:
     print(f"demo {summary['status']} in {wall:.0f} s: {len(summary['legs'])} legs, {summary['n_samples']} samples; "
           f"run directory {rd.root}", flush=True)
     legs = summary["legs"]
-    if legs and legs[-1].get("rmse_passt") is not None:
+    if args.boats > 1 and legs and legs[-1].get("rmse_passt") is not None:
+        print(f"final RMSE: PASST ({args.boats} boats) {legs[-1]['rmse_passt']:.4f} m/s, model alone "
+              f"{legs[-1]['rmse_model']:.4f} m/s; boats: "
+              + ", ".join(f"{b['boat']} {b['status']}" for b in summary.get("boats", [])), flush=True)
+    elif legs and legs[-1].get("rmse_passt") is not None:
         lawn = _counterfactual(config, field, summary, rd, report=not args.no_report)
         print(f"final RMSE: PASST {legs[-1]['rmse_passt']:.4f} m/s, model alone "
               f"{legs[-1]['rmse_model']:.4f} m/s, lawnmower+GP over the same legs "
@@ -198,6 +247,27 @@ def run(args: argparse.Namespace) -> int:
     if summary.get("report"):
         print(f"report: {summary['report']}", flush=True)
     return 0 if summary["status"] == "complete" else 1
+
+
+def _as_fleet(data: dict, config, field, start, boats: int, port: int, origin: str):
+    """The demo mission as a fleet (``vehicles:``, one per boat on port + 10*i) and vehicle-sim's
+    fleet options (--boats, --start-cell per boat)."""
+    from pathlib import Path
+
+    from passt_mav.mission.config import validate_mission
+
+    cells = fleet_starts(config.grid(), field.land_mask, start, boats)
+    veh = data.get("vehicle") or {}
+    data = {k: v for k, v in data.items() if k != "vehicle"}
+    data["vehicles"] = [{**veh, "connect": f"tcp:127.0.0.1:{port + 10 * i}", "start_cell": list(c)}
+                        for i, c in enumerate(cells)]
+    config = validate_mission(data, source="demo mission",
+                              base_dir=Path(origin).parent if origin.endswith(".yaml") else ".")
+    args = ["--boats", str(boats)]
+    for r, c in cells:
+        lat, lon = (float(x) for x in config.grid().cell_to_latlon(r, c))
+        args += ["--start", f"{lat:.7f},{lon:.7f}"]
+    return data, config, args
 
 
 def _counterfactual(config, field, summary: dict, rd, *, report: bool) -> float | None:
