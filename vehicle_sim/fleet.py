@@ -15,7 +15,8 @@ sockets, tlog); what they share:
 * **the serving thread** (:meth:`Fleet.serve`): one thread moves every boat's sockets,
   at ``speedup`` x wall time, or in lockstep: COMMAND_LONG 31010 (MAV_CMD_USER_1,
   param1 = seconds) sent to *any* boat advances *all* of them (send it on one link;
-  requests on several links add up), acknowledged when done.
+  requests on several links add up), acknowledged when done, after every boat's output
+  of the step has been sent.
 
 What is per boat: everything a vehicle owns (its sockets, links, autopilot state,
 stored mission, parameters, noise generators: sensor and link-loss seeds are
@@ -164,7 +165,7 @@ class Fleet:
             self.boats.append(sim)
         self._thread: threading.Thread | None = None
         self._stop = threading.Event()
-        self._drop_requests: list[int] = []
+        self._drop_requests: list[tuple[int, threading.Event]] = []
         self.running = False
         self.error: BaseException | None = None
         self._lockstep = False
@@ -213,9 +214,12 @@ class Fleet:
         EOF); the other boats and this boat's listener are untouched (a client may reconnect)."""
         if not 0 <= index < len(self.boats):
             raise IndexError(f"no boat {index} in a fleet of {len(self.boats)}")
-        if self._thread is not None:
+        if self._thread is not None and self._thread.is_alive():
+            done = threading.Event()
             with self._lock:
-                self._drop_requests.append(index)  # done by the serving thread, which owns the sockets
+                self._drop_requests.append((index, done))  # done by the serving thread, which owns the sockets
+            # returns once closed: a client's next request is already served without that boat's links
+            done.wait(timeout=10.0)
         else:
             self._drop_now(index)
 
@@ -345,8 +349,9 @@ class Fleet:
         if self._drop_requests:
             with self._lock:
                 reqs, self._drop_requests = self._drop_requests, []
-                for i in reqs:
+                for i, done in reqs:
                     self._drop_now(i)
+                    done.set()
 
     def _gather(self) -> None:
         """Move the step requests (31010) each boat took from its input into the fleet's budget."""
@@ -370,15 +375,23 @@ class Fleet:
                 self._budget -= h
                 steps += 1
                 self._gather()  # a request that arrived during the step adds to the budget
+            acks = []
             if self._budget <= 1e-9 and self._waiters:
                 self._budget = 0.0
-                for b, link, msg in self._waiters:
-                    link.send(b.autopilot.MAVLINK.MAVLink_command_ack_message(
-                        STEP_COMMAND, 0, 0, 0, msg.get_srcSystem(), msg.get_srcComponent()), b.autopilot.clock)
-                self._waiters.clear()
+                acks, self._waiters = self._waiters, []
             for b in self.boats:
                 b._deliver_inprocess()
         self._flush()
+        if acks:
+            # acknowledged only after every boat's output of the step has gone out: a client that
+            # has the ACK (on one boat's link) has everything the other boats said until now
+            with self._lock:
+                for b, link, msg in acks:
+                    link.send(b.autopilot.MAVLINK.MAVLink_command_ack_message(
+                        STEP_COMMAND, 0, 0, 0, msg.get_srcSystem(), msg.get_srcComponent()), b.autopilot.clock)
+                for b in self.boats:
+                    b._deliver_inprocess()
+            self._flush()
 
     def stop(self) -> None:
         """Stop serving (joins the thread); closes every boat's sockets and tlog."""
