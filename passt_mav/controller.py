@@ -75,13 +75,11 @@ from __future__ import annotations
 
 import datetime as _dt
 import logging
-import math
 import queue
 import threading
 import time
-from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable
+from typing import Callable
 
 import numpy as np
 

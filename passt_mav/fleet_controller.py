@@ -40,37 +40,15 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from typing import Any, Callable
-
-import numpy as np
+from typing import Callable
 
 from passt_mav.controller import MissionController, _Paused, _StoreWriter, _utc_now
 from passt_mav.errors import MavlinkError, PlannerError, ReconstructionError
-from passt_mav.legstep import LegStep, build_loop
+from passt_mav.legstep import FleetStep, LegStep, build_loop
 
 __all__ = ["FleetController", "BoatController"]
 
 log = logging.getLogger(__name__)
-
-
-def _in_field_time(recs, clock) -> list[dict]:
-    """Sample records with ``time_boot_ms`` replaced by their field time (read with :data:`_FIELD_TIME`):
-    legs of boats with different clocks can then go to one GP update."""
-    if not recs:
-        return []
-    t = clock.field_time(np.array([float(r.time_boot_ms) for r in recs]),
-                         np.array([int(r.boot or 0) for r in recs], np.int64))
-    return [{"time_boot_ms": float(tf), "boot": 0, "lat": r.lat, "lon": r.lon, "u": r.u, "v": r.v}
-            for tf, r in zip(np.atleast_1d(t), recs)]
-
-
-def _field_time_clock():
-    from passt_mav.legstep import FieldClock
-
-    return FieldClock(0.0, 1e-3)  # t_boot0 + time_boot_ms / 1000 / 1e-3 = time_boot_ms: already field time
-
-
-_FIELD_TIME = _field_time_clock()
 
 
 class BoatController(MissionController):
@@ -88,16 +66,19 @@ class BoatController(MissionController):
         self.status = "waiting"
         self.legs_done = 0
         self._current = None
+        self._rec: dict | None = None
+        self._seq_plan = self._seq_absorb = None
 
     # -- the shared parts ----------------------------------------------------------------------
     def _plan(self, i: int, state, t_state):
         lat, lon, start, tb, boot, t_now = self._where_and_when()
         with self.fleet.lock:
-            state, t_state = self.fleet.state, self.fleet.t_state
-            k = self.step.forecast_steps(t_now, t_state)
+            shared = self.fleet.shared
+            k = self.step.forecast_steps(t_now, shared.t_state)
             self._send_clock(i, tb, boot, k)
-            self._current = self.fleet.plan_for(self.boat, i, state, t_state, start, t_now=t_now, k=k,
-                                                start_latlon=(lat, lon), clock_reading=(tb, boot))
+            self._current = shared.plan_for(self.boat, i, start, t_now=t_now, k=k, start_latlon=(lat, lon),
+                                            clock_reading=(tb, boot))
+            self._seq_plan = shared.seq
         return self._current
 
     # netCDF4/HDF5 (prediction.nc, estimate.nc) and the torch predictor are not thread-safe: the
@@ -108,7 +89,9 @@ class BoatController(MissionController):
 
     def _write_plan(self, i: int, planned, wm) -> dict:
         with self.fleet.lock:
-            return super()._write_plan(i, planned, wm)
+            self._rec = super()._write_plan(i, planned, wm)
+            self._rec.update(boat=self.boat, sysid=int(self.link.target_system))
+            return self._rec
 
     def _absorb(self, i: int, planned):
         with self.fleet.lock:
@@ -116,10 +99,15 @@ class BoatController(MissionController):
 
     def _update(self, planned, recs, clock):
         with self.fleet.lock:
-            return self.fleet.absorb(self.boat, planned, recs, clock)
+            absorbed = self.fleet.shared.absorb(self.boat, planned, recs, clock)
+            self._seq_absorb = self.fleet.shared.seq
+            return absorbed
 
     def _finish_leg(self, i: int, rec: dict, planned) -> None:
+        # the order of the fleet's plans and updates (for a replay): leg i was planned at fleet step
+        # seq_plan and absorbed at seq_absorb
         rec["boat"], rec["sysid"] = self.boat, int(self.link.target_system)
+        rec["fleet_seq"] = {"plan": self._seq_plan, "absorb": self._seq_absorb}
         super()._finish_leg(i, rec, planned)
         self.legs_done += 1
 
@@ -181,9 +169,13 @@ class BoatController(MissionController):
         self.writer.flush()
         recs = self.store.for_leg(planned.index)
         try:  # what it sampled before dropping out still updates the state
-            self._update(planned, recs, self._clock_with_boots())
+            ab = self._update(planned, recs, self._clock_with_boots())
         except ReconstructionError as e2:
             log.info("boat %d: the interrupted leg's %d samples not absorbed: %s", self.boat, len(recs), e2)
+            return
+        if self._rec is not None and int(self._rec["index"]) == planned.index:  # for a replay
+            self.rd.write_leg(planned.index, {**self._rec, **ab.record(), "status": "interrupted",
+                                              "fleet_seq": {"plan": self._seq_plan, "absorb": self._seq_absorb}})
 
     def _rejoin(self) -> bool:
         """Reconnect while any other boat still flies; True when this boat is back."""
@@ -231,17 +223,13 @@ class FleetController:
         self.mission_text, self.extra_summary = mission_text, dict(extra_summary or {})
         self.loop = build_loop(config, predictor, field.grid, land=field.land_mask)
         self.step = LegStep(config, field, self.loop, truth_known=truth_known)
-        self.state, self.t_state = self.step.initial_state()
+        self.shared = FleetStep(self.step)  # the one state, the boats' paths in flight
         self.lock = threading.RLock()
         self.stopping = threading.Event()
         self.events: list[str] = []
         self.started_utc = _utc_now()
         self.status = "running"
         self._next_leg = 0
-        self._version = 0  # bumped at every state update
-        self._reserved: dict[int, dict[str, Any]] = {}
-        self._plan_version: dict[int, int] = {}  # leg in flight -> the state version it was planned from
-        self._absorbed: list[tuple[int, int, list[dict]]] = []  # (version after, leg, its samples in field time)
         self.store = SampleStore(self.rd.samples_db)
         self.writer = _StoreWriter(self.store, field.grid)
         vehicles = vehicles or [Vehicle(link) for link in links]
@@ -261,97 +249,10 @@ class FleetController:
 
     def release(self, boat: int) -> None:
         with self.lock:
-            self._reserved.pop(boat, None)
+            self.shared.release(boat)
 
     def others_flying(self, boat: int) -> bool:
         return any(b.status in ("waiting", "preparing", "flying") for b in self.boats if b.boat != boat)
-
-    def _timeline(self, path, t_start: float, speed: float) -> np.ndarray:
-        """Field time at which a boat at ``speed`` m/s reaches each cell of ``path`` from ``t_start``."""
-        grid = self.field.grid
-        steps = np.linalg.norm(np.diff(np.asarray(path, float), axis=0), axis=1) * grid.mean_cell_size_m
-        secs = np.concatenate([[0.0], np.cumsum(steps)]) / speed
-        return t_start + secs / float(self.config.field.time_scale)
-
-    def _move_time(self, speed: float) -> float:
-        return self.field.grid.mean_cell_size_m / speed / float(self.config.field.time_scale)
-
-    def _conflicts(self, boat: int, path, t_start: float) -> np.ndarray:
-        """(R, C) bool: cells of ``path`` (after its start) that another boat's path reaches at
-        the same time (within one move of either boat)."""
-        grid = self.field.grid
-        out = np.zeros(grid.shape, bool)
-        speed = float(self.config.fleet[boat].speed_mps)
-        mine = self._timeline(path, t_start, speed)
-        for other, res in self._reserved.items():
-            if other == boat:
-                continue
-            tol = max(self._move_time(speed), self._move_time(res["speed"]))
-            theirs = self._timeline(res["path"], res["t_start"], res["speed"])
-            for j in range(1, len(path)):
-                r, c = path[j]
-                hit = (res["path"][:, 0] == r) & (res["path"][:, 1] == c) & (np.abs(theirs - mine[j]) < tol)
-                if hit.any():
-                    out[r, c] = True
-        return out
-
-    def plan_for(self, boat: int, i: int, state, t_state: float, start, **kw):
-        """Plan leg ``i`` of ``boat`` from the shared ``state`` (module docstring, "joint planning").
-
-        Raises :class:`PlannerError` if no path avoids the other boats in time.
-        """
-        taken = np.zeros(self.field.grid.shape, bool)
-        for other, res in self._reserved.items():
-            if other != boat:
-                taken[res["path"][:, 0], res["path"][:, 1]] = True
-        taken[tuple(start)] = False
-        self.loop.leg_index = i  # planner seeds by global leg number
-        try:  # first choice: none of the cells the others hold this leg
-            planned = self.step.plan(i, state, t_state, start, avoid=taken, **kw)
-        except PlannerError:  # boxed in by their paths: collect nothing twice, cross them at other times only
-            planned = None
-        avoid = np.zeros_like(taken)
-        for _ in range(3):
-            if planned is not None and not self._conflicts(boat, planned.plan.path, planned.t_start).any():
-                break
-            if planned is not None:
-                avoid |= self._conflicts(boat, planned.plan.path, planned.t_start)
-            planned = self.step.plan(i, state, t_state, start, taken=taken, avoid=avoid, **kw)
-        else:
-            if self._conflicts(boat, planned.plan.path, planned.t_start).any():
-                raise PlannerError(f"leg {i}: boat {boat} finds no path that keeps out of the other boats' way")
-        self._reserved[boat] = {"path": np.asarray(planned.plan.path, int), "t_start": planned.t_start,
-                                "speed": float(self.config.fleet[boat].speed_mps)}
-        self._plan_version[i] = self._version  # the state this leg was planned from
-        return planned
-
-    def absorb(self, boat: int, planned, recs, clock):
-        """A boat's leg samples into the shared state (module docstring, "absorbing"); returns the
-        AbsorbedLeg (``n_samples``: this leg's; ``n_gp_points``: every thinned sample the GP got).
-        Raises :class:`ReconstructionError` when the leg brought no samples (as for one boat)."""
-        dt = self.step.dt
-        own = _in_field_time(recs, clock)
-        if not own:
-            self._plan_version.pop(planned.index, None)
-            raise ReconstructionError(f"leg {planned.index}: no usable current samples")
-        since = self._plan_version.pop(planned.index, self._version)
-        extra = [r for v, leg, rr in self._absorbed if v > since and leg != planned.index for r in rr]
-        # the state never goes back in time: reconstruct at its time at least
-        need = int(round((self.t_state - planned.t_start) / dt))
-        if need > planned.plan.steps:
-            planned.plan.forecast = self.loop.forecast(planned.plan.forecast[0], need)
-            planned.plan.steps = planned.steps = need
-        self.loop.leg_index = planned.index
-        absorbed = self.step.absorb(planned, own + extra, _FIELD_TIME)
-        absorbed.n_samples = len(recs)
-        self.state, self.t_state = absorbed.state, absorbed.t_state
-        self._version += 1
-        self._absorbed.append((self._version, planned.index, own))
-        # what no leg in flight was planned without is in the state for good
-        oldest = min(self._plan_version.values(), default=self._version)
-        self._absorbed = [x for x in self._absorbed if x[0] > oldest]
-        self._reserved.pop(boat, None)
-        return absorbed
 
     # -- the run ---------------------------------------------------------------------------------
     def run(self) -> dict:
@@ -397,6 +298,7 @@ class FleetController:
                 "legs": legs, "legs_planned": self.n_legs * len(self.boats),
                 "rmse": {"t": [x.get("t_end") for x in legs], "passt": [x.get("rmse_passt") for x in legs],
                          "model": [x.get("rmse_model") for x in legs]} if truth else None,
+                "config": self.config.model_dump(mode="json"),  # the fleet's (a boat's has its own vehicle:)
                 "connect": [b.link.config.connect for b in self.boats],
                 "boats": [{"boat": b.boat, "sysid": b.link.target_system, "connect": b.link.config.connect,
                            "status": b.status, "legs": b.legs_done, "clock": b._clock_with_boots().describe()}

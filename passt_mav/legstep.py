@@ -36,11 +36,11 @@ from typing import Any, Callable
 
 import numpy as np
 
-from passt_mav.errors import ReconstructionError, UserError
+from passt_mav.errors import PlannerError, ReconstructionError, UserError
 
 __all__ = ["THINNING", "FieldClock", "LegStep", "PlannedLeg", "AbsorbedLeg", "utc_epoch", "to_field_units",
            "thin_samples", "leg_steps", "extend_leg_to_end", "pure_model_at", "rmse", "truth_at",
-           "build_predictor", "build_loop"]
+           "build_predictor", "build_loop", "FleetStep", "in_field_time", "FIELD_TIME"]
 
 log = logging.getLogger(__name__)
 
@@ -429,3 +429,147 @@ class LegStep:
             return None, None
         pm = pure_model_at(self.loop, self.field, self.config.t0, self.dt, t, self._pure)
         return rmse(state, tr), (rmse(pm, tr) if pm is not None else None)
+
+
+# -- a fleet's shared step -------------------------------------------------------------------------
+def in_field_time(recs, clock) -> list[dict]:
+    """Sample records (store rows or dicts) with ``time_boot_ms`` replaced by their field time (read
+    back with :data:`FIELD_TIME`): legs of boats with different clocks can go to one GP update."""
+    if not len(recs):
+        return []
+    col = _columns(recs)
+    t = np.atleast_1d(clock.field_time(col["time_boot_ms"], col["boot"]))
+    return [{"time_boot_ms": float(t[j]), "boot": 0, "lat": float(col["lat"][j]), "lon": float(col["lon"][j]),
+             "u": float(col["u"][j]), "v": float(col["v"][j])} for j in range(len(t))]
+
+
+#: the clock of :func:`in_field_time`'s records: ``time_boot_ms`` already is field time
+FIELD_TIME = FieldClock(0.0, 1e-3)
+
+
+class FleetStep:
+    """The between-leg step of a fleet: one state, the boats' paths in flight, joint planning.
+
+    Pure (no MAVLink); :class:`passt_mav.fleet_controller.FleetController` calls it under its
+    lock and :func:`passt_mav.analysis.replay.replay` repeats a fleet run's calls in the order
+    they were made (``seq``: one count per plan and per update).
+
+    Joint planning (:meth:`plan_for`), sequential allocation: a boat plans keeping out of
+    every cell of the other boats' current paths (two boats never collect the same cells in
+    the same leg interval; its own start cell excepted). Boxed in by their paths, it plans
+    with those cells' reward zeroed instead and keeps out of any cell another boat's path
+    reaches at the same time (within one move's duration, from the paths, the boats' speeds
+    (``config.fleet[k].speed_mps``, m/s) and their legs' start times).
+
+    Absorbing (:meth:`absorb`): the GP prior is the leg's own forecast (from the state it was
+    planned from, so every sample is compared with the forecast at its own time), and the
+    GP gets this leg's samples *and* those of every leg absorbed since this one was planned
+    (their information is not in its forecast). The result replaces the shared state, at
+    the leg's end or at the state's time if that is later (the state never goes back in
+    time, and concurrent legs never run it ahead). With one boat this is exactly
+    :meth:`LegStep.absorb`.
+    """
+
+    def __init__(self, step: LegStep):
+        self.step, self.loop = step, step.loop
+        self.config, self.field = step.config, step.field
+        self.state, self.t_state = step.initial_state()
+        self.seq = 0  # plans and updates so far
+        self._version = 0  # state updates so far
+        self._reserved: dict[int, dict[str, Any]] = {}  # boat -> its path in flight
+        self._plan_version: dict[int, int] = {}  # leg in flight -> the state version it was planned from
+        self._absorbed: list[tuple[int, int, list[dict]]] = []  # (version after, leg, its samples in field time)
+
+    def release(self, boat: int) -> None:
+        """The boat's path is no longer in flight (it dropped out)."""
+        self._reserved.pop(boat, None)
+
+    def _timeline(self, path, t_start: float, speed: float) -> np.ndarray:
+        """Field time at which a boat at ``speed`` m/s reaches each cell of ``path`` from ``t_start``."""
+        grid = self.field.grid
+        steps = np.linalg.norm(np.diff(np.asarray(path, float), axis=0), axis=1) * grid.mean_cell_size_m
+        secs = np.concatenate([[0.0], np.cumsum(steps)]) / speed
+        return t_start + secs / float(self.config.field.time_scale)
+
+    def _move_time(self, speed: float) -> float:
+        return self.field.grid.mean_cell_size_m / speed / float(self.config.field.time_scale)
+
+    def _conflicts(self, boat: int, path, t_start: float) -> np.ndarray:
+        """(R, C) bool: cells of ``path`` (after its start) that another boat's path reaches at
+        the same time (within one move of either boat)."""
+        grid = self.field.grid
+        out = np.zeros(grid.shape, bool)
+        speed = float(self.config.fleet[boat].speed_mps)
+        mine = self._timeline(path, t_start, speed)
+        for other, res in self._reserved.items():
+            if other == boat:
+                continue
+            tol = max(self._move_time(speed), self._move_time(res["speed"]))
+            theirs = self._timeline(res["path"], res["t_start"], res["speed"])
+            for j in range(1, len(path)):
+                r, c = path[j]
+                hit = (res["path"][:, 0] == r) & (res["path"][:, 1] == c) & (np.abs(theirs - mine[j]) < tol)
+                if hit.any():
+                    out[r, c] = True
+        return out
+
+    def plan_for(self, boat: int, i: int, start, **kw):
+        """Plan leg ``i`` of ``boat`` from the shared state (class docstring, "joint planning");
+        ``kw`` as :meth:`LegStep.plan` (``k``, ``t_now``, ...).
+
+        Raises :class:`PlannerError` if no path avoids the other boats in time.
+        """
+        taken = np.zeros(self.field.grid.shape, bool)
+        for other, res in self._reserved.items():
+            if other != boat:
+                taken[res["path"][:, 0], res["path"][:, 1]] = True
+        taken[tuple(start)] = False
+        self.loop.leg_index = i  # planner seeds by global leg number
+        try:  # first choice: none of the cells the others hold this leg
+            planned = self.step.plan(i, self.state, self.t_state, start, avoid=taken, **kw)
+        except PlannerError:  # boxed in by their paths: collect nothing twice, cross them at other times only
+            planned = None
+        avoid = np.zeros_like(taken)
+        for _ in range(3):
+            if planned is not None and not self._conflicts(boat, planned.plan.path, planned.t_start).any():
+                break
+            if planned is not None:
+                avoid |= self._conflicts(boat, planned.plan.path, planned.t_start)
+            planned = self.step.plan(i, self.state, self.t_state, start, taken=taken, avoid=avoid, **kw)
+        else:
+            if self._conflicts(boat, planned.plan.path, planned.t_start).any():
+                raise PlannerError(f"leg {i}: boat {boat} finds no path that keeps out of the other boats' way")
+        self._reserved[boat] = {"path": np.asarray(planned.plan.path, int), "t_start": planned.t_start,
+                                "speed": float(self.config.fleet[boat].speed_mps)}
+        self._plan_version[i] = self._version  # the state this leg was planned from
+        self.seq += 1
+        return planned
+
+    def absorb(self, boat: int, planned, recs, clock):
+        """A boat's leg samples into the shared state (class docstring, "absorbing"); returns the
+        AbsorbedLeg (``n_samples``: this leg's; ``n_gp_points``: every thinned sample the GP got).
+        Raises :class:`ReconstructionError` when the leg brought no samples (as for one boat)."""
+        dt = self.step.dt
+        own = in_field_time(recs, clock)
+        if not own:
+            self._plan_version.pop(planned.index, None)
+            raise ReconstructionError(f"leg {planned.index}: no usable current samples")
+        since = self._plan_version.pop(planned.index, self._version)
+        extra = [r for v, leg, rr in self._absorbed if v > since and leg != planned.index for r in rr]
+        # the state never goes back in time: reconstruct at its time at least
+        need = int(round((self.t_state - planned.t_start) / dt))
+        if need > planned.plan.steps:
+            planned.plan.forecast = self.loop.forecast(planned.plan.forecast[0], need)
+            planned.plan.steps = planned.steps = need
+        self.loop.leg_index = planned.index
+        absorbed = self.step.absorb(planned, own + extra, FIELD_TIME)
+        absorbed.n_samples = len(recs)
+        self.state, self.t_state = absorbed.state, absorbed.t_state
+        self._version += 1
+        self._absorbed.append((self._version, planned.index, own))
+        # what no leg in flight was planned without is in the state for good
+        oldest = min(self._plan_version.values(), default=self._version)
+        self._absorbed = [x for x in self._absorbed if x[0] > oldest]
+        self._reserved.pop(boat, None)
+        self.seq += 1
+        return absorbed

@@ -29,8 +29,9 @@ STARTS = [(1, 1), (6, 6), (1, 6)]
 
 
 @contextlib.contextmanager
-def fleet_on_loopback(field, starts=STARTS):
-    """``vehicle-sim --boats 3`` in-process, each boat on an OS-chosen loopback TCP port; links to each."""
+def fleet_on_loopback(field, starts=STARTS, tlogs=None):
+    """``vehicle-sim --boats 3`` in-process, each boat on an OS-chosen loopback TCP port; links to each
+    (writing ``tlogs[k]`` when given)."""
     from vehicle_sim.fleet import Fleet
 
     latlon = [tuple(float(x) for x in field.grid.cell_to_latlon(r, c)) for r, c in starts]
@@ -38,9 +39,10 @@ def fleet_on_loopback(field, starts=STARTS):
     fleet.serve(["tcp:127.0.0.1:0"], speedup=SPEEDUP)
     links = []
     try:
-        for port in fleet.tcp_ports():
+        for k, port in enumerate(fleet.tcp_ports()):
             links.append(Link(link_config(connect=f"tcp:127.0.0.1:{port}", stream_rates_hz=LEAN_STREAMS,
-                                          timeout_s=0.5, link_lost_s=1.0)).connect())
+                                          timeout_s=0.5, link_lost_s=1.0,
+                                          tlog=None if tlogs is None else str(tlogs[k]))).connect())
         yield fleet, links
     finally:
         for link in links:
@@ -125,7 +127,6 @@ def test_three_boats_fly_one_loop_with_disjoint_paths_and_one_store(tmp_path):
     # one shared estimate: the field estimate after the last leg beats the model alone
     last = max(legs, key=lambda x: x["t_end"])
     assert last["rmse_passt"] < last["rmse_model"]
-    assert len(rd.boat_tlogs()) == 0  # the caller sets tlogs (passt-mav run does, one per boat)
 
 
 def test_a_boat_whose_link_dies_mid_leg_is_reported_and_the_others_complete(tmp_path):
@@ -193,3 +194,23 @@ def test_a_boat_whose_link_drops_mid_leg_reconnects_and_the_fleet_completes(tmp_
     assert [b["status"] for b in summary["boats"]] == ["complete"] * 3
     assert len(summary["legs"]) == 6
     assert any(e.startswith(f"boat 2: leg {dropped['leg']}: link lost") for e in summary["events"]), summary["events"]
+
+
+def test_replay_of_a_fleet_run_reproduces_every_boats_paths_and_rmse(tmp_path):
+    from passt_mav.analysis.replay import replay
+
+    field = wave_field()
+    cfg = fleet_mission(tmp_path, field)
+    rd = RunDir(tmp_path / "run").create()
+    with fleet_on_loopback(field, tlogs=[rd.boat_tlog(k) for k in range(3)]) as (sim, links):
+        fleet, rd = run_fleet(tmp_path, field, cfg, links)
+        summary = fleet.run()
+    assert summary["status"] == "complete", summary["events"]
+    assert [p.name for p in rd.boat_tlogs()] == ["flight_boat0.tlog", "flight_boat1.tlog", "flight_boat2.tlog"]
+    res = replay(rd.root, out=False)
+    assert res.kind == "fleet" and res.reproduced is True, (res.notes, [x.notes for x in res.legs])
+    assert [x.index for x in res.legs] == list(range(6))
+    for got, want in zip(res.legs, sorted(summary["legs"], key=lambda r: r["index"])):
+        assert got.path == want["path"] and got.notes[0] == f"boat {want['boat']}"
+        assert got.rmse_passt == pytest.approx(want["rmse_passt"], abs=1e-6)
+        assert got.rmse_model == pytest.approx(want["rmse_model"], abs=1e-6)

@@ -239,15 +239,18 @@ def replay(source, *, out=None, model: str | None = None, planner: str | None = 
         rd = RunDir(src)
         if not rd.is_run_dir():
             raise ReplayError(f"{src} is not a run directory")
-        if not rd.tlog.is_file():
+        fleet_logs = rd.boat_tlogs()
+        if not rd.tlog.is_file() and not fleet_logs:
             raise ReplayError(f"{rd.tlog} not found: the run has no telemetry log to replay")
-        tlog = rd.tlog
+        tlog = rd.tlog if not fleet_logs else fleet_logs[0]
         if rd.summary_file.exists():
             try:
                 summary = rd.read_summary()
             except RunDirError as exc:
                 raise ReplayError(str(exc)) from None
-        kind = "run"
+        kind = "fleet" if fleet_logs else "run"
+        if kind == "fleet" and not (summary or {}).get("boats"):
+            raise ReplayError(f"{src}: a fleet run (flight_boatN.tlog) needs its summary.json (the boats' clocks)")
     else:
         if src.suffix.lower() not in (".tlog", ".bin"):
             raise ReplayError(f"{src}: expected a run directory, a .tlog or an ArduPilot DataFlash .bin file")
@@ -292,6 +295,17 @@ def replay(source, *, out=None, model: str | None = None, planner: str | None = 
 
     from passt_mav.runs.tlog import LogReadError
 
+    if kind == "fleet":
+        if cf:
+            raise ReplayError("counterfactual replays (--model/--planner/--reward) of a fleet run are not supported")
+        legs, info, notes, first_div = _replay_fleet(rd, summary, cfg, step, rmse_tol, say)
+        reproduced = first_div is None and bool(legs)
+        settings = {"mission": mission_src, "model": pinfo.get("used"), "planner": cfg.planner.name,
+                    "reward": cfg.planner.reward, "path_length": cfg.planner.path_length, "field": str(cfg.field.source),
+                    "boats": len(summary["boats"])}
+        result = ReplayResult(str(src), kind, cf, legs, info, reproduced, first_div, float(rmse_tol), settings,
+                              notes=notes)
+        return _write_result(result, out, rd, src)
     try:
         if kind == "dataflash":
             from passt_mav.runs.dataflash_legs import rebuild_from_dataflash
@@ -441,9 +455,76 @@ def replay(source, *, out=None, model: str | None = None, planner: str | None = 
                           "bad_frames": log.bad_frames, "skipped_bytes": log.skipped_bytes, "n_bytes": log.n_bytes,
                           "samples_outside_legs": log.n_samples_outside_legs}, reproduced,
                           None if cf else first_div, float(rmse_tol), settings, notes=notes)
+    return _write_result(result, out, rd, src)
+
+
+def _write_result(result: ReplayResult, out, rd, src: Path) -> ReplayResult:
+    from passt_mav.runs.rundir import write_json_atomic
+
     if out is not False:
         od = Path(out) if out is not None else ((rd.root / "replay") if rd is not None else src.with_suffix(".replay"))
         od.mkdir(parents=True, exist_ok=True)
         result.out_dir = str(od)
         write_json_atomic(od / "replay.json", result.to_dict())
     return result
+
+
+def _replay_fleet(rd, summary: dict, cfg, step, rmse_tol: float, say):
+    """A fleet run (:mod:`passt_mav.fleet_controller`): each boat's legs and samples from its own tlog,
+    the fleet's plans and updates repeated in the order they were made (``fleet_seq`` of the leg
+    records) through :class:`~passt_mav.legstep.FleetStep`. Returns (legs, log info, notes, first divergence)."""
+    from passt_mav.legstep import FieldClock, FleetStep
+    from passt_mav.planning import path_reward
+    from passt_mav.runs.rundir import RunDirError
+
+    try:
+        records = {int(r["index"]): r for r in rd.read_legs() if r.get("fleet_seq")}
+    except RunDirError as exc:
+        raise ReplayError(str(exc)) from None
+    notes: list[str] = []
+    logged: dict[int, Any] = {}
+    info = {"path": [str(p) for p in rd.boat_tlogs()], "n_messages": 0, "bad_frames": 0, "skipped_bytes": 0,
+            "n_bytes": 0, "samples_outside_legs": 0}
+    for p in rd.boat_tlogs():
+        log = rebuild_from_tlog(p, u_name=cfg.sensors.u, v_name=cfg.sensors.v)
+        for key in ("n_messages", "bad_frames", "skipped_bytes", "n_bytes"):
+            info[key] += getattr(log, key)
+        info["samples_outside_legs"] += log.n_samples_outside_legs
+        for lg in log.legs:
+            if lg.planned_index is not None:
+                logged[int(lg.planned_index)] = lg
+    clocks = {}
+    for b in summary["boats"]:
+        c = b.get("clock") or {}
+        clocks[int(b["boat"])] = FieldClock(float(c.get("t_boot0", 0.0)), float(c.get("time_scale", 1.0)),
+                                            later_boots=tuple(float(x) for x in c.get("later_boots") or ()))
+    events = sorted([(int(r["fleet_seq"]["plan"]), 0, i) for i, r in records.items()]
+                    + [(int(r["fleet_seq"]["absorb"]), 1, i) for i, r in records.items()])
+    fs, planned, out, first_div = FleetStep(step), {}, {}, None
+    for _, kind, i in events:
+        rec = records[i]
+        boat = int(rec["boat"])
+        if kind == 0:
+            planned[i] = fs.plan_for(boat, i, tuple(int(x) for x in rec["start_cell"]),
+                                     k=int(rec["forecast_steps_before"]))
+            continue
+        lg = logged.get(i)
+        if lg is None:
+            notes.append(f"leg {i} (boat {boat}): not found in flight_boat{boat}.tlog; the replay stops there")
+            first_div = i if first_div is None else first_div
+            break
+        pl = planned[i]
+        ab = fs.absorb(boat, pl, lg.samples, clocks[boat])
+        diffs = _diff_paths(rec["path"], pl.plan.path.tolist())
+        r_same = all(a is None or (b is not None and abs(a - b) <= rmse_tol)
+                     for a, b in ((rec.get("rmse_passt"), ab.rmse_passt), (rec.get("rmse_model"), ab.rmse_model)))
+        lnotes = [f"boat {boat}"] + ([] if rec.get("status") == "complete" else [f"status {rec.get('status')}"])
+        out[i] = ReplayLeg(i, len(lg.samples), len(ab.samples), list(rec["start_cell"]), float(pl.t_start),
+                           int(ab.steps), int(pl.k), pl.plan.path.tolist(), rec["path"], not diffs, diffs,
+                           float(path_reward(pl.plan.reward, pl.plan.path)), ab.rmse_passt, ab.rmse_model,
+                           rec.get("rmse_passt"), rec.get("rmse_model"), r_same, lnotes)
+        if (diffs or not r_same) and first_div is None:
+            first_div = i
+        say(f"leg {i} (boat {boat}): {len(lg.samples)} samples, path {'identical' if not diffs else 'differs'}"
+            + ("" if ab.rmse_passt is None else f", RMSE {ab.rmse_passt:.6f}"))
+    return [out[i] for i in sorted(out)], info, notes, first_div

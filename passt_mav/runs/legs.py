@@ -70,6 +70,7 @@ class LoggedLeg:
     samples: list[dict] = field(default_factory=list)
     closed: bool = False
     clock: tuple[int, int, int] | None = None
+    planned_index: int | None = None  # the controller's leg number (a fleet numbers legs across boats)
 
 
 @dataclass
@@ -132,14 +133,15 @@ def rebuild_from_tlog(path: str | Path, *, u_name: str = "CUR_U", v_name: str = 
         if typ == "STATUSTEXT":
             parsed = parse_clock_statustext(m.text if isinstance(m.text, str) else m.text.decode(errors="replace"))
             if parsed is not None and state["cur"] is None:
-                state["clock"] = parsed[1:]
+                state["clock"], state["clock_leg"] = parsed[1:], parsed[0]
                 if state["pending"] is not None:
-                    state["pending"].clock = state["clock"]
+                    state["pending"].clock, state["pending"].planned_index = parsed[1:], parsed[0]
             continue
         if typ == "MISSION_COUNT" and getattr(m, "mission_type", 0) == 0 and m.target_system in (0, veh):
             if state["pending"] is None and state["cur"] is None:  # first upload of a new leg: planned just before
-                state["pending"] = LoggedLeg(len(legs), state["pos"], state["tb"], state["tb_lo"], clock=state["clock"])
-                state["clock"] = None
+                state["pending"] = LoggedLeg(len(legs), state["pos"], state["tb"], state["tb_lo"], clock=state["clock"],
+                                             planned_index=state.get("clock_leg"))
+                state["clock"] = state["clock_leg"] = None
             state["upload"] = {"count": int(m.count), "items": {}}
         elif typ in ("MISSION_ITEM_INT", "MISSION_ITEM") and state["upload"] is not None \
                 and getattr(m, "mission_type", 0) == 0 and 0 <= m.seq < state["upload"]["count"]:
