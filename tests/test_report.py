@@ -54,7 +54,8 @@ def _leg(i: int, cells: list[tuple[int, int]], t_start: float, t_end: float) -> 
 
 
 LEG_CELLS = [[(1, 1), (2, 2), (3, 3), (3, 4), (4, 5), (5, 6), (6, 6)],
-             [(6, 6), (6, 7), (7, 8), (8, 9), (8, 10), (7, 11), (6, 11)]]
+             [(6, 6), (6, 7), (7, 8), (8, 9), (8, 10), (7, 11), (6, 11)],
+             [(6, 11), (5, 10), (4, 9), (3, 8), (2, 8), (1, 7), (1, 6)]]
 
 
 def _samples_for(legs):
@@ -72,12 +73,12 @@ def _samples_for(legs):
     return out
 
 
-def make_run(root: Path, *, estimate=True, summary_extras=True, field_path=None) -> RunDir:
+def make_run(root: Path, *, estimate=True, summary_extras=True, field_path=None, n_legs=2) -> RunDir:
     rd = RunDir(root).create()
     fld = _truth_field()
     fpath = field_path or (root / "field.nc")
     fld.to_netcdf(fpath)
-    legs = [_leg(0, LEG_CELLS[0], 3600.0, 7200.0), _leg(1, LEG_CELLS[1], 7200.0, 10800.0)]
+    legs = [_leg(i, LEG_CELLS[i], 3600.0 * (i + 1), 3600.0 * (i + 2)) for i in range(n_legs)]
     for leg in legs:
         rd.write_leg(leg["index"], leg)
     if estimate:
@@ -90,7 +91,7 @@ def make_run(root: Path, *, estimate=True, summary_extras=True, field_path=None)
         "mission": "synthetic-test", "status": "complete", "started_utc": "2026-01-01T10:00:00Z",
         "finished_utc": "2026-01-01T10:25:00Z", "field": str(fpath), "model": "knode", "planner": "policy_gradient",
         "reward": "speed", "seeds": {"planner": 3, "gp": 4}, "grid": GRID.describe(), "field_time_origin": T0,
-        "legs": legs, "n_samples": 14,
+        "legs": legs, "n_samples": 7 * n_legs,
     }
     if summary_extras:
         summary["rmse"] = {"t": [3600.0, 7200.0, 10800.0], "passt": [0.09, 0.05, 0.04], "model": [0.09, None, 0.085]}
@@ -182,8 +183,13 @@ def test_minimal_and_partial_runs(tmp_path):
     assert "Reconstruction vs truth: reconstruction (estimate.nc) not recorded" in text2
 
 
-def _write_tlog(path: Path, samples: list[dict], legs: list[dict]) -> None:
-    """A tlog (8-byte big-endian µs + MAVLink 2 frame) with two accepted uploads, positions and samples."""
+def _write_tlog(path: Path, samples: list[dict], legs: list[dict], late_nack=()) -> None:
+    """A tlog (8-byte big-endian µs + MAVLink 2 frame): per leg an accepted upload, then positions and samples.
+
+    Legs in ``late_nack``: the vehicle answers a re-sent item with INVALID_SEQUENCE (13) after the
+    last item was sent, before its ACCEPTED, as logged in a loaded demo run (/tmp/demo_final,
+    mission 2): the tlog reader takes the 13 for the upload's answer and sees no accepted upload.
+    """
     os.environ.setdefault("MAVLINK20", "1")
     from pymavlink import mavutil
 
@@ -202,6 +208,8 @@ def _write_tlog(path: Path, samples: list[dict], legs: list[dict]) -> None:
         put(gcs.mission_count_encode(1, 1, len(wps) + 1), gcs)
         for seq, (la, lo) in enumerate([wps[0]] + wps):
             put(gcs.mission_item_int_encode(1, 1, seq, 6, 16, 0, 1, 0, 2, 0, 0, int(la * 1e7), int(lo * 1e7), 0), gcs)
+        if leg["index"] in late_nack:
+            put(veh.mission_ack_encode(255, 190, 13), veh)
         put(veh.mission_ack_encode(255, 190, 0), veh)
         put(veh.mission_current_encode(1, len(wps), 3), veh)
         for s in (x for x in samples if x["leg"] == leg["index"]):
@@ -313,3 +321,175 @@ def test_metric_grid_run(tmp_path):
     # +0.05 on both components everywhere the cylinder is not
     assert "reconstruction RMSE vs truth, leg 0</th><td>0.05 non-dimensional" in text
     assert "non-dimensional field time" in text
+
+
+# -- figures, inspected as matplotlib objects ---------------------------------------------------
+def _figure(name: str, run, *extra):
+    """Draw one report figure (``_fig_legs`` etc.) of ``run`` and return (figure, pyplot) for inspection."""
+    from passt_mav.analysis import report
+
+    plt = report._plt()
+    return getattr(report, name)(run, plt, *extra), plt
+
+
+def _executed_lines(fig) -> dict[int, np.ndarray]:
+    """Leg number -> (n, 2) lon/lat of the line labelled 'leg N executed' in the legs figure."""
+    out = {}
+    for line in fig.axes[0].get_lines():
+        m = re.fullmatch(r"leg (\d+) executed", line.get_label())
+        if m:
+            out[int(m.group(1))] = line.get_xydata()
+    return out
+
+
+def test_legs_figure_draws_every_leg_when_the_tlog_misses_an_upload(tmp_path, fake_store):
+    """Leg numbers come from the controller's records, not from the n-th upload the tlog shows.
+
+    Leg 1's upload is answered INVALID_SEQUENCE before ACCEPTED, so the tlog reader sees two
+    accepted uploads for three legs. Splitting the track by the tlog's uploads drew leg 2's
+    positions as leg 1 and nothing for leg 2 (the report on main); split by the vehicle time
+    of the store's samples, each leg gets exactly the 7 positions logged while it was flown.
+    """
+    rd = make_run(tmp_path / "run", n_legs=3)
+    legs = rd.read_summary()["legs"]
+    samples = _samples_for(legs)
+    _write_tlog(rd.tlog, samples, legs, late_nack={1})
+    rd.samples_db.write_bytes(b"")
+    fake_store[str(rd.samples_db)] = samples
+    run = load_run(rd.root)
+    assert [m.accepted for m in run.tlog.missions] == [True, False, True]  # the reader's miss, as in the demo run
+    assert sorted(run.leg_tracks) == [0, 1, 2]
+    fig, plt = _figure("_fig_legs", run)
+    try:
+        lines = _executed_lines(fig)
+    finally:
+        plt.close(fig)
+    assert sorted(lines) == [0, 1, 2]
+    for leg in legs:
+        wp = np.array(leg["waypoints"])  # a sample (and a position) at every planned cell
+        np.testing.assert_allclose(lines[leg["index"]], wp[:, ::-1], atol=1e-6)
+    assert "split by vehicle time (3 legs as numbered in samples.sqlite)" in write_report(rd.root).read_text()
+
+
+def test_legs_split_by_clock_readings_without_a_sample_store(tmp_path):
+    """No samples.sqlite: legs that recorded the vehicle time they were planned at span from it to
+    the next leg's; the last leg to the end of the log."""
+    rd = make_run(tmp_path / "run", n_legs=3)
+    s = rd.read_summary()
+    legs = s["legs"]
+    samples = _samples_for(legs)  # time_boot_ms 5000, 6000, ... one per planned cell
+    for leg in legs:
+        first = next(x["time_boot_ms"] for x in samples if x["leg"] == leg["index"])
+        leg["clock_reading"] = {"time_boot_ms": first - 500, "boot": 0}
+    rd.write_summary(s)
+    _write_tlog(rd.tlog, samples, legs, late_nack={1})
+    run = load_run(rd.root)
+    assert run.samples_source == "flight.tlog"
+    for leg in legs:
+        np.testing.assert_allclose(run.leg_tracks[leg["index"]], np.array(leg["waypoints"]), atol=1e-6)
+    assert "3 legs from their clock readings" in run.leg_tracks_source
+
+
+def _many_samples(n: int, legs: int = 3) -> list[dict]:
+    """``n`` samples along a boustrophedon over the test grid, u, v a smooth field in m/s."""
+    rng = np.random.default_rng(5)
+    k = np.arange(n)
+    rows = 0.5 + 8.5 * (k / n)
+    cols = 0.5 + 10.5 * np.abs(((k / n * 9) % 2) - 1)
+    lat, lon = GRID.cell_to_latlon(rows, cols)
+    u = 0.3 + 0.2 * np.sin(cols / 3) + 0.01 * rng.standard_normal(n)
+    v = 0.1 * np.cos(rows / 2)
+    return [dict(time_boot_ms=10_000 + 200 * int(j), utc=1.5e9 + j, lat=float(lat[j]), lon=float(lon[j]),
+                 u=float(u[j]), v=float(v[j]), leg=int(j * legs // n), source="test") for j in k]
+
+
+def test_samples_figure_readable_at_ten_thousand_points(tmp_path, fake_store):
+    from matplotlib.collections import PathCollection
+    from matplotlib.quiver import Quiver
+
+    rd = make_run(tmp_path / "run")
+    rd.samples_db.write_bytes(b"")
+    fake_store[str(rd.samples_db)] = recs = _many_samples(10_000)
+    run = load_run(rd.root)
+    fig, plt = _figure("_fig_samples", run)
+    try:
+        ax, cax = fig.axes[0], fig.axes[1]
+        scat = [c for c in ax.collections if isinstance(c, PathCollection)]
+        quiv = [c for c in ax.collections if isinstance(c, Quiver)]
+        assert len(scat) == 1 and len(quiv) == 1
+        # every sample drawn, coloured by its speed
+        assert scat[0].get_offsets().shape == (10_000, 2)
+        np.testing.assert_allclose(scat[0].get_array(), [np.hypot(r["u"], r["v"]) for r in recs], rtol=1e-12)
+        assert cax.get_ylabel() == "measured speed (m/s)"
+        assert 20 <= quiv[0].N <= 400  # one arrow per sample (10^4) made a black blob
+        assert ax.get_xlabel() == "longitude (deg E)" and ax.get_ylabel() == "latitude (deg N)"
+    finally:
+        plt.close(fig)
+
+
+def test_binned_arrows_known_answers():
+    from passt_mav.analysis.report import binned_arrows
+
+    rng = np.random.default_rng(1)
+    lat, lon = 40.0 + rng.random(10_000), -63.0 + 1.3 * rng.random(10_000)
+    u, v = np.full(10_000, 0.4), np.full(10_000, -0.3)
+    blat, blon, bu, bv, count = binned_arrows(lat, lon, u, v, max_arrows=300)
+    assert 100 <= len(bu) <= 300 and count.sum() == 10_000
+    np.testing.assert_allclose(bu, 0.4, atol=1e-12)  # a uniform flow: every bin mean is that flow
+    np.testing.assert_allclose(bv, -0.3, atol=1e-12)
+    assert blat.min() >= 40.0 and blat.max() <= 41.0 and blon.min() >= -63.0 and blon.max() <= -61.7
+    # two clusters far apart, a handful of points each: one arrow per cluster, at its mean
+    blat, blon, bu, bv, count = binned_arrows([0, 0, 10, 10.0], [0, 0, 10, 10.0], [1, 3, 5, 7.0], [0, 0, 0, 0.0])
+    np.testing.assert_allclose(sorted(bu), [2.0, 6.0])
+    assert sorted(count) == [2, 2]
+    assert all(len(x) == 0 for x in binned_arrows([], [], [], []))
+
+
+def _bar_heights(ax) -> dict[str, list[float]]:
+    return {c.get_label(): [b.get_height() for b in c.patches] for c in ax.containers}
+
+
+def test_rmse_figure_with_the_lawnmower_counterfactual(tmp_path):
+    """PASST, model alone and the demo's counterfactual (summary ``counterfactual.lawnmower``, one per
+    leg, and ``rmse.lawnmower`` over time) each drawn, labelled, in m/s; a log scale when 20x apart."""
+    from passt_mav.analysis.report import _per_leg_rmse
+
+    rd = make_run(tmp_path / "run", n_legs=3)
+    s = rd.read_summary()
+    s["rmse"] = {"t": [7200.0, 10800.0, 14400.0], "passt": [0.05, 0.04, 0.02], "model": [0.08, 0.08, 0.08],
+                 "lawnmower": [0.48, 0.49, 0.5]}
+    s["counterfactual"] = {"lawnmower": [0.48, 0.49, 0.5], "how": "offline: lawnmower legs of the same length"}
+    s["legs"][2]["rmse_passt"] = 0.02  # per leg: 0.05, 0.04, 0.02 (the leg records)
+    rd.write_summary(s)
+    run = load_run(rd.root)
+    per_leg = _per_leg_rmse(run)
+    fig, plt = _figure("_fig_rmse", run, s["rmse"], per_leg)
+    try:
+        over, legs_ax = fig.axes
+        names = [t.get_text() for t in fig.legends[0].get_texts()]  # one legend for both panels
+        assert names == ["PASST", "model alone (from the true initial state)", "lawnmower+GP (counterfactual, offline)"]
+        np.testing.assert_allclose(over.get_lines()[2].get_ydata(), [0.48, 0.49, 0.5])
+        assert over.get_ylabel() == legs_ax.get_ylabel() == "RMSE (m/s)"
+        assert over.get_yscale() == legs_ax.get_yscale() == "log"  # 0.02 .. 0.5
+        h = _bar_heights(legs_ax)
+        assert list(h) == names
+        np.testing.assert_allclose(h["PASST"], [0.05, 0.04, 0.02])
+        np.testing.assert_allclose(h["model alone (from the true initial state)"], [0.08] * 3)
+        np.testing.assert_allclose(h["lawnmower+GP (counterfactual, offline)"], [0.48, 0.49, 0.5])
+        assert [t.get_text() for t in legs_ax.get_xticklabels()] == ["leg 0", "leg 1", "leg 2"]
+    finally:
+        plt.close(fig)
+    text = write_report(rd.root).read_text()
+    assert "Lawnmower+GP counterfactual: offline: lawnmower legs of the same length." in text
+
+    # a run without the counterfactual: two bars per leg, linear scale, and the page says why
+    del s["counterfactual"], s["rmse"]["lawnmower"]
+    rd.write_summary(s)
+    run = load_run(rd.root)
+    fig, plt = _figure("_fig_rmse", run, s["rmse"], _per_leg_rmse(run))
+    try:
+        assert list(_bar_heights(fig.axes[1])) == ["PASST", "model alone (from the true initial state)"]
+        assert fig.axes[1].get_yscale() == "linear"
+    finally:
+        plt.close(fig)
+    assert "No lawnmower+GP counterfactual for this run" in write_report(rd.root).read_text()

@@ -6,11 +6,14 @@ recorded; :func:`write_report` draws and writes it. Sections, in page order:
 1. summary table (mission, status, times, field, grid, model, planner, seeds);
 2. ``track_field.png``: the executed track over the truth current field (speed
    colour map) on lon/lat axes, with the planned waypoints;
-3. ``legs.png``: per leg, planned path vs executed positions;
-4. ``samples.png``: sample positions coloured by measured speed, with arrows;
+3. ``legs.png``: per leg, planned path vs executed positions (the track split into
+   legs by vehicle time, as the controller numbered its legs: :func:`_leg_windows`);
+4. ``samples.png``: sample positions coloured by measured speed, with at most
+   :data:`MAX_ARROWS` arrows of the mean velocity in spatial bins (:func:`binned_arrows`);
 5. ``reconstruction.png``: the last reconstruction (``legs/NNN/estimate.nc``) vs
    the truth at its time, and the error; RMSE per leg in a table;
-6. ``rmse.png``: RMSE over field time and per leg, PASST vs pure model;
+6. ``rmse.png``: RMSE over field time and per leg: PASST, the model alone and, where
+   ``summary.json`` holds it, the lawnmower+GP counterfactual;
 7. ``pod.png``: cumulative POD energy vs number of modes;
 8. timings (planning, upload, leg duration) and link quality tables;
 9. the telemetry log (``flight.tlog``): uploads, damage, mode changes.
@@ -41,7 +44,8 @@ import numpy as np
 from passt_mav.errors import UserError
 from passt_mav.runs.rundir import RunDir, RunDirError
 
-__all__ = ["Run", "load_run", "recon_rmse", "samples_as_arrays", "truth_at", "write_report"]
+__all__ = ["MAX_ARROWS", "Run", "binned_arrows", "load_run", "recon_rmse", "samples_as_arrays", "truth_at",
+           "write_report"]
 
 NOT_RECORDED = "not recorded"
 
@@ -185,12 +189,15 @@ def _load_tlog(run: Run) -> None:
 def samples_as_arrays(samples) -> dict[str, np.ndarray]:
     """Columns of sample records (anything with the ``Sample`` attributes) as arrays.
 
-    Keys ``time_boot_ms`` (int64), ``utc``, ``lat``, ``lon``, ``u``, ``v`` (float64), ``leg`` (int64).
+    Keys ``time_boot_ms`` (int64), ``utc``, ``lat``, ``lon``, ``u``, ``v`` (float64), ``leg``,
+    ``boot`` (int64; 0 where a record has no boot number).
     """
     recs = list(samples)
-    return {name: np.array([getattr(r, name) for r in recs], dtype=dtype)
-            for name, dtype in (("time_boot_ms", np.int64), ("utc", np.float64), ("lat", np.float64),
-                                ("lon", np.float64), ("u", np.float64), ("v", np.float64), ("leg", np.int64))}
+    out = {name: np.array([getattr(r, name) for r in recs], dtype=dtype)
+           for name, dtype in (("time_boot_ms", np.int64), ("utc", np.float64), ("lat", np.float64),
+                               ("lon", np.float64), ("u", np.float64), ("v", np.float64), ("leg", np.int64))}
+    out["boot"] = np.array([int(getattr(r, "boot", 0) or 0) for r in recs], np.int64)
+    return out
 
 
 def _load_samples(run: Run) -> None:
@@ -214,19 +221,90 @@ def _load_samples(run: Run) -> None:
         run.samples, run.samples_source = samples_as_arrays(run.tlog.samples), rd.TLOG
 
 
+#: one boot of the autopilot spans less than this many ms: (boot, time_boot_ms) -> one sortable key
+_BOOT_SPAN_MS = 10**13
+
+
+def _track_boots(tb_ms: np.ndarray) -> np.ndarray:
+    """Boot number (0 = first in the log) of each position, in reception order.
+
+    The rule of the tlog reader and the sample store: ``time_boot_ms`` jumping back by
+    more than 10 s means the autopilot rebooted.
+    """
+    boots = np.zeros(len(tb_ms), np.int64)
+    boot, hi = 0, None
+    for k, t in enumerate(tb_ms.tolist()):
+        if hi is not None and t < hi - 10_000:
+            boot, hi = boot + 1, t
+        else:
+            hi = t if hi is None else max(hi, t)
+        boots[k] = boot
+    return boots
+
+
+def _leg_windows(run: Run) -> tuple[dict[int, tuple[float, float]], str]:
+    """Per controller leg index, the span ``[first, last]`` of vehicle time it covered, as
+    ``boot * _BOOT_SPAN_MS + time_boot_ms`` keys; and where the spans come from.
+
+    The controller's own records decide which positions belong to which leg, not the
+    telemetry log's mission uploads: the log reader can miss an accepted upload (e.g.
+    an INVALID_SEQUENCE ack for a re-sent item arriving after the last item) or end a
+    leg early, and the n-th upload it saw is then not the controller's n-th leg.
+
+    1. samples from the sample store carry the controller's leg number: a leg spans its
+       first to its last sample, from its clock reading on when the leg recorded one;
+    2. legs without such samples: from their clock reading (``clock_reading``: the
+       vehicle time the controller planned the leg at) to the next leg's.
+    Empty when neither was recorded.
+    """
+    starts: dict[int, float] = {}
+    for n, leg in enumerate(run.legs):
+        cr = leg.get("clock_reading")
+        if isinstance(cr, dict) and isinstance(cr.get("time_boot_ms"), (int, float)):
+            starts[int(leg.get("index", n))] = int(cr.get("boot") or 0) * _BOOT_SPAN_MS + float(cr["time_boot_ms"])
+    spans: dict[int, tuple[float, float]] = {}
+    s = run.samples
+    from_store = s is not None and run.samples_source == run.rundir.SAMPLES
+    if from_store:
+        key = s["boot"] * _BOOT_SPAN_MS + s["time_boot_ms"]
+        for i in np.unique(s["leg"]):
+            if i >= 0:
+                k = key[s["leg"] == i]
+                lo = float(k.min())
+                spans[int(i)] = (min(lo, starts.get(int(i), lo)), float(k.max()))
+    n_store = len(spans)
+    order = sorted(starts)
+    for j, i in enumerate(order):
+        if i not in spans:
+            spans[i] = (starts[i], starts[order[j + 1]] if j + 1 < len(order) else math.inf)
+    how = [f"{n_store} legs as numbered in {run.samples_source}" if n_store else "",
+           f"{len(spans) - n_store} legs from their clock readings" if len(spans) > n_store else ""]
+    return spans, ", ".join(h for h in how if h)
+
+
 def _load_tracks(run: Run) -> None:
     tl = run.tlog
     if tl is not None and tl.track:
         run.track = np.array([(p.lat, p.lon) for p in tl.track], np.float64)
         run.track_source = f"{run.rundir.TLOG} GLOBAL_POSITION_INT ({len(tl.track)} points)"
-        # tlog legs are numbered by accepted upload, as the controller numbers its legs
+        spans, how = _leg_windows(run)
+        if spans:
+            tb = np.array([p.time_boot_ms for p in tl.track], np.int64)
+            key = _track_boots(tb) * _BOOT_SPAN_MS + tb
+            for i, (lo, hi) in sorted(spans.items()):
+                sel = (key >= lo) & (key <= hi)
+                if sel.any():
+                    run.leg_tracks[i] = run.track[sel]
+            run.leg_tracks_source = f"positions from {run.rundir.TLOG} split by vehicle time ({how})"
+            return
+        # no record of the controller's legs: the log's accepted uploads, in order, stand for them
         idx = [int(leg.get("index", k)) for k, leg in enumerate(run.legs)] or list(range(len(tl.legs)))
         for k, lg in enumerate(tl.legs):
             if k < len(idx):
                 pts = tl.leg_track(lg.index)
                 if len(pts):
                     run.leg_tracks[idx[k]] = pts
-        run.leg_tracks_source = f"positions from {run.rundir.TLOG}"
+        run.leg_tracks_source = f"positions from {run.rundir.TLOG}, legs as its accepted mission uploads"
     elif run.samples is not None:
         s = run.samples
         run.track = np.column_stack([s["lat"], s["lon"]])
@@ -369,22 +447,72 @@ def _fig_legs(run: Run, plt):
     return fig
 
 
+#: most arrows the samples figure draws: more make a solid black blob at 10^4 samples
+MAX_ARROWS = 300
+
+
+def binned_arrows(lat, lon, u, v, max_arrows: int = MAX_ARROWS) -> tuple[np.ndarray, ...]:
+    """Mean position and velocity of the samples in each occupied cell of a regular lon/lat
+    binning, at most ``max_arrows`` cells.
+
+    ``lat``, ``lon`` (deg), ``u``, ``v`` (any units; east/north): 1-D arrays of equal length.
+    The bins are square on the ground (lon bins widened by 1/cos(lat)); the binning starts
+    at 24 bins across the longer side and is made coarser until at most ``max_arrows`` bins
+    hold samples. Returns ``(lat, lon, u, v, count)`` per occupied bin, NaN samples left out.
+    """
+    lat, lon, u, v = (np.asarray(x, np.float64).ravel() for x in (lat, lon, u, v))
+    ok = np.isfinite(lat) & np.isfinite(lon) & np.isfinite(u) & np.isfinite(v)
+    lat, lon, u, v = lat[ok], lon[ok], u[ok], v[ok]
+    if lat.size == 0:
+        return tuple(np.zeros(0) for _ in range(5))
+    stretch = _aspect(lat)  # degrees of lon per degree of lat on the ground, inverted
+    y, x = lat - lat.min(), (lon - lon.min()) / stretch
+    extent = max(float(y.max()), float(x.max()), 1e-12)
+    n = 24
+    while True:
+        size = extent / n * (1 + 1e-9)
+        cell = np.floor(y / size).astype(np.int64) * (n + 1) + np.floor(x / size).astype(np.int64)
+        keys, inv, count = np.unique(cell, return_inverse=True, return_counts=True)
+        if len(keys) <= max_arrows or n == 1:
+            break
+        n = max(1, int(n * 0.8))
+    mean = [np.bincount(inv, weights=w) / count for w in (lat, lon, u, v)]
+    return (*mean, count)
+
+
 def _fig_samples(run: Run, plt):
     s = run.samples
     sp = np.hypot(s["u"], s["v"])
     fig, ax = plt.subplots(figsize=(7.5, 6.0), constrained_layout=True)
+    ok = np.isfinite(s["lat"]) & np.isfinite(s["lon"])
+    la, lo = s["lat"][ok], s["lon"][ok]
+    # the view is the samples' extent plus a margin: on the whole grid a track is a thin line
+    pad_lat = max(0.08 * float(np.ptp(la)) if la.size else 0.0, 1e-3)
+    pad_lon = max(0.08 * float(np.ptp(lo)) if lo.size else 0.0, 1e-3)
     if run.field is not None:
-        lat, lon = _centres(run.field.grid)
-        ax.plot(lon.ravel(), lat.ravel(), ".", color="0.8", ms=2, zorder=0)
-    sc = ax.scatter(s["lon"], s["lat"], c=sp, cmap="plasma", s=36, edgecolors="k", linewidths=0.4, zorder=2)
+        g = run.field.grid
+        lat, lon = _centres(g)
+        # context: the grid's cell centres, and its cell size as the smallest margin
+        pad_lat = max(pad_lat, float(np.nanmax(lat) - np.nanmin(lat)) / max(g.rows - 1, 1))
+        pad_lon = max(pad_lon, float(np.nanmax(lon) - np.nanmin(lon)) / max(g.cols - 1, 1))
+        ax.plot(lon.ravel(), lat.ravel(), "+", color="0.65", ms=4, mew=0.6, zorder=0, label="grid cell centres")
+    # small markers without edges: 10^4 of them still show their colours
+    sc = ax.scatter(s["lon"], s["lat"], c=sp, cmap="plasma", s=5, linewidths=0, zorder=2, rasterized=True)
     fig.colorbar(sc, ax=ax, label=f"measured speed ({run.units})", shrink=0.85)
-    vmax = float(np.nanmax(sp)) if np.isfinite(sp).any() and np.nanmax(sp) > 0 else 1.0
-    ax.quiver(s["lon"], s["lat"], s["u"], s["v"], angles="uv", scale_units="inches", scale=vmax / 0.3,
-              width=0.003, color="k", zorder=3)
-    ax.set_aspect(_aspect(s["lat"]))
+    blat, blon, bu, bv, _ = binned_arrows(s["lat"], s["lon"], s["u"], s["v"])
+    bsp = np.hypot(bu, bv)
+    vmax = float(bsp.max()) if bsp.size and bsp.max() > 0 else 1.0
+    q = ax.quiver(blon, blat, bu, bv, angles="uv", scale_units="inches", scale=vmax / 0.35, width=0.0035,
+                  color="k", edgecolor="w", linewidth=0.5, zorder=3)
+    ax.quiverkey(q, 0.86, 1.015, vmax, f"{vmax:.2g} {run.units}", labelpos="W", coordinates="axes", fontproperties={"size": 8})
+    if la.size:
+        ax.set_xlim(float(lo.min()) - pad_lon, float(lo.max()) + pad_lon)
+        ax.set_ylim(float(la.min()) - pad_lat, float(la.max()) + pad_lat)
+        ax.set_aspect(_aspect(la))
     ax.set_xlabel("longitude (deg E)")
     ax.set_ylabel("latitude (deg N)")
-    ax.set_title(f"{len(sp)} samples coloured by speed (arrows: measured u, v)", fontsize=10)
+    ax.set_title(f"{len(sp)} samples coloured by measured speed; arrows: mean u, v of the samples\n"
+                 f"in each of {len(bu)} spatial bins", fontsize=10)
     ax.grid(alpha=0.3)
     return fig
 
@@ -415,45 +543,65 @@ def _series(xs) -> np.ndarray:
     return np.array([np.nan if x is None else float(x) for x in xs], float)
 
 
-def _fig_rmse(run: Run, plt, over_time: dict | None, per_leg: list[tuple[int, float, float]]):
+#: (summary key, line style, legend) of the RMSE curves, in drawing order
+_RMSE_CURVES = (("passt", "o-", "PASST"), ("model", "s--", "model alone (from the true initial state)"),
+                ("lawnmower", "^:", "lawnmower+GP (counterfactual, offline)"))
+
+
+def _log_if_spread(ax, ys: np.ndarray) -> None:
+    ys = ys[np.isfinite(ys) & (ys > 0)]
+    if ys.size and ys.max() > 20 * ys.min():  # curves an order of magnitude apart: log scale shows all of them
+        ax.set_yscale("log")
+
+
+def _fig_rmse(run: Run, plt, over_time: dict | None, per_leg: dict[str, list]):
+    """RMSE over field time (``over_time``: summary ``rmse``) and after each leg (``per_leg``:
+    ``index`` -> leg numbers, ``passt``/``model``/``lawnmower`` -> RMSE per leg, NaN where not recorded)."""
     panels = (over_time is not None) + bool(per_leg)
-    fig, axes = plt.subplots(1, panels, figsize=(6.0 * panels, 4.2), constrained_layout=True, squeeze=False)
+    fig, axes = plt.subplots(1, panels, figsize=(6.0 * panels, 4.4), constrained_layout=True, squeeze=False)
     k = 0
     if over_time is not None:
         ax = axes[0, k]
         k += 1
         div, lab = _time_label(run)
         t = _series(over_time["t"]) / div
-        for key, style, name in (("passt", "o-", "PASST"), ("model", "s--", "pure model"), ("lawnmower", "^:", "lawnmower+GP (counterfactual, offline)")):
+        for key, style, name in _RMSE_CURVES:
             if key in over_time:
                 y = _series(over_time[key])
-                ok = np.isfinite(y)
+                ok = np.isfinite(y) & np.isfinite(t)
                 ax.plot(t[ok], y[ok], style, label=name)
         ax.set_xlabel(lab)
         ax.set_ylabel(f"RMSE ({run.units})")
-        ys = np.concatenate([_series(over_time[k]) for k in ("passt", "model", "lawnmower") if k in over_time])
-        ys = ys[np.isfinite(ys) & (ys > 0)]
-        if ys.size and ys.max() > 20 * ys.min():  # curves an order of magnitude apart: log scale shows all of them
-            ax.set_yscale("log")
+        _log_if_spread(ax, np.concatenate([_series(over_time[c]) for c, _, _ in _RMSE_CURVES if c in over_time]))
         ax.set_title("RMSE over time", fontsize=10)
         ax.grid(alpha=0.3)
-        ax.legend(fontsize=8)
     if per_leg:
         ax = axes[0, k]
-        idx = np.arange(len(per_leg))
-        ax.bar(idx - 0.2, [p[1] for p in per_leg], 0.4, label="PASST")
-        ax.bar(idx + 0.2, [p[2] for p in per_leg], 0.4, label="pure model")
-        ax.set_xticks(idx, [f"leg {p[0]}" for p in per_leg])
+        keys = [c for c in _RMSE_CURVES if np.isfinite(per_leg[c[0]]).any()]
+        idx = np.arange(len(per_leg["index"]))
+        w = 0.8 / max(len(keys), 1)
+        for j, (key, _, name) in enumerate(keys):
+            y = per_leg[key]
+            bars = ax.bar(idx + (j - (len(keys) - 1) / 2) * w, np.nan_to_num(y, nan=0.0), w, label=name)
+            ax.bar_label(bars, labels=["" if not np.isfinite(x) else f"{x:.2g}" for x in y], fontsize=7, padding=1)
+        ax.set_xticks(idx, [f"leg {i}" for i in per_leg["index"]])
         ax.set_ylabel(f"RMSE ({run.units})")
+        _log_if_spread(ax, np.concatenate([per_leg[c] for c, _, _ in keys]))
         ax.set_title("RMSE after each leg", fontsize=10)
         ax.grid(alpha=0.3, axis="y")
-        ax.legend(fontsize=8)
+    # one legend for both panels, below them: inside, it hid the lawnmower's tall bars
+    handles: dict[str, Any] = {}
+    for ax in axes[0]:
+        for h, lab in zip(*ax.get_legend_handles_labels()):
+            handles.setdefault(lab, h)
+    order = [name for _, _, name in _RMSE_CURVES if name in handles]
+    fig.legend([handles[n] for n in order], order, loc="outside lower center", ncol=len(order), fontsize=8)
     return fig
 
 
 def _fig_pod(run: Run, plt, pod: dict):
     fig, ax = plt.subplots(figsize=(6.5, 4.2), constrained_layout=True)
-    for key, style, name in (("truth", "k-o", "truth"), ("passt", "o-", "PASST"), ("model", "s--", "pure model")):
+    for key, style, name in (("truth", "k-o", "truth"), ("passt", "o-", "PASST"), ("model", "s--", "model alone")):
         if key in pod:
             y = _series(pod[key])
             ax.plot(np.arange(1, len(y) + 1), y, style, label=name)
@@ -666,21 +814,43 @@ def _section_recon(page: _Page, run: Run, plt) -> None:
         page.missing("Truth at the reconstruction times " + NOT_RECORDED + f" ({run.notes.get('field', 'outside the field')})")
 
 
+def _per_leg_rmse(run: Run) -> dict[str, Any]:
+    """RMSE after each leg: ``index`` (list of leg numbers) and ``passt``, ``model``, ``lawnmower``
+    (float arrays, NaN where not recorded); empty if no leg recorded any. The lawnmower
+    counterfactual (``summary.json`` ``counterfactual.lawnmower``, one value per leg in
+    order, written by ``passt-mav demo``) is used only when it has one value per leg."""
+    def num(x):
+        return float(x) if isinstance(x, (int, float)) and not isinstance(x, bool) else np.nan
+
+    cf = ((run.summary or {}).get("counterfactual") or {})
+    lawn = cf.get("lawnmower") if isinstance(cf, dict) else None
+    if not isinstance(lawn, list) or len(lawn) != len(run.legs):
+        lawn = [None] * len(run.legs)
+    out = {"index": [int(leg.get("index", n)) for n, leg in enumerate(run.legs)],
+           "passt": np.array([num(leg.get("rmse_passt")) for leg in run.legs], float),
+           "model": np.array([num(leg.get("rmse_model")) for leg in run.legs], float),
+           "lawnmower": np.array([num(x) for x in lawn], float)}
+    return out if any(np.isfinite(out[k]).any() for k in ("passt", "model", "lawnmower")) else {}
+
+
 def _section_rmse(page: _Page, run: Run, plt) -> None:
-    page.h2("RMSE: PASST vs pure model")
+    page.h2("RMSE: PASST, model alone, lawnmower counterfactual")
     s = run.summary or {}
     over = s.get("rmse") if isinstance(s.get("rmse"), dict) and s["rmse"].get("t") else None
-    per_leg = []
-    for n, leg in enumerate(run.legs):
-        a, b = leg.get("rmse_passt"), leg.get("rmse_model")
-        if isinstance(a, (int, float)) or isinstance(b, (int, float)):
-            per_leg.append((int(leg.get("index", n)), float(a) if a is not None else np.nan, float(b) if b is not None else np.nan))
+    per_leg = _per_leg_rmse(run)
     if over is None and not per_leg:
         page.missing("RMSE over time " + NOT_RECORDED + "; RMSE per leg " + NOT_RECORDED)
         return
     page.figure(_fig_rmse(run, plt, over, per_leg), "rmse.png", "RMSE over time and per leg", plt)
     if over is None:
         page.missing("RMSE over time " + NOT_RECORDED)
+    if isinstance(s.get("rmse_note"), str):
+        page.note(s["rmse_note"] + ".")
+    cf = s.get("counterfactual")
+    if isinstance(cf, dict) and isinstance(cf.get("how"), str):
+        page.note("Lawnmower+GP counterfactual: " + cf["how"] + ".")
+    elif not (over or {}).get("lawnmower"):
+        page.note("No lawnmower+GP counterfactual for this run (passt-mav demo adds one to summary.json).")
 
 
 def _section_pod(page: _Page, run: Run, plt) -> None:
