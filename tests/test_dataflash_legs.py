@@ -178,7 +178,11 @@ def test_a_log_cut_inside_the_second_leg_leaves_it_open(run_pair, tmp_path):
     assert not r.legs[1].closed and r.legs[1].t_end_ms is None
     assert [q for _, q in r.legs[1].reached] == [2, 3] and r.legs[1].complete_ms is None
     assert 0 < len(r.legs[1].samples) < len(full.legs[1].samples)
-    assert r.bad_frames == 1 and r.skipped_bytes > 0  # the record the cut went through
+    # the record the cut went through is a truncated tail, not damage (every live .BIN ends like this)
+    assert r.bad_frames == 0 and r.skipped_bytes == 0
+    from passt_mav.runs.tlog import read_dataflash
+
+    assert read_dataflash(cut).truncated_bytes > 0
 
 
 def test_missing_and_non_log_files_are_one_line_errors(tmp_path):

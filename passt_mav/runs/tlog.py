@@ -185,6 +185,7 @@ class TelemetryLog:
     n_messages: int = 0
     bad_frames: int = 0
     skipped_bytes: int = 0
+    truncated_bytes: int = 0  # an incomplete last record (a log copied while written, a power cut): not damage
     n_bytes: int = 0
     vehicle_sysid: int | None = None
     vehicle_compid: int | None = None
@@ -640,9 +641,8 @@ def read_dataflash(path: str | Path, *, u_name: str = "CUR_U", v_name: str = "CU
         if header_ok(p):
             fmt = formats[data[p + 2]]
             end = p + fmt.len
-            if end > n:  # cut off by the end of the file
-                out.bad_frames += 1
-                out.skipped_bytes += n - p
+            if end > n:  # the last record, cut off by the end of the file (still being written, power cut)
+                out.truncated_bytes = n - p
                 break
             body = data[p + 3 : end]
             newfmt = fmt_record(body) if fmt.type == 0x80 else None
@@ -677,7 +677,11 @@ def read_dataflash(path: str | Path, *, u_name: str = "CUR_U", v_name: str = "CU
         while q != -1 and not follows_ok(q):
             q = data.find(_DF_HEAD, q + 1)
         if q == -1:
-            out.skipped_bytes += n - p
+            if n - p < 3 + 256:  # no header after it and shorter than any record: a cut-off tail
+                out.bad_frames -= 1
+                out.truncated_bytes = n - p
+            else:
+                out.skipped_bytes += n - p
             break
         out.skipped_bytes += q - p
         p = q
