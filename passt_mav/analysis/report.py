@@ -483,19 +483,26 @@ def binned_arrows(lat, lon, u, v, max_arrows: int = MAX_ARROWS) -> tuple[np.ndar
 def _fig_samples(run: Run, plt):
     s = run.samples
     sp = np.hypot(s["u"], s["v"])
-    fig, ax = plt.subplots(figsize=(7.5, 6.0), constrained_layout=True)
     ok = np.isfinite(s["lat"]) & np.isfinite(s["lon"])
     la, lo = s["lat"][ok], s["lon"][ok]
     # the view is the samples' extent plus a margin: on the whole grid a track is a thin line
     pad_lat = max(0.08 * float(np.ptp(la)) if la.size else 0.0, 1e-3)
     pad_lon = max(0.08 * float(np.ptp(lo)) if lo.size else 0.0, 1e-3)
+    centres = None
     if run.field is not None:
         g = run.field.grid
-        lat, lon = _centres(g)
-        # context: the grid's cell centres, and its cell size as the smallest margin
-        pad_lat = max(pad_lat, float(np.nanmax(lat) - np.nanmin(lat)) / max(g.rows - 1, 1))
-        pad_lon = max(pad_lon, float(np.nanmax(lon) - np.nanmin(lon)) / max(g.cols - 1, 1))
-        ax.plot(lon.ravel(), lat.ravel(), "+", color="0.65", ms=4, mew=0.6, zorder=0, label="grid cell centres")
+        centres = _centres(g)
+        # the grid's cell size is the smallest margin
+        pad_lat = max(pad_lat, float(np.nanmax(centres[0]) - np.nanmin(centres[0])) / max(g.rows - 1, 1))
+        pad_lon = max(pad_lon, float(np.nanmax(centres[1]) - np.nanmin(centres[1])) / max(g.cols - 1, 1))
+    # a figure as tall as the view (on the ground) needs: a wide view in a tall figure leaves
+    # the axes a strip under a full-height colour bar
+    wide = 1.0
+    if la.size:
+        wide = (float(np.ptp(lo)) + 2 * pad_lon) / _aspect(la) / (float(np.ptp(la)) + 2 * pad_lat)
+    fig, ax = plt.subplots(figsize=(7.5, float(np.clip(5.8 / wide + 1.4, 3.6, 7.5))), constrained_layout=True)
+    if centres is not None:
+        ax.plot(centres[1].ravel(), centres[0].ravel(), "+", color="0.65", ms=4, mew=0.6, zorder=0)
     # small markers without edges: 10^4 of them still show their colours
     sc = ax.scatter(s["lon"], s["lat"], c=sp, cmap="plasma", s=5, linewidths=0, zorder=2, rasterized=True)
     fig.colorbar(sc, ax=ax, label=f"measured speed ({run.units})", shrink=0.85)
