@@ -435,3 +435,35 @@ def test_cli_boats_help_and_bad_input(capsys):
         assert cli_main(argv + ["--duration", "1", "--no-wait"]) == 2, argv
         err = capsys.readouterr().err
         assert err.startswith("vehicle-sim: error:") and err.count("\n") == 1, (argv, err)
+
+
+# -- the served clock -----------------------------------------------------------------------------
+@pytest.mark.parametrize("boats", [1, 3])
+def test_served_clock_slips_after_a_stall_and_never_outruns_its_speedup(boats):
+    """A served simulator that fell behind (a stall: here the test holds its lock for 0.4 s of
+    wall time) drops the backlog beyond 5 s and then runs at ``speedup`` again, not faster.
+
+    Only an upper bound is checked, so a loaded machine (a slower simulator) cannot fail it.
+    """
+    from vehicle_sim import Simulator
+
+    speedup = 50.0
+    if boats == 1:
+        server = Simulator(None, home=(40.0, -63.0), config=SimConfig.fast())
+        lock = server._lock
+    else:
+        server = Fleet(None, starts=line_starts((40.0, -63.0), boats), config=SimConfig.fast())
+        lock = server._lock
+    server.serve([], speedup=speedup)
+    try:
+        time.sleep(0.2)
+        with lock:  # the stall: 20 sim s of backlog, beyond the 5 s the clock may catch up
+            time.sleep(0.4)
+        w0, t0 = time.monotonic(), server.t
+        time.sleep(1.0)
+        w1, t1 = time.monotonic(), server.t
+        # at most the requested rate plus the 5 s (+ one 2.5 s slip margin) of backlog it may catch up
+        assert t1 - t0 <= speedup * (w1 - w0) + 7.5 + 1.0, (t1 - t0, w1 - w0)
+        assert t1 > t0  # and it does run
+    finally:
+        server.stop()

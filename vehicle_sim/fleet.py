@@ -321,8 +321,10 @@ class Fleet:
                 target = sim0 + (time.monotonic() - wall0) * speedup
                 behind = target - self.t
                 if behind > 5.0 + 50 * max_dt:
-                    # too slow to keep up: let the clock slip rather than spiral (as a single boat does)
-                    sim0 += behind - 5.0
+                    # too slow to keep up: let the clock slip rather than spiral: the target falls back to
+                    # 5 s ahead (moving sim0 the other way pushed it further ahead on every slip, and a
+                    # served simulator once behind ran flat out at any --speedup)
+                    sim0 -= behind - 5.0
                     target = sim0 + (time.monotonic() - wall0) * speedup
                 steps = 0
                 while self.t + 1e-9 < target and steps < 200 and not self._stop.is_set():
