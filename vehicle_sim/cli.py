@@ -16,8 +16,8 @@ Examples::
 Several boats (--boats N): one process, one current field, one clock; boat I (0..N-1, like
 SITL's -I I) listens on every --listen port + 10*I (default tcp:127.0.0.1:5760 + 10*I),
 has system id I+1 (parameter MAV_SYSID), its own autopilot, mission, modes and arming, and
-starts at its --start/--start-cell or spread over the field's region (without a field:
-20 m apart east of --home). In --lockstep, a 31010 command to any boat advances all.
+starts at its --start/--start-cell, else 20 m apart east of --home, else spread over the
+field's region. In --lockstep, a 31010 command to any boat advances all.
 --tlog NAME.tlog writes NAME-<sysid>.tlog per boat.
 
 Bad input exits with code 2 and a one-line message; Ctrl-C exits cleanly (0).
