@@ -578,6 +578,7 @@ class MissionController:
 
     def _send_clock(self, i: int, tb: int, boot: int, k: int) -> None:
         """The clock reading leg ``i`` is planned from, as a STATUSTEXT (:func:`clock_statustext`)."""
+        self._last_clock = (i, tb, boot, k)
         text = clock_statustext(i, tb, boot, k)
         try:
             self.link.send(self.link.conn.mav.statustext_encode(6, text.encode()))  # MAV_SEVERITY_INFO
@@ -693,6 +694,10 @@ class MissionController:
                 upload_s = time.perf_counter() - t0w
                 if not v.armed:
                     v.arm(timeout=max(30.0, 120.0 / self.speedup))
+                    if getattr(self, "_last_clock", (None,))[0] == i:
+                        # again: ArduPilot starts its DataFlash log at arming (LOG_DISARMED 0), after the
+                        # first one; a replay of the .bin then finds this leg's clock reading too
+                        self._send_clock(*self._last_clock)
                 self.collector.leg = i
                 self._resume_seq = 1
                 t_fly = time.perf_counter()

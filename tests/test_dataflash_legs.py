@@ -266,9 +266,9 @@ def test_sitl_run_logged_from_arming_gives_the_tlogs_legs(tmp_path, sitl_factory
         assert lb.closed and [q for _, q in lb.reached][-1] == len(lb.waypoints) + 1
         assert len(lb.samples) >= 2 * len(lt.samples) > 0  # ~5x; the simulator's logger may drop some under load
     assert b.legs[0].t_now_ms == b.legs[0].t_auto_ms  # no upload in the log: anchored at AUTO
-    assert b.legs[0].clock is None
-    assert b.legs[1].clock == t.legs[1].clock  # None both with a controller that sends no clock text
-    # leg 0 of the .bin: its clock reading is searched in the bracket, and found
+    # the controller sends leg 0's clock reading again after arming, when ArduPilot opens the log
+    assert b.legs[0].clock == t.legs[0].clock is not None
+    assert b.legs[1].clock == t.legs[1].clock is not None
     rb, rt = replay(bin_path, mission=mfile, out=False), replay(tlog, mission=mfile, out=False)
     assert rb.reproduced is True and rt.reproduced is True
     assert [x.path for x in rb.legs] == [x.path for x in rt.legs]
