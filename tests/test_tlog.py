@@ -437,6 +437,9 @@ def test_invalid_sequence_ack_mid_upload_does_not_end_it(tmp_path):
         if seq == 1:  # a late duplicate of item 0 is refused, the transfer goes on
             frames.append(bytes(gcs.mission_item_int_encode(VEH, 1, 0, 6, 16, 0, 1, 0, 2, 0, 0, _deg7(LAT0), _deg7(LON0), 0).pack(gcs)))
             frames.append(bytes(veh.mission_ack_encode(GCS, 190, 13).pack(veh)))
+    # and one after the last item, before the final ACK (seen in a demo run at 150x: the report then
+    # counted the upload as rejected and drew the wrong leg's track)
+    frames.append(bytes(veh.mission_ack_encode(GCS, 190, 13).pack(veh)))
     frames.append(bytes(veh.mission_ack_encode(GCS, 190, 0).pack(veh)))
     c = read_tlog(_record_tlog(frames, tmp_path))
     assert len(c.missions) == 1 and c.missions[0].accepted

@@ -486,8 +486,9 @@ class _Interpreter:
         if m.target_system not in (0, up.gcs[0]):
             return
         # INVALID_SEQUENCE (13) answers a re-sent or out-of-order item: ArduPilot keeps the
-        # transfer open and the upload goes on, so it does not end the upload here.
-        if int(m.type) == 13 and not up.complete:
+        # transfer open and the upload goes on (it never ends a transfer with 13), so it does not
+        # end the upload here, not even when it comes after the last item, before the final ACK.
+        if int(m.type) == 13:
             return
         up.result, up.utc_end = int(m.type), utc
         self.upload = None
