@@ -214,3 +214,27 @@ def test_replay_of_a_fleet_run_reproduces_every_boats_paths_and_rmse(tmp_path):
         assert got.path == want["path"] and got.notes[0] == f"boat {want['boat']}"
         assert got.rmse_passt == pytest.approx(want["rmse_passt"], abs=1e-6)
         assert got.rmse_model == pytest.approx(want["rmse_model"], abs=1e-6)
+
+
+def test_report_of_a_fleet_run_draws_every_boats_track(tmp_path):
+    from passt_mav.analysis import report
+
+    field = wave_field()
+    cfg = fleet_mission(tmp_path, field, legs=1)
+    rd = RunDir(tmp_path / "run").create()
+    with fleet_on_loopback(field, tlogs=[rd.boat_tlog(k) for k in range(3)]) as (sim, links):
+        fleet, rd = run_fleet(tmp_path, field, cfg, links)
+        summary = fleet.run()
+    assert summary["status"] == "complete"
+    run = report.load_run(rd.root)
+    assert sorted(run.boat_tracks) == [0, 1, 2]
+    for k, (r, c) in enumerate(STARTS):  # each boat's track starts in its own start cell
+        lat, lon = run.boat_tracks[k][0]
+        assert tuple(int(x) for x in field.grid.latlon_to_cell(lat, lon, clip=True)) == (r, c)
+    plt = report._plt()
+    fig = report._fig_track(run, plt)
+    labels = [ln.get_label() for ln in fig.axes[0].get_lines()]
+    assert [x for x in labels if x.startswith("boat")] == ["boat 0, sysid 1", "boat 1, sysid 2", "boat 2, sysid 3"]
+    plt.close(fig)
+    html = report.write_report(rd.root).read_text()
+    assert "one colour per boat" in html

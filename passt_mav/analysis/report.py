@@ -94,6 +94,7 @@ class Run:
     track_source: str | None = None
     leg_tracks: dict[int, np.ndarray] = _dcfield(default_factory=dict)
     leg_tracks_source: str | None = None
+    boat_tracks: dict[int, np.ndarray] = _dcfield(default_factory=dict)  # a fleet run: boat -> (n, 2) lat/lon
     estimates: dict[int, Any] = _dcfield(default_factory=dict)
     notes: dict[str, str] = _dcfield(default_factory=dict)
 
@@ -175,10 +176,20 @@ def _load_field(run: Run) -> None:
 
 
 def _load_tlog(run: Run) -> None:
-    if not run.rundir.tlog.exists():
-        run.notes["tlog"] = "Telemetry log " + NOT_RECORDED
-        return
     from passt_mav.runs.tlog import read_tlog
+
+    for k, p in enumerate(run.rundir.boat_tlogs()):  # a fleet: one tlog per boat, each boat's track
+        try:
+            tl = read_tlog(p)
+        except UserError as exc:
+            run.notes[f"tlog{k}"] = f"boat {k}'s telemetry log unreadable: {exc}"
+            continue
+        if tl.track:
+            run.boat_tracks[k] = np.array([(q.lat, q.lon) for q in tl.track], np.float64)
+    if not run.rundir.tlog.exists():
+        run.notes["tlog"] = ("Telemetry log " + NOT_RECORDED) if not run.boat_tracks else \
+            f"a fleet run: one telemetry log per boat ({', '.join(p.name for p in run.rundir.boat_tlogs())})"
+        return
 
     try:
         run.tlog = read_tlog(run.rundir.tlog)
@@ -283,6 +294,13 @@ def _leg_windows(run: Run) -> tuple[dict[int, tuple[float, float]], str]:
 
 
 def _load_tracks(run: Run) -> None:
+    _load_run_tracks(run)
+    if run.boat_tracks:
+        run.track_source = (f"each boat's own telemetry log (flight_boatN.tlog, GLOBAL_POSITION_INT; "
+                            f"{sum(len(t) for t in run.boat_tracks.values())} points), one colour per boat")
+
+
+def _load_run_tracks(run: Run) -> None:
     tl = run.tlog
     if tl is not None and tl.track:
         run.track = np.array([(p.lat, p.lon) for p in tl.track], np.float64)
@@ -411,7 +429,15 @@ def _fig_track(run: Run, plt):
         if len(wp):
             ax.plot(wp[:, 1], wp[:, 0], "w--", lw=1.0, marker="o", ms=3, mfc="white", mec="k",
                     label="planned waypoints" if leg is run.legs[0] else None)
-    if run.track is not None and len(run.track):
+    if run.boat_tracks:  # a fleet: every boat's track in its own colour
+        colours = plt.get_cmap("tab10")
+        sysids = {int(b.get("boat", -1)): b.get("sysid") for b in (run.summary or {}).get("boats") or []}
+        for k, tr in sorted(run.boat_tracks.items()):
+            c = colours((k + 3) % 10)  # (tab10's first colours are the legs')
+            sid = f", sysid {sysids[k]}" if sysids.get(k) is not None else ""
+            ax.plot(tr[:, 1], tr[:, 0], "-", color=c, lw=1.6, label=f"boat {k}{sid}")
+            ax.plot(tr[0, 1], tr[0, 0], "^", color=c, mec="k", ms=8)
+    elif run.track is not None and len(run.track):
         ax.plot(run.track[:, 1], run.track[:, 0], "-", color="tab:red", lw=1.6, label="executed track")
         ax.plot(run.track[0, 1], run.track[0, 0], "^", color="tab:red", mec="k", ms=8, label="start")
     div, lab = _time_label(run)
