@@ -545,6 +545,7 @@ class MissionController:
         link0, store0 = self._link_snapshot(), self.store.count(i)
         items = wm.items()
         upload_tries, upload_s, t_fly, tb_fly = self._swap(i, items, time.perf_counter())
+        self._write_prediction(i, planned)  # (the boat is underway meanwhile)
         duration_s, tb_end = self._fly_leg(i, wm, items, t_fly)
         absorbed = self._absorb(i, planned)
         rec.update(absorbed.record())
@@ -610,20 +611,23 @@ class MissionController:
         return wm
 
     def _write_plan(self, i: int, planned, wm) -> dict:
-        """Waypoints (.waypoints, .plan), the forecast (prediction.nc) and leg.json (status flying)."""
-        from passt_mav.fields.field import FlowField
-
-        rd, plan = self.rd, planned.plan
+        """Waypoints (.waypoints, .plan) and leg.json (status flying)."""
+        rd = self.rd
         rd.leg_dir(i)
         wm.to_wpl(rd.waypoints_file(i))
         wm.to_plan(rd.plan_file(i))
-        times = plan.t_start + self.dt * np.arange(plan.forecast.shape[0])
-        FlowField(plan.forecast, self.grid, times, self.field.time_origin, self.field.units).to_netcdf(
-            rd.prediction_file(i))
         rec = {**planned.record(self.dt), "status": "flying", "waypoints": wm.waypoints.tolist(),
                "waypoint_seqs": wm.waypoint_seqs(), "t_now": planned.t_now}
         rd.write_leg(i, rec)
         return rec
+
+    def _write_prediction(self, i: int, planned) -> None:
+        """The model's forecast over the leg (:meth:`LegStep.forecast_leg`) to prediction.nc."""
+        from passt_mav.fields.field import FlowField
+
+        fc = self.step.forecast_leg(planned)
+        times = planned.t_start + self.dt * np.arange(fc.shape[0])
+        FlowField(fc, self.grid, times, self.field.time_origin, self.field.units).to_netcdf(self.rd.prediction_file(i))
 
     def _fly_leg(self, i: int, wm, items, t_fly: float) -> tuple[float, float | None]:
         """Fly until the mission completes, then HOLD; returns (wall s, vehicle uptime s at the end)."""

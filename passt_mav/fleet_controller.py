@@ -93,6 +93,10 @@ class BoatController(MissionController):
             self._rec.update(boat=self.boat, sysid=int(self.link.target_system))
             return self._rec
 
+    def _write_prediction(self, i: int, planned) -> None:
+        with self.fleet.lock:
+            super()._write_prediction(i, planned)
+
     def _absorb(self, i: int, planned):
         with self.fleet.lock:
             return super()._absorb(i, planned)

@@ -379,11 +379,26 @@ class LegStep:
             t_state += k * self.dt
         steps = leg_steps(self.config, self.grid, self.speed, self.dt, float(self.config.field.time_scale))
         t0 = time.perf_counter()
-        plan = self.loop.plan_leg(state, tuple(int(x) for x in start_cell), t_state, self.dt, steps=steps,
+        # the path needs the one-step prediction only (the reward map); the forecast over the whole
+        # leg (the GP prior, prediction.nc) follows in forecast_leg(), while the vehicle is underway
+        plan = self.loop.plan_leg(state, tuple(int(x) for x in start_cell), t_state, self.dt, steps=1,
                                   taken=taken, avoid=avoid)
+        plan.steps = int(steps)
         return PlannedLeg(int(index), tuple(int(x) for x in start_cell),
                           None if start_latlon is None else (float(start_latlon[0]), float(start_latlon[1])),
                           t_now, int(k), plan, int(steps), time.perf_counter() - t0, clock_reading)
+
+    def forecast_leg(self, planned: PlannedLeg) -> np.ndarray:
+        """The model's forecast over the whole planned leg, (steps+1, 2, R, C) from the leg's start state
+        (:meth:`plan` predicts one step only); computed once, timed as ``timings["forecast"]``. The
+        same numbers as one ``plan_leg`` over the leg: the first step of a roll-out is the one-step
+        prediction."""
+        plan = planned.plan
+        if plan.forecast.shape[0] < plan.steps + 1:
+            t0 = time.perf_counter()
+            plan.forecast = self.loop.forecast(plan.forecast[0], plan.steps)
+            plan.timings["forecast"] = time.perf_counter() - t0
+        return plan.forecast
 
     def absorb(self, planned: PlannedLeg, recs, clock: "FieldClock", *, strict: bool = True) -> AbsorbedLeg:
         """The leg's samples into the state: field units, field time, thinning, stretch, GP update, RMSE.
@@ -395,6 +410,7 @@ class LegStep:
         The loop's leg counter advances either way (later legs' planner seeds stay aligned).
         """
         plan, dt, grid = planned.plan, self.dt, self.grid
+        self.forecast_leg(planned)
         col = _columns(recs)
         u, v = to_field_units(grid, col["u"], col["v"], self.config.field.velocity_scale)
         t_s = clock.field_time(col["time_boot_ms"], col["boot"])
@@ -556,6 +572,7 @@ class FleetStep:
             raise ReconstructionError(f"leg {planned.index}: no usable current samples")
         since = self._plan_version.pop(planned.index, self._version)
         extra = [r for v, leg, rr in self._absorbed if v > since and leg != planned.index for r in rr]
+        self.step.forecast_leg(planned)
         # the state never goes back in time: reconstruct at its time at least
         need = int(round((self.t_state - planned.t_start) / dt))
         if need > planned.plan.steps:
