@@ -259,7 +259,6 @@ def test_sitl_run_logged_from_arming_gives_the_tlogs_legs(tmp_path, sitl_factory
     params = COMMITTED_PARAMS.replace("LOG_DISARMED 1", "LOG_DISARMED 0").replace("LOG_FILE_RATEMAX 5\n", "")
     bin_path, tlog, mfile = record_run(tmp_path, sitl_factory, params)
     b, t = rebuild_from_dataflash(bin_path), rebuild_from_tlog(tlog)
-    grid = _gentle_field().grid
     assert len(b.legs) == len(t.legs) == 2
     for lb, lt in zip(b.legs, t.legs):
         assert lb.waypoints == lt.waypoints and len(lb.waypoints) >= 1
