@@ -42,7 +42,7 @@ from typing import Iterable, Sequence
 from vehicle_sim.boat import CurrentModel, LocalFrame
 from vehicle_sim.config import LinkConfig, SimConfig
 from vehicle_sim.link import parse_link_spec
-from vehicle_sim.sim import STEP_COMMAND, Simulator
+from vehicle_sim.sim import STEP_COMMAND, Simulator, serve_paced
 
 __all__ = ["Fleet", "BASE_PORT", "PORT_STRIDE", "boat_config", "boat_listen", "spread_starts", "line_starts"]
 
@@ -302,39 +302,7 @@ class Fleet:
 
     def _serve_loop(self, speedup: float, wait_for_client: bool, poll_s: float) -> None:
         try:
-            have_tcp = any(e["kind"] == "tcp-listen" for b in self.boats for e in b._sockets)
-            waiting = wait_for_client and have_tcp
-            wall0 = time.monotonic()
-            sim0 = self.t
-            max_dt = self.physics_dt
-            while not self._stop.is_set():
-                self._do_drops()
-                self._poll(poll_s if not (self._lockstep and self._budget > 0) else 0.0)
-                if self._lockstep:
-                    self._lockstep_round(max_dt)
-                    continue
-                if waiting:
-                    if any(e["kind"] == "tcp-client" for b in self.boats for e in b._sockets):
-                        waiting = False
-                        wall0, sim0 = time.monotonic(), self.t
-                    continue
-                target = sim0 + (time.monotonic() - wall0) * speedup
-                behind = target - self.t
-                if behind > 5.0 + 50 * max_dt:
-                    # too slow to keep up: let the clock slip rather than spiral: the target falls back to
-                    # 5 s ahead (moving sim0 the other way pushed it further ahead on every slip, and a
-                    # served simulator once behind ran flat out at any --speedup)
-                    sim0 -= behind - 5.0
-                    target = sim0 + (time.monotonic() - wall0) * speedup
-                steps = 0
-                while self.t + 1e-9 < target and steps < 200 and not self._stop.is_set():
-                    self.step(min(max_dt, target - self.t))
-                    steps += 1
-                    if steps % 20 == 0:
-                        # every boat's GCS is read while catching up (mission transfers time out after 8 s)
-                        self._flush()
-                        self._poll(0.0)
-                self._flush()
+            serve_paced(self, speedup, wait_for_client, poll_s, self.physics_dt)
         except BaseException as exc:  # noqa: BLE001 - recorded and re-raised by stop()
             self.error = exc
         finally:
@@ -346,6 +314,22 @@ class Fleet:
                         pass
                 b.running = False
             self.running = False
+
+    # what serve_paced asks of the fleet (one clock, every boat's sockets)
+    def _serve_sockets(self):
+        return [e for b in self.boats for e in b._sockets]
+
+    def _serve_budget(self) -> float:
+        return self._budget
+
+    def _serve_tick(self) -> None:
+        self._do_drops()
+
+    def _poll_sockets(self, timeout: float) -> None:
+        self._poll(timeout)
+
+    def _flush_sockets(self) -> None:
+        self._flush()
 
     def _do_drops(self) -> None:
         if self._drop_requests:

@@ -95,6 +95,52 @@ class InProcessEndpoint:
         return InProcessMavfile(self, **kw)
 
 
+def serve_paced(owner, speedup: float, wait_for_client: bool, poll_s: float, max_dt: float) -> None:
+    """The serving loop of a :class:`Simulator` or a :class:`~vehicle_sim.fleet.Fleet` (``owner``),
+    until ``owner._stop`` is set: poll the sockets, then either advance in lockstep (the steps
+    clients asked for) or keep simulated time at ``speedup`` x wall time.
+
+    ``owner`` provides ``t`` and ``step(dt)`` (simulated s), ``_stop``, ``_lockstep``,
+    ``_serve_sockets()`` (socket entries), ``_serve_budget()`` (lockstep seconds asked for),
+    ``_serve_tick()`` (per-round chores), ``_poll_sockets(timeout)``, ``_flush_sockets()`` and
+    ``_lockstep_round(max_dt)``. With ``wait_for_client`` the clock holds at its start until a
+    first TCP client connects.
+    """
+    have_tcp = any(e["kind"] == "tcp-listen" for e in owner._serve_sockets())
+    waiting = wait_for_client and have_tcp
+    wall0 = time.monotonic()
+    sim0 = owner.t
+    while not owner._stop.is_set():
+        owner._serve_tick()
+        owner._poll_sockets(poll_s if not (owner._lockstep and owner._serve_budget() > 0) else 0.0)
+        if owner._lockstep:
+            owner._lockstep_round(max_dt)
+            continue
+        if waiting:
+            if any(e["kind"] == "tcp-client" for e in owner._serve_sockets()):
+                waiting = False
+                wall0, sim0 = time.monotonic(), owner.t
+            continue
+        target = sim0 + (time.monotonic() - wall0) * speedup
+        behind = target - owner.t
+        if behind > 5.0 + 50 * max_dt:
+            # too slow to keep up: let the clock slip rather than spiral: the target falls back to
+            # 5 s ahead (moving sim0 the other way pushed it further ahead on every slip, and a
+            # served simulator once behind ran flat out at any --speedup)
+            sim0 -= behind - 5.0
+            target = sim0 + (time.monotonic() - wall0) * speedup
+        steps = 0
+        while owner.t + 1e-9 < target and steps < 200 and not owner._stop.is_set():
+            owner.step(min(max_dt, target - owner.t))
+            steps += 1
+            if steps % 20 == 0:
+                owner._flush_sockets()
+                # read the GCS too while catching up: 200 steps are 10 s of simulated time, longer
+                # than the vehicle's 8 s mission-transfer timeout (uploads were cancelled at >100x)
+                owner._poll_sockets(0.0)
+        owner._flush_sockets()
+
+
 class Simulator:
     """A simulated ArduPilot Rover boat in a current field.
 
@@ -319,39 +365,7 @@ class Simulator:
 
     def _serve_loop(self, speedup: float, wait_for_client: bool, poll_s: float) -> None:
         try:
-            have_tcp = any(e["kind"] == "tcp-listen" for e in self._sockets)
-            waiting = wait_for_client and have_tcp
-            wall0 = time.monotonic()
-            sim0 = self.t
-            max_dt = max(self.config.physics_dt, 0.0)
-            while not self._stop.is_set():
-                self._poll_sockets(poll_s if not (self._lockstep and self._step_budget > 0) else 0.0)
-                if self._lockstep:
-                    self._lockstep_round(max_dt)
-                    continue
-                if waiting:
-                    if any(e["kind"] == "tcp-client" for e in self._sockets):
-                        waiting = False
-                        wall0, sim0 = time.monotonic(), self.t
-                    continue
-                target = sim0 + (time.monotonic() - wall0) * speedup
-                behind = target - self.t
-                if behind > 5.0 + 50 * max_dt:
-                    # too slow to keep up: let the clock slip rather than spiral: the target falls back to
-                    # 5 s ahead (moving sim0 the other way pushed it further ahead on every slip, and a
-                    # served simulator once behind ran flat out at any --speedup)
-                    sim0 -= behind - 5.0
-                    target = sim0 + (time.monotonic() - wall0) * speedup
-                steps = 0
-                while self.t + 1e-9 < target and steps < 200 and not self._stop.is_set():
-                    self.step(min(max_dt, target - self.t))
-                    steps += 1
-                    if steps % 20 == 0:
-                        self._flush_sockets()
-                        # read the GCS too while catching up: 200 steps are 10 s of simulated time, longer
-                        # than the vehicle's 8 s mission-transfer timeout (uploads were cancelled at >100x)
-                        self._poll_sockets(0.0)
-                self._flush_sockets()
+            serve_paced(self, speedup, wait_for_client, poll_s, max(self.config.physics_dt, 0.0))
         except BaseException as exc:  # noqa: BLE001 - recorded and re-raised by stop()
             self.error = exc
         finally:
@@ -361,6 +375,16 @@ class Simulator:
                 except OSError:
                     pass
             self.running = False
+
+    # what serve_paced asks of a served simulator (a Fleet answers for all its boats)
+    def _serve_sockets(self):
+        return self._sockets
+
+    def _serve_budget(self) -> float:
+        return self._step_budget
+
+    def _serve_tick(self) -> None:
+        pass
 
     def _lockstep_round(self, max_dt: float) -> None:
         with self._lock:
