@@ -42,7 +42,7 @@ from typing import Iterable, Sequence
 from vehicle_sim.boat import CurrentModel, LocalFrame
 from vehicle_sim.config import LinkConfig, SimConfig
 from vehicle_sim.link import parse_link_spec
-from vehicle_sim.sim import STEP_COMMAND, Simulator, serve_paced
+from vehicle_sim.sim import STEP_COMMAND, Clocked, Simulator, serve_paced
 
 __all__ = ["Fleet", "BASE_PORT", "PORT_STRIDE", "boat_config", "boat_listen", "spread_starts", "line_starts"]
 
@@ -117,7 +117,7 @@ def line_starts(home: tuple[float, float], n: int, spacing_m: float = 20.0) -> l
     return [frame.to_latlon(i * spacing_m, 0.0) for i in range(n)]
 
 
-class Fleet:
+class Fleet(Clocked):
     """N boats on one current field and one clock (see the module docstring).
 
     Args:
@@ -194,19 +194,6 @@ class Fleet:
                 for b in self.boats:
                     b._tick(h)
                 remaining -= h
-
-    def run_until(self, t: float) -> None:
-        if t > self.t:
-            self.step(t - self.t)
-
-    def run_until_condition(self, cond, timeout: float, dt: float | None = None) -> bool:
-        """Step until ``cond()`` is true or ``timeout`` simulated seconds pass; returns cond()."""
-        end = self.t + timeout
-        while not cond():
-            if self.t >= end:
-                return bool(cond())
-            self.step(dt)
-        return True
 
     # -- faults ----------------------------------------------------------------------------
     def drop_clients(self, index: int) -> None:

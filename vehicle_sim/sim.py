@@ -141,7 +141,25 @@ def serve_paced(owner, speedup: float, wait_for_client: bool, poll_s: float, max
         owner._flush_sockets()
 
 
-class Simulator:
+class Clocked:
+    """``run_until`` / ``run_until_condition`` for anything with ``t`` and ``step(dt)`` (a simulator, a fleet)."""
+
+    def run_until(self, t: float) -> None:
+        """Advance until simulated time ``t``."""
+        if t > self.t:
+            self.step(t - self.t)
+
+    def run_until_condition(self, cond, timeout: float, dt: float | None = None) -> bool:
+        """Step until ``cond()`` is true or ``timeout`` simulated seconds pass; returns cond()."""
+        end = self.t + timeout
+        while not cond():
+            if self.t >= end:
+                return bool(cond())
+            self.step(dt)
+        return True
+
+
+class Simulator(Clocked):
     """A simulated ArduPilot Rover boat in a current field.
 
     Args:
@@ -218,20 +236,6 @@ class Simulator:
                 h = min(self.config.physics_dt, remaining)
                 self._tick(h)
                 remaining -= h
-
-    def run_until(self, t: float) -> None:
-        """Advance until simulated time ``t``."""
-        if t > self.t:
-            self.step(t - self.t)
-
-    def run_until_condition(self, cond, timeout: float, dt: float | None = None) -> bool:
-        """Step until ``cond()`` is true or ``timeout`` simulated seconds pass; returns cond()."""
-        end = self.t + timeout
-        while not cond():
-            if self.t >= end:
-                return bool(cond())
-            self.step(dt)
-        return True
 
     def _tick(self, h: float) -> None:
         self._process_incoming()
