@@ -164,6 +164,39 @@ class _Rebooted(Exception):
 
 
 # -- the controller ---------------------------------------------------------------------------
+class _Deadline:
+    """A leg's time limit, kept in the vehicle's time: ``budget_s`` vehicle seconds from now.
+
+    A sped-up simulator starved of CPU runs slower than its nominal speed-up; a wall-clock
+    limit would then fail legs that are fine. The wall clock only backs it up, ten times more
+    generous (a vehicle whose clock stops: a frozen simulator, a dead link)."""
+
+    def __init__(self, link, budget_s: float, speedup: float):
+        self.link, self.speedup = link, max(float(speedup), 1e-6)
+        self.last_up = link.vehicle_uptime_s()
+        self.vehicle = None if self.last_up is None else self.last_up + budget_s
+        self.wall = time.monotonic() + 10.0 * budget_s / self.speedup + 60.0
+
+    def extend(self, wall_s: float, *, rebooted: bool = False) -> None:
+        """Add ``wall_s`` of waiting (reconnect, reboot, pilot). After a reboot the vehicle's clock
+        started again: what was left of the budget counts from its new time."""
+        self.wall += wall_s
+        if self.vehicle is None:
+            return
+        if rebooted:
+            left = self.vehicle - (self.last_up or 0.0)
+            up = self.last_up = self.link.vehicle_uptime_s()
+            self.vehicle = None if up is None else up + left
+        else:
+            self.vehicle += wall_s * self.speedup
+
+    def passed(self) -> bool:
+        up = self.link.vehicle_uptime_s()
+        if up is not None and (self.last_up is None or up >= self.last_up):  # (a reboot's restart: see extend)
+            self.last_up = up
+        return time.monotonic() > self.wall or (self.vehicle is not None and up is not None and up > self.vehicle)
+
+
 class MissionController:
     """Runs a mission config on a connected vehicle, writing a run directory.
 
@@ -764,20 +797,24 @@ class MissionController:
         raise last
 
     # -- flying one leg, with its faults ------------------------------------------------------------
-    def _expected_wall_s(self, wm) -> float:
+    def _expected_vehicle_s(self, wm) -> float:
+        """Vehicle seconds the leg should take at the mission's speed (no current)."""
         import geo
 
         wp = wm.waypoints
         dist = float(np.sum(geo.geodesic_distance_m(wp[:-1, 0], wp[:-1, 1], wp[1:, 0], wp[1:, 1]))) if len(wp) > 1 else 0.0
         dist += self.grid.mean_cell_size_m  # reaching the first waypoint from anywhere in the start cell
-        return dist / self.speed / self.speedup
+        return dist / self.speed
+
+    def _leg_deadline(self, budget_s: float) -> "_Deadline":
+        return _Deadline(self.link, budget_s, self.speedup)
 
     def _fly(self, i: int, wm, items, n_items: int) -> None:
         """Wait for the leg to complete: reconnect on link loss, resume after a reboot, pause when a
         pilot takes the vehicle out of AUTO."""
         v = self.vehicle
         p = v.progress
-        deadline = time.monotonic() + 4.0 * self._expected_wall_s(wm) + 30.0
+        deadline = self._leg_deadline(4.0 * self._expected_vehicle_s(wm) + 30.0)
         while True:
             with p.changed:
                 done = (p.state == 5 and p.total == n_items) or n_items in p.reached
@@ -786,14 +823,14 @@ class MissionController:
                     done = (p.state == 5 and p.total == n_items) or n_items in p.reached
             if done:
                 return
-            if time.monotonic() > deadline:
+            if deadline.passed():
                 raise LinkTimeout(f"leg {i} not complete in time (item {p.current}/{p.total})")
             if self._rebooted.is_set():
-                deadline += self._after_reboot(i, items, n_items)
+                deadline.extend(self._after_reboot(i, items, n_items), rebooted=True)
                 continue
             if self.link.lost or self.link.error is not None:
                 self._recover_link(i, items)
-                deadline += 30.0
+                deadline.extend(30.0)
                 continue
             mode = v.mode
             if mode == 10 and v.armed:
@@ -807,7 +844,7 @@ class MissionController:
                     waited = self._pause(i, mode)
                 except _Rebooted:
                     continue
-                deadline += waited
+                deadline.extend(waited)
 
     def _reboot_grace_s(self) -> float:
         """Wall seconds to wait for a reboot's signature (time going back): ~3 s of vehicle time."""

@@ -186,3 +186,39 @@ def test_vehicle_outside_region_refused_before_any_upload(tmp_path):
         link.close()
         sim.stop()
     assert rd.read_summary()["status"] == "aborted"
+
+
+def test_leg_deadline_counts_vehicle_time_not_wall_time(monkeypatch):
+    """A starved simulator runs slower than its speed-up: the leg's limit is in vehicle seconds, the wall
+    clock only backs it up (ten times more generous); after a reboot what was left counts again."""
+    import time as _time
+
+    from passt_mav.controller import _Deadline
+
+    class FakeLink:
+        up = 100.0
+
+        def vehicle_uptime_s(self):
+            return self.up
+
+    now = [1000.0]
+    monkeypatch.setattr(_time, "monotonic", lambda: now[0])
+    link = FakeLink()
+    d = _Deadline(link, budget_s=60.0, speedup=20.0)  # 60 vehicle s = 3 wall s at the nominal speed-up
+    now[0] += 20.0  # 20 wall s pass but the vehicle only lived 10 s: not late
+    link.up = 110.0
+    assert not d.passed()
+    link.up = 161.0  # 61 vehicle s: late, whatever the wall clock says
+    assert d.passed()
+    d2 = _Deadline(link, budget_s=60.0, speedup=20.0)
+    link.up = 200.0
+    assert not d2.passed()
+    link.up = 5.0  # rebooted 39 vehicle s into the leg: 21 s of budget left from its new clock
+    d2.extend(2.0, rebooted=True)
+    link.up = 25.0
+    assert not d2.passed()
+    link.up = 27.0
+    assert d2.passed()
+    d3 = _Deadline(link, budget_s=60.0, speedup=20.0)
+    now[0] += 10 * 60.0 / 20.0 + 60.0 + 1.0  # the vehicle's clock stopped: the wall back-up fires
+    assert d3.passed()

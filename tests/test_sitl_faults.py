@@ -36,18 +36,18 @@ SPEEDUP = 20.0
 AUTO, MANUAL = 10, 0
 
 
-def _field(tmp_path):
-    """A gentle current (0.1-0.2 m/s) with some structure, 4 snapshots 600 s apart, as .nc."""
+def _field(tmp_path, n_times: int = 4):
+    """A gentle current (0.1-0.2 m/s) with some structure, ``n_times`` snapshots 600 s apart, as .nc."""
     from passt_mav.fields import FlowField
 
     n, d = 6, 0.0004
     grid = geo.RegionGrid(HOME[0] - d * 2.5, HOME[1] - d * 2.5, HOME[0] + d * 2.5, HOME[1] + d * 2.5, n, n)
     rr, cc = np.meshgrid(np.arange(n), np.arange(n), indexing="ij")
-    data = np.zeros((4, 2, n, n), np.float32)
-    for k in range(4):
+    data = np.zeros((n_times, 2, n, n), np.float32)
+    for k in range(n_times):
         data[k, 0] = 0.1 + 0.05 * np.sin(2 * np.pi * cc / n) + 0.01 * k
         data[k, 1] = 0.05 * np.cos(2 * np.pi * rr / n)
-    field = FlowField(data, grid, np.array([0.0, 600.0, 1200.0, 1800.0]), time_origin="2020-01-01T00:00:00Z")
+    field = FlowField(data, grid, 600.0 * np.arange(n_times), time_origin="2020-01-01T00:00:00Z")
     path = tmp_path / "gentle.nc"
     field.to_netcdf(path)
     return field, path

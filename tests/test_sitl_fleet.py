@@ -41,7 +41,9 @@ def test_three_sitl_boats_complete_a_fleet_mission(tmp_path, sitl_factory):
     from passt_mav.runs.rundir import RunDir
     from passt_mav.runs.store import SampleStore
 
-    field, path = _field(tmp_path)
+    # every leg spans at least one 600 s snapshot, and a boat that drops out and rejoins flies more legs:
+    # 12 snapshots keep the truth defined for all of them
+    field, path = _field(tmp_path, n_times=12)
     sitls = [_boot_at(tmp_path, sitl_factory, field, path, k, c) for k, c in enumerate(CELLS)]
     cfg = validate_mission({
         "name": "sitl_fleet", "region": field.grid.describe(), "field": {"source": str(path)},
