@@ -361,6 +361,57 @@ def run_offline(field, predictor, *, start_cell, t0: int = 0, n_steps: int, plan
     return OfflineResult(estimate=est, legs=legs)
 
 
+def run_offline_fleet(field, predictor, *, start_cells, t0: int = 0, n_steps: int, planner: str = "policy_gradient", planner_kw: dict | None = None, reward: str = "speed", path_length: int = 50, steps_per_leg: int = 10, prior: str = "forecast", gp_kw: dict | None = None, hyper: str = "every_leg", noise_std: float = 0.0, sample_at: str = "end", seed: int = 0, initial_state=None) -> OfflineResult:
+    """:func:`run_offline` for a fleet: ``len(start_cells)`` boats, synchronous legs, one state.
+
+    Each leg interval: one forecast and one reward map; the boats plan in turn, each keeping out
+    of every cell the boats before it were given (sequential allocation, as the live
+    :class:`passt_mav.legstep.FleetStep` does; a boat boxed in keeps those cells at zero reward
+    instead); every boat's samples go to one GP update. With one start cell this is exactly
+    :func:`run_offline`. Leg records hold ``paths`` (one per boat) and ``path`` (boat 0's).
+    """
+    from passt_mav.planning import path_reward
+
+    if not (0 <= t0 < field.n_times - 1):
+        raise PlannerError(f"start snapshot t0={t0} must lie in [0, {field.n_times - 2}]")
+    n_steps = int(min(n_steps, field.n_times - 1 - t0))
+    land = field.land_mask
+    loop = PasstLoop(predictor, field.grid, planner=planner, planner_kw=planner_kw, reward=reward, path_length=path_length, steps_per_leg=steps_per_leg, prior=prior, gp_kw=gp_kw, hyper=hyper, land=land, seed=seed)
+    sampler = FieldSampler(field, noise_std=noise_std, seed=seed + 7919, steps_per_leg=steps_per_leg, sample_at=sample_at)
+    dt = field.dt
+    state = np.array(field.data[t0] if initial_state is None else initial_state, dtype=np.float32)
+    state[:, land] = np.nan
+    est = np.empty((n_steps + 1, 2) + field.grid.shape, np.float32)
+    est[0] = state
+    starts = [tuple(int(x) for x in c) for c in start_cells]
+    legs = []
+    k = 0
+    while k < n_steps:
+        S = min(steps_per_leg, n_steps - k)
+        t_start = field.times[t0] + k * dt
+        plans = [loop.plan_leg(state, starts[0], t_start, dt, steps=S)]
+        taken = np.zeros(field.grid.shape, bool)
+        for b in range(1, len(starts)):
+            taken[plans[-1].path[:, 0], plans[-1].path[:, 1]] = True
+            free = taken.copy()
+            free[starts[b]] = False
+            try:
+                plans.append(loop.plan_leg(state, starts[b], t_start, dt, steps=S, forecast=plans[0].forecast, avoid=free))
+            except PlannerError:  # boxed in: cross the others' cells, collect nothing there
+                plans.append(loop.plan_leg(state, starts[b], t_start, dt, steps=S, forecast=plans[0].forecast, taken=free))
+        parts = [sampler.sample_path(p.path, p.t_start) for p in plans]
+        samples = Samples(*(np.concatenate([getattr(x, f) for x in parts]) for f in ("t", "r", "c", "u", "v")))
+        est[k + 1 : k + S] = plans[0].forecast[1:S]
+        state = loop.update(plans[0], samples) if S == steps_per_leg else plans[0].forecast[S]
+        est[k + S] = state
+        legs.append({"step": k, "path": plans[0].path.tolist(), "paths": [p.path.tolist() for p in plans],
+                     "timings": {key: float(sum(p.timings.get(key, 0.0) for p in plans)) for key in ("predict", "reward", "plan", "gp")},
+                     "reward_collected": float(sum(path_reward(p.reward, p.path) for p in plans)), "n_samples": len(samples)})
+        starts = [tuple(int(x) for x in p.path[-1]) for p in plans]
+        k += S
+    return OfflineResult(estimate=est, legs=legs)
+
+
 def _batch_forecast(predictor, states: np.ndarray, steps: int, land: np.ndarray) -> np.ndarray:
     """(B, steps+1, 2, R, C) float32: each state then its ``steps`` predictions, NaN on land.
 

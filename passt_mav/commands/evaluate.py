@@ -59,6 +59,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--engine", choices=ENGINES, default="serial", help="serial (default: one trial at a time) or lockstep (a path length's trials advance together, one batched predictor call per leg; ~1.3x faster). Same numbers for predictors whose batched and single predictions agree bit for bit (DMD, persistence); with the KNODE, batched convolutions round differently and paths can diverge (shipped ocean model, L=50, 2 trials: PASST 0.2445 lockstep vs 0.2550 serial)")
     p.add_argument("--batch", type=int, default=None, help="lockstep: trials per batch = unit of work for --workers/--scheduler (default: all trials of a path length)")
     p.add_argument("--gp-solver", choices=("cholesky", "sklearn"), default="sklearn", help="GP posterior with the fitted kernel: sklearn's regressor (default) or a direct Cholesky solve (faster; equal to sklearn to 1e-6 per reconstruction, which a long campaign can amplify into different paths)")
+    p.add_argument("--boats", type=int, default=1, help="N > 1: the fleet comparison instead of the campaign: "
+                   "PASST with 1..N boats of L moves each vs 1 boat of N*L moves per leg interval (the same "
+                   "budget), L = the first of --path-lengths; writes fleet.json and fleet_rmse.png")
     p.add_argument("--json", action="store_true", help="print the summary as JSON on stdout")
     p.add_argument("--out", required=True, help="output directory")
 
@@ -279,6 +282,81 @@ def run_campaign(field, predictor, *, path_lengths=(25, 50, 75, 100, 150, 200), 
     return summary
 
 
+def _fleet_starts(field, seed: int, trial: int, L: int, n: int) -> list[tuple[int, int]]:
+    """``n`` distinct water cells for a trial's boats; the first is the one-boat campaign's start."""
+    import numpy as np
+
+    first = _start_cell(field, {"seed": seed}, L, trial)
+    rng = np.random.default_rng([seed + trial, L, 7])
+    water = [tuple(int(x) for x in w) for w in np.argwhere(~field.land_mask) if tuple(int(x) for x in w) != first]
+    pick = rng.choice(len(water), size=n - 1, replace=False) if n > 1 else []
+    return [first] + [water[j] for j in pick]
+
+
+def fleet_comparison(field, predictor, *, boats: int, path_length: int, trials: int = 10, planner: str = "policy_gradient", reward: str = "speed", steps: int = 300, t0: int = 0, steps_per_leg: int = 10, noise: float = 0.02, hyper: str = "every_leg", sampling: str = "end", window: int = 50, seed: int = 0, progress: bool = True) -> dict:
+    """PASST with 1..``boats`` boats of ``path_length`` moves each, and one boat of ``boats`` x
+    ``path_length`` moves (the fleet's budget in one path), over ``trials`` seeded trials
+    (:func:`passt_mav.passt.run_offline_fleet`). Returns per configuration the mean RMSE over
+    time, the final-window mean and each trial's final-window value (field units)."""
+    import numpy as np
+
+    from passt_mav.passt import run_offline_fleet
+
+    configs = [(f"{n} boat{'s' if n > 1 else ''} x {path_length}", n, path_length) for n in range(1, boats + 1)]
+    configs.append((f"1 boat x {boats * path_length}", 1, boats * path_length))
+    T = int(min(steps, field.n_times - 1 - t0))
+    truth = field.data[t0 : t0 + T + 1].astype("float64")
+    out: dict = {"config": {"boats": boats, "path_length": path_length, "trials": trials, "steps": T, "t0": t0,
+                            "steps_per_leg": steps_per_leg, "noise": noise, "window": window, "seed": seed,
+                            "planner": planner, "reward": reward, "hyper": hyper, "sampling": sampling},
+                 "runs": {}}
+    from threadpoolctl import threadpool_limits
+
+    it = [(name, n, L, i) for name, n, L in configs for i in range(trials)]
+    if progress:
+        from tqdm import tqdm
+
+        it = tqdm(it, desc="fleet comparison", unit="trial", file=sys.stderr)
+    series: dict[str, list] = {}
+    with threadpool_limits(1):  # the campaign's rule: one BLAS thread, the same numbers everywhere
+        for name, n, L, i in it:
+            r = run_offline_fleet(field, predictor, start_cells=_fleet_starts(field, seed, i, path_length, n), t0=t0,
+                                  n_steps=T, planner=planner, reward=reward, path_length=L, steps_per_leg=steps_per_leg,
+                                  noise_std=noise, hyper=hyper, sample_at=sampling, seed=seed + i)
+            series.setdefault(name, []).append(_rmse_series(r.estimate, truth))
+    for name, n, L in configs:
+        arr = np.array(series[name])
+        finals = arr[:, -window:].mean(axis=1)
+        out["runs"][name] = {"boats": n, "path_length": L, "rmse_mean": arr.mean(axis=0).tolist(),
+                             "final_rmse": float(finals.mean()), "final_rmse_trials": finals.tolist()}
+    return out
+
+
+def write_fleet_figure(result: dict, out_dir):
+    """fleet_rmse.png: mean RMSE over time of each fleet configuration."""
+    from pathlib import Path
+
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(8, 4.5), constrained_layout=True)
+    for name, run in result["runs"].items():
+        ax.plot(run["rmse_mean"], label=f"{name} (final {run['final_rmse']:.3f})",
+                ls="--" if run["boats"] == 1 and run["path_length"] != result["config"]["path_length"] else "-")
+    c = result["config"]
+    ax.set_xlabel(f"steps after the start (snapshots; legs of {c['steps_per_leg']})")
+    ax.set_ylabel("RMSE (field units)")
+    ax.set_title(f"PASST with a fleet: mean over {c['trials']} trials", fontsize=10)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    path = Path(out_dir) / "fleet_rmse.png"
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
 def campaign_tasks(path_lengths, trials: int, engine: str = "lockstep", batch: int | None = None) -> list[tuple[int, tuple[int, ...]]]:
     """Units of work: (L, trial indices). Serial engine: one trial each; lockstep: batches."""
     if engine == "serial":
@@ -457,6 +535,10 @@ def run(args: argparse.Namespace) -> int:
     predictor = _load_predictor(args.model, field)
     out_dir = Path(args.out)
     out_dir.mkdir(parents=True, exist_ok=True)
+    if args.boats < 1:
+        raise PlannerError("--boats must be >= 1")
+    if args.boats > 1:
+        return _run_fleet(args, field, predictor, lengths[0], out_dir)
     summary = run_campaign(field, predictor, path_lengths=lengths, trials=args.trials, planner=args.planner, reward=args.reward, steps=args.steps, t0=args.t0, steps_per_leg=args.steps_per_leg, noise=args.noise, hyper=args.hyper, sampling=args.sampling, baseline_prior=args.baseline_prior, methods=methods, window=args.window, snapshot_step=args.snapshot_step, seed=args.seed, workers=args.workers, scheduler=args.scheduler, engine=args.engine, batch=args.batch, gp_solver=args.gp_solver)
     summary["config"].update(data=args.data, model=args.model, command="passt-mav evaluate " + " ".join(sys.argv[2:]) if sys.argv[1:2] == ["evaluate"] else None)
     files = write_figures(summary, out_dir)
@@ -477,5 +559,25 @@ def run(args: argparse.Namespace) -> int:
                 cells.append(f"{row['final_rmse'][m]:.4f} ({r:.2f})".rjust(16))
             print(str(L).rjust(6) + "".join(cells))
         print(f"figures: {', '.join(f.name for f in files)}")
+    print(f"results written to {out_dir}", file=sys.stderr if args.json else sys.stdout)
+    return 0
+
+
+def _run_fleet(args, field, predictor, L: int, out_dir) -> int:
+    import json
+
+    res = fleet_comparison(field, predictor, boats=args.boats, path_length=L, trials=args.trials, planner=args.planner,
+                           reward=args.reward, steps=args.steps, t0=args.t0, steps_per_leg=args.steps_per_leg,
+                           noise=args.noise, hyper=args.hyper, sampling=args.sampling, window=args.window, seed=args.seed)
+    res["config"].update(data=args.data, model=args.model)
+    fig = write_fleet_figure(res, out_dir)
+    (out_dir / "fleet.json").write_text(json.dumps(res) + "\n")
+    if args.json:
+        print(json.dumps({"out": str(out_dir), "final_rmse": {k: v["final_rmse"] for k, v in res["runs"].items()}}))
+    else:
+        print(f"final-window RMSE (last {args.window} steps), mean over {args.trials} trials")
+        for name, run in res["runs"].items():
+            print(f"  {name:>18}: {run['final_rmse']:.4f}")
+        print(f"figure: {fig.name}")
     print(f"results written to {out_dir}", file=sys.stderr if args.json else sys.stdout)
     return 0

@@ -1,0 +1,74 @@
+"""PASST with a fleet, offline (passt_mav.passt.run_offline_fleet, ``passt-mav evaluate --boats``)."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from passt_mav.commands.evaluate import fleet_comparison
+from passt_mav.fields.datasets import resolve_field
+from passt_mav.models import make_predictor
+from passt_mav.passt import run_offline, run_offline_fleet
+
+
+@pytest.fixture(scope="module")
+def cylinder():
+    field = resolve_field("builtin:cylinder")
+    return field, make_predictor("dmd").fit(field, start=200, stop=300)
+
+
+def test_one_boat_fleet_is_run_offline_exactly(cylinder):
+    field, dmd = cylinder
+    kw = dict(t0=300, n_steps=40, path_length=20, steps_per_leg=10, noise_std=0.02, seed=3, planner="greedy")
+    a = run_offline(field, dmd, start_cell=(10, 12), **kw)
+    b = run_offline_fleet(field, dmd, start_cells=[(10, 12)], **kw)
+    np.testing.assert_array_equal(a.estimate, b.estimate)
+    assert [x["path"] for x in a.legs] == [x["path"] for x in b.legs]
+
+
+def test_boats_are_given_disjoint_cells_every_leg_and_runs_repeat(cylinder):
+    field, dmd = cylinder
+    kw = dict(t0=300, n_steps=60, path_length=25, steps_per_leg=10, noise_std=0.02, seed=1)
+    starts = [(5, 5), (15, 20), (25, 8)]
+    r = run_offline_fleet(field, dmd, start_cells=starts, **kw)
+    assert len(r.legs) == 6
+    for leg in r.legs:
+        paths = [[tuple(c) for c in p] for p in leg["paths"]]
+        assert len(paths) == 3 and all(len(p) == 26 for p in paths)
+        for a in range(3):
+            for b in range(a + 1, 3):
+                shared = set(paths[a][1:]) & set(paths[b])  # (a later boat's start may lie on an earlier path)
+                assert not shared, (leg["step"], a, b, shared)
+        for p in paths:  # 8-neighbour moves inside the grid
+            d = np.abs(np.diff(np.array(p), axis=0))
+            assert d.max() <= 1 and np.array(p).min() >= 0 and np.array(p).max() < 30
+    r2 = run_offline_fleet(field, dmd, start_cells=starts, **kw)
+    np.testing.assert_array_equal(r.estimate, r2.estimate)
+
+
+def test_three_boats_beat_one_boat_of_the_same_path_length(cylinder):
+    """Small version of the issue's claim (3 trials, 60 steps) with persistence as the model, so the
+    estimate rests on the samples (DMD is near exact on this wake: every configuration ends at
+    0.0092); measured 0.415 (1 boat), 0.399 (2), 0.348 (3), 0.352 (1 boat x 75). The shipped-KNODE,
+    10-trial figure is in the slow test below."""
+    field, _ = cylinder
+    pers = make_predictor("persistence").fit(field)
+    res = fleet_comparison(field, pers, boats=3, path_length=25, trials=3, steps=60, t0=300, window=20, progress=False)
+    f = {k: v["final_rmse"] for k, v in res["runs"].items()}
+    assert set(f) == {"1 boat x 25", "2 boats x 25", "3 boats x 25", "1 boat x 75"}
+    assert f["3 boats x 25"] < f["2 boats x 25"] < f["1 boat x 25"], f
+
+
+@pytest.mark.slow
+def test_fleet_beats_one_boat_with_the_shipped_model_over_ten_trials(tmp_path):
+    """The issue's acceptance: 10 trials, 300 steps, the shipped cylinder KNODE, L = 50."""
+    from passt_mav.models.base import load_predictor
+
+    field = resolve_field("builtin:cylinder")
+    res = fleet_comparison(field, load_predictor("builtin:cylinder"), boats=3, path_length=50, trials=10, steps=300,
+                           progress=False)
+    f = {k: v["final_rmse"] for k, v in res["runs"].items()}
+    (tmp_path / "fleet.json").write_text(json.dumps(f))
+    assert f["3 boats x 50"] < f["1 boat x 50"], f
