@@ -361,6 +361,20 @@ def run_offline(field, predictor, *, start_cell, t0: int = 0, n_steps: int, plan
     return OfflineResult(estimate=est, legs=legs)
 
 
+def same_step_clashes(path, others, shape) -> np.ndarray:
+    """(R, C) bool: cells that ``path`` (grid path, (L+1, 2) of (row, col)) enters after its start
+    at the same move index as one of ``others`` (boats that leave together and move in step, as
+    :func:`run_offline_fleet`'s boats do). A boat standing still at a path's end holds its cell."""
+    out = np.zeros(shape, bool)
+    path = np.asarray(path, int)
+    for o in others:
+        o = np.asarray(o, int)
+        idx = np.minimum(np.arange(1, len(path)), len(o) - 1)
+        hit = (o[idx] == path[1:]).all(axis=1)
+        out[path[1:][hit, 0], path[1:][hit, 1]] = True
+    return out
+
+
 def run_offline_fleet(field, predictor, *, start_cells, t0: int = 0, n_steps: int, planner: str = "policy_gradient", planner_kw: dict | None = None, reward: str = "speed", path_length: int = 50, steps_per_leg: int = 10, prior: str = "forecast", gp_kw: dict | None = None, hyper: str = "every_leg", noise_std: float = 0.0, sample_at: str = "end", seed: int = 0, initial_state=None) -> OfflineResult:
     """:func:`run_offline` for a fleet: ``len(start_cells)`` boats, synchronous legs, one state.
 
@@ -396,9 +410,23 @@ def run_offline_fleet(field, predictor, *, start_cells, t0: int = 0, n_steps: in
             free = taken.copy()
             free[starts[b]] = False
             try:
-                plans.append(loop.plan_leg(state, starts[b], t_start, dt, steps=S, forecast=plans[0].forecast, avoid=free))
+                plan = loop.plan_leg(state, starts[b], t_start, dt, steps=S, forecast=plans[0].forecast, avoid=free)
             except PlannerError:  # boxed in: cross the others' cells, collect nothing there
-                plans.append(loop.plan_leg(state, starts[b], t_start, dt, steps=S, forecast=plans[0].forecast, taken=free))
+                plan = None
+            # never the same cell at the same move as an earlier boat (the boats move in step offline):
+            # forbid the clashing cells and plan again, as the live FleetStep does
+            avoid = np.zeros_like(taken)
+            for _ in range(4):
+                clash = None if plan is None else same_step_clashes(plan.path, [p.path for p in plans], field.grid.shape)
+                if clash is not None and not clash.any():
+                    break
+                if clash is not None:
+                    avoid |= clash
+                plan = loop.plan_leg(state, starts[b], t_start, dt, steps=S, forecast=plans[0].forecast, taken=free, avoid=avoid)
+            else:
+                if same_step_clashes(plan.path, [p.path for p in plans], field.grid.shape).any():
+                    raise PlannerError(f"leg at step {k}: boat {b} finds no path that keeps out of the other boats' way")
+            plans.append(plan)
         parts = [sampler.sample_path(p.path, p.t_start) for p in plans]
         samples = Samples(*(np.concatenate([getattr(x, f) for x in parts]) for f in ("t", "r", "c", "u", "v")))
         est[k + 1 : k + S] = plans[0].forecast[1:S]
