@@ -398,6 +398,8 @@ def run_offline_fleet(field, predictor, *, start_cells, t0: int = 0, n_steps: in
     est = np.empty((n_steps + 1, 2) + field.grid.shape, np.float32)
     est[0] = state
     starts = [tuple(int(x) for x in c) for c in start_cells]
+    if len(set(starts)) != len(starts):  # two boats on one cell from the start
+        raise PlannerError(f"fleet start cells must differ, got {starts}")
     legs = []
     k = 0
     while k < n_steps:

@@ -147,3 +147,11 @@ def test_fleet_beats_one_boat_with_the_shipped_model_over_ten_trials(tmp_path):
     f = {k: v["final_rmse"] for k, v in res["runs"].items()}
     (tmp_path / "fleet.json").write_text(json.dumps(f))
     assert f["3 boats x 50"] < f["1 boat x 50"], f
+
+
+def test_two_boats_on_one_start_cell_are_refused(cylinder):
+    from passt_mav.errors import PlannerError
+
+    field, dmd = cylinder
+    with pytest.raises(PlannerError, match="start cells must differ"):
+        run_offline_fleet(field, dmd, start_cells=[(3, 4), (3, 4)], t0=300, n_steps=10, path_length=5)
