@@ -155,3 +155,27 @@ def test_two_boats_on_one_start_cell_are_refused(cylinder):
     field, dmd = cylinder
     with pytest.raises(PlannerError, match="start cells must differ"):
         run_offline_fleet(field, dmd, start_cells=[(3, 4), (3, 4)], t0=300, n_steps=10, path_length=5)
+
+
+def test_evaluate_boats_cli_writes_the_comparison_and_figure(tmp_path, capsys):
+    """`passt-mav evaluate --boats 2`: fleet.json with 1 and 2 boats of L and 1 boat of 2L, their
+    mean RMSE over every step, fleet_rmse.png; --boats 0 is a one-line error (exit 2)."""
+    from passt_mav.cli import main
+
+    out = tmp_path / "fleet"
+    rc = main(["evaluate", "--data", "builtin:cylinder", "--model", "persistence", "--boats", "2", "--trials", "2",
+               "--path-lengths", "10", "--steps", "20", "--t0", "300", "--window", "10", "--json", "--out", str(out)])
+    assert rc == 0
+    j = json.loads(capsys.readouterr().out)
+    assert set(j["final_rmse"]) == {"1 boat x 10", "2 boats x 10", "1 boat x 20"}
+    res = json.loads((out / "fleet.json").read_text())
+    assert res["config"]["boats"] == 2 and res["config"]["trials"] == 2
+    for run in res["runs"].values():
+        assert len(run["rmse_mean"]) == 21 and len(run["final_rmse_trials"]) == 2
+        assert run["rmse_mean"][0] == pytest.approx(0.0, abs=1e-6)  # every trial starts from the truth
+        assert run["final_rmse"] == pytest.approx(float(np.mean(run["final_rmse_trials"])))
+    assert (out / "fleet_rmse.png").stat().st_size > 1000
+    assert main(["evaluate", "--data", "builtin:cylinder", "--model", "persistence", "--boats", "0",
+                 "--out", str(tmp_path / "bad")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "--boats" in err and len(err.splitlines()) == 1
