@@ -3,16 +3,17 @@
 :class:`FleetController` runs a mission whose ``vehicles:`` lists N boats (``passt-mav
 run``). Each boat is a :class:`BoatController` (a :class:`~passt_mav.controller.MissionController`
 on its own link, with all of its fault handling: reconnects, reboots, a pilot taking over)
-working in a thread of its own; what they share lives here, under one lock:
+working in a thread of its own; what they share is :class:`passt_mav.legstep.FleetStep`
+(pure: the replay repeats it), called under one lock:
 
 * **one state**: the field estimate and its field time. Every boat plans from it and
-  every boat's samples update it (:meth:`FleetController.absorb`). The samples of all
+  every boat's samples update it (:meth:`FleetStep.absorb`). The samples of all
   boats go to one :class:`~passt_mav.runs.store.SampleStore` (keyed by the sending
   system id), each boat's frames to its own tlog (``flight_boatN.tlog``).
 * **asynchronous legs**: a boat that finishes its leg gets the next one planned from
   the newest estimate at once; it never waits for slower boats. Leg numbers are global
   (``legs/NNN`` in the order legs are planned); each leg record names its ``boat``.
-* **joint planning** (:meth:`FleetController.plan_for`), sequential allocation: a boat
+* **joint planning** (:meth:`FleetStep.plan_for`), sequential allocation: a boat
   plans keeping out of every cell of the other boats' current paths (two boats never
   collect the same cells in the same leg interval; its own start cell excepted: it is
   where it is). Boxed in by their paths, it plans with those cells' reward zeroed
@@ -26,7 +27,7 @@ working in a thread of its own; what they share lives here, under one lock:
   its interrupted leg still update the state. A boat whose link comes back while the
   others still fly rejoins with a new leg.
 
-Absorbing a leg (:meth:`FleetController.absorb`): the GP prior is the leg's own forecast
+Absorbing a leg (:meth:`FleetStep.absorb`): the GP prior is the leg's own forecast
 (from the state it was planned from, so every sample is compared with the forecast at
 its own time), and the GP gets this leg's samples *and* those of every leg absorbed
 since this one was planned (their information is not in its forecast). The result
