@@ -326,39 +326,10 @@ def run_offline(field, predictor, *, start_cell, t0: int = 0, n_steps: int, plan
 
     The initial state is the truth at ``t0`` unless ``initial_state`` is given.
     ``predictor=None`` runs the GP-only ("hold") variant. Returns
-    :class:`OfflineResult`; deterministic given ``seed``.
+    :class:`OfflineResult`; deterministic given ``seed``. (One boat of
+    :func:`run_offline_fleet`.)
     """
-    if not (0 <= t0 < field.n_times - 1):
-        raise PlannerError(f"start snapshot t0={t0} must lie in [0, {field.n_times - 2}]")
-    n_steps = int(min(n_steps, field.n_times - 1 - t0))
-    land = field.land_mask
-    loop = PasstLoop(predictor, field.grid, planner=planner, planner_kw=planner_kw, reward=reward, path_length=path_length, steps_per_leg=steps_per_leg, prior=prior, gp_kw=gp_kw, hyper=hyper, land=land, seed=seed)
-    sampler = FieldSampler(field, noise_std=noise_std, seed=seed + 7919, steps_per_leg=steps_per_leg, sample_at=sample_at)
-    dt = field.dt
-    state = np.array(field.data[t0] if initial_state is None else initial_state, dtype=np.float32)
-    state[:, land] = np.nan
-    est = np.empty((n_steps + 1, 2) + field.grid.shape, np.float32)
-    est[0] = state
-    start = tuple(int(x) for x in start_cell)
-    legs = []
-    k = 0
-    while k < n_steps:
-        S = min(steps_per_leg, n_steps - k)
-        leg = loop.plan_leg(state, start, field.times[t0] + k * dt, dt, steps=S)
-        # the leg spans `steps_per_leg` snapshots; a truncated last leg still flies its path
-        samples = sampler.sample_path(leg.path, leg.t_start)
-        est[k + 1 : k + S] = leg.forecast[1:S]
-        if S == steps_per_leg:
-            state = loop.update(leg, samples)
-        else:
-            state = leg.forecast[S]
-        est[k + S] = state
-        from passt_mav.planning import path_reward
-
-        legs.append({"step": k, "path": leg.path.tolist(), "timings": dict(leg.timings), "reward_collected": path_reward(leg.reward, leg.path), "n_samples": len(samples)})
-        start = tuple(int(x) for x in leg.path[-1])
-        k += S
-    return OfflineResult(estimate=est, legs=legs)
+    return run_offline_fleet(field, predictor, start_cells=[start_cell], t0=t0, n_steps=n_steps, planner=planner, planner_kw=planner_kw, reward=reward, path_length=path_length, steps_per_leg=steps_per_leg, prior=prior, gp_kw=gp_kw, hyper=hyper, noise_std=noise_std, sample_at=sample_at, seed=seed, initial_state=initial_state)
 
 
 def same_step_clashes(path, others, shape) -> np.ndarray:

@@ -19,13 +19,18 @@ def cylinder():
     return field, make_predictor("dmd").fit(field, start=200, stop=300)
 
 
-def test_one_boat_fleet_is_run_offline_exactly(cylinder):
+def test_one_boat_fleet_equals_the_independent_lockstep_engine(cylinder):
+    """``run_offline`` is the one-boat fleet; the lockstep engine (written separately, batching trials)
+    must give the same estimates and paths (DMD: batched and single predictions agree bit for bit)."""
+    from passt_mav.passt import run_offline_lockstep
+
     field, dmd = cylinder
-    kw = dict(t0=300, n_steps=40, path_length=20, steps_per_leg=10, noise_std=0.02, seed=3, planner="greedy")
-    a = run_offline(field, dmd, start_cell=(10, 12), **kw)
-    b = run_offline_fleet(field, dmd, start_cells=[(10, 12)], **kw)
-    np.testing.assert_array_equal(a.estimate, b.estimate)
+    kw = dict(t0=300, n_steps=40, path_length=20, steps_per_leg=10, noise_std=0.02, planner="greedy")
+    a = run_offline_fleet(field, dmd, start_cells=[(10, 12)], seed=3, **kw)
+    (b,) = run_offline_lockstep(field, dmd, start_cells=[(10, 12)], seeds=[3], **kw)
+    np.testing.assert_allclose(a.estimate, b.estimate, atol=1e-6, equal_nan=True)
     assert [x["path"] for x in a.legs] == [x["path"] for x in b.legs]
+    assert run_offline(field, dmd, start_cell=(10, 12), seed=3, **kw).legs[-1]["path"] == a.legs[-1]["path"]
 
 
 def test_boats_are_given_disjoint_cells_every_leg_and_runs_repeat(cylinder):
@@ -138,7 +143,10 @@ def test_policy_gradient_fleet_keeps_apart_and_off_land(seed):
 
 @pytest.mark.slow
 def test_fleet_beats_one_boat_with_the_shipped_model_over_ten_trials(tmp_path):
-    """The issue's acceptance: 10 trials, 300 steps, the shipped cylinder KNODE, L = 50."""
+    """The issue's acceptance: 10 trials, 300 steps, the shipped cylinder KNODE, L = 50. Measured
+    (same numbers as ``passt-mav evaluate --data builtin:cylinder --model builtin:cylinder --boats 3
+    --trials 10 --path-lengths 50``, 6 min on 2 loaded cores): final-window RMSE 1 boat 0.395,
+    2 boats 0.292, 3 boats 0.200 (lower than 1 boat in 10 of 10 trials), 1 boat x 150 0.189."""
     from passt_mav.models.base import load_predictor
 
     field = resolve_field("builtin:cylinder")
@@ -146,7 +154,10 @@ def test_fleet_beats_one_boat_with_the_shipped_model_over_ten_trials(tmp_path):
                            progress=False)
     f = {k: v["final_rmse"] for k, v in res["runs"].items()}
     (tmp_path / "fleet.json").write_text(json.dumps(f))
-    assert f["3 boats x 50"] < f["1 boat x 50"], f
+    assert f["3 boats x 50"] < f["2 boats x 50"] < f["1 boat x 50"], f
+    per = {k: v["final_rmse_trials"] for k, v in res["runs"].items()}
+    wins = sum(a < b for a, b in zip(per["3 boats x 50"], per["1 boat x 50"]))
+    assert wins >= 9, (wins, per)
 
 
 def test_two_boats_on_one_start_cell_are_refused(cylinder):
