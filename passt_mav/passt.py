@@ -389,7 +389,7 @@ def run_offline_fleet(field, predictor, *, start_cells, t0: int = 0, n_steps: in
             # never the same cell at the same move as an earlier boat (the boats move in step offline):
             # forbid the clashing cells and plan again, as the live FleetStep does
             avoid = np.zeros_like(taken)
-            for _ in range(4):
+            for _ in range(20):  # each round forbids cells the last plan clashed on (planners keep out of them)
                 clash = None if plan is None else same_step_clashes(plan.path, [p.path for p in plans], field.grid.shape)
                 if clash is not None and not clash.any():
                     break
