@@ -152,3 +152,38 @@ def test_compiled_step_equals_eager_to_fp32_tolerance():
     f = fast.compiled_or_eager(eager, net)
     with torch.no_grad():
         torch.testing.assert_close(f(x), eager(x), rtol=1e-5, atol=1e-5)
+
+
+def test_fine_tuning_starts_from_the_checkpoint_and_never_ends_worse(wave, tmp_path):
+    """``init``: the start model's weights and scaler are taken (0 epochs = the start model exactly),
+    the start model competes as epoch 0 of the best-epoch selection (the kept weights validate no
+    worse than it), the checkpoint records where it started, and a wrong grid is refused."""
+    from passt_mav.errors import ModelError
+
+    base = make_predictor("knode", epochs=6, lr=3e-3, substeps=2, seed=0, **LOOP, **SMALL).fit(wave, start=0, stop=32)
+    base.save(tmp_path / "base")
+    x = wave.data[33]
+    # 0 epochs from the start model: the same predictions (weights AND scaler carried over), on a
+    # different window, whose own scaler would differ
+    same = make_predictor("knode", epochs=0, substeps=2, seed=0, init=str(tmp_path / "base.pt"), **LOOP, **SMALL).fit(wave, start=4, stop=36)
+    np.testing.assert_allclose(same.predict(x, 3), base.predict(x, 3), atol=1e-6)
+    tuned = make_predictor("knode", epochs=6, lr=1e-3, substeps=2, seed=1, init=str(tmp_path / "base.pt"), **dict(LOOP, horizon=6, curriculum=0.0), **SMALL).fit(wave, start=0, stop=32)
+    assert tuned.val_curve_[tuned.best_epoch_] <= tuned.val_curve_[0]
+    tuned.save(tmp_path / "tuned")
+    assert json.loads((tmp_path / "tuned.json").read_text())["params"]["init"] == str(tmp_path / "base.pt")
+    np.testing.assert_allclose(load_predictor(tmp_path / "tuned.pt").predict(x, 2), tuned.predict(x, 2), atol=1e-6)
+    small = wave_field(T=40, R=12, C=12)
+    with pytest.raises(ModelError, match="do not match"):
+        make_predictor("knode", epochs=1, substeps=2, init=str(tmp_path / "base.pt"), **LOOP, **SMALL).fit(small, start=0, stop=32)
+
+
+def test_a_window_too_short_for_the_horizon_is_a_one_line_error(tmp_path, capsys):
+    """17 snapshots with 20 % validation leave 6 to train on: a 10-snapshot roll-out is refused
+    before any epoch (it used to end in a ZeroDivisionError traceback), exit 2, naming the fix."""
+    from passt_mav.cli import main
+
+    path = tmp_path / "short.nc"
+    wave_field(T=17).to_netcdf(path)
+    assert main(["model", "train", "--data", str(path), "--epochs", "2", "--no-skill", "--out", str(tmp_path / "k")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "too few for a roll-out of 10" in err[0] and "--horizon" in err[0]

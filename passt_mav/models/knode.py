@@ -193,12 +193,20 @@ class KnodePredictor(Predictor):
         clip_grad: gradient-norm clip (0 = off); roll-outs through many Euler steps can spike.
         zero_init: start the last layer at zero, i.e. from persistence (dz/dt = 0).
         compile: train through ``torch.compile`` when it works here (falls back to eager).
+        init: a KNODE checkpoint (``.pt``/``.json`` path or ``builtin:NAME``) to start from
+            (fine-tuning): its weights AND its scaler are taken, so the weights keep their
+            meaning; its architecture and grid must match. ``zero_init`` is then ignored, and
+            the starting weights compete as epoch 0 in the best-epoch selection.
+        select: which weights are kept: ``"best"`` (the epoch with the lowest validation
+            loss, default) or ``"last"`` (the last epoch; for a roll-out horizon longer than
+            the validation window, whose short roll-outs cannot see long-horizon drift -
+            the validation curve is still recorded).
     """
 
     name = "knode"
 
     def __init__(self, *, epochs: int = 100, lr: float = 1e-3, noise_var: float = 1e-3, n_batches: int = 1, substeps: int = 6, method: str = "euler", channels: tuple = CHANNELS, hidden: int = 128, kernel_size: int = 5, kernel_variance: float = 0.1, seed: int = 0, device: str = "cpu", progress: bool = True, batch_size: int = 256,
-                 loss: str = "one_step", horizon: int = 10, curriculum: float = 0.5, noise: str = "white", noise_scale: float = 1.0, noise_samples: int = 12, noise_path_length: int = 50, noise_sensor_std: float = 0.02, val_frac: float = 0.0, val_every: int = 1, patience: int = 0, train_batch: int = 64, max_ics: int = 0, clip_grad: float = 1.0, zero_init: bool = False, compile: bool = False):
+                 loss: str = "one_step", horizon: int = 10, curriculum: float = 0.5, noise: str = "white", noise_scale: float = 1.0, noise_samples: int = 12, noise_path_length: int = 50, noise_sensor_std: float = 0.02, val_frac: float = 0.0, val_every: int = 1, patience: int = 0, train_batch: int = 64, max_ics: int = 0, clip_grad: float = 1.0, zero_init: bool = False, compile: bool = False, init: str | None = None, select: str = "best"):
         self.epochs = epochs
         self.lr = lr
         self.noise_var = noise_var
@@ -229,6 +237,8 @@ class KnodePredictor(Predictor):
         self.clip_grad = clip_grad
         self.zero_init = zero_init
         self.compile = compile
+        self.init = None if init is None else str(init)
+        self.select = select
         self.grid_shape_ = None
 
     # -- hyper-parameters that define the model (saved) --------------------------------
@@ -236,7 +246,7 @@ class KnodePredictor(Predictor):
         return {"channels": list(self.channels), "hidden": self.hidden, "kernel_size": self.kernel_size, "kernel_variance": self.kernel_variance, "substeps": self.substeps, "method": self.method}
 
     def _train_params(self) -> dict:
-        keys = ("loss", "horizon", "curriculum", "noise", "noise_scale", "noise_samples", "noise_path_length", "noise_sensor_std", "val_frac", "val_every", "patience", "train_batch", "max_ics", "clip_grad", "zero_init")
+        keys = ("loss", "horizon", "curriculum", "noise", "noise_scale", "noise_samples", "noise_path_length", "noise_sensor_std", "val_frac", "val_every", "patience", "train_batch", "max_ics", "clip_grad", "zero_init", "init", "select")
         return {k: getattr(self, k) for k in keys}
 
     def _check_params(self) -> None:
@@ -252,6 +262,8 @@ class KnodePredictor(Predictor):
             raise ModelError(f"unknown noise {self.noise!r}; choose white or gp")
         if int(self.horizon) != self.horizon or self.horizon < 1:
             raise ModelError(f"horizon must be a positive integer, got {self.horizon!r}")
+        if self.select not in ("best", "last"):
+            raise ModelError(f"unknown weight selection {self.select!r}; choose best or last")
         if not 0 <= float(self.val_frac) < 0.9:
             raise ModelError(f"val_frac must be in [0, 0.9), got {self.val_frac!r}")
         if len(self.channels) != len(CONV_SPEC):
@@ -310,6 +322,9 @@ class KnodePredictor(Predictor):
         n_tr = self._split(data.shape[0])
         train, val = data[:n_tr], data[n_tr:]
         T, _, R, C = train.shape
+        H_max = 1 if self.loss == "one_step" else int(self.horizon)
+        if T - H_max < 1:
+            raise ModelError(f"the training part has {T} snapshots, too few for a roll-out of {H_max}: give more data or a shorter --horizon (at most {max(T - 1, 1)})")
         water = np.isfinite(data).all(axis=(0, 1))  # (R, C): cells with data at every time
         if not water.any():
             raise ModelError("training window has no cell with data at every time")
@@ -318,12 +333,18 @@ class KnodePredictor(Predictor):
         std = filled.std(axis=0)
         # land and constant cells get std 1 so scaling stays finite
         std = np.where(water & (std > 1e-8), std, 1.0).astype(np.float32)
+        start_from = self._init_checkpoint((R, C)) if self.init else None
+        if start_from is not None:  # fine-tuning: the weights were trained in the start model's scaling
+            mean, std = start_from.mean_, start_from.std_
+            self.init_metadata_ = getattr(start_from, "metadata_", None)
         scale = lambda a: ((np.where(np.isfinite(a), a, np.float32(0)) - mean) / std * water).astype(np.float32)  # noqa: E731
         dev = torch.device(self.device)
         with torch.random.fork_rng(devices=[]):
             torch.manual_seed(int(self.seed))
             net = KnodeNet(R, C, channels=self.channels, hidden=self.hidden, kernel_size=self.kernel_size, kernel_variance=self.kernel_variance).to(dev)
-            if self.zero_init:
+            if start_from is not None:
+                net.load_state_dict(start_from.net_.state_dict())
+            elif self.zero_init:
                 # dz/dt = 0 at the start: the untrained model is persistence, and training
                 # (with best-epoch selection on validation) departs from it only where that helps
                 torch.nn.init.zeros_(net.fc2.weight)
@@ -340,8 +361,8 @@ class KnodePredictor(Predictor):
         curve: list[float] = []
         vcurve: list[float] = []
         best = (math.inf, -1, None)
-        if val_sets and self.zero_init:
-            # epoch 0 (persistence) competes too: a network that never beats it on validation is not kept
+        if val_sets and (self.zero_init or start_from is not None):
+            # epoch 0 (persistence, or the start model) competes too: a network that never beats it on validation is not kept
             best = (self._val_loss(net, val_sets, w, n_w), 0, {k: t.detach().clone() for k, t in net.state_dict().items()})
             vcurve.append(best[0])
         from tqdm.auto import tqdm
@@ -385,17 +406,17 @@ class KnodePredictor(Predictor):
             bar.set_postfix(loss=f"{curve[-1]:.3e}", H=H)
             if callback is not None:
                 callback(ep, curve[-1])
-            if self.patience and since_best >= self.patience:
+            if self.patience and since_best >= self.patience and self.select == "best":
                 break
         self.train_seconds_ = time.perf_counter() - t0
-        if best[2] is not None:
+        if best[2] is not None and self.select == "best":
             net.load_state_dict(best[2])
         net.eval()
         self.net_ = net
         self._step = None
         self.loss_curve_ = curve
         self.val_curve_ = vcurve
-        self.best_epoch_ = best[1] if best[2] is not None else len(curve)
+        self.best_epoch_ = best[1] if best[2] is not None and self.select == "best" else len(curve)
         with torch.no_grad():
             pred = self._advance(net, Z[:-1])
             self.final_loss_ = float((((pred - Z[1:]) ** 2) * w).sum() / (n_w * (T - 1)))
@@ -409,6 +430,17 @@ class KnodePredictor(Predictor):
         self.train_window_ = [s0, s0 + data.shape[0]]
         self.val_window_ = [s0 + n_tr, s0 + data.shape[0]] if n_tr < data.shape[0] else None
         return self
+
+    def _init_checkpoint(self, grid_shape) -> "KnodePredictor":
+        """The start model of a fine-tuning run (``init``), checked against this model's shape."""
+        from passt_mav.models.base import load_predictor
+
+        p = load_predictor(self.init)
+        if not isinstance(p, KnodePredictor):
+            raise ModelError(f"--init {self.init}: not a KNODE checkpoint")
+        if tuple(p.grid_shape_) != tuple(grid_shape) or p._arch() != self._arch():
+            raise ModelError(f"--init {self.init}: grid {tuple(p.grid_shape_)} / architecture {p._arch()} do not match this model's {tuple(grid_shape)} / {self._arch()}")
+        return p
 
     def _stepper(self, net):
         """One snapshot step ``z -> z(t+1)`` for training: compiled when asked and it works, else eager."""

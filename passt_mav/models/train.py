@@ -49,6 +49,11 @@ def train(data: str, *, out: str, model: str = "knode", start: int | None = None
         p.fit(field, start=start, stop=stop, callback=log)
         wall = time.perf_counter() - t0
         extra = {"data": data, "threads": torch.get_num_threads(), "recipe": recipe, "wall_s": round(wall, 2)}
+        if opts.get("init"):
+            # a fine-tuning run: the commands that made its start model, oldest first, so the
+            # checkpoint can be rebuilt from scratch by running them and then this run's command
+            meta0 = getattr(p, "init_metadata_", None) or {}
+            extra["lineage"] = list(meta0.get("lineage", [])) + [{"command": meta0.get("command"), "wall_s": meta0.get("wall_s"), "epochs": meta0.get("epochs"), "best_epoch": meta0.get("best_epoch")}]
         path = p.save(out, command=command, extra=extra)
         summary = {"out": str(path), "model": model, "recipe": recipe, "data": data, "data_hash": p.data_hash_, "epochs": p.epochs_trained_, "best_epoch": p.best_epoch_, "seed": seed, "final_loss": p.final_loss_, "final_epoch_loss": p.loss_curve_[-1] if p.loss_curve_ else None, "first_epoch_loss": p.loss_curve_[0] if p.loss_curve_ else None, "n_params": p.n_params(), "wall_s": round(wall, 2), "s_per_epoch": round(wall / max(1, p.epochs_trained_), 3)}
         if skill and p.val_window_ is not None:
