@@ -245,9 +245,15 @@ def test_three_boats_over_tcp_fly_their_missions_and_one_lost_link_stops_no_othe
         # MAV_SYSID of each boat, read over its own link
         for i in range(n):
             gcs.conns[i].mav.param_request_read_send(i + 1, 1, b"MAV_SYSID", -1)
-        gcs.step(0.2)
+
+        def sysid_values(i):
+            return [m for m in gcs.msgs[i] if m.get_type() == "PARAM_VALUE" and m.param_id == "MAV_SYSID"]
+
+        t_end = gcs.t + 5.0  # each request may be read after the step command (see acked below)
+        while not all(sysid_values(i) for i in range(n)) and gcs.t < t_end:
+            gcs.step(0.2)
         for i in range(n):
-            pv = [m for m in gcs.msgs[i] if m.get_type() == "PARAM_VALUE" and m.param_id == "MAV_SYSID"]
+            pv = sysid_values(i)
             assert pv and pv[-1].param_value == i + 1 and pv[-1].get_srcSystem() == i + 1
 
         # upload all three missions at once, each boat pacing its own transfer
@@ -278,12 +284,20 @@ def test_three_boats_over_tcp_fly_their_missions_and_one_lost_link_stops_no_othe
             if m.get_type() == "COMMAND_ACK":
                 results[(i, m.command)] = m.result
 
+        def acked(cmd):
+            # a command sent on boat i's socket may reach the fleet after the step command sent on
+            # another socket (the serving loop reads sockets in turn): step until every boat answered,
+            # bounded in simulated time, not in wall-clock time (failed 1 in a few runs under load)
+            t_end = gcs.t + 5.0
+            while not all((i, cmd) in results for i in range(n)) and gcs.t < t_end:
+                gcs.step(0.2, ack_handler)
+
         for i in range(n):
             gcs.conns[i].mav.command_long_send(i + 1, 1, M.MAV_CMD_COMPONENT_ARM_DISARM, 0, 1, 0, 0, 0, 0, 0, 0)
-        gcs.step(0.2, ack_handler)
+        acked(M.MAV_CMD_COMPONENT_ARM_DISARM)
         for i in range(n):
             gcs.conns[i].mav.command_long_send(i + 1, 1, M.MAV_CMD_DO_SET_MODE, 0, 1, MODES["AUTO"], 0, 0, 0, 0, 0)
-        gcs.step(0.2, ack_handler)
+        acked(M.MAV_CMD_DO_SET_MODE)
         for i in range(n):
             assert results[(i, M.MAV_CMD_COMPONENT_ARM_DISARM)] == 0 and results[(i, M.MAV_CMD_DO_SET_MODE)] == 0
 
