@@ -702,10 +702,14 @@ class MissionController:
         r_p, r_m, link = rec["rmse_passt"], rec["rmse_model"], rec["link"]
         rm = "" if r_p is None else f", RMSE passt {r_p:.4f} model {r_m if r_m is None else round(r_m, 4)}"
         rtt = "-" if link["rtt_ms"] is None else f"{link['rtt_ms']:.1f} ms"
-        self._say(f"leg {i + 1}/{self.n_legs}: {rec['n_samples']} samples ({rec['n_gp_points']} to the GP), "
+        self._say(f"{self._leg_label(i)}: {rec['n_samples']} samples ({rec['n_gp_points']} to the GP), "
                   f"{rec['duration_s']:.1f} s wall ({rec['duration_vehicle_s'] or 0:.0f} s vehicle), planning "
                   f"{rec['planning_s'] * 1000:.0f} ms, upload {rec['upload_s']:.2f} s{rm}, link RTT {rtt} "
                   f"loss {100 * link['loss']:.1f} %")
+
+    def _leg_label(self, i: int) -> str:
+        """How leg ``i`` (0-based) is named in progress lines."""
+        return f"leg {i + 1}/{self.n_legs}"
 
     def _swap(self, i: int, items, t0w: float, attempts: int = 3) -> tuple[int, float, float, float | None]:
         """HOLD, verified upload, set-current 1, arm, AUTO: the transactional leg swap.

@@ -116,6 +116,10 @@ class BoatController(MissionController):
         super()._finish_leg(i, rec, planned)
         self.legs_done += 1
 
+    def _leg_label(self, i: int) -> str:
+        # i counts the fleet's legs; a boat's own count is what the pilot watching it wants
+        return f"leg {self.legs_done + 1}/{self.n_legs} (fleet leg {i + 1})"
+
     def _write_summary(self) -> None:
         self.fleet.write_summary()
 
