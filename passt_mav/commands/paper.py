@@ -4,9 +4,13 @@ Protocol (the paper's): three scenarios - the static cylinder wake and the oscil
 cylinder wake with the shipped cylinder KNODE (``builtin:cylinder``), the ocean field
 with the shipped ocean KNODE (``builtin:ocean``) - x path lengths (25, 50, 75, 100, 150,
 200 moves per leg) x 30 trials x 300 steps from snapshot 0, legs of 10 snapshots, sensor
-noise 0.02; methods PASST / model alone / lawnmower+GP / greedy+GP / random+GP. The GP
-kernel is fitted once per configuration on the initial state and then held fixed (the
-paper's fixed kernel; ``--hyper every_leg`` refits it every leg, slower).
+noise 0.02; methods PASST / model alone / lawnmower+GP / greedy+GP / random+GP. Each GP's
+kernel is fitted once and then held fixed (the paper's fixed kernel), on what that GP
+models (``--hyper auto``): PASST's residual GP on its first leg's residuals vs the forecast,
+the GP-only baselines on the initial state (one fit per configuration); ``--hyper
+every_leg`` refits every leg (slower), ``--hyper state`` fits every GP on the initial state
+(wrong for a residual GP: it made PASST worse than the model alone, see
+:data:`passt_mav.commands.evaluate.CAMPAIGN_HYPER`).
 
 The campaign runs on the lockstep engine (:func:`passt_mav.commands.evaluate.run_campaign`):
 a path length's trials advance together, one batched model call per leg. With
@@ -47,7 +51,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--steps", type=int, default=None, help="snapshots estimated after the start (default 300; --quick 30)")
     p.add_argument("--path-lengths", default=None, help="comma-separated moves per leg (default 25,50,75,100,150,200; --quick 50)")
     p.add_argument("--scenarios", default=",".join(s[0] for s in SCENARIOS), help="subset of cylinder,oscillating,ocean")
-    p.add_argument("--hyper", default="state", help="GP hyper-parameters: state (default: fitted once on the initial state) | first_leg | every_leg")
+    p.add_argument("--hyper", default="auto", help="GP hyper-parameters: auto (default: each GP fitted once on what it models - PASST's residual GP on its first leg's residuals, the GP-only baselines on the initial state) | state | first_leg | every_leg")
     p.add_argument("--scheduler", default=None, help="address of a Dask distributed scheduler: the campaign's batches run there")
     p.add_argument("--workers", type=int, default=1, help="local worker processes (joblib) when no --scheduler (default 1)")
     p.add_argument("--batch", type=int, default=None, help="trials per lockstep batch = unit of work on a cluster (default: all trials of a path length)")
