@@ -132,15 +132,22 @@ def _start_cell(field, cfg: dict, L: int, trial: int) -> tuple[int, int]:
 CAMPAIGN_HYPER = ("every_leg", "first_leg", "state", "auto")
 
 
+def _hyper_for(hyper: str, residual: bool) -> str:
+    """The :data:`passt_mav.passt.HYPER` schedule of one GP: ``auto`` resolved by what it models."""
+    if hyper != "auto":
+        return hyper
+    return "first_leg" if residual else "state"
+
+
 def _method_kw(cfg: dict, m: str, predictor) -> tuple:
     """(predictor, run_offline options) of loop method ``m`` (its GP schedule included)."""
     h = cfg["hyper"]
     if m == "passt":
-        return predictor, dict(planner=cfg["planner"], reward=cfg["reward"], prior="forecast", hyper="first_leg" if h == "auto" else h)
+        return predictor, dict(planner=cfg["planner"], reward=cfg["reward"], prior="forecast", hyper=_hyper_for(h, residual=True))
     planner = m[: -len("_gp")]
     if cfg["baseline_prior"] == "forecast":
-        return predictor, dict(planner=planner, reward=cfg["reward"], prior="forecast", hyper="first_leg" if h == "auto" else h)
-    return None, dict(planner=planner, reward="speed", prior="none", hyper="state" if h == "auto" else h)
+        return predictor, dict(planner=planner, reward=cfg["reward"], prior="forecast", hyper=_hyper_for(h, residual=True))
+    return None, dict(planner=planner, reward="speed", prior="none", hyper=_hyper_for(h, residual=False))
 
 
 def _summarise_trial(out: dict, m: str, r, truth, cfg: dict, trial: int) -> None:
@@ -335,7 +342,7 @@ def fleet_comparison(field, predictor, *, boats: int, path_length: int, trials: 
         for name, n, L, i in it:
             r = run_offline_fleet(field, predictor, start_cells=_fleet_starts(field, seed, i, path_length, n), t0=t0,
                                   n_steps=T, planner=planner, reward=reward, path_length=L, steps_per_leg=steps_per_leg,
-                                  noise_std=noise, hyper="first_leg" if hyper == "auto" else hyper, sample_at=sampling, seed=seed + i)
+                                  noise_std=noise, hyper=_hyper_for(hyper, residual=True), sample_at=sampling, seed=seed + i)
             series.setdefault(name, []).append(_rmse_series(r.estimate, truth))
     for name, n, L in configs:
         arr = np.array(series[name])
