@@ -256,14 +256,26 @@ class PasstLoop:
         same cells) and cells never to enter (another boat is there at the same time).
         The start cell is always allowed.
         """
-        from passt_mav.planning import compute_reward
-
         S = self.steps_per_leg if steps is None else int(steps)
         tm: dict[str, float] = {}
         t0 = time.perf_counter()
         fc = self.forecast(state, max(S, 1)) if forecast is None else forecast
         tm["predict"] = time.perf_counter() - t0
         t0 = time.perf_counter()
+        q, mask = self._reward_map(fc, start, taken, avoid)
+        tm["reward"] = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        path = self.planner.plan(q, start, self.path_length, seed=self._plan_seed(), mask=mask)
+        tm["plan"] = time.perf_counter() - t0
+        return LegPlan(path=path, reward=q, forecast=fc, t_start=float(t_start), dt=float(dt), steps=S, timings=tm)
+
+    def _plan_seed(self) -> int:
+        return self.seed + self.leg_index
+
+    def _reward_map(self, fc, start, taken=None, avoid=None) -> tuple[np.ndarray, np.ndarray]:
+        """(reward (R, C), traversable mask) of a leg from its forecast (see :meth:`plan_leg`)."""
+        from passt_mav.planning import compute_reward
+
         std = self.std if self.std is not None else np.ones((2,) + self.grid.shape, np.float32)
         q = compute_reward(self.reward_name, fc[1], cell_size_m=self._cell, std=std)
         mask = ~self.land & np.isfinite(fc[1]).all(axis=0)
@@ -272,11 +284,7 @@ class PasstLoop:
         if avoid is not None:
             mask = mask & ~np.asarray(avoid, bool)
             mask[tuple(start)] = True
-        tm["reward"] = time.perf_counter() - t0
-        t0 = time.perf_counter()
-        path = self.planner.plan(q, start, self.path_length, seed=self.seed + self.leg_index, mask=mask)
-        tm["plan"] = time.perf_counter() - t0
-        return LegPlan(path=path, reward=q, forecast=fc, t_start=float(t_start), dt=float(dt), steps=S, timings=tm)
+        return q, mask
 
     def update(self, leg: LegPlan, samples: Samples) -> np.ndarray:
         """Reconstruct the state at the leg's end (``t_start + steps * dt``) from its samples.
@@ -413,6 +421,30 @@ def run_offline_fleet(field, predictor, *, start_cells, t0: int = 0, n_steps: in
     return OfflineResult(estimate=est, legs=legs)
 
 
+def _plan_batch(loops: list, starts, t_start: float, dt: float, S: int, fcs) -> list[LegPlan]:
+    """``[loops[b].plan_leg(..., forecast=fcs[b]) for b]`` with the planning batched when it can be.
+
+    Loops whose planners are all the same-option :class:`PolicyGradientPlanner` plan in
+    one :meth:`~passt_mav.planning.policy_gradient.PolicyGradientPlanner.plan_many` call
+    (same paths as one call each; the ``plan`` timing is the batch's time / B); any
+    other planner plans loop by loop.
+    """
+    from passt_mav.planning.policy_gradient import PolicyGradientPlanner
+
+    p0 = loops[0].planner
+    same = isinstance(p0, PolicyGradientPlanner) and all(type(lp.planner) is type(p0) and vars(lp.planner) == vars(p0) and lp.path_length == loops[0].path_length for lp in loops)
+    if not same or len(loops) == 1:
+        return [lp.plan_leg(None, st, t_start, dt, steps=S, forecast=fc) for lp, st, fc in zip(loops, starts, fcs)]
+    B = len(loops)
+    tr = time.perf_counter()
+    qm = [lp._reward_map(fc, st) for lp, st, fc in zip(loops, starts, fcs)]
+    t_rew = (time.perf_counter() - tr) / B
+    tp = time.perf_counter()
+    paths = p0.plan_many([q for q, _ in qm], starts, loops[0].path_length, [lp._plan_seed() for lp in loops], [m for _, m in qm])
+    t_plan = (time.perf_counter() - tp) / B
+    return [LegPlan(path=path, reward=q, forecast=fc, t_start=float(t_start), dt=float(dt), steps=S, timings={"predict": 0.0, "reward": t_rew, "plan": t_plan}) for path, (q, _), fc in zip(paths, qm, fcs)]
+
+
 def _batch_forecast(predictor, states: np.ndarray, steps: int, land: np.ndarray) -> np.ndarray:
     """(B, steps+1, 2, R, C) float32: each state then its ``steps`` predictions, NaN on land.
 
@@ -486,8 +518,9 @@ def run_offline_lockstep(field, predictor, *, start_cells, seeds, t0: int = 0, n
         tp = time.perf_counter()
         fcs = _batch_forecast(predictor, states, max(S, 1), land)
         t_pred = (time.perf_counter() - tp) / B
+        plans = _plan_batch(loops, starts, field.times[t0] + k * dt, dt, S, fcs)
         for b in range(B):
-            leg = loops[b].plan_leg(states[b], starts[b], field.times[t0] + k * dt, dt, steps=S, forecast=fcs[b])
+            leg = plans[b]
             leg.timings["predict"] = t_pred
             samples = samplers[b].sample_path(leg.path, leg.t_start)
             est[b, k + 1 : k + S] = leg.forecast[1:S]

@@ -119,6 +119,23 @@ class TestPolicyGradient(PlannerContract):
             gr.append(path_reward(q, plan("greedy", q, s, 60, seed=i, mask=trav)) / ub)
         assert np.mean(pg) >= np.mean(gr) - 0.02, (np.mean(pg), np.mean(gr))
 
+    def test_plan_many_equals_one_call_each(self):
+        """The campaign engine's batched planning: G requests advanced together give each
+        request's own plan() path exactly (own seed, own map, own mask, greedy row each)."""
+        from passt_mav.planning.policy_gradient import PolicyGradientPlanner
+
+        rng = np.random.default_rng(7)
+        maps = [random_reward_map(rng, 20, 24) for _ in range(5)]
+        starts = [tuple(np.argwhere(t)[rng.integers(t.sum())]) for _, t in maps]
+        pl = PolicyGradientPlanner()
+        many = pl.plan_many([q for q, _ in maps], starts, 35, [11, 3, 3, 40, 8], [t for _, t in maps])
+        for (q, t), s, sd, got in zip(maps, starts, [11, 3, 3, 40, 8], many):
+            np.testing.assert_array_equal(got, pl.plan(q, s, 35, seed=sd, mask=t))
+            assert t[tuple(got.T)].all()  # never on land
+        assert pl.plan_many([], [], 5, []) == []
+        with pytest.raises(PlannerError, match="one start"):
+            pl.plan_many([maps[0][0]], starts, 5, [1, 2])
+
     def test_four_moves(self):
         q = gaussian_map(12, 12)
         p = plan("policy_gradient", q, (6, 6), 20, moves=4)

@@ -154,6 +154,30 @@ def test_compiled_step_equals_eager_to_fp32_tolerance():
         torch.testing.assert_close(f(x), eager(x), rtol=1e-5, atol=1e-5)
 
 
+def test_fast_predict_equals_eager_and_follows_the_network(wave):
+    """``fast_predict``: the compiled (inductor freezing) prediction path gives the eager
+    roll-out to fp32 rounding, is really compiled here (gcc is there), is not pickled to
+    workers, and a refitted network gets its own compiled step (frozen weights would be stale)."""
+    import cloudpickle
+
+    m = make_predictor("knode", epochs=2, substeps=2, seed=0, **SMALL).fit(wave, start=0, stop=20)
+    x = wave.data[20:23]
+    eager = m.predict(x, 4)
+    m.fast_predict = True
+    fast = m.predict(x, 4)
+    assert m._fast_step.is_compiled()
+    np.testing.assert_allclose(fast, eager, rtol=1e-5, atol=1e-5)
+    w = cloudpickle.loads(cloudpickle.dumps(m))
+    assert w.fast_predict and "_fast_step" not in vars(w)
+    np.testing.assert_allclose(w.predict(x, 4), eager, rtol=1e-5, atol=1e-5)
+    m.fit(wave, start=0, stop=20, epochs=3)  # new weights: the old frozen step must not be reused
+    m.fast_predict = False
+    eager2 = m.predict(x, 4)
+    m.fast_predict = True
+    np.testing.assert_allclose(m.predict(x, 4), eager2, rtol=1e-5, atol=1e-5)
+    assert np.abs(eager2 - eager).max() > 1e-4  # the refit really changed the model
+
+
 def test_fine_tuning_starts_from_the_checkpoint_and_never_ends_worse(wave, tmp_path):
     """``init``: the start model's weights and scaler are taken (0 epochs = the start model exactly),
     the start model competes as epoch 0 of the best-epoch selection (the kept weights validate no

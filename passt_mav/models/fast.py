@@ -9,6 +9,13 @@ oneDNN; the benchmark prints the ratio. The compiled step is exact to fp32 round
 
 Compilation needs a C++ compiler and may fail on an unusual machine: any exception at
 the first call falls back to the eager function, once, with a one-line warning.
+
+Prediction (no gradients) compiles with inductor's ``freezing``: the weights become
+constants and oneDNN convolutions get pre-packed weights. Measured on the shipped
+cylinder KNODE, 1 thread, one snapshot (6 Euler sub-steps): batch 1 10.2 -> 6.3 ms,
+batch 30 219 -> 134 ms (1.6x), max deviation from eager 5e-7 (fp32 rounding);
+a first call per batch shape compiles for 3-5 s, so only long roll-out work (the
+campaign engine) turns it on (``KnodePredictor.fast_predict``).
 """
 
 from __future__ import annotations
@@ -19,12 +26,14 @@ from typing import Callable
 __all__ = ["compiled_or_eager"]
 
 
-def compiled_or_eager(eager: Callable, module=None, *, warn=None) -> Callable:
+def compiled_or_eager(eager: Callable, module=None, *, warn=None, options: dict | None = None) -> Callable:
     """A function with ``eager``'s signature that runs ``torch.compile(eager)`` when it works.
 
     ``module``: the ``nn.Module`` whose parameters ``eager`` closes over (kept for
     reference; inductor guards on it). ``warn(msg)``: where the fallback is reported
-    (default stderr).
+    (default stderr). ``options``: inductor options (e.g. ``{"freezing": True}`` for
+    inference: weights folded in as constants and convolution weights pre-packed for
+    oneDNN; only valid while the weights do not change and under ``torch.no_grad``).
     """
     import torch
 
@@ -33,7 +42,7 @@ def compiled_or_eager(eager: Callable, module=None, *, warn=None) -> Callable:
     def call(*args, **kw):
         if state["fn"] is None:
             try:
-                fn = torch.compile(eager, dynamic=False)
+                fn = torch.compile(eager, dynamic=False, options=options)
                 out = fn(*args, **kw)
                 state["fn"] = fn
                 return out
@@ -43,4 +52,5 @@ def compiled_or_eager(eager: Callable, module=None, *, warn=None) -> Callable:
         return state["fn"](*args, **kw)
 
     call.module = module
+    call.is_compiled = lambda: state["fn"] is not None and state["fn"] is not eager
     return call

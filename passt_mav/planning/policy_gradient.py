@@ -125,15 +125,28 @@ def _allowed(trav: np.ndarray, visited: np.ndarray, pos: np.ndarray, moves: np.n
     return allowed, np.stack([rr, cc], axis=-1)
 
 
-def rollout(weights: PolicyWeights, q, trav, start, budget: int, *, n: int, rng: np.random.Generator, greedy_first: bool = False, moves: np.ndarray = MOVES8, record: bool = False, temperature: float = 1.0):
+def rollout(weights: PolicyWeights, q, trav, start, budget: int, *, n: int, rng, greedy_first: bool = False, moves: np.ndarray = MOVES8, record: bool = False, temperature: float = 1.0):
     """Run ``n`` roll-outs of ``budget`` moves in parallel.
 
     q, trav: (R, C) or (B=n, R, C); start: (2,) or (n, 2). With ``greedy_first`` the
     first roll-out takes the argmax move every step. Returns ``paths (n, L+1, 2)``,
     ``returns (n,)`` and, with ``record``, ``(feats (L, n, M, F), allowed (L, n, M),
     actions (L, n), rewards (L, n))`` for training.
+
+    ``rng``: one generator for all ``n`` roll-outs, or a list of G generators for G
+    equal groups of ``n // G`` consecutive roll-outs (G independent planning requests
+    advanced together; group g draws its uniforms from ``rng[g]`` exactly as a call
+    with ``n // G`` roll-outs and that generator would, and ``greedy_first`` applies to
+    each group's first roll-out). Every row's arithmetic is independent of the others,
+    so a group's paths equal those of its own call (tested).
     """
     R, C = q.shape[-2:]
+    rngs = list(rng) if isinstance(rng, (list, tuple)) else [rng]
+    G = len(rngs)
+    if n % G:
+        raise PlannerError(f"{n} roll-outs do not split into {G} equal groups")
+    ng = n // G
+    firsts = np.arange(0, n, ng)
     L = int(budget)
     pos = np.broadcast_to(np.asarray(start, dtype=np.int64), (n, 2)).copy()
     visited = np.zeros((n, R, C), bool)
@@ -151,11 +164,11 @@ def rollout(weights: PolicyWeights, q, trav, start, budget: int, *, n: int, rng:
         s = s - s.max(axis=1, keepdims=True)
         p = np.exp(s)
         p /= p.sum(axis=1, keepdims=True)
-        u = rng.random((n, 1))
+        u = rngs[0].random((n, 1)) if G == 1 else np.concatenate([g.random((ng, 1)) for g in rngs])
         a = np.minimum((p.cumsum(axis=1) < u).sum(axis=1), len(moves) - 1)
         a = np.where(allowed[b, a], a, np.argmax(p, axis=1))  # guard against round-off at the top end
         if greedy_first:
-            a[0] = int(np.argmax(s[0]))
+            a[firsts] = np.argmax(s[firsts], axis=1)
         new = tgt[b, a]
         qv = q[new[:, 0], new[:, 1]] if q.ndim == 2 else q[b, new[:, 0], new[:, 1]]
         gain = np.where(visited[b, new[:, 0], new[:, 1]], 0.0, qv)
@@ -337,3 +350,37 @@ class PolicyGradientPlanner:
         rng = np.random.default_rng(seed)
         paths, rets = rollout(self._weights(), qn, trav, np.array(start), L, n=1 + int(self.n_rollouts), rng=rng, greedy_first=True, moves=moves, temperature=self.temperature)
         return paths[int(np.argmax(rets))]
+
+    def plan_many(self, rewards, starts, budget, seeds, masks=None) -> list[np.ndarray]:
+        """``[plan(rewards[i], starts[i], budget, seeds[i], masks[i]) for i ...]`` in one batched roll-out.
+
+        The G requests' roll-outs advance together (G x (1 + n_rollouts) rows per step),
+        which amortises numpy's per-call cost over the batch: the campaign engine plans
+        all trials of a leg at once. Same paths as G calls of :meth:`plan` (the rows do
+        not interact, each request draws from its own seeded generator; tested).
+        """
+        G = len(rewards)
+        if not (len(starts) == len(seeds) == G) or (masks is not None and len(masks) != G):
+            raise PlannerError("plan_many needs one start, seed (and mask) per reward map")
+        if G == 0:
+            return []
+        if self.moves not in (4, 8):
+            raise PlannerError(f"moves must be 4 or 8, got {self.moves!r}")
+        if int(self.n_rollouts) < 0:
+            raise PlannerError(f"n_rollouts must be >= 0, got {self.n_rollouts!r}")
+        moves = MOVES8 if self.moves == 8 else MOVES4
+        n = 1 + int(self.n_rollouts)
+        qs, travs, st = [], [], []
+        L = None
+        for i in range(G):
+            q, s0, L, trav = check_inputs(rewards[i], starts[i], budget, None if masks is None else masks[i])
+            m = q.max()
+            qs.append(q / m if m > 0 else q)
+            travs.append(trav)
+            st.append(s0)
+        Q = np.repeat(np.stack(qs), n, axis=0)
+        T = np.repeat(np.stack(travs), n, axis=0)
+        S0 = np.repeat(np.array(st, dtype=np.int64), n, axis=0)
+        rngs = [np.random.default_rng(sd) for sd in seeds]
+        paths, rets = rollout(self._weights(), Q, T, S0, L, n=G * n, rng=rngs, greedy_first=True, moves=moves, temperature=self.temperature)
+        return [paths[g * n + int(np.argmax(rets[g * n : (g + 1) * n]))] for g in range(G)]
