@@ -60,6 +60,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--engine", choices=ENGINES, default="serial", help="serial (default: one trial at a time) or lockstep (a path length's trials advance together, one batched predictor call per leg; ~1.3x faster). Same numbers for predictors whose batched and single predictions agree bit for bit (DMD, persistence); with the KNODE, batched convolutions round differently and paths can diverge (shipped ocean model, L=50, 2 trials: PASST 0.2445 lockstep vs 0.2550 serial)")
     p.add_argument("--batch", type=int, default=None, help="lockstep: trials per batch = unit of work for --workers/--scheduler (default: all trials of a path length)")
     p.add_argument("--gp-solver", choices=("cholesky", "sklearn"), default="sklearn", help="GP posterior with the fitted kernel: sklearn's regressor (default) or a direct Cholesky solve (faster; equal to sklearn to 1e-6 per reconstruction, which a long campaign can amplify into different paths)")
+    p.add_argument("--fast-predict", action="store_true", help="run a KNODE through its compiled prediction path (torch.compile with freezing: ~1.6x, fp32 rounding of the eager path, a few seconds of compiling per batch shape; what passt-mav paper uses)")
     p.add_argument("--boats", type=int, default=1, help="N > 1: the fleet comparison instead of the campaign: "
                    "PASST with 1..N boats of L moves each vs 1 boat of N*L moves per leg interval (the same "
                    "budget), L = the first of --path-lengths; writes fleet.json and fleet_rmse.png")
@@ -578,7 +579,7 @@ def run(args: argparse.Namespace) -> int:
         raise PlannerError("--boats must be >= 1")
     if args.boats > 1:
         return _run_fleet(args, field, predictor, lengths[0], out_dir)
-    summary = run_campaign(field, predictor, path_lengths=lengths, trials=args.trials, planner=args.planner, reward=args.reward, steps=args.steps, t0=args.t0, steps_per_leg=args.steps_per_leg, noise=args.noise, hyper=args.hyper, sampling=args.sampling, baseline_prior=args.baseline_prior, methods=methods, window=args.window, snapshot_step=args.snapshot_step, seed=args.seed, workers=args.workers, scheduler=args.scheduler, engine=args.engine, batch=args.batch, gp_solver=args.gp_solver)
+    summary = run_campaign(field, predictor, path_lengths=lengths, trials=args.trials, planner=args.planner, reward=args.reward, steps=args.steps, t0=args.t0, steps_per_leg=args.steps_per_leg, noise=args.noise, hyper=args.hyper, sampling=args.sampling, baseline_prior=args.baseline_prior, methods=methods, window=args.window, snapshot_step=args.snapshot_step, seed=args.seed, workers=args.workers, scheduler=args.scheduler, engine=args.engine, batch=args.batch, gp_solver=args.gp_solver, fast_predict=args.fast_predict)
     summary["config"].update(data=args.data, model=args.model, command="passt-mav evaluate " + " ".join(sys.argv[2:]) if sys.argv[1:2] == ["evaluate"] else None)
     files = write_figures(summary, out_dir)
     snaps = summary.pop("_snapshots")

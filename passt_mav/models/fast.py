@@ -20,6 +20,7 @@ campaign engine) turns it on (``KnodePredictor.fast_predict``).
 
 from __future__ import annotations
 
+import contextlib
 import sys
 from typing import Callable
 
@@ -38,18 +39,29 @@ def compiled_or_eager(eager: Callable, module=None, *, warn=None, options: dict 
     import torch
 
     state = {"fn": None}
+    # inductor reads its config when a graph is compiled, which happens inside a call (the
+    # first one, and again for a new input shape); torch.compile(options=...) did not
+    # switch freezing on here (measured: aten convolutions, no pre-packed oneDNN ones),
+    # so every call runs under the patched config instead
+    import torch._inductor.config as inductor_config
+
+    patch = (lambda: inductor_config.patch(options)) if options else contextlib.nullcontext
 
     def call(*args, **kw):
         if state["fn"] is None:
             try:
-                fn = torch.compile(eager, dynamic=False, options=options)
-                out = fn(*args, **kw)
+                fn = torch.compile(eager, dynamic=False)
+                with patch():
+                    out = fn(*args, **kw)
                 state["fn"] = fn
                 return out
             except Exception as exc:  # noqa: BLE001 - any compiler failure: run eager instead
                 (warn or (lambda m: print(m, file=sys.stderr)))(f"torch.compile unavailable ({type(exc).__name__}: {str(exc).splitlines()[0][:120]}); using the eager path")
                 state["fn"] = eager
-        return state["fn"](*args, **kw)
+        if state["fn"] is eager:
+            return eager(*args, **kw)
+        with patch():
+            return state["fn"](*args, **kw)
 
     call.module = module
     call.is_compiled = lambda: state["fn"] is not None and state["fn"] is not eager
