@@ -339,17 +339,7 @@ class PolicyGradientPlanner:
         return _CACHE[key]
 
     def plan(self, reward, start, budget, seed=0, mask=None) -> np.ndarray:
-        q, start, L, trav = check_inputs(reward, start, budget, mask)
-        if self.moves not in (4, 8):
-            raise PlannerError(f"moves must be 4 or 8, got {self.moves!r}")
-        if int(self.n_rollouts) < 0:
-            raise PlannerError(f"n_rollouts must be >= 0, got {self.n_rollouts!r}")
-        moves = MOVES8 if self.moves == 8 else MOVES4
-        m = q.max()
-        qn = q / m if m > 0 else q  # the policy was trained on maps scaled to [0, 1]
-        rng = np.random.default_rng(seed)
-        paths, rets = rollout(self._weights(), qn, trav, np.array(start), L, n=1 + int(self.n_rollouts), rng=rng, greedy_first=True, moves=moves, temperature=self.temperature)
-        return paths[int(np.argmax(rets))]
+        return self.plan_many([reward], [start], budget, [seed], None if mask is None else [mask])[0]
 
     def plan_many(self, rewards, starts, budget, seeds, masks=None) -> list[np.ndarray]:
         """``[plan(rewards[i], starts[i], budget, seeds[i], masks[i]) for i ...]`` in one batched roll-out.
@@ -364,20 +354,22 @@ class PolicyGradientPlanner:
             raise PlannerError("plan_many needs one start, seed (and mask) per reward map")
         if G == 0:
             return []
+        qs, travs, st = [], [], []
+        L = None
+        for i in range(G):
+            q, s0, L, trav = check_inputs(rewards[i], starts[i], budget, None if masks is None else masks[i])
+            if qs and q.shape != qs[0].shape:
+                raise PlannerError(f"plan_many: reward map {i} has shape {q.shape}, map 0 {qs[0].shape}; one grid per batch")
+            m = q.max()
+            qs.append(q / m if m > 0 else q)  # the policy was trained on maps scaled to [0, 1]
+            travs.append(trav)
+            st.append(s0)
         if self.moves not in (4, 8):
             raise PlannerError(f"moves must be 4 or 8, got {self.moves!r}")
         if int(self.n_rollouts) < 0:
             raise PlannerError(f"n_rollouts must be >= 0, got {self.n_rollouts!r}")
         moves = MOVES8 if self.moves == 8 else MOVES4
         n = 1 + int(self.n_rollouts)
-        qs, travs, st = [], [], []
-        L = None
-        for i in range(G):
-            q, s0, L, trav = check_inputs(rewards[i], starts[i], budget, None if masks is None else masks[i])
-            m = q.max()
-            qs.append(q / m if m > 0 else q)
-            travs.append(trav)
-            st.append(s0)
         Q = np.repeat(np.stack(qs), n, axis=0)
         T = np.repeat(np.stack(travs), n, axis=0)
         S0 = np.repeat(np.array(st, dtype=np.int64), n, axis=0)
