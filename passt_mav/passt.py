@@ -211,6 +211,7 @@ class PasstLoop:
 
     def __init__(self, predictor, grid, *, planner: str = "policy_gradient", planner_kw: dict | None = None, reward: str = "speed", path_length: int = 50, steps_per_leg: int = 10, prior: str = "forecast", gp_kw: dict | None = None, hyper: str = "every_leg", land=None, seed: int = 0):
         from passt_mav.planning import REWARDS, make_planner
+        from passt_mav.planning.rewards import REWARDS_USING_STD
         from passt_mav.reconstruction import GPReconstructor
 
         if reward not in REWARDS:
@@ -230,7 +231,10 @@ class PasstLoop:
         self.land = np.zeros(grid.shape, bool) if land is None else np.asarray(land, bool)
         self.seed = int(seed)
         self.gp = GPReconstructor(grid_xy=grid.centres_xy(), prior=prior, **(gp_kw or {}))
-        self.std: np.ndarray | None = None  # GP posterior std of the last reconstruction
+        # GP posterior std of the last reconstruction; computed only for a reward that
+        # uses it (the variance is most of a leg's GP time with the cholesky solver)
+        self.std: np.ndarray | None = None
+        self._needs_std = reward in REWARDS_USING_STD
         self.leg_index = 0
         self._cell = grid.cell_size_m
 
@@ -275,9 +279,15 @@ class PasstLoop:
     def _reward_map(self, fc, start, taken=None, avoid=None) -> tuple[np.ndarray, np.ndarray]:
         """(reward (R, C), traversable mask) of a leg from its forecast (see :meth:`plan_leg`)."""
         from passt_mav.planning import compute_reward
+        from passt_mav.planning.rewards import REWARDS_USING_STATE
 
         std = self.std if self.std is not None else np.ones((2,) + self.grid.shape, np.float32)
-        q = compute_reward(self.reward_name, fc[1], cell_size_m=self._cell, std=std)
+        if self.reward_name in REWARDS_USING_STATE:
+            # the change over the whole leg, from its initial state to the snapshot the
+            # leg's samples reconstruct
+            q = compute_reward(self.reward_name, fc[-1], cell_size_m=self._cell, std=std, state=fc[0])
+        else:
+            q = compute_reward(self.reward_name, fc[1], cell_size_m=self._cell, std=std)
         mask = ~self.land & np.isfinite(fc[1]).all(axis=0)
         if taken is not None:
             q = np.where(np.asarray(taken, bool), np.zeros_like(q), q)
@@ -289,7 +299,8 @@ class PasstLoop:
     def update(self, leg: LegPlan, samples: Samples) -> np.ndarray:
         """Reconstruct the state at the leg's end (``t_start + steps * dt``) from its samples.
 
-        Returns (2, R, C) float32 (NaN on land); ``self.std`` holds the GP std.
+        Returns (2, R, C) float32 (NaN on land); ``self.std`` holds the GP std when the
+        reward uses it (else it may be ``None``: the cholesky solver skips it).
         """
         from passt_mav.fields.field import FlowField
 
@@ -309,7 +320,7 @@ class PasstLoop:
                 self.gp.fit(xy, samples.uv, forecast_at_samples=f_at, samples_t=st)
         if getattr(self.gp, "n_inputs_", 2) == 2:
             st = None
-        mean, std = self.gp.reconstruct(xy, samples.uv, forecast=fc[-1], forecast_at_samples=f_at, mask=~self.land, samples_t=st, t=t_end)
+        mean, std = self.gp.reconstruct(xy, samples.uv, forecast=fc[-1], forecast_at_samples=f_at, mask=~self.land, samples_t=st, t=t_end, with_std=self._needs_std)
         leg.timings["gp"] = time.perf_counter() - t0
         self.std = std
         self.leg_index += 1

@@ -126,10 +126,11 @@ def test_protocol_counts():
 
     from passt_mav.commands.paper import _protocol, _trial_legs
 
-    a = argparse.Namespace(quick=False, trials=None, steps=None, path_lengths=None, scenarios="cylinder,oscillating,ocean", batch=None, workers=1, hyper="state", seed=0)
+    a = argparse.Namespace(quick=False, trials=None, steps=None, path_lengths=None, scenarios="cylinder,oscillating,ocean", batch=None, workers=1, hyper="state", gp_solver="cholesky", seed=0)
     p = _protocol(a)
     assert (p["trials"], p["steps"], p["path_lengths"]) == (30, 300, [25, 50, 75, 100, 150, 200])
     assert _trial_legs(p) == 3 * 6 * 30 * 4 * 30  # the paper's protocol: 64 800 loop legs
+    assert p["gp_solver"] == "cholesky"
     a.quick = True
     assert _trial_legs(_protocol(a)) == 3 * 1 * 2 * 4 * 3
 

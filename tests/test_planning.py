@@ -16,7 +16,7 @@ from passt_mav.planning import (
     top_l_bound,
     traversable,
 )
-from passt_mav.planning.grid import check_path
+from passt_mav.planning.grid import MOVES8, check_path
 from passt_mav.planning.policy_gradient import DEFAULT_CHECKPOINT, random_reward_map
 
 
@@ -136,6 +136,28 @@ class TestPolicyGradient(PlannerContract):
         with pytest.raises(PlannerError, match="one start"):
             pl.plan_many([maps[0][0]], starts, 5, [1, 2])
 
+    def test_rollout_features_are_the_reference_features(self):
+        """The roll-out keeps the uncollected reward up to date and builds the summed-area
+        table in place; its features equal :func:`features` recomputed from scratch bit for
+        bit (so the paths are the ones the reference arithmetic gives), on maps with land."""
+        from passt_mav.planning.policy_gradient import _features_eff, _integral, features
+
+        rng = np.random.default_rng(3)
+        maps = [random_reward_map(rng, 17, 23) for _ in range(4)]
+        q = np.stack([m[0] for m in maps])
+        trav = np.stack([m[1] for m in maps])
+        visited = rng.random(q.shape) < 0.3
+        pos = np.stack([np.argwhere(t)[rng.integers(t.sum())] for t in trav])
+        eff = np.broadcast_to(q * trav, visited.shape) * ~visited
+        buf: dict = {}
+        for step in range(3):  # the buffer is reused across steps
+            got = _features_eff(eff, pos, 0.5, MOVES8, buf)
+            np.testing.assert_array_equal(got, features(q, trav, visited, pos, 0.5))
+            np.testing.assert_array_equal(buf["S"], _integral(eff))
+            cell = np.argwhere(~visited[0])[step]
+            visited[0][tuple(cell)] = True
+            eff[0][tuple(cell)] = 0.0
+
     def test_four_moves(self):
         q = gaussian_map(12, 12)
         p = plan("policy_gradient", q, (6, 6), 20, moves=4)
@@ -209,7 +231,25 @@ def test_rewards_known_answers():
     assert ss.max() == pytest.approx(1.0) and ss[3, 4] == 0
     with pytest.raises(PlannerError, match="std"):
         compute_reward("std", pred)
-    assert set(REWARDS) == {"speed", "vorticity", "std", "speed_std"}
+    assert set(REWARDS) == {"speed", "vorticity", "std", "speed_std", "change"}
+
+
+def test_change_reward_known_answer():
+    """'change' = |prediction - state| normalised: a uniform flow plus a moving bump
+    rewards the bump's old and new places; land stays 0; it needs the state."""
+    R, C = 10, 12
+    state = np.zeros((2, R, C))
+    state[0] = 0.5
+    pred = state.copy()
+    state[0, 2, 3] += 0.3  # the bump leaves (2, 3) ...
+    pred[1, 6, 8] -= 0.4  # ... and something turns at (6, 8)
+    pred[:, 0, 0] = np.nan
+    q = compute_reward("change", pred, state=state)
+    assert q.dtype == np.float32 and q.shape == (R, C)
+    assert q[6, 8] == pytest.approx(1.0) and q[2, 3] == pytest.approx(0.75)
+    assert q[0, 0] == 0.0 and np.count_nonzero(q) == 2
+    with pytest.raises(PlannerError, match="state"):
+        compute_reward("change", pred)
 
 
 def test_upper_bound_definition():

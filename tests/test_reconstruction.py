@@ -159,3 +159,50 @@ def test_cholesky_solver_matches_sklearn(grid, prior, space_time):
     assert np.nanstd(m0) > 0.1  # a non-trivial posterior was compared
     with pytest.raises(ReconstructionError, match="solver"):
         GPReconstructor(solver="gpu", **kw).fit(xy, uv, fa).reconstruct(xy, uv, forecast=forecast, forecast_at_samples=fa)
+
+
+def test_cholesky_column_cache_is_exact_and_std_can_be_skipped(grid):
+    """The cached grid-to-sample covariance columns equal the kernel's own evaluation bit for
+    bit, leg after leg (repeated, new and duplicated positions, a second time offset), a refit
+    starts a new cache, and ``with_std=False`` gives the same mean without the std."""
+    rng = np.random.default_rng(9)
+    X, Y = grid.centres_xy()
+    forecast = analytic(X, Y) * 0.8
+    kw = dict(grid_xy=(X, Y), noise_std=NOISE, solver="cholesky")
+    cells = path_cells()
+    xy, uv = samples(grid, cells, rng)
+    fa = analytic(xy[:, 0], xy[:, 1]).T * 0.8
+    t = np.full(len(cells), 5.0)
+    gp = GPReconstructor(**kw).fit(xy, uv, fa, samples_t=np.linspace(0.0, 5.0, len(cells)))
+    assert gp.n_inputs_ == 3
+    kern = gp.kernels_[0]
+    grid_pts = np.column_stack([X.ravel(), Y.ravel(), np.zeros(X.size)])
+    legs = [cells[:40], cells[20:70], np.concatenate([cells[60:], cells[60:65]])]
+    for i, part in enumerate(legs):
+        pxy = np.column_stack([*grid.cell_to_xy(part[:, 0], part[:, 1]), np.full(len(part), -1.0 * (i % 2))])
+        got = gp._cross_cov(0, kern, pxy, grid_pts)
+        np.testing.assert_array_equal(got, kern(grid_pts, pxy))
+    n_cached = len(gp._col_cache[0][2])
+    # offset 0: cells[:40] and cells[60:] (the duplicates cached once); offset -1: cells[20:70]
+    assert n_cached == 40 + 30 + 50
+    # reconstruct through the cache twice (the second call all hits) == a fresh reconstructor
+    call = dict(forecast=forecast, forecast_at_samples=fa, samples_t=t, t=5.0)
+    m1, s1 = gp.reconstruct(xy, uv, **call)
+    m2, s2 = gp.reconstruct(xy, uv, **call)
+    fresh = GPReconstructor(**kw)
+    fresh.kernels_, fresh.cell_m_, fresh.n_inputs_ = gp.kernels_, gp.cell_m_, gp.n_inputs_
+    m0, s0 = fresh.reconstruct(xy, uv, **call)
+    for m, s in ((m1, s1), (m2, s2)):
+        np.testing.assert_allclose(m, m0, atol=1e-7, rtol=0)
+        np.testing.assert_allclose(s, s0, atol=1e-7, rtol=0)
+    m3, s3 = gp.reconstruct(xy, uv, with_std=False, **call)
+    assert s3 is None
+    np.testing.assert_allclose(m3, m0, atol=1e-7, rtol=0)
+    # a refit replaces the kernel object: the next call starts a new cache
+    gp.fit(xy, uv, fa, samples_t=np.linspace(0.0, 5.0, len(cells)))
+    gp.reconstruct(xy[:10], uv[:10], forecast=forecast, forecast_at_samples=fa[:10], samples_t=t[:10], t=5.0, with_std=False)
+    assert gp._col_cache[0][0] is gp.kernels_[0] and len(gp._col_cache[0][2]) == len({tuple(r) for r in cells[:10]})
+    # the sklearn solver always returns the std
+    sk = GPReconstructor(**{**kw, "solver": "sklearn"})
+    sk.kernels_, sk.cell_m_, sk.n_inputs_ = fresh.kernels_, fresh.cell_m_, fresh.n_inputs_
+    assert sk.reconstruct(xy, uv, with_std=False, **call)[1] is not None

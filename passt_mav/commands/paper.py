@@ -13,7 +13,9 @@ every_leg`` refits every leg (slower), ``--hyper state`` fits every GP on the in
 :data:`passt_mav.commands.evaluate.CAMPAIGN_HYPER`).
 
 The campaign runs on the lockstep engine (:func:`passt_mav.commands.evaluate.run_campaign`):
-a path length's trials advance together, one batched model call per leg. With
+a path length's trials advance together, one batched model call per leg (the KNODE's
+compiled fast path), and every GP conditions with a direct Cholesky solve of the fixed
+kernel (``--gp-solver cholesky``; ``sklearn`` is the older, ~10x slower path). With
 ``--scheduler ADDRESS`` the batches run on a Dask distributed cluster.
 
 Written under ``--out``: ``paper.html`` (self-contained: figures as base64 PNGs, the
@@ -52,6 +54,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--path-lengths", default=None, help="comma-separated moves per leg (default 25,50,75,100,150,200; --quick 50)")
     p.add_argument("--scenarios", default=",".join(s[0] for s in SCENARIOS), help="subset of cylinder,oscillating,ocean")
     p.add_argument("--hyper", default="auto", help="GP hyper-parameters: auto (default: each GP fitted once on what it models - PASST's residual GP on its first leg's residuals, the GP-only baselines on the initial state) | state | first_leg | every_leg")
+    p.add_argument("--gp-solver", choices=("cholesky", "sklearn"), default="cholesky", help="GP posterior with the fixed kernel: a direct Cholesky solve with cached covariance columns (default; the mean only, unless the reward needs the std) or sklearn's regressor per leg (~10x slower per leg; equal to 1e-6 per reconstruction)")
     p.add_argument("--scheduler", default=None, help="address of a Dask distributed scheduler: the campaign's batches run there")
     p.add_argument("--workers", type=int, default=1, help="local worker processes (joblib) when no --scheduler (default 1)")
     p.add_argument("--batch", type=int, default=None, help="trials per lockstep batch = unit of work on a cluster (default: all trials of a path length)")
@@ -78,7 +81,7 @@ def _protocol(args) -> dict:
         raise PlannerError("--batch must be >= 1")
     if args.workers < 1:
         raise PlannerError("--workers must be >= 1")
-    return dict(trials=trials, steps=steps, path_lengths=lengths, scenarios=[known[n] for n in names], steps_per_leg=10, noise=0.02, t0=0, hyper=args.hyper, seed=args.seed, snapshot_step=250, window=50)
+    return dict(trials=trials, steps=steps, path_lengths=lengths, scenarios=[known[n] for n in names], steps_per_leg=10, noise=0.02, t0=0, hyper=args.hyper, gp_solver=args.gp_solver, seed=args.seed, snapshot_step=250, window=50)
 
 
 def _trial_legs(proto: dict) -> int:
@@ -90,7 +93,7 @@ def _trial_legs(proto: dict) -> int:
 def _campaign(field, predictor, proto: dict, path_lengths, trials: int, steps: int, *, scheduler=None, workers: int = 1, batch=None, progress=True) -> dict:
     from passt_mav.commands.evaluate import run_campaign
 
-    return run_campaign(field, predictor, path_lengths=tuple(path_lengths), trials=trials, steps=steps, t0=proto["t0"], steps_per_leg=proto["steps_per_leg"], noise=proto["noise"], hyper=proto["hyper"], seed=proto["seed"], snapshot_step=proto["snapshot_step"], window=proto["window"], engine="lockstep", batch=batch, scheduler=scheduler, workers=workers, progress=progress, fast_predict=True)
+    return run_campaign(field, predictor, path_lengths=tuple(path_lengths), trials=trials, steps=steps, t0=proto["t0"], steps_per_leg=proto["steps_per_leg"], noise=proto["noise"], hyper=proto["hyper"], seed=proto["seed"], snapshot_step=proto["snapshot_step"], window=proto["window"], engine="lockstep", batch=batch, scheduler=scheduler, workers=workers, progress=progress, fast_predict=True, gp_solver=proto.get("gp_solver", "cholesky"))
 
 
 def _load(spec_field: str, spec_model: str, cache: dict):
@@ -286,7 +289,7 @@ def write_page(res: dict, out_dir) -> "Path":  # noqa: F821 - pathlib imported i
     page.add("<h1>PASST: the paper's offline evaluation</h1>")
     page.add(f'<p class="status">{"Quick version (CI): few trials and steps - not the paper&#39;s numbers. " if proto.get("quick") else ""}'
              f'{len(proto["scenarios"])} scenario(s) x L = {html.escape(str(proto["path_lengths"]))} x {proto["trials"]} trials x {proto["steps"]} steps; '
-             f'GP hyper-parameters: {html.escape(proto["hyper"])}; {res.get("trial_legs", 0)} trial-legs in {res.get("wall_s", 0):.0f} s.</p>')
+             f'GP hyper-parameters: {html.escape(proto["hyper"])}, solver {html.escape(str(proto.get("gp_solver", "sklearn")))}; {res.get("trial_legs", 0)} trial-legs in {res.get("wall_s", 0):.0f} s.</p>')
     page.h2("The paper's claims beside our numbers")
     rows = "".join(
         f"<tr><td>{html.escape(c['claim'])}</td><td>{html.escape(str(c['paper']))}</td><td>{html.escape(c['ours'])}</td>"

@@ -88,10 +88,31 @@ def features(q: np.ndarray, trav: np.ndarray, visited: np.ndarray, pos: np.ndarr
     (B, R, C) each; visited: (B, R, C) bool; pos: (B, 2) int cells; frac_left: budget
     fraction left in [0, 1]. Returns (B, n_moves, N_FEATURES) float64.
     """
-    B = visited.shape[0]
-    R, C = visited.shape[1:]
     eff = np.broadcast_to(q * trav, visited.shape) * ~visited
-    S = _integral(eff)
+    return _features_eff(eff, pos, frac_left, moves)
+
+
+def _features_eff(eff: np.ndarray, pos: np.ndarray, frac_left: float, moves: np.ndarray, buf: dict | None = None) -> np.ndarray:
+    """:func:`features` from the uncollected reward ``eff`` (B, R, C) = q * trav * ~visited.
+
+    ``buf``: a dict the caller keeps across the steps of one roll-out; the summed-area
+    table and its scratch array are allocated once in it (same numbers as :func:`_integral`).
+    """
+    B, R, C = eff.shape
+    if buf is None:
+        S = _integral(eff)
+    else:
+        if "S" not in buf:
+            buf["S"] = np.zeros((B, R + 1, C + 1))
+        S = buf["S"]
+        # eff.cumsum(1).cumsum(2) written into S one row, then one column, at a time:
+        # the same additions in the same order (bit-identical, tested against
+        # _integral), but ~R + C vector adds instead of numpy's element-by-element
+        # cumsum loops (measured 0.5 vs 1.4 ms for 195 x 30 x 30, most of a roll-out step)
+        for i in range(R):
+            np.add(S[:, i, 1:], eff[:, i], out=S[:, i + 1, 1:])
+        for j in range(1, C):
+            np.add(S[:, 1:, j], S[:, 1:, j + 1], out=S[:, 1:, j + 1])
     K = len(SCALES)
     D = np.array([s[0] for s in SCALES])
     H = np.array([s[1] for s in SCALES])
@@ -156,8 +177,12 @@ def rollout(weights: PolicyWeights, q, trav, start, budget: int, *, n: int, rng,
     paths[:, 0] = pos
     rets = np.zeros(n)
     rec = ([], [], [], []) if record else None
+    # the uncollected reward, kept up to date cell by cell (a move zeroes one cell per
+    # row) instead of being rebuilt from q, trav and visited every step: same values
+    eff = np.broadcast_to(q * trav, visited.shape) * ~visited
+    buf: dict = {}
     for t in range(L):
-        f = features(q, trav, visited, pos, 1.0 - t / L, moves)
+        f = _features_eff(eff, pos, 1.0 - t / L, moves, buf)
         allowed, tgt = _allowed(trav, visited, pos, moves)
         s = weights.scores(f) / max(temperature, 1e-6)
         s = np.where(allowed, s, -np.inf)
@@ -179,6 +204,7 @@ def rollout(weights: PolicyWeights, q, trav, start, budget: int, *, n: int, rng,
             rec[2].append(a)
             rec[3].append(gain)
         visited[b, new[:, 0], new[:, 1]] = True
+        eff[b, new[:, 0], new[:, 1]] = 0.0
         pos = new
         paths[:, t + 1] = pos
     if record:

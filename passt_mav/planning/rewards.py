@@ -18,7 +18,7 @@ import numpy as np
 
 from passt_mav.errors import PlannerError
 
-__all__ = ["REWARDS", "compute_reward", "traversable", "speed", "vorticity", "std", "speed_std"]
+__all__ = ["REWARDS", "REWARDS_USING_STATE", "REWARDS_USING_STD", "compute_reward", "traversable", "speed", "vorticity", "std", "speed_std", "change"]
 
 
 def _check(prediction) -> np.ndarray:
@@ -82,19 +82,49 @@ def speed_std(prediction, *, cell_size_m=None, std=None) -> np.ndarray:
     return _normalise(s, traversable(p))
 
 
+def change(prediction, *, cell_size_m=None, std=None, state=None) -> np.ndarray:
+    """Predicted change ``|prediction - state|`` (vector magnitude), normalised.
+
+    ``state``: (2, rows, cols), the field the prediction starts from (the loop passes
+    the leg's initial state and its forecast at the leg's end). Why it is a reward: a
+    model whose structures drift in phase or position errs by about
+    ``|du/dt| x (its timing error)``, so the cells predicted to change most are where
+    the forecast - and the reconstruction's prior - is least reliable.
+    """
+    p = _check(prediction)
+    if state is None:
+        raise PlannerError("the 'change' reward needs the state the prediction starts from (state=...)")
+    s0 = _check(state)
+    if s0.shape != p.shape:
+        raise PlannerError(f"state shape {s0.shape} does not match the prediction {p.shape}")
+    d = p - s0
+    return _normalise(np.hypot(d[0], d[1]), traversable(p) & traversable(s0))
+
+
+#: rewards that read the GP posterior std (the loop computes it only for these)
+REWARDS_USING_STD = frozenset({"std", "speed_std"})
+#: rewards that compare the prediction with the state it starts from (``state=``)
+REWARDS_USING_STATE = frozenset({"change"})
+
 #: name -> reward function
 REWARDS: dict[str, Callable[..., np.ndarray]] = {
     "speed": speed,
     "vorticity": vorticity,
     "std": std,
     "speed_std": speed_std,
+    "change": change,
 }
 
 
-def compute_reward(name: str, prediction, *, cell_size_m=None, std=None) -> np.ndarray:
-    """The reward map ``(rows, cols)`` float32 in [0, 1] named ``name`` (see :data:`REWARDS`)."""
+def compute_reward(name: str, prediction, *, cell_size_m=None, std=None, state=None) -> np.ndarray:
+    """The reward map ``(rows, cols)`` float32 in [0, 1] named ``name`` (see :data:`REWARDS`).
+
+    ``state``: the field ``prediction`` starts from, for :data:`REWARDS_USING_STATE`.
+    """
     try:
         fn = REWARDS[name]
     except KeyError:
         raise PlannerError(f"unknown reward {name!r}; choose one of {', '.join(REWARDS)}") from None
+    if name in REWARDS_USING_STATE:
+        return fn(prediction, cell_size_m=cell_size_m, std=std, state=state)
     return fn(prediction, cell_size_m=cell_size_m, std=std)

@@ -178,13 +178,15 @@ class GPReconstructor:
                 raise ReconstructionError(f"GP fit failed ({str(exc).splitlines()[0]}); increase the noise level: alpha (now {self.alpha:g}) or noise_std") from None
             raise
 
-    def _posterior_fixed(self, kernel, xy, y, grid_pts) -> tuple[np.ndarray, np.ndarray]:
+    def _posterior_fixed(self, kernel, xy, y, grid_pts, with_std: bool = True, comp: int = 0) -> tuple[np.ndarray, np.ndarray | None]:
         """Posterior mean and std at ``grid_pts`` for a fixed kernel, as sklearn computes them.
 
         Same algebra as ``GaussianProcessRegressor(optimizer=None, normalize_y=False)``:
         ``K = k(X) + alpha I`` (k's WhiteKernel adds the noise on the diagonal),
         ``L = chol(K)``, mean ``k(X*, X) K^-1 y``, variance ``k.diag(X*) - |L^-1 k(X, X*)|^2``
-        clipped at 0 (sklearn clips negative variances the same way).
+        clipped at 0 (sklearn clips negative variances the same way). ``k(X*, X)``
+        comes from the column cache of component ``comp`` (:meth:`_cross_cov`, the
+        same numbers). ``with_std=False`` skips the variance (returns ``(mean, None)``).
         """
         from scipy.linalg import cho_solve, cholesky, solve_triangular
 
@@ -195,11 +197,48 @@ class GPReconstructor:
         except np.linalg.LinAlgError as exc:
             raise ReconstructionError(f"GP fit failed (Cholesky: {exc}); increase the noise level: alpha (now {self.alpha:g}) or noise_std") from None
         a = cho_solve((Lc, True), y, check_finite=False)
-        Ks = kernel(grid_pts, xy)
+        Ks = self._cross_cov(comp, kernel, xy, grid_pts)
         mean = Ks @ a
+        if not with_std:
+            return mean, None
         V = solve_triangular(Lc, Ks.T, lower=True, check_finite=False)
         var = kernel.diag(grid_pts) - np.einsum("ij,ij->j", V, V)
         return mean, np.sqrt(np.maximum(var, 0.0))
+
+    #: at most this many cached grid-to-sample covariance columns per component
+    #: (30 x 30 grid: 900 columns = 6.5 MB)
+    max_cached_columns = 2048
+
+    def _cross_cov(self, comp: int, kernel, xy: np.ndarray, grid_pts: np.ndarray) -> np.ndarray:
+        """``kernel(grid_pts, xy)`` ((n_cells, n) float64), its columns cached by sample position.
+
+        A leg's samples sit where earlier legs' did (cell centres along a path, times
+        at the same offset from the reconstructed time), so the same columns are
+        evaluated leg after leg; evaluating them is most of a leg's GP time (5 ms of
+        the 18 ms of a 201-sample, 900-cell space-time reconstruction; numpy's float64
+        ``exp`` is not vectorised here). Written by hand because sklearn has no
+        such cache. A column is computed once by the kernel itself, from the very
+        same inputs, so the result is bit-identical to ``kernel(grid_pts, xy)``. The
+        cache belongs to one kernel object and one set of grid points; a refit or
+        another grid starts a new one.
+        """
+        state = getattr(self, "_col_cache", None)
+        if state is None or len(state) != 2:
+            state = self._col_cache = [None, None]
+        entry = state[comp]
+        if entry is None or entry[0] is not kernel or entry[1] is not grid_pts and not np.array_equal(entry[1], grid_pts):
+            entry = state[comp] = (kernel, grid_pts, {})
+        cols = entry[2]
+        keys = [row.tobytes() for row in xy]
+        missing = list(dict.fromkeys(k for k in keys if k not in cols))
+        if missing:
+            if len(cols) + len(missing) > self.max_cached_columns:
+                return kernel(grid_pts, xy)
+            new = np.frombuffer(b"".join(missing), dtype=np.float64).reshape(len(missing), xy.shape[1])
+            block = kernel(grid_pts, new)
+            for j, k in enumerate(missing):
+                cols[k] = block[:, j].copy()
+        return np.stack([cols[k] for k in keys], axis=1)
 
     # -- public -----------------------------------------------------------------
     def _inputs(self, xy, samples_t, n_ok_mask=None):
@@ -296,7 +335,7 @@ class GPReconstructor:
         self.n_inputs_ = 2
         return self
 
-    def reconstruct(self, samples_xy, samples_uv, forecast=None, *, forecast_at_samples=None, mask=None, samples_t=None, t=None) -> tuple[np.ndarray, np.ndarray]:
+    def reconstruct(self, samples_xy, samples_uv, forecast=None, *, forecast_at_samples=None, mask=None, samples_t=None, t=None, with_std: bool = True) -> tuple[np.ndarray, np.ndarray | None]:
         """Posterior mean and std on the grid, with the fitted kernels held fixed.
 
         forecast: (2, rows, cols) prior mean on the grid (required for
@@ -306,7 +345,10 @@ class GPReconstructor:
         True = water (optional). Fits the hyper-parameters first if :meth:`fit`
         was never called. ``samples_t`` (n,) and ``t`` (the snapshot's time) switch on
         the space-time kernel (see ``space_time``). Returns ``(mean (2, R, C)
-        float32, std (2, R, C) float32)``.
+        float32, std (2, R, C) float32)``; with ``with_std=False`` (cholesky solver
+        only) the std is not computed and ``None`` is returned in its place (the
+        variance's triangular solve against every grid cell is most of the rest of
+        a leg's GP time, and only a std-based reward reads it).
         """
         X, Y = self._grid()
         land = np.zeros(X.shape, bool)
@@ -334,14 +376,21 @@ class GPReconstructor:
         xy, target = self._check(samples_xy, samples_uv, forecast_at_samples, samples_t if use_t else None)
         offset = np.zeros(2) if self.prior == "forecast" else target.mean(axis=0)  # constant prior mean
         target = target - offset
-        grid_pts = np.column_stack([X.ravel(), Y.ravel()] + ([np.full(X.size, float(t))] if use_t else []))
+        if use_t:
+            # time measured from the reconstructed snapshot (the kernel is stationary):
+            # samples at the same offset from it then share cached covariance columns
+            xy = np.column_stack([xy[:, :2], xy[:, 2] - float(t)])
+            grid_pts = self._grid_pts(X, Y, True)
+        else:
+            grid_pts = self._grid_pts(X, Y, False)
         mean = np.empty((2,) + X.shape)
-        std = np.empty((2,) + X.shape)
         if self.solver not in _SOLVERS:
             raise ReconstructionError(f"unknown GP solver {self.solver!r}; choose one of {', '.join(_SOLVERS)}")
+        with_std = bool(with_std) or self.solver != "cholesky"
+        std = np.empty((2,) + X.shape) if with_std else None
         for k in range(2):
             if self.solver == "cholesky":
-                m, s = self._posterior_fixed(self.kernels_[k], xy, target[:, k], grid_pts)
+                m, s = self._posterior_fixed(self.kernels_[k], xy, target[:, k], grid_pts, with_std=with_std, comp=k)
             else:
                 gp = self._fit_gp(self.kernels_[k], xy, target[:, k], optimize=False)
                 from threadpoolctl import threadpool_limits
@@ -349,9 +398,22 @@ class GPReconstructor:
                 with threadpool_limits(1):
                     m, s = gp.predict(grid_pts, return_std=True)
             mean[k] = m.reshape(X.shape) + offset[k]
-            std[k] = s.reshape(X.shape)
+            if with_std:
+                std[k] = s.reshape(X.shape)
         if self.prior == "forecast":
             mean = mean + fc
         mean[:, land] = np.nan
+        if not with_std:
+            return mean.astype(np.float32), None
         std[:, land] = np.nan
         return mean.astype(np.float32), std.astype(np.float32)
+
+    def _grid_pts(self, X: np.ndarray, Y: np.ndarray, with_t: bool) -> np.ndarray:
+        """(n_cells, 2 or 3) prediction inputs (time 0 = the reconstructed snapshot), kept
+        as one array per grid so the column cache can tell it is the same."""
+        key = (X.tobytes(), Y.tobytes(), with_t)
+        got = getattr(self, "_grid_pts_cache", None)
+        if got is None or got[0] != key:
+            pts = np.column_stack([X.ravel(), Y.ravel()] + ([np.zeros(X.size)] if with_t else []))
+            got = self._grid_pts_cache = (key, pts)
+        return got[1]
