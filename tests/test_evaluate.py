@@ -162,3 +162,33 @@ def test_auto_gp_schedule_fits_each_gp_on_what_it_models():
     assert _method_kw(dict(cfg, hyper="every_leg"), "greedy_gp", object())[1]["hyper"] == "every_leg"
     with pytest.raises(PlannerError, match="hyper-parameter schedule"):
         run_campaign(SimpleNamespace(n_times=10), None, hyper="nightly", methods=("lawnmower_gp",), progress=False)
+
+
+@pytest.mark.skipif(not __import__("sys").platform.startswith("linux"), reason="glibc's mallopt: Linux only")
+def test_campaign_tasks_reuse_the_heap_under_dask_malloc_settings():
+    """Dask starts workers with MALLOC_TRIM_THRESHOLD_=65536, which turns every 1 MiB array into
+    a fresh mmap (a page fault per 4 KiB page, every time); inside a campaign task the heap is
+    reused (almost no faults), and afterwards the environment's behaviour is back."""
+    import os
+    import subprocess
+    import sys
+
+    code = (
+        "import resource, numpy as np\n"
+        "from passt_mav.commands.evaluate import _heap_reuse\n"
+        "def faults():\n"
+        "    f0 = resource.getrusage(resource.RUSAGE_SELF).ru_minflt\n"
+        "    for _ in range(100):\n"
+        "        a = np.ones(1 << 17); del a\n"
+        "    return resource.getrusage(resource.RUSAGE_SELF).ru_minflt - f0\n"
+        "before = faults()\n"
+        "with _heap_reuse():\n"
+        "    inside = faults()\n"
+        "print(before, inside, faults())\n"
+    )
+    env = dict(os.environ, MALLOC_TRIM_THRESHOLD_="65536")
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True).stdout.split()
+    before, inside, after = map(int, out)
+    assert before > 100 * 200  # ~256 faults per 1 MiB array
+    assert inside < before / 20
+    assert after > 100 * 200

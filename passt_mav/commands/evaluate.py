@@ -57,7 +57,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seed", type=int, default=0, help="base seed (trial i uses seed + i)")
     p.add_argument("--workers", type=int, default=1, help="local worker processes (joblib; default 1)")
     p.add_argument("--scheduler", default=None, help="address of an existing Dask distributed scheduler (runs trials there)")
-    p.add_argument("--engine", choices=ENGINES, default="serial", help="serial (default: one trial at a time) or lockstep (a path length's trials advance together, one batched predictor call per leg; ~1.3x faster). Same numbers for predictors whose batched and single predictions agree bit for bit (DMD, persistence); with the KNODE, batched convolutions round differently and paths can diverge (shipped ocean model, L=50, 2 trials: PASST 0.2445 lockstep vs 0.2550 serial)")
+    p.add_argument("--engine", choices=ENGINES, default="serial", help="serial (default: one trial at a time) or lockstep (a path length's trials advance together, one batched predictor call per leg and one batched policy-gradient planning call; 2.4x the serial engine's trial-legs/s with the same GP options, benchmarks/bench_passt.py, 15 trials). Same numbers for predictors whose batched and single predictions agree bit for bit (DMD, persistence); with the KNODE, batched convolutions round differently and paths can diverge (shipped ocean model, L=50, 2 trials: PASST 0.2445 lockstep vs 0.2550 serial)")
     p.add_argument("--batch", type=int, default=None, help="lockstep: trials per batch = unit of work for --workers/--scheduler (default: all trials of a path length)")
     p.add_argument("--gp-solver", choices=("cholesky", "sklearn"), default="sklearn", help="GP posterior with the fitted kernel: sklearn's regressor (default) or a direct Cholesky solve (faster; equal to sklearn to 1e-6 per reconstruction, which a long campaign can amplify into different paths)")
     p.add_argument("--fast-predict", action="store_true", help="run a KNODE through its compiled prediction path (torch.compile with freezing: ~1.6x, fp32 rounding of the eager path, a few seconds of compiling per batch shape; what passt-mav paper uses)")
@@ -113,25 +113,35 @@ def _task(field, predictor, cfg: dict, L: int, trials) -> list[dict]:
 
 @contextlib.contextmanager
 def _heap_reuse():
-    """Keep glibc's allocator reusing freed heap memory inside the block (no-op elsewhere).
+    """Keep glibc's allocator reusing freed heap memory inside the block, where the
+    environment froze its thresholds (a no-op elsewhere).
 
     A campaign allocates and frees arrays of 0.1-2 MB thousands of times per leg (roll-out
     tables, GP cross-covariances, model activations). Dask's nanny starts workers with
     ``MALLOC_TRIM_THRESHOLD_=65536``, which also freezes glibc's mmap threshold at 128 KiB:
     every such array is then a fresh mmap, page-faulted in and unmapped again. Measured on
-    one lockstep batch (cylinder, L=200, 15 trials): that environment made the model's
-    predictions 25 % and the GP 80 % slower, with 7x the system time. Here the mmap
-    threshold is raised to 64 MiB and the trim threshold to 256 MiB for the task; afterwards
-    both go back to glibc's defaults (the trim threshold to the environment's value if set)
-    and ``malloc_trim`` returns the freed memory, as Dask wants. glibc's ``mallopt`` is used
-    through ctypes because no library exposes it.
+    one lockstep batch (cylinder, L=200, 15 trials, PASST and random+GP): that environment
+    made the model's predictions 25 % and the GP 80 % slower (7x the system time); in a
+    Dask worker the batch took 61 s without this and 49 s with it, as in a plain process.
+    Without such a variable glibc's dynamic threshold already reuses the heap, so nothing
+    is changed. Here the mmap threshold goes to 64 MiB and the trim threshold to 256 MiB
+    for the task; afterwards both go back to what the environment asked for (mmap 128 KiB
+    unless ``MALLOC_MMAP_THRESHOLD_`` says otherwise) and ``malloc_trim`` returns the freed
+    memory, as Dask wants. glibc's ``mallopt`` is called through ctypes: no library
+    exposes it.
     """
     import ctypes
     import ctypes.util
     import os
 
+    def env_int(name: str, default: int) -> int:
+        try:
+            return int(os.environ.get(name, default))
+        except ValueError:
+            return default
+
     libc = None
-    if sys.platform.startswith("linux"):
+    if sys.platform.startswith("linux") and ("MALLOC_TRIM_THRESHOLD_" in os.environ or "MALLOC_MMAP_THRESHOLD_" in os.environ):
         try:
             libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
             libc.mallopt  # noqa: B018 - glibc only (musl has no mallopt)
@@ -145,12 +155,8 @@ def _heap_reuse():
         yield
     finally:
         if libc is not None:
-            libc.mallopt(M_MMAP_THRESHOLD, 128 << 10)
-            try:
-                trim = int(os.environ.get("MALLOC_TRIM_THRESHOLD_", 128 << 10))
-            except ValueError:
-                trim = 128 << 10
-            libc.mallopt(M_TRIM_THRESHOLD, trim)
+            libc.mallopt(M_MMAP_THRESHOLD, env_int("MALLOC_MMAP_THRESHOLD_", 128 << 10))
+            libc.mallopt(M_TRIM_THRESHOLD, env_int("MALLOC_TRIM_THRESHOLD_", 128 << 10))
             libc.malloc_trim(0)
 
 
