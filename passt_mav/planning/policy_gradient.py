@@ -96,7 +96,7 @@ def _features_eff(eff: np.ndarray, pos: np.ndarray, frac_left: float, moves: np.
     """:func:`features` from the uncollected reward ``eff`` (B, R, C) = q * trav * ~visited.
 
     ``buf``: a dict the caller keeps across the steps of one roll-out; the summed-area
-    table and its scratch array are allocated once in it (same numbers as :func:`_integral`).
+    table is allocated once in it and rebuilt in place (same numbers as :func:`_integral`).
     """
     B, R, C = eff.shape
     if buf is None:
