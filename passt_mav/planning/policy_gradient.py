@@ -88,8 +88,12 @@ def features(q: np.ndarray, trav: np.ndarray, visited: np.ndarray, pos: np.ndarr
     (B, R, C) each; visited: (B, R, C) bool; pos: (B, 2) int cells; frac_left: budget
     fraction left in [0, 1]. Returns (B, n_moves, N_FEATURES) float64.
     """
-    eff = np.broadcast_to(q * trav, visited.shape) * ~visited
-    return _features_eff(eff, pos, frac_left, moves)
+    return _features_eff(_uncollected(q, trav, visited), pos, frac_left, moves)
+
+
+def _uncollected(q: np.ndarray, trav: np.ndarray, visited: np.ndarray) -> np.ndarray:
+    """(B, R, C) float64 reward still to collect: ``q`` on traversable, unvisited cells, else 0."""
+    return np.broadcast_to(q * trav, visited.shape) * ~visited
 
 
 def _features_eff(eff: np.ndarray, pos: np.ndarray, frac_left: float, moves: np.ndarray, buf: dict | None = None) -> np.ndarray:
@@ -179,7 +183,7 @@ def rollout(weights: PolicyWeights, q, trav, start, budget: int, *, n: int, rng,
     rec = ([], [], [], []) if record else None
     # the uncollected reward, kept up to date cell by cell (a move zeroes one cell per
     # row) instead of being rebuilt from q, trav and visited every step: same values
-    eff = np.broadcast_to(q * trav, visited.shape) * ~visited
+    eff = _uncollected(q, trav, visited)
     buf: dict = {}
     for t in range(L):
         f = _features_eff(eff, pos, 1.0 - t / L, moves, buf)

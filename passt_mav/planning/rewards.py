@@ -1,6 +1,6 @@
 """Reward maps: what a leg of the PASST loop tries to sample.
 
-Every reward is a function ``f(prediction, *, cell_size_m=(dy, dx), std=None)``
+Every reward is a function ``f(prediction, *, cell_size_m=(dy, dx), std=None, state=None)``
 returning a ``(rows, cols)`` float32 array in ``[0, 1]``. ``prediction`` is the
 model's one-step-ahead field, ``(2, rows, cols)`` (u east, v north; row 0 south).
 Cells where the prediction is NaN (land / missing) get reward 0; they are also
@@ -50,13 +50,13 @@ def _std_mag(std, shape) -> np.ndarray:
     return s
 
 
-def speed(prediction, *, cell_size_m=None, std=None) -> np.ndarray:
+def speed(prediction, *, cell_size_m=None, std=None, state=None) -> np.ndarray:
     """Predicted speed magnitude ``|u|`` normalised by its maximum (default reward)."""
     p = _check(prediction)
     return _normalise(np.hypot(p[0], p[1]), traversable(p))
 
 
-def vorticity(prediction, *, cell_size_m=None, std=None) -> np.ndarray:
+def vorticity(prediction, *, cell_size_m=None, std=None, state=None) -> np.ndarray:
     """``|dv/dx - du/dy|`` by central differences (one-sided at edges) in metres.
 
     ``cell_size_m`` = (north-south, east-west) spacing in metres (default 1, 1).
@@ -69,13 +69,13 @@ def vorticity(prediction, *, cell_size_m=None, std=None) -> np.ndarray:
     return _normalise(dv_dx - du_dy, traversable(p))
 
 
-def std(prediction, *, cell_size_m=None, std=None) -> np.ndarray:
+def std(prediction, *, cell_size_m=None, std=None, state=None) -> np.ndarray:
     """GP posterior standard deviation ``hypot(std_u, std_v)``, normalised."""
     p = _check(prediction)
     return _normalise(_std_mag(std, p.shape[1:]), traversable(p))
 
 
-def speed_std(prediction, *, cell_size_m=None, std=None) -> np.ndarray:
+def speed_std(prediction, *, cell_size_m=None, std=None, state=None) -> np.ndarray:
     """Product of the normalised speed and normalised GP std (fast AND uncertain)."""
     p = _check(prediction)
     s = speed(p).astype(np.float64) * _std_mag(std, p.shape[1:])
@@ -129,6 +129,4 @@ def compute_reward(name: str, prediction, *, cell_size_m=None, std=None, state=N
         fn = REWARDS[name]
     except KeyError:
         raise PlannerError(f"unknown reward {name!r}; choose one of {', '.join(REWARDS)}") from None
-    if name in REWARDS_USING_STATE:
-        return fn(prediction, cell_size_m=cell_size_m, std=std, state=state)
-    return fn(prediction, cell_size_m=cell_size_m, std=std)
+    return fn(prediction, cell_size_m=cell_size_m, std=std, state=state)

@@ -223,10 +223,10 @@ class GPReconstructor:
         another grid starts a new one.
         """
         state = getattr(self, "_col_cache", None)
-        if state is None or len(state) != 2:
+        if state is None:
             state = self._col_cache = [None, None]
         entry = state[comp]
-        if entry is None or entry[0] is not kernel or entry[1] is not grid_pts and not np.array_equal(entry[1], grid_pts):
+        if entry is None or entry[0] is not kernel or not np.array_equal(entry[1], grid_pts):
             entry = state[comp] = (kernel, grid_pts, {})
         cols = entry[2]
         keys = [row.tobytes() for row in xy]
@@ -380,9 +380,7 @@ class GPReconstructor:
             # time measured from the reconstructed snapshot (the kernel is stationary):
             # samples at the same offset from it then share cached covariance columns
             xy = np.column_stack([xy[:, :2], xy[:, 2] - float(t)])
-            grid_pts = self._grid_pts(X, Y, True)
-        else:
-            grid_pts = self._grid_pts(X, Y, False)
+        grid_pts = np.column_stack([X.ravel(), Y.ravel()] + ([np.zeros(X.size)] if use_t else []))
         mean = np.empty((2,) + X.shape)
         if self.solver not in _SOLVERS:
             raise ReconstructionError(f"unknown GP solver {self.solver!r}; choose one of {', '.join(_SOLVERS)}")
@@ -407,13 +405,3 @@ class GPReconstructor:
             return mean.astype(np.float32), None
         std[:, land] = np.nan
         return mean.astype(np.float32), std.astype(np.float32)
-
-    def _grid_pts(self, X: np.ndarray, Y: np.ndarray, with_t: bool) -> np.ndarray:
-        """(n_cells, 2 or 3) prediction inputs (time 0 = the reconstructed snapshot), kept
-        as one array per grid so the column cache can tell it is the same."""
-        key = (X.tobytes(), Y.tobytes(), with_t)
-        got = getattr(self, "_grid_pts_cache", None)
-        if got is None or got[0] != key:
-            pts = np.column_stack([X.ravel(), Y.ravel()] + ([np.zeros(X.size)] if with_t else []))
-            got = self._grid_pts_cache = (key, pts)
-        return got[1]
