@@ -13,9 +13,15 @@
      batched predictor call per leg through the model's compiled path (``fast_predict``),
      one batched policy-gradient planning call per leg, fixed kernel, Cholesky posterior;
    - ``paper``: what ``passt-mav paper`` runs: ``lockstep`` with the ``auto`` GP schedule
-     (PASST's residual GP fitted on each trial's first leg, the baselines' on the state).
-   The compiled path's first call per batch shape compiles (seconds): a warm-up campaign
-   runs first and is not timed.
+     (PASST's residual GP fitted on each trial's first leg, the baselines' on the state);
+     every variant above runs in this one process on one thread;
+   - ``paper_dask2``: ``paper`` on both cores of a 2-core machine, as ``passt-mav paper
+     --scheduler`` runs it (Dask LocalCluster, 2 single-threaded worker processes, the
+     trials of a path length in 2 batches) - against ``today`` on one core, so this ratio
+     includes the parallelism that the serial path could not use.
+   ``--variants`` picks some (``today`` is always the reference). The compiled path's
+   first call per batch shape compiles (seconds): a warm-up campaign runs first and is
+   not timed.
    Ratios to ``today`` and the per-component split (seconds summed over trial-legs).
    A trial-leg = one leg of one loop method (passt / lawnmower_gp / greedy_gp / random_gp)
    of one trial; the "model" method is one roll-out per campaign.
@@ -88,6 +94,9 @@ def _split(summary: dict) -> dict:
     return tot
 
 
+VARIANT_LOCKSTEP = dict(engine="lockstep", hyper="state", gp_solver="cholesky", fast_predict=True)
+
+
 def throughput(field, predictor, args) -> dict:
     kw = dict(path_lengths=tuple(args.campaign_lengths), trials=args.trials, steps=args.steps, steps_per_leg=args.steps_per_leg, progress=False)
     if predictor is None:  # hold mode: only the GP-only baselines can run
@@ -95,17 +104,41 @@ def throughput(field, predictor, args) -> dict:
     variants = {
         "today": dict(engine="serial", hyper="every_leg", gp_solver="sklearn"),
         "serial_fixed": dict(engine="serial", hyper="state", gp_solver="cholesky"),
-        "lockstep": dict(engine="lockstep", hyper="state", gp_solver="cholesky", fast_predict=True),
+        "lockstep": VARIANT_LOCKSTEP,
         "paper": dict(engine="lockstep", hyper="auto", gp_solver="cholesky", fast_predict=True),
+        # the same on this machine's 2 cores, as `passt-mav paper --scheduler` runs it: a Dask
+        # LocalCluster of 2 single-threaded worker processes, each path length's trials in 2 batches
+        "paper_dask2": dict(engine="lockstep", hyper="auto", gp_solver="cholesky", fast_predict=True, batch=max(1, -(-args.trials // 2))),
     }
+    unknown = set(args.variants) - set(variants)
+    if unknown or "today" not in args.variants:
+        raise SystemExit(f"--variants: choose from {', '.join(variants)} and include 'today' (the ratios' reference); got {','.join(args.variants)}")
+    variants = {k: v for k, v in variants.items() if k in args.variants}
     out: dict = {}
-    _timed(field, predictor, **dict(kw, steps=args.steps_per_leg), **variants["lockstep"])  # compile outside the timing
+    _timed(field, predictor, **dict(kw, steps=args.steps_per_leg), **VARIANT_LOCKSTEP)  # compile outside the timing
     for name, v in variants.items():
-        wall, s = _timed(field, predictor, **kw, **v)
+        if name == "paper_dask2":
+            wall, s = _dask_timed(field, predictor, 2, dict(kw, **v), warm=dict(kw, steps=args.steps_per_leg, **v))
+        else:
+            wall, s = _timed(field, predictor, **kw, **v)
         out[name] = {"wall_s": round(wall, 2), "trial_legs": s["trial_legs"], "trial_legs_per_s": round(s["trial_legs"] / wall, 2), "split_s": _split(s), "final_rmse": {L: {m: round(x, 4) for m, x in per["final_rmse"].items()} for L, per in s["per_L"].items()}}
-    for name in ("serial_fixed", "lockstep", "paper"):
+    for name in set(out) - {"today"}:
         out[name]["speedup_vs_today"] = round(out[name]["trial_legs_per_s"] / out["today"]["trial_legs_per_s"], 2)
     return out
+
+
+def _dask_timed(field, predictor, n_workers: int, kw: dict, warm: dict) -> tuple[float, dict]:
+    """``_timed`` on a fresh Dask LocalCluster of ``n_workers`` single-threaded processes.
+
+    A one-leg warm-up campaign with the same batch shapes runs on the cluster first, so
+    the timed run's workers find the compiled model in inductor's on-disk cache (they
+    still trace it once per batch shape, as the workers of a real run do).
+    """
+    from distributed import LocalCluster
+
+    with LocalCluster(n_workers=n_workers, threads_per_worker=1, processes=True, dashboard_address=None) as cluster:
+        _timed(field, predictor, scheduler=cluster.scheduler_address, **warm)
+        return _timed(field, predictor, scheduler=cluster.scheduler_address, **kw)
 
 
 def scale_out(field, predictor, args) -> dict:
@@ -140,11 +173,13 @@ def main(argv=None) -> int:
     ap.add_argument("--trials", type=int, default=4)
     ap.add_argument("--steps", type=int, default=60)
     ap.add_argument("--campaign-lengths", default="50")
+    ap.add_argument("--variants", default="today,serial_fixed,lockstep,paper,paper_dask2", help="engine variants to time (comma list; 'today' is the reference)")
     ap.add_argument("--no-campaign", action="store_true", help="skip the throughput comparison")
     ap.add_argument("--no-scale", action="store_true", help="skip the joblib / Dask scale-out")
     ap.add_argument("--json", action="store_true")
     args = ap.parse_args(argv)
     args.campaign_lengths = [int(x) for x in args.campaign_lengths.split(",")]
+    args.variants = [v.strip() for v in args.variants.split(",") if v.strip()]
 
     import torch
 

@@ -435,15 +435,13 @@ def run_offline_fleet(field, predictor, *, start_cells, t0: int = 0, n_steps: in
 def _plan_batch(loops: list, starts, t_start: float, dt: float, S: int, fcs) -> list[LegPlan]:
     """``[loops[b].plan_leg(..., forecast=fcs[b]) for b]`` with the planning batched when it can be.
 
-    Loops whose planners are all the same-option :class:`PolicyGradientPlanner` plan in
-    one :meth:`~passt_mav.planning.policy_gradient.PolicyGradientPlanner.plan_many` call
-    (same paths as one call each; the ``plan`` timing is the batch's time / B); any
-    other planner plans loop by loop.
+    Loops whose planners are all of one class with the same options and have a
+    ``plan_many`` (policy gradient, greedy) plan in one call of it (same paths as one call
+    each; the ``plan`` timing is the batch's time / B); any other planner plans loop by
+    loop.
     """
-    from passt_mav.planning.policy_gradient import PolicyGradientPlanner
-
     p0 = loops[0].planner
-    same = isinstance(p0, PolicyGradientPlanner) and all(type(lp.planner) is type(p0) and vars(lp.planner) == vars(p0) and lp.path_length == loops[0].path_length for lp in loops)
+    same = hasattr(p0, "plan_many") and all(type(lp.planner) is type(p0) and vars(lp.planner) == vars(p0) and lp.path_length == loops[0].path_length for lp in loops)
     if not same or len(loops) == 1:
         return [lp.plan_leg(None, st, t_start, dt, steps=S, forecast=fc) for lp, st, fc in zip(loops, starts, fcs)]
     B = len(loops)

@@ -181,6 +181,31 @@ class TestLawnmower(PlannerContract):
         expected = [(0, c) for c in range(10)] + [(1, c) for c in range(9, -1, -1)]
         assert [tuple(c) for c in p] == expected
 
+    def test_straight_runs_skip_the_search_with_dijkstras_path(self):
+        """cheapest_path answers a free straight row/column run without searching; on
+        random land and old track that answer is Dijkstra's own, and runs blocked by land
+        or old track still go through the search."""
+        from passt_mav.planning.grid import _dijkstra, _free_straight_line, cheapest_path
+
+        rng = np.random.default_rng(5)
+        taken = searched = 0
+        for _ in range(400):
+            R, C = rng.integers(4, 16, size=2)
+            trav = rng.random((R, C)) > 0.15
+            visited = rng.random((R, C)) < 0.2
+            src = tuple(int(x) for x in np.argwhere(trav)[rng.integers(trav.sum())])
+            dst = (src[0], int(rng.integers(C))) if rng.random() < 0.5 else (int(rng.integers(R)), src[1])
+            if dst == src or not trav[dst]:
+                continue
+            got = cheapest_path(src, dst, trav, visited)
+            assert got == _dijkstra(src, dst, trav, visited, 8.0)
+            if _free_straight_line(src, dst, trav, visited) is None:
+                searched += 1
+            else:
+                taken += 1
+                assert len(got) == max(abs(dst[0] - src[0]), abs(dst[1] - src[1])) + 1
+        assert taken > 50 and searched > 50, (taken, searched)
+
 
 class TestGreedy(PlannerContract):
     name = "greedy"
@@ -191,9 +216,51 @@ class TestGreedy(PlannerContract):
         np.testing.assert_array_equal(p[:9], [(5 + i, 5 + i) for i in range(9)])  # straight diagonal climb
         assert max(q[r, c] for r, c in p) > 0.94  # reaches the peak's neighbourhood
 
+    @pytest.mark.parametrize("lookahead", [1, 2, 3])
+    def test_plan_many_equals_one_call_each(self, lookahead):
+        """The campaign engine plans a leg's trials in one batched call: each request's
+        path is exactly its own plan() path (own map, start, mask, seed)."""
+        from passt_mav.planning.baselines import GreedyPlanner
+
+        rng = np.random.default_rng(lookahead)
+        maps = [random_reward_map(rng, 18, 21) for _ in range(6)]
+        starts = [tuple(np.argwhere(t)[rng.integers(t.sum())]) for _, t in maps]
+        seeds = [int(x) for x in rng.integers(0, 100, 6)]
+        pl = GreedyPlanner(lookahead=lookahead)
+        many = pl.plan_many([q for q, _ in maps], starts, 60, seeds, [t for _, t in maps])
+        for (q, t), s, sd, got in zip(maps, starts, seeds, many):
+            np.testing.assert_array_equal(got, pl.plan(q, s, 60, seed=sd, mask=t))
+            _validate(got, 18, 21, traversable=t, budget=60, start=s)
+        with pytest.raises(PlannerError, match="one grid per batch"):
+            pl.plan_many([maps[0][0], np.ones((5, 5))], [starts[0], (1, 1)], 5, [0, 0])
+
 
 class TestRandom(PlannerContract):
     name = "random"
+
+    def test_fallback_step_draws_as_the_numpy_formulation(self):
+        """The plain-Python neighbour step lists the candidates in MOVES8 order and draws
+        from the generator exactly as the numpy formulation it replaced did."""
+        from passt_mav.planning.baselines import _fallback_step
+        from passt_mav.planning.grid import neighbours
+
+        def reference(cell, visited, trav, rng):
+            nb = neighbours(cell, trav)
+            fresh = nb[~visited[nb[:, 0], nb[:, 1]]]
+            pool = fresh if len(fresh) else nb
+            n = pool[rng.integers(len(pool))]
+            return int(n[0]), int(n[1])
+
+        rng = np.random.default_rng(9)
+        for _ in range(300):
+            trav = rng.random((7, 9)) > 0.2
+            visited = rng.random((7, 9)) < rng.random()
+            cell = tuple(int(x) for x in np.argwhere(trav)[rng.integers(trav.sum())])
+            if not len(neighbours(cell, trav)):
+                continue
+            seed = int(rng.integers(1000))
+            a, b = np.random.default_rng(seed), np.random.default_rng(seed)
+            assert [_fallback_step(cell, visited, trav, a) for _ in range(3)] == [reference(cell, visited, trav, b) for _ in range(3)]
 
 
 def test_registry_and_unknown_names():

@@ -14,18 +14,23 @@ import itertools
 import numpy as np
 
 from passt_mav.errors import PlannerError
-from passt_mav.planning.grid import MOVES8, check_inputs, cheapest_path, neighbours
+from passt_mav.planning.grid import _MOVES8_TUPLES, MOVES8, check_inputs, check_many, cheapest_path
 
 __all__ = ["LawnmowerPlanner", "GreedyPlanner", "RandomPlanner"]
 
 
 def _fallback_step(cell, visited: np.ndarray, trav: np.ndarray, rng: np.random.Generator) -> tuple[int, int]:
-    """An unvisited traversable neighbour if any (random), else any traversable one."""
-    nb = neighbours(cell, trav)
-    fresh = nb[~visited[nb[:, 0], nb[:, 1]]]
-    pool = fresh if len(fresh) else nb
-    n = pool[rng.integers(len(pool))]
-    return int(n[0]), int(n[1])
+    """An unvisited traversable neighbour if any (random), else any traversable one.
+
+    Candidates in :data:`MOVES8` order, as :func:`~passt_mav.planning.grid.neighbours`
+    lists them; plain Python, because the random walk takes this step on every move
+    and numpy's per-call cost on 8 cells was most of its planning time.
+    """
+    r, c = int(cell[0]), int(cell[1])
+    R, C = trav.shape
+    nb = [(r + dr, c + dc) for dr, dc in _MOVES8_TUPLES if 0 <= r + dr < R and 0 <= c + dc < C and trav[r + dr, c + dc]]
+    pool = [n for n in nb if not visited[n]] or nb
+    return pool[rng.integers(len(pool))]
 
 
 class LawnmowerPlanner:
@@ -107,43 +112,62 @@ class GreedyPlanner:
         self.lookahead = lookahead
 
     def plan(self, reward, start, budget, seed=0, mask=None) -> np.ndarray:
-        q, (r0, c0), L, trav = check_inputs(reward, start, budget, mask)
+        return self.plan_many([reward], [start], budget, [seed], None if mask is None else [mask])[0]
+
+    def plan_many(self, rewards, starts, budget, seeds, masks=None) -> list[np.ndarray]:
+        """``[plan(rewards[i], starts[i], budget, seeds[i], masks[i]) for i ...]``, the G
+        paths advanced together (one set of numpy calls per move for all of them).
+
+        The campaign engine plans all trials of a leg at once: one path's move costs
+        ~15 numpy calls on 8^k sequences, so a batch amortises the per-call cost. The
+        rows do not interact (same element-wise arithmetic and per-row arg-max as one
+        call each; each request's fall-back draws from its own seeded generator), so
+        the paths are those of G :meth:`plan` calls (tested).
+        """
         k = int(self.lookahead)
         if k < 1:
             raise PlannerError(f"greedy look-ahead must be >= 1, got {self.lookahead!r}")
-        R, C = q.shape
-        rng = np.random.default_rng(seed)
-        visited = np.zeros((R, C), bool)
-        visited[r0, c0] = True
-        path = [(r0, c0)]
+        qs, st, L, travs = check_many(rewards, starts, budget, seeds, masks)
+        if not qs:
+            return []
+        G = len(qs)
+        Q, T = np.stack(qs), np.stack(travs)
+        _, R, C = Q.shape
+        rngs = [np.random.default_rng(sd) for sd in seeds]
+        visited = np.zeros((G, R, C), bool)
+        cur = np.array(st, dtype=np.int64)  # (G, 2)
+        visited[np.arange(G), cur[:, 0], cur[:, 1]] = True
+        paths = np.empty((G, L + 1, 2), np.int64)
+        paths[:, 0] = cur
         seqs = np.array(list(itertools.product(range(8), repeat=k)), dtype=np.int64)  # (8^k, k)
-        steps = MOVES8[seqs]  # (8^k, k, 2)
-        for _ in range(L):
-            cur = np.array(path[-1])
-            cells = cur + np.cumsum(steps, axis=1)  # (n, k, 2)
+        offsets = np.cumsum(MOVES8[seqs], axis=1)  # (n, k, 2): cells entered, relative to the current one
+        g = np.arange(G)[:, None, None]
+        for i in range(1, L + 1):
+            cells = cur[:, None, None, :] + offsets  # (G, n, k, 2)
             inside = (cells[..., 0] >= 0) & (cells[..., 0] < R) & (cells[..., 1] >= 0) & (cells[..., 1] < C)
             rr = np.clip(cells[..., 0], 0, R - 1)
             cc = np.clip(cells[..., 1], 0, C - 1)
-            ok = inside & trav[rr, cc]
-            feasible = np.cumprod(ok, axis=1).astype(bool)  # a sequence stops being valid at its first bad cell
-            gain = np.where(feasible & ~visited[rr, cc], q[rr, cc], 0.0)
+            ok = inside & T[g, rr, cc]
+            feasible = np.cumprod(ok, axis=2).astype(bool)  # a sequence stops being valid at its first bad cell
+            seen = visited[g, rr, cc]
+            gain = np.where(feasible & ~seen, Q[g, rr, cc], 0.0)
             # a cell entered twice within one sequence pays once
             idx = rr * C + cc
             for j in range(1, k):
-                dup = (idx[:, j : j + 1] == idx[:, :j]).any(axis=1)
-                gain[:, j] = np.where(dup, 0.0, gain[:, j])
-            score = np.where(feasible[:, 0], gain.sum(axis=1), -np.inf)
-            first_fresh = feasible[:, 0] & ~visited[rr[:, 0], cc[:, 0]]
-            if first_fresh.any():
-                score = np.where(first_fresh, score, -np.inf)
-            if not np.isfinite(score).any():  # cannot happen after check_inputs, kept for safety
-                nxt = _fallback_step(path[-1], visited, trav, rng)
-            else:
-                b = int(np.argmax(score))
-                nxt = (int(rr[b, 0]), int(cc[b, 0]))
-            path.append(nxt)
-            visited[nxt] = True
-        return np.asarray(path, dtype=np.int64)
+                dup = (idx[..., j : j + 1] == idx[..., :j]).any(axis=2)
+                gain[..., j] = np.where(dup, 0.0, gain[..., j])
+            score = np.where(feasible[..., 0], gain.sum(axis=2), -np.inf)  # (G, n)
+            first_fresh = feasible[..., 0] & ~seen[..., 0]
+            # restrict to sequences that start on an unvisited cell where there is one
+            score = np.where(first_fresh | ~first_fresh.any(axis=1, keepdims=True), score, -np.inf)
+            best = np.argmax(score, axis=1)
+            nxt = np.stack([rr[np.arange(G), best, 0], cc[np.arange(G), best, 0]], axis=1)
+            for b in np.flatnonzero(~np.isfinite(score).any(axis=1)):  # cannot happen after check_inputs, kept for safety
+                nxt[b] = _fallback_step(tuple(cur[b]), visited[b], T[b], rngs[b])
+            cur = nxt
+            visited[np.arange(G), cur[:, 0], cur[:, 1]] = True
+            paths[:, i] = cur
+        return list(paths)
 
 
 class RandomPlanner:

@@ -16,6 +16,7 @@ __all__ = [
     "MOVES8",
     "MOVES4",
     "check_inputs",
+    "check_many",
     "path_reward",
     "top_l_bound",
     "check_path",
@@ -68,6 +69,27 @@ def check_inputs(reward, start, budget, mask=None) -> tuple[np.ndarray, tuple[in
     if not np.any(trav[nb[ok, 0], nb[ok, 1]]):
         raise PlannerError(f"start cell ({r}, {c}) has no traversable neighbour")
     return q, (r, c), int(budget), trav
+
+
+def check_many(rewards, starts, budget, seeds, masks=None) -> tuple[list, list, int, list]:
+    """:func:`check_inputs` for a batch of G planning requests on one grid (``plan_many``).
+
+    Returns ``(rewards, starts, budget, traversables)``: lists of G as check_inputs gives
+    them (``budget`` is None for an empty batch). Raises :class:`PlannerError` when the
+    lists differ in length or the maps in shape.
+    """
+    G = len(rewards)
+    if not (len(starts) == len(seeds) == G) or (masks is not None and len(masks) != G):
+        raise PlannerError("plan_many needs one start, seed (and mask) per reward map")
+    qs, st, travs, L = [], [], [], None
+    for i in range(G):
+        q, s0, L, trav = check_inputs(rewards[i], starts[i], budget, None if masks is None else masks[i])
+        if qs and q.shape != qs[0].shape:
+            raise PlannerError(f"plan_many: reward map {i} has shape {q.shape}, map 0 {qs[0].shape}; one grid per batch")
+        qs.append(q)
+        st.append(s0)
+        travs.append(trav)
+    return qs, st, L, travs
 
 
 def path_reward(reward, path, *, include_start: bool = False) -> float:
@@ -169,18 +191,51 @@ def bfs_path(src, dst, traversable: np.ndarray) -> list[tuple[int, int]] | None:
     return None
 
 
+def _free_straight_line(src, dst, traversable: np.ndarray, visited: np.ndarray) -> list[tuple[int, int]] | None:
+    """The straight row or column run from ``src`` to ``dst`` when every cell after ``src``
+    is traversable and unvisited, else None.
+
+    Such a run is :func:`cheapest_path`'s unique answer, so Dijkstra need not search: it
+    costs n (n unit moves at cost 1). Any other route needs at least n moves (the
+    Chebyshev distance); one of exactly n moves must leave the row (or column) and come
+    back, so it has at least two diagonal moves and costs >= n - 2 + 2 sqrt 2 > n; one
+    of more moves costs >= n + 1 (every move costs >= 1 while ``revisit_cost`` >= 1,
+    the only case it is used in). A lawnmower's lane sweeps and lane changes are such
+    runs (most of its calls); searching them cost ~1 ms each on a 30x30 grid.
+    """
+    (r0, c0), (r1, c1) = src, dst
+    if r0 == r1:
+        step = 1 if c1 > c0 else -1
+        cells = [(r0, c) for c in range(c0 + step, c1 + step, step)]
+    elif c0 == c1:
+        step = 1 if r1 > r0 else -1
+        cells = [(r, c0) for r in range(r0 + step, r1 + step, step)]
+    else:
+        return None
+    idx = tuple(np.array(cells).T)
+    if not np.asarray(traversable, bool)[idx].all() or np.asarray(visited, bool)[idx].any():
+        return None
+    return [src, *cells]
+
+
 def cheapest_path(src, dst, traversable: np.ndarray, visited: np.ndarray, *, revisit_cost: float = 8.0) -> list[tuple[int, int]] | None:
     """Dijkstra over traversable cells from ``src`` to ``dst`` (both included), where
     a move costs its length (1 or sqrt 2) times ``revisit_cost`` when it enters a visited
     cell, so a transfer between
     lanes crosses new water rather than old track whenever a short detour exists."""
-    import heapq
-
     src, dst = (int(src[0]), int(src[1])), (int(dst[0]), int(dst[1]))
     if src == dst:
         return [src]
     if not traversable[dst]:
         return None
+    line = _free_straight_line(src, dst, traversable, visited) if revisit_cost >= 1.0 else None
+    return line if line is not None else _dijkstra(src, dst, traversable, visited, revisit_cost)
+
+
+def _dijkstra(src: tuple[int, int], dst: tuple[int, int], traversable: np.ndarray, visited: np.ndarray, revisit_cost: float) -> list[tuple[int, int]] | None:
+    """The search of :func:`cheapest_path` (int ``src``, ``dst``; ``dst`` traversable)."""
+    import heapq
+
     # Plain-Python inner loop over nested lists: on a 30x30 grid the per-node numpy calls of
     # neighbours() cost ~10x the search itself (lawnmower planning was the slowest planner).
     # Same neighbour order (MOVES8), costs and heap, so the same path as before, bit for bit.

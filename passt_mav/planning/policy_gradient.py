@@ -35,7 +35,7 @@ from pathlib import Path
 import numpy as np
 
 from passt_mav.errors import PlannerError
-from passt_mav.planning.grid import MOVES4, MOVES8, check_inputs, top_l_bound
+from passt_mav.planning.grid import MOVES4, MOVES8, check_many, top_l_bound
 
 __all__ = [
     "SCALES",
@@ -379,21 +379,11 @@ class PolicyGradientPlanner:
         all trials of a leg at once. Same paths as G calls of :meth:`plan` (the rows do
         not interact, each request draws from its own seeded generator; tested).
         """
-        G = len(rewards)
-        if not (len(starts) == len(seeds) == G) or (masks is not None and len(masks) != G):
-            raise PlannerError("plan_many needs one start, seed (and mask) per reward map")
+        raw, st, L, travs = check_many(rewards, starts, budget, seeds, masks)
+        G = len(raw)
         if G == 0:
             return []
-        qs, travs, st = [], [], []
-        L = None
-        for i in range(G):
-            q, s0, L, trav = check_inputs(rewards[i], starts[i], budget, None if masks is None else masks[i])
-            if qs and q.shape != qs[0].shape:
-                raise PlannerError(f"plan_many: reward map {i} has shape {q.shape}, map 0 {qs[0].shape}; one grid per batch")
-            m = q.max()
-            qs.append(q / m if m > 0 else q)  # the policy was trained on maps scaled to [0, 1]
-            travs.append(trav)
-            st.append(s0)
+        qs = [q / q.max() if q.max() > 0 else q for q in raw]  # the policy was trained on maps scaled to [0, 1]
         if self.moves not in (4, 8):
             raise PlannerError(f"moves must be 4 or 8, got {self.moves!r}")
         if int(self.n_rollouts) < 0:

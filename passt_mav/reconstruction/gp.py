@@ -227,18 +227,28 @@ class GPReconstructor:
             state = self._col_cache = [None, None]
         entry = state[comp]
         if entry is None or entry[0] is not kernel or not np.array_equal(entry[1], grid_pts):
-            entry = state[comp] = (kernel, grid_pts, {})
-        cols = entry[2]
+            # [kernel, grid points, sample position -> row of the buffer, buffer (capacity, n_cells):
+            # column j of kernel(grid_pts, xy) stored as a contiguous row]
+            entry = state[comp] = [kernel, grid_pts, {}, np.empty((0, len(grid_pts)))]
+        where = entry[2]
         keys = [row.tobytes() for row in xy]
-        missing = list(dict.fromkeys(k for k in keys if k not in cols))
+        missing = list(dict.fromkeys(k for k in keys if k not in where))
         if missing:
-            if len(cols) + len(missing) > self.max_cached_columns:
+            n_old = len(where)
+            if n_old + len(missing) > self.max_cached_columns:
                 return kernel(grid_pts, xy)
             new = np.frombuffer(b"".join(missing), dtype=np.float64).reshape(len(missing), xy.shape[1])
-            block = kernel(grid_pts, new)
-            for j, k in enumerate(missing):
-                cols[k] = block[:, j].copy()
-        return np.stack([cols[k] for k in keys], axis=1)
+            if n_old + len(missing) > entry[3].shape[0]:  # grow by doubling
+                grown = np.empty((min(max(2 * (n_old + len(missing)), 64), self.max_cached_columns), len(grid_pts)))
+                grown[:n_old] = entry[3][:n_old]
+                entry[3] = grown
+            entry[3][n_old : n_old + len(missing)] = kernel(grid_pts, new).T
+            where.update((k, n_old + j) for j, k in enumerate(missing))
+        # one gather of contiguous rows, transposed into the (n_cells, n) C-ordered layout the
+        # kernel returns (the same values and layout, so the same BLAS path downstream):
+        # 0.22 ms for 200 of 900 cells, against 0.36 ms for a stack of per-column arrays
+        # and 0.46 ms for a column gather (np.take on axis 1)
+        return np.ascontiguousarray(entry[3][[where[k] for k in keys]].T)
 
     # -- public -----------------------------------------------------------------
     def _inputs(self, xy, samples_t, n_ok_mask=None):
