@@ -9,6 +9,12 @@ predicted snapshot (one ``predict`` step = one snapshot interval, 6 Euler sub-st
 figure printed here is the shipped cylinder's recorded wall time per snapshot
 (passt_mav/assets/README.md: 314 s for 500 snapshots + spin-up) unless
 ``benchmarks/bench_cfd.py`` is run alongside.
+
+Training is also put against this CPU's fp32 limit: the FLOPs of an epoch (torch's
+FlopCounterMode on one snapshot step, forward + backward) per second of each path, as a
+fraction of a 2048 x 2048 matmul's rate in the same process (``train_fraction_of_matmul_*``).
+Measured on the 2-core machine, 1 thread: eager 0.72, compiled 0.83 - the eager path is
+already near the limit, so no path exact to fp32 rounding can train 2x faster here.
 """
 
 from __future__ import annotations
@@ -23,6 +29,33 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 # passt_mav/assets/README.md, cylinder.nc: 314 s wall for 31,961 lattice steps, 40 per snapshot
 CFD_RECORDED_S_PER_SNAPSHOT = 314.0 / 31961 * 40
+
+
+def _step_train_flops(net) -> float:
+    """FLOPs of one snapshot step (6 Euler sub-steps) forward and backward, batch 1, as
+    torch's FlopCounterMode counts them (convolutions and matmuls)."""
+    import torch
+    from torch.utils.flop_counter import FlopCounterMode
+
+    from passt_mav.models.knode import ode_step
+
+    z = torch.zeros(1, 2, net.rows, net.cols, requires_grad=True)
+    with FlopCounterMode(display=False) as fc:
+        ode_step(net, z, 1.0, 6).square().sum().backward()
+    net.zero_grad(set_to_none=True)
+    return float(fc.get_total_flops())
+
+
+def _matmul_gflops(n: int = 2048, reps: int = 5) -> float:
+    """fp32 GFLOP/s of an n x n matmul at the current torch thread count (the CPU's practical peak)."""
+    import torch
+
+    a, b = torch.randn(n, n), torch.randn(n, n)
+    a @ b
+    t0 = time.perf_counter()
+    for _ in range(reps):
+        a @ b
+    return 2 * n**3 * reps / (time.perf_counter() - t0) / 1e9
 
 
 def _train_paths(f, quick: bool) -> dict:
@@ -53,6 +86,17 @@ def _train_paths(f, quick: bool) -> dict:
         out[f"train_first_epoch_s_{name}"] = float(dts[0])
         out[f"train_s_per_epoch_{name}"] = float(np.mean(dts[1:]))
     out["train_speedup_compiled_over_eager"] = out["train_s_per_epoch_eager"] / out["train_s_per_epoch_compiled"]
+    # how close each path is to this CPU's fp32 limit: the training FLOPs of an epoch
+    # (counted by torch for one snapshot step, forward + backward, times ICs x horizon)
+    # against a large matmul's rate in the same process and thread count
+    n_ics = (306 - 200) - kw["horizon"]
+    gflop = n_ics * kw["horizon"] * _step_train_flops(m.net_) / 1e9
+    peak = _matmul_gflops()
+    out["matmul_gflops"] = peak
+    for name in ("eager", "compiled"):
+        rate = gflop / out[f"train_s_per_epoch_{name}"]
+        out[f"train_gflops_{name}"] = rate
+        out[f"train_fraction_of_matmul_{name}"] = rate / peak
     net = m.net_
     x = torch.from_numpy(np.nan_to_num(f.data[300:364]).astype(np.float32))
     eager = lambda z: ode_step(net, z, 1.0, 6)  # noqa: E731
