@@ -14,7 +14,7 @@ import itertools
 import numpy as np
 
 from passt_mav.errors import PlannerError
-from passt_mav.planning.grid import _MOVES8_TUPLES, MOVES8, check_inputs, check_many, cheapest_path
+from passt_mav.planning.grid import MOVES8, MOVES8_TUPLES, check_inputs, check_many, cheapest_path
 
 __all__ = ["LawnmowerPlanner", "GreedyPlanner", "RandomPlanner"]
 
@@ -28,7 +28,7 @@ def _fallback_step(cell, visited: np.ndarray, trav: np.ndarray, rng: np.random.G
     """
     r, c = int(cell[0]), int(cell[1])
     R, C = trav.shape
-    nb = [(r + dr, c + dc) for dr, dc in _MOVES8_TUPLES if 0 <= r + dr < R and 0 <= c + dc < C and trav[r + dr, c + dc]]
+    nb = [(r + dr, c + dc) for dr, dc in MOVES8_TUPLES if 0 <= r + dr < R and 0 <= c + dc < C and trav[r + dr, c + dc]]
     pool = [n for n in nb if not visited[n]] or nb
     return pool[rng.integers(len(pool))]
 

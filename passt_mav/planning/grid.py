@@ -28,7 +28,8 @@ __all__ = [
 MOVES8 = np.array([(0, 1), (1, 1), (1, 0), (1, -1), (0, -1), (-1, -1), (-1, 0), (-1, 1)], dtype=np.int64)
 #: The 4 rook moves (subset of MOVES8).
 MOVES4 = MOVES8[::2].copy()
-_MOVES8_TUPLES = tuple((int(a), int(b)) for a, b in MOVES8)
+#: MOVES8 as plain-Python (drow, dcol) tuples, for loops over single cells.
+MOVES8_TUPLES = tuple((int(a), int(b)) for a, b in MOVES8)
 
 
 def check_inputs(reward, start, budget, mask=None) -> tuple[np.ndarray, tuple[int, int], int, np.ndarray]:
@@ -255,7 +256,7 @@ def _dijkstra(src: tuple[int, int], dst: tuple[int, int], traversable: np.ndarra
         if d > dist.get(cell, np.inf):
             continue
         r, c = cell
-        for dr, dc in _MOVES8_TUPLES:
+        for dr, dc in MOVES8_TUPLES:
             tr, tc = r + dr, c + dc
             if not (0 <= tr < R and 0 <= tc < C and trav[tr][tc]):
                 continue
