@@ -136,12 +136,13 @@ class GreedyPlanner:
         rngs = [np.random.default_rng(sd) for sd in seeds]
         visited = np.zeros((G, R, C), bool)
         cur = np.array(st, dtype=np.int64)  # (G, 2)
-        visited[np.arange(G), cur[:, 0], cur[:, 1]] = True
+        rows = np.arange(G)
+        visited[rows, cur[:, 0], cur[:, 1]] = True
         paths = np.empty((G, L + 1, 2), np.int64)
         paths[:, 0] = cur
         seqs = np.array(list(itertools.product(range(8), repeat=k)), dtype=np.int64)  # (8^k, k)
         offsets = np.cumsum(MOVES8[seqs], axis=1)  # (n, k, 2): cells entered, relative to the current one
-        g = np.arange(G)[:, None, None]
+        g = rows[:, None, None]
         for i in range(1, L + 1):
             cells = cur[:, None, None, :] + offsets  # (G, n, k, 2)
             inside = (cells[..., 0] >= 0) & (cells[..., 0] < R) & (cells[..., 1] >= 0) & (cells[..., 1] < C)
@@ -161,11 +162,11 @@ class GreedyPlanner:
             # restrict to sequences that start on an unvisited cell where there is one
             score = np.where(first_fresh | ~first_fresh.any(axis=1, keepdims=True), score, -np.inf)
             best = np.argmax(score, axis=1)
-            nxt = np.stack([rr[np.arange(G), best, 0], cc[np.arange(G), best, 0]], axis=1)
+            nxt = np.stack([rr[rows, best, 0], cc[rows, best, 0]], axis=1)
             for b in np.flatnonzero(~np.isfinite(score).any(axis=1)):  # cannot happen after check_inputs, kept for safety
                 nxt[b] = _fallback_step(tuple(cur[b]), visited[b], T[b], rngs[b])
             cur = nxt
-            visited[np.arange(G), cur[:, 0], cur[:, 1]] = True
+            visited[rows, cur[:, 0], cur[:, 1]] = True
             paths[:, i] = cur
         return list(paths)
 

@@ -383,7 +383,7 @@ class PolicyGradientPlanner:
         G = len(raw)
         if G == 0:
             return []
-        qs = [q / q.max() if q.max() > 0 else q for q in raw]  # the policy was trained on maps scaled to [0, 1]
+        qs = [q / m if (m := q.max()) > 0 else q for q in raw]  # the policy was trained on maps scaled to [0, 1]
         if self.moves not in (4, 8):
             raise PlannerError(f"moves must be 4 or 8, got {self.moves!r}")
         if int(self.n_rollouts) < 0:
