@@ -231,7 +231,7 @@ def build_loop(config, predictor, grid, land=None):
     return PasstLoop(predictor, grid, planner=config.planner.name, planner_kw=dict(config.planner.options),
                      reward=config.planner.reward, path_length=config.planner.path_length,
                      steps_per_leg=config.steps_per_leg or 1, prior=config.gp.loop_prior, gp_kw=gp_kw,
-                     hyper=config.gp.hyper, land=land, seed=config.seeds.planner)
+                     hyper=config.gp.hyper, land=land, seed=config.seeds.planner, background=config.gp.background)
 
 
 

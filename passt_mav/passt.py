@@ -14,7 +14,11 @@ speed, ``L * cell_size / speed`` (see :func:`steps_for_leg`). Between
 re-initialisations the estimate at each step is the model's prediction from the
 last reconstructed state; the leg's samples are compared with that forecast at
 their own position AND time (the GP fits the residual), and the reconstruction
-becomes the state at the leg's end, from which the next leg is planned.
+becomes the state at the leg's end, from which the next leg is planned. With
+``background`` > 0 the residual GP's prior covariance also holds the anomaly covariance
+of the model's own roll-out from the first leg's initial state
+(:func:`passt_mav.reconstruction.model_background`), so a leg's samples correct the
+model's drift across the region, not only near the track.
 
 Land cells (NaN in the state) are filled with 0 only at the predictor's input
 (predictors reject NaN) and set back to NaN in every output, so nothing
@@ -207,9 +211,14 @@ class PasstLoop:
         hyper: when to fit the GP hyper-parameters, see :data:`HYPER`.
         land: (R, C) bool, True = land (never traversable, NaN in estimates).
         seed: planner seeds are ``seed + leg index``.
+        background: snapshots of the predictor's roll-out, from the first leg's initial
+            state, whose anomaly covariance the residual GP adds to its stationary kernels
+            (:func:`passt_mav.reconstruction.model_background`); 0 = none (default). Only
+            with a predictor and ``prior="forecast"``. A caller may set ``gp.background``
+            itself beforehand (the lockstep engine computes it once for all trials).
     """
 
-    def __init__(self, predictor, grid, *, planner: str = "policy_gradient", planner_kw: dict | None = None, reward: str = "speed", path_length: int = 50, steps_per_leg: int = 10, prior: str = "forecast", gp_kw: dict | None = None, hyper: str = "every_leg", land=None, seed: int = 0):
+    def __init__(self, predictor, grid, *, planner: str = "policy_gradient", planner_kw: dict | None = None, reward: str = "speed", path_length: int = 50, steps_per_leg: int = 10, prior: str = "forecast", gp_kw: dict | None = None, hyper: str = "every_leg", land=None, seed: int = 0, background: int = 0):
         from passt_mav.planning import REWARDS, make_planner
         from passt_mav.planning.rewards import REWARDS_USING_STD
         from passt_mav.reconstruction import GPReconstructor
@@ -231,6 +240,10 @@ class PasstLoop:
         self.land = np.zeros(grid.shape, bool) if land is None else np.asarray(land, bool)
         self.seed = int(seed)
         self.gp = GPReconstructor(grid_xy=grid.centres_xy(), prior=prior, **(gp_kw or {}))
+        if int(background) < 0 or int(background) == 1:
+            raise ReconstructionError(f"background roll-out must be 0 (none) or >= 2 snapshots, got {background}")
+        self.background_steps = int(background) if predictor is not None and prior == "forecast" else 0
+        self._background_pending = bool(self.background_steps)
         # GP posterior std of the last reconstruction; computed only for a reward that
         # uses it (the variance is most of a leg's GP time with the cholesky solver)
         self.std: np.ndarray | None = None
@@ -313,6 +326,12 @@ class PasstLoop:
         xy = samples.xy(self.grid)
         t_end = leg.t_start + leg.dt * leg.steps
         st = samples.t if self.hyper != "state" else None  # a field fit is spatial only
+        if self._background_pending:  # once, from the first leg's initial state
+            self._background_pending = False
+            if self.gp.background is None:
+                from passt_mav.reconstruction import model_background
+
+                self.gp.background = model_background(self.predictor, fc[0], self.background_steps, land=self.land)
         if self.hyper == "every_leg" or not hasattr(self.gp, "kernels_"):
             if self.hyper == "state":
                 self.gp.fit_field(fc[0])
@@ -340,15 +359,15 @@ class OfflineResult:
     legs: list[dict[str, Any]]
 
 
-def run_offline(field, predictor, *, start_cell, t0: int = 0, n_steps: int, planner: str = "policy_gradient", planner_kw: dict | None = None, reward: str = "speed", path_length: int = 50, steps_per_leg: int = 10, prior: str = "forecast", gp_kw: dict | None = None, hyper: str = "every_leg", noise_std: float = 0.0, sample_at: str = "end", seed: int = 0, initial_state=None) -> OfflineResult:
+def run_offline(field, predictor, *, start_cell, t0: int = 0, n_steps: int, planner: str = "policy_gradient", planner_kw: dict | None = None, reward: str = "speed", path_length: int = 50, steps_per_leg: int = 10, prior: str = "forecast", gp_kw: dict | None = None, hyper: str = "every_leg", noise_std: float = 0.0, sample_at: str = "end", seed: int = 0, initial_state=None, background: int = 0) -> OfflineResult:
     """Run PASST offline on ground truth ``field`` from snapshot ``t0`` for ``n_steps`` steps.
 
     The initial state is the truth at ``t0`` unless ``initial_state`` is given.
     ``predictor=None`` runs the GP-only ("hold") variant. Returns
-    :class:`OfflineResult`; deterministic given ``seed``. (One boat of
+    :class:`OfflineResult`; deterministic given ``seed``. ``background``: see :class:`PasstLoop`. (One boat of
     :func:`run_offline_fleet`.)
     """
-    return run_offline_fleet(field, predictor, start_cells=[start_cell], t0=t0, n_steps=n_steps, planner=planner, planner_kw=planner_kw, reward=reward, path_length=path_length, steps_per_leg=steps_per_leg, prior=prior, gp_kw=gp_kw, hyper=hyper, noise_std=noise_std, sample_at=sample_at, seed=seed, initial_state=initial_state)
+    return run_offline_fleet(field, predictor, start_cells=[start_cell], t0=t0, n_steps=n_steps, planner=planner, planner_kw=planner_kw, reward=reward, path_length=path_length, steps_per_leg=steps_per_leg, prior=prior, gp_kw=gp_kw, hyper=hyper, noise_std=noise_std, sample_at=sample_at, seed=seed, initial_state=initial_state, background=background)
 
 
 def same_step_clashes(path, others, shape) -> np.ndarray:
@@ -365,7 +384,7 @@ def same_step_clashes(path, others, shape) -> np.ndarray:
     return out
 
 
-def run_offline_fleet(field, predictor, *, start_cells, t0: int = 0, n_steps: int, planner: str = "policy_gradient", planner_kw: dict | None = None, reward: str = "speed", path_length: int = 50, steps_per_leg: int = 10, prior: str = "forecast", gp_kw: dict | None = None, hyper: str = "every_leg", noise_std: float = 0.0, sample_at: str = "end", seed: int = 0, initial_state=None) -> OfflineResult:
+def run_offline_fleet(field, predictor, *, start_cells, t0: int = 0, n_steps: int, planner: str = "policy_gradient", planner_kw: dict | None = None, reward: str = "speed", path_length: int = 50, steps_per_leg: int = 10, prior: str = "forecast", gp_kw: dict | None = None, hyper: str = "every_leg", noise_std: float = 0.0, sample_at: str = "end", seed: int = 0, initial_state=None, background: int = 0) -> OfflineResult:
     """:func:`run_offline` for a fleet: ``len(start_cells)`` boats, synchronous legs, one state.
 
     Each leg interval: one forecast and one reward map; the boats plan in turn, each keeping out
@@ -380,7 +399,7 @@ def run_offline_fleet(field, predictor, *, start_cells, t0: int = 0, n_steps: in
         raise PlannerError(f"start snapshot t0={t0} must lie in [0, {field.n_times - 2}]")
     n_steps = int(min(n_steps, field.n_times - 1 - t0))
     land = field.land_mask
-    loop = PasstLoop(predictor, field.grid, planner=planner, planner_kw=planner_kw, reward=reward, path_length=path_length, steps_per_leg=steps_per_leg, prior=prior, gp_kw=gp_kw, hyper=hyper, land=land, seed=seed)
+    loop = PasstLoop(predictor, field.grid, planner=planner, planner_kw=planner_kw, reward=reward, path_length=path_length, steps_per_leg=steps_per_leg, prior=prior, gp_kw=gp_kw, hyper=hyper, land=land, seed=seed, background=background)
     sampler = FieldSampler(field, noise_std=noise_std, seed=seed + 7919, steps_per_leg=steps_per_leg, sample_at=sample_at)
     dt = field.dt
     state = np.array(field.data[t0] if initial_state is None else initial_state, dtype=np.float32)
@@ -477,7 +496,7 @@ def _batch_forecast(predictor, states: np.ndarray, steps: int, land: np.ndarray)
     return out
 
 
-def run_offline_lockstep(field, predictor, *, start_cells, seeds, t0: int = 0, n_steps: int, planner: str = "policy_gradient", planner_kw: dict | None = None, reward: str = "speed", path_length: int = 50, steps_per_leg: int = 10, prior: str = "forecast", gp_kw: dict | None = None, hyper: str = "every_leg", noise_std: float = 0.0, sample_at: str = "end", initial_state=None, kernel_cache: dict | None = None) -> list[OfflineResult]:
+def run_offline_lockstep(field, predictor, *, start_cells, seeds, t0: int = 0, n_steps: int, planner: str = "policy_gradient", planner_kw: dict | None = None, reward: str = "speed", path_length: int = 50, steps_per_leg: int = 10, prior: str = "forecast", gp_kw: dict | None = None, hyper: str = "every_leg", noise_std: float = 0.0, sample_at: str = "end", initial_state=None, kernel_cache: dict | None = None, background: int = 0) -> list[OfflineResult]:
     """:func:`run_offline` for B trials at once (``start_cells[b]``, ``seeds[b]``), in lockstep.
 
     All trials start from the same state and share every option but the start cell and
@@ -490,7 +509,9 @@ def run_offline_lockstep(field, predictor, *, start_cells, seeds, t0: int = 0, n
 
     ``hyper="state"``: the GP kernel is fitted on the initial state, which every trial
     shares, so it is fitted once and reused (and once per ``kernel_cache`` dict across
-    calls: key = GP options + initial state bytes). Leg timings: ``predict`` is the
+    calls: key = GP options + initial state bytes). ``background``: the roll-out's modes
+    (:class:`PasstLoop`) are computed once for all trials (and once per ``kernel_cache``
+    dict for the same predictor object, state and length). Leg timings: ``predict`` is the
     batch's time divided by B.
     """
     if not (0 <= t0 < field.n_times - 1):
@@ -502,7 +523,7 @@ def run_offline_lockstep(field, predictor, *, start_cells, seeds, t0: int = 0, n
     n_steps = int(min(n_steps, field.n_times - 1 - t0))
     land = field.land_mask
     B = len(seeds)
-    loops = [PasstLoop(predictor, field.grid, planner=planner, planner_kw=planner_kw, reward=reward, path_length=path_length, steps_per_leg=steps_per_leg, prior=prior, gp_kw=gp_kw, hyper=hyper, land=land, seed=int(sd)) for sd in seeds]
+    loops = [PasstLoop(predictor, field.grid, planner=planner, planner_kw=planner_kw, reward=reward, path_length=path_length, steps_per_leg=steps_per_leg, prior=prior, gp_kw=gp_kw, hyper=hyper, land=land, seed=int(sd), background=background) for sd in seeds]
     samplers = [FieldSampler(field, noise_std=noise_std, seed=int(sd) + 7919, steps_per_leg=steps_per_leg, sample_at=sample_at) for sd in seeds]
     dt = field.dt
     state0 = np.array(field.data[t0] if initial_state is None else initial_state, dtype=np.float32)
@@ -516,6 +537,15 @@ def run_offline_lockstep(field, predictor, *, start_cells, seeds, t0: int = 0, n
             cache[key] = (loops[0].gp.kernels_, loops[0].gp.cell_m_, loops[0].gp.n_inputs_)
         for lp in loops:
             lp.gp.kernels_, lp.gp.cell_m_, lp.gp.n_inputs_ = cache[key]
+    if loops[0].background_steps and n_steps >= steps_per_leg:
+        from passt_mav.reconstruction import model_background
+
+        cache = kernel_cache if kernel_cache is not None else {}
+        bkey = ("background", id(predictor), loops[0].background_steps, state0.tobytes())
+        if bkey not in cache or cache[bkey][0] is not predictor:
+            cache[bkey] = (predictor, model_background(predictor, state0, loops[0].background_steps, land=land))
+        for lp in loops:
+            lp.gp.background, lp._background_pending = cache[bkey][1], False
     states = np.repeat(state0[None], B, axis=0)
     est = np.empty((B, n_steps + 1, 2) + field.grid.shape, np.float32)
     est[:, 0] = state0

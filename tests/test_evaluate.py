@@ -148,20 +148,23 @@ def test_baseline_prior_forecast_runs_full_loop(field):
 
 
 def test_auto_gp_schedule_fits_each_gp_on_what_it_models():
-    """hyper="auto": PASST's residual GP (and a baseline run through the model loop) is fitted on its
-    first leg's residuals, a GP on samples alone on the initial state; an unknown schedule is refused."""
+    """hyper="auto": PASST's residual GP (and a baseline run through the model loop) is fitted on
+    every leg's residuals, a GP on samples alone once on the initial state; an unknown schedule
+    (or background length) is refused."""
     from types import SimpleNamespace
 
     from passt_mav.commands.evaluate import _method_kw, run_campaign
     from passt_mav.errors import PlannerError
 
     cfg = dict(hyper="auto", planner="policy_gradient", reward="speed", baseline_prior="none")
-    assert _method_kw(cfg, "passt", object())[1]["hyper"] == "first_leg"
+    assert _method_kw(cfg, "passt", object())[1]["hyper"] == "every_leg"
     assert _method_kw(cfg, "lawnmower_gp", object())[1]["hyper"] == "state"
-    assert _method_kw(dict(cfg, baseline_prior="forecast"), "lawnmower_gp", object())[1]["hyper"] == "first_leg"
-    assert _method_kw(dict(cfg, hyper="every_leg"), "greedy_gp", object())[1]["hyper"] == "every_leg"
+    assert _method_kw(dict(cfg, baseline_prior="forecast"), "lawnmower_gp", object())[1]["hyper"] == "every_leg"
+    assert _method_kw(dict(cfg, hyper="first_leg"), "greedy_gp", object())[1]["hyper"] == "first_leg"
     with pytest.raises(PlannerError, match="hyper-parameter schedule"):
         run_campaign(SimpleNamespace(n_times=10), None, hyper="nightly", methods=("lawnmower_gp",), progress=False)
+    with pytest.raises(PlannerError, match="background"):
+        run_campaign(SimpleNamespace(n_times=10), None, background=1, methods=("lawnmower_gp",), progress=False)
 
 
 @pytest.mark.skipif(not __import__("sys").platform.startswith("linux"), reason="glibc's mallopt: Linux only")

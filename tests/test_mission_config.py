@@ -53,6 +53,7 @@ def test_defaults_and_normalisation():
     assert osc.field.source == "builtin:oscillating" and osc.model == "builtin:cylinder"
     assert MissionConfig.model_validate({**GOOD, "planner": {"name": "pg"}}).planner.name == "policy_gradient"
     assert MissionConfig.model_validate({**GOOD, "gp": {"prior": "constant"}}).gp.loop_prior == "none"
+    assert cfg.gp.background == 200 and MissionConfig.model_validate({**GOOD, "gp": {"background": 0}}).gp.background == 0
 
 
 def test_field_file_relative_to_mission_file(tmp_path):
@@ -108,6 +109,8 @@ BROKEN = [
     ("legs_zero", _with(legs=0), "legs: must be >= 1 (got 0)"),
     ("sensor_name_long", _with(sensors__u="CURRENT_EAST"), "sensors.u:"),
     ("bad_prior", _with(gp__prior="zero"), "gp.prior:"),
+    ("background_one", _with(gp__background=1), "gp.background: a background roll-out needs 0 (none) or at least 2 snapshots"),
+    ("background_negative", _with(gp__background=-5), "gp.background: must be >= 0 (got -5)"),
     ("unknown_model", _with(model="transformer"), "model: unknown model 'transformer'"),
     ("missing_ckpt", _with(model="nope.pt"), "model: model checkpoint not found"),
 ]

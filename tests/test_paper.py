@@ -126,9 +126,9 @@ def test_protocol_counts():
 
     from passt_mav.commands.paper import _protocol, _trial_legs
 
-    a = argparse.Namespace(quick=False, trials=None, steps=None, path_lengths=None, scenarios="cylinder,oscillating,ocean", batch=None, workers=1, hyper="state", gp_solver="cholesky", seed=0)
+    a = argparse.Namespace(quick=False, trials=None, steps=None, path_lengths=None, scenarios="cylinder,oscillating,ocean", batch=None, workers=1, hyper="state", gp_solver="cholesky", seed=0, background=200)
     p = _protocol(a)
-    assert (p["trials"], p["steps"], p["path_lengths"]) == (30, 300, [25, 50, 75, 100, 150, 200])
+    assert (p["trials"], p["steps"], p["path_lengths"], p["background"]) == (30, 300, [25, 50, 75, 100, 150, 200], 200)
     assert _trial_legs(p) == 3 * 6 * 30 * 4 * 30  # the paper's protocol: 64 800 loop legs
     assert p["gp_solver"] == "cholesky"
     a.quick = True
@@ -140,3 +140,5 @@ def test_bad_input_exit_2(tmp_path, capsys):
     assert "scenario" in capsys.readouterr().err
     assert main(["paper", "--path-lengths", "a", "--out", str(tmp_path)]) == 2
     assert main(["paper", "--trials", "0", "--out", str(tmp_path)]) == 2
+    assert main(["paper", "--background", "1", "--out", str(tmp_path)]) == 2
+    assert "--background" in capsys.readouterr().err

@@ -24,6 +24,8 @@ import argparse
 import contextlib
 import sys
 
+from passt_mav.reconstruction.background import DEFAULT_BACKGROUND
+
 HELP = "Offline PASST campaign: trials x path lengths, RMSE over time and POD energy"
 EXAMPLES = """examples:
   passt-mav evaluate --data builtin:cylinder --model builtin:cylinder --out runs/eval_cyl
@@ -49,7 +51,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--steps-per-leg", type=int, default=10, help="snapshots one leg spans = re-initialisation interval (default 10)")
     p.add_argument("--noise", type=float, default=0.02, help="sensor noise std, field units (default 0.02)")
     p.add_argument("--sampling", choices=("end", "spread"), default="end", help="when a leg's cells are read: all at the leg's end (default; the paper's offline protocol, one snapshot per leg) or spread over the leg at constant speed")
-    p.add_argument("--hyper", default="every_leg", help="GP hyper-parameter fits: every_leg | first_leg | state | auto (residual GPs on the first leg, sample-only GPs on the initial state) (default every_leg)")
+    p.add_argument("--hyper", default="every_leg", help="GP hyper-parameter fits: every_leg | first_leg | state | auto (residual GPs every leg, sample-only GPs once on the initial state) (default every_leg)")
     p.add_argument("--baseline-prior", choices=("none", "forecast"), default="none", help="baselines: GP alone (none, default) or the full loop with the model (forecast)")
     p.add_argument("--methods", default=",".join(METHODS), help=f"subset of {','.join(METHODS)}")
     p.add_argument("--window", type=int, default=50, help="final window (steps) for the ratio table (default 50)")
@@ -61,6 +63,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--batch", type=int, default=None, help="lockstep: trials per batch = unit of work for --workers/--scheduler (default: all trials of a path length)")
     p.add_argument("--gp-solver", choices=("cholesky", "sklearn"), default="sklearn", help="GP posterior with the fitted kernel: sklearn's regressor (default) or a direct Cholesky solve (faster; equal to sklearn to 1e-6 per reconstruction, which a long campaign can amplify into different paths)")
     p.add_argument("--fast-predict", action="store_true", help="run a KNODE through its compiled prediction path (torch.compile with freezing: ~1.6x, fp32 rounding of the eager path, a few seconds of compiling per batch shape; what passt-mav paper uses)")
+    p.add_argument("--background", type=int, default=DEFAULT_BACKGROUND, metavar="STEPS", help=f"residual GPs (PASST's; the baselines' with --baseline-prior forecast) add a model-based background covariance: the anomalies of STEPS snapshots of the model's roll-out from the initial state (ensemble optimal interpolation) (default {DEFAULT_BACKGROUND}; 0 = stationary kernels only)")
     p.add_argument("--boats", type=int, default=1, help="N > 1: the fleet comparison instead of the campaign: "
                    "PASST with 1..N boats of L moves each vs 1 boat of N*L moves per leg interval (the same "
                    "budget), L = the first of --path-lengths; writes fleet.json and fleet_rmse.png")
@@ -188,12 +191,15 @@ def _start_cell(field, cfg: dict, L: int, trial: int) -> tuple[int, int]:
 
 
 #: GP hyper-parameter schedules of a campaign: passt_mav.passt.HYPER, or "auto" = each GP fitted
-#: once, on what it models: a GP on the residual vs the forecast on the first leg's residuals
-#: ("first_leg"), a GP on the samples alone on the initial state ("state"). A residual GP whose
-#: kernel was fitted on the whole field (variance and length scale of the flow, not of the
-#: model's error) spreads every leg's noisy residuals far and wide: measured with the shipped
-#: KNODEs, 2 trials, PASST final-window RMSE ocean L=100 0.52 with "state" vs 0.062 with
-#: "first_leg" (0.053 every_leg); cylinder L=50 0.44 vs 0.16 (0.10).
+#: on what it models: a GP on the residual vs the forecast on every leg's residuals
+#: ("every_leg": the model's error grows and changes shape over a campaign), a GP on the
+#: samples alone once on the initial state ("state"). A residual GP whose kernel was fitted on
+#: the whole field (variance and length scale of the flow, not of the model's error) spreads
+#: every leg's noisy residuals far and wide: measured with the shipped KNODEs, 2 trials, PASST
+#: final-window RMSE ocean L=100 0.52 with "state" vs 0.062 with "first_leg" (0.053
+#: every_leg); cylinder L=50 0.44 vs 0.16 (0.10). With the background covariance (200
+#: snapshots, factor fixed at 1), 6 trials, L=50: ocean 0.0832 first_leg vs 0.0564 every_leg;
+#: without it 0.0810 vs 0.0693 (the model alone: 0.0756).
 CAMPAIGN_HYPER = ("every_leg", "first_leg", "state", "auto")
 
 
@@ -201,7 +207,7 @@ def _hyper_for(hyper: str, residual: bool) -> str:
     """The :data:`passt_mav.passt.HYPER` schedule of one GP: ``auto`` resolved by what it models."""
     if hyper != "auto":
         return hyper
-    return "first_leg" if residual else "state"
+    return "every_leg" if residual else "state"
 
 
 def _method_kw(cfg: dict, m: str, predictor) -> tuple:
@@ -239,7 +245,7 @@ def _lockstep_body(field, predictor, cfg: dict, L: int, trials: list[int]) -> li
     starts = [_start_cell(field, cfg, L, i) for i in trials]
     seeds = [int(cfg["seed"]) + i for i in trials]
     outs = [{"L": L, "trial": i, "start": list(st), "rmse": {}, "pod": {}, "snap": {}, "plan_ms": {}} for i, st in zip(trials, starts)]
-    common = dict(t0=t0, n_steps=T, path_length=L, steps_per_leg=cfg["steps_per_leg"], noise_std=cfg["noise"], sample_at=cfg.get("sampling", "end"), gp_kw=cfg.get("gp_kw"), kernel_cache=_KERNEL_CACHE)
+    common = dict(t0=t0, n_steps=T, path_length=L, steps_per_leg=cfg["steps_per_leg"], noise_std=cfg["noise"], sample_at=cfg.get("sampling", "end"), gp_kw=cfg.get("gp_kw"), kernel_cache=_KERNEL_CACHE, background=cfg.get("background", 0))
     for m in cfg["methods"]:
         if m == "model":
             continue
@@ -257,7 +263,7 @@ def _trial_body(field, predictor, cfg: dict, L: int, trial: int) -> dict:
     start = _start_cell(field, cfg, L, trial)
     t0, T = cfg["t0"], cfg["steps"]
     truth = field.data[t0 : t0 + T + 1].astype("float64")
-    common = dict(start_cell=start, t0=t0, n_steps=T, path_length=L, steps_per_leg=cfg["steps_per_leg"], noise_std=cfg["noise"], sample_at=cfg.get("sampling", "end"), gp_kw=cfg.get("gp_kw"), seed=seed)
+    common = dict(start_cell=start, t0=t0, n_steps=T, path_length=L, steps_per_leg=cfg["steps_per_leg"], noise_std=cfg["noise"], sample_at=cfg.get("sampling", "end"), gp_kw=cfg.get("gp_kw"), seed=seed, background=cfg.get("background", 0))
     out: dict = {"L": L, "trial": trial, "start": list(start), "rmse": {}, "pod": {}, "snap": {}, "plan_ms": {}}
     for m in cfg["methods"]:
         if m == "model":
@@ -268,7 +274,7 @@ def _trial_body(field, predictor, cfg: dict, L: int, trial: int) -> dict:
     return out
 
 
-def run_campaign(field, predictor, *, path_lengths=(25, 50, 75, 100, 150, 200), trials: int = 30, planner: str = "policy_gradient", reward: str = "speed", steps: int = 300, t0: int = 0, steps_per_leg: int = 10, noise: float = 0.02, hyper: str = "every_leg", sampling: str = "end", baseline_prior: str = "none", methods=METHODS, window: int = 50, snapshot_step: int = 250, seed: int = 0, pod_modes: int = 6, workers: int = 1, scheduler=None, progress: bool = True, engine: str = "serial", batch: int | None = None, gp_solver: str = "sklearn", keep_trials: bool = False, fast_predict: bool = False) -> dict:
+def run_campaign(field, predictor, *, path_lengths=(25, 50, 75, 100, 150, 200), trials: int = 30, planner: str = "policy_gradient", reward: str = "speed", steps: int = 300, t0: int = 0, steps_per_leg: int = 10, noise: float = 0.02, hyper: str = "every_leg", sampling: str = "end", baseline_prior: str = "none", methods=METHODS, window: int = 50, snapshot_step: int = 250, seed: int = 0, pod_modes: int = 6, workers: int = 1, scheduler=None, progress: bool = True, engine: str = "serial", batch: int | None = None, gp_solver: str = "sklearn", keep_trials: bool = False, fast_predict: bool = False, background: int = 0) -> dict:
     """Run the campaign; returns the results dict (JSON-able). ``scheduler``: a Dask
     address string or a ``distributed.Client``. Same seeds give the same numbers
     whichever way the trials are spread.
@@ -286,7 +292,10 @@ def run_campaign(field, predictor, *, path_lengths=(25, 50, 75, 100, 150, 200), 
     for tests and debugging. fast_predict: run a KNODE through its compiled prediction
     path (:attr:`passt_mav.models.knode.KnodePredictor.fast_predict`, 1.6x, fp32
     rounding of the eager path) for the model-alone roll-out and every leg, in every
-    worker; other predictors ignore it.
+    worker; other predictors ignore it. background: snapshots of the model's roll-out
+    whose anomaly covariance every residual GP (PASST's, and the baselines' with
+    ``baseline_prior="forecast"``) adds to its stationary kernels
+    (:func:`passt_mav.reconstruction.model_background`); 0 = none.
     """
     import numpy as np
 
@@ -317,8 +326,10 @@ def run_campaign(field, predictor, *, path_lengths=(25, 50, 75, 100, 150, 200), 
         raise PlannerError(f"unknown GP hyper-parameter schedule {hyper!r}; choose one of {', '.join(CAMPAIGN_HYPER)}")
     if batch is not None and int(batch) < 1:
         raise PlannerError("--batch must be >= 1")
+    if int(background) < 0 or int(background) == 1:
+        raise PlannerError(f"--background must be 0 (none) or >= 2 snapshots, got {background}")
     steps = int(min(steps, field.n_times - 1 - t0))
-    cfg = dict(seed=seed, t0=t0, steps=steps, steps_per_leg=steps_per_leg, noise=noise, hyper=hyper, sampling=sampling, planner=planner, reward=reward, baseline_prior=baseline_prior, methods=methods, snapshot_step=snapshot_step, pod_modes=pod_modes, engine=engine, gp_kw={"solver": gp_solver}, keep_paths=bool(keep_trials), fast_predict=bool(fast_predict))
+    cfg = dict(seed=seed, t0=t0, steps=steps, steps_per_leg=steps_per_leg, noise=noise, hyper=hyper, sampling=sampling, planner=planner, reward=reward, baseline_prior=baseline_prior, methods=methods, snapshot_step=snapshot_step, pod_modes=pod_modes, engine=engine, gp_kw={"solver": gp_solver}, keep_paths=bool(keep_trials), fast_predict=bool(fast_predict), background=int(background))
     truth = field.data[t0 : t0 + steps + 1].astype(np.float64)
     with _fast_path(predictor, fast_predict):
         pure = run_pure_model(field, predictor, t0=t0, n_steps=steps) if "model" in methods else None
@@ -632,7 +643,7 @@ def run(args: argparse.Namespace) -> int:
         raise PlannerError("--boats must be >= 1")
     if args.boats > 1:
         return _run_fleet(args, field, predictor, lengths[0], out_dir)
-    summary = run_campaign(field, predictor, path_lengths=lengths, trials=args.trials, planner=args.planner, reward=args.reward, steps=args.steps, t0=args.t0, steps_per_leg=args.steps_per_leg, noise=args.noise, hyper=args.hyper, sampling=args.sampling, baseline_prior=args.baseline_prior, methods=methods, window=args.window, snapshot_step=args.snapshot_step, seed=args.seed, workers=args.workers, scheduler=args.scheduler, engine=args.engine, batch=args.batch, gp_solver=args.gp_solver, fast_predict=args.fast_predict)
+    summary = run_campaign(field, predictor, path_lengths=lengths, trials=args.trials, planner=args.planner, reward=args.reward, steps=args.steps, t0=args.t0, steps_per_leg=args.steps_per_leg, noise=args.noise, hyper=args.hyper, sampling=args.sampling, baseline_prior=args.baseline_prior, methods=methods, window=args.window, snapshot_step=args.snapshot_step, seed=args.seed, workers=args.workers, scheduler=args.scheduler, engine=args.engine, batch=args.batch, gp_solver=args.gp_solver, fast_predict=args.fast_predict, background=args.background)
     summary["config"].update(data=args.data, model=args.model, command="passt-mav evaluate " + " ".join(sys.argv[2:]) if sys.argv[1:2] == ["evaluate"] else None)
     files = write_figures(summary, out_dir)
     snaps = summary.pop("_snapshots")

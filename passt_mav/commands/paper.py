@@ -5,12 +5,14 @@ cylinder wake with the shipped cylinder KNODE (``builtin:cylinder``), the ocean 
 with the shipped ocean KNODE (``builtin:ocean``) - x path lengths (25, 50, 75, 100, 150,
 200 moves per leg) x 30 trials x 300 steps from snapshot 0, legs of 10 snapshots, sensor
 noise 0.02; methods PASST / model alone / lawnmower+GP / greedy+GP / random+GP. Each GP's
-kernel is fitted once and then held fixed (the paper's fixed kernel), on what that GP
-models (``--hyper auto``): PASST's residual GP on its first leg's residuals vs the forecast,
-the GP-only baselines on the initial state (one fit per configuration); ``--hyper
-every_leg`` refits every leg (slower), ``--hyper state`` fits every GP on the initial state
-(wrong for a residual GP: it made PASST worse than the model alone, see
-:data:`passt_mav.commands.evaluate.CAMPAIGN_HYPER`).
+kernel is fitted on what that GP models (``--hyper auto``): PASST's residual GP on every
+leg's residuals vs the forecast (the model's error grows and changes over a campaign), the
+GP-only baselines once on the initial state (one fit per configuration, then held fixed:
+the paper's fixed kernel); ``--hyper first_leg`` fits the residual GP once, ``--hyper
+state`` fits every GP on the initial state (wrong for a residual GP: it made PASST worse
+than the model alone, see :data:`passt_mav.commands.evaluate.CAMPAIGN_HYPER`). PASST's
+residual GP also carries the model's background covariance (``--background``, default
+200 snapshots of the model's roll-out; :func:`passt_mav.reconstruction.model_background`).
 
 The campaign runs on the lockstep engine (:func:`passt_mav.commands.evaluate.run_campaign`):
 a path length's trials advance together, one batched model call per leg (the KNODE's
@@ -28,6 +30,8 @@ from __future__ import annotations
 
 import argparse
 import sys
+
+from passt_mav.reconstruction.background import DEFAULT_BACKGROUND
 
 HELP = "The paper's offline evaluation (3 scenarios x path lengths x 30 trials, 5 methods) -> one HTML page with its claims checked"
 EXAMPLES = """examples:
@@ -53,7 +57,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--steps", type=int, default=None, help="snapshots estimated after the start (default 300; --quick 30)")
     p.add_argument("--path-lengths", default=None, help="comma-separated moves per leg (default 25,50,75,100,150,200; --quick 50)")
     p.add_argument("--scenarios", default=",".join(s[0] for s in SCENARIOS), help="subset of cylinder,oscillating,ocean")
-    p.add_argument("--hyper", default="auto", help="GP hyper-parameters: auto (default: each GP fitted once on what it models - PASST's residual GP on its first leg's residuals, the GP-only baselines on the initial state) | state | first_leg | every_leg")
+    p.add_argument("--hyper", default="auto", help="GP hyper-parameters: auto (default: each GP fitted on what it models - PASST's residual GP on every leg's residuals, the GP-only baselines once on the initial state) | state | first_leg | every_leg")
+    p.add_argument("--background", type=int, default=DEFAULT_BACKGROUND, metavar="STEPS", help=f"PASST's residual GP adds the anomaly covariance of STEPS snapshots of the model's roll-out (default {DEFAULT_BACKGROUND}; 0 = stationary kernels only)")
     p.add_argument("--gp-solver", choices=("cholesky", "sklearn"), default="cholesky", help="GP posterior with the fixed kernel: a direct Cholesky solve with cached covariance columns (default; the mean only, unless the reward needs the std) or sklearn's regressor per leg (~10x slower per leg; equal to 1e-6 per reconstruction)")
     p.add_argument("--scheduler", default=None, help="address of a Dask distributed scheduler: the campaign's batches run there")
     p.add_argument("--workers", type=int, default=1, help="local worker processes (joblib) when no --scheduler (default 1)")
@@ -81,7 +86,9 @@ def _protocol(args) -> dict:
         raise PlannerError("--batch must be >= 1")
     if args.workers < 1:
         raise PlannerError("--workers must be >= 1")
-    return dict(trials=trials, steps=steps, path_lengths=lengths, scenarios=[known[n] for n in names], steps_per_leg=10, noise=0.02, t0=0, hyper=args.hyper, gp_solver=args.gp_solver, seed=args.seed, snapshot_step=250, window=50)
+    if args.background < 0 or args.background == 1:
+        raise PlannerError(f"--background must be 0 (none) or >= 2 snapshots, got {args.background}")
+    return dict(background=args.background, trials=trials, steps=steps, path_lengths=lengths, scenarios=[known[n] for n in names], steps_per_leg=10, noise=0.02, t0=0, hyper=args.hyper, gp_solver=args.gp_solver, seed=args.seed, snapshot_step=250, window=50)
 
 
 def _trial_legs(proto: dict) -> int:
@@ -93,7 +100,7 @@ def _trial_legs(proto: dict) -> int:
 def _campaign(field, predictor, proto: dict, path_lengths, trials: int, steps: int, *, scheduler=None, workers: int = 1, batch=None, progress=True) -> dict:
     from passt_mav.commands.evaluate import run_campaign
 
-    return run_campaign(field, predictor, path_lengths=tuple(path_lengths), trials=trials, steps=steps, t0=proto["t0"], steps_per_leg=proto["steps_per_leg"], noise=proto["noise"], hyper=proto["hyper"], seed=proto["seed"], snapshot_step=proto["snapshot_step"], window=proto["window"], engine="lockstep", batch=batch, scheduler=scheduler, workers=workers, progress=progress, fast_predict=True, gp_solver=proto.get("gp_solver", "cholesky"))
+    return run_campaign(field, predictor, path_lengths=tuple(path_lengths), trials=trials, steps=steps, t0=proto["t0"], steps_per_leg=proto["steps_per_leg"], noise=proto["noise"], hyper=proto["hyper"], seed=proto["seed"], snapshot_step=proto["snapshot_step"], window=proto["window"], engine="lockstep", batch=batch, scheduler=scheduler, workers=workers, progress=progress, fast_predict=True, gp_solver=proto.get("gp_solver", "cholesky"), background=proto.get("background", 0))
 
 
 def _load(spec_field: str, spec_model: str, cache: dict):
@@ -289,7 +296,7 @@ def write_page(res: dict, out_dir) -> "Path":  # noqa: F821 - pathlib imported i
     page.add("<h1>PASST: the paper's offline evaluation</h1>")
     page.add(f'<p class="status">{"Quick version (CI): few trials and steps - not the paper&#39;s numbers. " if proto.get("quick") else ""}'
              f'{len(proto["scenarios"])} scenario(s) x L = {html.escape(str(proto["path_lengths"]))} x {proto["trials"]} trials x {proto["steps"]} steps; '
-             f'GP hyper-parameters: {html.escape(proto["hyper"])}, solver {html.escape(str(proto.get("gp_solver", "sklearn")))}; {res.get("trial_legs", 0)} trial-legs in {res.get("wall_s", 0):.0f} s.</p>')
+             f'GP hyper-parameters: {html.escape(proto["hyper"])}, background roll-out {proto.get("background", 0)} snapshots, solver {html.escape(str(proto.get("gp_solver", "sklearn")))}; {res.get("trial_legs", 0)} trial-legs in {res.get("wall_s", 0):.0f} s.</p>')
     page.h2("The paper's claims beside our numbers")
     rows = "".join(
         f"<tr><td>{html.escape(c['claim'])}</td><td>{html.escape(str(c['paper']))}</td><td>{html.escape(c['ours'])}</td>"

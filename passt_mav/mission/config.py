@@ -15,7 +15,7 @@ Example (``missions/north_atlantic.yaml``)::
     # vehicles: [{connect: "tcp:127.0.0.1:5760"}, {connect: "tcp:127.0.0.1:5770", start_cell: [5, 5]}]
     sensors: {u: CUR_U, v: CUR_V, noise_std: 0.02}
     geofence_margin_m: 500
-    gp: {prior: forecast, hyper: every_leg, options: {}}
+    gp: {prior: forecast, hyper: every_leg, background: 200, options: {}}
     seeds: {planner: 0, gp: 0, sensor: 0, field: 0}
 
 ``region`` is geographic (south/west/north/east/rows/cols: the lat/lon of the
@@ -52,6 +52,7 @@ from pydantic import (
 )
 
 from passt_mav.errors import MissionConfigError
+from passt_mav.reconstruction.background import DEFAULT_BACKGROUND
 
 __all__ = [
     "MissionConfig",
@@ -262,10 +263,21 @@ class SensorConfig(_Strict):
 
 class GPConfig(_Strict):
     """GP reconstruction: prior ``forecast`` (residual vs the model forecast) or ``constant``
-    (the paper's GP on samples alone); hyper-parameter schedule; GPReconstructor options."""
+    (the paper's GP on samples alone); hyper-parameter schedule; ``background``: snapshots of
+    the model's roll-out whose anomaly covariance the residual GP adds to its stationary
+    kernels (0 = none; see :func:`passt_mav.reconstruction.model_background`);
+    GPReconstructor options."""
 
     prior: Literal["forecast", "constant"] = "forecast"
     hyper: Literal["first_leg", "state", "every_leg"] = "every_leg"
+    background: int = Field(default=DEFAULT_BACKGROUND, ge=0)
+
+    @field_validator("background")
+    @classmethod
+    def _background(cls, v: int) -> int:
+        if v == 1:
+            raise ValueError("a background roll-out needs 0 (none) or at least 2 snapshots")
+        return v
     options: dict[str, Any] = Field(default_factory=dict)
 
     @property
