@@ -393,11 +393,12 @@ def _fleet_starts(field, seed: int, trial: int, L: int, n: int) -> list[tuple[in
     return [first] + [water[j] for j in pick]
 
 
-def fleet_comparison(field, predictor, *, boats: int, path_length: int, trials: int = 10, planner: str = "policy_gradient", reward: str = "speed", steps: int = 300, t0: int = 0, steps_per_leg: int = 10, noise: float = 0.02, hyper: str = "every_leg", sampling: str = "end", window: int = 50, seed: int = 0, progress: bool = True) -> dict:
+def fleet_comparison(field, predictor, *, boats: int, path_length: int, trials: int = 10, planner: str = "policy_gradient", reward: str = "speed", steps: int = 300, t0: int = 0, steps_per_leg: int = 10, noise: float = 0.02, hyper: str = "every_leg", sampling: str = "end", window: int = 50, seed: int = 0, progress: bool = True, background: int = 0) -> dict:
     """PASST with 1..``boats`` boats of ``path_length`` moves each, and one boat of ``boats`` x
     ``path_length`` moves (the fleet's budget in one path), over ``trials`` seeded trials
     (:func:`passt_mav.passt.run_offline_fleet`). Returns per configuration the mean RMSE over
-    time, the final-window mean and each trial's final-window value (field units)."""
+    time, the final-window mean and each trial's final-window value (field units).
+    ``background``: as in :func:`run_campaign`."""
     import numpy as np
 
     from passt_mav.passt import run_offline_fleet
@@ -408,7 +409,7 @@ def fleet_comparison(field, predictor, *, boats: int, path_length: int, trials: 
     truth = field.data[t0 : t0 + T + 1].astype("float64")
     out: dict = {"config": {"boats": boats, "path_length": path_length, "trials": trials, "steps": T, "t0": t0,
                             "steps_per_leg": steps_per_leg, "noise": noise, "window": window, "seed": seed,
-                            "planner": planner, "reward": reward, "hyper": hyper, "sampling": sampling},
+                            "planner": planner, "reward": reward, "hyper": hyper, "sampling": sampling, "background": background},
                  "runs": {}}
     from threadpoolctl import threadpool_limits
 
@@ -422,7 +423,7 @@ def fleet_comparison(field, predictor, *, boats: int, path_length: int, trials: 
         for name, n, L, i in it:
             r = run_offline_fleet(field, predictor, start_cells=_fleet_starts(field, seed, i, path_length, n), t0=t0,
                                   n_steps=T, planner=planner, reward=reward, path_length=L, steps_per_leg=steps_per_leg,
-                                  noise_std=noise, hyper=_hyper_for(hyper, residual=True), sample_at=sampling, seed=seed + i)
+                                  noise_std=noise, hyper=_hyper_for(hyper, residual=True), sample_at=sampling, seed=seed + i, background=background)
             series.setdefault(name, []).append(_rmse_series(r.estimate, truth))
     for name, n, L in configs:
         arr = np.array(series[name])
@@ -672,7 +673,7 @@ def _run_fleet(args, field, predictor, L: int, out_dir) -> int:
 
     res = fleet_comparison(field, predictor, boats=args.boats, path_length=L, trials=args.trials, planner=args.planner,
                            reward=args.reward, steps=args.steps, t0=args.t0, steps_per_leg=args.steps_per_leg,
-                           noise=args.noise, hyper=args.hyper, sampling=args.sampling, window=args.window, seed=args.seed)
+                           noise=args.noise, hyper=args.hyper, sampling=args.sampling, window=args.window, seed=args.seed, background=args.background)
     res["config"].update(data=args.data, model=args.model)
     fig = write_fleet_figure(res, out_dir)
     (out_dir / "fleet.json").write_text(json.dumps(res) + "\n")
