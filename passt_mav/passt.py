@@ -329,9 +329,7 @@ class PasstLoop:
         if self._background_pending:  # once, from the first leg's initial state
             self._background_pending = False
             if self.gp.background is None:
-                from passt_mav.reconstruction import model_background
-
-                self.gp.background = model_background(self.predictor, fc[0], self.background_steps, land=self.land)
+                self.gp.background = _background_or_none(self.predictor, fc[0], self.background_steps, self.land)
         if self.hyper == "every_leg" or not hasattr(self.gp, "kernels_"):
             if self.hyper == "state":
                 self.gp.fit_field(fc[0])
@@ -344,6 +342,21 @@ class PasstLoop:
         self.std = std
         self.leg_index += 1
         return mean
+
+
+def _background_or_none(predictor, state, steps: int, land):
+    """:func:`passt_mav.reconstruction.model_background`, or ``None`` with a one-line warning when
+    the model's roll-out is not finite: the loop then goes on with the stationary kernels (a
+    mission must not stop because the model diverges from its initial state)."""
+    import warnings
+
+    from passt_mav.reconstruction import model_background
+
+    try:
+        return model_background(predictor, state, steps, land=land)
+    except ReconstructionError as exc:
+        warnings.warn(f"no background covariance: {exc}; the GP uses its stationary kernels only", RuntimeWarning, stacklevel=2)
+        return None
 
 
 @dataclass
@@ -538,12 +551,10 @@ def run_offline_lockstep(field, predictor, *, start_cells, seeds, t0: int = 0, n
         for lp in loops:
             lp.gp.kernels_, lp.gp.cell_m_, lp.gp.n_inputs_ = cache[key]
     if loops[0].background_steps and n_steps >= steps_per_leg:
-        from passt_mav.reconstruction import model_background
-
         cache = kernel_cache if kernel_cache is not None else {}
         bkey = ("background", id(predictor), loops[0].background_steps, state0.tobytes())
         if bkey not in cache or cache[bkey][0] is not predictor:
-            cache[bkey] = (predictor, model_background(predictor, state0, loops[0].background_steps, land=land))
+            cache[bkey] = (predictor, _background_or_none(predictor, state0, loops[0].background_steps, land))
         for lp in loops:
             lp.gp.background, lp._background_pending = cache[bkey][1], False
     states = np.repeat(state0[None], B, axis=0)

@@ -217,6 +217,20 @@ def test_background_covariance_corrects_the_drift_far_from_the_track(field):
     with pytest.raises(Exception, match="background"):
         PasstLoop(pred, field.grid, background=1)
 
+    class Diverging(ShiftPredictor):
+        """Fine over a leg, blows up over a long roll-out."""
+
+        def predict(self, state, steps):
+            out = super().predict(state, steps)
+            if steps > 50:
+                out[-1] = np.inf
+            return out
+
+    # a model whose roll-out diverges: the loop warns in one line and goes on without a background
+    with pytest.warns(RuntimeWarning, match="no background covariance"):
+        r = run_offline(field, Diverging(WRONG_VEL), background=100, **dict(kw, n_steps=20))
+    assert np.isfinite(r.estimate).all()
+
 
 @pytest.mark.parametrize("hyper,background", [("state", 0), ("every_leg", 0), ("every_leg", 40)])
 def test_lockstep_equals_serial_runs(field, hyper, background):
