@@ -222,6 +222,7 @@ class PasstLoop:
         from passt_mav.planning import REWARDS, make_planner
         from passt_mav.planning.rewards import REWARDS_USING_STD
         from passt_mav.reconstruction import GPReconstructor
+        from passt_mav.reconstruction.background import background_steps_problem
 
         if reward not in REWARDS:
             raise PlannerError(f"unknown reward {reward!r}; choose one of {', '.join(REWARDS)}")
@@ -240,8 +241,9 @@ class PasstLoop:
         self.land = np.zeros(grid.shape, bool) if land is None else np.asarray(land, bool)
         self.seed = int(seed)
         self.gp = GPReconstructor(grid_xy=grid.centres_xy(), prior=prior, **(gp_kw or {}))
-        if int(background) < 0 or int(background) == 1:
-            raise ReconstructionError(f"background roll-out must be 0 (none) or >= 2 snapshots, got {background}")
+        problem = background_steps_problem(background)
+        if problem:
+            raise ReconstructionError(problem)
         self.background_steps = int(background) if predictor is not None and prior == "forecast" else 0
         self._background_pending = bool(self.background_steps)
         # GP posterior std of the last reconstruction; computed only for a reward that

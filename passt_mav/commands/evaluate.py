@@ -24,7 +24,7 @@ import argparse
 import contextlib
 import sys
 
-from passt_mav.reconstruction.background import DEFAULT_BACKGROUND
+from passt_mav.reconstruction.background import DEFAULT_BACKGROUND, background_steps_problem
 
 HELP = "Offline PASST campaign: trials x path lengths, RMSE over time and POD energy"
 EXAMPLES = """examples:
@@ -326,8 +326,9 @@ def run_campaign(field, predictor, *, path_lengths=(25, 50, 75, 100, 150, 200), 
         raise PlannerError(f"unknown GP hyper-parameter schedule {hyper!r}; choose one of {', '.join(CAMPAIGN_HYPER)}")
     if batch is not None and int(batch) < 1:
         raise PlannerError("--batch must be >= 1")
-    if int(background) < 0 or int(background) == 1:
-        raise PlannerError(f"--background must be 0 (none) or >= 2 snapshots, got {background}")
+    problem = background_steps_problem(background)
+    if problem:
+        raise PlannerError(f"--background: {problem}")
     steps = int(min(steps, field.n_times - 1 - t0))
     cfg = dict(seed=seed, t0=t0, steps=steps, steps_per_leg=steps_per_leg, noise=noise, hyper=hyper, sampling=sampling, planner=planner, reward=reward, baseline_prior=baseline_prior, methods=methods, snapshot_step=snapshot_step, pod_modes=pod_modes, engine=engine, gp_kw={"solver": gp_solver}, keep_paths=bool(keep_trials), fast_predict=bool(fast_predict), background=int(background))
     truth = field.data[t0 : t0 + steps + 1].astype(np.float64)

@@ -31,7 +31,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from passt_mav.reconstruction.background import DEFAULT_BACKGROUND
+from passt_mav.reconstruction.background import DEFAULT_BACKGROUND, background_steps_problem
 
 HELP = "The paper's offline evaluation (3 scenarios x path lengths x 30 trials, 5 methods) -> one HTML page with its claims checked"
 EXAMPLES = """examples:
@@ -86,8 +86,9 @@ def _protocol(args) -> dict:
         raise PlannerError("--batch must be >= 1")
     if args.workers < 1:
         raise PlannerError("--workers must be >= 1")
-    if args.background < 0 or args.background == 1:
-        raise PlannerError(f"--background must be 0 (none) or >= 2 snapshots, got {args.background}")
+    problem = background_steps_problem(args.background)
+    if problem:
+        raise PlannerError(f"--background: {problem}")
     return dict(background=args.background, trials=trials, steps=steps, path_lengths=lengths, scenarios=[known[n] for n in names], steps_per_leg=10, noise=0.02, t0=0, hyper=args.hyper, gp_solver=args.gp_solver, seed=args.seed, snapshot_step=250, window=50)
 
 

@@ -52,7 +52,7 @@ from pydantic import (
 )
 
 from passt_mav.errors import MissionConfigError
-from passt_mav.reconstruction.background import DEFAULT_BACKGROUND
+from passt_mav.reconstruction.background import DEFAULT_BACKGROUND, background_steps_problem
 
 __all__ = [
     "MissionConfig",
@@ -275,8 +275,9 @@ class GPConfig(_Strict):
     @field_validator("background")
     @classmethod
     def _background(cls, v: int) -> int:
-        if v == 1:
-            raise ValueError("a background roll-out needs 0 (none) or at least 2 snapshots")
+        problem = background_steps_problem(v)
+        if problem:
+            raise ValueError(problem)
         return v
     options: dict[str, Any] = Field(default_factory=dict)
 

@@ -24,7 +24,7 @@ import numpy as np
 
 from passt_mav.errors import ReconstructionError
 
-__all__ = ["model_background", "BACKGROUND_ENERGY", "BACKGROUND_MAX_MODES", "DEFAULT_BACKGROUND"]
+__all__ = ["model_background", "background_steps_problem", "BACKGROUND_ENERGY", "BACKGROUND_MAX_MODES", "DEFAULT_BACKGROUND"]
 
 #: the product's roll-out length (snapshots) for the background (mission files, ``evaluate``,
 #: ``paper``): 8 shedding periods of the cylinder wake, 200 h of the ocean default
@@ -36,7 +36,16 @@ BACKGROUND_ENERGY = 0.99
 BACKGROUND_MAX_MODES = 40
 
 
-def model_background(predictor, state, steps: int, *, land=None, energy: float = BACKGROUND_ENERGY, max_modes: int = BACKGROUND_MAX_MODES, scale: float = 1.0) -> np.ndarray | None:
+def background_steps_problem(steps) -> str | None:
+    """Why ``steps`` is not a valid background setting (0 = none, or a roll-out of >= 2
+    snapshots), or ``None`` when it is. One rule for every layer that takes the setting
+    (loop, campaign, ``paper``, mission file); each raises its own error type with it."""
+    if int(steps) == 0 or int(steps) >= 2:
+        return None
+    return f"a background roll-out needs 0 (none) or at least 2 snapshots, got {steps}"
+
+
+def model_background(predictor, state, steps: int, *, land=None, energy: float = BACKGROUND_ENERGY, max_modes: int = BACKGROUND_MAX_MODES) -> np.ndarray | None:
     """Background covariance modes from ``steps`` predicted snapshots after ``state``.
 
     Args:
@@ -46,7 +55,6 @@ def model_background(predictor, state, steps: int, *, land=None, energy: float =
         land: (R, C) bool, True = land (default: where ``state`` is NaN).
         energy: keep the fewest leading modes that carry this fraction of the anomaly
             energy (the trace of ``B``), at most ``max_modes``.
-        scale: multiplies ``B`` (the modes by ``sqrt(scale)``).
 
     Returns (m, 2, R, C) float64 modes (NaN on land), or ``None`` when the roll-out does
     not vary (e.g. persistence): there is then no background to add.
@@ -73,7 +81,7 @@ def model_background(predictor, state, steps: int, *, land=None, energy: float =
         return None
     keep = int(np.searchsorted(np.cumsum(lam.clip(min=0)) / total, float(energy)) + 1)
     keep = max(1, min(keep, int(max_modes), int((lam > 1e-12 * lam[0]).sum())))
-    modes = (V[:, :keep].T @ A) * np.sqrt(float(scale) / (n - 1))
+    modes = (V[:, :keep].T @ A) * np.sqrt(1.0 / (n - 1))
     modes = modes.reshape((keep,) + X.shape[1:])
     modes[:, :, land] = np.nan
     return modes
