@@ -65,6 +65,17 @@ def gaussian_kernel(size: int = 5, variance: float = 0.1) -> np.ndarray:
     return (g / g.sum()).astype(np.float32)
 
 
+def shift_field_rows(a: np.ndarray, s: int) -> np.ndarray:
+    """``a`` (``(..., rows, cols)``) moved by ``s`` rows toward higher row index (``s < 0``:
+    lower), the rows that enter copying the nearest edge row (replicate padding); ``s = 0``
+    returns ``a`` itself. Rows are the grid's y / north axis (row 0 = southernmost)."""
+    s = int(s)
+    if s == 0:
+        return a
+    R = a.shape[-2]
+    return np.take(a, np.clip(np.arange(R) - s, 0, R - 1), axis=-2)
+
+
 def _torch():
     import torch
 
@@ -205,12 +216,19 @@ class KnodePredictor(Predictor):
             loss, default) or ``"last"`` (the last epoch; for a roll-out horizon longer than
             the validation window, whose short roll-outs cannot see long-horizon drift -
             the validation curve is still recorded).
+        shift_rows: augmentation (0 = off): every training initial condition and its
+            roll-out targets are moved together by a random whole number of rows in
+            ``[-shift_rows, shift_rows]`` (drawn per initial condition and epoch; rows are
+            the grid's y / north axis), the rows that enter at the edge copying the edge row.
+            For a wake crop this says the flow's dynamics do not depend on where the wake
+            sits across the stream: a cylinder that moves sideways sheds the same street,
+            displaced. Validation then covers every shift too. Needs a field without land.
     """
 
     name = "knode"
 
     def __init__(self, *, epochs: int = 100, lr: float = 1e-3, noise_var: float = 1e-3, n_batches: int = 1, substeps: int = 6, method: str = "euler", channels: tuple = CHANNELS, hidden: int = 128, kernel_size: int = 5, kernel_variance: float = 0.1, seed: int = 0, device: str = "cpu", progress: bool = True, batch_size: int = 256,
-                 loss: str = "one_step", horizon: int = 10, curriculum: float = 0.5, noise: str = "white", noise_scale: float = 1.0, noise_samples: int = 12, noise_path_length: int = 50, noise_sensor_std: float = 0.02, val_frac: float = 0.0, val_every: int = 1, patience: int = 0, train_batch: int = 64, max_ics: int = 0, clip_grad: float = 1.0, zero_init: bool = False, compile: bool = False, init: str | None = None, select: str = "best", fast_predict: bool = False):
+                 loss: str = "one_step", horizon: int = 10, curriculum: float = 0.5, noise: str = "white", noise_scale: float = 1.0, noise_samples: int = 12, noise_path_length: int = 50, noise_sensor_std: float = 0.02, val_frac: float = 0.0, val_every: int = 1, patience: int = 0, train_batch: int = 64, max_ics: int = 0, clip_grad: float = 1.0, zero_init: bool = False, compile: bool = False, init: str | None = None, select: str = "best", fast_predict: bool = False, shift_rows: int = 0):
         self.epochs = epochs
         self.lr = lr
         self.noise_var = noise_var
@@ -244,6 +262,7 @@ class KnodePredictor(Predictor):
         self.init = None if init is None else str(init)
         self.select = select
         self.fast_predict = bool(fast_predict)
+        self.shift_rows = shift_rows
         self.grid_shape_ = None
 
     def __getstate__(self) -> dict:
@@ -257,7 +276,7 @@ class KnodePredictor(Predictor):
         return {"channels": list(self.channels), "hidden": self.hidden, "kernel_size": self.kernel_size, "kernel_variance": self.kernel_variance, "substeps": self.substeps, "method": self.method}
 
     def _train_params(self) -> dict:
-        keys = ("loss", "horizon", "curriculum", "noise", "noise_scale", "noise_samples", "noise_path_length", "noise_sensor_std", "val_frac", "val_every", "patience", "train_batch", "max_ics", "clip_grad", "zero_init", "init", "select")
+        keys = ("loss", "horizon", "curriculum", "noise", "noise_scale", "noise_samples", "noise_path_length", "noise_sensor_std", "val_frac", "val_every", "patience", "train_batch", "max_ics", "clip_grad", "zero_init", "init", "select", "shift_rows")
         return {k: getattr(self, k) for k in keys}
 
     def _check_params(self) -> None:
@@ -277,6 +296,8 @@ class KnodePredictor(Predictor):
             raise ModelError(f"unknown weight selection {self.select!r}; choose best or last")
         if not 0 <= float(self.val_frac) < 0.9:
             raise ModelError(f"val_frac must be in [0, 0.9), got {self.val_frac!r}")
+        if int(self.shift_rows) != self.shift_rows or self.shift_rows < 0:
+            raise ModelError(f"shift_rows must be a non-negative integer, got {self.shift_rows!r}")
         if len(self.channels) != len(CONV_SPEC):
             raise ModelError(f"channels must list {len(CONV_SPEC)} widths, got {self.channels}")
 
@@ -339,7 +360,13 @@ class KnodePredictor(Predictor):
         water = np.isfinite(data).all(axis=(0, 1))  # (R, C): cells with data at every time
         if not water.any():
             raise ModelError("training window has no cell with data at every time")
+        if self.shift_rows and not water.all():
+            raise ModelError(f"shift_rows={self.shift_rows} needs a field without land or missing cells ({int((~water).sum())} of {water.size} cells have none at some time)")
+        if self.shift_rows >= R:
+            raise ModelError(f"shift_rows={self.shift_rows} must be below the grid's {R} rows")
         filled = np.where(np.isfinite(train), train, np.float32(0))
+        if self.shift_rows:  # the scaler covers what the network is trained on: every shifted copy
+            filled = np.concatenate([shift_field_rows(filled, s) for s in self._shifts()])
         mean = np.where(water, filled.mean(axis=0), 0).astype(np.float32)
         std = filled.std(axis=0)
         # land and constant cells get std 1 so scaling stays finite
@@ -362,11 +389,15 @@ class KnodePredictor(Predictor):
                 torch.nn.init.zeros_(net.fc2.bias)
         gen = torch.Generator(device=dev).manual_seed(int(self.seed) + 1)
         Z = torch.from_numpy(scale(train)).to(dev)
+        # the training window at every row shift (shift_rows augmentation; index 0 = unshifted),
+        # each scaled after shifting (the scaler is per pixel)
+        shifts = self._shifts()
+        Zs = torch.stack([Z] + [torch.from_numpy(scale(shift_field_rows(train, s))).to(dev) for s in shifts[1:]])
         w = torch.from_numpy(water.astype(np.float32)).to(dev)
         n_w = float(water.sum()) * 2
         self.mean_, self.std_, self.water_, self.grid_shape_ = mean, std, water, (R, C)
         noise = self._make_noise(field, data, s0, n_tr, dev)
-        val_sets = self._validation_sets(field, data, s0, n_tr, scale, dev)
+        val_sets = [vs for s in shifts for vs in self._validation_sets(field, shift_field_rows(data, s), s0, n_tr, scale, dev)]
         opt = torch.optim.Adam(net.parameters(), lr=self.lr)
         self._step = self._stepper(net)
         curve: list[float] = []
@@ -390,11 +421,14 @@ class KnodePredictor(Predictor):
             bs = int(math.ceil(len(order) / self.n_batches)) if self.n_batches > 1 else int(self.train_batch)
             tot = 0.0
             net.train()
+            shift_rng = np.random.default_rng(int(self.seed) * 31 + 7 * ep + 3)
             for a in range(0, len(order), bs):
                 b = torch.from_numpy(order[a : a + bs]).to(dev)
-                x = Z[b]
+                # each initial condition's row shift (all 0 without augmentation)
+                sh = torch.from_numpy(shift_rng.integers(len(shifts), size=len(b)) if len(shifts) > 1 else np.zeros(len(b), np.int64)).to(dev)
+                x = Zs[sh, b]
                 x = x + noise(x.shape, gen)
-                target = torch.stack([Z[b + k] for k in range(1, H + 1)], dim=1)
+                target = torch.stack([Zs[sh, b + k] for k in range(1, H + 1)], dim=1)
                 loss = self._rollout_loss(net, x, target, w, n_w)
                 opt.zero_grad()
                 loss.backward()
@@ -441,6 +475,11 @@ class KnodePredictor(Predictor):
         self.train_window_ = [s0, s0 + data.shape[0]]
         self.val_window_ = [s0 + n_tr, s0 + data.shape[0]] if n_tr < data.shape[0] else None
         return self
+
+    def _shifts(self) -> list[int]:
+        """Row shifts of the ``shift_rows`` augmentation, 0 first: ``[0, -n, .., -1, 1, .., n]``."""
+        n = int(self.shift_rows)
+        return [0] + [s for s in range(-n, n + 1) if s != 0]
 
     def _init_checkpoint(self, grid_shape) -> "KnodePredictor":
         """The start model of a fine-tuning run (``init``), checked against this model's shape."""
