@@ -145,8 +145,9 @@ def test_policy_gradient_fleet_keeps_apart_and_off_land(seed):
 def test_fleet_beats_one_boat_with_the_shipped_model_over_ten_trials(tmp_path):
     """The issue's acceptance: 10 trials, 300 steps, the shipped cylinder KNODE, L = 50. Measured
     (same numbers as ``passt-mav evaluate --data builtin:cylinder --model builtin:cylinder --boats 3
-    --trials 10 --path-lengths 50``, 6 min on 2 loaded cores): final-window RMSE 1 boat 0.395,
-    2 boats 0.292, 3 boats 0.200 (lower than 1 boat in 10 of 10 trials), 1 boat x 150 0.189."""
+    --trials 10 --path-lengths 50``, 5 min on 2 cores; the cylinder KNODE trained with row shifts):
+    final-window RMSE 1 boat 0.0769, 2 boats 0.0654, 3 boats 0.0545 (lower than 1 boat in 10 of 10
+    trials), 1 boat x 150 0.0560 (with the earliest shipped model: 0.395, 0.292, 0.200, 0.189)."""
     from passt_mav.models.base import load_predictor
 
     field = resolve_field("builtin:cylinder")

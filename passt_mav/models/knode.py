@@ -222,7 +222,9 @@ class KnodePredictor(Predictor):
             the grid's y / north axis), the rows that enter at the edge copying the edge row.
             For a wake crop this says the flow's dynamics do not depend on where the wake
             sits across the stream: a cylinder that moves sideways sheds the same street,
-            displaced. Validation then covers every shift too. Needs a field without land.
+            displaced. Validation then covers every shift too, and the per-pixel scaler is
+            taken over the shifted copies (a fine-tuning run keeps its start model's scaler).
+            Needs a field without land.
     """
 
     name = "knode"
