@@ -426,8 +426,8 @@ class KnodePredictor(Predictor):
             shift_rng = np.random.default_rng(int(self.seed) * 31 + 7 * ep + 3)
             for a in range(0, len(order), bs):
                 b = torch.from_numpy(order[a : a + bs]).to(dev)
-                # each initial condition's row shift (all 0 without augmentation)
-                sh = torch.from_numpy(shift_rng.integers(len(shifts), size=len(b)) if len(shifts) > 1 else np.zeros(len(b), np.int64)).to(dev)
+                # each initial condition's row shift, an index into shifts (all 0 without augmentation)
+                sh = torch.from_numpy(shift_rng.integers(len(shifts), size=len(b))).to(dev)
                 x = Zs[sh, b]
                 x = x + noise(x.shape, gen)
                 target = torch.stack([Zs[sh, b + k] for k in range(1, H + 1)], dim=1)
