@@ -231,7 +231,8 @@ def build_loop(config, predictor, grid, land=None):
     return PasstLoop(predictor, grid, planner=config.planner.name, planner_kw=dict(config.planner.options),
                      reward=config.planner.reward, path_length=config.planner.path_length,
                      steps_per_leg=config.steps_per_leg or 1, prior=config.gp.loop_prior, gp_kw=gp_kw,
-                     hyper=config.gp.hyper, land=land, seed=config.seeds.planner, background=config.gp.background)
+                     hyper=config.gp.hyper, land=land, seed=config.seeds.planner, background=config.gp.background,
+                     prior_blend=config.gp.prior_blend, forgetting=config.gp.forgetting)
 
 
 
@@ -292,10 +293,12 @@ class AbsorbedLeg:
     rmse_passt: float | None = None
     rmse_model: float | None = None
     note: str | None = None
+    gp: dict | None = None
 
     def record(self) -> dict[str, Any]:
         return {"t_state": self.t_state, "steps": self.steps, "gp_s": self.gp_s, "n_samples": self.n_samples,
-                "n_gp_points": len(self.samples), "rmse_passt": self.rmse_passt, "rmse_model": self.rmse_model}
+                "n_gp_points": len(self.samples), "rmse_passt": self.rmse_passt, "rmse_model": self.rmse_model,
+                "gp": self.gp}
 
 
 def _columns(recs) -> dict[str, np.ndarray]:
@@ -364,11 +367,14 @@ class LegStep:
         return max(0, int(round((t_now - t_state) / self.dt)))
 
     def plan(self, index: int, state, t_state: float, start_cell, *, t_now: float | None = None,
-             k: int | None = None, start_latlon=None, clock_reading=None, taken=None, avoid=None) -> PlannedLeg:
+             k: int | None = None, start_latlon=None, clock_reading=None, taken=None, avoid=None,
+             speed: float | None = None) -> PlannedLeg:
         """Forecast the state to now (``k`` snapshots, from ``t_now`` unless given) and plan leg ``index``.
 
         Does not advance the loop's leg counter (its planner seeds follow the update).
         ``taken`` / ``avoid``: a fleet's other boats (see :meth:`PasstLoop.plan_leg`).
+        ``speed``: the boat's speed (m/s) that sizes the leg in time (default the mission's
+        ``vehicle.speed_mps``; a fleet passes each boat's own).
         """
         if k is None:
             if t_now is None:
@@ -377,7 +383,8 @@ class LegStep:
         if k:
             state = self.loop.forecast(state, k)[-1]
             t_state += k * self.dt
-        steps = leg_steps(self.config, self.grid, self.speed, self.dt, float(self.config.field.time_scale))
+        steps = leg_steps(self.config, self.grid, self.speed if speed is None else float(speed), self.dt,
+                          float(self.config.field.time_scale))
         t0 = time.perf_counter()
         # the path needs the one-step prediction only (the reward map); the forecast over the whole
         # leg (the GP prior, prediction.nc) follows in forecast_leg(), while the vehicle is underway
@@ -433,7 +440,8 @@ class LegStep:
             note = "too few samples in this leg to reconstruct: the state is the forecast"
         gp_s = time.perf_counter() - t0
         r_p, r_m = self.rmse_at(state, t_new)
-        return AbsorbedLeg(samples, state, float(t_new), int(planned.steps), len(recs), gp_s, r_p, r_m, note)
+        return AbsorbedLeg(samples, state, float(t_new), int(planned.steps), len(recs), gp_s, r_p, r_m, note,
+                           self.loop.gp_summary())
 
     def rmse_at(self, state, t: float) -> tuple[float | None, float | None]:
         """RMSE (field units) of ``state`` and of the model alone (from the truth at t0, never
@@ -480,7 +488,9 @@ class FleetStep:
     Absorbing (:meth:`absorb`): the GP prior is the leg's own forecast (from the state it was
     planned from, so every sample is compared with the forecast at its own time), and the
     GP gets this leg's samples *and* those of every leg absorbed since this one was planned
-    (their information is not in its forecast). The result replaces the shared state, at
+    (their information is not in its forecast), each at its own time; another leg's samples
+    from before this leg's forecast begins are left out (they cannot be compared with it at
+    their own time). The result replaces the shared state, at
     the leg's end or at the state's time if that is later (the state never goes back in
     time, and concurrent legs never run it ahead). With one boat this is exactly
     :meth:`LegStep.absorb`.
@@ -541,6 +551,12 @@ class FleetStep:
                 taken[res["path"][:, 0], res["path"][:, 1]] = True
         taken[tuple(start)] = False
         self.loop.leg_index = i  # planner seeds by global leg number
+        # each boat's leg is sized by its own speed: sized by the mission's single-vehicle default
+        # (2 m/s) a 5 m/s boat's legs ended in the estimate's future, the shared state's time ran
+        # ahead of the boats' clocks, and the next legs compared their samples with a forecast
+        # starting hours after them (the 3-boat demo's last leg: 0.023 m/s against the model
+        # alone's 0.010)
+        kw.setdefault("speed", float(self.config.fleet[boat].speed_mps))
         try:  # first choice: none of the cells the others hold this leg
             planned = self.step.plan(i, self.state, self.t_state, start, avoid=taken, **kw)
         except PlannerError:  # boxed in by their paths: collect nothing twice, cross them at other times only
@@ -571,7 +587,15 @@ class FleetStep:
             self._plan_version.pop(planned.index, None)
             raise ReconstructionError(f"leg {planned.index}: no usable current samples")
         since = self._plan_version.pop(planned.index, self._version)
-        extra = [r for v, leg, rr in self._absorbed if v > since and leg != planned.index for r in rr]
+        # another leg's samples taken before this leg's forecast begins cannot be compared with
+        # that forecast at their own time (it starts at this leg's planning state): clipped to
+        # its first snapshot they read the flow's change since then as a model error and drag
+        # the estimate off (seen before this rule: the 3-boat demo's last leg 0.034 m/s against
+        # the model alone's 0.010). They are left out of this reconstruction: a loss of what
+        # they knew, which a smoother over the legs' overlap would keep (not built)
+        t_first = planned.t_start
+        extra = [r for v, leg, rr in self._absorbed if v > since and leg != planned.index for r in rr
+                 if r["time_boot_ms"] >= t_first]
         self.step.forecast_leg(planned)
         # the state never goes back in time: reconstruct at its time at least
         need = int(round((self.t_state - planned.t_start) / dt))

@@ -216,9 +216,25 @@ class PasstLoop:
             (:func:`passt_mav.reconstruction.model_background`); 0 = none (default). Only
             with a predictor and ``prior="forecast"``. A caller may set ``gp.background``
             itself beforehand (the lockstep engine computes it once for all trials).
+        prior_blend: "off" (the model's forecast is the GP's prior mean) or "bma": a prior
+            that knows when it is wrong. Each leg's samples are evidence about the forecasts
+            that could have been used: the model's and persistence's (the leg's initial
+            state held). Each is scored by the innovation likelihood of its residual at the
+            samples under the GP's own prior covariance as it stands before this leg's fit
+            (:meth:`GPReconstructor.innovation_loglik`: kernels, background, sensor noise;
+            one covariance for both, so the smaller and smoother residual wins); log weights add up
+            leg by leg with a ``forgetting`` factor (``lw <- forgetting * lw + ll``: memory
+            of about 1 / (1 - forgetting) legs), and the prior mean is the weighted mixture
+            (Bayesian model averaging; Hoeting, Madigan, Raftery & Volinsky 1999, Statist.
+            Sci. 14; the forgetting factor as in Raftery, Karny & Ettler 2010,
+            Technometrics 52). The weights are updated with the leg's own samples before its
+            reconstruction, and the same mixture carries the estimate between legs
+            (:meth:`blend`). A model that explains the samples better keeps a weight of ~1
+            (nothing lost); one worse than persistence is outweighed within a leg or two.
+            Recorded per leg in ``blend_history_``.
     """
 
-    def __init__(self, predictor, grid, *, planner: str = "policy_gradient", planner_kw: dict | None = None, reward: str = "speed", path_length: int = 50, steps_per_leg: int = 10, prior: str = "forecast", gp_kw: dict | None = None, hyper: str = "every_leg", land=None, seed: int = 0, background: int = 0):
+    def __init__(self, predictor, grid, *, planner: str = "policy_gradient", planner_kw: dict | None = None, reward: str = "speed", path_length: int = 50, steps_per_leg: int = 10, prior: str = "forecast", gp_kw: dict | None = None, hyper: str = "every_leg", land=None, seed: int = 0, background: int = 0, prior_blend: str = "off", forgetting: float = 0.8):
         from passt_mav.planning import REWARDS, make_planner
         from passt_mav.planning.rewards import REWARDS_USING_STD
         from passt_mav.reconstruction import GPReconstructor
@@ -249,9 +265,20 @@ class PasstLoop:
         # GP posterior std of the last reconstruction; computed only for a reward that
         # uses it (the variance is most of a leg's GP time with the cholesky solver)
         self.std: np.ndarray | None = None
+        #: the information model the last reward map was built on (variance_reduction), else None
+        self.info_ = None
         self._needs_std = reward in REWARDS_USING_STD
         self.leg_index = 0
         self._cell = grid.cell_size_m
+        if prior_blend not in PRIOR_BLENDS:
+            raise ReconstructionError(f"unknown prior blend {prior_blend!r}; choose one of {', '.join(PRIOR_BLENDS)}")
+        if not 0.0 <= float(forgetting) <= 1.0:
+            raise ReconstructionError(f"forgetting factor must lie in [0, 1], got {forgetting!r}")
+        self.prior_blend = prior_blend if predictor is not None and prior == "forecast" else "off"
+        self.forgetting = float(forgetting)
+        #: log weights of the candidate priors (:data:`PRIOR_CANDIDATES`), and one record per leg
+        self.log_weights_ = np.log(np.array(PRIOR_START_WEIGHTS))
+        self.blend_history_: list[dict] = []
 
     def forecast(self, state: np.ndarray, steps: int) -> np.ndarray:
         """(steps+1, 2, R, C) float32: ``state`` then the model's ``steps`` predictions."""
@@ -284,7 +311,8 @@ class PasstLoop:
         q, mask = self._reward_map(fc, start, taken, avoid)
         tm["reward"] = time.perf_counter() - t0
         t0 = time.perf_counter()
-        path = self.planner.plan(q, start, self.path_length, seed=self._plan_seed(), mask=mask)
+        extra = {"info": self.info_} if getattr(self.planner, "uses_information", False) else {}
+        path = self.planner.plan(q, start, self.path_length, seed=self._plan_seed(), mask=mask, **extra)
         tm["plan"] = time.perf_counter() - t0
         return LegPlan(path=path, reward=q, forecast=fc, t_start=float(t_start), dt=float(dt), steps=S, timings=tm)
 
@@ -294,15 +322,22 @@ class PasstLoop:
     def _reward_map(self, fc, start, taken=None, avoid=None) -> tuple[np.ndarray, np.ndarray]:
         """(reward (R, C), traversable mask) of a leg from its forecast (see :meth:`plan_leg`)."""
         from passt_mav.planning import compute_reward
-        from passt_mav.planning.rewards import REWARDS_USING_STATE
+        from passt_mav.planning.rewards import REWARDS_USING_PRIOR, REWARDS_USING_STATE
 
         std = self.std if self.std is not None else np.ones((2,) + self.grid.shape, np.float32)
+        self.info_ = None
+        if self.reward_name in REWARDS_USING_PRIOR:
+            # the prior of the reconstruction that will follow this leg; another boat's cells
+            # of this leg count as sampled already
+            self.info_ = self.information_model(fc[0])
+            if taken is not None and np.any(taken):
+                self.info_ = self.info_.conditioned(np.argwhere(np.asarray(taken, bool)))
         if self.reward_name in REWARDS_USING_STATE:
             # the change over the whole leg, from its initial state to the snapshot the
             # leg's samples reconstruct
             q = compute_reward(self.reward_name, fc[-1], cell_size_m=self._cell, std=std, state=fc[0])
         else:
-            q = compute_reward(self.reward_name, fc[1], cell_size_m=self._cell, std=std)
+            q = compute_reward(self.reward_name, fc[1], cell_size_m=self._cell, std=std, info=self.info_)
         mask = ~self.land & np.isfinite(fc[1]).all(axis=0)
         if taken is not None:
             q = np.where(np.asarray(taken, bool), np.zeros_like(q), q)
@@ -310,6 +345,28 @@ class PasstLoop:
             mask = mask & ~np.asarray(avoid, bool)
             mask[tuple(start)] = True
         return q, mask
+
+    def information_model(self, state):
+        """:class:`passt_mav.planning.InformationModel` of the prior the next reconstruction uses
+        (:meth:`passt_mav.reconstruction.GPReconstructor.prior_factors`: background modes with the
+        factor last fitted, the kernels last fitted, the sensor noise). ``state``: the leg's
+        initial state, from which the background is taken on the first leg (as :meth:`update`
+        would). Built once per leg and GP state (a fleet's boats share it)."""
+        from passt_mav.planning import InformationModel
+
+        self._ensure_background(state)
+        key = (self.leg_index, id(getattr(self.gp, "kernels_", None)), self.gp._background_factor() if self.gp.background is not None else None)
+        if getattr(self, "_info_key", None) != key:
+            F, d, noise = self.gp.prior_factors(self.land)
+            self._info_cache, self._info_key = InformationModel(F, d, noise, self.grid.shape), key
+        return self._info_cache
+
+    def _ensure_background(self, state) -> None:
+        """The background modes from ``state`` (the first leg's initial state), once."""
+        if self._background_pending:
+            self._background_pending = False
+            if self.gp.background is None:
+                self.gp.background = _background_or_none(self.predictor, state, self.background_steps, self.land)
 
     def update(self, leg: LegPlan, samples: Samples) -> np.ndarray:
         """Reconstruct the state at the leg's end (``t_start + steps * dt``) from its samples.
@@ -328,10 +385,9 @@ class PasstLoop:
         xy = samples.xy(self.grid)
         t_end = leg.t_start + leg.dt * leg.steps
         st = samples.t if self.hyper != "state" else None  # a field fit is spatial only
-        if self._background_pending:  # once, from the first leg's initial state
-            self._background_pending = False
-            if self.gp.background is None:
-                self.gp.background = _background_or_none(self.predictor, fc[0], self.background_steps, self.land)
+        self._ensure_background(fc[0])  # once, from the first leg's initial state
+        if self.prior_blend == "bma":
+            fc, f_at = self._weigh_priors(fc, traj, ts, samples, xy, st)
         if self.hyper == "every_leg" or not hasattr(self.gp, "kernels_"):
             if self.hyper == "state":
                 self.gp.fit_field(fc[0])
@@ -344,6 +400,73 @@ class PasstLoop:
         self.std = std
         self.leg_index += 1
         return mean
+
+
+    def gp_summary(self) -> dict:
+        """What the last reconstruction assumed, for a run's leg record: the sensor noise the GP
+        used (``noise_std``, m/s per component u, v: fitted by marginal likelihood, never below
+        the sensor's ``noise_std``), whether the samples showed a signal beyond that noise
+        (``signal_kept``; otherwise the forecast was left alone there), the background factor,
+        and the prior weights (``prior_blend="bma"``)."""
+        gp = self.gp
+        out: dict = {"sensor_noise_std": float(gp.noise_std)}
+        ks = getattr(gp, "kernels_", None)
+        if ks is not None:
+            out["noise_std"] = [float(np.sqrt(k.k2.noise_level)) for k in ks]
+        ev = getattr(gp, "evidence_", None)
+        if ev is not None:
+            out["signal_kept"] = [None if e is None else bool(e[0] >= e[1]) for e in ev]
+        if gp.background is not None:
+            out["background_factor"] = gp._background_factor()
+        if self.blend_history_:
+            out["prior_weights"] = dict(self.blend_history_[-1]["weights"])
+        return out
+
+    def _candidates(self, fc: np.ndarray) -> list[np.ndarray]:
+        """The candidate prior trajectories of :data:`PRIOR_CANDIDATES` for a model forecast ``fc``."""
+        return [fc, np.repeat(fc[:1], fc.shape[0], axis=0)]
+
+    def weights(self) -> np.ndarray:
+        """Current weights of :data:`PRIOR_CANDIDATES` (sum 1)."""
+        lw = self.log_weights_ - self.log_weights_.max()
+        w = np.exp(lw)
+        return w / w.sum()
+
+    def blend(self, fc: np.ndarray) -> np.ndarray:
+        """The estimate a model forecast ``fc`` ((S+1, 2, R, C)) stands for: ``fc`` itself, or with
+        ``prior_blend="bma"`` the candidates' mixture under the current weights (float32)."""
+        if self.prior_blend != "bma":
+            return fc
+        w = self.weights()
+        return sum(float(wk) * ck for wk, ck in zip(w, self._candidates(np.asarray(fc, np.float64)))).astype(np.float32)
+
+    def _weigh_priors(self, fc, traj, ts, samples, xy, st):
+        """Score the candidate priors on this leg's samples, update the weights, return the
+        mixture trajectory and its values at the samples (see ``prior_blend``)."""
+        from passt_mav.fields.field import FlowField
+
+        cands = self._candidates(np.asarray(fc, np.float64))
+        ats = [traj.interp(ts, samples.r, samples.c)]
+        for c in cands[1:]:
+            ats.append(FlowField(c, self.grid, traj.times).interp(ts, samples.r, samples.c))
+        ok = np.isfinite(samples.uv).all(axis=1) & np.logical_and.reduce([np.isfinite(a).all(axis=1) for a in ats])
+        sub_t = None if st is None else np.asarray(st)[ok]
+        ll = np.array([self.gp.innovation_loglik(xy[ok], samples.uv[ok] - a[ok], samples_t=sub_t) if ok.sum() >= 2 else 0.0 for a in ats])
+        self.log_weights_ = self.forgetting * self.log_weights_ + ll
+        w = self.weights()
+        self.blend_history_.append({"leg": self.leg_index, "log_likelihood": {k: float(v) for k, v in zip(PRIOR_CANDIDATES, ll)},
+                                    "weights": {k: float(v) for k, v in zip(PRIOR_CANDIDATES, w)}})
+        mix = sum(float(wk) * c for wk, c in zip(w, cands)).astype(np.float32)
+        f_at = sum(float(wk) * a for wk, a in zip(w, ats))
+        return mix, f_at
+
+
+#: the priors a ``prior_blend="bma"`` loop weighs: the model's forecast, persistence (state held)
+PRIOR_CANDIDATES = ("model", "persistence")
+#: their weights before any leg: the model trusted (its own validation said it beats persistence)
+PRIOR_START_WEIGHTS = (0.9, 0.1)
+#: values of ``PasstLoop(prior_blend=...)``
+PRIOR_BLENDS = ("off", "bma")
 
 
 def _background_or_none(predictor, state, steps: int, land):
@@ -374,7 +497,7 @@ class OfflineResult:
     legs: list[dict[str, Any]]
 
 
-def run_offline(field, predictor, *, start_cell, t0: int = 0, n_steps: int, planner: str = "policy_gradient", planner_kw: dict | None = None, reward: str = "speed", path_length: int = 50, steps_per_leg: int = 10, prior: str = "forecast", gp_kw: dict | None = None, hyper: str = "every_leg", noise_std: float = 0.0, sample_at: str = "end", seed: int = 0, initial_state=None, background: int = 0) -> OfflineResult:
+def run_offline(field, predictor, *, start_cell, t0: int = 0, n_steps: int, planner: str = "policy_gradient", planner_kw: dict | None = None, reward: str = "speed", path_length: int = 50, steps_per_leg: int = 10, prior: str = "forecast", gp_kw: dict | None = None, hyper: str = "every_leg", noise_std: float = 0.0, sample_at: str = "end", seed: int = 0, initial_state=None, background: int = 0, prior_blend: str = "off") -> OfflineResult:
     """Run PASST offline on ground truth ``field`` from snapshot ``t0`` for ``n_steps`` steps.
 
     The initial state is the truth at ``t0`` unless ``initial_state`` is given.
@@ -382,7 +505,7 @@ def run_offline(field, predictor, *, start_cell, t0: int = 0, n_steps: int, plan
     :class:`OfflineResult`; deterministic given ``seed``. ``background``: see :class:`PasstLoop`. (One boat of
     :func:`run_offline_fleet`.)
     """
-    return run_offline_fleet(field, predictor, start_cells=[start_cell], t0=t0, n_steps=n_steps, planner=planner, planner_kw=planner_kw, reward=reward, path_length=path_length, steps_per_leg=steps_per_leg, prior=prior, gp_kw=gp_kw, hyper=hyper, noise_std=noise_std, sample_at=sample_at, seed=seed, initial_state=initial_state, background=background)
+    return run_offline_fleet(field, predictor, start_cells=[start_cell], t0=t0, n_steps=n_steps, planner=planner, planner_kw=planner_kw, reward=reward, path_length=path_length, steps_per_leg=steps_per_leg, prior=prior, gp_kw=gp_kw, hyper=hyper, noise_std=noise_std, sample_at=sample_at, seed=seed, initial_state=initial_state, background=background, prior_blend=prior_blend)
 
 
 def same_step_clashes(path, others, shape) -> np.ndarray:
@@ -399,7 +522,7 @@ def same_step_clashes(path, others, shape) -> np.ndarray:
     return out
 
 
-def run_offline_fleet(field, predictor, *, start_cells, t0: int = 0, n_steps: int, planner: str = "policy_gradient", planner_kw: dict | None = None, reward: str = "speed", path_length: int = 50, steps_per_leg: int = 10, prior: str = "forecast", gp_kw: dict | None = None, hyper: str = "every_leg", noise_std: float = 0.0, sample_at: str = "end", seed: int = 0, initial_state=None, background: int = 0) -> OfflineResult:
+def run_offline_fleet(field, predictor, *, start_cells, t0: int = 0, n_steps: int, planner: str = "policy_gradient", planner_kw: dict | None = None, reward: str = "speed", path_length: int = 50, steps_per_leg: int = 10, prior: str = "forecast", gp_kw: dict | None = None, hyper: str = "every_leg", noise_std: float = 0.0, sample_at: str = "end", seed: int = 0, initial_state=None, background: int = 0, prior_blend: str = "off") -> OfflineResult:
     """:func:`run_offline` for a fleet: ``len(start_cells)`` boats, synchronous legs, one state.
 
     Each leg interval: one forecast and one reward map; the boats plan in turn, each keeping out
@@ -414,7 +537,7 @@ def run_offline_fleet(field, predictor, *, start_cells, t0: int = 0, n_steps: in
         raise PlannerError(f"start snapshot t0={t0} must lie in [0, {field.n_times - 2}]")
     n_steps = int(min(n_steps, field.n_times - 1 - t0))
     land = field.land_mask
-    loop = PasstLoop(predictor, field.grid, planner=planner, planner_kw=planner_kw, reward=reward, path_length=path_length, steps_per_leg=steps_per_leg, prior=prior, gp_kw=gp_kw, hyper=hyper, land=land, seed=seed, background=background)
+    loop = PasstLoop(predictor, field.grid, planner=planner, planner_kw=planner_kw, reward=reward, path_length=path_length, steps_per_leg=steps_per_leg, prior=prior, gp_kw=gp_kw, hyper=hyper, land=land, seed=seed, background=background, prior_blend=prior_blend)
     sampler = FieldSampler(field, noise_std=noise_std, seed=seed + 7919, steps_per_leg=steps_per_leg, sample_at=sample_at)
     dt = field.dt
     state = np.array(field.data[t0] if initial_state is None else initial_state, dtype=np.float32)
@@ -455,8 +578,8 @@ def run_offline_fleet(field, predictor, *, start_cells, t0: int = 0, n_steps: in
             plans.append(plan)
         parts = [sampler.sample_path(p.path, p.t_start) for p in plans]
         samples = Samples(*(np.concatenate([getattr(x, f) for x in parts]) for f in ("t", "r", "c", "u", "v")))
-        est[k + 1 : k + S] = plans[0].forecast[1:S]
-        state = loop.update(plans[0], samples) if S == steps_per_leg else plans[0].forecast[S]
+        est[k + 1 : k + S] = loop.blend(plans[0].forecast)[1:S]
+        state = loop.update(plans[0], samples) if S == steps_per_leg else loop.blend(plans[0].forecast)[S]
         est[k + S] = state
         legs.append({"step": k, "path": plans[0].path.tolist(), "paths": [p.path.tolist() for p in plans],
                      "timings": {key: float(sum(p.timings.get(key, 0.0) for p in plans)) for key in ("predict", "reward", "plan", "gp")},
@@ -511,7 +634,7 @@ def _batch_forecast(predictor, states: np.ndarray, steps: int, land: np.ndarray)
     return out
 
 
-def run_offline_lockstep(field, predictor, *, start_cells, seeds, t0: int = 0, n_steps: int, planner: str = "policy_gradient", planner_kw: dict | None = None, reward: str = "speed", path_length: int = 50, steps_per_leg: int = 10, prior: str = "forecast", gp_kw: dict | None = None, hyper: str = "every_leg", noise_std: float = 0.0, sample_at: str = "end", initial_state=None, kernel_cache: dict | None = None, background: int = 0) -> list[OfflineResult]:
+def run_offline_lockstep(field, predictor, *, start_cells, seeds, t0: int = 0, n_steps: int, planner: str = "policy_gradient", planner_kw: dict | None = None, reward: str = "speed", path_length: int = 50, steps_per_leg: int = 10, prior: str = "forecast", gp_kw: dict | None = None, hyper: str = "every_leg", noise_std: float = 0.0, sample_at: str = "end", initial_state=None, kernel_cache: dict | None = None, background: int = 0, prior_blend: str = "off") -> list[OfflineResult]:
     """:func:`run_offline` for B trials at once (``start_cells[b]``, ``seeds[b]``), in lockstep.
 
     All trials start from the same state and share every option but the start cell and
@@ -538,7 +661,7 @@ def run_offline_lockstep(field, predictor, *, start_cells, seeds, t0: int = 0, n
     n_steps = int(min(n_steps, field.n_times - 1 - t0))
     land = field.land_mask
     B = len(seeds)
-    loops = [PasstLoop(predictor, field.grid, planner=planner, planner_kw=planner_kw, reward=reward, path_length=path_length, steps_per_leg=steps_per_leg, prior=prior, gp_kw=gp_kw, hyper=hyper, land=land, seed=int(sd), background=background) for sd in seeds]
+    loops = [PasstLoop(predictor, field.grid, planner=planner, planner_kw=planner_kw, reward=reward, path_length=path_length, steps_per_leg=steps_per_leg, prior=prior, gp_kw=gp_kw, hyper=hyper, land=land, seed=int(sd), background=background, prior_blend=prior_blend) for sd in seeds]
     samplers = [FieldSampler(field, noise_std=noise_std, seed=int(sd) + 7919, steps_per_leg=steps_per_leg, sample_at=sample_at) for sd in seeds]
     dt = field.dt
     state0 = np.array(field.data[t0] if initial_state is None else initial_state, dtype=np.float32)
@@ -575,8 +698,8 @@ def run_offline_lockstep(field, predictor, *, start_cells, seeds, t0: int = 0, n
             leg = plans[b]
             leg.timings["predict"] = t_pred
             samples = samplers[b].sample_path(leg.path, leg.t_start)
-            est[b, k + 1 : k + S] = leg.forecast[1:S]
-            states[b] = loops[b].update(leg, samples) if S == steps_per_leg else leg.forecast[S]
+            est[b, k + 1 : k + S] = loops[b].blend(leg.forecast)[1:S]
+            states[b] = loops[b].update(leg, samples) if S == steps_per_leg else loops[b].blend(leg.forecast)[S]
             est[b, k + S] = states[b]
             legs[b].append({"step": k, "path": leg.path.tolist(), "timings": dict(leg.timings), "reward_collected": path_reward(leg.reward, leg.path), "n_samples": len(samples)})
             starts[b] = tuple(int(x) for x in leg.path[-1])

@@ -29,10 +29,28 @@ def test_claims_verdicts_known_answers():
     v = [x["held"] for x in c.values()]
     # <= 0.5 x model on the cylinder (0.4, 0.5): held; < model everywhere: held; ocean PASST/lawnmower = 1.2: not held;
     # KNODE/persistence 0.5, 0.75 for h <= 20 (h = 50 ignored): held; POD 0.89 vs 0.92: held
-    assert v == [True, True, False, True, True]
+    # the same-loop rows (issue 27) need random_loop / greedy_loop / rmse_mean: not measured here
+    assert v == [True, True, False, None, None, True, True]
     assert "ocean: PASST/lawnmower_gp <= 1.20" in list(c.values())[2]["ours"]
     res["campaigns"].pop("ocean")
     assert claims(res)[1]["held"] is None  # a scenario not run: not measured, never "held"
+
+
+def test_same_loop_claims_known_answers():
+    """PASST/random <= 0.8 and PASST < greedy everywhere: held; one cell at 0.85: not held. Mean
+    RMSE over time within 2 % of the model alone at every step: held; 3 % above at one step: not."""
+    from passt_mav.commands.paper import _same_loop_claims
+
+    def camp(rand, greedy, over):
+        return {"per_L": {"50": {"final_rmse": {"passt": 1.0, "random_loop": rand, "greedy_loop": greedy},
+                                 "rmse_mean": {"passt": [0.0, 1.0, over], "model": [0.0, 1.0, 1.0]}}}}
+
+    ok = {sc: camp(1.3, 1.05, 1.01) for sc in ("cylinder", "oscillating", "ocean")}
+    assert [r["held"] for r in _same_loop_claims(ok)] == [True, True]
+    bad = dict(ok, ocean=camp(1.0 / 0.85, 1.05, 1.03))
+    rows = _same_loop_claims(bad)
+    assert [r["held"] for r in rows] == [False, False]
+    assert "ocean: PASST/random <= 0.85" in rows[0]["ours"] and "ocean: max over steps of PASST/model 1.03" in rows[1]["ours"]
 
 
 @pytest.fixture(scope="module")
@@ -52,7 +70,7 @@ def test_page_structure(small_results, tmp_path):
     assert doc.startswith("<!DOCTYPE html>") and doc.rstrip().endswith("</html>")
     assert doc.count('src="data:image/png;base64,') == 2  # RMSE over time + snapshots (no model evaluation here)
     assert "model evaluation not run" in doc
-    assert doc.count("<tr><td>") == len(small_results["claims"]) == 3
+    assert doc.count("<tr><td>") == len(small_results["claims"]) == 5  # 3 of the paper + 2 same-loop rows
     assert "not measured" in doc  # oscillating / ocean were not run
     assert "L = 12" in doc and "L = 24" in doc
     assert {p.name for p in tmp_path.glob("*.png")} == {"rmse_cylinder.png", "snapshots_cylinder.png"}
@@ -126,13 +144,14 @@ def test_protocol_counts():
 
     from passt_mav.commands.paper import _protocol, _trial_legs
 
-    a = argparse.Namespace(quick=False, trials=None, steps=None, path_lengths=None, scenarios="cylinder,oscillating,ocean", batch=None, workers=1, hyper="state", gp_solver="cholesky", seed=0, background=200)
+    a = argparse.Namespace(quick=False, trials=None, steps=None, path_lengths=None, scenarios="cylinder,oscillating,ocean", batch=None, workers=1, hyper="state", gp_solver="cholesky", seed=0, background=200, planner="policy_gradient", reward="speed", prior_blend="off")
     p = _protocol(a)
     assert (p["trials"], p["steps"], p["path_lengths"], p["background"]) == (30, 300, [25, 50, 75, 100, 150, 200], 200)
-    assert _trial_legs(p) == 3 * 6 * 30 * 4 * 30  # the paper's protocol: 64 800 loop legs
+    # the paper's protocol: 4 loop methods, and the random walk and greedy in PASST's own loop: 97 200 loop legs
+    assert _trial_legs(p) == 3 * 6 * 30 * 6 * 30
     assert p["gp_solver"] == "cholesky"
     a.quick = True
-    assert _trial_legs(_protocol(a)) == 3 * 1 * 2 * 4 * 3
+    assert _trial_legs(_protocol(a)) == 3 * 1 * 2 * 6 * 3
 
 
 def test_bad_input_exit_2(tmp_path, capsys):

@@ -235,6 +235,24 @@ class TestGreedy(PlannerContract):
             pl.plan_many([maps[0][0], np.ones((5, 5))], [starts[0], (1, 1)], 5, [0, 0])
 
 
+class TestInformation(PlannerContract):
+    """The beam-search path optimiser on a plain reward map (no information model): the same
+    contract as every planner; with a model see tests/test_information.py."""
+
+    name = "information"
+
+    def test_collects_at_least_the_greedy_reward(self):
+        from passt_mav.planning import path_reward
+
+        rng = np.random.default_rng(11)
+        for _ in range(5):
+            q, trav = random_reward_map(rng, 16, 16)
+            start = tuple(np.argwhere(trav)[rng.integers(trav.sum())])
+            beam = plan("information", q, start, 25, mask=trav)
+            greedy1 = plan("information", q, start, 25, mask=trav, beam_width=1)
+            assert path_reward(q, beam) >= path_reward(q, greedy1) - 1e-12
+
+
 class TestRandom(PlannerContract):
     name = "random"
 
@@ -264,7 +282,7 @@ class TestRandom(PlannerContract):
 
 
 def test_registry_and_unknown_names():
-    assert set(PLANNERS) == {"policy_gradient", "lawnmower", "greedy", "random"}
+    assert set(PLANNERS) == {"policy_gradient", "lawnmower", "greedy", "random", "information"}
     with pytest.raises(PlannerError, match="policy_gradient, lawnmower, greedy, random"):
         plan("astar", gaussian_map(5, 5), (0, 0), 3)
     with pytest.raises(PlannerError, match="speed, vorticity, std, speed_std"):
@@ -298,7 +316,7 @@ def test_rewards_known_answers():
     assert ss.max() == pytest.approx(1.0) and ss[3, 4] == 0
     with pytest.raises(PlannerError, match="std"):
         compute_reward("std", pred)
-    assert set(REWARDS) == {"speed", "vorticity", "std", "speed_std", "change"}
+    assert set(REWARDS) == {"speed", "vorticity", "std", "speed_std", "change", "variance_reduction"}
 
 
 def test_change_reward_known_answer():

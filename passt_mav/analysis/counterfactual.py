@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["lawnmower_counterfactual"]
+__all__ = ["lawnmower_counterfactual", "same_loop_counterfactual"]
 
 
 def lawnmower_counterfactual(field, legs: list[dict], *, path_length: int, start_cell, noise_std: float = 0.02, seed: int = 0, gp_seed: int = 0) -> list[float | None]:
@@ -53,6 +53,51 @@ def lawnmower_counterfactual(field, legs: list[dict], *, path_length: int, start
         sampler.steps_per_leg = (t1 - t0) / field.dt
         samples = sampler.sample_path(plan.path, float(t0))
         state = loop.update(plan, samples)
+        out.append(rmse(state, truth_at(field, float(t1))))
+        start = tuple(int(x) for x in plan.path[-1])
+    return out
+
+
+def same_loop_counterfactual(config, field, predictor, legs: list[dict], *, planner: str = "random", start_cell=None) -> list[float | None]:
+    """RMSE (field units) at the end of each of ``legs`` of the run's OWN loop with another planner.
+
+    The same model (``predictor``), the same GP (the mission's options, its background and
+    seeds: :func:`passt_mav.legstep.build_loop`), the same legs (field-time spans, moves per
+    leg, first start cell), only the path differs: ``planner`` (default the random walk, the
+    baseline an adaptive planner must beat). Starts from the truth at the mission's ``t0`` as
+    the run does, forecasts each state to the next leg's start as the run does between legs,
+    and samples the true field along the path at the times a constant-speed boat passes each
+    cell, with the mission's sensor noise and seed. Offline arithmetic, like
+    :func:`lawnmower_counterfactual`: link, turns and thinning do not enter.
+    """
+    from passt_mav.analysis.report import truth_at
+    from passt_mav.controller import rmse
+    from passt_mav.legstep import build_loop
+    from passt_mav.passt import FieldSampler
+
+    cfg = config.model_copy(update={"planner": config.planner.model_copy(update={"name": planner, "options": {}})})
+    land = field.land_mask
+    loop = build_loop(cfg, predictor, field.grid, land=land)
+    sampler = FieldSampler(field, noise_std=config.sensors.noise_std, seed=config.seeds.sensor + 7919, steps_per_leg=1, sample_at="spread")
+    state = np.array(field.data[config.t0], dtype=np.float32)
+    state[:, land] = np.nan
+    t_state = float(field.times[config.t0])
+    start = tuple(int(x) for x in (start_cell or config.start_cell or (field.grid.rows // 2, field.grid.cols // 2)))
+    out: list[float | None] = []
+    t_lo, t_hi = float(field.times[0]), float(field.times[-1])
+    for leg in legs:
+        t0, t1 = leg.get("t_start"), leg.get("t_end")
+        if t0 is None or t1 is None or not (t_lo <= t0 < t1 <= t_hi):
+            out.append(None)
+            continue
+        k = max(0, int(round((float(t0) - t_state) / field.dt)))
+        if k:
+            state = loop.forecast(state, k)[-1]
+        steps = max(1, int(round((t1 - t0) / field.dt)))
+        plan = loop.plan_leg(state, start, float(t0), field.dt, steps=steps)
+        sampler.steps_per_leg = (t1 - t0) / field.dt
+        state = loop.update(plan, sampler.sample_path(plan.path, float(t0)))
+        t_state = float(t0) + steps * field.dt
         out.append(rmse(state, truth_at(field, float(t1))))
         start = tuple(int(x) for x in plan.path[-1])
     return out

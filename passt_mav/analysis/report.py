@@ -578,6 +578,7 @@ def _series(xs) -> np.ndarray:
 
 #: (summary key, line style, legend) of the RMSE curves, in drawing order
 _RMSE_CURVES = (("passt", "o-", "PASST"), ("model", "s--", "model alone (from the true initial state)"),
+                ("random", "v-.", "random walk, same model + GP (counterfactual, offline)"),
                 ("lawnmower", "^:", "lawnmower+GP (counterfactual, offline)"))
 
 
@@ -848,26 +849,27 @@ def _section_recon(page: _Page, run: Run, plt) -> None:
 
 
 def _per_leg_rmse(run: Run) -> dict[str, Any]:
-    """RMSE after each leg: ``index`` (list of leg numbers) and ``passt``, ``model``, ``lawnmower``
-    (float arrays, NaN where not recorded); empty if no leg recorded any. The lawnmower
-    counterfactual (``summary.json`` ``counterfactual.lawnmower``, one value per leg in
-    order, written by ``passt-mav demo``) is used only when it has one value per leg."""
+    """RMSE after each leg: ``index`` (list of leg numbers) and ``passt``, ``model``, ``random``,
+    ``lawnmower`` (float arrays, NaN where not recorded); empty if no leg recorded any. The
+    counterfactuals (``summary.json`` ``counterfactual.random`` / ``.lawnmower``, one value per
+    leg in order, written by ``passt-mav demo``) are used only with one value per leg."""
     def num(x):
         return float(x) if isinstance(x, (int, float)) and not isinstance(x, bool) else np.nan
 
     cf = ((run.summary or {}).get("counterfactual") or {})
-    lawn = cf.get("lawnmower") if isinstance(cf, dict) else None
-    if not isinstance(lawn, list) or len(lawn) != len(run.legs):
-        lawn = [None] * len(run.legs)
     out = {"index": [int(leg.get("index", n)) for n, leg in enumerate(run.legs)],
            "passt": np.array([num(leg.get("rmse_passt")) for leg in run.legs], float),
-           "model": np.array([num(leg.get("rmse_model")) for leg in run.legs], float),
-           "lawnmower": np.array([num(x) for x in lawn], float)}
-    return out if any(np.isfinite(out[k]).any() for k in ("passt", "model", "lawnmower")) else {}
+           "model": np.array([num(leg.get("rmse_model")) for leg in run.legs], float)}
+    for key in ("random", "lawnmower"):
+        vals = cf.get(key) if isinstance(cf, dict) else None
+        if not isinstance(vals, list) or len(vals) != len(run.legs):
+            vals = [None] * len(run.legs)
+        out[key] = np.array([num(x) for x in vals], float)
+    return out if any(np.isfinite(out[k]).any() for k, _, _ in _RMSE_CURVES) else {}
 
 
 def _section_rmse(page: _Page, run: Run, plt) -> None:
-    page.h2("RMSE: PASST, model alone, lawnmower counterfactual")
+    page.h2("RMSE: PASST, model alone, random-walk and lawnmower counterfactuals")
     s = run.summary or {}
     over = s.get("rmse") if isinstance(s.get("rmse"), dict) and s["rmse"].get("t") else None
     per_leg = _per_leg_rmse(run)
@@ -880,6 +882,8 @@ def _section_rmse(page: _Page, run: Run, plt) -> None:
     if isinstance(s.get("rmse_note"), str):
         page.note(s["rmse_note"] + ".")
     cf = s.get("counterfactual")
+    if isinstance(cf, dict) and isinstance(cf.get("how_random"), str):
+        page.note("Random-walk counterfactual: " + cf["how_random"] + ".")
     if isinstance(cf, dict) and isinstance(cf.get("how"), str):
         page.note("Lawnmower+GP counterfactual: " + cf["how"] + ".")
     elif not (over or {}).get("lawnmower"):

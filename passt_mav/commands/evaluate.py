@@ -53,7 +53,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--sampling", choices=("end", "spread"), default="end", help="when a leg's cells are read: all at the leg's end (default; the paper's offline protocol, one snapshot per leg) or spread over the leg at constant speed")
     p.add_argument("--hyper", default="every_leg", help="GP hyper-parameter fits: every_leg | first_leg | state | auto (residual GPs every leg, sample-only GPs once on the initial state) (default every_leg)")
     p.add_argument("--baseline-prior", choices=("none", "forecast"), default="none", help="baselines: GP alone (none, default) or the full loop with the model (forecast)")
-    p.add_argument("--methods", default=",".join(METHODS), help=f"subset of {','.join(METHODS)}")
+    p.add_argument("--methods", default=",".join(METHODS), help=f"subset of {','.join(METHODS)}; also PLANNER_gp for any planner (e.g. information_gp) and METHOD@REWARD (e.g. passt@variance_reduction) to compare planners and rewards in one loop")
     p.add_argument("--window", type=int, default=50, help="final window (steps) for the ratio table (default 50)")
     p.add_argument("--snapshot-step", type=int, default=250, help="step of the 2-D snapshot figure (default 250, clipped)")
     p.add_argument("--seed", type=int, default=0, help="base seed (trial i uses seed + i)")
@@ -64,6 +64,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--gp-solver", choices=("cholesky", "sklearn"), default="sklearn", help="GP posterior with the fitted kernel: sklearn's regressor (default) or a direct Cholesky solve (faster; equal to sklearn to 1e-6 per reconstruction, which a long campaign can amplify into different paths)")
     p.add_argument("--fast-predict", action="store_true", help="run a KNODE through its compiled prediction path (torch.compile with freezing: ~1.6x, fp32 rounding of the eager path, a few seconds of compiling per batch shape; what passt-mav paper uses)")
     p.add_argument("--background", type=int, default=DEFAULT_BACKGROUND, metavar="STEPS", help=f"residual GPs (PASST's; the baselines' with --baseline-prior forecast) add a model-based background covariance: the anomalies of STEPS snapshots of the model's roll-out from the initial state (ensemble optimal interpolation) (default {DEFAULT_BACKGROUND}; 0 = stationary kernels only)")
+    p.add_argument("--prior-blend", choices=("off", "bma"), default="off", help="residual GPs' prior mean: the model's forecast (off, default) or bma: the model's forecast and persistence weighed leg by leg by how well each explains the leg's samples (Bayesian model averaging with a forgetting factor)")
     p.add_argument("--boats", type=int, default=1, help="N > 1: the fleet comparison instead of the campaign: "
                    "PASST with 1..N boats of L moves each vs 1 boat of N*L moves per leg interval (the same "
                    "budget), L = the first of --path-lengths; writes fleet.json and fleet_rmse.png")
@@ -210,15 +211,37 @@ def _hyper_for(hyper: str, residual: bool) -> str:
     return "every_leg" if residual else "state"
 
 
+def method_problem(m: str) -> str | None:
+    """Why ``m`` is not a campaign method, or ``None``. A method is one of :data:`METHODS`, or
+    ``PLANNER_gp`` for any planner of :data:`passt_mav.planning.PLANNERS` (e.g.
+    ``information_gp``: prior as ``--baseline-prior`` says), or ``PLANNER_loop`` (always PASST's
+    own loop: the model's forecast as the GP's prior, only the path differs), optionally with
+    ``@REWARD`` (e.g. ``passt@speed``, ``greedy_loop@speed``): several planners and rewards in
+    one campaign."""
+    from passt_mav.planning import PLANNERS, REWARDS
+
+    base, _, reward = m.partition("@")
+    known = base in METHODS or any(base.endswith(sfx) and base[: -len(sfx)] in PLANNERS for sfx in ("_gp", "_loop"))
+    if not known:
+        return (f"unknown method {m!r}; choose from {', '.join(METHODS)}, PLANNER_gp or PLANNER_loop with PLANNER one of "
+                f"{', '.join(PLANNERS)}")
+    if reward and (base == "model" or reward not in REWARDS):
+        return f"method {m!r}: unknown reward {reward!r} (or a method that plans nothing); rewards: {', '.join(REWARDS)}"
+    return None
+
+
 def _method_kw(cfg: dict, m: str, predictor) -> tuple:
     """(predictor, run_offline options) of loop method ``m`` (its GP schedule included)."""
     h = cfg["hyper"]
-    if m == "passt":
-        return predictor, dict(planner=cfg["planner"], reward=cfg["reward"], prior="forecast", hyper=_hyper_for(h, residual=True))
-    planner = m[: -len("_gp")]
+    base, _, reward = m.partition("@")
+    if base == "passt":
+        return predictor, dict(planner=cfg["planner"], reward=reward or cfg["reward"], prior="forecast", hyper=_hyper_for(h, residual=True))
+    if base.endswith("_loop"):
+        return predictor, dict(planner=base[: -len("_loop")], reward=reward or cfg["reward"], prior="forecast", hyper=_hyper_for(h, residual=True))
+    planner = base[: -len("_gp")]
     if cfg["baseline_prior"] == "forecast":
-        return predictor, dict(planner=planner, reward=cfg["reward"], prior="forecast", hyper=_hyper_for(h, residual=True))
-    return None, dict(planner=planner, reward="speed", prior="none", hyper=_hyper_for(h, residual=False))
+        return predictor, dict(planner=planner, reward=reward or cfg["reward"], prior="forecast", hyper=_hyper_for(h, residual=True))
+    return None, dict(planner=planner, reward=reward or "speed", prior="none", hyper=_hyper_for(h, residual=False))
 
 
 def _summarise_trial(out: dict, m: str, r, truth, cfg: dict, trial: int) -> None:
@@ -245,7 +268,7 @@ def _lockstep_body(field, predictor, cfg: dict, L: int, trials: list[int]) -> li
     starts = [_start_cell(field, cfg, L, i) for i in trials]
     seeds = [int(cfg["seed"]) + i for i in trials]
     outs = [{"L": L, "trial": i, "start": list(st), "rmse": {}, "pod": {}, "snap": {}, "plan_ms": {}} for i, st in zip(trials, starts)]
-    common = dict(t0=t0, n_steps=T, path_length=L, steps_per_leg=cfg["steps_per_leg"], noise_std=cfg["noise"], sample_at=cfg.get("sampling", "end"), gp_kw=cfg.get("gp_kw"), kernel_cache=_KERNEL_CACHE, background=cfg.get("background", 0))
+    common = dict(t0=t0, n_steps=T, path_length=L, steps_per_leg=cfg["steps_per_leg"], noise_std=cfg["noise"], sample_at=cfg.get("sampling", "end"), gp_kw=cfg.get("gp_kw"), kernel_cache=_KERNEL_CACHE, background=cfg.get("background", 0), prior_blend=cfg.get("prior_blend", "off"))
     for m in cfg["methods"]:
         if m == "model":
             continue
@@ -263,7 +286,7 @@ def _trial_body(field, predictor, cfg: dict, L: int, trial: int) -> dict:
     start = _start_cell(field, cfg, L, trial)
     t0, T = cfg["t0"], cfg["steps"]
     truth = field.data[t0 : t0 + T + 1].astype("float64")
-    common = dict(start_cell=start, t0=t0, n_steps=T, path_length=L, steps_per_leg=cfg["steps_per_leg"], noise_std=cfg["noise"], sample_at=cfg.get("sampling", "end"), gp_kw=cfg.get("gp_kw"), seed=seed, background=cfg.get("background", 0))
+    common = dict(start_cell=start, t0=t0, n_steps=T, path_length=L, steps_per_leg=cfg["steps_per_leg"], noise_std=cfg["noise"], sample_at=cfg.get("sampling", "end"), gp_kw=cfg.get("gp_kw"), seed=seed, background=cfg.get("background", 0), prior_blend=cfg.get("prior_blend", "off"))
     out: dict = {"L": L, "trial": trial, "start": list(start), "rmse": {}, "pod": {}, "snap": {}, "plan_ms": {}}
     for m in cfg["methods"]:
         if m == "model":
@@ -274,7 +297,7 @@ def _trial_body(field, predictor, cfg: dict, L: int, trial: int) -> dict:
     return out
 
 
-def run_campaign(field, predictor, *, path_lengths=(25, 50, 75, 100, 150, 200), trials: int = 30, planner: str = "policy_gradient", reward: str = "speed", steps: int = 300, t0: int = 0, steps_per_leg: int = 10, noise: float = 0.02, hyper: str = "every_leg", sampling: str = "end", baseline_prior: str = "none", methods=METHODS, window: int = 50, snapshot_step: int = 250, seed: int = 0, pod_modes: int = 6, workers: int = 1, scheduler=None, progress: bool = True, engine: str = "serial", batch: int | None = None, gp_solver: str = "sklearn", keep_trials: bool = False, fast_predict: bool = False, background: int = 0) -> dict:
+def run_campaign(field, predictor, *, path_lengths=(25, 50, 75, 100, 150, 200), trials: int = 30, planner: str = "policy_gradient", reward: str = "speed", steps: int = 300, t0: int = 0, steps_per_leg: int = 10, noise: float = 0.02, hyper: str = "every_leg", sampling: str = "end", baseline_prior: str = "none", methods=METHODS, window: int = 50, snapshot_step: int = 250, seed: int = 0, pod_modes: int = 6, workers: int = 1, scheduler=None, progress: bool = True, engine: str = "serial", batch: int | None = None, gp_solver: str = "sklearn", keep_trials: bool = False, fast_predict: bool = False, background: int = 0, prior_blend: str = "off") -> dict:
     """Run the campaign; returns the results dict (JSON-able). ``scheduler``: a Dask
     address string or a ``distributed.Client``. Same seeds give the same numbers
     whichever way the trials are spread.
@@ -295,7 +318,9 @@ def run_campaign(field, predictor, *, path_lengths=(25, 50, 75, 100, 150, 200), 
     worker; other predictors ignore it. background: snapshots of the model's roll-out
     whose anomaly covariance every residual GP (PASST's, and the baselines' with
     ``baseline_prior="forecast"``) adds to its stationary kernels
-    (:func:`passt_mav.reconstruction.model_background`); 0 = none.
+    (:func:`passt_mav.reconstruction.model_background`); 0 = none. prior_blend: "off" or
+    "bma" (:class:`passt_mav.passt.PasstLoop`: every residual loop weighs the model's forecast
+    against persistence leg by leg).
     """
     import numpy as np
 
@@ -305,14 +330,16 @@ def run_campaign(field, predictor, *, path_lengths=(25, 50, 75, 100, 150, 200), 
     from passt_mav.planning import PLANNERS, REWARDS
 
     methods = list(methods)
-    bad = [m for m in methods if m not in METHODS]
-    if bad or not methods:
-        raise PlannerError(f"unknown method(s) {bad}; choose from {', '.join(METHODS)}")
+    if not methods:
+        raise PlannerError(f"no methods; choose from {', '.join(METHODS)}")
+    for m in methods:
+        if (problem := method_problem(m)) is not None:
+            raise PlannerError(problem)
     if planner not in PLANNERS and planner != "pg":
         raise PlannerError(f"unknown planner {planner!r}; choose one of {', '.join(PLANNERS)}")
     if reward not in REWARDS:
         raise PlannerError(f"unknown reward {reward!r}; choose one of {', '.join(REWARDS)}")
-    if predictor is None and {"passt", "model"} & set(methods):
+    if predictor is None and {"passt", "model"} & {m.partition("@")[0] for m in methods}:
         from passt_mav.errors import ModelError
 
         raise ModelError("methods 'passt' and 'model' need a predictor")
@@ -329,8 +356,12 @@ def run_campaign(field, predictor, *, path_lengths=(25, 50, 75, 100, 150, 200), 
     problem = background_steps_problem(background)
     if problem:
         raise PlannerError(f"--background: {problem}")
+    from passt_mav.passt import PRIOR_BLENDS
+
+    if prior_blend not in PRIOR_BLENDS:
+        raise PlannerError(f"--prior-blend: unknown {prior_blend!r}; choose one of {', '.join(PRIOR_BLENDS)}")
     steps = int(min(steps, field.n_times - 1 - t0))
-    cfg = dict(seed=seed, t0=t0, steps=steps, steps_per_leg=steps_per_leg, noise=noise, hyper=hyper, sampling=sampling, planner=planner, reward=reward, baseline_prior=baseline_prior, methods=methods, snapshot_step=snapshot_step, pod_modes=pod_modes, engine=engine, gp_kw={"solver": gp_solver}, keep_paths=bool(keep_trials), fast_predict=bool(fast_predict), background=int(background))
+    cfg = dict(seed=seed, t0=t0, steps=steps, steps_per_leg=steps_per_leg, noise=noise, hyper=hyper, sampling=sampling, planner=planner, reward=reward, baseline_prior=baseline_prior, methods=methods, snapshot_step=snapshot_step, pod_modes=pod_modes, engine=engine, gp_kw={"solver": gp_solver}, keep_paths=bool(keep_trials), fast_predict=bool(fast_predict), background=int(background), prior_blend=prior_blend)
     truth = field.data[t0 : t0 + steps + 1].astype(np.float64)
     with _fast_path(predictor, fast_predict):
         pure = run_pure_model(field, predictor, t0=t0, n_steps=steps) if "model" in methods else None
@@ -645,7 +676,7 @@ def run(args: argparse.Namespace) -> int:
         raise PlannerError("--boats must be >= 1")
     if args.boats > 1:
         return _run_fleet(args, field, predictor, lengths[0], out_dir)
-    summary = run_campaign(field, predictor, path_lengths=lengths, trials=args.trials, planner=args.planner, reward=args.reward, steps=args.steps, t0=args.t0, steps_per_leg=args.steps_per_leg, noise=args.noise, hyper=args.hyper, sampling=args.sampling, baseline_prior=args.baseline_prior, methods=methods, window=args.window, snapshot_step=args.snapshot_step, seed=args.seed, workers=args.workers, scheduler=args.scheduler, engine=args.engine, batch=args.batch, gp_solver=args.gp_solver, fast_predict=args.fast_predict, background=args.background)
+    summary = run_campaign(field, predictor, path_lengths=lengths, trials=args.trials, planner=args.planner, reward=args.reward, steps=args.steps, t0=args.t0, steps_per_leg=args.steps_per_leg, noise=args.noise, hyper=args.hyper, sampling=args.sampling, baseline_prior=args.baseline_prior, methods=methods, window=args.window, snapshot_step=args.snapshot_step, seed=args.seed, workers=args.workers, scheduler=args.scheduler, engine=args.engine, batch=args.batch, gp_solver=args.gp_solver, fast_predict=args.fast_predict, background=args.background, prior_blend=args.prior_blend)
     summary["config"].update(data=args.data, model=args.model, command="passt-mav evaluate " + " ".join(sys.argv[2:]) if sys.argv[1:2] == ["evaluate"] else None)
     files = write_figures(summary, out_dir)
     snaps = summary.pop("_snapshots")

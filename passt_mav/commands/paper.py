@@ -44,6 +44,8 @@ EXAMPLES = """examples:
 #: (name, field, model) of the paper's three scenarios
 SCENARIOS = (("cylinder", "builtin:cylinder", "builtin:cylinder"), ("oscillating", "builtin:oscillating", "builtin:cylinder"), ("ocean", "builtin:ocean", "builtin:ocean"))
 PATH_LENGTHS = (25, 50, 75, 100, 150, 200)
+#: PASST's planner and reward on the page (``--planner`` / ``--reward``)
+DEFAULT_PLANNER, DEFAULT_REWARD = "policy_gradient", "speed"
 #: the paper's POD figure: cumulative energy of the first 4 modes, predicted vs true (snapshots 300-350)
 PAPER_POD4 = (0.898, 0.918)
 POD_TOL = 0.05  # |predicted - true| of the first-4-mode energy counted as "close" (the paper's gap: 0.02)
@@ -60,6 +62,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--hyper", default="auto", help="GP hyper-parameters: auto (default: each GP fitted on what it models - PASST's residual GP on every leg's residuals, the GP-only baselines once on the initial state) | state | first_leg | every_leg")
     p.add_argument("--background", type=int, default=DEFAULT_BACKGROUND, metavar="STEPS", help=f"PASST's residual GP adds the anomaly covariance of STEPS snapshots of the model's roll-out (default {DEFAULT_BACKGROUND}; 0 = stationary kernels only)")
     p.add_argument("--gp-solver", choices=("cholesky", "sklearn"), default="cholesky", help="GP posterior with the fixed kernel: a direct Cholesky solve with cached covariance columns (default; the mean only, unless the reward needs the std) or sklearn's regressor per leg (~10x slower per leg; equal to 1e-6 per reconstruction)")
+    p.add_argument("--planner", default=DEFAULT_PLANNER, help=f"PASST's planner (default {DEFAULT_PLANNER}; the paper's: policy_gradient)")
+    p.add_argument("--reward", default=DEFAULT_REWARD, help=f"PASST's reward (default {DEFAULT_REWARD}; the paper's: speed)")
+    p.add_argument("--prior-blend", choices=("off", "bma"), default="off", help="PASST's GP prior: the model's forecast (off, default) or the model and persistence weighed leg by leg (bma)")
     p.add_argument("--scheduler", default=None, help="address of a Dask distributed scheduler: the campaign's batches run there")
     p.add_argument("--workers", type=int, default=1, help="local worker processes (joblib) when no --scheduler (default 1)")
     p.add_argument("--batch", type=int, default=None, help="trials per lockstep batch = unit of work on a cluster (default: all trials of a path length)")
@@ -89,19 +94,33 @@ def _protocol(args) -> dict:
     problem = background_steps_problem(args.background)
     if problem:
         raise PlannerError(f"--background: {problem}")
-    return dict(background=args.background, trials=trials, steps=steps, path_lengths=lengths, scenarios=[known[n] for n in names], steps_per_leg=10, noise=0.02, t0=0, hyper=args.hyper, gp_solver=args.gp_solver, seed=args.seed, snapshot_step=250, window=50)
+    from passt_mav.planning import PLANNERS, REWARDS
+
+    if args.planner not in PLANNERS or args.reward not in REWARDS:
+        raise PlannerError(f"--planner {args.planner!r} / --reward {args.reward!r}: choose a planner of {', '.join(PLANNERS)} and a reward of {', '.join(REWARDS)}")
+    return dict(planner=args.planner, reward=args.reward, prior_blend=getattr(args, "prior_blend", "off"), background=args.background, trials=trials, steps=steps, path_lengths=lengths, scenarios=[known[n] for n in names], steps_per_leg=10, noise=0.02, t0=0, hyper=args.hyper, gp_solver=args.gp_solver, seed=args.seed, snapshot_step=250, window=50)
+
+
+#: the campaign's methods: the paper's five, and the random walk and greedy planner flown through
+#: PASST's own loop (the same model and GP; only the path differs)
+PAPER_METHODS = ("passt", "model", "lawnmower_gp", "greedy_gp", "random_gp", "random_loop", "greedy_loop")
+LOOP_METHODS = len(PAPER_METHODS) - 1  # the model alone is one roll-out
+#: "planner vs random walk (same loop)": PASST's final RMSE at most this fraction of the random walk's
+VS_RANDOM = 0.8
+#: "sampling never worse than the model alone": PASST's mean RMSE at every step within this factor of the model's
+NEVER_WORSE = 1.02
 
 
 def _trial_legs(proto: dict) -> int:
-    """Loop legs to run: scenarios x L x trials x 4 loop methods x legs (the model alone is one roll-out)."""
+    """Loop legs to run: scenarios x L x trials x loop methods x legs (the model alone is one roll-out)."""
     legs = -(-proto["steps"] // proto["steps_per_leg"])
-    return len(proto["scenarios"]) * len(proto["path_lengths"]) * proto["trials"] * 4 * legs
+    return len(proto["scenarios"]) * len(proto["path_lengths"]) * proto["trials"] * LOOP_METHODS * legs
 
 
 def _campaign(field, predictor, proto: dict, path_lengths, trials: int, steps: int, *, scheduler=None, workers: int = 1, batch=None, progress=True) -> dict:
     from passt_mav.commands.evaluate import run_campaign
 
-    return run_campaign(field, predictor, path_lengths=tuple(path_lengths), trials=trials, steps=steps, t0=proto["t0"], steps_per_leg=proto["steps_per_leg"], noise=proto["noise"], hyper=proto["hyper"], seed=proto["seed"], snapshot_step=proto["snapshot_step"], window=proto["window"], engine="lockstep", batch=batch, scheduler=scheduler, workers=workers, progress=progress, fast_predict=True, gp_solver=proto.get("gp_solver", "cholesky"), background=proto.get("background", 0))
+    return run_campaign(field, predictor, path_lengths=tuple(path_lengths), trials=trials, steps=steps, t0=proto["t0"], steps_per_leg=proto["steps_per_leg"], noise=proto["noise"], hyper=proto["hyper"], seed=proto["seed"], snapshot_step=proto["snapshot_step"], window=proto["window"], engine="lockstep", batch=batch, scheduler=scheduler, workers=workers, progress=progress, fast_predict=True, gp_solver=proto.get("gp_solver", "cholesky"), background=proto.get("background", 0), methods=PAPER_METHODS, planner=proto.get("planner", "policy_gradient"), reward=proto.get("reward", "speed"), prior_blend=proto.get("prior_blend", "off"))
 
 
 def _load(spec_field: str, spec_model: str, cache: dict):
@@ -136,7 +155,7 @@ def estimate(proto: dict, echo=print) -> dict:
         t = time.process_time()
         s = _campaign(field, pred, proto, Ls, 4, 2 * proto["steps_per_leg"], progress=False)
         c = (time.process_time() - t) / s["trial_legs"]
-        n = len(proto["path_lengths"]) * proto["trials"] * 4 * legs
+        n = len(proto["path_lengths"]) * proto["trials"] * LOOP_METHODS * legs
         per[name] = {"s_per_trial_leg": round(c, 4), "trial_legs": n, "estimate_s": round(c * n)}
         total += c * n
         echo(f"  {name}: {c * 1e3:.1f} ms per trial-leg (calibrated on L={Ls}, 4 trials x 2 legs) x {n} trial-legs = {c * n / 60:.1f} min")
@@ -171,6 +190,7 @@ def claims(res: dict) -> list[dict]:
             if worst >= 1.0:
                 ok = False
         out.append({"claim": f"PASST < {label} in all three scenarios (every path length)", "paper": "< 1 everywhere", "ours": "; ".join(parts), "held": ok})
+    out += _same_loop_claims(camp)
     me = res.get("model_eval")
     if me:
         la = me["lookahead"].get("test", {})
@@ -186,9 +206,49 @@ def claims(res: dict) -> list[dict]:
     return out
 
 
+def _same_loop_claims(camp: dict) -> list[dict]:
+    """The two rows of issue 27: PASST's planner against a random walk and greedy in the same
+    model + GP loop, and sampling never worse than the model alone (at every step)."""
+    import numpy as np
+
+    rows = []
+    parts, ok = [], True
+    for sc in ("cylinder", "oscillating", "ocean"):
+        per = camp.get(sc, {}).get("per_L", {})
+        if not per or any("random_loop" not in d["final_rmse"] or "greedy_loop" not in d["final_rmse"] for d in per.values()):
+            parts.append(f"{sc}: not run")
+            ok = None if ok is not False else False
+            continue
+        rr = max(d["final_rmse"]["passt"] / d["final_rmse"]["random_loop"] for d in per.values())
+        rg = max(d["final_rmse"]["passt"] / d["final_rmse"]["greedy_loop"] for d in per.values())
+        parts.append(f"{sc}: PASST/random <= {rr:.2f}, PASST/greedy <= {rg:.2f}")
+        if rr > VS_RANDOM or rg >= 1.0:
+            ok = False
+    rows.append({"claim": f"planner vs random walk / greedy (same loop): PASST <= {VS_RANDOM} x random walk and < greedy, every scenario and L",
+                 "paper": "(not in the paper)", "ours": "; ".join(parts), "held": ok})
+    parts, ok = [], True
+    for sc in ("cylinder", "oscillating", "ocean"):
+        per = camp.get(sc, {}).get("per_L", {})
+        if not per or any("model" not in d.get("rmse_mean", {}) for d in per.values()):
+            parts.append(f"{sc}: not run")
+            ok = None if ok is not False else False
+            continue
+        worst = 0.0
+        for d in per.values():
+            p, m = np.asarray(d["rmse_mean"]["passt"]), np.asarray(d["rmse_mean"]["model"])
+            sel = m > 0
+            worst = max(worst, float(np.max(p[sel] / m[sel])) if sel.any() else 0.0)
+        parts.append(f"{sc}: max over steps of PASST/model {worst:.2f}")
+        if worst > NEVER_WORSE:
+            ok = False
+    rows.append({"claim": f"sampling never worse than the model alone (mean RMSE at every step <= {NEVER_WORSE} x the model's)",
+                 "paper": "(implied)", "ours": "; ".join(parts), "held": ok})
+    return rows
+
+
 # -- page --------------------------------------------------------------------------
 
-_METHOD_STYLE = {"passt": ("C3", 1.8), "model": ("C0", 1.2), "lawnmower_gp": ("C2", 1.0), "greedy_gp": ("C1", 1.0), "random_gp": ("C7", 1.0)}
+_METHOD_STYLE = {"passt": ("C3", 1.8), "model": ("C0", 1.2), "lawnmower_gp": ("C2", 1.0), "greedy_gp": ("C1", 1.0), "random_gp": ("C7", 1.0), "random_loop": ("C5", 1.0), "greedy_loop": ("C8", 1.0)}
 
 
 def _fig_lookahead(me: dict, plt):
@@ -377,7 +437,7 @@ def run(args: argparse.Namespace) -> int:
     out = Path(args.out)
     if args.dry_run:
         n = _trial_legs(proto)
-        print(f"protocol: {len(proto['scenarios'])} scenarios x L={proto['path_lengths']} x {proto['trials']} trials x {proto['steps']} steps x 4 loop methods = {n} trial-legs (+ model evaluation)")
+        print(f"protocol: {len(proto['scenarios'])} scenarios x L={proto['path_lengths']} x {proto['trials']} trials x {proto['steps']} steps x {LOOP_METHODS} loop methods = {n} trial-legs (+ model evaluation)")
         print("calibrating (serial, this machine):")
         est = estimate(proto)
         print(f"estimated campaign wall time, serial on one idle core: {est['estimate_s'] / 60:.1f} min ({est['estimate_s']} s); with N workers on N idle cores about 1/N of that (+ the model evaluation, minutes)")

@@ -15,7 +15,7 @@ Example (``missions/north_atlantic.yaml``)::
     # vehicles: [{connect: "tcp:127.0.0.1:5760"}, {connect: "tcp:127.0.0.1:5770", start_cell: [5, 5]}]
     sensors: {u: CUR_U, v: CUR_V, noise_std: 0.02}
     geofence_margin_m: 500
-    gp: {prior: forecast, hyper: every_leg, background: 200, options: {}}
+    gp: {prior: forecast, hyper: every_leg, background: 200, prior_blend: off, forgetting: 0.8, options: {}}
     seeds: {planner: 0, gp: 0, sensor: 0, field: 0}
 
 ``region`` is geographic (south/west/north/east/rows/cols: the lat/lon of the
@@ -265,12 +265,16 @@ class GPConfig(_Strict):
     """GP reconstruction: prior ``forecast`` (residual vs the model forecast) or ``constant``
     (the paper's GP on samples alone); hyper-parameter schedule; ``background``: snapshots of
     the model's roll-out whose anomaly covariance the residual GP adds to its stationary
-    kernels (0 = none; see :func:`passt_mav.reconstruction.model_background`);
-    GPReconstructor options."""
+    kernels (0 = none; see :func:`passt_mav.reconstruction.model_background`); ``prior_blend``:
+    ``off`` (the model's forecast is the prior) or ``bma`` (the model and persistence weighed leg
+    by leg by how well each explains the leg's samples, memory ``forgetting``; see
+    :class:`passt_mav.passt.PasstLoop`); GPReconstructor options."""
 
     prior: Literal["forecast", "constant"] = "forecast"
     hyper: Literal["first_leg", "state", "every_leg"] = "every_leg"
     background: int = Field(default=DEFAULT_BACKGROUND, ge=0)
+    prior_blend: Literal["off", "bma"] = "off"
+    forgetting: float = Field(default=0.8, ge=0.0, le=1.0)
 
     @field_validator("background")
     @classmethod

@@ -7,7 +7,8 @@ One entry point::
 ``reward`` is ``(rows, cols)`` (NaN / ``mask`` False = land, not traversable);
 ``path`` is ``(L+1, 2)`` int ``(row, col)``, 8-connected, exactly ``L`` moves,
 revisiting a cell only when every neighbour has been visited. Planners:
-:data:`PLANNERS`; rewards: :data:`REWARDS` (:func:`compute_reward`).
+:data:`PLANNERS` (``information``: a beam search over whole paths, scored by the
+reconstruction's variance reduction when the loop passes ``info=``); rewards: :data:`REWARDS` (:func:`compute_reward`).
 Unknown names raise :class:`passt_mav.errors.PlannerError` listing the valid ones.
 """
 
@@ -18,6 +19,7 @@ import numpy as np
 from passt_mav.errors import PlannerError
 from passt_mav.planning.baselines import GreedyPlanner, LawnmowerPlanner, RandomPlanner
 from passt_mav.planning.grid import check_path, path_reward, top_l_bound
+from passt_mav.planning.information import InformationModel, InformationPlanner
 from passt_mav.planning.policy_gradient import PolicyGradientPlanner
 from passt_mav.planning.rewards import REWARDS, compute_reward, traversable
 
@@ -35,6 +37,8 @@ __all__ = [
     "LawnmowerPlanner",
     "GreedyPlanner",
     "RandomPlanner",
+    "InformationPlanner",
+    "InformationModel",
 ]
 
 #: name -> planner class (keyword-only options; ``.plan(reward, start, budget, seed, mask)``)
@@ -43,8 +47,9 @@ PLANNERS: dict[str, type] = {
     "lawnmower": LawnmowerPlanner,
     "greedy": GreedyPlanner,
     "random": RandomPlanner,
+    "information": InformationPlanner,
 }
-_ALIASES = {"pg": "policy_gradient"}
+_ALIASES = {"pg": "policy_gradient", "beam": "information"}
 
 
 def make_planner(name: str, **kw):

@@ -1,6 +1,6 @@
 """Reward maps: what a leg of the PASST loop tries to sample.
 
-Every reward is a function ``f(prediction, *, cell_size_m=(dy, dx), std=None, state=None)``
+Every reward is a function ``f(prediction, *, cell_size_m=(dy, dx), std=None, state=None, info=None)``
 returning a ``(rows, cols)`` float32 array in ``[0, 1]``. ``prediction`` is the
 model's one-step-ahead field, ``(2, rows, cols)`` (u east, v north; row 0 south).
 Cells where the prediction is NaN (land / missing) get reward 0; they are also
@@ -18,7 +18,7 @@ import numpy as np
 
 from passt_mav.errors import PlannerError
 
-__all__ = ["REWARDS", "REWARDS_USING_STATE", "REWARDS_USING_STD", "compute_reward", "traversable", "speed", "vorticity", "std", "speed_std", "change"]
+__all__ = ["REWARDS", "REWARDS_USING_STATE", "REWARDS_USING_STD", "compute_reward", "traversable", "speed", "vorticity", "std", "speed_std", "change", "variance_reduction", "REWARDS_USING_PRIOR"]
 
 
 def _check(prediction) -> np.ndarray:
@@ -50,13 +50,13 @@ def _std_mag(std, shape) -> np.ndarray:
     return s
 
 
-def speed(prediction, *, cell_size_m=None, std=None, state=None) -> np.ndarray:
+def speed(prediction, *, cell_size_m=None, std=None, state=None, info=None) -> np.ndarray:
     """Predicted speed magnitude ``|u|`` normalised by its maximum (default reward)."""
     p = _check(prediction)
     return _normalise(np.hypot(p[0], p[1]), traversable(p))
 
 
-def vorticity(prediction, *, cell_size_m=None, std=None, state=None) -> np.ndarray:
+def vorticity(prediction, *, cell_size_m=None, std=None, state=None, info=None) -> np.ndarray:
     """``|dv/dx - du/dy|`` by central differences (one-sided at edges) in metres.
 
     ``cell_size_m`` = (north-south, east-west) spacing in metres (default 1, 1).
@@ -69,20 +69,20 @@ def vorticity(prediction, *, cell_size_m=None, std=None, state=None) -> np.ndarr
     return _normalise(dv_dx - du_dy, traversable(p))
 
 
-def std(prediction, *, cell_size_m=None, std=None, state=None) -> np.ndarray:
+def std(prediction, *, cell_size_m=None, std=None, state=None, info=None) -> np.ndarray:
     """GP posterior standard deviation ``hypot(std_u, std_v)``, normalised."""
     p = _check(prediction)
     return _normalise(_std_mag(std, p.shape[1:]), traversable(p))
 
 
-def speed_std(prediction, *, cell_size_m=None, std=None, state=None) -> np.ndarray:
+def speed_std(prediction, *, cell_size_m=None, std=None, state=None, info=None) -> np.ndarray:
     """Product of the normalised speed and normalised GP std (fast AND uncertain)."""
     p = _check(prediction)
     s = speed(p).astype(np.float64) * _std_mag(std, p.shape[1:])
     return _normalise(s, traversable(p))
 
 
-def change(prediction, *, cell_size_m=None, std=None, state=None) -> np.ndarray:
+def change(prediction, *, cell_size_m=None, std=None, state=None, info=None) -> np.ndarray:
     """Predicted change ``|prediction - state|`` (vector magnitude), normalised.
 
     ``state``: (2, rows, cols), the field the prediction starts from (the loop passes
@@ -105,10 +105,31 @@ def change(prediction, *, cell_size_m=None, std=None, state=None) -> np.ndarray:
     return _normalise(np.hypot(d[0], d[1]), traversable(p) & traversable(s0))
 
 
+def variance_reduction(prediction, *, cell_size_m=None, std=None, state=None, info=None) -> np.ndarray:
+    """The error variance one sample at each cell would remove from the next reconstruction.
+
+    ``info``: a :class:`passt_mav.planning.information.InformationModel` of the prior the
+    reconstruction will use (the loop builds it from its GP: background modes, fitted
+    kernels, sensor noise; conditioned on cells other boats sample this leg). A-optimal
+    design (Krause, Singh & Guestrin 2008); the whole path's value, with the interaction of
+    its cells, is what :class:`passt_mav.planning.information.InformationPlanner` scores.
+    Normalised by the map's maximum; land 0.
+    """
+    p = _check(prediction)
+    if info is None:
+        raise PlannerError("the 'variance_reduction' reward needs the reconstruction's prior (info=...)")
+    g = np.asarray(info.gains(), dtype=np.float64)
+    if g.shape != p.shape[1:]:
+        raise PlannerError(f"information model grid {g.shape} does not match the prediction {p.shape[1:]}")
+    return _normalise(g, traversable(p))
+
+
 #: rewards that read the GP posterior std (the loop computes it only for these)
 REWARDS_USING_STD = frozenset({"std", "speed_std"})
 #: rewards that compare the prediction with the state it starts from (``state=``)
 REWARDS_USING_STATE = frozenset({"change"})
+#: rewards that read the reconstruction's prior covariance (``info=``)
+REWARDS_USING_PRIOR = frozenset({"variance_reduction"})
 
 #: name -> reward function
 REWARDS: dict[str, Callable[..., np.ndarray]] = {
@@ -117,16 +138,18 @@ REWARDS: dict[str, Callable[..., np.ndarray]] = {
     "std": std,
     "speed_std": speed_std,
     "change": change,
+    "variance_reduction": variance_reduction,
 }
 
 
-def compute_reward(name: str, prediction, *, cell_size_m=None, std=None, state=None) -> np.ndarray:
+def compute_reward(name: str, prediction, *, cell_size_m=None, std=None, state=None, info=None) -> np.ndarray:
     """The reward map ``(rows, cols)`` float32 in [0, 1] named ``name`` (see :data:`REWARDS`).
 
-    ``state``: the field ``prediction`` starts from, for :data:`REWARDS_USING_STATE`.
+    ``state``: the field ``prediction`` starts from, for :data:`REWARDS_USING_STATE`;
+    ``info``: the reconstruction's prior, for :data:`REWARDS_USING_PRIOR`.
     """
     try:
         fn = REWARDS[name]
     except KeyError:
         raise PlannerError(f"unknown reward {name!r}; choose one of {', '.join(REWARDS)}") from None
-    return fn(prediction, cell_size_m=cell_size_m, std=std, state=state)
+    return fn(prediction, cell_size_m=cell_size_m, std=std, state=state, info=info)
