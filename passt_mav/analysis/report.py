@@ -901,7 +901,8 @@ def _section_timings(page: _Page, run: Run) -> None:
     if not any(k in leg for leg in run.legs for k in keys):
         page.missing("Timings (planning, upload, leg duration) " + NOT_RECORDED)
     else:
-        head = "<tr><th>leg</th><th>planning (s)</th><th>upload (s)</th><th>leg duration (s)</th><th>samples</th></tr>"
+        head = ("<tr><th>leg</th><th>planning (s)</th><th>upload (s)</th><th>leg duration (s)</th><th>samples</th>"
+                "<th>readings used</th></tr>")
         body, tot = [], [0.0, 0.0, 0.0, 0]
         for n, leg in enumerate(run.legs):
             vals = [leg.get(k) for k in keys]
@@ -911,8 +912,9 @@ def _section_timings(page: _Page, run: Run) -> None:
             ns = leg.get("n_samples")
             tot[3] += int(ns) if isinstance(ns, int) else 0
             body.append("<tr><td>" + _fmt(leg.get("index", n)) + "</td>"
-                        + "".join(f'<td class="num">{_fmt(v)}</td>' for v in vals + [ns]) + "</tr>")
-        body.append("<tr><th>total</th>" + "".join(f'<td class="num">{_fmt(v)}</td>' for v in tot) + "</tr>")
+                        + "".join(f'<td class="num">{_fmt(v)}</td>' for v in vals + [ns])
+                        + f'<td class="num">{_readings_used(leg.get("readings"))}</td></tr>')
+        body.append("<tr><th>total</th>" + "".join(f'<td class="num">{_fmt(v)}</td>' for v in tot) + "<td></td></tr>")
         page.add(f"<table>{head}{''.join(body)}</table>")
     links = [(leg.get("index", n), leg["link"]) for n, leg in enumerate(run.legs) if isinstance(leg.get("link"), dict)]
     tl = run.tlog
@@ -930,6 +932,13 @@ def _section_timings(page: _Page, run: Run) -> None:
                   f"{tl.seq_lost} missing by sequence number ({100 * tl.link_loss:.1f} %).")
     else:
         page.missing("Link quality " + NOT_RECORDED)
+
+
+def _readings_used(r: Any) -> str:
+    """'used / received (x %)' of a leg record's ``readings`` (placed on the track within the gap bound)."""
+    if not isinstance(r, dict) or not r.get("received"):
+        return "&ndash;"
+    return f"{int(r['used'])} / {int(r['received'])} ({100.0 * r['used'] / r['received']:.0f} %)"
 
 
 def _section_tlog(page: _Page, run: Run) -> None:
