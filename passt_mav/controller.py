@@ -287,14 +287,21 @@ class MissionController:
             time.sleep(0.02)
         return p
 
-    def _link_snapshot(self) -> tuple[int, int]:
-        return self.link.stats.received, self.link.stats.drops
+    def _link_snapshot(self) -> tuple:
+        st = self.link.stats
+        return st.received, st.drops, st.vehicle_bytes, self.link.vehicle_uptime_s()
 
-    def _link_record(self, before: tuple[int, int]) -> dict:
-        rec, drops = self.link.stats.received - before[0], self.link.stats.drops - before[1]
+    def _link_record(self, before: tuple) -> dict:
+        """Link figures since ``before``; ``vehicle_bytes_per_s``: bytes the vehicle sent us per second of its
+        own clock (the telemetry radio's budget: baud / 10 bytes/s each way), None without a vehicle clock."""
+        st = self.link.stats
+        rec, drops = st.received - before[0], st.drops - before[1]
+        nbytes, t1 = st.vehicle_bytes - before[2], self.link.vehicle_uptime_s()
         rtt = self.link.rtt
+        bps = nbytes / (t1 - before[3]) if t1 is not None and before[3] is not None and t1 - before[3] > 1.0 else None
         return {"rtt_ms": None if rtt is None else round(rtt * 1000.0, 3),
-                "loss": (drops / (rec + drops)) if rec + drops else 0.0, "messages": int(rec), "drops": int(drops)}
+                "loss": (drops / (rec + drops)) if rec + drops else 0.0, "messages": int(rec), "drops": int(drops),
+                "vehicle_bytes": int(nbytes), "vehicle_bytes_per_s": None if bps is None else round(bps, 1)}
 
     def _readings_record(self, i: int) -> dict:
         """Sensor readings of leg ``i``: received (u/v pairs), used (placed on the track), dropped (gap)."""
@@ -320,6 +327,7 @@ class MissionController:
             "legs_planned": self.n_legs, "legs": legs,
             "n_samples": self._n_samples(),
             "readings_used": [(x.get("readings") or {}).get("fraction_used") for x in legs],
+            "link_vehicle_bytes_per_s": [(x.get("link") or {}).get("vehicle_bytes_per_s") for x in legs],
             "rmse": rm if self.truth_known else None,
             "rmse_note": "RMSE over water cells vs the mission's field at the state time; 'model' = the predictor "
                          "alone from the true state at t0, never re-initialised" if self.truth_known else None,
@@ -718,7 +726,8 @@ class MissionController:
         self._say(f"{self._leg_label(i)}: {rec['n_samples']} samples{used} ({rec['n_gp_points']} to the GP), "
                   f"{rec['duration_s']:.1f} s wall ({rec['duration_vehicle_s'] or 0:.0f} s vehicle), planning "
                   f"{rec['planning_s'] * 1000:.0f} ms, upload {rec['upload_s']:.2f} s{rm}, link RTT {rtt} "
-                  f"loss {100 * link['loss']:.1f} %")
+                  f"loss {100 * link['loss']:.1f} %" + ("" if link.get("vehicle_bytes_per_s") is None else
+                                                      f", vehicle sends {link['vehicle_bytes_per_s']:.0f} B/s"))
 
     def _leg_label(self, i: int) -> str:
         """How leg ``i`` (0-based) is named in progress lines."""
