@@ -269,7 +269,10 @@ def test_sitl_run_logged_from_arming_gives_the_tlogs_legs(tmp_path, sitl_factory
         # before the upload) and SITL's home 40.0,-63.0 lies on a cell edge of this grid: compare metres
         assert float(geo.geodesic_distance_m(*lb.start_latlon, *lt.start_latlon)) < 5.0
         assert lb.closed and [q for _, q in lb.reached][-1] == len(lb.waypoints) + 1
-        assert len(lb.samples) >= 2 * len(lt.samples) > 0  # ~5x; the simulator's logger may drop some under load
+        # both place (nearly) every reading on their track; the tlog may lose a few readings to the link and
+        # the .bin a few to the logger under load
+        assert len(lb.samples) >= 0.9 * lb.n_readings and len(lt.samples) >= 0.9 * lt.n_readings > 0
+        assert len(lt.samples) >= 0.8 * len(lb.samples)
     assert b.legs[0].t_now_ms == b.legs[0].t_auto_ms  # no upload in the log: anchored at AUTO
     # the controller sends leg 0's clock reading again after arming, when ArduPilot opens the log
     assert b.legs[0].clock == t.legs[0].clock is not None

@@ -919,13 +919,15 @@ def _section_timings(page: _Page, run: Run) -> None:
     links = [(leg.get("index", n), leg["link"]) for n, leg in enumerate(run.legs) if isinstance(leg.get("link"), dict)]
     tl = run.tlog
     if links:
-        head = "<tr><th>leg</th><th>round trip (ms)</th><th>loss</th><th>messages</th></tr>"
+        head = ("<tr><th>leg</th><th>round trip (ms)</th><th>loss</th><th>messages</th>"
+                "<th>vehicle sends (B/s)</th></tr>")
         body = []
         for i, ln in links:
             loss = ln.get("loss")
             loss_s = f"{100 * float(loss):.1f} %" if isinstance(loss, (int, float)) else "&ndash;"
             body.append(f"<tr><td>{_fmt(i)}</td><td class=\"num\">{_fmt(ln.get('rtt_ms'))}</td>"
-                        f"<td class=\"num\">{loss_s}</td><td class=\"num\">{_fmt(ln.get('messages'))}</td></tr>")
+                        f"<td class=\"num\">{loss_s}</td><td class=\"num\">{_fmt(ln.get('messages'))}</td>"
+                        f"<td class=\"num\">{_fmt(ln.get('vehicle_bytes_per_s'))}</td></tr>")
         page.add(f"<table>{head}{''.join(body)}</table>")
     elif tl is not None and tl.link_loss is not None:
         page.note(f"Link (from {run.rundir.TLOG}): {tl.message_counts.get('_vehicle_frames', 0)} vehicle frames, "

@@ -248,9 +248,11 @@ def rebuild_from_dataflash(path: str | Path, *, u_name: str = "CUR_U", v_name: s
         lg = legs[i] if i >= 0 else None
         return None if lg is None or (lg.t_end_ms is not None and tb >= lg.t_end_ms) else lg
 
+    for lg in legs:
+        lg.n_readings = 0
     for tb in tl.reading_times:
         if (lg := leg_at(tb)) is not None:
-            lg.n_readings = (lg.n_readings or 0) + 1
+            lg.n_readings += 1
     outside = 0
     for s in tl.samples:
         tb = int(s.time_boot_ms)
