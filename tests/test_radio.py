@@ -138,3 +138,10 @@ def test_the_wall_time_proxy_carries_whole_frames_both_ways_with_latency_and_a_2
     # 19200 baud: the whole delivered burst takes at least its bytes / 1920 s
     assert down[-1][0] - down[0][0] >= (len(data) - n) / 1920.0 - 0.02
     assert stats["up"]["delivered"] == 3
+
+
+def test_vehicle_sim_command_line_radio_buffer(capsys):
+    from vehicle_sim.cli import main as cli_main
+
+    assert cli_main(["--home", "40,-63", "--radio-buffer", "-1", "--duration", "1"]) == 2
+    assert "--radio-buffer" in capsys.readouterr().err
