@@ -109,8 +109,9 @@ class LinkConfig:
         quiet_other_streams: first stop every data stream on this link (REQUEST_DATA_STREAM, all
             streams, rate 0), so that the vehicle sends only ``stream_rates_hz`` (plus what is never a
             stream: HEARTBEAT, STATUSTEXT, replies, NAMED_VALUE_FLOAT): the link budget of a telemetry
-            radio. Streams a router or ground station requests on the same link come back (MAVProxy:
-            start it with ``--streamrate=-1``).
+            radio. Stream rates belong to the vehicle's port: a ground station sharing it through a router
+            loses those streams too, and streams it requests come back for everyone (MAVProxy: start it
+            with ``--streamrate=-1``). False leaves them as they are.
         timesync_period_s: wall seconds between TIMESYNC requests (``tc1 = 0``) that keep the RTT
             estimate current (0 = only at connect).
         baud: serial baud when ``connect`` names a device without one.
