@@ -48,7 +48,7 @@ def test_two_legs_through_a_sik_like_radio(tmp_path, baud):
         ctl.vehicle.mission.download = lambda *a, **k: readbacks.append(orig(*a, **k)) or readbacks[-1]
         summary = ctl.run()
         sim_link = sim.links[0]
-        sent, got = sim_link.stats["tx_bytes"], link.stats.vehicle_bytes
+        sent, got = sim_link.stats["tx_delivered_bytes"], link.stats.vehicle_bytes
         sim_stats = dict(sim_link.stats)
     assert summary["status"] == "complete" and len(summary["legs"]) == 2
     # every leg's upload, read back through the radio, is the planned mission as the vehicle stores it
@@ -64,8 +64,8 @@ def test_two_legs_through_a_sik_like_radio(tmp_path, baud):
     assert sum(others.values()) <= 3, others
     assert types["GLOBAL_POSITION_INT"] > 20 and types["NAMED_VALUE_FLOAT"] > 40
     # the controller counts every byte the radio delivered from the vehicle, but those before it knew the
-    # vehicle's id (its first heartbeat) and those still in the air at the end
-    assert 0.98 * sent <= got <= sent
+    # vehicle's id (its first heartbeat: the first second's ~15 streams, < 1 kB)
+    assert sent - 1000 <= got <= sent
     for leg in summary["legs"]:
         bps = leg["link"]["vehicle_bytes_per_s"]
         # 1 Hz position, mission state, EKF and clock, 1 Hz heartbeat, two named values a second, the

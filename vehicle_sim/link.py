@@ -178,7 +178,9 @@ class Link:
             chunks = []
             while self._out and self._out[0][0] <= t:
                 chunks.append(self._out.popleft()[1])
-            return b"".join(chunks)
+            out = b"".join(chunks)
+            self.stats["tx_delivered_bytes"] += len(out)
+            return out
 
     def next_outgoing_time(self) -> float | None:
         with self._lock:

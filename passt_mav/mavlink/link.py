@@ -106,10 +106,10 @@ class LinkConfig:
         stream_rates_hz: ``((MESSAGE_NAME, hz), ...)`` requested with SET_MESSAGE_INTERVAL. TIMESYNC is
             skipped (not a stream on ArduPilot: refused); see ``timesync_period_s``. A message the vehicle
             refuses it for is asked for by its REQUEST_DATA_STREAM group instead (``STREAM_GROUPS``).
-        quiet_other_streams: first stop every data stream on this link (REQUEST_DATA_STREAM, all
-            streams, rate 0), so that the vehicle sends only ``stream_rates_hz`` (plus what is never a
-            stream: HEARTBEAT, STATUSTEXT, replies, NAMED_VALUE_FLOAT): the link budget of a telemetry
-            radio. Stream rates belong to the vehicle's port: a ground station sharing it through a router
+        quiet_other_streams: when ``stream_rates_hz`` is not empty, first stop every data stream on this
+            link (REQUEST_DATA_STREAM, all streams, rate 0), so that the vehicle sends only
+            ``stream_rates_hz`` (plus what is never a stream: HEARTBEAT, STATUSTEXT, replies,
+            NAMED_VALUE_FLOAT): the link budget of a telemetry radio. Stream rates belong to the vehicle's port: a ground station sharing it through a router
             loses those streams too, and streams it requests come back for everyone (MAVProxy: start it
             with ``--streamrate=-1``). False leaves them as they are.
         timesync_period_s: wall seconds between TIMESYNC requests (``tc1 = 0``) that keep the RTT
@@ -704,9 +704,10 @@ class Link:
         same rate (REQUEST_DATA_STREAM has no answer: the message's arrival is the check).
         """
         out = {}
-        if self.config.quiet_other_streams:
+        rates = list(self.config.stream_rates_hz if rates is None else rates)
+        if self.config.quiet_other_streams and rates:  # (no rates: leave the vehicle's streams as they are)
             self._request_data_stream(mavlink2.MAV_DATA_STREAM_ALL, 0)
-        for name, hz in (self.config.stream_rates_hz if rates is None else rates):
+        for name, hz in rates:
             msgid = getattr(mavlink2, f"MAVLINK_MSG_ID_{name}", None)
             if msgid is None:
                 raise UserError(f"unknown MAVLink message {name!r} in stream_rates_hz")
