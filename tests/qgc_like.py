@@ -7,7 +7,9 @@ vehicle's mission. Like QGC it takes only the replies addressed to itself (targe
 and retries a request after ``item_timeout_s`` up to ``retries`` times. Framing is pymavlink's.
 
 ``downloads``: one :class:`Download` per attempt (``ok``, ``items`` as (seq, command, lat, lon),
-``error``, wall seconds taken).
+``error``, wall seconds taken). ``foreign``: mission-protocol messages addressed to this client
+that it never asked for (MISSION_REQUEST / MISSION_REQUEST_INT: it never uploads; a MISSION_ACK
+outside its own downloads): another client on the link speaks with the same ids.
 """
 
 from __future__ import annotations
@@ -37,6 +39,8 @@ class QgcLike:
         self.sysid, self.compid = sysid, compid
         self.item_timeout_s, self.retries = item_timeout_s, retries
         self.downloads: list[Download] = []
+        self.foreign: list[str] = []
+        self._downloading = False
         self._stop = threading.Event()
         self._th: threading.Thread | None = None
         self._next_hb = 0.0
@@ -67,14 +71,24 @@ class QgcLike:
         end = time.monotonic() + timeout
         while time.monotonic() < end and not self._stop.is_set():
             self._heartbeat()
-            m = self.conn.recv_match(type=list(types), blocking=True, timeout=0.05)
-            if m is None or m.get_srcSystem() != self.target[0]:
+            m = self._next(0.05)
+            if m is None or m.get_type() not in types:
                 continue
-            if (m.target_system, m.target_component) != (self.sysid, self.compid):
-                continue  # a reply to another client on the same link
             if getattr(m, "mission_type", 0) == 0 and cond(m):
                 return m
         return None
+
+    def _next(self, timeout: float):
+        """The next mission message from the vehicle addressed to us (others are a reply to another client)."""
+        m = self.conn.recv_match(blocking=True, timeout=timeout)
+        if m is None or m.get_srcSystem() != self.target[0] or not m.get_type().startswith("MISSION_"):
+            return None
+        if (getattr(m, "target_system", None), getattr(m, "target_component", None)) != (self.sysid, self.compid):
+            return None
+        if m.get_type() in ("MISSION_REQUEST", "MISSION_REQUEST_INT") or (
+                m.get_type() == "MISSION_ACK" and not self._downloading):
+            self.foreign.append(f"{m.get_type()} {getattr(m, 'seq', getattr(m, 'type', ''))}")
+        return m
 
     def _ask(self, send, types, cond):
         for _ in range(self.retries + 1):
@@ -85,6 +99,13 @@ class QgcLike:
         return None
 
     def download(self) -> Download:
+        self._downloading = True
+        try:
+            return self._download()
+        finally:
+            self._downloading = False
+
+    def _download(self) -> Download:
         t0 = time.monotonic()
         mav, (ts, tc) = self.conn.mav, self.target
         m = self._ask(lambda: mav.mission_request_list_send(ts, tc, 0), ("MISSION_COUNT",), lambda m: True)
@@ -108,4 +129,4 @@ class QgcLike:
             if time.monotonic() >= next_dl:
                 self.downloads.append(self.download())
                 next_dl = time.monotonic() + self.period_s
-            self.conn.recv_match(blocking=True, timeout=0.05)
+            self._next(0.05)

@@ -4,7 +4,9 @@ ArduPilot Rover SITL -> the radio emulator (vehicle_sim.radio.RadioProxy: 57600 
 way, 3 % loss, 2 kB buffer, in wall time) -> MAVProxy (headless, ``--out`` to two UDP clients) ->
 the controller (its own ids, not QGC's) and a client that behaves like QGroundControl (255/190,
 1 Hz heartbeats, a full mission download every 40 s of vehicle time). Two legs must complete,
-every download of the QGC-like client must succeed and hold a mission the controller uploaded.
+every download of the QGC-like client must succeed and hold a mission the controller uploaded, and
+none of the controller's mission traffic may reach the QGC-like client as addressed to it (with the
+controller at QGC's 255/190 it does: the vehicle's MISSION_REQUESTs of each upload).
 
 SITL runs at speedup 5 so that the radio's wall-time latency (100 ms = 0.5 s of vehicle time) stays
 well inside the vehicle's mission-transfer timers (re-request after 1 s, cancel after 8 s of vehicle
@@ -115,6 +117,8 @@ def test_two_legs_through_radio_and_mavproxy_beside_a_qgc_like_client(tmp_path, 
     assert len(qgc.downloads) >= 3
     bad = [d.error for d in qgc.downloads if not d.ok]
     assert not bad, bad
+    # and it never got the controller's mission traffic: the two speak with different ids
+    assert not qgc.foreign, qgc.foreign[:10]
     assert len(uploaded) >= 2
     for d in qgc.downloads:
         wps = [(round(la, 7), round(lo, 7)) for seq, cmd, la, lo in d.items if seq >= 1 and cmd == 16]
