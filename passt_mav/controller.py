@@ -137,7 +137,7 @@ class _StoreWriter:
                 rows.append({"time_boot_ms": int(rec["time_boot_ms"]), "utc": float(rec["utc"]), "lat": rec["lat"],
                              "lon": rec["lon"], "u": rec["u"], "v": rec["v"], "leg": int(rec.get("leg", -1)),
                              "source": rec.get("source", "mavlink"), "row": int(r), "col": int(c),
-                             "boot": int(rec.get("boot", 0))})
+                             "boot": int(rec.get("boot", 0)), "gap_ms": rec.get("gap_ms")})
             try:
                 self.new += self.store.append_many(rows)
             except Exception:  # noqa: BLE001 - a store failure must be seen, but must not kill the thread
@@ -287,14 +287,28 @@ class MissionController:
             time.sleep(0.02)
         return p
 
-    def _link_snapshot(self) -> tuple[int, int]:
-        return self.link.stats.received, self.link.stats.drops
+    def _link_snapshot(self) -> tuple:
+        st = self.link.stats
+        return st.received, st.drops, st.vehicle_bytes, self.link.vehicle_uptime_s()
 
-    def _link_record(self, before: tuple[int, int]) -> dict:
-        rec, drops = self.link.stats.received - before[0], self.link.stats.drops - before[1]
+    def _link_record(self, before: tuple) -> dict:
+        """Link figures since ``before``; ``vehicle_bytes_per_s``: bytes the vehicle sent us per second of its
+        own clock (the telemetry radio's budget: baud / 10 bytes/s each way), None without a vehicle clock."""
+        st = self.link.stats
+        rec, drops = st.received - before[0], st.drops - before[1]
+        nbytes, t1 = st.vehicle_bytes - before[2], self.link.vehicle_uptime_s()
         rtt = self.link.rtt
+        bps = nbytes / (t1 - before[3]) if t1 is not None and before[3] is not None and t1 - before[3] > 1.0 else None
         return {"rtt_ms": None if rtt is None else round(rtt * 1000.0, 3),
-                "loss": (drops / (rec + drops)) if rec + drops else 0.0, "messages": int(rec), "drops": int(drops)}
+                "loss": (drops / (rec + drops)) if rec + drops else 0.0, "messages": int(rec), "drops": int(drops),
+                "vehicle_bytes": int(nbytes), "vehicle_bytes_per_s": None if bps is None else round(bps, 1)}
+
+    def _readings_record(self, i: int) -> dict:
+        """Sensor readings of leg ``i``: received (u/v pairs), used (placed on the track), dropped (gap)."""
+        c = self.collector.leg_counts(i)
+        return {"received": c["readings"], "used": c["emitted"], "dropped_gap": c["gap"],
+                "fraction_used": (c["emitted"] / c["readings"]) if c["readings"] else None,
+                "max_gap_ms": self.collector.track.max_gap_ms}
 
     # -- summary ------------------------------------------------------------------------------
     def summary(self) -> dict:
@@ -312,6 +326,8 @@ class MissionController:
             "seeds": cfg.seeds.model_dump(), "config": cfg.model_dump(mode="json"),
             "legs_planned": self.n_legs, "legs": legs,
             "n_samples": self._n_samples(),
+            "readings_used": [(x.get("readings") or {}).get("fraction_used") for x in legs],
+            "link_vehicle_bytes_per_s": [(x.get("link") or {}).get("vehicle_bytes_per_s") for x in legs],
             "rmse": rm if self.truth_known else None,
             "rmse_note": "RMSE over water cells vs the mission's field at the state time; 'model' = the predictor "
                          "alone from the true state at t0, never re-initialised" if self.truth_known else None,
@@ -587,6 +603,7 @@ class MissionController:
             "duration_s": duration_s, "duration_vehicle_s": (tb_end - tb_fly) if (
                 tb_end is not None and tb_fly is not None and tb_end >= tb_fly) else None,
             "n_samples_new": self.store.count(i) - store0, "link": self._link_record(link0),
+            "readings": self._readings_record(i),
         })
         self._finish_leg(i, rec, planned)
         return absorbed.state, absorbed.t_state
@@ -671,6 +688,8 @@ class MissionController:
         self.vehicle.hold()
         duration_s = time.perf_counter() - t_fly
         tb_end = self.link.vehicle_uptime_s()
+        # the leg's last readings wait for the fix after them (<= the gap bound of vehicle time)
+        self.collector.wait_placed(i, self.collector.track.max_gap_ms / 1000.0 / max(self.speedup, 1.0) + 0.5)
         self.writer.flush()
         return duration_s, tb_end
 
@@ -702,10 +721,13 @@ class MissionController:
         r_p, r_m, link = rec["rmse_passt"], rec["rmse_model"], rec["link"]
         rm = "" if r_p is None else f", RMSE passt {r_p:.4f} model {r_m if r_m is None else round(r_m, 4)}"
         rtt = "-" if link["rtt_ms"] is None else f"{link['rtt_ms']:.1f} ms"
-        self._say(f"{self._leg_label(i)}: {rec['n_samples']} samples ({rec['n_gp_points']} to the GP), "
+        rd = rec.get("readings") or {}
+        used = "" if not rd.get("received") else f" of {rd['received']} readings ({100 * rd['fraction_used']:.0f} % used)"
+        self._say(f"{self._leg_label(i)}: {rec['n_samples']} samples{used} ({rec['n_gp_points']} to the GP), "
                   f"{rec['duration_s']:.1f} s wall ({rec['duration_vehicle_s'] or 0:.0f} s vehicle), planning "
                   f"{rec['planning_s'] * 1000:.0f} ms, upload {rec['upload_s']:.2f} s{rm}, link RTT {rtt} "
-                  f"loss {100 * link['loss']:.1f} %")
+                  f"loss {100 * link['loss']:.1f} %" + ("" if link.get("vehicle_bytes_per_s") is None else
+                                                      f", vehicle sends {link['vehicle_bytes_per_s']:.0f} B/s"))
 
     def _leg_label(self, i: int) -> str:
         """How leg ``i`` (0-based) is named in progress lines."""

@@ -110,6 +110,12 @@ def test_three_leg_mission_samples_uploads_and_rmse(tmp_path):
         assert any(len(got) == len(want) and all(rover_stored(a).same_as(b) for a, b in zip(want[1:], got[1:]))
                    for got in readbacks)
         assert leg["t_end"] > leg["t_start"] and leg["n_samples"] > 20
+        # every reading is placed on the track (1 Hz fixes, 1 Hz readings): none dropped, all counted
+        rd_ = leg["readings"]
+        assert rd_["received"] >= leg["n_samples"] and rd_["dropped_gap"] == 0 and rd_["fraction_used"] == 1.0
+        # the sim's sensor reads 1 Hz of vehicle time: one reading a second of the leg's vehicle time
+        assert rd_["received"] == pytest.approx(leg["duration_vehicle_s"], abs=3)
+    assert summary["readings_used"] == [1.0, 1.0, 1.0]
     # the store holds what the sim sent (minus at most one reading in flight at each leg switch)
     store = SampleStore(rd.samples_db, readonly=True)
     recs = store.all()

@@ -133,15 +133,18 @@ def test_bin_and_tlog_of_the_same_run_give_the_same_legs(rebuilt):
             assert float(geo.geodesic_distance_m(q["lat"], q["lon"], s["lat"], s["lon"])) < 1.5
             matched += 1
         assert matched >= len(lt.samples) - 1
-        # the tlog pairs a reading only with a 1 Hz GLOBAL_POSITION_INT within 100 ms (about 1 in 5);
-        # the .bin has POS for nearly every reading
-        assert len(lb.samples) >= 4 * len(lt.samples)
+        # both place nearly every reading on the track: the tlog between 1 Hz GLOBAL_POSITION_INT
+        # (gap ~1000 ms; it kept ~1 in 5 when a reading needed a fix within 100 ms), the .bin between
+        # 10 Hz POS (gap ~100 ms)
+        assert len(lt.samples) >= 0.95 * lt.n_readings and len(lb.samples) >= 0.95 * lb.n_readings
+        assert len(lt.samples) >= 0.9 * len(lb.samples)
+        assert max(s["gap_ms"] for s in lt.samples) <= 1100 and max(s["gap_ms"] for s in lb.samples) <= 400
 
 
 # -- replay: passt-mav replay X.BIN --mission M.yaml ----------------------------------------------
 def test_replaying_the_bin_and_the_tlog_gives_the_same_legs_and_paths(run_pair, tmp_path, capsys):
     """Both replays plan every leg's uploaded path from the same start cell and clock reading; the GP
-    sees ~5x more readings from the .bin (thinned per cell and step: the same or more GP points)."""
+    sees nearly the same readings from both (each placed on its log's track)."""
     from passt_mav.analysis.replay import replay
     from passt_mav.cli import main
 
@@ -155,7 +158,7 @@ def test_replaying_the_bin_and_the_tlog_gives_the_same_legs_and_paths(run_pair, 
         assert b.path == a.path == b.recorded_path == a.recorded_path and b.path_identical
         assert (b.start_cell, b.t_start, b.steps, b.forecast_steps_before) == \
             (a.start_cell, a.t_start, a.steps, a.forecast_steps_before)
-        assert b.n_samples >= 4 * a.n_samples and b.n_gp_points >= a.n_gp_points
+        assert b.n_samples >= 0.9 * a.n_samples and a.n_samples >= 0.9 * b.n_samples
         assert b.rmse_passt == pytest.approx(a.rmse_passt, abs=1e-3)
     # the CLI: exit 0, replay.json beside the log
     assert main(["replay", str(bin_path), "--mission", str(mission), "--out", str(tmp_path / "o")]) == 0
@@ -266,7 +269,10 @@ def test_sitl_run_logged_from_arming_gives_the_tlogs_legs(tmp_path, sitl_factory
         # before the upload) and SITL's home 40.0,-63.0 lies on a cell edge of this grid: compare metres
         assert float(geo.geodesic_distance_m(*lb.start_latlon, *lt.start_latlon)) < 5.0
         assert lb.closed and [q for _, q in lb.reached][-1] == len(lb.waypoints) + 1
-        assert len(lb.samples) >= 2 * len(lt.samples) > 0  # ~5x; the simulator's logger may drop some under load
+        # both place (nearly) every reading on their track; the tlog may lose a few readings to the link and
+        # the .bin a few to the logger under load
+        assert len(lb.samples) >= 0.9 * lb.n_readings and len(lt.samples) >= 0.9 * lt.n_readings > 0
+        assert len(lt.samples) >= 0.8 * len(lb.samples)
     assert b.legs[0].t_now_ms == b.legs[0].t_auto_ms  # no upload in the log: anchored at AUTO
     # the controller sends leg 0's clock reading again after arming, when ArduPilot opens the log
     assert b.legs[0].clock == t.legs[0].clock is not None

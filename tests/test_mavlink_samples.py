@@ -22,31 +22,83 @@ def nvf(tb, name, value):
     return M.MAVLink_named_value_float_message(tb, name.encode(), value)
 
 
-def test_pairs_u_v_with_the_fix_of_the_same_time_in_any_order():
+def boat_at(t_ms, lat0=40.1, lon0=-63.2, speed=3.0, heading_deg=30.0, t0_ms=10_000):
+    """Exact position (deg) of a boat on a straight course at constant speed (pyproj geodesic)."""
+    from pyproj import Geod
+
+    lon, lat, _ = Geod(ellps="WGS84").fwd(lon0, lat0, heading_deg, speed * (t_ms - t0_ms) / 1000.0)
+    return lat, lon
+
+
+def metres(lat, lon, lat1, lon1):
+    from pyproj import Geod
+
+    return Geod(ellps="WGS84").inv(lon, lat, lon1, lat1)[2]
+
+
+def test_readings_between_1hz_fixes_are_placed_on_the_track_when_the_next_fix_arrives():
+    """4 Hz readings, 1 Hz fixes of a boat at 3 m/s: every reading is used, within 1 cm of the true track."""
     out = []
-    c = SampleCollector(out.append, tolerance_ms=50)
+    c = SampleCollector(out.append, max_gap_ms=3000)
     c.handle(M.MAVLink_system_time_message(int(1.7e15 + 5000e3), 5000))  # unix = 1.7e9 s + 5 s at boot 5 s
-    c.handle(nvf(1000, "CUR_U", 0.5))
-    assert out == []
-    c.handle(gpi(1000, 40.1, -63.2))
-    assert out == []  # v missing
-    c.handle(nvf(1000, "CUR_V", -0.25))
-    assert len(out) == 1
-    r = out[0]
-    assert (r["time_boot_ms"], r["u"], r["v"], r["source"]) == (1000, 0.5, -0.25, "mavlink")
-    assert r["lat"] == pytest.approx(40.1, abs=1e-7) and r["lon"] == pytest.approx(-63.2, abs=1e-7)
-    assert r["utc"] == pytest.approx(1.7e9 + 1.0)
-    # reversed order, fix 30 ms off (within tolerance), the nearest of two fixes wins
-    c.handle(gpi(1970, 40.0, -63.0))
-    c.handle(nvf(2000, "CUR_V", 1.0))
-    c.handle(nvf(2000, "CUR_U", 2.0))
-    c.handle(gpi(2020, 41.0, -64.0))  # 20 ms off: nearer, but the sample was already emitted with the 30 ms fix
-    assert len(out) == 2 and out[1]["lat"] == pytest.approx(40.0)
-    # a fix 200 ms away does not pair
-    c.handle(nvf(3000, "CUR_U", 1.0))
-    c.handle(nvf(3000, "CUR_V", 1.0))
-    c.handle(gpi(3200, 40.0, -63.0))
-    assert len(out) == 2
+    expect = []
+    for k in range(10):
+        tf = 10_000 + 1000 * k
+        c.handle(gpi(tf, *boat_at(tf)))
+        n_before = len(out)
+        for j in range(4):  # readings at tf + 0, 250, 500, 750 ms arrive before the next fix
+            tb = tf + 250 * j
+            c.handle(nvf(tb, "CUR_V", -0.25 * k))
+            c.handle(nvf(tb, "CUR_U", 0.5 + j))
+            expect.append((tb, 0.5 + j, -0.25 * k))
+        # the reading at the fix's own time is placed at once (gap 0); the others wait for the next fix
+        assert len(out) == n_before + 1 and out[-1]["gap_ms"] == 0
+    assert len(out) == 1 + 9 * 4  # the last second's three readings still wait
+    c.handle(gpi(20_000, *boat_at(20_000)))
+    assert len(out) == 40 and c.counts["readings"] == 40 and c.counts["gap"] == 0
+    for r, (tb, u, v) in zip(out, expect):
+        assert (r["time_boot_ms"], r["u"], r["source"]) == (tb, u, "mavlink") and r["v"] == pytest.approx(v)
+        assert r["gap_ms"] == (0 if tb % 1000 == 0 else 1000)
+        assert metres(r["lat"], r["lon"], *boat_at(tb)) < 0.01  # degE7 rounding is 1 cm
+        assert r["utc"] == pytest.approx(1.7e9 + tb / 1000.0)
+
+
+def test_a_gap_beyond_the_bound_drops_the_readings_in_it_and_counts_them():
+    out = []
+    c = SampleCollector(out.append, max_gap_ms=2500)
+    c.handle(gpi(1000, *boat_at(1000)))
+    c.handle(gpi(2000, *boat_at(2000)))
+    # fix 3000 lost: the readings between 2000 and 4000 are bracketed 2000 ms apart (used)
+    for tb in (2500, 3500):
+        c.handle(nvf(tb, "CUR_U", 1.0)), c.handle(nvf(tb, "CUR_V", 2.0))
+    c.handle(gpi(4000, *boat_at(4000)))
+    assert [(r["time_boot_ms"], r["gap_ms"]) for r in out] == [(2500, 2000), (3500, 2000)]
+    assert metres(out[0]["lat"], out[0]["lon"], *boat_at(2500)) < 0.01
+    # fixes 5000..7000 lost: the reading at 4200 is held until vehicle time passes 4000 + 2500 ms
+    c.handle(nvf(4200, "CUR_U", 1.0)), c.handle(nvf(4200, "CUR_V", 2.0))
+    c.handle(nvf(6500, "CUR_U", 1.0))  # (a lone half: vehicle time 6500, the bound not yet passed)
+    assert c.counts["gap"] == 0 and len(out) == 2
+    c.handle(nvf(6600, "CUR_U", 1.0))  # vehicle time 6600 > 4000 + 2500: no fix can place 4200 any more
+    assert c.counts["gap"] == 1 and len(out) == 2
+    c.handle(gpi(8000, *boat_at(8000)))  # 4000 -> 8000 is too long anyway
+    assert len(out) == 2 and c.counts["readings"] == 3 and c.counts["emitted"] == 2
+
+
+def test_held_readings_of_a_boot_are_dropped_at_a_reboot_and_flush_decides_the_rest():
+    out = []
+    c = SampleCollector(out.append)
+    c.leg = 0
+    c.handle(gpi(100_000, *boat_at(100_000)))
+    c.handle(nvf(100_400, "CUR_U", 1.0)), c.handle(nvf(100_400, "CUR_V", 1.0))  # waits for the fix at 101000
+    c.handle(gpi(1000, *boat_at(1000)))  # reboot: time went back; the old boot's next fix never comes
+    assert out == [] and c.counts["reboots"] == 1 and c.counts["gap"] == 1
+    c.handle(nvf(1250, "CUR_U", 1.0)), c.handle(nvf(1250, "CUR_V", 1.0))
+    c.handle(gpi(2000, *boat_at(2000)))
+    assert len(out) == 1 and out[0]["boot"] == 1 and out[0]["gap_ms"] == 1000
+    assert metres(out[0]["lat"], out[0]["lon"], *boat_at(1250)) < 0.01
+    c.handle(nvf(2100, "CUR_U", 1.0)), c.handle(nvf(2100, "CUR_V", 1.0))
+    assert c.flush() == [] and c.counts["gap"] == 2  # no fix after it: dropped, counted
+    assert c.leg_counts(0) == {"readings": 3, "emitted": 1, "gap": 2}
 
 
 def test_duplicates_dropped_and_unmatched_halves_expire():
@@ -59,7 +111,7 @@ def test_duplicates_dropped_and_unmatched_halves_expire():
     c.handle(nvf(2000, "U", 0.3))   # its V and position never come
     c.handle(nvf(2000, "CUR_U", 9))  # another name: ignored
     c.handle(gpi(9000, 40.0, -63.0))
-    assert c.counts["expired"] == 1 and 2000 not in c._halves
+    assert c.counts["expired"] == 1 and 2000 not in c._halves and c.counts["readings"] == 1
     c.handle(nvf(2000, "V", 0.4))  # the late half cannot resurrect an expired sample
     assert len(out) == 1
     # a fix without GPS (0, 0) never pairs

@@ -48,7 +48,9 @@ def _leg(i: int, cells: list[tuple[int, int]], t_start: float, t_end: float) -> 
         "waypoints": np.column_stack([lat, lon]).tolist(),
         "t_start": t_start, "t_end": t_end, "planning_s": 1.5 + i, "upload_s": 0.25 * (i + 1),
         "duration_s": 600.0 + 10 * i, "n_samples": len(cells), "rmse_passt": 0.05 - 0.01 * i,
-        "rmse_model": 0.08, "link": {"rtt_ms": 12.5, "loss": 0.01 * i, "messages": 400 + i},
+        "rmse_model": 0.08, "link": {"rtt_ms": 12.5, "loss": 0.01 * i, "messages": 400 + i,
+                                     "vehicle_bytes_per_s": 333.5 + i},
+        "readings": {"received": 8 + i, "used": len(cells), "dropped_gap": 1 + i},
     }
 
 
@@ -149,7 +151,8 @@ def test_full_report(tmp_path, fake_store):
     assert "Telemetry log not recorded" in text
     assert f"{np.sqrt(0.005):.4g}" in text
     # summary and timings tables carry the recorded figures
-    for s in ("synthetic-test", "25.0 min", "policy_gradient", "10 x 12 cells", "12.5", "1.0 %", "401", ">0.75<", ">1210<"):
+    for s in ("synthetic-test", "25.0 min", "policy_gradient", "10 x 12 cells", "12.5", "1.0 %", "401", ">0.75<", ">1210<",
+              ">7 / 8 (88 %)<", ">7 / 9 (78 %)<", ">334.5<"):  # readings used per leg, the vehicle's bytes/s
         assert s in text, s
 
 

@@ -162,3 +162,32 @@ def test_rundir_layout(tmp_path):
     new = RunDir.new(tmp_path / "runs", "ocean demo", utc="2026-05-01T10-00-00Z")
     again = RunDir.new(tmp_path / "runs", "ocean demo", utc="2026-05-01T10-00-00Z")
     assert new.root.name == "2026-05-01T10-00-00Z_ocean-demo" and again.root.name.endswith("_2")
+
+
+def test_a_version_1_store_without_gap_ms_still_opens_and_gets_the_column(tmp_path):
+    """Run folders written before the interpolation gap was stored: read-only gives gap_ms None; a
+    writer adds the column (old rows NULL) and stores the gap of new samples."""
+    import sqlite3
+
+    path = tmp_path / "samples.sqlite"
+    con = sqlite3.connect(path)
+    con.executescript("""
+        CREATE TABLE samples (id INTEGER PRIMARY KEY AUTOINCREMENT, time_boot_ms INTEGER NOT NULL, utc REAL NOT NULL,
+            lat REAL NOT NULL, lon REAL NOT NULL, u REAL NOT NULL, v REAL NOT NULL, leg INTEGER NOT NULL,
+            source TEXT NOT NULL, row INTEGER, col INTEGER, boot INTEGER NOT NULL DEFAULT 0,
+            UNIQUE (source, boot, time_boot_ms));
+        PRAGMA user_version=1;
+        INSERT INTO samples (time_boot_ms, utc, lat, lon, u, v, leg, source, row, col, boot)
+            VALUES (1000, 1.7e9, 40.0, -63.0, 0.5, -0.25, 0, 'mav:1/1', 3, 4, 0);
+    """)
+    con.commit(), con.close()
+    with SampleStore(path, readonly=True) as ro:
+        (old,) = ro.all()
+        assert (old.time_boot_ms, old.u, old.row, old.gap_ms) == (1000, 0.5, 3, None)
+    with SampleStore(path) as st:
+        assert st.append(time_boot_ms=1250, utc=1.7e9, lat=40.0, lon=-63.0, u=0.1, v=0.2, leg=0, source="mav:1/1",
+                         gap_ms=1000)
+        assert [s.gap_ms for s in st.all()] == [None, 1000]
+    con = sqlite3.connect(path)
+    assert con.execute("PRAGMA user_version").fetchone()[0] == 2
+    con.close()

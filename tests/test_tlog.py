@@ -88,9 +88,8 @@ def _scenario():
         V(veh.named_value_float_encode(tb, b"WATER_DEP", 12.5))  # another sensor: not a sample
         if with_v:
             V(veh.named_value_float_encode(tb + v_offset, b"CUR_V", v))
-        if with_v and with_pos and abs(pos_offset) <= 200 and abs(v_offset) <= 200 and name_u == b"CUR_U":
-            exp["samples"].append((tb, _deg7(la) * 1e-7, _deg7(lo) * 1e-7, float(np.float32(u)),
-                                   float(np.float32(v)), leg))
+        if with_v and abs(v_offset) <= 200 and name_u == b"CUR_U":
+            exp["samples"].append((tb, None, None, float(np.float32(u)), float(np.float32(v)), leg))
 
     step(-1)  # before any upload: a sample outside every leg
     upload([(LAT0 + 0.01, LON0), (LAT0 + 0.01, LON0 + 0.01), (LAT0, LON0 + 0.01)], resend=2)
@@ -98,8 +97,8 @@ def _scenario():
     V(veh.mission_current_encode(1, 3, 3))
     step(0)
     step(0, v_offset=3)            # u and v 3 ms apart: still one sample
-    step(0, pos_offset=150)        # position 150 ms off: within 200 ms
-    step(0, pos_offset=450)        # position 450 ms off: dropped
+    step(0, pos_offset=150)        # fixes at -1000 and +150 ms: interpolated, gap 1150 ms
+    step(0, pos_offset=450)        # fixes at -850 and +450 ms: interpolated, gap 1300 ms
     step(0, with_v=False)          # u without v: dropped
     for s in (1, 2, 3):
         V(veh.mission_item_reached_encode(s))
@@ -115,6 +114,10 @@ def _scenario():
     step(1, name_u=b"XX_U")        # other name: not a sample
     step(1)
     hb(4, True)                    # HOLD
+    # every reading lies on the track: straight lines between the 1 Hz fixes (np.interp, not geo.track)
+    tr = np.array(exp["track"])
+    exp["samples"] = [(tb, float(np.interp(tb, tr[:, 0], tr[:, 1])), float(np.interp(tb, tr[:, 0], tr[:, 2])), u, v, leg)
+                      for tb, _, _, u, v, leg in exp["samples"]]
     return frames, exp
 
 
@@ -142,7 +145,8 @@ def recorded(tmp_path_factory):
 
 
 def _sample_tuples(c):
-    return [(s.time_boot_ms, s.lat, s.lon, s.u, s.v, s.leg) for s in c.samples]
+    """(tb, lat, lon, u, v, leg); lat/lon rounded to 1e-9 deg (a lost fix changes an interpolation's rounding)."""
+    return [(s.time_boot_ms, round(s.lat, 9), round(s.lon, 9), s.u, s.v, s.leg) for s in c.samples]
 
 
 def test_reads_exact_samples_track_legs(recorded):
@@ -152,10 +156,11 @@ def test_reads_exact_samples_track_legs(recorded):
     assert c.n_messages == len(frames)
     assert c.vehicle_sysid == VEH
     got = _sample_tuples(c)
-    assert len(got) == len(exp["samples"]) == 7
+    assert len(got) == len(exp["samples"]) == 8 and c.n_readings == 8
     for g, e in zip(got, exp["samples"]):
         assert g[0] == e[0] and g[5] == e[5]
         assert g[1:5] == pytest.approx(e[1:5], abs=1e-9)
+    assert [s.gap_ms for s in c.samples] == [0, 0, 0, 1150, 1300, 0, 0, 0]
     np.testing.assert_allclose(c.track_array(), np.array(exp["track"]), rtol=0, atol=1e-9)
     # legs: two accepted uploads; the rejected NO_SPACE upload starts none
     assert [m.accepted for m in c.missions] == [True, False, True]
@@ -169,7 +174,8 @@ def test_reads_exact_samples_track_legs(recorded):
     assert not accepted[1].int_items  # float MISSION_ITEM upload
     assert len(c.missions[0].items) == 4  # the re-sent item is kept once
     assert len(c.legs) == 2
-    assert c.legs[0].complete and c.legs[0].n_samples == 3 and c.legs[0].n_waypoints == 3
+    assert c.legs[0].complete and c.legs[0].n_samples == 4 and c.legs[0].n_waypoints == 3
+    assert c.legs[0].n_readings == 4
     # the second leg is not closed by the stale "complete" report right after its upload
     assert not c.legs[1].complete and c.legs[1].t_end is None and c.legs[1].n_samples == 2
     assert c.legs[0].t_end <= c.legs[1].t_start
@@ -180,13 +186,14 @@ def test_reads_exact_samples_track_legs(recorded):
     assert [e.value for e in c.events if e.kind == "armed"] == [0, 1]
 
 
-def test_custom_names_and_tolerance(recorded):
+def test_custom_names_and_gap_bound(recorded):
     path, _, _ = recorded
     c = read_tlog(path, u_name="XX_U")
     assert len(c.samples) == 1 and c.samples[0].leg == 1
-    # a tighter tolerance drops the sample whose position is 150 ms away
-    c2 = read_tlog(path, pair_tolerance_ms=100)
-    assert len(c2.samples) == 6
+    # a tighter gap bound drops the two readings whose fixes are 1150 and 1300 ms apart, and only them
+    c2 = read_tlog(path, max_gap_ms=1100)
+    assert len(c2.samples) == 6 and c2.n_readings == 8 and max(s.gap_ms for s in c2.samples) == 0
+    assert c2.legs[0].n_samples == 2 and c2.legs[0].n_readings == 4
 
 
 def _record_offsets(path):
@@ -321,16 +328,17 @@ def _write_bin(path, pos_rows, cur_rows, nvf_rows=()):
 def test_read_dataflash(tmp_path):
     pos = [(1_000_000 * i, LAT0 + 1e-4 * i, LON0 - 1e-4 * i) for i in range(1, 11)]
     cur = [(1_000_000 * i + 50_000, 0.25 * i, -0.5) for i in range(1, 11)]
-    cur.append((60_000_000, 9.0, 9.0))  # no position within 200 ms
+    cur.append((60_000_000, 9.0, 9.0))  # no position after it
     b = tmp_path / "log.bin"
     _write_bin(b, pos, cur)
     c = read_dataflash(b)
     assert len(c.track) == 10
     assert c.track[3].lat == pytest.approx(LAT0 + 4e-4, abs=1e-7)
-    assert len(c.samples) == 10
+    assert len(c.samples) == 9 and c.n_readings == 11  # 10050 and 60000 ms have no fix after them
     s = c.samples[4]
-    assert (s.time_boot_ms, s.u, s.v, s.leg) == (5050, pytest.approx(1.25), pytest.approx(-0.5), -1)
-    assert (s.lat, s.lon) == pytest.approx((LAT0 + 5e-4, LON0 - 5e-4), abs=1e-7)
+    assert (s.time_boot_ms, s.u, s.v, s.leg, s.gap_ms) == (5050, pytest.approx(1.25), pytest.approx(-0.5), -1, 1000)
+    # 50 ms into the straight 1 s stretch from fix 5 to fix 6 (degE7 rounding: 1e-7 deg)
+    assert (s.lat, s.lon) == pytest.approx((LAT0 + 5.05e-4, LON0 - 5.05e-4), abs=1.5e-7)
     assert c.skipped_bytes == 0
 
     # named values (NVF) paired by time instead of a script message

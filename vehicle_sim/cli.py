@@ -121,6 +121,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--loss", type=float, default=0.0, help="frame loss probability each way (0..1)")
     p.add_argument("--latency", type=float, default=0.0, help="one-way latency, simulated seconds")
     p.add_argument("--baud", type=int, default=0, help="emulate a serial radio of this many bit/s (0 = unlimited)")
+    p.add_argument("--radio-buffer", type=int, default=0,
+                   help="the radio's transmit buffer, bytes: a frame that does not fit is dropped (0 = no limit; "
+                        "a SiK radio: 2048). A SiK-like radio: --baud 57600 --latency 0.1 --loss 0.03 --radio-buffer 2048")
     p.add_argument("--drop", action="append", default=[], help="scheduled link outage START:DURATION (sim seconds); repeatable")
     p.add_argument("--seed", type=int, default=0, help="seed of link loss and sensor noise")
     p.add_argument("--current-noise", type=float, default=0.0, help="std of Gaussian noise on CUR_U/CUR_V, m/s")
@@ -288,6 +291,8 @@ def _run(args) -> int:
     from vehicle_sim.link import parse_link_spec, secret_from_key
     from vehicle_sim.sim import Simulator
 
+    if args.radio_buffer < 0:
+        raise _Bad(f"--radio-buffer must be >= 0, got {args.radio_buffer}")
     if not 0 <= args.loss < 1:
         raise _Bad(f"--loss must be in [0, 1), got {args.loss}")
     if args.speedup <= 0:
@@ -347,7 +352,7 @@ def _run(args) -> int:
         p0 = dict(params + boat_params[0])
         # MAV_SYSID is the system id, as in a SITL params file (ArduPilot reads it at boot)
         cfg = cfg.replace(params=tuple(params + boat_params[0]), sysid=int(p0.get("MAV_SYSID", cfg.sysid)))
-        link_cfg = LinkConfig(loss=args.loss, latency_s=args.latency, baud=args.baud,
+        link_cfg = LinkConfig(loss=args.loss, latency_s=args.latency, baud=args.baud, buffer_bytes=args.radio_buffer,
                               drops=drops + tuple(boat_drops[0]), seed=args.seed)
         server = Simulator(field, home=home, config=cfg, velocity_scale=vs, time_scale=ts,
                            start_time=start, link_config=link_cfg, epoch0=epoch0)
@@ -359,7 +364,7 @@ def _run(args) -> int:
             configs = [boat_config(cfg.replace(params=tuple(params + boat_params[i])), i) for i in range(n)]
         except ValueError as exc:
             raise _Bad(str(exc)) from None
-        link_cfgs = [LinkConfig(loss=args.loss, latency_s=args.latency, baud=args.baud,
+        link_cfgs = [LinkConfig(loss=args.loss, latency_s=args.latency, baud=args.baud, buffer_bytes=args.radio_buffer,
                                 drops=drops + tuple(boat_drops[i]), seed=args.seed + i) for i in range(n)]
         server = Fleet(field, starts=starts, configs=configs, velocity_scale=vs, time_scale=ts, start_time=start,
                        link_configs=link_cfgs, epoch0=epoch0)

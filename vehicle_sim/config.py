@@ -24,6 +24,8 @@ class LinkConfig:
             either way during them.
         seed: seed of the loss generator (each link adds its index).
         max_queue_s: radio buffer size, expressed as seconds of backlog.
+        buffer_bytes: radio transmit buffer in bytes (0 = only ``max_queue_s``): a frame that does not
+            fit in what is left of it is dropped (:func:`vehicle_sim.radio.queue_frame`).
     """
 
     loss: float = 0.0
@@ -32,6 +34,13 @@ class LinkConfig:
     drops: tuple[tuple[float, float], ...] = ()
     seed: int = 0
     max_queue_s: float = 2.0
+    buffer_bytes: int = 0
+
+    @classmethod
+    def radio(cls, baud: int = 57600, *, latency_s: float = 0.1, loss: float = 0.03, buffer_bytes: int = 2048,
+              seed: int = 0, **kw) -> "LinkConfig":
+        """A SiK-like telemetry radio (:mod:`vehicle_sim.radio`): ``baud``, 100 ms one way, 3 % loss, 2 kB buffer."""
+        return cls(loss=loss, latency_s=latency_s, baud=baud, buffer_bytes=buffer_bytes, seed=seed, **kw)
 
     def __post_init__(self) -> None:
         if not 0.0 <= self.loss < 1.0:

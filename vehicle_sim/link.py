@@ -10,7 +10,9 @@ CRCs and signing are pymavlink's. On top of that it emulates a radio, in
   reaches the autopilot, so its state cannot be corrupted by a partial frame);
 * ``latency_s``: added one-way delay;
 * ``baud``: frames are serialised at ``baud / 10`` bytes per simulated second,
-  each way; a backlog longer than ``max_queue_s`` overflows (frame dropped);
+  each way; a backlog longer than ``max_queue_s`` or a frame that does not fit in
+  ``buffer_bytes`` overflows (frame dropped; :func:`vehicle_sim.radio.queue_frame`,
+  the rule the wall-time :class:`vehicle_sim.radio.RadioProxy` uses too);
 * ``drops``: scheduled outages.
 
 The transport (a socket, or the in-process endpoint) moves bytes in and out:
@@ -28,6 +30,7 @@ from pathlib import Path
 from pymavlink.dialects.v20 import ardupilotmega as mavlink2
 
 from vehicle_sim.config import LinkConfig
+from vehicle_sim.radio import queue_frame
 
 __all__ = ["Link", "TlogWriter", "secret_from_key", "parse_link_spec"]
 
@@ -138,12 +141,8 @@ class Link:
 
     def _serialise(self, t: float, nbytes: int, free_at: float) -> float | None:
         """Delivery time of a frame given the serial budget, or None if the buffer overflows."""
-        if self.config.baud <= 0:
-            return t
-        start = max(t, free_at)
-        if start - t > self.config.max_queue_s:
-            return None
-        return start + nbytes * 10.0 / self.config.baud
+        c = self.config
+        return queue_frame(t, nbytes, free_at, c.baud, c.buffer_bytes, c.max_queue_s)
 
     # -- outgoing ----------------------------------------------------------------
     def send(self, msg, t: float) -> None:
@@ -170,6 +169,7 @@ class Link:
             self.stats["tx_overflow"] += 1
             return
         self._tx_free = done
+        self.stats["tx_bytes"] += len(frame)  # bytes the radio will deliver (after loss and overflow)
         self._out.append((done + self.config.latency_s, frame))
 
     def pop_outgoing(self, t: float) -> bytes:
@@ -178,7 +178,9 @@ class Link:
             chunks = []
             while self._out and self._out[0][0] <= t:
                 chunks.append(self._out.popleft()[1])
-            return b"".join(chunks)
+            out = b"".join(chunks)
+            self.stats["tx_delivered_bytes"] += len(out)
+            return out
 
     def next_outgoing_time(self) -> float | None:
         with self._lock:

@@ -905,7 +905,8 @@ def _section_timings(page: _Page, run: Run) -> None:
     if not any(k in leg for leg in run.legs for k in keys):
         page.missing("Timings (planning, upload, leg duration) " + NOT_RECORDED)
     else:
-        head = "<tr><th>leg</th><th>planning (s)</th><th>upload (s)</th><th>leg duration (s)</th><th>samples</th></tr>"
+        head = ("<tr><th>leg</th><th>planning (s)</th><th>upload (s)</th><th>leg duration (s)</th><th>samples</th>"
+                "<th>readings used</th></tr>")
         body, tot = [], [0.0, 0.0, 0.0, 0]
         for n, leg in enumerate(run.legs):
             vals = [leg.get(k) for k in keys]
@@ -915,25 +916,35 @@ def _section_timings(page: _Page, run: Run) -> None:
             ns = leg.get("n_samples")
             tot[3] += int(ns) if isinstance(ns, int) else 0
             body.append("<tr><td>" + _fmt(leg.get("index", n)) + "</td>"
-                        + "".join(f'<td class="num">{_fmt(v)}</td>' for v in vals + [ns]) + "</tr>")
-        body.append("<tr><th>total</th>" + "".join(f'<td class="num">{_fmt(v)}</td>' for v in tot) + "</tr>")
+                        + "".join(f'<td class="num">{_fmt(v)}</td>' for v in vals + [ns])
+                        + f'<td class="num">{_readings_used(leg.get("readings"))}</td></tr>')
+        body.append("<tr><th>total</th>" + "".join(f'<td class="num">{_fmt(v)}</td>' for v in tot) + "<td></td></tr>")
         page.add(f"<table>{head}{''.join(body)}</table>")
     links = [(leg.get("index", n), leg["link"]) for n, leg in enumerate(run.legs) if isinstance(leg.get("link"), dict)]
     tl = run.tlog
     if links:
-        head = "<tr><th>leg</th><th>round trip (ms)</th><th>loss</th><th>messages</th></tr>"
+        head = ("<tr><th>leg</th><th>round trip (ms)</th><th>loss</th><th>messages</th>"
+                "<th>vehicle sends (B/s)</th></tr>")
         body = []
         for i, ln in links:
             loss = ln.get("loss")
             loss_s = f"{100 * float(loss):.1f} %" if isinstance(loss, (int, float)) else "&ndash;"
             body.append(f"<tr><td>{_fmt(i)}</td><td class=\"num\">{_fmt(ln.get('rtt_ms'))}</td>"
-                        f"<td class=\"num\">{loss_s}</td><td class=\"num\">{_fmt(ln.get('messages'))}</td></tr>")
+                        f"<td class=\"num\">{loss_s}</td><td class=\"num\">{_fmt(ln.get('messages'))}</td>"
+                        f"<td class=\"num\">{_fmt(ln.get('vehicle_bytes_per_s'))}</td></tr>")
         page.add(f"<table>{head}{''.join(body)}</table>")
     elif tl is not None and tl.link_loss is not None:
         page.note(f"Link (from {run.rundir.TLOG}): {tl.message_counts.get('_vehicle_frames', 0)} vehicle frames, "
                   f"{tl.seq_lost} missing by sequence number ({100 * tl.link_loss:.1f} %).")
     else:
         page.missing("Link quality " + NOT_RECORDED)
+
+
+def _readings_used(r: Any) -> str:
+    """'used / received (x %)' of a leg record's ``readings`` (placed on the track within the gap bound)."""
+    if not isinstance(r, dict) or not r.get("received"):
+        return "&ndash;"
+    return f"{int(r['used'])} / {int(r['received'])} ({100.0 * r['used'] / r['received']:.0f} %)"
 
 
 def _section_tlog(page: _Page, run: Run) -> None:

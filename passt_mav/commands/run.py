@@ -172,6 +172,10 @@ def run(args: argparse.Namespace) -> int:
                       signing_key=args.signing_key, pause_timeout=args.pause_timeout,
                       ready_timeout=args.ready_timeout, echo=echo, report=not args.no_report)
     print(f"run {summary['status']}: {len(summary['legs'])} legs, {summary['n_samples']} samples -> {rd.root}")
+    used = [f"{100 * x:.0f} %" for x in summary.get("readings_used") or [] if x is not None]
+    bps = [f"{x:.0f}" for x in summary.get("link_vehicle_bytes_per_s") or [] if x is not None]
+    if used or bps:  # the sensor readings placed on the track, and the link budget the vehicle used
+        print(f"readings used per leg: {', '.join(used) or '-'}; the vehicle sent {', '.join(bps) or '-'} B/s per leg")
     if summary.get("report"):
         print(f"report: {summary['report']}")
     return 0 if summary["status"] == "complete" else 1

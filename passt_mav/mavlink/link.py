@@ -48,6 +48,11 @@ _DEFAULT_STREAMS = (("GLOBAL_POSITION_INT", 1.0), ("MISSION_CURRENT", 1.0), ("EK
 #: messages that are not streams: ArduPilot refuses SET_MESSAGE_INTERVAL for them (TIMESYNC: result 2
 #: and "No ap_message for mavlink id (111)"); the link sends TIMESYNC requests itself instead
 _NOT_STREAMS = frozenset({"TIMESYNC"})
+#: REQUEST_DATA_STREAM stream ids of the messages the controller uses (ArduPilot's stream groups,
+#: ``MAVn_POSITION``, ``MAVn_EXT_STAT``, ``MAVn_EXTRA3``): the fallback where SET_MESSAGE_INTERVAL is refused
+STREAM_GROUPS = {"GLOBAL_POSITION_INT": mavlink2.MAV_DATA_STREAM_POSITION,
+                 "MISSION_CURRENT": mavlink2.MAV_DATA_STREAM_EXTENDED_STATUS,
+                 "EKF_STATUS_REPORT": mavlink2.MAV_DATA_STREAM_EXTRA3, "SYSTEM_TIME": mavlink2.MAV_DATA_STREAM_EXTRA3}
 _SIGNING_HINT = "the vehicle may require MAVLink 2 signing (signing key, --signing-key)"
 
 
@@ -99,7 +104,14 @@ class LinkConfig:
         reconnect_attempts: attempts of :meth:`Link.reconnect`.
         tlog: path of a telemetry log (MAVProxy ``.tlog`` format, in and out), or None.
         stream_rates_hz: ``((MESSAGE_NAME, hz), ...)`` requested with SET_MESSAGE_INTERVAL. TIMESYNC is
-            skipped (not a stream on ArduPilot: refused); see ``timesync_period_s``.
+            skipped (not a stream on ArduPilot: refused); see ``timesync_period_s``. A message the vehicle
+            refuses it for is asked for by its REQUEST_DATA_STREAM group instead (``STREAM_GROUPS``).
+        quiet_other_streams: when ``stream_rates_hz`` is not empty, first stop every data stream on this
+            link (REQUEST_DATA_STREAM, all streams, rate 0), so that the vehicle sends only
+            ``stream_rates_hz`` (plus what is never a stream: HEARTBEAT, STATUSTEXT, replies,
+            NAMED_VALUE_FLOAT): the link budget of a telemetry radio. Stream rates belong to the vehicle's port: a ground station sharing it through a router
+            loses those streams too, and streams it requests come back for everyone (MAVProxy: start it
+            with ``--streamrate=-1``). False leaves them as they are.
         timesync_period_s: wall seconds between TIMESYNC requests (``tc1 = 0``) that keep the RTT
             estimate current (0 = only at connect).
         baud: serial baud when ``connect`` names a device without one.
@@ -121,6 +133,7 @@ class LinkConfig:
     stream_rates_hz: tuple[tuple[str, float], ...] = _DEFAULT_STREAMS
     baud: int = 57600
     timesync_period_s: float = 10.0
+    quiet_other_streams: bool = True
 
     def __post_init__(self) -> None:
         c = self.connect.strip()
@@ -165,6 +178,7 @@ class LinkStats:
     sent: int = 0
     bad: int = 0
     drops: int = 0  # frames missing from the vehicle's sequence numbers
+    vehicle_bytes: int = 0  # bytes of the frames received from the vehicle's system (the link budget it uses)
     rtt_s: float | None = None
     by_type: collections.Counter = field(default_factory=collections.Counter)
 
@@ -442,6 +456,8 @@ class Link:
                 st.drops += (msg.get_seq() - last - 1) % 256
             self._last_seq[src] = msg.get_seq()
         from_vehicle = self.target_system is not None and src[0] == self.target_system
+        if from_vehicle:
+            st.vehicle_bytes += len(msg.get_msgbuf())
         if typ == "HEARTBEAT" and from_vehicle and _is_vehicle_heartbeat(msg):
             self._last_hb = now
         elif typ == "TIMESYNC" and msg.tc1 != 0:
@@ -683,10 +699,15 @@ class Link:
     def request_streams(self, rates: Iterable[tuple[str, float]] | None = None) -> dict[str, bool]:
         """SET_MESSAGE_INTERVAL for each ``(MESSAGE_NAME, hz)``; returns name -> accepted.
 
-        A refusal is logged, not raised: telemetry at the vehicle's default rate still works.
+        With ``quiet_other_streams`` every data stream is stopped first. A refusal is logged, not
+        raised; a refused message of :data:`STREAM_GROUPS` is requested by its stream group at the
+        same rate (REQUEST_DATA_STREAM has no answer: the message's arrival is the check).
         """
         out = {}
-        for name, hz in (self.config.stream_rates_hz if rates is None else rates):
+        rates = list(self.config.stream_rates_hz if rates is None else rates)
+        if self.config.quiet_other_streams and rates:  # (no rates: leave the vehicle's streams as they are)
+            self._request_data_stream(mavlink2.MAV_DATA_STREAM_ALL, 0)
+        for name, hz in rates:
             msgid = getattr(mavlink2, f"MAVLINK_MSG_ID_{name}", None)
             if msgid is None:
                 raise UserError(f"unknown MAVLink message {name!r} in stream_rates_hz")
@@ -698,9 +719,21 @@ class Link:
                 self.command_long(mavlink2.MAV_CMD_SET_MESSAGE_INTERVAL, msgid, interval_us, retries=2)
                 out[name] = True
             except (CommandRejected, LinkTimeout) as exc:
-                log.warning("stream %s at %.1f Hz not set: %s", name, hz, exc)
                 out[name] = False
+                group = STREAM_GROUPS.get(name)
+                if group is None or hz <= 0:
+                    log.warning("stream %s at %.1f Hz not set: %s", name, hz, exc)
+                    continue
+                log.warning("stream %s at %.1f Hz not set (%s): requesting its stream group %d instead",
+                            name, hz, exc, group)
+                self._request_data_stream(group, hz)
         return out
+
+    def _request_data_stream(self, stream_id: int, hz: float) -> None:
+        """REQUEST_DATA_STREAM to the vehicle (``hz`` <= 0 stops the stream; rates are whole Hz, at least 1)."""
+        rate = max(1, round(hz)) if hz > 0 else 0
+        self.send(self.conn.mav.request_data_stream_encode(self.target_system, self.target_component or 0,
+                                                           int(stream_id), rate, 1 if rate else 0))
 
     def measure_rtt(self, samples: int = 3) -> float | None:
         """Round trip by TIMESYNC (``tc1 = 0`` request, the vehicle echoes ``ts1``); falls back to

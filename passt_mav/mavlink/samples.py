@@ -1,23 +1,36 @@
-"""Current samples from telemetry: NAMED_VALUE_FLOAT u/v paired with the position fix.
+"""Current samples from telemetry: NAMED_VALUE_FLOAT u/v placed on the vehicle's track.
 
 The boat's Lua script sends ``gcs:send_named_float("CUR_U", u)`` and ``("CUR_V", v)``
 (m/s, east/north; shared/ARDUPILOT_ROVER.md). Each NAMED_VALUE_FLOAT carries the
-autopilot's ``time_boot_ms``; the sample's position is the GLOBAL_POSITION_INT with
-the same ``time_boot_ms`` (or the nearest one within ``tolerance_ms``).
+autopilot's ``time_boot_ms`` (ms); the two halves of one reading share it. The
+reading's position is the vehicle's track at that time: linear interpolation
+between the GLOBAL_POSITION_INT fixes before and after it, when they are at most
+``max_gap_ms`` apart (:class:`geo.track.Track`, the rule the log readers use too).
 
-:class:`SampleCollector` emits one record the moment the u half, the v half and a
-position are all there; halves seen twice (retransmission, a reconnect replaying
-a buffer, two links) are dropped; halves that never find their partner expire
-after ``expire_ms`` of vehicle time. Records go to ``on_sample(record)``:
+:class:`SampleCollector` emits one record once the u half, the v half and the fix
+after the reading are there. A reading whose next fix has not arrived yet is held
+until it does, or until vehicle time has run ``max_gap_ms`` past the fix before it
+(then no fix can place it: it is dropped and counted, ``counts["gap"]``). Halves
+seen twice (retransmission, a reconnect replaying a buffer, two links) are dropped;
+halves that never find their partner expire after ``expire_ms`` of vehicle time.
+Records go to ``on_sample(record)``:
 
 ``{"time_boot_ms": int, "utc": float (epoch s), "lat": deg, "lon": deg, "u": m/s,
-"v": m/s, "source": str, "boot": int}`` plus ``"leg"`` when :attr:`SampleCollector.leg` is set.
+"v": m/s, "gap_ms": int, "source": str, "boot": int}`` plus ``"leg"`` when
+:attr:`SampleCollector.leg` is set (the leg open when the reading arrived). ``gap_ms``
+is the time between the two fixes the position was interpolated from (0: a fix at the
+reading's own time).
+
+:attr:`SampleCollector.counts`: ``readings`` (complete u/v pairs), ``emitted``, ``gap``
+(no fixes within ``max_gap_ms`` around it), ``duplicates``, ``expired`` (lone halves),
+``reboots``. ``emitted / readings`` is the fraction of readings used.
 
 UTC comes from SYSTEM_TIME (``time_unix_usec - time_boot_ms``); before the vehicle
 has GPS time, from the wall clock at receipt.
 
 Reboots. ``time_boot_ms`` going back by more than ``reboot_back_ms`` is a reboot of the
-autopilot: the collector forgets its keys (the new boot reuses the old times), counts
+autopilot: the collector forgets its keys and its track (the new boot reuses the old
+times; readings held for a fix are dropped and counted as ``gap``), counts
 :attr:`SampleCollector.boot` up and gives later records ``"boot": n`` (the store keys
 samples by ``(source, boot, time_boot_ms)``, so the new boot's readings are not duplicates).
 :attr:`SampleCollector.boots` keeps per boot the vehicle's UTC at boot (when known) and
@@ -27,11 +40,12 @@ called from the reader thread.
 
 from __future__ import annotations
 
-import bisect
 import collections
 import threading
 import time
 from typing import Callable
+
+from geo.track import DEFAULT_MAX_GAP_MS, Track
 
 __all__ = ["SampleCollector"]
 
@@ -49,8 +63,8 @@ class SampleCollector:
     Args:
         on_sample: called with each record (from the link's reader thread: keep it quick).
         u_name, v_name: NAMED_VALUE_FLOAT names of the east / north components.
-        tolerance_ms: largest |time_boot_ms difference| between a reading and its position.
-        expire_ms: drop unmatched halves / positions older than this (vehicle time).
+        max_gap_ms: largest time between the two fixes a reading's position is interpolated from (ms).
+        expire_ms: drop unmatched halves older than this (vehicle time, ms).
         source: the record's ``source`` field (e.g. "mavlink:tcp:127.0.0.1:5760").
         reboot_back_ms: ``time_boot_ms`` going back by more than this is a reboot.
         on_reboot: ``(boot, last_tb_ms, first_tb_ms)`` callback on a reboot (reader thread).
@@ -60,25 +74,26 @@ class SampleCollector:
     TYPES = ("NAMED_VALUE_FLOAT", "GLOBAL_POSITION_INT", "SYSTEM_TIME")
 
     def __init__(self, on_sample: Callable[[dict], None], *, u_name: str = "CUR_U", v_name: str = "CUR_V",
-                 tolerance_ms: int = 100, expire_ms: int = 10_000, source: str = "mavlink",
+                 max_gap_ms: int = DEFAULT_MAX_GAP_MS, expire_ms: int = 10_000, source: str = "mavlink",
                  reboot_back_ms: int = 3000, on_reboot: Callable[[int, int, int], None] | None = None,
                  boot_base: int = 0):
         if u_name == v_name:
             raise ValueError("u_name and v_name must differ")
         self.on_sample = on_sample
         self.u_name, self.v_name = u_name, v_name
-        self.tolerance_ms, self.expire_ms = int(tolerance_ms), int(expire_ms)
+        self.expire_ms = int(expire_ms)
+        self.track = Track(max_gap_ms)                       # this boot's fixes (time_boot_ms, lat, lon)
         self.source = source
         self.leg: int | None = None
         self._lock = threading.Lock()
         self._halves: dict[int, dict[str, float]] = {}       # time_boot_ms -> {"u": .., "v": ..}
         self._seen: dict[tuple[int, str], None] = {}         # (time_boot_ms, name) already taken
         self._emitted: set[int] = set()
-        self._pos_t: list[int] = []                          # sorted time_boot_ms of recent fixes
-        self._pos: dict[int, tuple[float, float]] = {}
+        self._held: dict[int, tuple[float, float, float | None, int | None]] = {}  # tb -> (u, v, rx, leg)
+        self._leg_counts: collections.Counter = collections.Counter()  # (leg, what) -> n
         self._utc_offset: float | None = None                # unix s - boot s
         self._newest = 0
-        self.counts = collections.Counter()                  # emitted, duplicates, expired, reboots
+        self.counts = collections.Counter()                  # readings, emitted, gap, duplicates, expired, reboots
         self._link = None
         self.reboot_back_ms = int(reboot_back_ms)
         self.on_reboot = on_reboot
@@ -123,15 +138,10 @@ class SampleCollector:
             return None, out
         tb = int(m.time_boot_ms)
         rb = self._check_reboot(tb)  # before any early return: a reboot's first fix has no position yet
+        rx = getattr(m, "_timestamp", None)
         if typ == "GLOBAL_POSITION_INT":
-            if m.lat == 0 and m.lon == 0:
-                return rb, out  # no GPS fix yet
-            if tb not in self._pos:
-                bisect.insort(self._pos_t, tb)
-            self._pos[tb] = (m.lat / 1e7, m.lon / 1e7)
-            # readings waiting for a position near this one
-            for t in [t for t in self._halves if abs(t - tb) <= self.tolerance_ms]:
-                out += self._try_emit(t, getattr(m, "_timestamp", None))
+            if not (m.lat == 0 and m.lon == 0):  # 0/0: no GPS fix yet
+                self.track.add(tb, m.lat / 1e7, m.lon / 1e7)
         else:
             name = _name(m)
             if name not in (self.u_name, self.v_name):
@@ -141,10 +151,46 @@ class SampleCollector:
                 self.counts["duplicates"] += 1
                 return rb, out
             self._seen[key] = None
-            self._halves.setdefault(tb, {})["u" if name == self.u_name else "v"] = float(m.value)
-            out += self._try_emit(tb, getattr(m, "_timestamp", None))
+            h = self._halves.setdefault(tb, {})
+            h["u" if name == self.u_name else "v"] = float(m.value)
+            if "u" in h and "v" in h:
+                del self._halves[tb]
+                self._emitted.add(tb)
+                self._count("readings", self.leg)
+                self._held[tb] = (h["u"], h["v"], rx, self.leg)
+        out += self._place()
         self._expire()
         return rb, out
+
+    def flush(self) -> list[dict]:
+        """Decide every held reading now (end of a mission: no later fix will come); returns the records.
+
+        Records are also passed to ``on_sample``. A reading the current fixes cannot place is dropped (``gap``).
+        """
+        with self._lock:
+            out = self._place(final=True)
+        for rec in out:
+            self.on_sample(rec)
+        return out
+
+    def held(self, leg: int | None = None) -> int:
+        """Readings waiting for the fix after them (of leg ``leg``, or all when None)."""
+        with self._lock:
+            return sum(1 for x in self._held.values() if leg is None or x[3] == leg)
+
+    def wait_placed(self, leg: int | None, timeout: float) -> bool:
+        """Wait up to ``timeout`` wall seconds until no reading of ``leg`` waits for a fix; True if none does."""
+        end = time.monotonic() + timeout
+        while self.held(leg):
+            if time.monotonic() >= end:
+                return False
+            time.sleep(0.02)
+        return True
+
+    def leg_counts(self, leg: int | None) -> dict[str, int]:
+        """``readings``, ``emitted`` and ``gap`` of the readings that arrived while :attr:`leg` was ``leg``."""
+        with self._lock:
+            return {k: int(self._leg_counts.get((leg, k), 0)) for k in ("readings", "emitted", "gap")}
 
     # -- internals (lock held) ------------------------------------------------------------------
     def _check_reboot(self, tb: int) -> tuple[int, int, int] | None:
@@ -154,8 +200,10 @@ class SampleCollector:
             # reordering). The old keys would shadow the new boot's readings at the same times.
             last = self._newest
             self.counts["reboots"] += 1
-            self._halves.clear(), self._seen.clear(), self._emitted.clear(), self._pos.clear()
-            self._pos_t.clear()
+            self._halves.clear(), self._seen.clear(), self._emitted.clear()
+            for t in list(self._held):  # the old boot's fix after them will never come
+                self._count("gap", self._held.pop(t)[3])
+            self.track.clear()
             self._newest = tb
             self._utc_offset = None
             self.boots[-1]["last_tb"] = last
@@ -166,44 +214,40 @@ class SampleCollector:
         self.boots[-1]["last_tb"] = self._newest
         return None
 
-    def _nearest_pos(self, tb: int) -> tuple[float, float] | None:
-        i = bisect.bisect_left(self._pos_t, tb)
-        best = None
-        for j in (i - 1, i):
-            if 0 <= j < len(self._pos_t) and abs(self._pos_t[j] - tb) <= self.tolerance_ms:
-                if best is None or abs(self._pos_t[j] - tb) < abs(best - tb):
-                    best = self._pos_t[j]
-        return None if best is None else self._pos[best]
+    def _count(self, what: str, leg: int | None) -> None:
+        self.counts[what] += 1
+        self._leg_counts[(leg, what)] += 1
 
-    def _try_emit(self, tb: int, rx_time: float | None) -> list[dict]:
-        h = self._halves.get(tb)
-        if h is None or "u" not in h or "v" not in h:
-            return []
-        pos = self._nearest_pos(tb)
-        if pos is None:
-            return []
-        del self._halves[tb]
-        self._emitted.add(tb)
-        if self._utc_offset is not None:
-            utc = self._utc_offset + tb / 1e3
-        else:
-            utc = rx_time if rx_time is not None else time.time()
-        rec = {"time_boot_ms": tb, "utc": utc, "lat": pos[0], "lon": pos[1], "u": h["u"], "v": h["v"],
-               "source": self.source, "boot": self.boot_base + self.boot}
-        if self.leg is not None:
-            rec["leg"] = self.leg
-        self.counts["emitted"] += 1
-        return [rec]
+    def _place(self, final: bool = False) -> list[dict]:
+        """Records of the held readings the track now places; drops those it never can."""
+        out: list[dict] = []
+        for tb in sorted(self._held):
+            pos = self.track.at(tb)
+            if pos is None and not final and self.track.may_bracket(tb, self._newest):
+                continue
+            u, v, rx, leg = self._held.pop(tb)
+            if pos is None:
+                self._count("gap", leg)
+                continue
+            if self._utc_offset is not None:
+                utc = self._utc_offset + tb / 1e3
+            else:
+                utc = rx if rx is not None else time.time()
+            rec = {"time_boot_ms": tb, "utc": utc, "lat": pos.lat, "lon": pos.lon, "u": u, "v": v,
+                   "gap_ms": pos.gap_ms, "source": self.source, "boot": self.boot_base + self.boot}
+            if leg is not None:
+                rec["leg"] = leg
+            self._count("emitted", leg)
+            out.append(rec)
+        # fixes are kept as long as halves are (a late half may complete an older reading)
+        self.track.forget_before(min(self._held, default=self._newest) - self.expire_ms)
+        return out
 
     def _expire(self) -> None:
         old = self._newest - self.expire_ms
         for t in [t for t in self._halves if t < old]:
             del self._halves[t]
             self.counts["expired"] += 1
-        cut = bisect.bisect_left(self._pos_t, old)
-        for t in self._pos_t[:cut]:
-            del self._pos[t]
-        del self._pos_t[:cut]
         # keys of duplicates are remembered longer than halves (a reconnect may replay a minute)
         keep = self._newest - 6 * self.expire_ms
         if len(self._seen) > 4096:

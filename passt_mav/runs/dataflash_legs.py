@@ -38,20 +38,18 @@ mission``; in a log begun after the upload, at AUTO) and closes at the next
 GCS-commanded change away from AUTO (``Rsn`` 2): as in the tlog, where a leg ends at
 the GCS's next mode command and a pilot's RC takeover does not end it. Samples
 (:func:`~passt_mav.runs.tlog.read_dataflash`: an NVF CUR_U paired with the CUR_V and
-the position nearest in time, each within ``pair_tolerance_ms``) belong to the leg
-whose [AUTO, close) span holds their time. ``pair_tolerance_ms`` is 150 by default, not the
-live collector's 100: POS thinned to 5 Hz comes up to 300 ms apart in SITL (150 ms is
-0.6 m at 4 m/s).
+placed on the track by interpolating between the positions around it, at most
+``max_gap_ms`` apart: :class:`geo.track.Track`, the live collector's rule) belong to the leg
+whose [AUTO, close) span holds their time.
 
 Differences from the tlog rebuild (measured on SITL, see tests/test_dataflash_legs.py):
 
-* samples: the log holds every reading (4 Hz) and positions at 10 Hz, so nearly
-  every reading gets a position; the tlog pairs a reading only with a
-  GLOBAL_POSITION_INT within 100 ms, which at the controller's 1 Hz stream is about
-  one reading in five. Where both have a sample of the same reading (same time
-  within 3 ms) u and v are equal and the positions agree to ~1 m (<= 150 ms of
-  travel); the tlog's leg also keeps the few readings paired between the GCS's AUTO
-  command and the vehicle's MODE record;
+* samples: the log holds every reading (4 Hz) and positions at 10 Hz, so the
+  interpolation gap is ~100 ms; the tlog interpolates between 1 Hz GLOBAL_POSITION_INT
+  (gap ~1000 ms). Both place nearly every reading; where both have a sample of the same
+  reading (same time within 3 ms) u and v are equal and the positions agree to a few
+  metres; the tlog's leg also keeps the few readings between the GCS's AUTO command and
+  the vehicle's MODE record;
 * ``t_now_ms`` / ``start_latlon``: taken at the ``New mission`` record, which is
   written when the upload is complete (the tlog takes them at the upload's
   MISSION_COUNT: a few hundred ms of vehicle time earlier); ``t_lo_ms`` of leg 0 is
@@ -68,6 +66,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from geo.track import DEFAULT_MAX_GAP_MS
 from passt_mav.runs.legs import LoggedLeg, LogRebuild, parse_clock_statustext
 from passt_mav.runs.tlog import LogReadError, read_dataflash
 
@@ -130,20 +129,23 @@ def _events(path: Path) -> list[tuple[int, str, Any]]:
 
 
 def rebuild_from_dataflash(path: str | Path, *, u_name: str = "CUR_U", v_name: str = "CUR_V",
-                           pair_tolerance_ms: int = 150) -> LogRebuild:
+                           pair_tolerance_ms: int = 150, max_gap_ms: int = DEFAULT_MAX_GAP_MS) -> LogRebuild:
     """Legs, positions, clock readings and samples from an ArduPilot DataFlash ``.bin`` (module docstring).
 
     ``u_name`` / ``v_name``: the NVF names of the east / north current (m/s);
-    ``pair_tolerance_ms``: largest time difference between a reading's halves and its
-    position (100 ms, the live collector's). Legs are :class:`DataflashLeg`;
+    ``pair_tolerance_ms``: largest time difference between a reading's halves (ms);
+    ``max_gap_ms``: largest time between the two positions a reading is interpolated
+    between (ms, :class:`geo.track.Track`). Legs are :class:`DataflashLeg`;
     samples are dicts ``time_boot_ms``, ``utc`` (NaN), ``lat``, ``lon`` (deg), ``u``,
-    ``v`` (m/s east/north), ``source`` ("dataflash"), ``boot``, ``leg``.
+    ``v`` (m/s east/north), ``gap_ms``, ``source`` ("dataflash"), ``boot``, ``leg``;
+    a leg's ``n_readings`` counts its readings, placed or not.
 
     Raises:
         LogReadError: the file is missing or no DataFlash log.
     """
     path = Path(path)
-    tl = read_dataflash(path, u_name=u_name, v_name=v_name, pair_tolerance_ms=int(pair_tolerance_ms))
+    tl = read_dataflash(path, u_name=u_name, v_name=v_name, pair_tolerance_ms=int(pair_tolerance_ms),
+                        max_gap_ms=int(max_gap_ms))
     events = _events(path)
     if tl.n_messages == 0 and not events:
         raise LogReadError(f"{path}: no DataFlash records in the file")
@@ -240,14 +242,25 @@ def rebuild_from_dataflash(path: str | Path, *, u_name: str = "CUR_U", v_name: s
                 t_lo = t_ms
     boot = boots[0] if boots else 0
     starts = [lg.t_auto_ms for lg in legs]
+
+    def leg_at(tb: int) -> DataflashLeg | None:
+        i = bisect.bisect_right(starts, tb) - 1
+        lg = legs[i] if i >= 0 else None
+        return None if lg is None or (lg.t_end_ms is not None and tb >= lg.t_end_ms) else lg
+
+    for lg in legs:
+        lg.n_readings = 0
+    for tb in tl.reading_times:
+        if (lg := leg_at(tb)) is not None:
+            lg.n_readings += 1
     outside = 0
     for s in tl.samples:
         tb = int(s.time_boot_ms)
-        i = bisect.bisect_right(starts, tb) - 1
-        lg = legs[i] if i >= 0 else None
-        if lg is None or (lg.t_end_ms is not None and tb >= lg.t_end_ms):
+        lg = leg_at(tb)
+        if lg is None:
             outside += 1
             continue
         lg.samples.append({"time_boot_ms": tb, "utc": float("nan"), "lat": float(s.lat), "lon": float(s.lon),
-                           "u": float(s.u), "v": float(s.v), "source": "dataflash", "boot": boot, "leg": lg.index})
+                           "u": float(s.u), "v": float(s.v), "gap_ms": s.gap_ms, "source": "dataflash", "boot": boot,
+                           "leg": lg.index})
     return LogRebuild(path, list(legs), tl.n_messages, tl.bad_frames, tl.skipped_bytes, tl.n_bytes, outside)

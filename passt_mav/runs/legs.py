@@ -56,7 +56,9 @@ class LoggedLeg:
     previous leg ended, or the first of the log) and ``t_now_ms``: the log does not say
     where (it reads it after the GP update, before planning, and sends nothing then);
     ``waypoints``: (lat, lon) deg of the NAV_WAYPOINTs of the last upload before AUTO;
-    ``samples``: collector records (``time_boot_ms``, ``lat``, ``lon``, ``u``, ``v`` m/s east/north);
+    ``samples``: collector records (``time_boot_ms``, ``lat``, ``lon``, ``u``, ``v`` m/s east/north,
+    ``gap_ms``: the interpolation gap of the position, :class:`geo.track.Track`);
+    ``n_readings``: the u/v readings of the leg, ``len(samples)`` of which the track placed;
     ``clock``: ``(time_boot_ms, boot, k)`` the controller planned from, read from its
     :func:`clock_statustext` (None in logs of controllers that did not send it: then only the
     bracket ``t_lo_ms``..``t_now_ms`` is known).
@@ -71,6 +73,7 @@ class LoggedLeg:
     closed: bool = False
     clock: tuple[int, int, int] | None = None
     planned_index: int | None = None  # the controller's leg number (a fleet numbers legs across boats)
+    n_readings: int | None = None  # u/v readings in the leg, placed or not (len(samples) were placed); None: unknown
 
 
 @dataclass
@@ -105,11 +108,11 @@ def rebuild_from_tlog(path: str | Path, *, u_name: str = "CUR_U", v_name: str = 
                              "tb_lo": None, "clock": None}
 
     def on_sample(rec: dict) -> None:
-        leg = state["cur"]
-        if leg is None:
+        # the leg open when the reading arrived (a reading waits for the fix after it: the leg may have ended)
+        if rec.get("leg") is None:
             state["outside"] += 1
         else:
-            leg.samples.append(rec)
+            legs[rec["leg"]].samples.append(rec)
 
     col = SampleCollector(on_sample, u_name=u_name, v_name=v_name)
     scan = _TlogScanner(data)
@@ -171,6 +174,9 @@ def rebuild_from_tlog(path: str | Path, *, u_name: str = "CUR_U", v_name: str = 
                 state["cur"] = None
                 state["tb_lo"] = state["tb"]
                 col.leg = None
+    col.flush()  # readings still waiting for a fix after them: the log has none
+    for leg in legs:
+        leg.n_readings = col.leg_counts(leg.index)["readings"]
     return LogRebuild(path, legs, n, scan.bad, scan.skipped, len(data), state["outside"])
 
 

@@ -30,7 +30,14 @@ Record format (:class:`Sample`): ``time_boot_ms`` (int, ms since autopilot
 boot), ``utc`` (float, UNIX epoch seconds of reception), ``lat``/``lon``
 (WGS84 degrees), ``u``/``v`` (m/s, east/north), ``leg`` (int, -1 outside any
 leg), ``source`` (str, e.g. ``"mav:1/1"`` or ``"sim"``), optional ``row``/``col``
-(grid cell, or None).
+(grid cell, or None), ``boot``, ``gap_ms`` (int ms or None): the time between the two
+position fixes the sample's lat/lon were interpolated from (:class:`geo.track.Track`;
+0 = a fix at the reading's own time; None = not recorded: a simulator's exact position,
+or a store written before the column existed).
+
+Schema versions (``PRAGMA user_version``): 1 without ``gap_ms``; 2 adds it. A version-1
+store opened for writing gets the column (``ALTER TABLE ... ADD COLUMN``, NULL in the
+old rows); opened read-only it reads ``gap_ms`` as None. Old run folders keep opening.
 """
 
 from __future__ import annotations
@@ -66,6 +73,7 @@ class Sample:
     row: int | None = None
     col: int | None = None
     boot: int = 0
+    gap_ms: int | None = None
 
     @classmethod
     def coerce(cls, obj: "Sample | Mapping[str, Any]") -> "Sample":
@@ -81,7 +89,7 @@ class Sample:
         raise SampleStoreError(f"cannot store a {type(obj).__name__} as a sample")
 
 
-_COLUMNS = ("time_boot_ms", "utc", "lat", "lon", "u", "v", "leg", "source", "row", "col", "boot")
+_COLUMNS = ("time_boot_ms", "utc", "lat", "lon", "u", "v", "leg", "source", "row", "col", "boot", "gap_ms")
 
 _SCHEMA = """
 CREATE TABLE IF NOT EXISTS samples (
@@ -97,12 +105,13 @@ CREATE TABLE IF NOT EXISTS samples (
     row INTEGER,
     col INTEGER,
     boot INTEGER NOT NULL DEFAULT 0,
+    gap_ms INTEGER,
     UNIQUE (source, boot, time_boot_ms)
 );
 CREATE INDEX IF NOT EXISTS samples_leg ON samples (leg);
 """
 
-_SCHEMA_VERSION = 1
+_SCHEMA_VERSION = 2
 
 
 def _row_values(s: Sample) -> tuple:
@@ -111,7 +120,8 @@ def _row_values(s: Sample) -> tuple:
         if not isinstance(x, (int, float)) or not math.isfinite(x):
             raise SampleStoreError(f"sample {name} must be a finite number, got {x!r}")
     return (int(s.time_boot_ms), float(s.utc), float(s.lat), float(s.lon), float(s.u), float(s.v), int(s.leg),
-            str(s.source), None if s.row is None else int(s.row), None if s.col is None else int(s.col), int(s.boot))
+            str(s.source), None if s.row is None else int(s.row), None if s.col is None else int(s.col), int(s.boot),
+            None if s.gap_ms is None else int(s.gap_ms))
 
 
 class SampleStore:
@@ -139,11 +149,18 @@ class SampleStore:
                 self._con.execute("PRAGMA journal_mode=WAL")
                 self._con.execute("PRAGMA synchronous=FULL")
                 self._con.executescript(_SCHEMA)
+                if "gap_ms" not in self._table_columns():  # a version-1 store (CREATE IF NOT EXISTS kept it)
+                    self._con.execute("ALTER TABLE samples ADD COLUMN gap_ms INTEGER")
                 self._con.execute(f"PRAGMA user_version={_SCHEMA_VERSION}")
             # fail now, with the file's name, if it is not a sample store
             self._con.execute("SELECT time_boot_ms, utc, lat, lon, u, v, leg, source FROM samples LIMIT 1").fetchall()
+            have = self._table_columns()
+            self._select_cols = ", ".join(c if c in have else f"NULL AS {c}" for c in _COLUMNS)
         except sqlite3.DatabaseError as exc:
             raise SampleStoreError(f"{self.path} is not a readable sample store: {exc}") from None
+
+    def _table_columns(self) -> set[str]:
+        return {r[1] for r in self._con.execute("PRAGMA table_info(samples)").fetchall()}
 
     # -- writing ---------------------------------------------------------------
     def append(self, sample: "Sample | Mapping[str, Any] | None" = None, /, **kw: Any) -> bool:
@@ -185,7 +202,7 @@ class SampleStore:
     # -- reading ---------------------------------------------------------------
     def _select(self, where: str = "", params: tuple = ()) -> list[Sample]:
         with self._lock:
-            rows = self._execute(f"SELECT {', '.join(_COLUMNS)} FROM samples {where} ORDER BY id", params).fetchall()
+            rows = self._execute(f"SELECT {self._select_cols} FROM samples {where} ORDER BY id", params).fetchall()
         return [Sample(*r) for r in rows]
 
     def all(self) -> list[Sample]:

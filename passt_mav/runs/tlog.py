@@ -8,8 +8,11 @@ From it, it rebuilds
 * ``track``: the vehicle's GLOBAL_POSITION_INT positions (0/0 before a GPS fix is
   ignored);
 * ``samples``: current measurements, a NAMED_VALUE_FLOAT ``CUR_U`` paired with
-  the ``CUR_V`` nearest in ``time_boot_ms`` and the GLOBAL_POSITION_INT nearest in
-  ``time_boot_ms``, each within ``pair_tolerance_ms`` (names configurable);
+  the ``CUR_V`` nearest in ``time_boot_ms`` within ``pair_tolerance_ms`` (names
+  configurable), placed on the track at the reading's time: interpolated between the
+  GLOBAL_POSITION_INT fixes around it when they are at most ``max_gap_ms`` apart
+  (:class:`geo.track.Track`, the live collector's rule; the gap is the sample's
+  ``gap_ms``). ``n_readings`` counts the u/v pairs, placed or not;
 * ``missions``: mission uploads from a GCS (MISSION_COUNT + MISSION_ITEM_INT or
   MISSION_ITEM, re-sent items kept once) and the vehicle's MISSION_ACK result;
 * ``legs``: one per accepted upload (MISSION_ACK 0). A leg is complete at
@@ -35,7 +38,7 @@ small scanner around pymavlink's own frame decoder.
 (FMT records, then fixed-length records; decoding through ``DFReader``'s format
 classes): positions from ``POS`` (or ``GPS``), samples from a ``CUR`` message
 (columns ``U``, ``V``, written by an on-board Lua script) or from ``NVF`` named
-values, paired by ``TimeUS``. DataFlash records have no checksum, so a record is
+values, paired by ``TimeUS`` and placed on the track by the same rule. DataFlash records have no checksum, so a record is
 accepted only when it is followed by another valid record header (or the end of
 the file); a record with junk inside it is dropped rather than misread.
 """
@@ -49,6 +52,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from geo.track import DEFAULT_MAX_GAP_MS, Track
 from passt_mav.errors import UserError
 from passt_mav.runs.store import Sample
 
@@ -159,6 +163,7 @@ class LegRecord:
     n_waypoints: int = 0
     n_samples: int = 0
     active: bool = False
+    n_readings: int = 0  # u/v pairs received in the leg; n_samples of them were placed on the track
 
 
 @dataclass(frozen=True)
@@ -195,6 +200,11 @@ class TelemetryLog:
     seq_lost: int = 0
     utc_first: float | None = None
     utc_last: float | None = None
+    #: u/v reading pairs found; ``len(samples)`` of them were placed on the track (the rest: no two
+    #: fixes within ``max_gap_ms`` around them)
+    n_readings: int = 0
+    #: ``time_boot_ms`` of every reading pair (DataFlash only: the tlog counts readings per leg)
+    reading_times: list[int] = field(default_factory=list)
 
     def track_array(self):
         """``(n, 3)`` float64: time_boot_ms, lat, lon (deg)."""
@@ -332,14 +342,14 @@ def _mode_names(mav_type: int) -> dict[int, str]:
 
 
 def read_tlog(path: str | Path, *, u_name: str = "CUR_U", v_name: str = "CUR_V", pair_tolerance_ms: int = 200,
-              vehicle_sysid: int | None = None) -> TelemetryLog:
+              max_gap_ms: int = DEFAULT_MAX_GAP_MS, vehicle_sysid: int | None = None) -> TelemetryLog:
     """Read a ``.tlog`` (see module docstring).
 
     Args:
         path: the telemetry log.
         u_name, v_name: NAMED_VALUE_FLOAT names of the eastward/northward current (m/s).
-        pair_tolerance_ms: largest ``time_boot_ms`` difference between a u reading and
-            its v reading, and between the u reading and the position it is placed at.
+        pair_tolerance_ms: largest ``time_boot_ms`` difference between a u reading and its v reading (ms).
+        max_gap_ms: largest time between the two fixes a reading's position is interpolated from (ms).
         vehicle_sysid: the vehicle's system id; default: the system sending vehicle
             HEARTBEATs (autopilot not INVALID, type not GCS), else the one sending positions.
 
@@ -383,15 +393,16 @@ def read_tlog(path: str | Path, *, u_name: str = "CUR_U", v_name: str = "CUR_V",
         out.message_counts["_vehicle_frames"] = frames[vehicle_sysid]
         out.seq_lost = lost[vehicle_sysid]
     if vehicle_sysid is not None:
-        _Interpreter(out, vehicle_sysid, u_name, v_name, int(pair_tolerance_ms)).run(kept)
+        _Interpreter(out, vehicle_sysid, u_name, v_name, int(pair_tolerance_ms), int(max_gap_ms)).run(kept)
     return out
 
 
 class _Interpreter:
     """Turns the ordered vehicle/GCS messages into track, samples, uploads, legs, events."""
 
-    def __init__(self, out: TelemetryLog, veh: int, u_name: str, v_name: str, tol_ms: int):
+    def __init__(self, out: TelemetryLog, veh: int, u_name: str, v_name: str, tol_ms: int, max_gap_ms: int):
         self.out, self.veh, self.u_name, self.v_name, self.tol = out, veh, u_name, v_name, tol_ms
+        self.max_gap_ms = max_gap_ms
         self.leg: LegRecord | None = None
         self.upload: MissionUpload | None = None
         self.mode: int | None = None
@@ -432,9 +443,10 @@ class _Interpreter:
                 getattr(self, "_veh_" + t.lower(), _ignore)(utc, m)
             else:
                 getattr(self, "_gcs_" + t.lower(), _ignore)(utc, m)
-        self._pair()
+        legs_of_readings = self._pair()
         for leg in out.legs:
             leg.n_samples = sum(1 for s in out.samples if s.leg == leg.index)
+            leg.n_readings = legs_of_readings.count(leg.index)
 
     # -- vehicle messages
     def _veh_heartbeat(self, utc: float, m) -> None:
@@ -542,7 +554,8 @@ class _Interpreter:
         self._gcs_mission_item_int(utc, m, is_int=False)
 
     # -- pairing
-    def _pair(self) -> None:
+    def _pair(self) -> list[int]:
+        """Pairs u with v, places each pair on its boot's track; returns the leg of every pair."""
         import numpy as np
 
         tol = self.tol
@@ -550,23 +563,25 @@ class _Interpreter:
         for b in {x[0] for x in self.v}:
             rows = sorted((tb, val) for bb, tb, val in self.v if bb == b)
             v_by_boot[b] = (np.array([r[0] for r in rows], np.int64), [r[1] for r in rows], np.zeros(len(rows), bool))
-        p_by_boot: dict[int, tuple[Any, list]] = {}
-        for b in {x[0] for x in self.pos}:
-            rows = sorted((tb, la, lo) for bb, tb, la, lo in self.pos if bb == b)
-            p_by_boot[b] = (np.array([r[0] for r in rows], np.int64), rows)
+        tracks: dict[int, Track] = {}
+        for b, tb, la, lo in self.pos:
+            tracks.setdefault(b, Track(self.max_gap_ms)).add(tb, la, lo)
+        legs: list[int] = []
         for boot, tb, u, utc, leg, source in self.u:
-            if boot not in v_by_boot or boot not in p_by_boot:
+            if boot not in v_by_boot:
                 continue
             vt, vv, used = v_by_boot[boot]
             j = _nearest(vt, tb, tol, used)
             if j is None:
                 continue
-            pt, prow = p_by_boot[boot]
-            k = _nearest(pt, tb, tol, None)
-            if k is None:
-                continue
             used[j] = True
-            self.out.samples.append(Sample(tb, utc, prow[k][1], prow[k][2], u, vv[j], leg, source, boot=boot))
+            legs.append(leg)
+            pos = tracks[boot].at(tb) if boot in tracks else None
+            if pos is None:
+                continue
+            self.out.samples.append(Sample(tb, utc, pos.lat, pos.lon, u, vv[j], leg, source, boot=boot, gap_ms=pos.gap_ms))
+        self.out.n_readings = len(legs)
+        return legs
 
 
 def _nearest(times, t: int, tol: int, used) -> int | None:
@@ -594,13 +609,14 @@ _DF_HEAD = b"\xa3\x95"
 
 
 def read_dataflash(path: str | Path, *, u_name: str = "CUR_U", v_name: str = "CUR_V", cur_message: str = "CUR",
-                   pair_tolerance_ms: int = 200) -> TelemetryLog:
+                   pair_tolerance_ms: int = 200, max_gap_ms: int = DEFAULT_MAX_GAP_MS) -> TelemetryLog:
     """Read an ArduPilot DataFlash ``.bin`` log (see module docstring).
 
     Positions come from ``POS`` (``Lat``/``Lng``), or ``GPS`` when the log has no
     ``POS``. Samples come from ``cur_message`` records (columns ``U``, ``V``) or
-    from ``NVF`` named values ``u_name``/``v_name``, paired by ``TimeUS`` with the
-    nearest position within ``pair_tolerance_ms``. ``time_boot_ms`` = ``TimeUS //
+    from ``NVF`` named values ``u_name``/``v_name`` (u paired with the v nearest in ``TimeUS``
+    within ``pair_tolerance_ms``), placed on the track at their time as in :func:`read_tlog`
+    (fixes at most ``max_gap_ms`` apart; ``gap_ms`` recorded). ``time_boot_ms`` = ``TimeUS //
     1000``; a DataFlash log holds no reception time, so ``utc`` is NaN. Legs are not
     reconstructed from DataFlash (``leg`` = -1).
 
@@ -687,11 +703,12 @@ def read_dataflash(path: str | Path, *, u_name: str = "CUR_U", v_name: str = "CU
         out.skipped_bytes += q - p
         p = q
 
-    _df_interpret(out, records, u_name, v_name, cur_message, int(pair_tolerance_ms))
+    _df_interpret(out, records, u_name, v_name, cur_message, int(pair_tolerance_ms), int(max_gap_ms))
     return out
 
 
-def _df_interpret(out: TelemetryLog, records: dict[str, list], u_name: str, v_name: str, cur_message: str, tol: int) -> None:
+def _df_interpret(out: TelemetryLog, records: dict[str, list], u_name: str, v_name: str, cur_message: str, tol: int,
+                  max_gap_ms: int) -> None:
     import numpy as np
 
     nan = float("nan")
@@ -707,7 +724,9 @@ def _df_interpret(out: TelemetryLog, records: dict[str, list], u_name: str, v_na
             continue
         out.track.append(TrackPoint(tus // 1000, lat, lon, nan))
     out.track.sort(key=lambda p: p.time_boot_ms)
-    pt = np.array([p.time_boot_ms for p in out.track], np.int64)
+    track = Track(max_gap_ms)
+    for p in out.track:
+        track.add(p.time_boot_ms, p.lat, p.lon)
 
     pairs: list[tuple[int, float, float]] = []  # (tb, u, v)
     for m in records.get(cur_message, []):
@@ -734,9 +753,11 @@ def _df_interpret(out: TelemetryLog, records: dict[str, list], u_name: str, v_na
             used[j] = True
             pairs.append((tb, u, vs[j][1]))
     pairs.sort(key=lambda x: x[0])
+    out.n_readings = len(pairs)
+    out.reading_times = [tb for tb, _, _ in pairs]
     for tb, u, v in pairs:
-        k = _nearest(pt, tb, tol, None)
-        if k is None:
+        pos = track.at(tb)
+        if pos is None:
             continue
-        out.samples.append(Sample(tb, nan, out.track[k].lat, out.track[k].lon, u, v, -1, "dataflash"))
+        out.samples.append(Sample(tb, nan, pos.lat, pos.lon, u, v, -1, "dataflash", gap_ms=pos.gap_ms))
 
