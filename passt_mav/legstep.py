@@ -269,6 +269,9 @@ class PlannedLeg:
                 "path": self.plan.path.tolist(), "t_start": self.t_start, "t_end": self.t_start + self.steps * dt,
                 "steps": self.steps, "forecast_steps_before": self.k, "planning_s": self.planning_s,
                 "planning_timings": dict(self.plan.timings),
+                # the map the path was planned on ((R, C), row 0 south; 0 = land or nothing to gain),
+                # for the report: why the boat goes where it goes
+                "reward_map": np.round(np.nan_to_num(np.asarray(self.plan.reward, float)), 4).tolist(),
                 "clock_reading": None if self.clock_reading is None else
                 {"time_boot_ms": self.clock_reading[0], "boot": self.clock_reading[1]}}
 

@@ -726,7 +726,7 @@ def write_report(run_dir: str | Path, out: str | Path | None = None) -> Path:
     run = load_run(run_dir)
     out_dir = Path(out) if out is not None else run.rundir.report_dir
     out_dir.mkdir(parents=True, exist_ok=True)
-    for name in ("track_field.png", "legs.png", "samples.png", "reconstruction.png", "rmse.png", "pod.png"):
+    for name in ("track_field.png", "legs.png", "reward.png", "samples.png", "reconstruction.png", "rmse.png", "pod.png"):
         (out_dir / name).unlink(missing_ok=True)  # a figure from an earlier report must not outlive its data
     plt = _plt()
     page = _Page(out_dir)
@@ -741,6 +741,7 @@ def write_report(run_dir: str | Path, out: str | Path | None = None) -> Path:
     _section_summary(page, run)
     _section_track(page, run, plt)
     _section_legs(page, run, plt)
+    _section_reward(page, run, plt)
     _section_samples(page, run, plt)
     _section_recon(page, run, plt)
     _section_rmse(page, run, plt)
@@ -815,6 +816,43 @@ def _section_legs(page: _Page, run: Run, plt) -> None:
         page.note(f"Executed: {run.leg_tracks_source}.")
     else:
         page.missing("Executed track per leg " + NOT_RECORDED)
+
+
+def _fig_reward(run: Run, plt, legs: list[dict]):
+    """Per leg: the reward map it was planned on (grid cells, row 0 south) under its planned path."""
+    n = len(legs)
+    cols = min(n, 3)
+    rows = -(-n // cols)
+    fig, axes = plt.subplots(rows, cols, figsize=(4.2 * cols, 3.9 * rows), constrained_layout=True, squeeze=False)
+    for ax in axes.ravel()[n:]:
+        ax.set_visible(False)
+    for ax, leg in zip(axes.ravel(), legs):
+        q = np.asarray(leg["reward_map"], float)
+        im = ax.imshow(q, origin="lower", cmap="magma", vmin=0.0, vmax=max(float(np.nanmax(q)), 1e-12))
+        p = np.asarray(leg.get("path") or [], float).reshape(-1, 2)
+        if len(p):
+            ax.plot(p[:, 1], p[:, 0], "-", color="c", lw=1.8)
+            ax.plot(p[0, 1], p[0, 0], "s", color="c", mec="k", ms=7)
+        title = f"leg {leg.get('index', '?')}" + (f", boat {leg['boat']}" if leg.get("boat") is not None else "")
+        ax.set_title(title, fontsize=10)
+        ax.set_xlabel("column (east)")
+        ax.set_ylabel("row (north)")
+    fig.colorbar(im, ax=axes.ravel().tolist(), shrink=0.8, label="reward (normalised)")
+    return fig
+
+
+def _section_reward(page: _Page, run: Run, plt) -> None:
+    page.h2("Why the boat went there: each leg's reward map under its path")
+    legs = [leg for leg in run.legs if isinstance(leg.get("reward_map"), list) and leg["reward_map"]]
+    if not legs:
+        page.missing("Reward maps " + NOT_RECORDED)
+        return
+    page.figure(_fig_reward(run, plt, legs), "reward.png", "reward map per leg with the planned path", plt)
+    reward = (run.summary or {}).get("reward")
+    page.note("Planned path cyan (square = start) over the map the planner maximised"
+              + (f" (reward {html.escape(str(reward))})" if reward else "")
+              + ": with variance_reduction, the error variance one sample there would remove from the next "
+              "reconstruction under the GP's own prior; with speed, the predicted current speed.")
 
 
 def _section_samples(page: _Page, run: Run, plt) -> None:
