@@ -25,11 +25,11 @@ import pytest
 import yaml
 
 import geo
+from mavlink_helpers import Wire, lockstep_connection
 from passt_mav.cli import main
 from passt_mav.fields.datasets import resolve_field
 from passt_mav.mavlink import link as link_mod
 from passt_mav.runs.store import SampleStore
-from pymavlink.dialects.v20 import ardupilotmega as mavlink2
 from vehicle_sim import SimConfig, Simulator
 
 MISSIONS = Path(__file__).resolve().parent.parent / "missions"
@@ -48,46 +48,6 @@ def placed_field(data: dict):
     return field
 
 
-def lockstep_connection(ep):
-    """The controller's transport: an in-process endpoint whose idle polls step the simulator
-    (:class:`vehicle_sim.inprocess.InProcessMavfile` ``autostep``); an idle poll also hands the GIL
-    over (``sleep(0)``), so the reader's stepping does not starve the controller's own thread."""
-    import time
-
-    conn = ep.mavlink_connection(autostep=AUTOSTEP_S)
-    recv = conn.recv
-
-    def recv_yielding(n=None):
-        data = recv(n)
-        if not data:
-            time.sleep(0)
-        return data
-
-    conn.recv = recv_yielding
-    return conn
-
-
-class Wire:
-    """Identity of every frame the controller writes to the vehicle (parsed independently of passt_mav)."""
-
-    def __init__(self):
-        self.mav = mavlink2.MAVLink(None, use_native=False)
-        self.mav.robust_parsing = True
-        self.ids: set[tuple[int, int]] = set()
-
-    def wrap(self, ep):
-        orig = ep.write
-
-        def write(buf):
-            for m in self.mav.parse_buffer(bytes(buf)) or []:
-                if m.get_type() != "BAD_DATA":
-                    self.ids.add((m.get_srcSystem(), m.get_srcComponent()))
-            return orig(buf)
-
-        ep.write = write
-        return ep
-
-
 def fly(name: str, tmp_path, monkeypatch, *, moves: int, speed: float, extra: tuple[str, ...] = ()):
     """``passt-mav run missions/NAME.yaml --legs 1 --set planner.path_length=MOVES ...`` on a lockstep sim."""
     path = MISSIONS / f"{name}.yaml"
@@ -101,7 +61,8 @@ def fly(name: str, tmp_path, monkeypatch, *, moves: int, speed: float, extra: tu
                     velocity_scale=float(fs.get("velocity_scale", 1.0)), time_scale=float(fs.get("time_scale", 1.0)),
                     start_time=float(field.times[t0]))
     wire = Wire()
-    monkeypatch.setattr(link_mod.LinkConfig, "open", lambda self: lockstep_connection(wire.wrap(sim.connect_inprocess())))
+    monkeypatch.setattr(link_mod.LinkConfig, "open",
+                        lambda self: lockstep_connection(wire.wrap(sim.connect_inprocess()), AUTOSTEP_S))
     out = tmp_path / name
     rc = main(["run", str(path), "--connect", "tcp:127.0.0.1:5760", "--legs", "1", "--out", str(out),
                "--set", f"planner.path_length={moves}", "--set", f"vehicle.speed_mps={speed}",

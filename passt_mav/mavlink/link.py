@@ -377,7 +377,9 @@ class Link:
             self.stats = LinkStats()  # what this attempt received (_what_arrived)
             try:
                 self._open()
-                self._find_vehicle(max(min(per_try, deadline - time.monotonic()), per_try if wait_s <= 0 else 0.5))
+                left = deadline - time.monotonic()
+                # retrying: at least two heartbeat waits fit in the time left (a line each), none past it
+                self._find_vehicle(per_try if wait_s <= 0 else max(min(per_try, max(1.0, left / 2), left), 0.5))
                 break
             except LinkTimeout as exc:
                 self._shutdown()
