@@ -121,3 +121,54 @@ def test_every_shipped_mission_file_is_flown_here():
     """A new file in missions/ must be added to the tests above."""
     assert sorted(p.stem for p in MISSIONS.glob("*.yaml")) == ["cylinder", "north_atlantic", "oscillating_cylinder",
                                                                  "rtofs"]
+
+
+# -- plan and run: one rule for a mission's field on its region ----------------------------------------
+
+
+@pytest.mark.parametrize("name", ["cylinder", "oscillating_cylinder", "north_atlantic", "rtofs"])
+def test_plan_accepts_every_shipped_mission_file(name, tmp_path, capsys):
+    assert main(["plan", str(MISSIONS / f"{name}.yaml"), "--model", "none", "--length", "3", "--json",
+                 "--out", str(tmp_path / "p")]) == 0
+    out = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert len(out["waypoint_cells"]) >= 2
+
+
+@pytest.mark.parametrize("key, value, needle", [
+    ("x0", 2.5, "the mission's region x0 = 2.5 data m is not the field's (builtin:cylinder: 2.6); use the field's "
+                "region (passt-mav data info builtin:cylinder)"),
+    ("rows", 29, "the field builtin:cylinder is a 30x30 grid, the mission's region 29x30"),
+])
+def test_plan_and_run_refuse_a_region_off_the_field_with_the_same_line(key, value, needle, tmp_path, capsys):
+    data = yaml.safe_load((MISSIONS / "cylinder.yaml").read_text())
+    data["region"][key] = value
+    if key == "rows":
+        data["start_cell"] = [10, 2]
+    f = tmp_path / "off.yaml"
+    f.write_text(yaml.safe_dump(data))
+    lines = []
+    for argv in (["plan", str(f), "--model", "none", "--out", str(tmp_path / "p")],
+                 ["run", str(f), "--connect", "tcp:127.0.0.1:9", "--out", str(tmp_path / "r"), "--no-report"]):
+        assert main(argv) == 2
+        lines.append(capsys.readouterr().err.strip().splitlines()[-1])
+    assert lines[0] == lines[1] == f"passt-mav: error: {needle}"
+
+
+def test_a_metric_field_takes_the_missions_placement_and_keeps_its_data():
+    from passt_mav.fields.datasets import field_on_region, mission_field
+    from passt_mav.mission.config import load_mission
+
+    cfg = load_mission(MISSIONS / "cylinder.yaml")
+    raw = resolve_field("builtin:cylinder")
+    placed = mission_field(cfg)
+    assert raw.grid.scale == 1.0 and placed.grid == cfg.grid() and placed.grid.scale == 100.0
+    assert placed.data is raw.data or np.array_equal(placed.data, raw.data)
+    # one cell of the placed grid: 0.303 data m x 100 = 30.3 m east-west (the mission file's comment)
+    assert placed.grid.cell_size_m[1] == pytest.approx((11.4 - 2.6) / 29 * 100, rel=1e-3)
+    # a geographic field on its own region is returned as it is; on a metric region it is refused
+    ocean = resolve_field("builtin:ocean")
+    assert field_on_region(ocean, ocean.grid, source="builtin:ocean") is ocean
+    from passt_mav.errors import FieldError
+
+    with pytest.raises(FieldError, match="geographic grid; the mission's region must be 'kind: geographic'"):
+        field_on_region(ocean, cfg.grid(), source="builtin:ocean")

@@ -16,7 +16,7 @@ EXAMPLES = """examples:
 
     # the cylinder missions place a CFD crop on the sea: give vehicle-sim the same placement
     vehicle-sim --field builtin:cylinder --anchor 40.2,-63.1 --scale 100 --velocity-scale 0.5 --time-scale 200 \
-        --start-time 120 --listen tcp:127.0.0.1:5760 --speedup 50 &
+        --start-time 240 --listen tcp:127.0.0.1:5760 --speedup 50 &
 """
 
 
