@@ -764,27 +764,37 @@ class MissionController:
         fails is re-read first: at a high simulator speed-up the vehicle re-requests items after
         1 s of *its* time, our duplicate answers then draw a late MISSION_ACK ERROR that lands in
         the download. DENIED (another ground station's upload is in progress: ArduPilot serves one
-        at a time) is waited out and retried, saying so. Capacity (NO_SPACE) and other refusals raise
-        at once.
+        at a time) is waited out, saying so once, for up to :attr:`FOREIGN_WAIT_S` (vehicle seconds)
+        without counting as a try. Capacity (NO_SPACE) and other refusals raise at once.
         """
         from passt_mav.errors import MissionRejected, MissionVerifyError
         from passt_mav.mavlink.mission_client import _differences  # upload_verified's own comparison
 
         mc = self.vehicle.mission
-        retry = (15, 1, 14)  # MAV_MISSION_OPERATION_CANCELLED, MAV_MISSION_ERROR, MAV_MISSION_DENIED
+        retry = (15, 1)  # MAV_MISSION_OPERATION_CANCELLED, MAV_MISSION_ERROR
         last: Exception | None = None
-        for k in range(1, tries + 1):
+        denied_since: float | None = None
+        k = 0
+        while k < tries:
+            k += 1
             try:
                 up = mc.upload(items)
             except (MissionRejected, LinkTimeout) as exc:
-                if isinstance(exc, MissionRejected) and exc.result not in retry:
-                    raise
-                if isinstance(exc, MissionRejected) and exc.result == 14:
+                if isinstance(exc, MissionRejected) and exc.result == 14:  # MAV_MISSION_DENIED
                     # ArduPilot denies an upload while another ground station's transfer is in progress
-                    self._say(f"leg {i + 1}: the vehicle denied our upload: another ground station is transferring "
-                              f"a mission ({self._watch.changed((0, 0)) or 'who is not visible on this link'}); "
-                              "waiting for it")
-                    time.sleep(max(0.2, 2.0 / self.speedup))
+                    now = time.monotonic()
+                    if denied_since is None:
+                        denied_since = now
+                        self._say(f"leg {i + 1}: the vehicle denied our upload: another ground station is "
+                                  f"transferring a mission ({self._watch.changed((0, 0)) or 'not visible on this link'})"
+                                  f"; waiting up to {self.FOREIGN_WAIT_S:g} s (vehicle time) for it to finish")
+                        self.events.append(f"leg {i}: upload denied at {_utc_now()}: another station's transfer")
+                    if (now - denied_since) * self.speedup < self.FOREIGN_WAIT_S:
+                        time.sleep(max(0.05, 1.0 / self.speedup))
+                        k -= 1  # waiting for the other station is not a failed try
+                        continue
+                elif isinstance(exc, MissionRejected) and exc.result not in retry:
+                    raise
                 if self.link.lost:
                     raise  # the swap reconnects and starts again; retrying on a dead link only waits
                 last = exc
@@ -812,6 +822,8 @@ class MissionController:
 
     #: replacements of our mission by another ground station in one leg before the controller stops in HOLD
     FOREIGN_REPLACEMENTS = 2
+    #: vehicle seconds to wait for another ground station's mission transfer (our upload DENIED meanwhile)
+    FOREIGN_WAIT_S = 60.0
 
     @property
     def _watch(self):

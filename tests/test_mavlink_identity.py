@@ -223,6 +223,42 @@ def test_a_gcs_that_keeps_replacing_the_mission_stops_the_run_in_hold(tmp_path):
     assert mode == 4  # HOLD: not flying someone else's mission
 
 
+def test_an_upload_denied_while_qgc_holds_a_transfer_is_waited_out(tmp_path):
+    """QGC opens an upload and goes quiet (a ground station stalled mid-transfer) right before our leg's
+    upload: the vehicle DENIES ours until its own 8 s transfer timeout cancels QGC's; the controller says
+    so once, waits, and the leg flies with our mission."""
+    from test_controller import controller, mission, sim_config, wave_field
+
+    from passt_mav.commands.run import LEAN_STREAMS
+
+    field = wave_field()
+    cfg = mission(tmp_path, field, legs=1)
+    sim = Simulator(field, home=HOME, config=sim_config(), start_time=0.0)
+    link, wire = _link(sim, stream_rates_hz=LEAN_STREAMS)
+    qgc = QgcClient(sim)
+    ctl = controller(cfg, field, link, RunDir(tmp_path / "run").create(), echo=print)
+    orig = ctl.vehicle.mission.upload
+    opened = []
+
+    def upload(items, *a, **kw):
+        if not opened:
+            qgc.mav.mission_count_send(1, 1, 5, 0)
+            opened.append(qgc.wait("MISSION_REQUEST", timeout=5.0))  # the vehicle now serves QGC's transfer
+        return orig(items, *a, **kw)
+
+    ctl.vehicle.mission.upload = upload
+    try:
+        summary = ctl.run()
+    finally:
+        link.close()
+    assert opened[0] is not None and opened[0].seq == 0
+    assert summary["status"] == "complete", summary["events"]
+    assert sum("upload denied" in e for e in summary["events"]) == 1
+    qgc.pump()  # the vehicle's own 8 s timeout ended QGC's stalled transfer: CANCELLED, to QGC
+    assert [m.type for _, m in qgc.log if m.get_type() == "MISSION_ACK"] == [M.MAV_MISSION_OPERATION_CANCELLED]
+    assert wire.ids == {OURS}
+
+
 def _item(m):
     """A MissionItem from a simulator's stored Item or a MISSION_ITEM_INT message."""
     from passt_mav.mission.items import MissionItem
