@@ -781,15 +781,8 @@ class MissionController:
                 up = mc.upload(items)
             except (MissionRejected, LinkTimeout) as exc:
                 if isinstance(exc, MissionRejected) and exc.result == 14:  # MAV_MISSION_DENIED
-                    # ArduPilot denies an upload while another ground station's transfer is in progress
-                    now = time.monotonic()
-                    if denied_since is None:
-                        denied_since = now
-                        self._say(f"leg {i + 1}: the vehicle denied our upload: another ground station is "
-                                  f"transferring a mission ({self._watch.changed((0, 0)) or 'not visible on this link'})"
-                                  f"; waiting up to {self.FOREIGN_WAIT_S:g} s (vehicle time) for it to finish")
-                        self.events.append(f"leg {i}: upload denied at {_utc_now()}: another station's transfer")
-                    if (now - denied_since) * self.speedup < self.FOREIGN_WAIT_S:
+                    denied_since = denied_since or self._denied(i)
+                    if (time.monotonic() - denied_since) * self.speedup < self.FOREIGN_WAIT_S:
                         time.sleep(max(0.05, 1.0 / self.speedup))
                         k -= 1  # waiting for the other station is not a failed try
                         continue
@@ -887,6 +880,15 @@ class MissionController:
             self._say(f"leg {i + 1}: WARNING: the leg's speed {self.speed:g} m/s was not set again after {why} "
                       f"({exc}); the vehicle goes on at its WP_SPEED")
             self.events.append(f"leg {i}: speed not set again after {why}: {exc}")
+
+    def _denied(self, i: int) -> float:
+        """Our upload was DENIED: ArduPilot serves one upload at a time and another ground station's is in
+        progress. Says so once; returns when (monotonic s) the wait began."""
+        who = self._watch.changed((0, 0)) or "not visible on this link"
+        self._say(f"leg {i + 1}: the vehicle denied our upload: another ground station is transferring a mission "
+                  f"({who}); waiting up to {self.FOREIGN_WAIT_S:g} s (vehicle time) for it to finish")
+        self.events.append(f"leg {i}: upload denied at {_utc_now()}: another station's transfer ({who})")
+        return time.monotonic()
 
     # -- flying one leg, with its faults ------------------------------------------------------------
     def _expected_vehicle_s(self, wm) -> float:

@@ -75,7 +75,7 @@ def test_tcp_loopback_connect_streams_rtt_tlog_and_gcs_heartbeats(tmp_path):
     while (m := log.recv_match()) is not None:
         seen.append((m.get_srcSystem(), m.get_type()))
     assert (1, "HEARTBEAT") in seen and (245, "HEARTBEAT") in seen  # both directions (ours: 245)
-    assert (255, "COMMAND_LONG") in seen and (1, "COMMAND_ACK") in seen
+    assert (245, "COMMAND_LONG") in seen and (1, "COMMAND_ACK") in seen
 
 
 def test_no_vehicle_raises_link_timeout_quickly():
