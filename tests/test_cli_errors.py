@@ -103,7 +103,7 @@ def test_run_retries_with_one_line_per_attempt_then_one_line_and_exit_2(case, ca
              "no-answer": "no answer within", "no-serial-device": "no such serial device",
              "silent-port": "nothing arrived", "other-protocol": "no MAVLink frame"}[case]
     try:
-        out, err = _one_line_exit_2(capsys, ["run", MISSION, "--connect", address, "--ready-timeout", "2.5",
+        out, err = _one_line_exit_2(capsys, ["run", MISSION, "--connect", address, "--ready-timeout", "1.2",
                                              "--out", tmp_path / "run", *FAST], f"no vehicle at {address}", cause)
     finally:
         if server is not None:

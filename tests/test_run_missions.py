@@ -67,7 +67,8 @@ def fly(name: str, tmp_path, monkeypatch, *, moves: int, speed: float, extra: tu
     rc = main(["run", str(path), "--connect", "tcp:127.0.0.1:5760", "--legs", "1", "--out", str(out),
                "--set", f"planner.path_length={moves}", "--set", f"vehicle.speed_mps={speed}",
                "--speedup-hint", "20", "--no-report", "--quiet", *extra])
-    summary = json.loads((out / "summary.json").read_text())
+    f = out / "summary.json"
+    summary = json.loads(f.read_text()) if f.exists() else {}
     return rc, summary, sim, wire, out, field
 
 
@@ -115,6 +116,22 @@ def test_ocean_mission_files_fly(name, start, tmp_path, monkeypatch):
     # one move of a 6-9 km cell at 8 m/s: ~15-20 min of vehicle time
     rc, summary, sim, wire, out, field = fly(name, tmp_path, monkeypatch, moves=1, speed=8.0)
     check_flight(rc, summary, sim, wire, out, field, moves=1, start=start)
+
+
+def test_our_ids_from_the_mission_file_and_the_command_line_reach_the_wire(tmp_path, monkeypatch):
+    """vehicle.source_system/source_component in the mission, --source-component on the command line
+    (which wins): the companion-computer case, the vehicle's system id with a component of our own."""
+    rc, summary, sim, wire, out, field = fly("cylinder", tmp_path, monkeypatch, moves=1, speed=3.0, extra=(
+        "--set", "gp.background=0", "--set", "vehicle.source_system=1", "--set", "vehicle.source_component=191",
+        "--source-component", "196"))
+    assert rc == 0 and summary["status"] == "complete"
+    assert wire.ids == {(1, 196)}
+
+
+def test_speaking_as_the_autopilot_itself_is_refused_in_one_line(tmp_path, monkeypatch, capsys):
+    rc, summary, sim, wire, out, field = fly("cylinder", tmp_path, monkeypatch, moves=1, speed=3.0,
+                                             extra=("--source-system", "1", "--source-component", "1"))
+    assert rc == 2 and "is the vehicle's own autopilot's" in capsys.readouterr().err
 
 
 def test_every_shipped_mission_file_is_flown_here():

@@ -95,8 +95,6 @@ def execute(config, *, connect: str, run_dir, mission_text: str | None, legs=Non
         sys.setswitchinterval(min(sys.getswitchinterval(), 0.001))
     field = mission_field(config)  # the same rule as plan, replay and report
     predictor, pinfo = build_predictor(config.model, field, echo=echo)
-    identity = tuple(a if a is not None else b for a, b in
-                     zip(identity, (config.fleet[0].source_system, config.fleet[0].source_component)))
     if config.vehicles is not None:
         if resume:
             raise _user("--resume is not supported for a fleet (vehicles:) yet")
@@ -106,7 +104,7 @@ def execute(config, *, connect: str, run_dir, mission_text: str | None, legs=Non
                                  extra_summary=extra_summary, link_factory=link_factory, identity=identity)
         return _report(summary, run_dir, report)
     link = Link(link_config_for(connect, speedup=speedup, tlog=run_dir.tlog, signing_key=signing_key,
-                                identity=identity), connection_factory=link_factory)
+                                identity=_identity(identity, config.vehicle)), connection_factory=link_factory)
     echo(f"connecting to {connect} as system {link.config.source_system} component {link.config.source_component} ...")
     link.connect(wait_s=ready_timeout, say=echo)
     try:
@@ -147,10 +145,8 @@ def _execute_fleet(config, run_dir, field, predictor, pinfo, *, mission_text, le
     try:
         for k, vc in enumerate(config.fleet):
             factory = None if link_factory is None else (lambda f=link_factory, c=vc.connect: f(c))
-            ids = (identity[0] if identity[0] is not None else vc.source_system,
-                   identity[1] if identity[1] is not None else vc.source_component)
-            link = Link(link_config_for(vc.connect, speedup=speedup, tlog=run_dir.boat_tlog(k),
-                                        signing_key=signing_key, identity=ids), connection_factory=factory)
+            link = Link(link_config_for(vc.connect, speedup=speedup, tlog=run_dir.boat_tlog(k), signing_key=signing_key,
+                                        identity=_identity(identity, vc)), connection_factory=factory)
             echo(f"boat {k}: connecting to {vc.connect} ...")
             links.append(link.connect(wait_s=ready_timeout, say=echo))
         fleet = FleetController(config, links, run_dir, field=field, predictor=predictor, predictor_info=pinfo,
@@ -162,6 +158,12 @@ def _execute_fleet(config, run_dir, field, predictor, pinfo, *, mission_text, le
     finally:
         for link in links:
             link.close()
+
+
+def _identity(cli: tuple, vc) -> tuple:
+    """Our (system, component) ids for one boat: the command line's, else its mission entry's
+    (``vehicle.source_system/source_component``); None left = the link's defaults."""
+    return (cli[0] if cli[0] is not None else vc.source_system, cli[1] if cli[1] is not None else vc.source_component)
 
 
 def _with_overrides(path, text: str, pairs: list[str]):
