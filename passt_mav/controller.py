@@ -914,9 +914,11 @@ class MissionController:
                 try:
                     self._verify_flying(i, items, resume_seq=self._resume_seq)
                     self._verify_pending = False
-                except MavlinkError:
-                    if not self.link.lost and self.link.error is None:
-                        raise  # else: recovered below; the read-back is tried again after it
+                except MavlinkError as exc:
+                    # DENIED: another station's upload is in progress (the vehicle serves no download
+                    # meanwhile): read back once it is over. A lost link: recovered below, then read back.
+                    if getattr(exc, "result", None) != 14 and not self.link.lost and self.link.error is None:
+                        raise
             with p.changed:
                 done = (p.state == 5 and p.total == n_items) or n_items in p.reached
                 if not done:

@@ -215,6 +215,46 @@ def test_a_gcs_upload_during_the_swap_is_caught_by_the_read_back_and_ours_flown(
     assert wire.ids == {OURS} and mode == 4
 
 
+def test_a_gcs_upload_mid_leg_through_a_router_is_seen_and_ours_resumed(tmp_path):
+    """Through a router the vehicle's MISSION_ACK to QGC reaches us: the watch sees QGC's upload mid-leg (a
+    mission of the same length: MISSION_CURRENT.total cannot tell), the read-back confirms it, ours goes back
+    up and the leg resumes at the item it was flying."""
+    from passt_mav.commands.run import LEAN_STREAMS
+    from test_controller import controller, mission, sim_config, wave_field
+
+    field = wave_field()
+    cfg = mission(tmp_path, field, legs=1, planner={"name": "greedy", "path_length": 5})
+    sim = Simulator(field, home=HOME, config=sim_config(), start_time=0.0)
+    router = Router(sim)
+    link, wire = _link(sim, router.port(), stream_rates_hz=LEAN_STREAMS)
+    qgc = QgcClient(sim, router.port())
+    ctl = controller(cfg, field, link, RunDir(tmp_path / "run").create(), echo=print)
+    acks = []
+
+    def qgc_mid_leg():
+        end = time.monotonic() + 60
+        while time.monotonic() < end and not (ctl.vehicle.mode == 10 and ctl.vehicle.progress.reached
+                                              and not getattr(ctl, "_verify_pending", True)):
+            time.sleep(0.005)  # AUTO, our read-back done, the first waypoint reached
+        ours = sim.autopilot.store.items[0]
+        theirs = [SimClient.waypoint(it.seq, it.x / 1e7 + 3e-4, it.y / 1e7) for it in ours]
+        acks.append(qgc.upload(theirs, timeout=20.0, item_timeout=0.5))
+
+    th = threading.Thread(target=qgc_mid_leg, daemon=True)
+    th.start()
+    try:
+        summary = ctl.run()
+    finally:
+        th.join(30)
+        link.close()
+    assert acks and acks[0] is not None and acks[0].type == M.MAV_MISSION_ACCEPTED
+    assert summary["status"] == "complete", summary["events"]
+    replaced = [e for e in summary["events"] if "mission replaced" in e]
+    assert len(replaced) == 1 and "another ground station (system 255 component 190) uploaded a mission" in replaced[0]
+    stored = sim.autopilot.store.items[0]  # ours again, as flown to the end
+    assert [round(it.x / 1e7, 7) for it in stored[2:]] == [round(w[0], 7) for w in summary["legs"][0]["waypoints"]]
+
+
 def test_a_gcs_that_keeps_replacing_the_mission_stops_the_run_in_hold(tmp_path):
     summary, sim, wire, done, field, mode = _flight(tmp_path, shared=False, times=10, legs=1)
     assert summary["status"] == "paused"
