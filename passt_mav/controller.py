@@ -65,7 +65,12 @@ stored mission (re-upload if lost), re-arm, set the interrupted item current and
 AUTO; or, with ``vehicle.on_reboot: hold``, HOLD and stop (status ``paused``).
 The vehicle leaving AUTO while armed (a pilot takes over): the controller says so and
 waits until AUTO comes back or ``pause_timeout_s`` passes, then switches to HOLD
-and stops cleanly (status ``paused``). ``resume=True`` continues a run directory
+and stops cleanly (status ``paused``). Another ground station on the vehicle (QGroundControl
+beside us): the mission is read back once AUTO is entered after every swap and whenever
+:class:`~passt_mav.mavlink.mission_client.MissionWatch` sees signs of another upload; a mission
+not ours is uploaded again (HOLD, resume at the item, AUTO), a third time in one leg stops in
+HOLD (``paused``); an upload DENIED while the other station transfers is waited out.
+``resume=True`` continues a run directory
 after the controller was killed: completed legs come from their leg records,
 samples from the store, the state from the last leg's ``estimate.nc``; the leg
 that was in flight is re-planned from the current position.
