@@ -265,6 +265,7 @@ class Subscription:
             pass
 
     def get(self, timeout: float | None) -> object | None:
+        """The next message, or None after ``timeout`` s (or at once when the link's transport dies)."""
         try:
             return self._q.get(timeout=max(timeout, 0.0) if timeout is not None else None)
         except queue.Empty:
@@ -274,9 +275,11 @@ class Subscription:
         out = []
         while True:
             try:
-                out.append(self._q.get_nowait())
+                m = self._q.get_nowait()
             except queue.Empty:
                 return out
+            if m is not None:  # a wake-up of a dying link (Link._wake_subscribers), not a message
+                out.append(m)
 
     def close(self) -> None:
         self._link._unsubscribe(self)
@@ -532,6 +535,7 @@ class Link:
                 self.error = exc
                 self.closed_reason = str(exc) or type(exc).__name__
                 log.warning("link to %s closed: %s", self.config.connect, self.closed_reason)
+                self._wake_subscribers()
                 return
             except Exception as exc:  # noqa: BLE001 - pymavlink may raise on garbage; keep reading
                 self.stats.bad += 1
@@ -620,6 +624,14 @@ class Link:
         with self._sub_lock:
             self._subs.append(sub)
         return sub
+
+    def _wake_subscribers(self) -> None:
+        """The transport died: every waiting ``Subscription.get`` returns None now (as on a timeout), so a
+        protocol exchange in progress fails at once on its next send instead of waiting out its timeout."""
+        with self._sub_lock:
+            subs = list(self._subs)
+        for s in subs:
+            s._offer(None)
 
     def _unsubscribe(self, sub: Subscription) -> None:
         with self._sub_lock:
