@@ -6,14 +6,18 @@ and ``run(args) -> int``. Those modules import only the standard library at top
 level; numpy, torch, sklearn and pymavlink are imported inside ``run`` so that
 ``passt-mav --help`` answers in well under a second.
 
-Errors: a :class:`passt_mav.errors.UserError` (or ``geo.GeoError``) raised by a
-command is printed as one line ``passt-mav: error: ...`` and the exit code is 2.
+Errors: a :class:`passt_mav.errors.UserError` (or ``geo.GeoError``), a
+:class:`passt_mav.errors.MavlinkError` (a vehicle that cannot be reached or stops answering)
+or an ``OSError`` (a file or network error) raised by a command is printed as one line
+``passt-mav: error: ...`` and the exit code is 2; set ``PASST_TRACEBACK=1`` to see the
+traceback instead.
 """
 
 from __future__ import annotations
 
 import argparse
 import importlib
+import os
 import sys
 
 __all__ = ["main", "COMMANDS"]
@@ -58,9 +62,10 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _is_user_error(exc: BaseException) -> bool:
-    from passt_mav.errors import UserError
+    """Bad input, a file or network error, or a vehicle that cannot be reached or answered: one line, exit 2."""
+    from passt_mav.errors import MavlinkError, UserError
 
-    if isinstance(exc, UserError):
+    if isinstance(exc, (UserError, MavlinkError, OSError)):
         return True
     geo_mod = sys.modules.get("geo.region")
     return geo_mod is not None and isinstance(exc, geo_mod.GeoError)
@@ -78,8 +83,10 @@ def main(argv: list[str] | None = None) -> int:
         print("passt-mav: interrupted", file=sys.stderr)
         return 130
     except Exception as exc:  # noqa: BLE001 - user errors become one line, the rest propagate
-        if _is_user_error(exc):
+        if _is_user_error(exc) and not os.environ.get("PASST_TRACEBACK"):
             msg = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+            if isinstance(exc, OSError) and getattr(exc, "filename", None) and str(exc.filename) not in msg:
+                msg = f"{exc.filename}: {msg}"
             print(f"passt-mav: error: {msg}", file=sys.stderr)
             return 2
         raise

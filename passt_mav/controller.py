@@ -65,7 +65,12 @@ stored mission (re-upload if lost), re-arm, set the interrupted item current and
 AUTO; or, with ``vehicle.on_reboot: hold``, HOLD and stop (status ``paused``).
 The vehicle leaving AUTO while armed (a pilot takes over): the controller says so and
 waits until AUTO comes back or ``pause_timeout_s`` passes, then switches to HOLD
-and stops cleanly (status ``paused``). ``resume=True`` continues a run directory
+and stops cleanly (status ``paused``). Another ground station on the vehicle (QGroundControl
+beside us): the mission is read back once AUTO is entered after every swap and whenever
+:class:`~passt_mav.mavlink.mission_client.MissionWatch` sees signs of another upload; a mission
+not ours is uploaded again (HOLD, resume at the item, AUTO), a third time in one leg stops in
+HOLD (``paused``); an upload DENIED while the other station transfers is waited out.
+``resume=True`` continues a run directory
 after the controller was killed: completed legs come from their leg records,
 samples from the store, the state from the last leg's ``estimate.nc``; the leg
 that was in flight is re-planned from the current position.
@@ -766,6 +771,7 @@ class MissionController:
                 t_fly = time.perf_counter()
                 tb_fly = self.link.vehicle_uptime_s()
                 v.start_mission()
+                self._verify_pending = True  # _fly reads the mission back: another GCS may have uploaded meanwhile
                 return tries, upload_s, t_fly, tb_fly
             except MavlinkError as exc:
                 if not (isinstance(exc, LinkTimeout) or self.link.closed_reason is not None) or not self.link.lost \
@@ -784,7 +790,9 @@ class MissionController:
         timeout) or answered ERROR, a timeout, and a read-back that differs. A read-back that
         fails is re-read first: at a high simulator speed-up the vehicle re-requests items after
         1 s of *its* time, our duplicate answers then draw a late MISSION_ACK ERROR that lands in
-        the download. Capacity (NO_SPACE), DENIED and other refusals raise at once.
+        the download. DENIED (another ground station's upload is in progress: ArduPilot serves one
+        at a time) is waited out, saying so once, for up to :attr:`FOREIGN_WAIT_S` (vehicle seconds)
+        without counting as a try. Capacity (NO_SPACE) and other refusals raise at once.
         """
         from passt_mav.errors import MissionRejected, MissionVerifyError
         from passt_mav.mavlink.mission_client import _differences  # upload_verified's own comparison
@@ -792,11 +800,20 @@ class MissionController:
         mc = self.vehicle.mission
         retry = (15, 1)  # MAV_MISSION_OPERATION_CANCELLED, MAV_MISSION_ERROR
         last: Exception | None = None
-        for k in range(1, tries + 1):
+        denied_since: float | None = None
+        k = 0
+        while k < tries:
+            k += 1
             try:
-                mc.upload(items)
+                up = mc.upload(items)
             except (MissionRejected, LinkTimeout) as exc:
-                if isinstance(exc, MissionRejected) and exc.result not in retry:
+                if isinstance(exc, MissionRejected) and exc.result == 14:  # MAV_MISSION_DENIED
+                    denied_since = denied_since or self._denied(i)
+                    if (time.monotonic() - denied_since) * self.speedup < self.FOREIGN_WAIT_S:
+                        time.sleep(max(0.05, 1.0 / self.speedup))
+                        k -= 1  # waiting for the other station is not a failed try
+                        continue
+                elif isinstance(exc, MissionRejected) and exc.result not in retry:
                     raise
                 if self.link.lost:
                     raise  # the swap reconnects and starts again; retrying on a dead link only waits
@@ -813,6 +830,7 @@ class MissionController:
                 if got is not None:
                     diff = _differences(list(items), got, 0)
                     if not diff:
+                        self._mission_mark = self._watch.expect(len(items), up.opaque_id)
                         return k
                     last = MissionVerifyError(f"mission read back differs from the upload: {diff}")
             self._say(f"leg {i + 1}: upload try {k} failed ({last}); retrying" if k < tries else
@@ -821,6 +839,83 @@ class MissionController:
             time.sleep(0.05)
         assert last is not None
         raise last
+
+    #: replacements of our mission by another ground station in one leg before the controller stops in HOLD
+    FOREIGN_REPLACEMENTS = 2
+    #: vehicle seconds to wait for another ground station's mission transfer (our upload DENIED meanwhile)
+    FOREIGN_WAIT_S = 60.0
+
+    @property
+    def _watch(self):
+        """:class:`~passt_mav.mavlink.mission_client.MissionWatch` on this link (made on first use)."""
+        w = self.__dict__.get("_mission_watch")
+        if w is None:
+            from passt_mav.mavlink.mission_client import MissionWatch
+
+            w = self.__dict__["_mission_watch"] = MissionWatch(self.link)
+            self._mission_mark = w.mark()
+        return w
+
+    def _verify_flying(self, i: int, items, resume_seq: int = 1) -> None:
+        """Read the mission back while in AUTO: the vehicle must be flying ours.
+
+        Called by :meth:`_fly` once AUTO is entered (after every swap) and when the
+        :class:`~passt_mav.mavlink.mission_client.MissionWatch` sees signs of another upload. A
+        ground station beside us (QGroundControl re-downloading, or an operator uploading) may
+        have replaced the mission between our read-back and AUTO, or during the leg. If the read-back
+        differs: say so, HOLD, upload ours again, resume at ``resume_seq``, AUTO, read back again;
+        after :attr:`FOREIGN_REPLACEMENTS` replacements in this leg stop in HOLD (status ``paused``)
+        rather than fight the other station for the vehicle.
+        """
+        from passt_mav.mavlink.mission_client import _differences  # upload_verified's own comparison
+
+        v = self.vehicle
+        while True:
+            got = v.mission.download()
+            diff = _differences(list(items), got, 0)
+            if not diff:
+                self._mission_mark = self._watch.expect(len(items), self._watch.expected_id)
+                return
+            who = self._watch.changed(self._mission_mark) or "seen by the read-back"
+            what = _replaced_what(items, got)
+            replaced = self.__dict__.setdefault("_replaced", {})  # leg -> replacements seen
+            n = replaced[i] = replaced.get(i, 0) + 1
+            log.info("leg %d: mission on the vehicle differs: %s", i, diff)
+            self.events.append(f"leg {i}: mission replaced on the vehicle at {_utc_now()} ({who}): {what}")
+            if n > self.FOREIGN_REPLACEMENTS:
+                v.hold()
+                raise _Paused(f"leg {i}: another ground station replaced our mission {n} times ({who}); stopped in "
+                              f"HOLD; stop its uploads, then continue with --resume")
+            self._say(f"leg {i + 1}: another ground station replaced our mission on the vehicle ({who}; {what}); "
+                      f"HOLD, uploading ours again, resuming at item {resume_seq}")
+            v.hold()
+            self._upload(i, items)
+            v.mission.set_current(resume_seq)
+            v.start_mission()
+            if resume_seq > 1:
+                self._set_speed_again(i, "the mission was uploaded again")
+
+    def _set_speed_again(self, i: int, why: str) -> None:
+        """DO_CHANGE_SPEED to the mission's speed: resuming past seq 1 skips the mission's own (the vehicle would
+        go on at its WP_SPEED parameter)."""
+        from passt_mav.errors import CommandRejected
+        from passt_mav.mavlink.link import mavlink2
+
+        try:
+            self.link.command_long(mavlink2.MAV_CMD_DO_CHANGE_SPEED, 1, self.speed, -1)
+        except (CommandRejected, LinkTimeout) as exc:
+            self._say(f"leg {i + 1}: WARNING: the leg's speed {self.speed:g} m/s was not set again after {why} "
+                      f"({exc}); the vehicle goes on at its WP_SPEED")
+            self.events.append(f"leg {i}: speed not set again after {why}: {exc}")
+
+    def _denied(self, i: int) -> float:
+        """Our upload was DENIED: ArduPilot serves one upload at a time and another ground station's is in
+        progress. Says so once; returns when (monotonic s) the wait began."""
+        who = self._watch.changed((0, 0)) or "not visible on this link"
+        self._say(f"leg {i + 1}: the vehicle denied our upload: another ground station is transferring a mission "
+                  f"({who}); waiting up to {self.FOREIGN_WAIT_S:g} s (vehicle time) for it to finish")
+        self.events.append(f"leg {i}: upload denied at {_utc_now()}: another station's transfer ({who})")
+        return time.monotonic()
 
     # -- flying one leg, with its faults ------------------------------------------------------------
     def _expected_vehicle_s(self, wm) -> float:
@@ -842,6 +937,15 @@ class MissionController:
         p = v.progress
         deadline = self._leg_deadline(4.0 * self._expected_vehicle_s(wm) + 30.0)
         while True:
+            if getattr(self, "_verify_pending", False) and v.mode == 10 and not self.link.lost:
+                try:
+                    self._verify_flying(i, items, resume_seq=self._resume_seq)
+                    self._verify_pending = False
+                except MavlinkError as exc:
+                    # DENIED: another station's upload is in progress (the vehicle serves no download
+                    # meanwhile): read back once it is over. A lost link: recovered below, then read back.
+                    if getattr(exc, "result", None) != 14 and not self.link.lost and self.link.error is None:
+                        raise
             with p.changed:
                 done = (p.state == 5 and p.total == n_items) or n_items in p.reached
                 if not done:
@@ -863,6 +967,8 @@ class MissionController:
                 # the item to come back to if the autopilot reboots (it forgets its progress)
                 nxt = max([p.current] + [r + 1 for r in p.reached[-1:]])
                 self._resume_seq = int(min(max(nxt, 1), n_items))
+                if self._watch.changed(self._mission_mark):  # another ground station's upload: read back
+                    self._verify_pending = True
             elif mode is not None and mode != 10:
                 if self._reboot_suspected(mode):
                     continue
@@ -913,17 +1019,8 @@ class MissionController:
         v.arm(timeout=max(30.0, 120.0 / self.speedup))
         v.start_mission()
         if seq > 1:
-            # the mission's DO_CHANGE_SPEED (seq 1) lies behind the resumed item and the reboot forgot it:
-            # without this the boat would go on at the WP_SPEED parameter
-            from passt_mav.errors import CommandRejected
-            from passt_mav.mavlink.link import mavlink2
-
-            try:
-                self.link.command_long(mavlink2.MAV_CMD_DO_CHANGE_SPEED, 1, self.speed, -1)
-            except (CommandRejected, LinkTimeout) as exc:
-                self._say(f"leg {i + 1}: WARNING: the leg's speed {self.speed:g} m/s was not set again after the "
-                          f"reboot ({exc}); the vehicle goes on at its WP_SPEED")
-                self.events.append(f"leg {i}: speed not set again after the reboot: {exc}")
+            # the mission's DO_CHANGE_SPEED (seq 1) lies behind the resumed item and the reboot forgot it
+            self._set_speed_again(i, "the reboot")
         self._say(f"leg {i + 1}: mission verified after the reboot; re-armed, AUTO again at item {seq}/{n_items}")
         self.events.append(f"leg {i}: resumed after the reboot at item {seq}/{n_items}"
                            + (" (mission re-uploaded)" if diff else " (stored mission verified)"))
@@ -979,6 +1076,16 @@ class MissionController:
                 self.link.reconnect()
             time.sleep(0.05)
         raise _Paused(f"leg {i}: the vehicle stayed in {name} for {self.pause_timeout_s:.0f} s; stopping in HOLD")
+
+
+def _replaced_what(sent, got) -> str:
+    """A short description of a mission on the vehicle that is not ours (the full one goes to the log)."""
+    from passt_mav.mavlink.mission_client import rover_stored
+
+    if len(sent) != len(got):
+        return f"it holds {len(got)} items, ours has {len(sent)}"
+    bad = [a.seq for a, b in zip(sent[1:], got[1:]) if not rover_stored(a).same_as(rover_stored(b))]
+    return f"{len(bad)} of our {len(sent) - 1} items differ, the first at seq {bad[0]}" if bad else "home differs"
 
 
 def mission_overrides(data: dict, overrides: dict) -> dict:

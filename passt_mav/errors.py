@@ -16,6 +16,8 @@ Tree::
     ├── ReconstructionError            GP fit failed (message says what to change)
     └── MavlinkError                   anything on the link
         ├── LinkTimeout                no answer in time (link lost or vehicle silent)
+        │   └── LinkUnavailable        no vehicle at the address (refused, unreachable, no device,
+        │                              no heartbeat) until the deadline: exit code 2 on the command line
         ├── MissionRejected(result)    MISSION_ACK other than ACCEPTED
         ├── MissionVerifyError         read-back differs from what was uploaded
         ├── CommandRejected(cmd, result, text)  COMMAND_ACK other than ACCEPTED
@@ -38,6 +40,7 @@ __all__ = [
     "ReconstructionError",
     "MavlinkError",
     "LinkTimeout",
+    "LinkUnavailable",
     "MissionRejected",
     "MissionVerifyError",
     "CommandRejected",
@@ -83,6 +86,11 @@ class MavlinkError(PasstError):
 
 class LinkTimeout(MavlinkError):
     """No answer within the allowed time."""
+
+
+class LinkUnavailable(LinkTimeout):
+    """The vehicle could not be reached at its address (refused, unreachable, no such serial device,
+    nothing there sends a vehicle heartbeat); the message names the address and the cause."""
 
 
 class MissionRejected(MavlinkError):

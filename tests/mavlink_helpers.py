@@ -4,11 +4,20 @@ The simulator runs in its own thread at ``speedup`` x wall time (sim time is wha
 vehicle's timers use); the Link talks to it through an in-process endpoint (a
 ``mavutil.mavfile``), exactly as it would through a socket. Wall-clock timeouts of
 the controller are set small (``timeout_s``) to match the speed-up.
+
+Or in lockstep (:func:`lockstep_connection`): the simulator advances only while the controller's
+reader finds nothing to read, so simulated time follows the controller, whatever the machine's
+load. :class:`Router` shares one vehicle link between several clients (as MAVProxy or
+mavlink-router do), :class:`Wire` records the identities the controller sends with.
 """
 
 from __future__ import annotations
 
 import contextlib
+import threading
+import time
+
+from pymavlink.dialects.v20 import ardupilotmega as mavlink2
 
 from passt_mav.mavlink import Link, LinkConfig, MissionClient, Vehicle
 from passt_mav.mission.items import MissionItem
@@ -55,3 +64,91 @@ def waypoints(offsets_deg, mission_type: int = 0) -> list[MissionItem]:
     """NAV_WAYPOINTs at HOME + (dlat, dlon) offsets (seq set later by with_home)."""
     return [MissionItem(0, lat=HOME[0] + a, lon=HOME[1] + b, param2=2.0, mission_type=mission_type)
             for a, b in offsets_deg]
+
+
+def lockstep_connection(ep, autostep: float = 0.05):
+    """A ``mavutil`` connection on an in-process endpoint (or a :class:`Router` port) whose idle polls
+    step the simulator by ``autostep`` simulated seconds (:class:`vehicle_sim.inprocess.InProcessMavfile`):
+    simulated time follows the reader, not the wall clock. An idle poll also hands the GIL over
+    (``sleep(0)``), so a reader stepping the simulator does not starve the controller's own thread."""
+    from vehicle_sim.inprocess import InProcessMavfile
+
+    conn = InProcessMavfile(ep, autostep=autostep)
+    recv = conn.recv
+
+    def recv_yielding(n=None):
+        data = recv(n)
+        if not data:
+            time.sleep(0)
+        return data
+
+    conn.recv = recv_yielding
+    return conn
+
+
+class Router:
+    """An in-process MAVLink router on one simulator link, as MAVProxy ``--out`` or mavlink-router serve
+    a ground station and the controller: every frame of the vehicle goes to every port (replies
+    addressed to one client reach all), every port's frames go to the vehicle."""
+
+    def __init__(self, sim):
+        self.sim = sim
+        self.ep = sim.connect_inprocess()
+        self._lock = threading.Lock()
+        self.ports: list[_RouterPort] = []
+
+    def port(self) -> "_RouterPort":
+        p = _RouterPort(self)
+        with self._lock:
+            self.ports.append(p)
+        return p
+
+    def _pump(self) -> None:
+        data = self.ep.read()
+        if data:
+            for p in self.ports:
+                p.buf += data
+
+
+class _RouterPort:
+    """One client's side of a :class:`Router` (the endpoint interface: ``write``, ``read``, ``sim``)."""
+
+    def __init__(self, router: Router):
+        self.router, self.sim, self.buf = router, router.sim, bytearray()
+
+    def write(self, buf) -> int:
+        return self.router.ep.write(bytes(buf))
+
+    def read(self, n=None) -> bytes:
+        with self.router._lock:
+            self.router._pump()
+            k = len(self.buf) if n is None else min(n, len(self.buf))
+            out = bytes(self.buf[:k])
+            del self.buf[:k]
+            return out
+
+    def close(self) -> None:
+        with self.router._lock:
+            if self in self.router.ports:
+                self.router.ports.remove(self)
+
+
+class Wire:
+    """Identity of every frame the controller writes to the vehicle (parsed independently of passt_mav)."""
+
+    def __init__(self):
+        self.mav = mavlink2.MAVLink(None, use_native=False)
+        self.mav.robust_parsing = True
+        self.ids: set[tuple[int, int]] = set()
+
+    def wrap(self, ep):
+        orig = ep.write
+
+        def write(buf):
+            for m in self.mav.parse_buffer(bytes(buf)) or []:
+                if m.get_type() != "BAD_DATA":
+                    self.ids.add((m.get_srcSystem(), m.get_srcComponent()))
+            return orig(buf)
+
+        ep.write = write
+        return ep

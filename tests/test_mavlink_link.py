@@ -31,9 +31,10 @@ def test_bad_connection_strings_are_user_errors(bad):
         LinkConfig(bad)
 
 
-def test_defaults_match_a_gcs():
+def test_defaults_are_our_own_identity():
     c = LinkConfig()
-    assert (c.source_system, c.source_component, c.heartbeat_period_s) == (255, 190, 1.0)
+    # not QGroundControl's 255/190 (README "Identity on a shared link"; tests/test_mavlink_identity.py)
+    assert (c.source_system, c.source_component, c.heartbeat_period_s) == (245, 195, 1.0)
     with pytest.raises(Exception):
         c.timeout_s = 3  # frozen
 
@@ -61,8 +62,8 @@ def test_tcp_loopback_connect_streams_rtt_tlog_and_gcs_heartbeats(tmp_path):
         tb = sorted({m.time_boot_ms for m in got})
         span = (tb[-1] - tb[0]) / 1000.0
         assert (len(tb) - 1) / span == pytest.approx(6.0, abs=1.0)
-        # our heartbeats reach the vehicle as GCS heartbeats from sysid 255
-        assert sim.autopilot.last_gcs_hb is not None and sim.t - sim.autopilot.last_gcs_hb < 2.0
+        # our heartbeats (system 245) do not feed the vehicle's GCS failsafe (MAV_GCS_SYSID 255's)
+        assert sim.autopilot.last_gcs_hb is None
         link.command_long(M.MAV_CMD_DO_SET_MODE, 1, 4)
         st = link.stats
         assert st.received > 50 and st.drops == 0 and st.by_type["HEARTBEAT"] >= 1
@@ -73,8 +74,8 @@ def test_tcp_loopback_connect_streams_rtt_tlog_and_gcs_heartbeats(tmp_path):
     seen = []
     while (m := log.recv_match()) is not None:
         seen.append((m.get_srcSystem(), m.get_type()))
-    assert (1, "HEARTBEAT") in seen and (255, "HEARTBEAT") in seen  # both directions
-    assert (255, "COMMAND_LONG") in seen and (1, "COMMAND_ACK") in seen
+    assert (1, "HEARTBEAT") in seen and (245, "HEARTBEAT") in seen  # both directions (ours: 245)
+    assert (245, "COMMAND_LONG") in seen and (1, "COMMAND_ACK") in seen
 
 
 def test_no_vehicle_raises_link_timeout_quickly():

@@ -226,7 +226,7 @@ def replay(source, *, out=None, model: str | None = None, planner: str | None = 
         ReplayError / UserError: bad input (the CLI prints one line, exit 2).
     """
     from passt_mav.legstep import FieldClock, LegStep, build_loop, build_predictor
-    from passt_mav.fields.datasets import resolve_field
+    from passt_mav.fields.datasets import mission_field
     from passt_mav.planning import PLANNERS, REWARDS, path_reward
     from passt_mav.runs.rundir import RunDir, RunDirError, write_json_atomic
 
@@ -278,7 +278,7 @@ def replay(source, *, out=None, model: str | None = None, planner: str | None = 
     fsrc = cfg.field.source
     if base is not None and not str(fsrc).startswith("builtin:") and not Path(fsrc).is_absolute():
         fsrc = str(base / fsrc) if (base / fsrc).exists() else fsrc
-    field = resolve_field(fsrc, seed=cfg.seeds.field)
+    field = mission_field(cfg, fsrc)  # the same rule as plan and run
     grid = field.grid
     if field.n_times < 2:
         raise ReplayError("the mission's field needs at least 2 snapshots (dt)")

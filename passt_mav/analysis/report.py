@@ -157,7 +157,7 @@ def _load_field(run: Run) -> None:
     if not spec:
         run.notes["field"] = "truth field " + NOT_RECORDED
         return
-    from passt_mav.fields.datasets import resolve_field
+    from passt_mav.fields.datasets import field_on_region, resolve_field
 
     spec = str(spec)
     if not spec.startswith("builtin:") and not Path(spec).is_absolute():
@@ -170,8 +170,11 @@ def _load_field(run: Run) -> None:
         return
     if run.grid is None:
         run.grid = run.field.grid
-    elif run.field.grid != run.grid:
-        run.notes["field"] = f"truth field {s.get('field')} is on another grid than the run"
+        return
+    try:  # the same rule as plan and run: a metric field takes the run's placement
+        run.field = field_on_region(run.field, run.grid, source=str(s.get("field")))
+    except UserError as exc:
+        run.notes["field"] = f"truth field on another grid than the run: {exc}"
         run.field = None
 
 

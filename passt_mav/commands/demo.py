@@ -193,10 +193,10 @@ def run(args: argparse.Namespace) -> int:
     grid = config.grid()
     stamp = _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%dT%H-%M-%SZ")
     rd = RunDir(args.out or Path("runs") / f"demo-{stamp}").create()
-    from passt_mav.fields.datasets import resolve_field
+    from passt_mav.fields.datasets import mission_field
 
     t_start0 = time.monotonic()
-    field = resolve_field(config.field.source, seed=config.seeds.field)
+    field = mission_field(config)  # the same rule as plan and run
     t_boot0 = float(field.times[config.t0])
     r0, c0 = config.start_cell or (grid.rows // 2, grid.cols // 2)
     hlat, hlon = (float(x) for x in grid.cell_to_latlon(r0, c0))
@@ -209,7 +209,8 @@ def run(args: argparse.Namespace) -> int:
                *(fleet_args or ["--home", f"{hlat:.7f},{hlon:.7f}"]),
                "--start-time", repr(t_boot0), "--speedup", repr(args.speedup),
                "--param", f"WP_SPEED={config.fleet[0].speed_mps}", "--current-noise", repr(config.sensors.noise_std),
-               "--current-rate", repr(SENSOR_RATE_HZ), "--seed", str(config.seeds.sensor), "--quiet"]
+               "--current-rate", repr(SENSOR_RATE_HZ), "--seed", str(config.seeds.sensor), "--quiet",
+               *sim_placement(config)]
     print(f"demo: mission {config.name} ({origin} + {over}); {config.legs} legs of {config.planner.path_length} moves "
           f"at {config.fleet[0].speed_mps} m/s", flush=True)
     print(f"demo: starting vehicle-sim on tcp:127.0.0.1:{port} at {args.speedup:g}x", flush=True)
@@ -245,6 +246,16 @@ def run(args: argparse.Namespace) -> int:
     if summary.get("report"):
         print(f"report: {summary['report']}", flush=True)
     return 0 if summary["status"] == "complete" else 1
+
+
+def sim_placement(config) -> list[str]:
+    """vehicle-sim options that put a metric field (the cylinder) where the mission places it and give
+    its units (``--anchor/--rotation/--scale``, ``--velocity-scale/--time-scale``); none for a geographic one."""
+    g = config.grid()
+    if getattr(g, "kind", "") != "metric":
+        return []
+    return ["--anchor", f"{g.anchor_lat!r},{g.anchor_lon!r}", "--rotation", repr(g.rotation_deg), "--scale", repr(g.scale),
+            "--velocity-scale", repr(float(config.field.velocity_scale)), "--time-scale", repr(float(config.field.time_scale))]
 
 
 def _as_fleet(data: dict, config, field, start, boats: int, port: int, origin: str):

@@ -97,7 +97,7 @@ def run(args: argparse.Namespace) -> int:
     import numpy as np
 
     from passt_mav.errors import FieldError, PlannerError
-    from passt_mav.fields.datasets import resolve_field
+    from passt_mav.fields.datasets import mission_field
     from passt_mav.mission import WaypointMission
     from passt_mav.mission.config import load_mission
     from passt_mav.passt import PasstLoop
@@ -105,10 +105,7 @@ def run(args: argparse.Namespace) -> int:
 
     cfg = load_mission(args.mission)
     grid = cfg.grid()
-    field = resolve_field(args.state if args.state else cfg.field.source, seed=cfg.seeds.field)
-    if tuple(field.data.shape[2:]) != grid.shape:
-        raise FieldError(f"the state's grid {field.data.shape[2]}x{field.data.shape[3]} does not match the "
-                         f"mission region's {grid.rows}x{grid.cols}")
+    field = mission_field(cfg, args.state)  # the same rule as run, replay and report
     k = cfg.t0 if args.time is None else int(args.time)
     if not (0 <= k < field.n_times):
         raise FieldError(f"--time {k} is outside the state's snapshots 0..{field.n_times - 1}")

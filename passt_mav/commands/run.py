@@ -11,6 +11,12 @@ EXAMPLES = """examples:
     passt-mav run missions/north_atlantic.yaml --connect tcp:127.0.0.1:5760 --speedup-hint 300
     passt-mav run missions/cylinder.yaml --connect /dev/ttyUSB0,57600 --out runs/cyl1
     passt-mav run missions/cylinder.yaml --connect /dev/ttyUSB0,57600 --out runs/cyl1 --resume
+    passt-mav run missions/cylinder.yaml --connect udpin:127.0.0.1:14551 --source-system 245 --source-component 195
+    passt-mav run missions/cylinder.yaml --legs 1 --set planner.path_length=8 --set gp.background=0
+
+    # the cylinder missions place a CFD crop on the sea: give vehicle-sim the same placement
+    vehicle-sim --field builtin:cylinder --anchor 40.2,-63.1 --scale 100 --velocity-scale 0.5 --time-scale 200 \
+        --start-time 240 --listen tcp:127.0.0.1:5760 --speedup 50 &
 """
 
 
@@ -30,17 +36,29 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--signing-key", help="MAVLink 2 signing passphrase or 64 hex digits")
     p.add_argument("--pause-timeout", type=float, default=300.0,
                    help="wall seconds to wait for AUTO after a pilot takes over before stopping in HOLD (default 300)")
-    p.add_argument("--ready-timeout", type=float, default=120.0, help="wall seconds to wait for EKF/GPS (default 120)")
+    p.add_argument("--ready-timeout", type=float, default=120.0,
+                   help="wall seconds to wait for the vehicle: its link (refused / unreachable / no heartbeat are "
+                        "retried with back-off, one line each) and then EKF/GPS (default 120)")
+    p.add_argument("--source-system", type=int, default=None,
+                   help="our MAVLink system id (default: the mission's vehicle.source_system, else 245; not 255, "
+                        "QGroundControl's: see README 'Identity on a shared link')")
+    p.add_argument("--source-component", type=int, default=None,
+                   help="our MAVLink component id (default: the mission's vehicle.source_component, else 195 "
+                        "MAV_COMP_ID_PATHPLANNER)")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                   help="override a mission key (dotted, YAML value), e.g. --set planner.path_length=8; repeatable; "
+                        "the run directory keeps the mission as flown")
     p.add_argument("--no-report", action="store_true", help="do not write report/report.html at the end")
     p.add_argument("--quiet", action="store_true", help="no per-leg status lines")
 
 
-def link_config_for(connect: str, *, speedup: float = 1.0, tlog=None, signing_key=None):
+def link_config_for(connect: str, *, speedup: float = 1.0, tlog=None, signing_key=None, identity=(None, None)):
     """LinkConfig for a vehicle running ``speedup`` x real time (the vehicle's 1 Hz telemetry then comes
-    ``speedup`` times a second; our timeouts stay wall-clock)."""
+    ``speedup`` times a second; our timeouts stay wall-clock). ``identity``: our (system, component) ids,
+    None = the link's defaults (``passt_mav.mavlink.link.DEFAULT_SOURCE_SYSTEM``/``_COMPONENT``)."""
     from passt_mav.mavlink import LinkConfig
 
-    kw = {}
+    kw = {k: v for k, v in zip(("source_system", "source_component"), identity) if v is not None}
     if speedup > 1.0:
         # a simulator at 300x sends its ~15 default 1 Hz streams 4500 times a wall second: more than a
         # Python reader parses on a loaded core, and the reply to a mission request then comes later than
@@ -59,10 +77,14 @@ LEAN_STREAMS = (("GLOBAL_POSITION_INT", 1.0), ("MISSION_CURRENT", 1.0), ("EKF_ST
 
 def execute(config, *, connect: str, run_dir, mission_text: str | None, legs=None, resume=False, speedup=1.0,
             field_time_at_boot=None, signing_key=None, pause_timeout=300.0, ready_timeout=120.0, echo=print,
-            extra_summary=None, report=True, link_factory=None) -> dict:
-    """Everything ``run`` does after parsing: field, predictor, link, controller, report. Returns the summary."""
+            extra_summary=None, report=True, link_factory=None, identity=(None, None)) -> dict:
+    """Everything ``run`` does after parsing: field, predictor, link, controller, report. Returns the summary.
+
+    ``identity``: our (system, component) ids from the command line; None = the mission's
+    ``vehicle.source_system/source_component``, else the link's defaults.
+    """
     from passt_mav.controller import MissionController, build_predictor
-    from passt_mav.fields.datasets import resolve_field
+    from passt_mav.fields.datasets import mission_field
     from passt_mav.mavlink import Link
 
     import sys
@@ -71,9 +93,7 @@ def execute(config, *, connect: str, run_dir, mission_text: str | None, legs=Non
         # hand the GIL over faster (default 5 ms): a mission request must be answered within the
         # vehicle's 1 s re-request time, which a simulator at 150x compresses to ~7 ms of wall time
         sys.setswitchinterval(min(sys.getswitchinterval(), 0.001))
-    field = resolve_field(config.field.source, seed=config.seeds.field)
-    if field.grid != config.grid():
-        raise _user(f"the mission's region is not the grid of its field {config.field.source}")
+    field = mission_field(config)  # the same rule as plan, replay and report
     predictor, pinfo = build_predictor(config.model, field, echo=echo)
     if config.vehicles is not None:
         if resume:
@@ -81,12 +101,12 @@ def execute(config, *, connect: str, run_dir, mission_text: str | None, legs=Non
         summary = _execute_fleet(config, run_dir, field, predictor, pinfo, mission_text=mission_text, legs=legs,
                                  speedup=speedup, field_time_at_boot=field_time_at_boot, signing_key=signing_key,
                                  pause_timeout=pause_timeout, ready_timeout=ready_timeout, echo=echo,
-                                 extra_summary=extra_summary, link_factory=link_factory)
+                                 extra_summary=extra_summary, link_factory=link_factory, identity=identity)
         return _report(summary, run_dir, report)
-    link = Link(link_config_for(connect, speedup=speedup, tlog=run_dir.tlog, signing_key=signing_key),
-                connection_factory=link_factory)
-    echo(f"connecting to {connect} ...")
-    link.connect()
+    link = Link(link_config_for(connect, speedup=speedup, tlog=run_dir.tlog, signing_key=signing_key,
+                                identity=_identity(identity, config.vehicle)), connection_factory=link_factory)
+    echo(f"connecting to {connect} as system {link.config.source_system} component {link.config.source_component} ...")
+    link.connect(wait_s=ready_timeout, say=echo)
     try:
         veh = _vehicle_for(link, speedup)
         ctl = MissionController(config, link, run_dir, field=field, predictor=predictor, predictor_info=pinfo,
@@ -116,7 +136,7 @@ def _vehicle_for(link, speedup: float):
 
 
 def _execute_fleet(config, run_dir, field, predictor, pinfo, *, mission_text, legs, speedup, field_time_at_boot,
-                   signing_key, pause_timeout, ready_timeout, echo, extra_summary, link_factory) -> dict:
+                   signing_key, pause_timeout, ready_timeout, echo, extra_summary, link_factory, identity) -> dict:
     """``vehicles:``: one link per boat (its own tlog), one :class:`FleetController`."""
     from passt_mav.fleet_controller import FleetController
     from passt_mav.mavlink import Link
@@ -125,10 +145,10 @@ def _execute_fleet(config, run_dir, field, predictor, pinfo, *, mission_text, le
     try:
         for k, vc in enumerate(config.fleet):
             factory = None if link_factory is None else (lambda f=link_factory, c=vc.connect: f(c))
-            link = Link(link_config_for(vc.connect, speedup=speedup, tlog=run_dir.boat_tlog(k),
-                                        signing_key=signing_key), connection_factory=factory)
+            link = Link(link_config_for(vc.connect, speedup=speedup, tlog=run_dir.boat_tlog(k), signing_key=signing_key,
+                                        identity=_identity(identity, vc)), connection_factory=factory)
             echo(f"boat {k}: connecting to {vc.connect} ...")
-            links.append(link.connect())
+            links.append(link.connect(wait_s=ready_timeout, say=echo))
         fleet = FleetController(config, links, run_dir, field=field, predictor=predictor, predictor_info=pinfo,
                                 vehicles=[_vehicle_for(x, speedup) for x in links], legs=legs, echo=echo,
                                 mission_text=mission_text, extra_summary=extra_summary,
@@ -138,6 +158,36 @@ def _execute_fleet(config, run_dir, field, predictor, pinfo, *, mission_text, le
     finally:
         for link in links:
             link.close()
+
+
+def _identity(cli: tuple, vc) -> tuple:
+    """Our (system, component) ids for one boat: the command line's, else its mission entry's
+    (``vehicle.source_system/source_component``); None left = the link's defaults."""
+    return (cli[0] if cli[0] is not None else vc.source_system, cli[1] if cli[1] is not None else vc.source_component)
+
+
+def _with_overrides(path, text: str, pairs: list[str]):
+    """(config, text) of the mission file ``path`` with ``--set KEY=VALUE`` overrides (dotted keys,
+    values parsed as YAML); the text is what the run directory keeps."""
+    from pathlib import Path
+
+    import yaml
+
+    from passt_mav.controller import mission_overrides
+    from passt_mav.mission.config import validate_mission
+
+    over = {}
+    for kv in pairs:
+        key, sep, val = kv.partition("=")
+        if not sep or not key.strip():
+            raise _user(f"--set needs KEY=VALUE (e.g. planner.path_length=8), got {kv!r}")
+        try:
+            over[key.strip()] = yaml.safe_load(val)
+        except yaml.YAMLError:
+            raise _user(f"--set {key}: the value {val!r} is not valid YAML") from None
+    data = mission_overrides(yaml.safe_load(text), over)
+    config = validate_mission(data, source=f"{path} with --set", base_dir=Path(path).parent)
+    return config, yaml.safe_dump(data, sort_keys=False)
 
 
 def _user(msg):
@@ -153,6 +203,9 @@ def run(args: argparse.Namespace) -> int:
     from passt_mav.runs.rundir import RunDir
 
     config = load_mission(args.mission)
+    mission_text = Path(args.mission).read_text()
+    if args.set:
+        config, mission_text = _with_overrides(args.mission, mission_text, args.set)
     if args.legs is not None and args.legs < 1:
         raise _user("--legs must be >= 1")
     if args.resume:
@@ -166,11 +219,16 @@ def run(args: argparse.Namespace) -> int:
     echo = (lambda s: None) if args.quiet else (lambda s: print(s, flush=True))
     if args.connect and config.vehicles is not None:
         raise _user("--connect names one vehicle; a fleet's connections are in the mission's vehicles:")
+    for name in ("source_system", "source_component"):
+        v = getattr(args, name)
+        if v is not None and not 1 <= v <= 255:
+            raise _user(f"--{name.replace('_', '-')} must be 1..255, got {v}")
     summary = execute(config, connect=args.connect or config.vehicle.connect, run_dir=rd,
-                      mission_text=Path(args.mission).read_text(), legs=args.legs, resume=args.resume,
+                      mission_text=mission_text, legs=args.legs, resume=args.resume,
                       speedup=args.speedup_hint, field_time_at_boot=args.field_time_at_boot,
                       signing_key=args.signing_key, pause_timeout=args.pause_timeout,
-                      ready_timeout=args.ready_timeout, echo=echo, report=not args.no_report)
+                      ready_timeout=args.ready_timeout, echo=echo, report=not args.no_report,
+                      identity=(args.source_system, args.source_component))
     print(f"run {summary['status']}: {len(summary['legs'])} legs, {summary['n_samples']} samples -> {rd.root}")
     used = [f"{100 * x:.0f} %" for x in summary.get("readings_used") or [] if x is not None]
     bps = [f"{x:.0f}" for x in summary.get("link_vehicle_bytes_per_s") or [] if x is not None]

@@ -20,7 +20,7 @@ from pathlib import Path
 
 from passt_mav.errors import FieldError
 
-__all__ = ["DATASETS", "ASSETS", "load_dataset", "resolve_field"]
+__all__ = ["DATASETS", "ASSETS", "load_dataset", "resolve_field", "field_on_region", "mission_field"]
 
 ASSETS = Path(__file__).resolve().parent.parent / "assets"
 DATASETS = ("cylinder", "oscillating", "ocean", "rtofs")
@@ -55,3 +55,66 @@ def resolve_field(spec: str | Path, *, seed: int = 0):
     if s.startswith("builtin:"):
         return load_dataset(s.split(":", 1)[1], seed=seed)
     return load_field(Path(s))
+
+
+#: how far a field's grid may lie from the mission's region and still be the same grid: a millionth of a cell
+#: (what a round trip of the corner coordinates through YAML and NetCDF can move them)
+_SAME_GRID_CELLS = 1e-6
+
+
+def field_on_region(field, grid, *, source: str):
+    """``field`` on a mission's region ``grid``: the one rule by which every command accepts a mission's field.
+
+    * The grid shapes (rows, cols) must agree.
+    * A geographic field (lat/lon cell centres) needs a geographic region with the same corner-cell
+      centres (to a millionth of a cell, in degrees). It is returned as it is.
+    * A metric field (e.g. the cylinder CFD crop: cell centres in data metres, placed nowhere in
+      particular) needs a metric region with the same data frame ``x0, x1, y0, y1`` (to a millionth of
+      a cell, in data metres). The mission places it on Earth (``anchor_lat/anchor_lon``,
+      ``rotation_deg``, ``scale``): the field is returned on the mission's grid, data unchanged, so
+      every later position (waypoints, samples, truth) uses that placement.
+
+    Args:
+        field: a :class:`~passt_mav.fields.FlowField`.
+        grid: the mission's :class:`geo.RegionGrid` or :class:`geo.MetricRegionGrid` (``config.grid()``).
+        source: how the field was named (for the message), e.g. ``builtin:cylinder``.
+
+    Raises :class:`FieldError` (one line) naming the first difference.
+    """
+    from geo import MetricRegionGrid
+
+    fg = field.grid
+    if tuple(fg.shape) != tuple(grid.shape):
+        raise FieldError(f"the field {source} is a {fg.rows}x{fg.cols} grid, the mission's region {grid.rows}x{grid.cols}")
+    f_metric, m_metric = isinstance(fg, MetricRegionGrid), isinstance(grid, MetricRegionGrid)
+    if f_metric != m_metric:
+        kind = "metric" if f_metric else "geographic"
+        raise FieldError(f"the field {source} is on a {kind} grid; the mission's region must be 'kind: {kind}' "
+                         f"(it is {'metric' if m_metric else 'geographic'})")
+    if f_metric:
+        keys, steps = ("x0", "x1", "y0", "y1"), ((fg.x1 - fg.x0) / max(fg.cols - 1, 1), (fg.y1 - fg.y0) / max(fg.rows - 1, 1))
+        step_of = {"x0": steps[0], "x1": steps[0], "y0": steps[1], "y1": steps[1]}
+        unit = "data m"
+    else:
+        keys = ("south", "west", "north", "east")
+        steps = ((fg.north - fg.south) / max(fg.rows - 1, 1), (fg.east - fg.west) / max(fg.cols - 1, 1))
+        step_of = {"south": steps[0], "north": steps[0], "west": steps[1], "east": steps[1]}
+        unit = "deg"
+    for k in keys:
+        a, b = float(getattr(fg, k)), float(getattr(grid, k))
+        if abs(a - b) > _SAME_GRID_CELLS * abs(step_of[k]):
+            raise FieldError(f"the mission's region {k} = {b:g} {unit} is not the field's ({source}: {a:g}); "
+                             f"use the field's region (passt-mav data info {source})")
+    if f_metric and fg != grid:
+        from passt_mav.fields.field import FlowField
+
+        return FlowField(field.data, grid, field.times, field.time_origin, field.units, dict(field.attrs))
+    return field
+
+
+def mission_field(config, spec: str | Path | None = None):
+    """The field of mission ``config`` (or the field file ``spec`` instead of the mission's own) on the
+    mission's region, by :func:`field_on_region`. ``config`` is a ``MissionConfig``: ``field.source``,
+    ``seeds.field`` and ``grid()`` are read."""
+    source = str(config.field.source if spec is None else spec)
+    return field_on_region(resolve_field(source, seed=config.seeds.field), config.grid(), source=source)

@@ -23,6 +23,7 @@ import hashlib
 import logging
 import os
 import queue
+import socket
 import struct
 import threading
 import time
@@ -34,11 +35,26 @@ os.environ.setdefault("MAVLINK20", "1")  # before pymavlink is imported: talk MA
 from pymavlink import mavutil  # noqa: E402
 from pymavlink.dialects.v20 import ardupilotmega as mavlink2  # noqa: E402
 
-from passt_mav.errors import CommandRejected, LinkTimeout, MavlinkError, UserError  # noqa: E402
+from passt_mav.errors import CommandRejected, LinkTimeout, LinkUnavailable, MavlinkError, UserError  # noqa: E402
 
-__all__ = ["LinkConfig", "Link", "Subscription", "LinkStats", "secret_from_key", "result_name", "mavlink2"]
+__all__ = ["LinkConfig", "Link", "Subscription", "LinkStats", "secret_from_key", "result_name", "mavlink2",
+           "DEFAULT_SOURCE_SYSTEM", "DEFAULT_SOURCE_COMPONENT", "GCS_IDENTITY"]
 
 log = logging.getLogger(__name__)
+
+#: Our MAVLink identity by default (README "Identity on a shared link"): system 245, component 195.
+#: Not 255: QGroundControl, Mission Planner and MAVProxy speak as system 255 and ArduPilot's GCS failsafe
+#: (FS_GCS_ENABLE) counts only heartbeats from MAV_GCS_SYSID (255 by default): a controller with 255 would
+#: keep that failsafe fed after the real ground station is gone, and take the vehicle's replies meant for
+#: QGC. Not the vehicle's own (1, or 1..N in a fleet) and not 200 (Blue Robotics' BlueOS companion).
+#: Component 195 is MAV_COMP_ID_PATHPLANNER: what this program is. On the boat's companion computer
+#: use the vehicle's system id and keep component 195 (``--source-system``).
+DEFAULT_SOURCE_SYSTEM = 245
+DEFAULT_SOURCE_COMPONENT = mavlink2.MAV_COMP_ID_PATHPLANNER  # 195
+#: QGroundControl's and Mission Planner's identity (system, component): never ours by default
+GCS_IDENTITY = (255, mavlink2.MAV_COMP_ID_MISSIONPLANNER)  # (255, 190)
+#: how long one TCP connect may take before the address counts as unreachable (wall s)
+_TCP_CONNECT_TIMEOUT_S = 5.0
 
 _CONNECT_PREFIXES = ("tcp:", "tcpin:", "udp:", "udpin:", "udpout:", "udpbcast:")
 #: messages a signing GCS still accepts unsigned (as ArduPilot does: the radio's own reports)
@@ -54,6 +70,47 @@ STREAM_GROUPS = {"GLOBAL_POSITION_INT": mavlink2.MAV_DATA_STREAM_POSITION,
                  "MISSION_CURRENT": mavlink2.MAV_DATA_STREAM_EXTENDED_STATUS,
                  "EKF_STATUS_REPORT": mavlink2.MAV_DATA_STREAM_EXTRA3, "SYSTEM_TIME": mavlink2.MAV_DATA_STREAM_EXTRA3}
 _SIGNING_HINT = "the vehicle may require MAVLink 2 signing (signing key, --signing-key)"
+
+
+class _BoundedTcp(mavutil.mavtcp):
+    """pymavlink's TCP client with one connect attempt bounded by :data:`_TCP_CONNECT_TIMEOUT_S`."""
+
+    def __init__(self, device: str, **kw):
+        super().__init__(device, autoreconnect=False, retries=0, **kw)
+
+    def do_connect(self) -> None:
+        self.port = None
+        self.port = socket.create_connection(self.destination_addr, timeout=_TCP_CONNECT_TIMEOUT_S)
+        self.port.setblocking(False)
+        mavutil.set_close_on_exec(self.port.fileno())
+        self.port.setsockopt(socket.SOL_TCP, socket.TCP_NODELAY, 1)
+
+
+def _why_not_open(exc: BaseException) -> str:
+    """One short phrase for a transport that did not open (what the user can check)."""
+    import errno
+
+    if isinstance(exc, ConnectionRefusedError):
+        return "connection refused (nothing listens there: is the vehicle, SITL or the router running, is the port right?)"
+    if isinstance(exc, socket.gaierror):
+        return f"unknown host ({exc.strerror or exc})"
+    if isinstance(exc, (socket.timeout, TimeoutError)):
+        return f"no answer within {_TCP_CONNECT_TIMEOUT_S:g} s (host unreachable or filtered)"
+    if isinstance(exc, FileNotFoundError):
+        return exc.strerror or "no such device"
+    if isinstance(exc, PermissionError):
+        return "permission denied (serial devices: add the user to the dialout group)"
+    code = getattr(exc, "errno", None)
+    if code in (errno.ENETUNREACH, errno.EHOSTUNREACH):
+        return "network or host unreachable"
+    if code == errno.EADDRINUSE:
+        return "address already in use (another program listens there: MAVProxy, a ground station?)"
+    if code == errno.EADDRNOTAVAIL:
+        return "cannot bind that address (not one of this machine's)"
+    text = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+    if "No such file or directory" in text or "could not open port" in text:
+        return f"no such serial device ({text})"
+    return text
 
 
 class _TransportClosed(ConnectionError):
@@ -92,7 +149,10 @@ class LinkConfig:
         connect: pymavlink connection string as MAVProxy users write it:
             ``tcp:HOST:PORT``, ``udpin:HOST:PORT``, ``udpout:HOST:PORT``, ``udp:HOST:PORT``
             or a serial device ``/dev/ttyUSB0,57600`` (``DEVICE,BAUD``; default ``baud``).
-        source_system, source_component: our identity (255/190 like a GCS / MAVSDK).
+        source_system, source_component: our identity on the link (default
+            :data:`DEFAULT_SOURCE_SYSTEM`/:data:`DEFAULT_SOURCE_COMPONENT`, 245/195; see there why
+            not QGroundControl's 255/190). Mission-protocol and command replies addressed to another
+            system/component are not ours and are ignored (0 = broadcast, accepted).
         target_system: the vehicle's sysid, or None for the first vehicle heartbeat.
         heartbeat_period_s: GCS heartbeat period.
         link_lost_s: no vehicle heartbeat for this long = link lost.
@@ -118,8 +178,8 @@ class LinkConfig:
     """
 
     connect: str = "tcp:127.0.0.1:5760"
-    source_system: int = 255
-    source_component: int = 190
+    source_system: int = DEFAULT_SOURCE_SYSTEM
+    source_component: int = DEFAULT_SOURCE_COMPONENT
     target_system: int | None = None
     heartbeat_period_s: float = 1.0
     link_lost_s: float = 5.0
@@ -159,15 +219,27 @@ class LinkConfig:
             raise UserError("retries must be >= 0")
 
     def open(self):
-        """A new pymavlink connection for :attr:`connect` (MAVLink 2, ardupilotmega)."""
+        """A new pymavlink connection for :attr:`connect` (MAVLink 2, ardupilotmega).
+
+        Raises :class:`~passt_mav.errors.LinkUnavailable` naming the address and the cause (refused,
+        unreachable, unknown host, no such serial device, permission, address in use); one attempt,
+        the caller retries (:meth:`Link.connect`, :meth:`Link.reconnect`).
+        """
         c = self.connect.strip()
-        # retries=1: one connect attempt, no pymavlink "sleeping" prints; Link.reconnect does the back-off
-        kw = dict(source_system=self.source_system, source_component=self.source_component, dialect="ardupilotmega",
-                  autoreconnect=False, retries=1)
-        if c.startswith(_CONNECT_PREFIXES):
-            return mavutil.mavlink_connection(c, **kw)
-        dev, _, baud = c.rpartition(",") if "," in c else (c, "", str(self.baud))
-        return mavutil.mavlink_connection(dev, baud=int(baud), **kw)
+        kw = dict(source_system=self.source_system, source_component=self.source_component, use_native=False)
+        try:
+            if c.startswith("tcp:"):
+                # pymavlink's mavtcp connects without a timeout (an unreachable host blocks ~2 min) and
+                # retries with prints: one bounded attempt here, the back-off is the caller's
+                return _BoundedTcp(c[4:], **kw)
+            if c.startswith(_CONNECT_PREFIXES):
+                return mavutil.mavlink_connection(c, dialect="ardupilotmega", autoreconnect=False, retries=1, **kw)
+            dev, _, baud = c.rpartition(",") if "," in c else (c, "", str(self.baud))
+            if not os.path.exists(dev):
+                raise FileNotFoundError(2, "no such serial device (radio unplugged? see ls /dev/serial/by-id)")
+            return mavutil.mavlink_connection(dev, baud=int(baud), dialect="ardupilotmega", autoreconnect=False, **kw)
+        except (OSError, ValueError) as exc:  # serial.SerialException is an OSError
+            raise LinkUnavailable(f"{c}: {_why_not_open(exc)}") from exc
 
 
 @dataclass
@@ -207,6 +279,7 @@ class Subscription:
             pass
 
     def get(self, timeout: float | None) -> object | None:
+        """The next message, or None after ``timeout`` s (or at once when the link's transport dies)."""
         try:
             return self._q.get(timeout=max(timeout, 0.0) if timeout is not None else None)
         except queue.Empty:
@@ -216,9 +289,11 @@ class Subscription:
         out = []
         while True:
             try:
-                out.append(self._q.get_nowait())
+                m = self._q.get_nowait()
             except queue.Empty:
                 return out
+            if m is not None:  # a wake-up of a dying link (Link._wake_subscribers), not a message
+                out.append(m)
 
     def close(self) -> None:
         self._link._unsubscribe(self)
@@ -295,15 +370,50 @@ class Link:
         self.closed_reason: str | None = None
 
     # -- lifecycle -------------------------------------------------------------------
-    def connect(self, timeout: float | None = None) -> "Link":
+    def connect(self, timeout: float | None = None, *, wait_s: float = 0.0,
+                say: Callable[[str], None] | None = None) -> "Link":
         """Open the connection, find the vehicle by its HEARTBEAT, start the threads,
         request the telemetry streams and measure the round trip. Returns self.
 
-        Raises :class:`LinkTimeout` if no vehicle heartbeat arrives in time.
+        ``timeout``: wall seconds one attempt waits for a vehicle heartbeat (default
+        ``config.connect_timeout_s``). ``wait_s``: keep trying for this many wall seconds while the
+        transport does not open (refused, unreachable, no such device) or no vehicle heartbeat comes:
+        attempts ``config.reconnect_backoff_s`` apart (doubling), one line per failed attempt naming
+        the address through ``say`` (default: a log warning). 0 = one attempt.
+
+        Raises :class:`LinkUnavailable` (a :class:`LinkTimeout`) naming the address and the last cause.
         """
-        self._open()
+        say = say or log.warning
+        t0 = time.monotonic()
+        deadline = t0 + max(float(wait_s), 0.0)
+        per_try = self.config.connect_timeout_s if timeout is None else timeout
+        delay, max_delay = self.config.reconnect_backoff_s
+        attempt = 0
+        while True:
+            attempt += 1
+            self.stats = LinkStats()  # what this attempt received (_what_arrived)
+            try:
+                self._open()
+                left = deadline - time.monotonic()
+                # retrying: at least two heartbeat waits fit in the time left (a line each), none past it
+                self._find_vehicle(per_try if wait_s <= 0 else max(min(per_try, max(1.0, left / 2), left), 0.5))
+                break
+            except LinkTimeout as exc:
+                self._shutdown()
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    tries = f" after {attempt} attempts over {time.monotonic() - t0:.0f} s" if attempt > 1 else ""
+                    raise LinkUnavailable(f"no vehicle at {self.config.connect}{tries}: {_strip_address(exc, self.config.connect)}"
+                                          ) from None
+                pause = min(delay, left)
+                say(f"{self.config.connect}: {_strip_address(exc, self.config.connect)}; retrying in {pause:.1f} s "
+                    f"(attempt {attempt}, giving up in {left:.0f} s)")
+                time.sleep(pause)
+                delay = min(delay * 2.0, max_delay)
+            except BaseException:
+                self._shutdown()
+                raise
         try:
-            self._find_vehicle(self.config.connect_timeout_s if timeout is None else timeout)
             self.measure_rtt()
             self.request_streams()
         except BaseException:
@@ -312,7 +422,10 @@ class Link:
         return self
 
     def _open(self) -> None:
-        conn = self._factory()
+        try:
+            conn = self._factory()
+        except OSError as exc:  # a connection_factory of our own raises LinkUnavailable itself
+            raise LinkUnavailable(f"{self.config.connect}: {_why_not_open(exc)}") from exc
         if getattr(conn, "WIRE_PROTOCOL_VERSION", "2.0") != "2.0":
             # pymavlink was imported elsewhere before MAVLINK20 was set: force MAVLink 2 on this connection
             conn.mav = mavlink2.MAVLink(conn, srcSystem=self.config.source_system,
@@ -346,7 +459,7 @@ class Link:
                 m = sub.get(end - time.monotonic())
                 if m is None:
                     raise LinkTimeout(f"no vehicle heartbeat on {self.config.connect} within {timeout:.1f} s"
-                                      + self._why(lost=False))
+                                      + self._what_arrived() + self._why(lost=False))
                 if not _is_vehicle_heartbeat(m):
                     continue  # another GCS
                 if self.target_system is not None and m.get_srcSystem() != self.target_system:
@@ -354,6 +467,14 @@ class Link:
                 break
         self.target_system, self.target_component = m.get_srcSystem(), m.get_srcComponent()
         self.vehicle_type, self.autopilot = m.type, m.autopilot
+        me = (self.config.source_system, self.config.source_component)
+        if me == (self.target_system, self.target_component):
+            raise UserError(f"our MAVLink identity {me[0]}/{me[1]} is the vehicle's own autopilot's: choose another "
+                            f"component (default {DEFAULT_SOURCE_COMPONENT}) or system (default {DEFAULT_SOURCE_SYSTEM})")
+        if me == GCS_IDENTITY:
+            log.warning("speaking as %d/%d, QGroundControl's and Mission Planner's identity: a ground station on the "
+                        "same link takes our replies and we take its; the vehicle's GCS failsafe counts our heartbeats",
+                        *me)
         self._last_hb = time.monotonic()
         if m.type != mavlink2.MAV_TYPE_SURFACE_BOAT or m.autopilot != mavlink2.MAV_AUTOPILOT_ARDUPILOTMEGA:
             warnings.warn(f"vehicle {self.target_system} is {result_name('MAV_TYPE', m.type)} on "
@@ -428,6 +549,7 @@ class Link:
                 self.error = exc
                 self.closed_reason = str(exc) or type(exc).__name__
                 log.warning("link to %s closed: %s", self.config.connect, self.closed_reason)
+                self._wake_subscribers()
                 return
             except Exception as exc:  # noqa: BLE001 - pymavlink may raise on garbage; keep reading
                 self.stats.bad += 1
@@ -519,6 +641,14 @@ class Link:
             self._subs.append(sub)
         return sub
 
+    def _wake_subscribers(self) -> None:
+        """The transport died: every waiting ``Subscription.get`` returns None now (as on a timeout), so a
+        protocol exchange in progress fails at once on its next send instead of waiting out its timeout."""
+        with self._sub_lock:
+            subs = list(self._subs)
+        for s in subs:
+            s._offer(None)
+
     def _unsubscribe(self, sub: Subscription) -> None:
         with self._sub_lock:
             if sub in self._subs:
@@ -553,6 +683,15 @@ class Link:
     def lost(self) -> bool:
         """No vehicle heartbeat for ``config.link_lost_s``, or the transport closed (EOF/reset: at once)."""
         return self.closed_reason is not None or self.seconds_since_heartbeat > self.config.link_lost_s
+
+    def _what_arrived(self) -> str:
+        """Why no vehicle was found, from what did arrive: nothing, garbage, or MAVLink without a vehicle."""
+        st = self.stats
+        if st.received == 0 and st.bad == 0:
+            return " (nothing arrived: wrong port or address? SITL instance N listens on 5760 + 10*N)"
+        if st.received == 0:
+            return " (bytes arrive but no MAVLink frame: wrong port, or the serial baud rate differs)"
+        return " (MAVLink arrives, but no autopilot heartbeat: only ground stations or other components there?)"
 
     def _why(self, lost: bool = True) -> str:
         """What to add to a timeout message: a lost link, and signing as the likely cause when it fits."""
@@ -752,6 +891,12 @@ class Link:
             except (CommandRejected, LinkTimeout) as exc:
                 log.warning("round trip not measured: %s", exc)
         return self.rtt
+
+
+def _strip_address(exc: BaseException, address: str) -> str:
+    """The message of ``exc`` without a leading ``ADDRESS: `` (the caller names the address once)."""
+    text = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+    return text[len(address) + 2:] if text.startswith(address + ": ") else text
 
 
 def _hook_transport_end(conn) -> None:

@@ -39,7 +39,8 @@ from passt_mav.errors import CommandRejected, LinkTimeout, MissionRejected, Miss
 from passt_mav.mavlink.link import Link, mavlink2, result_name
 from passt_mav.mission.items import GLOBAL_FRAMES, MAV_FRAME_GLOBAL, MAV_MISSION_TYPE_MISSION, MissionItem
 
-__all__ = ["MissionClient", "with_home", "to_msg", "from_msg", "UploadResult", "rover_stored", "ROVER_STORAGE"]
+__all__ = ["MissionClient", "MissionWatch", "with_home", "to_msg", "from_msg", "UploadResult", "rover_stored",
+           "ROVER_STORAGE"]
 
 log = logging.getLogger(__name__)
 M = mavlink2
@@ -182,9 +183,11 @@ def from_msg(m) -> MissionItem:
 class UploadResult:
     """What an upload did: ``count`` items, ``ack_lost`` (ACCEPTED never seen; confirmed by
     read-back), ``no_space_retries``, ``cancel_restarts`` (transfers restarted after the vehicle
-    cancelled them), ``count_sends``, ``items_sent`` (incl. resends), ``seconds``."""
+    cancelled them), ``count_sends``, ``items_sent`` (incl. resends), ``seconds``, ``opaque_id``
+    (the final MISSION_ACK's ``opaque_id``: the vehicle's id of the stored mission; 0 = not sent)."""
 
     def __init__(self, **kw):
+        self.opaque_id = kw.get("opaque_id", 0)
         self.count = kw.get("count", 0)
         self.ack_lost = kw.get("ack_lost", False)
         self.no_space_retries = kw.get("no_space_retries", 0)
@@ -322,6 +325,7 @@ class MissionClient:
                 if result == _ACCEPTED:
                     if n == 0 or last_seq == n - 1:
                         res.seconds = time.monotonic() - t0
+                        res.opaque_id = int(getattr(m, "opaque_id", 0) or 0)
                         return res
                     continue  # a stale ACK from an earlier transfer
                 if result == M.MAV_MISSION_INVALID_SEQUENCE and requested:
@@ -457,6 +461,80 @@ class MissionClient:
             except LinkTimeout:
                 continue
         raise LinkTimeout(f"MISSION_CURRENT never showed seq {seq}")
+
+
+class MissionWatch:
+    """Signs that another ground station changed the vehicle's mission (a listener on the link).
+
+    Three signs, all from the vehicle's own messages (mission type 0):
+
+    * the vehicle's mission id changed: ``MISSION_CURRENT.mission_id`` (MAVLink's opaque id of the
+      stored plan) differs from the ``opaque_id`` of our last upload's MISSION_ACK. Only where the
+      firmware fills it: ArduPilot Rover 4.7 SITL sends neither (its MISSION_CURRENT payload ends
+      after ``mission_state``, its MISSION_ACK after ``type``), and pymavlink 2.4's dialect has no
+      such field, so there this sign is silent;
+    * ``MISSION_CURRENT.total`` is not the count we uploaded (``total`` excludes home);
+    * through a router (MAVProxy, mavlink-router) the vehicle's replies to other ground stations
+      reach us too: a MISSION_ACK ACCEPTED addressed to another system/component ends *their*
+      upload; their MISSION_REQUESTs show an upload in progress (``foreign_peer`` says who).
+
+    None of these sees a same-length upload on a direct link to ArduPilot 4.7; the controller's
+    read-back does (see :meth:`passt_mav.controller.MissionController._swap`).
+    """
+
+    def __init__(self, link: Link):
+        self.link = link
+        self.expected_total: int | None = None   # items after home of our last upload
+        self.expected_id = 0                     # opaque id of our last upload (0 = none sent)
+        self.total: int | None = None
+        self.mission_id = 0
+        self.foreign_uploads = 0                 # MISSION_ACK ACCEPTED to another GCS (seen through a router)
+        self.foreign_requests = 0                # MISSION_REQUEST(_INT) to another GCS: an upload in progress
+        self.foreign_peer: tuple[int, int] | None = None
+        link.add_listener(self._on, ("MISSION_CURRENT", "MISSION_ACK", "MISSION_REQUEST", "MISSION_REQUEST_INT"))
+
+    def close(self) -> None:
+        self.link.remove_listener(self._on)
+
+    def _on(self, m) -> None:
+        if self.link.target_system is None or m.get_srcSystem() != self.link.target_system:
+            return
+        if int(getattr(m, "mission_type", 0)) != MAV_MISSION_TYPE_MISSION:
+            return
+        if m.get_type() == "MISSION_CURRENT":
+            self.total = int(m.total)
+            self.mission_id = int(getattr(m, "mission_id", 0) or 0)
+            return
+        if self.link._for_us(m):
+            return
+        self.foreign_peer = (int(m.target_system), int(m.target_component))
+        if m.get_type() == "MISSION_ACK":
+            if int(m.type) == _ACCEPTED:
+                self.foreign_uploads += 1
+        else:
+            self.foreign_requests += 1
+
+    def expect(self, n_items: int, opaque_id: int = 0) -> tuple[int, int]:
+        """After our own verified upload of ``n_items`` (home included). Returns a mark for :meth:`changed`."""
+        self.expected_total, self.expected_id = int(n_items) - 1, int(opaque_id)
+        self.total = None  # a MISSION_CURRENT from before the upload says nothing about it
+        return self.mark()
+
+    def mark(self) -> tuple[int, int]:
+        return self.foreign_uploads, self.foreign_requests
+
+    def changed(self, mark: tuple[int, int]) -> str:
+        """'' while nothing says the mission changed since ``mark``; else why it may have."""
+        who = "" if self.foreign_peer is None else f" (system {self.foreign_peer[0]} component {self.foreign_peer[1]})"
+        if self.foreign_uploads > mark[0]:
+            return f"another ground station{who} uploaded a mission"
+        if self.foreign_requests > mark[1]:
+            return f"another ground station{who} is uploading a mission"
+        if self.expected_id and self.mission_id and self.mission_id != self.expected_id:
+            return f"the vehicle's mission id changed ({self.expected_id} -> {self.mission_id})"
+        if self.expected_total is not None and self.total is not None and self.total != self.expected_total:
+            return f"the vehicle now holds {self.total} items, we uploaded {self.expected_total}"
+        return ""
 
 
 def _differences(sent: list[MissionItem], got: list[MissionItem], mission_type: int) -> str:

@@ -239,6 +239,10 @@ class PlannerConfig(_Strict):
 class VehicleConfig(_Strict):
     """MAVLink connection string, cruise speed (m/s, sent as DO_CHANGE_SPEED) and waypoint radius (m).
 
+    source_system / source_component: the ids the controller speaks as on this link (default
+    245/195: never QGroundControl's 255/190; on the boat's companion computer give the vehicle's
+    system id and keep component 195).
+
     on_reboot: what the controller does when the autopilot reboots mid-leg (brown-out,
     watchdog; recognised by ``time_boot_ms`` going back, not taken for a pilot's mode change):
     ``resume`` (default) waits for the EKF, verifies the stored mission (re-uploads it if
@@ -251,6 +255,10 @@ class VehicleConfig(_Strict):
     wp_radius_m: float = Field(default=2.0, ge=0)
     on_reboot: Literal["resume", "hold"] = "resume"
     start_cell: tuple[int, int] | None = None  # where a simulator starts this boat (a fleet's demo); else unused
+    #: our MAVLink identity on this boat's link (None = passt_mav.mavlink.link.DEFAULT_SOURCE_SYSTEM /
+    #: DEFAULT_SOURCE_COMPONENT, 245/195; README "Identity on a shared link")
+    source_system: int | None = Field(default=None, ge=1, le=255)
+    source_component: int | None = Field(default=None, ge=1, le=255)
 
 
 class SensorConfig(_Strict):
