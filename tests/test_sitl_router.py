@@ -32,9 +32,10 @@ from vehicle_sim.radio import RadioConfig, RadioProxy
 pytestmark = pytest.mark.sitl
 
 SPEEDUP = 5.0
-#: the controller's ids in this test: not QGC's 255/190 nor MAVProxy's 255/230 (issue 28 part A picks the
-#: default; until it lands the default is 255/190 and this test must set them)
-CONTROLLER_IDS = (200, 191)
+#: the controller's ids in this test: its defaults (245/195), not QGC's 255/190 nor MAVProxy's 255/230
+from passt_mav.mavlink.link import DEFAULT_SOURCE_COMPONENT, DEFAULT_SOURCE_SYSTEM  # noqa: E402
+
+CONTROLLER_IDS = (DEFAULT_SOURCE_SYSTEM, DEFAULT_SOURCE_COMPONENT)
 
 
 def _free_udp_port() -> int:

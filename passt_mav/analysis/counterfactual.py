@@ -31,15 +31,24 @@ def lawnmower_counterfactual(field, legs: list[dict], *, path_length: int, start
     leg; ``noise_std``: sensor noise (field units). ``None`` where a leg has no end time
     or the truth is not defined there (outside the field's time span).
     """
-    from passt_mav.controller import rmse
     from passt_mav.passt import FieldSampler, PasstLoop
-    from passt_mav.analysis.report import truth_at
 
     land = field.land_mask
     loop = PasstLoop(None, field.grid, planner="lawnmower", path_length=int(path_length), prior="none", land=land, gp_kw={"seed": gp_seed}, seed=seed)
     sampler = FieldSampler(field, noise_std=noise_std, seed=seed + 7919, steps_per_leg=1, sample_at="spread")
     state = np.zeros((2,) + field.grid.shape, np.float32)  # no knowledge before the first samples
     state[:, land] = np.nan
+    return _fly_legs(loop, sampler, field, legs, state, float(field.times[0]), start_cell)
+
+
+def _fly_legs(loop, sampler, field, legs: list[dict], state, t_state: float, start_cell) -> list[float | None]:
+    """Fly ``legs`` (their field-time spans) offline with ``loop`` from ``state`` at ``t_state``:
+    forecast to each leg's start (a loop without a model holds the state), plan, sample the truth
+    along the path, reconstruct; the RMSE vs the truth at each leg's end (None where the leg has
+    no times or lies outside the field)."""
+    from passt_mav.analysis.report import truth_at
+    from passt_mav.controller import rmse
+
     start = tuple(int(x) for x in start_cell)
     out: list[float | None] = []
     t_lo, t_hi = float(field.times[0]), float(field.times[-1])
@@ -48,11 +57,14 @@ def lawnmower_counterfactual(field, legs: list[dict], *, path_length: int, start
         if t0 is None or t1 is None or not (t_lo <= t0 < t1 <= t_hi):
             out.append(None)
             continue
+        k = max(0, int(round((float(t0) - t_state) / field.dt)))
+        if k and loop.predictor is not None:
+            state = loop.forecast(state, k)[-1]
         steps = max(1, int(round((t1 - t0) / field.dt)))
         plan = loop.plan_leg(state, start, float(t0), field.dt, steps=steps)
         sampler.steps_per_leg = (t1 - t0) / field.dt
-        samples = sampler.sample_path(plan.path, float(t0))
-        state = loop.update(plan, samples)
+        state = loop.update(plan, sampler.sample_path(plan.path, float(t0)))
+        t_state = float(t0) + steps * field.dt
         out.append(rmse(state, truth_at(field, float(t1))))
         start = tuple(int(x) for x in plan.path[-1])
     return out
@@ -70,8 +82,6 @@ def same_loop_counterfactual(config, field, predictor, legs: list[dict], *, plan
     cell, with the mission's sensor noise and seed. Offline arithmetic, like
     :func:`lawnmower_counterfactual`: link, turns and thinning do not enter.
     """
-    from passt_mav.analysis.report import truth_at
-    from passt_mav.controller import rmse
     from passt_mav.legstep import build_loop
     from passt_mav.passt import FieldSampler
 
@@ -81,23 +91,5 @@ def same_loop_counterfactual(config, field, predictor, legs: list[dict], *, plan
     sampler = FieldSampler(field, noise_std=config.sensors.noise_std, seed=config.seeds.sensor + 7919, steps_per_leg=1, sample_at="spread")
     state = np.array(field.data[config.t0], dtype=np.float32)
     state[:, land] = np.nan
-    t_state = float(field.times[config.t0])
-    start = tuple(int(x) for x in (start_cell or config.start_cell or (field.grid.rows // 2, field.grid.cols // 2)))
-    out: list[float | None] = []
-    t_lo, t_hi = float(field.times[0]), float(field.times[-1])
-    for leg in legs:
-        t0, t1 = leg.get("t_start"), leg.get("t_end")
-        if t0 is None or t1 is None or not (t_lo <= t0 < t1 <= t_hi):
-            out.append(None)
-            continue
-        k = max(0, int(round((float(t0) - t_state) / field.dt)))
-        if k:
-            state = loop.forecast(state, k)[-1]
-        steps = max(1, int(round((t1 - t0) / field.dt)))
-        plan = loop.plan_leg(state, start, float(t0), field.dt, steps=steps)
-        sampler.steps_per_leg = (t1 - t0) / field.dt
-        state = loop.update(plan, sampler.sample_path(plan.path, float(t0)))
-        t_state = float(t0) + steps * field.dt
-        out.append(rmse(state, truth_at(field, float(t1))))
-        start = tuple(int(x) for x in plan.path[-1])
-    return out
+    start = start_cell or config.start_cell or (field.grid.rows // 2, field.grid.cols // 2)
+    return _fly_legs(loop, sampler, field, legs, state, float(field.times[config.t0]), start)

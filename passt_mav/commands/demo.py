@@ -39,7 +39,7 @@ _EMBEDDED = {
                "rows": 30, "cols": 30},
     "field": {"source": "builtin:ocean", "velocity_scale": 1.0, "time_scale": 1.0},
     "model": "builtin:ocean",
-    "planner": {"name": "policy_gradient", "path_length": 10, "reward": "speed"},
+    "planner": {"name": "information", "path_length": 10, "reward": "variance_reduction"},
     "legs": 4, "start_cell": [15, 15], "t0": 0,
     "vehicle": {"connect": "tcp:127.0.0.1:5760", "speed_mps": 2.0, "wp_radius_m": 10.0},
     "sensors": {"u": "CUR_U", "v": "CUR_V", "noise_std": 0.02},

@@ -20,9 +20,9 @@ MAVLink stamp of the same event):
   ``ModeReason``, 2 = GCS_COMMAND, 26 = initialised). The current mode is written
   again without a change (e.g. right after a mission block): only a change counts.
 * the controller's clock reading, a STATUSTEXT the vehicle received:
-  ``MSG "GCS:PASST leg 0 tb 43411 b 0 k 0"`` (``GCS:`` + the text when the sender's
-  system id is the vehicle's MAV_GCS_SYSID, 255 by default as ours; else
-  ``SRC=sysid/compid:`` + the text), parsed by
+  ``MSG "SRC=245/195:PASST leg 0 tb 43411 b 0 k 0"`` (``SRC=sysid/compid:`` + the text;
+  ``GCS:`` + the text when the sender's system id is the vehicle's MAV_GCS_SYSID, 255 by
+  default, which the controller's own ids 245/195 are not), parsed by
   :func:`~passt_mav.runs.legs.parse_clock_statustext`. Sent before leg 0's upload, it
   is in the log only when logging ran before arming (``LOG_DISARMED 1``).
 * ``MSG "Reached waypoint #N"`` (N = mission seq) and ``MSG "Mission Complete"``;
