@@ -40,7 +40,8 @@ def test_shipped_missions_load():
     assert osc.field.source == "builtin:oscillating" and osc.model == "builtin:cylinder"
     assert osc.grid() == g
     for m in (na, cyl, osc):
-        assert m.planner.name in ("policy_gradient",) and m.planner.path_length >= 1 and m.vehicle.speed_mps > 0
+        assert (m.planner.name, m.planner.reward) == ("information", "variance_reduction")  # issue 27
+        assert m.planner.path_length >= 1 and m.vehicle.speed_mps > 0
         assert m.start_cell is not None and m.grid().contains(*m.grid().cell_to_latlon(*m.start_cell))
 
 

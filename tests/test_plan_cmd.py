@@ -18,8 +18,8 @@ MISSIONS = Path(__file__).resolve().parent.parent / "missions"
 @pytest.fixture(scope="module")
 def na_leg(tmp_path_factory):
     out = tmp_path_factory.mktemp("plan_na")
-    rc = main(["plan", str(MISSIONS / "north_atlantic.yaml"), "--model", "none", "--time", "3",
-               "--start", "10,12", "--length", "8", "--out", str(out)])
+    rc = main(["plan", str(MISSIONS / "north_atlantic.yaml"), "--model", "none", "--time", "3", "--reward", "speed",
+               "--planner", "policy_gradient", "--start", "10,12", "--length", "8", "--out", str(out)])
     assert rc == 0
     return out
 
@@ -74,6 +74,7 @@ def test_plan_cylinder_json_summary(tmp_path, capsys):
         (["--start", "a,b"], "ROW,COL"),
         (["--time", "100000"], "outside the state's snapshots"),
         (["--length", "0"], "--length must be >= 1"),
+        (["--reward", "colour"], "--planner / --reward"),
     ],
 )
 def test_plan_bad_options_exit_2(tmp_path, capsys, extra, expect):
@@ -88,7 +89,7 @@ def test_plan_from_a_state_file(tmp_path, capsys):
     f = load_dataset("ocean").isel(time=slice(5, 7))
     state = f.to_netcdf(tmp_path / "state.nc")
     rc = main(["plan", str(MISSIONS / "north_atlantic.yaml"), "--state", str(state), "--time", "1", "--model", "none",
-               "--start", "20,5", "--length", "4", "--out", str(tmp_path / "o")])
+               "--reward", "speed", "--start", "20,5", "--length", "4", "--out", str(tmp_path / "o")])
     assert rc == 0
     d = json.loads((tmp_path / "o" / "path.json").read_text())
     spd = np.hypot(*f.data[1].astype(np.float64))

@@ -23,7 +23,7 @@ from passt_mav.runs.rundir import RunDir
 
 GRID = geo.RegionGrid(40.0, -63.0, 40.45, -62.45, 10, 12)
 T0 = "2018-03-01T00:00:00Z"
-SECTIONS = ("track_field.png", "legs.png", "samples.png", "reconstruction.png", "rmse.png", "pod.png")
+SECTIONS = ("track_field.png", "legs.png", "reward.png", "samples.png", "reconstruction.png", "rmse.png", "pod.png")
 
 
 def _truth_field() -> FlowField:
@@ -51,6 +51,8 @@ def _leg(i: int, cells: list[tuple[int, int]], t_start: float, t_end: float) -> 
         "rmse_model": 0.08, "link": {"rtt_ms": 12.5, "loss": 0.01 * i, "messages": 400 + i,
                                      "vehicle_bytes_per_s": 333.5 + i},
         "readings": {"received": 8 + i, "used": len(cells), "dropped_gap": 1 + i},
+        # the map the leg was planned on: a ramp eastward (what the report draws under the path)
+        "reward_map": np.tile(np.linspace(0.0, 1.0, GRID.cols), (GRID.rows, 1)).round(4).tolist(),
     }
 
 

@@ -35,6 +35,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--start", default=None, help="start cell ROW,COL (default: the mission's start_cell, else the centre)")
     p.add_argument("--length", type=int, default=None, help="moves in the leg L (default: the mission's planner.path_length)")
     p.add_argument("--model", default=None, help="override the mission's model; 'none' plans on the state itself")
+    p.add_argument("--planner", default=None, help="override the mission's planner (e.g. policy_gradient, information)")
+    p.add_argument("--reward", default=None, help="override the mission's reward (e.g. speed, variance_reduction)")
     p.add_argument("--json", action="store_true", help="print a JSON summary on stdout")
     p.add_argument("--out", required=True, help="output directory")
 
@@ -100,7 +102,7 @@ def run(args: argparse.Namespace) -> int:
     from passt_mav.fields.datasets import mission_field
     from passt_mav.mission import WaypointMission
     from passt_mav.mission.config import load_mission
-    from passt_mav.passt import PasstLoop
+    from passt_mav.legstep import build_loop
     from passt_mav.planning import path_reward
 
     cfg = load_mission(args.mission)
@@ -123,9 +125,17 @@ def run(args: argparse.Namespace) -> int:
 
     predictor, note = _predictor(args.model if args.model is not None else cfg.model, field)
     print(f"note: {note}", file=sys.stderr)
-    loop = PasstLoop(predictor, grid, planner=cfg.planner.name, planner_kw=dict(cfg.planner.options),
-                     reward=cfg.planner.reward, path_length=L, steps_per_leg=1, prior=cfg.gp.loop_prior,
-                     land=land, seed=cfg.seeds.planner)
+    # the mission's own loop (GP noise, background, prior blend, seeds), as `run` builds it
+    pl = {"path_length": L}
+    if args.planner is not None:
+        pl.update(name=args.planner, options={})
+    if args.reward is not None:
+        pl["reward"] = args.reward
+    from passt_mav.planning import PLANNERS, REWARDS
+
+    if pl.get("name", cfg.planner.name) not in PLANNERS or pl.get("reward", cfg.planner.reward) not in REWARDS:
+        raise PlannerError(f"--planner / --reward: choose a planner of {', '.join(PLANNERS)} and a reward of {', '.join(REWARDS)}")
+    loop = build_loop(cfg.model_copy(update={"planner": cfg.planner.model_copy(update=pl)}), predictor, grid, land=land)
     state = np.array(field.data[k], dtype=np.float32)
     leg = loop.plan_leg(state, start, float(field.times[k]), 1.0, steps=1)
     mission = WaypointMission.from_path(grid, leg.path, speed=cfg.vehicle.speed_mps,
