@@ -4,7 +4,9 @@ System 255, component 190 (QGC's and Mission Planner's ids), a GCS HEARTBEAT eve
 and a full mission download (MISSION_REQUEST_LIST -> MISSION_COUNT -> MISSION_REQUEST_INT ->
 MISSION_ITEM_INT ..., MISSION_ACK) every ``period_s`` wall seconds, as QGC re-reads the
 vehicle's mission. Like QGC it takes only the replies addressed to itself (target 255/190)
-and retries a request after ``item_timeout_s`` up to ``retries`` times. Framing is pymavlink's.
+and retries a request after ``item_timeout_s`` up to ``retries`` times; a whole download that
+failed (another client replaced the mission under it) is tried again after ``retry_after_s``.
+Framing is pymavlink's.
 
 ``downloads``: one :class:`Download` per attempt (``ok``, ``items`` as (seq, command, lat, lon),
 ``error``, wall seconds taken). ``foreign``: mission-protocol messages addressed to this client
@@ -33,11 +35,12 @@ class Download:
 
 class QgcLike:
     def __init__(self, connect: str, *, period_s: float = 40.0, target_system: int = 1, target_component: int = 1,
-                 sysid: int = 255, compid: int = 190, item_timeout_s: float = 1.5, retries: int = 5):
+                 sysid: int = 255, compid: int = 190, item_timeout_s: float = 1.5, retries: int = 5,
+                 retry_after_s: float = 2.0):
         self.connect, self.period_s = connect, period_s
         self.target = (target_system, target_component)
         self.sysid, self.compid = sysid, compid
-        self.item_timeout_s, self.retries = item_timeout_s, retries
+        self.item_timeout_s, self.retries, self.retry_after_s = item_timeout_s, retries, retry_after_s
         self.downloads: list[Download] = []
         self.foreign: list[str] = []
         self._downloading = False
@@ -127,6 +130,11 @@ class QgcLike:
         while not self._stop.is_set():
             self._heartbeat()
             if time.monotonic() >= next_dl:
-                self.downloads.append(self.download())
-                next_dl = time.monotonic() + self.period_s
+                d = self.download()
+                if not d.ok and self._stop.is_set():
+                    break  # cut short by stop(), not by the vehicle
+                self.downloads.append(d)
+                # a download that collided with another client's upload (the vehicle replaced the
+                # mission under it) is tried again soon, as a ground station's "refresh" would be
+                next_dl = time.monotonic() + (self.period_s if self.downloads[-1].ok else self.retry_after_s)
             self._next(0.05)
