@@ -272,7 +272,13 @@ def test_sitl_run_logged_from_arming_gives_the_tlogs_legs(tmp_path, sitl_factory
         # both place (nearly) every reading on their track; the tlog may lose a few readings to the link and
         # the .bin a few to the logger under load
         assert len(lb.samples) >= 0.9 * lb.n_readings and len(lt.samples) >= 0.9 * lt.n_readings > 0
-        assert len(lt.samples) >= 0.8 * len(lb.samples)
+        # what the controller heard is what the vehicle logged: each tlog reading is a .bin reading at the
+        # same vehicle time, placed within a few metres (each on its own track). How many the link lost
+        # depends on the machine's load (CI, 2 busy cores: 95 of 121 once), so it is not asserted
+        bin_at = {int(x["time_boot_ms"]): x for x in lb.samples}
+        matched = [(x, bin_at[int(x["time_boot_ms"])]) for x in lt.samples if int(x["time_boot_ms"]) in bin_at]
+        assert len(matched) >= 0.95 * len(lt.samples)
+        assert max(float(geo.geodesic_distance_m(x["lat"], x["lon"], y["lat"], y["lon"])) for x, y in matched) < 5.0
     assert b.legs[0].t_now_ms == b.legs[0].t_auto_ms  # no upload in the log: anchored at AUTO
     # the controller sends leg 0's clock reading again after arming, when ArduPilot opens the log
     assert b.legs[0].clock == t.legs[0].clock is not None
