@@ -229,9 +229,10 @@ class PasstLoop:
             Sci. 14; the forgetting factor as in Raftery, Karny & Ettler 2010,
             Technometrics 52). The weights are updated with the leg's own samples before its
             reconstruction, and the same mixture carries the estimate between legs
-            (:meth:`blend`). A model that explains the samples better keeps a weight of ~1
-            (nothing lost); one worse than persistence is outweighed within a leg or two.
-            Recorded per leg in ``blend_history_``.
+            (:meth:`blend`). Recorded per leg in ``blend_history_``. Measured (same loop, 6
+            trials, L = 50): cylinder 0.0827 -> 0.0784, ocean 0.0645 -> 0.0611, but the
+            oscillating wake 0.1328 -> 0.1588 (persistence's residual scores better on legs
+            where the displaced KNODE wake is still the better prior): hence off by default.
     """
 
     def __init__(self, predictor, grid, *, planner: str = "policy_gradient", planner_kw: dict | None = None, reward: str = "speed", path_length: int = 50, steps_per_leg: int = 10, prior: str = "forecast", gp_kw: dict | None = None, hyper: str = "every_leg", land=None, seed: int = 0, background: int = 0, prior_blend: str = "off", forgetting: float = 0.8):
@@ -400,7 +401,6 @@ class PasstLoop:
         self.std = std
         self.leg_index += 1
         return mean
-
 
     def gp_summary(self) -> dict:
         """What the last reconstruction assumed, for a run's leg record: the sensor noise the GP
