@@ -357,19 +357,14 @@ class GPReconstructor:
         :class:`passt_mav.passt.PasstLoop`'s prior weighting. ``samples_t``: sample times for a
         space-time kernel (only their differences matter)."""
         from scipy.linalg import cho_solve, cholesky
-        from sklearn.gaussian_process.kernels import ConstantKernel, WhiteKernel
 
         X, Y = self._grid()
         xy = np.asarray(samples_xy, dtype=np.float64).reshape(-1, 2)
         r = np.asarray(residual_uv, dtype=np.float64).reshape(-1, 2)
         n = len(xy)
-        kernels = getattr(self, "kernels_", None)
         Bg = self._background_modes(X.shape) * np.sqrt(self._background_factor()) if self.background is not None else None
-        if kernels is None:
-            base, _ = self._base_kernel()
-            amp = float(np.mean(np.sum(Bg**2, axis=0))) if Bg is not None and Bg.size else 0.0
-            amp = amp if amp > 0 else max(float(self.noise_std) ** 2, 1e-10)
-            kernels = [ConstantKernel(amp, "fixed") * base.k1.k2 + WhiteKernel(max(float(self.noise_std) ** 2, 1e-10), "fixed")] * 2
+        kernels, fitted = self._prior_kernels(Bg)
+        if not fitted:
             inputs = xy
         else:
             use_t = getattr(self, "n_inputs_", 2) == 3 and samples_t is not None
@@ -479,6 +474,21 @@ class GPReconstructor:
     PRIOR_KERNEL_RANK = 48
     PRIOR_KERNEL_ENERGY = 0.95
 
+    def _prior_kernels(self, Bg) -> tuple[list, bool]:
+        """(the fitted kernels of u and v, True), or before any fit (the initial kernel: length scale
+        3 cells, noise ``noise_std``, signal variance = the background's mean variance in ``Bg``
+        (m, 2, N), or ``noise_std**2`` without one; False)."""
+        from sklearn.gaussian_process.kernels import ConstantKernel, WhiteKernel
+
+        kernels = getattr(self, "kernels_", None)
+        if kernels is not None:
+            return kernels, True
+        base, _ = self._base_kernel()
+        amp = float(np.mean(np.sum(Bg**2, axis=0))) if Bg is not None and Bg.size else 0.0
+        amp = amp if amp > 0 else max(float(self.noise_std) ** 2, 1e-10)
+        k = ConstantKernel(amp, "fixed") * base.k1.k2 + WhiteKernel(max(float(self.noise_std) ** 2, 1e-10), "fixed")
+        return [k, k], False
+
     def prior_factors(self, land=None, *, kernel_rank: int | None = None, kernel_energy: float | None = None):
         """The prior covariance of the next reconstruction's error over the grid, factored.
 
@@ -496,7 +506,6 @@ class GPReconstructor:
         the structure of the prior, whose scale no sample has fixed yet.
         """
         from scipy.linalg import eigh
-        from sklearn.gaussian_process.kernels import ConstantKernel, WhiteKernel
 
         X, Y = self._grid()
         R, C = X.shape
@@ -507,14 +516,8 @@ class GPReconstructor:
         if self.background is not None:
             Bg = self._background_modes(X.shape) * np.sqrt(self._background_factor())  # (m, 2, N)
             Bg[:, :, ~water] = 0.0
-        kernels = getattr(self, "kernels_", None)
-        n_in = getattr(self, "n_inputs_", 2)
-        if kernels is None:
-            base, _ = self._base_kernel()
-            amp = float(np.mean(np.sum(Bg**2, axis=0))) if Bg is not None and Bg.size else 0.0
-            amp = amp if amp > 0 else max(float(self.noise_std) ** 2, 1e-10)
-            base = ConstantKernel(amp, "fixed") * base.k1.k2 + WhiteKernel(max(float(self.noise_std) ** 2, 1e-10), "fixed")
-            kernels, n_in = [base, base], 2
+        kernels, fitted = self._prior_kernels(Bg)
+        n_in = getattr(self, "n_inputs_", 2) if fitted else 2
         pts = np.column_stack([X.ravel()[wi], Y.ravel()[wi]] + ([np.zeros(wi.size)] if n_in == 3 else []))
         rank_cap = int(self.PRIOR_KERNEL_RANK if kernel_rank is None else kernel_rank)
         energy = float(self.PRIOR_KERNEL_ENERGY if kernel_energy is None else kernel_energy)
