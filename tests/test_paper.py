@@ -100,18 +100,18 @@ def quick_page(tmp_path_factory):
 # --quick takes ~30 s on an idle 2-core machine and 67 s measured beside a training job: slow
 @pytest.mark.slow
 def test_quick_runs_the_protocol(quick_page, capsys):
-    """--quick: all three scenarios with the shipped models, the five methods, the claims table, one page."""
+    """--quick: all three scenarios with the shipped models, the seven methods, the claims table, one page."""
     import json
 
     res = json.loads((quick_page / "results.json").read_text())
     assert set(res["campaigns"]) == {"cylinder", "oscillating", "ocean"}
     for c in res["campaigns"].values():
         per = c["per_L"]["50"]
-        assert set(per["final_rmse"]) == {"passt", "model", "lawnmower_gp", "greedy_gp", "random_gp"}
+        assert set(per["final_rmse"]) == {"passt", "model", "lawnmower_gp", "greedy_gp", "random_gp", "random_loop", "greedy_loop"}
         assert all(np.isfinite(v) and v > 0 for v in per["final_rmse"].values())
         assert len(per["rmse_mean"]["passt"]) == 31
     assert set(res["model_eval"]["lookahead"]) == {"train", "test", "oscillating"}
-    assert len(res["claims"]) == 5 and all(c["held"] in (True, False) for c in res["claims"])
+    assert len(res["claims"]) == 7 and all(c["held"] in (True, False) for c in res["claims"])
     doc = (quick_page / "paper.html").read_text()
     assert doc.count('src="data:image/png;base64,') == 8  # lookahead, POD, 3 x (RMSE, snapshots)
     assert "Quick version" in doc

@@ -4,7 +4,7 @@ Protocol (the paper's): three scenarios - the static cylinder wake and the oscil
 cylinder wake with the shipped cylinder KNODE (``builtin:cylinder``), the ocean field
 with the shipped ocean KNODE (``builtin:ocean``) - x path lengths (25, 50, 75, 100, 150,
 200 moves per leg) x 30 trials x 300 steps from snapshot 0, legs of 10 snapshots, sensor
-noise 0.02; methods PASST / model alone / lawnmower+GP / greedy+GP / random+GP. Each GP's
+noise 0.02; methods PASST / model alone / lawnmower+GP / greedy+GP / random+GP, and the random walk and greedy in PASST's own loop (random_loop, greedy_loop). Each GP's
 kernel is fitted on what that GP models (``--hyper auto``): PASST's residual GP on every
 leg's residuals vs the forecast (the model's error grows and changes over a campaign), the
 GP-only baselines once on the initial state (one fit per configuration, then held fixed:
@@ -33,7 +33,7 @@ import sys
 
 from passt_mav.reconstruction.background import DEFAULT_BACKGROUND, background_steps_problem
 
-HELP = "The paper's offline evaluation (3 scenarios x path lengths x 30 trials, 5 methods) -> one HTML page with its claims checked"
+HELP = "The paper's offline evaluation (3 scenarios x path lengths x 30 trials, 7 methods) -> one HTML page with its claims checked"
 EXAMPLES = """examples:
   passt-mav paper --out runs/paper --dry-run         # work and wall-time estimate only
   passt-mav paper --out runs/paper                   # the full protocol (long: see --dry-run)
