@@ -234,12 +234,8 @@ def _method_kw(cfg: dict, m: str, predictor) -> tuple:
     """(predictor, run_offline options) of loop method ``m`` (its GP schedule included)."""
     h = cfg["hyper"]
     base, _, reward = m.partition("@")
-    if base == "passt":
-        return predictor, dict(planner=cfg["planner"], reward=reward or cfg["reward"], prior="forecast", hyper=_hyper_for(h, residual=True))
-    if base.endswith("_loop"):
-        return predictor, dict(planner=base[: -len("_loop")], reward=reward or cfg["reward"], prior="forecast", hyper=_hyper_for(h, residual=True))
-    planner = base[: -len("_gp")]
-    if cfg["baseline_prior"] == "forecast":
+    planner = cfg["planner"] if base == "passt" else base.rsplit("_", 1)[0]  # PLANNER_gp / PLANNER_loop
+    if base == "passt" or base.endswith("_loop") or cfg["baseline_prior"] == "forecast":
         return predictor, dict(planner=planner, reward=reward or cfg["reward"], prior="forecast", hyper=_hyper_for(h, residual=True))
     return None, dict(planner=planner, reward=reward or "speed", prior="none", hyper=_hyper_for(h, residual=False))
 
