@@ -299,3 +299,25 @@ def test_row_shift_augmentation_refuses_land_and_too_large_shifts(tmp_path, caps
     assert main(["model", "train", "--data", str(nc), "--epochs", "1", "--shift-rows", "-1", "--no-skill", "--out", str(tmp_path / "k")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "shift_rows must be a non-negative integer" in err[0]
+
+
+def test_shift_fraction_draws_that_share_of_shifts_and_weighs_validation_alike():
+    from passt_mav.errors import ModelError
+
+    """``shift_fraction`` p: a share p of the initial conditions is shifted (uniform over the
+    2n non-zero shifts), the rest unshifted; validation weighs the unshifted window 1 - p and
+    each shift p / 2n. Without it, the draw is uniform over all 2n + 1 shifts (as before)."""
+    n_draw = 20000
+    k = make_predictor("knode", shift_rows=2, shift_fraction=0.25, **SMALL)
+    idx = k._draw_shifts(np.random.default_rng(0), 5, n_draw)
+    assert abs(np.mean(idx == 0) - 0.75) < 0.015
+    counts = np.bincount(idx, minlength=5)[1:] / n_draw
+    np.testing.assert_allclose(counts, 0.25 / 4, atol=0.01)
+    assert k._shift_weight(0, 5) == pytest.approx(0.75) and k._shift_weight(-2, 5) == pytest.approx(0.0625)
+    assert np.all(make_predictor("knode", shift_rows=2, shift_fraction=0.0, **SMALL)._draw_shifts(np.random.default_rng(1), 5, 100) == 0)
+    assert np.all(make_predictor("knode", shift_rows=2, shift_fraction=1.0, **SMALL)._draw_shifts(np.random.default_rng(1), 5, 100) > 0)
+    old = make_predictor("knode", shift_rows=2, **SMALL)
+    np.testing.assert_array_equal(old._draw_shifts(np.random.default_rng(3), 5, 50), np.random.default_rng(3).integers(5, size=50))
+    assert old._shift_weight(0, 5) == old._shift_weight(2, 5) == 1.0
+    with pytest.raises(ModelError, match="shift_fraction"):
+        make_predictor("knode", shift_rows=0, shift_fraction=0.5, epochs=1, **LOOP, **SMALL).fit(band_field(), start=0, stop=32)

@@ -52,6 +52,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     t.add_argument("--init", default=None, help="fine-tune: start from this KNODE checkpoint (its weights and scaler; same grid and architecture), e.g. builtin:cylinder")
     t.add_argument("--select", default=None, choices=("best", "last"), help="weights kept: best validation epoch (default) | last epoch (for a --horizon longer than the validation window)")
     t.add_argument("--shift-rows", type=int, default=None, help="augmentation: move each training roll-out by a random whole number of rows in [-N, N] (cross-stream; where a wake sits in the crop), edge rows replicated; fields without land only (default 0 = off)")
+    t.add_argument("--shift-fraction", type=float, default=None, help="with --shift-rows: share of training initial conditions shifted (the rest unshifted) and the shifted copies' weight in validation (default: uniform over all shifts, 0 included)")
     t.add_argument("--compile", action="store_true", help="train through torch.compile where it works (falls back to eager)")
     t.add_argument("--no-skill", action="store_true", help="skip the skill report on the validation window")
     t.add_argument("--device", default="cpu", help="torch device (default cpu)")
@@ -118,7 +119,7 @@ def _train(args) -> int:
 
     try:
         cmd = "passt-mav model " + " ".join(sys.argv[2:]) if sys.argv[1:2] == ["model"] else None
-        s = train(args.data, out=args.out, model=args.model, start=args.start, stop=args.stop, epochs=args.epochs, seed=args.seed, lr=args.lr, n_batches=args.n_batches, substeps=args.substeps, method=args.method, kernel_variance=args.kernel_variance, noise_var=args.noise_var, device=args.device, threads=args.threads, progress=not args.no_progress, command=cmd, log=log, recipe=args.recipe, overrides={k: getattr(args, k) for k in ("loss", "horizon", "curriculum", "noise", "noise_scale", "val_frac", "val_every", "patience", "train_batch", "max_ics", "init", "select", "shift_rows") if getattr(args, k) is not None} | ({"compile": True} if args.compile else {}), skill=not args.no_skill)
+        s = train(args.data, out=args.out, model=args.model, start=args.start, stop=args.stop, epochs=args.epochs, seed=args.seed, lr=args.lr, n_batches=args.n_batches, substeps=args.substeps, method=args.method, kernel_variance=args.kernel_variance, noise_var=args.noise_var, device=args.device, threads=args.threads, progress=not args.no_progress, command=cmd, log=log, recipe=args.recipe, overrides={k: getattr(args, k) for k in ("loss", "horizon", "curriculum", "noise", "noise_scale", "val_frac", "val_every", "patience", "train_batch", "max_ics", "init", "select", "shift_rows", "shift_fraction") if getattr(args, k) is not None} | ({"compile": True} if args.compile else {}), skill=not args.no_skill)
     finally:
         if logf is not None:
             logf.close()

@@ -225,12 +225,18 @@ class KnodePredictor(Predictor):
             displaced. Validation then covers every shift too, and the per-pixel scaler is
             taken over the shifted copies (a fine-tuning run keeps its start model's scaler).
             Needs a field without land.
+        shift_fraction: with ``shift_rows``, the share of training initial conditions that are
+            shifted (each drawn uniformly from the ``2 * shift_rows`` non-zero shifts; the rest
+            stay unshifted), and the weight of the shifted copies in the validation loss (the
+            unshifted window weighs ``1 - shift_fraction``). ``None`` (default) keeps the
+            original draw: uniform over all ``2 * shift_rows + 1`` shifts, 0 included, every
+            shift weighing the same in validation.
     """
 
     name = "knode"
 
     def __init__(self, *, epochs: int = 100, lr: float = 1e-3, noise_var: float = 1e-3, n_batches: int = 1, substeps: int = 6, method: str = "euler", channels: tuple = CHANNELS, hidden: int = 128, kernel_size: int = 5, kernel_variance: float = 0.1, seed: int = 0, device: str = "cpu", progress: bool = True, batch_size: int = 256,
-                 loss: str = "one_step", horizon: int = 10, curriculum: float = 0.5, noise: str = "white", noise_scale: float = 1.0, noise_samples: int = 12, noise_path_length: int = 50, noise_sensor_std: float = 0.02, val_frac: float = 0.0, val_every: int = 1, patience: int = 0, train_batch: int = 64, max_ics: int = 0, clip_grad: float = 1.0, zero_init: bool = False, compile: bool = False, init: str | None = None, select: str = "best", fast_predict: bool = False, shift_rows: int = 0):
+                 loss: str = "one_step", horizon: int = 10, curriculum: float = 0.5, noise: str = "white", noise_scale: float = 1.0, noise_samples: int = 12, noise_path_length: int = 50, noise_sensor_std: float = 0.02, val_frac: float = 0.0, val_every: int = 1, patience: int = 0, train_batch: int = 64, max_ics: int = 0, clip_grad: float = 1.0, zero_init: bool = False, compile: bool = False, init: str | None = None, select: str = "best", fast_predict: bool = False, shift_rows: int = 0, shift_fraction: float | None = None):
         self.epochs = epochs
         self.lr = lr
         self.noise_var = noise_var
@@ -265,6 +271,7 @@ class KnodePredictor(Predictor):
         self.select = select
         self.fast_predict = bool(fast_predict)
         self.shift_rows = shift_rows
+        self.shift_fraction = None if shift_fraction is None else float(shift_fraction)
         self.grid_shape_ = None
 
     def __getstate__(self) -> dict:
@@ -278,8 +285,8 @@ class KnodePredictor(Predictor):
         return {"channels": list(self.channels), "hidden": self.hidden, "kernel_size": self.kernel_size, "kernel_variance": self.kernel_variance, "substeps": self.substeps, "method": self.method}
 
     def _train_params(self) -> dict:
-        keys = ("loss", "horizon", "curriculum", "noise", "noise_scale", "noise_samples", "noise_path_length", "noise_sensor_std", "val_frac", "val_every", "patience", "train_batch", "max_ics", "clip_grad", "zero_init", "init", "select", "shift_rows")
-        return {k: getattr(self, k) for k in keys}
+        keys = ("loss", "horizon", "curriculum", "noise", "noise_scale", "noise_samples", "noise_path_length", "noise_sensor_std", "val_frac", "val_every", "patience", "train_batch", "max_ics", "clip_grad", "zero_init", "init", "select", "shift_rows", "shift_fraction")
+        return {k: getattr(self, k, None) for k in keys}
 
     def _check_params(self) -> None:
         if self.method not in INTEGRATORS:
@@ -300,6 +307,9 @@ class KnodePredictor(Predictor):
             raise ModelError(f"val_frac must be in [0, 0.9), got {self.val_frac!r}")
         if int(self.shift_rows) != self.shift_rows or self.shift_rows < 0:
             raise ModelError(f"shift_rows must be a non-negative integer, got {self.shift_rows!r}")
+        frac = getattr(self, "shift_fraction", None)
+        if frac is not None and not (0.0 <= frac <= 1.0 and self.shift_rows > 0):
+            raise ModelError(f"shift_fraction must be in [0, 1] and needs shift_rows > 0, got {frac!r} with shift_rows {self.shift_rows}")
         if len(self.channels) != len(CONV_SPEC):
             raise ModelError(f"channels must list {len(CONV_SPEC)} widths, got {self.channels}")
 
@@ -399,7 +409,11 @@ class KnodePredictor(Predictor):
         n_w = float(water.sum()) * 2
         self.mean_, self.std_, self.water_, self.grid_shape_ = mean, std, water, (R, C)
         noise = self._make_noise(field, data, s0, n_tr, dev)
-        val_sets = [vs for s in shifts for vs in self._validation_sets(field, shift_field_rows(data, s), s0, n_tr, scale, dev)]
+        val_sets, val_weights = [], []
+        for s in shifts:
+            sets = self._validation_sets(field, shift_field_rows(data, s), s0, n_tr, scale, dev)
+            val_sets += sets
+            val_weights += [self._shift_weight(s, len(shifts))] * len(sets)
         opt = torch.optim.Adam(net.parameters(), lr=self.lr)
         self._step = self._stepper(net)
         curve: list[float] = []
@@ -407,7 +421,7 @@ class KnodePredictor(Predictor):
         best = (math.inf, -1, None)
         if val_sets and (self.zero_init or start_from is not None):
             # epoch 0 (persistence, or the start model) competes too: a network that never beats it on validation is not kept
-            best = (self._val_loss(net, val_sets, w, n_w), 0, {k: t.detach().clone() for k, t in net.state_dict().items()})
+            best = (self._val_loss(net, val_sets, w, n_w, val_weights), 0, {k: t.detach().clone() for k, t in net.state_dict().items()})
             vcurve.append(best[0])
         from tqdm.auto import tqdm
 
@@ -427,7 +441,7 @@ class KnodePredictor(Predictor):
             for a in range(0, len(order), bs):
                 b = torch.from_numpy(order[a : a + bs]).to(dev)
                 # each initial condition's row shift, an index into shifts (all 0 without augmentation)
-                sh = torch.from_numpy(shift_rng.integers(len(shifts), size=len(b))).to(dev)
+                sh = torch.from_numpy(self._draw_shifts(shift_rng, len(shifts), len(b))).to(dev)
                 x = Zs[sh, b]
                 x = x + noise(x.shape, gen)
                 target = torch.stack([Zs[sh, b + k] for k in range(1, H + 1)], dim=1)
@@ -442,7 +456,7 @@ class KnodePredictor(Predictor):
             if not math.isfinite(curve[-1]):
                 raise ModelError(f"KNODE training diverged at epoch {ep + 1} (loss {curve[-1]}); lower lr or raise substeps")
             if val_sets and (ep + 1) % self.val_every == 0 or (val_sets and ep == n_ep - 1):
-                v = self._val_loss(net, val_sets, w, n_w)
+                v = self._val_loss(net, val_sets, w, n_w, val_weights)
                 vcurve.append(v)
                 # the best epoch is chosen once the roll-out length is the full horizon
                 if H == self._horizon_at(n_ep - 1, n_ep) and v < best[0]:
@@ -482,6 +496,21 @@ class KnodePredictor(Predictor):
         """Row shifts of the ``shift_rows`` augmentation, 0 first: ``[0, -n, .., -1, 1, .., n]``."""
         n = int(self.shift_rows)
         return [0] + [s for s in range(-n, n + 1) if s != 0]
+
+    def _draw_shifts(self, rng, n_shifts: int, n: int) -> np.ndarray:
+        """Indices into ``_shifts()`` for ``n`` initial conditions (see ``shift_fraction``)."""
+        frac = getattr(self, "shift_fraction", None)
+        if frac is None or n_shifts == 1:
+            return rng.integers(n_shifts, size=n)  # the original draw (bit-for-bit as before the option)
+        shifted = rng.random(n) < frac
+        return np.where(shifted, rng.integers(1, n_shifts, size=n), 0)
+
+    def _shift_weight(self, shift: int, n_shifts: int) -> float:
+        """Weight of one shift's validation sets in the validation loss (see ``shift_fraction``)."""
+        frac = getattr(self, "shift_fraction", None)
+        if frac is None or n_shifts == 1:
+            return 1.0
+        return 1.0 - frac if shift == 0 else frac / (n_shifts - 1)
 
     def _init_checkpoint(self, grid_shape) -> "KnodePredictor":
         """The start model of a fine-tuning run (``init``), checked against this model's shape."""
@@ -539,11 +568,15 @@ class KnodePredictor(Predictor):
             sets.append((torch.from_numpy(scale(rec)).to(dev), tgt))
         return sets
 
-    def _val_loss(self, net, sets, w, n_w) -> float:
+    def _val_loss(self, net, sets, w, n_w, weights=None) -> float:
+        """Validation roll-out loss: the mean over ``sets``, weighted by ``weights`` when they differ."""
         torch = _torch()
         net.eval()
         with torch.no_grad():
-            return float(np.mean([float(self._rollout_loss(net, z0, tgt, w, n_w)) for z0, tgt in sets]))
+            losses = [float(self._rollout_loss(net, z0, tgt, w, n_w)) for z0, tgt in sets]
+        if weights is None or len(set(weights)) <= 1:
+            return float(np.mean(losses))
+        return float(np.average(losses, weights=weights))
 
     # -- predict ----------------------------------------------------------------------
     def _predict_step(self):
