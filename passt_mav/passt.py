@@ -407,7 +407,7 @@ class PasstLoop:
         used (``noise_std``, m/s per component u, v: fitted by marginal likelihood, never below
         the sensor's ``noise_std``), whether the samples showed a signal beyond that noise
         (``signal_kept``; otherwise the forecast was left alone there), the background factor,
-        and the prior weights (``prior_blend="bma"``)."""
+        the offset variance (``offset_var``, with the GP's ``bias``) and the prior weights (``prior_blend="bma"``)."""
         gp = self.gp
         out: dict = {"sensor_noise_std": float(gp.noise_std)}
         ks = getattr(gp, "kernels_", None)
@@ -418,6 +418,8 @@ class PasstLoop:
             out["signal_kept"] = [None if e is None else bool(e[0] >= e[1]) for e in ev]
         if gp.background is not None:
             out["background_factor"] = gp._background_factor()
+        if getattr(gp, "bias", False):
+            out["offset_var"] = float(getattr(gp, "bias_var_", 0.0))  # (field units)^2, 0 = no offset kept
         if self.blend_history_:
             out["prior_weights"] = dict(self.blend_history_[-1]["weights"])
         return out

@@ -65,6 +65,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--fast-predict", action="store_true", help="run a KNODE through its compiled prediction path (torch.compile with freezing: ~1.6x, fp32 rounding of the eager path, a few seconds of compiling per batch shape; what passt-mav paper uses)")
     p.add_argument("--background", type=int, default=DEFAULT_BACKGROUND, metavar="STEPS", help=f"residual GPs (PASST's; the baselines' with --baseline-prior forecast) add a model-based background covariance: the anomalies of STEPS snapshots of the model's roll-out from the initial state (ensemble optimal interpolation) (default {DEFAULT_BACKGROUND}; 0 = stationary kernels only)")
     p.add_argument("--prior-blend", choices=("off", "bma"), default="off", help="residual GPs' prior mean: the model's forecast (off, default) or bma: the model's forecast and persistence weighed leg by leg by how well each explains the leg's samples (Bayesian model averaging with a forgetting factor)")
+    p.add_argument("--gp-bias", action="store_true", help="the residual GP may add a constant offset over the region (u, v), kept only where the samples' likelihood pays for it (GPReconstructor bias)")
     p.add_argument("--boats", type=int, default=1, help="N > 1: the fleet comparison instead of the campaign: "
                    "PASST with 1..N boats of L moves each vs 1 boat of N*L moves per leg interval (the same "
                    "budget), L = the first of --path-lengths; writes fleet.json and fleet_rmse.png")
@@ -293,7 +294,7 @@ def _trial_body(field, predictor, cfg: dict, L: int, trial: int) -> dict:
     return out
 
 
-def run_campaign(field, predictor, *, path_lengths=(25, 50, 75, 100, 150, 200), trials: int = 30, planner: str = "policy_gradient", reward: str = "speed", steps: int = 300, t0: int = 0, steps_per_leg: int = 10, noise: float = 0.02, hyper: str = "every_leg", sampling: str = "end", baseline_prior: str = "none", methods=METHODS, window: int = 50, snapshot_step: int = 250, seed: int = 0, pod_modes: int = 6, workers: int = 1, scheduler=None, progress: bool = True, engine: str = "serial", batch: int | None = None, gp_solver: str = "sklearn", keep_trials: bool = False, fast_predict: bool = False, background: int = 0, prior_blend: str = "off") -> dict:
+def run_campaign(field, predictor, *, path_lengths=(25, 50, 75, 100, 150, 200), trials: int = 30, planner: str = "policy_gradient", reward: str = "speed", steps: int = 300, t0: int = 0, steps_per_leg: int = 10, noise: float = 0.02, hyper: str = "every_leg", sampling: str = "end", baseline_prior: str = "none", methods=METHODS, window: int = 50, snapshot_step: int = 250, seed: int = 0, pod_modes: int = 6, workers: int = 1, scheduler=None, progress: bool = True, engine: str = "serial", batch: int | None = None, gp_solver: str = "sklearn", keep_trials: bool = False, fast_predict: bool = False, background: int = 0, prior_blend: str = "off", gp_bias: bool = False) -> dict:
     """Run the campaign; returns the results dict (JSON-able). ``scheduler``: a Dask
     address string or a ``distributed.Client``. Same seeds give the same numbers
     whichever way the trials are spread.
@@ -357,7 +358,7 @@ def run_campaign(field, predictor, *, path_lengths=(25, 50, 75, 100, 150, 200), 
     if prior_blend not in PRIOR_BLENDS:
         raise PlannerError(f"--prior-blend: unknown {prior_blend!r}; choose one of {', '.join(PRIOR_BLENDS)}")
     steps = int(min(steps, field.n_times - 1 - t0))
-    cfg = dict(seed=seed, t0=t0, steps=steps, steps_per_leg=steps_per_leg, noise=noise, hyper=hyper, sampling=sampling, planner=planner, reward=reward, baseline_prior=baseline_prior, methods=methods, snapshot_step=snapshot_step, pod_modes=pod_modes, engine=engine, gp_kw={"solver": gp_solver}, keep_paths=bool(keep_trials), fast_predict=bool(fast_predict), background=int(background), prior_blend=prior_blend)
+    cfg = dict(seed=seed, t0=t0, steps=steps, steps_per_leg=steps_per_leg, noise=noise, hyper=hyper, sampling=sampling, planner=planner, reward=reward, baseline_prior=baseline_prior, methods=methods, snapshot_step=snapshot_step, pod_modes=pod_modes, engine=engine, gp_kw={"solver": gp_solver, **({"bias": True} if gp_bias else {})}, keep_paths=bool(keep_trials), fast_predict=bool(fast_predict), background=int(background), prior_blend=prior_blend)
     truth = field.data[t0 : t0 + steps + 1].astype(np.float64)
     with _fast_path(predictor, fast_predict):
         pure = run_pure_model(field, predictor, t0=t0, n_steps=steps) if "model" in methods else None
@@ -672,7 +673,7 @@ def run(args: argparse.Namespace) -> int:
         raise PlannerError("--boats must be >= 1")
     if args.boats > 1:
         return _run_fleet(args, field, predictor, lengths[0], out_dir)
-    summary = run_campaign(field, predictor, path_lengths=lengths, trials=args.trials, planner=args.planner, reward=args.reward, steps=args.steps, t0=args.t0, steps_per_leg=args.steps_per_leg, noise=args.noise, hyper=args.hyper, sampling=args.sampling, baseline_prior=args.baseline_prior, methods=methods, window=args.window, snapshot_step=args.snapshot_step, seed=args.seed, workers=args.workers, scheduler=args.scheduler, engine=args.engine, batch=args.batch, gp_solver=args.gp_solver, fast_predict=args.fast_predict, background=args.background, prior_blend=args.prior_blend)
+    summary = run_campaign(field, predictor, path_lengths=lengths, trials=args.trials, planner=args.planner, reward=args.reward, steps=args.steps, t0=args.t0, steps_per_leg=args.steps_per_leg, noise=args.noise, hyper=args.hyper, sampling=args.sampling, baseline_prior=args.baseline_prior, methods=methods, window=args.window, snapshot_step=args.snapshot_step, seed=args.seed, workers=args.workers, scheduler=args.scheduler, engine=args.engine, batch=args.batch, gp_solver=args.gp_solver, fast_predict=args.fast_predict, background=args.background, prior_blend=args.prior_blend, gp_bias=args.gp_bias)
     summary["config"].update(data=args.data, model=args.model, command="passt-mav evaluate " + " ".join(sys.argv[2:]) if sys.argv[1:2] == ["evaluate"] else None)
     files = write_figures(summary, out_dir)
     snaps = summary.pop("_snapshots")

@@ -274,7 +274,10 @@ class InformationPlanner:
                 b, a = divmod(int(o), 8)
                 if not np.isfinite(total[b, a]):
                     break
-                key = (int(flat[b, a]), round(float(total[b, a]), 9))
+                # one candidate per (cell, score): two paths that reach the same cell with the same
+                # score (to 10 significant digits, relative, so scores of any size stay apart)
+                # are the same cells visited, and keeping both would waste a beam slot
+                key = (int(flat[b, a]), float(f"{float(total[b, a]):.10g}"))
                 if key in seen:
                     continue
                 seen.add(key)

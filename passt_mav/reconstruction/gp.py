@@ -94,13 +94,28 @@ class GPReconstructor:
             then gets a factor ~0, a drift shaped like the modes a large one, whatever
             the stationary kernels' schedule (the model's error grows over a campaign).
 
+        bias: with ``prior="forecast"``, the residual may carry a constant offset over the
+            region (one per component: the whole current sped up or turned since the forecast,
+            as a tide does), a factor ``b`` with ``b ~ N(0, s^2 I_2)`` on two modes of ones
+            (u, v) beside the background's: ordinary kriging's unknown constant mean, here as a
+            prior term so that the gate below can refuse it. ``s^2`` is chosen at every
+            :meth:`reconstruct` from a log grid (``mean(y^2)`` x 1e-2 .. 10, and 0) by the joint
+            marginal likelihood of the samples' residuals under the offset plus the background
+            (factor in use) plus the fitted sensor noise, and kept only when it raises that
+            likelihood by more than the information criterion's ``0.5 ln(2n)`` (one parameter).
+            A forecast that is right (residual = noise) then keeps ``s^2 = 0`` and nothing
+            changes; a stale forecast of a field that moved as a whole is shifted everywhere,
+            not only within a length scale of the samples. Default False.
+
     Learned state: ``kernels_`` (fitted kernel per component), ``cell_m_``,
     ``n_inputs_`` (2 = space, 3 = space-time), ``background_scale_`` (the last factor chosen
-    with a background and ``background_scale="ml"``).
+    with a background and ``background_scale="ml"``), ``bias_var_`` (the last offset variance
+    chosen with ``bias``; field units^2).
     """
 
-    def __init__(self, *, grid_xy, kernel: str = "matern52", length_scale: float | None = None, noise_std: float = 0.02, alpha: float = 1e-8, prior: str = "forecast", max_length_cells: float = 6.0, max_fit_points: int = 60, space_time: bool = True, n_restarts: int = 0, seed: int = 0, solver: str = "sklearn", background=None, background_scale="ml"):
+    def __init__(self, *, grid_xy, kernel: str = "matern52", length_scale: float | None = None, noise_std: float = 0.02, alpha: float = 1e-8, prior: str = "forecast", max_length_cells: float = 6.0, max_fit_points: int = 60, space_time: bool = True, n_restarts: int = 0, seed: int = 0, solver: str = "sklearn", background=None, background_scale="ml", bias: bool = False):
         self.grid_xy = grid_xy
+        self.bias = bias
         self.background = background
         self.background_scale = background_scale
         self.solver = solver
@@ -364,6 +379,10 @@ class GPReconstructor:
         n = len(xy)
         Bg = self._background_modes(X.shape) * np.sqrt(self._background_factor()) if self.background is not None else None
         kernels, fitted = self._prior_kernels(Bg)
+        bias_var = float(getattr(self, "bias_var_", 0.0)) if self._bias_on() and fitted else 0.0
+        if bias_var > 0:
+            Bb = self._bias_modes(X.size) * np.sqrt(bias_var)
+            Bg = Bb if Bg is None else np.concatenate([Bg, Bb])
         if not fitted:
             inputs = xy
         else:
@@ -517,6 +536,10 @@ class GPReconstructor:
             Bg = self._background_modes(X.shape) * np.sqrt(self._background_factor())  # (m, 2, N)
             Bg[:, :, ~water] = 0.0
         kernels, fitted = self._prior_kernels(Bg)
+        bias_var = float(getattr(self, "bias_var_", 0.0)) if self._bias_on() and fitted else 0.0
+        if bias_var > 0:
+            Bb = self._bias_modes(N, water) * np.sqrt(bias_var)
+            Bg = Bb if Bg is None else np.concatenate([Bg, Bb])
         n_in = getattr(self, "n_inputs_", 2) if fitted else 2
         pts = np.column_stack([X.ravel()[wi], Y.ravel()[wi]] + ([np.zeros(wi.size)] if n_in == 3 else []))
         rank_cap = int(self.PRIOR_KERNEL_RANK if kernel_rank is None else kernel_rank)
@@ -625,12 +648,12 @@ class GPReconstructor:
         grid_pts = np.column_stack([X.ravel(), Y.ravel()] + ([np.zeros(X.size)] if use_t else []))
         if self.solver not in _SOLVERS:
             raise ReconstructionError(f"unknown GP solver {self.solver!r}; choose one of {', '.join(_SOLVERS)}")
-        if self.background is not None:
+        modes = None
+        if self.background is not None or self._bias_on():
             cells = self._nearest_cells(np.asarray(samples_xy, dtype=np.float64).reshape(-1, 2)[ok], X, Y)
-            Bg = self._background_modes(X.shape)
-            if self.background_scale == "ml":
-                self.background_scale_ = self._fit_background_scale(target, cells, Bg)
-            mean, std = self._posterior_joint(xy, target, grid_pts, cells, Bg * np.sqrt(self._background_factor()), with_std)
+            modes = self._fitted_modes(target, cells, X.shape, fc)
+        if modes is not None:
+            mean, std = self._posterior_joint(xy, target, grid_pts, cells, modes, with_std)
             mean = mean + offset[:, None, None]
         else:
             mean, std = self._posterior_components(xy, target, offset, grid_pts, X.shape, with_std)
@@ -660,6 +683,89 @@ class GPReconstructor:
             if with_std:
                 std[k] = s.reshape(shape)
         return mean, std
+
+    def _bias_on(self) -> bool:
+        return bool(getattr(self, "bias", False)) and self.prior == "forecast"
+
+    def _fitted_modes(self, target, cells, shape, fc=None) -> np.ndarray | None:
+        """The low-rank prior modes of this reconstruction, (m, 2, R*C) with their factors applied:
+        the background modes (factor refitted when ``background_scale="ml"``), then with ``bias``
+        the two offset modes and the forecast's own anomaly (``fc`` (2, R, C) minus its water
+        mean) where the samples keep them (``bias_var_``, ``scale_var_`` refitted); None when
+        there are none."""
+        N = int(np.prod(shape))
+        Bg = np.zeros((0, 2, N))
+        if self.background is not None:
+            Bg = self._background_modes(shape)
+            if self.background_scale == "ml":
+                self.background_scale_ = self._fit_background_scale(target, cells, Bg)
+            Bg = Bg * np.sqrt(self._background_factor())
+        if self._bias_on():
+            v0 = max(float(np.mean(target**2)), float(self.noise_std) ** 2, 1e-12)
+            self.bias_var_ = self._fit_mode_var(target, cells, Bg, self._bias_modes(N), v0)
+            if self.bias_var_ > 0:
+                Bg = np.concatenate([Bg, self._bias_modes(N) * np.sqrt(self.bias_var_)])
+            self.scale_var_ = 0.0
+            anom = self._anomaly_mode(fc)
+            if anom is not None:
+                self.scale_var_ = self._fit_mode_var(target, cells, Bg, anom, 1.0)
+                if self.scale_var_ > 0:
+                    Bg = np.concatenate([Bg, anom * np.sqrt(self.scale_var_)])
+        return Bg if Bg.shape[0] or self.background is not None else None
+
+    @staticmethod
+    def _anomaly_mode(fc) -> np.ndarray | None:
+        """The forecast's anomaly as one joint u/v mode (1, 2, N): ``fc`` minus its mean over the
+        water cells per component, land 0; None without a forecast or with a flat one. A factor
+        ``c ~ N(0, s^2)`` on it lets the samples say the forecast's structure is too strong
+        (c < 0: c = -1 removes it, the stale pattern of a rotating tide) or too weak (c > 0)."""
+        if fc is None:
+            return None
+        a = np.asarray(fc, np.float64).reshape(2, -1)
+        water = np.isfinite(a).all(axis=0)
+        if water.sum() < 2:
+            return None
+        a = np.where(water, a - np.nanmean(a[:, water], axis=1, keepdims=True), 0.0)
+        return a[None] if float(np.abs(a).max()) > 0 else None
+
+    @staticmethod
+    def _bias_modes(N: int, water=None) -> np.ndarray:
+        """The two offset modes (2, 2, N): ones on u, ones on v (zero off ``water`` when given)."""
+        m = np.zeros((2, 2, N))
+        m[0, 0] = m[1, 1] = 1.0 if water is None else np.asarray(water, np.float64)
+        return m
+
+    #: variances tried by the ``bias`` fits, as multiples of a reference variance (the offset:
+    #: the residuals' mean square; the forecast-anomaly factor: 1)
+    BIAS_FRACTIONS = tuple(float(x) for x in np.logspace(-2, 1, 10))
+
+    def _fit_mode_var(self, target, cells, Bg, modes, v0: float) -> float:
+        """The variance on ``modes`` (m, 2, N; unit factor), from ``v0`` x :data:`BIAS_FRACTIONS`
+        and 0, that maximises the joint log marginal likelihood of the residuals ``target`` (n, 2)
+        under those modes + the modes ``Bg`` already in (factors applied) + the fitted sensor
+        noise; 0 unless it raises it by the information criterion's 0.5 ln(2n) (one parameter).
+        The stationary kernels are left out for the reason given in :meth:`_fit_background_scale`
+        (fitted on the same residuals, they have already taken a smooth drift's variance)."""
+        from scipy.linalg import cho_solve, cholesky
+
+        n = len(target)
+        y = np.concatenate([target[:, 0], target[:, 1]])
+        noise = np.concatenate([np.full(n, float(self.kernels_[k].k2.noise_level)) for k in range(2)])
+        Hb = np.concatenate([Bg[:, 0, cells], Bg[:, 1, cells]], axis=1)
+        K0 = Hb.T @ Hb + np.diag(noise + float(self.alpha))
+        Hm = np.concatenate([modes[:, 0, cells], modes[:, 1, cells]], axis=1)
+        J = Hm.T @ Hm
+        lls = []
+        for a in (0.0,) + tuple(v0 * f for f in self.BIAS_FRACTIONS):
+            try:
+                Lc = cholesky(K0 + a * J, lower=True, check_finite=False)
+            except np.linalg.LinAlgError:
+                continue
+            lls.append((-0.5 * float(y @ cho_solve((Lc, True), y, check_finite=False)) - float(np.log(np.diag(Lc)).sum()), a))
+        if not lls or lls[0][1] != 0.0:
+            return 0.0
+        best_ll, best = max(lls)
+        return float(best) if best_ll - lls[0][0] >= 0.5 * np.log(max(2 * n, 2)) else 0.0
 
     def _background_modes(self, shape) -> np.ndarray:
         """The background modes as (m, 2, R*C) float64, land (NaN) as 0."""
