@@ -237,7 +237,8 @@ def _estimates(run: RunData) -> tuple[list, list[dict], list[str]]:
     for item in found:
         if kept and item[0] == kept[-1][0]:
             notes.append(f"leg {int(kept[-1][4].get('index', -1))}'s estimate at the same time as leg "
-                         f"{int(item[4].get('index', -1))}'s is left out (the later is the fleet's newest estimate at that time)")
+                         f"{int(item[4].get('index', -1))}'s is left out (the later is the fleet's newest "
+                         "estimate at that time)")
             kept[-1] = item
         else:
             kept.append(item)
@@ -332,7 +333,9 @@ def sample_table(run: RunData) -> dict[str, np.ndarray]:
     cols = {"utc": np.array([x.utc for x in s], float), "lat": np.array([x.lat for x in s], float),
             "lon": np.array([x.lon for x in s], float), "u": np.array([x.u for x in s], float),
             "v": np.array([x.v for x in s], float), "boat": np.array([run.boat_of[x.source] for x in s], np.int32),
-            "leg": np.array([x.leg for x in s], np.int32), "time_boot_ms": np.array([x.time_boot_ms for x in s], np.float64),
+            "leg": np.array([x.leg for x in s], np.int32),
+            # float64 (exact ms below 2**53): CF 1.8 has no int64
+            "time_boot_ms": np.array([x.time_boot_ms for x in s], np.float64),
             "boot": np.array([x.boot for x in s], np.int32)}
     order = np.lexsort((np.arange(len(s)), cols["utc"], cols["boat"]))
     return {k: v[order] for k, v in cols.items()}

@@ -52,7 +52,8 @@ def features(run) -> list[dict[str, Any]]:
         for b in np.unique(c["boat"]):
             k = c["boat"] == b
             pts = _pos(c["lat"][k], c["lon"][k])
-            geom = {"type": "LineString", "coordinates": pts} if len(pts) >= 2 else {"type": "Point", "coordinates": pts[0]}
+            geom = ({"type": "LineString", "coordinates": pts} if len(pts) >= 2
+                    else {"type": "Point", "coordinates": pts[0]})
             out.append(_feature(geom, kind="track", boat=int(b), n_samples=int(k.sum())))
     g = run.grid
     for rec in run.legs:
