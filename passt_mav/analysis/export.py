@@ -33,6 +33,11 @@ Global attributes: ``Conventions = "CF-1.8, ACDD-1.3"``, title, summary, source,
 ``source_commit`` (the git commit of the installed checkout, ``"unknown"`` otherwise), and the
 ACDD extents. GeoJSON / KML / CSV: :mod:`passt_mav.analysis.export_geo`.
 
+What the std is: the GP's predictive standard deviation per cell (scikit-learn's convention, with
+the sensor-noise variance in it: never below the fitted noise level, and equal to it everywhere when
+the evidence gate found no signal beyond noise in the leg's samples, as on the demo's first legs);
+the uncertainty of the GP's correction to the forecast, not of the model's forecast itself.
+
 The posterior std: runs record it in ``legs/NNN/estimate.nc`` since this export exists (the
 loop built by :func:`passt_mav.legstep.build_loop` keeps it); an older run's estimate has none
 and its export says so in the ``comment`` attribute instead of inventing one.
@@ -59,6 +64,10 @@ __all__ = ["FORMATS", "ExportError", "RunData", "load_run", "export_run", "defau
 #: formats of :func:`export_run`
 FORMATS = ("netcdf", "geojson", "kml", "csv")
 _EPOCH_UNITS = "seconds since 1970-01-01T00:00:00Z"
+_STD_COMMENT = ("the GP's predictive standard deviation at the cell as the PASST loop computes it (scikit-learn's "
+                "convention: it includes the sensor-noise (WhiteKernel) variance, so it never falls below the fitted "
+                "noise level, which it equals everywhere when the leg's samples showed no signal beyond noise); it "
+                "is the uncertainty of the GP's correction to the model forecast, not of the forecast itself")
 
 
 class ExportError(UserError):
@@ -280,6 +289,7 @@ def estimate_dataset(run: RunData, command: str = "passt-mav export"):
             a["ancillary_variables"] = f"{name}_std"
             sa = {kk: vv for kk, vv in a.items() if kk in ("units", "grid_mapping", "coordinates")}
             sa["long_name"] = f"posterior standard deviation of {name} (GP)"
+            sa["comment"] = _STD_COMMENT
             if geographic:
                 sa["standard_name"] = f"{std_name} standard_error"
             dvars[f"{name}_std"] = (dims, std[:, k], sa)
@@ -447,8 +457,8 @@ def export_run(run_dir: str | Path, fmt: str, out: str | Path | None = None, *, 
     if fmt == "netcdf":
         ds = samples_dataset(run, command) if samples else estimate_dataset(run, command)
         write_atomic(out, lambda p: _write_netcdf(ds, p))
-        info = {"times": int(ds.sizes.get("time", 0)), "obs": int(ds.sizes.get("obs", 0)),
-                "trajectories": int(ds.sizes.get("trajectory", 0)), "has_std": "u_std" in ds}
+        info = ({"trajectories": int(ds.sizes["trajectory"]), "samples": int(ds.sizes["obs"])} if samples else
+                {"legs": int(ds.sizes["time"]), "posterior_std": "u_std" in ds})
     else:
         text, info = {"geojson": export_geo.geojson_text, "kml": export_geo.kml_text,
                       "csv": export_geo.csv_text}[fmt](run)
