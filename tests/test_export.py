@@ -35,13 +35,19 @@ T0_EPOCH = 1519862400.0  # 2018-03-01T00:00:00Z
 KML = "{http://www.opengis.net/kml/2.2}"
 
 
-def make_run(root: Path, boats: int = 3, legs: int = 4) -> dict:
+def make_run(root: Path, boats: int = 3, legs: int = 4, metric: bool = False) -> dict:
     """A run directory as the fleet controller leaves it; returns what went in (for exact answers).
 
     Leg i is flown by boat i % boats, ends at field time 3600 * (i + 1) except that legs 1 and 2
     end together (a fleet's two boats finishing at once), carries a 3-cell path and 2 waypoints.
+    ``metric``: a cylinder-like field (data-frame metres placed on the sea, non-dimensional time).
     """
     grid = geo.RegionGrid(40.0, -63.5, 40.35, -63.05, 8, 10)
+    origin, units = ORIGIN, "m s-1"
+    if metric:
+        grid = geo.MetricRegionGrid(2.6, 11.4, -4.7, 4.7, 8, 10, anchor_lat=40.2, anchor_lon=-63.1, rotation_deg=30.0,
+                                    scale=100.0)
+        origin, units = None, "1"
     rng = np.random.default_rng(0)
     rd = RunDir(root).create()
     vehicles = [{"connect": f"tcp:127.0.0.1:{5760 + 10 * b}", "speed_mps": 2.0} for b in range(boats)]
@@ -66,7 +72,7 @@ def make_run(root: Path, boats: int = 3, legs: int = 4) -> dict:
         state[:, :, 0, 0] = np.nan  # a land cell
         std = rng.uniform(0.001, 0.05, (1, 2, 8, 10)).astype(np.float32)
         std[:, :, 0, 0] = np.nan
-        FlowField(state, grid, [t_end[i]], ORIGIN, "m s-1").to_netcdf(rd.estimate_file(i), std=std)
+        FlowField(state, grid, [t_end[i]], origin, units).to_netcdf(rd.estimate_file(i), std=std)
         est[i] = (state, std)
     per_boat = [40 + 7 * b for b in range(boats)]
     recs = []
@@ -143,6 +149,23 @@ def test_estimate_netcdf_is_cf_and_round_trips_through_data_import(run3, tmp_pat
         assert ds.attrs["Conventions"] == "CF-1.8, ACDD-1.3" and ds.attrs["passt_mav_version"]
         assert len(ds.attrs["source_commit"]) in (40, len("unknown"))
         assert "leg 1's estimate" in ds.attrs["comment"]
+
+
+def test_a_metric_field_keeps_its_data_frame_with_lat_lon_and_field_time(tmp_path, capsys):
+    """The cylinder placed on the sea: x/y data-frame metres, 2-D lat/lon, non-dimensional field time."""
+    r = make_run(tmp_path / "cyl", boats=1, legs=2, metric=True)
+    out = tmp_path / "cyl.nc"
+    assert export([str(r["rd"].root), "--out", str(out)], capsys)[0] == 0
+    assert_cf_clean(out, tmp_path)
+    import xarray as xr
+
+    with xr.open_dataset(out, decode_times=False) as ds:
+        assert ds.u.dims == ("field_time", "y", "x") and ds.lat.dims == ("y", "x") and "time" not in ds.variables
+        np.testing.assert_allclose(ds.field_time.values, r["t_end"][:2])
+        np.testing.assert_allclose(ds.lat.values[3, 4], r["grid"].cell_to_latlon(3, 4)[0], atol=1e-12)
+        assert "standard_name" not in ds.u.attrs and ds.u.attrs["units"] == "1"
+        np.testing.assert_allclose(ds.u.values, np.concatenate([r["estimates"][i][0][:, 0] for i in range(2)]),
+                                   atol=1e-7, equal_nan=True)
 
 
 def test_samples_netcdf_is_a_cf_trajectory_per_boat(run3, tmp_path, capsys):

@@ -311,11 +311,14 @@ def estimate_dataset(run: RunData, command: str = "passt-mav export"):
     _geo_extent(attrs, lat, lon)
     if epoch is not None:
         _time_extent(attrs, epoch)
-    return xr.Dataset(dvars, coords=coords, attrs=attrs)
+    ds = xr.Dataset(dvars, coords=coords, attrs=attrs)
+    # a non-dimensional field time is no CF time axis: named so that no reader takes it for one
+    return ds if epoch is not None else ds.rename({"time": "field_time"})
 
 
 def _grid_coords(f) -> tuple[tuple, dict, dict]:
-    """(dims of u/v, coordinate variables, crs attributes) of a field's grid."""
+    """(dims of u/v, coordinate variables, crs attributes) of a field's grid: 1-D lat/lon (deg) for a
+    geographic grid; data-frame x/y (m) with 2-D lat/lon auxiliary coordinates for a metric one."""
     g = f.grid
     wgs84 = {"grid_mapping_name": "latitude_longitude", "semi_major_axis": 6378137.0,
              "inverse_flattening": 298.257223563, "longitude_of_prime_meridian": 0.0,
@@ -327,9 +330,11 @@ def _grid_coords(f) -> tuple[tuple, dict, dict]:
                                          "lon": ("lon", np.asarray(g.lons, float), {**lon_a, "axis": "X"})}, wgs84)
     rr, cc = np.meshgrid(np.arange(g.rows), np.arange(g.cols), indexing="ij")
     la, lo = (np.asarray(x, float) for x in g.cell_to_latlon(rr, cc))
-    coords = {"y": ("y", np.asarray(g.ys, float), {"units": "m", "axis": "Y",
+    # data-frame metres are no projection coordinates (scaled and rotated onto the sea): no axis or
+    # standard name, the 2-D lat/lon auxiliary coordinates place the cells
+    coords = {"y": ("y", np.asarray(g.ys, float), {"units": "m",
                     "long_name": "cell-centre y in the field's data frame (before scale and rotation)"}),
-              "x": ("x", np.asarray(g.xs, float), {"units": "m", "axis": "X",
+              "x": ("x", np.asarray(g.xs, float), {"units": "m",
                     "long_name": "cell-centre x in the field's data frame (before scale and rotation)"}),
               "lat": (("y", "x"), la, lat_a), "lon": (("y", "x"), lo, lon_a)}
     return ("time", "y", "x"), coords, wgs84
@@ -458,7 +463,7 @@ def export_run(run_dir: str | Path, fmt: str, out: str | Path | None = None, *, 
         ds = samples_dataset(run, command) if samples else estimate_dataset(run, command)
         write_atomic(out, lambda p: _write_netcdf(ds, p))
         info = ({"trajectories": int(ds.sizes["trajectory"]), "samples": int(ds.sizes["obs"])} if samples else
-                {"legs": int(ds.sizes["time"]), "posterior_std": "u_std" in ds})
+                {"legs": int(ds["leg"].size), "posterior_std": "u_std" in ds})
     else:
         text, info = {"geojson": export_geo.geojson_text, "kml": export_geo.kml_text,
                       "csv": export_geo.csv_text}[fmt](run)
