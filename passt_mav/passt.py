@@ -399,7 +399,8 @@ class PasstLoop:
                 self.gp.fit(xy, samples.uv, forecast_at_samples=f_at, samples_t=st)
         if getattr(self.gp, "n_inputs_", 2) == 2:
             st = None
-        mean, std = self.gp.reconstruct(xy, samples.uv, forecast=fc[-1], forecast_at_samples=f_at, mask=~self.land, samples_t=st, t=t_end, with_std=self._needs_std or self.keep_std)
+        mean, std = self.gp.reconstruct(xy, samples.uv, forecast=fc[-1], forecast_at_samples=f_at, mask=~self.land,
+                                        samples_t=st, t=t_end, with_std=self._needs_std or self.keep_std)
         leg.timings["gp"] = time.perf_counter() - t0
         self.std = std
         self.leg_index += 1
