@@ -34,6 +34,7 @@ COMMANDS: dict[str, str] = {
     "replay": "replay",
     "report": "report",
     "bench": "bench",
+    "export": "export",
 }
 
 

@@ -707,8 +707,9 @@ class MissionController:
         except ReconstructionError as exc:
             raise MavlinkError(f"leg {i}: no current samples arrived (is the sensor sending "
                                f"{self.config.sensors.u}/{self.config.sensors.v}?): {exc}") from None
+        std = None if absorbed.std is None else absorbed.std[None]
         FlowField(absorbed.state[None], self.grid, np.array([absorbed.t_state]), self.field.time_origin,
-                  self.field.units).to_netcdf(self.rd.estimate_file(i))
+                  self.field.units).to_netcdf(self.rd.estimate_file(i), std=std)
         return absorbed
 
     def _update(self, planned, recs, clock):

@@ -228,11 +228,15 @@ def build_loop(config, predictor, grid, land=None):
     if config.sensors.noise_std > 0:
         gp_kw["noise_std"] = config.sensors.noise_std
     gp_kw.update(config.gp.options)
-    return PasstLoop(predictor, grid, planner=config.planner.name, planner_kw=dict(config.planner.options),
+    loop = PasstLoop(predictor, grid, planner=config.planner.name, planner_kw=dict(config.planner.options),
                      reward=config.planner.reward, path_length=config.planner.path_length,
                      steps_per_leg=config.steps_per_leg or 1, prior=config.gp.loop_prior, gp_kw=gp_kw,
                      hyper=config.gp.hyper, land=land, seed=config.seeds.planner, background=config.gp.background,
                      prior_blend=config.gp.prior_blend, forgetting=config.gp.forgetting)
+    # a mission's estimate is written with its posterior std (estimate.nc u_std/v_std; exports read it):
+    # one more triangular solve per leg, nothing next to a leg's minutes on the water
+    loop.keep_std = True
+    return loop
 
 
 
@@ -297,6 +301,8 @@ class AbsorbedLeg:
     rmse_model: float | None = None
     note: str | None = None
     gp: dict | None = None
+    #: GP posterior std (2, R, C) float32 of ``state`` (field units; None when the state is the forecast)
+    std: np.ndarray | None = None
 
     def record(self) -> dict[str, Any]:
         return {"t_state": self.t_state, "steps": self.steps, "gp_s": self.gp_s, "n_samples": self.n_samples,
@@ -443,8 +449,9 @@ class LegStep:
             note = "too few samples in this leg to reconstruct: the state is the forecast"
         gp_s = time.perf_counter() - t0
         r_p, r_m = self.rmse_at(state, t_new)
+        std = None if note is not None or self.loop.std is None else np.asarray(self.loop.std, np.float32)
         return AbsorbedLeg(samples, state, float(t_new), int(planned.steps), len(recs), gp_s, r_p, r_m, note,
-                           self.loop.gp_summary())
+                           self.loop.gp_summary(), std)
 
     def rmse_at(self, state, t: float) -> tuple[float | None, float | None]:
         """RMSE (field units) of ``state`` and of the model alone (from the truth at t0, never

@@ -269,6 +269,9 @@ class PasstLoop:
         #: the information model the last reward map was built on (variance_reduction), else None
         self.info_ = None
         self._needs_std = reward in REWARDS_USING_STD
+        #: compute the GP std every leg even when the reward does not read it (set by
+        #: legstep.build_loop: a vehicle's run records it in legs/NNN/estimate.nc)
+        self.keep_std = False
         self.leg_index = 0
         self._cell = grid.cell_size_m
         if prior_blend not in PRIOR_BLENDS:
@@ -396,7 +399,8 @@ class PasstLoop:
                 self.gp.fit(xy, samples.uv, forecast_at_samples=f_at, samples_t=st)
         if getattr(self.gp, "n_inputs_", 2) == 2:
             st = None
-        mean, std = self.gp.reconstruct(xy, samples.uv, forecast=fc[-1], forecast_at_samples=f_at, mask=~self.land, samples_t=st, t=t_end, with_std=self._needs_std)
+        mean, std = self.gp.reconstruct(xy, samples.uv, forecast=fc[-1], forecast_at_samples=f_at, mask=~self.land,
+                                        samples_t=st, t=t_end, with_std=self._needs_std or self.keep_std)
         leg.timings["gp"] = time.perf_counter() - t0
         self.std = std
         self.leg_index += 1

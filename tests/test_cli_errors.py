@@ -148,6 +148,9 @@ def test_file_errors_of_every_command_are_one_line(capsys, tmp_path):
         (["evaluate", "--data", nope.with_suffix(".nc"), "--model", "persistence", "--out", tmp_path / "o"], "nope.nc"),
         (["demo", "--field", nope.with_suffix(".nc")], "nope.nc"),
         (["bench", "--dir", nope], str(nope)),
+        (["export", nope], str(nope)),
+        (["export", tmp_path], "not a run directory"),
+        (["export", tmp_path, "--format", "shp"], "unknown export format"),
     ]
     for argv, needle in cases:
         _one_line_exit_2(capsys, argv, needle)

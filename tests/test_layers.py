@@ -10,7 +10,10 @@ top-level-only check would miss most of them). Layers, bottom to top::
     analysis (replay, report, counterfactual)
     commands, cli
 
-and, beside them, ``vehicle_sim``, which must stand alone from the client side.
+and, beside them, ``vehicle_sim``, which must stand alone from the client side. ``passt_mav.progress``
+(progress bars / plain progress lines, issue 29) is a leaf every layer may use: it imports nothing of the
+project. The exports (``analysis/export.py``, ``analysis/export_geo.py``) are analysis: they read a run
+directory below them and are called by ``commands/export.py``.
 """
 
 from __future__ import annotations
@@ -39,6 +42,8 @@ RULES = [
                               "vehicle_sim") + ABOVE_CONTROLLER, "the MAVLink client knows no mission logic"),
     (("passt_mav.controller",), ABOVE_CONTROLLER, "the controller does not import what is built on top of it"),
     (("passt_mav.analysis",), ("passt_mav.commands", "passt_mav.cli"), "analysis is a library under the CLI"),
+    (("passt_mav.progress",), ("passt_mav", "geo", "vehicle_sim"),
+     "the progress helper is a leaf under every layer: it imports nothing of the project"),
 ]
 
 
@@ -98,6 +103,8 @@ def test_no_import_runs_back_up():
     ("passt_mav/planning/grid.py", "from passt_mav.mavlink import Link"),
     ("vehicle_sim/boat.py", "from passt_mav.models import base"),
     ("passt_mav/controller.py", "from . import analysis"),
+    ("passt_mav/progress.py", "from passt_mav.fields import FlowField"),
+    ("passt_mav/analysis/export.py", "from passt_mav.commands import data"),
 ])
 def test_the_check_catches_a_forbidden_import(tmp_path, target, line):
     """A copy of the tree with one forbidden import added (inside a function, as the

@@ -211,7 +211,7 @@ def _diff_paths(rec, new) -> list[dict]:
 
 
 def replay(source, *, out=None, model: str | None = None, planner: str | None = None, reward: str | None = None,
-           mission=None, rmse_tol: float = 1e-6, echo=None) -> ReplayResult:
+           mission=None, rmse_tol: float = 1e-6, echo=None, progress: bool = False) -> ReplayResult:
     """Replay ``source`` (run directory, or ``.tlog`` with ``mission``); see the module docstring.
 
     Args:
@@ -221,6 +221,7 @@ def replay(source, *, out=None, model: str | None = None, planner: str | None = 
         model, planner, reward: counterfactual choices (predictor spec, planner name, reward name).
         mission: mission file (required for a bare log; overrides the run's own otherwise).
         rmse_tol: largest |recorded - replayed| RMSE still counted as reproduced.
+        progress: show the legs' progress on stderr (:mod:`passt_mav.progress`).
 
     Raises:
         ReplayError / UserError: bad input (the CLI prints one line, exit 2).
@@ -352,9 +353,11 @@ def replay(source, *, out=None, model: str | None = None, planner: str | None = 
         if chosen is None:
             notes.append("no sequence of clock readings in the log's brackets reproduces every uploaded path; "
                          "each leg takes the first that reproduces its own")
+    from passt_mav.progress import progress as _progress
+
     legs: list[ReplayLeg] = []
     first_div = None
-    for lg in log.legs:
+    for lg in _progress(log.legs, "replay", "leg", quiet=not progress, every_pct=1):
         lnotes: list[str] = []
         rec = recorded.get(lg.index)
         if lg.start_latlon is None or lg.t_now_ms is None:

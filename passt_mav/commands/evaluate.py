@@ -443,10 +443,9 @@ def fleet_comparison(field, predictor, *, boats: int, path_length: int, trials: 
     from threadpoolctl import threadpool_limits
 
     it = [(name, n, L, i) for name, n, L in configs for i in range(trials)]
-    if progress:
-        from tqdm import tqdm
+    from passt_mav.progress import progress as _progress
 
-        it = tqdm(it, desc="fleet comparison", unit="trial", file=sys.stderr)
+    it = _progress(it, "fleet comparison", "trial", quiet=not progress)
     series: dict[str, list] = {}
     with threadpool_limits(1):  # the campaign's rule: one BLAS thread, the same numbers everywhere
         for name, n, L, i in it:
@@ -496,9 +495,10 @@ def campaign_tasks(path_lengths, trials: int, engine: str = "lockstep", batch: i
 
 
 def _execute(field, predictor, cfg, tasks, *, workers, scheduler, progress) -> list[dict]:
-    from tqdm import tqdm
+    from passt_mav.progress import progress as _progress
 
-    bar = tqdm(total=sum(len(tr) for _, tr in tasks), desc="evaluate", unit="trial", disable=not progress, file=sys.stderr)
+    # a bar with ETA on a terminal, a plain line every 10 % (or 30 s) in a log
+    bar = _progress(sum(len(tr) for _, tr in tasks), "evaluate", "trial", quiet=not progress)
     out = []
     # longest first (a task's time grows with its path length): parallel workers then
     # finish together instead of one of them running the longest task alone at the end;

@@ -411,9 +411,12 @@ def run_paper(proto: dict, *, quick: bool = False, scheduler=None, workers: int 
         me["model_name"] = next(iter(me["pod"])) if me.get("pod") else None
         res["model_eval"] = me
         res["timings"]["model evaluation (s)"] = round(time.perf_counter() - t, 1)
+    from passt_mav.progress import progress as _progress
+
     cache: dict = {}
     legs = 0
-    for name, fs, ms in proto["scenarios"]:
+    # scenario by scenario (each campaign shows its trials too): a bar on a terminal, plain lines in a log
+    for name, fs, ms in _progress(proto["scenarios"], "paper", "scenario", quiet=not progress, every_pct=1):
         echo(f"campaign {name}: {fs} with {ms}, L = {proto['path_lengths']}, {proto['trials']} trials x {proto['steps']} steps")
         t = time.perf_counter()
         field, pred = _load(fs, ms, cache)

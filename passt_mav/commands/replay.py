@@ -43,7 +43,7 @@ def run(args: argparse.Namespace) -> int:
     from passt_mav.analysis.replay import replay
 
     res = replay(args.source, out=args.out, model=args.model, planner=args.planner, reward=args.reward,
-                 mission=args.mission)
+                 mission=args.mission, progress=True)
     if args.json:
         print(json.dumps(res.to_dict(), indent=2))
         return res.exit_code

@@ -77,9 +77,10 @@ LEAN_STREAMS = (("GLOBAL_POSITION_INT", 1.0), ("MISSION_CURRENT", 1.0), ("EKF_ST
 
 def execute(config, *, connect: str, run_dir, mission_text: str | None, legs=None, resume=False, speedup=1.0,
             field_time_at_boot=None, signing_key=None, pause_timeout=300.0, ready_timeout=120.0, echo=print,
-            extra_summary=None, report=True, link_factory=None, identity=(None, None)) -> dict:
+            extra_summary=None, report=True, link_factory=None, identity=(None, None), progress=True) -> dict:
     """Everything ``run`` does after parsing: field, predictor, link, controller, report. Returns the summary.
 
+    ``progress``: show the wait for a vehicle that is not ready yet (EKF/GPS; :mod:`passt_mav.progress`).
     ``identity``: our (system, component) ids from the command line; None = the mission's
     ``vehicle.source_system/source_component``, else the link's defaults.
     """
@@ -101,14 +102,15 @@ def execute(config, *, connect: str, run_dir, mission_text: str | None, legs=Non
         summary = _execute_fleet(config, run_dir, field, predictor, pinfo, mission_text=mission_text, legs=legs,
                                  speedup=speedup, field_time_at_boot=field_time_at_boot, signing_key=signing_key,
                                  pause_timeout=pause_timeout, ready_timeout=ready_timeout, echo=echo,
-                                 extra_summary=extra_summary, link_factory=link_factory, identity=identity)
+                                 extra_summary=extra_summary, link_factory=link_factory, identity=identity,
+                                 progress=progress)
         return _report(summary, run_dir, report)
     link = Link(link_config_for(connect, speedup=speedup, tlog=run_dir.tlog, signing_key=signing_key,
                                 identity=_identity(identity, config.vehicle)), connection_factory=link_factory)
     echo(f"connecting to {connect} as system {link.config.source_system} component {link.config.source_component} ...")
     link.connect(wait_s=ready_timeout, say=echo)
     try:
-        veh = _vehicle_for(link, speedup)
+        veh = _vehicle_for(link, speedup, progress)
         ctl = MissionController(config, link, run_dir, field=field, predictor=predictor, predictor_info=pinfo,
                                 vehicle=veh, legs=legs, field_time_at_boot=field_time_at_boot, speedup_hint=speedup,
                                 pause_timeout_s=pause_timeout, ready_timeout_s=ready_timeout, resume=resume,
@@ -128,15 +130,16 @@ def _report(summary: dict, run_dir, report: bool) -> dict:
     return summary
 
 
-def _vehicle_for(link, speedup: float):
+def _vehicle_for(link, speedup: float, progress: bool = True):
     from passt_mav.mavlink import MissionClient, Vehicle
 
     mc = MissionClient(link, no_space_delay_s=max(0.05, 1.0 / max(speedup, 1.0) ** 0.5))
-    return Vehicle(link, mc, retry_delay_s=max(0.02, 1.0 / max(speedup, 1.0)))
+    return Vehicle(link, mc, retry_delay_s=max(0.02, 1.0 / max(speedup, 1.0)), show_progress=progress)
 
 
 def _execute_fleet(config, run_dir, field, predictor, pinfo, *, mission_text, legs, speedup, field_time_at_boot,
-                   signing_key, pause_timeout, ready_timeout, echo, extra_summary, link_factory, identity) -> dict:
+                   signing_key, pause_timeout, ready_timeout, echo, extra_summary, link_factory, identity,
+                   progress=True) -> dict:
     """``vehicles:``: one link per boat (its own tlog), one :class:`FleetController`."""
     from passt_mav.fleet_controller import FleetController
     from passt_mav.mavlink import Link
@@ -150,7 +153,7 @@ def _execute_fleet(config, run_dir, field, predictor, pinfo, *, mission_text, le
             echo(f"boat {k}: connecting to {vc.connect} ...")
             links.append(link.connect(wait_s=ready_timeout, say=echo))
         fleet = FleetController(config, links, run_dir, field=field, predictor=predictor, predictor_info=pinfo,
-                                vehicles=[_vehicle_for(x, speedup) for x in links], legs=legs, echo=echo,
+                                vehicles=[_vehicle_for(x, speedup, progress) for x in links], legs=legs, echo=echo,
                                 mission_text=mission_text, extra_summary=extra_summary,
                                 field_time_at_boot=field_time_at_boot, speedup_hint=speedup,
                                 pause_timeout_s=pause_timeout, ready_timeout_s=ready_timeout)
@@ -228,7 +231,7 @@ def run(args: argparse.Namespace) -> int:
                       speedup=args.speedup_hint, field_time_at_boot=args.field_time_at_boot,
                       signing_key=args.signing_key, pause_timeout=args.pause_timeout,
                       ready_timeout=args.ready_timeout, echo=echo, report=not args.no_report,
-                      identity=(args.source_system, args.source_component))
+                      identity=(args.source_system, args.source_component), progress=not args.quiet)
     print(f"run {summary['status']}: {len(summary['legs'])} legs, {summary['n_samples']} samples -> {rd.root}")
     used = [f"{100 * x:.0f} %" for x in summary.get("readings_used") or [] if x is not None]
     bps = [f"{x:.0f}" for x in summary.get("link_vehicle_bytes_per_s") or [] if x is not None]

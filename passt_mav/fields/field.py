@@ -29,7 +29,7 @@ from geo import MetricRegionGrid, RegionGrid, grid_from_dict
 
 from passt_mav.errors import FieldError
 
-__all__ = ["FieldError", "FlowField", "load_field"]
+__all__ = ["FieldError", "FlowField", "load_field", "load_std"]
 
 #: CF standard names for geographic current components.
 CF_U = "eastward_sea_water_velocity"
@@ -200,8 +200,13 @@ class FlowField:
         return h.hexdigest()[:16]
 
     # -- NetCDF -------------------------------------------------------------
-    def to_dataset(self):
-        """An ``xarray.Dataset`` following CF conventions (see module docstring)."""
+    def to_dataset(self, std: np.ndarray | None = None):
+        """An ``xarray.Dataset`` following CF conventions (see module docstring).
+
+        ``std``: optional ``(time, 2, rows, cols)`` posterior standard deviation of u/v (the GP's,
+        same units and frame as ``data``), written as ``u_std``/``v_std`` (CF standard-name
+        modifier ``standard_error``) and named by u/v's ``ancillary_variables``.
+        """
         import xarray as xr
 
         g = self.grid
@@ -236,19 +241,27 @@ class FlowField:
         else:
             tattrs = {"units": "1", "long_name": "non-dimensional time (lengths in m, inflow speed 1)"}
         coords["time"] = ("time", self.times, tattrs)
-        ds = xr.Dataset(
-            {"u": (dims, self.data[:, 0], u_attrs), "v": (dims, self.data[:, 1], v_attrs)},
-            coords=coords,
-            attrs=attrs,
-        )
+        data_vars = {"u": (dims, self.data[:, 0], u_attrs), "v": (dims, self.data[:, 1], v_attrs)}
+        if std is not None:
+            std = np.asarray(std, np.float32)
+            if std.shape != self.data.shape:
+                raise FieldError(f"posterior std must have the field's shape {self.data.shape}, got {std.shape}")
+            for k, name, a in ((0, "u", u_attrs), (1, "v", v_attrs)):
+                sa = {"units": self.units, "long_name": f"posterior standard deviation of {name} (GP)"}
+                if "standard_name" in a:
+                    sa["standard_name"] = a["standard_name"] + " standard_error"
+                data_vars[f"{name}_std"] = (dims, std[:, k], sa)
+                a["ancillary_variables"] = f"{name}_std"
+        ds = xr.Dataset(data_vars, coords=coords, attrs=attrs)
         return ds
 
-    def to_netcdf(self, path: str | Path) -> Path:
-        """Write CF NetCDF-4 (NaN fill for missing). Returns the path."""
+    def to_netcdf(self, path: str | Path, std: np.ndarray | None = None) -> Path:
+        """Write CF NetCDF-4 (NaN fill for missing); ``std`` as in :meth:`to_dataset`. Returns the path."""
         path = Path(path)
         path.parent.mkdir(parents=True, exist_ok=True)
-        ds = self.to_dataset()
-        enc = {k: {"_FillValue": np.float32(np.nan), "dtype": "float32", "zlib": True, "complevel": 4} for k in ("u", "v")}
+        ds = self.to_dataset(std)
+        enc = {k: {"_FillValue": np.float32(np.nan), "dtype": "float32", "zlib": True, "complevel": 4}
+               for k in ds.data_vars}
         # decode_times stays off on read: seconds are stored raw, never as datetime objects
         enc["time"] = {"dtype": "float64"}
         ds.to_netcdf(path, encoding=enc, engine="netcdf4")
@@ -288,6 +301,18 @@ class FlowField:
 def load_field(path: str | Path) -> "FlowField":
     """Load a passt_mav field file (``.nc``)."""
     return FlowField.from_netcdf(path)
+
+
+def load_std(path: str | Path) -> np.ndarray | None:
+    """The posterior std ``(time, 2, rows, cols)`` float32 stored beside a field by
+    :meth:`FlowField.to_netcdf` (``u_std``/``v_std``, field units), or None if the file has none
+    (estimates written before the std was recorded, or forecasts)."""
+    import xarray as xr
+
+    with xr.open_dataset(Path(path), decode_times=False, engine="netcdf4") as ds:
+        if "u_std" not in ds.variables or "v_std" not in ds.variables:
+            return None
+        return np.stack([ds["u_std"].values, ds["v_std"].values], axis=1).astype(np.float32)
 
 
 def _subgrid(grid, rs: range, cs: range):

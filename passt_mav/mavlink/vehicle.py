@@ -97,10 +97,14 @@ class Vehicle:
         link: connected link.
         mission: mission client (default: one on ``link``).
         retry_delay_s: pause between arming attempts while the vehicle initialises.
+        show_progress: show :meth:`wait_ready`'s wait on stderr once it has to wait (:mod:`passt_mav.progress`:
+            a bar on a terminal, a plain line every 5 s otherwise).
     """
 
-    def __init__(self, link: Link, mission: MissionClient | None = None, *, retry_delay_s: float = 1.0):
+    def __init__(self, link: Link, mission: MissionClient | None = None, *, retry_delay_s: float = 1.0,
+                 show_progress: bool = False):
         self.link = link
+        self.show_progress = bool(show_progress)
         self.mission = mission or MissionClient(link)
         self.retry_delay_s = retry_delay_s
         self.progress = MissionProgress()
@@ -146,13 +150,25 @@ class Vehicle:
     def wait_ready(self, timeout: float = 60.0) -> None:
         """Wait until EKF_STATUS_REPORT has flags & 16 set and & 128 clear and
         GLOBAL_POSITION_INT is non-zero; raises :class:`VehicleNotReady` naming what is missing."""
+        from passt_mav.progress import progress
+
         end = time.monotonic() + timeout
+        bar = None  # shown only once there is something to wait for
         with self.link.subscribe(("EKF_STATUS_REPORT", "GLOBAL_POSITION_INT")) as sub:
-            while (reason := self._ready_reason()):
-                if time.monotonic() >= end:
-                    raise VehicleNotReady(f"vehicle not ready after {timeout:.1f} s: {reason}"
-                                          + (" (link lost)" if self.link.lost else ""))
-                sub.get(end - time.monotonic())
+            try:
+                while (reason := self._ready_reason()):
+                    if time.monotonic() >= end:
+                        raise VehicleNotReady(f"vehicle not ready after {timeout:.1f} s: {reason}"
+                                              + (" (link lost)" if self.link.lost else ""))
+                    if bar is None:
+                        bar = progress(None, f"waiting for the vehicle (up to {timeout:.0f} s)", "s",
+                                       quiet=not self.show_progress, every_s=5.0)
+                    bar.note(reason)
+                    bar.tick()
+                    sub.get(min(end - time.monotonic(), 1.0))
+            finally:
+                if bar is not None:
+                    bar.close("ready" if not self._ready_reason() else "gave up")
 
     # -- modes ---------------------------------------------------------------------------------
     def _wait_heartbeat(self, cond, what: str, timeout: float | None) -> None:

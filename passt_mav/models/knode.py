@@ -29,7 +29,6 @@ with Adam and zero-mean Gaussian input noise (variance ``noise_var``) for stabil
 from __future__ import annotations
 
 import math
-import sys
 import time
 from typing import Callable
 
@@ -184,7 +183,8 @@ class KnodePredictor(Predictor):
         kernel_size, kernel_variance: the smoothing K (cells, cell^2).
         seed: seeds the weights' initialisation and the input noise.
         device: torch device for training and prediction (``"cpu"`` default).
-        progress: tqdm bar with the loss (shown only on a TTY).
+        progress: progress of the epochs with the loss (:mod:`passt_mav.progress`: a bar on a TTY, plain
+            lines otherwise).
         batch_size: initial conditions per forward pass in ``predict``.
         loss: ``"one_step"`` (the paper: MSE one snapshot ahead over all pairs) or
             ``"rollout"``: mean MSE over an unrolled roll-out of ``horizon`` snapshots (a
@@ -423,12 +423,13 @@ class KnodePredictor(Predictor):
             # epoch 0 (persistence, or the start model) competes too: a network that never beats it on validation is not kept
             best = (self._val_loss(net, val_sets, w, n_w, val_weights), 0, {k: t.detach().clone() for k, t in net.state_dict().items()})
             vcurve.append(best[0])
-        from tqdm.auto import tqdm
+        from passt_mav.progress import progress
 
-        bar = tqdm(range(n_ep), desc="KNODE", disable=not (self.progress and sys.stderr.isatty()), leave=False)
+        # a bar with ETA on a terminal, a plain line every 10 % in a log
+        bar = progress(n_ep, "KNODE training", "epoch", quiet=not self.progress)
         t0 = time.perf_counter()
         since_best = 0
-        for ep in bar:
+        for ep in range(n_ep):
             H = self._horizon_at(ep, n_ep)
             ics = np.arange(T - H)
             if self.max_ics and len(ics) > self.max_ics:
@@ -464,11 +465,13 @@ class KnodePredictor(Predictor):
                     since_best = 0
                 elif H == self._horizon_at(n_ep - 1, n_ep):
                     since_best += self.val_every
-            bar.set_postfix(loss=f"{curve[-1]:.3e}", H=H)
+            bar.note(f"loss {curve[-1]:.3e}, H {H}")
+            bar.update()
             if callback is not None:
                 callback(ep, curve[-1])
             if self.patience and since_best >= self.patience and self.select == "best":
                 break
+        bar.close()
         self.train_seconds_ = time.perf_counter() - t0
         if best[2] is not None and self.select == "best":
             net.load_state_dict(best[2])
