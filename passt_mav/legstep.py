@@ -227,6 +227,8 @@ def build_loop(config, predictor, grid, land=None):
     gp_kw = {"seed": config.seeds.gp}
     if config.sensors.noise_std > 0:
         gp_kw["noise_std"] = config.sensors.noise_std
+    if config.gp.bias:
+        gp_kw["bias"] = True
     gp_kw.update(config.gp.options)
     loop = PasstLoop(predictor, grid, planner=config.planner.name, planner_kw=dict(config.planner.options),
                      reward=config.planner.reward, path_length=config.planner.path_length,

@@ -269,6 +269,10 @@ class SensorConfig(_Strict):
     noise_std: float = Field(default=0.0, ge=0)
 
 
+#: the mission default of ``gp.bias`` (see GPConfig)
+BIAS_DEFAULT = False
+
+
 class GPConfig(_Strict):
     """GP reconstruction: prior ``forecast`` (residual vs the model forecast) or ``constant``
     (the paper's GP on samples alone); hyper-parameter schedule; ``background``: snapshots of
@@ -276,13 +280,17 @@ class GPConfig(_Strict):
     kernels (0 = none; see :func:`passt_mav.reconstruction.model_background`); ``prior_blend``:
     ``off`` (the model's forecast is the prior) or ``bma`` (the model and persistence weighed leg
     by leg by how well each explains the leg's samples, memory ``forgetting``; see
-    :class:`passt_mav.passt.PasstLoop`); GPReconstructor options."""
+    :class:`passt_mav.passt.PasstLoop`); ``bias``: the residual GP may shift the forecast by a
+    constant and rescale its anomaly where a leg's samples show it (kept only when their
+    likelihood pays for it; :class:`passt_mav.reconstruction.gp.GPReconstructor` ``bias``);
+    GPReconstructor options."""
 
     prior: Literal["forecast", "constant"] = "forecast"
     hyper: Literal["first_leg", "state", "every_leg"] = "every_leg"
     background: int = Field(default=DEFAULT_BACKGROUND, ge=0)
     prior_blend: Literal["off", "bma"] = "off"
     forgetting: float = Field(default=0.8, ge=0.0, le=1.0)
+    bias: bool = BIAS_DEFAULT
 
     @field_validator("background")
     @classmethod
