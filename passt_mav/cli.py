@@ -34,6 +34,8 @@ COMMANDS: dict[str, str] = {
     "replay": "replay",
     "report": "report",
     "bench": "bench",
+    # live view (issue 29)
+    "view": "view",
 }
 
 

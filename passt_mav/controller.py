@@ -258,7 +258,7 @@ class MissionController:
         self.mission_text = mission_text
         self.extra_summary = dict(extra_summary or {})
         self.land = field.land_mask
-        self.loop = build_loop(config, predictor, self.grid, land=self.land)
+        self.loop = build_loop(config, predictor, self.grid, land=self.land).keep_std()  # std: the live view
         self.step = LegStep(config, field, self.loop, truth_known=truth_known)
         self.leg_records: list[dict] = []
         self.status = "running"

@@ -234,7 +234,7 @@ class FleetController:
         self.n_legs = int(legs or config.legs)
         self.echo = echo or (lambda s: None)
         self.mission_text, self.extra_summary = mission_text, dict(extra_summary or {})
-        self.loop = build_loop(config, predictor, field.grid, land=field.land_mask)
+        self.loop = build_loop(config, predictor, field.grid, land=field.land_mask).keep_std()  # std: the live view
         self.step = LegStep(config, field, self.loop, truth_known=truth_known)
         self.shared = FleetStep(self.step)  # the one state, the boats' paths in flight
         self.lock = threading.RLock()

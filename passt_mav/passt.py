@@ -402,6 +402,12 @@ class PasstLoop:
         self.leg_index += 1
         return mean
 
+    def keep_std(self) -> "PasstLoop":
+        """Compute the GP posterior std (``self.std``) at every reconstruction, also when the reward does not
+        use it (a live view shows it); returns self."""
+        self._needs_std = True
+        return self
+
     def gp_summary(self) -> dict:
         """What the last reconstruction assumed, for a run's leg record: the sensor noise the GP
         used (``noise_std``, m/s per component u, v: fitted by marginal likelihood, never below
