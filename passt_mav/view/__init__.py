@@ -38,9 +38,13 @@ def view_address(host: str, port: int, token: str | None) -> str:
     return f"http://{shown}:{port}/" + (f"?token={token}" if token else "")
 
 
-def _free_port(host: str) -> int:
+def _free_port(host: str, port: int = 0) -> int:
+    """``port`` if it is free on ``host`` (0: any free one); OSError naming it when it is taken."""
     with socket.socket(socket.AF_INET6 if ":" in host else socket.AF_INET) as s:
-        s.bind((host, 0))
+        try:
+            s.bind((host, port))
+        except OSError as exc:
+            raise OSError(f"cannot bind {host}:{port}: {exc.strerror or exc}") from None
         return s.getsockname()[1]
 
 
@@ -72,7 +76,7 @@ def start_view(root: str | Path, *, port: int = 0, host: str = "127.0.0.1", log_
     Raises ``OSError`` when it does not listen within ``wait_s`` (the mission goes on without it).
     """
     token = new_token(host)
-    port = int(port) or _free_port(host)
+    port = _free_port(host, int(port))
     env = {k: v for k, v in os.environ.items() if k != TOKEN_ENV}
     if token:
         env[TOKEN_ENV] = token  # not on the command line, where ps shows it

@@ -153,7 +153,7 @@
     var notable = s.events.filter(function (e) { return e.level !== 'info'; }).slice(-6).reverse();
     $('alerts').innerHTML = notable.map(function (e) {
       return '<div class="alert level-' + esc(e.level) + ' kind-' + esc(e.kind) + '">' + hms(e.utc) + ' boat ' +
-        e.boat + ': ' + esc(e.kind.replace('_', ' ').toUpperCase()) + ' &mdash; ' + esc(e.text) + '</div>';
+        e.boat + ': ' + esc(e.kind.split('_').join(' ').toUpperCase()) + ' &mdash; ' + esc(e.text) + '</div>';
     }).join('');
     $('events').innerHTML = s.events.slice(-80).reverse().map(function (e) {
       return '<li class="level-' + esc(e.level) + ' kind-' + esc(e.kind) + '">' + hms(e.utc) + ' [' + e.boat + '] ' +
@@ -171,16 +171,16 @@
     var lo = 0, hi = Math.max.apply(null, ys) * 1.1, n = r.passt.length;
     function X(i) { return P + (n > 1 ? i * (W - P - 8) / (n - 1) : (W - P) / 2); }
     function Y(y) { return H - 16 - (y - lo) / (hi - lo || 1) * (H - 26); }
-    function line(a, col) {
+    function line(a, col, w) {  // the model's line wider, under the estimate's: equal values stay visible
       var pts = a.map(function (y, i) { return y == null ? null : X(i) + ',' + Y(y); }).filter(Boolean).join(' ');
-      return '<polyline points="' + pts + '" fill="none" stroke="' + col + '" stroke-width="2"/>' +
+      return '<polyline points="' + pts + '" fill="none" stroke="' + col + '" stroke-width="' + w + '"/>' +
         a.map(function (y, i) { return y == null ? '' : '<circle cx="' + X(i) + '" cy="' + Y(y) + '" r="2.5" fill="' +
           col + '"/>'; }).join('');
     }
     svg.innerHTML = '<line x1="' + P + '" y1="' + (H - 16) + '" x2="' + W + '" y2="' + (H - 16) + '" stroke="#889"/>' +
       '<text x="2" y="14" font-size="10">' + fmt(hi, 3) + '</text><text x="2" y="' + (H - 16) + '" font-size="10">0</text>' +
       '<text x="' + P + '" y="' + (H - 3) + '" font-size="10">after each leg, in field-time order (' + n + ' legs)</text>' +
-      line(r.model, '#999') + line(r.passt, '#1f6feb');
+      line(r.model, '#aaa', 5) + line(r.passt, '#1f6feb', 2);
   }
 
   function render(s) {
@@ -199,7 +199,7 @@
 
   function connect() {
     var es = new EventSource(q('api/stream'));
-    es.onopen = function () { var c = $('conn'); c.textContent = 'live'; c.className = 'pill ok'; };
+    es.onopen = function () { var c = $('conn'); c.textContent = 'connected'; c.className = 'pill ok'; };
     es.onmessage = function (ev) { try { render(JSON.parse(ev.data)); } catch (err) { console.error(err); } };
     es.onerror = function () {
       var c = $('conn'); c.className = 'pill bad';
