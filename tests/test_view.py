@@ -217,6 +217,28 @@ def test_a_view_that_cannot_start_is_one_line_and_the_mission_goes_on(tmp_path):
     assert len(lines) == 1 and "not started" in lines[0] and "goes on without it" in lines[0]
 
 
+def test_the_view_never_outlives_the_mission_process(tmp_path):
+    """A mission process that dies without stopping its view (killed, crashed) takes the view with it."""
+    from pathlib import Path
+
+    rd = make_live_run(tmp_path / "run")
+    code = ("import os, sys; from passt_mav.view import start_view; "
+            "print(start_view(sys.argv[1]).proc.pid, flush=True); os._exit(0)")
+    pid = int(subprocess.run([sys.executable, "-c", code, str(rd.root)], capture_output=True, text=True,
+                             timeout=60, check=True).stdout)
+
+    def alive() -> bool:
+        try:
+            return "\tZ" not in Path(f"/proc/{pid}/status").read_text().split("State:")[1][:4]
+        except (FileNotFoundError, IndexError):
+            return False
+
+    end = time.monotonic() + 15
+    while alive() and time.monotonic() < end:
+        time.sleep(0.1)
+    assert not alive()
+
+
 # -- the command -------------------------------------------------------------------------------------------
 def test_view_of_a_bad_run_dir_is_one_line_and_exit_2(tmp_path):
     p = subprocess.run([sys.executable, "-m", "passt_mav.cli", "view", str(tmp_path / "nope")],

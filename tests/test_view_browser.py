@@ -79,16 +79,44 @@ POSITIONS = "Array.from(document.querySelectorAll('#boats .pos')).map(e => e.dat
 LEGS_DONE = "(() => { const e = document.getElementById('legs-done-n'); return e ? +e.textContent : -1; })()"
 
 
+def _watch_demo(page, demo, out: Path, shots: Path) -> Path:
+    """Steps 1-4 of the test on the page of the running demo; returns the end-of-demo screenshot."""
+    def js(expr):
+        return page.evaluate(expr)
+
+    # 1. three boat markers on the map, then moving between two screenshots
+    _wait(lambda: len([m for m in js(MARKERS) if m]) == 3, 120, "three boat markers", demo, out)
+    legs0 = js(LEGS_DONE)
+    m1, p1 = js(MARKERS), js(POSITIONS)
+    page.screenshot(path=str(shots / "view_1.png"))
+    _wait(lambda: js(MARKERS) != m1 and js(POSITIONS) != p1, 60, "the markers to move", demo, out)
+    page.screenshot(path=str(shots / "view_2.png"))
+    # 2. the injected link drop's alert
+    _wait(lambda: js("document.querySelectorAll('#alerts .alert.kind-link_lost').length") > 0, 120,
+          "the link-lost alert", demo, out)
+    alert = js("document.querySelector('#alerts .alert.kind-link_lost').textContent")
+    assert "boat 1" in alert and "LINK LOST" in alert, alert
+    # 3. the leg counter advances (every boat completes its leg)
+    _wait(lambda: js(LEGS_DONE) > max(legs0, 0), 180, "the leg counter to advance", demo, out)
+    # 4. the end of the demo: the page shows the finished run; keep its screenshot
+    _wait(lambda: demo.poll() is not None, 240, "the demo to finish")
+    _wait(lambda: js("window.passtView.last.status") == "complete", 10, "the final state on the page")
+    final = shots / "view_end_of_demo.png"
+    page.screenshot(path=str(final))
+    assert js(LEGS_DONE) == 3
+    return final
+
+
 def test_demo_three_boats_live_view_in_headless_chromium(tmp_path):
     sync_playwright, exe = _need_browser()
     shots = Path(os.environ.get("PASST_VIEW_SHOTS") or tmp_path)
     shots.mkdir(parents=True, exist_ok=True)
     port, out = _free_port(), tmp_path / "demo.log"
     env = dict(os.environ, OMP_NUM_THREADS="1")
-    # boat 1's link goes down 2500 s of simulated time after the simulator's clock starts (its first
+    # boat 1's link goes down 3500 s of simulated time after the simulator's clock starts (in its first
     # leg, ~1500..5500 s) for 900 s (6 s of wall time at 150x: well past the 2 s that make a link lost)
     cmd = [sys.executable, "-m", "passt_mav.cli", "demo", "--boats", "3", "--legs", "1", "--moves", "2",
-           "--view", str(port), "--no-report", "--out", str(tmp_path / "demo"), "--inject-link-drop", "1:2500:900"]
+           "--view", str(port), "--no-report", "--out", str(tmp_path / "demo"), "--inject-link-drop", "1:3500:900"]
     t0 = time.monotonic()
     with open(out, "w") as log:
         demo = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=env)
@@ -106,29 +134,8 @@ def test_demo_three_boats_live_view_in_headless_chromium(tmp_path):
             page.on("pageerror", lambda e: errors.append(str(e)))
             page.goto(f"http://127.0.0.1:{port}/")
 
-            def js(expr):
-                return page.evaluate(expr)
-
-            # 1. three boat markers on the map, then moving between two screenshots
-            _wait(lambda: len([m for m in js(MARKERS) if m]) == 3, 120, "three boat markers", demo, out)
-            legs0 = js(LEGS_DONE)
-            m1, p1 = js(MARKERS), js(POSITIONS)
-            page.screenshot(path=str(shots / "view_1.png"))
-            _wait(lambda: js(MARKERS) != m1 and js(POSITIONS) != p1, 60, "the markers to move", demo, out)
-            page.screenshot(path=str(shots / "view_2.png"))
-            # 2. the injected link drop's alert
-            _wait(lambda: js("document.querySelectorAll('#alerts .alert.kind-link_lost').length") > 0, 120,
-                  "the link-lost alert", demo, out)
-            alert = js("document.querySelector('#alerts .alert.kind-link_lost').textContent")
-            assert "boat 1" in alert and "LINK LOST" in alert, alert
-            # 3. the leg counter advances (every boat completes its leg)
-            _wait(lambda: js(LEGS_DONE) > max(legs0, 0), 180, "the leg counter to advance", demo, out)
-            # 4. the end of the demo: the page shows the finished run; keep its screenshot
-            _wait(lambda: demo.poll() is not None, 240, "the demo to finish")
-            _wait(lambda: js("window.passtView.last.status") == "complete", 10, "the final state on the page")
-            final = shots / "view_end_of_demo.png"
-            page.screenshot(path=str(final))
-            assert js(LEGS_DONE) == 3 and not errors, errors
+            final = _watch_demo(page, demo, out, shots)
+            assert not errors, errors
             browser.close()
     finally:
         if demo.poll() is None:

@@ -70,7 +70,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "default 1)")
     p.add_argument("--no-report", action="store_true", help="skip the HTML report")
     # live view (issue 29): served by default, the address printed (no browser is launched)
-    p.add_argument("--view", nargs="?", type=int, const=0, default=0, metavar="PORT",
+    from passt_mav.commands.view import port
+
+    p.add_argument("--view", nargs="?", type=port, const=0, default=0, metavar="PORT",
                    help="serve the live view on PORT (default: a free port); the address is printed")
     p.add_argument("--no-view", action="store_true", help="do not serve the live view")
     p.add_argument("--view-host", default="127.0.0.1", metavar="HOST",
@@ -195,6 +197,7 @@ def run(args: argparse.Namespace) -> int:
         raise UserError("--boats must be 1..9")
     if args.speedup <= 0:
         raise UserError("--speedup must be positive")
+    drops = _drop_args(args.inject_link_drop, args.boats)
     base, origin = mission_mapping(args.mission, args.field)
     over = dict(DEMO_OVERRIDES, legs=args.legs, **{"planner.path_length": args.moves})
     if args.model:
@@ -212,7 +215,6 @@ def run(args: argparse.Namespace) -> int:
     r0, c0 = config.start_cell or (grid.rows // 2, grid.cols // 2)
     hlat, hlon = (float(x) for x in grid.cell_to_latlon(r0, c0))
     port = _free_port(args.boats)
-    view = _start_view(args, rd)
     fleet_args: list[str] = []
     if args.boats > 1:
         data, config, fleet_args = _as_fleet(data, config, field, (r0, c0), args.boats, port, origin)
@@ -222,10 +224,11 @@ def run(args: argparse.Namespace) -> int:
                "--start-time", repr(t_boot0), "--speedup", repr(args.speedup),
                "--param", f"WP_SPEED={config.fleet[0].speed_mps}", "--current-noise", repr(config.sensors.noise_std),
                "--current-rate", repr(SENSOR_RATE_HZ), "--seed", str(config.seeds.sensor), "--quiet",
-               *sim_placement(config), *_drop_args(args.inject_link_drop, args.boats)]
+               *sim_placement(config), *drops]
     print(f"demo: mission {config.name} ({origin} + {over}); {config.legs} legs of {config.planner.path_length} moves "
           f"at {config.fleet[0].speed_mps} m/s", flush=True)
     print(f"demo: starting vehicle-sim on tcp:127.0.0.1:{port} at {args.speedup:g}x", flush=True)
+    view = _start_view(args, rd)  # (it exits with this process too, whatever happens)
     sim_log = open(rd.root / "vehicle_sim.log", "w")
     sim = subprocess.Popen(sim_cmd, stdout=sim_log, stderr=subprocess.STDOUT)
     try:
@@ -264,11 +267,10 @@ def run(args: argparse.Namespace) -> int:
 
 def _start_view(args, rd):
     """The live view of the demo's run directory (None with --no-view or when it cannot start)."""
-    from passt_mav.commands.view import check_port, start_live_view
+    from passt_mav.commands.view import start_live_view
 
     if args.no_view or args.view is None:
         return None
-    check_port(args.view)
     return start_live_view(rd, args.view, args.view_host, echo=lambda s: print(f"demo: {s}", flush=True))
 
 

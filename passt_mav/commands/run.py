@@ -203,9 +203,8 @@ def _live_view(args, rd):
     """``--view [PORT]``: the live view in a subprocess (passt_mav.view), None without it."""
     if args.view is None:
         return None
-    from passt_mav.commands.view import check_port, start_live_view
+    from passt_mav.commands.view import start_live_view
 
-    check_port(args.view)
     return start_live_view(rd, args.view, args.view_host)
 
 

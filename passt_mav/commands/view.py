@@ -20,10 +20,21 @@ per boat and the alerts. Everything it loads comes from this server (no internet
 """
 
 
+def port(text: str) -> int:
+    """An argparse type: a TCP port 0..65535 (0 = any free one)."""
+    try:
+        n = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a port number: {text!r}") from None
+    if not 0 <= n <= 65535:
+        raise argparse.ArgumentTypeError(f"a port is 0..65535, got {n}")
+    return n
+
+
 def add_view_options(p: argparse.ArgumentParser, *, port_flag: str = "--view") -> None:
     """``--view [PORT]`` and ``--view-host HOST`` (used by run and demo too)."""
     if port_flag == "--view":
-        p.add_argument("--view", nargs="?", type=int, const=0, default=None, metavar="PORT",
+        p.add_argument("--view", nargs="?", type=port, const=0, default=None, metavar="PORT",
                        help="serve the live view on 127.0.0.1:PORT (no PORT: a free one); the address is printed")
     p.add_argument("--view-host", default="127.0.0.1", metavar="HOST",
                    help="address to bind the view to (default 127.0.0.1); any other needs the token printed at start")
@@ -31,15 +42,8 @@ def add_view_options(p: argparse.ArgumentParser, *, port_flag: str = "--view") -
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("run_dir", metavar="RUN_DIR", help="run directory (written by passt-mav run / demo)")
-    p.add_argument("--port", type=int, default=0, help="TCP port (default: a free one)")
+    p.add_argument("--port", type=port, default=0, help="TCP port (default: a free one)")
     add_view_options(p, port_flag="--port")
-
-
-def check_port(port: int | None, what: str = "--view") -> None:
-    from passt_mav.errors import UserError
-
-    if port is not None and not 0 <= port <= 65535:
-        raise UserError(f"{what} port must be 0..65535, got {port}")
 
 
 def start_live_view(run_dir, port: int, host: str, echo=print):
@@ -66,7 +70,6 @@ def run(args: argparse.Namespace) -> int:
     rd = RunDir(args.run_dir)
     if not rd.is_run_dir():
         raise UserError(f"{args.run_dir} is not a run directory (no summary.json, samples, legs or events)")
-    check_port(args.port, "--port")
     from passt_mav.view.server import serve
 
     token = new_token(args.view_host)

@@ -118,7 +118,7 @@ class RunState:
                         "waypoints": rec.get("waypoints") or [], "t_start": rec.get("t_start"),
                         "t_end": rec.get("t_end"), "rmse_passt": rec.get("rmse_passt"),
                         "rmse_model": rec.get("rmse_model"), "n_samples": rec.get("n_samples"),
-                        "has_reward": bool(rec.get("reward_map"))})
+                        "has_reward": bool(rec.get("reward_map")), "reward_range": _range(rec.get("reward_map"))})
         return out
 
     def _legs(self) -> list[dict]:
@@ -195,8 +195,15 @@ class RunState:
         pred = [r["index"] for r in legs if self.rd.prediction_file(r["index"]).exists()]
         kind, leg = ("estimate", est[-1]) if est else (("forecast", pred[-1]) if pred else (None, None))
         reward = [r["index"] for r in legs if r["has_reward"]]
+        std_file = self.rd.leg_dir(est[-1], create=False) / "estimate_std.npy" if est else None
         info = {"kind": kind, "leg": leg, "reward_leg": reward[-1] if reward else None,
-                "std": bool(est) and (self.rd.leg_dir(est[-1], create=False) / "estimate_std.npy").exists()}
+                "reward_range": next((r["reward_range"] for r in legs if reward and r["index"] == reward[-1]), None),
+                "std": std_file is not None and std_file.exists(), "std_range": None}
+        if info["std"]:
+            try:
+                info["std_range"] = _range(np.hypot(*np.load(std_file)[:2]))
+            except (OSError, ValueError):
+                info["std"] = False
         if kind is None:
             return info
         uv = self.field_uv(kind, leg)
@@ -249,7 +256,7 @@ class RunState:
             if what == "speed":
                 uv = self.field_uv("estimate", leg) if self.rd.estimate_file(leg).exists() else \
                     self.field_uv("forecast", leg)
-                return None if uv is None else _png(np.hypot(uv[0], uv[1]), "viridis")
+                return None if uv is None else _png(np.hypot(uv[0], uv[1]), "viridis", vmin=0.0)
             if what == "std":
                 try:
                     std = np.load(self.rd.leg_dir(leg, create=False) / "estimate_std.npy")
@@ -280,6 +287,13 @@ def _png(a: np.ndarray, cmap: str, vmin: float | None = None, vmax: float | None
     buf = io.BytesIO()
     imsave(buf, rgba[::-1], format="png")
     return buf.getvalue()
+
+
+def _range(a) -> list[float] | None:
+    """[min, max] of the finite positive values of ``a`` (what the rasters colour), None when there are none."""
+    a = np.asarray(a if a is not None else [], float)
+    a = a[np.isfinite(a) & (a > 0)]
+    return [round(float(a.min()), 5), round(float(a.max()), 5)] if a.size else None
 
 
 def _rmse(legs: list[dict]) -> dict:

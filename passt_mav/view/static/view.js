@@ -42,7 +42,7 @@
     if (overlays[kind] === url) return;
     overlays[kind] = url;
     G[kind].clearLayers();
-    if (url) L.imageOverlay(q(url), bounds, {opacity: 0.9, className: 'raster-' + kind}).addTo(G[kind]);
+    if (url) L.imageOverlay(q(url), bounds, {opacity: kind === 'reward' ? 0.75 : 0.9}).addTo(G[kind]);
   }
 
   function drawRegion(s) {
@@ -62,9 +62,32 @@
       overlay('std', e.std ? 'api/raster/std.png?leg=' + e.leg : null, r.bounds);
     }
     overlay('reward', e && e.reward_leg != null ? 'api/raster/reward.png?leg=' + e.reward_leg : null, r.bounds);
-    $('legend').innerHTML = e && e.kind ? 'colour: ' + (e.kind === 'estimate' ? 'estimate after leg ' + (e.leg + 1) :
-      'model forecast of leg ' + (e.leg + 1)) + ', speed 0&ndash;' + fmt(e.vmax, 2) + ' (field units)' +
-      (e.std ? '; std available' : '') : 'no estimate yet';
+    drawLegend(e);
+  }
+
+  var RAMPS = {speed: '#440154,#3b528b,#21918c,#5ec962,#fde725', std: '#000004,#51127c,#b73779,#fc8961,#fcfdbf',
+               reward: '#000004,#57106e,#bc3754,#f98e09,#fcffa4'};
+  var base = 'speed';
+  map.on('baselayerchange', function (ev) { base = ev.layer === G.std ? 'std' : 'speed'; drawLegend(); });
+  map.on('overlayadd overlayremove', function () { drawLegend(); });
+
+  function ramp(kind, lo, hi, what) {
+    return '<div>' + what + '</div><div style="display:flex;align-items:center;gap:4px">' + fmt(lo, 3) +
+      '<span style="display:inline-block;width:120px;height:9px;background:linear-gradient(to right,' + RAMPS[kind] +
+      ')"></span>' + fmt(hi, 3) + '</div>';
+  }
+
+  function drawLegend(e) {
+    e = e || (window.passtView.last && window.passtView.last.estimate);
+    if (!e || !e.kind) { $('legend').textContent = 'no estimate yet'; return; }
+    var when = e.kind === 'estimate' ? 'estimate after leg ' + (e.leg + 1) : 'model forecast of leg ' + (e.leg + 1);
+    var html = base === 'std' ? (e.std_range ? ramp('std', e.std_range[0], e.std_range[1],
+      'GP posterior std |(std u, std v)|, ' + when + ' (field units)') : 'no posterior std yet') :
+      ramp('speed', 0, e.vmax, 'speed of the ' + when + ' (field units)');
+    if (map.hasLayer(G.reward) && e.reward_range) {
+      html += ramp('reward', e.reward_range[0], e.reward_range[1], 'reward map that chose leg ' + (e.reward_leg + 1));
+    }
+    $('legend').innerHTML = html;
   }
 
   function drawArrows(e) {
