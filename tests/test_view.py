@@ -84,6 +84,24 @@ def test_record_writer_writes_events_and_status_and_never_raises(tmp_path):
             "leg_start", "leg_end"} <= set(KINDS)
 
 
+def test_a_waypoint_outside_the_geofence_is_an_alert(tmp_path):
+    """The controller's geofence check refuses a leg before upload: the view gets a fence_refused alert."""
+    from types import SimpleNamespace
+
+    from passt_mav.controller import MissionController
+    from passt_mav.errors import PlannerError
+
+    ctl = object.__new__(MissionController)  # only what _checked_mission reads
+    ctl.grid, ctl.record = GRID, RecordWriter(tmp_path)
+    # a fence 20 km inside the region (no mission file allows that: the check is what is tested)
+    ctl.config = SimpleNamespace(geofence_margin_m=-20000.0, vehicle=SimpleNamespace(speed_mps=2.0, wp_radius_m=5.0))
+    planned = SimpleNamespace(plan=SimpleNamespace(path=np.array([[0, 0], [1, 1], [2, 2]])))
+    with pytest.raises(PlannerError, match="outside the geofence"):
+        ctl._checked_mission(0, planned)
+    (ev,) = read_events(tmp_path)[0]
+    assert ev["kind"] == "fence_refused" and ev["level"] == "alert" and "not uploaded" in ev["text"]
+
+
 def test_status_thread_writes_about_once_a_second_and_a_last_one_at_stop(tmp_path):
     w = RecordWriter(tmp_path)
     n = {"k": 0}

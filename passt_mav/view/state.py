@@ -164,6 +164,8 @@ class RunState:
         n = max([int(meta.get("boats") or 1)] + [b + 1 for b in statuses])
         boat_of = self._boat_of(statuses, legs)
         flying = {b: s.get("leg") for b, s in statuses.items() if s.get("flying")}
+        # each boat's current leg: the one it flies, else its newest
+        current = {b: flying.get(b, max([r["index"] for r in legs if r["boat"] == b], default=-1)) for b in range(n)}
         tracks: dict[int, list] = {b: [] for b in range(n)}
         samples: dict[int, list] = {b: [] for b in range(n)}
         for _, lat, lon, u, v, leg, source in self._samples:
@@ -174,7 +176,7 @@ class RunState:
             if b not in tracks:
                 continue
             tracks[b].append((lat, lon))
-            if leg == flying.get(b, max([r["index"] for r in legs if r["boat"] == b], default=-1)):
+            if leg == current[b]:
                 samples[b].append([round(lat, 6), round(lon, 6), round(u, 3), round(v, 3)])
         out = []
         for b in range(n):
