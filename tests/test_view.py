@@ -258,6 +258,22 @@ def test_the_view_never_outlives_the_mission_process(tmp_path):
 
 
 # -- the command -------------------------------------------------------------------------------------------
+def test_run_view_option_serves_the_run_dir(tmp_path):
+    """``passt-mav run ... --view [PORT]``: parsed as a port (none: a free one), served from a subprocess."""
+    from passt_mav.cli import build_parser
+    from passt_mav.commands.run import _live_view
+
+    args = build_parser().parse_args(["run", "m.yaml", "--view"])
+    assert args.view == 0 and args.view_host == "127.0.0.1"
+    assert build_parser().parse_args(["run", "m.yaml"]).view is None
+    rd = make_live_run(tmp_path / "run")
+    vp = _live_view(args, rd)
+    try:
+        assert _get(vp.url + "api/state")[0] == 200
+    finally:
+        vp.stop()
+
+
 def test_view_of_a_bad_run_dir_is_one_line_and_exit_2(tmp_path):
     p = subprocess.run([sys.executable, "-m", "passt_mav.cli", "view", str(tmp_path / "nope")],
                        capture_output=True, text=True, timeout=60)
