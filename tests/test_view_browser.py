@@ -148,3 +148,13 @@ def test_demo_three_boats_live_view_in_headless_chromium(tmp_path):
     assert any("leaflet.js" in u for u in requests) and any("/api/stream" in u for u in requests)
     print(f"demo --boats 3 with the view in Chromium: {time.monotonic() - t0:.1f} s; {len(requests)} requests; "
           f"screenshot {final}")
+
+
+def test_no_browser_skips_but_fails_when_a_browser_is_required(monkeypatch):
+    monkeypatch.setattr(sys.modules[__name__], "_browser", lambda: None)
+    monkeypatch.setenv("PASST_REQUIRE_BROWSER", "1")
+    with pytest.raises(pytest.fail.Exception, match="PASST_REQUIRE_BROWSER=1 but no chromium"):
+        _need_browser()
+    monkeypatch.delenv("PASST_REQUIRE_BROWSER")
+    with pytest.raises(pytest.skip.Exception):
+        _need_browser()

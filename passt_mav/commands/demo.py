@@ -262,6 +262,8 @@ def run(args: argparse.Namespace) -> int:
         print(final_line(legs[-1]["rmse_passt"], legs[-1]["rmse_model"], walk, lawn), flush=True)
     if summary.get("report"):
         print(f"report: {summary['report']}", flush=True)
+    if view is not None:
+        print(f"live view stopped; reopen it with: passt-mav view {rd.root}", flush=True)
     return 0 if summary["status"] == "complete" else 1
 
 
