@@ -35,6 +35,8 @@ COMMANDS: dict[str, str] = {
     "report": "report",
     "bench": "bench",
     "export": "export",
+    # live view (issue 29)
+    "view": "view",
 }
 
 

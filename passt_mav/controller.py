@@ -89,7 +89,9 @@ from typing import Callable
 import numpy as np
 
 from passt_mav.errors import LinkTimeout, MavlinkError, PlannerError, ReconstructionError, UserError
+from passt_mav.live_record import field_time_now, live_meta, live_status
 from passt_mav.runs.legs import clock_statustext
+from passt_mav.runs.live import RecordWriter
 from passt_mav.legstep import (  # noqa: F401 - the between-leg step's building blocks, re-exported
     THINNING, FieldClock, LegStep, build_loop, build_predictor, extend_leg_to_end, leg_steps, pure_model_at, rmse,
     thin_samples, to_field_units, truth_at, utc_epoch)
@@ -256,7 +258,7 @@ class MissionController:
         self.mission_text = mission_text
         self.extra_summary = dict(extra_summary or {})
         self.land = field.land_mask
-        self.loop = build_loop(config, predictor, self.grid, land=self.land)
+        self.loop = build_loop(config, predictor, self.grid, land=self.land)  # keeps the GP std: estimate.nc u_std/v_std (exports, live view)
         self.step = LegStep(config, field, self.loop, truth_known=truth_known)
         self.leg_records: list[dict] = []
         self.status = "running"
@@ -265,6 +267,8 @@ class MissionController:
         self.collector = None
         self.writer = None
         self.events: list[str] = []
+        self.record = RecordWriter(run_dir.root)  # the live view's files (passt_mav.runs.live)
+        self.record.field_time = lambda: field_time_now(self)
         self._time_at_boot_arg = field_time_at_boot
         self._rebooted = threading.Event()
         self._reboot_info: tuple[int, int, int] | None = None
@@ -279,6 +283,11 @@ class MissionController:
     def _say(self, s: str) -> None:
         self.echo(s)
         log.info(s)
+
+    def _note(self, kind: str, text: str) -> None:
+        """An event: the run's list (summary.json) and the live view's events.jsonl (kind: runs.live.KINDS)."""
+        self.events.append(text)
+        self.record.event(kind, text)
 
     @property
     def speed(self) -> float:
@@ -521,6 +530,7 @@ class MissionController:
         self.store = SampleStore(rd.samples_db)
         if self.resume:
             self._resume_boots()
+        self.record.meta(live_meta(self))
         self._attach(_StoreWriter(self.store, self.grid))
         try:
             state, t_state, first = self._initial_state()
@@ -532,7 +542,7 @@ class MissionController:
             self.status = "complete"
         except _Paused as exc:
             self.status = "paused"
-            self.events.append(str(exc))
+            self._note("stopped", str(exc))
             self._say(f"stopped: {exc}")
             try:  # the pilot's RC still overrides HOLD; a vehicle left in an unknown mode would not stop
                 self.vehicle.hold()
@@ -543,7 +553,7 @@ class MissionController:
             if isinstance(exc, LinkTimeout) and "signing" not in str(exc) and "signing" in self.link.signing_hint():
                 # a vehicle that requires signing ignores a keyless controller: say so, not just "timed out"
                 exc = LinkTimeout(f"{exc}{self.link.signing_hint()}")
-            self.events.append(f"aborted: {type(exc).__name__}: {exc}")
+            self._note("stopped", f"aborted: {type(exc).__name__}: {exc}")
             self._safe_hold()
             raise exc
         finally:
@@ -551,6 +561,7 @@ class MissionController:
             self.writer.close()
             self._write_summary()
             self.store.close()
+            self.record.event("run_end", f"run {self.status}")
         return self.summary()
 
     def _attach(self, writer) -> None:
@@ -563,6 +574,7 @@ class MissionController:
                                          source=f"mav:{self.link.target_system}/{self.link.target_component}",
                                          on_reboot=self._on_reboot, boot_base=self._boot_base)
         self.collector.attach(self.link)
+        self.record.start_status(lambda: live_status(self))
 
     def _prepare_vehicle(self) -> None:
         """Wait for the EKF, choose the clock, set WP_RADIUS (put back by :meth:`_detach`)."""
@@ -583,6 +595,7 @@ class MissionController:
             if restored:
                 self._say("restored " + ", ".join(f"{k} = {v:g}" for k, v in restored.items()))
         self.collector.detach()
+        self.record.stop_status(lambda: live_status(self))
 
     def _safe_hold(self) -> None:
         try:
@@ -661,6 +674,7 @@ class MissionController:
         inside = np.asarray(grid.contains(wm.waypoints[:, 0], wm.waypoints[:, 1], margin), bool)
         if not inside.all():
             bad = int(np.flatnonzero(~inside)[0])
+            self.record.event("fence_refused", f"leg {i + 1}: waypoint {bad} outside the geofence; not uploaded")
             raise PlannerError(f"leg {i}: waypoint {bad} at {wm.waypoints[bad, 0]:.6f},{wm.waypoints[bad, 1]:.6f} "
                                f"lies outside the geofence (region + {margin:g} m); nothing uploaded")
         return wm
@@ -686,6 +700,8 @@ class MissionController:
 
     def _fly_leg(self, i: int, wm, items, t_fly: float) -> tuple[float, float | None]:
         """Fly until the mission completes, then HOLD; returns (wall s, vehicle uptime s at the end)."""
+        self._live_leg = (i, (self.link.vehicle_uptime_s() or 0.0) + self._expected_vehicle_s(wm))
+        self.record.event("leg_start", f"{self._leg_label(i)} started ({len(wm.waypoints)} waypoints)")
         try:
             self._fly(i, wm, items, len(items) - 1)  # MISSION_CURRENT.total excludes home
         finally:
@@ -724,6 +740,7 @@ class MissionController:
                                   "upload_s": rec["upload_s"], "leg_s": rec["duration_s"]})
         self.leg_records = [x for x in self.leg_records if int(x["index"]) != i] + [rec]
         self._write_summary()
+        self.record.event("leg_end", f"{self._leg_label(i)} done: {rec['n_samples']} samples")
         r_p, r_m, link = rec["rmse_passt"], rec["rmse_model"], rec["link"]
         rm = "" if r_p is None else f", RMSE passt {r_p:.4f} model {r_m if r_m is None else round(r_m, 4)}"
         rtt = "-" if link["rtt_ms"] is None else f"{link['rtt_ms']:.1f} ms"
@@ -780,7 +797,7 @@ class MissionController:
                     raise
                 self._say(f"leg {i + 1}: link lost during the leg swap ({exc}); reconnecting and starting the swap "
                           f"again from HOLD (attempt {attempt + 1}/{attempts})")
-                self.events.append(f"leg {i}: link lost during the swap at {_utc_now()}: {exc}")
+                self._note("link_lost", f"leg {i}: link lost during the swap at {_utc_now()}: {exc}")
                 self.link.reconnect()
         raise AssertionError("unreachable")
 
@@ -882,7 +899,7 @@ class MissionController:
             replaced = self.__dict__.setdefault("_replaced", {})  # leg -> replacements seen
             n = replaced[i] = replaced.get(i, 0) + 1
             log.info("leg %d: mission on the vehicle differs: %s", i, diff)
-            self.events.append(f"leg {i}: mission replaced on the vehicle at {_utc_now()} ({who}): {what}")
+            self._note("mission_replaced", f"leg {i}: mission replaced on the vehicle at {_utc_now()} ({who}): {what}")
             if n > self.FOREIGN_REPLACEMENTS:
                 v.hold()
                 raise _Paused(f"leg {i}: another ground station replaced our mission {n} times ({who}); stopped in "
@@ -1000,7 +1017,7 @@ class MissionController:
         seq = int(self._resume_seq)
         self._say(f"leg {i + 1}: the autopilot rebooted (its time since boot went from {last_tb / 1000:.1f} s back to "
                   f"{first_tb / 1000:.1f} s): not a pilot; waiting for it to be ready (EKF)")
-        self.events.append(f"leg {i}: vehicle rebooted at {_utc_now()} (boot {boot}, was at item {seq})")
+        self._note("reboot", f"leg {i}: vehicle rebooted at {_utc_now()} (boot {boot}, was at item {seq})")
         if self.link.lost:
             self.link.reconnect()
         self.link.request_streams()  # a reboot forgets the rates set by SET_MESSAGE_INTERVAL
@@ -1023,7 +1040,7 @@ class MissionController:
             # the mission's DO_CHANGE_SPEED (seq 1) lies behind the resumed item and the reboot forgot it
             self._set_speed_again(i, "the reboot")
         self._say(f"leg {i + 1}: mission verified after the reboot; re-armed, AUTO again at item {seq}/{n_items}")
-        self.events.append(f"leg {i}: resumed after the reboot at item {seq}/{n_items}"
+        self._note("reboot_recovered", f"leg {i}: resumed after the reboot at item {seq}/{n_items}"
                            + (" (mission re-uploaded)" if diff else " (stored mission verified)"))
         return time.monotonic() - t0
 
@@ -1031,7 +1048,7 @@ class MissionController:
         v = self.vehicle
         why = self.link.closed_reason or f"{self.link.seconds_since_heartbeat:.1f} s without heartbeat"
         self._say(f"leg {i + 1}: link lost ({why}); reconnecting")
-        self.events.append(f"leg {i}: link lost at {_utc_now()}")
+        self._note("link_lost", f"leg {i}: link lost at {_utc_now()} ({why})")
         self.link.error = None
         self.link.reconnect()
         # a rebooted autopilot also drops its links: look at its time before treating this as a link fault
@@ -1039,6 +1056,7 @@ class MissionController:
             self.link.wait("GLOBAL_POSITION_INT", timeout=max(1.0, 3.0 / self.speedup) + self.link.reply_timeout)
         except LinkTimeout:
             pass
+        self.record.event("link_back", f"leg {i}: link back at {_utc_now()}")
         if self._rebooted.wait(0.1):
             return  # _fly handles the reboot (it verifies the mission itself)
         got = v.mission.download()
@@ -1064,12 +1082,12 @@ class MissionController:
         name = ROVER_MODE_NAMES.get(mode, str(mode))
         self._say(f"leg {i + 1}: the vehicle left AUTO (mode {name}): a pilot has control; pausing "
                   f"(waiting up to {self.pause_timeout_s:.0f} s for AUTO)")
-        self.events.append(f"leg {i}: vehicle left AUTO (mode {name}) at {_utc_now()}")
+        self._note("pilot_takeover", f"leg {i}: vehicle left AUTO (mode {name}) at {_utc_now()}")
         t0 = time.monotonic()
         while time.monotonic() - t0 < self.pause_timeout_s:
             if self.vehicle.mode == 10:
                 self._say(f"leg {i + 1}: back in AUTO; continuing")
-                self.events.append(f"leg {i}: back in AUTO")
+                self._note("pilot_released", f"leg {i}: back in AUTO")
                 return time.monotonic() - t0
             if self._rebooted.is_set():
                 raise _Rebooted()  # not the pilot after all (or the pilot rebooted it): _fly resumes

@@ -46,6 +46,8 @@ from typing import Callable
 from passt_mav.controller import MissionController, _Paused, _StoreWriter, _utc_now
 from passt_mav.errors import MavlinkError, PlannerError, ReconstructionError
 from passt_mav.legstep import FleetStep, LegStep, build_loop
+from passt_mav.live_record import field_time_now, live_meta
+from passt_mav.runs.live import RecordWriter
 
 __all__ = ["FleetController", "BoatController"]
 
@@ -62,6 +64,8 @@ class BoatController(MissionController):
                          predictor_info=fleet.predictor_info, vehicle=vehicle, legs=fleet.n_legs,
                          echo=lambda s: echo(f"boat {boat}: {s}"), **kw)
         self.fleet, self.boat = fleet, int(boat)
+        self.record = fleet.record.for_boat(self.boat)
+        self.record.field_time = lambda: field_time_now(self)
         self.loop, self.step = fleet.loop, fleet.step  # one loop, one state for the fleet
         self.store = fleet.store
         self.status = "waiting"
@@ -155,7 +159,7 @@ class BoatController(MissionController):
 
     def _stop(self, status: str, exc: BaseException) -> None:
         self.status = status
-        self.fleet.event(f"boat {self.boat}: {status}: {type(exc).__name__}: {exc}")
+        self.fleet.event(f"boat {self.boat}: {status}: {type(exc).__name__}: {exc}", "stopped", self.boat)
         self._say(f"stopped ({status}): {exc}")
         if not self.link.lost:
             try:
@@ -168,7 +172,7 @@ class BoatController(MissionController):
         self.status = "lost"
         self.fleet.release(self.boat)
         self.fleet.event(f"boat {self.boat} (sysid {self.link.target_system}) dropped out at {_utc_now()}: "
-                         f"{type(exc).__name__}: {exc}")
+                         f"{type(exc).__name__}: {exc}", "boat_dropped", self.boat)
         self._say(f"dropped out ({exc}); the other boats go on")
         self._safe_hold()
         planned, self._current = self._current, None
@@ -194,7 +198,7 @@ class BoatController(MissionController):
             except MavlinkError:
                 time.sleep(0.2)
                 continue
-            self.fleet.event(f"boat {self.boat} back at {_utc_now()}: rejoins")
+            self.fleet.event(f"boat {self.boat} back at {_utc_now()}: rejoins", "boat_back", self.boat)
             self._say("link back; rejoining the fleet")
             return True
         return False
@@ -230,12 +234,13 @@ class FleetController:
         self.n_legs = int(legs or config.legs)
         self.echo = echo or (lambda s: None)
         self.mission_text, self.extra_summary = mission_text, dict(extra_summary or {})
-        self.loop = build_loop(config, predictor, field.grid, land=field.land_mask)
+        self.loop = build_loop(config, predictor, field.grid, land=field.land_mask)  # keeps the GP std: estimate.nc u_std/v_std (exports, live view)
         self.step = LegStep(config, field, self.loop, truth_known=truth_known)
         self.shared = FleetStep(self.step)  # the one state, the boats' paths in flight
         self.lock = threading.RLock()
         self.stopping = threading.Event()
         self.events: list[str] = []
+        self.record = RecordWriter(self.rd.root)  # the live view's files (passt_mav.runs.live)
         self.started_utc = _utc_now()
         self.status = "running"
         self._next_leg = 0
@@ -251,9 +256,11 @@ class FleetController:
             i, self._next_leg = self._next_leg, self._next_leg + 1
             return i
 
-    def event(self, text: str) -> None:
+    def event(self, text: str, kind: str = "warning", boat: int | None = None) -> None:
+        """A fleet event: summary.json's list and the live view's events.jsonl (``kind``: runs.live.KINDS)."""
         with self.lock:
             self.events.append(text)
+        self.record.event(kind, text, boat=boat)
         log.info(text)
 
     def release(self, boat: int) -> None:
@@ -271,6 +278,7 @@ class FleetController:
         cfg = self.config
         self.echo(f"mission {cfg.name}: {len(self.boats)} boats x {self.n_legs} legs of {cfg.planner.path_length} "
                   f"moves, model {self.predictor_info.get('used')}, planner {cfg.planner.name}; one shared estimate")
+        self.record.meta(live_meta(self.boats[0], len(self.boats)))
         threads = [threading.Thread(target=b.fly, name=f"boat-{b.boat}", daemon=True) for b in self.boats]
         try:
             for t in threads:
@@ -287,8 +295,10 @@ class FleetController:
             done = [b.status == "complete" for b in self.boats]
             self.status = "complete" if all(done) else ("partial" if any(done) else "aborted")
             self.writer.close()
+
             self.write_summary()
             self.store.close()
+            self.record.event("run_end", f"fleet {self.status}")
         lost = [b.boat for b in self.boats if b.status != "complete"]
         self.echo(f"fleet {self.status}: " + ", ".join(f"boat {b.boat} {b.status} ({b.legs_done} legs)"
                                                      for b in self.boats))

@@ -16,6 +16,7 @@ from mavlink_helpers import inprocess_factory, link_config, served
 from passt_mav.commands.run import LEAN_STREAMS
 from passt_mav.errors import MissionRejected
 from passt_mav.mavlink import Link
+from passt_mav.runs.live import read_events
 from passt_mav.runs.rundir import RunDir
 from test_controller import SPEEDUP, controller, mission, sim_config, wave_field
 from vehicle_sim import LinkConfig as SimLinkConfig
@@ -99,6 +100,8 @@ def test_pilot_takes_over_then_gives_back(tmp_path):
     assert summary["status"] == "complete"
     ev = " | ".join(summary["events"])
     assert "left AUTO (mode MANUAL)" in ev and "back in AUTO" in ev
+    kinds = [e["kind"] for e in read_events(rd.root)[0]]  # the live view's alerts (issue 29)
+    assert kinds.index("pilot_takeover") < kinds.index("pilot_released") and kinds[-1] == "run_end"
 
 
 def test_pilot_keeps_control_controller_stops_in_hold(tmp_path):
@@ -141,6 +144,8 @@ def test_link_drop_mid_leg_reconnects_and_loses_no_delivered_sample(tmp_path):
         th.join(5)
     assert "t" in cut and summary["status"] == "complete"
     assert any("link lost" in e for e in summary["events"]) and any("reconnected" in e for e in summary["events"]), summary["events"]
+    kinds = [e["kind"] for e in read_events(rd.root)[0]]  # the live view's alerts (issue 29)
+    assert kinds.index("leg_start") < kinds.index("link_lost") < kinds.index("link_back") < kinds.index("leg_end")
     from passt_mav.runs.store import SampleStore
 
     with SampleStore(rd.samples_db, readonly=True) as st:

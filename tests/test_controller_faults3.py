@@ -144,6 +144,10 @@ def test_reboot_mid_leg_is_not_a_pilot_resumes_at_the_interrupted_item(tmp_path)
     assert boots == 1 and summary["status"] == "complete" and len(summary["legs"]) == 2
     ev = " | ".join(summary["events"])
     assert "vehicle rebooted" in ev and "resumed after the reboot at item" in ev and "stored mission verified" in ev
+    from passt_mav.runs.live import read_events
+
+    kinds = [e["kind"] for e in read_events(rd.root)[0]]  # the live view's alerts (issue 29)
+    assert kinds.index("reboot") < kinds.index("reboot_recovered") and "pilot_takeover" not in kinds
     assert "left AUTO" not in ev and not any("pilot has control" in s for s in lines)
     assert "speed not set again" not in ev  # DO_CHANGE_SPEED (item 1, behind the resumed item) sent as a command
     assert 16 in modes  # it really came back INITIALISING

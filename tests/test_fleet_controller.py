@@ -159,6 +159,11 @@ def test_a_boat_whose_link_dies_mid_leg_is_reported_and_the_others_complete(tmp_
     assert status[0] == status[2] == "complete" and status[1] != "complete", status
     assert summary["status"] == "partial" and 1 in summary["lost_boats"]
     assert any("boat 1" in e and "dropped out" in e for e in summary["events"])
+    # the live view's alert (events.jsonl, issue 29)
+    from passt_mav.runs.live import read_events
+
+    ev = read_events(rd.root)[0]
+    assert any(e["kind"] == "boat_dropped" and e["boat"] == 1 and e["level"] == "alert" for e in ev), ev
     assert sum(1 for x in summary["legs"] if x["boat"] in (0, 2)) == 4
     # nothing stored is lost: the interrupted leg's samples are in the store
     with SampleStore(rd.samples_db, readonly=True) as st:

@@ -6,8 +6,8 @@ top-level-only check would miss most of them). Layers, bottom to top::
 
     geo, math (fields, models, planning, reconstruction, passt, legstep, mission)
     mavlink (the MAVLink client)            runs (storage: run dir, sample store, log readers)
-    controller
-    analysis (replay, report, counterfactual)
+    controller (controller, fleet_controller, live_record: what it tells the live view)
+    analysis (replay, report, counterfactual)     view (the live view: reads run directories only)
     commands, cli
 
 and, beside them, ``vehicle_sim``, which must stand alone from the client side. ``passt_mav.progress``
@@ -27,7 +27,8 @@ ROOT = Path(__file__).resolve().parents[1]
 
 MATH = ("passt_mav.passt", "passt_mav.legstep", "passt_mav.fields", "passt_mav.models", "passt_mav.planning",
         "passt_mav.reconstruction", "passt_mav.mission", "geo")
-ABOVE_CONTROLLER = ("passt_mav.analysis", "passt_mav.commands", "passt_mav.cli")
+ABOVE_CONTROLLER = ("passt_mav.analysis", "passt_mav.view", "passt_mav.commands", "passt_mav.cli")
+CONTROLLER = ("passt_mav.controller", "passt_mav.fleet_controller", "passt_mav.live_record")
 
 # (modules the rule applies to, imports they must not make, why)
 RULES = [
@@ -40,10 +41,13 @@ RULES = [
      "storage lies below the controller"),
     (("passt_mav.mavlink",), ("passt_mav.controller", "passt_mav.runs", "passt_mav.models", "passt_mav.planning",
                               "vehicle_sim") + ABOVE_CONTROLLER, "the MAVLink client knows no mission logic"),
-    (("passt_mav.controller",), ABOVE_CONTROLLER, "the controller does not import what is built on top of it"),
+    (CONTROLLER, ABOVE_CONTROLLER, "the controller does not import what is built on top of it"),
     (("passt_mav.analysis",), ("passt_mav.commands", "passt_mav.cli"), "analysis is a library under the CLI"),
     (("passt_mav.progress",), ("passt_mav", "geo", "vehicle_sim"),
      "the progress helper is a leaf under every layer: it imports nothing of the project"),
+    (("passt_mav.view",), CONTROLLER + ("passt_mav.mavlink", "vehicle_sim", "passt_mav.analysis", "passt_mav.commands",
+                                        "passt_mav.cli"),
+     "the live view only reads run directories: a crashed view never touches a mission (issue 29)"),
 ]
 
 
@@ -105,6 +109,9 @@ def test_no_import_runs_back_up():
     ("passt_mav/controller.py", "from . import analysis"),
     ("passt_mav/progress.py", "from passt_mav.fields import FlowField"),
     ("passt_mav/analysis/export.py", "from passt_mav.commands import data"),
+    ("passt_mav/view/state.py", "from passt_mav.controller import MissionController"),
+    ("passt_mav/runs/live.py", "from passt_mav.view import start_view"),
+    ("passt_mav/live_record.py", "from passt_mav.view.server import serve"),
 ])
 def test_the_check_catches_a_forbidden_import(tmp_path, target, line):
     """A copy of the tree with one forbidden import added (inside a function, as the

@@ -26,6 +26,8 @@ EXAMPLES = """examples:
     passt-mav demo --field builtin:rtofs          # real NOAA currents with a coastline (missions/rtofs.yaml)
     passt-mav demo --mission missions/cylinder.yaml
     passt-mav demo --boats 3                      # a fleet: three boats, one shared estimate
+    passt-mav demo --boats 3 --view 8765          # its live view on http://127.0.0.1:8765/
+    passt-mav demo --inject-link-drop 0:2500:900  # boat 0's link down for 900 simulated s (watch the alert)
 """
 
 #: the demo's changes to missions/north_atlantic.yaml
@@ -67,6 +69,17 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="a fleet of N boats sharing one estimate (vehicle-sim --boats N, mission vehicles:; "
                         "default 1)")
     p.add_argument("--no-report", action="store_true", help="skip the HTML report")
+    # live view (issue 29): served by default, the address printed (no browser is launched)
+    from passt_mav.commands.view import port
+
+    p.add_argument("--view", nargs="?", type=port, const=0, default=0, metavar="PORT",
+                   help="serve the live view on PORT (default: a free port); the address is printed")
+    p.add_argument("--no-view", action="store_true", help="do not serve the live view")
+    p.add_argument("--view-host", default="127.0.0.1", metavar="HOST",
+                   help="address to bind the view to (default 127.0.0.1); any other needs the token printed at start")
+    p.add_argument("--inject-link-drop", action="append", default=[], metavar="BOAT:START:DURATION",
+                   help="a link outage of boat BOAT (0-based) from START for DURATION simulated seconds of the "
+                        "simulator's clock (vehicle-sim --boat-drop); repeatable")
 
 
 def _free_port(boats: int = 1) -> int:
@@ -184,6 +197,7 @@ def run(args: argparse.Namespace) -> int:
         raise UserError("--boats must be 1..9")
     if args.speedup <= 0:
         raise UserError("--speedup must be positive")
+    drops = _drop_args(args.inject_link_drop, args.boats)
     base, origin = mission_mapping(args.mission, args.field)
     over = dict(DEMO_OVERRIDES, legs=args.legs, **{"planner.path_length": args.moves})
     if args.model:
@@ -210,10 +224,11 @@ def run(args: argparse.Namespace) -> int:
                "--start-time", repr(t_boot0), "--speedup", repr(args.speedup),
                "--param", f"WP_SPEED={config.fleet[0].speed_mps}", "--current-noise", repr(config.sensors.noise_std),
                "--current-rate", repr(SENSOR_RATE_HZ), "--seed", str(config.seeds.sensor), "--quiet",
-               *sim_placement(config)]
+               *sim_placement(config), *drops]
     print(f"demo: mission {config.name} ({origin} + {over}); {config.legs} legs of {config.planner.path_length} moves "
           f"at {config.fleet[0].speed_mps} m/s", flush=True)
     print(f"demo: starting vehicle-sim on tcp:127.0.0.1:{port} at {args.speedup:g}x", flush=True)
+    view = _start_view(args, rd)  # (it exits with this process too, whatever happens)
     sim_log = open(rd.root / "vehicle_sim.log", "w")
     sim = subprocess.Popen(sim_cmd, stdout=sim_log, stderr=subprocess.STDOUT)
     try:
@@ -225,6 +240,8 @@ def run(args: argparse.Namespace) -> int:
                           field_time_at_boot=t_boot0, echo=lambda s: print(s, flush=True), extra_summary=extra,
                           report=not args.no_report)
     finally:
+        if view is not None:
+            view.stop(grace_s=1.5)  # the page gets the last changes first
         sim.terminate()
         try:
             sim.wait(timeout=10)
@@ -245,7 +262,35 @@ def run(args: argparse.Namespace) -> int:
         print(final_line(legs[-1]["rmse_passt"], legs[-1]["rmse_model"], walk, lawn), flush=True)
     if summary.get("report"):
         print(f"report: {summary['report']}", flush=True)
+    if view is not None:
+        print(f"live view stopped; reopen it with: passt-mav view {rd.root}", flush=True)
     return 0 if summary["status"] == "complete" else 1
+
+
+def _start_view(args, rd):
+    """The live view of the demo's run directory (None with --no-view or when it cannot start)."""
+    from passt_mav.commands.view import start_live_view
+
+    if args.no_view or args.view is None:
+        return None
+    return start_live_view(rd, args.view, args.view_host, echo=lambda s: print(f"demo: {s}", flush=True))
+
+
+def _drop_args(specs: list[str], boats: int) -> list[str]:
+    """vehicle-sim options of ``--inject-link-drop BOAT:START:DURATION``."""
+    from passt_mav.errors import UserError
+
+    out = []
+    for spec in specs:
+        parts = spec.split(":")
+        try:
+            b, start, dur = int(parts[0]), float(parts[1]), float(parts[2])
+        except (IndexError, ValueError):
+            raise UserError(f"--inject-link-drop needs BOAT:START:DURATION, got {spec!r}") from None
+        if not 0 <= b < boats or start < 0 or dur <= 0 or len(parts) != 3:
+            raise UserError(f"--inject-link-drop {spec}: BOAT must be 0..{boats - 1}, START >= 0, DURATION > 0")
+        out += ["--boat-drop", f"{b}:{start:g}:{dur:g}"] if boats > 1 else ["--drop", f"{start:g}:{dur:g}"]
+    return out
 
 
 def sim_placement(config) -> list[str]:

@@ -50,6 +50,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "the run directory keeps the mission as flown")
     p.add_argument("--no-report", action="store_true", help="do not write report/report.html at the end")
     p.add_argument("--quiet", action="store_true", help="no per-leg status lines")
+    from passt_mav.commands.view import add_view_options  # live view (issue 29): --view [PORT], --view-host
+
+    add_view_options(p)
 
 
 def link_config_for(connect: str, *, speedup: float = 1.0, tlog=None, signing_key=None, identity=(None, None)):
@@ -199,6 +202,15 @@ def _user(msg):
     return UserError(msg)
 
 
+def _live_view(args, rd):
+    """``--view [PORT]``: the live view in a subprocess (passt_mav.view), None without it."""
+    if args.view is None:
+        return None
+    from passt_mav.commands.view import start_live_view
+
+    return start_live_view(rd, args.view, args.view_host)
+
+
 def run(args: argparse.Namespace) -> int:
     from pathlib import Path
 
@@ -226,12 +238,17 @@ def run(args: argparse.Namespace) -> int:
         v = getattr(args, name)
         if v is not None and not 1 <= v <= 255:
             raise _user(f"--{name.replace('_', '-')} must be 1..255, got {v}")
-    summary = execute(config, connect=args.connect or config.vehicle.connect, run_dir=rd,
-                      mission_text=mission_text, legs=args.legs, resume=args.resume,
-                      speedup=args.speedup_hint, field_time_at_boot=args.field_time_at_boot,
-                      signing_key=args.signing_key, pause_timeout=args.pause_timeout,
-                      ready_timeout=args.ready_timeout, echo=echo, report=not args.no_report,
-                      identity=(args.source_system, args.source_component), progress=not args.quiet)
+    view = _live_view(args, rd)
+    try:
+        summary = execute(config, connect=args.connect or config.vehicle.connect, run_dir=rd,
+                          mission_text=mission_text, legs=args.legs, resume=args.resume,
+                          speedup=args.speedup_hint, field_time_at_boot=args.field_time_at_boot,
+                          signing_key=args.signing_key, pause_timeout=args.pause_timeout,
+                          ready_timeout=args.ready_timeout, echo=echo, report=not args.no_report,
+                          identity=(args.source_system, args.source_component), progress=not args.quiet)
+    finally:
+        if view is not None:
+            view.stop(grace_s=1.5)
     print(f"run {summary['status']}: {len(summary['legs'])} legs, {summary['n_samples']} samples -> {rd.root}")
     used = [f"{100 * x:.0f} %" for x in summary.get("readings_used") or [] if x is not None]
     bps = [f"{x:.0f}" for x in summary.get("link_vehicle_bytes_per_s") or [] if x is not None]
