@@ -242,7 +242,8 @@ def rmse(estimate, truth) -> float | None:
     ok = np.isfinite(e).all(axis=-3) & np.isfinite(t).all(axis=-3)  # (..., rows, cols)
     if not ok.any():
         return None
-    sq = np.moveaxis((e - t) ** 2, -3, 0)[:, ok]  # (2, n_cells): all u, then all v (the loop's summation order)
+    # all u, then all v, summed as one run: the loop's recorded RMSEs replay bit for bit
+    sq = np.moveaxis((e - t) ** 2, -3, 0)[:, ok].ravel()
     return float(np.sqrt(sq.mean()))
 
 

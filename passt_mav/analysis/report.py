@@ -57,7 +57,8 @@ class Run:
     """What a run directory recorded (None / empty where it did not).
 
     ``samples``: dict of arrays (``time_boot_ms``, ``utc``, ``lat``, ``lon``, ``u``,
-    ``v`` m/s east/north, ``leg``, ``boot``: :func:`passt_mav.measurement.sample_columns`); ``track``: ``(n, 2)`` lat/lon; ``leg_tracks``:
+    ``v`` m/s east/north, ``leg``, ``boot``: :func:`passt_mav.measurement.sample_columns`);
+    ``track``: ``(n, 2)`` lat/lon; ``leg_tracks``:
     leg index -> ``(n, 2)`` lat/lon executed positions; ``estimates``: leg index
     -> reconstruction FlowField; ``notes``: part -> why it is missing.
     """

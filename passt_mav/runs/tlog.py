@@ -582,7 +582,8 @@ _DF_HEAD = b"\xa3\x95"
 
 
 def read_dataflash(path: str | Path, *, u_name: str = "CUR_U", v_name: str = "CUR_V", cur_message: str = "CUR",
-                   pair_tolerance_ms: int = RULES.pair_tolerance_ms, max_gap_ms: int = RULES.max_gap_ms) -> TelemetryLog:
+                   pair_tolerance_ms: int = RULES.pair_tolerance_ms,
+                   max_gap_ms: int = RULES.max_gap_ms) -> TelemetryLog:
     """Read an ArduPilot DataFlash ``.bin`` log (see module docstring).
 
     Positions come from ``POS`` (``Lat``/``Lng``), or ``GPS`` when the log has no
