@@ -445,7 +445,7 @@ class _Interpreter:
                 getattr(self, "_veh_" + t.lower(), _ignore)(utc, m)
             else:
                 getattr(self, "_gcs_" + t.lower(), _ignore)(utc, m)
-        legs_of_readings = self._pair()
+        legs_of_readings = self._place()
         for leg in out.legs:
             leg.n_samples = sum(1 for s in out.samples if s.leg == leg.index)
             leg.n_readings = legs_of_readings.count(leg.index)
@@ -554,8 +554,8 @@ class _Interpreter:
     def _gcs_mission_item(self, utc: float, m) -> None:
         self._gcs_mission_item_int(utc, m, is_int=False)
 
-    # -- pairing
-    def _pair(self) -> list[int]:
+    # -- placing the readings
+    def _place(self) -> list[int]:
         """Places each reading (paired as it came) on its boot's track; returns the leg of every reading."""
         tracks: dict[int, Track] = {}
         for b, tb, la, lo in self.pos:
