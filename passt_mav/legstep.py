@@ -37,6 +37,8 @@ from typing import Any, Callable
 import numpy as np
 
 from passt_mav.errors import PlannerError, ReconstructionError, UserError
+from passt_mav.measurement import rmse, truth_at  # noqa: F401 - the measurement rules, re-exported
+from passt_mav.measurement import sample_columns as _columns
 
 __all__ = ["THINNING", "FieldClock", "LegStep", "PlannedLeg", "AbsorbedLeg", "utc_epoch", "to_field_units",
            "thin_samples", "leg_steps", "extend_leg_to_end", "pure_model_at", "rmse", "truth_at",
@@ -171,25 +173,6 @@ def pure_model_at(loop, field, t0_index: int, dt: float, t: float, cache: dict) 
     return (1 - w) * pure[k].astype(float) + w * pure[min(k + 1, len(pure) - 1)].astype(float)
 
 
-def rmse(a, b) -> float | None:
-    """RMS difference over the cells finite in both (both components); None if none are."""
-    a, b = np.asarray(a, float), np.asarray(b, float)
-    ok = np.isfinite(a) & np.isfinite(b)
-    return float(np.sqrt(np.mean((a[ok] - b[ok]) ** 2))) if ok.any() else None
-
-
-def truth_at(field, t: float) -> np.ndarray | None:
-    """(2, R, C) snapshot at field time ``t`` (linear in time), None outside the data."""
-    times = field.times
-    if not times[0] - 1e-9 <= t <= times[-1] + 1e-9:
-        return None
-    if field.n_times == 1:
-        return field.data[0].astype(np.float64)
-    j = int(np.clip(np.searchsorted(times, t) - 1, 0, field.n_times - 2))
-    w = float(np.clip((t - times[j]) / (times[j + 1] - times[j]), 0.0, 1.0))
-    return (1 - w) * field.data[j].astype(np.float64) + w * field.data[j + 1].astype(np.float64)
-
-
 # -- building blocks from a mission config --------------------------------------------------------
 def build_predictor(spec: str, field, *, echo: Callable[[str], None] = print) -> tuple[object | None, dict]:
     """The predictor named by a mission's ``model`` and what was used.
@@ -310,16 +293,6 @@ class AbsorbedLeg:
         return {"t_state": self.t_state, "steps": self.steps, "gp_s": self.gp_s, "n_samples": self.n_samples,
                 "n_gp_points": len(self.samples), "rmse_passt": self.rmse_passt, "rmse_model": self.rmse_model,
                 "gp": self.gp}
-
-
-def _columns(recs) -> dict[str, np.ndarray]:
-    """Sample records (store :class:`~passt_mav.runs.store.Sample` objects or dicts) as arrays."""
-    def get(r, k, default=None):
-        return r.get(k, default) if isinstance(r, dict) else getattr(r, k, default)
-
-    out = {k: np.array([get(r, k) for r in recs], float) for k in ("time_boot_ms", "lat", "lon", "u", "v")}
-    out["boot"] = np.array([int(get(r, "boot", 0) or 0) for r in recs], np.int64)
-    return out
 
 
 @dataclass

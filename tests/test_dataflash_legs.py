@@ -273,10 +273,13 @@ def test_sitl_run_logged_from_arming_gives_the_tlogs_legs(tmp_path, sitl_factory
         # the .bin a few to the logger under load
         assert len(lb.samples) >= 0.9 * lb.n_readings and len(lt.samples) >= 0.9 * lt.n_readings > 0
         # what the controller heard is what the vehicle logged: each tlog reading is a .bin reading at the
-        # same vehicle time, placed within a few metres (each on its own track). How many the link lost
-        # depends on the machine's load (CI, 2 busy cores: 95 of 121 once), so it is not asserted
-        bin_at = {int(x["time_boot_ms"]): x for x in lb.samples}
-        matched = [(x, bin_at[int(x["time_boot_ms"])]) for x in lt.samples if int(x["time_boot_ms"]) in bin_at]
+        # same vehicle time (NVF TimeUS is logged 0-3 ms after NAMED_VALUE_FLOAT's time_boot_ms: the halves
+        # 1-2 ms apart that the tlog's pairing keeps since issue 30 are those the two stamps split), placed
+        # within a few metres (each on its own track). How many the link lost depends on the machine's load
+        # (CI, 2 busy cores: 95 of 121 once), so it is not asserted
+        bt = np.array([int(x["time_boot_ms"]) for x in lb.samples])
+        near = [lb.samples[int(np.argmin(np.abs(bt - x["time_boot_ms"])))] for x in lt.samples]
+        matched = [(x, y) for x, y in zip(lt.samples, near) if 0 <= y["time_boot_ms"] - x["time_boot_ms"] <= 3]
         assert len(matched) >= 0.95 * len(lt.samples)
         assert max(float(geo.geodesic_distance_m(x["lat"], x["lon"], y["lat"], y["lon"])) for x, y in matched) < 5.0
     assert b.legs[0].t_now_ms == b.legs[0].t_auto_ms  # no upload in the log: anchored at AUTO

@@ -4,7 +4,7 @@ Every ``import`` / ``from ... import`` in the source tree is read from the synta
 including imports inside functions (the project imports heavy modules lazily, so a
 top-level-only check would miss most of them). Layers, bottom to top::
 
-    geo, math (fields, models, planning, reconstruction, passt, legstep, mission)
+    geo, math (fields, models, planning, reconstruction, passt, legstep, mission, measurement)
     mavlink (the MAVLink client)            runs (storage: run dir, sample store, log readers)
     controller (controller, fleet_controller, live_record: what it tells the live view)
     analysis (replay, report, counterfactual)     view (the live view: reads run directories only)
@@ -13,7 +13,9 @@ top-level-only check would miss most of them). Layers, bottom to top::
 and, beside them, ``vehicle_sim``, which must stand alone from the client side. ``passt_mav.progress``
 (progress bars / plain progress lines, issue 29) is a leaf every layer may use: it imports nothing of the
 project. The exports (``analysis/export.py``, ``analysis/export_geo.py``) are analysis: they read a run
-directory below them and are called by ``commands/export.py``.
+directory below them and are called by ``commands/export.py``. ``passt_mav.measurement`` (the rules
+of a measurement: pairing, reboots, truth, RMSE, columns; issue 30) is math that the MAVLink client
+imports too: it may import nothing above ``geo`` but the errors, and no pymavlink.
 """
 
 from __future__ import annotations
@@ -26,7 +28,7 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 
 MATH = ("passt_mav.passt", "passt_mav.legstep", "passt_mav.fields", "passt_mav.models", "passt_mav.planning",
-        "passt_mav.reconstruction", "passt_mav.mission", "geo")
+        "passt_mav.reconstruction", "passt_mav.mission", "passt_mav.measurement", "geo")
 ABOVE_CONTROLLER = ("passt_mav.analysis", "passt_mav.view", "passt_mav.commands", "passt_mav.cli")
 CONTROLLER = ("passt_mav.controller", "passt_mav.fleet_controller", "passt_mav.live_record")
 
@@ -48,6 +50,10 @@ RULES = [
     (("passt_mav.view",), CONTROLLER + ("passt_mav.mavlink", "vehicle_sim", "passt_mav.analysis", "passt_mav.commands",
                                         "passt_mav.cli"),
      "the live view only reads run directories: a crashed view never touches a mission (issue 29)"),
+    (("passt_mav.measurement",), ("pymavlink", "passt_mav.fields", "passt_mav.models", "passt_mav.planning",
+                                  "passt_mav.reconstruction", "passt_mav.passt", "passt_mav.legstep",
+                                  "passt_mav.mission", "passt_mav.progress"),
+     "the measurement rules lie under the live collector, both log readers, the loop and the report"),
 ]
 
 
@@ -112,6 +118,8 @@ def test_no_import_runs_back_up():
     ("passt_mav/view/state.py", "from passt_mav.controller import MissionController"),
     ("passt_mav/runs/live.py", "from passt_mav.view import start_view"),
     ("passt_mav/live_record.py", "from passt_mav.view.server import serve"),
+    ("passt_mav/measurement.py", "from pymavlink import mavutil"),
+    ("passt_mav/measurement.py", "from passt_mav.legstep import LegStep"),
 ])
 def test_the_check_catches_a_forbidden_import(tmp_path, target, line):
     """A copy of the tree with one forbidden import added (inside a function, as the

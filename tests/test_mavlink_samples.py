@@ -111,7 +111,7 @@ def test_duplicates_dropped_and_unmatched_halves_expire():
     c.handle(nvf(2000, "U", 0.3))   # its V and position never come
     c.handle(nvf(2000, "CUR_U", 9))  # another name: ignored
     c.handle(gpi(9000, 40.0, -63.0))
-    assert c.counts["expired"] == 1 and 2000 not in c._halves and c.counts["readings"] == 1
+    assert c.counts["expired"] == 1 and 2000 not in c.pairer and c.counts["readings"] == 1
     c.handle(nvf(2000, "V", 0.4))  # the late half cannot resurrect an expired sample
     assert len(out) == 1
     # a fix without GPS (0, 0) never pairs

@@ -18,6 +18,7 @@ os.environ.setdefault("MAVLINK20", "1")
 from pymavlink import DFReader, mavutil  # noqa: E402
 
 from passt_mav.errors import UserError  # noqa: E402
+from passt_mav.measurement import RULES  # noqa: E402
 from passt_mav.runs.tlog import read_dataflash, read_tlog  # noqa: E402
 
 LAT0, LON0 = 50.10, -30.20
@@ -88,7 +89,7 @@ def _scenario():
         V(veh.named_value_float_encode(tb, b"WATER_DEP", 12.5))  # another sensor: not a sample
         if with_v:
             V(veh.named_value_float_encode(tb + v_offset, b"CUR_V", v))
-        if with_v and abs(v_offset) <= 200 and name_u == b"CUR_U":
+        if with_v and abs(v_offset) <= RULES.pair_tolerance_ms and name_u == b"CUR_U":
             exp["samples"].append((tb, None, None, float(np.float32(u)), float(np.float32(v)), leg))
 
     step(-1)  # before any upload: a sample outside every leg

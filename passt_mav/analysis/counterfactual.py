@@ -46,8 +46,7 @@ def _fly_legs(loop, sampler, field, legs: list[dict], state, t_state: float, sta
     forecast to each leg's start (a loop without a model holds the state), plan, sample the truth
     along the path, reconstruct; the RMSE vs the truth at each leg's end (None where the leg has
     no times or lies outside the field)."""
-    from passt_mav.analysis.report import truth_at
-    from passt_mav.controller import rmse
+    from passt_mav.measurement import rmse, truth_at
 
     start = tuple(int(x) for x in start_cell)
     out: list[float | None] = []

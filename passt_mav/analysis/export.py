@@ -344,14 +344,13 @@ def _grid_coords(f) -> tuple[tuple, dict, dict]:
 def sample_table(run: RunData) -> dict[str, np.ndarray]:
     """The run's samples as columns sorted by (boat, UTC): ``utc`` (UNIX s), ``lat``/``lon`` (deg),
     ``u``/``v`` (m/s east/north), ``boat``, ``leg`` (-1 outside any leg), ``time_boot_ms``, ``boot``."""
+    from passt_mav.measurement import sample_columns
+
     s = run.samples
-    cols = {"utc": np.array([x.utc for x in s], float), "lat": np.array([x.lat for x in s], float),
-            "lon": np.array([x.lon for x in s], float), "u": np.array([x.u for x in s], float),
-            "v": np.array([x.v for x in s], float), "boat": np.array([run.boat_of[x.source] for x in s], np.int32),
-            "leg": np.array([x.leg for x in s], np.int32),
-            # float64 (exact ms below 2**53): CF 1.8 has no int64
-            "time_boot_ms": np.array([x.time_boot_ms for x in s], np.float64),
-            "boot": np.array([x.boot for x in s], np.int32)}
+    c = sample_columns(s)  # time_boot_ms float64 (exact ms below 2**53): CF 1.8 has no int64
+    cols = {"utc": c["utc"], "lat": c["lat"], "lon": c["lon"], "u": c["u"], "v": c["v"],
+            "boat": np.array([run.boat_of[x.source] for x in s], np.int32), "leg": c["leg"].astype(np.int32),
+            "time_boot_ms": c["time_boot_ms"], "boot": c["boot"].astype(np.int32)}
     order = np.lexsort((np.arange(len(s)), cols["utc"], cols["boat"]))
     return {k: v[order] for k, v in cols.items()}
 

@@ -42,33 +42,13 @@ from typing import Any
 import numpy as np
 
 from passt_mav.errors import UserError
+from passt_mav.measurement import rmse as recon_rmse  # (the name tests and users know) the one RMSE rule
+from passt_mav.measurement import sample_columns, truth_at
 from passt_mav.runs.rundir import RunDir, RunDirError
 
-__all__ = ["MAX_ARROWS", "Run", "binned_arrows", "load_run", "recon_rmse", "samples_as_arrays", "truth_at",
-           "write_report"]
+__all__ = ["MAX_ARROWS", "Run", "binned_arrows", "load_run", "recon_rmse", "write_report"]
 
 NOT_RECORDED = "not recorded"
-
-
-# -- metrics ----------------------------------------------------------------------------
-def recon_rmse(estimate, truth) -> float:
-    """Root mean square error over u and v pooled, of cells known in both.
-
-    ``estimate``, ``truth``: arrays ``(..., 2, rows, cols)`` (channel axis -3). A
-    cell where any component is missing (NaN) in either array is left out, not
-    counted as zero error. Returns NaN if no cell is left.
-    """
-    e, t = np.asarray(estimate, np.float64), np.asarray(truth, np.float64)
-    if e.shape != t.shape:
-        raise UserError(f"estimate shape {e.shape} does not match truth shape {t.shape}")
-    if e.ndim < 3 or e.shape[-3] != 2:
-        raise UserError(f"expected arrays (..., 2, rows, cols), got {e.shape}")
-    ok = np.isfinite(e).all(axis=-3) & np.isfinite(t).all(axis=-3)  # (..., rows, cols)
-    if not ok.any():
-        return float("nan")
-    d = (e - t) ** 2
-    sq = np.moveaxis(d, -3, -1)[ok]  # (n_cells, 2)
-    return float(np.sqrt(sq.mean()))
 
 
 # -- loading ------------------------------------------------------------------------------
@@ -77,7 +57,8 @@ class Run:
     """What a run directory recorded (None / empty where it did not).
 
     ``samples``: dict of arrays (``time_boot_ms``, ``utc``, ``lat``, ``lon``, ``u``,
-    ``v`` m/s east/north, ``leg``); ``track``: ``(n, 2)`` lat/lon; ``leg_tracks``:
+    ``v`` m/s east/north, ``leg``, ``boot``: :func:`passt_mav.measurement.sample_columns`);
+    ``track``: ``(n, 2)`` lat/lon; ``leg_tracks``:
     leg index -> ``(n, 2)`` lat/lon executed positions; ``estimates``: leg index
     -> reconstruction FlowField; ``notes``: part -> why it is missing.
     """
@@ -200,20 +181,6 @@ def _load_tlog(run: Run) -> None:
         run.notes["tlog"] = f"telemetry log unreadable: {exc}"
 
 
-def samples_as_arrays(samples) -> dict[str, np.ndarray]:
-    """Columns of sample records (anything with the ``Sample`` attributes) as arrays.
-
-    Keys ``time_boot_ms`` (int64), ``utc``, ``lat``, ``lon``, ``u``, ``v`` (float64), ``leg``,
-    ``boot`` (int64; 0 where a record has no boot number).
-    """
-    recs = list(samples)
-    out = {name: np.array([getattr(r, name) for r in recs], dtype=dtype)
-           for name, dtype in (("time_boot_ms", np.int64), ("utc", np.float64), ("lat", np.float64),
-                               ("lon", np.float64), ("u", np.float64), ("v", np.float64), ("leg", np.int64))}
-    out["boot"] = np.array([int(getattr(r, "boot", 0) or 0) for r in recs], np.int64)
-    return out
-
-
 def _load_samples(run: Run) -> None:
     rd = run.rundir
     if rd.samples_db.exists():
@@ -229,31 +196,14 @@ def _load_samples(run: Run) -> None:
             run.notes["samples_db"] = f"sample store unreadable: {exc}"
             recs = []
         if recs:
-            run.samples, run.samples_source = samples_as_arrays(recs), rd.SAMPLES
+            run.samples, run.samples_source = sample_columns(recs), rd.SAMPLES
             return
     if run.tlog is not None and run.tlog.samples:
-        run.samples, run.samples_source = samples_as_arrays(run.tlog.samples), rd.TLOG
+        run.samples, run.samples_source = sample_columns(run.tlog.samples), rd.TLOG
 
 
 #: one boot of the autopilot spans less than this many ms: (boot, time_boot_ms) -> one sortable key
 _BOOT_SPAN_MS = 10**13
-
-
-def _track_boots(tb_ms: np.ndarray) -> np.ndarray:
-    """Boot number (0 = first in the log) of each position, in reception order.
-
-    The rule of the tlog reader and the sample store: ``time_boot_ms`` jumping back by
-    more than 10 s means the autopilot rebooted.
-    """
-    boots = np.zeros(len(tb_ms), np.int64)
-    boot, hi = 0, None
-    for k, t in enumerate(tb_ms.tolist()):
-        if hi is not None and t < hi - 10_000:
-            boot, hi = boot + 1, t
-        else:
-            hi = t if hi is None else max(hi, t)
-        boots[k] = boot
-    return boots
 
 
 def _leg_windows(run: Run) -> tuple[dict[int, tuple[float, float]], str]:
@@ -311,7 +261,7 @@ def _load_run_tracks(run: Run) -> None:
         spans, how = _leg_windows(run)
         if spans:
             tb = np.array([p.time_boot_ms for p in tl.track], np.int64)
-            key = _track_boots(tb) * _BOOT_SPAN_MS + tb
+            key = np.array([p.boot for p in tl.track], np.int64) * _BOOT_SPAN_MS + tb  # the reader's boots
             for i, (lo, hi) in sorted(spans.items()):
                 sel = (key >= lo) & (key <= hi)
                 if sel.any():
@@ -350,20 +300,6 @@ def _load_estimates(run: Run) -> None:
                 run.notes[f"estimate{i}"] = f"leg {i} reconstruction unreadable: {exc}"
 
 
-def truth_at(fld, t: float) -> np.ndarray | None:
-    """Truth snapshot ``(2, rows, cols)`` at field time ``t``: the snapshot itself or linear in time; None outside."""
-    times = fld.times
-    k = np.flatnonzero(np.isclose(times, t, rtol=1e-9, atol=1e-9 * max(1.0, abs(t))))
-    if k.size:
-        return fld.data[k[0]].astype(np.float64)
-    if fld.n_times < 2 or not times[0] <= t <= times[-1]:
-        return None
-    j = int(np.searchsorted(times, t)) - 1
-    w = (t - times[j]) / (times[j + 1] - times[j])
-    return (1 - w) * fld.data[j].astype(np.float64) + w * fld.data[j + 1].astype(np.float64)
-
-
-# -- figures ----------------------------------------------------------------------------------
 def _plt():
     import matplotlib
 
@@ -553,6 +489,10 @@ def _fig_samples(run: Run, plt):
     return fig
 
 
+def _fmt_rmse(r: float | None, spec: str) -> str:
+    return "n/a (no cell known in both)" if r is None else format(r, spec)
+
+
 def _fig_recon(run: Run, plt, i: int, est, truth: np.ndarray | None):
     e = est.data[0].astype(float)
     panels = 3 if truth is not None else 1
@@ -568,7 +508,7 @@ def _fig_recon(run: Run, plt, i: int, est, truth: np.ndarray | None):
         axes[0, 1].set_title(f"reconstruction after leg {i}", fontsize=10)
         err = e - truth
         _speed_map(axes[0, 2], fig, est.grid, err, run.units, label="|error|")
-        axes[0, 2].set_title(f"error, RMSE {recon_rmse(e, truth):.3g} {run.units}", fontsize=10)
+        axes[0, 2].set_title(f"error, RMSE {_fmt_rmse(recon_rmse(e, truth), '.3g')} {run.units}", fontsize=10)
     else:
         _speed_map(axes[0, 0], fig, est.grid, e, run.units, vmax)
         axes[0, 0].set_title(f"reconstruction after leg {i} (no truth)", fontsize=10)
@@ -878,8 +818,8 @@ def _section_recon(page: _Page, run: Run, plt) -> None:
         if run.field is not None and est.grid == run.field.grid:
             truth = truth_at(run.field, float(est.times[-1]))
         if truth is not None:
-            rmse = recon_rmse(est.data[-1], truth)
-            rows.append((f"reconstruction RMSE vs truth, leg {i}", f"{rmse:.4g} {html.escape(run.units)}"))
+            rmse = _fmt_rmse(recon_rmse(est.data[-1], truth), ".4g")
+            rows.append((f"reconstruction RMSE vs truth, leg {i}", f"{rmse} {html.escape(run.units)}"))
         last = (i, est.isel(time=est.n_times - 1), truth)
     i, est, truth = last
     page.figure(_fig_recon(run, plt, i, est, truth), "reconstruction.png", "reconstruction vs truth", plt)

@@ -2,10 +2,12 @@
 
 The boat's Lua script sends ``gcs:send_named_float("CUR_U", u)`` and ``("CUR_V", v)``
 (m/s, east/north; shared/ARDUPILOT_ROVER.md). Each NAMED_VALUE_FLOAT carries the
-autopilot's ``time_boot_ms`` (ms); the two halves of one reading share it. The
-reading's position is the vehicle's track at that time: linear interpolation
-between the GLOBAL_POSITION_INT fixes before and after it, when they are at most
-``max_gap_ms`` apart (:class:`geo.track.Track`, the rule the log readers use too).
+autopilot's ``time_boot_ms`` (ms), read separately for each half: the halves of one
+reading are paired when at most ``pair_tolerance_ms`` apart, and the reading takes its
+u half's time. The reading's position is the vehicle's track at that time: linear
+interpolation between the GLOBAL_POSITION_INT fixes before and after it, when they are
+at most ``max_gap_ms`` apart (:class:`geo.track.Track`). Both rules, and the reboot rule
+below, are :mod:`passt_mav.measurement`'s, which the log readers and the report follow too.
 
 :class:`SampleCollector` emits one record once the u half, the v half and the fix
 after the reading are there. A reading whose next fix has not arrived yet is held
@@ -45,7 +47,8 @@ import threading
 import time
 from typing import Callable
 
-from geo.track import DEFAULT_MAX_GAP_MS, Track
+from geo.track import Track
+from passt_mav.measurement import RULES, BootCounter, HalfPairer
 
 __all__ = ["SampleCollector"]
 
@@ -65,6 +68,7 @@ class SampleCollector:
         u_name, v_name: NAMED_VALUE_FLOAT names of the east / north components.
         max_gap_ms: largest time between the two fixes a reading's position is interpolated from (ms).
         expire_ms: drop unmatched halves older than this (vehicle time, ms).
+        pair_tolerance_ms: largest time between the u and v halves of one reading (ms).
         source: the record's ``source`` field (e.g. "mavlink:tcp:127.0.0.1:5760").
         reboot_back_ms: ``time_boot_ms`` going back by more than this is a reboot.
         on_reboot: ``(boot, last_tb_ms, first_tb_ms)`` callback on a reboot (reader thread).
@@ -74,9 +78,9 @@ class SampleCollector:
     TYPES = ("NAMED_VALUE_FLOAT", "GLOBAL_POSITION_INT", "SYSTEM_TIME")
 
     def __init__(self, on_sample: Callable[[dict], None], *, u_name: str = "CUR_U", v_name: str = "CUR_V",
-                 max_gap_ms: int = DEFAULT_MAX_GAP_MS, expire_ms: int = 10_000, source: str = "mavlink",
-                 reboot_back_ms: int = 3000, on_reboot: Callable[[int, int, int], None] | None = None,
-                 boot_base: int = 0):
+                 max_gap_ms: int = RULES.max_gap_ms, expire_ms: int = 10_000, source: str = "mavlink",
+                 reboot_back_ms: int = RULES.reboot_back_ms, on_reboot: Callable[[int, int, int], None] | None = None,
+                 boot_base: int = 0, pair_tolerance_ms: int = RULES.pair_tolerance_ms):
         if u_name == v_name:
             raise ValueError("u_name and v_name must differ")
         self.on_sample = on_sample
@@ -86,9 +90,8 @@ class SampleCollector:
         self.source = source
         self.leg: int | None = None
         self._lock = threading.Lock()
-        self._halves: dict[int, dict[str, float]] = {}       # time_boot_ms -> {"u": .., "v": ..}
+        self.pairer = HalfPairer(pair_tolerance_ms, keep_ms=self.expire_ms)  # halves waiting for their partner
         self._seen: dict[tuple[int, str], None] = {}         # (time_boot_ms, name) already taken
-        self._emitted: set[int] = set()
         self._held: dict[int, tuple[float, float, float | None, int | None]] = {}  # tb -> (u, v, rx, leg)
         self._leg_counts: collections.Counter = collections.Counter()  # (leg, what) -> n
         self._utc_offset: float | None = None                # unix s - boot s
@@ -96,6 +99,7 @@ class SampleCollector:
         self.counts = collections.Counter()                  # readings, emitted, gap, duplicates, expired, reboots
         self._link = None
         self.reboot_back_ms = int(reboot_back_ms)
+        self._clock = BootCounter(self.reboot_back_ms)
         self.on_reboot = on_reboot
         self.boot = 0                                        # reboots seen since attach
         self.boot_base = int(boot_base)                      # records carry boot_base + boot
@@ -147,17 +151,14 @@ class SampleCollector:
             if name not in (self.u_name, self.v_name):
                 return rb, out
             key = (tb, name)
-            if key in self._seen or tb in self._emitted:
+            if key in self._seen:
                 self.counts["duplicates"] += 1
                 return rb, out
             self._seen[key] = None
-            h = self._halves.setdefault(tb, {})
-            h["u" if name == self.u_name else "v"] = float(m.value)
-            if "u" in h and "v" in h:
-                del self._halves[tb]
-                self._emitted.add(tb)
+            r = self.pairer.add("u" if name == self.u_name else "v", tb, float(m.value))
+            if r is not None:
                 self._count("readings", self.leg)
-                self._held[tb] = (h["u"], h["v"], rx, self.leg)
+                self._held[r.t_ms] = (r.u, r.v, rx, self.leg)
         out += self._place()
         self._expire()
         return rb, out
@@ -195,22 +196,22 @@ class SampleCollector:
     # -- internals (lock held) ------------------------------------------------------------------
     def _check_reboot(self, tb: int) -> tuple[int, int, int] | None:
         """Returns ``(boot, last_tb_ms, first_tb_ms)`` when ``tb`` starts a new boot, else None."""
-        if self._newest - tb > self.reboot_back_ms:
-            # vehicle time went back: a reboot (a link delivers in order; a few seconds back is no
-            # reordering). The old keys would shadow the new boot's readings at the same times.
-            last = self._newest
+        last = self._clock.see(tb)
+        if last is not None:
+            # vehicle time went back: a reboot (passt_mav.measurement.Rules.reboot_back_s). The old keys
+            # would shadow the new boot's readings at the same times.
             self.counts["reboots"] += 1
-            self._halves.clear(), self._seen.clear(), self._emitted.clear()
+            self.pairer.clear(), self._seen.clear()
             for t in list(self._held):  # the old boot's fix after them will never come
                 self._count("gap", self._held.pop(t)[3])
             self.track.clear()
             self._newest = tb
             self._utc_offset = None
             self.boots[-1]["last_tb"] = last
-            self.boot += 1
+            self.boot = self._clock.boot
             self.boots.append({"utc_boot": None, "wall": time.time(), "last_tb": tb})
             return self.boot, last, tb
-        self._newest = max(self._newest, tb)
+        self._newest = max(self._newest, tb)  # (= self._clock.newest)
         self.boots[-1]["last_tb"] = self._newest
         return None
 
@@ -244,12 +245,9 @@ class SampleCollector:
         return out
 
     def _expire(self) -> None:
-        old = self._newest - self.expire_ms
-        for t in [t for t in self._halves if t < old]:
-            del self._halves[t]
-            self.counts["expired"] += 1
+        self.pairer.expire(self._newest - self.expire_ms)
+        self.counts["expired"] = self.pairer.expired
         # keys of duplicates are remembered longer than halves (a reconnect may replay a minute)
         keep = self._newest - 6 * self.expire_ms
         if len(self._seen) > 4096:
             self._seen = {k: None for k in self._seen if k[0] >= keep}
-            self._emitted = {t for t in self._emitted if t >= keep}

@@ -39,7 +39,7 @@ GCS-commanded change away from AUTO (``Rsn`` 2): as in the tlog, where a leg end
 the GCS's next mode command and a pilot's RC takeover does not end it. Samples
 (:func:`~passt_mav.runs.tlog.read_dataflash`: an NVF CUR_U paired with the CUR_V and
 placed on the track by interpolating between the positions around it, at most
-``max_gap_ms`` apart: :class:`geo.track.Track`, the live collector's rule) belong to the leg
+``max_gap_ms`` apart: :mod:`passt_mav.measurement`, the live collector's rules) belong to the leg
 whose [AUTO, close) span holds their time.
 
 Differences from the tlog rebuild (measured on SITL, see tests/test_dataflash_legs.py):
@@ -66,7 +66,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from geo.track import DEFAULT_MAX_GAP_MS
+from passt_mav.measurement import RULES
 from passt_mav.runs.legs import LoggedLeg, LogRebuild, parse_clock_statustext
 from passt_mav.runs.tlog import LogReadError, read_dataflash
 
@@ -129,7 +129,8 @@ def _events(path: Path) -> list[tuple[int, str, Any]]:
 
 
 def rebuild_from_dataflash(path: str | Path, *, u_name: str = "CUR_U", v_name: str = "CUR_V",
-                           pair_tolerance_ms: int = 150, max_gap_ms: int = DEFAULT_MAX_GAP_MS) -> LogRebuild:
+                           pair_tolerance_ms: int = RULES.pair_tolerance_ms,
+                           max_gap_ms: int = RULES.max_gap_ms) -> LogRebuild:
     """Legs, positions, clock readings and samples from an ArduPilot DataFlash ``.bin`` (module docstring).
 
     ``u_name`` / ``v_name``: the NVF names of the east / north current (m/s);

@@ -11,8 +11,9 @@ From it, it rebuilds
   the ``CUR_V`` nearest in ``time_boot_ms`` within ``pair_tolerance_ms`` (names
   configurable), placed on the track at the reading's time: interpolated between the
   GLOBAL_POSITION_INT fixes around it when they are at most ``max_gap_ms`` apart
-  (:class:`geo.track.Track`, the live collector's rule; the gap is the sample's
-  ``gap_ms``). ``n_readings`` counts the u/v pairs, placed or not;
+  (the gap is the sample's ``gap_ms``). ``n_readings`` counts the u/v pairs, placed or not.
+  Pairing, placing and boots (``time_boot_ms`` going back: a reboot; every position and
+  sample carries its ``boot``) follow :mod:`passt_mav.measurement`, the live collector's rules;
 * ``missions``: mission uploads from a GCS (MISSION_COUNT + MISSION_ITEM_INT or
   MISSION_ITEM, re-sent items kept once) and the vehicle's MISSION_ACK result;
 * ``legs``: one per accepted upload (MISSION_ACK 0). A leg is complete at
@@ -38,7 +39,8 @@ small scanner around pymavlink's own frame decoder.
 (FMT records, then fixed-length records; decoding through ``DFReader``'s format
 classes): positions from ``POS`` (or ``GPS``), samples from a ``CUR`` message
 (columns ``U``, ``V``, written by an on-board Lua script) or from ``NVF`` named
-values, paired by ``TimeUS`` and placed on the track by the same rule. DataFlash records have no checksum, so a record is
+values, paired by ``TimeUS`` and placed on the track by the same rules (one ``.bin`` is one boot: ArduPilot
+starts a new log file when it boots). DataFlash records have no checksum, so a record is
 accepted only when it is followed by another valid record header (or the end of
 the file); a record with junk inside it is dropped rather than misread.
 """
@@ -52,8 +54,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from geo.track import DEFAULT_MAX_GAP_MS, Track
+from geo.track import Track
 from passt_mav.errors import UserError
+from passt_mav.measurement import RULES, BootCounter, HalfPairer
 from passt_mav.runs.store import Sample
 
 __all__ = [
@@ -76,13 +79,15 @@ class LogReadError(UserError):
 # -- records -------------------------------------------------------------------------
 @dataclass(frozen=True)
 class TrackPoint:
-    """A vehicle position: ``time_boot_ms``, WGS84 ``lat``/``lon`` (deg), reception ``utc`` (epoch s), ``leg``."""
+    """A vehicle position: ``time_boot_ms``, WGS84 ``lat``/``lon`` (deg), reception ``utc`` (epoch s), ``leg``,
+    ``boot`` (the autopilot's boot, 0 = the first in the log: :class:`passt_mav.measurement.BootCounter`)."""
 
     time_boot_ms: int
     lat: float
     lon: float
     utc: float
     leg: int = -1
+    boot: int = 0
 
 
 @dataclass(frozen=True)
@@ -341,8 +346,9 @@ def _mode_names(mav_type: int) -> dict[int, str]:
         return {}
 
 
-def read_tlog(path: str | Path, *, u_name: str = "CUR_U", v_name: str = "CUR_V", pair_tolerance_ms: int = 200,
-              max_gap_ms: int = DEFAULT_MAX_GAP_MS, vehicle_sysid: int | None = None) -> TelemetryLog:
+def read_tlog(path: str | Path, *, u_name: str = "CUR_U", v_name: str = "CUR_V",
+              pair_tolerance_ms: int = RULES.pair_tolerance_ms, max_gap_ms: int = RULES.max_gap_ms,
+              vehicle_sysid: int | None = None) -> TelemetryLog:
     """Read a ``.tlog`` (see module docstring).
 
     Args:
@@ -401,27 +407,23 @@ class _Interpreter:
     """Turns the ordered vehicle/GCS messages into track, samples, uploads, legs, events."""
 
     def __init__(self, out: TelemetryLog, veh: int, u_name: str, v_name: str, tol_ms: int, max_gap_ms: int):
-        self.out, self.veh, self.u_name, self.v_name, self.tol = out, veh, u_name, v_name, tol_ms
+        self.out, self.veh, self.u_name, self.v_name = out, veh, u_name, v_name
         self.max_gap_ms = max_gap_ms
+        self.pairer = HalfPairer(tol_ms)
+        self.boots = BootCounter()
         self.leg: LegRecord | None = None
         self.upload: MissionUpload | None = None
         self.mode: int | None = None
         self.armed: int | None = None
-        self.boot = 0
-        self.max_tb: int | None = None
-        self.u: list[tuple[int, int, float, float, int, str]] = []  # (boot, tb, value, utc, leg, source)
-        self.v: list[tuple[int, int, float]] = []
+        self.readings: list[tuple[int, Any]] = []  # (boot, Reading with meta_u = (utc, leg, source))
         self.pos: list[tuple[int, int, float, float]] = []  # (boot, tb, lat, lon)
         self.seen: set = set()
 
     def _boot_of(self, tb: int) -> int:
-        # time_boot_ms jumping back by more than 10 s: the autopilot rebooted
-        if self.max_tb is not None and tb < self.max_tb - 10_000:
-            self.boot += 1
-            self.max_tb = tb
-        else:
-            self.max_tb = tb if self.max_tb is None else max(self.max_tb, tb)
-        return self.boot
+        """The boot of a vehicle time stamp (every GLOBAL_POSITION_INT and NAMED_VALUE_FLOAT, as live)."""
+        if self.boots.see(tb) is not None:
+            self.pairer.clear()  # the new boot reuses the old times
+        return self.boots.boot
 
     def _event(self, utc: float, kind: str, value: int | None = None, detail: str = "") -> None:
         self.out.events.append(LogEvent(utc, kind, value, detail))
@@ -443,7 +445,7 @@ class _Interpreter:
                 getattr(self, "_veh_" + t.lower(), _ignore)(utc, m)
             else:
                 getattr(self, "_gcs_" + t.lower(), _ignore)(utc, m)
-        legs_of_readings = self._pair()
+        legs_of_readings = self._place()
         for leg in out.legs:
             leg.n_samples = sum(1 for s in out.samples if s.leg == leg.index)
             leg.n_readings = legs_of_readings.count(leg.index)
@@ -463,33 +465,32 @@ class _Interpreter:
             self._event(utc, "armed", armed)
 
     def _veh_global_position_int(self, utc: float, m) -> None:
+        boot = self._boot_of(m.time_boot_ms)
         if m.lat == 0 and m.lon == 0:
             return  # no GPS fix yet
-        boot = self._boot_of(m.time_boot_ms)
         k = ("pos", boot, m.time_boot_ms)
         if k in self.seen:
             return  # the same frame logged twice (two links)
         self.seen.add(k)
         lat, lon = m.lat * 1e-7, m.lon * 1e-7
         leg = self.leg.index if self.leg else -1
-        self.out.track.append(TrackPoint(int(m.time_boot_ms), lat, lon, utc, leg))
+        self.out.track.append(TrackPoint(int(m.time_boot_ms), lat, lon, utc, leg, boot))
         self.pos.append((boot, int(m.time_boot_ms), lat, lon))
 
     def _veh_named_value_float(self, utc: float, m) -> None:
         name = m.name if isinstance(m.name, str) else m.name.decode(errors="replace")
         name = name.rstrip("\x00")
+        boot = self._boot_of(m.time_boot_ms)
         if name not in (self.u_name, self.v_name):
             return
-        boot = self._boot_of(m.time_boot_ms)
         k = (name, boot, m.time_boot_ms)
         if k in self.seen:
             return
         self.seen.add(k)
-        if name == self.u_name:
-            leg = self.leg.index if self.leg else -1
-            self.u.append((boot, int(m.time_boot_ms), float(m.value), utc, leg, f"mav:{m.get_srcSystem()}/{m.get_srcComponent()}"))
-        else:
-            self.v.append((boot, int(m.time_boot_ms), float(m.value)))
+        meta = (utc, self.leg.index if self.leg else -1, f"mav:{m.get_srcSystem()}/{m.get_srcComponent()}")
+        r = self.pairer.add("u" if name == self.u_name else "v", int(m.time_boot_ms), float(m.value), meta)
+        if r is not None:
+            self.readings.append((boot, r))
 
     def _veh_mission_ack(self, utc: float, m) -> None:
         up = self.upload
@@ -553,51 +554,23 @@ class _Interpreter:
     def _gcs_mission_item(self, utc: float, m) -> None:
         self._gcs_mission_item_int(utc, m, is_int=False)
 
-    # -- pairing
-    def _pair(self) -> list[int]:
-        """Pairs u with v, places each pair on its boot's track; returns the leg of every pair."""
-        import numpy as np
-
-        tol = self.tol
-        v_by_boot: dict[int, tuple[Any, list]] = {}
-        for b in {x[0] for x in self.v}:
-            rows = sorted((tb, val) for bb, tb, val in self.v if bb == b)
-            v_by_boot[b] = (np.array([r[0] for r in rows], np.int64), [r[1] for r in rows], np.zeros(len(rows), bool))
+    # -- placing the readings
+    def _place(self) -> list[int]:
+        """Places each reading (paired as it came) on its boot's track; returns the leg of every reading."""
         tracks: dict[int, Track] = {}
         for b, tb, la, lo in self.pos:
             tracks.setdefault(b, Track(self.max_gap_ms)).add(tb, la, lo)
         legs: list[int] = []
-        for boot, tb, u, utc, leg, source in self.u:
-            if boot not in v_by_boot:
-                continue
-            vt, vv, used = v_by_boot[boot]
-            j = _nearest(vt, tb, tol, used)
-            if j is None:
-                continue
-            used[j] = True
+        for boot, r in self.readings:
+            utc, leg, source = r.meta_u
             legs.append(leg)
-            pos = tracks[boot].at(tb) if boot in tracks else None
+            pos = tracks[boot].at(r.t_ms) if boot in tracks else None
             if pos is None:
                 continue
-            self.out.samples.append(Sample(tb, utc, pos.lat, pos.lon, u, vv[j], leg, source, boot=boot, gap_ms=pos.gap_ms))
+            self.out.samples.append(Sample(r.t_ms, utc, pos.lat, pos.lon, r.u, r.v, leg, source, boot=boot,
+                                           gap_ms=pos.gap_ms))
         self.out.n_readings = len(legs)
         return legs
-
-
-def _nearest(times, t: int, tol: int, used) -> int | None:
-    """Index of the entry of sorted ``times`` nearest ``t`` within ``tol`` (skipping ``used``), or None."""
-    import numpy as np
-
-    lo = int(np.searchsorted(times, t - tol, side="left"))
-    hi = int(np.searchsorted(times, t + tol, side="right"))
-    best, bd = None, None
-    for i in range(lo, hi):
-        if used is not None and used[i]:
-            continue
-        d = abs(int(times[i]) - t)
-        if bd is None or d < bd:
-            best, bd = i, d
-    return best
 
 
 def _ignore(*_: Any) -> None:
@@ -609,13 +582,15 @@ _DF_HEAD = b"\xa3\x95"
 
 
 def read_dataflash(path: str | Path, *, u_name: str = "CUR_U", v_name: str = "CUR_V", cur_message: str = "CUR",
-                   pair_tolerance_ms: int = 200, max_gap_ms: int = DEFAULT_MAX_GAP_MS) -> TelemetryLog:
+                   pair_tolerance_ms: int = RULES.pair_tolerance_ms,
+                   max_gap_ms: int = RULES.max_gap_ms) -> TelemetryLog:
     """Read an ArduPilot DataFlash ``.bin`` log (see module docstring).
 
     Positions come from ``POS`` (``Lat``/``Lng``), or ``GPS`` when the log has no
     ``POS``. Samples come from ``cur_message`` records (columns ``U``, ``V``) or
     from ``NVF`` named values ``u_name``/``v_name`` (u paired with the v nearest in ``TimeUS``
-    within ``pair_tolerance_ms``), placed on the track at their time as in :func:`read_tlog`
+    within ``pair_tolerance_ms``, in file order: :class:`passt_mav.measurement.HalfPairer`), placed on the
+    track at their time as in :func:`read_tlog`
     (fixes at most ``max_gap_ms`` apart; ``gap_ms`` recorded). ``time_boot_ms`` = ``TimeUS //
     1000``; a DataFlash log holds no reception time, so ``utc`` is NaN. Legs are not
     reconstructed from DataFlash (``leg`` = -1).
@@ -709,8 +684,6 @@ def read_dataflash(path: str | Path, *, u_name: str = "CUR_U", v_name: str = "CU
 
 def _df_interpret(out: TelemetryLog, records: dict[str, list], u_name: str, v_name: str, cur_message: str, tol: int,
                   max_gap_ms: int) -> None:
-    import numpy as np
-
     nan = float("nan")
     pos_name = "POS" if records.get("POS") else "GPS"
     for m in records.get(pos_name, []):
@@ -734,24 +707,14 @@ def _df_interpret(out: TelemetryLog, records: dict[str, list], u_name: str, v_na
             pairs.append((int(m.TimeUS) // 1000, float(m.U), float(m.V)))
         except (AttributeError, TypeError, ValueError):
             continue
-    us, vs = [], []
+    pairer = HalfPairer(tol)
     for m in records.get("NVF", []):
         try:
             name, tb, val = str(m.Name), int(m.TimeUS) // 1000, float(m.Value)
         except (AttributeError, TypeError, ValueError):
             continue
-        if name == u_name:
-            us.append((tb, val))
-        elif name == v_name:
-            vs.append((tb, val))
-    vs.sort()
-    vt = np.array([x[0] for x in vs], np.int64)
-    used = np.zeros(len(vs), bool)
-    for tb, u in us:
-        j = _nearest(vt, tb, tol, used)
-        if j is not None:
-            used[j] = True
-            pairs.append((tb, u, vs[j][1]))
+        if name in (u_name, v_name) and (r := pairer.add("u" if name == u_name else "v", tb, val)) is not None:
+            pairs.append((r.t_ms, r.u, r.v))
     pairs.sort(key=lambda x: x[0])
     out.n_readings = len(pairs)
     out.reading_times = [tb for tb, _, _ in pairs]
