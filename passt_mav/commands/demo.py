@@ -186,9 +186,8 @@ def run(args: argparse.Namespace) -> int:
     import yaml
 
     from passt_mav.commands.run import execute
-    from passt_mav.controller import mission_overrides
     from passt_mav.errors import UserError
-    from passt_mav.mission.config import validate_mission
+    from passt_mav.mission.config import mission_overrides, validate_mission
     from passt_mav.runs.rundir import RunDir
 
     if args.legs < 1 or args.moves < 1:

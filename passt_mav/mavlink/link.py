@@ -766,6 +766,14 @@ class Link:
             self.closed_reason = str(exc) or type(exc).__name__
             raise LinkTimeout(f"link to {self.config.connect} closed while sending: {self.closed_reason}") from exc
 
+    def statustext(self, text: str, severity: int = mavlink2.MAV_SEVERITY_INFO) -> None:
+        """Send a STATUSTEXT (a note for the telemetry log and the vehicle's DataFlash log; at most 50 chars)."""
+        self.send(mavlink2.MAVLink_statustext_message(int(severity), text.encode()))
+
+    def clear_error(self) -> None:
+        """Forget the reader's or sender's last error (:attr:`error`) before a reconnect."""
+        self.error = None
+
     def wait(self, types: str | Iterable[str], condition: Callable[[object], bool] | None = None,
              timeout: float | None = None):
         """Next message of ``types`` satisfying ``condition`` within ``timeout`` s; raises LinkTimeout."""

@@ -40,7 +40,7 @@ from passt_mav.mavlink.link import Link, mavlink2, result_name
 from passt_mav.mission.items import GLOBAL_FRAMES, MAV_FRAME_GLOBAL, MAV_MISSION_TYPE_MISSION, MissionItem
 
 __all__ = ["MissionClient", "MissionWatch", "with_home", "to_msg", "from_msg", "UploadResult", "rover_stored",
-           "ROVER_STORAGE"]
+           "ROVER_STORAGE", "differences"]
 
 log = logging.getLogger(__name__)
 M = mavlink2
@@ -333,7 +333,7 @@ class MissionClient:
                 if result == M.MAV_MISSION_ERROR and last_seq == n - 1 and (last_resends or silent):
                     # the vehicle is no longer receiving: it closed the transfer and its ACK was lost
                     got = self.download(mission_type, timeout=max(deadline - time.monotonic(), self._t_item * 4))
-                    bad = _differences(items, got, mission_type)
+                    bad = differences(items, got, mission_type)
                     if bad:
                         raise self._reject(result, t0, f"final ACK lost and the read-back differs: {bad}")
                     res.ack_lost = True
@@ -419,7 +419,7 @@ class MissionClient:
         """
         self.upload(items, mission_type, timeout=timeout)
         got = self.download(mission_type, timeout=timeout)
-        bad = _differences(list(items), got, mission_type)
+        bad = differences(list(items), got, mission_type)
         if bad:
             raise MissionVerifyError(f"mission read back differs from the upload: {bad}")
         return got
@@ -479,7 +479,7 @@ class MissionWatch:
       upload; their MISSION_REQUESTs show an upload in progress (``foreign_peer`` says who).
 
     None of these sees a same-length upload on a direct link to ArduPilot 4.7; the controller's
-    read-back does (see :meth:`passt_mav.controller.MissionController._swap`).
+    read-back does (see :meth:`passt_mav.vehicle_session.VehicleSession.swap`).
     """
 
     def __init__(self, link: Link):
@@ -537,7 +537,7 @@ class MissionWatch:
         return ""
 
 
-def _differences(sent: list[MissionItem], got: list[MissionItem], mission_type: int) -> str:
+def differences(sent: list[MissionItem], got: list[MissionItem], mission_type: int) -> str:
     """'' if the vehicle holds what it would store of ``sent`` (:func:`rover_stored`, within wire
     tolerance), else a short description of what differs."""
     if len(sent) != len(got):
