@@ -127,12 +127,17 @@ class StoreWriter:
         self.store, self.grid = store, grid
         self.q: queue.Queue = queue.Queue()
         self.new = 0
+        # samples queued and samples committed (or failed) so far: flush() waits for the second to reach the first
+        self._queued = self._committed = 0
+        self._progress = threading.Condition()
         self._stop = threading.Event()
         self._th = threading.Thread(target=self._loop, name="sample-store", daemon=True)
         self._th.start()
 
     def __call__(self, rec: dict) -> None:
-        self.q.put(rec)
+        with self._progress:
+            self._queued += 1
+            self.q.put(rec)
 
     def _loop(self) -> None:
         while not (self._stop.is_set() and self.q.empty()):
@@ -146,11 +151,13 @@ class StoreWriter:
                     batch.append(self.q.get_nowait())
                 except queue.Empty:
                     break
-            rows = [self._row(rec) for rec in batch]
             try:
-                self.new += self.store.append_many(rows)
+                self.new += self.store.append_many([self._row(rec) for rec in batch])
             except Exception:  # noqa: BLE001 - a store failure must be seen, but must not kill the thread
-                log.exception("could not store %d samples", len(rows))
+                log.exception("could not store %d samples", len(batch))
+            with self._progress:
+                self._committed += len(batch)
+                self._progress.notify_all()
 
     def _row(self, rec: dict) -> dict:
         r, c = self.grid.latlon_to_cell(rec["lat"], rec["lon"], clip=True)
@@ -160,10 +167,21 @@ class StoreWriter:
                 "boot": int(rec.get("boot", 0)), "gap_ms": rec.get("gap_ms")}
 
     def flush(self, timeout: float = 5.0) -> None:
+        """Wait (up to ``timeout`` wall s) until every sample queued before this call is committed.
+
+        Samples queued meanwhile (a fleet's other boats) are not waited for: a time-based wait for an
+        empty queue could return while the last batch was still being committed, and a leg absorbed
+        its samples without that batch (its replay, reading the store later, then had more)."""
         end = time.monotonic() + timeout
-        while (not self.q.empty()) and time.monotonic() < end:
-            time.sleep(0.01)
-        time.sleep(0.02)  # the batch taken last is being committed
+        with self._progress:
+            target = self._queued
+            while self._committed < target:
+                left = end - time.monotonic()
+                if left <= 0:
+                    log.warning("sample store: %d samples not committed after %.1f s", target - self._committed,
+                                timeout)
+                    return
+                self._progress.wait(left)
 
     def close(self) -> None:
         self.flush()
