@@ -787,7 +787,8 @@ class Link:
                 if condition is None or condition(m):
                     return m
 
-    def _for_us(self, msg) -> bool:
+    def for_us(self, msg) -> bool:
+        """Whether ``msg`` is addressed to this ground station (or broadcast; a message without a target is)."""
         ts = getattr(msg, "target_system", 0)
         tc = getattr(msg, "target_component", 0)
         return ts in (0, self.config.source_system) and tc in (0, self.config.source_component)
@@ -820,7 +821,7 @@ class Link:
                     if m.get_type() == "STATUSTEXT":
                         texts.append((int(m.severity), _text(m)))
                         continue
-                    if m.command != int(command) or not self._for_us(m):
+                    if m.command != int(command) or not self.for_us(m):
                         continue
                     if m.result == mavlink2.MAV_RESULT_IN_PROGRESS:
                         end = time.monotonic() + timeout_
