@@ -25,10 +25,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 def _fleet_step(boats: int, path_length: int, model: str):
     from passt_mav.commands.demo import fleet_starts, mission_mapping
-    from passt_mav.controller import mission_overrides
     from passt_mav.fields.datasets import resolve_field
     from passt_mav.legstep import FleetStep, LegStep, build_loop, build_predictor
-    from passt_mav.mission.config import validate_mission
+    from passt_mav.mission.config import mission_overrides, validate_mission
 
     base, _ = mission_mapping()
     cfg = validate_mission(mission_overrides(base, {"planner.path_length": path_length, "model": model}),

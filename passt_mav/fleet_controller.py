@@ -43,89 +43,91 @@ import threading
 import time
 from typing import Callable
 
-from passt_mav.controller import MissionController, _Paused, _StoreWriter, _utc_now
+from passt_mav.controller import MissionController, StoreWriter
 from passt_mav.errors import MavlinkError, PlannerError, ReconstructionError
 from passt_mav.legstep import FleetStep, LegStep, build_loop
-from passt_mav.live_record import field_time_now, live_meta
+from passt_mav.live_record import live_meta
 from passt_mav.runs.live import RecordWriter
+from passt_mav.vehicle_session import Paused, utc_now
 
-__all__ = ["FleetController", "BoatController"]
+__all__ = ["FleetController", "BoatController", "SharedState"]
 
 log = logging.getLogger(__name__)
 
 
+class SharedState:
+    """One boat's view of the fleet's one state (:class:`~passt_mav.legstep.FleetStep`), called under the
+    fleet's lock: the state keeper a :class:`BoatController` flies with (:class:`~passt_mav.controller.OwnState`'s
+    methods). Remembers the boat's leg in flight and the fleet steps it was planned and absorbed at."""
+
+    def __init__(self, fleet: "FleetController", boat: int, link):
+        self.fleet, self.boat, self.link = fleet, int(boat), link
+        self.current = None  # the boat's leg in flight (PlannedLeg)
+        self.seq_plan: int | None = None
+        self.seq_absorb: int | None = None
+        self.legs_done = 0
+
+    def plan(self, i: int, state, t_state, start, *, t_now: float, send_clock: Callable[[int], None], **kw):
+        """Plan leg ``i`` from the shared state (``state``/``t_state`` are not used: the fleet's is)."""
+        with self.fleet.lock:
+            shared = self.fleet.shared
+            k = shared.step.forecast_steps(t_now, shared.t_state)
+            send_clock(k)
+            self.current = shared.plan_for(self.boat, i, start, t_now=t_now, k=k, **kw)
+            self.seq_plan = shared.seq
+        return self.current
+
+    def absorb(self, planned, recs, clock):
+        with self.fleet.lock:
+            absorbed = self.fleet.shared.absorb(self.boat, planned, recs, clock)
+            self.seq_absorb = self.fleet.shared.seq
+            return absorbed
+
+    def plan_fields(self) -> dict:
+        return {"boat": self.boat, "sysid": int(self.link.target_system)}
+
+    def finish_fields(self) -> dict:
+        # the order of the fleet's plans and updates (for a replay): the leg was planned at fleet step
+        # seq_plan and absorbed at seq_absorb
+        return {**self.plan_fields(), "fleet_seq": self.fleet_seq()}
+
+    def fleet_seq(self) -> dict:
+        return {"plan": self.seq_plan, "absorb": self.seq_absorb}
+
+    def leg_done(self) -> None:
+        self.legs_done += 1
+
+    def label(self, i: int, n_legs: int) -> str:
+        # i counts the fleet's legs; a boat's own count is what the pilot watching it wants
+        return f"leg {self.legs_done + 1}/{n_legs} (fleet leg {i + 1})"
+
+    def leg_k(self, leg: int | None, flying: bool) -> int:
+        """The boat's own number (1-based) of its leg in flight, or of its last one (the live view)."""
+        return self.legs_done + (1 if flying else 0)
+
+
 class BoatController(MissionController):
-    """One boat of a fleet: the one-boat controller whose planning and state update go through the fleet."""
+    """One boat of a fleet: the one-boat controller flying with the fleet's shared parts (its
+    :class:`SharedState`, lock, loop, store, live-view writer and summary), plus a boat's life in a
+    fleet (:meth:`fly`: dropping out and rejoining)."""
 
     def __init__(self, fleet: "FleetController", boat: int, vehicle_config, link, vehicle, **kw):
         cfg = fleet.config.model_copy(update={"vehicle": vehicle_config})
         echo = fleet.echo
+        record = fleet.record.for_boat(int(boat))
         super().__init__(cfg, link, fleet.rd, field=fleet.field, predictor=fleet.predictor,
                          predictor_info=fleet.predictor_info, vehicle=vehicle, legs=fleet.n_legs,
-                         echo=lambda s: echo(f"boat {boat}: {s}"), **kw)
+                         echo=lambda s: echo(f"boat {boat}: {s}"), step=fleet.step,
+                         share=SharedState(fleet, boat, link), lock=fleet.lock, record=record,
+                         write_summary=fleet.write_summary, **kw)
         self.fleet, self.boat = fleet, int(boat)
-        self.record = fleet.record.for_boat(self.boat)
-        self.record.field_time = lambda: field_time_now(self)
-        self.loop, self.step = fleet.loop, fleet.step  # one loop, one state for the fleet
         self.store = fleet.store
         self.status = "waiting"
-        self.legs_done = 0
-        self._current = None
-        self._rec: dict | None = None
-        self._seq_plan = self._seq_absorb = None
 
-    # -- the shared parts ----------------------------------------------------------------------
-    def _plan(self, i: int, state, t_state):
-        lat, lon, start, tb, boot, t_now = self._where_and_when()
-        with self.fleet.lock:
-            shared = self.fleet.shared
-            k = self.step.forecast_steps(t_now, shared.t_state)
-            self._send_clock(i, tb, boot, k)
-            self._current = shared.plan_for(self.boat, i, start, t_now=t_now, k=k, start_latlon=(lat, lon),
-                                            clock_reading=(tb, boot))
-            self._seq_plan = shared.seq
-        return self._current
-
-    # netCDF4/HDF5 (prediction.nc, estimate.nc) and the torch predictor are not thread-safe: the
-    # boats' threads write and predict one at a time
-    def _checked_mission(self, i: int, planned):
-        with self.fleet.lock:
-            return super()._checked_mission(i, planned)
-
-    def _write_plan(self, i: int, planned, wm) -> dict:
-        with self.fleet.lock:
-            self._rec = super()._write_plan(i, planned, wm)
-            self._rec.update(boat=self.boat, sysid=int(self.link.target_system))
-            return self._rec
-
-    def _write_prediction(self, i: int, planned) -> None:
-        with self.fleet.lock:
-            super()._write_prediction(i, planned)
-
-    def _absorb(self, i: int, planned):
-        with self.fleet.lock:
-            return super()._absorb(i, planned)
-
-    def _update(self, planned, recs, clock):
-        with self.fleet.lock:
-            absorbed = self.fleet.shared.absorb(self.boat, planned, recs, clock)
-            self._seq_absorb = self.fleet.shared.seq
-            return absorbed
-
-    def _finish_leg(self, i: int, rec: dict, planned) -> None:
-        # the order of the fleet's plans and updates (for a replay): leg i was planned at fleet step
-        # seq_plan and absorbed at seq_absorb
-        rec["boat"], rec["sysid"] = self.boat, int(self.link.target_system)
-        rec["fleet_seq"] = {"plan": self._seq_plan, "absorb": self._seq_absorb}
-        super()._finish_leg(i, rec, planned)
-        self.legs_done += 1
-
-    def _leg_label(self, i: int) -> str:
-        # i counts the fleet's legs; a boat's own count is what the pilot watching it wants
-        return f"leg {self.legs_done + 1}/{self.n_legs} (fleet leg {i + 1})"
-
-    def _write_summary(self) -> None:
-        self.fleet.write_summary()
+    @property
+    def legs_done(self) -> int:
+        """Legs this boat completed."""
+        return self.share.legs_done
 
     # -- one boat's mission --------------------------------------------------------------------
     def fly(self) -> None:
@@ -142,7 +144,7 @@ class BoatController(MissionController):
                         ready = True
                     self.status = "flying"
                     self._leg(self.fleet.claim_leg(), None, None)
-                except _Paused as exc:
+                except Paused as exc:
                     self._stop("paused", exc)
                     return
                 except (MavlinkError, PlannerError) as exc:
@@ -171,11 +173,11 @@ class BoatController(MissionController):
         """The boat dropped out mid-leg: report, release its path, keep what it sampled."""
         self.status = "lost"
         self.fleet.release(self.boat)
-        self.fleet.event(f"boat {self.boat} (sysid {self.link.target_system}) dropped out at {_utc_now()}: "
+        self.fleet.event(f"boat {self.boat} (sysid {self.link.target_system}) dropped out at {utc_now()}: "
                          f"{type(exc).__name__}: {exc}", "boat_dropped", self.boat)
         self._say(f"dropped out ({exc}); the other boats go on")
         self._safe_hold()
-        planned, self._current = self._current, None
+        planned, self.share.current = self.share.current, None
         if planned is None:
             return
         self.collector.leg = None
@@ -186,9 +188,10 @@ class BoatController(MissionController):
         except ReconstructionError as e2:
             log.info("boat %d: the interrupted leg's %d samples not absorbed: %s", self.boat, len(recs), e2)
             return
-        if self._rec is not None and int(self._rec["index"]) == planned.index:  # for a replay
-            self.rd.write_leg(planned.index, {**self._rec, **ab.record(), "status": "interrupted",
-                                              "fleet_seq": {"plan": self._seq_plan, "absorb": self._seq_absorb}})
+        rec = self.leg_rec
+        if rec is not None and int(rec["index"]) == planned.index:  # for a replay
+            self.rd.write_leg(planned.index, {**rec, **ab.record(), "status": "interrupted",
+                                              "fleet_seq": self.share.fleet_seq()})
 
     def _rejoin(self) -> bool:
         """Reconnect while any other boat still flies; True when this boat is back."""
@@ -198,7 +201,7 @@ class BoatController(MissionController):
             except MavlinkError:
                 time.sleep(0.2)
                 continue
-            self.fleet.event(f"boat {self.boat} back at {_utc_now()}: rejoins", "boat_back", self.boat)
+            self.fleet.event(f"boat {self.boat} back at {utc_now()}: rejoins", "boat_back", self.boat)
             self._say("link back; rejoining the fleet")
             return True
         return False
@@ -234,18 +237,19 @@ class FleetController:
         self.n_legs = int(legs or config.legs)
         self.echo = echo or (lambda s: None)
         self.mission_text, self.extra_summary = mission_text, dict(extra_summary or {})
-        self.loop = build_loop(config, predictor, field.grid, land=field.land_mask)  # keeps the GP std: estimate.nc u_std/v_std (exports, live view)
+        # the loop keeps the GP std: estimate.nc u_std/v_std (exports, live view)
+        self.loop = build_loop(config, predictor, field.grid, land=field.land_mask)
         self.step = LegStep(config, field, self.loop, truth_known=truth_known)
         self.shared = FleetStep(self.step)  # the one state, the boats' paths in flight
         self.lock = threading.RLock()
         self.stopping = threading.Event()
         self.events: list[str] = []
         self.record = RecordWriter(self.rd.root)  # the live view's files (passt_mav.runs.live)
-        self.started_utc = _utc_now()
+        self.started_utc = utc_now()
         self.status = "running"
         self._next_leg = 0
         self.store = SampleStore(self.rd.samples_db)
-        self.writer = _StoreWriter(self.store, field.grid)
+        self.writer = StoreWriter(self.store, field.grid)
         vehicles = vehicles or [Vehicle(link) for link in links]
         self.boats = [BoatController(self, k, vc, link, veh, truth_known=truth_known, **boat_kw)
                       for k, (vc, link, veh) in enumerate(zip(fleet, links, vehicles))]
@@ -313,7 +317,7 @@ class FleetController:
             truth = s.get("rmse") is not None
             s.update({
                 "status": self.status, "started_utc": self.started_utc,
-                "finished_utc": _utc_now() if self.status != "running" else None,
+                "finished_utc": utc_now() if self.status != "running" else None,
                 "legs": legs, "legs_planned": self.n_legs * len(self.boats),
                 "rmse": {"t": [x.get("t_end") for x in legs], "passt": [x.get("rmse_passt") for x in legs],
                          "model": [x.get("rmse_model") for x in legs]} if truth else None,

@@ -15,11 +15,7 @@ __all__ = ["live_status", "live_meta", "field_time_now"]
 
 def field_time_now(ctl) -> float | None:
     """The field time the vehicle's clock says now (None before its first time stamp)."""
-    up = ctl.link.vehicle_uptime_s()
-    if up is None:
-        return None
-    boot = ctl._boot_base + (ctl.collector.boot if ctl.collector is not None else 0)
-    return round(float(ctl._clock_with_boots().field_time(up * 1000.0, boot)), 3)
+    return ctl.run_clock.field_time_now()
 
 
 def live_status(ctl) -> dict:
@@ -29,12 +25,11 @@ def live_status(ctl) -> dict:
     pos = v.position()
     hdg = None if g is None or int(g.hdg) == 65535 else round(int(g.hdg) / 100.0, 1)
     st = link.stats
-    leg, end_up = getattr(ctl, "_live_leg", (None, None))
+    leg, end_up = ctl.live_leg
     flying = ctl.collector is not None and ctl.collector.leg is not None
     up = link.vehicle_uptime_s()
     left = None if not flying or end_up is None or up is None else max(0.0, end_up - up)
-    done = getattr(ctl, "legs_done", None)
-    k = (done + (1 if flying else 0)) if done is not None else (None if leg is None else leg + 1)
+    k = ctl.share.leg_k(leg, flying)
     rtt = link.rtt
     return {
         "sysid": int(link.target_system or 0), "lat": None if pos is None else pos[0],

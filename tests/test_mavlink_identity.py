@@ -234,7 +234,7 @@ def test_a_gcs_upload_mid_leg_through_a_router_is_seen_and_ours_resumed(tmp_path
     def qgc_mid_leg():
         end = time.monotonic() + 60
         while time.monotonic() < end and not (ctl.vehicle.mode == 10 and ctl.vehicle.progress.reached
-                                              and not getattr(ctl, "_verify_pending", True)):
+                                              and not ctl.session.verify_pending):
             time.sleep(0.005)  # AUTO, our read-back done, the first waypoint reached
         ours = sim.autopilot.store.items[0]
         theirs = [SimClient.waypoint(it.seq, it.x / 1e7 + 3e-4, it.y / 1e7) for it in ours]

@@ -182,10 +182,6 @@ class Link:
             self.stats["tx_delivered_bytes"] += len(out)
             return out
 
-    def next_outgoing_time(self) -> float | None:
-        with self._lock:
-            return self._out[0][0] if self._out else None
-
     # -- incoming ----------------------------------------------------------------
     def feed(self, data: bytes, t: float) -> None:
         """Bytes received from the transport at simulated time ``t``."""

@@ -176,8 +176,14 @@ def mission_mapping(mission: str | None = None, field: str | None = None) -> tup
     return data, origin
 
 
-def run(args: argparse.Namespace) -> int:
+def _stamp() -> str:
+    """Now in UTC for a run directory's name (``2026-01-01T12-00-00Z``)."""
     import datetime as _dt
+
+    return _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%dT%H-%M-%SZ")
+
+
+def run(args: argparse.Namespace) -> int:
     import subprocess
     import sys
     import time
@@ -186,27 +192,12 @@ def run(args: argparse.Namespace) -> int:
     import yaml
 
     from passt_mav.commands.run import execute
-    from passt_mav.controller import mission_overrides
-    from passt_mav.errors import UserError
-    from passt_mav.mission.config import validate_mission
     from passt_mav.runs.rundir import RunDir
 
-    if args.legs < 1 or args.moves < 1:
-        raise UserError("--legs and --moves must be >= 1")
-    if not 1 <= args.boats <= 9:
-        raise UserError("--boats must be 1..9")
-    if args.speedup <= 0:
-        raise UserError("--speedup must be positive")
     drops = _drop_args(args.inject_link_drop, args.boats)
-    base, origin = mission_mapping(args.mission, args.field)
-    over = dict(DEMO_OVERRIDES, legs=args.legs, **{"planner.path_length": args.moves})
-    if args.model:
-        over["model"] = args.model
-    data = mission_overrides(base, over)
-    config = validate_mission(data, source="demo mission", base_dir=Path(origin).parent if origin.endswith(".yaml") else ".")
+    data, config, over, origin = _demo_mission(args)
     grid = config.grid()
-    stamp = _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%dT%H-%M-%SZ")
-    rd = RunDir(args.out or Path("runs") / f"demo-{stamp}").create()
+    rd = RunDir(args.out or Path("runs") / f"demo-{_stamp()}").create()
     from passt_mav.fields.datasets import mission_field
 
     t_start0 = time.monotonic()
@@ -249,7 +240,35 @@ def run(args: argparse.Namespace) -> int:
             sim.kill()
             sim.wait()
         sim_log.close()
-    wall = time.monotonic() - t_start0
+    _print_outcome(args, config, field, summary, rd, view is not None, time.monotonic() - t_start0)
+    return 0 if summary["status"] == "complete" else 1
+
+
+def _demo_mission(args: argparse.Namespace):
+    """The demo's mission after its checks and overrides: (mapping, MissionConfig, overrides, origin)."""
+    from pathlib import Path
+
+    from passt_mav.errors import UserError
+    from passt_mav.mission.config import mission_overrides, validate_mission
+
+    if args.legs < 1 or args.moves < 1:
+        raise UserError("--legs and --moves must be >= 1")
+    if not 1 <= args.boats <= 9:
+        raise UserError("--boats must be 1..9")
+    if args.speedup <= 0:
+        raise UserError("--speedup must be positive")
+    base, origin = mission_mapping(args.mission, args.field)
+    over = dict(DEMO_OVERRIDES, legs=args.legs, **{"planner.path_length": args.moves})
+    if args.model:
+        over["model"] = args.model
+    data = mission_overrides(base, over)
+    config = validate_mission(data, source="demo mission",
+                              base_dir=Path(origin).parent if origin.endswith(".yaml") else ".")
+    return data, config, over, origin
+
+
+def _print_outcome(args, config, field, summary: dict, rd, viewed: bool, wall: float) -> None:
+    """The demo's last lines: status, final RMSE (against the counterfactual paths for one boat), report, view."""
     print(f"demo {summary['status']} in {wall:.0f} s: {len(summary['legs'])} legs, {summary['n_samples']} samples; "
           f"run directory {rd.root}", flush=True)
     legs = summary["legs"]
@@ -262,9 +281,8 @@ def run(args: argparse.Namespace) -> int:
         print(final_line(legs[-1]["rmse_passt"], legs[-1]["rmse_model"], walk, lawn), flush=True)
     if summary.get("report"):
         print(f"report: {summary['report']}", flush=True)
-    if view is not None:
+    if viewed:
         print(f"live view stopped; reopen it with: passt-mav view {rd.root}", flush=True)
-    return 0 if summary["status"] == "complete" else 1
 
 
 def _start_view(args, rd):

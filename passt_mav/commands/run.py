@@ -179,8 +179,7 @@ def _with_overrides(path, text: str, pairs: list[str]):
 
     import yaml
 
-    from passt_mav.controller import mission_overrides
-    from passt_mav.mission.config import validate_mission
+    from passt_mav.mission.config import mission_overrides, validate_mission
 
     over = {}
     for kv in pairs:

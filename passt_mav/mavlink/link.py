@@ -766,6 +766,14 @@ class Link:
             self.closed_reason = str(exc) or type(exc).__name__
             raise LinkTimeout(f"link to {self.config.connect} closed while sending: {self.closed_reason}") from exc
 
+    def statustext(self, text: str, severity: int = mavlink2.MAV_SEVERITY_INFO) -> None:
+        """Send a STATUSTEXT (a note for the telemetry log and the vehicle's DataFlash log; at most 50 chars)."""
+        self.send(mavlink2.MAVLink_statustext_message(int(severity), text.encode()))
+
+    def clear_error(self) -> None:
+        """Forget the reader's or sender's last error (:attr:`error`) before a reconnect."""
+        self.error = None
+
     def wait(self, types: str | Iterable[str], condition: Callable[[object], bool] | None = None,
              timeout: float | None = None):
         """Next message of ``types`` satisfying ``condition`` within ``timeout`` s; raises LinkTimeout."""
@@ -779,7 +787,8 @@ class Link:
                 if condition is None or condition(m):
                     return m
 
-    def _for_us(self, msg) -> bool:
+    def for_us(self, msg) -> bool:
+        """Whether ``msg`` is addressed to this ground station (or broadcast; a message without a target is)."""
         ts = getattr(msg, "target_system", 0)
         tc = getattr(msg, "target_component", 0)
         return ts in (0, self.config.source_system) and tc in (0, self.config.source_component)
@@ -812,7 +821,7 @@ class Link:
                     if m.get_type() == "STATUSTEXT":
                         texts.append((int(m.severity), _text(m)))
                         continue
-                    if m.command != int(command) or not self._for_us(m):
+                    if m.command != int(command) or not self.for_us(m):
                         continue
                     if m.result == mavlink2.MAV_RESULT_IN_PROGRESS:
                         end = time.monotonic() + timeout_

@@ -40,7 +40,7 @@ from passt_mav.mavlink.link import Link, mavlink2, result_name
 from passt_mav.mission.items import GLOBAL_FRAMES, MAV_FRAME_GLOBAL, MAV_MISSION_TYPE_MISSION, MissionItem
 
 __all__ = ["MissionClient", "MissionWatch", "with_home", "to_msg", "from_msg", "UploadResult", "rover_stored",
-           "ROVER_STORAGE"]
+           "ROVER_STORAGE", "differences"]
 
 log = logging.getLogger(__name__)
 M = mavlink2
@@ -141,7 +141,8 @@ def rover_stored(item: MissionItem) -> MissionItem:
     p = [0.0 if c is None else c(float(v)) for c, v in zip(convs, (item.param1, item.param2, item.param3, item.param4))]
     if located:
         # x/y travel and are kept as int32 degE7
-        frame, lat, lon, alt = _STORED_FRAME.get(item.frame, item.frame), item.x_int / 1e7, item.y_int / 1e7, _alt_cm(item.alt)
+        frame = _STORED_FRAME.get(item.frame, item.frame)
+        lat, lon, alt = item.x_int / 1e7, item.y_int / 1e7, _alt_cm(item.alt)
     else:
         frame, lat, lon, alt = MAV_FRAME_GLOBAL, 0.0, 0.0, 0.0
     return replace(item, frame=frame, current=0, autocontinue=1, param1=p[0], param2=p[1], param3=p[2],
@@ -241,14 +242,16 @@ class MissionClient:
         return time.monotonic() + timeout
 
     def _initialising(self) -> bool:
+        from passt_mav.mavlink.vehicle import ROVER_MODES  # (vehicle.py imports this module)
+
         hb = self.link.latest("HEARTBEAT")
-        if hb is not None and hb.custom_mode == 16:
+        if hb is not None and hb.custom_mode == ROVER_MODES["INITIALISING"]:
             return True
         up = self.link.vehicle_uptime_s()
         return up is None or up < self.boot_grace_s
 
     def _ours(self, m, mission_type: int) -> bool:
-        return int(getattr(m, "mission_type", 0)) == mission_type and self.link._for_us(m)
+        return int(getattr(m, "mission_type", 0)) == mission_type and self.link.for_us(m)
 
     def _recent_text(self, since: float) -> str:
         return "; ".join(t for when, sev, t in list(self.link.texts) if when >= since and sev <= M.MAV_SEVERITY_WARNING)
@@ -273,103 +276,28 @@ class MissionClient:
                 raise ValueError(f"item {i} has seq {it.seq}; items must be numbered 0..n-1 (see with_home)")
             if it.mission_type != mission_type:
                 raise ValueError(f"item {i} has mission_type {it.mission_type}, uploading type {mission_type}")
-        n = len(items)
-        link = self.link
-        t0 = time.monotonic()
-        deadline = self._deadline(n, timeout)
-        res = UploadResult(count=n)
-        ts, tc = link.target_system, link.target_component
         types = ("MISSION_REQUEST", "MISSION_REQUEST_INT", "MISSION_ACK")
-        with link.subscribe(types) as sub:
-            def send_count():
-                res.count_sends += 1
-                link.send(M.MAVLink_mission_count_message(ts, tc, n, mission_type))
-
-            def send_item(seq):
-                res.items_sent += 1
-                link.send(to_msg(items[seq], ts, tc))
-
-            send_count()
-            requested = False   # a request of this transfer has arrived
-            last_seq = -1       # last item requested and sent
-            silent = 0          # consecutive silent periods
-            last_resends = 0
+        with self.link.subscribe(types) as sub:
+            tr = _Upload(self, items, mission_type, timeout, sub)
+            tr.send_count()
             while True:
-                remaining = deadline - time.monotonic()
+                remaining = tr.deadline - time.monotonic()
                 if remaining <= 0:
-                    raise LinkTimeout(f"mission upload of {n} items not finished within the deadline "
-                                      f"({time.monotonic() - t0:.1f} s; last item sent {last_seq})")
+                    raise LinkTimeout(f"mission upload of {tr.n} items not finished within the deadline "
+                                      f"({time.monotonic() - tr.t0:.1f} s; last item sent {tr.last_seq})")
                 m = sub.get(min(self._t_item, remaining))
                 if m is None:
-                    silent += 1
-                    if silent > self.retries:
-                        raise LinkTimeout(f"vehicle silent during mission upload (item {last_seq + 1}/{n})"
-                                          + (" (link lost)" if link.lost else ""))
-                    if not requested:
-                        send_count()
-                    elif last_seq == n - 1:
-                        last_resends += 1
-                        send_item(n - 1)  # the final ACK may be lost: the vehicle answers ERROR if it is done
-                    else:
-                        send_item(last_seq)  # our item may be lost (the vehicle re-requests too)
+                    tr.on_silence()
+                elif not self._ours(m, mission_type):
                     continue
-                if not self._ours(m, mission_type):
-                    continue
-                if m.get_type() != "MISSION_ACK":
-                    seq = int(m.seq)
-                    if 0 <= seq < n:
-                        silent, requested, last_seq = 0, True, seq
-                        send_item(seq)
-                    continue
-                result = int(m.type)
-                if result == _ACCEPTED:
-                    if n == 0 or last_seq == n - 1:
-                        res.seconds = time.monotonic() - t0
-                        res.opaque_id = int(getattr(m, "opaque_id", 0) or 0)
-                        return res
-                    continue  # a stale ACK from an earlier transfer
-                if result == M.MAV_MISSION_INVALID_SEQUENCE and requested:
-                    continue  # a duplicate item after a lost request: ArduPilot goes on with the transfer
-                if result == M.MAV_MISSION_ERROR and last_seq == n - 1 and (last_resends or silent):
-                    # the vehicle is no longer receiving: it closed the transfer and its ACK was lost
-                    got = self.download(mission_type, timeout=max(deadline - time.monotonic(), self._t_item * 4))
-                    bad = _differences(items, got, mission_type)
-                    if bad:
-                        raise self._reject(result, t0, f"final ACK lost and the read-back differs: {bad}")
-                    res.ack_lost = True
-                    res.seconds = time.monotonic() - t0
-                    log.info("mission upload: final ACK lost, confirmed by read-back")
+                elif m.get_type() != "MISSION_ACK":
+                    tr.on_request(int(m.seq))
+                elif (res := tr.on_ack(m)) is not None:
                     return res
-                if (result == M.MAV_MISSION_OPERATION_CANCELLED and requested
-                        and res.cancel_restarts < self.cancel_restarts):
-                    # the vehicle gave up waiting (its 8 s item timeout); the stored list is now a
-                    # mix of old and new items, so start the whole transfer again
-                    res.cancel_restarts += 1
-                    log.info("mission upload cancelled by the vehicle at item %d/%d; restarting (%d)",
-                             last_seq + 1, n, res.cancel_restarts)
-                    sub.drain()
-                    requested, last_seq, silent, last_resends = False, -1, 0, 0
-                    if timeout is None:
-                        deadline = self._deadline(n, None)  # a fresh transfer gets a fresh budget
-                    send_count()
-                    continue
-                if result == M.MAV_MISSION_NO_SPACE and not requested:
-                    if self._initialising() and res.no_space_retries < self.no_space_retries:
-                        res.no_space_retries += 1
-                        log.info("NO_SPACE while the vehicle initialises; retry %d in %.1f s",
-                                 res.no_space_retries, self.no_space_delay_s)
-                        time.sleep(min(self.no_space_delay_s, max(deadline - time.monotonic(), 0)))
-                        sub.drain()
-                        silent = 0
-                        send_count()
-                        continue
-                    detail = (f"still NO_SPACE after {res.no_space_retries} retries" if res.no_space_retries
-                              else f"the vehicle has no room for {n} items (capacity limit)")
-                    raise self._reject(result, t0, detail)
-                raise self._reject(result, t0)
 
     # -- download -------------------------------------------------------------------------------
-    def download(self, mission_type: int = MAV_MISSION_TYPE_MISSION, *, timeout: float | None = None) -> list[MissionItem]:
+    def download(self, mission_type: int = MAV_MISSION_TYPE_MISSION, *,
+                 timeout: float | None = None) -> list[MissionItem]:
         """Read the list back: MISSION_REQUEST_LIST -> COUNT -> REQUEST_INT/ITEM_INT per item -> ACK.
 
         For mission type 0 item 0 is the vehicle's home. Raises MissionRejected / LinkTimeout.
@@ -419,7 +347,7 @@ class MissionClient:
         """
         self.upload(items, mission_type, timeout=timeout)
         got = self.download(mission_type, timeout=timeout)
-        bad = _differences(list(items), got, mission_type)
+        bad = differences(list(items), got, mission_type)
         if bad:
             raise MissionVerifyError(f"mission read back differs from the upload: {bad}")
         return got
@@ -463,6 +391,112 @@ class MissionClient:
         raise LinkTimeout(f"MISSION_CURRENT never showed seq {seq}")
 
 
+class _Upload:
+    """One upload's transfer state (:meth:`MissionClient.upload`): what was requested and sent, silences,
+    and the vehicle's answers (requests and MISSION_ACKs)."""
+
+    def __init__(self, client: MissionClient, items: list[MissionItem], mission_type: int, timeout: float | None,
+                 sub):
+        self.client, self.items, self.mission_type, self.timeout, self.sub = client, items, mission_type, timeout, sub
+        self.link = client.link
+        self.n = len(items)
+        self.t0 = time.monotonic()
+        self.deadline = client._deadline(self.n, timeout)
+        self.res = UploadResult(count=self.n)
+        self.requested = False   # a request of this transfer has arrived
+        self.last_seq = -1       # last item requested and sent
+        self.silent = 0          # consecutive silent periods
+        self.last_resends = 0
+
+    def send_count(self) -> None:
+        self.res.count_sends += 1
+        link = self.link
+        link.send(M.MAVLink_mission_count_message(link.target_system, link.target_component, self.n,
+                                                  self.mission_type))
+
+    def send_item(self, seq: int) -> None:
+        self.res.items_sent += 1
+        self.link.send(to_msg(self.items[seq], self.link.target_system, self.link.target_component))
+
+    def on_silence(self) -> None:
+        """No answer for an item timeout: send again what the vehicle may have missed."""
+        self.silent += 1
+        if self.silent > self.client.retries:
+            raise LinkTimeout(f"vehicle silent during mission upload (item {self.last_seq + 1}/{self.n})"
+                              + (" (link lost)" if self.link.lost else ""))
+        if not self.requested:
+            self.send_count()
+        elif self.last_seq == self.n - 1:
+            self.last_resends += 1
+            self.send_item(self.n - 1)  # the final ACK may be lost: the vehicle answers ERROR if it is done
+        else:
+            self.send_item(self.last_seq)  # our item may be lost (the vehicle re-requests too)
+
+    def on_request(self, seq: int) -> None:
+        if 0 <= seq < self.n:
+            self.silent, self.requested, self.last_seq = 0, True, seq
+            self.send_item(seq)
+
+    def on_ack(self, m) -> UploadResult | None:
+        """MISSION_ACK ``m``: the result once the transfer is over, None while it goes on; raises a refusal."""
+        n, res, client = self.n, self.res, self.client
+        result = int(m.type)
+        if result == _ACCEPTED:
+            if n == 0 or self.last_seq == n - 1:
+                res.seconds = time.monotonic() - self.t0
+                res.opaque_id = int(getattr(m, "opaque_id", 0) or 0)
+                return res
+            return None  # a stale ACK from an earlier transfer
+        if result == M.MAV_MISSION_INVALID_SEQUENCE and self.requested:
+            return None  # a duplicate item after a lost request: ArduPilot goes on with the transfer
+        if result == M.MAV_MISSION_ERROR and self.last_seq == n - 1 and (self.last_resends or self.silent):
+            return self._ack_lost(result)
+        if (result == M.MAV_MISSION_OPERATION_CANCELLED and self.requested
+                and res.cancel_restarts < client.cancel_restarts):
+            # the vehicle gave up waiting (its 8 s item timeout); the stored list is now a
+            # mix of old and new items, so start the whole transfer again
+            res.cancel_restarts += 1
+            log.info("mission upload cancelled by the vehicle at item %d/%d; restarting (%d)",
+                     self.last_seq + 1, n, res.cancel_restarts)
+            self.sub.drain()
+            self.requested, self.last_seq, self.silent, self.last_resends = False, -1, 0, 0
+            if self.timeout is None:
+                self.deadline = client._deadline(n, None)  # a fresh transfer gets a fresh budget
+            self.send_count()
+            return None
+        if result == M.MAV_MISSION_NO_SPACE and not self.requested:
+            return self._no_space(result)
+        raise client._reject(result, self.t0)
+
+    def _ack_lost(self, result: int) -> UploadResult:
+        """ERROR after our last item was sent again: the vehicle closed the transfer and its ACK was lost."""
+        got = self.client.download(self.mission_type,
+                                   timeout=max(self.deadline - time.monotonic(), self.client._t_item * 4))
+        bad = differences(self.items, got, self.mission_type)
+        if bad:
+            raise self.client._reject(result, self.t0, f"final ACK lost and the read-back differs: {bad}")
+        self.res.ack_lost = True
+        self.res.seconds = time.monotonic() - self.t0
+        log.info("mission upload: final ACK lost, confirmed by read-back")
+        return self.res
+
+    def _no_space(self, result: int) -> None:
+        """NO_SPACE before any request: a vehicle still initialising is asked again, else it is its capacity."""
+        client, res = self.client, self.res
+        if client._initialising() and res.no_space_retries < client.no_space_retries:
+            res.no_space_retries += 1
+            log.info("NO_SPACE while the vehicle initialises; retry %d in %.1f s",
+                     res.no_space_retries, client.no_space_delay_s)
+            time.sleep(min(client.no_space_delay_s, max(self.deadline - time.monotonic(), 0)))
+            self.sub.drain()
+            self.silent = 0
+            self.send_count()
+            return None
+        detail = (f"still NO_SPACE after {res.no_space_retries} retries" if res.no_space_retries
+                  else f"the vehicle has no room for {self.n} items (capacity limit)")
+        raise client._reject(result, self.t0, detail)
+
+
 class MissionWatch:
     """Signs that another ground station changed the vehicle's mission (a listener on the link).
 
@@ -479,7 +513,7 @@ class MissionWatch:
       upload; their MISSION_REQUESTs show an upload in progress (``foreign_peer`` says who).
 
     None of these sees a same-length upload on a direct link to ArduPilot 4.7; the controller's
-    read-back does (see :meth:`passt_mav.controller.MissionController._swap`).
+    read-back does (see :meth:`passt_mav.vehicle_session.VehicleSession.swap`).
     """
 
     def __init__(self, link: Link):
@@ -505,7 +539,7 @@ class MissionWatch:
             self.total = int(m.total)
             self.mission_id = int(getattr(m, "mission_id", 0) or 0)
             return
-        if self.link._for_us(m):
+        if self.link.for_us(m):
             return
         self.foreign_peer = (int(m.target_system), int(m.target_component))
         if m.get_type() == "MISSION_ACK":
@@ -537,7 +571,7 @@ class MissionWatch:
         return ""
 
 
-def _differences(sent: list[MissionItem], got: list[MissionItem], mission_type: int) -> str:
+def differences(sent: list[MissionItem], got: list[MissionItem], mission_type: int) -> str:
     """'' if the vehicle holds what it would store of ``sent`` (:func:`rover_stored`, within wire
     tolerance), else a short description of what differs."""
     if len(sent) != len(got):

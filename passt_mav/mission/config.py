@@ -55,6 +55,7 @@ from passt_mav.errors import MissionConfigError
 from passt_mav.reconstruction.background import DEFAULT_BACKGROUND, background_steps_problem
 
 __all__ = [
+    "mission_overrides",
     "MissionConfig",
     "GeographicRegion",
     "MetricRegion",
@@ -502,3 +503,17 @@ def load_mission(path: str | Path) -> MissionConfig:
     if data is None:
         raise MissionConfigError(f"{p}: the mission file is empty")
     return validate_mission(data, source=str(p), base_dir=p.parent)
+
+
+def mission_overrides(data: dict, overrides: dict) -> dict:
+    """A copy of a mission mapping with dotted-key overrides (``{"planner.path_length": 6}``)."""
+    import copy
+
+    out = copy.deepcopy(data)
+    for key, val in overrides.items():
+        cur = out
+        parts = key.split(".")
+        for p in parts[:-1]:
+            cur = cur.setdefault(p, {})
+        cur[parts[-1]] = val
+    return out

@@ -13,7 +13,7 @@ tolerance that quantisation implies.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 __all__ = [
     "MissionItem",
@@ -77,9 +77,6 @@ class MissionItem:
     def y_int(self) -> int:
         """longitude as int32 degE7 (or the raw y for non-global frames)."""
         return int(round(self.lon * 1e7)) if self.is_global else int(round(self.lon))
-
-    def with_seq(self, seq: int) -> "MissionItem":
-        return replace(self, seq=int(seq))
 
     def same_as(self, other: "MissionItem", *, deg_tol: float = 1e-7, param_tol: float = 1e-4,
                 alt_tol: float = 1e-3, check_frame: bool = True) -> bool:

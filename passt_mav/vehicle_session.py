@@ -1,0 +1,550 @@
+"""The vehicle side of a mission: one boat's link, its leg swaps and its faults.
+
+A :class:`VehicleSession` owns what the controller does *to the vehicle*; the controller
+(:mod:`passt_mav.controller`) keeps the PASST loop, the clock and the run's records. Per leg:
+
+* :meth:`VehicleSession.swap` - HOLD, verified upload, set-current 1, arm, AUTO (transactional:
+  a link lost on the way is reconnected and the swap starts again from HOLD);
+* :meth:`VehicleSession.fly` - wait for the mission to complete, handling a lost link
+  (:meth:`~VehicleSession.recover_link`), an autopilot reboot (:meth:`~VehicleSession.after_reboot`),
+  a pilot taking over (:meth:`~VehicleSession.pause`) and another ground station replacing the
+  mission (:meth:`~VehicleSession.verify_flying`).
+
+What it says goes through a :class:`Journal` (progress lines, the run's event list, the live
+view's ``events.jsonl``). Everything it sends goes through the public methods of
+:class:`~passt_mav.mavlink.Link`, :class:`~passt_mav.mavlink.Vehicle` and
+:class:`~passt_mav.mavlink.mission_client.MissionClient`; modes by name (:data:`ROVER_MODES`).
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import logging
+import threading
+import time
+from typing import Callable
+
+import numpy as np
+
+from passt_mav.errors import CommandRejected, LinkTimeout, MavlinkError, MissionRejected, MissionVerifyError
+from passt_mav.mavlink.link import mavlink2 as M
+from passt_mav.mavlink.mission_client import MissionWatch, differences, rover_stored
+from passt_mav.mavlink.vehicle import ROVER_MODE_NAMES, ROVER_MODES
+
+__all__ = ["VehicleSession", "Journal", "Deadline", "Paused", "Rebooted", "utc_now"]
+
+log = logging.getLogger(__name__)
+
+AUTO = ROVER_MODES["AUTO"]
+INITIALISING = ROVER_MODES["INITIALISING"]
+#: upload results retried as a failed try (the vehicle cancelled the transfer, or answered ERROR)
+_RETRIED = (M.MAV_MISSION_OPERATION_CANCELLED, M.MAV_MISSION_ERROR)
+
+
+def utc_now() -> str:
+    """Now as ISO-8601 UTC, to the second (``2026-01-01T12:00:00Z``)."""
+    return _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds").replace("+00:00", "Z")
+
+
+class Paused(Exception):
+    """The vehicle left AUTO and did not come back in time (or rebooted with on_reboot: hold)."""
+
+
+class Rebooted(Exception):
+    """The autopilot rebooted: handled by the leg in flight."""
+
+
+class Journal:
+    """Where a boat's controller reports: progress lines (``echo``), the run's event list
+    (summary.json) and the live view's events (a :class:`~passt_mav.runs.live.RecordWriter`)."""
+
+    def __init__(self, echo: Callable[[str], None], record, events: list[str] | None = None):
+        self.echo = echo
+        self.record = record
+        self.events: list[str] = [] if events is None else events
+
+    def say(self, text: str) -> None:
+        """A progress line (and the log)."""
+        self.echo(text)
+        log.info(text)
+
+    def note(self, kind: str, text: str) -> None:
+        """An event: the run's list and the live view's (``kind``: runs.live.KINDS)."""
+        self.events.append(text)
+        self.record.event(kind, text)
+
+
+class Deadline:
+    """A leg's time limit, kept in the vehicle's time: ``budget_s`` vehicle seconds from now.
+
+    A sped-up simulator starved of CPU runs slower than its nominal speed-up; a wall-clock
+    limit would then fail legs that are fine. The wall clock only backs it up, ten times more
+    generous (a vehicle whose clock stops: a frozen simulator, a dead link)."""
+
+    def __init__(self, link, budget_s: float, speedup: float):
+        self.link, self.speedup = link, max(float(speedup), 1e-6)
+        self.last_up = link.vehicle_uptime_s()
+        self.vehicle = None if self.last_up is None else self.last_up + budget_s
+        self.wall = time.monotonic() + 10.0 * budget_s / self.speedup + 60.0
+
+    def extend(self, wall_s: float, *, rebooted: bool = False) -> None:
+        """Add ``wall_s`` of waiting (reconnect, reboot, pilot). After a reboot the vehicle's clock
+        started again: what was left of the budget counts from its new time."""
+        self.wall += wall_s
+        if self.vehicle is None:
+            return
+        if rebooted:
+            left = self.vehicle - (self.last_up or 0.0)
+            up = self.last_up = self.link.vehicle_uptime_s()
+            self.vehicle = None if up is None else up + left
+        else:
+            self.vehicle += wall_s * self.speedup
+
+    def passed(self) -> bool:
+        up = self.link.vehicle_uptime_s()
+        if up is not None and (self.last_up is None or up >= self.last_up):  # (a reboot's restart: see extend)
+            self.last_up = up
+        return time.monotonic() > self.wall or (self.vehicle is not None and up is not None and up > self.vehicle)
+
+
+def replaced_what(sent, got) -> str:
+    """A short description of a mission on the vehicle that is not ours (the full one goes to the log)."""
+    if len(sent) != len(got):
+        return f"it holds {len(got)} items, ours has {len(sent)}"
+    bad = [a.seq for a, b in zip(sent[1:], got[1:]) if not rover_stored(a).same_as(rover_stored(b))]
+    return f"{len(bad)} of our {len(sent) - 1} items differ, the first at seq {bad[0]}" if bad else "home differs"
+
+
+class VehicleSession:
+    """One boat's vehicle side (module docstring): swap, fly, and the faults on the way.
+
+    Args:
+        link / vehicle: the connected :class:`~passt_mav.mavlink.Link` and its :class:`~passt_mav.mavlink.Vehicle`.
+        journal: where it reports (:class:`Journal`).
+        speed_mps: the mission's speed (m/s), set again after a resume past the mission's DO_CHANGE_SPEED.
+        on_reboot: ``"resume"`` or ``"hold"`` (mission key ``vehicle.on_reboot``).
+        speedup: simulated / wall seconds of the vehicle (1 for a real boat); scales wall timeouts.
+        ready_timeout_s: wall seconds to wait for EKF/GPS readiness.
+        pause_timeout_s: wall seconds to wait for AUTO to come back after a pilot took over.
+    """
+
+    #: replacements of our mission by another ground station in one leg before the controller stops in HOLD
+    FOREIGN_REPLACEMENTS = 2
+    #: vehicle seconds to wait for another ground station's mission transfer (our upload DENIED meanwhile)
+    FOREIGN_WAIT_S = 60.0
+
+    def __init__(self, link, vehicle, journal: Journal, *, speed_mps: float, on_reboot: str = "resume",
+                 speedup: float = 1.0, ready_timeout_s: float = 120.0, pause_timeout_s: float = 300.0):
+        self.link, self.vehicle, self.journal = link, vehicle, journal
+        self.speed = float(speed_mps)
+        self.on_reboot = on_reboot
+        self.speedup = max(float(speedup), 1e-6)
+        self.ready_timeout_s = float(ready_timeout_s)
+        self.pause_timeout_s = float(pause_timeout_s)
+        #: set by :meth:`rebooted_signal` (the collector's reader thread), cleared by whoever handles it
+        self.rebooted = threading.Event()
+        self.reboot_info: tuple[int, int, int] | None = None
+        #: the item to come back to if the autopilot reboots (it forgets its progress)
+        self.resume_seq = 1
+        #: the mission is to be read back in AUTO (after a swap; signs of another station's upload)
+        self.verify_pending = False
+        self._mission_watch: MissionWatch | None = None
+        self._mission_mark: tuple[int, int] = (0, 0)
+        self._replaced: dict[int, int] = {}  # leg -> replacements by another station seen
+
+    # -- small things ---------------------------------------------------------------------------
+    def _say(self, text: str) -> None:
+        self.journal.say(text)
+
+    @property
+    def arm_timeout_s(self) -> float:
+        return max(30.0, 120.0 / self.speedup)
+
+    def wait_ready(self) -> None:
+        """Wait for the EKF (``ready_timeout_s``)."""
+        self.vehicle.wait_ready(timeout=self.ready_timeout_s)
+
+    def position(self, timeout: float = 10.0) -> tuple[float, float]:
+        """The vehicle's (lat, lon) degrees; MavlinkError without a GPS position within ``timeout`` wall s."""
+        end = time.monotonic() + timeout
+        while (p := self.vehicle.position()) is None:
+            if time.monotonic() > end:
+                raise MavlinkError("no GPS position from the vehicle")
+            time.sleep(0.02)
+        return p
+
+    def hold_if_auto(self) -> None:
+        """HOLD if the vehicle flies our mission (AUTO); a failure is logged, never raised."""
+        try:
+            if self.vehicle.mode == AUTO:
+                self.vehicle.hold()
+        except MavlinkError as exc:
+            log.warning("could not switch to HOLD: %s", exc)
+
+    def rebooted_signal(self, info: tuple[int, int, int]) -> None:
+        """From the reader thread: the vehicle's time since boot went back ((boot, last_tb, first_tb))."""
+        self.reboot_info = info
+        # the old boot's EKF report would make wait_ready() pass at once, before the new EKF has a position
+        self.link.forget("EKF_STATUS_REPORT")
+        self.rebooted.set()
+
+    @property
+    def watch(self) -> MissionWatch:
+        """:class:`~passt_mav.mavlink.mission_client.MissionWatch` on this link (made on first use)."""
+        if self._mission_watch is None:
+            self._mission_watch = MissionWatch(self.link)
+            self._mission_mark = self._mission_watch.mark()
+        return self._mission_watch
+
+    # -- the leg swap ----------------------------------------------------------------------------
+    def swap(self, i: int, items, t0w: float, *, on_armed: Callable[[], None], on_start: Callable[[], None],
+             attempts: int = 3) -> tuple[int, float, float, float | None]:
+        """HOLD, verified upload, set-current 1, arm, AUTO: the transactional leg swap.
+
+        A link lost on the way (LinkTimeout while the link is lost or closed) is reconnected and
+        the swap starts again from HOLD, up to ``attempts`` times: the upload is verified by
+        reading back, the other steps are idempotent, so a swap half done is never flown.
+        ``on_armed()`` after arming a disarmed vehicle, ``on_start()`` just before AUTO.
+        Returns ``(upload_tries, upload_s, t_fly (perf_counter), vehicle uptime at AUTO)``.
+        """
+        for attempt in range(1, attempts + 1):
+            try:
+                return self._swap_once(i, items, t0w, attempt, on_armed, on_start)
+            except MavlinkError as exc:
+                if not (isinstance(exc, LinkTimeout) or self.link.closed_reason is not None) or not self.link.lost \
+                        or attempt == attempts:
+                    raise
+                self._say(f"leg {i + 1}: link lost during the leg swap ({exc}); reconnecting and starting the swap "
+                          f"again from HOLD (attempt {attempt + 1}/{attempts})")
+                self.journal.note("link_lost", f"leg {i}: link lost during the swap at {utc_now()}: {exc}")
+                self.link.reconnect()
+        raise AssertionError("unreachable")
+
+    def _swap_once(self, i: int, items, t0w: float, attempt: int, on_armed, on_start):
+        v = self.vehicle
+        if self.rebooted.is_set() or attempt > 1:
+            # after a reconnect the vehicle may have rebooted (its first time stamps may not be here
+            # yet): an upload right after boot is refused and AUTO needs the EKF, so wait for it first
+            self.rebooted.clear()
+            self.wait_ready()
+        if v.mode == AUTO:
+            v.hold()
+        tries = self.upload(i, items)
+        # seq 1 is the first mission item (DO_CHANGE_SPEED, then the waypoints): start there
+        v.mission.set_current(1)
+        upload_s = time.perf_counter() - t0w
+        if not v.armed:
+            v.arm(timeout=self.arm_timeout_s)
+            on_armed()
+        on_start()
+        self.resume_seq = 1
+        t_fly = time.perf_counter()
+        tb_fly = self.link.vehicle_uptime_s()
+        v.start_mission()
+        self.verify_pending = True  # fly() reads the mission back: another GCS may have uploaded meanwhile
+        return tries, upload_s, t_fly, tb_fly
+
+    def upload(self, i: int, items, tries: int = 4) -> int:
+        """Upload, then read back and compare (as ``MissionClient.upload_verified``), with retries.
+
+        Retried (the vehicle is in HOLD meanwhile): a transfer the vehicle cancelled (its 8 s
+        timeout) or answered ERROR, a timeout, and a read-back that differs. A read-back that
+        fails is re-read first: at a high simulator speed-up the vehicle re-requests items after
+        1 s of *its* time, our duplicate answers then draw a late MISSION_ACK ERROR that lands in
+        the download. DENIED (another ground station's upload is in progress: ArduPilot serves one
+        at a time) is waited out, saying so once, for up to :attr:`FOREIGN_WAIT_S` (vehicle seconds)
+        without counting as a try. Capacity (NO_SPACE) and other refusals raise at once.
+        Returns the number of tries.
+        """
+        last: Exception | None = None
+        denied_since: float | None = None
+        k = 0
+        while k < tries:
+            k += 1
+            try:
+                up = self.vehicle.mission.upload(items)
+            except (MissionRejected, LinkTimeout) as exc:
+                if isinstance(exc, MissionRejected) and exc.result == M.MAV_MISSION_DENIED:
+                    denied_since = denied_since or self._denied(i)
+                    if (time.monotonic() - denied_since) * self.speedup < self.FOREIGN_WAIT_S:
+                        time.sleep(max(0.05, 1.0 / self.speedup))
+                        k -= 1  # waiting for the other station is not a failed try
+                        continue
+                elif isinstance(exc, MissionRejected) and exc.result not in _RETRIED:
+                    raise
+                if self.link.lost:
+                    raise  # the swap reconnects and starts again; retrying on a dead link only waits
+                last = exc
+            else:
+                last = self._read_back(items, up.opaque_id)
+                if last is None:
+                    return k
+            self._say(f"leg {i + 1}: upload try {k} failed ({last}); retrying" if k < tries else
+                      f"leg {i + 1}: upload failed {tries} times ({last})")
+            self.journal.events.append(f"leg {i}: upload try {k} failed: {last}")
+            time.sleep(0.05)
+        assert last is not None
+        raise last
+
+    def _read_back(self, items, opaque_id: int) -> Exception | None:
+        """After an upload: read the mission back (up to 3 reads); None if it is ours, else why not."""
+        last: Exception | None = None
+        for _ in range(3):
+            try:
+                got = self.vehicle.mission.download()
+            except (MissionRejected, LinkTimeout) as exc:
+                last = exc
+                time.sleep(0.05)
+                continue
+            diff = differences(list(items), got, 0)
+            if not diff:
+                self._mission_mark = self.watch.expect(len(items), opaque_id)
+                return None
+            return MissionVerifyError(f"mission read back differs from the upload: {diff}")
+        return last
+
+    def _denied(self, i: int) -> float:
+        """Our upload was DENIED: ArduPilot serves one upload at a time and another ground station's is in
+        progress. Says so once; returns when (monotonic s) the wait began."""
+        who = self.watch.changed((0, 0)) or "not visible on this link"
+        self._say(f"leg {i + 1}: the vehicle denied our upload: another ground station is transferring a mission "
+                  f"({who}); waiting up to {self.FOREIGN_WAIT_S:g} s (vehicle time) for it to finish")
+        self.journal.events.append(f"leg {i}: upload denied at {utc_now()}: another station's transfer ({who})")
+        return time.monotonic()
+
+    def verify_flying(self, i: int, items, resume_seq: int = 1) -> None:
+        """Read the mission back while in AUTO: the vehicle must be flying ours.
+
+        Called by :meth:`fly` once AUTO is entered (after every swap) and when the
+        :class:`~passt_mav.mavlink.mission_client.MissionWatch` sees signs of another upload. A
+        ground station beside us (QGroundControl re-downloading, or an operator uploading) may
+        have replaced the mission between our read-back and AUTO, or during the leg. If the read-back
+        differs: say so, HOLD, upload ours again, resume at ``resume_seq``, AUTO, read back again;
+        after :attr:`FOREIGN_REPLACEMENTS` replacements in this leg stop in HOLD (:class:`Paused`)
+        rather than fight the other station for the vehicle.
+        """
+        v = self.vehicle
+        while True:
+            got = v.mission.download()
+            diff = differences(list(items), got, 0)
+            if not diff:
+                self._mission_mark = self.watch.expect(len(items), self.watch.expected_id)
+                return
+            who = self.watch.changed(self._mission_mark) or "seen by the read-back"
+            what = replaced_what(items, got)
+            n = self._replaced[i] = self._replaced.get(i, 0) + 1
+            log.info("leg %d: mission on the vehicle differs: %s", i, diff)
+            self.journal.note("mission_replaced", f"leg {i}: mission replaced on the vehicle at {utc_now()} ({who}): "
+                                                  f"{what}")
+            if n > self.FOREIGN_REPLACEMENTS:
+                v.hold()
+                raise Paused(f"leg {i}: another ground station replaced our mission {n} times ({who}); stopped in "
+                             f"HOLD; stop its uploads, then continue with --resume")
+            self._say(f"leg {i + 1}: another ground station replaced our mission on the vehicle ({who}; {what}); "
+                      f"HOLD, uploading ours again, resuming at item {resume_seq}")
+            v.hold()
+            self.upload(i, items)
+            v.mission.set_current(resume_seq)
+            v.start_mission()
+            if resume_seq > 1:
+                self.set_speed_again(i, "the mission was uploaded again")
+
+    def set_speed_again(self, i: int, why: str) -> None:
+        """DO_CHANGE_SPEED to the mission's speed: resuming past seq 1 skips the mission's own (the vehicle would
+        go on at its WP_SPEED parameter)."""
+        try:
+            self.link.command_long(M.MAV_CMD_DO_CHANGE_SPEED, 1, self.speed, -1)
+        except (CommandRejected, LinkTimeout) as exc:
+            self._say(f"leg {i + 1}: WARNING: the leg's speed {self.speed:g} m/s was not set again after {why} "
+                      f"({exc}); the vehicle goes on at its WP_SPEED")
+            self.journal.events.append(f"leg {i}: speed not set again after {why}: {exc}")
+
+    # -- flying one leg, with its faults ------------------------------------------------------------
+    def fly(self, i: int, items, n_items: int, expected_s: float) -> None:
+        """Wait for the leg to complete (``n_items`` excludes home; ``expected_s``: vehicle seconds it should
+        take): reconnect on link loss, resume after a reboot, pause when a pilot takes the vehicle out of AUTO."""
+        deadline = Deadline(self.link, 4.0 * expected_s + 30.0, self.speedup)
+        p = self.vehicle.progress
+        while True:
+            self._verify_if_pending(i, items)
+            if self._wait_complete(n_items):
+                return
+            if deadline.passed():
+                raise LinkTimeout(f"leg {i} not complete in time (item {p.current}/{p.total})")
+            if self.rebooted.is_set():
+                deadline.extend(self.after_reboot(i, items, n_items), rebooted=True)
+                continue
+            if self.link.lost or self.link.error is not None:
+                self.recover_link(i, items)
+                deadline.extend(30.0)
+                continue
+            waited = self._watch_mode(i, n_items)
+            if waited:
+                deadline.extend(waited)
+
+    def _verify_if_pending(self, i: int, items) -> None:
+        if not (self.verify_pending and self.vehicle.mode == AUTO and not self.link.lost):
+            return
+        try:
+            self.verify_flying(i, items, resume_seq=self.resume_seq)
+            self.verify_pending = False
+        except MavlinkError as exc:
+            # DENIED: another station's upload is in progress (the vehicle serves no download
+            # meanwhile): read back once it is over. A lost link: recovered by fly(), then read back.
+            if getattr(exc, "result", None) != M.MAV_MISSION_DENIED and not self.link.lost \
+                    and self.link.error is None:
+                raise
+
+    def _wait_complete(self, n_items: int) -> bool:
+        """True once the mission is complete (MISSION_CURRENT complete with our total, or the last item
+        reached); waits up to 0.1 s for news."""
+        p = self.vehicle.progress
+
+        def done() -> bool:
+            return (p.state == M.MISSION_STATE_COMPLETE and p.total == n_items) or n_items in p.reached
+        with p.changed:
+            if done():
+                return True
+            p.changed.wait(0.1)
+            return done()
+
+    def _watch_mode(self, i: int, n_items: int) -> float:
+        """In AUTO: note the item to resume at and signs of another station. Out of AUTO: a reboot or a pilot.
+        Returns wall seconds spent waiting for a pilot (0 otherwise)."""
+        v, p = self.vehicle, self.vehicle.progress
+        mode = v.mode
+        if mode == AUTO and v.armed:
+            nxt = max([p.current] + [r + 1 for r in p.reached[-1:]])
+            self.resume_seq = int(min(max(nxt, 1), n_items))
+            if self.watch.changed(self._mission_mark):  # another ground station's upload: read back
+                self.verify_pending = True
+        elif mode is not None and mode != AUTO:
+            if self._reboot_suspected(mode):
+                return 0.0
+            try:
+                return self.pause(i, mode)
+            except Rebooted:
+                return 0.0
+        return 0.0
+
+    def _reboot_suspected(self, mode: int) -> bool:
+        """Out of AUTO and disarmed (or INITIALISING): a rebooted autopilot looks like this before its
+        first time stamp arrives. Wait ~3 s of vehicle time for the signature; True if it came."""
+        if self.vehicle.armed and mode != INITIALISING:
+            return False  # a pilot's mode change: the vehicle stays armed
+        return self.rebooted.wait(max(0.3, 3.0 / self.speedup))
+
+    def after_reboot(self, i: int, items, n_items: int) -> float:
+        """The autopilot rebooted mid-leg: wait, verify, re-arm, resume at the interrupted item (or HOLD
+        and stop with ``vehicle.on_reboot: hold``). Returns the wall seconds it took."""
+        t0 = time.monotonic()
+        v = self.vehicle
+        self.rebooted.clear()
+        boot, last_tb, first_tb = self.reboot_info or (0, 0, 0)
+        seq = int(self.resume_seq)
+        self._say(f"leg {i + 1}: the autopilot rebooted (its time since boot went from {last_tb / 1000:.1f} s back to "
+                  f"{first_tb / 1000:.1f} s): not a pilot; waiting for it to be ready (EKF)")
+        self.journal.note("reboot", f"leg {i}: vehicle rebooted at {utc_now()} (boot {boot}, was at item {seq})")
+        if self.link.lost:
+            self.link.reconnect()
+        self.link.request_streams()  # a reboot forgets the rates set by SET_MESSAGE_INTERVAL
+        self.wait_ready()
+        if self.on_reboot == "hold":
+            v.hold()
+            raise Paused(f"leg {i}: the autopilot rebooted mid-leg; vehicle.on_reboot is 'hold': stopped in HOLD "
+                         f"(the leg was at item {seq}/{n_items}; continue with --resume)")
+        diff = differences(list(items), v.mission.download(), 0)
+        if diff:
+            self._say(f"leg {i + 1}: the mission on the vehicle differs after the reboot ({diff}); re-uploading")
+            self.upload(i, items)
+        v.mission.set_current(seq)
+        v.arm(timeout=self.arm_timeout_s)
+        v.start_mission()
+        if seq > 1:
+            # the mission's DO_CHANGE_SPEED (seq 1) lies behind the resumed item and the reboot forgot it
+            self.set_speed_again(i, "the reboot")
+        self._say(f"leg {i + 1}: mission verified after the reboot; re-armed, AUTO again at item {seq}/{n_items}")
+        self.journal.note("reboot_recovered", f"leg {i}: resumed after the reboot at item {seq}/{n_items}"
+                          + (" (mission re-uploaded)" if diff else " (stored mission verified)"))
+        return time.monotonic() - t0
+
+    def recover_link(self, i: int, items) -> None:
+        """The link died mid-leg: reconnect, then (unless the autopilot rebooted: :meth:`fly` handles that)
+        check the vehicle still holds our mission, re-uploading it at the current item if not."""
+        link = self.link
+        why = link.closed_reason or f"{link.seconds_since_heartbeat:.1f} s without heartbeat"
+        self._say(f"leg {i + 1}: link lost ({why}); reconnecting")
+        self.journal.note("link_lost", f"leg {i}: link lost at {utc_now()} ({why})")
+        link.clear_error()
+        link.reconnect()
+        # a rebooted autopilot also drops its links: look at its time before treating this as a link fault
+        try:
+            link.wait("GLOBAL_POSITION_INT", timeout=max(1.0, 3.0 / self.speedup) + link.reply_timeout)
+        except LinkTimeout:
+            pass
+        self.journal.record.event("link_back", f"leg {i}: link back at {utc_now()}")
+        if self.rebooted.wait(0.1):
+            return  # fly() handles the reboot (it verifies the mission itself)
+        v = self.vehicle
+        diff = differences(list(items), v.mission.download(), 0)
+        cur = link.wait("MISSION_CURRENT", timeout=max(2.0, link.reply_timeout))
+        if diff:
+            self._say(f"leg {i + 1}: the vehicle's mission differs after the reconnect ({diff}); re-uploading")
+            was_auto = v.mode == AUTO
+            if was_auto:
+                v.hold()
+            v.mission.upload_verified(items)
+            v.mission.set_current(max(1, min(int(cur.seq), len(items) - 1)))
+            if was_auto:
+                v.set_mode("AUTO")
+        self.journal.events.append(f"leg {i}: reconnected, mission verified, item {cur.seq}/{cur.total}")
+        self._say(f"leg {i + 1}: reconnected; mission on the vehicle verified, at item {cur.seq}/"
+                  f"{getattr(cur, 'total', '?')}")
+
+    def pause(self, i: int, mode: int) -> float:
+        """A pilot took the vehicle out of AUTO: wait up to ``pause_timeout_s`` for AUTO to come back.
+        Returns the wall seconds waited; :class:`Paused` when it did not, :class:`Rebooted` if it rebooted."""
+        name = ROVER_MODE_NAMES.get(mode, str(mode))
+        self._say(f"leg {i + 1}: the vehicle left AUTO (mode {name}): a pilot has control; pausing "
+                  f"(waiting up to {self.pause_timeout_s:.0f} s for AUTO)")
+        self.journal.note("pilot_takeover", f"leg {i}: vehicle left AUTO (mode {name}) at {utc_now()}")
+        t0 = time.monotonic()
+        while time.monotonic() - t0 < self.pause_timeout_s:
+            if self.vehicle.mode == AUTO:
+                self._say(f"leg {i + 1}: back in AUTO; continuing")
+                self.journal.note("pilot_released", f"leg {i}: back in AUTO")
+                return time.monotonic() - t0
+            if self.rebooted.is_set():
+                raise Rebooted()  # not the pilot after all (or the pilot rebooted it): fly() resumes
+            if self.link.lost:
+                self.link.reconnect()
+            time.sleep(0.05)
+        raise Paused(f"leg {i}: the vehicle stayed in {name} for {self.pause_timeout_s:.0f} s; stopping in HOLD")
+
+    # -- link figures ----------------------------------------------------------------------------------
+    def link_snapshot(self) -> tuple:
+        """Counters to measure a leg's link figures from (:meth:`link_record`)."""
+        st = self.link.stats
+        return st.received, st.drops, st.vehicle_bytes, self.link.vehicle_uptime_s()
+
+    def link_record(self, before: tuple) -> dict:
+        """Link figures since ``before``; ``vehicle_bytes_per_s``: bytes the vehicle sent us per second of its
+        own clock (the telemetry radio's budget: baud / 10 bytes/s each way), None without a vehicle clock."""
+        st = self.link.stats
+        rec, drops = st.received - before[0], st.drops - before[1]
+        nbytes, t1 = st.vehicle_bytes - before[2], self.link.vehicle_uptime_s()
+        rtt = self.link.rtt
+        bps = nbytes / (t1 - before[3]) if t1 is not None and before[3] is not None and t1 - before[3] > 1.0 else None
+        return {"rtt_ms": None if rtt is None else round(rtt * 1000.0, 3),
+                "loss": (drops / (rec + drops)) if rec + drops else 0.0, "messages": int(rec), "drops": int(drops),
+                "vehicle_bytes": int(nbytes), "vehicle_bytes_per_s": None if bps is None else round(bps, 1)}
+
+
+def expected_vehicle_s(grid, wm, speed_mps: float) -> float:
+    """Vehicle seconds a leg's waypoints ``wm`` should take at ``speed_mps`` (no current)."""
+    import geo
+
+    wp = wm.waypoints
+    dist = float(np.sum(geo.geodesic_distance_m(wp[:-1, 0], wp[:-1, 1], wp[1:, 0], wp[1:, 1]))) if len(wp) > 1 else 0.0
+    dist += grid.mean_cell_size_m  # reaching the first waypoint from anywhere in the start cell
+    return dist / speed_mps
