@@ -1,4 +1,4 @@
-"""PASST with a fleet, offline (passt_mav.passt.run_offline_fleet, ``passt-mav evaluate --boats``)."""
+"""PASST with a fleet, offline (passt_mav.engine.run_offline_fleet, ``passt-mav evaluate --boats``)."""
 
 from __future__ import annotations
 
@@ -7,10 +7,10 @@ import json
 import numpy as np
 import pytest
 
-from passt_mav.commands.evaluate import fleet_comparison
+from passt_mav.campaign import fleet_comparison
 from passt_mav.fields.datasets import resolve_field
 from passt_mav.models import make_predictor
-from passt_mav.passt import run_offline, run_offline_fleet, same_step_clashes
+from passt_mav.engine import run_offline, run_offline_fleet, same_step_clashes
 
 
 @pytest.fixture(scope="module")
@@ -22,7 +22,7 @@ def cylinder():
 def test_one_boat_fleet_equals_the_independent_lockstep_engine(cylinder):
     """``run_offline`` is the one-boat fleet; the lockstep engine (written separately, batching trials)
     must give the same estimates and paths (DMD: batched and single predictions agree bit for bit)."""
-    from passt_mav.passt import run_offline_lockstep
+    from passt_mav.engine import run_offline_lockstep
 
     field, dmd = cylinder
     kw = dict(t0=300, n_steps=40, path_length=20, steps_per_leg=10, noise_std=0.02, planner="greedy")
@@ -93,17 +93,17 @@ def test_boats_packed_together_never_meet_and_repeat(cylinder, seed, monkeypatch
     seeds 0-2). After the repair no two boats share a cell at the same move, every path is a
     valid grid path, and a second run gives the same paths and estimate."""
     import geo
-    import passt_mav.passt as passt
+    import passt_mav.engine as engine
 
     field, _ = cylinder
     pers = make_predictor("persistence").fit(field)
     kw = dict(start_cells=[(14, 14), (14, 15), (15, 14)], t0=300, n_steps=30, path_length=120, steps_per_leg=10,
               noise_std=0.02, seed=seed, planner="random")
     found = []
-    real = passt.same_step_clashes
-    monkeypatch.setattr(passt, "same_step_clashes", lambda *a: found.append(int(real(*a).any())) or real(*a))
+    real = engine.same_step_clashes
+    monkeypatch.setattr(engine, "same_step_clashes", lambda *a: found.append(int(real(*a).any())) or real(*a))
     r = run_offline_fleet(field, pers, **kw)
-    monkeypatch.setattr(passt, "same_step_clashes", real)
+    monkeypatch.setattr(engine, "same_step_clashes", real)
     assert len(r.legs) == 3 and sum(found) >= 1, found  # the repair had work to do
     _no_two_boats_at_one_cell_at_once(r.legs)
     for leg in r.legs:

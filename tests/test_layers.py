@@ -4,7 +4,7 @@ Every ``import`` / ``from ... import`` in the source tree is read from the synta
 including imports inside functions (the project imports heavy modules lazily, so a
 top-level-only check would miss most of them). Layers, bottom to top::
 
-    geo, math (fields, models, planning, reconstruction, passt, legstep, mission)
+    geo, math (fields, models, planning, reconstruction, passt, legstep, engine, campaign, mission)
     mavlink (the MAVLink client)            runs (storage: run dir, sample store, log readers)
     controller
     analysis (replay, report, counterfactual)
@@ -12,8 +12,10 @@ top-level-only check would miss most of them). Layers, bottom to top::
 
 and, beside them, ``vehicle_sim``, which must stand alone from the client side. ``passt_mav.progress``
 (progress bars / plain progress lines, issue 29) is a leaf every layer may use: it imports nothing of the
-project. The exports (``analysis/export.py``, ``analysis/export_geo.py``) are analysis: they read a run
-directory below them and are called by ``commands/export.py``.
+project. ``passt_mav.engine`` (the offline engine: every offline loop, the fleet's keep-out rule) and
+``passt_mav.campaign`` (the offline campaign, issue 30: a library under ``commands/evaluate.py``,
+``commands/paper.py`` and the benchmarks) are math: no MAVLink, no run storage, nothing above. The exports (``analysis/export.py``,
+``analysis/export_geo.py``) are analysis: they read a run directory below them and are called by ``commands/export.py``.
 """
 
 from __future__ import annotations
@@ -25,8 +27,8 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 
-MATH = ("passt_mav.passt", "passt_mav.legstep", "passt_mav.fields", "passt_mav.models", "passt_mav.planning",
-        "passt_mav.reconstruction", "passt_mav.mission", "geo")
+MATH = ("passt_mav.passt", "passt_mav.legstep", "passt_mav.engine", "passt_mav.campaign", "passt_mav.fields",
+        "passt_mav.models", "passt_mav.planning", "passt_mav.reconstruction", "passt_mav.mission", "geo")
 ABOVE_CONTROLLER = ("passt_mav.analysis", "passt_mav.commands", "passt_mav.cli")
 
 # (modules the rule applies to, imports they must not make, why)
@@ -105,6 +107,8 @@ def test_no_import_runs_back_up():
     ("passt_mav/controller.py", "from . import analysis"),
     ("passt_mav/progress.py", "from passt_mav.fields import FlowField"),
     ("passt_mav/analysis/export.py", "from passt_mav.commands import data"),
+    ("passt_mav/campaign.py", "from passt_mav.commands.evaluate import write_figures"),
+    ("passt_mav/engine.py", "from passt_mav.runs.store import SampleStore"),
 ])
 def test_the_check_catches_a_forbidden_import(tmp_path, target, line):
     """A copy of the tree with one forbidden import added (inside a function, as the
