@@ -30,10 +30,10 @@ KEYS = ("reward", "plan")  # joint planning; "predict" is the shared forecast
 
 
 def _intervals(field, predictor, boats: int, path_length: int, legs: int) -> dict:
-    from passt_mav.campaign import _fleet_starts
+    from passt_mav.campaign import fleet_starts
     from passt_mav.engine import run_offline_fleet
 
-    r = run_offline_fleet(field, predictor, start_cells=_fleet_starts(field, 0, 0, path_length, boats), t0=0,
+    r = run_offline_fleet(field, predictor, start_cells=fleet_starts(field, 0, 0, path_length, boats), t0=0,
                           n_steps=10 * (legs + 1), path_length=path_length, steps_per_leg=10, noise_std=0.02, seed=0)
     walls = [sum(leg["timings"][k] for k in KEYS) for leg in r.legs[1:]]  # leg 0 warms up
     return {"boats": boats, "s_per_interval": statistics.median(walls), "s_max": max(walls), "legs": len(walls),

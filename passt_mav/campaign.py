@@ -28,8 +28,8 @@ import sys
 
 from passt_mav.reconstruction.background import background_steps_problem
 
-__all__ = ["METHODS", "ENGINES", "CAMPAIGN_HYPER", "run_campaign", "fleet_comparison", "campaign_tasks",
-           "method_problem", "load_predictor"]
+__all__ = ["METHODS", "ENGINES", "CAMPAIGN_HYPER", "run_campaign", "fleet_comparison", "fleet_starts",
+           "campaign_tasks", "method_problem", "load_predictor"]
 
 METHODS = ("passt", "model", "lawnmower_gp", "greedy_gp", "random_gp")
 
@@ -421,7 +421,7 @@ def _per_length(rs: list[dict], methods, pure_rmse, pod_model, w: int) -> dict:
     return per
 
 
-def _fleet_starts(field, seed: int, trial: int, L: int, n: int) -> list[tuple[int, int]]:
+def fleet_starts(field, seed: int, trial: int, L: int, n: int) -> list[tuple[int, int]]:
     """``n`` distinct water cells for a trial's boats; the first is the one-boat campaign's start."""
     import numpy as np
 
@@ -464,7 +464,7 @@ def fleet_comparison(field, predictor, *, boats: int, path_length: int, trials: 
     with threadpool_limits(1):  # the campaign's rule: one BLAS thread, the same numbers everywhere
         for name, n, L, i in it:
             (r,) = run_trials(field, predictor, LoopOptions.of(base, path_length=L),
-                              starts=[_fleet_starts(field, seed, i, path_length, n)], seeds=[seed + i], t0=t0,
+                              starts=[fleet_starts(field, seed, i, path_length, n)], seeds=[seed + i], t0=t0,
                               n_steps=T, noise_std=noise, sample_at=sampling)
             series.setdefault(name, []).append(_rmse_series(r.estimate, truth))
     for name, n, L in configs:
