@@ -1,11 +1,11 @@
-"""Benchmark: joint planning per leg interval of the offline fleet (passt_mav.passt.run_offline_fleet) vs one boat.
+"""Benchmark: joint planning per leg interval of the offline fleet (passt_mav.engine.run_offline_fleet) vs one boat.
 
     .venv/bin/python benchmarks/bench_fleet.py --json
     .venv/bin/python benchmarks/bench_fleet.py --boats 3 --path-length 100 --legs 4
 
 The field is builtin:cylinder (30x30) with the shipped cylinder KNODE and the policy-gradient
 planner, L moves per boat per leg. Offline, the fleet's boats plan from one forecast and one
-reward map, each keeping out of the earlier boats' cells (passt_mav.passt.run_offline_fleet);
+reward map, each keeping out of the earlier boats' cells (passt_mav.engine.run_offline_fleet);
 the joint planning of one leg interval is the reward map and every boat's planner call
 (with its same-move repairs). The forecast is shared by all boats and reported apart: offline it
 is the whole leg's roll-out (10 snapshots, the GP prior), while planning needs only its first
@@ -30,10 +30,10 @@ KEYS = ("reward", "plan")  # joint planning; "predict" is the shared forecast
 
 
 def _intervals(field, predictor, boats: int, path_length: int, legs: int) -> dict:
-    from passt_mav.commands.evaluate import _fleet_starts
-    from passt_mav.passt import run_offline_fleet
+    from passt_mav.campaign import fleet_starts
+    from passt_mav.engine import run_offline_fleet
 
-    r = run_offline_fleet(field, predictor, start_cells=_fleet_starts(field, 0, 0, path_length, boats), t0=0,
+    r = run_offline_fleet(field, predictor, start_cells=fleet_starts(field, 0, 0, path_length, boats), t0=0,
                           n_steps=10 * (legs + 1), path_length=path_length, steps_per_leg=10, noise_std=0.02, seed=0)
     walls = [sum(leg["timings"][k] for k in KEYS) for leg in r.legs[1:]]  # leg 0 warms up
     return {"boats": boats, "s_per_interval": statistics.median(walls), "s_max": max(walls), "legs": len(walls),

@@ -62,12 +62,12 @@ def main(argv=None) -> int:
     import torch
     from threadpoolctl import threadpool_limits
 
-    from passt_mav.commands.evaluate import _load_predictor
+    from passt_mav.campaign import load_predictor
     from passt_mav.fields.datasets import resolve_field
 
     torch.set_num_threads(1)
     field = resolve_field(a.data)
-    predictor = _load_predictor(a.model, field)
+    predictor = load_predictor(a.model, field)
     rows = []
     with threadpool_limits(1):
         for planner, reward, kw in VARIANTS:

@@ -83,7 +83,7 @@ def per_leg(field, predictor, L: int, legs: int, steps_per_leg: int) -> dict:
 
 
 def _timed(field, predictor, **kw) -> tuple[float, dict]:
-    from passt_mav.commands.evaluate import run_campaign
+    from passt_mav.campaign import run_campaign
 
     t = time.perf_counter()
     out = run_campaign(field, predictor, **kw)

@@ -36,7 +36,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from passt_mav.errors import PlannerError, ReconstructionError, UserError
+from passt_mav.errors import ReconstructionError, UserError
 from passt_mav.measurement import rmse, truth_at  # noqa: F401 - the measurement rules, re-exported
 from passt_mav.measurement import sample_columns as _columns
 
@@ -205,7 +205,7 @@ def build_predictor(spec: str, field, *, echo: Callable[[str], None] = print) ->
 
 def build_loop(config, predictor, grid, land=None):
     """:class:`PasstLoop` from a mission config (planner, reward, L, GP prior/options, seeds)."""
-    from passt_mav.passt import PasstLoop
+    from passt_mav.passt import LoopOptions
 
     gp_kw = {"seed": config.seeds.gp}
     if config.sensors.noise_std > 0:
@@ -213,11 +213,12 @@ def build_loop(config, predictor, grid, land=None):
     if config.gp.bias:
         gp_kw["bias"] = True
     gp_kw.update(config.gp.options)
-    loop = PasstLoop(predictor, grid, planner=config.planner.name, planner_kw=dict(config.planner.options),
-                     reward=config.planner.reward, path_length=config.planner.path_length,
-                     steps_per_leg=config.steps_per_leg or 1, prior=config.gp.loop_prior, gp_kw=gp_kw,
-                     hyper=config.gp.hyper, land=land, seed=config.seeds.planner, background=config.gp.background,
-                     prior_blend=config.gp.prior_blend, forgetting=config.gp.forgetting)
+    options = LoopOptions(planner=config.planner.name, planner_kw=dict(config.planner.options),
+                          reward=config.planner.reward, path_length=config.planner.path_length,
+                          steps_per_leg=config.steps_per_leg or 1, prior=config.gp.loop_prior, gp_kw=gp_kw,
+                          hyper=config.gp.hyper, background=config.gp.background,
+                          prior_blend=config.gp.prior_blend, forgetting=config.gp.forgetting)
+    loop = options.loop(predictor, grid, land=land, seed=config.seeds.planner)
     # a mission's estimate is written with its posterior std (estimate.nc u_std/v_std; exports read it):
     # one more triangular solve per leg, nothing next to a leg's minutes on the water
     loop.keep_std = True
@@ -468,7 +469,8 @@ class FleetStep:
     the same leg interval; its own start cell excepted). Boxed in by their paths, it plans
     with those cells' reward zeroed instead and keeps out of any cell another boat's path
     reaches at the same time (within one move's duration, from the paths, the boats' speeds
-    (``config.fleet[k].speed_mps``, m/s) and their legs' start times).
+    (``config.fleet[k].speed_mps``, m/s) and their legs' start times) or holds after its path
+    ended: the offline engine's rule (:func:`passt_mav.engine.plan_keeping_out`).
 
     Absorbing (:meth:`absorb`): the GP prior is the leg's own forecast (from the state it was
     planned from, so every sample is compared with the forecast at its own time), and the
@@ -506,23 +508,16 @@ class FleetStep:
         return self.field.grid.mean_cell_size_m / speed / float(self.config.field.time_scale)
 
     def _conflicts(self, boat: int, path, t_start: float) -> np.ndarray:
-        """(R, C) bool: cells of ``path`` (after its start) that another boat's path reaches at
-        the same time (within one move of either boat)."""
-        grid = self.field.grid
-        out = np.zeros(grid.shape, bool)
+        """(R, C) bool: cells of ``path`` (after its start) another boat is at when this one gets there
+        (:func:`passt_mav.engine.keep_out`, the offline engine's rule too: within one move of either boat,
+        or on its last cell after its path ended)."""
+        from passt_mav.engine import keep_out
+
         speed = float(self.config.fleet[boat].speed_mps)
-        mine = self._timeline(path, t_start, speed)
-        for other, res in self._reserved.items():
-            if other == boat:
-                continue
-            tol = max(self._move_time(speed), self._move_time(res["speed"]))
-            theirs = self._timeline(res["path"], res["t_start"], res["speed"])
-            for j in range(1, len(path)):
-                r, c = path[j]
-                hit = (res["path"][:, 0] == r) & (res["path"][:, 1] == c) & (np.abs(theirs - mine[j]) < tol)
-                if hit.any():
-                    out[r, c] = True
-        return out
+        others = [(res["path"], self._timeline(res["path"], res["t_start"], res["speed"]),
+                   max(self._move_time(speed), self._move_time(res["speed"])))
+                  for other, res in self._reserved.items() if other != boat]
+        return keep_out(path, self._timeline(path, t_start, speed), others, self.field.grid.shape)
 
     def plan_for(self, boat: int, i: int, start, **kw):
         """Plan leg ``i`` of ``boat`` from the shared state (class docstring, "joint planning");
@@ -542,20 +537,12 @@ class FleetStep:
         # starting hours after them (the 3-boat demo's last leg: 0.023 m/s against the model
         # alone's 0.010)
         kw.setdefault("speed", float(self.config.fleet[boat].speed_mps))
-        try:  # first choice: none of the cells the others hold this leg
-            planned = self.step.plan(i, self.state, self.t_state, start, avoid=taken, **kw)
-        except PlannerError:  # boxed in by their paths: collect nothing twice, cross them at other times only
-            planned = None
-        avoid = np.zeros_like(taken)
-        for _ in range(3):
-            if planned is not None and not self._conflicts(boat, planned.plan.path, planned.t_start).any():
-                break
-            if planned is not None:
-                avoid |= self._conflicts(boat, planned.plan.path, planned.t_start)
-            planned = self.step.plan(i, self.state, self.t_state, start, taken=taken, avoid=avoid, **kw)
-        else:
-            if self._conflicts(boat, planned.plan.path, planned.t_start).any():
-                raise PlannerError(f"leg {i}: boat {boat} finds no path that keeps out of the other boats' way")
+        from passt_mav.engine import plan_keeping_out
+
+        planned = plan_keeping_out(lambda taken, avoid: self.step.plan(i, self.state, self.t_state, start, taken=taken,
+                                                                       avoid=avoid, **kw),
+                                   taken, lambda p: self._conflicts(boat, p.plan.path, p.t_start),
+                                   f"leg {i}: boat {boat}")
         self._reserved[boat] = {"path": np.asarray(planned.plan.path, int), "t_start": planned.t_start,
                                 "speed": float(self.config.fleet[boat].speed_mps)}
         self._plan_version[i] = self._version  # the state this leg was planned from

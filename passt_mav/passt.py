@@ -1,7 +1,8 @@
 """The PASST loop (Predictive-model based Adaptive Sampling of a Spatio-Temporal process).
 
-ONE implementation, driven offline by :class:`FieldSampler` (ground truth) and on a
-vehicle by a sampler that flies the leg (the controller's ``VehicleSampler``)::
+ONE implementation, driven offline by :class:`FieldSampler` (ground truth, through the
+offline engine :mod:`passt_mav.engine`) and on a vehicle by :class:`passt_mav.legstep.LegStep`
+(the controller flies the leg, the step turns its logged samples into :class:`Samples`)::
 
     state U(t_k) --predict S steps--> forecast --one-step reward--> plan L moves
          ^                                                             |
@@ -25,14 +26,15 @@ Land cells (NaN in the state) are filled with 0 only at the predictor's input
 downstream sees a land value.
 
 Step-by-step API for a controller: :class:`PasstLoop` ``.plan_leg(state, start,
-t_start)`` -> :class:`LegPlan`, fly / sample, ``.update(leg, samples)`` -> new state.
-Offline: :func:`run_offline`. Everything random is seeded.
+t_start)`` -> :class:`LegPlan`, fly / sample, ``.update(leg, samples)`` -> new state. The loop's
+options are one frozen :class:`LoopOptions`. Offline: :func:`passt_mav.engine.run_offline`
+(and its fleet and lockstep forms). Everything random is seeded.
 """
 
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields, replace
 from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
@@ -44,10 +46,9 @@ __all__ = [
     "Sampler",
     "FieldSampler",
     "LegPlan",
+    "LoopOptions",
     "PasstLoop",
     "OfflineResult",
-    "run_offline",
-    "run_offline_lockstep",
     "run_pure_model",
     "steps_for_leg",
     "HYPER",
@@ -193,6 +194,44 @@ class LegPlan:
     @property
     def planning_time(self) -> float:
         return self.timings.get("reward", 0.0) + self.timings.get("plan", 0.0)
+
+
+@dataclass(frozen=True)
+class LoopOptions:
+    """Every option of a :class:`PasstLoop` but its predictor, grid, land mask and seed: built once
+    (from a mission file, a campaign's configuration or keywords) and handed to each loop.
+
+    planner / planner_kw: a name in ``passt_mav.planning.PLANNERS`` and its options; reward: a name
+    in ``passt_mav.planning.REWARDS``; path_length: moves per leg ``L``; steps_per_leg: snapshots
+    a leg spans ``S``; prior: "forecast" | "none"; gp_kw: :class:`GPReconstructor` options;
+    hyper: :data:`HYPER`; background: roll-out snapshots of the model background (0 = none);
+    prior_blend / forgetting: see :class:`PasstLoop`. Validated by the loop that takes them.
+    """
+
+    planner: str = "policy_gradient"
+    planner_kw: dict | None = None
+    reward: str = "speed"
+    path_length: int = 50
+    steps_per_leg: int = 10
+    prior: str = "forecast"
+    gp_kw: dict | None = None
+    hyper: str = "every_leg"
+    background: int = 0
+    prior_blend: str = "off"
+    forgetting: float = 0.8
+
+    @classmethod
+    def of(cls, options: "LoopOptions | None" = None, **changes) -> "LoopOptions":
+        """``options`` (default: the defaults) with ``changes``; an unknown name raises ``TypeError``."""
+        return replace(options or cls(), **changes)
+
+    def as_kwargs(self) -> dict[str, Any]:
+        """The options as :class:`PasstLoop` keywords."""
+        return {f.name: getattr(self, f.name) for f in fields(self)}
+
+    def loop(self, predictor, grid, *, land=None, seed: int = 0) -> "PasstLoop":
+        """A fresh :class:`PasstLoop` with these options."""
+        return PasstLoop(predictor, grid, land=land, seed=seed, **self.as_kwargs())
 
 
 class PasstLoop:
@@ -501,216 +540,6 @@ class OfflineResult:
 
     estimate: np.ndarray
     legs: list[dict[str, Any]]
-
-
-def run_offline(field, predictor, *, start_cell, t0: int = 0, n_steps: int, planner: str = "policy_gradient", planner_kw: dict | None = None, reward: str = "speed", path_length: int = 50, steps_per_leg: int = 10, prior: str = "forecast", gp_kw: dict | None = None, hyper: str = "every_leg", noise_std: float = 0.0, sample_at: str = "end", seed: int = 0, initial_state=None, background: int = 0, prior_blend: str = "off") -> OfflineResult:
-    """Run PASST offline on ground truth ``field`` from snapshot ``t0`` for ``n_steps`` steps.
-
-    The initial state is the truth at ``t0`` unless ``initial_state`` is given.
-    ``predictor=None`` runs the GP-only ("hold") variant. Returns
-    :class:`OfflineResult`; deterministic given ``seed``. ``background``: see :class:`PasstLoop`. (One boat of
-    :func:`run_offline_fleet`.)
-    """
-    return run_offline_fleet(field, predictor, start_cells=[start_cell], t0=t0, n_steps=n_steps, planner=planner, planner_kw=planner_kw, reward=reward, path_length=path_length, steps_per_leg=steps_per_leg, prior=prior, gp_kw=gp_kw, hyper=hyper, noise_std=noise_std, sample_at=sample_at, seed=seed, initial_state=initial_state, background=background, prior_blend=prior_blend)
-
-
-def same_step_clashes(path, others, shape) -> np.ndarray:
-    """(R, C) bool: cells that ``path`` (grid path, (L+1, 2) of (row, col)) enters after its start
-    at the same move index as one of ``others`` (boats that leave together and move in step, as
-    :func:`run_offline_fleet`'s boats do). A boat standing still at a path's end holds its cell."""
-    out = np.zeros(shape, bool)
-    path = np.asarray(path, int)
-    for o in others:
-        o = np.asarray(o, int)
-        idx = np.minimum(np.arange(1, len(path)), len(o) - 1)
-        hit = (o[idx] == path[1:]).all(axis=1)
-        out[path[1:][hit, 0], path[1:][hit, 1]] = True
-    return out
-
-
-def run_offline_fleet(field, predictor, *, start_cells, t0: int = 0, n_steps: int, planner: str = "policy_gradient", planner_kw: dict | None = None, reward: str = "speed", path_length: int = 50, steps_per_leg: int = 10, prior: str = "forecast", gp_kw: dict | None = None, hyper: str = "every_leg", noise_std: float = 0.0, sample_at: str = "end", seed: int = 0, initial_state=None, background: int = 0, prior_blend: str = "off") -> OfflineResult:
-    """:func:`run_offline` for a fleet: ``len(start_cells)`` boats, synchronous legs, one state.
-
-    Each leg interval: one forecast and one reward map; the boats plan in turn, each keeping out
-    of every cell the boats before it were given (sequential allocation, as the live
-    :class:`passt_mav.legstep.FleetStep` does; a boat boxed in keeps those cells at zero reward
-    instead); every boat's samples go to one GP update. With one start cell this is exactly
-    :func:`run_offline`. Leg records hold ``paths`` (one per boat) and ``path`` (boat 0's).
-    """
-    from passt_mav.planning import path_reward
-
-    if not (0 <= t0 < field.n_times - 1):
-        raise PlannerError(f"start snapshot t0={t0} must lie in [0, {field.n_times - 2}]")
-    n_steps = int(min(n_steps, field.n_times - 1 - t0))
-    land = field.land_mask
-    loop = PasstLoop(predictor, field.grid, planner=planner, planner_kw=planner_kw, reward=reward, path_length=path_length, steps_per_leg=steps_per_leg, prior=prior, gp_kw=gp_kw, hyper=hyper, land=land, seed=seed, background=background, prior_blend=prior_blend)
-    sampler = FieldSampler(field, noise_std=noise_std, seed=seed + 7919, steps_per_leg=steps_per_leg, sample_at=sample_at)
-    dt = field.dt
-    state = np.array(field.data[t0] if initial_state is None else initial_state, dtype=np.float32)
-    state[:, land] = np.nan
-    est = np.empty((n_steps + 1, 2) + field.grid.shape, np.float32)
-    est[0] = state
-    starts = [tuple(int(x) for x in c) for c in start_cells]
-    if len(set(starts)) != len(starts):  # two boats on one cell from the start
-        raise PlannerError(f"fleet start cells must differ, got {starts}")
-    legs = []
-    k = 0
-    while k < n_steps:
-        S = min(steps_per_leg, n_steps - k)
-        t_start = field.times[t0] + k * dt
-        plans = [loop.plan_leg(state, starts[0], t_start, dt, steps=S)]
-        taken = np.zeros(field.grid.shape, bool)
-        for b in range(1, len(starts)):
-            taken[plans[-1].path[:, 0], plans[-1].path[:, 1]] = True
-            free = taken.copy()
-            free[starts[b]] = False
-            try:
-                plan = loop.plan_leg(state, starts[b], t_start, dt, steps=S, forecast=plans[0].forecast, avoid=free)
-            except PlannerError:  # boxed in: cross the others' cells, collect nothing there
-                plan = None
-            # never the same cell at the same move as an earlier boat (the boats move in step offline):
-            # forbid the clashing cells and plan again, as the live FleetStep does
-            avoid = np.zeros_like(taken)
-            for _ in range(20):  # each round forbids cells the last plan clashed on (planners keep out of them)
-                clash = None if plan is None else same_step_clashes(plan.path, [p.path for p in plans], field.grid.shape)
-                if clash is not None and not clash.any():
-                    break
-                if clash is not None:
-                    avoid |= clash
-                plan = loop.plan_leg(state, starts[b], t_start, dt, steps=S, forecast=plans[0].forecast, taken=free, avoid=avoid)
-            else:
-                if same_step_clashes(plan.path, [p.path for p in plans], field.grid.shape).any():
-                    raise PlannerError(f"leg at step {k}: boat {b} finds no path that keeps out of the other boats' way")
-            plans.append(plan)
-        parts = [sampler.sample_path(p.path, p.t_start) for p in plans]
-        samples = Samples(*(np.concatenate([getattr(x, f) for x in parts]) for f in ("t", "r", "c", "u", "v")))
-        est[k + 1 : k + S] = loop.blend(plans[0].forecast)[1:S]
-        state = loop.update(plans[0], samples) if S == steps_per_leg else loop.blend(plans[0].forecast)[S]
-        est[k + S] = state
-        legs.append({"step": k, "path": plans[0].path.tolist(), "paths": [p.path.tolist() for p in plans],
-                     "timings": {key: float(sum(p.timings.get(key, 0.0) for p in plans)) for key in ("predict", "reward", "plan", "gp")},
-                     "reward_collected": float(sum(path_reward(p.reward, p.path) for p in plans)), "n_samples": len(samples)})
-        starts = [tuple(int(x) for x in p.path[-1]) for p in plans]
-        k += S
-    return OfflineResult(estimate=est, legs=legs)
-
-
-def _plan_batch(loops: list, starts, t_start: float, dt: float, S: int, fcs) -> list[LegPlan]:
-    """``[loops[b].plan_leg(..., forecast=fcs[b]) for b]`` with the planning batched when it can be.
-
-    Loops whose planners are all of one class with the same options and have a
-    ``plan_many`` (policy gradient, greedy) plan in one call of it (same paths as one call
-    each; the ``plan`` timing is the batch's time / B); any other planner plans loop by
-    loop.
-    """
-    p0 = loops[0].planner
-    same = hasattr(p0, "plan_many") and all(type(lp.planner) is type(p0) and vars(lp.planner) == vars(p0) and lp.path_length == loops[0].path_length for lp in loops)
-    if not same or len(loops) == 1:
-        return [lp.plan_leg(None, st, t_start, dt, steps=S, forecast=fc) for lp, st, fc in zip(loops, starts, fcs)]
-    B = len(loops)
-    tr = time.perf_counter()
-    qm = [lp._reward_map(fc, st) for lp, st, fc in zip(loops, starts, fcs)]
-    t_rew = (time.perf_counter() - tr) / B
-    tp = time.perf_counter()
-    paths = p0.plan_many([q for q, _ in qm], starts, loops[0].path_length, [lp._plan_seed() for lp in loops], [m for _, m in qm])
-    t_plan = (time.perf_counter() - tp) / B
-    return [LegPlan(path=path, reward=q, forecast=fc, t_start=float(t_start), dt=float(dt), steps=S, timings={"predict": 0.0, "reward": t_rew, "plan": t_plan}) for path, (q, _), fc in zip(paths, qm, fcs)]
-
-
-def _batch_forecast(predictor, states: np.ndarray, steps: int, land: np.ndarray) -> np.ndarray:
-    """(B, steps+1, 2, R, C) float32: each state then its ``steps`` predictions, NaN on land.
-
-    One predictor call for the whole batch when the predictor takes ``(B, 2, R, C)``
-    (every :class:`passt_mav.models.base.Predictor` does); otherwise one call per state.
-    Per row the same arithmetic as :meth:`PasstLoop.forecast`.
-    """
-    s = np.asarray(states, dtype=np.float32)
-    B = s.shape[0]
-    if predictor is None:
-        pred = np.repeat(s[:, None], steps, axis=1)
-    else:
-        x = np.where(land, np.float32(0), s)
-        pred = None
-        if getattr(predictor, "_predict_batch", None) is not None:
-            pred = np.asarray(predictor.predict(x, steps), dtype=np.float32)
-        if pred is None or pred.shape != (B, steps) + s.shape[1:]:
-            pred = np.stack([np.asarray(predictor.predict(x[b], steps), dtype=np.float32) for b in range(B)])
-    out = np.concatenate([s[:, None], pred], axis=1)
-    out[:, :, :, land] = np.nan
-    return out
-
-
-def run_offline_lockstep(field, predictor, *, start_cells, seeds, t0: int = 0, n_steps: int, planner: str = "policy_gradient", planner_kw: dict | None = None, reward: str = "speed", path_length: int = 50, steps_per_leg: int = 10, prior: str = "forecast", gp_kw: dict | None = None, hyper: str = "every_leg", noise_std: float = 0.0, sample_at: str = "end", initial_state=None, kernel_cache: dict | None = None, background: int = 0, prior_blend: str = "off") -> list[OfflineResult]:
-    """:func:`run_offline` for B trials at once (``start_cells[b]``, ``seeds[b]``), in lockstep.
-
-    All trials start from the same state and share every option but the start cell and
-    seed, so their legs begin at the same step: each leg runs the predictor ONCE for the
-    whole batch, then every trial plans, samples and reconstructs as in
-    :func:`run_offline` (same seeds, same order of random draws). Returns one
-    :class:`OfflineResult` per trial, equal to ``run_offline(..., start_cell=start_cells[b],
-    seed=seeds[b])`` up to the predictor's batch-vs-single rounding (exactly equal for a
-    predictor whose rows do not interact; tested).
-
-    ``hyper="state"``: the GP kernel is fitted on the initial state, which every trial
-    shares, so it is fitted once and reused (and once per ``kernel_cache`` dict across
-    calls: key = GP options + initial state bytes). ``background``: the roll-out's modes
-    (:class:`PasstLoop`) are computed once for all trials (and once per ``kernel_cache``
-    dict for the same predictor object, state and length). Leg timings: ``predict`` is the
-    batch's time divided by B.
-    """
-    if not (0 <= t0 < field.n_times - 1):
-        raise PlannerError(f"start snapshot t0={t0} must lie in [0, {field.n_times - 2}]")
-    if len(start_cells) != len(seeds) or not len(seeds):
-        raise PlannerError("run_offline_lockstep needs one seed per start cell (at least one)")
-    from passt_mav.planning import path_reward
-
-    n_steps = int(min(n_steps, field.n_times - 1 - t0))
-    land = field.land_mask
-    B = len(seeds)
-    loops = [PasstLoop(predictor, field.grid, planner=planner, planner_kw=planner_kw, reward=reward, path_length=path_length, steps_per_leg=steps_per_leg, prior=prior, gp_kw=gp_kw, hyper=hyper, land=land, seed=int(sd), background=background, prior_blend=prior_blend) for sd in seeds]
-    samplers = [FieldSampler(field, noise_std=noise_std, seed=int(sd) + 7919, steps_per_leg=steps_per_leg, sample_at=sample_at) for sd in seeds]
-    dt = field.dt
-    state0 = np.array(field.data[t0] if initial_state is None else initial_state, dtype=np.float32)
-    state0[:, land] = np.nan
-    if hyper == "state":
-        # the serial loop fits on the first leg's forecast[0] = this state: fit it once
-        key = (repr(sorted((gp_kw or {}).items())), prior, state0.tobytes())
-        cache = kernel_cache if kernel_cache is not None else {}
-        if key not in cache:
-            loops[0].gp.fit_field(state0)
-            cache[key] = (loops[0].gp.kernels_, loops[0].gp.cell_m_, loops[0].gp.n_inputs_)
-        for lp in loops:
-            lp.gp.kernels_, lp.gp.cell_m_, lp.gp.n_inputs_ = cache[key]
-    if loops[0].background_steps and n_steps >= steps_per_leg:
-        cache = kernel_cache if kernel_cache is not None else {}
-        bkey = ("background", id(predictor), loops[0].background_steps, state0.tobytes())
-        if bkey not in cache or cache[bkey][0] is not predictor:
-            cache[bkey] = (predictor, _background_or_none(predictor, state0, loops[0].background_steps, land))
-        for lp in loops:
-            lp.gp.background, lp._background_pending = cache[bkey][1], False
-    states = np.repeat(state0[None], B, axis=0)
-    est = np.empty((B, n_steps + 1, 2) + field.grid.shape, np.float32)
-    est[:, 0] = state0
-    starts = [tuple(int(x) for x in c) for c in start_cells]
-    legs: list[list[dict]] = [[] for _ in range(B)]
-    k = 0
-    while k < n_steps:
-        S = min(steps_per_leg, n_steps - k)
-        tp = time.perf_counter()
-        fcs = _batch_forecast(predictor, states, max(S, 1), land)
-        t_pred = (time.perf_counter() - tp) / B
-        plans = _plan_batch(loops, starts, field.times[t0] + k * dt, dt, S, fcs)
-        for b in range(B):
-            leg = plans[b]
-            leg.timings["predict"] = t_pred
-            samples = samplers[b].sample_path(leg.path, leg.t_start)
-            est[b, k + 1 : k + S] = loops[b].blend(leg.forecast)[1:S]
-            states[b] = loops[b].update(leg, samples) if S == steps_per_leg else loops[b].blend(leg.forecast)[S]
-            est[b, k + S] = states[b]
-            legs[b].append({"step": k, "path": leg.path.tolist(), "timings": dict(leg.timings), "reward_collected": path_reward(leg.reward, leg.path), "n_samples": len(samples)})
-            starts[b] = tuple(int(x) for x in leg.path[-1])
-        k += S
-    return [OfflineResult(estimate=est[b], legs=legs[b]) for b in range(B)]
 
 
 def run_pure_model(field, predictor, *, t0: int = 0, n_steps: int) -> np.ndarray:

@@ -225,7 +225,7 @@ def test_builtin_rtofs_real_currents_with_land(capsys):
     from passt_mav.fields.datasets import load_dataset
     from passt_mav.mission.config import load_mission
     from passt_mav.models.base import make_predictor
-    from passt_mav.passt import run_offline
+    from passt_mav.engine import run_offline
 
     code, text, _ = _cli(capsys, "info", "builtin:rtofs", "--json")
     info = json.loads(text)

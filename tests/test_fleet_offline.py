@@ -1,4 +1,4 @@
-"""PASST with a fleet, offline (passt_mav.passt.run_offline_fleet, ``passt-mav evaluate --boats``)."""
+"""PASST with a fleet, offline (passt_mav.engine.run_offline_fleet, ``passt-mav evaluate --boats``)."""
 
 from __future__ import annotations
 
@@ -7,10 +7,10 @@ import json
 import numpy as np
 import pytest
 
-from passt_mav.commands.evaluate import fleet_comparison
+from passt_mav.campaign import fleet_comparison
 from passt_mav.fields.datasets import resolve_field
 from passt_mav.models import make_predictor
-from passt_mav.passt import run_offline, run_offline_fleet, same_step_clashes
+from passt_mav.engine import run_offline, run_offline_fleet, same_step_clashes
 
 
 @pytest.fixture(scope="module")
@@ -22,7 +22,7 @@ def cylinder():
 def test_one_boat_fleet_equals_the_independent_lockstep_engine(cylinder):
     """``run_offline`` is the one-boat fleet; the lockstep engine (written separately, batching trials)
     must give the same estimates and paths (DMD: batched and single predictions agree bit for bit)."""
-    from passt_mav.passt import run_offline_lockstep
+    from passt_mav.engine import run_offline_lockstep
 
     field, dmd = cylinder
     kw = dict(t0=300, n_steps=40, path_length=20, steps_per_leg=10, noise_std=0.02, planner="greedy")
@@ -93,17 +93,17 @@ def test_boats_packed_together_never_meet_and_repeat(cylinder, seed, monkeypatch
     seeds 0-2). After the repair no two boats share a cell at the same move, every path is a
     valid grid path, and a second run gives the same paths and estimate."""
     import geo
-    import passt_mav.passt as passt
+    import passt_mav.engine as engine
 
     field, _ = cylinder
     pers = make_predictor("persistence").fit(field)
     kw = dict(start_cells=[(14, 14), (14, 15), (15, 14)], t0=300, n_steps=30, path_length=120, steps_per_leg=10,
               noise_std=0.02, seed=seed, planner="random")
     found = []
-    real = passt.same_step_clashes
-    monkeypatch.setattr(passt, "same_step_clashes", lambda *a: found.append(int(real(*a).any())) or real(*a))
+    real = engine.same_step_clashes
+    monkeypatch.setattr(engine, "same_step_clashes", lambda *a: found.append(int(real(*a).any())) or real(*a))
     r = run_offline_fleet(field, pers, **kw)
-    monkeypatch.setattr(passt, "same_step_clashes", real)
+    monkeypatch.setattr(engine, "same_step_clashes", real)
     assert len(r.legs) == 3 and sum(found) >= 1, found  # the repair had work to do
     _no_two_boats_at_one_cell_at_once(r.legs)
     for leg in r.legs:
@@ -191,3 +191,40 @@ def test_evaluate_boats_cli_writes_the_comparison_and_figure(tmp_path, capsys):
                  "--out", str(tmp_path / "bad")]) == 2
     err = capsys.readouterr().err.strip()
     assert "--boats" in err and len(err.splitlines()) == 1
+
+
+def test_keep_out_is_one_rule_for_live_times_and_offline_moves():
+    """:func:`passt_mav.engine.keep_out` on field times (as the live FleetStep gives it: boats of
+    different speeds, a tolerance of one move of the slower) and on move counts (offline): a cell
+    clashes when another boat is at it within the tolerance, or stands on it after its path ended."""
+    from passt_mav.engine import keep_out
+
+    a = np.array([[0, 0], [0, 1], [0, 2]])
+    ta = np.array([0.0, 10.0, 20.0])  # a: 10 s a move
+    b = np.array([[1, 1], [0, 1], [0, 2], [0, 3]])
+    tb = np.array([0.0, 6.0, 12.0, 18.0])  # b: 6 s a move, reaches (0,1) 4 s before a
+    m = keep_out(b, tb, [(a, ta, 10.0)], (2, 4))
+    assert m[0, 1] and m[0, 2] and m.sum() == 2  # (0,2): 8 s before a gets there
+    assert not keep_out(b, tb, [(a, ta, 3.0)], (2, 4))[0, 1]  # 4 s apart: no clash within 3 s
+    late = tb + 100.0  # long after a's path ended: a stands on (0,2), nowhere else
+    m = keep_out(b, late, [(a, ta, 10.0)], (2, 4))
+    assert m.sum() == 1 and m[0, 2]
+    assert not keep_out(b, tb, [], (2, 4)).any()
+    np.testing.assert_array_equal(keep_out(b, np.arange(4), [(a, np.arange(3), 1.0)], (2, 4)),
+                                  same_step_clashes(b, [a], (2, 4)))
+
+
+def test_loop_options_are_one_set_for_every_offline_shape(cylinder):
+    """LoopOptions built once and passed: the same run as the loop's options given as keywords; an
+    unknown option is refused by name."""
+    from passt_mav.passt import LoopOptions
+
+    field, dmd = cylinder
+    opts = LoopOptions(planner="greedy", path_length=20, steps_per_leg=10)
+    kw = dict(t0=300, n_steps=20, noise_std=0.02, seed=2)
+    a = run_offline(field, dmd, start_cell=(10, 12), options=opts, **kw)
+    b = run_offline(field, dmd, start_cell=(10, 12), planner="greedy", path_length=20, steps_per_leg=10, **kw)
+    np.testing.assert_array_equal(a.estimate, b.estimate)
+    assert opts.loop(dmd, field.grid).path_length == 20 and LoopOptions.of(opts, path_length=5).planner == "greedy"
+    with pytest.raises(TypeError, match="path_lenght"):
+        run_offline(field, dmd, start_cell=(10, 12), path_lenght=20, **kw)

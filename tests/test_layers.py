@@ -4,7 +4,7 @@ Every ``import`` / ``from ... import`` in the source tree is read from the synta
 including imports inside functions (the project imports heavy modules lazily, so a
 top-level-only check would miss most of them). Layers, bottom to top::
 
-    geo, math (fields, models, planning, reconstruction, passt, legstep, mission, measurement)
+    geo, math (fields, models, planning, reconstruction, passt, legstep, engine, campaign, mission, measurement)
     mavlink (the MAVLink client)            runs (storage: run dir, sample store, log readers)
     controller (controller, fleet_controller, vehicle_session: the vehicle side of a leg, run_clock,
                 live_record: what it tells the live view)
@@ -17,6 +17,9 @@ project. The exports (``analysis/export.py``, ``analysis/export_geo.py``) are an
 directory below them and are called by ``commands/export.py``. ``passt_mav.measurement`` (the rules
 of a measurement: pairing, reboots, truth, RMSE, columns; issue 30) is math that the MAVLink client
 imports too: it may import nothing above ``geo`` but the errors, and no pymavlink.
+``passt_mav.engine`` (the offline engine: every offline loop, the fleet's keep-out rule) and
+``passt_mav.campaign`` (the offline campaign, issue 30: a library under ``commands/evaluate.py``,
+``commands/paper.py`` and the benchmarks) are math: no MAVLink, no run storage, nothing above.
 """
 
 from __future__ import annotations
@@ -28,8 +31,9 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 
-MATH = ("passt_mav.passt", "passt_mav.legstep", "passt_mav.fields", "passt_mav.models", "passt_mav.planning",
-        "passt_mav.reconstruction", "passt_mav.mission", "passt_mav.measurement", "geo")
+MATH = ("passt_mav.passt", "passt_mav.legstep", "passt_mav.engine", "passt_mav.campaign", "passt_mav.fields",
+        "passt_mav.models", "passt_mav.planning", "passt_mav.reconstruction", "passt_mav.mission",
+        "passt_mav.measurement", "geo")
 ABOVE_CONTROLLER = ("passt_mav.analysis", "passt_mav.view", "passt_mav.commands", "passt_mav.cli")
 CONTROLLER = ("passt_mav.controller", "passt_mav.fleet_controller", "passt_mav.live_record",
               "passt_mav.vehicle_session", "passt_mav.run_clock")
@@ -122,6 +126,8 @@ def test_no_import_runs_back_up():
     ("passt_mav/live_record.py", "from passt_mav.view.server import serve"),
     ("passt_mav/measurement.py", "from pymavlink import mavutil"),
     ("passt_mav/measurement.py", "from passt_mav.legstep import LegStep"),
+    ("passt_mav/campaign.py", "from passt_mav.commands.evaluate import write_figures"),
+    ("passt_mav/engine.py", "from passt_mav.runs.store import SampleStore"),
 ])
 def test_the_check_catches_a_forbidden_import(tmp_path, target, line):
     """A copy of the tree with one forbidden import added (inside a function, as the

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from passt_mav.cli import main
-from passt_mav.commands.evaluate import run_campaign
+from passt_mav.campaign import run_campaign
 from passt_mav.commands.paper import claims, write_page
 from test_passt import WRONG_VEL, ShiftPredictor, make_field
 

@@ -13,7 +13,8 @@ import pytest
 import geo
 from passt_mav.errors import PlannerError
 from passt_mav.fields.field import FlowField
-from passt_mav.passt import FieldSampler, PasstLoop, Samples, Sampler, run_offline, run_pure_model, steps_for_leg
+from passt_mav.engine import run_offline
+from passt_mav.passt import FieldSampler, PasstLoop, Samples, Sampler, run_pure_model, steps_for_leg
 from passt_mav.planning import check_path
 
 
@@ -237,7 +238,7 @@ def test_lockstep_equals_serial_runs(field, hyper, background):
     """B trials in lockstep (one batched predictor call per leg) give each trial's serial
     run_offline exactly: same paths, estimates to 1e-6 (with a background covariance too,
     computed once for the batch)."""
-    from passt_mav.passt import run_offline_lockstep
+    from passt_mav.engine import run_offline_lockstep
 
     starts, seeds = [(3, 4), (20, 11), (9, 27)], [5, 6, 7]
     kw = dict(t0=0, n_steps=30, path_length=15, steps_per_leg=10, noise_std=0.01, hyper=hyper, gp_kw={"solver": "cholesky"}, background=background)

@@ -10,11 +10,11 @@ leg's residuals vs the forecast (the model's error grows and changes over a camp
 GP-only baselines once on the initial state (one fit per configuration, then held fixed:
 the paper's fixed kernel); ``--hyper first_leg`` fits the residual GP once, ``--hyper
 state`` fits every GP on the initial state (wrong for a residual GP: it made PASST worse
-than the model alone, see :data:`passt_mav.commands.evaluate.CAMPAIGN_HYPER`). PASST's
+than the model alone, see :data:`passt_mav.campaign.CAMPAIGN_HYPER`). PASST's
 residual GP also carries the model's background covariance (``--background``, default
 200 snapshots of the model's roll-out; :func:`passt_mav.reconstruction.model_background`).
 
-The campaign runs on the lockstep engine (:func:`passt_mav.commands.evaluate.run_campaign`):
+The campaign runs on the lockstep engine (:func:`passt_mav.campaign.run_campaign`):
 a path length's trials advance together, one batched model call per leg (the KNODE's
 compiled fast path), and every GP conditions with a direct Cholesky solve of the fixed
 kernel (``--gp-solver cholesky``; ``sklearn`` is the older, ~10x slower path). With
@@ -118,18 +118,18 @@ def _trial_legs(proto: dict) -> int:
 
 
 def _campaign(field, predictor, proto: dict, path_lengths, trials: int, steps: int, *, scheduler=None, workers: int = 1, batch=None, progress=True) -> dict:
-    from passt_mav.commands.evaluate import run_campaign
+    from passt_mav.campaign import run_campaign
 
     return run_campaign(field, predictor, path_lengths=tuple(path_lengths), trials=trials, steps=steps, t0=proto["t0"], steps_per_leg=proto["steps_per_leg"], noise=proto["noise"], hyper=proto["hyper"], seed=proto["seed"], snapshot_step=proto["snapshot_step"], window=proto["window"], engine="lockstep", batch=batch, scheduler=scheduler, workers=workers, progress=progress, fast_predict=True, gp_solver=proto.get("gp_solver", "cholesky"), background=proto.get("background", 0), methods=PAPER_METHODS, planner=proto.get("planner", "policy_gradient"), reward=proto.get("reward", "speed"), prior_blend=proto.get("prior_blend", "off"))
 
 
 def _load(spec_field: str, spec_model: str, cache: dict):
-    from passt_mav.commands.evaluate import _load_predictor
+    from passt_mav.campaign import load_predictor
     from passt_mav.fields.datasets import resolve_field
 
     field = resolve_field(spec_field)
     if spec_model not in cache:
-        cache[spec_model] = _load_predictor(spec_model, field)
+        cache[spec_model] = load_predictor(spec_model, field)
     return field, cache[spec_model]
 
 

@@ -1,0 +1,549 @@
+"""The offline PASST campaign: trials x path lengths on ground truth, RMSE over time and POD energy.
+
+The library behind ``passt-mav evaluate`` and ``passt-mav paper`` (thin CLI layers on top) and the
+benchmarks. For every path length L (area covered per re-initialisation) and every trial (seed
+``seed + trial``, random water start cell), the field is estimated over ``steps`` snapshots from the
+true state at ``t0`` by:
+
+* ``passt``        - the PASST loop: model forecast, one-step reward, planner, GP on
+                     the residual vs the forecast, re-initialise, repeat;
+* ``model``        - the model alone from the true initial state (no re-initialisation);
+* ``lawnmower_gp`` / ``greedy_gp`` / ``random_gp`` - that planner's samples
+                     reconstructed by a GP alone (constant prior mean), the estimate
+                     held between legs (the paper's baselines); with
+                     ``baseline_prior="forecast"`` they instead run the full loop with
+                     the model, so only the planner differs.
+
+Every loop runs on the offline engine (:func:`passt_mav.engine.run_trials`); :data:`ENGINES` names
+how a unit of work drives it (one trial at a time, or a batch of trials in lockstep). Reported: RMSE
+over time (mean +- std over trials, field units), POD energy of the estimated vs true series, and the
+ratio of each method's final-window RMSE to PASST's. :func:`fleet_comparison`: the same loop with
+1..N boats (``passt-mav evaluate --boats N``).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import sys
+
+from passt_mav.reconstruction.background import background_steps_problem
+
+__all__ = ["METHODS", "ENGINES", "CAMPAIGN_HYPER", "run_campaign", "fleet_comparison", "fleet_starts",
+           "campaign_tasks", "method_problem", "load_predictor"]
+
+METHODS = ("passt", "model", "lawnmower_gp", "greedy_gp", "random_gp")
+
+
+def _rmse_series(est, truth):
+    import numpy as np
+
+    d = (est.astype(np.float64) - truth) ** 2
+    return np.sqrt(np.nanmean(d.reshape(d.shape[0], -1), axis=1))
+
+
+def _task(field, predictor, cfg: dict, L: int, trials) -> list[dict]:
+    """Trials ``trials`` at path length L, one result dict per trial (RMSE series, POD energy, timings
+    per loop method), through the engine body :data:`ENGINES` names (``cfg["engine"]``).
+
+    Runs with one BLAS thread wherever it runs: a multi-threaded BLAS sums in a
+    different order, and a last-bit difference can flip a planner's argmax, so the
+    same seeds would give different numbers in the main process, a joblib worker
+    and a Dask worker.
+    """
+    from threadpoolctl import threadpool_limits
+
+    torch = sys.modules.get("torch")  # a torch predictor: its reductions too
+    prev = torch.get_num_threads() if torch is not None else None
+    try:
+        if torch is not None:
+            torch.set_num_threads(1)
+        with threadpool_limits(1), _fast_path(predictor, cfg.get("fast_predict", False)), _heap_reuse():
+            return ENGINES[cfg.get("engine", "serial")](field, predictor, cfg, L, list(trials))
+    finally:
+        if torch is not None:
+            torch.set_num_threads(prev)
+
+
+@contextlib.contextmanager
+def _heap_reuse():
+    """Keep glibc's allocator reusing freed heap memory inside the block, where the
+    environment froze its thresholds (a no-op elsewhere).
+
+    A campaign allocates and frees arrays of 0.1-2 MB thousands of times per leg (roll-out
+    tables, GP cross-covariances, model activations). Dask's nanny starts workers with
+    ``MALLOC_TRIM_THRESHOLD_=65536``, which also freezes glibc's mmap threshold at 128 KiB:
+    every such array is then a fresh mmap, page-faulted in and unmapped again. Measured on
+    one lockstep batch (cylinder, L=200, 15 trials, PASST and random+GP): that environment
+    made the model's predictions 25 % and the GP 80 % slower (7x the system time); in a
+    Dask worker the batch took 61 s without this and 49 s with it, as in a plain process.
+    Without such a variable glibc's dynamic threshold already reuses the heap, so nothing
+    is changed. Here the mmap threshold goes to 64 MiB and the trim threshold to 256 MiB
+    for the task; afterwards both go back to what the environment asked for (mmap 128 KiB
+    unless ``MALLOC_MMAP_THRESHOLD_`` says otherwise) and ``malloc_trim`` returns the freed
+    memory, as Dask wants. glibc's ``mallopt`` is called through ctypes: no library
+    exposes it.
+    """
+    import ctypes
+    import ctypes.util
+    import os
+
+    def env_int(name: str, default: int) -> int:
+        try:
+            return int(os.environ.get(name, default))
+        except ValueError:
+            return default
+
+    libc = None
+    frozen = "MALLOC_TRIM_THRESHOLD_" in os.environ or "MALLOC_MMAP_THRESHOLD_" in os.environ
+    if sys.platform.startswith("linux") and frozen:
+        try:
+            libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
+            libc.mallopt  # noqa: B018 - glibc only (musl has no mallopt)
+        except (OSError, AttributeError):
+            libc = None
+    M_TRIM_THRESHOLD, M_MMAP_THRESHOLD = -1, -3
+    if libc is not None:
+        libc.mallopt(M_MMAP_THRESHOLD, 64 << 20)
+        libc.mallopt(M_TRIM_THRESHOLD, 256 << 20)
+    try:
+        yield
+    finally:
+        if libc is not None:
+            libc.mallopt(M_MMAP_THRESHOLD, env_int("MALLOC_MMAP_THRESHOLD_", 128 << 10))
+            libc.mallopt(M_TRIM_THRESHOLD, env_int("MALLOC_TRIM_THRESHOLD_", 128 << 10))
+            libc.malloc_trim(0)
+
+
+@contextlib.contextmanager
+def _fast_path(predictor, on: bool):
+    """Predict through the model's compiled fast path (``fast_predict``) inside the block, if it has one."""
+    if predictor is None or not hasattr(predictor, "fast_predict"):
+        yield
+        return
+    prev = predictor.fast_predict
+    predictor.fast_predict = bool(on)
+    try:
+        yield
+    finally:
+        predictor.fast_predict = prev
+
+
+#: GP kernels fitted on a campaign's initial state, per process (hyper="state": one fit
+#: per configuration, shared by every trial and method with the same GP options)
+_KERNEL_CACHE: dict = {}
+
+
+def _start_cell(field, cfg: dict, L: int, trial: int) -> tuple[int, int]:
+    import numpy as np
+
+    rng = np.random.default_rng([int(cfg["seed"]) + trial, L])
+    water = np.argwhere(~field.land_mask)
+    return tuple(int(x) for x in water[rng.integers(len(water))])
+
+
+#: GP hyper-parameter schedules of a campaign: passt_mav.passt.HYPER, or "auto" = each GP fitted
+#: on what it models: a GP on the residual vs the forecast on every leg's residuals
+#: ("every_leg": the model's error grows and changes shape over a campaign), a GP on the
+#: samples alone once on the initial state ("state"). A residual GP whose kernel was fitted on
+#: the whole field (variance and length scale of the flow, not of the model's error) spreads
+#: every leg's noisy residuals far and wide: measured with the shipped KNODEs, 2 trials, PASST
+#: final-window RMSE ocean L=100 0.52 with "state" vs 0.062 with "first_leg" (0.053
+#: every_leg); cylinder L=50 0.44 vs 0.16 (0.10). With the background covariance (200
+#: snapshots, factor fixed at 1), 6 trials, L=50: ocean 0.0832 first_leg vs 0.0564 every_leg;
+#: without it 0.0810 vs 0.0693 (the model alone: 0.0756).
+CAMPAIGN_HYPER = ("every_leg", "first_leg", "state", "auto")
+
+
+def _hyper_for(hyper: str, residual: bool) -> str:
+    """The :data:`passt_mav.passt.HYPER` schedule of one GP: ``auto`` resolved by what it models."""
+    if hyper != "auto":
+        return hyper
+    return "every_leg" if residual else "state"
+
+
+def method_problem(m: str) -> str | None:
+    """Why ``m`` is not a campaign method, or ``None``. A method is one of :data:`METHODS`, or
+    ``PLANNER_gp`` for any planner of :data:`passt_mav.planning.PLANNERS` (e.g.
+    ``information_gp``: prior as ``--baseline-prior`` says), or ``PLANNER_loop`` (always PASST's
+    own loop: the model's forecast as the GP's prior, only the path differs), optionally with
+    ``@REWARD`` (e.g. ``passt@speed``, ``greedy_loop@speed``): several planners and rewards in
+    one campaign."""
+    from passt_mav.planning import PLANNERS, REWARDS
+
+    base, _, reward = m.partition("@")
+    known = base in METHODS or any(base.endswith(sfx) and base[: -len(sfx)] in PLANNERS for sfx in ("_gp", "_loop"))
+    if not known:
+        return (f"unknown method {m!r}; choose from {', '.join(METHODS)}, PLANNER_gp or PLANNER_loop with PLANNER "
+                f"one of {', '.join(PLANNERS)}")
+    if reward and (base == "model" or reward not in REWARDS):
+        return (f"method {m!r}: unknown reward {reward!r} (or a method that plans nothing); "
+                f"rewards: {', '.join(REWARDS)}")
+    return None
+
+
+def _method_kw(cfg: dict, m: str, predictor) -> tuple:
+    """(predictor, run_offline options) of loop method ``m`` (its GP schedule included)."""
+    h = cfg["hyper"]
+    base, _, reward = m.partition("@")
+    planner = cfg["planner"] if base == "passt" else base.rsplit("_", 1)[0]  # PLANNER_gp / PLANNER_loop
+    if base == "passt" or base.endswith("_loop") or cfg["baseline_prior"] == "forecast":
+        return predictor, dict(planner=planner, reward=reward or cfg["reward"], prior="forecast",
+                               hyper=_hyper_for(h, residual=True))
+    return None, dict(planner=planner, reward=reward or "speed", prior="none", hyper=_hyper_for(h, residual=False))
+
+
+def _summarise_trial(out: dict, m: str, r, truth, cfg: dict, trial: int) -> None:
+    import numpy as np
+
+    from passt_mav.fields.analysis import pod_energy
+
+    out["rmse"][m] = _rmse_series(r.estimate, truth).tolist()
+    out["pod"][m] = pod_energy(r.estimate, cfg["pod_modes"], cumulative=False).tolist()
+    out["plan_ms"][m] = float(np.mean([leg["timings"]["plan"] for leg in r.legs]) * 1e3)
+    out.setdefault("timings_s", {})[m] = {k: float(sum(leg["timings"].get(k, 0.0) for leg in r.legs))
+                                          for k in ("predict", "reward", "plan", "gp")}
+    if cfg.get("keep_paths"):
+        out.setdefault("paths", {})[m] = [leg["path"] for leg in r.legs]
+    if trial == 0:
+        k = min(cfg["snapshot_step"], cfg["steps"])
+        out["snap"][m] = r.estimate[k].tolist()
+
+
+def _loop_options(cfg: dict, m: str, predictor, L: int) -> tuple:
+    """(predictor, :class:`~passt_mav.passt.LoopOptions`) of loop method ``m`` at path length ``L``."""
+    from passt_mav.passt import LoopOptions
+
+    pred, kw = _method_kw(cfg, m, predictor)
+    return pred, LoopOptions(path_length=L, steps_per_leg=cfg["steps_per_leg"], gp_kw=cfg.get("gp_kw"),
+                             background=cfg.get("background", 0), prior_blend=cfg.get("prior_blend", "off"), **kw)
+
+
+def _trial_setup(field, cfg: dict, L: int, trials) -> tuple:
+    """(truth (T+1, 2, R, C) float64, start cells, seeds, empty result dicts, engine keywords) of ``trials``."""
+    t0, T = cfg["t0"], cfg["steps"]
+    truth = field.data[t0 : t0 + T + 1].astype("float64")
+    starts = [_start_cell(field, cfg, L, i) for i in trials]
+    seeds = [int(cfg["seed"]) + i for i in trials]
+    outs = [{"L": L, "trial": i, "start": list(st), "rmse": {}, "pod": {}, "snap": {}, "plan_ms": {}}
+            for i, st in zip(trials, starts)]
+    run = dict(t0=t0, n_steps=T, noise_std=cfg["noise"], sample_at=cfg.get("sampling", "end"))
+    return truth, starts, seeds, outs, run
+
+
+def _lockstep_body(field, predictor, cfg: dict, L: int, trials: list[int]) -> list[dict]:
+    """The trials together: per loop method one batched run of the engine (one predictor call and one
+    planning call per leg for the batch)."""
+    from passt_mav.engine import run_trials
+
+    truth, starts, seeds, outs, run = _trial_setup(field, cfg, L, trials)
+    for m in cfg["methods"]:
+        if m == "model":
+            continue
+        pred, opts = _loop_options(cfg, m, predictor, L)
+        res = run_trials(field, pred, opts, starts=[[st] for st in starts], seeds=seeds, batched=True,
+                         kernel_cache=_KERNEL_CACHE, **run)
+        for out, r, i in zip(outs, res, trials):
+            _summarise_trial(out, m, r, truth, cfg, i)
+    return outs
+
+
+def _serial_body(field, predictor, cfg: dict, L: int, trials: list[int]) -> list[dict]:
+    """One trial after another, each method's loop on its own."""
+    from passt_mav.engine import run_trials
+
+    truth, starts, seeds, outs, run = _trial_setup(field, cfg, L, trials)
+    for out, st, sd, i in zip(outs, starts, seeds, trials):
+        for m in cfg["methods"]:
+            if m == "model":
+                continue
+            pred, opts = _loop_options(cfg, m, predictor, L)
+            (r,) = run_trials(field, pred, opts, starts=[[st]], seeds=[sd], **run)
+            _summarise_trial(out, m, r, truth, cfg, i)
+    return outs
+
+
+#: how a unit of work (a path length's trials) drives the engine, by ``engine=`` name: "serial" one
+#: trial at a time; "lockstep" the trials together, one batched predictor and planning call per leg
+#: (the same numbers for a predictor whose batched and single predictions agree bit for bit)
+ENGINES = {"lockstep": _lockstep_body, "serial": _serial_body}
+
+
+def run_campaign(field, predictor, *, path_lengths=(25, 50, 75, 100, 150, 200), trials: int = 30,
+                 planner: str = "policy_gradient", reward: str = "speed", steps: int = 300, t0: int = 0,
+                 steps_per_leg: int = 10, noise: float = 0.02, hyper: str = "every_leg", sampling: str = "end",
+                 baseline_prior: str = "none", methods=METHODS, window: int = 50, snapshot_step: int = 250,
+                 seed: int = 0, pod_modes: int = 6, workers: int = 1, scheduler=None, progress: bool = True,
+                 engine: str = "serial", batch: int | None = None, gp_solver: str = "sklearn",
+                 keep_trials: bool = False, fast_predict: bool = False, background: int = 0,
+                 prior_blend: str = "off", gp_bias: bool = False) -> dict:
+    """Run the campaign; returns the results dict (JSON-able; RMSE in field units, steps in snapshots).
+    ``scheduler``: a Dask address string or a ``distributed.Client``. Same seeds give the same numbers
+    whichever way the trials are spread.
+
+    engine: a name in :data:`ENGINES`: "serial" (default: one trial after another) or
+    "lockstep" (the trials of one path length advance together in batches of ``batch``
+    (default: all), one predictor call per leg for the batch). A unit of work sent to a
+    worker is one batch. gp_solver: "sklearn" (default; a GaussianProcessRegressor per
+    leg) or "cholesky" (direct posterior with the fitted kernel; the same reconstruction
+    to ~1e-12). Lockstep gives the serial numbers exactly only for predictors whose
+    batched and single predictions agree bit for bit (DMD, persistence; tested): a
+    KNODE's batched convolutions round differently and a campaign's paths can then
+    diverge (measured on the shipped ocean model), hence the serial default.
+    keep_trials: also return the per-trial records (``_trials``, with every leg's path)
+    for tests and debugging. fast_predict: run a KNODE through its compiled prediction
+    path (:attr:`passt_mav.models.knode.KnodePredictor.fast_predict`, 1.6x, fp32
+    rounding of the eager path) for the model-alone roll-out and every leg, in every
+    worker; other predictors ignore it. background: snapshots of the model's roll-out
+    whose anomaly covariance every residual GP (PASST's, and the baselines' with
+    ``baseline_prior="forecast"``) adds to its stationary kernels
+    (:func:`passt_mav.reconstruction.model_background`); 0 = none. prior_blend: "off" or
+    "bma" (:class:`passt_mav.passt.PasstLoop`: every residual loop weighs the model's forecast
+    against persistence leg by leg).
+    """
+    import numpy as np
+
+    from passt_mav.passt import run_pure_model
+
+    methods = list(methods)
+    _check_campaign(field, predictor, methods=methods, planner=planner, reward=reward, trials=trials,
+                    path_lengths=path_lengths, t0=t0, engine=engine, hyper=hyper, batch=batch,
+                    background=background, prior_blend=prior_blend)
+    steps = int(min(steps, field.n_times - 1 - t0))
+    cfg = dict(seed=seed, t0=t0, steps=steps, steps_per_leg=steps_per_leg, noise=noise, hyper=hyper, sampling=sampling,
+               planner=planner, reward=reward, baseline_prior=baseline_prior, methods=methods,
+               snapshot_step=snapshot_step, pod_modes=pod_modes, engine=engine,
+               gp_kw={"solver": gp_solver, **({"bias": True} if gp_bias else {})}, keep_paths=bool(keep_trials),
+               fast_predict=bool(fast_predict), background=int(background), prior_blend=prior_blend)
+    truth = field.data[t0 : t0 + steps + 1].astype(np.float64)
+    with _fast_path(predictor, fast_predict):
+        pure = run_pure_model(field, predictor, t0=t0, n_steps=steps) if "model" in methods else None
+    tasks = campaign_tasks(path_lengths, trials, engine, batch)
+    results = _execute(field, predictor, cfg, tasks, workers=workers, scheduler=scheduler, progress=progress)
+    results.sort(key=lambda r: (r["L"], r["trial"]))
+    summary = _summarise(cfg, results, truth, pure, path_lengths=path_lengths, trials=trials, window=window,
+                         n_times=field.n_times)
+    if keep_trials:
+        summary["_trials"] = results
+    return summary
+
+
+def _check_campaign(field, predictor, *, methods, planner, reward, trials, path_lengths, t0, engine, hyper, batch,
+                    background, prior_blend) -> None:
+    """Every option of :func:`run_campaign` checked once, before any work; raises the error naming it."""
+    from passt_mav.errors import ModelError, PlannerError
+    from passt_mav.passt import PRIOR_BLENDS
+    from passt_mav.planning import PLANNERS, REWARDS
+
+    if not methods:
+        raise PlannerError(f"no methods; choose from {', '.join(METHODS)}")
+    for m in methods:
+        if (problem := method_problem(m)) is not None:
+            raise PlannerError(problem)
+    if planner not in PLANNERS and planner != "pg":
+        raise PlannerError(f"unknown planner {planner!r}; choose one of {', '.join(PLANNERS)}")
+    if reward not in REWARDS:
+        raise PlannerError(f"unknown reward {reward!r}; choose one of {', '.join(REWARDS)}")
+    if predictor is None and {"passt", "model"} & {m.partition("@")[0] for m in methods}:
+        raise ModelError("methods 'passt' and 'model' need a predictor")
+    if trials < 1 or not path_lengths or min(path_lengths) < 1:
+        raise PlannerError("need at least one trial and positive path lengths")
+    if not (0 <= t0 < field.n_times - 1):
+        raise PlannerError(f"--t0 {t0} must lie in [0, {field.n_times - 2}]")
+    if engine not in ENGINES:
+        raise PlannerError(f"unknown engine {engine!r}; choose one of {', '.join(ENGINES)}")
+    if hyper not in CAMPAIGN_HYPER:
+        raise PlannerError(f"unknown GP hyper-parameter schedule {hyper!r}; choose one of {', '.join(CAMPAIGN_HYPER)}")
+    if batch is not None and int(batch) < 1:
+        raise PlannerError("--batch must be >= 1")
+    problem = background_steps_problem(background)
+    if problem:
+        raise PlannerError(f"--background: {problem}")
+    if prior_blend not in PRIOR_BLENDS:
+        raise PlannerError(f"--prior-blend: unknown {prior_blend!r}; choose one of {', '.join(PRIOR_BLENDS)}")
+
+
+def _summarise(cfg: dict, results: list[dict], truth, pure, *, path_lengths, trials: int, window: int,
+               n_times: int) -> dict:
+    """The campaign's results dict from the per-trial records (sorted by (L, trial)): per path length
+    the mean / std RMSE over time, final-window RMSE, POD energy, planning time; snapshots; timings."""
+    from passt_mav.fields.analysis import pod_energy
+
+    steps, pod_modes, methods = cfg["steps"], cfg["pod_modes"], cfg["methods"]
+    w = max(1, min(window, steps))
+    summary: dict = {"config": dict(cfg, path_lengths=list(map(int, path_lengths)), trials=trials, window=w,
+                                    n_times=n_times), "per_L": {}}
+    summary["pod_truth"] = pod_energy(truth, pod_modes, cumulative=False).tolist()
+    snaps = {"truth": truth[min(cfg["snapshot_step"], steps)].tolist()}
+    pure_rmse = None
+    if pure is not None:
+        pure_rmse = _rmse_series(pure, truth)
+        summary["pod_model"] = pod_energy(pure, pod_modes, cumulative=False).tolist()
+        snaps["model"] = pure[min(cfg["snapshot_step"], steps)].tolist()
+    for L in path_lengths:
+        rs = [r for r in results if r["L"] == L]
+        summary["per_L"][str(L)] = _per_length(rs, methods, pure_rmse, summary.get("pod_model"), w)
+        r0 = [r for r in rs if r["trial"] == 0][0]
+        snaps.update({f"{m}@L{L}": r0["snap"][m] for m in r0["snap"]})
+    summary["_snapshots"] = snaps
+    # compute seconds per component summed over every trial-leg (predict: a batch's time / B)
+    tim: dict = {}
+    for r in results:
+        for m, d in r.get("timings_s", {}).items():
+            for k, v in d.items():
+                tim.setdefault(m, {}).setdefault(k, 0.0)
+                tim[m][k] += v
+    summary["timings_s"] = tim
+    summary["trial_legs"] = len(results) * sum(1 for m in methods if m != "model") * -(-steps // cfg["steps_per_leg"])
+    return summary
+
+
+def _per_length(rs: list[dict], methods, pure_rmse, pod_model, w: int) -> dict:
+    """One path length's summary from its trials' records ``rs`` (final window ``w`` steps)."""
+    import numpy as np
+
+    per: dict = {"rmse_mean": {}, "rmse_std": {}, "final_rmse": {}, "final_rmse_std": {}, "pod": {}, "plan_ms": {}}
+    for m in methods:
+        if m == "model":
+            a = np.repeat(pure_rmse[None], len(rs), axis=0)
+            per["pod"][m] = pod_model
+        else:
+            a = np.array([r["rmse"][m] for r in rs])
+            per["pod"][m] = np.mean([r["pod"][m] for r in rs], axis=0).tolist()
+            per["plan_ms"][m] = float(np.mean([r["plan_ms"][m] for r in rs]))
+        per["rmse_mean"][m] = a.mean(0).tolist()
+        per["rmse_std"][m] = a.std(0).tolist()
+        fin = a[:, -w:].mean(1)
+        per["final_rmse"][m] = float(fin.mean())
+        per["final_rmse_std"][m] = float(fin.std())
+    if "passt" in methods:
+        per["ratio_to_passt"] = {m: per["final_rmse"][m] / per["final_rmse"]["passt"] for m in methods}
+    per["starts"] = [r["start"] for r in rs]
+    return per
+
+
+def fleet_starts(field, seed: int, trial: int, L: int, n: int) -> list[tuple[int, int]]:
+    """``n`` distinct water cells for a trial's boats; the first is the one-boat campaign's start."""
+    import numpy as np
+
+    first = _start_cell(field, {"seed": seed}, L, trial)
+    rng = np.random.default_rng([seed + trial, L, 7])
+    water = [tuple(int(x) for x in w) for w in np.argwhere(~field.land_mask) if tuple(int(x) for x in w) != first]
+    pick = rng.choice(len(water), size=n - 1, replace=False) if n > 1 else []
+    return [first] + [water[j] for j in pick]
+
+
+def fleet_comparison(field, predictor, *, boats: int, path_length: int, trials: int = 10,
+                     planner: str = "policy_gradient", reward: str = "speed", steps: int = 300, t0: int = 0,
+                     steps_per_leg: int = 10, noise: float = 0.02, hyper: str = "every_leg", sampling: str = "end",
+                     window: int = 50, seed: int = 0, progress: bool = True, background: int = 0) -> dict:
+    """PASST with 1..``boats`` boats of ``path_length`` moves each, and one boat of ``boats`` x
+    ``path_length`` moves (the fleet's budget in one path), over ``trials`` seeded trials
+    (:func:`passt_mav.engine.run_trials`, one trial of N boats per run). Returns per configuration
+    the mean RMSE over time, the final-window mean and each trial's final-window value (field units).
+    ``background``: as in :func:`run_campaign`."""
+    import numpy as np
+    from threadpoolctl import threadpool_limits
+
+    from passt_mav.engine import run_trials
+    from passt_mav.passt import LoopOptions
+    from passt_mav.progress import progress as _progress
+
+    configs = [(f"{n} boat{'s' if n > 1 else ''} x {path_length}", n, path_length) for n in range(1, boats + 1)]
+    configs.append((f"1 boat x {boats * path_length}", 1, boats * path_length))
+    T = int(min(steps, field.n_times - 1 - t0))
+    truth = field.data[t0 : t0 + T + 1].astype("float64")
+    out: dict = {"config": {"boats": boats, "path_length": path_length, "trials": trials, "steps": T, "t0": t0,
+                            "steps_per_leg": steps_per_leg, "noise": noise, "window": window, "seed": seed,
+                            "planner": planner, "reward": reward, "hyper": hyper, "sampling": sampling,
+                            "background": background}, "runs": {}}
+    base = LoopOptions(planner=planner, reward=reward, steps_per_leg=steps_per_leg,
+                       hyper=_hyper_for(hyper, residual=True), background=background)
+    it = _progress([(name, n, L, i) for name, n, L in configs for i in range(trials)], "fleet comparison", "trial",
+                   quiet=not progress)
+    series: dict[str, list] = {}
+    with threadpool_limits(1):  # the campaign's rule: one BLAS thread, the same numbers everywhere
+        for name, n, L, i in it:
+            (r,) = run_trials(field, predictor, LoopOptions.of(base, path_length=L),
+                              starts=[fleet_starts(field, seed, i, path_length, n)], seeds=[seed + i], t0=t0,
+                              n_steps=T, noise_std=noise, sample_at=sampling)
+            series.setdefault(name, []).append(_rmse_series(r.estimate, truth))
+    for name, n, L in configs:
+        arr = np.array(series[name])
+        finals = arr[:, -window:].mean(axis=1)
+        out["runs"][name] = {"boats": n, "path_length": L, "rmse_mean": arr.mean(axis=0).tolist(),
+                             "final_rmse": float(finals.mean()), "final_rmse_trials": finals.tolist()}
+    return out
+
+
+def campaign_tasks(path_lengths, trials: int, engine: str = "lockstep",
+                   batch: int | None = None) -> list[tuple[int, tuple[int, ...]]]:
+    """Units of work: (L, trial indices). Serial engine: one trial each; lockstep: batches."""
+    if engine == "serial":
+        return [(int(L), (i,)) for L in path_lengths for i in range(trials)]
+    b = int(batch) if batch else trials
+    return [(int(L), tuple(range(a, min(a + b, trials)))) for L in path_lengths for a in range(0, trials, b)]
+
+
+def _execute(field, predictor, cfg, tasks, *, workers, scheduler, progress) -> list[dict]:
+    from passt_mav.progress import progress as _progress
+
+    # a bar with ETA on a terminal, a plain line every 10 % (or 30 s) in a log
+    bar = _progress(sum(len(tr) for _, tr in tasks), "evaluate", "trial", quiet=not progress)
+    out = []
+    # longest first (a task's time grows with its path length): parallel workers then
+    # finish together instead of one of them running the longest task alone at the end;
+    # the results are sorted by (L, trial) afterwards, so the order changes no number
+    longest_first = sorted(tasks, key=lambda task: -int(task[0]))
+    try:
+        if scheduler is not None:
+            from distributed import Client, as_completed
+
+            client = scheduler if isinstance(scheduler, Client) else Client(scheduler)
+            try:
+                f_fut = client.scatter(field, broadcast=True)
+                p_fut = client.scatter(predictor, broadcast=True)
+                futs = [client.submit(_task, f_fut, p_fut, cfg, L, tr, pure=False, priority=-i)
+                        for i, (L, tr) in enumerate(longest_first)]
+                for fut in as_completed(futs):
+                    rs = fut.result()
+                    out.extend(rs)
+                    bar.update(len(rs))
+            finally:
+                if client is not scheduler:
+                    client.close()
+        elif workers > 1:
+            from joblib import Parallel, delayed
+
+            jobs = (delayed(_task)(field, predictor, cfg, L, tr) for L, tr in longest_first)
+            for rs in Parallel(n_jobs=workers, return_as="generator_unordered")(jobs):
+                out.extend(rs)
+                bar.update(len(rs))
+        else:
+            for L, tr in tasks:
+                rs = _task(field, predictor, cfg, L, tr)
+                out.extend(rs)
+                bar.update(len(rs))
+    finally:
+        bar.close()
+    return out
+
+
+def load_predictor(spec: str, field):
+    """The predictor ``spec`` names: a name in ``PREDICTORS`` (fitted on ``field``), ``builtin:*`` or a
+    checkpoint (loaded; its validation skill printed on stderr)."""
+    from passt_mav.errors import ModelError
+
+    try:
+        from passt_mav.models.base import PREDICTORS, load_predictor, make_predictor
+    except ImportError as exc:  # the predictors package is not installed in this build
+        raise ModelError(f"predictors are not available ({exc})") from None
+    if spec in PREDICTORS:
+        return make_predictor(spec).fit(field)
+    p = load_predictor(spec)
+    from passt_mav.models.evaluate import echo_skill
+
+    # the skill line goes to stderr so that --json output stays one JSON document
+    echo_skill(spec, getattr(p, "metadata_", None), lambda m: print(m, file=sys.stderr))
+    return p
+
+
