@@ -22,7 +22,7 @@ import time
 from dataclasses import dataclass, field
 
 os.environ.setdefault("MAVLINK20", "1")
-from pymavlink import mavutil  # noqa: E402
+from pymavlink import mavutil
 
 
 @dataclass
@@ -49,7 +49,7 @@ class QgcLike:
         self._next_hb = 0.0
         self.conn = None
 
-    def start(self) -> "QgcLike":
+    def start(self) -> QgcLike:
         self.conn = mavutil.mavlink_connection(self.connect, source_system=self.sysid, source_component=self.compid,
                                                dialect="ardupilotmega")
         self._th = threading.Thread(target=self._run, name="qgc-like", daemon=True)

@@ -101,12 +101,12 @@ def _claim_instance() -> tuple[int, object]:
     raise RuntimeError(f"no free SITL instance in {_INSTANCES} (ports {BASE_PORT}+10N..+3 all busy)")
 
 
-_LIVE: list["Sitl"] = []
+_LIVE: list[Sitl] = []
 
 
 @atexit.register
 def _kill_leftovers() -> None:  # pragma: no cover - only when a test forgot teardown
-    for s in list(_LIVE):
+    for s in _LIVE:
         s.stop()
 
 

@@ -22,7 +22,8 @@ from passt_mav.fields.cylinder import (
     run_cylinder_lbm,
     strouhal_number,
 )
-from passt_mav.fields.cylinder_cli import DEFAULTS, main as cli_main
+from passt_mav.fields.cylinder_cli import DEFAULTS
+from passt_mav.fields.cylinder_cli import main as cli_main
 
 REPO = Path(__file__).resolve().parent.parent
 ASSETS = REPO / "passt_mav" / "assets"

@@ -339,8 +339,8 @@ def test_lua_sensor_on_ardurover_sitl(tmp_path, sitl_factory):
 def test_vehicle_sim_sensor_silent_on_land():
     """builtin:rtofs: a boat on a land cell gets no CUR_U/CUR_V from vehicle_sim, one at sea does
     (the Lua sensor behaves the same: test_vehicle_loop_with_mocked_bindings)."""
-    from vehicle_sim import CurrentModel, SimConfig, Simulator
     from passt_mav.fields.datasets import load_dataset
+    from vehicle_sim import CurrentModel, SimConfig, Simulator
 
     f = load_dataset("rtofs")
     cm = CurrentModel(f)

@@ -6,17 +6,17 @@ import socket
 import time
 
 import pytest
+from mavlink_helpers import HOME, inprocess_factory, link_config, served
 from pymavlink import mavutil
 from pymavlink.dialects.v20 import ardupilotmega as M
+from simclient import free_port
 
-from mavlink_helpers import HOME, inprocess_factory, link_config, served
 from passt_mav.errors import LinkTimeout, UserError
 from passt_mav.mavlink import Link, LinkConfig, MissionClient, secret_from_key, with_home
 from passt_mav.mavlink.link import _is_vehicle_heartbeat
 from passt_mav.mission.items import MissionItem
 from vehicle_sim import LinkConfig as SimLinkConfig
 from vehicle_sim import SimConfig, Simulator
-from simclient import free_port
 
 
 @pytest.mark.parametrize("good", ["tcp:127.0.0.1:5760", "udpin:0.0.0.0:14550", "udpout:127.0.0.1:14550",

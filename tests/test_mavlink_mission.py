@@ -13,9 +13,9 @@ import threading
 import time
 
 import pytest
+from mavlink_helpers import HOME, inprocess_factory, link_config, served, vehicle, waypoints
 from pymavlink.dialects.v20 import ardupilotmega as M
 
-from mavlink_helpers import HOME, inprocess_factory, link_config, served, vehicle, waypoints
 from passt_mav.errors import LinkTimeout, MissionRejected
 from passt_mav.mavlink import Link, MissionClient, with_home
 from passt_mav.mavlink.mission_client import rover_stored

@@ -15,7 +15,7 @@ from passt_mav.models.base import PREDICTORS, load_predictor, make_predictor
 
 torch = pytest.importorskip("torch")
 
-from passt_mav.models.knode import KnodeNet, conv_output_shape, gaussian_kernel, ode_step, odeint_fixed  # noqa: E402
+from passt_mav.models.knode import KnodeNet, conv_output_shape, gaussian_kernel, ode_step, odeint_fixed
 
 SMALL = dict(channels=(4, 8, 8, 8, 8), hidden=16, progress=False)  # tiny KNODE for fast tests
 

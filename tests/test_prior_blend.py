@@ -12,10 +12,10 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from test_passt import ShiftPredictor, make_field
 
 from passt_mav.errors import ReconstructionError
 from passt_mav.passt import PasstLoop, run_offline
-from test_passt import ShiftPredictor, make_field
 
 TRUE_VEL = (0.05, 0.12)
 

@@ -16,14 +16,14 @@ import shutil
 
 import numpy as np
 import pytest
-import yaml
-
 import test_controller as tc
+import yaml
 from mavlink_helpers import served
+
+from passt_mav.analysis.replay import ReplayError, rebuild_from_tlog, replay, waypoints_to_path
 from passt_mav.cli import main
 from passt_mav.commands.run import LEAN_STREAMS
 from passt_mav.mission.config import validate_mission
-from passt_mav.analysis.replay import ReplayError, rebuild_from_tlog, replay, waypoints_to_path
 from passt_mav.runs.rundir import RunDir
 from passt_mav.runs.store import SampleStore
 from passt_mav.runs.tlog import _TlogScanner

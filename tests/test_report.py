@@ -15,10 +15,10 @@ import numpy as np
 import pytest
 
 import geo
+from passt_mav.analysis.report import load_run, recon_rmse, write_report
 from passt_mav.cli import main
 from passt_mav.errors import UserError
 from passt_mav.fields.field import FlowField
-from passt_mav.analysis.report import load_run, recon_rmse, write_report
 from passt_mav.runs.rundir import RunDir
 
 GRID = geo.RegionGrid(40.0, -63.0, 40.45, -62.45, 10, 12)

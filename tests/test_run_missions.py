@@ -23,9 +23,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
+from mavlink_helpers import Wire, lockstep_connection
 
 import geo
-from mavlink_helpers import Wire, lockstep_connection
 from passt_mav.cli import main
 from passt_mav.fields.datasets import resolve_field
 from passt_mav.mavlink import link as link_mod

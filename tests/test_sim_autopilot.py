@@ -7,8 +7,8 @@ import hashlib
 import pytest
 from pymavlink import mavutil
 from pymavlink.dialects.v20 import ardupilotmega as M
-
 from simclient import SimClient
+
 from vehicle_sim import MODES, SimConfig, Simulator
 from vehicle_sim.link import secret_from_key
 

@@ -6,10 +6,10 @@ import math
 
 import numpy as np
 import pytest
+from simclient import SimClient
 
 import geo
 from passt_mav.fields import FlowField
-from simclient import SimClient
 from vehicle_sim import MODES, BoatParams, CurrentModel, SimConfig, Simulator
 from vehicle_sim.boat import BoatState, guidance, step_boat
 

@@ -11,9 +11,9 @@ import time
 import pytest
 from pymavlink import mavutil
 from pymavlink.dialects.v20 import ardupilotmega as M
-
 from simclient import SimClient, free_port
-from vehicle_sim import LinkConfig, MODES, SimConfig, Simulator
+
+from vehicle_sim import MODES, LinkConfig, SimConfig, Simulator
 from vehicle_sim.cli import main as cli_main
 
 HOME = (40.0, -63.0)

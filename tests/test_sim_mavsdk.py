@@ -10,9 +10,9 @@ import math
 import time
 
 import pytest
+from simclient import free_port
 
 from vehicle_sim import SimConfig, Simulator
-from simclient import free_port
 
 mavsdk = pytest.importorskip("mavsdk")
 

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from pymavlink.dialects.v20 import ardupilotmega as M
-
 from simclient import SimClient
+
 from vehicle_sim import MODES, SimConfig, Simulator
 
 HOME = (40.0, -63.0)

@@ -258,9 +258,9 @@ KEY = "passt sitl signing key"
 def test_signing_on_the_vehicle_keyed_run_completes_keyless_fails_naming_signing(tmp_path, sitl_factory):
     from pymavlink.dialects.v20 import ardupilotmega as M
 
+    from passt_mav.commands.run import link_config_for
     from passt_mav.errors import LinkTimeout
     from passt_mav.mavlink import Link, secret_from_key
-    from passt_mav.commands.run import link_config_for
     from passt_mav.runs.rundir import RunDir
 
     field, path = _field(tmp_path)

@@ -16,7 +16,6 @@ time); the mission is the small one of tests/test_sitl_faults.py (legs of 3 move
 
 from __future__ import annotations
 
-import os
 import shutil
 import socket
 import subprocess
@@ -25,16 +24,16 @@ import time
 from pathlib import Path
 
 import pytest
-
 from qgc_like import QgcLike
 from test_sitl_faults import _boot, _controller, _field, _mission
+
 from vehicle_sim.radio import RadioConfig, RadioProxy
 
 pytestmark = pytest.mark.sitl
 
 SPEEDUP = 5.0
 #: the controller's ids in this test: its defaults (245/195), not QGC's 255/190 nor MAVProxy's 255/230
-from passt_mav.mavlink.link import DEFAULT_SOURCE_COMPONENT, DEFAULT_SOURCE_SYSTEM  # noqa: E402
+from passt_mav.mavlink.link import DEFAULT_SOURCE_COMPONENT, DEFAULT_SOURCE_SYSTEM
 
 CONTROLLER_IDS = (DEFAULT_SOURCE_SYSTEM, DEFAULT_SOURCE_COMPONENT)
 
@@ -54,6 +53,7 @@ def _mavproxy() -> list[str]:
 
 def test_two_legs_through_radio_and_mavproxy_beside_a_qgc_like_client(tmp_path, sitl_factory, monkeypatch):
     import test_sitl_faults
+
     from passt_mav.mavlink import Link, LinkConfig
     from passt_mav.runs.rundir import RunDir
 

@@ -12,7 +12,7 @@ from passt_mav.models.base import load_predictor, make_predictor
 
 torch = pytest.importorskip("torch")
 
-from test_models import SMALL, _one_thread, wave_field  # noqa: E402,F401 - _one_thread: the same autouse fixture here
+from test_models import SMALL, _one_thread, wave_field  # noqa: F401 - _one_thread: the same autouse fixture here
 
 LOOP = dict(loss="rollout", horizon=4, curriculum=0.5, noise="gp", noise_samples=4, noise_path_length=20, val_frac=0.25, zero_init=True, train_batch=16)
 
@@ -164,7 +164,7 @@ def test_compiled_step_equals_eager_to_fp32_tolerance():
     torch.manual_seed(0)
     net = KnodeNet(30, 30)
     x = torch.randn(8, 2, 30, 30)
-    eager = lambda z: ode_step(net, z, 1.0, 6)  # noqa: E731
+    eager = lambda z: ode_step(net, z, 1.0, 6)
     f = fast.compiled_or_eager(eager, net)
     with torch.no_grad():
         torch.testing.assert_close(f(x), eager(x), rtol=1e-5, atol=1e-5)

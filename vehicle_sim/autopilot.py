@@ -42,8 +42,8 @@ from __future__ import annotations
 import math
 import random
 import time as _time
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable
 
 from pymavlink.dialects.v20 import ardupilotmega as mavlink2
 

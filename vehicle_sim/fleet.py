@@ -36,8 +36,8 @@ import math
 import select
 import threading
 import time
+from collections.abc import Iterable, Sequence
 from pathlib import Path
-from typing import Iterable, Sequence
 
 from vehicle_sim.boat import CurrentModel, LocalFrame
 from vehicle_sim.config import LinkConfig, SimConfig

@@ -226,10 +226,10 @@ def replay(source, *, out=None, model: str | None = None, planner: str | None = 
     Raises:
         ReplayError / UserError: bad input (the CLI prints one line, exit 2).
     """
-    from passt_mav.legstep import FieldClock, LegStep, build_loop, build_predictor
     from passt_mav.fields.datasets import mission_field
+    from passt_mav.legstep import FieldClock, LegStep, build_loop, build_predictor
     from passt_mav.planning import PLANNERS, REWARDS, path_reward
-    from passt_mav.runs.rundir import RunDir, RunDirError, write_json_atomic
+    from passt_mav.runs.rundir import RunDir, RunDirError
 
     say = echo or (lambda s: None)
     src = Path(source)

@@ -312,7 +312,7 @@ def collect(bench_dir: Path, *, only=(), quick=False, timeout=None, progress=Tru
             print(f"[{i}/{len(names)}] {name}: {r['status']} in {r.get('wall_s', 0):.1f} s"
                   + (f" ({r['error']})" if r["status"] != "ok" else ""), file=sys.stderr, flush=True)
     return {
-        "date_utc": _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ"),
+        "date_utc": _dt.datetime.now(_dt.UTC).strftime("%Y-%m-%dT%H:%M:%SZ"),
         "quick": bool(quick),
         "bench_dir": str(bench_dir),
         "machine": machine_info(),

@@ -114,7 +114,7 @@ class CylinderConfig:
     anchor_lat: float = DEFAULT_ANCHOR[0]
     anchor_lon: float = DEFAULT_ANCHOR[1]
 
-    def validate(self) -> "CylinderConfig":
+    def validate(self) -> CylinderConfig:
         """Check ranges once, at the edge; raises :class:`FieldError` naming the bad option."""
         if int(self.resolution) < 3:
             raise FieldError(f"resolution must be at least 3 cells per radius, got {self.resolution}")
@@ -454,7 +454,7 @@ def _sponges(xs: np.ndarray, ys: np.ndarray):
     sp = SPONGE
     xmin, xmax, ymin, ymax = DOMAIN
     X, Y = np.meshgrid(xs, ys)
-    ramp = lambda d, w: np.clip(d / w, 0.0, 1.0) ** 2  # noqa: E731 - local one-liner
+    ramp = lambda d, w: np.clip(d / w, 0.0, 1.0) ** 2
     sig = np.maximum.reduce([
         ramp(np.abs(Y) - sp["y_abs"], ymax - sp["y_abs"]),
         ramp(sp["x_in"] - X, sp["x_in"] - xmin),
