@@ -116,7 +116,7 @@ class QgcLike:
             return Download(False, error="no MISSION_COUNT", seconds=time.monotonic() - t0)
         items = []
         for seq in range(int(m.count)):
-            it = self._ask(lambda: mav.mission_request_int_send(ts, tc, seq, 0), ("MISSION_ITEM_INT",),
+            it = self._ask(lambda seq=seq: mav.mission_request_int_send(ts, tc, seq, 0), ("MISSION_ITEM_INT",),
                            lambda x, seq=seq: x.seq == seq)
             if it is None:
                 return Download(False, items, error=f"no MISSION_ITEM_INT {seq} of {m.count}",

@@ -86,7 +86,7 @@ def _claim_instance() -> tuple[int, object]:
     """Lock a free instance number; returns (N, open lock file). The lock lives as long as the file."""
     _LOCK_DIR.mkdir(parents=True, exist_ok=True)
     for n in _INSTANCES:
-        f = open(_LOCK_DIR / f"instance-{n}.lock", "w")
+        f = open(_LOCK_DIR / f"instance-{n}.lock", "w")  # noqa: SIM115 - held open while the lock is held
         try:
             fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except OSError as e:

@@ -228,7 +228,7 @@ def test_a_gcs_upload_mid_leg_through_a_router_is_seen_and_ours_resumed(tmp_path
     cfg = mission(tmp_path, field, legs=1, planner={"name": "greedy", "path_length": 5})
     sim = Simulator(field, home=HOME, config=sim_config(), start_time=0.0)
     router = Router(sim)
-    link, wire = _link(sim, router.port(), stream_rates_hz=LEAN_STREAMS)
+    link, _wire = _link(sim, router.port(), stream_rates_hz=LEAN_STREAMS)
     qgc = QgcClient(sim, router.port())
     ctl = controller(cfg, field, link, RunDir(tmp_path / "run").create(), echo=print)
     acks = []
@@ -258,7 +258,7 @@ def test_a_gcs_upload_mid_leg_through_a_router_is_seen_and_ours_resumed(tmp_path
 
 
 def test_a_gcs_that_keeps_replacing_the_mission_stops_the_run_in_hold(tmp_path):
-    summary, sim, wire, done, field, mode = _flight(tmp_path, shared=False, times=10, legs=1)
+    summary, _sim, _wire, done, _field, mode = _flight(tmp_path, shared=False, times=10, legs=1)
     assert summary["status"] == "paused"
     assert len(done) == 3 and all(a is not None and a.type == M.MAV_MISSION_ACCEPTED for _, a, _ in done)
     assert any("replaced our mission 3 times" in e for e in summary["events"]), summary["events"]

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import json
 import math
 
@@ -167,7 +168,7 @@ def fitted(request, wave):
 
 
 def test_contract_shapes_dtype_batch(fitted, wave):
-    name, _, m = fitted
+    _name, _, m = fitted
     s = wave.data[30]
     one = m.predict(s, 3)
     assert one.shape == (3, 2, 16, 16) and one.dtype == np.float32 and np.isfinite(one).all()
@@ -286,4 +287,4 @@ def test_shipped_cylinder_beats_persistence_on_test_window():
     for h in hs:
         assert k[h]["mse"] < p[h]["mse"], h
     mses = [k[h]["mse"] for h in hs]
-    assert all(a < b for a, b in zip(mses, mses[1:]))  # error grows with lookahead
+    assert all(a < b for a, b in itertools.pairwise(mses))  # error grows with lookahead

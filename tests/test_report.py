@@ -306,7 +306,7 @@ def test_metric_grid_run(tmp_path):
     grid = geo.MetricRegionGrid(0.0, 9.0, -4.0, 4.0, 9, 10, anchor_lat=40.0, anchor_lon=-63.0,
                                 rotation_deg=30.0, scale=500.0)
     times = np.arange(6) * 0.4
-    ys, xs = np.meshgrid(grid.ys, grid.xs, indexing="ij")
+    _ys, xs = np.meshgrid(grid.ys, grid.xs, indexing="ij")
     data = np.stack([np.stack([1.0 + 0 * xs + 0.1 * np.sin(t), 0.2 * np.sin(xs + t)]) for t in times]).astype(np.float32)
     data[:, :, 4, 2] = np.nan  # the cylinder: no data inside it
     fpath = tmp_path / "cyl.nc"

@@ -424,7 +424,7 @@ def test_cli_boats_listen_like_sitl_instances_with_their_own_system_ids():
         import signal
 
         proc.send_signal(signal.SIGINT)
-        out, err = proc.communicate(timeout=20)
+        _out, err = proc.communicate(timeout=20)
     assert proc.returncode == 0, err
 
 

@@ -328,7 +328,7 @@ def test_controller_killed_mid_leg_then_resume_completes(tmp_path, sitl_factory)
         ok = _wait(lambda: ctl.poll() is not None or (rd.leg_file(0).exists() and stored() >= 5), 120)
         assert ok and ctl.poll() is None, ctl.communicate()[0]
         os.kill(ctl.pid, signal.SIGKILL)
-        out1, _ = ctl.communicate(timeout=10)
+        _out1, _ = ctl.communicate(timeout=10)
     finally:
         if ctl.poll() is None:
             ctl.kill()

@@ -263,7 +263,7 @@ def test_random_bytes_inserted(recorded, tmp_path, seed):
 
 def test_no_heartbeat_in_log(recorded, tmp_path):
     """Without any vehicle HEARTBEAT the vehicle is the system sending positions."""
-    path, frames, _ = recorded
+    path, _frames, _ = recorded
     full = read_tlog(path)
     ends = _record_offsets(path)
     data = path.read_bytes()

@@ -3,6 +3,7 @@ best-epoch selection, the skill report and its warning, the compiled fast path."
 
 from __future__ import annotations
 
+import itertools
 import json
 
 import numpy as np
@@ -63,7 +64,7 @@ def test_zero_init_untrained_model_is_persistence(wave):
 def test_curriculum_grows_the_rollout_to_the_horizon():
     m = make_predictor("knode", loss="rollout", horizon=10, curriculum=0.5, **SMALL)
     hs = [m._horizon_at(ep, 40) for ep in range(40)]
-    assert hs[0] == 1 and hs[-1] == 10 and hs[20:] == [10] * 20 and all(a <= b for a, b in zip(hs, hs[1:]))
+    assert hs[0] == 1 and hs[-1] == 10 and hs[20:] == [10] * 20 and all(a <= b for a, b in itertools.pairwise(hs))
     assert make_predictor("knode", loss="one_step", **SMALL)._horizon_at(30, 40) == 1
     assert make_predictor("knode", loss="rollout", horizon=7, curriculum=0.0, **SMALL)._horizon_at(0, 40) == 7
 

@@ -40,6 +40,7 @@ changes, the clock STATUSTEXT as a MSG, NVF readings with POS/GPS positions).
 
 from __future__ import annotations
 
+import itertools
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -69,7 +70,7 @@ def waypoints_to_path(grid, waypoints) -> np.ndarray | None:
     r, c = grid.latlon_to_cell(wp[:, 0], wp[:, 1], clip=True)
     cells = np.column_stack([np.asarray(r, int).reshape(-1), np.asarray(c, int).reshape(-1)])
     out = [cells[0]]
-    for a, b in zip(cells[:-1], cells[1:]):
+    for a, b in itertools.pairwise(cells):
         d = b - a
         n = int(max(abs(d[0]), abs(d[1])))
         if n == 0:

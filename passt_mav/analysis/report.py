@@ -617,7 +617,7 @@ def _iso(s: Any) -> _dt.datetime | None:
     if not isinstance(s, str):
         return None
     try:
-        d = _dt.datetime.fromisoformat(s.strip().replace("Z", "+00:00"))
+        d = _dt.datetime.fromisoformat(s.strip())
     except ValueError:
         return None
     return d if d.tzinfo else d.replace(tzinfo=_dt.UTC)

@@ -452,7 +452,7 @@ def _sponges(xs: np.ndarray, ys: np.ndarray):
     import torch
 
     sp = SPONGE
-    xmin, xmax, ymin, ymax = DOMAIN
+    xmin, xmax, _ymin, ymax = DOMAIN
     X, Y = np.meshgrid(xs, ys)
     ramp = lambda d, w: np.clip(d / w, 0.0, 1.0) ** 2
     sig = np.maximum.reduce([
@@ -638,7 +638,7 @@ def generate_cylinder(config: CylinderConfig | None = None, progress: bool = Tru
     pod4 = float(pod_energy(run.data[lo:hi], 4)[-1]) if hi - lo >= 5 else float("nan")
     lp = cfg.lattice()
     attrs = {
-        "title": "flow past an oscillating cylinder, Re %g" % cfg.reynolds if cfg.amplitude else "flow past a cylinder, Re %g" % cfg.reynolds,
+        "title": f"flow past an oscillating cylinder, Re {cfg.reynolds:g}" if cfg.amplitude else f"flow past a cylinder, Re {cfg.reynolds:g}",
         "generator": "passt_mav.fields.cylinder (D2Q9 BGK lattice Boltzmann, torch CPU)",
         "scenario": "oscillating" if cfg.amplitude else "cylinder",
         **{f"config_{k}": (v if v is not None else "none") for k, v in asdict(cfg).items()},
@@ -661,7 +661,7 @@ def generate_cylinder(config: CylinderConfig | None = None, progress: bool = Tru
         "pod4_window": [lo, hi],
         "wall_time_s": round(run.wall_s, 1),
         "lattice_steps": run.steps,
-        "command": command or "passt_mav.fields.cylinder.generate_cylinder(%r)" % (cfg,),
+        "command": command or f"passt_mav.fields.cylinder.generate_cylinder({cfg!r})",
     }
     if cfg.amplitude:
         attrs["oscillation"] = (

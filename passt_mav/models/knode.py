@@ -364,7 +364,7 @@ class KnodePredictor(Predictor):
         n_ep = int(self.epochs if epochs is None else epochs)
         s0 = 0 if start is None else int(start)
         n_tr = self._split(data.shape[0])
-        train, val = data[:n_tr], data[n_tr:]
+        train = data[:n_tr]  # validation: _validation_sets() on data[n_tr:]
         T, _, R, C = train.shape
         H_max = 1 if self.loss == "one_step" else int(self.horizon)
         if T - H_max < 1:

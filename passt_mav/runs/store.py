@@ -48,7 +48,7 @@ import threading
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, fields
 from pathlib import Path
-from typing import Any
+from typing import Any, Self
 
 from passt_mav.errors import UserError
 
@@ -233,7 +233,7 @@ class SampleStore:
             except sqlite3.Error:  # pragma: no cover - closing twice is harmless
                 pass
 
-    def __enter__(self) -> SampleStore:
+    def __enter__(self) -> Self:
         return self
 
     def __exit__(self, *exc: object) -> None:
