@@ -38,7 +38,7 @@ class GeoError(ValueError):
     """Invalid region, grid or position (message names the problem)."""
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _geod():
     from pyproj import Geod
 

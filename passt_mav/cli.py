@@ -85,7 +85,7 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("passt-mav: interrupted", file=sys.stderr)
         return 130
-    except Exception as exc:  # noqa: BLE001 - user errors become one line, the rest propagate
+    except Exception as exc:
         if _is_user_error(exc) and not os.environ.get("PASST_TRACEBACK"):
             msg = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
             if isinstance(exc, OSError) and getattr(exc, "filename", None) and str(exc.filename) not in msg:

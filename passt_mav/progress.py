@@ -23,7 +23,8 @@ from __future__ import annotations
 
 import sys
 import time
-from typing import Any, Iterable, Iterator, TextIO
+from collections.abc import Iterable, Iterator
+from typing import Any, Self, TextIO
 
 __all__ = ["Progress", "progress"]
 
@@ -155,7 +156,7 @@ class Progress:
         finally:
             self.close()
 
-    def __enter__(self) -> "Progress":
+    def __enter__(self) -> Self:
         return self
 
     def __exit__(self, *exc: object) -> None:

@@ -97,7 +97,7 @@ class Router:
         self._lock = threading.Lock()
         self.ports: list[_RouterPort] = []
 
-    def port(self) -> "_RouterPort":
+    def port(self) -> _RouterPort:
         p = _RouterPort(self)
         with self._lock:
             self.ports.append(p)

@@ -22,7 +22,7 @@ import time
 from dataclasses import dataclass, field
 
 os.environ.setdefault("MAVLINK20", "1")
-from pymavlink import mavutil  # noqa: E402
+from pymavlink import mavutil
 
 
 @dataclass
@@ -49,7 +49,7 @@ class QgcLike:
         self._next_hb = 0.0
         self.conn = None
 
-    def start(self) -> "QgcLike":
+    def start(self) -> QgcLike:
         self.conn = mavutil.mavlink_connection(self.connect, source_system=self.sysid, source_component=self.compid,
                                                dialect="ardupilotmega")
         self._th = threading.Thread(target=self._run, name="qgc-like", daemon=True)
@@ -116,7 +116,7 @@ class QgcLike:
             return Download(False, error="no MISSION_COUNT", seconds=time.monotonic() - t0)
         items = []
         for seq in range(int(m.count)):
-            it = self._ask(lambda: mav.mission_request_int_send(ts, tc, seq, 0), ("MISSION_ITEM_INT",),
+            it = self._ask(lambda seq=seq: mav.mission_request_int_send(ts, tc, seq, 0), ("MISSION_ITEM_INT",),
                            lambda x, seq=seq: x.seq == seq)
             if it is None:
                 return Download(False, items, error=f"no MISSION_ITEM_INT {seq} of {m.count}",

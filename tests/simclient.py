@@ -166,7 +166,7 @@ class SimClient:
                 self.mav.mission_request_send(1, 1, seq, mission_type)
             else:
                 self.mav.mission_request_int_send(1, 1, seq, mission_type)
-            m = self.wait((want, "MISSION_ACK"), lambda m: m.get_type() == "MISSION_ACK" or m.seq == seq, timeout=item_timeout)
+            m = self.wait((want, "MISSION_ACK"), lambda m, seq=seq: m.get_type() == "MISSION_ACK" or m.seq == seq, timeout=item_timeout)
             if m is None:
                 continue
             if m.get_type() == "MISSION_ACK":

@@ -86,7 +86,7 @@ def _claim_instance() -> tuple[int, object]:
     """Lock a free instance number; returns (N, open lock file). The lock lives as long as the file."""
     _LOCK_DIR.mkdir(parents=True, exist_ok=True)
     for n in _INSTANCES:
-        f = open(_LOCK_DIR / f"instance-{n}.lock", "w")
+        f = open(_LOCK_DIR / f"instance-{n}.lock", "w")  # noqa: SIM115 - held open while the lock is held
         try:
             fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except OSError as e:
@@ -101,12 +101,12 @@ def _claim_instance() -> tuple[int, object]:
     raise RuntimeError(f"no free SITL instance in {_INSTANCES} (ports {BASE_PORT}+10N..+3 all busy)")
 
 
-_LIVE: list["Sitl"] = []
+_LIVE: list[Sitl] = []
 
 
 @atexit.register
 def _kill_leftovers() -> None:  # pragma: no cover - only when a test forgot teardown
-    for s in list(_LIVE):
+    for s in _LIVE:
         s.stop()
 
 

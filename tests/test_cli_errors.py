@@ -18,9 +18,9 @@ import threading
 from pathlib import Path
 
 import pytest
+from simclient import free_port
 
 from passt_mav.cli import main
-from simclient import free_port
 
 REPO = Path(__file__).resolve().parent.parent
 MISSION = str(REPO / "missions" / "north_atlantic.yaml")
@@ -79,7 +79,7 @@ def _unreachable(*_a, **_k):
 
 
 def _no_answer(*_a, **_k):
-    raise socket.timeout("timed out")
+    raise TimeoutError("timed out")
 
 
 @pytest.mark.parametrize("case", ["refused", "unknown-host", "unreachable", "no-answer", "no-serial-device",

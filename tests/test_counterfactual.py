@@ -3,11 +3,10 @@
 from __future__ import annotations
 
 import numpy as np
-import pytest
 
 import geo
-from passt_mav.fields.field import FlowField
 from passt_mav.analysis.counterfactual import lawnmower_counterfactual
+from passt_mav.fields.field import FlowField
 
 
 def _field(kind: str) -> FlowField:

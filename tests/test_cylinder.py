@@ -22,7 +22,8 @@ from passt_mav.fields.cylinder import (
     run_cylinder_lbm,
     strouhal_number,
 )
-from passt_mav.fields.cylinder_cli import DEFAULTS, main as cli_main
+from passt_mav.fields.cylinder_cli import DEFAULTS
+from passt_mav.fields.cylinder_cli import main as cli_main
 
 REPO = Path(__file__).resolve().parent.parent
 ASSETS = REPO / "passt_mav" / "assets"
@@ -33,7 +34,7 @@ ST_WINDOW = (0.18, 0.22)  # literature 0.19-0.20 at Re 200 (Williamson 1996; 2-D
 @pytest.mark.parametrize("magic", [None, 3 / 16])
 def test_poiseuille_profile_matches_analytic(magic):
     # body-force-driven channel between half-way bounce-back walls: parabola u = 4 umax y (H-y) / H^2
-    y, u, ua = poiseuille_profile_lbm(ny=21, tau=0.8, u_max=0.05, steps=4000, magic=magic)
+    _y, u, ua = poiseuille_profile_lbm(ny=21, tau=0.8, u_max=0.05, steps=4000, magic=magic)
     rel = np.max(np.abs(u - ua)) / ua.max()
     assert rel < 0.01, rel
     # the wall position: the extrapolated profile vanishes half a cell outside the outer fluid rows

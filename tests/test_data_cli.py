@@ -93,7 +93,7 @@ def test_show_png_geographic_and_metric(tmp_path, capsys):
     f = make_ocean_default(seed=0, hours=4)
     p = f.to_netcdf(tmp_path / "o.nc")
     png = tmp_path / "fig" / "o.png"
-    code, text, _ = _cli(capsys, "show", p, "--out", png, "--time", -1)
+    code, _text, _ = _cli(capsys, "show", p, "--out", png, "--time", -1)
     assert code == 0 and png.exists()
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     import matplotlib.image as mpimg

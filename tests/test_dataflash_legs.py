@@ -254,10 +254,9 @@ def test_sitl_run_logged_from_arming_gives_the_tlogs_legs(tmp_path, sitl_factory
     with the stored mission (no "Flight plan received"): leg 0 is anchored at AUTO and its clock
     STATUSTEXT (sent before the upload) is not in the log; POS at its full 10 Hz. Replaying the
     .bin and the tlog gives the same paths."""
+    from passt_mav.analysis.replay import replay
     from passt_mav.runs.dataflash_legs import rebuild_from_dataflash
     from passt_mav.runs.legs import rebuild_from_tlog
-
-    from passt_mav.analysis.replay import replay
 
     params = COMMITTED_PARAMS.replace("LOG_DISARMED 1", "LOG_DISARMED 0").replace("LOG_FILE_RATEMAX 5\n", "")
     bin_path, tlog, mfile = record_run(tmp_path, sitl_factory, params)

@@ -120,7 +120,7 @@ def test_scalar_and_array_inputs_share_one_path(scalar_and_array, na_grid, cyl_g
         assert float(np.ravel(lon)[0]) == pytest.approx(lon_ref[7, 11], abs=1e-12)
         r, c = g.latlon_to_cell(lat, lon)
         assert np.shape(r) == np.shape(scalar_and_array(0)) and int(np.ravel(r)[0]) == 7 and int(np.ravel(c)[0]) == 11
-        x, y = g.latlon_to_xy(lat, lon)
+        x, _y = g.latlon_to_xy(lat, lon)
         assert np.shape(x) == np.shape(scalar_and_array(0.0))
 
 

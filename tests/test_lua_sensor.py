@@ -78,7 +78,7 @@ def test_grid_file_layout_round_trip(tmp_path):
 
 
 def test_lua_interpolation_matches_flowfield(tmp_path, lua_lib):
-    L, M = lua_lib
+    _L, M = lua_lib
     f = _geo_field()
     export_lua_grid(f, tmp_path / "g.bin")
     reader = M.open_grid(str(tmp_path / "g.bin"))
@@ -106,7 +106,7 @@ def test_lua_interpolation_matches_flowfield(tmp_path, lua_lib):
 
 def test_lua_metric_field_placed_by_anchor(tmp_path, lua_lib):
     """A metric (cylinder-like) field rotated and scaled onto the sea: u/v come out east/north in m/s."""
-    L, M = lua_lib
+    _L, M = lua_lib
     n = 9
     mg = geo.MetricRegionGrid(2.6, 11.4, -4.7, 4.7, n, n, anchor_lat=40.2, anchor_lon=-63.1, rotation_deg=30.0, scale=100.0)
     rng = np.random.default_rng(2)
@@ -135,7 +135,7 @@ def test_lua_metric_field_placed_by_anchor(tmp_path, lua_lib):
     [
         ("$CUR,0.125,-0.5", (0.125, -0.5)),
         ("$CUR,0.125,-0.5\r", (0.125, -0.5)),
-        ("$CUR,1e-2,+2.0*" + "%02X" % (np.bitwise_xor.reduce(np.frombuffer(b"CUR,1e-2,+2.0", np.uint8))), (0.01, 2.0)),
+        ("$CUR,1e-2,+2.0*" + f"{np.bitwise_xor.reduce(np.frombuffer(b'CUR,1e-2,+2.0', np.uint8)):02X}", (0.01, 2.0)),
         ("$CUR,0.1,0.2*00", None),  # wrong checksum
         ("CUR,0.1,0.2", None),  # no $
         ("$HDG,0.1,0.2", None),  # another sentence
@@ -147,7 +147,7 @@ def test_lua_metric_field_placed_by_anchor(tmp_path, lua_lib):
     ],
 )
 def test_serial_line_parser(lua_lib, line, expected):
-    L, M = lua_lib
+    _L, M = lua_lib
     out = M.parse_cur_line(line)
     if expected is None:
         assert out[0] is None and isinstance(out[1], str)
@@ -156,7 +156,7 @@ def test_serial_line_parser(lua_lib, line, expected):
 
 
 def test_serial_line_assembler(lua_lib):
-    L, M = lua_lib
+    _L, M = lua_lib
     got = []
     on_line = got.append
     buf = M.feed_lines("", "$CUR,0.1,0.2\n$CU", on_line)
@@ -339,8 +339,8 @@ def test_lua_sensor_on_ardurover_sitl(tmp_path, sitl_factory):
 def test_vehicle_sim_sensor_silent_on_land():
     """builtin:rtofs: a boat on a land cell gets no CUR_U/CUR_V from vehicle_sim, one at sea does
     (the Lua sensor behaves the same: test_vehicle_loop_with_mocked_bindings)."""
-    from vehicle_sim import CurrentModel, SimConfig, Simulator
     from passt_mav.fields.datasets import load_dataset
+    from vehicle_sim import CurrentModel, SimConfig, Simulator
 
     f = load_dataset("rtofs")
     cm = CurrentModel(f)

@@ -15,14 +15,14 @@ import time
 
 import numpy as np
 import pytest
+from mavlink_helpers import HOME, Router, Wire, link_config, lockstep_connection, waypoints
 from pymavlink.dialects.v20 import ardupilotmega as M
+from simclient import SimClient
 
-from mavlink_helpers import HOME, Router, Wire, link_config, lockstep_connection, vehicle, waypoints
 from passt_mav.mavlink import Link, LinkConfig, MissionClient, with_home
 from passt_mav.mavlink import link as link_mod
 from passt_mav.mavlink.mission_client import MissionWatch, rover_stored
 from passt_mav.runs.rundir import RunDir
-from simclient import SimClient
 from vehicle_sim import SimConfig, Simulator
 
 QGC = (255, 190)
@@ -167,8 +167,9 @@ def _replacing(ctl, sim, qgc, times: int):
 
 
 def _flight(tmp_path, shared: bool, times: int, legs: int = 2):
-    from passt_mav.commands.run import LEAN_STREAMS
     from test_controller import controller, mission, sim_config, wave_field
+
+    from passt_mav.commands.run import LEAN_STREAMS
 
     field = wave_field()
     cfg = mission(tmp_path, field, legs=legs)
@@ -219,14 +220,15 @@ def test_a_gcs_upload_mid_leg_through_a_router_is_seen_and_ours_resumed(tmp_path
     """Through a router the vehicle's MISSION_ACK to QGC reaches us: the watch sees QGC's upload mid-leg (a
     mission of the same length: MISSION_CURRENT.total cannot tell), the read-back confirms it, ours goes back
     up and the leg resumes at the item it was flying."""
-    from passt_mav.commands.run import LEAN_STREAMS
     from test_controller import controller, mission, sim_config, wave_field
+
+    from passt_mav.commands.run import LEAN_STREAMS
 
     field = wave_field()
     cfg = mission(tmp_path, field, legs=1, planner={"name": "greedy", "path_length": 5})
     sim = Simulator(field, home=HOME, config=sim_config(), start_time=0.0)
     router = Router(sim)
-    link, wire = _link(sim, router.port(), stream_rates_hz=LEAN_STREAMS)
+    link, _wire = _link(sim, router.port(), stream_rates_hz=LEAN_STREAMS)
     qgc = QgcClient(sim, router.port())
     ctl = controller(cfg, field, link, RunDir(tmp_path / "run").create(), echo=print)
     acks = []
@@ -256,7 +258,7 @@ def test_a_gcs_upload_mid_leg_through_a_router_is_seen_and_ours_resumed(tmp_path
 
 
 def test_a_gcs_that_keeps_replacing_the_mission_stops_the_run_in_hold(tmp_path):
-    summary, sim, wire, done, field, mode = _flight(tmp_path, shared=False, times=10, legs=1)
+    summary, _sim, _wire, done, _field, mode = _flight(tmp_path, shared=False, times=10, legs=1)
     assert summary["status"] == "paused"
     assert len(done) == 3 and all(a is not None and a.type == M.MAV_MISSION_ACCEPTED for _, a, _ in done)
     assert any("replaced our mission 3 times" in e for e in summary["events"]), summary["events"]

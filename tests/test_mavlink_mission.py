@@ -13,9 +13,9 @@ import threading
 import time
 
 import pytest
+from mavlink_helpers import HOME, inprocess_factory, link_config, served, vehicle, waypoints
 from pymavlink.dialects.v20 import ardupilotmega as M
 
-from mavlink_helpers import HOME, inprocess_factory, link_config, served, vehicle, waypoints
 from passt_mav.errors import LinkTimeout, MissionRejected
 from passt_mav.mavlink import Link, MissionClient, with_home
 from passt_mav.mavlink.mission_client import rover_stored
@@ -105,7 +105,7 @@ def test_fence_type_round_trips_and_clear_and_set_current():
 
 
 def test_no_space_over_capacity_is_rejected_and_named():
-    with served(SimConfig.fast(mission_capacity=(5, 84, 20))) as (sim, link):
+    with served(SimConfig.fast(mission_capacity=(5, 84, 20))) as (_sim, link):
         mc = MissionClient(link, boot_grace_s=0.0)  # past boot: NO_SPACE is a real limit, raised at once
         with pytest.raises(MissionRejected) as ei:
             mc.upload(with_home(waypoints(OFFSETS[:6])))
@@ -216,7 +216,7 @@ def test_a_transfer_the_vehicle_cancels_is_restarted():
 
 def test_cancel_restarts_are_bounded():
     """A vehicle that cancels every transfer is not retried forever: the cancel is raised, named."""
-    with paced(link_kw=dict(timeout_s=0.1)) as (sim, link):
+    with paced(link_kw=dict(timeout_s=0.1)) as (_sim, link):
         mc = MissionClient(link, cancel_restarts=1)
         send = link.send
         link.send = lambda msg: None if msg.get_type() == "MISSION_ITEM_INT" and msg.seq == 2 else send(msg)

@@ -4,13 +4,12 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from mavlink_helpers import HOME, inprocess_factory, link_config, served, vehicle, waypoints
 from pymavlink.dialects.v20 import ardupilotmega as M
 
 import geo
-from mavlink_helpers import HOME, served, vehicle, waypoints
 from passt_mav.fields import FlowField
 from passt_mav.mavlink import Link, SampleCollector, with_home
-from mavlink_helpers import inprocess_factory, link_config
 from vehicle_sim import SimConfig
 
 

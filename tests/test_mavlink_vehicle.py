@@ -3,10 +3,10 @@
 from __future__ import annotations
 
 import pytest
+from mavlink_helpers import served, vehicle, waypoints
 from pymavlink.dialects.v20 import ardupilotmega as M
 from pyproj import Geod
 
-from mavlink_helpers import served, vehicle, waypoints
 from passt_mav.errors import CommandRejected, UserError, VehicleNotReady
 from passt_mav.mavlink import ROVER_MODES, mode_number, with_home
 from vehicle_sim import SimConfig

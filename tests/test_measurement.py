@@ -10,10 +10,10 @@ import numpy as np
 import pytest
 
 os.environ.setdefault("MAVLINK20", "1")
-from pymavlink.dialects.v20 import ardupilotmega as M  # noqa: E402
+from pymavlink.dialects.v20 import ardupilotmega as M
 
-from passt_mav.errors import UserError  # noqa: E402
-from passt_mav.measurement import RULES, BootCounter, HalfPairer, rmse, sample_columns, truth_at  # noqa: E402
+from passt_mav.errors import UserError
+from passt_mav.measurement import RULES, BootCounter, HalfPairer, rmse, sample_columns, truth_at
 
 
 # -- the constants ------------------------------------------------------------------------------

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import json
 import math
 
@@ -15,7 +16,7 @@ from passt_mav.models.base import PREDICTORS, load_predictor, make_predictor
 
 torch = pytest.importorskip("torch")
 
-from passt_mav.models.knode import KnodeNet, conv_output_shape, gaussian_kernel, ode_step, odeint_fixed  # noqa: E402
+from passt_mav.models.knode import KnodeNet, conv_output_shape, gaussian_kernel, ode_step, odeint_fixed
 
 SMALL = dict(channels=(4, 8, 8, 8, 8), hidden=16, progress=False)  # tiny KNODE for fast tests
 
@@ -167,7 +168,7 @@ def fitted(request, wave):
 
 
 def test_contract_shapes_dtype_batch(fitted, wave):
-    name, _, m = fitted
+    _name, _, m = fitted
     s = wave.data[30]
     one = m.predict(s, 3)
     assert one.shape == (3, 2, 16, 16) and one.dtype == np.float32 and np.isfinite(one).all()
@@ -286,4 +287,4 @@ def test_shipped_cylinder_beats_persistence_on_test_window():
     for h in hs:
         assert k[h]["mse"] < p[h]["mse"], h
     mses = [k[h]["mse"] for h in hs]
-    assert all(a < b for a, b in zip(mses, mses[1:]))  # error grows with lookahead
+    assert all(a < b for a, b in itertools.pairwise(mses))  # error grows with lookahead

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import ClassVar
+
 import numpy as np
 import pytest
 
@@ -39,7 +41,7 @@ class PlannerContract:
     """Every planner obeys these; subclasses set ``name`` and ``kw``."""
 
     name: str = ""
-    kw: dict = {}
+    kw: ClassVar[dict] = {}
 
     def planner(self):
         return make_planner(self.name, **self.kw)

@@ -12,11 +12,11 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from test_passt import ShiftPredictor, make_field
 
 from passt_mav.errors import ReconstructionError
 from passt_mav.engine import run_offline
 from passt_mav.passt import PasstLoop
-from test_passt import ShiftPredictor, make_field
 
 TRUE_VEL = (0.05, 0.12)
 

@@ -119,8 +119,9 @@ def test_quiet_shows_nothing_on_either(monkeypatch):
 
 def test_evaluate_writes_plain_progress_lines_to_a_log(tmp_path, capsys):
     """`passt-mav evaluate` with stderr not a terminal (captured): plain lines, no carriage returns."""
-    from passt_mav.cli import main
     from test_evaluate import make_field
+
+    from passt_mav.cli import main
 
     nc = make_field(T=30).to_netcdf(tmp_path / "synth.nc")
     rc = main(["evaluate", "--data", str(nc), "--model", "persistence", "--trials", "2", "--path-lengths", "10,20",

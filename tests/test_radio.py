@@ -107,7 +107,7 @@ def _read_for(sock, seconds: float) -> list[tuple[float, bytes]]:
     while time.monotonic() < end:
         try:
             d = sock.recv(65536)
-        except socket.timeout:
+        except TimeoutError:
             continue
         if not d:
             break

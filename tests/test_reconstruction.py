@@ -78,7 +78,7 @@ def test_forecast_prior_recovers_forecast_far_from_samples(grid):
     xy, uv = samples(grid, cells, rng)
     f_at = forecast[:, cells[:, 0], cells[:, 1]].T
     gp = GPReconstructor(grid_xy=(X, Y), prior="forecast", noise_std=NOISE)
-    mean, std = gp.fit(xy, uv, forecast_at_samples=f_at).reconstruct(xy, uv, forecast=forecast, forecast_at_samples=f_at)
+    mean, _std = gp.fit(xy, uv, forecast_at_samples=f_at).reconstruct(xy, uv, forecast=forecast, forecast_at_samples=f_at)
     # near the path the bias is removed
     err_before = np.hypot(*(forecast - truth))[2:11].mean()
     err_after = np.hypot(*(mean - truth))[2:11].mean()

@@ -16,14 +16,14 @@ import shutil
 
 import numpy as np
 import pytest
-import yaml
-
 import test_controller as tc
+import yaml
 from mavlink_helpers import served
+
+from passt_mav.analysis.replay import ReplayError, rebuild_from_tlog, replay, waypoints_to_path
 from passt_mav.cli import main
 from passt_mav.commands.run import LEAN_STREAMS
 from passt_mav.mission.config import validate_mission
-from passt_mav.analysis.replay import ReplayError, rebuild_from_tlog, replay, waypoints_to_path
 from passt_mav.runs.rundir import RunDir
 from passt_mav.runs.store import SampleStore
 from passt_mav.runs.tlog import _TlogScanner
@@ -50,7 +50,7 @@ def flown(tmp_path_factory):
     cfg = validate_mission(data, source="test")
     rd = RunDir(tmp / "run").create()
     with served(tc.sim_config(), field=field, speedup=tc.SPEEDUP,
-                link_kw={"stream_rates_hz": LEAN_STREAMS, "tlog": str(rd.tlog)}) as (sim, link):
+                link_kw={"stream_rates_hz": LEAN_STREAMS, "tlog": str(rd.tlog)}) as (_sim, link):
         summary = tc.controller(cfg, field, link, rd, echo=None, mission_text=text).run()
     assert summary["status"] == "complete" and len(summary["legs"]) == 2
     return rd, mfile, summary
@@ -249,7 +249,7 @@ def test_truncated_tlog_replays_what_is_readable(flown, tmp_path):
 
 @pytest.mark.parametrize("seed", [1, 2])
 def test_random_bytes_inserted(flown, tmp_path, seed):
-    rd, mfile, summary = flown
+    rd, mfile, _summary = flown
     data = bytearray(rd.tlog.read_bytes())
     rng = random.Random(seed)
     ends = _record_ends(bytes(data))

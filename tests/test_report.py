@@ -15,10 +15,10 @@ import numpy as np
 import pytest
 
 import geo
+from passt_mav.analysis.report import load_run, recon_rmse, write_report
 from passt_mav.cli import main
 from passt_mav.errors import UserError
 from passt_mav.fields.field import FlowField
-from passt_mav.analysis.report import load_run, recon_rmse, write_report
 from passt_mav.runs.rundir import RunDir
 
 GRID = geo.RegionGrid(40.0, -63.0, 40.45, -62.45, 10, 12)
@@ -306,7 +306,7 @@ def test_metric_grid_run(tmp_path):
     grid = geo.MetricRegionGrid(0.0, 9.0, -4.0, 4.0, 9, 10, anchor_lat=40.0, anchor_lon=-63.0,
                                 rotation_deg=30.0, scale=500.0)
     times = np.arange(6) * 0.4
-    ys, xs = np.meshgrid(grid.ys, grid.xs, indexing="ij")
+    _ys, xs = np.meshgrid(grid.ys, grid.xs, indexing="ij")
     data = np.stack([np.stack([1.0 + 0 * xs + 0.1 * np.sin(t), 0.2 * np.sin(xs + t)]) for t in times]).astype(np.float32)
     data[:, :, 4, 2] = np.nan  # the cylinder: no data inside it
     fpath = tmp_path / "cyl.nc"

@@ -23,9 +23,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
+from mavlink_helpers import Wire, lockstep_connection
 
 import geo
-from mavlink_helpers import Wire, lockstep_connection
 from passt_mav.cli import main
 from passt_mav.fields.datasets import resolve_field
 from passt_mav.mavlink import link as link_mod
@@ -121,7 +121,7 @@ def test_ocean_mission_files_fly(name, start, tmp_path, monkeypatch):
 def test_our_ids_from_the_mission_file_and_the_command_line_reach_the_wire(tmp_path, monkeypatch):
     """vehicle.source_system/source_component in the mission, --source-component on the command line
     (which wins): the companion-computer case, the vehicle's system id with a component of our own."""
-    rc, summary, sim, wire, out, field = fly("cylinder", tmp_path, monkeypatch, moves=1, speed=3.0, extra=(
+    rc, summary, _sim, wire, _out, _field = fly("cylinder", tmp_path, monkeypatch, moves=1, speed=3.0, extra=(
         "--set", "gp.background=0", "--set", "vehicle.source_system=1", "--set", "vehicle.source_component=191",
         "--source-component", "196"))
     assert rc == 0 and summary["status"] == "complete"
@@ -129,7 +129,7 @@ def test_our_ids_from_the_mission_file_and_the_command_line_reach_the_wire(tmp_p
 
 
 def test_speaking_as_the_autopilot_itself_is_refused_in_one_line(tmp_path, monkeypatch, capsys):
-    rc, summary, sim, wire, out, field = fly("cylinder", tmp_path, monkeypatch, moves=1, speed=3.0,
+    rc, _summary, _sim, _wire, _out, _field = fly("cylinder", tmp_path, monkeypatch, moves=1, speed=3.0,
                                              extra=("--source-system", "1", "--source-component", "1"))
     assert rc == 2 and "is the vehicle's own autopilot's" in capsys.readouterr().err
 
@@ -152,8 +152,8 @@ def test_plan_accepts_every_shipped_mission_file(name, tmp_path, capsys):
 
 
 @pytest.mark.parametrize("key, value, needle", [
-    ("x0", 2.5, "the mission's region x0 = 2.5 data m is not the field's (builtin:cylinder: 2.6); use the field's "
-                "region (passt-mav data info builtin:cylinder)"),
+    ("x0", 2.5, ("the mission's region x0 = 2.5 data m is not the field's (builtin:cylinder: 2.6); use the field's "
+                 "region (passt-mav data info builtin:cylinder)")),
     ("rows", 29, "the field builtin:cylinder is a 30x30 grid, the mission's region 29x30"),
 ])
 def test_plan_and_run_refuse_a_region_off_the_field_with_the_same_line(key, value, needle, tmp_path, capsys):

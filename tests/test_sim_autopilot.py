@@ -7,8 +7,8 @@ import hashlib
 import pytest
 from pymavlink import mavutil
 from pymavlink.dialects.v20 import ardupilotmega as M
-
 from simclient import SimClient
+
 from vehicle_sim import MODES, SimConfig, Simulator
 from vehicle_sim.link import secret_from_key
 
@@ -57,7 +57,7 @@ def test_boot_timeline_like_sitl_defaults():
 
 
 def test_gps_detected_near_9s():
-    sim, c = make(SimConfig())
+    _sim, c = make(SimConfig())
     first = c.wait("GLOBAL_POSITION_INT", lambda m: m.lat != 0, timeout=15)
     assert 9.0 <= first.time_boot_ms / 1000 <= 10.1
     c.collect(5.0)
@@ -220,7 +220,7 @@ def test_signing_unsigned_commands_ignored_signed_accepted():
     ack = good.command(M.MAV_CMD_DO_SET_MODE, 1, MODES["HOLD"], timeout=1)
     assert ack is not None and ack.result == 0 and sim.autopilot.mode == MODES["HOLD"]
     # what the vehicle sends is signed
-    raw = [m for _, m in good.log if m.get_type() == "HEARTBEAT"][0].get_msgbuf()
+    raw = next(m for _, m in good.log if m.get_type() == "HEARTBEAT").get_msgbuf()
     assert raw[2] & 0x01 and len(raw) == 12 + raw[1] + 13
 
 
@@ -377,7 +377,7 @@ def test_gps_noise_is_seeded_correlated_and_of_the_configured_size():
     sim.run_until(2.0)
     cl.drain()
     g = cl.wait("GLOBAL_POSITION_INT", lambda m: m.lat != 0, timeout=2)
-    lat, lon = sim.autopilot.reported_position()
+    lat, _lon = sim.autopilot.reported_position()
     assert abs(g.lat / 1e7 - lat) < 2e-6 and (g.lat, g.lon) != (int(round(HOME[0] * 1e7)), int(round(HOME[1] * 1e7)))
 
 

@@ -6,10 +6,10 @@ import math
 
 import numpy as np
 import pytest
+from simclient import SimClient
 
 import geo
 from passt_mav.fields import FlowField
-from simclient import SimClient
 from vehicle_sim import MODES, BoatParams, CurrentModel, SimConfig, Simulator
 from vehicle_sim.boat import BoatState, guidance, step_boat
 
@@ -183,7 +183,7 @@ def test_gps_noise_moves_the_reported_fix_not_the_measurement():
         sim, c = sim_with(field, current_noise_std=0.05, seed=7, gps_noise_m=gps)
         _run_survey(sim, c)
         runs.append((_samples(c), sim))
-    (a, _), (b, sim_b) = runs
+    (a, _), (b, _sim_b) = runs
     n = min(len(a), len(b))
     np.testing.assert_array_equal(a[:n, 3:], b[:n, 3:])  # same readings: same true track, same current noise
     d_north = (b[:n, 1] - a[:n, 1]) * 111_000.0

@@ -6,7 +6,6 @@ and only guard against a hang), so the results do not depend on the machine's lo
 
 from __future__ import annotations
 
-import math
 import re
 import socket
 import subprocess
@@ -17,8 +16,8 @@ import numpy as np
 import pytest
 from pymavlink import mavutil
 from pymavlink.dialects.v20 import ardupilotmega as M
-
 from simclient import SimClient
+
 from vehicle_sim import MODES, SimConfig
 from vehicle_sim.cli import main as cli_main
 from vehicle_sim.fleet import Fleet, boat_listen, line_starts, spread_starts
@@ -148,7 +147,7 @@ def test_inprocess_fault_injection_and_tlogs_are_per_boat(tmp_path):
             c.pump()
             heard[i] += [fleet.t for m in c.queue if m.get_type() == "HEARTBEAT"]
             c.queue.clear()
-    silent = lambda ts: not any(5.5 < t < 15.0 for t in ts)  # noqa: E731 - heartbeats are 1 Hz
+    silent = lambda ts: not any(5.5 < t < 15.0 for t in ts)
     assert silent(heard[1]) and not silent(heard[0]) and not silent(heard[2])
     assert any(t > 15.0 for t in heard[1])  # back after the outage
     fleet.stop()
@@ -425,7 +424,7 @@ def test_cli_boats_listen_like_sitl_instances_with_their_own_system_ids():
         import signal
 
         proc.send_signal(signal.SIGINT)
-        out, err = proc.communicate(timeout=20)
+        _out, err = proc.communicate(timeout=20)
     assert proc.returncode == 0, err
 
 

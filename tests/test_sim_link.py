@@ -11,9 +11,9 @@ import time
 import pytest
 from pymavlink import mavutil
 from pymavlink.dialects.v20 import ardupilotmega as M
-
 from simclient import SimClient, free_port
-from vehicle_sim import LinkConfig, MODES, SimConfig, Simulator
+
+from vehicle_sim import MODES, LinkConfig, SimConfig, Simulator
 from vehicle_sim.cli import main as cli_main
 
 HOME = (40.0, -63.0)
@@ -101,7 +101,7 @@ def _frames(rng: random.Random, n: int) -> list[bytes]:
         msg = rng.choice(mk)()
         try:
             out.append(bytes(msg.pack(mav)))
-        except Exception:  # noqa: BLE001 - a value pymavlink refuses to pack: skip it
+        except Exception:  # noqa: BLE001, S112 - a value pymavlink refuses to pack: skip it
             continue
     return out
 
@@ -243,7 +243,7 @@ def test_cli_serves_and_stops(tmp_path):
         import signal
 
         proc.send_signal(signal.SIGINT)
-        out, err = proc.communicate(timeout=10)
+        _out, err = proc.communicate(timeout=10)
     assert proc.returncode == 0, err
     assert tlog.stat().st_size > 100
 

@@ -10,9 +10,9 @@ import math
 import time
 
 import pytest
+from simclient import free_port
 
 from vehicle_sim import SimConfig, Simulator
-from simclient import free_port
 
 mavsdk = pytest.importorskip("mavsdk")
 
@@ -46,7 +46,7 @@ def test_mavsdk_mission_raw_upload_download_arm_start_and_progress():
             try:
                 results.append(mr.upload_mission(items))
                 break
-            except Exception as exc:  # MissionRawError
+            except Exception as exc:  # noqa: BLE001 - MissionRawError
                 results.append(exc.args[0] if exc.args else exc)
                 assert results[-1] == MissionRawResult.TOO_MANY_MISSION_ITEMS, results
                 time.sleep(0.1)

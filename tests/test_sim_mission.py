@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from pymavlink.dialects.v20 import ardupilotmega as M
-
 from simclient import SimClient
+
 from vehicle_sim import MODES, SimConfig, Simulator
 
 HOME = (40.0, -63.0)
@@ -25,7 +25,7 @@ def wps(n, dlat=1e-4, mission_type=0, start=0):
 
 
 def test_upload_requests_are_mission_request_not_int_and_ack_only_at_end():
-    sim, c = make()
+    _sim, c = make()
     items = wps(4)
     c.mav.mission_count_send(1, 1, 4, 0)
     seen = []
@@ -41,7 +41,7 @@ def test_upload_requests_are_mission_request_not_int_and_ack_only_at_end():
 
 
 def test_seq0_is_home_and_download_round_trips_degE7_exactly():
-    sim, c = make()
+    _sim, c = make()
     items = [SimClient.waypoint(0, 41.5, -60.0)]  # a "first waypoint" at seq 0: lost, replaced by home
     odd = [(40.0001234, -63.0004321), (39.9999999, -62.9999999), (40.00005, -63.00005)]
     items += [SimClient.waypoint(i + 1, la, lo) for i, (la, lo) in enumerate(odd)]
@@ -56,10 +56,10 @@ def test_seq0_is_home_and_download_round_trips_degE7_exactly():
 
 
 def test_float_mission_item_accepted_with_warning():
-    sim, c = make()
+    _sim, c = make()
     c.mav.mission_count_send(1, 1, 2, 0)
     for k in range(2):
-        m = c.wait("MISSION_REQUEST")
+        c.wait("MISSION_REQUEST")
         c.mav.mission_item_send(1, 1, k, 3, 16, 0, 1, 0, 0, 0, 0, 40.0002, -63.0001, 0.0, 0)
     assert c.wait("MISSION_ACK").type == M.MAV_MISSION_ACCEPTED
     assert "got MISSION_ITEM; GCS should send MISSION_ITEM_INT" in c.texts()
@@ -78,7 +78,7 @@ def test_count_truncates_at_once_and_failed_upload_leaves_a_mix():
     new = wps(5, dlat=2e-4)
     c.mav.mission_count_send(1, 1, 5, 0)
     for k in range(3):
-        m = c.wait("MISSION_REQUEST", lambda m: m.seq == k)
+        c.wait("MISSION_REQUEST", lambda m, k=k: m.seq == k)
         c.mav.send(new[k])
     assert sim.autopilot.store.count(0) == 5  # truncated at once (old had 6)
     ack = c.wait("MISSION_ACK", timeout=10.0)
@@ -105,7 +105,7 @@ def test_rerequest_after_one_second_and_cancel_after_eight():
 
 
 def test_out_of_sequence_item_gets_invalid_sequence_and_transfer_continues():
-    sim, c = make()
+    _sim, c = make()
     items = wps(3)
     c.mav.mission_count_send(1, 1, 3, 0)
     c.wait("MISSION_REQUEST", lambda m: m.seq == 0)
@@ -142,7 +142,7 @@ def test_second_gcs_denied_mid_transfer_and_download_denied_during_upload():
 
 
 def test_no_space_over_capacity():
-    sim, c = make(mission_capacity=(50, 10, 5))
+    _sim, c = make(mission_capacity=(50, 10, 5))
     c.mav.mission_count_send(1, 1, 51, 0)
     assert c.wait("MISSION_ACK").type == M.MAV_MISSION_NO_SPACE
     c.mav.mission_count_send(1, 1, 11, 1)
@@ -163,7 +163,7 @@ def test_no_space_right_after_boot_then_retry_succeeds():
 
 
 def test_legacy_mission_request_download_gets_float_items():
-    sim, c = make()
+    _sim, c = make()
     assert c.upload(wps(3)).type == M.MAV_MISSION_ACCEPTED
     got = c.download(legacy=True)
     assert [g.get_type() for g in got] == ["MISSION_ITEM"] * 3
@@ -172,7 +172,7 @@ def test_legacy_mission_request_download_gets_float_items():
 
 
 def test_fence_and_rally_separate_and_clear_all_per_type():
-    sim, c = make()
+    _sim, c = make()
     assert c.upload(wps(4)).type == M.MAV_MISSION_ACCEPTED
     fence = [SimClient.waypoint(i, HOME[0] + 0.01 * (i % 2), HOME[1] + 0.01 * (i // 2), 1, command=5001, frame=5) for i in range(4)]
     rally = [SimClient.waypoint(0, HOME[0] + 0.001, HOME[1], 2, command=5100, frame=6)]
@@ -191,7 +191,7 @@ def test_fence_and_rally_separate_and_clear_all_per_type():
 
 
 def test_mission_current_total_excludes_home_and_states():
-    sim, c = make()
+    _sim, c = make()
     mc = c.wait("MISSION_CURRENT", timeout=2)
     assert mc.mission_state == M.MISSION_STATE_NO_MISSION
     assert c.upload(wps(6)).type == M.MAV_MISSION_ACCEPTED
@@ -221,7 +221,7 @@ def test_mission_runs_to_completion_with_reached_messages_and_stays_armed_in_aut
     assert hb.custom_mode == MODES["AUTO"] and hb.base_mode & M.MAV_MODE_FLAG_SAFETY_ARMED
     # it loiters at the last waypoint
     c.collect(30)
-    lat, lon = sim.autopilot.position()
+    lat, _lon = sim.autopilot.position()
     assert abs(lat - (HOME[0] + 3e-4)) * 111e3 < 5
 
 
@@ -290,7 +290,7 @@ def test_vehicle_paces_requests_near_48_per_second():
 
 
 def test_item_without_upload_gets_error():
-    sim, c = make()
+    _sim, c = make()
     c.mav.send(wps(1)[0])
     assert c.wait("MISSION_ACK").type == M.MAV_MISSION_ERROR
 
@@ -325,7 +325,7 @@ def _readback(m):
 
 def test_items_are_stored_in_the_firmwares_form():
     """ARDUPILOT_ROVER.md's table and more: each item reads back as Rover 4.7 SITL returned it."""
-    sim, c = make()
+    _sim, c = make()
     items = [SimClient.waypoint(0, *HOME)] + [_item_msg(i + 1, s) for i, (s, _) in enumerate(FIRMWARE_READBACK)]
     assert c.upload(items).type == M.MAV_MISSION_ACCEPTED
     got = c.download()
@@ -355,7 +355,7 @@ def test_verbatim_storage_when_normalisation_is_off():
 ])
 def test_items_the_firmware_refuses_end_the_transfer_with_its_result(bad, result):
     """Results as Rover 4.7 SITL answered (no STATUSTEXT); the transfer is over: a next item gets ERROR."""
-    sim, c = make()
+    _sim, c = make()
     c.drain()
     c.mav.mission_count_send(1, 1, 3, 0)
     assert c.wait("MISSION_REQUEST").seq == 0
@@ -369,13 +369,13 @@ def test_items_the_firmware_refuses_end_the_transfer_with_its_result(bad, result
 
 
 def test_nan_yaw_of_a_waypoint_is_accepted():
-    sim, c = make()
+    _sim, c = make()
     items = [SimClient.waypoint(0, *HOME), _item_msg(1, (3, 16, 1, 0, 0, 0, float("nan"), _LAT, _LON, 0))]
     assert c.upload(items).type == M.MAV_MISSION_ACCEPTED
 
 
 def test_no_space_comes_with_the_firmwares_warning():
-    sim, c = make(mission_capacity=(5, 84, 20))
+    _sim, c = make(mission_capacity=(5, 84, 20))
     c.drain()
     c.mav.mission_count_send(1, 1, 6, 0)
     assert c.wait("MISSION_ACK").type == M.MAV_MISSION_NO_SPACE
@@ -396,6 +396,6 @@ def test_acceptance_radius_is_the_wp_radius_parameter_not_param2():
         assert c.upload(items).type == M.MAV_MISSION_ACCEPTED
         assert c.arm().result == 0 and c.set_mode(MODES["AUTO"]).result == 0
         assert c.wait("MISSION_ITEM_REACHED", lambda m: m.seq == 1, timeout=120) is not None
-        lat, lon = sim.autopilot.position()
+        lat, _lon = sim.autopilot.position()
         dist = abs(lat - (HOME[0] + 4e-4)) * 111.2e3
         assert radius - 1.0 <= dist <= radius + 1e-6, (radius, dist)  # reached on crossing WP_RADIUS

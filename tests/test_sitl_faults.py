@@ -258,9 +258,9 @@ KEY = "passt sitl signing key"
 def test_signing_on_the_vehicle_keyed_run_completes_keyless_fails_naming_signing(tmp_path, sitl_factory):
     from pymavlink.dialects.v20 import ardupilotmega as M
 
+    from passt_mav.commands.run import link_config_for
     from passt_mav.errors import LinkTimeout
     from passt_mav.mavlink import Link, secret_from_key
-    from passt_mav.commands.run import link_config_for
     from passt_mav.runs.rundir import RunDir
 
     field, path = _field(tmp_path)
@@ -328,7 +328,7 @@ def test_controller_killed_mid_leg_then_resume_completes(tmp_path, sitl_factory)
         ok = _wait(lambda: ctl.poll() is not None or (rd.leg_file(0).exists() and stored() >= 5), 120)
         assert ok and ctl.poll() is None, ctl.communicate()[0]
         os.kill(ctl.pid, signal.SIGKILL)
-        out1, _ = ctl.communicate(timeout=10)
+        _out1, _ = ctl.communicate(timeout=10)
     finally:
         if ctl.poll() is None:
             ctl.kill()

@@ -12,7 +12,6 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytest
-
 from test_sitl_faults import SPEEDUP, _field
 
 pytestmark = pytest.mark.sitl

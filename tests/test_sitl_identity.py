@@ -76,7 +76,7 @@ def test_qgc_going_silent_trips_the_gcs_failsafe_unless_we_speak_as_its_id(sitl_
         th.join(5)
         try:
             v.disarm(force=True)
-        except Exception:  # noqa: BLE001 - teardown of a vehicle about to be stopped
+        except Exception:  # noqa: BLE001, S110 - teardown of a vehicle about to be stopped
             pass
         qgc.close()
         link.close()

@@ -16,7 +16,7 @@ time); the mission is the small one of tests/test_sitl_faults.py (legs of 3 move
 
 from __future__ import annotations
 
-import os
+import itertools
 import shutil
 import socket
 import subprocess
@@ -25,16 +25,16 @@ import time
 from pathlib import Path
 
 import pytest
-
 from qgc_like import QgcLike
 from test_sitl_faults import _boot, _controller, _field, _mission
+
 from vehicle_sim.radio import RadioConfig, RadioProxy
 
 pytestmark = pytest.mark.sitl
 
 SPEEDUP = 5.0
 #: the controller's ids in this test: its defaults (245/195), not QGC's 255/190 nor MAVProxy's 255/230
-from passt_mav.mavlink.link import DEFAULT_SOURCE_COMPONENT, DEFAULT_SOURCE_SYSTEM  # noqa: E402
+from passt_mav.mavlink.link import DEFAULT_SOURCE_COMPONENT, DEFAULT_SOURCE_SYSTEM
 
 CONTROLLER_IDS = (DEFAULT_SOURCE_SYSTEM, DEFAULT_SOURCE_COMPONENT)
 
@@ -54,6 +54,7 @@ def _mavproxy() -> list[str]:
 
 def test_two_legs_through_radio_and_mavproxy_beside_a_qgc_like_client(tmp_path, sitl_factory, monkeypatch):
     import test_sitl_faults
+
     from passt_mav.mavlink import Link, LinkConfig
     from passt_mav.runs.rundir import RunDir
 
@@ -71,7 +72,7 @@ def test_two_legs_through_radio_and_mavproxy_beside_a_qgc_like_client(tmp_path, 
     mp = subprocess.Popen(_mavproxy() + [f"--master=tcp:127.0.0.1:{radio.port}", f"--out=udp:127.0.0.1:{ctl_port}",
                                          f"--out=udp:127.0.0.1:{qgc_port}", "--daemon", "--non-interactive",
                                          "--streamrate=-1", f"--state-basedir={state}"],
-                          stdin=subprocess.DEVNULL, stdout=open(state / "out.txt", "w"), stderr=subprocess.STDOUT,
+                          stdin=subprocess.DEVNULL, stdout=open(state / "out.txt", "w"), stderr=subprocess.STDOUT,  # noqa: SIM115 - MAVProxy writes it
                           cwd=state)
     qgc = None
     link = None
@@ -128,7 +129,7 @@ def test_two_legs_through_radio_and_mavproxy_beside_a_qgc_like_client(tmp_path, 
 
     verdicts = [good(d) for d in qgc.downloads]
     assert sum(verdicts) >= 3, [(d.ok, d.error) for d in qgc.downloads]
-    assert not any(not a and not b for a, b in zip(verdicts, verdicts[1:])), [(d.ok, d.error) for d in qgc.downloads]
+    assert not any(not a and not b for a, b in itertools.pairwise(verdicts)), [(d.ok, d.error) for d in qgc.downloads]
     # and it never got the controller's mission traffic: the two speak with different ids
     assert not qgc.foreign, qgc.foreign[:10]
     assert rstats["down"]["lost"] > 0  # the radio did lose frames

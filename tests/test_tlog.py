@@ -15,11 +15,11 @@ import numpy as np
 import pytest
 
 os.environ.setdefault("MAVLINK20", "1")
-from pymavlink import DFReader, mavutil  # noqa: E402
+from pymavlink import DFReader, mavutil
 
-from passt_mav.errors import UserError  # noqa: E402
-from passt_mav.measurement import RULES  # noqa: E402
-from passt_mav.runs.tlog import read_dataflash, read_tlog  # noqa: E402
+from passt_mav.errors import UserError
+from passt_mav.measurement import RULES
+from passt_mav.runs.tlog import read_dataflash, read_tlog
 
 LAT0, LON0 = 50.10, -30.20
 VEH, GCS = 1, 255
@@ -263,7 +263,7 @@ def test_random_bytes_inserted(recorded, tmp_path, seed):
 
 def test_no_heartbeat_in_log(recorded, tmp_path):
     """Without any vehicle HEARTBEAT the vehicle is the system sending positions."""
-    path, frames, _ = recorded
+    path, _frames, _ = recorded
     full = read_tlog(path)
     ends = _record_offsets(path)
     data = path.read_bytes()
@@ -357,6 +357,7 @@ def test_tlog_written_by_the_simulator(tmp_path):
     The expected answers come from what the GCS itself received, in order.
     """
     from simclient import SimClient  # tests/ is on sys.path (pytest rootdir conftest)
+
     from vehicle_sim import MODES, SimConfig, Simulator
 
     M = mavutil.mavlink

@@ -3,6 +3,7 @@ best-epoch selection, the skill report and its warning, the compiled fast path."
 
 from __future__ import annotations
 
+import itertools
 import json
 
 import numpy as np
@@ -12,7 +13,7 @@ from passt_mav.models.base import load_predictor, make_predictor
 
 torch = pytest.importorskip("torch")
 
-from test_models import SMALL, _one_thread, wave_field  # noqa: E402,F401 - _one_thread: the same autouse fixture here
+from test_models import SMALL, _one_thread, wave_field  # noqa: F401 - _one_thread: the same autouse fixture here
 
 LOOP = dict(loss="rollout", horizon=4, curriculum=0.5, noise="gp", noise_samples=4, noise_path_length=20, val_frac=0.25, zero_init=True, train_batch=16)
 
@@ -63,7 +64,7 @@ def test_zero_init_untrained_model_is_persistence(wave):
 def test_curriculum_grows_the_rollout_to_the_horizon():
     m = make_predictor("knode", loss="rollout", horizon=10, curriculum=0.5, **SMALL)
     hs = [m._horizon_at(ep, 40) for ep in range(40)]
-    assert hs[0] == 1 and hs[-1] == 10 and hs[20:] == [10] * 20 and all(a <= b for a, b in zip(hs, hs[1:]))
+    assert hs[0] == 1 and hs[-1] == 10 and hs[20:] == [10] * 20 and all(a <= b for a, b in itertools.pairwise(hs))
     assert make_predictor("knode", loss="one_step", **SMALL)._horizon_at(30, 40) == 1
     assert make_predictor("knode", loss="rollout", horizon=7, curriculum=0.0, **SMALL)._horizon_at(0, 40) == 7
 
@@ -164,7 +165,7 @@ def test_compiled_step_equals_eager_to_fp32_tolerance():
     torch.manual_seed(0)
     net = KnodeNet(30, 30)
     x = torch.randn(8, 2, 30, 30)
-    eager = lambda z: ode_step(net, z, 1.0, 6)  # noqa: E731
+    eager = lambda z: ode_step(net, z, 1.0, 6)
     f = fast.compiled_or_eager(eager, net)
     with torch.no_grad():
         torch.testing.assert_close(f(x), eager(x), rtol=1e-5, atol=1e-5)

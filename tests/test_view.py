@@ -135,7 +135,7 @@ def test_snapshot_has_what_the_page_draws(tmp_path):
     assert len(e["arrows"]) == GRID.rows * GRID.cols - 6 and e["arrows"][0][2:] == pytest.approx([0.3, -0.1])
     assert s["rmse"] == {"t": [100.0], "passt": [0.02], "model": [0.05], "leg": [0]}
     r = s["region"]
-    assert r["has_land"] and r["bounds"][0][0] < 40.0 < 40.45 < r["bounds"][1][0]
+    assert r["has_land"] and r["bounds"][0][0] < 40.0 and 40.45 < r["bounds"][1][0]
     fence = np.array(r["fence"])
     assert fence[:, 0].min() < r["bounds"][0][0]  # the 500 m margin lies outside the region
     assert [x["kind"] for x in s["events"]] == ["leg_start", "link_lost", "link_back"]

@@ -13,7 +13,7 @@ clock, ``vehicle-sim --boats N``), :mod:`~vehicle_sim.inprocess` (a ``mavutil`` 
 class over an in-process link), :mod:`~vehicle_sim.cli` (``vehicle-sim``).
 """
 
-from vehicle_sim.autopilot import MODES, MODE_NAMES, Autopilot
+from vehicle_sim.autopilot import MODE_NAMES, MODES, Autopilot
 from vehicle_sim.boat import BoatParams, CurrentModel
 from vehicle_sim.config import LinkConfig, SimConfig
 from vehicle_sim.fleet import Fleet

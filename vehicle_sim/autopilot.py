@@ -42,8 +42,8 @@ from __future__ import annotations
 import math
 import random
 import time as _time
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable
 
 from pymavlink.dialects.v20 import ardupilotmega as mavlink2
 
@@ -408,10 +408,13 @@ class Autopilot:
         elif cmd == R.MAV_CMD_NAV_RETURN_TO_LAUNCH:
             result = self.set_mode(MODES["RTL"], link)
         elif cmd == R.MAV_CMD_DO_REPOSITION and is_int:
-            if self.mode != MODES["GUIDED"] and (int(p[1]) & 1):  # MAV_DO_REPOSITION_FLAGS_CHANGE_MODE
-                if self.set_mode(MODES["GUIDED"], link) != R.MAV_RESULT_ACCEPTED:
-                    self._ack(link, msg, cmd, R.MAV_RESULT_FAILED)
-                    return
+            if (
+                self.mode != MODES["GUIDED"]
+                and (int(p[1]) & 1)  # MAV_DO_REPOSITION_FLAGS_CHANGE_MODE
+                and self.set_mode(MODES["GUIDED"], link) != R.MAV_RESULT_ACCEPTED
+            ):
+                self._ack(link, msg, cmd, R.MAV_RESULT_FAILED)
+                return
             if self.mode == MODES["GUIDED"]:
                 self.guided_target = self.frame.to_xy(p[4] / 1e7, p[5] / 1e7)
                 result = R.MAV_RESULT_ACCEPTED

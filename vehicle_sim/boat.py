@@ -254,7 +254,7 @@ def guidance(state: BoatState, target: tuple[float, float], speed: float, curren
     c_par = cu * gx + cv * gy
     if abs(c_perp) >= speed:
         # too strong to cancel: push straight against it
-        wx, wy = -(-gy) * math.copysign(speed, c_perp), -(gx) * math.copysign(speed, c_perp)
+        wx, wy = gy * math.copysign(speed, c_perp), -(gx) * math.copysign(speed, c_perp)
         return math.atan2(wx, wy), speed
     along = math.sqrt(speed * speed - c_perp * c_perp)
     wx = gx * along - (-gy) * c_perp

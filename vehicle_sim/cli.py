@@ -196,14 +196,14 @@ def _start_time(value, field) -> float | None:
     import datetime as dt
 
     try:
-        t = dt.datetime.fromisoformat(value.replace("Z", "+00:00"))
-        t0 = dt.datetime.fromisoformat(field.time_origin.replace("Z", "+00:00"))
+        t = dt.datetime.fromisoformat(value)
+        t0 = dt.datetime.fromisoformat(field.time_origin)
     except ValueError:
         raise _Bad(f"--start-time must be a number or an ISO time, got {value!r}") from None
     if t.tzinfo is None:
-        t = t.replace(tzinfo=dt.timezone.utc)
+        t = t.replace(tzinfo=dt.UTC)
     if t0.tzinfo is None:
-        t0 = t0.replace(tzinfo=dt.timezone.utc)
+        t0 = t0.replace(tzinfo=dt.UTC)
     sec = (t - t0).total_seconds()
     if not field.times[0] <= sec <= field.times[-1]:
         raise _Bad(f"--start-time {value} lies outside the field's time range")
@@ -221,14 +221,14 @@ def _utc_at_boot(value, field, start: float | None, time_scale: float) -> float 
             raise _Bad("--utc-at-boot field needs a geographic field with a time origin")
         if time_scale != 1.0:
             raise _Bad("--utc-at-boot field needs a field in seconds (--time-scale 1)")
-        t0 = dt.datetime.fromisoformat(field.time_origin.replace("Z", "+00:00"))
-        t0 = t0 if t0.tzinfo else t0.replace(tzinfo=dt.timezone.utc)
+        t0 = dt.datetime.fromisoformat(field.time_origin)
+        t0 = t0 if t0.tzinfo else t0.replace(tzinfo=dt.UTC)
         return t0.timestamp() + (float(field.times[0]) if start is None else start)
     try:
-        t = dt.datetime.fromisoformat(value.replace("Z", "+00:00"))
+        t = dt.datetime.fromisoformat(value)
     except ValueError:
         raise _Bad(f"--utc-at-boot must be an ISO UTC time, 'field' or 'none', got {value!r}") from None
-    return (t if t.tzinfo else t.replace(tzinfo=dt.timezone.utc)).timestamp()
+    return (t if t.tzinfo else t.replace(tzinfo=dt.UTC)).timestamp()
 
 
 def main(argv: list[str] | None = None) -> int:

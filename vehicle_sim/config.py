@@ -38,7 +38,7 @@ class LinkConfig:
 
     @classmethod
     def radio(cls, baud: int = 57600, *, latency_s: float = 0.1, loss: float = 0.03, buffer_bytes: int = 2048,
-              seed: int = 0, **kw) -> "LinkConfig":
+              seed: int = 0, **kw) -> LinkConfig:
         """A SiK-like telemetry radio (:mod:`vehicle_sim.radio`): ``baud``, 100 ms one way, 3 % loss, 2 kB buffer."""
         return cls(loss=loss, latency_s=latency_s, baud=baud, buffer_bytes=buffer_bytes, seed=seed, **kw)
 
@@ -109,11 +109,11 @@ class SimConfig:
     battery_wh: float = 100.0
 
     @classmethod
-    def fast(cls, **kw) -> "SimConfig":
+    def fast(cls, **kw) -> SimConfig:
         """A config whose boot timeline is compressed (tests): ready after ~2 s."""
         base = dict(init_s=0.2, gps_s=0.5, arm_ready_s=1.0, ekf_gps_s=1.5, storage_ready_s=0.3)
         base.update(kw)
         return cls(**base)
 
-    def replace(self, **kw) -> "SimConfig":
+    def replace(self, **kw) -> SimConfig:
         return replace(self, **kw)

@@ -36,8 +36,8 @@ import math
 import select
 import threading
 import time
+from collections.abc import Iterable, Sequence
 from pathlib import Path
-from typing import Iterable, Sequence
 
 from vehicle_sim.boat import CurrentModel, LocalFrame
 from vehicle_sim.config import LinkConfig, SimConfig
@@ -55,7 +55,7 @@ def boat_listen(listen: Iterable[str], index: int) -> list[str]:
     """Boat ``index``'s listen specs: every port of ``listen`` + 10 * index (port 0 stays 0: OS-chosen)."""
     out = []
     for spec in listen:
-        kind, host, port = parse_link_spec(spec)
+        _kind, host, port = parse_link_spec(spec)
         prefix = spec.split(":", 1)[0]
         out.append(f"{prefix}:{host}:{port + PORT_STRIDE * index if port else 0}")
     return out

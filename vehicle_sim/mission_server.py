@@ -43,8 +43,8 @@ from __future__ import annotations
 
 import math
 import struct
+from collections.abc import Callable
 from dataclasses import dataclass, replace
-from typing import Callable
 
 from pymavlink.dialects.v20 import ardupilotmega as mavlink2
 
@@ -121,7 +121,7 @@ def _cast(kind: str, v: float) -> float:
     return float(n)
 
 
-def firmware_form(item: "Item", count: int) -> "Item | int":
+def firmware_form(item: Item, count: int) -> Item | int:
     """The item as Rover 4.7 stores it (mission type 0) in a list of ``count`` items, or the
     MAV_MISSION_RESULT refusing it."""
     if item.mission_type != 0:
@@ -183,7 +183,7 @@ class Item:
         return self.y / 1e7
 
     @classmethod
-    def from_msg(cls, m) -> "Item":
+    def from_msg(cls, m) -> Item:
         """From a MISSION_ITEM_INT or MISSION_ITEM message."""
         frame = int(m.frame)
         if m.get_type() == "MISSION_ITEM" and frame in GLOBAL_FRAMES:

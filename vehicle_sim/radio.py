@@ -28,6 +28,7 @@ import socket
 import threading
 import time
 from dataclasses import dataclass
+from typing import Self
 
 __all__ = ["RadioConfig", "RadioChannel", "RadioProxy", "queue_frame"]
 
@@ -174,11 +175,11 @@ class RadioProxy:
         """The pymavlink connection string of this proxy (``tcp:127.0.0.1:PORT``)."""
         return f"tcp:127.0.0.1:{self.port}"
 
-    def start(self) -> "RadioProxy":
+    def start(self) -> Self:
         self._spawn(self._accept_loop, "radio-accept")
         return self
 
-    def __enter__(self) -> "RadioProxy":
+    def __enter__(self) -> Self:
         return self.start()
 
     def __exit__(self, *exc) -> None:
@@ -211,7 +212,7 @@ class RadioProxy:
         while not self._stop.is_set():
             try:
                 cli, _ = self._srv.accept()
-            except socket.timeout:
+            except TimeoutError:
                 continue
             except OSError:
                 return
@@ -237,7 +238,7 @@ class RadioProxy:
         while not self._stop.is_set():
             try:
                 data = src.recv(65536)
-            except socket.timeout:
+            except TimeoutError:
                 continue
             except OSError:
                 return

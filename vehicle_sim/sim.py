@@ -21,7 +21,7 @@ import select
 import socket
 import threading
 import time
-from typing import Iterable
+from collections.abc import Iterable
 
 from vehicle_sim.autopilot import Autopilot
 from vehicle_sim.boat import CurrentModel
@@ -42,7 +42,7 @@ class InProcessEndpoint:
     object can use the endpoint as its file (it calls ``write``).
     """
 
-    def __init__(self, sim: "Simulator", link: Link):
+    def __init__(self, sim: Simulator, link: Link):
         self.sim = sim
         self.link = link
         self._lock = threading.Lock()

@@ -49,9 +49,10 @@ import datetime as _dt
 import os
 import subprocess
 import tempfile
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 
@@ -163,7 +164,7 @@ def source_commit() -> str:
     if not (root / ".git").exists():
         return "unknown"
     try:
-        r = subprocess.run(["git", "-C", str(root), "rev-parse", "HEAD"], capture_output=True, text=True, timeout=5)
+        r = subprocess.run(["git", "-C", str(root), "rev-parse", "HEAD"], capture_output=True, text=True, timeout=5, check=False)
     except (OSError, subprocess.SubprocessError):
         return "unknown"
     sha = r.stdout.strip()
@@ -174,7 +175,7 @@ def _global_attrs(run: RunData, title: str, summary: str, command: str) -> dict[
     """CF/ACDD global attributes shared by both NetCDF files."""
     from passt_mav import __version__
 
-    now = _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ")
+    now = _dt.datetime.now(_dt.UTC).strftime("%Y-%m-%dT%H:%M:%SZ")
     s = run.summary
     return {
         "Conventions": "CF-1.8, ACDD-1.3",
@@ -208,7 +209,7 @@ def _geo_extent(attrs: dict, lat: np.ndarray, lon: np.ndarray) -> None:
 
 def _time_extent(attrs: dict, epoch_s: np.ndarray) -> None:
     if epoch_s.size:
-        iso = [_dt.datetime.fromtimestamp(float(x), _dt.timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ")
+        iso = [_dt.datetime.fromtimestamp(float(x), _dt.UTC).strftime("%Y-%m-%dT%H:%M:%SZ")
                for x in (np.min(epoch_s), np.max(epoch_s))]
         attrs.update(time_coverage_start=iso[0], time_coverage_end=iso[1])
 

@@ -154,7 +154,7 @@ def csv_text(run) -> tuple[str, dict]:
     if run.samples:
         c = sample_table(run)
         for t, la, lo, u, v, b, leg in zip(c["utc"], c["lat"], c["lon"], c["u"], c["v"], c["boat"], c["leg"]):
-            iso = _dt.datetime.fromtimestamp(float(t), _dt.timezone.utc).isoformat(timespec="milliseconds")
+            iso = _dt.datetime.fromtimestamp(float(t), _dt.UTC).isoformat(timespec="milliseconds")
             w.writerow([iso.replace("+00:00", "Z"), f"{la:.7f}", f"{lo:.7f}", f"{u:.6f}", f"{v:.6f}", int(b), int(leg)])
             n += 1
     return buf.getvalue(), {"rows": n}

@@ -40,6 +40,7 @@ changes, the clock STATUSTEXT as a MSG, NVF readings with POS/GPS positions).
 
 from __future__ import annotations
 
+import itertools
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -69,7 +70,7 @@ def waypoints_to_path(grid, waypoints) -> np.ndarray | None:
     r, c = grid.latlon_to_cell(wp[:, 0], wp[:, 1], clip=True)
     cells = np.column_stack([np.asarray(r, int).reshape(-1), np.asarray(c, int).reshape(-1)])
     out = [cells[0]]
-    for a, b in zip(cells[:-1], cells[1:]):
+    for a, b in itertools.pairwise(cells):
         d = b - a
         n = int(max(abs(d[0]), abs(d[1])))
         if n == 0:
@@ -226,10 +227,10 @@ def replay(source, *, out=None, model: str | None = None, planner: str | None = 
     Raises:
         ReplayError / UserError: bad input (the CLI prints one line, exit 2).
     """
-    from passt_mav.legstep import FieldClock, LegStep, build_loop, build_predictor
     from passt_mav.fields.datasets import mission_field
+    from passt_mav.legstep import FieldClock, LegStep, build_loop, build_predictor
     from passt_mav.planning import PLANNERS, REWARDS, path_reward
-    from passt_mav.runs.rundir import RunDir, RunDirError, write_json_atomic
+    from passt_mav.runs.rundir import RunDir, RunDirError
 
     say = echo or (lambda s: None)
     src = Path(source)

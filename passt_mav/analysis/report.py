@@ -617,10 +617,10 @@ def _iso(s: Any) -> _dt.datetime | None:
     if not isinstance(s, str):
         return None
     try:
-        d = _dt.datetime.fromisoformat(s.strip().replace("Z", "+00:00"))
+        d = _dt.datetime.fromisoformat(s.strip())
     except ValueError:
         return None
-    return d if d.tzinfo else d.replace(tzinfo=_dt.timezone.utc)
+    return d if d.tzinfo else d.replace(tzinfo=_dt.UTC)
 
 
 class _Page:
@@ -691,7 +691,7 @@ def write_report(run_dir: str | Path, out: str | Path | None = None) -> Path:
     _section_pod(page, run, plt)
     _section_timings(page, run)
     _section_tlog(page, run)
-    gen = _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
+    gen = _dt.datetime.now(_dt.UTC).strftime("%Y-%m-%d %H:%M UTC")
     page.add(f'<p class="note">Written by passt-mav report from {html.escape(str(run.root))} at {gen}.</p>')
     doc = ("<!DOCTYPE html>\n<html lang=\"en\"><head><meta charset=\"utf-8\">"
            f"<title>{html.escape(title)} - passt-mav report</title><style>{_CSS}</style></head><body>\n"

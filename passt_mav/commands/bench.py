@@ -18,6 +18,7 @@ import argparse
 import datetime as _dt
 import fnmatch
 import json
+import math
 import os
 import platform
 import subprocess
@@ -181,7 +182,7 @@ def run_benchmark(name: str, script: Path, *, quick: bool, timeout: float) -> di
         env = dict(os.environ)
         root = str(script.resolve().parent.parent)
         env["PYTHONPATH"] = root + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
-        proc = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout, cwd=root, env=env)
+        proc = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout, cwd=root, env=env, check=False)
     except subprocess.TimeoutExpired:
         rec.update(status="failed", wall_s=time.perf_counter() - t0, error=f"timed out after {timeout:g} s")
         return rec
@@ -253,7 +254,7 @@ def _fmt(v: Any) -> str:
     if isinstance(v, int):
         return str(v)
     if isinstance(v, float):
-        if v != v:
+        if math.isnan(v):
             return "nan"
         return f"{v:.4g}" if abs(v) < 1e6 else f"{v:.3e}"
     return str(v)
@@ -262,8 +263,8 @@ def _fmt(v: Any) -> str:
 def format_table(report: dict[str, Any]) -> str:
     """The human-readable table of a collected report (see :func:`collect`)."""
     m = report["machine"]
-    lines = [f"machine: {m['cpu']}, {m['cores']} cores ({m['cores_usable']} usable), "
-             f"{m['memory_gib']} GiB; {m['os']}",
+    lines = [(f"machine: {m['cpu']}, {m['cores']} cores ({m['cores_usable']} usable), "
+              f"{m['memory_gib']} GiB; {m['os']}"),
              f"python {m['python']}, torch {m['torch']}, numpy {m['numpy']}, pymavlink {m['pymavlink']}",
              f"date: {report['date_utc']}, quick: {report['quick']}", ""]
     rows: list[tuple[str, str, str]] = []
@@ -312,7 +313,7 @@ def collect(bench_dir: Path, *, only=(), quick=False, timeout=None, progress=Tru
             print(f"[{i}/{len(names)}] {name}: {r['status']} in {r.get('wall_s', 0):.1f} s"
                   + (f" ({r['error']})" if r["status"] != "ok" else ""), file=sys.stderr, flush=True)
     return {
-        "date_utc": _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ"),
+        "date_utc": _dt.datetime.now(_dt.UTC).strftime("%Y-%m-%dT%H:%M:%SZ"),
         "quick": bool(quick),
         "bench_dir": str(bench_dir),
         "machine": machine_info(),

@@ -346,7 +346,7 @@ def lua_script_path():
         from passt_mav.errors import UserError
 
         raise UserError("vehicle_sim is not installed: current_sensor.lua ships with it")
-    return Path(list(spec.submodule_search_locations)[0]) / "lua" / "current_sensor.lua"
+    return Path(next(iter(spec.submodule_search_locations))) / "lua" / "current_sensor.lua"
 
 
 def export_lua_grid(field, path, *, time_at_boot: float | None = None, velocity_scale: float = 1.0,

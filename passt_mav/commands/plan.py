@@ -100,9 +100,9 @@ def run(args: argparse.Namespace) -> int:
 
     from passt_mav.errors import FieldError, PlannerError
     from passt_mav.fields.datasets import mission_field
+    from passt_mav.legstep import build_loop
     from passt_mav.mission import WaypointMission
     from passt_mav.mission.config import load_mission
-    from passt_mav.legstep import build_loop
     from passt_mav.planning import path_reward
 
     cfg = load_mission(args.mission)

@@ -114,7 +114,7 @@ class CylinderConfig:
     anchor_lat: float = DEFAULT_ANCHOR[0]
     anchor_lon: float = DEFAULT_ANCHOR[1]
 
-    def validate(self) -> "CylinderConfig":
+    def validate(self) -> CylinderConfig:
         """Check ranges once, at the edge; raises :class:`FieldError` naming the bad option."""
         if int(self.resolution) < 3:
             raise FieldError(f"resolution must be at least 3 cells per radius, got {self.resolution}")
@@ -452,9 +452,9 @@ def _sponges(xs: np.ndarray, ys: np.ndarray):
     import torch
 
     sp = SPONGE
-    xmin, xmax, ymin, ymax = DOMAIN
+    xmin, xmax, _ymin, ymax = DOMAIN
     X, Y = np.meshgrid(xs, ys)
-    ramp = lambda d, w: np.clip(d / w, 0.0, 1.0) ** 2  # noqa: E731 - local one-liner
+    ramp = lambda d, w: np.clip(d / w, 0.0, 1.0) ** 2
     sig = np.maximum.reduce([
         ramp(np.abs(Y) - sp["y_abs"], ymax - sp["y_abs"]),
         ramp(sp["x_in"] - X, sp["x_in"] - xmin),
@@ -638,7 +638,7 @@ def generate_cylinder(config: CylinderConfig | None = None, progress: bool = Tru
     pod4 = float(pod_energy(run.data[lo:hi], 4)[-1]) if hi - lo >= 5 else float("nan")
     lp = cfg.lattice()
     attrs = {
-        "title": "flow past an oscillating cylinder, Re %g" % cfg.reynolds if cfg.amplitude else "flow past a cylinder, Re %g" % cfg.reynolds,
+        "title": f"flow past an oscillating cylinder, Re {cfg.reynolds:g}" if cfg.amplitude else f"flow past a cylinder, Re {cfg.reynolds:g}",
         "generator": "passt_mav.fields.cylinder (D2Q9 BGK lattice Boltzmann, torch CPU)",
         "scenario": "oscillating" if cfg.amplitude else "cylinder",
         **{f"config_{k}": (v if v is not None else "none") for k, v in asdict(cfg).items()},
@@ -661,7 +661,7 @@ def generate_cylinder(config: CylinderConfig | None = None, progress: bool = Tru
         "pod4_window": [lo, hi],
         "wall_time_s": round(run.wall_s, 1),
         "lattice_steps": run.steps,
-        "command": command or "passt_mav.fields.cylinder.generate_cylinder(%r)" % (cfg,),
+        "command": command or f"passt_mav.fields.cylinder.generate_cylinder({cfg!r})",
     }
     if cfg.amplitude:
         attrs["oscillation"] = (

@@ -54,7 +54,7 @@ def add_cylinder_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument(
         "--amplitude", type=float, default=None,
-        help="cylinder oscillation amplitude in radii (oscillating only; default %s)" % d["amplitude_oscillating"],
+        help=f"cylinder oscillation amplitude in radii (oscillating only; default {d['amplitude_oscillating']})",
     )
     parser.add_argument(
         "--period-snapshots", type=int, default=d["period_snapshots"], dest="period_snapshots",

@@ -26,7 +26,6 @@ from typing import Any
 import numpy as np
 
 from geo import MetricRegionGrid, RegionGrid, grid_from_dict
-
 from passt_mav.errors import FieldError
 
 __all__ = ["FieldError", "FlowField", "load_field", "load_std"]
@@ -135,7 +134,7 @@ class FlowField:
         return t0 + (self.times * 1000.0).round().astype("timedelta64[ms]")
 
     # -- slicing ------------------------------------------------------------
-    def isel(self, time: slice | int | np.ndarray | None = None, rows: slice | None = None, cols: slice | None = None) -> "FlowField":
+    def isel(self, time: slice | int | np.ndarray | None = None, rows: slice | None = None, cols: slice | None = None) -> FlowField:
         """Subset by snapshot index and/or a contiguous cell window (step 1)."""
         t = slice(None) if time is None else time
         if isinstance(t, (int, np.integer)):
@@ -268,7 +267,7 @@ class FlowField:
         return path
 
     @classmethod
-    def from_netcdf(cls, path: str | Path) -> "FlowField":
+    def from_netcdf(cls, path: str | Path) -> FlowField:
         """Read a file written by :meth:`to_netcdf` (for other files use the importers)."""
         import xarray as xr
 
@@ -298,7 +297,7 @@ class FlowField:
         return cls(np.stack([u, v], axis=1), grid, times, origin, units, attrs)
 
 
-def load_field(path: str | Path) -> "FlowField":
+def load_field(path: str | Path) -> FlowField:
     """Load a passt_mav field file (``.nc``)."""
     return FlowField.from_netcdf(path)
 
@@ -339,8 +338,8 @@ def _parse_iso(s: str) -> _dt.datetime:
         s = s.replace(" ", "T", 1)
     d = _dt.datetime.fromisoformat(s)
     if d.tzinfo is None:
-        d = d.replace(tzinfo=_dt.timezone.utc)
-    return d.astimezone(_dt.timezone.utc)
+        d = d.replace(tzinfo=_dt.UTC)
+    return d.astimezone(_dt.UTC)
 
 
 def _jsonable(x: Any) -> Any:

@@ -11,6 +11,15 @@ Importing this package is cheap (no torch): classes load on first use through
 
 from __future__ import annotations
 
-from passt_mav.models.base import PREDICTORS, SHIPPED, Predictor, load_predictor, make_predictor, predictor_class, read_metadata, shipped_model
+from passt_mav.models.base import (
+    PREDICTORS,
+    SHIPPED,
+    Predictor,
+    load_predictor,
+    make_predictor,
+    predictor_class,
+    read_metadata,
+    shipped_model,
+)
 
 __all__ = ["PREDICTORS", "SHIPPED", "Predictor", "load_predictor", "make_predictor", "predictor_class", "read_metadata", "shipped_model"]

@@ -62,7 +62,7 @@ def predictor_class(name: str) -> type:
     return getattr(importlib.import_module(mod), cls)
 
 
-def make_predictor(name: str, **kw: Any) -> "Predictor":
+def make_predictor(name: str, **kw: Any) -> Predictor:
     """An unfitted predictor ``name`` with keyword hyper-parameters ``kw``."""
     cls = predictor_class(name)
     try:
@@ -89,7 +89,7 @@ def read_metadata(path: str | Path) -> dict:
         raise ModelError(f"cannot read checkpoint metadata {jp}: {exc}") from None
 
 
-def load_predictor(spec: str | Path) -> "Predictor":
+def load_predictor(spec: str | Path) -> Predictor:
     """A fitted predictor from a checkpoint path or ``builtin:NAME``.
 
     ``NAME`` is ``cylinder`` or ``ocean`` (the shipped KNODE checkpoints). ``shipped:NAME``

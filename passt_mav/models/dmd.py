@@ -39,7 +39,7 @@ class DMDPredictor(Predictor):
         self.stable = stable
         self.grid_shape_ = None
 
-    def fit(self, field, *, start: int | None = None, stop: int | None = None) -> "DMDPredictor":
+    def fit(self, field, *, start: int | None = None, stop: int | None = None) -> DMDPredictor:
         data = self._training_window(field, start, stop).astype(np.float64)
         T, _, R, C = data.shape
         water = np.isfinite(data).all(axis=(0, 1))
@@ -94,7 +94,7 @@ class DMDPredictor(Predictor):
         return write_checkpoint(path, {k: torch.from_numpy(np.asarray(v)) for k, v in st.items()}, meta)
 
     @classmethod
-    def load(cls, path) -> "DMDPredictor":
+    def load(cls, path) -> DMDPredictor:
         meta = read_metadata(path)
         sd = load_state_dict(path)
         self = cls(**meta["params"])

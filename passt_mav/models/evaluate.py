@@ -17,8 +17,8 @@ from __future__ import annotations
 
 import json
 import time
+from collections.abc import Callable
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 
@@ -172,7 +172,7 @@ def pod_comparison(predictor, data: np.ndarray, window: tuple[int, int], n_modes
     with np.errstate(invalid="ignore", divide="ignore"):
         # a constant roll-out (persistence) has no fluctuation energy: reported as None
         e_pred, e_true = pod_energy(pred, n_modes), pod_energy(t0, n_modes)
-    fin = lambda e: [None if not np.isfinite(x) else float(x) for x in e]  # noqa: E731
+    fin = lambda e: [None if not np.isfinite(x) else float(x) for x in e]
     return {"window": [a, b], "predicted": fin(e_pred), "true": fin(e_true)}
 
 

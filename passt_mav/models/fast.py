@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import contextlib
 import sys
-from typing import Callable
+from collections.abc import Callable
 
 __all__ = ["compiled_or_eager"]
 

@@ -30,7 +30,7 @@ from __future__ import annotations
 
 import math
 import time
-from typing import Callable
+from collections.abc import Callable
 
 import numpy as np
 
@@ -347,7 +347,7 @@ class KnodePredictor(Predictor):
             tot = tot + (((z - target[:, k]) ** 2) * w).sum() / (n_w * len(z0))
         return tot / H
 
-    def fit(self, field, *, start: int | None = None, stop: int | None = None, epochs: int | None = None, callback=None) -> "KnodePredictor":
+    def fit(self, field, *, start: int | None = None, stop: int | None = None, epochs: int | None = None, callback=None) -> KnodePredictor:
         """Train on snapshots ``start..stop-1`` of ``field`` (a FlowField or ``(T,2,R,C)`` array).
 
         The last ``val_frac`` of the window is held out for validation (early stopping,
@@ -364,7 +364,7 @@ class KnodePredictor(Predictor):
         n_ep = int(self.epochs if epochs is None else epochs)
         s0 = 0 if start is None else int(start)
         n_tr = self._split(data.shape[0])
-        train, val = data[:n_tr], data[n_tr:]
+        train = data[:n_tr]  # validation: _validation_sets() on data[n_tr:]
         T, _, R, C = train.shape
         H_max = 1 if self.loss == "one_step" else int(self.horizon)
         if T - H_max < 1:
@@ -387,7 +387,7 @@ class KnodePredictor(Predictor):
         if start_from is not None:  # fine-tuning: the weights were trained in the start model's scaling
             mean, std = start_from.mean_, start_from.std_
             self.init_metadata_ = getattr(start_from, "metadata_", None)
-        scale = lambda a: ((np.where(np.isfinite(a), a, np.float32(0)) - mean) / std * water).astype(np.float32)  # noqa: E731
+        scale = lambda a: ((np.where(np.isfinite(a), a, np.float32(0)) - mean) / std * water).astype(np.float32)
         dev = torch.device(self.device)
         with torch.random.fork_rng(devices=[]):
             torch.manual_seed(int(self.seed))
@@ -515,7 +515,7 @@ class KnodePredictor(Predictor):
             return 1.0
         return 1.0 - frac if shift == 0 else frac / (n_shifts - 1)
 
-    def _init_checkpoint(self, grid_shape) -> "KnodePredictor":
+    def _init_checkpoint(self, grid_shape) -> KnodePredictor:
         """The start model of a fine-tuning run (``init``), checked against this model's shape."""
         from passt_mav.models.base import load_predictor
 
@@ -528,7 +528,7 @@ class KnodePredictor(Predictor):
 
     def _stepper(self, net):
         """One snapshot step ``z -> z(t+1)`` for training: compiled when asked and it works, else eager."""
-        eager = lambda z: self._advance(net, z)  # noqa: E731
+        eager = lambda z: self._advance(net, z)
         if not self.compile:
             return eager
         from passt_mav.models.fast import compiled_or_eager
@@ -651,7 +651,7 @@ class KnodePredictor(Predictor):
         return write_checkpoint(path, state, meta)
 
     @classmethod
-    def load(cls, path, *, device: str = "cpu") -> "KnodePredictor":
+    def load(cls, path, *, device: str = "cpu") -> KnodePredictor:
         """Rebuild from a checkpoint written by :meth:`save` (``weights_only=True``)."""
         import torch
 

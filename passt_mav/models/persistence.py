@@ -17,7 +17,7 @@ class PersistencePredictor(Predictor):
     def __init__(self):
         self.grid_shape_ = None
 
-    def fit(self, field, *, start: int | None = None, stop: int | None = None) -> "PersistencePredictor":
+    def fit(self, field, *, start: int | None = None, stop: int | None = None) -> PersistencePredictor:
         data = self._training_window(field, start, stop)
         self.grid_shape_ = tuple(int(x) for x in data.shape[2:])
         self.data_hash_ = field.data_hash() if hasattr(field, "data_hash") else None
@@ -34,7 +34,7 @@ class PersistencePredictor(Predictor):
         return write_checkpoint(path, {"grid_shape": torch.tensor(self.grid_shape_)}, meta)
 
     @classmethod
-    def load(cls, path) -> "PersistencePredictor":
+    def load(cls, path) -> PersistencePredictor:
         meta = read_metadata(path)
         load_state_dict(path)  # the .pt must be there and readable
         self = cls()

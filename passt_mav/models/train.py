@@ -5,9 +5,7 @@
 
 from __future__ import annotations
 
-import json
 import time
-
 
 #: training recipes for the KNODE (constructor options); explicit options override them
 RECIPES: dict[str, dict] = {

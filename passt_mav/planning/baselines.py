@@ -14,7 +14,7 @@ import itertools
 import numpy as np
 
 from passt_mav.errors import PlannerError
-from passt_mav.planning.grid import MOVES8, MOVES8_TUPLES, check_inputs, check_many, cheapest_path
+from passt_mav.planning.grid import MOVES8, MOVES8_TUPLES, cheapest_path, check_inputs, check_many
 
 __all__ = ["LawnmowerPlanner", "GreedyPlanner", "RandomPlanner"]
 

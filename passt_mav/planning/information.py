@@ -145,7 +145,7 @@ class InformationModel:
         g = np.where(self.observed[c], 0.0, np.maximum(g, 0.0))
         return g.reshape(self.shape) if full else g
 
-    def conditioned(self, cells) -> "InformationModel":
+    def conditioned(self, cells) -> InformationModel:
         """A copy that has observed the distinct cells ``cells`` ((n, 2) row/col or flat indices)."""
         out = object.__new__(InformationModel)
         out.__dict__.update(self.__dict__)

@@ -117,7 +117,6 @@ def _features_eff(eff: np.ndarray, pos: np.ndarray, frac_left: float, moves: np.
             np.add(S[:, i, 1:], eff[:, i], out=S[:, i + 1, 1:])
         for j in range(1, C):
             np.add(S[:, 1:, j], S[:, 1:, j + 1], out=S[:, 1:, j + 1])
-    K = len(SCALES)
     D = np.array([s[0] for s in SCALES])
     H = np.array([s[1] for s in SCALES])
     # window centres (B, M, K, 2)

@@ -12,7 +12,7 @@ Pure numpy; no I/O.
 
 from __future__ import annotations
 
-from typing import Callable
+from collections.abc import Callable
 
 import numpy as np
 

@@ -29,7 +29,14 @@ def main(argv: list[str] | None = None) -> int:
     torch.set_num_threads(1)
     from passt_mav.planning.baselines import GreedyPlanner, RandomPlanner
     from passt_mav.planning.grid import path_reward, top_l_bound
-    from passt_mav.planning.policy_gradient import DEFAULT_CHECKPOINT, PolicyGradientPlanner, _CACHE, random_reward_map, save_policy, train_policy
+    from passt_mav.planning.policy_gradient import (
+        _CACHE,
+        DEFAULT_CHECKPOINT,
+        PolicyGradientPlanner,
+        random_reward_map,
+        save_policy,
+        train_policy,
+    )
 
     t0 = time.perf_counter()
     w, curve = train_policy(episodes=args.episodes, batch=args.batch, hidden=args.hidden, lr=args.lr, seed=args.seed)

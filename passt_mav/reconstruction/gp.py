@@ -313,7 +313,7 @@ class GPReconstructor:
         span = float(np.ptp(t)) if t.size else 0.0
         return np.column_stack([xy, t]), (span if span > 0 else None)
 
-    def fit(self, samples_xy, samples_uv, forecast_at_samples=None, *, samples_t=None) -> "GPReconstructor":
+    def fit(self, samples_xy, samples_uv, forecast_at_samples=None, *, samples_t=None) -> GPReconstructor:
         """Fit the kernel hyper-parameters (marginal likelihood) on one set of samples.
 
         samples_xy: (n, 2) east/north metres; samples_uv: (n, 2) u/v;
@@ -562,7 +562,7 @@ class GPReconstructor:
             noise[k * N : (k + 1) * N] = float(kernels[k].k2.noise_level) + float(self.alpha)
         return np.hstack(cols) if cols else np.zeros((2 * N, 0)), d, noise
 
-    def fit_field(self, snapshot, *, max_points: int = 150) -> "GPReconstructor":
+    def fit_field(self, snapshot, *, max_points: int = 150) -> GPReconstructor:
         """Fit the signal variance and length scale on a gridded snapshot ``(2, R, C)``.
 
         The preferred once-per-campaign fit: the model's initial state shows the

@@ -96,7 +96,7 @@ def rebuild_from_tlog(path: str | Path, *, u_name: str = "CUR_U", v_name: str = 
     :mod:`passt_mav.runs.tlog`: CRC-checked records, resynchronisation after junk).
     """
     from passt_mav.mavlink.samples import SampleCollector
-    from passt_mav.runs.tlog import _TlogScanner, _check_file, read_tlog
+    from passt_mav.runs.tlog import _check_file, _TlogScanner, read_tlog
 
     path = Path(path)
     data = _check_file(path, "telemetry log")

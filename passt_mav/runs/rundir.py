@@ -113,7 +113,7 @@ class RunDir:
         self.root = Path(root)
 
     # -- creation / checks -------------------------------------------------------
-    def create(self) -> "RunDir":
+    def create(self) -> RunDir:
         """Make the directory (and ``legs/``); returns self. An existing run directory is reused."""
         if self.root.exists() and not self.root.is_dir():
             raise RunDirError(f"{self.root} exists and is not a directory")
@@ -121,11 +121,11 @@ class RunDir:
         return self
 
     @classmethod
-    def new(cls, parent: str | Path, name: str = "run", *, utc: str | None = None) -> "RunDir":
+    def new(cls, parent: str | Path, name: str = "run", *, utc: str | None = None) -> RunDir:
         """A fresh run directory ``PARENT/YYYY-MM-DDTHH-MM-SSZ_NAME`` (suffix ``_2``, ``_3`` if taken)."""
         import datetime as _dt
 
-        stamp = utc or _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%dT%H-%M-%SZ")
+        stamp = utc or _dt.datetime.now(_dt.UTC).strftime("%Y-%m-%dT%H-%M-%SZ")
         safe = re.sub(r"[^A-Za-z0-9_.-]+", "-", name).strip("-") or "run"
         base = Path(parent) / f"{stamp}_{safe}"
         cand, k = base, 1

@@ -45,9 +45,10 @@ from __future__ import annotations
 import math
 import sqlite3
 import threading
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, fields
 from pathlib import Path
-from typing import Any, Iterable, Mapping
+from typing import Any, Self
 
 from passt_mav.errors import UserError
 
@@ -76,7 +77,7 @@ class Sample:
     gap_ms: int | None = None
 
     @classmethod
-    def coerce(cls, obj: "Sample | Mapping[str, Any]") -> "Sample":
+    def coerce(cls, obj: Sample | Mapping[str, Any]) -> Sample:
         """A :class:`Sample` from a Sample or a mapping with the same keys."""
         if isinstance(obj, Sample):
             return obj
@@ -163,7 +164,7 @@ class SampleStore:
         return {r[1] for r in self._con.execute("PRAGMA table_info(samples)").fetchall()}
 
     # -- writing ---------------------------------------------------------------
-    def append(self, sample: "Sample | Mapping[str, Any] | None" = None, /, **kw: Any) -> bool:
+    def append(self, sample: Sample | Mapping[str, Any] | None = None, /, **kw: Any) -> bool:
         """Store one sample (a :class:`Sample`, a mapping, or keyword fields); committed on return.
 
         Returns True if it was new, False if the same ``(source, boot,
@@ -175,7 +176,7 @@ class SampleStore:
             cur = self._execute(f"INSERT OR IGNORE INTO samples ({', '.join(_COLUMNS)}) VALUES ({', '.join('?' * len(_COLUMNS))})", vals)
             return cur.rowcount == 1
 
-    def append_many(self, samples: Iterable["Sample | Mapping[str, Any]"]) -> int:
+    def append_many(self, samples: Iterable[Sample | Mapping[str, Any]]) -> int:
         """Store several samples in one transaction (all or none); returns how many were new."""
         rows = [_row_values(Sample.coerce(s)) for s in samples]
         with self._lock:
@@ -232,7 +233,7 @@ class SampleStore:
             except sqlite3.Error:  # pragma: no cover - closing twice is harmless
                 pass
 
-    def __enter__(self) -> "SampleStore":
+    def __enter__(self) -> Self:
         return self
 
     def __exit__(self, *exc: object) -> None:

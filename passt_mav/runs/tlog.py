@@ -304,11 +304,12 @@ class _TlogScanner:
             msg = self.mav.decode(bytearray(data[p + 8 : end]))
         except (self.MAVError, struct.error, IndexError, ValueError, TypeError, UnicodeDecodeError):
             return None
-        if isinstance(msg, self.unknown_cls):
-            # a message id this dialect lacks has no checkable CRC: accept it only in step with the
-            # stream and when the next record starts where it should (or the file ends)
-            if resync or not (end == n or (end + 8 < n and data[end + 8] in (_MAGIC_V1, _MAGIC_V2))):
-                return None
+        # a message id this dialect lacks has no checkable CRC: accept it only in step with the
+        # stream and when the next record starts where it should (or the file ends)
+        if isinstance(msg, self.unknown_cls) and (
+            resync or not (end == n or (end + 8 < n and data[end + 8] in (_MAGIC_V1, _MAGIC_V2)))
+        ):
+            return None
         return ts, msg, end
 
     def __iter__(self):

@@ -80,7 +80,7 @@ def start_view(root: str | Path, *, port: int = 0, host: str = "127.0.0.1", log_
     env = {k: v for k, v in os.environ.items() if k != TOKEN_ENV}
     if token:
         env[TOKEN_ENV] = token  # not on the command line, where ps shows it
-    out = open(log_file, "ab") if log_file else subprocess.DEVNULL
+    out = open(log_file, "ab") if log_file else subprocess.DEVNULL  # noqa: SIM115 - handed to the server process
     cmd = [sys.executable, "-m", "passt_mav.view", str(root), "--host", host, "--port", str(port), "--exit-with-parent"]
     proc = subprocess.Popen(cmd, stdout=out, stderr=subprocess.STDOUT, env=env)
     end = time.monotonic() + wait_s
