@@ -22,7 +22,9 @@ import time
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--snapshots", type=int, default=100, help="output snapshots to time (default %(default)s)")
-    p.add_argument("--spin-up", type=float, default=80.0, dest="spin_up", help="non-dimensional spin-up time (default %(default)s)")
+    p.add_argument(
+        "--spin-up", type=float, default=80.0, dest="spin_up", help="non-dimensional spin-up time (default %(default)s)"
+    )
     p.add_argument("--resolution", type=int, default=None, help="cells per radius (default: the shipped data's)")
     p.add_argument("--amplitude", type=float, default=0.0, help="oscillation amplitude in radii (default 0: static)")
     p.add_argument("--threads", type=int, default=1, help="torch threads (default %(default)s)")
@@ -33,7 +35,9 @@ def main(argv: list[str] | None = None) -> int:
 
     from passt_mav.fields.cylinder import CylinderConfig, run_cylinder_lbm, strouhal_number
 
-    cfg = CylinderConfig(n_snapshots=args.snapshots, spin_up=args.spin_up, amplitude=args.amplitude, threads=args.threads)
+    cfg = CylinderConfig(
+        n_snapshots=args.snapshots, spin_up=args.spin_up, amplitude=args.amplitude, threads=args.threads
+    )
     if args.resolution is not None:
         cfg = CylinderConfig(**{**cfg.__dict__, "resolution": args.resolution})
     lp = cfg.lattice()
@@ -64,9 +68,13 @@ def main(argv: list[str] | None = None) -> int:
     if args.json:
         print(json.dumps(result, indent=2))
     else:
-        print(f"cylinder CFD, {cfg.resolution} cells/radius, {result['lattice_nodes']} nodes, {result['threads']} thread(s)")
+        print(
+            f"cylinder CFD, {cfg.resolution} cells/radius, {result['lattice_nodes']} nodes, {result['threads']} thread(s)"
+        )
         print(f"  time per lattice step : {result['time_per_step'] * 1e3:.2f} ms ({result['mlups']:.1f} MLUPS)")
-        print(f"  time per snapshot     : {result['time_per_snapshot']:.3f} s ({lp['steps_per_output']} steps, dt {cfg.dt_out})")
+        print(
+            f"  time per snapshot     : {result['time_per_snapshot']:.3f} s ({lp['steps_per_output']} steps, dt {cfg.dt_out})"
+        )
         print(f"  total wall time       : {total:.1f} s for {run.steps} steps")
         flag = "" if result["strouhal_reliable"] else " (too few snapshots to be reliable)"
         print(f"  Strouhal number       : {result['strouhal']:.4f}{flag}")

@@ -33,12 +33,26 @@ def _intervals(field, predictor, boats: int, path_length: int, legs: int) -> dic
     from passt_mav.campaign import fleet_starts
     from passt_mav.engine import run_offline_fleet
 
-    r = run_offline_fleet(field, predictor, start_cells=fleet_starts(field, 0, 0, path_length, boats), t0=0,
-                          n_steps=10 * (legs + 1), path_length=path_length, steps_per_leg=10, noise_std=0.02, seed=0)
+    r = run_offline_fleet(
+        field,
+        predictor,
+        start_cells=fleet_starts(field, 0, 0, path_length, boats),
+        t0=0,
+        n_steps=10 * (legs + 1),
+        path_length=path_length,
+        steps_per_leg=10,
+        noise_std=0.02,
+        seed=0,
+    )
     walls = [sum(leg["timings"][k] for k in KEYS) for leg in r.legs[1:]]  # leg 0 warms up
-    return {"boats": boats, "s_per_interval": statistics.median(walls), "s_max": max(walls), "legs": len(walls),
-            "split_s": {k: statistics.median(leg["timings"][k] for leg in r.legs[1:]) for k in KEYS},
-            "forecast_s": statistics.median(leg["timings"]["predict"] for leg in r.legs[1:])}
+    return {
+        "boats": boats,
+        "s_per_interval": statistics.median(walls),
+        "s_max": max(walls),
+        "legs": len(walls),
+        "split_s": {k: statistics.median(leg["timings"][k] for leg in r.legs[1:]) for k in KEYS},
+        "forecast_s": statistics.median(leg["timings"]["predict"] for leg in r.legs[1:]),
+    }
 
 
 def main(argv=None) -> int:
@@ -59,16 +73,26 @@ def main(argv=None) -> int:
     predictor = load_predictor(a.model)
     one = _intervals(field, predictor, 1, a.path_length, a.legs)
     many = _intervals(field, predictor, a.boats, a.path_length, a.legs)
-    out = {"path_length": a.path_length, "grid": "x".join(map(str, field.grid.shape)), "model": a.model,
-           "one_boat": one, "fleet": many, "ratio_fleet_over_one": many["s_per_interval"] / one["s_per_interval"],
-           "target_s": 1.0, "meets_target": many["s_max"] < 1.0}
+    out = {
+        "path_length": a.path_length,
+        "grid": "x".join(map(str, field.grid.shape)),
+        "model": a.model,
+        "one_boat": one,
+        "fleet": many,
+        "ratio_fleet_over_one": many["s_per_interval"] / one["s_per_interval"],
+        "target_s": 1.0,
+        "meets_target": many["s_max"] < 1.0,
+    }
     if a.json:
         print(json.dumps(out, indent=2))
     else:
-        print(f"L={a.path_length}, {out['grid']}, {a.model}: 1 boat {one['s_per_interval']:.3f} s, {a.boats} boats "
-              f"{many['s_per_interval']:.3f} s per leg interval (x{out['ratio_fleet_over_one']:.2f}; worst "
-              f"{many['s_max']:.3f} s); {a.boats} boats split " + ", ".join(f"{k} {v * 1000:.0f} ms" for k, v in many["split_s"].items())
-              + f"; shared 10-snapshot forecast {many['forecast_s']:.3f} s (1 boat {one['forecast_s']:.3f} s)")
+        print(
+            f"L={a.path_length}, {out['grid']}, {a.model}: 1 boat {one['s_per_interval']:.3f} s, {a.boats} boats "
+            f"{many['s_per_interval']:.3f} s per leg interval (x{out['ratio_fleet_over_one']:.2f}; worst "
+            f"{many['s_max']:.3f} s); {a.boats} boats split "
+            + ", ".join(f"{k} {v * 1000:.0f} ms" for k, v in many["split_s"].items())
+            + f"; shared 10-snapshot forecast {many['forecast_s']:.3f} s (1 boat {one['forecast_s']:.3f} s)"
+        )
     return 0
 
 

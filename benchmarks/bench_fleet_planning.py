@@ -30,8 +30,9 @@ def _fleet_step(boats: int, path_length: int, model: str):
     from passt_mav.mission.config import mission_overrides, validate_mission
 
     base, _ = mission_mapping()
-    cfg = validate_mission(mission_overrides(base, {"planner.path_length": path_length, "model": model}),
-                           source="bench")
+    cfg = validate_mission(
+        mission_overrides(base, {"planner.path_length": path_length, "model": model}), source="bench"
+    )
     field = resolve_field(cfg.field.source, seed=cfg.seeds.field)
     cells = fleet_starts(field.grid, field.land_mask, tuple(cfg.start_cell), boats)
     data = cfg.model_dump(mode="json")
@@ -58,8 +59,12 @@ def _interval(boats: int, path_length: int, model: str, repeats: int) -> dict:
         for b in range(boats):
             fs.release(b)
     n = repeats * boats
-    return {"boats": boats, "wall_s_per_interval": min(walls), "wall_s_mean": sum(walls) / len(walls),
-            "per_plan_split_s": {k: v / n for k, v in split.items()}}
+    return {
+        "boats": boats,
+        "wall_s_per_interval": min(walls),
+        "wall_s_mean": sum(walls) / len(walls),
+        "per_plan_split_s": {k: v / n for k, v in split.items()},
+    }
 
 
 def main(argv=None) -> int:
@@ -77,16 +82,25 @@ def main(argv=None) -> int:
         torch.set_num_threads(a.threads)
     one = _interval(1, a.path_length, a.model, a.repeats)
     many = _interval(a.boats, a.path_length, a.model, a.repeats)
-    out = {"path_length": a.path_length, "grid": "30x30", "model": a.model, "one_boat": one, "fleet": many,
-           "ratio_fleet_over_one": many["wall_s_per_interval"] / one["wall_s_per_interval"],
-           "target_s": 1.0, "meets_target": many["wall_s_per_interval"] < 1.0}
+    out = {
+        "path_length": a.path_length,
+        "grid": "30x30",
+        "model": a.model,
+        "one_boat": one,
+        "fleet": many,
+        "ratio_fleet_over_one": many["wall_s_per_interval"] / one["wall_s_per_interval"],
+        "target_s": 1.0,
+        "meets_target": many["wall_s_per_interval"] < 1.0,
+    }
     if a.json:
         print(json.dumps(out, indent=2))
     else:
-        print(f"L={a.path_length}, 30x30, {a.model}: 1 boat {one['wall_s_per_interval']:.3f} s, "
-              f"{a.boats} boats {many['wall_s_per_interval']:.3f} s per leg interval "
-              f"(x{out['ratio_fleet_over_one']:.2f}); split per plan "
-              + ", ".join(f"{k} {v * 1000:.0f} ms" for k, v in many["per_plan_split_s"].items()))
+        print(
+            f"L={a.path_length}, 30x30, {a.model}: 1 boat {one['wall_s_per_interval']:.3f} s, "
+            f"{a.boats} boats {many['wall_s_per_interval']:.3f} s per leg interval "
+            f"(x{out['ratio_fleet_over_one']:.2f}); split per plan "
+            + ", ".join(f"{k} {v * 1000:.0f} ms" for k, v in many["per_plan_split_s"].items())
+        )
     return 0
 
 

@@ -17,14 +17,18 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-VARIANTS = (("policy_gradient", "speed", {}), ("greedy", "speed", {}), ("information", "variance_reduction", {"beam_width": 1}),
-            ("information", "variance_reduction", {"beam_width": 8}), ("information", "variance_reduction", {"beam_width": 32}),
-            ("policy_gradient", "variance_reduction", {}))
+VARIANTS = (
+    ("policy_gradient", "speed", {}),
+    ("greedy", "speed", {}),
+    ("information", "variance_reduction", {"beam_width": 1}),
+    ("information", "variance_reduction", {"beam_width": 8}),
+    ("information", "variance_reduction", {"beam_width": 32}),
+    ("policy_gradient", "variance_reduction", {}),
+)
 
 
 def _leg_times(field, predictor, planner: str, reward: str, kw: dict, L: int, repeats: int) -> dict:
@@ -32,8 +36,18 @@ def _leg_times(field, predictor, planner: str, reward: str, kw: dict, L: int, re
 
     from passt_mav.passt import FieldSampler, PasstLoop
 
-    loop = PasstLoop(predictor, field.grid, planner=planner, planner_kw=kw, reward=reward, path_length=L, steps_per_leg=10,
-                     land=field.land_mask, background=200, gp_kw={"solver": "cholesky"})
+    loop = PasstLoop(
+        predictor,
+        field.grid,
+        planner=planner,
+        planner_kw=kw,
+        reward=reward,
+        path_length=L,
+        steps_per_leg=10,
+        land=field.land_mask,
+        background=200,
+        gp_kw={"solver": "cholesky"},
+    )
     sampler = FieldSampler(field, noise_std=0.02, steps_per_leg=10)
     state = np.array(field.data[0], np.float32)
     start = (field.grid.rows // 2, field.grid.cols // 2)
@@ -48,7 +62,14 @@ def _leg_times(field, predictor, planner: str, reward: str, kw: dict, L: int, re
         leg = loop.plan_leg(state, start, 0.0, field.dt, forecast=fc)
         rew.append(leg.timings["reward"])
         pl.append(leg.timings["plan"])
-    return {"planner": planner, "reward": reward, "options": kw, "reward_s": min(rew), "plan_s": min(pl), "leg_s": min(rew) + min(pl)}
+    return {
+        "planner": planner,
+        "reward": reward,
+        "options": kw,
+        "reward_s": min(rew),
+        "plan_s": min(pl),
+        "leg_s": min(rew) + min(pl),
+    }
 
 
 def main(argv=None) -> int:
@@ -75,15 +96,26 @@ def main(argv=None) -> int:
     base = rows[0]["leg_s"]
     for r in rows:
         r["ratio_to_pg_speed"] = r["leg_s"] / base
-    out = {"data": a.data, "model": a.model, "path_length": a.path_length, "grid": f"{field.grid.rows}x{field.grid.cols}",
-           "threads": 1, "variants": rows, "target_s": 1.0,
-           "meets_target": all(r["leg_s"] <= 1.0 for r in rows if r["planner"] == "information" and r["options"].get("beam_width") == 8)}
+    out = {
+        "data": a.data,
+        "model": a.model,
+        "path_length": a.path_length,
+        "grid": f"{field.grid.rows}x{field.grid.cols}",
+        "threads": 1,
+        "variants": rows,
+        "target_s": 1.0,
+        "meets_target": all(
+            r["leg_s"] <= 1.0 for r in rows if r["planner"] == "information" and r["options"].get("beam_width") == 8
+        ),
+    }
     if a.json:
         print(json.dumps(out, indent=2))
     else:
         for r in rows:
-            print(f"{r['planner']:>16} {r['reward']:<18} {json.dumps(r['options']):<20} reward {r['reward_s'] * 1e3:7.1f} ms  "
-                  f"plan {r['plan_s'] * 1e3:7.1f} ms  leg {r['leg_s'] * 1e3:7.1f} ms  x{r['ratio_to_pg_speed']:.2f}")
+            print(
+                f"{r['planner']:>16} {r['reward']:<18} {json.dumps(r['options']):<20} reward {r['reward_s'] * 1e3:7.1f} ms  "
+                f"plan {r['plan_s'] * 1e3:7.1f} ms  leg {r['leg_s'] * 1e3:7.1f} ms  x{r['ratio_to_pg_speed']:.2f}"
+            )
     return 0
 
 

@@ -34,17 +34,34 @@ def measure(baud: int, seconds: float, instance: int, quiet: bool = True) -> dic
 
     sitl_dir = REPO.parent / "shared" / "sitl"
     wd = Path(tempfile.mkdtemp(prefix="bench_link_"))
-    out = subprocess.run([str(sitl_dir / "start-sitl"), str(wd), "-I", str(instance), "--speedup", "1", "--home", HOME,
-                          "--scripts", str(REPO / "vehicle_sim" / "lua"), "--wipe"],
-                         capture_output=True, text=True, timeout=60, check=True)
+    out = subprocess.run(
+        [
+            str(sitl_dir / "start-sitl"),
+            str(wd),
+            "-I",
+            str(instance),
+            "--speedup",
+            "1",
+            "--home",
+            HOME,
+            "--scripts",
+            str(REPO / "vehicle_sim" / "lua"),
+            "--wipe",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        check=True,
+    )
     pid, port = (int(x) for x in out.stdout.split()[:2])
     shutil.copy(REPO / "vehicle_sim" / "lua" / "current_grid.bin", wd / "scripts" / "current_grid.bin")
     radio = RadioProxy(("127.0.0.1", port), RadioConfig(baud=baud, latency_s=0.1, loss=0.03, buffer_bytes=2048))
     radio.start()
     link = None
     try:
-        link = Link(LinkConfig(radio.connect, connect_timeout_s=60.0, timeout_s=1.5, retries=8,
-                               quiet_other_streams=quiet)).connect()
+        link = Link(
+            LinkConfig(radio.connect, connect_timeout_s=60.0, timeout_s=1.5, retries=8, quiet_other_streams=quiet)
+        ).connect()
         Vehicle(link).wait_ready(timeout=120.0)
         time.sleep(2.0)  # streams settled
         b0, t0 = link.stats.vehicle_bytes, link.vehicle_uptime_s()
@@ -58,8 +75,14 @@ def measure(baud: int, seconds: float, instance: int, quiet: bool = True) -> dic
         radio.stop()
         subprocess.run(["kill", str(pid)], check=False)
     st = radio.stats()["down"]
-    return {"baud": baud, "capacity_bytes_per_s": baud / 10, "vehicle_bytes_per_s": round((b1 - b0) / (t1 - t0), 1),
-            "vehicle_seconds": round(t1 - t0, 1), "messages": types, "radio_down": dict(st)}
+    return {
+        "baud": baud,
+        "capacity_bytes_per_s": baud / 10,
+        "vehicle_bytes_per_s": round((b1 - b0) / (t1 - t0), 1),
+        "vehicle_seconds": round(t1 - t0, 1),
+        "messages": types,
+        "radio_down": dict(st),
+    }
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -67,8 +90,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--bauds", default="57600,19200", help="comma-separated baud rates (default %(default)s)")
     p.add_argument("--seconds", type=float, default=30.0, help="vehicle seconds to count (default %(default)s)")
     p.add_argument("--instance", type=int, default=47, help="SITL instance number (port 5760 + 10 N)")
-    p.add_argument("--keep-streams", action="store_true",
-                   help="do not stop the vehicle's other streams (the controller before the link budget)")
+    p.add_argument(
+        "--keep-streams",
+        action="store_true",
+        help="do not stop the vehicle's other streams (the controller before the link budget)",
+    )
     p.add_argument("--json", action="store_true", help="print JSON")
     args = p.parse_args(argv)
     res = [measure(int(b), args.seconds, args.instance, quiet=not args.keep_streams) for b in args.bauds.split(",")]
@@ -76,9 +102,11 @@ def main(argv: list[str] | None = None) -> int:
         print(json.dumps(res, indent=1))
     else:
         for r in res:
-            print(f"{r['baud']} baud: the vehicle sends {r['vehicle_bytes_per_s']} B/s "
-                  f"({100 * r['vehicle_bytes_per_s'] / r['capacity_bytes_per_s']:.0f} % of {r['capacity_bytes_per_s']:g}"
-                  f" B/s) over {r['vehicle_seconds']} s; messages {r['messages']}")
+            print(
+                f"{r['baud']} baud: the vehicle sends {r['vehicle_bytes_per_s']} B/s "
+                f"({100 * r['vehicle_bytes_per_s'] / r['capacity_bytes_per_s']:.0f} % of {r['capacity_bytes_per_s']:g}"
+                f" B/s) over {r['vehicle_seconds']} s; messages {r['messages']}"
+            )
     return 0
 
 

@@ -77,11 +77,21 @@ def _train_paths(f, quick: bool) -> dict:
     out = {}
     # 96 training ICs in batches of 32: every batch has one shape, so the compiled path
     # compiles once (in the first epoch, timed separately); s/epoch = mean of the later epochs
-    kw = dict(loss="rollout", horizon=10, curriculum=0.0, noise="white", val_frac=0.0, zero_init=True, train_batch=32, progress=False, seed=0)
+    kw = dict(
+        loss="rollout",
+        horizon=10,
+        curriculum=0.0,
+        noise="white",
+        val_frac=0.0,
+        zero_init=True,
+        train_batch=32,
+        progress=False,
+        seed=0,
+    )
     for name, opts in (("eager", {}), ("compiled", {"compile": True})):
         stamps = [time.perf_counter()]
         m = make_predictor("knode", epochs=epochs, **kw, **opts)
-        m.fit(f, start=200, stop=306, callback=lambda ep, loss: stamps.append(time.perf_counter()))
+        m.fit(f, start=200, stop=306, callback=lambda ep, loss, stamps=stamps: stamps.append(time.perf_counter()))
         dts = np.diff(stamps)
         out[f"train_first_epoch_s_{name}"] = float(dts[0])
         out[f"train_s_per_epoch_{name}"] = float(np.mean(dts[1:]))
@@ -114,8 +124,12 @@ def _train_paths(f, quick: bool) -> dict:
             for _ in range(reps):
                 fn(x)
             out[f"predict_batch64_s_per_snapshot_{name}"] = (time.perf_counter() - t0) / (reps * len(x))
-    out["predict_speedup_compiled_over_eager"] = out["predict_batch64_s_per_snapshot_eager"] / out["predict_batch64_s_per_snapshot_compiled"]
-    out["predict_speedup_channels_last_over_eager"] = out["predict_batch64_s_per_snapshot_eager"] / out["predict_batch64_s_per_snapshot_channels_last"]
+    out["predict_speedup_compiled_over_eager"] = (
+        out["predict_batch64_s_per_snapshot_eager"] / out["predict_batch64_s_per_snapshot_compiled"]
+    )
+    out["predict_speedup_channels_last_over_eager"] = (
+        out["predict_batch64_s_per_snapshot_eager"] / out["predict_batch64_s_per_snapshot_channels_last"]
+    )
     return out
 
 
@@ -139,7 +153,10 @@ def main(argv=None) -> int:
     try:
         model, source = load_predictor("builtin:cylinder"), "builtin:cylinder"
     except Exception:  # noqa: BLE001 - untrained weights time the same
-        model, source = make_predictor("knode", epochs=0, progress=False).fit(f, start=200, stop=300), "untrained (no shipped model)"
+        model, source = (
+            make_predictor("knode", epochs=0, progress=False).fit(f, start=200, stop=300),
+            "untrained (no shipped model)",
+        )
     steps = 5 if a.quick else 20
     x1 = np.nan_to_num(f.data[300])
     model.predict(x1, 1)  # warm-up
@@ -186,7 +203,9 @@ def main(argv=None) -> int:
     else:
         for k, v in res.items():
             print(f"{k:>40}: {v:.4g}" if isinstance(v, float) else f"{k:>40}: {v}")
-        print(f"KNODE predicts a snapshot {cfd / t_b1:.0f}x (batch 1) / {cfd / t_bb:.0f}x (batched) faster than the CFD makes one")
+        print(
+            f"KNODE predicts a snapshot {cfd / t_b1:.0f}x (batch 1) / {cfd / t_bb:.0f}x (batched) faster than the CFD makes one"
+        )
     return 0
 
 

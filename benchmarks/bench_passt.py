@@ -65,7 +65,16 @@ def per_leg(field, predictor, L: int, legs: int, steps_per_leg: int) -> dict:
 
     from passt_mav.passt import FieldSampler, PasstLoop
 
-    loop = PasstLoop(predictor, field.grid, planner="policy_gradient", path_length=L, steps_per_leg=steps_per_leg, prior="forecast" if predictor is not None else "none", land=field.land_mask, seed=0)
+    loop = PasstLoop(
+        predictor,
+        field.grid,
+        planner="policy_gradient",
+        path_length=L,
+        steps_per_leg=steps_per_leg,
+        prior="forecast" if predictor is not None else "none",
+        land=field.land_mask,
+        seed=0,
+    )
     sampler = FieldSampler(field, noise_std=0.02, seed=0, steps_per_leg=steps_per_leg)
     state = field.data[0].copy()
     start = (field.grid.rows // 2, 2)
@@ -104,7 +113,13 @@ VARIANTS = ("today", "serial_fixed", "lockstep", "paper", "paper_dask2")
 
 
 def throughput(field, predictor, args) -> dict:
-    kw = dict(path_lengths=tuple(args.campaign_lengths), trials=args.trials, steps=args.steps, steps_per_leg=args.steps_per_leg, progress=False)
+    kw = dict(
+        path_lengths=tuple(args.campaign_lengths),
+        trials=args.trials,
+        steps=args.steps,
+        steps_per_leg=args.steps_per_leg,
+        progress=False,
+    )
     if predictor is None:  # hold mode: only the GP-only baselines can run
         kw["methods"] = ("lawnmower_gp", "greedy_gp", "random_gp")
     variants = {
@@ -124,7 +139,13 @@ def throughput(field, predictor, args) -> dict:
             wall, s = _dask_timed(field, predictor, 2, dict(kw, **v), warm=dict(kw, steps=args.steps_per_leg, **v))
         else:
             wall, s = _timed(field, predictor, **kw, **v)
-        out[name] = {"wall_s": round(wall, 2), "trial_legs": s["trial_legs"], "trial_legs_per_s": round(s["trial_legs"] / wall, 2), "split_s": _split(s), "final_rmse": {L: {m: round(x, 4) for m, x in per["final_rmse"].items()} for L, per in s["per_L"].items()}}
+        out[name] = {
+            "wall_s": round(wall, 2),
+            "trial_legs": s["trial_legs"],
+            "trial_legs_per_s": round(s["trial_legs"] / wall, 2),
+            "split_s": _split(s),
+            "final_rmse": {L: {m: round(x, 4) for m, x in per["final_rmse"].items()} for L, per in s["per_L"].items()},
+        }
     for name in set(out) - {"today"}:
         out[name]["speedup_vs_today"] = round(out[name]["trial_legs_per_s"] / out["today"]["trial_legs_per_s"], 2)
     return out
@@ -147,7 +168,16 @@ def _dask_timed(field, predictor, n_workers: int, kw: dict, warm: dict) -> tuple
 def scale_out(field, predictor, args) -> dict:
     from distributed import LocalCluster
 
-    kw = dict(path_lengths=tuple(args.campaign_lengths), trials=args.trials, steps=args.steps, steps_per_leg=args.steps_per_leg, progress=False, hyper="state", engine="lockstep", batch=max(1, args.trials // 2))
+    kw = dict(
+        path_lengths=tuple(args.campaign_lengths),
+        trials=args.trials,
+        steps=args.steps,
+        steps_per_leg=args.steps_per_leg,
+        progress=False,
+        hyper="state",
+        engine="lockstep",
+        batch=max(1, args.trials // 2),
+    )
     if predictor is None:
         kw["methods"] = ("lawnmower_gp", "greedy_gp", "random_gp")
     out = {}
@@ -161,7 +191,9 @@ def scale_out(field, predictor, args) -> dict:
             wall, dk = _timed(field, predictor, scheduler=cluster.scheduler_address, **kw)
         out[f"dask_{n}_s"] = round(wall, 2)
         runs.append(dk)
-    out["identical_numbers"] = all(serial["per_L"][L]["rmse_mean"] == o["per_L"][L]["rmse_mean"] for o in runs for L in serial["per_L"])
+    out["identical_numbers"] = all(
+        serial["per_L"][L]["rmse_mean"] == o["per_L"][L]["rmse_mean"] for o in runs for L in serial["per_L"]
+    )
     out["tasks"] = len(args.campaign_lengths) * len(range(0, args.trials, kw["batch"]))
     return out
 
@@ -176,7 +208,11 @@ def main(argv=None) -> int:
     ap.add_argument("--trials", type=int, default=4)
     ap.add_argument("--steps", type=int, default=60)
     ap.add_argument("--campaign-lengths", default="50")
-    ap.add_argument("--variants", default="today,serial_fixed,lockstep,paper", help=f"engine variants to time, a comma list of {', '.join(VARIANTS)} ('today' is the reference and always needed; paper_dask2 pays the workers' compilation, so time it on a protocol-sized campaign)")
+    ap.add_argument(
+        "--variants",
+        default="today,serial_fixed,lockstep,paper",
+        help=f"engine variants to time, a comma list of {', '.join(VARIANTS)} ('today' is the reference and always needed; paper_dask2 pays the workers' compilation, so time it on a protocol-sized campaign)",
+    )
     ap.add_argument("--no-campaign", action="store_true", help="skip the throughput comparison")
     ap.add_argument("--no-scale", action="store_true", help="skip the joblib / Dask scale-out")
     ap.add_argument("--json", action="store_true")
@@ -184,7 +220,9 @@ def main(argv=None) -> int:
     args.campaign_lengths = [int(x) for x in args.campaign_lengths.split(",")]
     args.variants = [v.strip() for v in args.variants.split(",") if v.strip()]
     if set(args.variants) - set(VARIANTS) or "today" not in args.variants:
-        ap.error(f"--variants: choose from {', '.join(VARIANTS)} and include 'today' (the ratios' reference); got {','.join(args.variants)}")
+        ap.error(
+            f"--variants: choose from {', '.join(VARIANTS)} and include 'today' (the ratios' reference); got {','.join(args.variants)}"
+        )
 
     import torch
 
@@ -193,7 +231,13 @@ def main(argv=None) -> int:
 
     field = resolve_field(args.data)
     predictor, used = _predictor(args.model, field)
-    res = {"data": args.data, "model": used, "grid": list(field.grid.shape), "cpu_count": os.cpu_count(), "per_leg_ms": {}}
+    res = {
+        "data": args.data,
+        "model": used,
+        "grid": list(field.grid.shape),
+        "cpu_count": os.cpu_count(),
+        "per_leg_ms": {},
+    }
     for L in (int(x) for x in args.lengths.split(",")):
         res["per_leg_ms"][str(L)] = per_leg(field, predictor, L, args.legs, args.steps_per_leg)
     if not args.no_campaign:
@@ -208,13 +252,19 @@ def main(argv=None) -> int:
         for L, r in res["per_leg_ms"].items():
             print(f"  L={L:>4}: " + "  ".join(f"{k} {v:8.1f}" for k, v in r.items()))
         if "throughput" in res:
-            print(f"engine throughput, L={args.campaign_lengths}, {args.trials} trials x {args.steps} steps (trial-legs/s; split = seconds summed over trial-legs):")
+            print(
+                f"engine throughput, L={args.campaign_lengths}, {args.trials} trials x {args.steps} steps (trial-legs/s; split = seconds summed over trial-legs):"
+            )
             for name, r in res["throughput"].items():
                 sp = f"  x{r['speedup_vs_today']} vs today" if "speedup_vs_today" in r else ""
-                print(f"  {name:>12}: {r['wall_s']:7.2f} s  {r['trial_legs']} trial-legs  {r['trial_legs_per_s']:7.2f}/s{sp}  split {r['split_s']}")
+                print(
+                    f"  {name:>12}: {r['wall_s']:7.2f} s  {r['trial_legs']} trial-legs  {r['trial_legs_per_s']:7.2f}/s{sp}  split {r['split_s']}"
+                )
         if "scale_out" in res:
             c = res["scale_out"]
-            print(f"lockstep scale-out ({c['tasks']} batches): serial {c['serial_s']} s, joblib x2 {c['joblib_2_s']} s, dask LocalCluster x1 {c['dask_1_s']} s, x2 {c['dask_2_s']} s; identical numbers: {c['identical_numbers']}")
+            print(
+                f"lockstep scale-out ({c['tasks']} batches): serial {c['serial_s']} s, joblib x2 {c['joblib_2_s']} s, dask LocalCluster x1 {c['dask_1_s']} s, x2 {c['dask_2_s']} s; identical numbers: {c['identical_numbers']}"
+            )
     return 0
 
 

@@ -51,9 +51,26 @@ def _field():
 def _mission(home, n, dlat=2e-4):
     from pymavlink.dialects.v20 import ardupilotmega as M
 
-    return [M.MAVLink_mission_item_int_message(1, 1, i, 6 if i else 0, 16, 0, 1, 0, 0, 0, 0,
-                                               int(round((home[0] + dlat * (i % 10)) * 1e7)),
-                                               int(round((home[1] + dlat * (i // 10)) * 1e7)), 0.0, 0) for i in range(n)]
+    return [
+        M.MAVLink_mission_item_int_message(
+            1,
+            1,
+            i,
+            6 if i else 0,
+            16,
+            0,
+            1,
+            0,
+            0,
+            0,
+            0,
+            int(round((home[0] + dlat * (i % 10)) * 1e7)),
+            int(round((home[1] + dlat * (i // 10)) * 1e7)),
+            0.0,
+            0,
+        )
+        for i in range(n)
+    ]
 
 
 def bench_rtf(sim_seconds: float) -> dict:
@@ -78,8 +95,13 @@ def bench_rtf(sim_seconds: float) -> dict:
         sim.step(0.25)
         n_msgs += len(gcs.parse_buffer(ep.read()) or [])
     wall = time.perf_counter() - t0
-    return {"sim_s": sim.t - s0, "wall_s": wall, "rtf": (sim.t - s0) / wall, "msgs_per_sim_s": n_msgs / (sim.t - s0),
-            "physics_dt": sim.config.physics_dt}
+    return {
+        "sim_s": sim.t - s0,
+        "wall_s": wall,
+        "rtf": (sim.t - s0) / wall,
+        "msgs_per_sim_s": n_msgs / (sim.t - s0),
+        "physics_dt": sim.config.physics_dt,
+    }
 
 
 def bench_rtf_fleet(n_boats: int, sim_seconds: float) -> dict:
@@ -116,9 +138,15 @@ def bench_rtf_fleet(n_boats: int, sim_seconds: float) -> dict:
     wall = time.perf_counter() - t0
     sim_s = fleet.t - s0
     running = sum(b.autopilot.mission_state == "running" for b in fleet.boats)
-    return {"boats": n_boats, "sim_s": sim_s, "wall_s": wall, "rtf": sim_s / wall,
-            "boat_sim_s_per_wall_s": n_boats * sim_s / wall, "msgs_per_sim_s": n_msgs / sim_s,
-            "boats_still_on_mission": running}
+    return {
+        "boats": n_boats,
+        "sim_s": sim_s,
+        "wall_s": wall,
+        "rtf": sim_s / wall,
+        "boat_sim_s_per_wall_s": n_boats * sim_s / wall,
+        "msgs_per_sim_s": n_msgs / sim_s,
+        "boats_still_on_mission": running,
+    }
 
 
 def bench_served_fleet(n_boats: int, speedup: float, wall_s: float) -> dict:
@@ -154,8 +182,12 @@ def bench_served_fleet(n_boats: int, speedup: float, wall_s: float) -> dict:
     for c in conns:
         c.close()
     fleet.stop()
-    return {"boats": n_boats, "speedup_requested": speedup, "speedup_achieved": achieved,
-            "bytes_per_wall_s": nbytes / wall}
+    return {
+        "boats": n_boats,
+        "speedup_requested": speedup,
+        "speedup_achieved": achieved,
+        "bytes_per_wall_s": nbytes / wall,
+    }
 
 
 def bench_served(speedup: float, wall_s: float) -> dict:
@@ -180,7 +212,7 @@ def bench_served(speedup: float, wall_s: float) -> dict:
         while time.perf_counter() < t_end:
             try:
                 n += len(conn.recv(1 << 16))
-            except socket.timeout:
+            except TimeoutError:
                 pass
         return n
 
@@ -215,9 +247,15 @@ def bench_upload(n_items: int, baud: int, paced: bool, streams: bool) -> dict:
     sim_s, wall = sim.t - s0, time.perf_counter() - t0
     assert ack is not None and ack.type == 0, ack
     frame_item = len(items[1].pack(c.mav))
-    return {"items": n_items, "baud": baud, "vehicle_paced": paced, "telemetry": streams,
-            "items_per_sim_s": (n_items - 1) / sim_s, "items_per_wall_s_lockstep": (n_items - 1) / wall,
-            "mission_item_int_bytes": frame_item}
+    return {
+        "items": n_items,
+        "baud": baud,
+        "vehicle_paced": paced,
+        "telemetry": streams,
+        "items_per_sim_s": (n_items - 1) / sim_s,
+        "items_per_wall_s_lockstep": (n_items - 1) / wall,
+        "mission_item_int_bytes": frame_item,
+    }
 
 
 def main(argv=None) -> int:
@@ -230,7 +268,10 @@ def main(argv=None) -> int:
         "rtf_lockstep": bench_rtf(300.0 if q else 1800.0),
         "rtf_fleet": [bench_rtf_fleet(1, 300.0 if q else 1800.0), bench_rtf_fleet(3, 300.0 if q else 1800.0)],
         "served": [bench_served(200.0, 2.0 if q else 5.0), bench_served(1000.0, 2.0 if q else 5.0)],
-        "served_fleet": [bench_served_fleet(3, 200.0, 2.0 if q else 5.0), bench_served_fleet(3, 1000.0, 2.0 if q else 5.0)],
+        "served_fleet": [
+            bench_served_fleet(3, 200.0, 2.0 if q else 5.0),
+            bench_served_fleet(3, 1000.0, 2.0 if q else 5.0),
+        ],
         "upload": [
             bench_upload(101, 0, True, True),
             bench_upload(101, 0, False, True),
@@ -244,22 +285,32 @@ def main(argv=None) -> int:
         print(json.dumps(out, indent=1))
     else:
         r = out["rtf_lockstep"]
-        print(f"real-time factor (lockstep, default streams, field sampling): {r['rtf']:.0f}x "
-              f"({r['sim_s']:.0f} sim s in {r['wall_s']:.2f} s; {r['msgs_per_sim_s']:.1f} msgs/sim s)")
+        print(
+            f"real-time factor (lockstep, default streams, field sampling): {r['rtf']:.0f}x "
+            f"({r['sim_s']:.0f} sim s in {r['wall_s']:.2f} s; {r['msgs_per_sim_s']:.1f} msgs/sim s)"
+        )
         f1, f3 = out["rtf_fleet"]
-        print(f"real-time factor of a fleet (lockstep, each boat on its own mission): 1 boat {f1['rtf']:.0f}x, "
-              f"3 boats {f3['rtf']:.0f}x ({f3['boat_sim_s_per_wall_s']:.0f} boat-s per wall s vs "
-              f"{f1['boat_sim_s_per_wall_s']:.0f}; {f3['sim_s']:.0f} sim s in {f3['wall_s']:.2f} s)")
+        print(
+            f"real-time factor of a fleet (lockstep, each boat on its own mission): 1 boat {f1['rtf']:.0f}x, "
+            f"3 boats {f3['rtf']:.0f}x ({f3['boat_sim_s_per_wall_s']:.0f} boat-s per wall s vs "
+            f"{f1['boat_sim_s_per_wall_s']:.0f}; {f3['sim_s']:.0f} sim s in {f3['wall_s']:.2f} s)"
+        )
         for s in out["served_fleet"]:
-            print(f"3 boats served over TCP at --speedup {s['speedup_requested']:.0f}: achieved {s['speedup_achieved']:.0f}x "
-                  f"({s['bytes_per_wall_s'] / 1e3:.0f} kB/s to the clients)")
+            print(
+                f"3 boats served over TCP at --speedup {s['speedup_requested']:.0f}: achieved {s['speedup_achieved']:.0f}x "
+                f"({s['bytes_per_wall_s'] / 1e3:.0f} kB/s to the clients)"
+            )
         for s in out["served"]:
-            print(f"served over TCP at --speedup {s['speedup_requested']:.0f}: achieved {s['speedup_achieved']:.0f}x "
-                  f"({s['bytes_per_wall_s'] / 1e3:.0f} kB/s to the client)")
+            print(
+                f"served over TCP at --speedup {s['speedup_requested']:.0f}: achieved {s['speedup_achieved']:.0f}x "
+                f"({s['bytes_per_wall_s'] / 1e3:.0f} kB/s to the client)"
+            )
         for u in out["upload"]:
-            print(f"upload {u['items'] - 1} items, baud {u['baud'] or 'loopback'}, paced={u['vehicle_paced']}, "
-                  f"telemetry={u['telemetry']}: {u['items_per_sim_s']:.1f} items/sim s "
-                  f"({u['items_per_wall_s_lockstep']:.0f} items/wall s in lockstep)")
+            print(
+                f"upload {u['items'] - 1} items, baud {u['baud'] or 'loopback'}, paced={u['vehicle_paced']}, "
+                f"telemetry={u['telemetry']}: {u['items_per_sim_s']:.1f} items/sim s "
+                f"({u['items_per_wall_s_lockstep']:.0f} items/wall s in lockstep)"
+            )
         print(f"stop-and-wait bound at 57600 baud: {out['stop_and_wait_bound_57600']:.0f} items/s")
     return 0
 

@@ -35,8 +35,9 @@ def _items(n: int):
     from passt_mav.mission.items import MissionItem
 
     dlat = 10.0 / 111_035.0
-    return [MissionItem(i, 0 if i == 0 else 3, 16, 0, 1, 0, 0, 0, 0, HOME[0] + dlat * i, HOME[1], 0.0, 0)
-            for i in range(n)]
+    return [
+        MissionItem(i, 0 if i == 0 else 3, 16, 0, 1, 0, 0, 0, 0, HOME[0] + dlat * i, HOME[1], 0.0, 0) for i in range(n)
+    ]
 
 
 def _sim(baud: int):
@@ -83,8 +84,12 @@ def mavsdk_upload(n: int, baud: int) -> float | None:
         mr = MissionRaw(system)
         time.sleep(0.5)
         # MAVSDK's mission_raw wants exactly one item marked current (else CURRENT_INVALID)
-        items = [MissionItem(it.seq, it.frame, it.command, 1 if it.seq == 0 else 0, 1, 0, 0, 0, 0, it.x_int,
-                             it.y_int, 0.0, 0) for it in _items(n)]
+        items = [
+            MissionItem(
+                it.seq, it.frame, it.command, 1 if it.seq == 0 else 0, 1, 0, 0, 0, 0, it.x_int, it.y_int, 0.0, 0
+            )
+            for it in _items(n)
+        ]
         t0 = time.monotonic()
         mr.upload_mission(items)
         return time.monotonic() - t0
@@ -107,9 +112,17 @@ def main(argv=None) -> int:
         for n in sizes:
             t = ours(n, baud)
             m = None if a.no_mavsdk else mavsdk_upload(n, baud)
-            rows.append({"link": "loopback" if baud == 0 else f"{baud} baud", "items": n, "seconds": t,
-                         "items_per_s": n / t, "bound_items_per_s": BOUND_57600 if baud else None,
-                         "mavsdk_seconds": m, "mavsdk_over_ours": (m / t) if m else None})
+            rows.append(
+                {
+                    "link": "loopback" if baud == 0 else f"{baud} baud",
+                    "items": n,
+                    "seconds": t,
+                    "items_per_s": n / t,
+                    "bound_items_per_s": BOUND_57600 if baud else None,
+                    "mavsdk_seconds": m,
+                    "mavsdk_over_ours": (m / t) if m else None,
+                }
+            )
     if a.json:
         print(json.dumps(rows, indent=1))
     else:
@@ -118,7 +131,9 @@ def main(argv=None) -> int:
             b = f"{r['bound_items_per_s']:.0f}" if r["bound_items_per_s"] else "-"
             ms = f"{r['mavsdk_seconds']:.2f}" if r["mavsdk_seconds"] else "-"
             ra = f"{r['mavsdk_over_ours']:.2f}" if r["mavsdk_over_ours"] else "-"
-            print(f"{r['link']:>11} {r['items']:>5} {r['seconds']:>7.2f} {r['items_per_s']:>8.1f} {b:>6} {ms:>9} {ra:>6}")
+            print(
+                f"{r['link']:>11} {r['items']:>5} {r['seconds']:>7.2f} {r['items_per_s']:>8.1f} {b:>6} {ms:>9} {ra:>6}"
+            )
     return 0
 
 

@@ -47,9 +47,7 @@ def _geod():
 
 def geodesic_distance_m(lat1, lon1, lat2, lon2) -> np.ndarray:
     """WGS84 geodesic distance in metres between points (degrees), vectorised."""
-    lat1, lon1, lat2, lon2 = np.broadcast_arrays(
-        *(np.asarray(a, dtype=float) for a in (lat1, lon1, lat2, lon2))
-    )
+    lat1, lon1, lat2, lon2 = np.broadcast_arrays(*(np.asarray(a, dtype=float) for a in (lat1, lon1, lat2, lon2)))
     _, _, dist = _geod().inv(lon1.ravel(), lat1.ravel(), lon2.ravel(), lat2.ravel())
     return np.asarray(dist, dtype=float).reshape(lat1.shape)
 
@@ -178,12 +176,7 @@ class _GridBase:
         """
         r, c = self.latlon_to_fcell(lat, lon)
         mr, mc = self._margin_cells(margin_m)
-        return (
-            (r >= -0.5 - mr)
-            & (r <= self.rows - 0.5 + mr)
-            & (c >= -0.5 - mc)
-            & (c <= self.cols - 0.5 + mc)
-        )
+        return (r >= -0.5 - mr) & (r <= self.rows - 0.5 + mr) & (c >= -0.5 - mc) & (c <= self.cols - 0.5 + mc)
 
     def geofence(self, margin_m: float = 0.0, points_per_side: int = 4) -> np.ndarray:
         """Inclusion polygon (N, 2) of (lat, lon) degrees, counter-clockwise, not closed.
@@ -269,7 +262,11 @@ class RegionGrid(_GridBase):
         )
 
     def __eq__(self, other: object) -> bool:
-        return isinstance(other, RegionGrid) and not isinstance(other, MetricRegionGrid) and self.describe() == other.describe()
+        return (
+            isinstance(other, RegionGrid)
+            and not isinstance(other, MetricRegionGrid)
+            and self.describe() == other.describe()
+        )
 
     def __hash__(self) -> int:
         return hash(tuple(self.describe().items()))

@@ -28,8 +28,17 @@ import sys
 
 from passt_mav.reconstruction.background import background_steps_problem
 
-__all__ = ["METHODS", "ENGINES", "CAMPAIGN_HYPER", "run_campaign", "fleet_comparison", "fleet_starts",
-           "campaign_tasks", "method_problem", "load_predictor"]
+__all__ = [
+    "METHODS",
+    "ENGINES",
+    "CAMPAIGN_HYPER",
+    "run_campaign",
+    "fleet_comparison",
+    "fleet_starts",
+    "campaign_tasks",
+    "method_problem",
+    "load_predictor",
+]
 
 METHODS = ("passt", "model", "lawnmower_gp", "greedy_gp", "random_gp")
 
@@ -173,11 +182,14 @@ def method_problem(m: str) -> str | None:
     base, _, reward = m.partition("@")
     known = base in METHODS or any(base.endswith(sfx) and base[: -len(sfx)] in PLANNERS for sfx in ("_gp", "_loop"))
     if not known:
-        return (f"unknown method {m!r}; choose from {', '.join(METHODS)}, PLANNER_gp or PLANNER_loop with PLANNER "
-                f"one of {', '.join(PLANNERS)}")
+        return (
+            f"unknown method {m!r}; choose from {', '.join(METHODS)}, PLANNER_gp or PLANNER_loop with PLANNER "
+            f"one of {', '.join(PLANNERS)}"
+        )
     if reward and (base == "model" or reward not in REWARDS):
-        return (f"method {m!r}: unknown reward {reward!r} (or a method that plans nothing); "
-                f"rewards: {', '.join(REWARDS)}")
+        return (
+            f"method {m!r}: unknown reward {reward!r} (or a method that plans nothing); rewards: {', '.join(REWARDS)}"
+        )
     return None
 
 
@@ -187,8 +199,9 @@ def _method_kw(cfg: dict, m: str, predictor) -> tuple:
     base, _, reward = m.partition("@")
     planner = cfg["planner"] if base == "passt" else base.rsplit("_", 1)[0]  # PLANNER_gp / PLANNER_loop
     if base == "passt" or base.endswith("_loop") or cfg["baseline_prior"] == "forecast":
-        return predictor, dict(planner=planner, reward=reward or cfg["reward"], prior="forecast",
-                               hyper=_hyper_for(h, residual=True))
+        return predictor, dict(
+            planner=planner, reward=reward or cfg["reward"], prior="forecast", hyper=_hyper_for(h, residual=True)
+        )
     return None, dict(planner=planner, reward=reward or "speed", prior="none", hyper=_hyper_for(h, residual=False))
 
 
@@ -200,8 +213,9 @@ def _summarise_trial(out: dict, m: str, r, truth, cfg: dict, trial: int) -> None
     out["rmse"][m] = _rmse_series(r.estimate, truth).tolist()
     out["pod"][m] = pod_energy(r.estimate, cfg["pod_modes"], cumulative=False).tolist()
     out["plan_ms"][m] = float(np.mean([leg["timings"]["plan"] for leg in r.legs]) * 1e3)
-    out.setdefault("timings_s", {})[m] = {k: float(sum(leg["timings"].get(k, 0.0) for leg in r.legs))
-                                          for k in ("predict", "reward", "plan", "gp")}
+    out.setdefault("timings_s", {})[m] = {
+        k: float(sum(leg["timings"].get(k, 0.0) for leg in r.legs)) for k in ("predict", "reward", "plan", "gp")
+    }
     if cfg.get("keep_paths"):
         out.setdefault("paths", {})[m] = [leg["path"] for leg in r.legs]
     if trial == 0:
@@ -214,8 +228,14 @@ def _loop_options(cfg: dict, m: str, predictor, L: int) -> tuple:
     from passt_mav.passt import LoopOptions
 
     pred, kw = _method_kw(cfg, m, predictor)
-    return pred, LoopOptions(path_length=L, steps_per_leg=cfg["steps_per_leg"], gp_kw=cfg.get("gp_kw"),
-                             background=cfg.get("background", 0), prior_blend=cfg.get("prior_blend", "off"), **kw)
+    return pred, LoopOptions(
+        path_length=L,
+        steps_per_leg=cfg["steps_per_leg"],
+        gp_kw=cfg.get("gp_kw"),
+        background=cfg.get("background", 0),
+        prior_blend=cfg.get("prior_blend", "off"),
+        **kw,
+    )
 
 
 def _trial_setup(field, cfg: dict, L: int, trials) -> tuple:
@@ -224,8 +244,10 @@ def _trial_setup(field, cfg: dict, L: int, trials) -> tuple:
     truth = field.data[t0 : t0 + T + 1].astype("float64")
     starts = [_start_cell(field, cfg, L, i) for i in trials]
     seeds = [int(cfg["seed"]) + i for i in trials]
-    outs = [{"L": L, "trial": i, "start": list(st), "rmse": {}, "pod": {}, "snap": {}, "plan_ms": {}}
-            for i, st in zip(trials, starts)]
+    outs = [
+        {"L": L, "trial": i, "start": list(st), "rmse": {}, "pod": {}, "snap": {}, "plan_ms": {}}
+        for i, st in zip(trials, starts)
+    ]
     run = dict(t0=t0, n_steps=T, noise_std=cfg["noise"], sample_at=cfg.get("sampling", "end"))
     return truth, starts, seeds, outs, run
 
@@ -240,8 +262,16 @@ def _lockstep_body(field, predictor, cfg: dict, L: int, trials: list[int]) -> li
         if m == "model":
             continue
         pred, opts = _loop_options(cfg, m, predictor, L)
-        res = run_trials(field, pred, opts, starts=[[st] for st in starts], seeds=seeds, batched=True,
-                         kernel_cache=_KERNEL_CACHE, **run)
+        res = run_trials(
+            field,
+            pred,
+            opts,
+            starts=[[st] for st in starts],
+            seeds=seeds,
+            batched=True,
+            kernel_cache=_KERNEL_CACHE,
+            **run,
+        )
         for out, r, i in zip(outs, res, trials):
             _summarise_trial(out, m, r, truth, cfg, i)
     return outs
@@ -268,14 +298,38 @@ def _serial_body(field, predictor, cfg: dict, L: int, trials: list[int]) -> list
 ENGINES = {"lockstep": _lockstep_body, "serial": _serial_body}
 
 
-def run_campaign(field, predictor, *, path_lengths=(25, 50, 75, 100, 150, 200), trials: int = 30,
-                 planner: str = "policy_gradient", reward: str = "speed", steps: int = 300, t0: int = 0,
-                 steps_per_leg: int = 10, noise: float = 0.02, hyper: str = "every_leg", sampling: str = "end",
-                 baseline_prior: str = "none", methods=METHODS, window: int = 50, snapshot_step: int = 250,
-                 seed: int = 0, pod_modes: int = 6, workers: int = 1, scheduler=None, progress: bool = True,
-                 engine: str = "serial", batch: int | None = None, gp_solver: str = "sklearn",
-                 keep_trials: bool = False, fast_predict: bool = False, background: int = 0,
-                 prior_blend: str = "off", gp_bias: bool = False) -> dict:
+def run_campaign(
+    field,
+    predictor,
+    *,
+    path_lengths=(25, 50, 75, 100, 150, 200),
+    trials: int = 30,
+    planner: str = "policy_gradient",
+    reward: str = "speed",
+    steps: int = 300,
+    t0: int = 0,
+    steps_per_leg: int = 10,
+    noise: float = 0.02,
+    hyper: str = "every_leg",
+    sampling: str = "end",
+    baseline_prior: str = "none",
+    methods=METHODS,
+    window: int = 50,
+    snapshot_step: int = 250,
+    seed: int = 0,
+    pod_modes: int = 6,
+    workers: int = 1,
+    scheduler=None,
+    progress: bool = True,
+    engine: str = "serial",
+    batch: int | None = None,
+    gp_solver: str = "sklearn",
+    keep_trials: bool = False,
+    fast_predict: bool = False,
+    background: int = 0,
+    prior_blend: str = "off",
+    gp_bias: bool = False,
+) -> dict:
     """Run the campaign; returns the results dict (JSON-able; RMSE in field units, steps in snapshots).
     ``scheduler``: a Dask address string or a ``distributed.Client``. Same seeds give the same numbers
     whichever way the trials are spread.
@@ -305,30 +359,73 @@ def run_campaign(field, predictor, *, path_lengths=(25, 50, 75, 100, 150, 200), 
     from passt_mav.passt import run_pure_model
 
     methods = list(methods)
-    _check_campaign(field, predictor, methods=methods, planner=planner, reward=reward, trials=trials,
-                    path_lengths=path_lengths, t0=t0, engine=engine, hyper=hyper, batch=batch,
-                    background=background, prior_blend=prior_blend)
+    _check_campaign(
+        field,
+        predictor,
+        methods=methods,
+        planner=planner,
+        reward=reward,
+        trials=trials,
+        path_lengths=path_lengths,
+        t0=t0,
+        engine=engine,
+        hyper=hyper,
+        batch=batch,
+        background=background,
+        prior_blend=prior_blend,
+    )
     steps = int(min(steps, field.n_times - 1 - t0))
-    cfg = dict(seed=seed, t0=t0, steps=steps, steps_per_leg=steps_per_leg, noise=noise, hyper=hyper, sampling=sampling,
-               planner=planner, reward=reward, baseline_prior=baseline_prior, methods=methods,
-               snapshot_step=snapshot_step, pod_modes=pod_modes, engine=engine,
-               gp_kw={"solver": gp_solver, **({"bias": True} if gp_bias else {})}, keep_paths=bool(keep_trials),
-               fast_predict=bool(fast_predict), background=int(background), prior_blend=prior_blend)
+    cfg = dict(
+        seed=seed,
+        t0=t0,
+        steps=steps,
+        steps_per_leg=steps_per_leg,
+        noise=noise,
+        hyper=hyper,
+        sampling=sampling,
+        planner=planner,
+        reward=reward,
+        baseline_prior=baseline_prior,
+        methods=methods,
+        snapshot_step=snapshot_step,
+        pod_modes=pod_modes,
+        engine=engine,
+        gp_kw={"solver": gp_solver, **({"bias": True} if gp_bias else {})},
+        keep_paths=bool(keep_trials),
+        fast_predict=bool(fast_predict),
+        background=int(background),
+        prior_blend=prior_blend,
+    )
     truth = field.data[t0 : t0 + steps + 1].astype(np.float64)
     with _fast_path(predictor, fast_predict):
         pure = run_pure_model(field, predictor, t0=t0, n_steps=steps) if "model" in methods else None
     tasks = campaign_tasks(path_lengths, trials, engine, batch)
     results = _execute(field, predictor, cfg, tasks, workers=workers, scheduler=scheduler, progress=progress)
     results.sort(key=lambda r: (r["L"], r["trial"]))
-    summary = _summarise(cfg, results, truth, pure, path_lengths=path_lengths, trials=trials, window=window,
-                         n_times=field.n_times)
+    summary = _summarise(
+        cfg, results, truth, pure, path_lengths=path_lengths, trials=trials, window=window, n_times=field.n_times
+    )
     if keep_trials:
         summary["_trials"] = results
     return summary
 
 
-def _check_campaign(field, predictor, *, methods, planner, reward, trials, path_lengths, t0, engine, hyper, batch,
-                    background, prior_blend) -> None:
+def _check_campaign(
+    field,
+    predictor,
+    *,
+    methods,
+    planner,
+    reward,
+    trials,
+    path_lengths,
+    t0,
+    engine,
+    hyper,
+    batch,
+    background,
+    prior_blend,
+) -> None:
     """Every option of :func:`run_campaign` checked once, before any work; raises the error naming it."""
     from passt_mav.errors import ModelError, PlannerError
     from passt_mav.passt import PRIOR_BLENDS
@@ -362,16 +459,19 @@ def _check_campaign(field, predictor, *, methods, planner, reward, trials, path_
         raise PlannerError(f"--prior-blend: unknown {prior_blend!r}; choose one of {', '.join(PRIOR_BLENDS)}")
 
 
-def _summarise(cfg: dict, results: list[dict], truth, pure, *, path_lengths, trials: int, window: int,
-               n_times: int) -> dict:
+def _summarise(
+    cfg: dict, results: list[dict], truth, pure, *, path_lengths, trials: int, window: int, n_times: int
+) -> dict:
     """The campaign's results dict from the per-trial records (sorted by (L, trial)): per path length
     the mean / std RMSE over time, final-window RMSE, POD energy, planning time; snapshots; timings."""
     from passt_mav.fields.analysis import pod_energy
 
     steps, pod_modes, methods = cfg["steps"], cfg["pod_modes"], cfg["methods"]
     w = max(1, min(window, steps))
-    summary: dict = {"config": dict(cfg, path_lengths=list(map(int, path_lengths)), trials=trials, window=w,
-                                    n_times=n_times), "per_L": {}}
+    summary: dict = {
+        "config": dict(cfg, path_lengths=list(map(int, path_lengths)), trials=trials, window=w, n_times=n_times),
+        "per_L": {},
+    }
     summary["pod_truth"] = pod_energy(truth, pod_modes, cumulative=False).tolist()
     snaps = {"truth": truth[min(cfg["snapshot_step"], steps)].tolist()}
     pure_rmse = None
@@ -382,7 +482,7 @@ def _summarise(cfg: dict, results: list[dict], truth, pure, *, path_lengths, tri
     for L in path_lengths:
         rs = [r for r in results if r["L"] == L]
         summary["per_L"][str(L)] = _per_length(rs, methods, pure_rmse, summary.get("pod_model"), w)
-        r0 = [r for r in rs if r["trial"] == 0][0]
+        r0 = next(r for r in rs if r["trial"] == 0)
         snaps.update({f"{m}@L{L}": r0["snap"][m] for m in r0["snap"]})
     summary["_snapshots"] = snaps
     # compute seconds per component summed over every trial-leg (predict: a batch's time / B)
@@ -432,10 +532,26 @@ def fleet_starts(field, seed: int, trial: int, L: int, n: int) -> list[tuple[int
     return [first] + [water[j] for j in pick]
 
 
-def fleet_comparison(field, predictor, *, boats: int, path_length: int, trials: int = 10,
-                     planner: str = "policy_gradient", reward: str = "speed", steps: int = 300, t0: int = 0,
-                     steps_per_leg: int = 10, noise: float = 0.02, hyper: str = "every_leg", sampling: str = "end",
-                     window: int = 50, seed: int = 0, progress: bool = True, background: int = 0) -> dict:
+def fleet_comparison(
+    field,
+    predictor,
+    *,
+    boats: int,
+    path_length: int,
+    trials: int = 10,
+    planner: str = "policy_gradient",
+    reward: str = "speed",
+    steps: int = 300,
+    t0: int = 0,
+    steps_per_leg: int = 10,
+    noise: float = 0.02,
+    hyper: str = "every_leg",
+    sampling: str = "end",
+    window: int = 50,
+    seed: int = 0,
+    progress: bool = True,
+    background: int = 0,
+) -> dict:
     """PASST with 1..``boats`` boats of ``path_length`` moves each, and one boat of ``boats`` x
     ``path_length`` moves (the fleet's budget in one path), over ``trials`` seeded trials
     (:func:`passt_mav.engine.run_trials`, one trial of N boats per run). Returns per configuration
@@ -452,31 +568,69 @@ def fleet_comparison(field, predictor, *, boats: int, path_length: int, trials: 
     configs.append((f"1 boat x {boats * path_length}", 1, boats * path_length))
     T = int(min(steps, field.n_times - 1 - t0))
     truth = field.data[t0 : t0 + T + 1].astype("float64")
-    out: dict = {"config": {"boats": boats, "path_length": path_length, "trials": trials, "steps": T, "t0": t0,
-                            "steps_per_leg": steps_per_leg, "noise": noise, "window": window, "seed": seed,
-                            "planner": planner, "reward": reward, "hyper": hyper, "sampling": sampling,
-                            "background": background}, "runs": {}}
-    base = LoopOptions(planner=planner, reward=reward, steps_per_leg=steps_per_leg,
-                       hyper=_hyper_for(hyper, residual=True), background=background)
-    it = _progress([(name, n, L, i) for name, n, L in configs for i in range(trials)], "fleet comparison", "trial",
-                   quiet=not progress)
+    out: dict = {
+        "config": {
+            "boats": boats,
+            "path_length": path_length,
+            "trials": trials,
+            "steps": T,
+            "t0": t0,
+            "steps_per_leg": steps_per_leg,
+            "noise": noise,
+            "window": window,
+            "seed": seed,
+            "planner": planner,
+            "reward": reward,
+            "hyper": hyper,
+            "sampling": sampling,
+            "background": background,
+        },
+        "runs": {},
+    }
+    base = LoopOptions(
+        planner=planner,
+        reward=reward,
+        steps_per_leg=steps_per_leg,
+        hyper=_hyper_for(hyper, residual=True),
+        background=background,
+    )
+    it = _progress(
+        [(name, n, L, i) for name, n, L in configs for i in range(trials)],
+        "fleet comparison",
+        "trial",
+        quiet=not progress,
+    )
     series: dict[str, list] = {}
     with threadpool_limits(1):  # the campaign's rule: one BLAS thread, the same numbers everywhere
         for name, n, L, i in it:
-            (r,) = run_trials(field, predictor, LoopOptions.of(base, path_length=L),
-                              starts=[fleet_starts(field, seed, i, path_length, n)], seeds=[seed + i], t0=t0,
-                              n_steps=T, noise_std=noise, sample_at=sampling)
+            (r,) = run_trials(
+                field,
+                predictor,
+                LoopOptions.of(base, path_length=L),
+                starts=[fleet_starts(field, seed, i, path_length, n)],
+                seeds=[seed + i],
+                t0=t0,
+                n_steps=T,
+                noise_std=noise,
+                sample_at=sampling,
+            )
             series.setdefault(name, []).append(_rmse_series(r.estimate, truth))
     for name, n, L in configs:
         arr = np.array(series[name])
         finals = arr[:, -window:].mean(axis=1)
-        out["runs"][name] = {"boats": n, "path_length": L, "rmse_mean": arr.mean(axis=0).tolist(),
-                             "final_rmse": float(finals.mean()), "final_rmse_trials": finals.tolist()}
+        out["runs"][name] = {
+            "boats": n,
+            "path_length": L,
+            "rmse_mean": arr.mean(axis=0).tolist(),
+            "final_rmse": float(finals.mean()),
+            "final_rmse_trials": finals.tolist(),
+        }
     return out
 
 
-def campaign_tasks(path_lengths, trials: int, engine: str = "lockstep",
-                   batch: int | None = None) -> list[tuple[int, tuple[int, ...]]]:
+def campaign_tasks(
+    path_lengths, trials: int, engine: str = "lockstep", batch: int | None = None
+) -> list[tuple[int, tuple[int, ...]]]:
     """Units of work: (L, trial indices). Serial engine: one trial each; lockstep: batches."""
     if engine == "serial":
         return [(int(L), (i,)) for L in path_lengths for i in range(trials)]
@@ -502,8 +656,10 @@ def _execute(field, predictor, cfg, tasks, *, workers, scheduler, progress) -> l
             try:
                 f_fut = client.scatter(field, broadcast=True)
                 p_fut = client.scatter(predictor, broadcast=True)
-                futs = [client.submit(_task, f_fut, p_fut, cfg, L, tr, pure=False, priority=-i)
-                        for i, (L, tr) in enumerate(longest_first)]
+                futs = [
+                    client.submit(_task, f_fut, p_fut, cfg, L, tr, pure=False, priority=-i)
+                    for i, (L, tr) in enumerate(longest_first)
+                ]
                 for fut in as_completed(futs):
                     rs = fut.result()
                     out.extend(rs)
@@ -545,5 +701,3 @@ def load_predictor(spec: str, field):
     # the skill line goes to stderr so that --json output stays one JSON document
     echo_skill(spec, getattr(p, "metadata_", None), lambda m: print(m, file=sys.stderr))
     return p
-
-

@@ -90,18 +90,30 @@ import logging
 import queue
 import threading
 import time
-from typing import Callable
+from collections.abc import Callable
 
 import numpy as np
 
 from passt_mav.errors import LinkTimeout, MavlinkError, PlannerError, ReconstructionError, UserError
+from passt_mav.legstep import (  # noqa: F401 - the between-leg step's building blocks, re-exported
+    THINNING,
+    FieldClock,
+    LegStep,
+    build_loop,
+    build_predictor,
+    extend_leg_to_end,
+    leg_steps,
+    pure_model_at,
+    rmse,
+    thin_samples,
+    to_field_units,
+    truth_at,
+    utc_epoch,
+)
 from passt_mav.live_record import live_meta, live_status
+from passt_mav.run_clock import RunClock
 from passt_mav.runs.legs import clock_statustext
 from passt_mav.runs.live import RecordWriter
-from passt_mav.legstep import (  # noqa: F401 - the between-leg step's building blocks, re-exported
-    THINNING, FieldClock, LegStep, build_loop, build_predictor, extend_leg_to_end, leg_steps, pure_model_at, rmse,
-    thin_samples, to_field_units, truth_at, utc_epoch)
-from passt_mav.run_clock import RunClock
 from passt_mav.vehicle_session import Deadline as _Deadline  # noqa: F401 - tests import it from here
 from passt_mav.vehicle_session import Journal, Paused, VehicleSession, expected_vehicle_s, utc_now
 
@@ -161,10 +173,20 @@ class StoreWriter:
 
     def _row(self, rec: dict) -> dict:
         r, c = self.grid.latlon_to_cell(rec["lat"], rec["lon"], clip=True)
-        return {"time_boot_ms": int(rec["time_boot_ms"]), "utc": float(rec["utc"]), "lat": rec["lat"],
-                "lon": rec["lon"], "u": rec["u"], "v": rec["v"], "leg": int(rec.get("leg", -1)),
-                "source": rec.get("source", "mavlink"), "row": int(r), "col": int(c),
-                "boot": int(rec.get("boot", 0)), "gap_ms": rec.get("gap_ms")}
+        return {
+            "time_boot_ms": int(rec["time_boot_ms"]),
+            "utc": float(rec["utc"]),
+            "lat": rec["lat"],
+            "lon": rec["lon"],
+            "u": rec["u"],
+            "v": rec["v"],
+            "leg": int(rec.get("leg", -1)),
+            "source": rec.get("source", "mavlink"),
+            "row": int(r),
+            "col": int(c),
+            "boot": int(rec.get("boot", 0)),
+            "gap_ms": rec.get("gap_ms"),
+        }
 
     def flush(self, timeout: float = 5.0) -> None:
         """Wait (up to ``timeout`` wall s) until every sample queued before this call is committed.
@@ -178,8 +200,9 @@ class StoreWriter:
             while self._committed < target:
                 left = end - time.monotonic()
                 if left <= 0:
-                    log.warning("sample store: %d samples not committed after %.1f s", target - self._committed,
-                                timeout)
+                    log.warning(
+                        "sample store: %d samples not committed after %.1f s", target - self._committed, timeout
+                    )
                     return
                 self._progress.wait(left)
 
@@ -252,12 +275,32 @@ class MissionController:
             writer and summary); default: this controller's own.
     """
 
-    def __init__(self, config, link, run_dir, *, field, predictor, predictor_info: dict | None = None, vehicle=None,
-                 legs: int | None = None, field_time_at_boot: float | None = None, speedup_hint: float = 1.0,
-                 pause_timeout_s: float = 300.0, ready_timeout_s: float = 120.0, resume: bool = False,
-                 truth_known: bool = True, echo: Callable[[str], None] | None = print, mission_text: str | None = None,
-                 extra_summary: dict | None = None, step: LegStep | None = None, share=None, lock=None,
-                 record: RecordWriter | None = None, write_summary: Callable[[], None] | None = None):
+    def __init__(
+        self,
+        config,
+        link,
+        run_dir,
+        *,
+        field,
+        predictor,
+        predictor_info: dict | None = None,
+        vehicle=None,
+        legs: int | None = None,
+        field_time_at_boot: float | None = None,
+        speedup_hint: float = 1.0,
+        pause_timeout_s: float = 300.0,
+        ready_timeout_s: float = 120.0,
+        resume: bool = False,
+        truth_known: bool = True,
+        echo: Callable[[str], None] | None = print,
+        mission_text: str | None = None,
+        extra_summary: dict | None = None,
+        step: LegStep | None = None,
+        share=None,
+        lock=None,
+        record: RecordWriter | None = None,
+        write_summary: Callable[[], None] | None = None,
+    ):
         from passt_mav.mavlink import Vehicle
 
         self.config = config
@@ -281,8 +324,9 @@ class MissionController:
         self.extra_summary = dict(extra_summary or {})
         self.land = field.land_mask
         if step is None:  # the loop keeps the GP std: estimate.nc u_std/v_std (exports, live view)
-            step = LegStep(config, field, build_loop(config, predictor, self.grid, land=self.land),
-                           truth_known=truth_known)
+            step = LegStep(
+                config, field, build_loop(config, predictor, self.grid, land=self.land), truth_known=truth_known
+            )
         self.step, self.loop = step, step.loop
         self.share = share or OwnState(step)
         #: held while writing netCDF/HDF5 files and running the predictor (neither is thread-safe: a fleet's boats)
@@ -296,13 +340,26 @@ class MissionController:
         self.writer = None
         self.record = record or RecordWriter(run_dir.root)  # the live view's files (passt_mav.runs.live)
         self.journal = Journal(echo or (lambda s: None), self.record)
-        self.run_clock = RunClock(field, config.field, link, self.journal, forced=field_time_at_boot is not None,
-                                  t_boot0=float(field.times[config.t0]) if field_time_at_boot is None
-                                  else float(field_time_at_boot), speedup=self.speedup)
+        self.run_clock = RunClock(
+            field,
+            config.field,
+            link,
+            self.journal,
+            forced=field_time_at_boot is not None,
+            t_boot0=float(field.times[config.t0]) if field_time_at_boot is None else float(field_time_at_boot),
+            speedup=self.speedup,
+        )
         self.record.field_time = self.run_clock.field_time_now
-        self.session = VehicleSession(link, self.vehicle, self.journal, speed_mps=self.speed,
-                                      on_reboot=config.vehicle.on_reboot, speedup=self.speedup,
-                                      ready_timeout_s=ready_timeout_s, pause_timeout_s=pause_timeout_s)
+        self.session = VehicleSession(
+            link,
+            self.vehicle,
+            self.journal,
+            speed_mps=self.speed,
+            on_reboot=config.vehicle.on_reboot,
+            speedup=self.speedup,
+            ready_timeout_s=ready_timeout_s,
+            pause_timeout_s=pause_timeout_s,
+        )
         self._write_summary = write_summary or self._write_own_summary
         self._n_stored: int | None = None  # the store's count when last read
         self._last_clock: tuple[int, int, int, int] | None = None  # (leg, time_boot_ms, boot, k) last sent
@@ -337,33 +394,53 @@ class MissionController:
     def _readings_record(self, i: int) -> dict:
         """Sensor readings of leg ``i``: received (u/v pairs), used (placed on the track), dropped (gap)."""
         c = self.collector.leg_counts(i)
-        return {"received": c["readings"], "used": c["emitted"], "dropped_gap": c["gap"],
-                "fraction_used": (c["emitted"] / c["readings"]) if c["readings"] else None,
-                "max_gap_ms": self.collector.track.max_gap_ms}
+        return {
+            "received": c["readings"],
+            "used": c["emitted"],
+            "dropped_gap": c["gap"],
+            "fraction_used": (c["emitted"] / c["readings"]) if c["readings"] else None,
+            "max_gap_ms": self.collector.track.max_gap_ms,
+        }
 
     # -- summary ------------------------------------------------------------------------------
     def summary(self) -> dict:
         cfg = self.config
         legs = [dict(x) for x in self.leg_records]
-        rm = {"t": [x.get("t_end") for x in legs], "passt": [x.get("rmse_passt") for x in legs],
-              "model": [x.get("rmse_model") for x in legs]}
+        rm = {
+            "t": [x.get("t_end") for x in legs],
+            "passt": [x.get("rmse_passt") for x in legs],
+            "model": [x.get("rmse_model") for x in legs],
+        }
         s = {
-            "mission": cfg.name, "status": self.status, "started_utc": self.started_utc,
+            "mission": cfg.name,
+            "status": self.status,
+            "started_utc": self.started_utc,
             "finished_utc": utc_now() if self.status != "running" else None,
-            "field": cfg.field.source, "field_time_origin": self.field.time_origin, "grid": self.grid.describe(),
-            "model": self.predictor_info.get("used"), "model_requested": self.predictor_info.get("requested"),
-            "model_fallback": self.predictor_info.get("fallback"), "planner": cfg.planner.name,
-            "reward": cfg.planner.reward, "path_length": cfg.planner.path_length,
-            "seeds": cfg.seeds.model_dump(), "config": cfg.model_dump(mode="json"),
-            "legs_planned": self.n_legs, "legs": legs,
+            "field": cfg.field.source,
+            "field_time_origin": self.field.time_origin,
+            "grid": self.grid.describe(),
+            "model": self.predictor_info.get("used"),
+            "model_requested": self.predictor_info.get("requested"),
+            "model_fallback": self.predictor_info.get("fallback"),
+            "planner": cfg.planner.name,
+            "reward": cfg.planner.reward,
+            "path_length": cfg.planner.path_length,
+            "seeds": cfg.seeds.model_dump(),
+            "config": cfg.model_dump(mode="json"),
+            "legs_planned": self.n_legs,
+            "legs": legs,
             "n_samples": self._n_samples(),
             "readings_used": [(x.get("readings") or {}).get("fraction_used") for x in legs],
             "link_vehicle_bytes_per_s": [(x.get("link") or {}).get("vehicle_bytes_per_s") for x in legs],
             "rmse": rm if self.truth_known else None,
             "rmse_note": "RMSE over water cells vs the mission's field at the state time; 'model' = the predictor "
-                         "alone from the true state at t0, never re-initialised" if self.truth_known else None,
+            "alone from the true state at t0, never re-initialised"
+            if self.truth_known
+            else None,
             "clock": self._clock_with_boots().describe(),
-            "thinning": THINNING, "dt": self.dt, "connect": self.link.config.connect,
+            "thinning": THINNING,
+            "dt": self.dt,
+            "connect": self.link.config.connect,
             "events": list(self.events),
         }
         s.update(self.extra_summary)
@@ -372,7 +449,7 @@ class MissionController:
     def _n_samples(self) -> int:
         try:
             self._n_stored = self.store.count()
-        except Exception:  # noqa: BLE001 - closed at the end of run(): the last count stands
+        except Exception:  # noqa: BLE001, S110 - closed at the end of run(): the last count stands
             pass
         if self._n_stored is None:
             return sum(int(x.get("n_samples", 0)) for x in self.leg_records)
@@ -438,9 +515,11 @@ class MissionController:
         self._attach(StoreWriter(self.store, self.grid))
         try:
             state, t_state, first = self._initial_state()
-            self._say(f"mission {self.config.name}: {self.n_legs} legs of {self.config.planner.path_length} moves, "
-                      f"model {self.predictor_info.get('used')}, planner {self.config.planner.name}; "
-                      "waiting for the vehicle")
+            self._say(
+                f"mission {self.config.name}: {self.n_legs} legs of {self.config.planner.path_length} moves, "
+                f"model {self.predictor_info.get('used')}, planner {self.config.planner.name}; "
+                "waiting for the vehicle"
+            )
             self._prepare_vehicle()
             for i in range(first, self.n_legs):
                 state, t_state = self._leg(i, state, t_state)
@@ -460,7 +539,7 @@ class MissionController:
                 exc = LinkTimeout(f"{exc}{self.link.signing_hint()}")
             self._note("stopped", f"aborted: {type(exc).__name__}: {exc}")
             self._safe_hold()
-            raise exc
+            raise exc  # noqa: TRY201 - exc may be the reworded LinkTimeout above
         finally:
             self._detach()
             self.writer.close()
@@ -475,9 +554,14 @@ class MissionController:
 
         self.writer = writer
         sens = self.config.sensors
-        self.collector = SampleCollector(writer, u_name=sens.u, v_name=sens.v,
-                                         source=f"mav:{self.link.target_system}/{self.link.target_component}",
-                                         on_reboot=self._on_reboot, boot_base=self.run_clock.boot_base)
+        self.collector = SampleCollector(
+            writer,
+            u_name=sens.u,
+            v_name=sens.v,
+            source=f"mav:{self.link.target_system}/{self.link.target_component}",
+            on_reboot=self._on_reboot,
+            boot_base=self.run_clock.boot_base,
+        )
         self.collector.attach(self.link)
         self.run_clock.collector = self.collector
         self.record.start_status(lambda: live_status(self))
@@ -521,13 +605,21 @@ class MissionController:
         with self.lock:
             absorbed = self._absorb(i, planned)
         rec.update(absorbed.record())
-        rec.update({
-            "status": "complete", "t_end": absorbed.t_state, "upload_s": upload_s, "upload_tries": upload_tries,
-            "duration_s": duration_s, "duration_vehicle_s": (tb_end - tb_fly) if (
-                tb_end is not None and tb_fly is not None and tb_end >= tb_fly) else None,
-            "n_samples_new": self.store.count(i) - store0, "link": self.session.link_record(link0),
-            "readings": self._readings_record(i),
-        })
+        rec.update(
+            {
+                "status": "complete",
+                "t_end": absorbed.t_state,
+                "upload_s": upload_s,
+                "upload_tries": upload_tries,
+                "duration_s": duration_s,
+                "duration_vehicle_s": (tb_end - tb_fly)
+                if (tb_end is not None and tb_fly is not None and tb_end >= tb_fly)
+                else None,
+                "n_samples_new": self.store.count(i) - store0,
+                "link": self.session.link_record(link0),
+                "readings": self._readings_record(i),
+            }
+        )
         self._finish_leg(i, rec, planned)
         return absorbed.state, absorbed.t_state
 
@@ -541,9 +633,16 @@ class MissionController:
         start = self.step.start_cell(lat, lon)
         tb, boot = self.run_clock.reading()
         t_now = float(self._clock_with_boots().field_time(tb, boot))
-        return self.share.plan(i, state, t_state, start, t_now=t_now,
-                               send_clock=lambda k: self._send_clock(i, tb, boot, k),
-                               start_latlon=(lat, lon), clock_reading=(tb, boot))
+        return self.share.plan(
+            i,
+            state,
+            t_state,
+            start,
+            t_now=t_now,
+            send_clock=lambda k: self._send_clock(i, tb, boot, k),
+            start_latlon=(lat, lon),
+            clock_reading=(tb, boot),
+        )
 
     def _send_clock(self, i: int, tb: int, boot: int, k: int) -> None:
         """The clock reading leg ``i`` is planned from, as a STATUSTEXT (:func:`clock_statustext`)."""
@@ -561,14 +660,21 @@ class MissionController:
 
         grid, margin = self.grid, float(self.config.geofence_margin_m)
         geo.validate_path(grid, planned.plan.path)
-        wm = WaypointMission.from_path(grid, planned.plan.path, speed=self.speed,
-                                       wp_radius_m=self.config.vehicle.wp_radius_m, fence_margin_m=margin)
+        wm = WaypointMission.from_path(
+            grid,
+            planned.plan.path,
+            speed=self.speed,
+            wp_radius_m=self.config.vehicle.wp_radius_m,
+            fence_margin_m=margin,
+        )
         inside = np.asarray(grid.contains(wm.waypoints[:, 0], wm.waypoints[:, 1], margin), bool)
         if not inside.all():
             bad = int(np.flatnonzero(~inside)[0])
             self.record.event("fence_refused", f"leg {i + 1}: waypoint {bad} outside the geofence; not uploaded")
-            raise PlannerError(f"leg {i}: waypoint {bad} at {wm.waypoints[bad, 0]:.6f},{wm.waypoints[bad, 1]:.6f} "
-                               f"lies outside the geofence (region + {margin:g} m); nothing uploaded")
+            raise PlannerError(
+                f"leg {i}: waypoint {bad} at {wm.waypoints[bad, 0]:.6f},{wm.waypoints[bad, 1]:.6f} "
+                f"lies outside the geofence (region + {margin:g} m); nothing uploaded"
+            )
         return wm
 
     def _write_plan(self, i: int, planned, wm) -> dict:
@@ -577,8 +683,13 @@ class MissionController:
         rd.leg_dir(i)
         wm.to_wpl(rd.waypoints_file(i))
         wm.to_plan(rd.plan_file(i))
-        rec = {**planned.record(self.dt), "status": "flying", "waypoints": wm.waypoints.tolist(),
-               "waypoint_seqs": wm.waypoint_seqs(), "t_now": planned.t_now}
+        rec = {
+            **planned.record(self.dt),
+            "status": "flying",
+            "waypoints": wm.waypoints.tolist(),
+            "waypoint_seqs": wm.waypoint_seqs(),
+            "t_now": planned.t_now,
+        }
         rd.write_leg(i, rec)
         rec.update(self.share.plan_fields())
         self.leg_rec = rec
@@ -594,6 +705,7 @@ class MissionController:
 
     def _swap(self, i: int, items, t0w: float) -> tuple[int, float, float, float | None]:
         """The transactional leg swap (:meth:`VehicleSession.swap`)."""
+
         def on_armed():
             if self._last_clock is not None and self._last_clock[0] == i:
                 # again: ArduPilot starts its DataFlash log at arming (LOG_DISARMED 0), after the
@@ -602,6 +714,7 @@ class MissionController:
 
         def on_start():
             self.collector.leg = i
+
         return self.session.swap(i, items, t0w, on_armed=on_armed, on_start=on_start)
 
     def _fly_leg(self, i: int, wm, items, t_fly: float) -> tuple[float, float | None]:
@@ -635,11 +748,14 @@ class MissionController:
         try:
             absorbed = self._update(planned, self.store.for_leg(i), self._clock_with_boots())
         except ReconstructionError as exc:
-            raise MavlinkError(f"leg {i}: no current samples arrived (is the sensor sending "
-                               f"{self.config.sensors.u}/{self.config.sensors.v}?): {exc}") from None
+            raise MavlinkError(
+                f"leg {i}: no current samples arrived (is the sensor sending "
+                f"{self.config.sensors.u}/{self.config.sensors.v}?): {exc}"
+            ) from None
         std = None if absorbed.std is None else absorbed.std[None]
-        FlowField(absorbed.state[None], self.grid, np.array([absorbed.t_state]), self.field.time_origin,
-                  self.field.units).to_netcdf(self.rd.estimate_file(i), std=std)
+        FlowField(
+            absorbed.state[None], self.grid, np.array([absorbed.t_state]), self.field.time_origin, self.field.units
+        ).to_netcdf(self.rd.estimate_file(i), std=std)
         return absorbed
 
     def _update(self, planned, recs, clock):
@@ -650,9 +766,15 @@ class MissionController:
         """leg.json (complete), timings.json, summary.json, and one line of progress."""
         rec.update(self.share.finish_fields())
         self.rd.write_leg(i, rec)
-        self.rd.write_timings(i, {"planning_s": rec["planning_s"],
-                                  **{f"{k}_s": x for k, x in planned.plan.timings.items()},
-                                  "upload_s": rec["upload_s"], "leg_s": rec["duration_s"]})
+        self.rd.write_timings(
+            i,
+            {
+                "planning_s": rec["planning_s"],
+                **{f"{k}_s": x for k, x in planned.plan.timings.items()},
+                "upload_s": rec["upload_s"],
+                "leg_s": rec["duration_s"],
+            },
+        )
         self.leg_records = [x for x in self.leg_records if int(x["index"]) != i] + [rec]
         self._write_summary()
         self.record.event("leg_end", f"{self._leg_label(i)} done: {rec['n_samples']} samples")
@@ -671,8 +793,10 @@ def _progress_line(rec: dict) -> str:
     rtt = "-" if link["rtt_ms"] is None else f"{link['rtt_ms']:.1f} ms"
     rd = rec.get("readings") or {}
     used = "" if not rd.get("received") else f" of {rd['received']} readings ({100 * rd['fraction_used']:.0f} % used)"
-    return (f"{rec['n_samples']} samples{used} ({rec['n_gp_points']} to the GP), "
-            f"{rec['duration_s']:.1f} s wall ({rec['duration_vehicle_s'] or 0:.0f} s vehicle), planning "
-            f"{rec['planning_s'] * 1000:.0f} ms, upload {rec['upload_s']:.2f} s{rm}, link RTT {rtt} "
-            f"loss {100 * link['loss']:.1f} %" + ("" if link.get("vehicle_bytes_per_s") is None else
-                                                f", vehicle sends {link['vehicle_bytes_per_s']:.0f} B/s"))
+    return (
+        f"{rec['n_samples']} samples{used} ({rec['n_gp_points']} to the GP), "
+        f"{rec['duration_s']:.1f} s wall ({rec['duration_vehicle_s'] or 0:.0f} s vehicle), planning "
+        f"{rec['planning_s'] * 1000:.0f} ms, upload {rec['upload_s']:.2f} s{rm}, link RTT {rtt} "
+        f"loss {100 * link['loss']:.1f} %"
+        + ("" if link.get("vehicle_bytes_per_s") is None else f", vehicle sends {link['vehicle_bytes_per_s']:.0f} B/s")
+    )

@@ -24,15 +24,24 @@ Time: steps are the predictor's snapshots (``field.dt`` apart); ``t0`` a snapsho
 from __future__ import annotations
 
 import time
-from typing import Callable
+from collections.abc import Callable
 
 import numpy as np
 
 from passt_mav.errors import PlannerError
 from passt_mav.passt import FieldSampler, LegPlan, LoopOptions, OfflineResult, Samples, _background_or_none
 
-__all__ = ["KEEP_OUT_ROUNDS", "OfflineStep", "keep_out", "plan_keeping_out", "same_step_clashes", "run_trials",
-           "run_offline", "run_offline_fleet", "run_offline_lockstep"]
+__all__ = [
+    "KEEP_OUT_ROUNDS",
+    "OfflineStep",
+    "keep_out",
+    "plan_keeping_out",
+    "same_step_clashes",
+    "run_trials",
+    "run_offline",
+    "run_offline_fleet",
+    "run_offline_lockstep",
+]
 
 #: plans a boat may make to repair clashes with the other boats before giving up (PlannerError)
 KEEP_OUT_ROUNDS = 20
@@ -126,8 +135,10 @@ def _plan_batch(loops: list, starts, t_start: float, dt: float, S: int, fcs) -> 
     loop.
     """
     p0 = loops[0].planner
-    same = hasattr(p0, "plan_many") and all(type(lp.planner) is type(p0) and vars(lp.planner) == vars(p0)
-                                            and lp.path_length == loops[0].path_length for lp in loops)
+    same = hasattr(p0, "plan_many") and all(
+        type(lp.planner) is type(p0) and vars(lp.planner) == vars(p0) and lp.path_length == loops[0].path_length
+        for lp in loops
+    )
     if not same or len(loops) == 1:
         return [lp.plan_leg(None, st, t_start, dt, steps=S, forecast=fc) for lp, st, fc in zip(loops, starts, fcs)]
     B = len(loops)
@@ -135,12 +146,22 @@ def _plan_batch(loops: list, starts, t_start: float, dt: float, S: int, fcs) -> 
     qm = [lp._reward_map(fc, st) for lp, st, fc in zip(loops, starts, fcs)]
     t_rew = (time.perf_counter() - tr) / B
     tp = time.perf_counter()
-    paths = p0.plan_many([q for q, _ in qm], starts, loops[0].path_length, [lp._plan_seed() for lp in loops],
-                         [m for _, m in qm])
+    paths = p0.plan_many(
+        [q for q, _ in qm], starts, loops[0].path_length, [lp._plan_seed() for lp in loops], [m for _, m in qm]
+    )
     t_plan = (time.perf_counter() - tp) / B
-    return [LegPlan(path=path, reward=q, forecast=fc, t_start=float(t_start), dt=float(dt), steps=S,
-                    timings={"predict": 0.0, "reward": t_rew, "plan": t_plan})
-            for path, (q, _), fc in zip(paths, qm, fcs)]
+    return [
+        LegPlan(
+            path=path,
+            reward=q,
+            forecast=fc,
+            t_start=float(t_start),
+            dt=float(dt),
+            steps=S,
+            timings={"predict": 0.0, "reward": t_rew, "plan": t_plan},
+        )
+        for path, (q, _), fc in zip(paths, qm, fcs)
+    ]
 
 
 # -- the step -----------------------------------------------------------------------------------------
@@ -159,8 +180,20 @@ class OfflineStep:
             call per leg (lockstep), else one call per trial.
     """
 
-    def __init__(self, field, predictor, options: LoopOptions, *, starts, seeds, t0: int = 0, noise_std: float = 0.0,
-                 sample_at: str = "end", initial_state=None, batched: bool = False):
+    def __init__(
+        self,
+        field,
+        predictor,
+        options: LoopOptions,
+        *,
+        starts,
+        seeds,
+        t0: int = 0,
+        noise_std: float = 0.0,
+        sample_at: str = "end",
+        initial_state=None,
+        batched: bool = False,
+    ):
         self.field, self.predictor, self.options, self.t0, self.batched = field, predictor, options, int(t0), batched
         self.land = field.land_mask
         self.starts = [[tuple(int(x) for x in c) for c in cells] for cells in starts]
@@ -168,8 +201,16 @@ class OfflineStep:
             if len(set(cells)) != len(cells):  # two boats on one cell from the start
                 raise PlannerError(f"fleet start cells must differ, got {cells}")
         self.loops = [options.loop(predictor, field.grid, land=self.land, seed=int(sd)) for sd in seeds]
-        self.samplers = [FieldSampler(field, noise_std=noise_std, seed=int(sd) + 7919,
-                                      steps_per_leg=options.steps_per_leg, sample_at=sample_at) for sd in seeds]
+        self.samplers = [
+            FieldSampler(
+                field,
+                noise_std=noise_std,
+                seed=int(sd) + 7919,
+                steps_per_leg=options.steps_per_leg,
+                sample_at=sample_at,
+            )
+            for sd in seeds
+        ]
         state0 = np.array(field.data[t0] if initial_state is None else initial_state, dtype=np.float32)
         state0[:, self.land] = np.nan
         self.state0 = state0
@@ -217,11 +258,13 @@ class OfflineStep:
         taken[start] = False
 
         def plan(taken=None, avoid=None):
-            return lp.plan_leg(None, start, t_start, self.field.dt, steps=S, forecast=earlier[0].forecast,
-                               taken=taken, avoid=avoid)
+            return lp.plan_leg(
+                None, start, t_start, self.field.dt, steps=S, forecast=earlier[0].forecast, taken=taken, avoid=avoid
+            )
 
-        return plan_keeping_out(plan, taken, lambda q: same_step_clashes(q.path, [p.path for p in earlier], shape),
-                                f"boat {n}")
+        return plan_keeping_out(
+            plan, taken, lambda q: same_step_clashes(q.path, [p.path for p in earlier], shape), f"boat {n}"
+        )
 
     def advance(self, k: int, S: int) -> list[tuple[dict, np.ndarray]]:
         """The leg interval of ``S`` snapshots from step ``k``: per trial (the leg's record, the estimate
@@ -234,8 +277,9 @@ class OfflineStep:
         if self.batched:
             firsts = _plan_batch(self.loops, starts0, t_start, dt, S, fcs)
         else:
-            firsts = [lp.plan_leg(None, st, t_start, dt, steps=S, forecast=fc)
-                      for lp, st, fc in zip(self.loops, starts0, fcs)]
+            firsts = [
+                lp.plan_leg(None, st, t_start, dt, steps=S, forecast=fc) for lp, st, fc in zip(self.loops, starts0, fcs)
+            ]
         out = []
         for b, lp in enumerate(self.loops):
             firsts[b].timings["predict"] = secs[b]
@@ -250,19 +294,42 @@ class OfflineStep:
             est = np.array(lp.blend(plans[0].forecast)[1 : S + 1])  # before the update moves the blend's weights
             self.states[b] = lp.update(plans[0], samples) if S == self.options.steps_per_leg else est[S - 1]
             est[S - 1] = self.states[b]
-            out.append(({"step": k, "path": plans[0].path.tolist(), "paths": [p.path.tolist() for p in plans],
-                         "timings": {key: float(sum(p.timings.get(key, 0.0) for p in plans))
-                                     for key in ("predict", "reward", "plan", "gp")},
-                         "reward_collected": float(sum(path_reward(p.reward, p.path) for p in plans)),
-                         "n_samples": len(samples)}, est))
+            out.append(
+                (
+                    {
+                        "step": k,
+                        "path": plans[0].path.tolist(),
+                        "paths": [p.path.tolist() for p in plans],
+                        "timings": {
+                            key: float(sum(p.timings.get(key, 0.0) for p in plans))
+                            for key in ("predict", "reward", "plan", "gp")
+                        },
+                        "reward_collected": float(sum(path_reward(p.reward, p.path) for p in plans)),
+                        "n_samples": len(samples),
+                    },
+                    est,
+                )
+            )
             self.starts[b] = [tuple(int(x) for x in p.path[-1]) for p in plans]
         return out
 
 
 # -- the one entry point ----------------------------------------------------------------------------
-def run_trials(field, predictor, options: LoopOptions, *, starts, seeds, t0: int = 0, n_steps: int,
-               noise_std: float = 0.0, sample_at: str = "end", initial_state=None, batched: bool = False,
-               kernel_cache: dict | None = None) -> list[OfflineResult]:
+def run_trials(
+    field,
+    predictor,
+    options: LoopOptions,
+    *,
+    starts,
+    seeds,
+    t0: int = 0,
+    n_steps: int,
+    noise_std: float = 0.0,
+    sample_at: str = "end",
+    initial_state=None,
+    batched: bool = False,
+    kernel_cache: dict | None = None,
+) -> list[OfflineResult]:
     """PASST offline on ground truth ``field`` from snapshot ``t0`` for ``n_steps`` steps (clipped to the
     data): one :class:`~passt_mav.passt.OfflineResult` per trial (``starts[b]``: its boats' start cells,
     ``seeds[b]``); arguments as :class:`OfflineStep`. Batched, what the trials share is computed once
@@ -273,8 +340,18 @@ def run_trials(field, predictor, options: LoopOptions, *, starts, seeds, t0: int
     if len(starts) != len(seeds) or not len(seeds):
         raise PlannerError("the offline engine needs one seed per trial's start cells (at least one trial)")
     n_steps = int(min(n_steps, field.n_times - 1 - t0))
-    step = OfflineStep(field, predictor, options, starts=starts, seeds=seeds, t0=t0, noise_std=noise_std,
-                       sample_at=sample_at, initial_state=initial_state, batched=batched)
+    step = OfflineStep(
+        field,
+        predictor,
+        options,
+        starts=starts,
+        seeds=seeds,
+        t0=t0,
+        noise_std=noise_std,
+        sample_at=sample_at,
+        initial_state=initial_state,
+        batched=batched,
+    )
     if batched:
         step.share_setup(n_steps, kernel_cache if kernel_cache is not None else {})
     est = np.empty((len(seeds), n_steps + 1, 2) + field.grid.shape, np.float32)
@@ -290,34 +367,88 @@ def run_trials(field, predictor, options: LoopOptions, *, starts, seeds, t0: int
     return [OfflineResult(estimate=est[b], legs=legs[b]) for b in range(len(seeds))]
 
 
-def run_offline(field, predictor, *, start_cell, t0: int = 0, n_steps: int, seed: int = 0, noise_std: float = 0.0,
-                sample_at: str = "end", initial_state=None, options: LoopOptions | None = None,
-                **loop_kw) -> OfflineResult:
+def run_offline(
+    field,
+    predictor,
+    *,
+    start_cell,
+    t0: int = 0,
+    n_steps: int,
+    seed: int = 0,
+    noise_std: float = 0.0,
+    sample_at: str = "end",
+    initial_state=None,
+    options: LoopOptions | None = None,
+    **loop_kw,
+) -> OfflineResult:
     """One boat, one trial (:func:`run_trials`). The loop's options: ``options`` with any
     :class:`~passt_mav.passt.LoopOptions` field given as a keyword (``planner=``, ``path_length=``, ...).
     ``predictor=None`` runs the GP-only ("hold") variant."""
-    return run_offline_fleet(field, predictor, start_cells=[start_cell], t0=t0, n_steps=n_steps, seed=seed,
-                             noise_std=noise_std, sample_at=sample_at, initial_state=initial_state,
-                             options=options, **loop_kw)
+    return run_offline_fleet(
+        field,
+        predictor,
+        start_cells=[start_cell],
+        t0=t0,
+        n_steps=n_steps,
+        seed=seed,
+        noise_std=noise_std,
+        sample_at=sample_at,
+        initial_state=initial_state,
+        options=options,
+        **loop_kw,
+    )
 
 
-def run_offline_fleet(field, predictor, *, start_cells, t0: int = 0, n_steps: int, seed: int = 0,
-                      noise_std: float = 0.0, sample_at: str = "end", initial_state=None,
-                      options: LoopOptions | None = None, **loop_kw) -> OfflineResult:
+def run_offline_fleet(
+    field,
+    predictor,
+    *,
+    start_cells,
+    t0: int = 0,
+    n_steps: int,
+    seed: int = 0,
+    noise_std: float = 0.0,
+    sample_at: str = "end",
+    initial_state=None,
+    options: LoopOptions | None = None,
+    **loop_kw,
+) -> OfflineResult:
     """:func:`run_offline` for a fleet: ``len(start_cells)`` boats, synchronous legs, one state.
 
     Each leg interval: one forecast and one reward map; the boats plan in turn under the keep-out
     rule (module docstring); every boat's samples go to one GP update. With one start cell this is
     :func:`run_offline`. Leg records hold ``paths`` (one per boat) and ``path`` (boat 0's).
     """
-    (res,) = run_trials(field, predictor, LoopOptions.of(options, **loop_kw), starts=[start_cells], seeds=[seed],
-                        t0=t0, n_steps=n_steps, noise_std=noise_std, sample_at=sample_at, initial_state=initial_state)
+    (res,) = run_trials(
+        field,
+        predictor,
+        LoopOptions.of(options, **loop_kw),
+        starts=[start_cells],
+        seeds=[seed],
+        t0=t0,
+        n_steps=n_steps,
+        noise_std=noise_std,
+        sample_at=sample_at,
+        initial_state=initial_state,
+    )
     return res
 
 
-def run_offline_lockstep(field, predictor, *, start_cells, seeds, t0: int = 0, n_steps: int, noise_std: float = 0.0,
-                         sample_at: str = "end", initial_state=None, kernel_cache: dict | None = None,
-                         options: LoopOptions | None = None, **loop_kw) -> list[OfflineResult]:
+def run_offline_lockstep(
+    field,
+    predictor,
+    *,
+    start_cells,
+    seeds,
+    t0: int = 0,
+    n_steps: int,
+    noise_std: float = 0.0,
+    sample_at: str = "end",
+    initial_state=None,
+    kernel_cache: dict | None = None,
+    options: LoopOptions | None = None,
+    **loop_kw,
+) -> list[OfflineResult]:
     """:func:`run_offline` for B one-boat trials at once (``start_cells[b]``, ``seeds[b]``), in lockstep.
 
     Each leg runs the predictor ONCE for the whole batch and plans the batch in one call where the
@@ -329,6 +460,17 @@ def run_offline_lockstep(field, predictor, *, start_cells, seeds, t0: int = 0, n
     """
     if len(start_cells) != len(seeds) or not len(seeds):
         raise PlannerError("run_offline_lockstep needs one seed per start cell (at least one)")
-    return run_trials(field, predictor, LoopOptions.of(options, **loop_kw), starts=[[c] for c in start_cells],
-                      seeds=seeds, t0=t0, n_steps=n_steps, noise_std=noise_std, sample_at=sample_at,
-                      initial_state=initial_state, batched=True, kernel_cache=kernel_cache)
+    return run_trials(
+        field,
+        predictor,
+        LoopOptions.of(options, **loop_kw),
+        starts=[[c] for c in start_cells],
+        seeds=seeds,
+        t0=t0,
+        n_steps=n_steps,
+        noise_std=noise_std,
+        sample_at=sample_at,
+        initial_state=initial_state,
+        batched=True,
+        kernel_cache=kernel_cache,
+    )

@@ -41,7 +41,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from typing import Callable
+from collections.abc import Callable
 
 from passt_mav.controller import MissionController, StoreWriter
 from passt_mav.errors import MavlinkError, PlannerError, ReconstructionError
@@ -60,7 +60,7 @@ class SharedState:
     fleet's lock: the state keeper a :class:`BoatController` flies with (:class:`~passt_mav.controller.OwnState`'s
     methods). Remembers the boat's leg in flight and the fleet steps it was planned and absorbed at."""
 
-    def __init__(self, fleet: "FleetController", boat: int, link):
+    def __init__(self, fleet: FleetController, boat: int, link):
         self.fleet, self.boat, self.link = fleet, int(boat), link
         self.current = None  # the boat's leg in flight (PlannedLeg)
         self.seq_plan: int | None = None
@@ -111,15 +111,27 @@ class BoatController(MissionController):
     :class:`SharedState`, lock, loop, store, live-view writer and summary), plus a boat's life in a
     fleet (:meth:`fly`: dropping out and rejoining)."""
 
-    def __init__(self, fleet: "FleetController", boat: int, vehicle_config, link, vehicle, **kw):
+    def __init__(self, fleet: FleetController, boat: int, vehicle_config, link, vehicle, **kw):
         cfg = fleet.config.model_copy(update={"vehicle": vehicle_config})
         echo = fleet.echo
         record = fleet.record.for_boat(int(boat))
-        super().__init__(cfg, link, fleet.rd, field=fleet.field, predictor=fleet.predictor,
-                         predictor_info=fleet.predictor_info, vehicle=vehicle, legs=fleet.n_legs,
-                         echo=lambda s: echo(f"boat {boat}: {s}"), step=fleet.step,
-                         share=SharedState(fleet, boat, link), lock=fleet.lock, record=record,
-                         write_summary=fleet.write_summary, **kw)
+        super().__init__(
+            cfg,
+            link,
+            fleet.rd,
+            field=fleet.field,
+            predictor=fleet.predictor,
+            predictor_info=fleet.predictor_info,
+            vehicle=vehicle,
+            legs=fleet.n_legs,
+            echo=lambda s: echo(f"boat {boat}: {s}"),
+            step=fleet.step,
+            share=SharedState(fleet, boat, link),
+            lock=fleet.lock,
+            record=record,
+            write_summary=fleet.write_summary,
+            **kw,
+        )
         self.fleet, self.boat = fleet, int(boat)
         self.store = fleet.store
         self.status = "waiting"
@@ -173,8 +185,12 @@ class BoatController(MissionController):
         """The boat dropped out mid-leg: report, release its path, keep what it sampled."""
         self.status = "lost"
         self.fleet.release(self.boat)
-        self.fleet.event(f"boat {self.boat} (sysid {self.link.target_system}) dropped out at {utc_now()}: "
-                         f"{type(exc).__name__}: {exc}", "boat_dropped", self.boat)
+        self.fleet.event(
+            f"boat {self.boat} (sysid {self.link.target_system}) dropped out at {utc_now()}: "
+            f"{type(exc).__name__}: {exc}",
+            "boat_dropped",
+            self.boat,
+        )
         self._say(f"dropped out ({exc}); the other boats go on")
         self._safe_hold()
         planned, self.share.current = self.share.current, None
@@ -190,8 +206,9 @@ class BoatController(MissionController):
             return
         rec = self.leg_rec
         if rec is not None and int(rec["index"]) == planned.index:  # for a replay
-            self.rd.write_leg(planned.index, {**rec, **ab.record(), "status": "interrupted",
-                                              "fleet_seq": self.share.fleet_seq()})
+            self.rd.write_leg(
+                planned.index, {**rec, **ab.record(), "status": "interrupted", "fleet_seq": self.share.fleet_seq()}
+            )
 
     def _rejoin(self) -> bool:
         """Reconnect while any other boat still flies; True when this boat is back."""
@@ -221,10 +238,23 @@ class FleetController:
         truth_known) are passed to every :class:`BoatController`.
     """
 
-    def __init__(self, config, links, run_dir, *, field, predictor, predictor_info: dict | None = None,
-                 vehicles=None, legs: int | None = None, echo: Callable[[str], None] | None = print,
-                 mission_text: str | None = None, extra_summary: dict | None = None, truth_known: bool = True,
-                 **boat_kw):
+    def __init__(
+        self,
+        config,
+        links,
+        run_dir,
+        *,
+        field,
+        predictor,
+        predictor_info: dict | None = None,
+        vehicles=None,
+        legs: int | None = None,
+        echo: Callable[[str], None] | None = print,
+        mission_text: str | None = None,
+        extra_summary: dict | None = None,
+        truth_known: bool = True,
+        **boat_kw,
+    ):
         from passt_mav.mavlink import Vehicle
         from passt_mav.runs.store import SampleStore
 
@@ -251,8 +281,10 @@ class FleetController:
         self.store = SampleStore(self.rd.samples_db)
         self.writer = StoreWriter(self.store, field.grid)
         vehicles = vehicles or [Vehicle(link) for link in links]
-        self.boats = [BoatController(self, k, vc, link, veh, truth_known=truth_known, **boat_kw)
-                      for k, (vc, link, veh) in enumerate(zip(fleet, links, vehicles))]
+        self.boats = [
+            BoatController(self, k, vc, link, veh, truth_known=truth_known, **boat_kw)
+            for k, (vc, link, veh) in enumerate(zip(fleet, links, vehicles))
+        ]
 
     # -- shared state ----------------------------------------------------------------------------
     def claim_leg(self) -> int:
@@ -280,8 +312,10 @@ class FleetController:
         if self.mission_text is not None:
             self.rd.mission_file.write_text(self.mission_text)
         cfg = self.config
-        self.echo(f"mission {cfg.name}: {len(self.boats)} boats x {self.n_legs} legs of {cfg.planner.path_length} "
-                  f"moves, model {self.predictor_info.get('used')}, planner {cfg.planner.name}; one shared estimate")
+        self.echo(
+            f"mission {cfg.name}: {len(self.boats)} boats x {self.n_legs} legs of {cfg.planner.path_length} "
+            f"moves, model {self.predictor_info.get('used')}, planner {cfg.planner.name}; one shared estimate"
+        )
         self.record.meta(live_meta(self.boats[0], len(self.boats)))
         threads = [threading.Thread(target=b.fly, name=f"boat-{b.boat}", daemon=True) for b in self.boats]
         try:
@@ -304,8 +338,9 @@ class FleetController:
             self.store.close()
             self.record.event("run_end", f"fleet {self.status}")
         lost = [b.boat for b in self.boats if b.status != "complete"]
-        self.echo(f"fleet {self.status}: " + ", ".join(f"boat {b.boat} {b.status} ({b.legs_done} legs)"
-                                                     for b in self.boats))
+        self.echo(
+            f"fleet {self.status}: " + ", ".join(f"boat {b.boat} {b.status} ({b.legs_done} legs)" for b in self.boats)
+        )
         if lost:
             self.echo(f"boats that did not finish: {lost} (see events in summary.json)")
         return self.summary()
@@ -315,21 +350,41 @@ class FleetController:
             legs = sorted((dict(x) for b in self.boats for x in b.leg_records), key=lambda r: int(r["index"]))
             s = self.boats[0].summary()
             truth = s.get("rmse") is not None
-            s.update({
-                "status": self.status, "started_utc": self.started_utc,
-                "finished_utc": utc_now() if self.status != "running" else None,
-                "legs": legs, "legs_planned": self.n_legs * len(self.boats),
-                "rmse": {"t": [x.get("t_end") for x in legs], "passt": [x.get("rmse_passt") for x in legs],
-                         "model": [x.get("rmse_model") for x in legs]} if truth else None,
-                "config": self.config.model_dump(mode="json"),  # the fleet's (a boat's has its own vehicle:)
-                "connect": [b.link.config.connect for b in self.boats],
-                "boats": [{"boat": b.boat, "sysid": b.link.target_system, "connect": b.link.config.connect,
-                           "status": b.status, "legs": b.legs_done, "clock": b._clock_with_boots().describe()}
-                          for b in self.boats],
-                "lost_boats": [b.boat for b in self.boats if b.status not in ("complete", "running", "flying",
-                                                                                "waiting", "preparing")],
-                "events": list(self.events) + [f"boat {b.boat}: {e}" for b in self.boats for e in b.events],
-            })
+            s.update(
+                {
+                    "status": self.status,
+                    "started_utc": self.started_utc,
+                    "finished_utc": utc_now() if self.status != "running" else None,
+                    "legs": legs,
+                    "legs_planned": self.n_legs * len(self.boats),
+                    "rmse": {
+                        "t": [x.get("t_end") for x in legs],
+                        "passt": [x.get("rmse_passt") for x in legs],
+                        "model": [x.get("rmse_model") for x in legs],
+                    }
+                    if truth
+                    else None,
+                    "config": self.config.model_dump(mode="json"),  # the fleet's (a boat's has its own vehicle:)
+                    "connect": [b.link.config.connect for b in self.boats],
+                    "boats": [
+                        {
+                            "boat": b.boat,
+                            "sysid": b.link.target_system,
+                            "connect": b.link.config.connect,
+                            "status": b.status,
+                            "legs": b.legs_done,
+                            "clock": b._clock_with_boots().describe(),
+                        }
+                        for b in self.boats
+                    ],
+                    "lost_boats": [
+                        b.boat
+                        for b in self.boats
+                        if b.status not in ("complete", "running", "flying", "waiting", "preparing")
+                    ],
+                    "events": list(self.events) + [f"boat {b.boat}: {e}" for b in self.boats for e in b.events],
+                }
+            )
             s.update(self.extra_summary)
             return s
 

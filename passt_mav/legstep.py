@@ -31,8 +31,10 @@ import datetime as _dt
 import logging
 import math
 import time
-from dataclasses import dataclass, field as _dcfield
-from typing import Any, Callable
+from collections.abc import Callable
+from dataclasses import dataclass
+from dataclasses import field as _dcfield
+from typing import Any
 
 import numpy as np
 
@@ -40,14 +42,33 @@ from passt_mav.errors import ReconstructionError, UserError
 from passt_mav.measurement import rmse, truth_at  # noqa: F401 - the measurement rules, re-exported
 from passt_mav.measurement import sample_columns as _columns
 
-__all__ = ["THINNING", "FieldClock", "LegStep", "PlannedLeg", "AbsorbedLeg", "utc_epoch", "to_field_units",
-           "thin_samples", "leg_steps", "extend_leg_to_end", "pure_model_at", "rmse", "truth_at",
-           "build_predictor", "build_loop", "FleetStep", "in_field_time", "FIELD_TIME"]
+__all__ = [
+    "THINNING",
+    "FieldClock",
+    "LegStep",
+    "PlannedLeg",
+    "AbsorbedLeg",
+    "utc_epoch",
+    "to_field_units",
+    "thin_samples",
+    "leg_steps",
+    "extend_leg_to_end",
+    "pure_model_at",
+    "rmse",
+    "truth_at",
+    "build_predictor",
+    "build_loop",
+    "FleetStep",
+    "in_field_time",
+    "FIELD_TIME",
+]
 
 log = logging.getLogger(__name__)
 
-THINNING = ("samples averaged per (nearest grid cell, snapshot bin round((t - t_start)/dt)); "
-            "position, time and velocity averaged in each group")
+THINNING = (
+    "samples averaged per (nearest grid cell, snapshot bin round((t - t_start)/dt)); "
+    "position, time and velocity averaged in each group"
+)
 
 
 # -- clock and sample preparation -------------------------------------------------------------
@@ -72,8 +93,12 @@ class FieldClock:
         return anchors[b] + tb / 1000.0 / self.time_scale
 
     def describe(self) -> dict[str, Any]:
-        d = {"rule": "t_field = t_boot0 + time_boot_ms / 1000 / time_scale", "t_boot0": self.t_boot0,
-             "time_scale": self.time_scale, "source": self.source}
+        d = {
+            "rule": "t_field = t_boot0 + time_boot_ms / 1000 / time_scale",
+            "t_boot0": self.t_boot0,
+            "time_scale": self.time_scale,
+            "source": self.source,
+        }
         if self.later_boots:
             d["later_boots"] = list(self.later_boots)
         return d
@@ -81,8 +106,8 @@ class FieldClock:
 
 def utc_epoch(iso: str) -> float:
     """Epoch seconds of an ISO-8601 UTC time (a field's ``time_origin``)."""
-    t = _dt.datetime.fromisoformat(iso.replace("Z", "+00:00"))
-    return (t if t.tzinfo else t.replace(tzinfo=_dt.timezone.utc)).timestamp()
+    t = _dt.datetime.fromisoformat(iso)  # Python 3.11 reads a trailing "Z"
+    return (t if t.tzinfo else t.replace(tzinfo=_dt.UTC)).timestamp()
 
 
 def to_field_units(grid, u, v, velocity_scale: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
@@ -213,18 +238,24 @@ def build_loop(config, predictor, grid, land=None):
     if config.gp.bias:
         gp_kw["bias"] = True
     gp_kw.update(config.gp.options)
-    options = LoopOptions(planner=config.planner.name, planner_kw=dict(config.planner.options),
-                          reward=config.planner.reward, path_length=config.planner.path_length,
-                          steps_per_leg=config.steps_per_leg or 1, prior=config.gp.loop_prior, gp_kw=gp_kw,
-                          hyper=config.gp.hyper, background=config.gp.background,
-                          prior_blend=config.gp.prior_blend, forgetting=config.gp.forgetting)
+    options = LoopOptions(
+        planner=config.planner.name,
+        planner_kw=dict(config.planner.options),
+        reward=config.planner.reward,
+        path_length=config.planner.path_length,
+        steps_per_leg=config.steps_per_leg or 1,
+        prior=config.gp.loop_prior,
+        gp_kw=gp_kw,
+        hyper=config.gp.hyper,
+        background=config.gp.background,
+        prior_blend=config.gp.prior_blend,
+        forgetting=config.gp.forgetting,
+    )
     loop = options.loop(predictor, grid, land=land, seed=config.seeds.planner)
     # a mission's estimate is written with its posterior std (estimate.nc u_std/v_std; exports read it):
     # one more triangular solve per leg, nothing next to a leg's minutes on the water
     loop.keep_std = True
     return loop
-
-
 
 
 # -- the step -------------------------------------------------------------------------------------
@@ -254,16 +285,24 @@ class PlannedLeg:
 
     def record(self, dt: float) -> dict[str, Any]:
         """The leg record's planning fields (``leg.json``)."""
-        return {"index": self.index, "start_cell": list(self.start_cell),
-                "start_latlon": None if self.start_latlon is None else list(self.start_latlon),
-                "path": self.plan.path.tolist(), "t_start": self.t_start, "t_end": self.t_start + self.steps * dt,
-                "steps": self.steps, "forecast_steps_before": self.k, "planning_s": self.planning_s,
-                "planning_timings": dict(self.plan.timings),
-                # the map the path was planned on ((R, C), row 0 south; 0 = land or nothing to gain),
-                # for the report: why the boat goes where it goes
-                "reward_map": np.round(np.nan_to_num(np.asarray(self.plan.reward, float)), 4).tolist(),
-                "clock_reading": None if self.clock_reading is None else
-                {"time_boot_ms": self.clock_reading[0], "boot": self.clock_reading[1]}}
+        return {
+            "index": self.index,
+            "start_cell": list(self.start_cell),
+            "start_latlon": None if self.start_latlon is None else list(self.start_latlon),
+            "path": self.plan.path.tolist(),
+            "t_start": self.t_start,
+            "t_end": self.t_start + self.steps * dt,
+            "steps": self.steps,
+            "forecast_steps_before": self.k,
+            "planning_s": self.planning_s,
+            "planning_timings": dict(self.plan.timings),
+            # the map the path was planned on ((R, C), row 0 south; 0 = land or nothing to gain),
+            # for the report: why the boat goes where it goes
+            "reward_map": np.round(np.nan_to_num(np.asarray(self.plan.reward, float)), 4).tolist(),
+            "clock_reading": None
+            if self.clock_reading is None
+            else {"time_boot_ms": self.clock_reading[0], "boot": self.clock_reading[1]},
+        }
 
 
 @dataclass
@@ -291,9 +330,16 @@ class AbsorbedLeg:
     std: np.ndarray | None = None
 
     def record(self) -> dict[str, Any]:
-        return {"t_state": self.t_state, "steps": self.steps, "gp_s": self.gp_s, "n_samples": self.n_samples,
-                "n_gp_points": len(self.samples), "rmse_passt": self.rmse_passt, "rmse_model": self.rmse_model,
-                "gp": self.gp}
+        return {
+            "t_state": self.t_state,
+            "steps": self.steps,
+            "gp_s": self.gp_s,
+            "n_samples": self.n_samples,
+            "n_gp_points": len(self.samples),
+            "rmse_passt": self.rmse_passt,
+            "rmse_model": self.rmse_model,
+            "gp": self.gp,
+        }
 
 
 @dataclass
@@ -339,8 +385,10 @@ class LegStep:
         mission's geofence margin, m) or on land raises :class:`UserError`."""
         grid, margin = self.grid, float(self.config.geofence_margin_m)
         if check and not bool(grid.contains(lat, lon, margin)):
-            raise UserError(f"the vehicle at {lat:.6f},{lon:.6f} is outside the mission region (+{margin:g} m); "
-                            "bring it into the region before starting a leg")
+            raise UserError(
+                f"the vehicle at {lat:.6f},{lon:.6f} is outside the mission region (+{margin:g} m); "
+                "bring it into the region before starting a leg"
+            )
         r, c = grid.latlon_to_cell(lat, lon, clip=True)
         start = (int(r), int(c))
         if check and self.field.land_mask[start]:
@@ -351,9 +399,21 @@ class LegStep:
         """Snapshots to bring a state at ``t_state`` forward to ``t_now`` (field time, never negative)."""
         return max(0, int(round((t_now - t_state) / self.dt)))
 
-    def plan(self, index: int, state, t_state: float, start_cell, *, t_now: float | None = None,
-             k: int | None = None, start_latlon=None, clock_reading=None, taken=None, avoid=None,
-             speed: float | None = None) -> PlannedLeg:
+    def plan(
+        self,
+        index: int,
+        state,
+        t_state: float,
+        start_cell,
+        *,
+        t_now: float | None = None,
+        k: int | None = None,
+        start_latlon=None,
+        clock_reading=None,
+        taken=None,
+        avoid=None,
+        speed: float | None = None,
+    ) -> PlannedLeg:
         """Forecast the state to now (``k`` snapshots, from ``t_now`` unless given) and plan leg ``index``.
 
         Does not advance the loop's leg counter (its planner seeds follow the update).
@@ -368,17 +428,31 @@ class LegStep:
         if k:
             state = self.loop.forecast(state, k)[-1]
             t_state += k * self.dt
-        steps = leg_steps(self.config, self.grid, self.speed if speed is None else float(speed), self.dt,
-                          float(self.config.field.time_scale))
+        steps = leg_steps(
+            self.config,
+            self.grid,
+            self.speed if speed is None else float(speed),
+            self.dt,
+            float(self.config.field.time_scale),
+        )
         t0 = time.perf_counter()
         # the path needs the one-step prediction only (the reward map); the forecast over the whole
         # leg (the GP prior, prediction.nc) follows in forecast_leg(), while the vehicle is underway
-        plan = self.loop.plan_leg(state, tuple(int(x) for x in start_cell), t_state, self.dt, steps=1,
-                                  taken=taken, avoid=avoid)
+        plan = self.loop.plan_leg(
+            state, tuple(int(x) for x in start_cell), t_state, self.dt, steps=1, taken=taken, avoid=avoid
+        )
         plan.steps = int(steps)
-        return PlannedLeg(int(index), tuple(int(x) for x in start_cell),
-                          None if start_latlon is None else (float(start_latlon[0]), float(start_latlon[1])),
-                          t_now, int(k), plan, int(steps), time.perf_counter() - t0, clock_reading)
+        return PlannedLeg(
+            int(index),
+            tuple(int(x) for x in start_cell),
+            None if start_latlon is None else (float(start_latlon[0]), float(start_latlon[1])),
+            t_now,
+            int(k),
+            plan,
+            int(steps),
+            time.perf_counter() - t0,
+            clock_reading,
+        )
 
     def forecast_leg(self, planned: PlannedLeg) -> np.ndarray:
         """The model's forecast over the whole planned leg, (steps+1, 2, R, C) from the leg's start state
@@ -392,7 +466,7 @@ class LegStep:
             plan.timings["forecast"] = time.perf_counter() - t0
         return plan.forecast
 
-    def absorb(self, planned: PlannedLeg, recs, clock: "FieldClock", *, strict: bool = True) -> AbsorbedLeg:
+    def absorb(self, planned: PlannedLeg, recs, clock: FieldClock, *, strict: bool = True) -> AbsorbedLeg:
         """The leg's samples into the state: field units, field time, thinning, stretch, GP update, RMSE.
 
         ``recs``: sample records (``time_boot_ms``, ``boot``, ``lat``, ``lon``, ``u``, ``v`` in m/s
@@ -426,8 +500,19 @@ class LegStep:
         gp_s = time.perf_counter() - t0
         r_p, r_m = self.rmse_at(state, t_new)
         std = None if note is not None or self.loop.std is None else np.asarray(self.loop.std, np.float32)
-        return AbsorbedLeg(samples, state, float(t_new), int(planned.steps), len(recs), gp_s, r_p, r_m, note,
-                           self.loop.gp_summary(), std)
+        return AbsorbedLeg(
+            samples,
+            state,
+            float(t_new),
+            int(planned.steps),
+            len(recs),
+            gp_s,
+            r_p,
+            r_m,
+            note,
+            self.loop.gp_summary(),
+            std,
+        )
 
     def rmse_at(self, state, t: float) -> tuple[float | None, float | None]:
         """RMSE (field units) of ``state`` and of the model alone (from the truth at t0, never
@@ -449,8 +534,17 @@ def in_field_time(recs, clock) -> list[dict]:
         return []
     col = _columns(recs)
     t = np.atleast_1d(clock.field_time(col["time_boot_ms"], col["boot"]))
-    return [{"time_boot_ms": float(t[j]), "boot": 0, "lat": float(col["lat"][j]), "lon": float(col["lon"][j]),
-             "u": float(col["u"][j]), "v": float(col["v"][j])} for j in range(len(t))]
+    return [
+        {
+            "time_boot_ms": float(t[j]),
+            "boot": 0,
+            "lat": float(col["lat"][j]),
+            "lon": float(col["lon"][j]),
+            "u": float(col["u"][j]),
+            "v": float(col["v"][j]),
+        }
+        for j in range(len(t))
+    ]
 
 
 #: the clock of :func:`in_field_time`'s records: ``time_boot_ms`` already is field time
@@ -514,9 +608,15 @@ class FleetStep:
         from passt_mav.engine import keep_out
 
         speed = float(self.config.fleet[boat].speed_mps)
-        others = [(res["path"], self._timeline(res["path"], res["t_start"], res["speed"]),
-                   max(self._move_time(speed), self._move_time(res["speed"])))
-                  for other, res in self._reserved.items() if other != boat]
+        others = [
+            (
+                res["path"],
+                self._timeline(res["path"], res["t_start"], res["speed"]),
+                max(self._move_time(speed), self._move_time(res["speed"])),
+            )
+            for other, res in self._reserved.items()
+            if other != boat
+        ]
         return keep_out(path, self._timeline(path, t_start, speed), others, self.field.grid.shape)
 
     def plan_for(self, boat: int, i: int, start, **kw):
@@ -539,12 +639,17 @@ class FleetStep:
         kw.setdefault("speed", float(self.config.fleet[boat].speed_mps))
         from passt_mav.engine import plan_keeping_out
 
-        planned = plan_keeping_out(lambda taken, avoid: self.step.plan(i, self.state, self.t_state, start, taken=taken,
-                                                                       avoid=avoid, **kw),
-                                   taken, lambda p: self._conflicts(boat, p.plan.path, p.t_start),
-                                   f"leg {i}: boat {boat}")
-        self._reserved[boat] = {"path": np.asarray(planned.plan.path, int), "t_start": planned.t_start,
-                                "speed": float(self.config.fleet[boat].speed_mps)}
+        planned = plan_keeping_out(
+            lambda taken, avoid: self.step.plan(i, self.state, self.t_state, start, taken=taken, avoid=avoid, **kw),
+            taken,
+            lambda p: self._conflicts(boat, p.plan.path, p.t_start),
+            f"leg {i}: boat {boat}",
+        )
+        self._reserved[boat] = {
+            "path": np.asarray(planned.plan.path, int),
+            "t_start": planned.t_start,
+            "speed": float(self.config.fleet[boat].speed_mps),
+        }
         self._plan_version[i] = self._version  # the state this leg was planned from
         self.seq += 1
         return planned
@@ -566,8 +671,13 @@ class FleetStep:
         # the model alone's 0.010). They are left out of this reconstruction: a loss of what
         # they knew, which a smoother over the legs' overlap would keep (not built)
         t_first = planned.t_start
-        extra = [r for v, leg, rr in self._absorbed if v > since and leg != planned.index for r in rr
-                 if r["time_boot_ms"] >= t_first]
+        extra = [
+            r
+            for v, leg, rr in self._absorbed
+            if v > since and leg != planned.index
+            for r in rr
+            if r["time_boot_ms"] >= t_first
+        ]
         self.step.forecast_leg(planned)
         # the state never goes back in time: reconstruct at its time at least
         need = int(round((self.t_state - planned.t_start) / dt))

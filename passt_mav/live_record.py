@@ -32,14 +32,24 @@ def live_status(ctl) -> dict:
     k = ctl.share.leg_k(leg, flying)
     rtt = link.rtt
     return {
-        "sysid": int(link.target_system or 0), "lat": None if pos is None else pos[0],
-        "lon": None if pos is None else pos[1], "heading_deg": hdg, "mode": v.mode_name, "armed": bool(v.armed),
-        "link_lost": bool(link.lost), "rtt_ms": None if rtt is None else round(rtt * 1000.0, 1),
-        "loss_pct": round(100.0 * st.loss, 2), "leg": leg, "leg_k": k, "legs_n": ctl.n_legs,
-        "flying": flying, "samples_leg": ctl.collector.leg_counts(leg)["emitted"] if flying else 0,
+        "sysid": int(link.target_system or 0),
+        "lat": None if pos is None else pos[0],
+        "lon": None if pos is None else pos[1],
+        "heading_deg": hdg,
+        "mode": v.mode_name,
+        "armed": bool(v.armed),
+        "link_lost": bool(link.lost),
+        "rtt_ms": None if rtt is None else round(rtt * 1000.0, 1),
+        "loss_pct": round(100.0 * st.loss, 2),
+        "leg": leg,
+        "leg_k": k,
+        "legs_n": ctl.n_legs,
+        "flying": flying,
+        "samples_leg": ctl.collector.leg_counts(leg)["emitted"] if flying else 0,
         "leg_end_s": None if left is None else round(left, 1),
         "leg_end_wall_s": None if left is None else round(left / ctl.speedup, 1),
-        "status": ctl.status, "field_time": field_time_now(ctl),
+        "status": ctl.status,
+        "field_time": field_time_now(ctl),
     }
 
 
@@ -53,9 +63,18 @@ def live_meta(ctl, n_boats: int = 1) -> dict:
     except (KeyError, TypeError):  # a checkpoint's skill report of another form: no warning
         skill = None
     return {
-        "mission": cfg.name, "grid": ctl.grid.describe(), "land": np.asarray(ctl.land, bool).astype(int).tolist(),
-        "geofence_margin_m": float(cfg.geofence_margin_m), "boats": int(n_boats), "legs_per_boat": ctl.n_legs,
-        "model": ctl.predictor_info.get("used"), "planner": cfg.planner.name, "reward": cfg.planner.reward,
-        "truth_known": bool(ctl.truth_known), "skill_warning": skill, "speedup": ctl.speedup,
-        "field_time_origin": ctl.field.time_origin, "velocity_scale": float(cfg.field.velocity_scale),
+        "mission": cfg.name,
+        "grid": ctl.grid.describe(),
+        "land": np.asarray(ctl.land, bool).astype(int).tolist(),
+        "geofence_margin_m": float(cfg.geofence_margin_m),
+        "boats": int(n_boats),
+        "legs_per_boat": ctl.n_legs,
+        "model": ctl.predictor_info.get("used"),
+        "planner": cfg.planner.name,
+        "reward": cfg.planner.reward,
+        "truth_known": bool(ctl.truth_known),
+        "skill_warning": skill,
+        "speedup": ctl.speedup,
+        "field_time_origin": ctl.field.time_origin,
+        "velocity_scale": float(cfg.field.velocity_scale),
     }

@@ -85,8 +85,11 @@ class Rules:
 
     def describe(self) -> dict[str, float]:
         """The constants as a record (s)."""
-        return {"pair_tolerance_s": self.pair_tolerance_s, "max_gap_s": self.max_gap_s,
-                "reboot_back_s": self.reboot_back_s}
+        return {
+            "pair_tolerance_s": self.pair_tolerance_s,
+            "max_gap_s": self.max_gap_s,
+            "reboot_back_s": self.reboot_back_s,
+        }
 
 
 #: the rules every reader of a measurement follows (:class:`Rules`)
@@ -264,8 +267,10 @@ def sample_columns(recs) -> dict:
     def get(r, k):
         return r.get(k) if isinstance(r, dict) else getattr(r, k, None)
 
-    out = {k: np.array([get(r, k) for r in recs], np.float64).reshape(-1)
-           for k in ("time_boot_ms", "utc", "lat", "lon", "u", "v")}
+    out = {
+        k: np.array([get(r, k) for r in recs], np.float64).reshape(-1)
+        for k in ("time_boot_ms", "utc", "lat", "lon", "u", "v")
+    }
     for k, none in (("leg", -1), ("boot", 0)):
         out[k] = np.array([none if get(r, k) is None else int(get(r, k)) for r in recs], np.int64)
     return out

@@ -87,7 +87,7 @@ class Samples:
         return int(self.t.size)
 
     @classmethod
-    def from_latlon(cls, grid, t, lat, lon, u, v) -> "Samples":
+    def from_latlon(cls, grid, t, lat, lon, u, v) -> Samples:
         """Samples at geographic positions (degrees), e.g. from a vehicle's GPS."""
         r, c = grid.latlon_to_fcell(np.asarray(lat, float), np.asarray(lon, float))
         return cls(t, r, c, u, v)
@@ -141,7 +141,16 @@ class FieldSampler:
     cylinder, cell size in metres and speed in inflow units).
     """
 
-    def __init__(self, field, *, noise_std: float = 0.0, seed: int = 0, steps_per_leg: int | None = None, speed: float | None = None, sample_at: str = "end"):
+    def __init__(
+        self,
+        field,
+        *,
+        noise_std: float = 0.0,
+        seed: int = 0,
+        steps_per_leg: int | None = None,
+        speed: float | None = None,
+        sample_at: str = "end",
+    ):
         if steps_per_leg is None and speed is None:
             raise PlannerError("FieldSampler needs steps_per_leg or speed")
         if sample_at not in SAMPLE_AT:
@@ -221,7 +230,7 @@ class LoopOptions:
     forgetting: float = 0.8
 
     @classmethod
-    def of(cls, options: "LoopOptions | None" = None, **changes) -> "LoopOptions":
+    def of(cls, options: LoopOptions | None = None, **changes) -> LoopOptions:
         """``options`` (default: the defaults) with ``changes``; an unknown name raises ``TypeError``."""
         return replace(options or cls(), **changes)
 
@@ -229,7 +238,7 @@ class LoopOptions:
         """The options as :class:`PasstLoop` keywords."""
         return {f.name: getattr(self, f.name) for f in fields(self)}
 
-    def loop(self, predictor, grid, *, land=None, seed: int = 0) -> "PasstLoop":
+    def loop(self, predictor, grid, *, land=None, seed: int = 0) -> PasstLoop:
         """A fresh :class:`PasstLoop` with these options."""
         return PasstLoop(predictor, grid, land=land, seed=seed, **self.as_kwargs())
 
@@ -274,7 +283,25 @@ class PasstLoop:
             where the displaced KNODE wake is still the better prior): hence off by default.
     """
 
-    def __init__(self, predictor, grid, *, planner: str = "policy_gradient", planner_kw: dict | None = None, reward: str = "speed", path_length: int = 50, steps_per_leg: int = 10, prior: str = "forecast", gp_kw: dict | None = None, hyper: str = "every_leg", land=None, seed: int = 0, background: int = 0, prior_blend: str = "off", forgetting: float = 0.8):
+    def __init__(
+        self,
+        predictor,
+        grid,
+        *,
+        planner: str = "policy_gradient",
+        planner_kw: dict | None = None,
+        reward: str = "speed",
+        path_length: int = 50,
+        steps_per_leg: int = 10,
+        prior: str = "forecast",
+        gp_kw: dict | None = None,
+        hyper: str = "every_leg",
+        land=None,
+        seed: int = 0,
+        background: int = 0,
+        prior_blend: str = "off",
+        forgetting: float = 0.8,
+    ):
         from passt_mav.planning import REWARDS, make_planner
         from passt_mav.planning.rewards import REWARDS_USING_STD
         from passt_mav.reconstruction import GPReconstructor
@@ -283,7 +310,9 @@ class PasstLoop:
         if reward not in REWARDS:
             raise PlannerError(f"unknown reward {reward!r}; choose one of {', '.join(REWARDS)}")
         if hyper not in HYPER:
-            raise ReconstructionError(f"unknown GP hyper-parameter schedule {hyper!r}; choose one of {', '.join(HYPER)}")
+            raise ReconstructionError(
+                f"unknown GP hyper-parameter schedule {hyper!r}; choose one of {', '.join(HYPER)}"
+            )
         self.hyper = hyper
         if int(path_length) < 1 or int(steps_per_leg) < 1:
             raise PlannerError("path_length and steps_per_leg must be positive integers")
@@ -334,8 +363,18 @@ class PasstLoop:
         out[:, :, self.land] = np.nan
         return out
 
-    def plan_leg(self, state, start, t_start: float, dt: float = 1.0, *, steps: int | None = None, forecast=None,
-                 taken=None, avoid=None) -> LegPlan:
+    def plan_leg(
+        self,
+        state,
+        start,
+        t_start: float,
+        dt: float = 1.0,
+        *,
+        steps: int | None = None,
+        forecast=None,
+        taken=None,
+        avoid=None,
+    ) -> LegPlan:
         """Predict the leg, build the one-step reward map, plan ``path_length`` moves from ``start``.
 
         ``forecast``: a ready (S+1, 2, R, C) forecast from ``state`` (the lockstep engine
@@ -398,7 +437,11 @@ class PasstLoop:
         from passt_mav.planning import InformationModel
 
         self._ensure_background(state)
-        key = (self.leg_index, id(getattr(self.gp, "kernels_", None)), self.gp._background_factor() if self.gp.background is not None else None)
+        key = (
+            self.leg_index,
+            id(getattr(self.gp, "kernels_", None)),
+            self.gp._background_factor() if self.gp.background is not None else None,
+        )
         if getattr(self, "_info_key", None) != key:
             F, d, noise = self.gp.prior_factors(self.land)
             self._info_cache, self._info_key = InformationModel(F, d, noise, self.grid.shape), key
@@ -421,7 +464,9 @@ class PasstLoop:
 
         t0 = time.perf_counter()
         fc = leg.forecast
-        traj = FlowField(np.where(np.isfinite(fc), fc, np.nan), self.grid, leg.t_start + leg.dt * np.arange(fc.shape[0]))
+        traj = FlowField(
+            np.where(np.isfinite(fc), fc, np.nan), self.grid, leg.t_start + leg.dt * np.arange(fc.shape[0])
+        )
         # forecast at each sample's own position and time (time clipped to the leg)
         ts = np.clip(samples.t, traj.times[0], traj.times[-1])
         f_at = traj.interp(ts, samples.r, samples.c)
@@ -438,8 +483,16 @@ class PasstLoop:
                 self.gp.fit(xy, samples.uv, forecast_at_samples=f_at, samples_t=st)
         if getattr(self.gp, "n_inputs_", 2) == 2:
             st = None
-        mean, std = self.gp.reconstruct(xy, samples.uv, forecast=fc[-1], forecast_at_samples=f_at, mask=~self.land,
-                                        samples_t=st, t=t_end, with_std=self._needs_std or self.keep_std)
+        mean, std = self.gp.reconstruct(
+            xy,
+            samples.uv,
+            forecast=fc[-1],
+            forecast_at_samples=f_at,
+            mask=~self.land,
+            samples_t=st,
+            t=t_end,
+            with_std=self._needs_std or self.keep_std,
+        )
         leg.timings["gp"] = time.perf_counter() - t0
         self.std = std
         self.leg_index += 1
@@ -496,11 +549,21 @@ class PasstLoop:
             ats.append(FlowField(c, self.grid, traj.times).interp(ts, samples.r, samples.c))
         ok = np.isfinite(samples.uv).all(axis=1) & np.logical_and.reduce([np.isfinite(a).all(axis=1) for a in ats])
         sub_t = None if st is None else np.asarray(st)[ok]
-        ll = np.array([self.gp.innovation_loglik(xy[ok], samples.uv[ok] - a[ok], samples_t=sub_t) if ok.sum() >= 2 else 0.0 for a in ats])
+        ll = np.array(
+            [
+                self.gp.innovation_loglik(xy[ok], samples.uv[ok] - a[ok], samples_t=sub_t) if ok.sum() >= 2 else 0.0
+                for a in ats
+            ]
+        )
         self.log_weights_ = self.forgetting * self.log_weights_ + ll
         w = self.weights()
-        self.blend_history_.append({"leg": self.leg_index, "log_likelihood": {k: float(v) for k, v in zip(PRIOR_CANDIDATES, ll)},
-                                    "weights": {k: float(v) for k, v in zip(PRIOR_CANDIDATES, w)}})
+        self.blend_history_.append(
+            {
+                "leg": self.leg_index,
+                "log_likelihood": {k: float(v) for k, v in zip(PRIOR_CANDIDATES, ll)},
+                "weights": {k: float(v) for k, v in zip(PRIOR_CANDIDATES, w)},
+            }
+        )
         mix = sum(float(wk) * c for wk, c in zip(w, cands)).astype(np.float32)
         f_at = sum(float(wk) * a for wk, a in zip(w, ats))
         return mix, f_at
@@ -525,7 +588,9 @@ def _background_or_none(predictor, state, steps: int, land):
     try:
         return model_background(predictor, state, steps, land=land)
     except ReconstructionError as exc:
-        warnings.warn(f"no background covariance: {exc}; the GP uses its stationary kernels only", RuntimeWarning, stacklevel=2)
+        warnings.warn(
+            f"no background covariance: {exc}; the GP uses its stationary kernels only", RuntimeWarning, stacklevel=2
+        )
         return None
 
 

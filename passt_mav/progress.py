@@ -41,9 +41,20 @@ def _fmt_s(s: float) -> str:
 class Progress:
     """One unit of long work's progress (module docstring); build it with :func:`progress`."""
 
-    def __init__(self, iterable: Iterable | None = None, *, total: int | None = None, desc: str = "",
-                 unit: str = "it", quiet: bool = False, stream: TextIO | None = None, every_pct: float = 10.0,
-                 every_s: float = 30.0, min_s: float = 1.0, tty: bool | None = None):
+    def __init__(
+        self,
+        iterable: Iterable | None = None,
+        *,
+        total: int | None = None,
+        desc: str = "",
+        unit: str = "it",
+        quiet: bool = False,
+        stream: TextIO | None = None,
+        every_pct: float = 10.0,
+        every_s: float = 30.0,
+        min_s: float = 1.0,
+        tty: bool | None = None,
+    ):
         self.iterable = iterable
         if total is None and iterable is not None and hasattr(iterable, "__len__"):
             total = len(iterable)  # type: ignore[arg-type]
@@ -66,8 +77,7 @@ class Progress:
         if self.tty:
             from tqdm import tqdm
 
-            self._bar = tqdm(total=self.total, desc=desc, unit=unit, file=self.stream, dynamic_ncols=True,
-                             leave=False)
+            self._bar = tqdm(total=self.total, desc=desc, unit=unit, file=self.stream, dynamic_ncols=True, leave=False)
         else:
             self._line("started" if self.total is None else f"0/{self.total} {self._units(self.total)}")
 
@@ -163,12 +173,32 @@ class Progress:
         self.close()
 
 
-def progress(it: Iterable | int | None = None, desc: str = "", unit: str = "it", *, total: int | None = None,
-             quiet: bool = False, stream: TextIO | None = None, every_pct: float = 10.0, every_s: float = 30.0,
-             min_s: float = 1.0, tty: bool | None = None) -> Progress:
+def progress(
+    it: Iterable | int | None = None,
+    desc: str = "",
+    unit: str = "it",
+    *,
+    total: int | None = None,
+    quiet: bool = False,
+    stream: TextIO | None = None,
+    every_pct: float = 10.0,
+    every_s: float = 30.0,
+    min_s: float = 1.0,
+    tty: bool | None = None,
+) -> Progress:
     """A :class:`Progress` over an iterable, or for ``it`` (an int) units done by :meth:`Progress.update`,
     or of unknown length (``None``). Bar on a terminal stderr, plain lines otherwise (module docstring)."""
     if isinstance(it, int) and not isinstance(it, bool):
         it, total = None, it
-    return Progress(it, total=total, desc=desc, unit=unit, quiet=quiet, stream=stream, every_pct=every_pct,
-                    every_s=every_s, min_s=min_s, tty=tty)
+    return Progress(
+        it,
+        total=total,
+        desc=desc,
+        unit=unit,
+        quiet=quiet,
+        stream=stream,
+        every_pct=every_pct,
+        every_s=every_s,
+        min_s=min_s,
+        tty=tty,
+    )

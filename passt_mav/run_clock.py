@@ -61,8 +61,10 @@ class RunClock:
             self.say()
             return
         if self.mode == "utc":
-            raise UserError(f"field.clock is utc but {why}; set field.clock: boot (or give --field-time-at-boot) "
-                            "to map the vehicle's time since boot instead")
+            raise UserError(
+                f"field.clock is utc but {why}; set field.clock: boot (or give --field-time-at-boot) "
+                "to map the vehicle's time since boot instead"
+            )
         self.journal.say(f"clock: {why}; field time at vehicle boot = snapshot t0 ({self.clock.t_boot0:g})")
         self.journal.events.append(f"clock: boot ({why})")
 
@@ -80,9 +82,11 @@ class RunClock:
         t_now = t_boot0 + up / scale
         times = self.field.times
         if not times[0] <= t_now <= times[-1]:
-            when = _dt.datetime.fromtimestamp(utc_boot + up, _dt.timezone.utc).isoformat(timespec="seconds")
-            return (f"the vehicle's UTC {when} lies outside the field's snapshots ({origin} + "
-                    f"{times[0]:g}..{times[-1]:g} s)")
+            when = _dt.datetime.fromtimestamp(utc_boot + up, _dt.UTC).isoformat(timespec="seconds")
+            return (
+                f"the vehicle's UTC {when} lies outside the field's snapshots ({origin} + "
+                f"{times[0]:g}..{times[-1]:g} s)"
+            )
         self.clock = FieldClock(float(t_boot0), scale, source="utc")
         return None
 
@@ -114,13 +118,15 @@ class RunClock:
         anchors = [float(old_clock.get("t_boot0", self.clock.t_boot0))]
         anchors += [float(x) for x in old_clock.get("later_boots") or []]
         anchors += [anchors[-1]] * (b_last + 1 - len(anchors))  # boots the old summary never recorded
-        self.old_anchors = anchors[:b_last + 1]
+        self.old_anchors = anchors[: b_last + 1]
         self.boot_base = b_last + 1
         up = self.link.vehicle_uptime_s()
         if up is not None and up * 1000.0 + 3000.0 < tb_last:
             self.rebooted_since = (tb_last, up)
-            self.journal.events.append(f"resume: the vehicle rebooted since the run stopped (uptime {up:.0f} s, "
-                                       f"last sample at {tb_last / 1000:.0f} s)")
+            self.journal.events.append(
+                f"resume: the vehicle rebooted since the run stopped (uptime {up:.0f} s, "
+                f"last sample at {tb_last / 1000:.0f} s)"
+            )
 
     def restore(self, old_clock: dict) -> None:
         """On resume: keep the old run's boot clock (a UTC clock is read again from the vehicle), for the boot
@@ -132,9 +138,11 @@ class RunClock:
             tb_last, _ = self.rebooted_since
             # no clock to tell how long it was off: continue from the last sample (the gap is not counted)
             t_boot0 += tb_last / 1000.0 / self.clock.time_scale
-            self.journal.say(f"WARNING: the vehicle rebooted since the run stopped and the mission maps time since "
-                             f"boot: field time continues from the last sample ({t_boot0:.1f}); the time it was "
-                             "off is not counted")
+            self.journal.say(
+                f"WARNING: the vehicle rebooted since the run stopped and the mission maps time since "
+                f"boot: field time continues from the last sample ({t_boot0:.1f}); the time it was "
+                "off is not counted"
+            )
         self.clock = FieldClock(t_boot0, float(old_clock.get("time_scale", self.clock.time_scale)))
         self.fixed = True
 

@@ -22,7 +22,7 @@ import datetime as _dt
 import logging
 import threading
 import time
-from typing import Callable
+from collections.abc import Callable
 
 import numpy as np
 
@@ -43,7 +43,7 @@ _RETRIED = (M.MAV_MISSION_OPERATION_CANCELLED, M.MAV_MISSION_ERROR)
 
 def utc_now() -> str:
     """Now as ISO-8601 UTC, to the second (``2026-01-01T12:00:00Z``)."""
-    return _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds").replace("+00:00", "Z")
+    return _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds").replace("+00:00", "Z")
 
 
 class Paused(Exception):
@@ -133,8 +133,18 @@ class VehicleSession:
     #: vehicle seconds to wait for another ground station's mission transfer (our upload DENIED meanwhile)
     FOREIGN_WAIT_S = 60.0
 
-    def __init__(self, link, vehicle, journal: Journal, *, speed_mps: float, on_reboot: str = "resume",
-                 speedup: float = 1.0, ready_timeout_s: float = 120.0, pause_timeout_s: float = 300.0):
+    def __init__(
+        self,
+        link,
+        vehicle,
+        journal: Journal,
+        *,
+        speed_mps: float,
+        on_reboot: str = "resume",
+        speedup: float = 1.0,
+        ready_timeout_s: float = 120.0,
+        pause_timeout_s: float = 300.0,
+    ):
         self.link, self.vehicle, self.journal = link, vehicle, journal
         self.speed = float(speed_mps)
         self.on_reboot = on_reboot
@@ -197,8 +207,16 @@ class VehicleSession:
         return self._mission_watch
 
     # -- the leg swap ----------------------------------------------------------------------------
-    def swap(self, i: int, items, t0w: float, *, on_armed: Callable[[], None], on_start: Callable[[], None],
-             attempts: int = 3) -> tuple[int, float, float, float | None]:
+    def swap(
+        self,
+        i: int,
+        items,
+        t0w: float,
+        *,
+        on_armed: Callable[[], None],
+        on_start: Callable[[], None],
+        attempts: int = 3,
+    ) -> tuple[int, float, float, float | None]:
         """HOLD, verified upload, set-current 1, arm, AUTO: the transactional leg swap.
 
         A link lost on the way (LinkTimeout while the link is lost or closed) is reconnected and
@@ -211,11 +229,16 @@ class VehicleSession:
             try:
                 return self._swap_once(i, items, t0w, attempt, on_armed, on_start)
             except MavlinkError as exc:
-                if not (isinstance(exc, LinkTimeout) or self.link.closed_reason is not None) or not self.link.lost \
-                        or attempt == attempts:
+                if (
+                    not (isinstance(exc, LinkTimeout) or self.link.closed_reason is not None)
+                    or not self.link.lost
+                    or attempt == attempts
+                ):
                     raise
-                self._say(f"leg {i + 1}: link lost during the leg swap ({exc}); reconnecting and starting the swap "
-                          f"again from HOLD (attempt {attempt + 1}/{attempts})")
+                self._say(
+                    f"leg {i + 1}: link lost during the leg swap ({exc}); reconnecting and starting the swap "
+                    f"again from HOLD (attempt {attempt + 1}/{attempts})"
+                )
                 self.journal.note("link_lost", f"leg {i}: link lost during the swap at {utc_now()}: {exc}")
                 self.link.reconnect()
         raise AssertionError("unreachable")
@@ -279,8 +302,11 @@ class VehicleSession:
                 last = self._read_back(items, up.opaque_id)
                 if last is None:
                     return k
-            self._say(f"leg {i + 1}: upload try {k} failed ({last}); retrying" if k < tries else
-                      f"leg {i + 1}: upload failed {tries} times ({last})")
+            self._say(
+                f"leg {i + 1}: upload try {k} failed ({last}); retrying"
+                if k < tries
+                else f"leg {i + 1}: upload failed {tries} times ({last})"
+            )
             self.journal.events.append(f"leg {i}: upload try {k} failed: {last}")
             time.sleep(0.05)
         assert last is not None
@@ -307,8 +333,10 @@ class VehicleSession:
         """Our upload was DENIED: ArduPilot serves one upload at a time and another ground station's is in
         progress. Says so once; returns when (monotonic s) the wait began."""
         who = self.watch.changed((0, 0)) or "not visible on this link"
-        self._say(f"leg {i + 1}: the vehicle denied our upload: another ground station is transferring a mission "
-                  f"({who}); waiting up to {self.FOREIGN_WAIT_S:g} s (vehicle time) for it to finish")
+        self._say(
+            f"leg {i + 1}: the vehicle denied our upload: another ground station is transferring a mission "
+            f"({who}); waiting up to {self.FOREIGN_WAIT_S:g} s (vehicle time) for it to finish"
+        )
         self.journal.events.append(f"leg {i}: upload denied at {utc_now()}: another station's transfer ({who})")
         return time.monotonic()
 
@@ -334,14 +362,19 @@ class VehicleSession:
             what = replaced_what(items, got)
             n = self._replaced[i] = self._replaced.get(i, 0) + 1
             log.info("leg %d: mission on the vehicle differs: %s", i, diff)
-            self.journal.note("mission_replaced", f"leg {i}: mission replaced on the vehicle at {utc_now()} ({who}): "
-                                                  f"{what}")
+            self.journal.note(
+                "mission_replaced", f"leg {i}: mission replaced on the vehicle at {utc_now()} ({who}): {what}"
+            )
             if n > self.FOREIGN_REPLACEMENTS:
                 v.hold()
-                raise Paused(f"leg {i}: another ground station replaced our mission {n} times ({who}); stopped in "
-                             f"HOLD; stop its uploads, then continue with --resume")
-            self._say(f"leg {i + 1}: another ground station replaced our mission on the vehicle ({who}; {what}); "
-                      f"HOLD, uploading ours again, resuming at item {resume_seq}")
+                raise Paused(
+                    f"leg {i}: another ground station replaced our mission {n} times ({who}); stopped in "
+                    f"HOLD; stop its uploads, then continue with --resume"
+                )
+            self._say(
+                f"leg {i + 1}: another ground station replaced our mission on the vehicle ({who}; {what}); "
+                f"HOLD, uploading ours again, resuming at item {resume_seq}"
+            )
             v.hold()
             self.upload(i, items)
             v.mission.set_current(resume_seq)
@@ -355,8 +388,10 @@ class VehicleSession:
         try:
             self.link.command_long(M.MAV_CMD_DO_CHANGE_SPEED, 1, self.speed, -1)
         except (CommandRejected, LinkTimeout) as exc:
-            self._say(f"leg {i + 1}: WARNING: the leg's speed {self.speed:g} m/s was not set again after {why} "
-                      f"({exc}); the vehicle goes on at its WP_SPEED")
+            self._say(
+                f"leg {i + 1}: WARNING: the leg's speed {self.speed:g} m/s was not set again after {why} "
+                f"({exc}); the vehicle goes on at its WP_SPEED"
+            )
             self.journal.events.append(f"leg {i}: speed not set again after {why}: {exc}")
 
     # -- flying one leg, with its faults ------------------------------------------------------------
@@ -391,8 +426,7 @@ class VehicleSession:
         except MavlinkError as exc:
             # DENIED: another station's upload is in progress (the vehicle serves no download
             # meanwhile): read back once it is over. A lost link: recovered by fly(), then read back.
-            if getattr(exc, "result", None) != M.MAV_MISSION_DENIED and not self.link.lost \
-                    and self.link.error is None:
+            if getattr(exc, "result", None) != M.MAV_MISSION_DENIED and not self.link.lost and self.link.error is None:
                 raise
 
     def _wait_complete(self, n_items: int) -> bool:
@@ -402,6 +436,7 @@ class VehicleSession:
 
         def done() -> bool:
             return (p.state == M.MISSION_STATE_COMPLETE and p.total == n_items) or n_items in p.reached
+
         with p.changed:
             if done():
                 return True
@@ -442,8 +477,10 @@ class VehicleSession:
         self.rebooted.clear()
         boot, last_tb, first_tb = self.reboot_info or (0, 0, 0)
         seq = int(self.resume_seq)
-        self._say(f"leg {i + 1}: the autopilot rebooted (its time since boot went from {last_tb / 1000:.1f} s back to "
-                  f"{first_tb / 1000:.1f} s): not a pilot; waiting for it to be ready (EKF)")
+        self._say(
+            f"leg {i + 1}: the autopilot rebooted (its time since boot went from {last_tb / 1000:.1f} s back to "
+            f"{first_tb / 1000:.1f} s): not a pilot; waiting for it to be ready (EKF)"
+        )
         self.journal.note("reboot", f"leg {i}: vehicle rebooted at {utc_now()} (boot {boot}, was at item {seq})")
         if self.link.lost:
             self.link.reconnect()
@@ -451,8 +488,10 @@ class VehicleSession:
         self.wait_ready()
         if self.on_reboot == "hold":
             v.hold()
-            raise Paused(f"leg {i}: the autopilot rebooted mid-leg; vehicle.on_reboot is 'hold': stopped in HOLD "
-                         f"(the leg was at item {seq}/{n_items}; continue with --resume)")
+            raise Paused(
+                f"leg {i}: the autopilot rebooted mid-leg; vehicle.on_reboot is 'hold': stopped in HOLD "
+                f"(the leg was at item {seq}/{n_items}; continue with --resume)"
+            )
         diff = differences(list(items), v.mission.download(), 0)
         if diff:
             self._say(f"leg {i + 1}: the mission on the vehicle differs after the reboot ({diff}); re-uploading")
@@ -464,8 +503,11 @@ class VehicleSession:
             # the mission's DO_CHANGE_SPEED (seq 1) lies behind the resumed item and the reboot forgot it
             self.set_speed_again(i, "the reboot")
         self._say(f"leg {i + 1}: mission verified after the reboot; re-armed, AUTO again at item {seq}/{n_items}")
-        self.journal.note("reboot_recovered", f"leg {i}: resumed after the reboot at item {seq}/{n_items}"
-                          + (" (mission re-uploaded)" if diff else " (stored mission verified)"))
+        self.journal.note(
+            "reboot_recovered",
+            f"leg {i}: resumed after the reboot at item {seq}/{n_items}"
+            + (" (mission re-uploaded)" if diff else " (stored mission verified)"),
+        )
         return time.monotonic() - t0
 
     def recover_link(self, i: int, items) -> None:
@@ -498,15 +540,18 @@ class VehicleSession:
             if was_auto:
                 v.set_mode("AUTO")
         self.journal.events.append(f"leg {i}: reconnected, mission verified, item {cur.seq}/{cur.total}")
-        self._say(f"leg {i + 1}: reconnected; mission on the vehicle verified, at item {cur.seq}/"
-                  f"{getattr(cur, 'total', '?')}")
+        self._say(
+            f"leg {i + 1}: reconnected; mission on the vehicle verified, at item {cur.seq}/{getattr(cur, 'total', '?')}"
+        )
 
     def pause(self, i: int, mode: int) -> float:
         """A pilot took the vehicle out of AUTO: wait up to ``pause_timeout_s`` for AUTO to come back.
         Returns the wall seconds waited; :class:`Paused` when it did not, :class:`Rebooted` if it rebooted."""
         name = ROVER_MODE_NAMES.get(mode, str(mode))
-        self._say(f"leg {i + 1}: the vehicle left AUTO (mode {name}): a pilot has control; pausing "
-                  f"(waiting up to {self.pause_timeout_s:.0f} s for AUTO)")
+        self._say(
+            f"leg {i + 1}: the vehicle left AUTO (mode {name}): a pilot has control; pausing "
+            f"(waiting up to {self.pause_timeout_s:.0f} s for AUTO)"
+        )
         self.journal.note("pilot_takeover", f"leg {i}: vehicle left AUTO (mode {name}) at {utc_now()}")
         t0 = time.monotonic()
         while time.monotonic() - t0 < self.pause_timeout_s:
@@ -535,9 +580,14 @@ class VehicleSession:
         nbytes, t1 = st.vehicle_bytes - before[2], self.link.vehicle_uptime_s()
         rtt = self.link.rtt
         bps = nbytes / (t1 - before[3]) if t1 is not None and before[3] is not None and t1 - before[3] > 1.0 else None
-        return {"rtt_ms": None if rtt is None else round(rtt * 1000.0, 3),
-                "loss": (drops / (rec + drops)) if rec + drops else 0.0, "messages": int(rec), "drops": int(drops),
-                "vehicle_bytes": int(nbytes), "vehicle_bytes_per_s": None if bps is None else round(bps, 1)}
+        return {
+            "rtt_ms": None if rtt is None else round(rtt * 1000.0, 3),
+            "loss": (drops / (rec + drops)) if rec + drops else 0.0,
+            "messages": int(rec),
+            "drops": int(drops),
+            "vehicle_bytes": int(nbytes),
+            "vehicle_bytes_per_s": None if bps is None else round(bps, 1),
+        }
 
 
 def expected_vehicle_s(grid, wm, speed_mps: float) -> float:

@@ -29,8 +29,14 @@ SPEEDUP = 50.0
 
 
 def link_config(**kw) -> LinkConfig:
-    base = dict(connect="tcp:127.0.0.1:5760", timeout_s=0.25, link_lost_s=0.5, connect_timeout_s=5.0,
-                heartbeat_period_s=0.05, reconnect_backoff_s=(0.05, 0.2))
+    base = dict(
+        connect="tcp:127.0.0.1:5760",
+        timeout_s=0.25,
+        link_lost_s=0.5,
+        connect_timeout_s=5.0,
+        heartbeat_period_s=0.05,
+        reconnect_backoff_s=(0.05, 0.2),
+    )
     base.update(kw)
     return LinkConfig(**base)
 
@@ -40,8 +46,16 @@ def inprocess_factory(sim: Simulator, sim_link: SimLinkConfig | None = None):
 
 
 @contextlib.contextmanager
-def served(config: SimConfig | None = None, *, field=None, speedup: float = SPEEDUP, sim_link: SimLinkConfig | None = None,
-           link_kw: dict | None = None, connect: bool = True, **sim_kw):
+def served(
+    config: SimConfig | None = None,
+    *,
+    field=None,
+    speedup: float = SPEEDUP,
+    sim_link: SimLinkConfig | None = None,
+    link_kw: dict | None = None,
+    connect: bool = True,
+    **sim_kw,
+):
     """(sim, link) with the sim served in a thread and the link connected (closed on exit)."""
     sim = Simulator(field, home=HOME, config=config or SimConfig.fast(), **sim_kw)
     link = Link(link_config(**(link_kw or {})), connection_factory=inprocess_factory(sim, sim_link))
@@ -62,8 +76,9 @@ def vehicle(link: Link, **kw) -> Vehicle:
 
 def waypoints(offsets_deg, mission_type: int = 0) -> list[MissionItem]:
     """NAV_WAYPOINTs at HOME + (dlat, dlon) offsets (seq set later by with_home)."""
-    return [MissionItem(0, lat=HOME[0] + a, lon=HOME[1] + b, param2=2.0, mission_type=mission_type)
-            for a, b in offsets_deg]
+    return [
+        MissionItem(0, lat=HOME[0] + a, lon=HOME[1] + b, param2=2.0, mission_type=mission_type) for a, b in offsets_deg
+    ]
 
 
 def lockstep_connection(ep, autostep: float = 0.05):

@@ -34,9 +34,19 @@ class Download:
 
 
 class QgcLike:
-    def __init__(self, connect: str, *, period_s: float = 40.0, target_system: int = 1, target_component: int = 1,
-                 sysid: int = 255, compid: int = 190, item_timeout_s: float = 1.5, retries: int = 5,
-                 retry_after_s: float = 2.0):
+    def __init__(
+        self,
+        connect: str,
+        *,
+        period_s: float = 40.0,
+        target_system: int = 1,
+        target_component: int = 1,
+        sysid: int = 255,
+        compid: int = 190,
+        item_timeout_s: float = 1.5,
+        retries: int = 5,
+        retry_after_s: float = 2.0,
+    ):
         self.connect, self.period_s = connect, period_s
         self.target = (target_system, target_component)
         self.sysid, self.compid = sysid, compid
@@ -50,8 +60,9 @@ class QgcLike:
         self.conn = None
 
     def start(self) -> QgcLike:
-        self.conn = mavutil.mavlink_connection(self.connect, source_system=self.sysid, source_component=self.compid,
-                                               dialect="ardupilotmega")
+        self.conn = mavutil.mavlink_connection(
+            self.connect, source_system=self.sysid, source_component=self.compid, dialect="ardupilotmega"
+        )
         self._th = threading.Thread(target=self._run, name="qgc-like", daemon=True)
         self._th.start()
         return self
@@ -89,7 +100,8 @@ class QgcLike:
         if (getattr(m, "target_system", None), getattr(m, "target_component", None)) != (self.sysid, self.compid):
             return None
         if m.get_type() in ("MISSION_REQUEST", "MISSION_REQUEST_INT") or (
-                m.get_type() == "MISSION_ACK" and not self._downloading):
+            m.get_type() == "MISSION_ACK" and not self._downloading
+        ):
             self.foreign.append(f"{m.get_type()} {getattr(m, 'seq', getattr(m, 'type', ''))}")
         return m
 
@@ -116,11 +128,15 @@ class QgcLike:
             return Download(False, error="no MISSION_COUNT", seconds=time.monotonic() - t0)
         items = []
         for seq in range(int(m.count)):
-            it = self._ask(lambda seq=seq: mav.mission_request_int_send(ts, tc, seq, 0), ("MISSION_ITEM_INT",),
-                           lambda x, seq=seq: x.seq == seq)
+            it = self._ask(
+                lambda seq=seq: mav.mission_request_int_send(ts, tc, seq, 0),
+                ("MISSION_ITEM_INT",),
+                lambda x, seq=seq: x.seq == seq,
+            )
             if it is None:
-                return Download(False, items, error=f"no MISSION_ITEM_INT {seq} of {m.count}",
-                                seconds=time.monotonic() - t0)
+                return Download(
+                    False, items, error=f"no MISSION_ITEM_INT {seq} of {m.count}", seconds=time.monotonic() - t0
+                )
             items.append((int(it.seq), int(it.command), it.x * 1e-7, it.y * 1e-7))
         mav.mission_ack_send(ts, tc, 0, 0)
         return Download(True, items, seconds=time.monotonic() - t0)

@@ -94,10 +94,13 @@ class SimClient:
     # -- missions ------------------------------------------------------------------------
     @staticmethod
     def waypoint(seq: int, lat: float, lon: float, mission_type: int = 0, command: int = 16, frame: int = 6):
-        return M.MAVLink_mission_item_int_message(1, 1, seq, frame, command, 0, 1, 0, 0, 0, 0,
-                                                  int(round(lat * 1e7)), int(round(lon * 1e7)), 0.0, mission_type)
+        return M.MAVLink_mission_item_int_message(
+            1, 1, seq, frame, command, 0, 1, 0, 0, 0, 0, int(round(lat * 1e7)), int(round(lon * 1e7)), 0.0, mission_type
+        )
 
-    def upload(self, items, mission_type: int = 0, timeout: float = 60.0, item_timeout: float = 1.5, max_count_tries: int = 20):
+    def upload(
+        self, items, mission_type: int = 0, timeout: float = 60.0, item_timeout: float = 1.5, max_count_tries: int = 20
+    ):
         """Upload ``items`` (MISSION_ITEM_INT messages, seq 0..n-1); returns the final MISSION_ACK.
 
         Retries like a careful GCS: resends MISSION_COUNT until the first request
@@ -113,8 +116,11 @@ class SimClient:
         while self.sim.t < end:
             self.mav.mission_count_send(1, 1, n, mission_type)
             tries += 1
-            m = self.wait(("MISSION_REQUEST", "MISSION_REQUEST_INT", "MISSION_ACK"),
-                          lambda m: m.mission_type == mission_type, timeout=item_timeout)
+            m = self.wait(
+                ("MISSION_REQUEST", "MISSION_REQUEST_INT", "MISSION_ACK"),
+                lambda m: m.mission_type == mission_type,
+                timeout=item_timeout,
+            )
             if m is None:
                 if tries >= max_count_tries:
                     return None
@@ -128,19 +134,28 @@ class SimClient:
                 if 0 <= seq < n:
                     self.mav.send(items[seq])
                     sent_last = seq == n - 1
-                m = self.wait(("MISSION_REQUEST", "MISSION_REQUEST_INT", "MISSION_ACK"),
-                              lambda m: m.mission_type == mission_type, timeout=item_timeout)
+                m = self.wait(
+                    ("MISSION_REQUEST", "MISSION_REQUEST_INT", "MISSION_ACK"),
+                    lambda m: m.mission_type == mission_type,
+                    timeout=item_timeout,
+                )
                 if m is None and sent_last:
                     # the final ACK may be lost: resend the last item; the vehicle answers ERROR (not receiving)
                     self.mav.send(items[n - 1])
-                    m = self.wait(("MISSION_REQUEST", "MISSION_REQUEST_INT", "MISSION_ACK"),
-                                  lambda m: m.mission_type == mission_type, timeout=item_timeout)
+                    m = self.wait(
+                        ("MISSION_REQUEST", "MISSION_REQUEST_INT", "MISSION_ACK"),
+                        lambda m: m.mission_type == mission_type,
+                        timeout=item_timeout,
+                    )
                 if m is None and self.sim.t >= end:
                     return None
                 if m is None:
                     # silence: the vehicle re-requests after ~1 s; wait a bit longer before giving up
-                    m = self.wait(("MISSION_REQUEST", "MISSION_REQUEST_INT", "MISSION_ACK"),
-                                  lambda m: m.mission_type == mission_type, timeout=8.0)
+                    m = self.wait(
+                        ("MISSION_REQUEST", "MISSION_REQUEST_INT", "MISSION_ACK"),
+                        lambda m: m.mission_type == mission_type,
+                        timeout=8.0,
+                    )
                     if m is None:
                         break
         return None
@@ -151,7 +166,9 @@ class SimClient:
         count = None
         while count is None and self.sim.t < end:
             self.mav.mission_request_list_send(1, 1, mission_type)
-            m = self.wait(("MISSION_COUNT", "MISSION_ACK"), lambda m: m.mission_type == mission_type, timeout=item_timeout)
+            m = self.wait(
+                ("MISSION_COUNT", "MISSION_ACK"), lambda m: m.mission_type == mission_type, timeout=item_timeout
+            )
             if m is not None:
                 if m.get_type() == "MISSION_ACK":
                     return m
@@ -166,7 +183,11 @@ class SimClient:
                 self.mav.mission_request_send(1, 1, seq, mission_type)
             else:
                 self.mav.mission_request_int_send(1, 1, seq, mission_type)
-            m = self.wait((want, "MISSION_ACK"), lambda m, seq=seq: m.get_type() == "MISSION_ACK" or m.seq == seq, timeout=item_timeout)
+            m = self.wait(
+                (want, "MISSION_ACK"),
+                lambda m, seq=seq: m.get_type() == "MISSION_ACK" or m.seq == seq,
+                timeout=item_timeout,
+            )
             if m is None:
                 continue
             if m.get_type() == "MISSION_ACK":

@@ -143,8 +143,16 @@ class Sitl:
         return p
 
     def _start(self, wipe: bool) -> None:
-        cmd = [str(SITL_DIR / "start-sitl"), str(self.workdir), "-I", str(self.instance),
-               "--speedup", f"{self.speedup:g}", "--home", f"{self.home[0]},{self.home[1]}"]
+        cmd = [
+            str(SITL_DIR / "start-sitl"),
+            str(self.workdir),
+            "-I",
+            str(self.instance),
+            "--speedup",
+            f"{self.speedup:g}",
+            "--home",
+            f"{self.home[0]},{self.home[1]}",
+        ]
         params = self._params_file()
         if params is not None:
             cmd += ["--params", str(params)]
@@ -226,8 +234,7 @@ class Sitl:
         from pymavlink import mavutil
 
         os.environ.setdefault("MAVLINK20", "1")
-        m = mavutil.mavlink_connection(self.connect, source_system=255, source_component=190,
-                                       autoreconnect=False)
+        m = mavutil.mavlink_connection(self.connect, source_system=255, source_component=190, autoreconnect=False)
         hb = m.wait_heartbeat(timeout=timeout)
         if hb is None:
             m.close()
@@ -235,8 +242,15 @@ class Sitl:
         return m
 
 
-def start(workdir: Path, *, speedup: float = 10.0, home: tuple[float, float] = HOME,
-          params: Path | str | None = None, scripts: Path | str | None = None, sysid: int = 1) -> Sitl:
+def start(
+    workdir: Path,
+    *,
+    speedup: float = 10.0,
+    home: tuple[float, float] = HOME,
+    params: Path | str | None = None,
+    scripts: Path | str | None = None,
+    sysid: int = 1,
+) -> Sitl:
     """Start SITL in a fresh ``workdir`` on a free instance; the caller must ``stop()`` it.
 
     ``params``: an ArduPilot .parm file loaded after rover.parm and motorboat.parm; ``scripts``: a
@@ -249,9 +263,16 @@ def start(workdir: Path, *, speedup: float = 10.0, home: tuple[float, float] = H
     workdir = Path(workdir)
     workdir.mkdir(parents=True, exist_ok=True)
     n, lock = _claim_instance()
-    s = Sitl(workdir=workdir, instance=n, speedup=speedup, home=home,
-             params=Path(params) if params else None, scripts=Path(scripts) if scripts else None,
-             sysid=sysid, _lock=lock)
+    s = Sitl(
+        workdir=workdir,
+        instance=n,
+        speedup=speedup,
+        home=home,
+        params=Path(params) if params else None,
+        scripts=Path(scripts) if scripts else None,
+        sysid=sysid,
+        _lock=lock,
+    )
     try:
         s._start(wipe=True)
     except BaseException:

@@ -11,7 +11,7 @@ import pytest
 from passt_mav.cli import main
 from passt_mav.commands import bench
 
-GOOD = '''
+GOOD = """
 import argparse, json
 ap = argparse.ArgumentParser()
 ap.add_argument("--json", action="store_true")
@@ -21,26 +21,26 @@ print("warming up")  # text before the JSON must not break the collector
 out = {"time_per_snapshot": 0.5, "nested": {"a": 2, "pair": [3, 4.5]}, "long": list(range(20)),
        "quick": a.quick, "label": "ok"}
 print(json.dumps(out, indent=1) if a.json else out)
-'''
+"""
 
-NOQUICK = '''
+NOQUICK = """
 import argparse, json
 ap = argparse.ArgumentParser()
 ap.add_argument("--json", action="store_true")
 a = ap.parse_args()  # an unknown option would exit 2
 print(json.dumps({"items_per_s": 48.0}))
-'''
+"""
 
-FAIL = '''
+FAIL = """
 import sys
 print("Traceback: something", file=sys.stderr)
 print("RuntimeError: boom", file=sys.stderr)
 sys.exit(3)
-'''
+"""
 
 NOJSON = 'print("hello, no json here")\n'
 
-SLOW = 'import time\ntime.sleep(30)\n'
+SLOW = "import time\ntime.sleep(30)\n"
 
 
 @pytest.fixture
@@ -92,13 +92,22 @@ def test_all_ok_and_json(bench_dir, capsys):
 
 
 def test_ratios():
-    recs = {"good": {"status": "ok", "result": {"t": 0.5, "nested": {"a": 2}, "up": [{"x": 3.0}, {"x": 6.0}]}},
-            "models": {"status": "ok", "result": {"knode": {"predict_s_per_snapshot": 0.01}}},
-            "cfd": {"status": "ok", "result": {"time_per_snapshot": 1.5}},
-            "bad": {"status": "failed", "error": "x"}}
-    r = bench.compute_ratios(recs, [("t/a", "good.t", "good.nested.a"), ("missing", "bad.t", "good.t"),
-                                    ("glob", "cfd.time_per_snapshot", "models.*predict*per_snapshot*"),
-                                    ("index", "good.up[1].x", "good.up[0].x"), ("figure", "good.t", "")])
+    recs = {
+        "good": {"status": "ok", "result": {"t": 0.5, "nested": {"a": 2}, "up": [{"x": 3.0}, {"x": 6.0}]}},
+        "models": {"status": "ok", "result": {"knode": {"predict_s_per_snapshot": 0.01}}},
+        "cfd": {"status": "ok", "result": {"time_per_snapshot": 1.5}},
+        "bad": {"status": "failed", "error": "x"},
+    }
+    r = bench.compute_ratios(
+        recs,
+        [
+            ("t/a", "good.t", "good.nested.a"),
+            ("missing", "bad.t", "good.t"),
+            ("glob", "cfd.time_per_snapshot", "models.*predict*per_snapshot*"),
+            ("index", "good.up[1].x", "good.up[0].x"),
+            ("figure", "good.t", ""),
+        ],
+    )
     assert r[0]["value"] == pytest.approx(0.25)
     assert r[1]["value"] is None and "bad.t missing" in r[1]["note"]
     assert r[2]["value"] == pytest.approx(150.0) and r[2]["denominator"] == "models.knode.predict_s_per_snapshot"

@@ -82,8 +82,9 @@ def _no_answer(*_a, **_k):
     raise TimeoutError("timed out")
 
 
-@pytest.mark.parametrize("case", ["refused", "unknown-host", "unreachable", "no-answer", "no-serial-device",
-                                  "silent-port", "other-protocol"])
+@pytest.mark.parametrize(
+    "case", ["refused", "unknown-host", "unreachable", "no-answer", "no-serial-device", "silent-port", "other-protocol"]
+)
 def test_run_retries_with_one_line_per_attempt_then_one_line_and_exit_2(case, capsys, tmp_path, monkeypatch):
     server = None
     if case in ("silent-port", "other-protocol"):
@@ -99,12 +100,22 @@ def test_run_retries_with_one_line_per_attempt_then_one_line_and_exit_2(case, ca
         from passt_mav.mavlink import link as link_mod
 
         monkeypatch.setattr(link_mod.socket, "create_connection", _unreachable if case == "unreachable" else _no_answer)
-    cause = {"refused": "connection refused", "unknown-host": "unknown host", "unreachable": "unreachable",
-             "no-answer": "no answer within", "no-serial-device": "no such serial device",
-             "silent-port": "nothing arrived", "other-protocol": "no MAVLink frame"}[case]
+    cause = {
+        "refused": "connection refused",
+        "unknown-host": "unknown host",
+        "unreachable": "unreachable",
+        "no-answer": "no answer within",
+        "no-serial-device": "no such serial device",
+        "silent-port": "nothing arrived",
+        "other-protocol": "no MAVLink frame",
+    }[case]
     try:
-        out, err = _one_line_exit_2(capsys, ["run", MISSION, "--connect", address, "--ready-timeout", "1.2",
-                                             "--out", tmp_path / "run", *FAST], f"no vehicle at {address}", cause)
+        out, err = _one_line_exit_2(
+            capsys,
+            ["run", MISSION, "--connect", address, "--ready-timeout", "1.2", "--out", tmp_path / "run", *FAST],
+            f"no vehicle at {address}",
+            cause,
+        )
     finally:
         if server is not None:
             server.close()
@@ -116,9 +127,25 @@ def test_run_retries_with_one_line_per_attempt_then_one_line_and_exit_2(case, ca
 def test_run_refused_from_the_shell_prints_one_line_and_exits_2(tmp_path):
     """The issue's case as a user types it: nothing listens on the port."""
     port = free_port()
-    p = subprocess.run([sys.executable, "-m", "passt_mav.cli", "run", MISSION, "--connect", f"tcp:127.0.0.1:{port}",
-                        "--ready-timeout", "1", "--out", str(tmp_path / "run"), *FAST],
-                       capture_output=True, text=True, timeout=300)
+    p = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "passt_mav.cli",
+            "run",
+            MISSION,
+            "--connect",
+            f"tcp:127.0.0.1:{port}",
+            "--ready-timeout",
+            "1",
+            "--out",
+            str(tmp_path / "run"),
+            *FAST,
+        ],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert p.returncode == 2, p.stderr
     assert p.stderr.strip().splitlines() == [p.stderr.strip()] and "Traceback" not in p.stdout + p.stderr
     assert p.stderr.startswith(f"passt-mav: error: no vehicle at tcp:127.0.0.1:{port}") and "refused" in p.stderr
@@ -140,10 +167,23 @@ def test_file_errors_of_every_command_are_one_line(capsys, tmp_path):
         (["plan", MISSION, "--model", "none", "--out", afile / "sub"], str(afile)),
         (["data", "import", nope.with_suffix(".nc"), "--out", tmp_path / "x.nc"], "nope.nc"),
         (["data", "info", nope.with_suffix(".nc")], "nope.nc"),
-        (["model", "evaluate", "--data", nope.with_suffix(".nc"), "--model", "persistence", "--out", tmp_path / "o"],
-         "nope.nc"),
-        (["model", "evaluate", "--data", "builtin:ocean", "--model", nope.with_suffix(".pt"), "--out", tmp_path / "o"],
-         "nope"),
+        (
+            ["model", "evaluate", "--data", nope.with_suffix(".nc"), "--model", "persistence", "--out", tmp_path / "o"],
+            "nope.nc",
+        ),
+        (
+            [
+                "model",
+                "evaluate",
+                "--data",
+                "builtin:ocean",
+                "--model",
+                nope.with_suffix(".pt"),
+                "--out",
+                tmp_path / "o",
+            ],
+            "nope",
+        ),
         (["model", "train", "--data", nope.with_suffix(".nc"), "--model", "dmd", "--out", tmp_path / "o"], "nope.nc"),
         (["evaluate", "--data", nope.with_suffix(".nc"), "--model", "persistence", "--out", tmp_path / "o"], "nope.nc"),
         (["demo", "--field", nope.with_suffix(".nc")], "nope.nc"),

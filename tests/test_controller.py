@@ -15,9 +15,9 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from mavlink_helpers import HOME, served, vehicle
 
 import geo
-from mavlink_helpers import HOME, served, vehicle
 from passt_mav.commands.run import LEAN_STREAMS
 from passt_mav.controller import FieldClock, MissionController, build_predictor, thin_samples, to_field_units
 from passt_mav.fields import FlowField
@@ -37,8 +37,14 @@ DLAT, DLON = 0.00036, 0.00047  # ~40 m cells at 40 deg N
 def wave_field() -> FlowField:
     """A current that changes everywhere at once (period 2400 s: monotonic over the ~200 s mission),
     plus fixed spatial structure: persistence drifts away from it, a few samples correct it."""
-    grid = geo.RegionGrid(HOME[0] - DLAT * (N - 1) / 2, HOME[1] - DLON * (N - 1) / 2,
-                          HOME[0] + DLAT * (N - 1) / 2, HOME[1] + DLON * (N - 1) / 2, N, N)
+    grid = geo.RegionGrid(
+        HOME[0] - DLAT * (N - 1) / 2,
+        HOME[1] - DLON * (N - 1) / 2,
+        HOME[0] + DLAT * (N - 1) / 2,
+        HOME[1] + DLON * (N - 1) / 2,
+        N,
+        N,
+    )
     # one hour: a 3-leg run takes ~1000 s of vehicle time, more on a loaded machine (the sim's
     # clock runs on while the controller plans and uploads); samples after the field's end have
     # no truth to be compared with (1200 s left 10 % of them out once under load)
@@ -58,12 +64,17 @@ def mission(tmp_path, field, **over) -> object:
         field.to_netcdf(path)
     g = field.grid
     data = {
-        "name": "wave", "region": {"south": g.south, "west": g.west, "north": g.north, "east": g.east,
-                                   "rows": N, "cols": N},
-        "field": {"source": str(path)}, "model": "persistence",
-        "planner": {"name": "greedy", "path_length": 3}, "legs": 3, "t0": 0,
-        "vehicle": {"speed_mps": 5.0, "wp_radius_m": 3.0}, "sensors": {"noise_std": NOISE},
-        "geofence_margin_m": 30.0, "gp": {"hyper": "first_leg"},
+        "name": "wave",
+        "region": {"south": g.south, "west": g.west, "north": g.north, "east": g.east, "rows": N, "cols": N},
+        "field": {"source": str(path)},
+        "model": "persistence",
+        "planner": {"name": "greedy", "path_length": 3},
+        "legs": 3,
+        "t0": 0,
+        "vehicle": {"speed_mps": 5.0, "wp_radius_m": 3.0},
+        "sensors": {"noise_std": NOISE},
+        "geofence_margin_m": 30.0,
+        "gp": {"hyper": "first_leg"},
     }
     data.update(over)
     return validate_mission(data, source="test")
@@ -77,8 +88,18 @@ def controller(cfg, field, link, rd, **kw) -> MissionController:
     pred, info = build_predictor(cfg.model, field, echo=lambda s: None)
     kw.setdefault("echo", print)
     kw.setdefault("field_time_at_boot", 0.0)
-    return MissionController(cfg, link, rd, field=field, predictor=pred, predictor_info=info, vehicle=vehicle(link),
-                             speedup_hint=SPEEDUP, ready_timeout_s=10.0, **kw)
+    return MissionController(
+        cfg,
+        link,
+        rd,
+        field=field,
+        predictor=pred,
+        predictor_info=info,
+        vehicle=vehicle(link),
+        speedup_hint=SPEEDUP,
+        ready_timeout_s=10.0,
+        **kw,
+    )
 
 
 def test_three_leg_mission_samples_uploads_and_rmse(tmp_path):
@@ -92,7 +113,7 @@ def test_three_leg_mission_samples_uploads_and_rmse(tmp_path):
         raw.setdefault(int(m.time_boot_ms), {})[name] = float(m.value)
 
     readbacks = []
-    with served(sim_config(), field=field, speedup=SPEEDUP, link_kw={"stream_rates_hz": LEAN_STREAMS}) as (sim, link):
+    with served(sim_config(), field=field, speedup=SPEEDUP, link_kw={"stream_rates_hz": LEAN_STREAMS}) as (_sim, link):
         link.add_listener(spy, "NAMED_VALUE_FLOAT")
         ctl = controller(cfg, field, link, rd)
         orig = ctl.vehicle.mission.download
@@ -104,11 +125,14 @@ def test_three_leg_mission_samples_uploads_and_rmse(tmp_path):
     # every uploaded mission, read back from the vehicle, equals the mission of the planned path
     assert len(readbacks) >= 3
     for leg in summary["legs"]:
-        want = WaypointMission.from_path(field.grid, np.array(leg["path"]), speed=5.0, wp_radius_m=3.0,
-                                         fence_margin_m=30.0).items()
+        want = WaypointMission.from_path(
+            field.grid, np.array(leg["path"]), speed=5.0, wp_radius_m=3.0, fence_margin_m=30.0
+        ).items()
         # as the vehicle stores it (Rover keeps no acceptance radius etc.: mission_client.rover_stored)
-        assert any(len(got) == len(want) and all(rover_stored(a).same_as(b) for a, b in zip(want[1:], got[1:]))
-                   for got in readbacks)
+        assert any(
+            len(got) == len(want) and all(rover_stored(a).same_as(b) for a, b in zip(want[1:], got[1:]))
+            for got in readbacks
+        )
         assert leg["t_end"] > leg["t_start"] and leg["n_samples"] > 20
         # every reading is placed on the track (1 Hz fixes, 1 Hz readings): none dropped, all counted
         rd_ = leg["readings"]
@@ -142,7 +166,13 @@ def test_three_leg_mission_samples_uploads_and_rmse(tmp_path):
     assert last["rmse_passt"] < last["rmse_model"]
     # run directory contents
     for i in range(3):
-        for f in (rd.waypoints_file(i), rd.plan_file(i), rd.estimate_file(i), rd.prediction_file(i), rd.timings_file(i)):
+        for f in (
+            rd.waypoints_file(i),
+            rd.plan_file(i),
+            rd.estimate_file(i),
+            rd.prediction_file(i),
+            rd.timings_file(i),
+        ):
             assert f.exists(), f
         wpl = WaypointMission.from_wpl(rd.waypoints_file(i))  # WPL holds no fence: compare the waypoints
         assert np.allclose(wpl.waypoints, summary["legs"][i]["waypoints"], atol=1e-7) and wpl.speed == 5.0
@@ -173,9 +203,9 @@ def test_vehicle_outside_region_refused_before_any_upload(tmp_path):
     cfg = mission(tmp_path, field)
     rd = RunDir(tmp_path / "run").create()
     far = (HOME[0] + 0.02, HOME[1])  # ~2 km north of the region
-    from passt_mav.errors import UserError
-
     from mavlink_helpers import inprocess_factory, link_config
+
+    from passt_mav.errors import UserError
     from passt_mav.mavlink import Link
     from vehicle_sim import Simulator
 

@@ -10,15 +10,15 @@ import threading
 import time
 
 import pytest
-from pymavlink.dialects.v20 import ardupilotmega as M
-
 from mavlink_helpers import inprocess_factory, link_config, served
+from pymavlink.dialects.v20 import ardupilotmega as M
+from test_controller import SPEEDUP, controller, mission, sim_config, wave_field
+
 from passt_mav.commands.run import LEAN_STREAMS
 from passt_mav.errors import MissionRejected
 from passt_mav.mavlink import Link
 from passt_mav.runs.live import read_events
 from passt_mav.runs.rundir import RunDir
-from test_controller import SPEEDUP, controller, mission, sim_config, wave_field
 from vehicle_sim import LinkConfig as SimLinkConfig
 
 AUTO, HOLD, MANUAL = 10, 4, 0
@@ -35,8 +35,12 @@ def test_upload_refused_no_space_gives_a_clear_error_and_no_auto(tmp_path):
     cfg = mission(tmp_path, field, legs=1)
     rd = RunDir(tmp_path / "run").create()
     # room for 3 items: home + DO_CHANGE_SPEED + 1 waypoint; a leg needs more
-    with served(sim_config(mission_capacity=(3, 84, 20)), field=field, speedup=SPEEDUP,
-                link_kw={"stream_rates_hz": LEAN_STREAMS}) as (sim, link):
+    with served(
+        sim_config(mission_capacity=(3, 84, 20)),
+        field=field,
+        speedup=SPEEDUP,
+        link_kw={"stream_rates_hz": LEAN_STREAMS},
+    ) as (sim, link):
         modes = _modes(link)
         ctl = controller(cfg, field, link, rd, echo=None)
         with pytest.raises(MissionRejected) as ei:
@@ -57,8 +61,13 @@ def test_twenty_percent_loss_each_way_mission_completes(tmp_path):
     # a request and its reply both survive with p = 0.8 x 0.8 = 0.64, so a parameter read fails all
     # of the default 6 tries with p = 0.36^6 = 0.2 %, and a run makes several: it failed that way
     # once (reading WP_RADIUS, in a CI run of stop 26). 11 tries (retries=10): 0.36^11 = 1e-5 each.
-    with served(sim_config(), field=field, speedup=SPEEDUP, sim_link=SimLinkConfig(loss=0.2, seed=5),
-                link_kw={"stream_rates_hz": LEAN_STREAMS, "retries": 10}) as (sim, link):
+    with served(
+        sim_config(),
+        field=field,
+        speedup=SPEEDUP,
+        sim_link=SimLinkConfig(loss=0.2, seed=5),
+        link_kw={"stream_rates_hz": LEAN_STREAMS, "retries": 10},
+    ) as (_sim, link):
         ctl = controller(cfg, field, link, rd, echo=None)
         summary = ctl.run()
     assert summary["status"] == "complete" and len(summary["legs"]) == 1
@@ -69,12 +78,19 @@ def test_twenty_percent_loss_each_way_mission_completes(tmp_path):
 
 def _pilot(sim, ctl, back_after: float | None):
     """A second GCS (the pilot's) switches to MANUAL mid-leg 0, and back to AUTO after ``back_after`` s."""
+
     def run():
         end = time.monotonic() + 10
-        while time.monotonic() < end and not (ctl.collector is not None and ctl.collector.leg == 0
-                                              and ctl.vehicle.mode == AUTO and ctl.vehicle.progress.reached):
+        while time.monotonic() < end and not (
+            ctl.collector is not None
+            and ctl.collector.leg == 0
+            and ctl.vehicle.mode == AUTO
+            and ctl.vehicle.progress.reached
+        ):
             time.sleep(0.005)
-        pl = Link(link_config(source_system=254, stream_rates_hz=()), connection_factory=inprocess_factory(sim)).connect()
+        pl = Link(
+            link_config(source_system=254, stream_rates_hz=()), connection_factory=inprocess_factory(sim)
+        ).connect()
         try:
             pl.command_long(M.MAV_CMD_DO_SET_MODE, 1, MANUAL)
             if back_after is not None:
@@ -125,15 +141,20 @@ def test_link_drop_mid_leg_reconnects_and_loses_no_delivered_sample(tmp_path):
     rd = RunDir(tmp_path / "run").create()
     delivered: set[int] = set()
     with served(sim_config(), field=field, speedup=SPEEDUP, link_kw={"stream_rates_hz": LEAN_STREAMS}) as (sim, link):
-        link.add_listener(lambda m: delivered.add(int(m.time_boot_ms)) if m.name.startswith("CUR_U") else None,
-                          "NAMED_VALUE_FLOAT")
+        link.add_listener(
+            lambda m: delivered.add(int(m.time_boot_ms)) if m.name.startswith("CUR_U") else None, "NAMED_VALUE_FLOAT"
+        )
         ctl = controller(cfg, field, link, rd, echo=None)
         cut = {}
 
         def cutter():  # the transport dies mid-leg (a TCP reset, a radio out of range)
             end = time.monotonic() + 10
-            while time.monotonic() < end and not (ctl.collector is not None and ctl.collector.leg == 0
-                                                  and ctl.vehicle.mode == AUTO and ctl.vehicle.progress.reached):
+            while time.monotonic() < end and not (
+                ctl.collector is not None
+                and ctl.collector.leg == 0
+                and ctl.vehicle.mode == AUTO
+                and ctl.vehicle.progress.reached
+            ):
                 time.sleep(0.005)  # reached is cleared by start_mission: this is the leg in flight
             cut["t"] = sim.t
             link.conn.close()
@@ -143,7 +164,9 @@ def test_link_drop_mid_leg_reconnects_and_loses_no_delivered_sample(tmp_path):
         summary = ctl.run()
         th.join(5)
     assert "t" in cut and summary["status"] == "complete"
-    assert any("link lost" in e for e in summary["events"]) and any("reconnected" in e for e in summary["events"]), summary["events"]
+    assert any("link lost" in e for e in summary["events"]) and any("reconnected" in e for e in summary["events"]), (
+        summary["events"]
+    )
     kinds = [e["kind"] for e in read_events(rd.root)[0]]  # the live view's alerts (issue 29)
     assert kinds.index("leg_start") < kinds.index("link_lost") < kinds.index("link_back") < kinds.index("leg_end")
     from passt_mav.runs.store import SampleStore

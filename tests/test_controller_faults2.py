@@ -20,19 +20,19 @@ import time
 from pathlib import Path
 
 import pytest
-from pymavlink.dialects.v20 import ardupilotmega as M
-
 from mavlink_helpers import inprocess_factory, link_config, served, vehicle
+from pymavlink.dialects.v20 import ardupilotmega as M
+from simclient import free_port
+from test_controller import SPEEDUP, controller, mission, sim_config, wave_field
+from test_controller_faults import _modes
+
 from passt_mav.commands.run import LEAN_STREAMS
 from passt_mav.controller import MissionController, build_predictor
 from passt_mav.errors import LinkTimeout, MissionRejected
 from passt_mav.mavlink import Link
 from passt_mav.runs.rundir import RunDir
 from passt_mav.runs.store import SampleStore
-from test_controller import SPEEDUP, controller, mission, sim_config, wave_field
 from vehicle_sim.link import secret_from_key
-from simclient import free_port
-from test_controller_faults import _modes
 
 AUTO = 10  # ArduPilot Rover custom_mode
 
@@ -47,8 +47,9 @@ def test_upload_denied_while_another_gcs_holds_a_transfer_open(tmp_path):
         # a second GCS (sysid 254) starts an upload and never sends an item. The vehicle cancels
         # an idle transfer after 8 s of its time (0.16 s wall at 50x), so the GCS restarts it
         # (MISSION_COUNT again: the owner may) every 20 ms wall = 1 s of vehicle time.
-        other = Link(link_config(source_system=254, stream_rates_hz=()),
-                     connection_factory=inprocess_factory(sim)).connect()
+        other = Link(
+            link_config(source_system=254, stream_rates_hz=()), connection_factory=inprocess_factory(sim)
+        ).connect()
         stop = threading.Event()
 
         def hold_transfer():
@@ -88,8 +89,12 @@ def test_signed_vehicle_and_controller_with_the_key_complete_a_leg(tmp_path):
     field = wave_field()
     cfg = mission(tmp_path, field, legs=1)
     rd = RunDir(tmp_path / "run").create()
-    with served(sim_config(signing_key=secret_from_key(KEY)), field=field, speedup=SPEEDUP,
-                link_kw={"stream_rates_hz": LEAN_STREAMS, "signing_key": KEY}) as (sim, link):
+    with served(
+        sim_config(signing_key=secret_from_key(KEY)),
+        field=field,
+        speedup=SPEEDUP,
+        link_kw={"stream_rates_hz": LEAN_STREAMS, "signing_key": KEY},
+    ) as (sim, link):
         ctl = controller(cfg, field, link, rd, echo=None)
         summary = ctl.run()
         assert sim.autopilot.store.count(0) == len(summary["legs"][0]["waypoints"]) + 2  # home + speed + wps
@@ -101,15 +106,29 @@ def test_controller_without_the_key_is_ignored_and_times_out(tmp_path):
     field = wave_field()
     cfg = mission(tmp_path, field, legs=1)
     rd = RunDir(tmp_path / "run").create()
-    with served(sim_config(signing_key=secret_from_key(KEY)), field=field, speedup=SPEEDUP,
-                link_kw={"stream_rates_hz": (), "retries": 1}) as (sim, link):
+    with served(
+        sim_config(signing_key=secret_from_key(KEY)),
+        field=field,
+        speedup=SPEEDUP,
+        link_kw={"stream_rates_hz": (), "retries": 1},
+    ) as (sim, link):
         # (no stream requests: each would go unanswered; the vehicle's default streams still come)
         modes = _modes(link)
         # one resend per step (the default, >= 10, is for lossy radios): an ignored client gives up sooner
         pred, info = build_predictor(cfg.model, field, echo=lambda s: None)
-        ctl = MissionController(cfg, link, rd, field=field, predictor=pred, predictor_info=info,
-                                vehicle=vehicle(link, retries=1), speedup_hint=SPEEDUP, ready_timeout_s=10.0,
-                                field_time_at_boot=0.0, echo=None)
+        ctl = MissionController(
+            cfg,
+            link,
+            rd,
+            field=field,
+            predictor=pred,
+            predictor_info=info,
+            vehicle=vehicle(link, retries=1),
+            speedup_hint=SPEEDUP,
+            ready_timeout_s=10.0,
+            field_time_at_boot=0.0,
+            echo=None,
+        )
         t0 = time.monotonic()
         with pytest.raises(LinkTimeout) as ei:
             ctl.run()
@@ -167,14 +186,49 @@ def test_run_killed_mid_leg_then_resume_finishes_and_keeps_samples(tmp_path):
     run_dir = tmp_path / "run"
     env = dict(os.environ, OMP_NUM_THREADS="1", PYTHONUNBUFFERED="1")
     bindir = Path(sys.executable).parent
-    sim = subprocess.Popen([str(bindir / "vehicle-sim"), "--field", str(tmp_path / "wave.nc"), "--home", "40,-63",
-                            "--listen", f"tcp:127.0.0.1:{port}", "--speedup", str(KILL_SPEEDUP), "--no-wait",
-                            "--fast-boot", "--param", "WP_SPEED=5", "--current-noise", "0.01", "--current-rate", "1",
-                            "--seed", "3", "--quiet"],
-                           stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, env=env)
-    run_cmd = [str(bindir / "passt-mav"), "run", str(mfile), "--connect", f"tcp:127.0.0.1:{port}",
-               "--out", str(run_dir), "--speedup-hint", str(KILL_SPEEDUP), "--field-time-at-boot", "0",
-               "--ready-timeout", "20", "--no-report"]
+    sim = subprocess.Popen(
+        [
+            str(bindir / "vehicle-sim"),
+            "--field",
+            str(tmp_path / "wave.nc"),
+            "--home",
+            "40,-63",
+            "--listen",
+            f"tcp:127.0.0.1:{port}",
+            "--speedup",
+            str(KILL_SPEEDUP),
+            "--no-wait",
+            "--fast-boot",
+            "--param",
+            "WP_SPEED=5",
+            "--current-noise",
+            "0.01",
+            "--current-rate",
+            "1",
+            "--seed",
+            "3",
+            "--quiet",
+        ],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        env=env,
+    )
+    run_cmd = [
+        str(bindir / "passt-mav"),
+        "run",
+        str(mfile),
+        "--connect",
+        f"tcp:127.0.0.1:{port}",
+        "--out",
+        str(run_dir),
+        "--speedup-hint",
+        str(KILL_SPEEDUP),
+        "--field-time-at-boot",
+        "0",
+        "--ready-timeout",
+        "20",
+        "--no-report",
+    ]
     try:
         _wait_port(port, sim)
         t0 = time.monotonic()

@@ -13,16 +13,16 @@ import time
 
 import numpy as np
 import pytest
-
 from mavlink_helpers import served
+from test_controller import controller, mission, sim_config, wave_field
+from test_controller_faults import _modes
+
 from passt_mav.commands.run import LEAN_STREAMS
 from passt_mav.controller import utc_epoch
 from passt_mav.errors import UserError
 from passt_mav.fields.field import load_field
 from passt_mav.runs.rundir import RunDir
 from passt_mav.runs.store import SampleStore
-from test_controller import controller, mission, sim_config, wave_field
-from test_controller_faults import _modes
 
 AUTO, HOLD = 10, 4
 ORIGIN = utc_epoch("2020-01-01T00:00:00Z")
@@ -39,8 +39,12 @@ def _when(ctl, cond, timeout: float = 20.0) -> bool:
 
 
 def _in_leg(ctl, leg: int, reached: int = 1):
-    return lambda: (ctl.collector is not None and ctl.collector.leg == leg and ctl.vehicle.mode == AUTO
-                    and len(ctl.vehicle.progress.reached) >= reached)
+    return lambda: (
+        ctl.collector is not None
+        and ctl.collector.leg == leg
+        and ctl.vehicle.mode == AUTO
+        and len(ctl.vehicle.progress.reached) >= reached
+    )
 
 
 # -- field time from UTC ---------------------------------------------------------------------------
@@ -49,7 +53,7 @@ def test_field_time_from_the_vehicles_utc(tmp_path):
     cfg = mission(tmp_path, field, legs=1)
     rd = RunDir(tmp_path / "run").create()
     # the vehicle booted at 2020-01-01T00:05:00Z: field time 300 s at boot
-    with served(sim_config(), field=field, start_time=300.0, epoch0=ORIGIN + 300.0, link_kw=LEAN) as (sim, link):
+    with served(sim_config(), field=field, start_time=300.0, epoch0=ORIGIN + 300.0, link_kw=LEAN) as (_sim, link):
         ctl = controller(cfg, field, link, rd, echo=None, field_time_at_boot=None)
         summary = ctl.run()
     clk = summary["clock"]
@@ -70,7 +74,7 @@ def test_utc_clock_required_but_the_vehicle_has_none_is_a_one_line_error(tmp_pat
     cfg = mission(tmp_path, field, legs=1)
     cfg = cfg.model_copy(update={"field": cfg.field.model_copy(update={"clock": "utc"})})
     rd = RunDir(tmp_path / "run").create()
-    with served(sim_config(utc_clock=False), field=field, link_kw=LEAN) as (sim, link):
+    with served(sim_config(utc_clock=False), field=field, link_kw=LEAN) as (_sim, link):
         ctl = controller(cfg, field, link, rd, echo=None, field_time_at_boot=None)
         with pytest.raises(UserError, match="field.clock is utc but the vehicle sends no UTC"):
             ctl.run()
@@ -81,7 +85,7 @@ def test_auto_clock_falls_back_to_boot_and_says_why(tmp_path):
     cfg = mission(tmp_path, field, legs=1)
     rd = RunDir(tmp_path / "run").create()
     lines: list[str] = []
-    with served(sim_config(), field=field, link_kw=LEAN) as (sim, link):  # UTC = now: years after the field
+    with served(sim_config(), field=field, link_kw=LEAN) as (_sim, link):  # UTC = now: years after the field
         ctl = controller(cfg, field, link, rd, echo=lines.append, field_time_at_boot=None)
         summary = ctl.run()
     assert summary["status"] == "complete" and summary["clock"]["source"] == "boot"
@@ -278,5 +282,9 @@ def test_collector_counts_a_reboot_and_keeps_the_new_boots_readings_apart():
     assert seen == [(1, 12_000, 50)] and c.boot == 1
     c.handle(M.MAVLink_system_time_message(int((1.6e9 + 40.0) * 1e6), 2_000))
     reading(10_000, 0.3)  # the same time_boot_ms as before the reboot: a new reading, not a duplicate
-    assert [(r["time_boot_ms"], r["boot"], r["u"]) for r in out] == [(10_000, 0, 0.1), (12_000, 0, 0.2), (10_000, 1, 0.3)]
+    assert [(r["time_boot_ms"], r["boot"], r["u"]) for r in out] == [
+        (10_000, 0, 0.1),
+        (12_000, 0, 0.2),
+        (10_000, 1, 0.3),
+    ]
     assert c.boots[0]["utc_boot"] == pytest.approx(1.6e9) and c.boots[1]["utc_boot"] == pytest.approx(1.6e9 + 38.0)

@@ -11,20 +11,35 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-
 from mavlink_helpers import served
-from passt_mav.mission.waypoints import WaypointMission
-from passt_mav.mavlink.mission_client import rover_stored
-from passt_mav.runs.rundir import RunDir
 from test_controller import SPEEDUP, controller, mission, sim_config, wave_field
+
+from passt_mav.mavlink.mission_client import rover_stored
+from passt_mav.mission.waypoints import WaypointMission
+from passt_mav.runs.rundir import RunDir
 from vehicle_sim import LinkConfig as SimLinkConfig
 
 #: what the vehicle sends when asked only for the controller's streams: those streams, heartbeats,
 #: replies (commands, parameters, mission protocol, TIMESYNC), events and the sensor's named values
-ALLOWED = {"HEARTBEAT", "GLOBAL_POSITION_INT", "MISSION_CURRENT", "EKF_STATUS_REPORT", "SYSTEM_TIME",
-           "NAMED_VALUE_FLOAT", "STATUSTEXT", "COMMAND_ACK", "PARAM_VALUE", "TIMESYNC", "MISSION_ACK",
-           "MISSION_COUNT", "MISSION_ITEM_INT", "MISSION_REQUEST", "MISSION_REQUEST_INT", "MISSION_ITEM_REACHED",
-           "HOME_POSITION"}
+ALLOWED = {
+    "HEARTBEAT",
+    "GLOBAL_POSITION_INT",
+    "MISSION_CURRENT",
+    "EKF_STATUS_REPORT",
+    "SYSTEM_TIME",
+    "NAMED_VALUE_FLOAT",
+    "STATUSTEXT",
+    "COMMAND_ACK",
+    "PARAM_VALUE",
+    "TIMESYNC",
+    "MISSION_ACK",
+    "MISSION_COUNT",
+    "MISSION_ITEM_INT",
+    "MISSION_REQUEST",
+    "MISSION_REQUEST_INT",
+    "MISSION_ITEM_REACHED",
+    "HOME_POSITION",
+}
 
 
 @pytest.mark.parametrize("baud", [57600, 19200])
@@ -36,8 +51,10 @@ def test_two_legs_through_a_sik_like_radio(tmp_path, baud):
     types: dict[str, int] = {}
     readbacks = []
     # link timeouts in wall seconds: 100 ms one way is 2 ms of wall time at 50x; 0.5 s leaves 12 s of sim time
-    with served(sim_config(), field=field, speedup=SPEEDUP, sim_link=radio,
-                link_kw={"timeout_s": 0.5, "retries": 10}) as (sim, link):
+    with served(
+        sim_config(), field=field, speedup=SPEEDUP, sim_link=radio, link_kw={"timeout_s": 0.5, "retries": 10}
+    ) as (sim, link):
+
         def spy(m):  # the vehicle's messages once the streams were requested (connect() did it)
             if m.get_srcSystem() == link.target_system:
                 types[m.get_type()] = types.get(m.get_type(), 0) + 1
@@ -53,10 +70,12 @@ def test_two_legs_through_a_sik_like_radio(tmp_path, baud):
     assert summary["status"] == "complete" and len(summary["legs"]) == 2
     # every leg's upload, read back through the radio, is the planned mission as the vehicle stores it
     for leg in summary["legs"]:
-        want = WaypointMission.from_path(field.grid, np.array(leg["path"]), speed=5.0, wp_radius_m=3.0,
-                                         fence_margin_m=30.0).items()
-        assert any(len(r) == len(want) and all(rover_stored(a).same_as(b) for a, b in zip(want[1:], r[1:]))
-                   for r in readbacks)
+        want = WaypointMission.from_path(
+            field.grid, np.array(leg["path"]), speed=5.0, wp_radius_m=3.0, fence_margin_m=30.0
+        ).items()
+        assert any(
+            len(r) == len(want) and all(rover_stored(a).same_as(b) for a, b in zip(want[1:], r[1:])) for r in readbacks
+        )
     # the radio did lose frames both ways (3 %): the mission flew through real loss
     assert sim_stats["tx_lost"] > 0 and sim_stats["rx_lost"] > 0
     # link budget: only what the controller uses (a stray frame or two in flight at the request at most)
@@ -88,9 +107,13 @@ def test_refused_message_intervals_fall_back_to_their_stream_groups(monkeypatch)
     from vehicle_sim import SimConfig
 
     # (no current sensor: the simulator sends a position with each reading, outside any stream)
-    with served(SimConfig.fast(current_rate_hz=0.0), speedup=SPEEDUP, link_kw={"retries": 1}) as (sim, link):
-        assert link.request_streams() == {"GLOBAL_POSITION_INT": False, "MISSION_CURRENT": False,
-                                          "EKF_STATUS_REPORT": False, "SYSTEM_TIME": False}
+    with served(SimConfig.fast(current_rate_hz=0.0), speedup=SPEEDUP, link_kw={"retries": 1}) as (_sim, link):
+        assert link.request_streams() == {
+            "GLOBAL_POSITION_INT": False,
+            "MISSION_CURRENT": False,
+            "EKF_STATUS_REPORT": False,
+            "SYSTEM_TIME": False,
+        }
         seen: dict[str, list[int]] = {}
         link.add_listener(lambda m: seen.setdefault(m.get_type(), []).append(getattr(m, "time_boot_ms", 0)))
         time.sleep(10.0 / SPEEDUP)  # 10 s of vehicle time

@@ -199,7 +199,15 @@ def test_cli_defaults_match_the_config():
     assert DEFAULTS["spin_up"] == cfg.spin_up
     assert DEFAULTS["period_snapshots"] == cfg.period_snapshots
     assert DEFAULTS["seed"] == cfg.seed
-    assert {f.name for f in dc_fields(cfg)} >= {"resolution", "n_snapshots", "dt_out", "spin_up", "amplitude", "period_snapshots", "seed"}
+    assert {f.name for f in dc_fields(cfg)} >= {
+        "resolution",
+        "n_snapshots",
+        "dt_out",
+        "spin_up",
+        "amplitude",
+        "period_snapshots",
+        "seed",
+    }
 
 
 def test_cli_bad_input_exits_2(tmp_path, capsys):
@@ -212,7 +220,21 @@ def test_cli_bad_input_exits_2(tmp_path, capsys):
 
 def test_cli_writes_a_field_and_prints_figures(tmp_path, capsys):
     out = tmp_path / "osc.nc"
-    rc = cli_main(["oscillating", "--out", str(out), "--resolution", "4", "--snapshots", "8", "--spin-up", "2", "--quiet", "--json"])
+    rc = cli_main(
+        [
+            "oscillating",
+            "--out",
+            str(out),
+            "--resolution",
+            "4",
+            "--snapshots",
+            "8",
+            "--spin-up",
+            "2",
+            "--quiet",
+            "--json",
+        ]
+    )
     assert rc == 0
     summary = json.loads(capsys.readouterr().out)
     assert summary["out"] == str(out) and summary["snapshots"] == 8
@@ -239,12 +261,19 @@ def test_pod_energy_known_answer_and_the_svd():
     rr, cc = np.meshgrid(np.arange(6), np.arange(7), indexing="ij")
     phi1 = np.stack([np.sin(np.pi * (rr + 0.5) / 6), np.zeros((6, 7))])
     phi2 = np.stack([np.zeros((6, 7)), np.cos(np.pi * (cc + 0.5) / 7)])
-    data = 3 * np.sin(t)[:, None, None, None] * phi1 / np.linalg.norm(phi1) + np.cos(2 * t)[:, None, None, None] * phi2 / np.linalg.norm(phi2) + 5.0
+    data = (
+        3 * np.sin(t)[:, None, None, None] * phi1 / np.linalg.norm(phi1)
+        + np.cos(2 * t)[:, None, None, None] * phi2 / np.linalg.norm(phi2)
+        + 5.0
+    )
     e = pod_energy(data, 3, cumulative=False)
     np.testing.assert_allclose(e, [0.9, 0.1, 0.0], atol=1e-12)
     land = data.copy()
     land[:, :, 0, 0] = np.nan
     rng = np.random.default_rng(2)
-    for d in (land + rng.normal(0, 0.1, data.shape), rng.normal(size=(5, 2, 8, 9))):  # more time than features, and fewer
+    for d in (
+        land + rng.normal(0, 0.1, data.shape),
+        rng.normal(size=(5, 2, 8, 9)),
+    ):  # more time than features, and fewer
         s, _ = pod_modes(d)
         np.testing.assert_allclose(pod_energy(d, None, cumulative=False), s**2 / np.sum(s**2), atol=1e-12)

@@ -85,7 +85,9 @@ def test_info_text_metric_with_gaps_and_strouhal(tmp_path, capsys):
     code, text, _ = _cli(capsys, "info", p, "--json")
     info = json.loads(text)
     keep = np.isfinite(data).all(axis=(0, 1))
-    np.testing.assert_allclose(info["pod_energy"]["modes"], pod_energy(data[:, :, keep][:, :, :, None], 5, cumulative=False), rtol=1e-6)
+    np.testing.assert_allclose(
+        info["pod_energy"]["modes"], pod_energy(data[:, :, keep][:, :, :, None], 5, cumulative=False), rtol=1e-6
+    )
     assert info["coverage"]["cells_all"] == pytest.approx(48 / 50)
 
 
@@ -113,8 +115,21 @@ def test_show_png_geographic_and_metric(tmp_path, capsys):
 
 def test_import_hf_radar_prints_coverage(tmp_path, capsys, hf_radar_path):
     out = tmp_path / "radar.nc"
-    code, text, _ = _cli(capsys, "import", hf_radar_path, "--region", "38,-74,41,-69", "--grid", "20x25",
-                         "--start", "2018-03-01T02:00Z", "--hours", 4, "--out", out)
+    code, text, _ = _cli(
+        capsys,
+        "import",
+        hf_radar_path,
+        "--region",
+        "38,-74,41,-69",
+        "--grid",
+        "20x25",
+        "--start",
+        "2018-03-01T02:00Z",
+        "--hours",
+        4,
+        "--out",
+        out,
+    )
     assert code == 0, text
     f = load_field(out)
     assert f.shape == (4, 2, 20, 25)
@@ -133,10 +148,16 @@ def test_import_named_region_default(tmp_path, capsys):
     t = pd.Timestamp("2018-03-01") + pd.to_timedelta(np.arange(3), unit="h")
     u = np.full((3, 1, lat.size, lon.size), 12.0)
     ds = xr.Dataset(
-        {"water_u": (("time", "depth", "lat", "lon"), u, {"units": "cm s-1"}),
-         "water_v": (("time", "depth", "lat", "lon"), -u, {"units": "cm s-1"})},
-        coords={"time": t, "depth": ("depth", [0.0]), "lat": ("lat", lat, {"units": "degrees_north"}),
-                "lon": ("lon", lon, {"units": "degrees_east"})},
+        {
+            "water_u": (("time", "depth", "lat", "lon"), u, {"units": "cm s-1"}),
+            "water_v": (("time", "depth", "lat", "lon"), -u, {"units": "cm s-1"}),
+        },
+        coords={
+            "time": t,
+            "depth": ("depth", [0.0]),
+            "lat": ("lat", lat, {"units": "degrees_north"}),
+            "lon": ("lon", lon, {"units": "degrees_east"}),
+        },
     )
     src = tmp_path / "hycom.nc"
     ds.to_netcdf(src)
@@ -206,13 +227,46 @@ def test_model_train_log_into_missing_folder(tmp_path, capsys):
     d = np.stack([np.sin(0.3 * t), np.cos(0.3 * t)], axis=1)[:, :, None, None] * np.ones((1, 2, 6, 6))
     nc = FlowField(d.astype(np.float32), g, t * 3600.0, "2020-01-01T00:00:00Z").to_netcdf(tmp_path / "w.nc")
     log = tmp_path / "new" / "logs" / "train.log"
-    rc = main(["model", "train", "--data", str(nc), "--model", "dmd", "--start", "0", "--stop", "20", "--json",
-               "--log", str(log), "--out", str(tmp_path / "ck")])
+    rc = main(
+        [
+            "model",
+            "train",
+            "--data",
+            str(nc),
+            "--model",
+            "dmd",
+            "--start",
+            "0",
+            "--stop",
+            "20",
+            "--json",
+            "--log",
+            str(log),
+            "--out",
+            str(tmp_path / "ck"),
+        ]
+    )
     capsys.readouterr()
     assert rc == 0 and log.exists()
     (tmp_path / "afile").write_text("x")
-    rc = main(["model", "train", "--data", str(nc), "--model", "dmd", "--start", "0", "--stop", "20",
-               "--log", str(tmp_path / "afile" / "train.log"), "--out", str(tmp_path / "ck2")])
+    rc = main(
+        [
+            "model",
+            "train",
+            "--data",
+            str(nc),
+            "--model",
+            "dmd",
+            "--start",
+            "0",
+            "--stop",
+            "20",
+            "--log",
+            str(tmp_path / "afile" / "train.log"),
+            "--out",
+            str(tmp_path / "ck2"),
+        ]
+    )
     err = capsys.readouterr().err
     assert rc == 2 and "--log" in err and len(err.strip().splitlines()) == 1
 
@@ -222,10 +276,10 @@ def test_builtin_rtofs_real_currents_with_land(capsys):
     offline PASST run never plans onto land nor puts an estimate there."""
     from pathlib import Path
 
+    from passt_mav.engine import run_offline
     from passt_mav.fields.datasets import load_dataset
     from passt_mav.mission.config import load_mission
     from passt_mav.models.base import make_predictor
-    from passt_mav.engine import run_offline
 
     code, text, _ = _cli(capsys, "info", "builtin:rtofs", "--json")
     info = json.loads(text)
@@ -234,8 +288,16 @@ def test_builtin_rtofs_real_currents_with_land(capsys):
     f = load_dataset("rtofs")
     cfg = load_mission(Path(__file__).resolve().parent.parent / "missions" / "rtofs.yaml")
     assert cfg.grid() == f.grid and cfg.model == "persistence" and not f.land_mask[tuple(cfg.start_cell)]
-    res = run_offline(f, make_predictor("persistence").fit(f), start_cell=cfg.start_cell, n_steps=8, path_length=10,
-                      steps_per_leg=4, noise_std=0.02, seed=0)
+    res = run_offline(
+        f,
+        make_predictor("persistence").fit(f),
+        start_cell=cfg.start_cell,
+        n_steps=8,
+        path_length=10,
+        steps_per_leg=4,
+        noise_std=0.02,
+        seed=0,
+    )
     cells = np.array([c for leg in res.legs for c in leg["path"]])
     assert len(cells) == 22 and not f.land_mask[cells[:, 0], cells[:, 1]].any()
     land = f.land_mask

@@ -75,12 +75,14 @@ def test_legs_waypoints_clock_and_progress_from_the_bin(rebuilt):
     assert [lg.index for lg in b.legs] == [0, 1]
     assert all(isinstance(lg, DataflashLeg) and lg.closed for lg in b.legs)
     # the CMD records of each upload (CNum 2..4, CId 16): Lat/Lng of the grid's cell centres
-    want = [[(40.0002, -62.9998), (40.0002, -63.0002), (40.0006, -63.0002)],
-            [(40.0006, -63.0002), (40.0002, -63.0006), (40.0002, -63.0002)]]
+    want = [
+        [(40.0002, -62.9998), (40.0002, -63.0002), (40.0006, -63.0002)],
+        [(40.0006, -63.0002), (40.0002, -63.0006), (40.0002, -63.0002)],
+    ]
     for lg, wp in zip(b.legs, want):
         assert np.allclose(lg.waypoints, wp, atol=1e-9)
         assert [seq for _, seq in lg.reached] == [2, 3, 4]  # "Reached waypoint #N" (seq 1 is DO_CHANGE_SPEED)
-        assert lg.complete_ms == lg.reached[-1][0]         # "Mission Complete" in the same tick
+        assert lg.complete_ms == lg.reached[-1][0]  # "Mission Complete" in the same tick
         assert lg.t_lo_ms <= lg.clock[0] <= lg.t_now_ms < lg.t_auto_ms < lg.t_end_ms
     assert [lg.clock for lg in b.legs] == [(43239, 0, 0), (97329, 0, 0)]
     assert b.legs[0].clock_text == "GCS:PASST leg 0 tb 43239 b 0 k 0"  # the firmware's MSG text
@@ -156,8 +158,12 @@ def test_replaying_the_bin_and_the_tlog_gives_the_same_legs_and_paths(run_pair, 
     assert len(rb.legs) == len(rt.legs) == 2
     for a, b in zip(rt.legs, rb.legs):
         assert b.path == a.path == b.recorded_path == a.recorded_path and b.path_identical
-        assert (b.start_cell, b.t_start, b.steps, b.forecast_steps_before) == \
-            (a.start_cell, a.t_start, a.steps, a.forecast_steps_before)
+        assert (b.start_cell, b.t_start, b.steps, b.forecast_steps_before) == (
+            a.start_cell,
+            a.t_start,
+            a.steps,
+            a.forecast_steps_before,
+        )
         assert b.n_samples >= 0.9 * a.n_samples and a.n_samples >= 0.9 * b.n_samples
         assert b.rmse_passt == pytest.approx(a.rmse_passt, abs=1e-3)
     # the CLI: exit 0, replay.json beside the log
@@ -204,8 +210,9 @@ def test_missing_and_non_log_files_are_one_line_errors(tmp_path):
 
 # -- a fresh recording on the firmware -----------------------------------------------------------
 #: the committed log's parameters (tests/data/dataflash/log.parm): POS + CMD, from boot, small
-COMMITTED_PARAMS = ("LOG_BITMASK 258\nLOG_DISARMED 1\nINS_LOG_BAT_MASK 0\nEK3_LOG_LEVEL 3\n"
-                    "LOG_FILE_RATEMAX 5\nSCR_DEBUG_OPTS 4\n")
+COMMITTED_PARAMS = (
+    "LOG_BITMASK 258\nLOG_DISARMED 1\nINS_LOG_BAT_MASK 0\nEK3_LOG_LEVEL 3\nLOG_FILE_RATEMAX 5\nSCR_DEBUG_OPTS 4\n"
+)
 
 
 def record_run(tmp: Path, start_sitl, params: str) -> tuple[Path, Path, Path]:
@@ -237,8 +244,20 @@ def record_run(tmp: Path, start_sitl, params: str) -> tuple[Path, Path, Path]:
     try:
         run_dir = tmp / "run"
         env = dict(os.environ, OMP_NUM_THREADS="1", PYTHONUNBUFFERED="1")
-        cmd = [str(Path(sys.executable).parent / "passt-mav"), "run", str(mfile), "--connect", s.connect,
-               "--out", str(run_dir), "--speedup-hint", f"{SPEEDUP:g}", "--ready-timeout", "120", "--no-report"]
+        cmd = [
+            str(Path(sys.executable).parent / "passt-mav"),
+            "run",
+            str(mfile),
+            "--connect",
+            s.connect,
+            "--out",
+            str(run_dir),
+            "--speedup-hint",
+            f"{SPEEDUP:g}",
+            "--ready-timeout",
+            "120",
+            "--no-report",
+        ]
         res = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=300)
         assert res.returncode == 0, res.stdout[-3000:] + res.stderr[-3000:]
     finally:

@@ -20,8 +20,13 @@ def test_demo_one_leg_writes_summary_and_report(tmp_path):
     out = tmp_path / "demo"
     env = dict(os.environ, OMP_NUM_THREADS="1")
     t0 = time.monotonic()
-    p = subprocess.run([sys.executable, "-m", "passt_mav.cli", "demo", "--legs", "1", "--moves", "3", "--out", str(out)],
-                       capture_output=True, text=True, timeout=400, env=env)
+    p = subprocess.run(
+        [sys.executable, "-m", "passt_mav.cli", "demo", "--legs", "1", "--moves", "3", "--out", str(out)],
+        capture_output=True,
+        text=True,
+        timeout=400,
+        env=env,
+    )
     wall = time.monotonic() - t0
     assert p.returncode == 0, p.stdout[-2000:] + p.stderr[-2000:]
     s = json.loads((out / "summary.json").read_text())

@@ -6,11 +6,11 @@ import json
 
 import numpy as np
 import pytest
-
-from passt_mav.cli import main
-from passt_mav.campaign import METHODS, run_campaign
-from passt_mav.commands.evaluate import write_figures
 from test_passt import WRONG_VEL, Persistence, ShiftPredictor, make_field
+
+from passt_mav.campaign import METHODS, run_campaign
+from passt_mav.cli import main
+from passt_mav.commands.evaluate import write_figures
 
 SMALL = dict(path_lengths=(12, 24), trials=2, steps=20, steps_per_leg=10, noise=0.01, progress=False)
 
@@ -28,12 +28,14 @@ def serial(field):
 
 def test_campaign_structure_and_ratios(serial, tmp_path):
     assert set(serial["per_L"]) == {"12", "24"}
-    for L, per in serial["per_L"].items():
+    for per in serial["per_L"].values():
         assert set(per["final_rmse"]) == set(METHODS)
         for m in METHODS:
             assert len(per["rmse_mean"][m]) == 21 and per["rmse_mean"][m][0] == pytest.approx(0.0, abs=1e-6)
         assert per["ratio_to_passt"]["passt"] == pytest.approx(1.0)
-        assert per["ratio_to_passt"]["lawnmower_gp"] == pytest.approx(per["final_rmse"]["lawnmower_gp"] / per["final_rmse"]["passt"])
+        assert per["ratio_to_passt"]["lawnmower_gp"] == pytest.approx(
+            per["final_rmse"]["lawnmower_gp"] / per["final_rmse"]["passt"]
+        )
         # a GP alone from <= 25 samples of a 900-cell field is far worse than model + GP
         assert per["ratio_to_passt"]["lawnmower_gp"] > 3
         assert len(per["pod"]["passt"]) == 6 and len(per["starts"]) == 2
@@ -51,7 +53,6 @@ def _numbers(s):
 
 def test_joblib_workers_give_same_numbers(field, serial):
     import cloudpickle
-
     import test_passt
 
     cloudpickle.register_pickle_by_value(test_passt)  # the stand-in predictor travels by value
@@ -64,9 +65,13 @@ def test_joblib_workers_give_same_numbers(field, serial):
 
 def test_dask_local_cluster_gives_same_numbers(field, serial):
     distributed = pytest.importorskip("distributed")
-    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=False, dashboard_address=None) as cluster:
+    with distributed.LocalCluster(
+        n_workers=2, threads_per_worker=1, processes=False, dashboard_address=None
+    ) as cluster:
         # by address, as `--scheduler tcp://...` does
-        par = run_campaign(field, ShiftPredictor(WRONG_VEL), scheduler=cluster.scheduler_address, **dict(SMALL, path_lengths=(12,)))
+        par = run_campaign(
+            field, ShiftPredictor(WRONG_VEL), scheduler=cluster.scheduler_address, **dict(SMALL, path_lengths=(12,))
+        )
     assert _numbers(par)["12"] == _numbers(serial)["12"]
 
 
@@ -79,11 +84,15 @@ def test_lockstep_engine_equals_serial(field, serial, batch):
     """Batched (lockstep) and serial runs of the same configuration: identical paths, RMSE to 1e-6."""
     from test_passt import BatchShiftPredictor
 
-    lock = run_campaign(field, BatchShiftPredictor(WRONG_VEL), engine="lockstep", batch=batch, keep_trials=True, **SMALL)
+    lock = run_campaign(
+        field, BatchShiftPredictor(WRONG_VEL), engine="lockstep", batch=batch, keep_trials=True, **SMALL
+    )
     assert _paths(lock) == _paths(serial) and len(_paths(lock)) == 4
     for L in serial["per_L"]:
         for m in METHODS:
-            np.testing.assert_allclose(lock["per_L"][L]["rmse_mean"][m], serial["per_L"][L]["rmse_mean"][m], atol=1e-6, rtol=0)
+            np.testing.assert_allclose(
+                lock["per_L"][L]["rmse_mean"][m], serial["per_L"][L]["rmse_mean"][m], atol=1e-6, rtol=0
+            )
     assert lock["trial_legs"] == 4 * 4 * 2 and set(lock["timings_s"]["passt"]) == {"predict", "reward", "plan", "gp"}
 
 
@@ -95,7 +104,9 @@ def test_fixed_kernel_campaign_solvers_agree(field):
     b = run_campaign(field, ShiftPredictor(WRONG_VEL), engine="lockstep", gp_solver="cholesky", **kw)
     assert _paths(a) == _paths(b)
     for m in METHODS:
-        np.testing.assert_allclose(b["per_L"]["12"]["rmse_mean"][m], a["per_L"]["12"]["rmse_mean"][m], atol=1e-6, rtol=0)
+        np.testing.assert_allclose(
+            b["per_L"]["12"]["rmse_mean"][m], a["per_L"]["12"]["rmse_mean"][m], atol=1e-6, rtol=0
+        )
 
 
 def test_lockstep_with_a_real_batched_predictor(field):
@@ -106,13 +117,32 @@ def test_lockstep_with_a_real_batched_predictor(field):
     a = run_campaign(field, dmd, engine="serial", **kw)
     b = run_campaign(field, dmd, engine="lockstep", **kw)
     assert _paths(a) == _paths(b)
-    np.testing.assert_allclose(b["per_L"]["12"]["rmse_mean"]["passt"], a["per_L"]["12"]["rmse_mean"]["passt"], atol=1e-6, rtol=0)
+    np.testing.assert_allclose(
+        b["per_L"]["12"]["rmse_mean"]["passt"], a["per_L"]["12"]["rmse_mean"]["passt"], atol=1e-6, rtol=0
+    )
 
 
 def test_bad_inputs_exit_2(tmp_path, capsys):
-    assert main(["evaluate", "--data", "builtin:ocean", "--model", "persistence", "--path-lengths", "a,b", "--out", str(tmp_path)]) == 2
+    assert (
+        main(
+            [
+                "evaluate",
+                "--data",
+                "builtin:ocean",
+                "--model",
+                "persistence",
+                "--path-lengths",
+                "a,b",
+                "--out",
+                str(tmp_path),
+            ]
+        )
+        == 2
+    )
     assert "--path-lengths" in capsys.readouterr().err
-    assert main(["evaluate", "--data", str(tmp_path / "nope.nc"), "--model", "persistence", "--out", str(tmp_path)]) == 2
+    assert (
+        main(["evaluate", "--data", str(tmp_path / "nope.nc"), "--model", "persistence", "--out", str(tmp_path)]) == 2
+    )
 
 
 def test_unknown_method_or_planner(field):
@@ -129,7 +159,24 @@ def test_cli_end_to_end(tmp_path, capsys):
     f = make_field(T=30)
     nc = f.to_netcdf(tmp_path / "synth.nc")
     out = tmp_path / "eval"
-    rc = main(["evaluate", "--data", str(nc), "--model", "persistence", "--trials", "2", "--path-lengths", "10,20", "--steps", "20", "--json", "--out", str(out)])
+    rc = main(
+        [
+            "evaluate",
+            "--data",
+            str(nc),
+            "--model",
+            "persistence",
+            "--trials",
+            "2",
+            "--path-lengths",
+            "10,20",
+            "--steps",
+            "20",
+            "--json",
+            "--out",
+            str(out),
+        ]
+    )
     assert rc == 0
     j = json.loads(capsys.readouterr().out)
     assert j["out"] == str(out) and set(j["per_L"]) == {"10", "20"}
@@ -191,7 +238,9 @@ def test_campaign_tasks_reuse_the_heap_under_dask_malloc_settings():
         "print(before, inside, faults())\n"
     )
     env = dict(os.environ, MALLOC_TRIM_THRESHOLD_="65536")
-    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True).stdout.split()
+    out = subprocess.run(
+        [sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True
+    ).stdout.split()
     before, inside, after = map(int, out)
     assert before > 100 * 200  # ~256 faults per 1 MiB array
     assert inside < before / 20

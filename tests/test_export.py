@@ -45,18 +45,34 @@ def make_run(root: Path, boats: int = 3, legs: int = 4, metric: bool = False) ->
     grid = geo.RegionGrid(40.0, -63.5, 40.35, -63.05, 8, 10)
     origin, units = ORIGIN, "m s-1"
     if metric:
-        grid = geo.MetricRegionGrid(2.6, 11.4, -4.7, 4.7, 8, 10, anchor_lat=40.2, anchor_lon=-63.1, rotation_deg=30.0,
-                                    scale=100.0)
+        grid = geo.MetricRegionGrid(
+            2.6, 11.4, -4.7, 4.7, 8, 10, anchor_lat=40.2, anchor_lon=-63.1, rotation_deg=30.0, scale=100.0
+        )
         origin, units = None, "1"
     rng = np.random.default_rng(0)
     rd = RunDir(root).create()
     vehicles = [{"connect": f"tcp:127.0.0.1:{5760 + 10 * b}", "speed_mps": 2.0} for b in range(boats)]
-    mission = {"name": "synthetic", "region": grid.describe(), "field": {"source": "builtin:ocean"},
-               "model": "persistence", "geofence_margin_m": 300.0, "legs": legs,
-               **({"vehicles": vehicles} if boats > 1 else {"vehicle": vehicles[0]})}
+    mission = {
+        "name": "synthetic",
+        "region": grid.describe(),
+        "field": {"source": "builtin:ocean"},
+        "model": "persistence",
+        "geofence_margin_m": 300.0,
+        "legs": legs,
+        **({"vehicles": vehicles} if boats > 1 else {"vehicle": vehicles[0]}),
+    }
     rd.mission_file.write_text(yaml.safe_dump(mission))
-    rd.write_summary({"mission": "synthetic", "status": "complete", "grid": grid.describe(), "model": "persistence",
-                      "planner": "information", "reward": "variance_reduction", "field_time_origin": ORIGIN})
+    rd.write_summary(
+        {
+            "mission": "synthetic",
+            "status": "complete",
+            "grid": grid.describe(),
+            "model": "persistence",
+            "planner": "information",
+            "reward": "variance_reduction",
+            "field_time_origin": ORIGIN,
+        }
+    )
     t_end = [3600.0 * (i + 1) for i in range(legs)]
     if legs > 2:
         t_end[2] = t_end[1]
@@ -64,9 +80,16 @@ def make_run(root: Path, boats: int = 3, legs: int = 4, metric: bool = False) ->
     for i in range(legs):
         cells = [[1 + i, 1], [2 + i, 2], [2 + i, 3]]
         lat, lon = grid.cell_to_latlon(np.array([2 + i, 2 + i]), np.array([2, 3]))
-        rec = {"index": i, "boat": i % boats, "path": cells, "status": "complete", "t_state": t_end[i],
-               "waypoints": [[float(a), float(b)] for a, b in zip(lat, lon)], "waypoint_seqs": [2, 3],
-               "fleet_seq": {"plan": i, "absorb": i}}
+        rec = {
+            "index": i,
+            "boat": i % boats,
+            "path": cells,
+            "status": "complete",
+            "t_state": t_end[i],
+            "waypoints": [[float(a), float(b)] for a, b in zip(lat, lon)],
+            "waypoint_seqs": [2, 3],
+            "fleet_seq": {"plan": i, "absorb": i},
+        }
         rd.write_leg(i, rec)
         state = rng.normal(0.0, 0.3, (1, 2, 8, 10)).astype(np.float32)
         state[:, :, 0, 0] = np.nan  # a land cell
@@ -80,11 +103,30 @@ def make_run(root: Path, boats: int = 3, legs: int = 4, metric: bool = False) ->
         for b, n in enumerate(per_boat):
             for k in range(n):
                 lat, lon = grid.fcell_to_latlon(1.0 + 0.1 * k, 1.0 + 0.05 * k + b)
-                recs.append(Sample(1000 * k, T0_EPOCH + 5.0 * k + 0.25 * b, float(lat), float(lon),
-                                   float(rng.normal()), float(rng.normal()), k // 20, f"mav:{b + 1}/1"))
+                recs.append(
+                    Sample(
+                        1000 * k,
+                        T0_EPOCH + 5.0 * k + 0.25 * b,
+                        float(lat),
+                        float(lon),
+                        float(rng.normal()),
+                        float(rng.normal()),
+                        k // 20,
+                        f"mav:{b + 1}/1",
+                    )
+                )
         st.append_many(recs)
-    return {"rd": rd, "grid": grid, "estimates": est, "t_end": t_end, "per_boat": per_boat, "samples": recs,
-            "legs": legs, "boats": boats, "margin": 300.0}
+    return {
+        "rd": rd,
+        "grid": grid,
+        "estimates": est,
+        "t_end": t_end,
+        "per_boat": per_boat,
+        "samples": recs,
+        "legs": legs,
+        "boats": boats,
+        "margin": 300.0,
+    }
 
 
 @pytest.fixture(scope="module")
@@ -127,8 +169,21 @@ def test_estimate_netcdf_is_cf_and_round_trips_through_data_import(run3, tmp_pat
     assert_cf_clean(out, tmp_path)
     g = run3["grid"]
     back = tmp_path / "back.nc"
-    assert main(["data", "import", str(out), f"--region={g.south},{g.west},{g.north},{g.east}",
-                 "--grid", f"{g.rows}x{g.cols}", "--out", str(back)]) == 0
+    assert (
+        main(
+            [
+                "data",
+                "import",
+                str(out),
+                f"--region={g.south},{g.west},{g.north},{g.east}",
+                "--grid",
+                f"{g.rows}x{g.cols}",
+                "--out",
+                str(back),
+            ]
+        )
+        == 0
+    )
     f = load_field(back)
     kept = [0, 2, 3]  # legs 1 and 2 end together: leg 2 (absorbed later) is kept
     want = np.concatenate([run3["estimates"][i][0] for i in kept])
@@ -141,8 +196,12 @@ def test_estimate_netcdf_is_cf_and_round_trips_through_data_import(run3, tmp_pat
     import xarray as xr
 
     with xr.open_dataset(out) as ds:
-        np.testing.assert_allclose(np.stack([ds.u_std.values, ds.v_std.values], 1),
-                                   np.concatenate([run3["estimates"][i][1] for i in kept]), atol=1e-7, equal_nan=True)
+        np.testing.assert_allclose(
+            np.stack([ds.u_std.values, ds.v_std.values], 1),
+            np.concatenate([run3["estimates"][i][1] for i in kept]),
+            atol=1e-7,
+            equal_nan=True,
+        )
         assert ds.u_std.attrs["standard_name"] == "eastward_sea_water_velocity standard_error"
         assert ds.u.attrs["units"] == "m s-1" and ds.u.attrs["grid_mapping"] == "crs"
         assert list(ds.leg.values) == kept and list(ds.boat.values) == [0, 2, 0]
@@ -164,8 +223,9 @@ def test_a_metric_field_keeps_its_data_frame_with_lat_lon_and_field_time(tmp_pat
         np.testing.assert_allclose(ds.field_time.values, r["t_end"][:2])
         np.testing.assert_allclose(ds.lat.values[3, 4], r["grid"].cell_to_latlon(3, 4)[0], atol=1e-12)
         assert "standard_name" not in ds.u.attrs and ds.u.attrs["units"] == "1"
-        np.testing.assert_allclose(ds.u.values, np.concatenate([r["estimates"][i][0][:, 0] for i in range(2)]),
-                                   atol=1e-7, equal_nan=True)
+        np.testing.assert_allclose(
+            ds.u.values, np.concatenate([r["estimates"][i][0][:, 0] for i in range(2)]), atol=1e-7, equal_nan=True
+        )
 
 
 def test_samples_netcdf_is_a_cf_trajectory_per_boat(run3, tmp_path, capsys):
@@ -271,17 +331,21 @@ def test_a_run_without_std_exports_without_it_and_says_so(tmp_path, capsys):
 
 
 # -- errors ------------------------------------------------------------------------------------
-@pytest.mark.parametrize("case", ["missing_run", "not_a_run", "bad_format", "missing_folder", "parent_is_file",
-                                  "samples_with_csv"])
+@pytest.mark.parametrize(
+    "case", ["missing_run", "not_a_run", "bad_format", "missing_folder", "parent_is_file", "samples_with_csv"]
+)
 def test_errors_are_one_line_exit_2_and_leave_nothing(run3, tmp_path, capsys, case):
     run = str(run3["rd"].root)
     (tmp_path / "empty").mkdir()
     (tmp_path / "afile").write_text("x")
-    args = {"missing_run": [str(tmp_path / "nope")], "not_a_run": [str(tmp_path / "empty")],
-            "bad_format": [run, "--format", "shapefile"],
-            "missing_folder": [run, "--out", str(tmp_path / "no" / "dir" / "e.nc")],
-            "parent_is_file": [run, "--out", str(tmp_path / "afile" / "e.nc")],
-            "samples_with_csv": [run, "--format", "csv", "--samples", "--out", str(tmp_path / "s.csv")]}[case]
+    args = {
+        "missing_run": [str(tmp_path / "nope")],
+        "not_a_run": [str(tmp_path / "empty")],
+        "bad_format": [run, "--format", "shapefile"],
+        "missing_folder": [run, "--out", str(tmp_path / "no" / "dir" / "e.nc")],
+        "parent_is_file": [run, "--out", str(tmp_path / "afile" / "e.nc")],
+        "samples_with_csv": [run, "--format", "csv", "--samples", "--out", str(tmp_path / "s.csv")],
+    }[case]
     before = sorted(p.name for p in tmp_path.rglob("*"))
     rc, out, err = export(args, capsys)
     assert rc == 2 and out == ""
@@ -303,8 +367,10 @@ def test_a_failure_while_writing_leaves_no_file(run3, tmp_path, monkeypatch):
 
 
 def test_export_help_imports_nothing_heavy():
-    code = ("import sys; from passt_mav.cli import build_parser; build_parser().parse_args(['export', 'x']); "
-            "print([m for m in ('torch', 'sklearn', 'pymavlink', 'xarray', 'numpy') if m in sys.modules])")
+    code = (
+        "import sys; from passt_mav.cli import build_parser; build_parser().parse_args(['export', 'x']); "
+        "print([m for m in ('torch', 'sklearn', 'pymavlink', 'xarray', 'numpy') if m in sys.modules])"
+    )
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert "torch" not in r.stdout and "sklearn" not in r.stdout and "pymavlink" not in r.stdout
 
@@ -318,8 +384,27 @@ def test_demo_run_exports(tmp_path, boats):
     from geojson_pydantic import FeatureCollection
 
     run = tmp_path / "demo"
-    subprocess.run([sys.executable, "-m", "passt_mav.cli", "demo", "--legs", "2", "--moves", "3", "--boats", str(boats),
-                    "--no-report", "--out", str(run)], check=True, capture_output=True, text=True, timeout=900)
+    subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "passt_mav.cli",
+            "demo",
+            "--legs",
+            "2",
+            "--moves",
+            "3",
+            "--boats",
+            str(boats),
+            "--no-report",
+            "--out",
+            str(run),
+        ],
+        check=True,
+        capture_output=True,
+        text=True,
+        timeout=900,
+    )
     rd = RunDir(run)
     legs = rd.read_legs()
     for fmt in ("netcdf", "geojson", "kml", "csv"):
@@ -329,8 +414,21 @@ def test_demo_run_exports(tmp_path, boats):
     assert_cf_clean(exp / "estimate.nc", tmp_path)
     assert_cf_clean(exp / "samples.nc", tmp_path)
     g = geo.grid_from_dict(rd.read_summary()["grid"])
-    assert main(["data", "import", str(exp / "estimate.nc"), f"--region={g.south},{g.west},{g.north},{g.east}",
-                 "--grid", f"{g.rows}x{g.cols}", "--out", str(tmp_path / "back.nc")]) == 0
+    assert (
+        main(
+            [
+                "data",
+                "import",
+                str(exp / "estimate.nc"),
+                f"--region={g.south},{g.west},{g.north},{g.east}",
+                "--grid",
+                f"{g.rows}x{g.cols}",
+                "--out",
+                str(tmp_path / "back.nc"),
+            ]
+        )
+        == 0
+    )
     back = load_field(tmp_path / "back.nc")
     import xarray as xr
 

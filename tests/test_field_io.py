@@ -12,8 +12,13 @@ import geo
 from passt_mav.cli import main
 from passt_mav.fields.field import FlowField, load_field
 
-ATTRS = {"title": "test field", "generator": "tests", "seed": 7, "nu": 0.005,
-         "parameters": {"jet": {"U0": 1.5, "waves": [1, 2, 3]}, "flag": True}}
+ATTRS = {
+    "title": "test field",
+    "generator": "tests",
+    "seed": 7,
+    "nu": 0.005,
+    "parameters": {"jet": {"U0": 1.5, "waves": [1, 2, 3]}, "flag": True},
+}
 
 
 def _geo_field(rng) -> FlowField:
@@ -25,7 +30,9 @@ def _geo_field(rng) -> FlowField:
 
 
 def _metric_field(rng) -> FlowField:
-    grid = geo.MetricRegionGrid(1.0, 8.0, -3.0, 3.0, 6, 8, anchor_lat=40.1, anchor_lon=-63.2, rotation_deg=30.0, scale=250.0)
+    grid = geo.MetricRegionGrid(
+        1.0, 8.0, -3.0, 3.0, 6, 8, anchor_lat=40.1, anchor_lon=-63.2, rotation_deg=30.0, scale=250.0
+    )
     data = rng.normal(size=(4, 2, 6, 8)).astype(np.float32)
     data[:, :, 2:4, 0:2] = np.nan  # the cylinder body
     return FlowField(data, grid, 0.1 + np.arange(4) * 0.25, None, "1", {"generator": "tests", "strouhal": 0.2})
@@ -98,7 +105,11 @@ def test_interp_exact_for_linear_fields():
     np.testing.assert_allclose(out[:, 1], cv[0] + cv[1] * r + cv[2] * c + cv[3] * k, atol=1e-5)
     # scalars, edges and outside
     assert f.interp(0.0, 6.0, 8.0).shape == (2,)
-    np.testing.assert_allclose(f.interp(3000.0, 6.0, 8.0), [cu[0] + 6 * cu[1] + 8 * cu[2] + 5 * cu[3], cv[0] + 6 * cv[1] + 8 * cv[2] + 5 * cv[3]], atol=1e-5)
+    np.testing.assert_allclose(
+        f.interp(3000.0, 6.0, 8.0),
+        [cu[0] + 6 * cu[1] + 8 * cu[2] + 5 * cu[3], cv[0] + 6 * cv[1] + 8 * cv[2] + 5 * cv[3]],
+        atol=1e-5,
+    )
     assert np.isnan(f.interp(0.0, -0.1, 3.0)).all()
     assert np.isnan(f.interp(3001.0, 3.0, 3.0)).all()
 
@@ -154,6 +165,8 @@ def test_bad_files_exit_2_one_line(tmp_path, capsys):
     assert code == 2 and len(err.splitlines()) == 1 and "lacks the variable(s) v" in err
 
     foreign = tmp_path / "foreign.nc"
-    xr.Dataset({"u": (("lat", "lon"), np.zeros((2, 2)))}, coords={"lat": [1.0, 2.0], "lon": [1.0, 2.0]}).to_netcdf(foreign)
+    xr.Dataset({"u": (("lat", "lon"), np.zeros((2, 2)))}, coords={"lat": [1.0, 2.0], "lon": [1.0, 2.0]}).to_netcdf(
+        foreign
+    )
     code, err = _run_info(foreign, capsys)
     assert code == 2 and len(err.splitlines()) == 1 and "passt-mav data import" in err

@@ -11,17 +11,16 @@ from __future__ import annotations
 
 import contextlib
 
-import numpy as np
 import pytest
-
 from mavlink_helpers import inprocess_factory, link_config, vehicle
+from test_controller import mission, sim_config, wave_field
+
 from passt_mav.commands.run import LEAN_STREAMS
 from passt_mav.controller import build_predictor
 from passt_mav.fleet_controller import FleetController
 from passt_mav.mavlink import Link
 from passt_mav.runs.rundir import RunDir
 from passt_mav.runs.store import SampleStore
-from test_controller import mission, sim_config, wave_field
 from vehicle_sim import Simulator
 
 SPEEDUP = 20.0  # three simulators and three boat threads share the GIL: slower than one boat's 50x
@@ -40,9 +39,17 @@ def fleet_on_loopback(field, starts=STARTS, tlogs=None):
     links = []
     try:
         for k, port in enumerate(fleet.tcp_ports()):
-            links.append(Link(link_config(connect=f"tcp:127.0.0.1:{port}", stream_rates_hz=LEAN_STREAMS,
-                                          timeout_s=0.5, link_lost_s=1.0,
-                                          tlog=None if tlogs is None else str(tlogs[k]))).connect())
+            links.append(
+                Link(
+                    link_config(
+                        connect=f"tcp:127.0.0.1:{port}",
+                        stream_rates_hz=LEAN_STREAMS,
+                        timeout_s=0.5,
+                        link_lost_s=1.0,
+                        tlog=None if tlogs is None else str(tlogs[k]),
+                    )
+                ).connect()
+            )
         yield fleet, links
     finally:
         for link in links:
@@ -57,8 +64,10 @@ def fleet_served(field, starts=STARTS):
         for k, (r, c) in enumerate(starts):
             lat, lon = field.grid.cell_to_latlon(r, c)
             sim = Simulator(field, home=(float(lat), float(lon)), config=sim_config().replace(sysid=k + 1))
-            link = Link(link_config(stream_rates_hz=LEAN_STREAMS, timeout_s=0.5, link_lost_s=1.0),
-                        connection_factory=inprocess_factory(sim))
+            link = Link(
+                link_config(stream_rates_hz=LEAN_STREAMS, timeout_s=0.5, link_lost_s=1.0),
+                connection_factory=inprocess_factory(sim),
+            )
             sim.serve([], speedup=SPEEDUP)
             sims.append(sim)
             links.append(link.connect())
@@ -71,8 +80,10 @@ def fleet_served(field, starts=STARTS):
 
 
 def fleet_mission(tmp_path, field, **over):
-    vehicles = [{"connect": f"tcp:127.0.0.1:{5760 + 10 * k}", "speed_mps": 5.0, "wp_radius_m": 3.0,
-                 "start_cell": list(s)} for k, s in enumerate(STARTS)]
+    vehicles = [
+        {"connect": f"tcp:127.0.0.1:{5760 + 10 * k}", "speed_mps": 5.0, "wp_radius_m": 3.0, "start_cell": list(s)}
+        for k, s in enumerate(STARTS)
+    ]
     from passt_mav.mission.config import validate_mission
 
     data = {"vehicles": vehicles, "legs": 2}
@@ -86,9 +97,20 @@ def fleet_mission(tmp_path, field, **over):
 def run_fleet(tmp_path, field, cfg, links, **kw):
     pred, info = build_predictor(cfg.model, field, echo=lambda s: None)
     rd = RunDir(tmp_path / "run").create()
-    fleet = FleetController(cfg, links, rd, field=field, predictor=pred, predictor_info=info,
-                            vehicles=[vehicle(x) for x in links], field_time_at_boot=0.0, speedup_hint=SPEEDUP,
-                            ready_timeout_s=20.0, pause_timeout_s=5.0, **kw)
+    fleet = FleetController(
+        cfg,
+        links,
+        rd,
+        field=field,
+        predictor=pred,
+        predictor_info=info,
+        vehicles=[vehicle(x) for x in links],
+        field_time_at_boot=0.0,
+        speedup_hint=SPEEDUP,
+        ready_timeout_s=20.0,
+        pause_timeout_s=5.0,
+        **kw,
+    )
     return fleet, rd
 
 
@@ -99,7 +121,7 @@ def _overlap(a, b) -> bool:
 def test_three_boats_fly_one_loop_with_disjoint_paths_and_one_store(tmp_path):
     field = wave_field()
     cfg = fleet_mission(tmp_path, field)
-    with fleet_on_loopback(field) as (sim, links):
+    with fleet_on_loopback(field) as (_sim, links):
         fleet, rd = run_fleet(tmp_path, field, cfg, links)
         summary = fleet.run()
     assert summary["status"] == "complete", summary["events"]
@@ -141,8 +163,12 @@ def test_a_boat_whose_link_dies_mid_leg_is_reported_and_the_others_complete(tmp_
 
             while not killed:
                 b = fleet.boats[1]
-                if b.status == "flying" and b.collector is not None and b.collector.leg is not None \
-                        and fleet.store.count(b.collector.leg) >= 3:
+                if (
+                    b.status == "flying"
+                    and b.collector is not None
+                    and b.collector.leg is not None
+                    and fleet.store.count(b.collector.leg) >= 3
+                ):
                     killed["leg"] = b.collector.leg
                     sims[1].stop()  # the boat's autopilot goes silent for good
                     return
@@ -174,7 +200,7 @@ def test_a_boat_whose_link_drops_mid_leg_reconnects_and_the_fleet_completes(tmp_
     field = wave_field()
     cfg = fleet_mission(tmp_path, field)
     with fleet_on_loopback(field) as (sim, links):
-        fleet, rd = run_fleet(tmp_path, field, cfg, links)
+        fleet, _rd = run_fleet(tmp_path, field, cfg, links)
         dropped = {}
 
         def drop_when_flying():
@@ -207,7 +233,7 @@ def test_replay_of_a_fleet_run_reproduces_every_boats_paths_and_rmse(tmp_path):
     field = wave_field()
     cfg = fleet_mission(tmp_path, field)
     rd = RunDir(tmp_path / "run").create()
-    with fleet_on_loopback(field, tlogs=[rd.boat_tlog(k) for k in range(3)]) as (sim, links):
+    with fleet_on_loopback(field, tlogs=[rd.boat_tlog(k) for k in range(3)]) as (_sim, links):
         fleet, rd = run_fleet(tmp_path, field, cfg, links)
         summary = fleet.run()
     assert summary["status"] == "complete", summary["events"]
@@ -227,7 +253,7 @@ def test_report_of_a_fleet_run_draws_every_boats_track(tmp_path):
     field = wave_field()
     cfg = fleet_mission(tmp_path, field, legs=1)
     rd = RunDir(tmp_path / "run").create()
-    with fleet_on_loopback(field, tlogs=[rd.boat_tlog(k) for k in range(3)]) as (sim, links):
+    with fleet_on_loopback(field, tlogs=[rd.boat_tlog(k) for k in range(3)]) as (_sim, links):
         fleet, rd = run_fleet(tmp_path, field, cfg, links)
         summary = fleet.run()
     assert summary["status"] == "complete"

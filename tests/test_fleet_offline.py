@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 
 from passt_mav.campaign import fleet_comparison
+from passt_mav.engine import run_offline, run_offline_fleet, same_step_clashes
 from passt_mav.fields.datasets import resolve_field
 from passt_mav.models import make_predictor
-from passt_mav.engine import run_offline, run_offline_fleet, same_step_clashes
 
 
 @pytest.fixture(scope="module")
@@ -93,12 +93,20 @@ def test_boats_packed_together_never_meet_and_repeat(cylinder, seed, monkeypatch
     seeds 0-2). After the repair no two boats share a cell at the same move, every path is a
     valid grid path, and a second run gives the same paths and estimate."""
     import geo
-    import passt_mav.engine as engine
+    from passt_mav import engine
 
     field, _ = cylinder
     pers = make_predictor("persistence").fit(field)
-    kw = dict(start_cells=[(14, 14), (14, 15), (15, 14)], t0=300, n_steps=30, path_length=120, steps_per_leg=10,
-              noise_std=0.02, seed=seed, planner="random")
+    kw = dict(
+        start_cells=[(14, 14), (14, 15), (15, 14)],
+        t0=300,
+        n_steps=30,
+        path_length=120,
+        steps_per_leg=10,
+        noise_std=0.02,
+        seed=seed,
+        planner="random",
+    )
     found = []
     real = engine.same_step_clashes
     monkeypatch.setattr(engine, "same_step_clashes", lambda *a: found.append(int(real(*a).any())) or real(*a))
@@ -127,8 +135,16 @@ def test_policy_gradient_fleet_keeps_apart_and_off_land(seed):
     data[:, :, 10:20, 12:15] = np.nan  # land
     f = FlowField(data, field.grid, field.times[300:341])
     pers = make_predictor("persistence").fit(f)
-    r = run_offline_fleet(f, pers, start_cells=[(5, 5), (25, 25), (5, 25)], n_steps=40, path_length=40,
-                          steps_per_leg=10, noise_std=0.02, seed=seed)
+    r = run_offline_fleet(
+        f,
+        pers,
+        start_cells=[(5, 5), (25, 25), (5, 25)],
+        n_steps=40,
+        path_length=40,
+        steps_per_leg=10,
+        noise_std=0.02,
+        seed=seed,
+    )
     assert len(r.legs) == 4
     _no_two_boats_at_one_cell_at_once(r.legs)
     for leg in r.legs:
@@ -151,8 +167,9 @@ def test_fleet_beats_one_boat_with_the_shipped_model_over_ten_trials(tmp_path):
     from passt_mav.models.base import load_predictor
 
     field = resolve_field("builtin:cylinder")
-    res = fleet_comparison(field, load_predictor("builtin:cylinder"), boats=3, path_length=50, trials=10, steps=300,
-                           progress=False)
+    res = fleet_comparison(
+        field, load_predictor("builtin:cylinder"), boats=3, path_length=50, trials=10, steps=300, progress=False
+    )
     f = {k: v["final_rmse"] for k, v in res["runs"].items()}
     (tmp_path / "fleet.json").write_text(json.dumps(f))
     assert f["3 boats x 50"] < f["2 boats x 50"] < f["1 boat x 50"], f
@@ -175,8 +192,30 @@ def test_evaluate_boats_cli_writes_the_comparison_and_figure(tmp_path, capsys):
     from passt_mav.cli import main
 
     out = tmp_path / "fleet"
-    rc = main(["evaluate", "--data", "builtin:cylinder", "--model", "persistence", "--boats", "2", "--trials", "2",
-               "--path-lengths", "10", "--steps", "20", "--t0", "300", "--window", "10", "--json", "--out", str(out)])
+    rc = main(
+        [
+            "evaluate",
+            "--data",
+            "builtin:cylinder",
+            "--model",
+            "persistence",
+            "--boats",
+            "2",
+            "--trials",
+            "2",
+            "--path-lengths",
+            "10",
+            "--steps",
+            "20",
+            "--t0",
+            "300",
+            "--window",
+            "10",
+            "--json",
+            "--out",
+            str(out),
+        ]
+    )
     assert rc == 0
     j = json.loads(capsys.readouterr().out)
     assert set(j["final_rmse"]) == {"1 boat x 10", "2 boats x 10", "1 boat x 20"}
@@ -187,8 +226,22 @@ def test_evaluate_boats_cli_writes_the_comparison_and_figure(tmp_path, capsys):
         assert run["rmse_mean"][0] == pytest.approx(0.0, abs=1e-6)  # every trial starts from the truth
         assert run["final_rmse"] == pytest.approx(float(np.mean(run["final_rmse_trials"])))
     assert (out / "fleet_rmse.png").stat().st_size > 1000
-    assert main(["evaluate", "--data", "builtin:cylinder", "--model", "persistence", "--boats", "0",
-                 "--out", str(tmp_path / "bad")]) == 2
+    assert (
+        main(
+            [
+                "evaluate",
+                "--data",
+                "builtin:cylinder",
+                "--model",
+                "persistence",
+                "--boats",
+                "0",
+                "--out",
+                str(tmp_path / "bad"),
+            ]
+        )
+        == 2
+    )
     err = capsys.readouterr().err.strip()
     assert "--boats" in err and len(err.splitlines()) == 1
 
@@ -210,8 +263,9 @@ def test_keep_out_is_one_rule_for_live_times_and_offline_moves():
     m = keep_out(b, late, [(a, ta, 10.0)], (2, 4))
     assert m.sum() == 1 and m[0, 2]
     assert not keep_out(b, tb, [], (2, 4)).any()
-    np.testing.assert_array_equal(keep_out(b, np.arange(4), [(a, np.arange(3), 1.0)], (2, 4)),
-                                  same_step_clashes(b, [a], (2, 4)))
+    np.testing.assert_array_equal(
+        keep_out(b, np.arange(4), [(a, np.arange(3), 1.0)], (2, 4)), same_step_clashes(b, [a], (2, 4))
+    )
 
 
 def test_loop_options_are_one_set_for_every_offline_shape(cylinder):

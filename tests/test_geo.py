@@ -27,7 +27,9 @@ def geod():
 @pytest.fixture(scope="module")
 def cyl_grid():
     """The cylinder crop placed on the sea, rotated so that every axis mixes lat and lon."""
-    return geo.MetricRegionGrid(2.6, 11.4, -4.7, 4.7, 30, 30, anchor_lat=40.2, anchor_lon=-63.1, rotation_deg=30.0, scale=100.0)
+    return geo.MetricRegionGrid(
+        2.6, 11.4, -4.7, 4.7, 30, 30, anchor_lat=40.2, anchor_lon=-63.1, rotation_deg=30.0, scale=100.0
+    )
 
 
 # -- cells <-> lat/lon ----------------------------------------------------------------
@@ -64,7 +66,9 @@ def test_cell_size_matches_geodesic_distances_and_the_paper(na_grid, geod):
     # geo's figure is the geodesic spacing at the grid centre
     mid = 14
     assert dy == pytest.approx(np.median(d_ns), rel=1e-3)
-    assert dx == pytest.approx(0.5 * (d_ew.reshape(30, 29)[mid].mean() + d_ew.reshape(30, 29)[mid + 1].mean()), rel=1e-3)
+    assert dx == pytest.approx(
+        0.5 * (d_ew.reshape(30, 29)[mid].mean() + d_ew.reshape(30, 29)[mid + 1].mean()), rel=1e-3
+    )
     # every neighbour spacing within 1 % (north-south) / 1.5 % (east-west: cos(lat) varies 2.6 % over 1.8 deg)
     assert np.abs(d_ns / dy - 1).max() < 0.01
     assert np.abs(d_ew / dx - 1).max() < 0.015

@@ -51,8 +51,24 @@ def _hycom_file(path, *, lon_convention="360", descending_lat=False, land=True, 
     times = pd.Timestamp("2018-03-01T00:00:00") + pd.to_timedelta(hours, unit="h")
     ds = xr.Dataset(
         {
-            "water_u": (("time", "depth", "lat", "lon"), u, {"units": "m/s", "long_name": "Eastward Water Velocity", "standard_name": "eastward_sea_water_velocity"}),
-            "water_v": (("time", "depth", "lat", "lon"), v, {"units": "m/s", "long_name": "Northward Water Velocity", "standard_name": "northward_sea_water_velocity"}),
+            "water_u": (
+                ("time", "depth", "lat", "lon"),
+                u,
+                {
+                    "units": "m/s",
+                    "long_name": "Eastward Water Velocity",
+                    "standard_name": "eastward_sea_water_velocity",
+                },
+            ),
+            "water_v": (
+                ("time", "depth", "lat", "lon"),
+                v,
+                {
+                    "units": "m/s",
+                    "long_name": "Northward Water Velocity",
+                    "standard_name": "northward_sea_water_velocity",
+                },
+            ),
         },
         coords={
             "time": ("time", times),
@@ -80,8 +96,16 @@ def _copernicus_file(path, *, n_days=4):
     times = pd.Timestamp("2018-03-01T12:00:00") + pd.to_timedelta(hours, unit="h")
     ds = xr.Dataset(
         {
-            "uo": (("time", "depth", "latitude", "longitude"), uo, {"units": "m s-1", "standard_name": "eastward_sea_water_velocity"}),
-            "vo": (("time", "depth", "latitude", "longitude"), vo, {"units": "m s-1", "standard_name": "northward_sea_water_velocity"}),
+            "uo": (
+                ("time", "depth", "latitude", "longitude"),
+                uo,
+                {"units": "m s-1", "standard_name": "eastward_sea_water_velocity"},
+            ),
+            "vo": (
+                ("time", "depth", "latitude", "longitude"),
+                vo,
+                {"units": "m s-1", "standard_name": "northward_sea_water_velocity"},
+            ),
         },
         coords={
             "time": ("time", times),
@@ -175,9 +199,15 @@ def test_finer_than_hourly_keeps_whole_hours(tmp_path):
     LA, LO = np.meshgrid(lat, lon, indexing="ij")
     u = np.stack([_lin(A_U, LA, LO, m / 60) for m in minutes])
     ds = xr.Dataset(
-        {"u": (("time", "lat", "lon"), u * 100, {"units": "cm s-1"}), "v": (("time", "lat", "lon"), -u * 100, {"units": "cm s-1"})},
-        coords={"time": pd.Timestamp("2018-03-01") + pd.to_timedelta(minutes, unit="min"),
-                "lat": ("lat", lat, {"units": "degrees_north"}), "lon": ("lon", lon, {"units": "degrees_east"})},
+        {
+            "u": (("time", "lat", "lon"), u * 100, {"units": "cm s-1"}),
+            "v": (("time", "lat", "lon"), -u * 100, {"units": "cm s-1"}),
+        },
+        coords={
+            "time": pd.Timestamp("2018-03-01") + pd.to_timedelta(minutes, unit="min"),
+            "lat": ("lat", lat, {"units": "degrees_north"}),
+            "lon": ("lon", lon, {"units": "degrees_east"}),
+        },
     )
     p = tmp_path / "radar15.nc"
     ds.to_netcdf(p)
@@ -210,12 +240,16 @@ def test_rtofs_like_2d_separable_coordinates(tmp_path):
     u = _lin(A_U, LA, LO, 0.0)[None, None]
     v = _lin(A_V, LA, LO, 0.0)[None, None]
     ds = xr.Dataset(
-        {"u_velocity": (("MT", "Depth", "Y", "X"), u, {"units": "m/s"}),
-         "v_velocity": (("MT", "Depth", "Y", "X"), v, {"units": "m/s"})},
-        coords={"MT": ("MT", [pd.Timestamp("2018-03-01T06:00")]),
-                "Depth": ("Depth", [0.0], {"units": "m"}),
-                "Latitude": (("Y", "X"), LA, {"units": "degrees_north"}),
-                "Longitude": (("Y", "X"), LO % 360.0, {"units": "degrees_east"})},
+        {
+            "u_velocity": (("MT", "Depth", "Y", "X"), u, {"units": "m/s"}),
+            "v_velocity": (("MT", "Depth", "Y", "X"), v, {"units": "m/s"}),
+        },
+        coords={
+            "MT": ("MT", [pd.Timestamp("2018-03-01T06:00")]),
+            "Depth": ("Depth", [0.0], {"units": "m"}),
+            "Latitude": (("Y", "X"), LA, {"units": "degrees_north"}),
+            "Longitude": (("Y", "X"), LO % 360.0, {"units": "degrees_east"}),
+        },
     )
     p = tmp_path / "rtofs.nc"
     ds.to_netcdf(p)
@@ -226,8 +260,20 @@ def test_rtofs_like_2d_separable_coordinates(tmp_path):
 
 @pytest.mark.parametrize(
     "units,factor",
-    [("m/s", 1.0), ("m s-1", 1.0), ("m s**-1", 1.0), ("m.s-1", 1.0), ("meters per second", 1.0), ("meter second-1", 1.0),
-     ("cm/s", 0.01), ("cm s-1", 0.01), ("CM/S", 0.01), ("cm s^-1", 0.01), ("mm/s", 0.001), ("knots", 1852 / 3600)],
+    [
+        ("m/s", 1.0),
+        ("m s-1", 1.0),
+        ("m s**-1", 1.0),
+        ("m.s-1", 1.0),
+        ("meters per second", 1.0),
+        ("meter second-1", 1.0),
+        ("cm/s", 0.01),
+        ("cm s-1", 0.01),
+        ("CM/S", 0.01),
+        ("cm s^-1", 0.01),
+        ("mm/s", 0.001),
+        ("knots", 1852 / 3600),
+    ],
 )
 def test_velocity_units(units, factor):
     assert velocity_scale(units) == pytest.approx(factor)
@@ -299,8 +345,14 @@ def test_hf_radar_aligned_grid_reproduces_raw_cells(hf_radar_path, radar):
 def test_hf_radar_between_nodes_bilinear(hf_radar_path, radar):
     raw_u, _, lat, lon, _ = radar
     # centres half-way between raw nodes: value = mean of the 4 nodes where all exist, NaN otherwise
-    grid = geo.RegionGrid((lat[I0] + lat[I0 + 1]) / 2, (lon[J0] + lon[J0 + 1]) / 2,
-                          (lat[I0 + 19] + lat[I0 + 20]) / 2, (lon[J0 + 19] + lon[J0 + 20]) / 2, 20, 20)
+    grid = geo.RegionGrid(
+        (lat[I0] + lat[I0 + 1]) / 2,
+        (lon[J0] + lon[J0 + 1]) / 2,
+        (lat[I0 + 19] + lat[I0 + 20]) / 2,
+        (lon[J0 + 19] + lon[J0 + 20]) / 2,
+        20,
+        20,
+    )
     f = import_currents(hf_radar_path, grid, start="2018-03-01T02:00:00Z", hours=3)
     assert f.n_times == 3
     w = raw_u[2:5, I0 : I0 + 21, J0 : J0 + 21] * 0.01
@@ -316,8 +368,11 @@ def test_non_standard_calendar_times(tmp_path):
     u = np.full((3, lat.size, lon.size), 0.1)
     ds = xr.Dataset(
         {"uo": (("time", "lat", "lon"), u, {"units": "m s-1"}), "vo": (("time", "lat", "lon"), -u, {"units": "m s-1"})},
-        coords={"time": ("time", [0.0, 1.0, 2.0], {"units": "hours since 2018-03-01 06:00", "calendar": "noleap"}),
-                "lat": ("lat", lat, {"units": "degrees_north"}), "lon": ("lon", lon, {"units": "degrees_east"})},
+        coords={
+            "time": ("time", [0.0, 1.0, 2.0], {"units": "hours since 2018-03-01 06:00", "calendar": "noleap"}),
+            "lat": ("lat", lat, {"units": "degrees_north"}),
+            "lon": ("lon", lon, {"units": "degrees_east"}),
+        },
     )
     ds.to_netcdf(tmp_path / "noleap.nc")
     f = import_currents(tmp_path / "noleap.nc", TARGET)
@@ -346,11 +401,15 @@ def _paper_grid_file(path, *, units="1", lon_shift=1e-5, fill=None, lon_offset=0
     times = pd.Timestamp("2018-03-01T00:00:00") + pd.to_timedelta(np.arange(6), unit="h")
     attrs = {} if units is None else {"units": units}
     ds = xr.Dataset(
-        {"eastward_sea_water_velocity": (("time", "lat", "lon"), u, dict(attrs)),
-         "northward_sea_water_velocity": (("time", "lat", "lon"), v, dict(attrs))},
+        {
+            "eastward_sea_water_velocity": (("time", "lat", "lon"), u, dict(attrs)),
+            "northward_sea_water_velocity": (("time", "lat", "lon"), v, dict(attrs)),
+        },
         coords={"time": ("time", times), "lat": ("lat", lat), "lon": ("lon", lon)},
     )
-    enc = {k: {"_FillValue": None} for k in ("eastward_sea_water_velocity", "northward_sea_water_velocity", "lat", "lon")}
+    enc = {
+        k: {"_FillValue": None} for k in ("eastward_sea_water_velocity", "northward_sea_water_velocity", "lat", "lon")
+    }
     ds.to_netcdf(path, encoding=enc)
     return path, u, v
 
@@ -420,8 +479,18 @@ def test_real_rtofs_without_units_attribute(tmp_path, capsys):
         import_currents(p, own)
     from passt_mav.cli import main
 
-    code = main(["data", "import", str(p), f"--region={lat[0]},{lon[0]},{lat[-1]},{lon[-1]}", "--grid", "38x34",
-                 "--out", str(tmp_path / "x.nc")])
+    code = main(
+        [
+            "data",
+            "import",
+            str(p),
+            f"--region={lat[0]},{lon[0]},{lat[-1]},{lon[-1]}",
+            "--grid",
+            "38x34",
+            "--out",
+            str(tmp_path / "x.nc"),
+        ]
+    )
     err = capsys.readouterr().err
     assert code == 2 and "--units" in err and len(err.strip().splitlines()) == 1
     f = import_currents(p, own, units="m/s")

@@ -43,7 +43,9 @@ def test_low_rank_reduction_equals_dense_posterior(seed):
     # one cell's gain after others = the dense difference
     m3 = m.conditioned(cells[:3])
     c = int(cells[3])
-    want = brute_force_reduction(F, d, s, np.r_[cells[:4], cells[:4] + N]) - brute_force_reduction(F, d, s, np.r_[cells[:3], cells[:3] + N])
+    want = brute_force_reduction(F, d, s, np.r_[cells[:4], cells[:4] + N]) - brute_force_reduction(
+        F, d, s, np.r_[cells[:3], cells[:3] + N]
+    )
     assert m3.gains()[divmod(c, shape[1])] == pytest.approx(want, rel=1e-9, abs=1e-12)
     assert m3.gains()[divmod(int(cells[0]), shape[1])] == 0.0  # already sampled
 
@@ -54,7 +56,9 @@ def _fitted_gp(grid, background, seed=0):
     cells = np.argwhere(np.ones(grid.shape, bool))[rng.choice(grid.shape[0] * grid.shape[1], 12, replace=False)]
     xy = np.column_stack(grid.cell_to_xy(cells[:, 0], cells[:, 1]))
     uv = rng.normal(0, 0.3, (12, 2))
-    gp = GPReconstructor(grid_xy=(X, Y), noise_std=0.05, space_time=False, solver="cholesky", background=background, background_scale=0.7)
+    gp = GPReconstructor(
+        grid_xy=(X, Y), noise_std=0.05, space_time=False, solver="cholesky", background=background, background_scale=0.7
+    )
     gp.kernels_ = [gp._base_kernel()[0].set_params(k1__k1__constant_value=0.04 + 0.01 * k) for k in range(2)]
     gp.cell_m_, gp.n_inputs_ = 100.0, 2
     return gp, xy, uv
@@ -81,7 +85,9 @@ def test_prior_factors_reduction_equals_the_gp_posterior_variance():
     fc[:, land] = np.nan
     _, std = gp.reconstruct(xy, rng.normal(0, 0.1, (8, 2)), forecast=fc)
     # the GP's std includes the white (sensor) noise of a new reading at each cell
-    post = float(np.nansum(std.astype(np.float64) ** 2)) - float(noise[0] * (~land).sum() + noise[R * C] * (~land).sum())
+    post = float(np.nansum(std.astype(np.float64) ** 2)) - float(
+        noise[0] * (~land).sum() + noise[R * C] * (~land).sum()
+    )
     got = m.remaining - m.conditioned(cells).reduction
     assert got == pytest.approx(post, rel=2e-6)  # the GP's std is float32
     # and against the dense textbook posterior in float64, to 1e-8

@@ -31,35 +31,88 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 
-MATH = ("passt_mav.passt", "passt_mav.legstep", "passt_mav.engine", "passt_mav.campaign", "passt_mav.fields",
-        "passt_mav.models", "passt_mav.planning", "passt_mav.reconstruction", "passt_mav.mission",
-        "passt_mav.measurement", "geo")
+MATH = (
+    "passt_mav.passt",
+    "passt_mav.legstep",
+    "passt_mav.engine",
+    "passt_mav.campaign",
+    "passt_mav.fields",
+    "passt_mav.models",
+    "passt_mav.planning",
+    "passt_mav.reconstruction",
+    "passt_mav.mission",
+    "passt_mav.measurement",
+    "geo",
+)
 ABOVE_CONTROLLER = ("passt_mav.analysis", "passt_mav.view", "passt_mav.commands", "passt_mav.cli")
-CONTROLLER = ("passt_mav.controller", "passt_mav.fleet_controller", "passt_mav.live_record",
-              "passt_mav.vehicle_session", "passt_mav.run_clock")
+CONTROLLER = (
+    "passt_mav.controller",
+    "passt_mav.fleet_controller",
+    "passt_mav.live_record",
+    "passt_mav.vehicle_session",
+    "passt_mav.run_clock",
+)
 
 # (modules the rule applies to, imports they must not make, why)
 RULES = [
-    (MATH, ("passt_mav.mavlink", "passt_mav.controller", "passt_mav.runs", "vehicle_sim") + ABOVE_CONTROLLER,
-     "the math never talks MAVLink nor reaches up into the vehicle side"),
-    (("vehicle_sim",), ("passt_mav.mavlink", "passt_mav.models", "passt_mav.planning", "passt_mav.runs",
-                        "passt_mav.controller", "passt_mav.passt", "passt_mav.legstep", "passt_mav.reconstruction")
-     + ABOVE_CONTROLLER, "the simulator plays the autopilot: it knows nothing of the controller's side"),
-    (("passt_mav.runs",), ("passt_mav.controller", "vehicle_sim") + ABOVE_CONTROLLER,
-     "storage lies below the controller"),
-    (("passt_mav.mavlink",), ("passt_mav.controller", "passt_mav.runs", "passt_mav.models", "passt_mav.planning",
-                              "vehicle_sim") + ABOVE_CONTROLLER, "the MAVLink client knows no mission logic"),
+    (
+        MATH,
+        ("passt_mav.mavlink", "passt_mav.controller", "passt_mav.runs", "vehicle_sim") + ABOVE_CONTROLLER,
+        "the math never talks MAVLink nor reaches up into the vehicle side",
+    ),
+    (
+        ("vehicle_sim",),
+        (
+            "passt_mav.mavlink",
+            "passt_mav.models",
+            "passt_mav.planning",
+            "passt_mav.runs",
+            "passt_mav.controller",
+            "passt_mav.passt",
+            "passt_mav.legstep",
+            "passt_mav.reconstruction",
+        )
+        + ABOVE_CONTROLLER,
+        "the simulator plays the autopilot: it knows nothing of the controller's side",
+    ),
+    (
+        ("passt_mav.runs",),
+        ("passt_mav.controller", "vehicle_sim") + ABOVE_CONTROLLER,
+        "storage lies below the controller",
+    ),
+    (
+        ("passt_mav.mavlink",),
+        ("passt_mav.controller", "passt_mav.runs", "passt_mav.models", "passt_mav.planning", "vehicle_sim")
+        + ABOVE_CONTROLLER,
+        "the MAVLink client knows no mission logic",
+    ),
     (CONTROLLER, ABOVE_CONTROLLER, "the controller does not import what is built on top of it"),
     (("passt_mav.analysis",), ("passt_mav.commands", "passt_mav.cli"), "analysis is a library under the CLI"),
-    (("passt_mav.progress",), ("passt_mav", "geo", "vehicle_sim"),
-     "the progress helper is a leaf under every layer: it imports nothing of the project"),
-    (("passt_mav.view",), CONTROLLER + ("passt_mav.mavlink", "vehicle_sim", "passt_mav.analysis", "passt_mav.commands",
-                                        "passt_mav.cli"),
-     "the live view only reads run directories: a crashed view never touches a mission (issue 29)"),
-    (("passt_mav.measurement",), ("pymavlink", "passt_mav.fields", "passt_mav.models", "passt_mav.planning",
-                                  "passt_mav.reconstruction", "passt_mav.passt", "passt_mav.legstep",
-                                  "passt_mav.mission", "passt_mav.progress"),
-     "the measurement rules lie under the live collector, both log readers, the loop and the report"),
+    (
+        ("passt_mav.progress",),
+        ("passt_mav", "geo", "vehicle_sim"),
+        "the progress helper is a leaf under every layer: it imports nothing of the project",
+    ),
+    (
+        ("passt_mav.view",),
+        CONTROLLER + ("passt_mav.mavlink", "vehicle_sim", "passt_mav.analysis", "passt_mav.commands", "passt_mav.cli"),
+        "the live view only reads run directories: a crashed view never touches a mission (issue 29)",
+    ),
+    (
+        ("passt_mav.measurement",),
+        (
+            "pymavlink",
+            "passt_mav.fields",
+            "passt_mav.models",
+            "passt_mav.planning",
+            "passt_mav.reconstruction",
+            "passt_mav.passt",
+            "passt_mav.legstep",
+            "passt_mav.mission",
+            "passt_mav.progress",
+        ),
+        "the measurement rules lie under the live collector, both log readers, the loop and the report",
+    ),
 ]
 
 
@@ -96,8 +149,11 @@ def _under(name: str, prefixes) -> bool:
 def layer_violations(root: Path = ROOT) -> list[str]:
     """Every import that breaks a rule, as 'file:line: module imports X (why)'."""
     bad = []
-    for src in sorted(list((root / "passt_mav").rglob("*.py")) + list((root / "vehicle_sim").rglob("*.py"))
-                      + list((root / "geo").rglob("*.py"))):
+    for src in sorted(
+        list((root / "passt_mav").rglob("*.py"))
+        + list((root / "vehicle_sim").rglob("*.py"))
+        + list((root / "geo").rglob("*.py"))
+    ):
         me = _module_name(src, root)
         for who, banned, why in RULES:
             if not _under(me, who):
@@ -113,22 +169,25 @@ def test_no_import_runs_back_up():
     assert not bad, "layer violations:\n" + "\n".join(bad)
 
 
-@pytest.mark.parametrize("target, line", [
-    ("passt_mav/runs/store.py", "import passt_mav.controller"),
-    ("passt_mav/runs/rundir.py", "from passt_mav.analysis.replay import replay"),
-    ("passt_mav/planning/grid.py", "from passt_mav.mavlink import Link"),
-    ("vehicle_sim/boat.py", "from passt_mav.models import base"),
-    ("passt_mav/controller.py", "from . import analysis"),
-    ("passt_mav/progress.py", "from passt_mav.fields import FlowField"),
-    ("passt_mav/analysis/export.py", "from passt_mav.commands import data"),
-    ("passt_mav/view/state.py", "from passt_mav.controller import MissionController"),
-    ("passt_mav/runs/live.py", "from passt_mav.view import start_view"),
-    ("passt_mav/live_record.py", "from passt_mav.view.server import serve"),
-    ("passt_mav/measurement.py", "from pymavlink import mavutil"),
-    ("passt_mav/measurement.py", "from passt_mav.legstep import LegStep"),
-    ("passt_mav/campaign.py", "from passt_mav.commands.evaluate import write_figures"),
-    ("passt_mav/engine.py", "from passt_mav.runs.store import SampleStore"),
-])
+@pytest.mark.parametrize(
+    "target, line",
+    [
+        ("passt_mav/runs/store.py", "import passt_mav.controller"),
+        ("passt_mav/runs/rundir.py", "from passt_mav.analysis.replay import replay"),
+        ("passt_mav/planning/grid.py", "from passt_mav.mavlink import Link"),
+        ("vehicle_sim/boat.py", "from passt_mav.models import base"),
+        ("passt_mav/controller.py", "from . import analysis"),
+        ("passt_mav/progress.py", "from passt_mav.fields import FlowField"),
+        ("passt_mav/analysis/export.py", "from passt_mav.commands import data"),
+        ("passt_mav/view/state.py", "from passt_mav.controller import MissionController"),
+        ("passt_mav/runs/live.py", "from passt_mav.view import start_view"),
+        ("passt_mav/live_record.py", "from passt_mav.view.server import serve"),
+        ("passt_mav/measurement.py", "from pymavlink import mavutil"),
+        ("passt_mav/measurement.py", "from passt_mav.legstep import LegStep"),
+        ("passt_mav/campaign.py", "from passt_mav.commands.evaluate import write_figures"),
+        ("passt_mav/engine.py", "from passt_mav.runs.store import SampleStore"),
+    ],
+)
 def test_the_check_catches_a_forbidden_import(tmp_path, target, line):
     """A copy of the tree with one forbidden import added (inside a function, as the
     project's lazy imports are) must fail the check, naming the file."""
@@ -148,8 +207,14 @@ def test_controller_methods_fit_on_one_screen(module):
     """Each method of the controller does one thing: none is longer than 60 lines (issue 14), no class
     longer than 500 (issue 30)."""
     tree = ast.parse((ROOT / "passt_mav" / f"{module}.py").read_text())
-    long = [f"{n.name} ({n.end_lineno - n.lineno + 1} lines)" for n in ast.walk(tree)
-            if isinstance(n, (ast.FunctionDef, ast.AsyncFunctionDef)) and n.end_lineno - n.lineno + 1 > 60]
-    long += [f"class {n.name} ({n.end_lineno - n.lineno + 1} lines)" for n in ast.walk(tree)
-             if isinstance(n, ast.ClassDef) and n.end_lineno - n.lineno + 1 > 500]
+    long = [
+        f"{n.name} ({n.end_lineno - n.lineno + 1} lines)"
+        for n in ast.walk(tree)
+        if isinstance(n, (ast.FunctionDef, ast.AsyncFunctionDef)) and n.end_lineno - n.lineno + 1 > 60
+    ]
+    long += [
+        f"class {n.name} ({n.end_lineno - n.lineno + 1} lines)"
+        for n in ast.walk(tree)
+        if isinstance(n, ast.ClassDef) and n.end_lineno - n.lineno + 1 > 500
+    ]
     assert not long, long

@@ -108,7 +108,9 @@ def test_lua_metric_field_placed_by_anchor(tmp_path, lua_lib):
     """A metric (cylinder-like) field rotated and scaled onto the sea: u/v come out east/north in m/s."""
     _L, M = lua_lib
     n = 9
-    mg = geo.MetricRegionGrid(2.6, 11.4, -4.7, 4.7, n, n, anchor_lat=40.2, anchor_lon=-63.1, rotation_deg=30.0, scale=100.0)
+    mg = geo.MetricRegionGrid(
+        2.6, 11.4, -4.7, 4.7, n, n, anchor_lat=40.2, anchor_lon=-63.1, rotation_deg=30.0, scale=100.0
+    )
     rng = np.random.default_rng(2)
     d = (1.0 + rng.normal(0, 0.2, (3, 2, n, n))).astype(np.float32)
     f = FlowField(d, mg, np.array([0.0, 0.4, 0.8]), None, "1")
@@ -219,8 +221,20 @@ def test_vehicle_loop_with_mocked_bindings(tmp_path, monkeypatch):
 def test_export_lua_cli(tmp_path, capsys):
     f = _geo_field()
     src = f.to_netcdf(tmp_path / "f.nc")
-    code = main(["data", "export-lua", str(src), "--scripts-dir", str(tmp_path / "scr"), "--snapshots", "1:4",
-                 "--region=40.05,-62.95,40.45,-62.45", "--time-at-boot", "1700"])
+    code = main(
+        [
+            "data",
+            "export-lua",
+            str(src),
+            "--scripts-dir",
+            str(tmp_path / "scr"),
+            "--snapshots",
+            "1:4",
+            "--region=40.05,-62.95,40.45,-62.45",
+            "--time-at-boot",
+            "1700",
+        ]
+    )
     out = capsys.readouterr().out
     assert code == 0 and "wrote" in out
     assert (tmp_path / "scr" / "current_sensor.lua").read_text() == SCRIPT.read_text()
@@ -252,8 +266,20 @@ def test_export_lua_bad_input_exit_2(tmp_path, capsys, args, msg):
 def test_export_lua_metric_with_mission(tmp_path, capsys):
     """builtin:cylinder placed by missions/cylinder.yaml (anchor, scale, velocity/time scales, t0)."""
     mission = Path(__file__).resolve().parent.parent / "missions" / "cylinder.yaml"
-    code = main(["data", "export-lua", "builtin:cylinder", "--mission", str(mission), "--snapshots", "300:302",
-                 "--out", str(tmp_path / "c.bin"), "--json"])
+    code = main(
+        [
+            "data",
+            "export-lua",
+            "builtin:cylinder",
+            "--mission",
+            str(mission),
+            "--snapshots",
+            "300:302",
+            "--out",
+            str(tmp_path / "c.bin"),
+            "--json",
+        ]
+    )
     import json
 
     s = json.loads(capsys.readouterr().out)
@@ -263,8 +289,24 @@ def test_export_lua_metric_with_mission(tmp_path, capsys):
     assert h["dt_s"] == pytest.approx(80.0) and h["time_at_boot_s"] == pytest.approx(h["t0_s"])
     assert h["lat_ref"] == pytest.approx(40.2, abs=1e-6) and h["lon_ref"] == pytest.approx(-63.1, abs=1e-6)
     # --anchor moves it; the map keeps its shape (cells per degree at 41 N vs 40.2 N)
-    assert main(["data", "export-lua", "builtin:cylinder", "--mission", str(mission), "--snapshots", "300:302",
-                 "--anchor", "41,-60", "--out", str(tmp_path / "a.bin")]) == 0
+    assert (
+        main(
+            [
+                "data",
+                "export-lua",
+                "builtin:cylinder",
+                "--mission",
+                str(mission),
+                "--snapshots",
+                "300:302",
+                "--anchor",
+                "41,-60",
+                "--out",
+                str(tmp_path / "a.bin"),
+            ]
+        )
+        == 0
+    )
     capsys.readouterr()
     a = read_lua_grid(tmp_path / "a.bin")
     assert a["lat_ref"] == pytest.approx(41.0, abs=1e-6) and a["lon_ref"] == pytest.approx(-60.0, abs=1e-6)
@@ -305,9 +347,13 @@ def test_lua_sensor_on_ardurover_sitl(tmp_path, sitl_factory):
         last_hb = 0.0
         while time.monotonic() < end and len(got) < 60:
             if time.monotonic() - last_hb > 0.5:
-                m.mav.heartbeat_send(6, 8, 0, 0, 0)  # GCS heartbeat: the vehicle sends named floats only to links it heard
+                m.mav.heartbeat_send(
+                    6, 8, 0, 0, 0
+                )  # GCS heartbeat: the vehicle sends named floats only to links it heard
                 last_hb = time.monotonic()
-            msg = m.recv_match(type=["NAMED_VALUE_FLOAT", "GLOBAL_POSITION_INT", "STATUSTEXT"], blocking=True, timeout=0.5)
+            msg = m.recv_match(
+                type=["NAMED_VALUE_FLOAT", "GLOBAL_POSITION_INT", "STATUSTEXT"], blocking=True, timeout=0.5
+            )
             if msg is None:
                 continue
             t = msg.get_type()
@@ -371,8 +417,12 @@ def test_shipped_grid_is_the_north_atlantic_export(tmp_path):
     first 48 h, field time 0 at boot - what the controller's boot clock assumes for that mission."""
     mission = SCRIPT.parents[2] / "missions" / "north_atlantic.yaml"
     out = tmp_path / "g.bin"
-    assert main(["data", "export-lua", "builtin:ocean", "--mission", str(mission), "--snapshots", "0:48",
-                 "--out", str(out)]) == 0
+    assert (
+        main(
+            ["data", "export-lua", "builtin:ocean", "--mission", str(mission), "--snapshots", "0:48", "--out", str(out)]
+        )
+        == 0
+    )
     assert out.read_bytes() == (SCRIPT.parent / "current_grid.bin").read_bytes()
     h = read_lua_grid(out)
     assert (h["rows"], h["cols"], h["snapshots"], h["time_at_boot_s"], h["dt_s"]) == (30, 30, 48, 0.0, 3600.0)
@@ -388,7 +438,9 @@ def test_lua_serial_sensor_on_ardurover_sitl(tmp_path, sitl_factory):
     scripts.mkdir()
     src = SCRIPT.read_text()
     assert src.count('local SOURCE = "grid"') == 1
-    (scripts / SCRIPT.name).write_text(src.replace('local SOURCE = "grid"', 'local SOURCE = "serial"'))  # the README's edit
+    (scripts / SCRIPT.name).write_text(
+        src.replace('local SOURCE = "grid"', 'local SOURCE = "serial"')
+    )  # the README's edit
     parm = tmp_path / "serial.parm"
     parm.write_text("SERIAL1_PROTOCOL 28\n")
     s = sitl_factory(scripts=scripts, params=parm, speedup=10)

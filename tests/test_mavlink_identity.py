@@ -196,10 +196,11 @@ def test_a_gcs_upload_during_the_swap_is_caught_by_the_read_back_and_ours_flown(
 
     summary, sim, wire, done, field, mode = _flight(tmp_path, shared, times=1)
     assert summary["status"] == "complete" and len(summary["legs"]) == 2, summary["events"]
-    (before, ack, n_ours), = done
+    ((before, ack, n_ours),) = done
     # QGC's download during the swap got our fresh leg-0 mission, whole; its upload really replaced it
-    leg0 = WaypointMission.from_path(field.grid, np.array(summary["legs"][0]["path"]), speed=5.0, wp_radius_m=3.0,
-                                     fence_margin_m=30.0).items()
+    leg0 = WaypointMission.from_path(
+        field.grid, np.array(summary["legs"][0]["path"]), speed=5.0, wp_radius_m=3.0, fence_margin_m=30.0
+    ).items()
     assert isinstance(before, list) and len(before) == len(leg0) == n_ours
     assert all(rover_stored(a).same_as(rover_stored(_item(m))) for a, m in zip(leg0[1:], before[1:]))
     assert ack is not None and ack.type == M.MAV_MISSION_ACCEPTED
@@ -208,11 +209,13 @@ def test_a_gcs_upload_during_the_swap_is_caught_by_the_read_back_and_ours_flown(
     if shared:  # through a router the vehicle's ACK to QGC reached us too: the message names it
         assert "system 255 component 190" in replaced[0]
     # the vehicle ends holding the last leg's mission, ours; every frame we sent carried our identity
-    last = WaypointMission.from_path(field.grid, np.array(summary["legs"][-1]["path"]), speed=5.0, wp_radius_m=3.0,
-                                     fence_margin_m=30.0).items()
+    last = WaypointMission.from_path(
+        field.grid, np.array(summary["legs"][-1]["path"]), speed=5.0, wp_radius_m=3.0, fence_margin_m=30.0
+    ).items()
     stored = sim.autopilot.store.items[0]
-    assert len(stored) == len(last) and all(rover_stored(a).same_as(rover_stored(_item(b)))
-                                            for a, b in zip(last[1:], stored[1:]))
+    assert len(stored) == len(last) and all(
+        rover_stored(a).same_as(rover_stored(_item(b))) for a, b in zip(last[1:], stored[1:])
+    )
     assert wire.ids == {OURS} and mode == 4
 
 
@@ -235,8 +238,9 @@ def test_a_gcs_upload_mid_leg_through_a_router_is_seen_and_ours_resumed(tmp_path
 
     def qgc_mid_leg():
         end = time.monotonic() + 60
-        while time.monotonic() < end and not (ctl.vehicle.mode == 10 and ctl.vehicle.progress.reached
-                                              and not ctl.session.verify_pending):
+        while time.monotonic() < end and not (
+            ctl.vehicle.mode == 10 and ctl.vehicle.progress.reached and not ctl.session.verify_pending
+        ):
             time.sleep(0.005)  # AUTO, our read-back done, the first waypoint reached
         ours = sim.autopilot.store.items[0]
         theirs = [SimClient.waypoint(it.seq, it.x / 1e7 + 3e-4, it.y / 1e7) for it in ours]
@@ -305,5 +309,18 @@ def _item(m):
     """A MissionItem from a simulator's stored Item or a MISSION_ITEM_INT message."""
     from passt_mav.mission.items import MissionItem
 
-    return MissionItem(int(m.seq), int(m.frame), int(m.command), 0, int(m.autocontinue), float(m.param1),
-                       float(m.param2), float(m.param3), float(m.param4), m.x / 1e7, m.y / 1e7, float(m.z), 0)
+    return MissionItem(
+        int(m.seq),
+        int(m.frame),
+        int(m.command),
+        0,
+        int(m.autocontinue),
+        float(m.param1),
+        float(m.param2),
+        float(m.param3),
+        float(m.param4),
+        m.x / 1e7,
+        m.y / 1e7,
+        float(m.z),
+        0,
+    )

@@ -19,13 +19,25 @@ from vehicle_sim import LinkConfig as SimLinkConfig
 from vehicle_sim import SimConfig, Simulator
 
 
-@pytest.mark.parametrize("good", ["tcp:127.0.0.1:5760", "udpin:0.0.0.0:14550", "udpout:127.0.0.1:14550",
-                                  "udp:127.0.0.1:14550", "/dev/ttyUSB0,57600", "/dev/ttyACM0", "COM3,115200"])
+@pytest.mark.parametrize(
+    "good",
+    [
+        "tcp:127.0.0.1:5760",
+        "udpin:0.0.0.0:14550",
+        "udpout:127.0.0.1:14550",
+        "udp:127.0.0.1:14550",
+        "/dev/ttyUSB0,57600",
+        "/dev/ttyACM0",
+        "COM3,115200",
+    ],
+)
 def test_connection_strings_as_mavproxy_users_write_them(good):
     assert LinkConfig(good).connect == good
 
 
-@pytest.mark.parametrize("bad", ["", "tcp:127.0.0.1", "tcp:host:99999", "http://x", "/dev/ttyUSB0,fast", "localhost:5760"])
+@pytest.mark.parametrize(
+    "bad", ["", "tcp:127.0.0.1", "tcp:host:99999", "http://x", "/dev/ttyUSB0,fast", "localhost:5760"]
+)
 def test_bad_connection_strings_are_user_errors(bad):
     with pytest.raises(UserError):
         LinkConfig(bad)
@@ -41,7 +53,9 @@ def test_defaults_are_our_own_identity():
 
 def test_gcs_heartbeats_are_not_vehicles():
     assert not _is_vehicle_heartbeat(M.MAVLink_heartbeat_message(M.MAV_TYPE_GCS, M.MAV_AUTOPILOT_INVALID, 0, 0, 0, 3))
-    assert _is_vehicle_heartbeat(M.MAVLink_heartbeat_message(M.MAV_TYPE_SURFACE_BOAT, M.MAV_AUTOPILOT_ARDUPILOTMEGA, 0, 0, 0, 3))
+    assert _is_vehicle_heartbeat(
+        M.MAVLink_heartbeat_message(M.MAV_TYPE_SURFACE_BOAT, M.MAV_AUTOPILOT_ARDUPILOTMEGA, 0, 0, 0, 3)
+    )
 
 
 def test_tcp_loopback_connect_streams_rtt_tlog_and_gcs_heartbeats(tmp_path):
@@ -50,8 +64,13 @@ def test_tcp_loopback_connect_streams_rtt_tlog_and_gcs_heartbeats(tmp_path):
     sim.serve([f"tcp:127.0.0.1:{port}"], speedup=20)
     tlog = tmp_path / "gcs.tlog"
     try:
-        link = Link(link_config(connect=f"tcp:127.0.0.1:{port}", tlog=str(tlog),
-                                stream_rates_hz=(("GLOBAL_POSITION_INT", 5.0), ("MISSION_CURRENT", 1.0))))
+        link = Link(
+            link_config(
+                connect=f"tcp:127.0.0.1:{port}",
+                tlog=str(tlog),
+                stream_rates_hz=(("GLOBAL_POSITION_INT", 5.0), ("MISSION_CURRENT", 1.0)),
+            )
+        )
         link.connect()
         assert (link.target_system, link.target_component, link.vehicle_type) == (1, 1, M.MAV_TYPE_SURFACE_BOAT)
         assert link.rtt is not None and 0 < link.rtt < 0.5
@@ -136,15 +155,19 @@ def test_signing_key_on_both_sides_uploads_and_a_keyless_client_is_ignored():
         finally:
             plain.close()
         # a wrong key is ignored too
-        wrong = Link(link_config(stream_rates_hz=(), retries=1, signing_key="wrong", connect_timeout_s=0.5),
-                     connection_factory=inprocess_factory(sim))
+        wrong = Link(
+            link_config(stream_rates_hz=(), retries=1, signing_key="wrong", connect_timeout_s=0.5),
+            connection_factory=inprocess_factory(sim),
+        )
         with pytest.raises(LinkTimeout, match="signing key differs"):
             wrong.connect()  # the vehicle's frames fail our signature check: no heartbeat at all
         wrong.close()
     # and a key for a vehicle that does not sign: its unsigned frames are dropped, the message says why
     with served(SimConfig.fast(), connect=False) as (sim, _):
-        keyed = Link(link_config(stream_rates_hz=(), signing_key=key, connect_timeout_s=0.5),
-                     connection_factory=inprocess_factory(sim))
+        keyed = Link(
+            link_config(stream_rates_hz=(), signing_key=key, connect_timeout_s=0.5),
+            connection_factory=inprocess_factory(sim),
+        )
         with pytest.raises(LinkTimeout, match="unsigned frames.*no signing key set"):
             keyed.connect()
         keyed.close()
@@ -152,16 +175,18 @@ def test_signing_key_on_both_sides_uploads_and_a_keyless_client_is_ignored():
 
 def test_timesync_is_requested_not_streamed_and_keeps_the_rtt_current():
     sent: list = []
-    with served(link_kw=dict(stream_rates_hz=(("GLOBAL_POSITION_INT", 1.0), ("TIMESYNC", 1.0)),
-                             timesync_period_s=0.1)) as (_sim, link):
+    with served(
+        link_kw=dict(stream_rates_hz=(("GLOBAL_POSITION_INT", 1.0), ("TIMESYNC", 1.0)), timesync_period_s=0.1)
+    ) as (_sim, link):
         orig = link.send
         link.send = lambda m: (sent.append(m), orig(m))[1]
         assert link.request_streams() == {"GLOBAL_POSITION_INT": True}  # TIMESYNC skipped, not refused
         n0 = len(link._rtt_samples)
         time.sleep(0.6)
         link.send = orig
-    intervals = [int(m.param1) for m in sent if m.get_type() == "COMMAND_LONG"
-                 and m.command == M.MAV_CMD_SET_MESSAGE_INTERVAL]
+    intervals = [
+        int(m.param1) for m in sent if m.get_type() == "COMMAND_LONG" and m.command == M.MAV_CMD_SET_MESSAGE_INTERVAL
+    ]
     assert intervals == [M.MAVLINK_MSG_ID_GLOBAL_POSITION_INT]
     requests = [m for m in sent if m.get_type() == "TIMESYNC" and m.tc1 == 0]
     assert 3 <= len(requests) <= 8  # one per 0.1 s on the heartbeat thread (0.05 s period)

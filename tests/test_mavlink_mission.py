@@ -27,8 +27,14 @@ OFFSETS = [(1e-4 * i, -1.3e-4 * i + 3e-7) for i in range(1, 9)]
 
 
 @contextlib.contextmanager
-def paced(config: SimConfig | None = None, *, sim_link: SimLinkConfig | None = None, dt: float = 0.01,
-          wall_per_step_s: float = 0.001, link_kw: dict | None = None):
+def paced(
+    config: SimConfig | None = None,
+    *,
+    sim_link: SimLinkConfig | None = None,
+    dt: float = 0.01,
+    wall_per_step_s: float = 0.001,
+    link_kw: dict | None = None,
+):
     """(sim, link): the simulator advanced by a thread in steps of ``dt`` simulated seconds, each
     after the client has read all the vehicle sent and at least ``wall_per_step_s`` of wall time
     (so at most ``dt / wall_per_step_s`` = 10x). A loaded machine makes the vehicle slower, never
@@ -92,8 +98,10 @@ def test_upload_then_read_back_equals_and_seq0_is_the_vehicles_home():
 def test_fence_type_round_trips_and_clear_and_set_current():
     with served() as (sim, link):
         mc = MissionClient(link)
-        fence = [MissionItem(i, command=5001, frame=0, param1=3, lat=HOME[0] + d[0], lon=HOME[1] + d[1], mission_type=1)
-                 for i, d in enumerate([(0.01, 0.01), (0.01, -0.01), (-0.01, 0.0)])]
+        fence = [
+            MissionItem(i, command=5001, frame=0, param1=3, lat=HOME[0] + d[0], lon=HOME[1] + d[1], mission_type=1)
+            for i, d in enumerate([(0.01, 0.01), (0.01, -0.01), (-0.01, 0.0)])
+        ]
         got = mc.upload_verified(fence, mission_type=1)
         assert [g.command for g in got] == [5001] * 3
         mc.upload_verified(with_home(waypoints(OFFSETS[:4])))

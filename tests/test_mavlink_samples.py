@@ -107,7 +107,7 @@ def test_duplicates_dropped_and_unmatched_halves_expire():
     for m in msgs + msgs:  # retransmitted / replayed after a reconnect
         c.handle(m)
     assert len(out) == 1 and c.counts["duplicates"] == 2
-    c.handle(nvf(2000, "U", 0.3))   # its V and position never come
+    c.handle(nvf(2000, "U", 0.3))  # its V and position never come
     c.handle(nvf(2000, "CUR_U", 9))  # another name: ignored
     c.handle(gpi(9000, 40.0, -63.0))
     assert c.counts["expired"] == 1 and 2000 not in c.pairer and c.counts["readings"] == 1
@@ -150,7 +150,9 @@ def test_samples_during_a_mission_match_the_field_and_two_links_give_no_duplicat
         out = []
         collector = SampleCollector(out.append, source="sim").attach(link)
         # a second link to the same vehicle delivers every reading again
-        link2 = Link(link_config(source_system=254, stream_rates_hz=()), connection_factory=inprocess_factory(sim)).connect()
+        link2 = Link(
+            link_config(source_system=254, stream_rates_hz=()), connection_factory=inprocess_factory(sim)
+        ).connect()
         collector.attach(link2)
         try:
             v = vehicle(link)

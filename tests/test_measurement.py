@@ -33,8 +33,11 @@ def test_the_users_take_their_defaults_from_the_rules():
     from passt_mav.runs.tlog import read_dataflash, read_tlog
 
     c = SampleCollector(lambda r: None)
-    assert (c.pairer.tolerance_ms, c.track.max_gap_ms, c.reboot_back_ms) == \
-        (RULES.pair_tolerance_ms, RULES.max_gap_ms, RULES.reboot_back_ms)
+    assert (c.pairer.tolerance_ms, c.track.max_gap_ms, c.reboot_back_ms) == (
+        RULES.pair_tolerance_ms,
+        RULES.max_gap_ms,
+        RULES.reboot_back_ms,
+    )
     for f in (read_tlog, read_dataflash, rebuild_from_dataflash):
         p = inspect.signature(f).parameters
         assert (p["pair_tolerance_ms"].default, p["max_gap_ms"].default) == (RULES.pair_tolerance_ms, RULES.max_gap_ms)
@@ -134,8 +137,10 @@ def test_rmse_one_nan_rule_cells_whole_or_not_at_all():
 def test_sample_columns_of_store_rows_and_collector_dicts():
     from passt_mav.runs.store import Sample
 
-    rows = [Sample(1000, 1.7e9, 40.0, -63.0, 0.1, 0.2, 3, "mav:1/1", boot=1),
-            {"time_boot_ms": 2000.5, "lat": 40.1, "lon": -63.1, "u": 0.3, "v": 0.4, "boot": None}]
+    rows = [
+        Sample(1000, 1.7e9, 40.0, -63.0, 0.1, 0.2, 3, "mav:1/1", boot=1),
+        {"time_boot_ms": 2000.5, "lat": 40.1, "lon": -63.1, "u": 0.3, "v": 0.4, "boot": None},
+    ]
     c = sample_columns(rows)
     assert set(c) == {"time_boot_ms", "utc", "lat", "lon", "u", "v", "leg", "boot"}
     assert c["time_boot_ms"].tolist() == [1000.0, 2000.5]  # float64: field times of in_field_time records survive
@@ -155,8 +160,11 @@ def _stream():
     for boot, (t0, t1) in enumerate(((2000, 8000), (1500, 6500))):
         for tb in range(t0, t1 + 1, 250):
             if tb % 1000 == 0 or (boot and tb % 1000 == 500):
-                out.append(veh.global_position_int_encode(tb, int(4e8 + 10 * tb + boot * 1e5), int(-6.3e8 + 7 * tb),
-                                                          0, 0, 0, 0, 0, 0))
+                out.append(
+                    veh.global_position_int_encode(
+                        tb, int(4e8 + 10 * tb + boot * 1e5), int(-6.3e8 + 7 * tb), 0, 0, 0, 0, 0, 0
+                    )
+                )
             dv = 60 if tb == 4500 else (tb // 250) % 3
             out.append(veh.named_value_float_encode(tb, b"CUR_U", 0.001 * tb + boot))
             out.append(veh.named_value_float_encode(tb + dv, b"CUR_V", -0.001 * tb))

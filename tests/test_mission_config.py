@@ -49,12 +49,19 @@ def test_defaults_and_normalisation():
     cfg = MissionConfig.model_validate(GOOD)
     assert cfg.model == "builtin:ocean"  # the scenario's shipped model
     assert cfg.vehicle.connect == "tcp:127.0.0.1:5760" and cfg.sensors.u == "CUR_U" and cfg.sensors.v == "CUR_V"
-    assert cfg.gp.prior == "forecast" and cfg.gp.loop_prior == "forecast" and cfg.legs == 1 and cfg.planner.reward == "speed"
+    assert (
+        cfg.gp.prior == "forecast"
+        and cfg.gp.loop_prior == "forecast"
+        and cfg.legs == 1
+        and cfg.planner.reward == "speed"
+    )
     osc = MissionConfig.model_validate({**GOOD, "field": "builtin:oscillating", "model": "shipped:cylinder"})
     assert osc.field.source == "builtin:oscillating" and osc.model == "builtin:cylinder"
     assert MissionConfig.model_validate({**GOOD, "planner": {"name": "pg"}}).planner.name == "policy_gradient"
     assert MissionConfig.model_validate({**GOOD, "gp": {"prior": "constant"}}).gp.loop_prior == "none"
-    assert cfg.gp.background == 200 and MissionConfig.model_validate({**GOOD, "gp": {"background": 0}}).gp.background == 0
+    assert (
+        cfg.gp.background == 200 and MissionConfig.model_validate({**GOOD, "gp": {"background": 0}}).gp.background == 0
+    )
 
 
 def test_field_file_relative_to_mission_file(tmp_path):
@@ -97,12 +104,34 @@ BROKEN = [
     ("unknown_planner", _with(planner__name="astar"), "planner.name: unknown planner 'astar'; choose one of"),
     ("unknown_reward", _with(planner__reward="fun"), "planner.reward: unknown reward 'fun'"),
     ("region_order", _with(region__south=42.0), "region: region needs -90 <= south < north"),
-    ("metric_order", yaml.safe_dump({**GOOD, "region": {"x0": 5, "x1": 1, "y0": 0, "y1": 1, "rows": 3, "cols": 3, "anchor_lat": 40, "anchor_lon": -63}}), "region: metric grid needs x0 < x1"),
+    (
+        "metric_order",
+        yaml.safe_dump(
+            {
+                **GOOD,
+                "region": {
+                    "x0": 5,
+                    "x1": 1,
+                    "y0": 0,
+                    "y1": 1,
+                    "rows": 3,
+                    "cols": 3,
+                    "anchor_lat": 40,
+                    "anchor_lon": -63,
+                },
+            }
+        ),
+        "region: metric grid needs x0 < x1",
+    ),
     ("unknown_field", _with(field__source="builtin:lake"), "field.source: unknown built-in field 'lake'"),
     ("field_not_nc", _with(field__source="data.csv"), "field.source: must be builtin:ocean"),
     ("field_missing_file", _with(field__source="no/such.nc"), "field.source: field file not found"),
     ("extra_key", _with(colour="red"), "colour: unknown key (allowed: name, region"),
-    ("extra_nested_key", _with(vehicle__sped_mps=2), "vehicle.sped_mps: unknown key (allowed: connect, speed_mps, wp_radius_m"),
+    (
+        "extra_nested_key",
+        _with(vehicle__sped_mps=2),
+        "vehicle.sped_mps: unknown key (allowed: connect, speed_mps, wp_radius_m",
+    ),
     ("extra_region_key", _with(region__depth=3), "region.depth: unknown key (allowed: kind, south"),
     ("negative_margin", _with(geofence_margin_m=-5), "geofence_margin_m: must be >= 0 (got -5)"),
     ("start_outside", _with(start_cell=[30, 0]), "start_cell [30, 0] lies outside the 30x30 grid"),
@@ -110,7 +139,11 @@ BROKEN = [
     ("legs_zero", _with(legs=0), "legs: must be >= 1 (got 0)"),
     ("sensor_name_long", _with(sensors__u="CURRENT_EAST"), "sensors.u:"),
     ("bad_prior", _with(gp__prior="zero"), "gp.prior:"),
-    ("background_one", _with(gp__background=1), "gp.background: a background roll-out needs 0 (none) or at least 2 snapshots"),
+    (
+        "background_one",
+        _with(gp__background=1),
+        "gp.background: a background roll-out needs 0 (none) or at least 2 snapshots",
+    ),
     ("background_negative", _with(gp__background=-5), "gp.background: must be >= 0 (got -5)"),
     ("unknown_model", _with(model="transformer"), "model: unknown model 'transformer'"),
     ("missing_ckpt", _with(model="nope.pt"), "model: model checkpoint not found"),

@@ -41,7 +41,11 @@ def test_items_follow_the_seq0_home_rule(mission, na_grid):
     assert [it.seq for it in wps] == list(range(2, 2 + len(wps))) == mission.waypoint_seqs()
     assert all(it.command == 16 and it.frame == 3 and it.param2 == 4.0 and it.mission_type == 0 for it in wps)
     cells = np.array([(3, 3), (5, 5), (5, 7), (7, 7), (7, 6)])
-    np.testing.assert_allclose([(it.lat, it.lon) for it in wps], np.column_stack([na_grid.lats[cells[:, 0]], na_grid.lons[cells[:, 1]]]), atol=1e-12)
+    np.testing.assert_allclose(
+        [(it.lat, it.lon) for it in wps],
+        np.column_stack([na_grid.lats[cells[:, 0]], na_grid.lons[cells[:, 1]]]),
+        atol=1e-12,
+    )
 
 
 def test_without_speed_waypoints_start_at_seq_1_and_home_placeholder_is_first_waypoint(na_grid):
@@ -126,22 +130,58 @@ def test_plan_as_written_by_qgroundcontrol_imports(tmp_path):
     # a speed change, an inclusion polygon; yaw (param4) NaN is written as null.
     qgc = {
         "fileType": "Plan",
-        "geoFence": {"circles": [], "polygons": [{"inclusion": True, "polygon": [
-            [40.10, -63.30], [40.10, -63.00], [40.30, -63.00], [40.30, -63.30]], "version": 1}], "version": 2},
+        "geoFence": {
+            "circles": [],
+            "polygons": [
+                {
+                    "inclusion": True,
+                    "polygon": [[40.10, -63.30], [40.10, -63.00], [40.30, -63.00], [40.30, -63.30]],
+                    "version": 1,
+                }
+            ],
+            "version": 2,
+        },
         "groundStation": "QGroundControl",
         "mission": {
-            "cruiseSpeed": 3, "firmwareType": 3, "globalPlanAltitudeMode": 1, "hoverSpeed": 5,
+            "cruiseSpeed": 3,
+            "firmwareType": 3,
+            "globalPlanAltitudeMode": 1,
+            "hoverSpeed": 5,
             "items": [
-                {"autoContinue": True, "command": 178, "doJumpId": 1, "frame": 2,
-                 "params": [1, 3, -1, 0, 0, 0, 0], "type": "SimpleItem"},
-                {"AMSLAltAboveTerrain": None, "Altitude": 0, "AltitudeMode": 1, "autoContinue": True,
-                 "command": 16, "doJumpId": 2, "frame": 3,
-                 "params": [0, 0, 0, None, 40.2012345, -63.1054321, 0], "type": "SimpleItem"},
-                {"AMSLAltAboveTerrain": None, "Altitude": 0, "AltitudeMode": 1, "autoContinue": True,
-                 "command": 16, "doJumpId": 3, "frame": 3,
-                 "params": [0, 0, 0, None, 40.2254321, -63.0812345, 0], "type": "SimpleItem"},
+                {
+                    "autoContinue": True,
+                    "command": 178,
+                    "doJumpId": 1,
+                    "frame": 2,
+                    "params": [1, 3, -1, 0, 0, 0, 0],
+                    "type": "SimpleItem",
+                },
+                {
+                    "AMSLAltAboveTerrain": None,
+                    "Altitude": 0,
+                    "AltitudeMode": 1,
+                    "autoContinue": True,
+                    "command": 16,
+                    "doJumpId": 2,
+                    "frame": 3,
+                    "params": [0, 0, 0, None, 40.2012345, -63.1054321, 0],
+                    "type": "SimpleItem",
+                },
+                {
+                    "AMSLAltAboveTerrain": None,
+                    "Altitude": 0,
+                    "AltitudeMode": 1,
+                    "autoContinue": True,
+                    "command": 16,
+                    "doJumpId": 3,
+                    "frame": 3,
+                    "params": [0, 0, 0, None, 40.2254321, -63.0812345, 0],
+                    "type": "SimpleItem",
+                },
             ],
-            "plannedHomePosition": [40.2, -63.1, 12.3], "vehicleType": 11, "version": 2,
+            "plannedHomePosition": [40.2, -63.1, 12.3],
+            "vehicleType": 11,
+            "version": 2,
         },
         "rallyPoints": {"points": [], "version": 2},
         "version": 1,
@@ -157,12 +197,29 @@ def test_plan_as_written_by_qgroundcontrol_imports(tmp_path):
 
 
 def _qgc_min(items, **extra):
-    return {"fileType": "Plan", "version": 1, "groundStation": "QGroundControl",
-            "mission": {"version": 2, "firmwareType": 3, "vehicleType": 11, "plannedHomePosition": [40, -63, 0],
-                        "items": items}, **extra}
+    return {
+        "fileType": "Plan",
+        "version": 1,
+        "groundStation": "QGroundControl",
+        "mission": {
+            "version": 2,
+            "firmwareType": 3,
+            "vehicleType": 11,
+            "plannedHomePosition": [40, -63, 0],
+            "items": items,
+        },
+        **extra,
+    }
 
 
-_WP = {"autoContinue": True, "command": 16, "doJumpId": 1, "frame": 3, "params": [0, 0, 0, None, 40.1, -63.1, 0], "type": "SimpleItem"}
+_WP = {
+    "autoContinue": True,
+    "command": 16,
+    "doJumpId": 1,
+    "frame": 3,
+    "params": [0, 0, 0, None, 40.1, -63.1, 0],
+    "type": "SimpleItem",
+}
 
 
 @pytest.mark.parametrize(
@@ -173,15 +230,31 @@ _WP = {"autoContinue": True, "command": 16, "doJumpId": 1, "frame": 3, "params":
         ("c.waypoints", "QGC WPL 110\n0\t1\t0\t16\t0\t0\t0\t0\t40\t-63\t0\n", "line 2: expected 12 fields"),
         ("d.waypoints", "QGC WPL 110\n0\t1\t0\t16\t0\t0\t0\t0\t40\tx\t0\t1\n", "line 2"),
         ("e.waypoints", "QGC WPL 110\n0\t1\t0\t16\t0\t0\t0\t0\t40\t-63\t0\t1\n", "no waypoints"),
-        ("f.waypoints", "QGC WPL 110\n0\t1\t0\t16\t0\t0\t0\t0\t40\t-63\t0\t1\n1\t0\t3\t22\t0\t0\t0\t0\t40\t-63\t5\t1\n", "command 22"),
-        ("g.waypoints", "QGC WPL 110\n0\t1\t0\t16\t0\t0\t0\t0\t40\t-63\t0\t1\n2\t0\t3\t16\t0\t0\t0\t0\t40\t-63\t0\t1\n", "seqs must run"),
-        ("h.waypoints", "QGC WPL 110\n0\t1\t0\t16\t0\t0\t0\t0\t40\t-63\t0\t1\n1\t0\t3\t16\t0\t0\t0\t0\t95\t-63\t0\t1\n", "out of range"),
+        (
+            "f.waypoints",
+            "QGC WPL 110\n0\t1\t0\t16\t0\t0\t0\t0\t40\t-63\t0\t1\n1\t0\t3\t22\t0\t0\t0\t0\t40\t-63\t5\t1\n",
+            "command 22",
+        ),
+        (
+            "g.waypoints",
+            "QGC WPL 110\n0\t1\t0\t16\t0\t0\t0\t0\t40\t-63\t0\t1\n2\t0\t3\t16\t0\t0\t0\t0\t40\t-63\t0\t1\n",
+            "seqs must run",
+        ),
+        (
+            "h.waypoints",
+            "QGC WPL 110\n0\t1\t0\t16\t0\t0\t0\t0\t40\t-63\t0\t1\n1\t0\t3\t16\t0\t0\t0\t0\t95\t-63\t0\t1\n",
+            "out of range",
+        ),
         ("a.plan", "{not json", "not valid JSON"),
         ("b.plan", json.dumps({"fileType": "Mission"}), "not a QGroundControl plan"),
         ("c.plan", json.dumps(_qgc_min([{"type": "ComplexItem", "complexItemType": "survey"}])), "ComplexItem"),
         ("d.plan", json.dumps(_qgc_min([{**_WP, "params": [0, 0, 0]}])), "params needs 7"),
         ("e.plan", json.dumps(_qgc_min([{k: v for k, v in _WP.items() if k != "command"}])), "missing key 'command'"),
-        ("f.plan", json.dumps(_qgc_min([_WP], geoFence={"version": 2, "circles": [{"radius": 5}], "polygons": []})), "circles"),
+        (
+            "f.plan",
+            json.dumps(_qgc_min([_WP], geoFence={"version": 2, "circles": [{"radius": 5}], "polygons": []})),
+            "circles",
+        ),
     ],
 )
 def test_bad_files_raise_one_line_mission_file_error(tmp_path, name, text, match):
@@ -208,11 +281,22 @@ def grid_and_path(draw):
     if draw(st.booleans()):
         south = draw(st.floats(-70, 69))
         west = draw(st.floats(-179, 170))
-        g = geo.RegionGrid(south, west, south + draw(st.floats(0.01, 1.0)), west + draw(st.floats(0.01, 1.0)), rows, cols)
+        g = geo.RegionGrid(
+            south, west, south + draw(st.floats(0.01, 1.0)), west + draw(st.floats(0.01, 1.0)), rows, cols
+        )
     else:
-        g = geo.MetricRegionGrid(0.0, draw(st.floats(1.0, 50.0)), 0.0, draw(st.floats(1.0, 50.0)), rows, cols,
-                                 anchor_lat=draw(st.floats(-70, 70)), anchor_lon=draw(st.floats(-179, 179)),
-                                 rotation_deg=draw(st.floats(-180, 180)), scale=draw(st.floats(0.5, 500.0)))
+        g = geo.MetricRegionGrid(
+            0.0,
+            draw(st.floats(1.0, 50.0)),
+            0.0,
+            draw(st.floats(1.0, 50.0)),
+            rows,
+            cols,
+            anchor_lat=draw(st.floats(-70, 70)),
+            anchor_lon=draw(st.floats(-179, 179)),
+            rotation_deg=draw(st.floats(-180, 180)),
+            scale=draw(st.floats(0.5, 500.0)),
+        )
     r, c = draw(st.integers(0, rows - 1)), draw(st.integers(0, cols - 1))
     path = [(r, c)]
     moves = [(dr, dc) for dr in (-1, 0, 1) for dc in (-1, 0, 1) if (dr, dc) != (0, 0)]

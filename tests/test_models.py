@@ -97,7 +97,9 @@ def test_smoothing_kernel():
     # the smoothing K preserves a constant field (replicate padding at the edges)
     net = KnodeNet(16, 16, kernel_variance=1.0, channels=(4, 8, 8, 8, 8), hidden=8)
     const = torch.full((1, 2, 16, 16), 0.7)
-    sm = torch.nn.functional.conv2d(torch.nn.functional.pad(const, (2, 2, 2, 2), mode="replicate"), net.smooth, groups=2)
+    sm = torch.nn.functional.conv2d(
+        torch.nn.functional.pad(const, (2, 2, 2, 2), mode="replicate"), net.smooth, groups=2
+    )
     assert torch.allclose(sm, const, atol=1e-6)
 
 
@@ -233,16 +235,57 @@ def test_model_cli_train_and_evaluate(tmp_path, capsys):
 
     nc = wave_field(T=40).to_netcdf(tmp_path / "w.nc")
     out = tmp_path / "ck"
-    assert main(["model", "train", "--data", str(nc), "--model", "dmd", "--start", "0", "--stop", "24", "--json", "--out", str(out)]) == 0
+    assert (
+        main(
+            [
+                "model",
+                "train",
+                "--data",
+                str(nc),
+                "--model",
+                "dmd",
+                "--start",
+                "0",
+                "--stop",
+                "24",
+                "--json",
+                "--out",
+                str(out),
+            ]
+        )
+        == 0
+    )
     assert json.loads(capsys.readouterr().out)["model"] == "dmd"
     ev = tmp_path / "ev"
-    rc = main(["model", "evaluate", "--model", str(out) + ".pt", "--data", str(nc), "--train", "0:24", "--test", "28:40", "--pod-window", "28:40", "--json", "--out", str(ev)])
+    rc = main(
+        [
+            "model",
+            "evaluate",
+            "--model",
+            str(out) + ".pt",
+            "--data",
+            str(nc),
+            "--train",
+            "0:24",
+            "--test",
+            "28:40",
+            "--pod-window",
+            "28:40",
+            "--json",
+            "--out",
+            str(ev),
+        ]
+    )
     assert rc == 0
     j = json.loads(capsys.readouterr().out)
     assert set(j["lookahead"]["test"]) == {"dmd", "persistence"}
     assert set(j["lookahead"]["test"]["dmd"]) == {"1", "2", "5", "10"}
     assert j["lookahead"]["test"]["dmd"]["10"]["mse"] < 1e-8 < j["lookahead"]["test"]["persistence"]["10"]["mse"]
-    assert (ev / "results.json").exists() and (ev / "pod_energy.png").exists() and (ev / "error_vs_lookahead_test.png").exists()
+    assert (
+        (ev / "results.json").exists()
+        and (ev / "pod_energy.png").exists()
+        and (ev / "error_vs_lookahead_test.png").exists()
+    )
     assert main(["model", "evaluate", "--model", "oracle", "--data", str(nc), "--out", str(ev)]) == 2
     assert main(["model", "evaluate", "--model", "dmd", "--data", str(nc), "--train", "x", "--out", str(ev)]) == 2
 

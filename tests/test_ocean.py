@@ -128,7 +128,9 @@ def test_meanders_propagate_east(seed):
     f = make_ocean_default(seed=seed, hours=97)
     y0 = np.array([_axis_lat(f, c)[0] for c in range(30)])
     y1 = np.array([_axis_lat(f, c)[-1] for c in range(30)])
-    errs = {s: np.mean((y1[s:] - y0[: 30 - s]) ** 2) if s >= 0 else np.mean((y1[:s] - y0[-s:]) ** 2) for s in range(-8, 9)}
+    errs = {
+        s: np.mean((y1[s:] - y0[: 30 - s]) ** 2) if s >= 0 else np.mean((y1[:s] - y0[-s:]) ** 2) for s in range(-8, 9)
+    }
     best = min(errs, key=errs.get)
     waves = f.attrs["parameters"]["jet"]["waves"]
     expected = np.mean([w["speed"] for w in waves]) * 96 * 3600 / f.grid.cell_size_m[1]

@@ -24,7 +24,7 @@ pytestmark = pytest.mark.slow
 TRIALS = 6
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _campaign(data: str, model: str, L: int) -> dict:
     from passt_mav.fields.datasets import ASSETS, load_dataset
     from passt_mav.models.base import load_predictor
@@ -37,7 +37,20 @@ def _campaign(data: str, model: str, L: int) -> dict:
         pytest.skip(f"{model} not available: {exc}")
     # the campaign of `passt-mav paper` (lockstep engine, each GP's kernel fitted on what it
     # models: hyper="auto"; PASST's residual GP with the model's background covariance), at TRIALS trials
-    s = run_campaign(load_dataset(data), predictor, path_lengths=(L,), trials=TRIALS, steps=300, t0=0, steps_per_leg=10, noise=0.02, progress=False, engine="lockstep", hyper="auto", background=DEFAULT_BACKGROUND)
+    s = run_campaign(
+        load_dataset(data),
+        predictor,
+        path_lengths=(L,),
+        trials=TRIALS,
+        steps=300,
+        t0=0,
+        steps_per_leg=10,
+        noise=0.02,
+        progress=False,
+        engine="lockstep",
+        hyper="auto",
+        background=DEFAULT_BACKGROUND,
+    )
     per = s["per_L"][str(L)]
     print(data, L, json.dumps({k: round(v, 4) for k, v in per["final_rmse"].items()}))
     return per
@@ -76,10 +89,15 @@ def test_cylinder_passt_stays_bounded_while_the_model_drifts(L):
 GENERALISATION = [("oscillating", "builtin:cylinder"), ("ocean", "builtin:ocean")]
 
 
-@pytest.mark.parametrize("data,model,L", [
-    ("oscillating", "builtin:cylinder", 50), ("oscillating", "builtin:cylinder", 100),
-    ("ocean", "builtin:ocean", 50), ("ocean", "builtin:ocean", 100),
-])
+@pytest.mark.parametrize(
+    "data,model,L",
+    [
+        ("oscillating", "builtin:cylinder", 50),
+        ("oscillating", "builtin:cylinder", 100),
+        ("ocean", "builtin:ocean", 50),
+        ("ocean", "builtin:ocean", 100),
+    ],
+)
 def test_generalisation_passt_beats_the_model_alone(data, model, L):
     """Scenarios 2 and 3: the model drifts; sampling keeps the estimate closer. Measured (6 trials):
     oscillating (static-cylinder model) L=50 / 100 0.144 / 0.121 vs 0.408; ocean 0.0640 / 0.0484
@@ -103,7 +121,16 @@ def test_knode_beats_persistence_to_lookahead_20_on_both_wakes(window):
     from true states and from GP reconstructions (snapshots 300-400, never trained on)."""
     from passt_mav.models.evaluate import evaluate_command
 
-    res = evaluate_command(model="builtin:cylinder", data="builtin:cylinder", oscillating="builtin:oscillating", lookaheads=(1, 2, 5, 10, 20), baselines=("persistence",), ic_stride=4, pod_window=(300, 320), gp_ic_stride=8)
+    res = evaluate_command(
+        model="builtin:cylinder",
+        data="builtin:cylinder",
+        oscillating="builtin:oscillating",
+        lookaheads=(1, 2, 5, 10, 20),
+        baselines=("persistence",),
+        ic_stride=4,
+        pod_window=(300, 320),
+        gp_ic_stride=8,
+    )
     for label in (window, window.replace("test", "oscillating")):
         per = res["lookahead"][label]
         for h, v in per["knode"].items():
@@ -119,7 +146,16 @@ def test_knode_beats_dmd_on_the_oscillating_wake_to_lookahead_10(window):
     h=5 (h=10 1.34e-2/9.07e-3 and 2.02e-2/1.37e-2)."""
     from passt_mav.models.evaluate import evaluate_command
 
-    res = evaluate_command(model="builtin:cylinder", data="builtin:cylinder", oscillating="builtin:oscillating", lookaheads=(1, 2, 5, 10), baselines=("dmd",), ic_stride=2, pod_window=(300, 320), gp_ic_stride=4)
+    res = evaluate_command(
+        model="builtin:cylinder",
+        data="builtin:cylinder",
+        oscillating="builtin:oscillating",
+        lookaheads=(1, 2, 5, 10),
+        baselines=("dmd",),
+        ic_stride=2,
+        pod_window=(300, 320),
+        gp_ic_stride=4,
+    )
     per = res["lookahead"][window]
     for h, v in per["knode"].items():
         assert v["mse"] < per["dmd"][h]["mse"], h

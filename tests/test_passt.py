@@ -11,12 +11,11 @@ import numpy as np
 import pytest
 
 import geo
+from passt_mav.engine import run_offline
 from passt_mav.errors import PlannerError
 from passt_mav.fields.field import FlowField
-from passt_mav.engine import run_offline
-from passt_mav.passt import FieldSampler, PasstLoop, Samples, Sampler, run_pure_model, steps_for_leg
+from passt_mav.passt import FieldSampler, PasstLoop, Sampler, Samples, run_pure_model, steps_for_leg
 from passt_mav.planning import check_path
-
 
 # -- stand-ins -------------------------------------------------------------------
 
@@ -153,7 +152,17 @@ def test_step_by_step_api(field):
 def test_perfect_model_and_no_noise_stays_exact(field):
     """Known answer: with the true dynamics and noise-free samples every residual is 0,
     so PASST reproduces the truth to float32 round-off."""
-    r = run_offline(field, ShiftPredictor(TRUE_VEL), start_cell=(5, 5), n_steps=40, planner="greedy", path_length=20, steps_per_leg=10, noise_std=0.0, seed=0)
+    r = run_offline(
+        field,
+        ShiftPredictor(TRUE_VEL),
+        start_cell=(5, 5),
+        n_steps=40,
+        planner="greedy",
+        path_length=20,
+        steps_per_leg=10,
+        noise_std=0.0,
+        seed=0,
+    )
     assert r.estimate.shape == (41, 2, 30, 30)
     assert np.abs(r.estimate - field.data[:41]).max() < 1e-4
     assert len(r.legs) == 4 and all(len(leg["path"]) == 21 for leg in r.legs)
@@ -174,7 +183,17 @@ def test_land_cells_stay_nan_and_are_avoided():
     data = f.data.copy()
     data[:, :, 10:20, 12:15] = np.nan  # a strip of land
     f = FlowField(data, f.grid, f.times)
-    r = run_offline(f, Persistence(), start_cell=(5, 5), n_steps=30, planner="policy_gradient", path_length=60, steps_per_leg=10, noise_std=0.01, seed=0)
+    r = run_offline(
+        f,
+        Persistence(),
+        start_cell=(5, 5),
+        n_steps=30,
+        planner="policy_gradient",
+        path_length=60,
+        steps_per_leg=10,
+        noise_std=0.01,
+        seed=0,
+    )
     assert np.isnan(r.estimate[:, :, 10:20, 12:15]).all()
     assert np.isfinite(r.estimate[:, :, :10]).all()
     for leg in r.legs:
@@ -194,7 +213,20 @@ def test_passt_bounded_vs_drifting_model(field):
     truth = field.data[: T + 1]
     rm = lambda e: np.sqrt(np.nanmean((e - truth) ** 2, axis=(1, 2, 3)))  # noqa: E731
     pure = rm(run_pure_model(field, pred, n_steps=T))
-    r = rm(run_offline(field, pred, start_cell=(15, 15), n_steps=T, planner="policy_gradient", reward="std", path_length=100, steps_per_leg=10, noise_std=0.01, seed=1).estimate)
+    r = rm(
+        run_offline(
+            field,
+            pred,
+            start_cell=(15, 15),
+            n_steps=T,
+            planner="policy_gradient",
+            reward="std",
+            path_length=100,
+            steps_per_leg=10,
+            noise_std=0.01,
+            seed=1,
+        ).estimate
+    )
     assert pure[-20:].mean() > 1.8 * pure[60:80].mean()  # grows
     assert r[-20:].mean() < 0.5 * pure[-20:].mean()
     assert r[-20:].mean() < 1.5 * r[60:80].mean()  # bounded: no sustained growth
@@ -210,7 +242,17 @@ def test_background_covariance_corrects_the_drift_far_from_the_track(field):
     truth = field.data[: T + 1]
     rm = lambda e: np.sqrt(np.nanmean((e - truth) ** 2, axis=(1, 2, 3)))  # noqa: E731
     pure = rm(run_pure_model(field, pred, n_steps=T))
-    kw = dict(start_cell=(15, 15), n_steps=T, planner="policy_gradient", reward="speed", path_length=100, steps_per_leg=10, noise_std=0.01, seed=1, gp_kw={"solver": "cholesky"})
+    kw = dict(
+        start_cell=(15, 15),
+        n_steps=T,
+        planner="policy_gradient",
+        reward="speed",
+        path_length=100,
+        steps_per_leg=10,
+        noise_std=0.01,
+        seed=1,
+        gp_kw={"solver": "cholesky"},
+    )
     plain = rm(run_offline(field, pred, **kw).estimate)
     with_b = rm(run_offline(field, pred, background=100, **kw).estimate)
     assert with_b[-20:].mean() < 0.3 * pure[-20:].mean()
@@ -241,7 +283,16 @@ def test_lockstep_equals_serial_runs(field, hyper, background):
     from passt_mav.engine import run_offline_lockstep
 
     starts, seeds = [(3, 4), (20, 11), (9, 27)], [5, 6, 7]
-    kw = dict(t0=0, n_steps=30, path_length=15, steps_per_leg=10, noise_std=0.01, hyper=hyper, gp_kw={"solver": "cholesky"}, background=background)
+    kw = dict(
+        t0=0,
+        n_steps=30,
+        path_length=15,
+        steps_per_leg=10,
+        noise_std=0.01,
+        hyper=hyper,
+        gp_kw={"solver": "cholesky"},
+        background=background,
+    )
     pred = BatchShiftPredictor(WRONG_VEL)
     lock = run_offline_lockstep(field, pred, start_cells=starts, seeds=seeds, **kw)
     assert pred.calls == 3  # one call per leg for all three trials

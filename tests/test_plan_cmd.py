@@ -18,8 +18,26 @@ MISSIONS = Path(__file__).resolve().parent.parent / "missions"
 @pytest.fixture(scope="module")
 def na_leg(tmp_path_factory):
     out = tmp_path_factory.mktemp("plan_na")
-    rc = main(["plan", str(MISSIONS / "north_atlantic.yaml"), "--model", "none", "--time", "3", "--reward", "speed",
-               "--planner", "policy_gradient", "--start", "10,12", "--length", "8", "--out", str(out)])
+    rc = main(
+        [
+            "plan",
+            str(MISSIONS / "north_atlantic.yaml"),
+            "--model",
+            "none",
+            "--time",
+            "3",
+            "--reward",
+            "speed",
+            "--planner",
+            "policy_gradient",
+            "--start",
+            "10,12",
+            "--length",
+            "8",
+            "--out",
+            str(out),
+        ]
+    )
     assert rc == 0
     return out
 
@@ -55,7 +73,9 @@ def test_plan_reward_is_the_normalised_speed_of_the_state(na_leg):
 
 
 def test_plan_cylinder_json_summary(tmp_path, capsys):
-    rc = main(["plan", str(MISSIONS / "cylinder.yaml"), "--model", "none", "--length", "5", "--json", "--out", str(tmp_path)])
+    rc = main(
+        ["plan", str(MISSIONS / "cylinder.yaml"), "--model", "none", "--length", "5", "--json", "--out", str(tmp_path)]
+    )
     assert rc == 0
     s = json.loads(capsys.readouterr().out)
     assert s["start"] == [15, 2] and s["path_length"] == 5 and len(s["files"]) == 3
@@ -88,8 +108,26 @@ def test_plan_from_a_state_file(tmp_path, capsys):
 
     f = load_dataset("ocean").isel(time=slice(5, 7))
     state = f.to_netcdf(tmp_path / "state.nc")
-    rc = main(["plan", str(MISSIONS / "north_atlantic.yaml"), "--state", str(state), "--time", "1", "--model", "none",
-               "--reward", "speed", "--start", "20,5", "--length", "4", "--out", str(tmp_path / "o")])
+    rc = main(
+        [
+            "plan",
+            str(MISSIONS / "north_atlantic.yaml"),
+            "--state",
+            str(state),
+            "--time",
+            "1",
+            "--model",
+            "none",
+            "--reward",
+            "speed",
+            "--start",
+            "20,5",
+            "--length",
+            "4",
+            "--out",
+            str(tmp_path / "o"),
+        ]
+    )
     assert rc == 0
     d = json.loads((tmp_path / "o" / "path.json").read_text())
     spd = np.hypot(*f.data[1].astype(np.float64))

@@ -96,7 +96,9 @@ class TestPolicyGradient(PlannerContract):
     def test_checkpoint_shipped(self):
         assert DEFAULT_CHECKPOINT.exists() and DEFAULT_CHECKPOINT.with_suffix(".json").exists()
 
-    @pytest.mark.parametrize("start,budget,factor", [((15, 15), 30, 1.4), ((13, 16), 40, 2.0), ((17, 12), 60, 2.0), ((10, 10), 40, 4.0)])
+    @pytest.mark.parametrize(
+        "start,budget,factor", [((15, 15), 30, 1.4), ((13, 16), 40, 2.0), ((17, 12), 60, 2.0), ((10, 10), 40, 4.0)]
+    )
     def test_single_gaussian_near_upper_bound(self, start, budget, factor):
         """Bound = sum of the `budget` largest rewards over cells other than the start.
         On a width-4 Gaussian the planner must collect >= 90 % of it and `factor` x what a
@@ -280,7 +282,9 @@ class TestRandom(PlannerContract):
                 continue
             seed = int(rng.integers(1000))
             a, b = np.random.default_rng(seed), np.random.default_rng(seed)
-            assert [_fallback_step(cell, visited, trav, a) for _ in range(3)] == [reference(cell, visited, trav, b) for _ in range(3)]
+            assert [_fallback_step(cell, visited, trav, a) for _ in range(3)] == [
+                reference(cell, visited, trav, b) for _ in range(3)
+            ]
 
 
 def test_registry_and_unknown_names():

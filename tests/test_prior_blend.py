@@ -14,8 +14,8 @@ import numpy as np
 import pytest
 from test_passt import ShiftPredictor, make_field
 
-from passt_mav.errors import ReconstructionError
 from passt_mav.engine import run_offline
+from passt_mav.errors import ReconstructionError
 from passt_mav.passt import PasstLoop
 
 TRUE_VEL = (0.05, 0.12)
@@ -32,8 +32,19 @@ class Persistence:
 def _final(field, predictor, blend, seeds=range(3)):
     out = []
     for s in seeds:
-        r = run_offline(field, predictor, start_cell=(15, 15), n_steps=60, planner="random", path_length=25, steps_per_leg=5,
-                        noise_std=0.02, seed=s, prior_blend=blend, background=0)
+        r = run_offline(
+            field,
+            predictor,
+            start_cell=(15, 15),
+            n_steps=60,
+            planner="random",
+            path_length=25,
+            steps_per_leg=5,
+            noise_std=0.02,
+            seed=s,
+            prior_blend=blend,
+            background=0,
+        )
         d = r.estimate[-20:].astype(np.float64) - field.data[41:61]
         out.append(np.sqrt(np.mean(d**2)))
     return float(np.mean(out))
@@ -54,7 +65,9 @@ def test_a_right_model_keeps_its_weight(field):
         leg = loop.plan_leg(state, (10, 10), float(5 * k), 1.0, steps=5)
         from passt_mav.passt import FieldSampler
 
-        state = loop.update(leg, FieldSampler(field, noise_std=0.02, steps_per_leg=5, seed=k).sample_path(leg.path, leg.t_start))
+        state = loop.update(
+            leg, FieldSampler(field, noise_std=0.02, steps_per_leg=5, seed=k).sample_path(leg.path, leg.t_start)
+        )
     assert loop.weights()[0] > 0.99  # the model (exact here) against persistence
     assert len(loop.blend_history_) == 3 and set(loop.blend_history_[0]["weights"]) == {"model", "persistence"}
 

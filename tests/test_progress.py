@@ -79,8 +79,10 @@ def test_unknown_length_reports_elapsed_time_with_its_note(clock):
     p.close("ready")
     out = lines(buf)
     assert out[0] == "waiting for the vehicle: started"
-    assert out[1:3] == ["waiting for the vehicle: 5 s elapsed (EKF has no position)",
-                        "waiting for the vehicle: 10 s elapsed (EKF has no position)"]
+    assert out[1:3] == [
+        "waiting for the vehicle: 5 s elapsed (EKF has no position)",
+        "waiting for the vehicle: 10 s elapsed (EKF has no position)",
+    ]
     assert out[-1] == "waiting for the vehicle: ready (EKF has no position)" and len(out) == 4
 
 
@@ -124,8 +126,24 @@ def test_evaluate_writes_plain_progress_lines_to_a_log(tmp_path, capsys):
     from passt_mav.cli import main
 
     nc = make_field(T=30).to_netcdf(tmp_path / "synth.nc")
-    rc = main(["evaluate", "--data", str(nc), "--model", "persistence", "--trials", "2", "--path-lengths", "10,20",
-               "--steps", "20", "--json", "--out", str(tmp_path / "eval")])
+    rc = main(
+        [
+            "evaluate",
+            "--data",
+            str(nc),
+            "--model",
+            "persistence",
+            "--trials",
+            "2",
+            "--path-lengths",
+            "10,20",
+            "--steps",
+            "20",
+            "--json",
+            "--out",
+            str(tmp_path / "eval"),
+        ]
+    )
     out, err = capsys.readouterr()
     assert rc == 0 and json.loads(out)["out"]
     plain = [ln for ln in err.splitlines() if ln.startswith("evaluate: ")]

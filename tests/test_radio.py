@@ -90,7 +90,7 @@ def _serve_frames(frames: list[bytes], got_from_client: list, ready: threading.E
         c.sendall(b"".join(frames))
         c.settimeout(5.0)
         try:
-            while (d := c.recv(4096)):
+            while d := c.recv(4096):
                 got_from_client.append((time.monotonic(), d))
         except OSError:
             pass

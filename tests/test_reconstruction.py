@@ -78,7 +78,9 @@ def test_forecast_prior_recovers_forecast_far_from_samples(grid):
     xy, uv = samples(grid, cells, rng)
     f_at = forecast[:, cells[:, 0], cells[:, 1]].T
     gp = GPReconstructor(grid_xy=(X, Y), prior="forecast", noise_std=NOISE)
-    mean, _std = gp.fit(xy, uv, forecast_at_samples=f_at).reconstruct(xy, uv, forecast=forecast, forecast_at_samples=f_at)
+    mean, _std = gp.fit(xy, uv, forecast_at_samples=f_at).reconstruct(
+        xy, uv, forecast=forecast, forecast_at_samples=f_at
+    )
     # near the path the bias is removed
     err_before = np.hypot(*(forecast - truth))[2:11].mean()
     err_after = np.hypot(*(mean - truth))[2:11].mean()
@@ -158,7 +160,9 @@ def test_cholesky_solver_matches_sklearn(grid, prior, space_time):
     np.testing.assert_allclose(s1, s0, atol=1e-6, rtol=0)
     assert np.nanstd(m0) > 0.1  # a non-trivial posterior was compared
     with pytest.raises(ReconstructionError, match="solver"):
-        GPReconstructor(solver="gpu", **kw).fit(xy, uv, fa).reconstruct(xy, uv, forecast=forecast, forecast_at_samples=fa)
+        GPReconstructor(solver="gpu", **kw).fit(xy, uv, fa).reconstruct(
+            xy, uv, forecast=forecast, forecast_at_samples=fa
+        )
 
 
 def test_cholesky_column_cache_is_exact_and_std_can_be_skipped(grid):
@@ -200,7 +204,9 @@ def test_cholesky_column_cache_is_exact_and_std_can_be_skipped(grid):
     np.testing.assert_allclose(m3, m0, atol=1e-7, rtol=0)
     # a refit replaces the kernel object: the next call starts a new cache
     gp.fit(xy, uv, fa, samples_t=np.linspace(0.0, 5.0, len(cells)))
-    gp.reconstruct(xy[:10], uv[:10], forecast=forecast, forecast_at_samples=fa[:10], samples_t=t[:10], t=5.0, with_std=False)
+    gp.reconstruct(
+        xy[:10], uv[:10], forecast=forecast, forecast_at_samples=fa[:10], samples_t=t[:10], t=5.0, with_std=False
+    )
     assert gp._col_cache[0][0] is gp.kernels_[0] and len(gp._col_cache[0][2]) == len({tuple(r) for r in cells[:10]})
     # the sklearn solver always returns the std
     sk = GPReconstructor(**{**kw, "solver": "sklearn"})
@@ -212,9 +218,11 @@ def _smooth_modes(grid, n_modes: int) -> np.ndarray:
     """(n_modes, 2, R, C) large-scale patterns (wavelengths >= the grid) over both components."""
     X, Y = grid.centres_xy()
     x, y = X / (CELL * C), Y / (CELL * R)
-    pats = [np.stack([np.sin(np.pi * x), np.cos(np.pi * y)]),
-            np.stack([np.cos(np.pi * x) * y, -np.sin(np.pi * y)]),
-            np.stack([x * y, x - y])]
+    pats = [
+        np.stack([np.sin(np.pi * x), np.cos(np.pi * y)]),
+        np.stack([np.cos(np.pi * x) * y, -np.sin(np.pi * y)]),
+        np.stack([x * y, x - y]),
+    ]
     return 0.3 * np.stack(pats[:n_modes])
 
 
@@ -244,9 +252,9 @@ def test_background_posterior_equals_the_dense_joint_gp(grid):
     Kgs = Bg.T @ Hb
     prior_var = np.einsum("ij,ij->j", Bg, Bg)
     for k, kern in enumerate(ref.kernels_):
-        Kss[k * n:(k + 1) * n, k * n:(k + 1) * n] += kern(xy) + gp.alpha * np.eye(n)
-        Kgs[k * N:(k + 1) * N, k * n:(k + 1) * n] += kern(G, xy)
-        prior_var[k * N:(k + 1) * N] += kern.diag(G)
+        Kss[k * n : (k + 1) * n, k * n : (k + 1) * n] += kern(xy) + gp.alpha * np.eye(n)
+        Kgs[k * N : (k + 1) * N, k * n : (k + 1) * n] += kern(G, xy)
+        prior_var[k * N : (k + 1) * N] += kern.diag(G)
     y = (uv - fa).T.ravel()
     m_ref = Kgs @ np.linalg.solve(Kss, y) + np.nan_to_num(forecast).ravel()
     v_ref = prior_var - np.einsum("ij,ji->i", Kgs, np.linalg.solve(Kss, Kgs.T))
@@ -255,14 +263,18 @@ def test_background_posterior_equals_the_dense_joint_gp(grid):
     np.testing.assert_allclose(std[:, water], np.sqrt(v_ref).reshape(2, R, C)[:, water], atol=1e-6, rtol=0)
     assert np.isnan(mean[:, ~water]).all() and np.isnan(std[:, ~water]).all()
     # zero modes: the joint posterior falls apart into the two component posteriors
-    gp0 = GPReconstructor(grid_xy=(X, Y), noise_std=NOISE, solver="cholesky", background=np.zeros_like(modes), background_scale=1.0)
+    gp0 = GPReconstructor(
+        grid_xy=(X, Y), noise_std=NOISE, solver="cholesky", background=np.zeros_like(modes), background_scale=1.0
+    )
     gp0.kernels_, gp0.cell_m_, gp0.n_inputs_ = ref.kernels_, ref.cell_m_, ref.n_inputs_
     m0, s0 = gp0.reconstruct(xy, uv, forecast=forecast, forecast_at_samples=fa)
     m1, s1 = ref.reconstruct(xy, uv, forecast=forecast, forecast_at_samples=fa)
     np.testing.assert_allclose(m0, m1, atol=1e-6, rtol=0)
     np.testing.assert_allclose(s0, s1, atol=1e-6, rtol=0)
     with pytest.raises(ReconstructionError, match="background modes must have shape"):
-        GPReconstructor(grid_xy=(X, Y), solver="cholesky", background=modes[:, :, :10]).fit(xy, uv, fa).reconstruct(xy, uv, forecast=forecast, forecast_at_samples=fa)
+        GPReconstructor(grid_xy=(X, Y), solver="cholesky", background=modes[:, :, :10]).fit(xy, uv, fa).reconstruct(
+            xy, uv, forecast=forecast, forecast_at_samples=fa
+        )
 
 
 def test_background_recovers_a_modal_error_far_from_the_samples(grid):
@@ -283,8 +295,12 @@ def test_background_recovers_a_modal_error_far_from_the_samples(grid):
     with_b.kernels_, with_b.cell_m_, with_b.n_inputs_ = plain.kernels_, plain.cell_m_, plain.n_inputs_
     north = (slice(None), slice(20, 30))
     e_fc = np.sqrt(np.mean((forecast - truth)[north] ** 2))
-    e_plain = np.sqrt(np.mean((plain.reconstruct(xy, uv, forecast=forecast, forecast_at_samples=fa)[0] - truth)[north] ** 2))
-    e_bg = np.sqrt(np.mean((with_b.reconstruct(xy, uv, forecast=forecast, forecast_at_samples=fa)[0] - truth)[north] ** 2))
+    e_plain = np.sqrt(
+        np.mean((plain.reconstruct(xy, uv, forecast=forecast, forecast_at_samples=fa)[0] - truth)[north] ** 2)
+    )
+    e_bg = np.sqrt(
+        np.mean((with_b.reconstruct(xy, uv, forecast=forecast, forecast_at_samples=fa)[0] - truth)[north] ** 2)
+    )
     # measured: forecast 0.496, stationary GP 0.509 (it leaves the far error), with the mode 0.056
     # (the stationary kernel, fitted on this residual, takes a share of it near the track)
     assert e_plain > 0.7 * e_fc
@@ -299,7 +315,9 @@ class _OscillatingStub:
 
     def predict(self, state, steps):
         k = np.arange(1, steps + 1)[:, None, None, None]
-        return (state[None] + self.a * (np.cos(self.w * k) - 1) * self.phi1 + self.a * np.sin(self.w * k) * self.phi2).astype(np.float32)
+        return (
+            state[None] + self.a * (np.cos(self.w * k) - 1) * self.phi1 + self.a * np.sin(self.w * k) * self.phi2
+        ).astype(np.float32)
 
 
 def test_model_background_of_a_known_roll_out(grid):
@@ -363,4 +381,6 @@ def test_background_scale_by_marginal_likelihood(grid):
     assert gp.background_scale_ >= 0.1
     assert e_bg < 0.15 * e_fc
     with pytest.raises(ReconstructionError, match="background_scale"):
-        GPReconstructor(grid_xy=(X, Y), solver="cholesky", background=modes, background_scale=-1.0).fit(xy, uv, fa).reconstruct(xy, uv, forecast=forecast, forecast_at_samples=fa)
+        GPReconstructor(grid_xy=(X, Y), solver="cholesky", background=modes, background_scale=-1.0).fit(
+            xy, uv, fa
+        ).reconstruct(xy, uv, forecast=forecast, forecast_at_samples=fa)

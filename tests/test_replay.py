@@ -37,20 +37,29 @@ def flown(tmp_path_factory):
     tc.mission(tmp, field)  # writes wave.nc
     g = field.grid
     data = {
-        "name": "wave", "region": {"south": g.south, "west": g.west, "north": g.north, "east": g.east,
-                                   "rows": tc.N, "cols": tc.N},
-        "field": {"source": str(tmp / "wave.nc")}, "model": "persistence",
-        "planner": {"name": "greedy", "path_length": 3}, "legs": 2, "t0": 0,
-        "vehicle": {"speed_mps": 5.0, "wp_radius_m": 3.0}, "sensors": {"noise_std": tc.NOISE},
-        "geofence_margin_m": 30.0, "gp": {"hyper": "first_leg"},
+        "name": "wave",
+        "region": {"south": g.south, "west": g.west, "north": g.north, "east": g.east, "rows": tc.N, "cols": tc.N},
+        "field": {"source": str(tmp / "wave.nc")},
+        "model": "persistence",
+        "planner": {"name": "greedy", "path_length": 3},
+        "legs": 2,
+        "t0": 0,
+        "vehicle": {"speed_mps": 5.0, "wp_radius_m": 3.0},
+        "sensors": {"noise_std": tc.NOISE},
+        "geofence_margin_m": 30.0,
+        "gp": {"hyper": "first_leg"},
     }
     text = yaml.safe_dump(data)
     mfile = tmp / "wave.yaml"
     mfile.write_text(text)
     cfg = validate_mission(data, source="test")
     rd = RunDir(tmp / "run").create()
-    with served(tc.sim_config(), field=field, speedup=tc.SPEEDUP,
-                link_kw={"stream_rates_hz": LEAN_STREAMS, "tlog": str(rd.tlog)}) as (_sim, link):
+    with served(
+        tc.sim_config(),
+        field=field,
+        speedup=tc.SPEEDUP,
+        link_kw={"stream_rates_hz": LEAN_STREAMS, "tlog": str(rd.tlog)},
+    ) as (_sim, link):
         summary = tc.controller(cfg, field, link, rd, echo=None, mission_text=text).run()
     assert summary["status"] == "complete" and len(summary["legs"]) == 2
     return rd, mfile, summary
@@ -76,8 +85,12 @@ def test_tampered_record_diverges_exit_1(flown, tmp_path, capsys):
     rec = rd2.read_leg(1)
     path = [list(x) for x in rec["path"]]
     last = path[-1]
-    alt = next([last[0] + a, last[1] + b] for a in (-1, 0, 1) for b in (-1, 0, 1)
-               if (a or b) and [last[0] + a, last[1] + b] != path[-2] and 0 <= last[0] + a < tc.N and 0 <= last[1] + b < tc.N)
+    alt = next(
+        [last[0] + a, last[1] + b]
+        for a in (-1, 0, 1)
+        for b in (-1, 0, 1)
+        if (a or b) and [last[0] + a, last[1] + b] != path[-2] and 0 <= last[0] + a < tc.N and 0 <= last[1] + b < tc.N
+    )
     path[-1] = alt
     rec["path"] = path
     rd2.write_leg(1, rec)
@@ -85,14 +98,19 @@ def test_tampered_record_diverges_exit_1(flown, tmp_path, capsys):
     res = json.loads(capsys.readouterr().out)
     assert rc == 1 and res["reproduced"] is False and res["first_divergence"] == 1
     assert res["legs"][0]["path_identical"] is True
-    assert res["legs"][1]["differing_cells"] == [{"step": 3, "recorded": alt, "replayed": summary["legs"][1]["path"][3]}]
+    assert res["legs"][1]["differing_cells"] == [
+        {"step": 3, "recorded": alt, "replayed": summary["legs"][1]["path"][3]}
+    ]
     assert (rd2.root / "replay" / "replay.json").exists()
 
 
 def _is_path(p, start, L):
     p = np.asarray(p)
-    return (p.shape == (L + 1, 2) and tuple(p[0]) == tuple(start)
-            and bool((np.abs(np.diff(p, axis=0)).max(axis=1) == 1).all()))
+    return (
+        p.shape == (L + 1, 2)
+        and tuple(p[0]) == tuple(start)
+        and bool((np.abs(np.diff(p, axis=0)).max(axis=1) == 1).all())
+    )
 
 
 def test_replay_reproduces_paths_rmse_and_samples(flown, tmp_path, capsys):
@@ -177,7 +195,7 @@ def test_bare_tlog_of_an_older_controller_searches_the_clock_bracket(flown, tmp_
     for _, m in _TlogScanner(data):
         buf = m.get_msgbuf()
         at = data.index(buf, pos)
-        rec = data[at - 8: at + len(buf)]  # 8-byte timestamp + frame
+        rec = data[at - 8 : at + len(buf)]  # 8-byte timestamp + frame
         pos = at + len(buf)
         if m.get_type() == "STATUSTEXT" and "PASST leg" in str(m.text):
             n_cut += 1

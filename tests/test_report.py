@@ -44,21 +44,30 @@ def _leg(i: int, cells: list[tuple[int, int]], t_start: float, t_end: float) -> 
     path = np.array(cells)
     lat, lon = GRID.cell_to_latlon(path[:, 0], path[:, 1])
     return {
-        "index": i, "start_cell": list(cells[0]), "path": path.tolist(),
+        "index": i,
+        "start_cell": list(cells[0]),
+        "path": path.tolist(),
         "waypoints": np.column_stack([lat, lon]).tolist(),
-        "t_start": t_start, "t_end": t_end, "planning_s": 1.5 + i, "upload_s": 0.25 * (i + 1),
-        "duration_s": 600.0 + 10 * i, "n_samples": len(cells), "rmse_passt": 0.05 - 0.01 * i,
-        "rmse_model": 0.08, "link": {"rtt_ms": 12.5, "loss": 0.01 * i, "messages": 400 + i,
-                                     "vehicle_bytes_per_s": 333.5 + i},
+        "t_start": t_start,
+        "t_end": t_end,
+        "planning_s": 1.5 + i,
+        "upload_s": 0.25 * (i + 1),
+        "duration_s": 600.0 + 10 * i,
+        "n_samples": len(cells),
+        "rmse_passt": 0.05 - 0.01 * i,
+        "rmse_model": 0.08,
+        "link": {"rtt_ms": 12.5, "loss": 0.01 * i, "messages": 400 + i, "vehicle_bytes_per_s": 333.5 + i},
         "readings": {"received": 8 + i, "used": len(cells), "dropped_gap": 1 + i},
         # the map the leg was planned on: a ramp eastward (what the report draws under the path)
         "reward_map": np.tile(np.linspace(0.0, 1.0, GRID.cols), (GRID.rows, 1)).round(4).tolist(),
     }
 
 
-LEG_CELLS = [[(1, 1), (2, 2), (3, 3), (3, 4), (4, 5), (5, 6), (6, 6)],
-             [(6, 6), (6, 7), (7, 8), (8, 9), (8, 10), (7, 11), (6, 11)],
-             [(6, 11), (5, 10), (4, 9), (3, 8), (2, 8), (1, 7), (1, 6)]]
+LEG_CELLS = [
+    [(1, 1), (2, 2), (3, 3), (3, 4), (4, 5), (5, 6), (6, 6)],
+    [(6, 6), (6, 7), (7, 8), (8, 9), (8, 10), (7, 11), (6, 11)],
+    [(6, 11), (5, 10), (4, 9), (3, 8), (2, 8), (1, 7), (1, 6)],
+]
 
 
 def _samples_for(legs):
@@ -70,8 +79,18 @@ def _samples_for(legs):
         for r, c in leg["path"]:
             u, v = fld.interp(tm, r, c)
             lat, lon = GRID.cell_to_latlon(r, c)
-            out.append(dict(time_boot_ms=tb, utc=1.5e9 + tb / 1000, lat=float(lat), lon=float(lon),
-                            u=float(u), v=float(v), leg=leg["index"], source="test"))
+            out.append(
+                dict(
+                    time_boot_ms=tb,
+                    utc=1.5e9 + tb / 1000,
+                    lat=float(lat),
+                    lon=float(lon),
+                    u=float(u),
+                    v=float(v),
+                    leg=leg["index"],
+                    source="test",
+                )
+            )
             tb += 1000
     return out
 
@@ -91,10 +110,19 @@ def make_run(root: Path, *, estimate=True, summary_extras=True, field_path=None,
         est[:, 0] += 0.1
         FlowField(est, GRID, np.array([10800.0]), T0).to_netcdf(rd.leg_dir(1) / "estimate.nc")
     summary = {
-        "mission": "synthetic-test", "status": "complete", "started_utc": "2026-01-01T10:00:00Z",
-        "finished_utc": "2026-01-01T10:25:00Z", "field": str(fpath), "model": "knode", "planner": "policy_gradient",
-        "reward": "speed", "seeds": {"planner": 3, "gp": 4}, "grid": GRID.describe(), "field_time_origin": T0,
-        "legs": legs, "n_samples": 7 * n_legs,
+        "mission": "synthetic-test",
+        "status": "complete",
+        "started_utc": "2026-01-01T10:00:00Z",
+        "finished_utc": "2026-01-01T10:25:00Z",
+        "field": str(fpath),
+        "model": "knode",
+        "planner": "policy_gradient",
+        "reward": "speed",
+        "seeds": {"planner": 3, "gp": 4},
+        "grid": GRID.describe(),
+        "field_time_origin": T0,
+        "legs": legs,
+        "n_samples": 7 * n_legs,
     }
     if summary_extras:
         summary["rmse"] = {"t": [3600.0, 7200.0, 10800.0], "passt": [0.09, 0.05, 0.04], "model": [0.09, None, 0.085]}
@@ -153,8 +181,20 @@ def test_full_report(tmp_path, fake_store):
     assert "Telemetry log not recorded" in text
     assert f"{np.sqrt(0.005):.4g}" in text
     # summary and timings tables carry the recorded figures
-    for s in ("synthetic-test", "25.0 min", "policy_gradient", "10 x 12 cells", "12.5", "1.0 %", "401", ">0.75<", ">1210<",
-              ">7 / 8 (88 %)<", ">7 / 9 (78 %)<", ">334.5<"):  # readings used per leg, the vehicle's bytes/s
+    for s in (
+        "synthetic-test",
+        "25.0 min",
+        "policy_gradient",
+        "10 x 12 cells",
+        "12.5",
+        "1.0 %",
+        "401",
+        ">0.75<",
+        ">1210<",
+        ">7 / 8 (88 %)<",
+        ">7 / 9 (78 %)<",
+        ">334.5<",
+    ):  # readings used per leg, the vehicle's bytes/s
         assert s in text, s
 
 
@@ -217,7 +257,12 @@ def _write_tlog(path: Path, samples: list[dict], legs: list[dict], late_nack=())
         put(veh.mission_ack_encode(255, 190, 0), veh)
         put(veh.mission_current_encode(1, len(wps), 3), veh)
         for s in (x for x in samples if x["leg"] == leg["index"]):
-            put(veh.global_position_int_encode(s["time_boot_ms"], int(s["lat"] * 1e7), int(s["lon"] * 1e7), 0, 0, 0, 0, 0, 0), veh)
+            put(
+                veh.global_position_int_encode(
+                    s["time_boot_ms"], int(s["lat"] * 1e7), int(s["lon"] * 1e7), 0, 0, 0, 0, 0, 0
+                ),
+                veh,
+            )
             put(veh.named_value_float_encode(s["time_boot_ms"], b"CUR_U", s["u"]), veh)
             put(veh.named_value_float_encode(s["time_boot_ms"], b"CUR_V", s["v"]), veh)
         put(veh.mission_current_encode(len(wps), len(wps), 5), veh)
@@ -291,10 +336,21 @@ def test_renders_in_headless_chromium(tmp_path, fake_store):
     fake_store[str(rd.samples_db)] = _samples_for(rd.read_summary()["legs"])
     html_path = write_report(rd.root)
     shot = tmp_path / "shot.png"
-    cmd = [shutil.which("chromium"), "--headless", "--no-sandbox", "--disable-gpu", "--disable-background-networking",
-           "--disable-component-update", "--disable-sync", "--no-first-run", "--hide-scrollbars",
-           f"--user-data-dir={tmp_path / 'profile'}", f"--screenshot={shot}", "--window-size=1200,2600",
-           html_path.resolve().as_uri()]
+    cmd = [
+        shutil.which("chromium"),
+        "--headless",
+        "--no-sandbox",
+        "--disable-gpu",
+        "--disable-background-networking",
+        "--disable-component-update",
+        "--disable-sync",
+        "--no-first-run",
+        "--hide-scrollbars",
+        f"--user-data-dir={tmp_path / 'profile'}",
+        f"--screenshot={shot}",
+        "--window-size=1200,2600",
+        html_path.resolve().as_uri(),
+    ]
     subprocess.run(cmd, check=True, capture_output=True, timeout=120)
     assert shot.exists()
     # a blank or broken page has a handful of colours; colour maps and text give thousands
@@ -303,11 +359,14 @@ def test_renders_in_headless_chromium(tmp_path, fake_store):
 
 def test_metric_grid_run(tmp_path):
     """A cylinder-like run: metric grid placed on Earth (rotated), non-dimensional time and units."""
-    grid = geo.MetricRegionGrid(0.0, 9.0, -4.0, 4.0, 9, 10, anchor_lat=40.0, anchor_lon=-63.0,
-                                rotation_deg=30.0, scale=500.0)
+    grid = geo.MetricRegionGrid(
+        0.0, 9.0, -4.0, 4.0, 9, 10, anchor_lat=40.0, anchor_lon=-63.0, rotation_deg=30.0, scale=500.0
+    )
     times = np.arange(6) * 0.4
     _ys, xs = np.meshgrid(grid.ys, grid.xs, indexing="ij")
-    data = np.stack([np.stack([1.0 + 0 * xs + 0.1 * np.sin(t), 0.2 * np.sin(xs + t)]) for t in times]).astype(np.float32)
+    data = np.stack([np.stack([1.0 + 0 * xs + 0.1 * np.sin(t), 0.2 * np.sin(xs + t)]) for t in times]).astype(
+        np.float32
+    )
     data[:, :, 4, 2] = np.nan  # the cylinder: no data inside it
     fpath = tmp_path / "cyl.nc"
     FlowField(data, grid, times, None, units="1").to_netcdf(fpath)
@@ -316,9 +375,17 @@ def test_metric_grid_run(tmp_path):
     lat, lon = grid.cell_to_latlon(np.array(path)[:, 0], np.array(path)[:, 1])
     leg = {"index": 0, "path": path, "waypoints": np.column_stack([lat, lon]).tolist(), "t_start": 0.4, "t_end": 1.2}
     FlowField(data[3:4] + np.float32(0.05), grid, times[3:4], None, units="1").to_netcdf(rd.leg_dir(0) / "estimate.nc")
-    rd.write_summary({"mission": "cyl", "status": "complete", "field": str(fpath), "grid": grid.describe(),
-                      "field_time_origin": None, "legs": [leg],
-                      "rmse": {"t": [0.4, 0.8, 1.2], "passt": [0.1, 0.08, 0.05], "model": [0.1, 0.1, 0.1]}})
+    rd.write_summary(
+        {
+            "mission": "cyl",
+            "status": "complete",
+            "field": str(fpath),
+            "grid": grid.describe(),
+            "field_time_origin": None,
+            "legs": [leg],
+            "rmse": {"t": [0.4, 0.8, 1.2], "passt": [0.1, 0.08, 0.05], "model": [0.1, 0.1, 0.1]},
+        }
+    )
     text = write_report(rd.root).read_text()
     assert len(_embedded_pngs(text)) == 4  # all but samples and POD (not recorded)
     assert "non-dimensional" in text
@@ -405,8 +472,19 @@ def _many_samples(n: int, legs: int = 3) -> list[dict]:
     lat, lon = GRID.cell_to_latlon(rows, cols)
     u = 0.3 + 0.2 * np.sin(cols / 3) + 0.01 * rng.standard_normal(n)
     v = 0.1 * np.cos(rows / 2)
-    return [dict(time_boot_ms=10_000 + 200 * int(j), utc=1.5e9 + j, lat=float(lat[j]), lon=float(lon[j]),
-                 u=float(u[j]), v=float(v[j]), leg=int(j * legs // n), source="test") for j in k]
+    return [
+        dict(
+            time_boot_ms=10_000 + 200 * int(j),
+            utc=1.5e9 + j,
+            lat=float(lat[j]),
+            lon=float(lon[j]),
+            u=float(u[j]),
+            v=float(v[j]),
+            leg=int(j * legs // n),
+            source="test",
+        )
+        for j in k
+    ]
 
 
 def test_samples_figure_readable_at_ten_thousand_points(tmp_path, fake_store):
@@ -462,8 +540,12 @@ def test_rmse_figure_with_the_lawnmower_counterfactual(tmp_path):
 
     rd = make_run(tmp_path / "run", n_legs=3)
     s = rd.read_summary()
-    s["rmse"] = {"t": [7200.0, 10800.0, 14400.0], "passt": [0.05, 0.04, 0.02], "model": [0.08, 0.08, 0.08],
-                 "lawnmower": [0.48, 0.49, 0.5]}
+    s["rmse"] = {
+        "t": [7200.0, 10800.0, 14400.0],
+        "passt": [0.05, 0.04, 0.02],
+        "model": [0.08, 0.08, 0.08],
+        "lawnmower": [0.48, 0.49, 0.5],
+    }
     s["counterfactual"] = {"lawnmower": [0.48, 0.49, 0.5], "how": "offline: lawnmower legs of the same length"}
     s["legs"][2]["rmse_passt"] = 0.02  # per leg: 0.05, 0.04, 0.02 (the leg records)
     rd.write_summary(s)

@@ -43,8 +43,18 @@ def placed_field(data: dict):
     if r.get("kind") == "metric":
         g = field.grid
         assert (g.x0, g.x1, g.y0, g.y1, g.rows, g.cols) == (r["x0"], r["x1"], r["y0"], r["y1"], r["rows"], r["cols"])
-        field.grid = geo.MetricRegionGrid(g.x0, g.x1, g.y0, g.y1, g.rows, g.cols, anchor_lat=r["anchor_lat"],
-                                          anchor_lon=r["anchor_lon"], rotation_deg=r["rotation_deg"], scale=r["scale"])
+        field.grid = geo.MetricRegionGrid(
+            g.x0,
+            g.x1,
+            g.y0,
+            g.y1,
+            g.rows,
+            g.cols,
+            anchor_lat=r["anchor_lat"],
+            anchor_lon=r["anchor_lon"],
+            rotation_deg=r["rotation_deg"],
+            scale=r["scale"],
+        )
     return field
 
 
@@ -57,16 +67,40 @@ def fly(name: str, tmp_path, monkeypatch, *, moves: int, speed: float, extra: tu
     r0, c0 = data["start_cell"]
     home = tuple(float(x) for x in field.grid.cell_to_latlon(r0, c0))
     fs = data["field"]
-    sim = Simulator(field, home=home, config=SimConfig.fast(params=(("WP_SPEED", speed),), current_rate_hz=1.0, seed=1),
-                    velocity_scale=float(fs.get("velocity_scale", 1.0)), time_scale=float(fs.get("time_scale", 1.0)),
-                    start_time=float(field.times[t0]))
+    sim = Simulator(
+        field,
+        home=home,
+        config=SimConfig.fast(params=(("WP_SPEED", speed),), current_rate_hz=1.0, seed=1),
+        velocity_scale=float(fs.get("velocity_scale", 1.0)),
+        time_scale=float(fs.get("time_scale", 1.0)),
+        start_time=float(field.times[t0]),
+    )
     wire = Wire()
-    monkeypatch.setattr(link_mod.LinkConfig, "open",
-                        lambda self: lockstep_connection(wire.wrap(sim.connect_inprocess()), AUTOSTEP_S))
+    monkeypatch.setattr(
+        link_mod.LinkConfig, "open", lambda self: lockstep_connection(wire.wrap(sim.connect_inprocess()), AUTOSTEP_S)
+    )
     out = tmp_path / name
-    rc = main(["run", str(path), "--connect", "tcp:127.0.0.1:5760", "--legs", "1", "--out", str(out),
-               "--set", f"planner.path_length={moves}", "--set", f"vehicle.speed_mps={speed}",
-               "--speedup-hint", "20", "--no-report", "--quiet", *extra])
+    rc = main(
+        [
+            "run",
+            str(path),
+            "--connect",
+            "tcp:127.0.0.1:5760",
+            "--legs",
+            "1",
+            "--out",
+            str(out),
+            "--set",
+            f"planner.path_length={moves}",
+            "--set",
+            f"vehicle.speed_mps={speed}",
+            "--speedup-hint",
+            "20",
+            "--no-report",
+            "--quiet",
+            *extra,
+        ]
+    )
     f = out / "summary.json"
     summary = json.loads(f.read_text()) if f.exists() else {}
     return rc, summary, sim, wire, out, field
@@ -103,8 +137,9 @@ def check_flight(rc, summary, sim, wire, out, field, *, moves: int, start: tuple
 @pytest.mark.parametrize("name", ["cylinder", "oscillating_cylinder"])
 def test_cylinder_mission_files_fly(name, tmp_path, monkeypatch):
     # 3 moves of ~31 m at 3 m/s: ~40 s of vehicle time; background 0 keeps the GP's roll-out out of the leg
-    rc, summary, sim, wire, out, field = fly(name, tmp_path, monkeypatch, moves=3, speed=3.0,
-                                             extra=("--set", "gp.background=0"))
+    rc, summary, sim, wire, out, field = fly(
+        name, tmp_path, monkeypatch, moves=3, speed=3.0, extra=("--set", "gp.background=0")
+    )
     check_flight(rc, summary, sim, wire, out, field, moves=3, start=(15, 2))
     # the cylinder's truth is the placed field: the run's RMSE is computed (not "no truth on this grid")
     assert summary["legs"][0]["rmse_passt"] is not None
@@ -121,23 +156,42 @@ def test_ocean_mission_files_fly(name, start, tmp_path, monkeypatch):
 def test_our_ids_from_the_mission_file_and_the_command_line_reach_the_wire(tmp_path, monkeypatch):
     """vehicle.source_system/source_component in the mission, --source-component on the command line
     (which wins): the companion-computer case, the vehicle's system id with a component of our own."""
-    rc, summary, _sim, wire, _out, _field = fly("cylinder", tmp_path, monkeypatch, moves=1, speed=3.0, extra=(
-        "--set", "gp.background=0", "--set", "vehicle.source_system=1", "--set", "vehicle.source_component=191",
-        "--source-component", "196"))
+    rc, summary, _sim, wire, _out, _field = fly(
+        "cylinder",
+        tmp_path,
+        monkeypatch,
+        moves=1,
+        speed=3.0,
+        extra=(
+            "--set",
+            "gp.background=0",
+            "--set",
+            "vehicle.source_system=1",
+            "--set",
+            "vehicle.source_component=191",
+            "--source-component",
+            "196",
+        ),
+    )
     assert rc == 0 and summary["status"] == "complete"
     assert wire.ids == {(1, 196)}
 
 
 def test_speaking_as_the_autopilot_itself_is_refused_in_one_line(tmp_path, monkeypatch, capsys):
-    rc, _summary, _sim, _wire, _out, _field = fly("cylinder", tmp_path, monkeypatch, moves=1, speed=3.0,
-                                             extra=("--source-system", "1", "--source-component", "1"))
+    rc, _summary, _sim, _wire, _out, _field = fly(
+        "cylinder", tmp_path, monkeypatch, moves=1, speed=3.0, extra=("--source-system", "1", "--source-component", "1")
+    )
     assert rc == 2 and "is the vehicle's own autopilot's" in capsys.readouterr().err
 
 
 def test_every_shipped_mission_file_is_flown_here():
     """A new file in missions/ must be added to the tests above."""
-    assert sorted(p.stem for p in MISSIONS.glob("*.yaml")) == ["cylinder", "north_atlantic", "oscillating_cylinder",
-                                                                 "rtofs"]
+    assert sorted(p.stem for p in MISSIONS.glob("*.yaml")) == [
+        "cylinder",
+        "north_atlantic",
+        "oscillating_cylinder",
+        "rtofs",
+    ]
 
 
 # -- plan and run: one rule for a mission's field on its region ----------------------------------------
@@ -145,17 +199,40 @@ def test_every_shipped_mission_file_is_flown_here():
 
 @pytest.mark.parametrize("name", ["cylinder", "oscillating_cylinder", "north_atlantic", "rtofs"])
 def test_plan_accepts_every_shipped_mission_file(name, tmp_path, capsys):
-    assert main(["plan", str(MISSIONS / f"{name}.yaml"), "--model", "none", "--length", "3", "--json",
-                 "--out", str(tmp_path / "p")]) == 0
+    assert (
+        main(
+            [
+                "plan",
+                str(MISSIONS / f"{name}.yaml"),
+                "--model",
+                "none",
+                "--length",
+                "3",
+                "--json",
+                "--out",
+                str(tmp_path / "p"),
+            ]
+        )
+        == 0
+    )
     out = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert len(out["waypoint_cells"]) >= 2
 
 
-@pytest.mark.parametrize("key, value, needle", [
-    ("x0", 2.5, ("the mission's region x0 = 2.5 data m is not the field's (builtin:cylinder: 2.6); use the field's "
-                 "region (passt-mav data info builtin:cylinder)")),
-    ("rows", 29, "the field builtin:cylinder is a 30x30 grid, the mission's region 29x30"),
-])
+@pytest.mark.parametrize(
+    "key, value, needle",
+    [
+        (
+            "x0",
+            2.5,
+            (
+                "the mission's region x0 = 2.5 data m is not the field's (builtin:cylinder: 2.6); use the field's "
+                "region (passt-mav data info builtin:cylinder)"
+            ),
+        ),
+        ("rows", 29, "the field builtin:cylinder is a 30x30 grid, the mission's region 29x30"),
+    ],
+)
 def test_plan_and_run_refuse_a_region_off_the_field_with_the_same_line(key, value, needle, tmp_path, capsys):
     data = yaml.safe_load((MISSIONS / "cylinder.yaml").read_text())
     data["region"][key] = value
@@ -164,8 +241,10 @@ def test_plan_and_run_refuse_a_region_off_the_field_with_the_same_line(key, valu
     f = tmp_path / "off.yaml"
     f.write_text(yaml.safe_dump(data))
     lines = []
-    for argv in (["plan", str(f), "--model", "none", "--out", str(tmp_path / "p")],
-                 ["run", str(f), "--connect", "tcp:127.0.0.1:9", "--out", str(tmp_path / "r"), "--no-report"]):
+    for argv in (
+        ["plan", str(f), "--model", "none", "--out", str(tmp_path / "p")],
+        ["run", str(f), "--connect", "tcp:127.0.0.1:9", "--out", str(tmp_path / "r"), "--no-report"],
+    ):
         assert main(argv) == 2
         lines.append(capsys.readouterr().err.strip().splitlines()[-1])
     assert lines[0] == lines[1] == f"passt-mav: error: {needle}"

@@ -103,9 +103,19 @@ def test_unknown_command_unsupported_and_other_targets_ignored():
 def test_parameters_defaults_set_and_unknown_names_silent():
     sim, c = make()
     sim.run_until(1)
-    want = {"WP_SPEED": 2.0, "WP_RADIUS": 2.0, "FS_GCS_ENABLE": 0, "FS_ACTION": 2, "FS_TIMEOUT": 1.5,
-            "MIS_DONE_BEHAVE": 1, "MIS_RESTART": 0, "MAV_SYSID": 1, "MAV_GCS_SYSID": 255, "MAV1_POSITION": 1,
-            "ARMING_SKIPCHK": 0}
+    want = {
+        "WP_SPEED": 2.0,
+        "WP_RADIUS": 2.0,
+        "FS_GCS_ENABLE": 0,
+        "FS_ACTION": 2,
+        "FS_TIMEOUT": 1.5,
+        "MIS_DONE_BEHAVE": 1,
+        "MIS_RESTART": 0,
+        "MAV_SYSID": 1,
+        "MAV_GCS_SYSID": 255,
+        "MAV1_POSITION": 1,
+        "ARMING_SKIPCHK": 0,
+    }
     for name, val in want.items():
         c.mav.param_request_read_send(1, 1, name.encode(), -1)
         pv = c.wait("PARAM_VALUE", timeout=1)
@@ -131,9 +141,22 @@ def test_default_streams_at_1hz_sim_time_and_message_interval():
     counts = {}
     for m in msgs:
         counts[m.get_type()] = counts.get(m.get_type(), 0) + 1
-    for name in ("HEARTBEAT", "SYS_STATUS", "GPS_RAW_INT", "ATTITUDE", "VFR_HUD", "MISSION_CURRENT",
-                 "EKF_STATUS_REPORT", "BATTERY_STATUS", "SYSTEM_TIME", "TIMESYNC", "NAV_CONTROLLER_OUTPUT",
-                 "LOCAL_POSITION_NED", "POWER_STATUS", "MEMINFO"):
+    for name in (
+        "HEARTBEAT",
+        "SYS_STATUS",
+        "GPS_RAW_INT",
+        "ATTITUDE",
+        "VFR_HUD",
+        "MISSION_CURRENT",
+        "EKF_STATUS_REPORT",
+        "BATTERY_STATUS",
+        "SYSTEM_TIME",
+        "TIMESYNC",
+        "NAV_CONTROLLER_OUTPUT",
+        "LOCAL_POSITION_NED",
+        "POWER_STATUS",
+        "MEMINFO",
+    ):
         assert 9 <= counts.get(name, 0) <= 11, (name, counts.get(name))
     # GLOBAL_POSITION_INT: the 1 Hz stream plus one with each current-sensor sample (1 Hz)
     assert 18 <= counts["GLOBAL_POSITION_INT"] <= 22
@@ -156,7 +179,9 @@ def test_request_message_home_and_autopilot_version():
     assert hp.latitude == int(round(HOME[0] * 1e7))
     assert c.command(M.MAV_CMD_REQUEST_MESSAGE, M.MAVLINK_MSG_ID_AUTOPILOT_VERSION).result == 0
     av = c.wait("AUTOPILOT_VERSION", timeout=1)
-    assert av.capabilities & M.MAV_PROTOCOL_CAPABILITY_MISSION_INT and av.capabilities & M.MAV_PROTOCOL_CAPABILITY_MAVLINK2
+    assert (
+        av.capabilities & M.MAV_PROTOCOL_CAPABILITY_MISSION_INT and av.capabilities & M.MAV_PROTOCOL_CAPABILITY_MAVLINK2
+    )
     assert c.command(M.MAV_CMD_GET_HOME_POSITION).result == 0
 
 
@@ -262,8 +287,24 @@ def test_guided_goto_and_rtl_return_home():
     assert c.arm().result == 0
     assert c.set_mode(MODES["GUIDED"]).result == 0
     north = 100.0 / 111_035.0
-    c.mav.set_position_target_global_int_send(0, 1, 1, M.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT, 0b110111111000,
-                                              int(round((HOME[0] + north) * 1e7)), int(round(HOME[1] * 1e7)), 0, 0, 0, 0, 0, 0, 0, 0, 0)
+    c.mav.set_position_target_global_int_send(
+        0,
+        1,
+        1,
+        M.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT,
+        0b110111111000,
+        int(round((HOME[0] + north) * 1e7)),
+        int(round(HOME[1] * 1e7)),
+        0,
+        0,
+        0,
+        0,
+        0,
+        0,
+        0,
+        0,
+        0,
+    )
     c.collect(60.0, dt=0.1)
     lat, lon = sim.autopilot.position()
     assert (lat - HOME[0]) * 111_035.0 == pytest.approx(100.0, abs=2.5)
@@ -272,8 +313,21 @@ def test_guided_goto_and_rtl_return_home():
     lat, lon = sim.autopilot.position()
     assert abs(lat - HOME[0]) * 111_035.0 < 2.5 and sim.autopilot.mode == MODES["RTL"]
     # DO_REPOSITION (COMMAND_INT) switches to GUIDED and goes
-    c.mav.command_int_send(1, 1, M.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT, M.MAV_CMD_DO_REPOSITION, 0, 0, -1, 1, 0, 0,
-                           int(round(HOME[0] * 1e7)), int(round((HOME[1] + 0.0005) * 1e7)), 0)
+    c.mav.command_int_send(
+        1,
+        1,
+        M.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT,
+        M.MAV_CMD_DO_REPOSITION,
+        0,
+        0,
+        -1,
+        1,
+        0,
+        0,
+        int(round(HOME[0] * 1e7)),
+        int(round((HOME[1] + 0.0005) * 1e7)),
+        0,
+    )
     ack = c.wait("COMMAND_ACK", lambda m: m.command == M.MAV_CMD_DO_REPOSITION)
     assert ack.result == 0 and sim.autopilot.mode == MODES["GUIDED"]
     c.collect(40.0, dt=0.1)

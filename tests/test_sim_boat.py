@@ -139,8 +139,10 @@ def _samples(c):
 
 
 def _run_survey(sim, c):
-    items = [SimClient.waypoint(0, *HOME)] + [SimClient.waypoint(i + 1, HOME[0] + d[0], HOME[1] + d[1])
-                                             for i, d in enumerate([(0.003, 0.0), (0.003, 0.004), (-0.002, 0.004)])]
+    items = [SimClient.waypoint(0, *HOME)] + [
+        SimClient.waypoint(i + 1, HOME[0] + d[0], HOME[1] + d[1])
+        for i, d in enumerate([(0.003, 0.0), (0.003, 0.004), (-0.002, 0.004)])
+    ]
     assert c.upload(items).type == 0
     c.arm()
     c.set_mode(MODES["AUTO"])
@@ -194,13 +196,17 @@ def test_gps_noise_moves_the_reported_fix_not_the_measurement():
 
 
 def test_metric_field_rotation_velocity_and_time_scale():
-    g = geo.MetricRegionGrid(0.0, 10.0, 0.0, 10.0, 11, 11, anchor_lat=HOME[0], anchor_lon=HOME[1], rotation_deg=90.0, scale=50.0)
+    g = geo.MetricRegionGrid(
+        0.0, 10.0, 0.0, 10.0, 11, 11, anchor_lat=HOME[0], anchor_lon=HOME[1], rotation_deg=90.0, scale=50.0
+    )
     data = np.zeros((2, 2, 11, 11), np.float32)
     data[0, 0] = 0.0
     data[1, 0] = 1.0  # u ramps 0 -> 1 (inflow direction) over one time unit
     field = FlowField(data, g, np.array([0.0, 1.0]), None, "1")
     cm = CurrentModel(field, velocity_scale=0.5, time_scale=10.0)
-    u, v = cm.at(5.0, HOME[0], HOME[1])  # field time 0.5 -> u_data = 0.5; x 0.5 m/s per unit; rotated 90 deg CCW -> north
+    u, v = cm.at(
+        5.0, HOME[0], HOME[1]
+    )  # field time 0.5 -> u_data = 0.5; x 0.5 m/s per unit; rotated 90 deg CCW -> north
     assert (u, v) == pytest.approx((0.0, 0.25), abs=1e-9)
     # clamped in time: after the last snapshot it holds the last one
     assert cm.at(1000.0, HOME[0], HOME[1]) == pytest.approx((0.0, 0.5), abs=1e-9)

@@ -84,7 +84,7 @@ def test_spread_starts_are_distinct_inside_the_region_and_avoid_land():
         for lat, lon in st:
             assert S <= lat <= N and W <= lon <= E
         # at least a quarter of the region's smaller side (2.2 km) apart
-        assert min(_dist_m(a, b) for i, a in enumerate(st) for b in st[i + 1:]) > 500
+        assert min(_dist_m(a, b) for i, a in enumerate(st) for b in st[i + 1 :]) > 500
     # three boats: the SW, SE and NW block centres (cell 4.75 / 15.25 of 0..20)
     st = spread_starts(f, 3)
     assert st[0] == pytest.approx((S + 0.001 * 4.75, W + 0.0015 * 4.75), abs=1e-9)
@@ -98,8 +98,11 @@ def test_spread_starts_are_distinct_inside_the_region_and_avoid_land():
     # without a field: 20 m apart along the east axis
     ln = line_starts((40.0, -63.0), 3)
     assert [_dist_m(ln[0], p) for p in ln] == pytest.approx([0.0, 20.0, 40.0], abs=0.01)
-    assert boat_listen(["tcp:127.0.0.1:5760", "udpout:127.0.0.1:14550", "tcp:127.0.0.1:0"], 2) == \
-        ["tcp:127.0.0.1:5780", "udpout:127.0.0.1:14570", "tcp:127.0.0.1:0"]
+    assert boat_listen(["tcp:127.0.0.1:5760", "udpout:127.0.0.1:14550", "tcp:127.0.0.1:0"], 2) == [
+        "tcp:127.0.0.1:5780",
+        "udpout:127.0.0.1:14570",
+        "tcp:127.0.0.1:0",
+    ]
 
 
 # -- in-process: one clock, one field -------------------------------------------------------------
@@ -137,8 +140,12 @@ def test_inprocess_fault_injection_and_tlogs_are_per_boat(tmp_path):
     from vehicle_sim import LinkConfig
 
     f = linear_field()
-    fleet = Fleet(f, starts=spread_starts(f, 3), config=SimConfig.fast(tlog=str(tmp_path / "sim.tlog")),
-                  link_configs=[LinkConfig(), LinkConfig(drops=((5.0, 10.0),)), LinkConfig()])
+    fleet = Fleet(
+        f,
+        starts=spread_starts(f, 3),
+        config=SimConfig.fast(tlog=str(tmp_path / "sim.tlog")),
+        link_configs=[LinkConfig(), LinkConfig(drops=((5.0, 10.0),)), LinkConfig()],
+    )
     clients = [SimClient(b) for b in fleet.boats]
     heard: dict[int, list[float]] = {i: [] for i in range(3)}
     while fleet.t < 20.0:
@@ -165,8 +172,9 @@ class FleetGCS:
     """One pymavlink TCP connection per boat; the clock is stepped through one of them (31010)."""
 
     def __init__(self, ports):
-        self.conns = [mavutil.mavlink_connection(f"tcp:127.0.0.1:{p}", source_system=255, source_component=190)
-                      for p in ports]
+        self.conns = [
+            mavutil.mavlink_connection(f"tcp:127.0.0.1:{p}", source_system=255, source_component=190) for p in ports
+        ]
         self.alive = [True] * len(ports)
         self.msgs: list[list] = [[] for _ in ports]  # every message received, per boat
         self.t = 0.0
@@ -262,9 +270,25 @@ def test_three_boats_over_tcp_fly_their_missions_and_one_lost_link_stops_no_othe
             typ = m.get_type()
             if typ in ("MISSION_REQUEST_INT", "MISSION_REQUEST") and m.mission_type == 0:
                 lat, lon = missions[i][m.seq]
-                gcs.conns[i].mav.send(M.MAVLink_mission_item_int_message(
-                    i + 1, 1, m.seq, 6 if m.seq else 0, M.MAV_CMD_NAV_WAYPOINT, 0, 1, 0, 0, 0, 0,
-                    int(round(lat * 1e7)), int(round(lon * 1e7)), 0.0, 0))
+                gcs.conns[i].mav.send(
+                    M.MAVLink_mission_item_int_message(
+                        i + 1,
+                        1,
+                        m.seq,
+                        6 if m.seq else 0,
+                        M.MAV_CMD_NAV_WAYPOINT,
+                        0,
+                        1,
+                        0,
+                        0,
+                        0,
+                        0,
+                        int(round(lat * 1e7)),
+                        int(round(lon * 1e7)),
+                        0.0,
+                        0,
+                    )
+                )
             elif typ == "MISSION_ACK":
                 acks[i] = m
 
@@ -394,9 +418,24 @@ def test_cli_boats_listen_like_sitl_instances_with_their_own_system_ids():
     n = 3
     for _attempt in range(3):  # another process may take a port between the check and the bind
         base = _free_base_port(n)
-        proc = subprocess.Popen([sys.executable, "-m", "vehicle_sim.cli", "--boats", str(n), "--base-port", str(base),
-                                 "--home", "40,-63", "--lockstep", "--fast-boot"],
-                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        proc = subprocess.Popen(
+            [
+                sys.executable,
+                "-m",
+                "vehicle_sim.cli",
+                "--boats",
+                str(n),
+                "--base-port",
+                str(base),
+                "--home",
+                "40,-63",
+                "--lockstep",
+                "--fast-boot",
+            ],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
         lines = [proc.stderr.readline() for _ in range(n)]
         if proc.poll() is None or all("listening" in ln for ln in lines):
             break
@@ -404,10 +443,14 @@ def test_cli_boats_listen_like_sitl_instances_with_their_own_system_ids():
     try:
         # one status line per boat, naming its system id, start and port
         for i, ln in enumerate(lines):
-            m = re.match(rf"vehicle-sim: boat {i} \(sysid {i + 1}\) at ([-\d.]+),([-\d.]+); listening on tcp:127.0.0.1:(\d+)", ln)
+            m = re.match(
+                rf"vehicle-sim: boat {i} \(sysid {i + 1}\) at ([-\d.]+),([-\d.]+); listening on tcp:127.0.0.1:(\d+)", ln
+            )
             assert m, ln
             assert int(m.group(3)) == base + 10 * i
-            assert _dist_m((40.0, -63.0), (float(m.group(1)), float(m.group(2)))) == pytest.approx(20.0 * i, abs=0.2)  # 6 printed decimals
+            assert _dist_m((40.0, -63.0), (float(m.group(1)), float(m.group(2)))) == pytest.approx(
+                20.0 * i, abs=0.2
+            )  # 6 printed decimals
         gcs = FleetGCS([base + 10 * i for i in range(n)])
         try:
             for i in range(n):
@@ -434,7 +477,7 @@ def test_cli_boats_help_and_bad_input(capsys):
     assert "--boats" in capsys.readouterr().out
     bad = [
         ["--boats", "0", "--home", "40,-63"],
-        ["--boats", "2", "--start", "40,-63"],                       # one --start for two boats
+        ["--boats", "2", "--start", "40,-63"],  # one --start for two boats
         ["--boats", "2", "--start", "40,-63", "--start-cell", "1,1"],
         ["--boats", "2", "--home", "40,-63", "--boat-param", "2:WP_SPEED=3"],  # boats are 0 and 1
         ["--boats", "2", "--home", "40,-63", "--boat-param", "WP_SPEED=3"],

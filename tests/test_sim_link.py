@@ -77,23 +77,62 @@ def _frames(rng: random.Random, n: int) -> list[bytes]:
     mav = M.MAVLink(None, srcSystem=255, srcComponent=190)
     mk = [
         lambda: M.MAVLink_mission_count_message(1, 1, rng.randint(0, 2000), rng.choice([0, 1, 2, 7, 255])),
-        lambda: M.MAVLink_mission_item_int_message(1, 1, rng.randint(0, 50), rng.randint(0, 12), rng.randint(0, 6000), rng.randint(0, 3), 1,
-                                                   rng.uniform(-1e9, 1e9), 0, 0, float("nan"), rng.randint(-2**31, 2**31 - 1), rng.randint(-2**31, 2**31 - 1), 0, rng.choice([0, 1, 2, 9])),
+        lambda: M.MAVLink_mission_item_int_message(
+            1,
+            1,
+            rng.randint(0, 50),
+            rng.randint(0, 12),
+            rng.randint(0, 6000),
+            rng.randint(0, 3),
+            1,
+            rng.uniform(-1e9, 1e9),
+            0,
+            0,
+            float("nan"),
+            rng.randint(-(2**31), 2**31 - 1),
+            rng.randint(-(2**31), 2**31 - 1),
+            0,
+            rng.choice([0, 1, 2, 9]),
+        ),
         lambda: M.MAVLink_mission_request_int_message(1, 1, rng.randint(0, 65535), rng.randint(0, 3)),
         lambda: M.MAVLink_mission_request_list_message(1, 1, rng.randint(0, 3)),
-        lambda: M.MAVLink_command_long_message(rng.choice([0, 1]), rng.choice([0, 1]), rng.randint(0, 65535), 0,
-                                               *(rng.choice([0.0, 1.0, -1.0, 1e38, float("nan"), float("inf"), rng.uniform(-1e6, 1e6)]) for _ in range(7))),
-        lambda: M.MAVLink_command_int_message(1, 1, rng.randint(0, 20), rng.randint(0, 65535), 0, 0, *(rng.uniform(-1e9, 1e9) for _ in range(4)),
-                                              rng.randint(-2**31, 2**31 - 1), rng.randint(-2**31, 2**31 - 1), 0.0),
-        lambda: M.MAVLink_param_set_message(1, 1, rng.choice([b"WP_SPEED", b"FS_GCS_ENABLE", b"MAV1_POSITION", b"\xff\xfe", b"X" * 16]),
-                                            rng.choice([float("nan"), 1e30, -5.0, 0.5]), 9),
+        lambda: M.MAVLink_command_long_message(
+            rng.choice([0, 1]),
+            rng.choice([0, 1]),
+            rng.randint(0, 65535),
+            0,
+            *(rng.choice([0.0, 1.0, -1.0, 1e38, float("nan"), float("inf"), rng.uniform(-1e6, 1e6)]) for _ in range(7)),
+        ),
+        lambda: M.MAVLink_command_int_message(
+            1,
+            1,
+            rng.randint(0, 20),
+            rng.randint(0, 65535),
+            0,
+            0,
+            *(rng.uniform(-1e9, 1e9) for _ in range(4)),
+            rng.randint(-(2**31), 2**31 - 1),
+            rng.randint(-(2**31), 2**31 - 1),
+            0.0,
+        ),
+        lambda: M.MAVLink_param_set_message(
+            1,
+            1,
+            rng.choice([b"WP_SPEED", b"FS_GCS_ENABLE", b"MAV1_POSITION", b"\xff\xfe", b"X" * 16]),
+            rng.choice([float("nan"), 1e30, -5.0, 0.5]),
+            9,
+        ),
         lambda: M.MAVLink_param_request_read_message(1, 1, b"WP_RADIUS", rng.randint(-1, 400)),
         lambda: M.MAVLink_set_mode_message(1, rng.randint(0, 255), rng.randint(0, 2**32 - 1)),
         lambda: M.MAVLink_mission_set_current_message(1, 1, rng.randint(0, 65535)),
         lambda: M.MAVLink_mission_clear_all_message(1, 1, rng.choice([0, 1, 2, 255, 9])),
-        lambda: M.MAVLink_request_data_stream_message(1, 1, rng.randint(0, 255), rng.randint(0, 65535), rng.randint(0, 1)),
-        lambda: M.MAVLink_timesync_message(0, rng.randint(-2**63, 2**63 - 1)),
-        lambda: M.MAVLink_set_position_target_global_int_message(0, 1, 1, 6, 0, rng.randint(-2**31, 2**31 - 1), rng.randint(-2**31, 2**31 - 1), 0, 0, 0, 0, 0, 0, 0, 0, 0),
+        lambda: M.MAVLink_request_data_stream_message(
+            1, 1, rng.randint(0, 255), rng.randint(0, 65535), rng.randint(0, 1)
+        ),
+        lambda: M.MAVLink_timesync_message(0, rng.randint(-(2**63), 2**63 - 1)),
+        lambda: M.MAVLink_set_position_target_global_int_message(
+            0, 1, 1, 6, 0, rng.randint(-(2**31), 2**31 - 1), rng.randint(-(2**31), 2**31 - 1), 0, 0, 0, 0, 0, 0, 0, 0, 0
+        ),
         lambda: M.MAVLink_heartbeat_message(6, 8, 0, 0, 0, 3),
     ]
     out = []
@@ -226,9 +265,25 @@ def test_cli_help_and_bad_input(capsys):
 def test_cli_serves_and_stops(tmp_path):
     port = free_port()
     tlog = tmp_path / "cli.tlog"
-    proc = subprocess.Popen([sys.executable, "-m", "vehicle_sim.cli", "--home", "40,-63", "--listen", f"tcp:127.0.0.1:{port}",
-                             "--speedup", "10", "--fast-boot", "--tlog", str(tlog), "--quiet"],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    proc = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "vehicle_sim.cli",
+            "--home",
+            "40,-63",
+            "--listen",
+            f"tcp:127.0.0.1:{port}",
+            "--speedup",
+            "10",
+            "--fast-boot",
+            "--tlog",
+            str(tlog),
+            "--quiet",
+        ],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+    )
     try:
         conn = None
         for _ in range(100):
@@ -258,13 +313,17 @@ def test_cli_field_options_metric_anchor_region_and_start_time(tmp_path):
     g = geo.MetricRegionGrid(0.0, 9.0, 0.0, 9.0, 10, 10, anchor_lat=10.0, anchor_lon=10.0)
     data = np.ones((2, 2, 10, 10), np.float32)
     FlowField(data, g, np.array([0.0, 1.0]), None, "1").to_netcdf(tmp_path / "m.nc")
-    args = build_parser().parse_args(["--field", str(tmp_path / "m.nc"), "--anchor", "40,-63", "--scale", "100", "--rotation", "30"])
+    args = build_parser().parse_args(
+        ["--field", str(tmp_path / "m.nc"), "--anchor", "40,-63", "--scale", "100", "--rotation", "30"]
+    )
     f = _load_field(args)
     assert (f.grid.anchor_lat, f.grid.anchor_lon, f.grid.scale, f.grid.rotation_deg) == (40.0, -63.0, 100.0, 30.0)
     lat, lon = f.grid.fcell_to_latlon(4.5, 4.5)
     assert (float(lat), float(lon)) == pytest.approx((40.0, -63.0), abs=1e-9)
     geo_grid = geo.RegionGrid(39.0, -64.0, 40.0, -63.0, 11, 11)
-    FlowField(np.zeros((3, 2, 11, 11), np.float32), geo_grid, np.array([0.0, 3600.0, 7200.0]), "2020-01-01T00:00:00Z").to_netcdf(tmp_path / "g.nc")
+    FlowField(
+        np.zeros((3, 2, 11, 11), np.float32), geo_grid, np.array([0.0, 3600.0, 7200.0]), "2020-01-01T00:00:00Z"
+    ).to_netcdf(tmp_path / "g.nc")
     args = build_parser().parse_args(["--field", str(tmp_path / "g.nc"), "--region", "39.2,-63.8,39.5,-63.5"])
     f = _load_field(args)
     assert f.grid.shape == (4, 4) and f.grid.south == pytest.approx(39.2)
@@ -284,7 +343,9 @@ def test_lockstep_over_tcp_advances_only_when_asked():
         time.sleep(0.3)
         assert sim.t == 0.0
         conn.mav.command_long_send(1, 1, STEP_COMMAND, 0, 5.0, 0, 0, 0, 0, 0, 0)
-        ack = conn.recv_match(type="COMMAND_ACK", condition=f"COMMAND_ACK.command=={STEP_COMMAND}", blocking=True, timeout=10)
+        ack = conn.recv_match(
+            type="COMMAND_ACK", condition=f"COMMAND_ACK.command=={STEP_COMMAND}", blocking=True, timeout=10
+        )
         assert ack is not None and ack.result == 0
         assert sim.t == pytest.approx(5.0, abs=1e-6)
         time.sleep(0.2)

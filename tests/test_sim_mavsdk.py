@@ -38,8 +38,24 @@ def test_mavsdk_mission_raw_upload_download_arm_start_and_progress():
         assert system is not None
         mr, act, tel = MissionRaw(system), Action(system), Telemetry(system)
         dlat = 20.0 / 111_035.0  # 20 m legs north
-        items = [MissionItem(i, 0 if i == 0 else 6, 16, 1 if i == 0 else 0, 1, 0, 0, 0, 0,
-                             int(round((HOME[0] + dlat * i) * 1e7)), int(round(HOME[1] * 1e7)), 0.0, 0) for i in range(4)]
+        items = [
+            MissionItem(
+                i,
+                0 if i == 0 else 6,
+                16,
+                1 if i == 0 else 0,
+                1,
+                0,
+                0,
+                0,
+                0,
+                int(round((HOME[0] + dlat * i) * 1e7)),
+                int(round(HOME[1] * 1e7)),
+                0.0,
+                0,
+            )
+            for i in range(4)
+        ]
         results = []
         t_first = sim.t
         for _ in range(60):

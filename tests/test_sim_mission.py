@@ -174,7 +174,10 @@ def test_legacy_mission_request_download_gets_float_items():
 def test_fence_and_rally_separate_and_clear_all_per_type():
     _sim, c = make()
     assert c.upload(wps(4)).type == M.MAV_MISSION_ACCEPTED
-    fence = [SimClient.waypoint(i, HOME[0] + 0.01 * (i % 2), HOME[1] + 0.01 * (i // 2), 1, command=5001, frame=5) for i in range(4)]
+    fence = [
+        SimClient.waypoint(i, HOME[0] + 0.01 * (i % 2), HOME[1] + 0.01 * (i // 2), 1, command=5001, frame=5)
+        for i in range(4)
+    ]
     rally = [SimClient.waypoint(0, HOME[0] + 0.001, HOME[1], 2, command=5100, frame=6)]
     assert c.upload(fence, mission_type=1).mission_type == 1
     assert c.upload(rally, mission_type=2).mission_type == 2
@@ -342,17 +345,20 @@ def test_verbatim_storage_when_normalisation_is_off():
     assert (got[1].frame, got[1].param4) == (2, 9.0) and (got[2].param2, got[2].param1) == (25.0, pytest.approx(5.7))
 
 
-@pytest.mark.parametrize("bad, result", [
-    ((0, 31999, 1, 0, 0, 0, 0, 0, 0, 0), M.MAV_MISSION_UNSUPPORTED),
-    ((1, 16, 1, 0, 0, 0, 0, _LAT, _LON, 0), M.MAV_MISSION_UNSUPPORTED_FRAME),
-    ((0, 16, 1, 0, 0, 0, 0, 910000000, _LON, 0), M.MAV_MISSION_INVALID_PARAM5_X),
-    ((0, 16, 1, 0, 0, 0, 0, _LAT, 1810000000, 0), M.MAV_MISSION_INVALID_PARAM6_Y),
-    ((0, 16, 1, 0, 0, 0, 0, _LAT, _LON, float("nan")), M.MAV_MISSION_INVALID_PARAM7),
-    ((0, 178, 1, 1, float("nan"), 0, 0, 0, 0, 0), M.MAV_MISSION_INVALID_PARAM2),
-    ((0, 183, 1, 1, 2, 3, float("nan"), 0, 0, 0), M.MAV_MISSION_INVALID_PARAM4),
-    ((0, 177, 1, 0, 1, 0, 0, 0, 0, 0), M.MAV_MISSION_ERROR),   # jump to home
-    ((0, 177, 1, 3, 1, 0, 0, 0, 0, 0), M.MAV_MISSION_ERROR),   # jump past the 3-item list
-])
+@pytest.mark.parametrize(
+    "bad, result",
+    [
+        ((0, 31999, 1, 0, 0, 0, 0, 0, 0, 0), M.MAV_MISSION_UNSUPPORTED),
+        ((1, 16, 1, 0, 0, 0, 0, _LAT, _LON, 0), M.MAV_MISSION_UNSUPPORTED_FRAME),
+        ((0, 16, 1, 0, 0, 0, 0, 910000000, _LON, 0), M.MAV_MISSION_INVALID_PARAM5_X),
+        ((0, 16, 1, 0, 0, 0, 0, _LAT, 1810000000, 0), M.MAV_MISSION_INVALID_PARAM6_Y),
+        ((0, 16, 1, 0, 0, 0, 0, _LAT, _LON, float("nan")), M.MAV_MISSION_INVALID_PARAM7),
+        ((0, 178, 1, 1, float("nan"), 0, 0, 0, 0, 0), M.MAV_MISSION_INVALID_PARAM2),
+        ((0, 183, 1, 1, 2, 3, float("nan"), 0, 0, 0), M.MAV_MISSION_INVALID_PARAM4),
+        ((0, 177, 1, 0, 1, 0, 0, 0, 0, 0), M.MAV_MISSION_ERROR),  # jump to home
+        ((0, 177, 1, 3, 1, 0, 0, 0, 0, 0), M.MAV_MISSION_ERROR),  # jump past the 3-item list
+    ],
+)
 def test_items_the_firmware_refuses_end_the_transfer_with_its_result(bad, result):
     """Results as Rover 4.7 SITL answered (no STATUSTEXT); the transfer is over: a next item gets ERROR."""
     _sim, c = make()

@@ -60,8 +60,10 @@ def _waypoints(n: int):
     """n NAV_WAYPOINTs on a 10 x k lattice ~11 m apart around HOME, with a radius in param2."""
     from passt_mav.mission.items import MissionItem
 
-    return [MissionItem(0, lat=HOME[0] + 1e-4 * (i % 10), lon=HOME[1] + 1e-4 * (i // 10) + 3e-7, param2=5.0,
-                        alt=1.25) for i in range(n)]
+    return [
+        MissionItem(0, lat=HOME[0] + 1e-4 * (i % 10), lon=HOME[1] + 1e-4 * (i // 10) + 3e-7, param2=5.0, alt=1.25)
+        for i in range(n)
+    ]
 
 
 def test_no_space_at_boot_is_retried(sitl_factory):
@@ -134,19 +136,38 @@ def test_one_leg_on_ardurover_sitl(tmp_path, sitl):
 
     n, d = 6, 0.0004  # ~40 m cells
     grid = geo.RegionGrid(HOME[0] - d * 2.5, HOME[1] - d * 2.5, HOME[0] + d * 2.5, HOME[1] + d * 2.5, n, n)
-    field = FlowField(np.zeros((3, 2, n, n), np.float32) + 0.1, grid, np.array([0.0, 60.0, 120.0]),
-                      time_origin="2020-01-01T00:00:00Z")
+    field = FlowField(
+        np.zeros((3, 2, n, n), np.float32) + 0.1, grid, np.array([0.0, 60.0, 120.0]), time_origin="2020-01-01T00:00:00Z"
+    )
     fpath = tmp_path / "still.nc"
     field.to_netcdf(fpath)
-    cfg = validate_mission({"name": "sitl", "region": grid.describe(), "field": {"source": str(fpath)},
-                            "model": "persistence", "planner": {"name": "greedy", "path_length": 2}, "legs": 1,
-                            "vehicle": {"speed_mps": 2.0, "wp_radius_m": 3.0}, "geofence_margin_m": 20.0},
-                           source="sitl test")
+    cfg = validate_mission(
+        {
+            "name": "sitl",
+            "region": grid.describe(),
+            "field": {"source": str(fpath)},
+            "model": "persistence",
+            "planner": {"name": "greedy", "path_length": 2},
+            "legs": 1,
+            "vehicle": {"speed_mps": 2.0, "wp_radius_m": 3.0},
+            "geofence_margin_m": 20.0,
+        },
+        source="sitl test",
+    )
     link = Link(LinkConfig(sitl.connect, connect_timeout_s=60)).connect()
     try:
         rd = RunDir(tmp_path / "run").create()
-        ctl = MissionController(cfg, link, rd, field=field, predictor=None, vehicle=Vehicle(link),
-                                speedup_hint=sitl.speedup, ready_timeout_s=120.0, echo=print)
+        ctl = MissionController(
+            cfg,
+            link,
+            rd,
+            field=field,
+            predictor=None,
+            vehicle=Vehicle(link),
+            speedup_hint=sitl.speedup,
+            ready_timeout_s=120.0,
+            echo=print,
+        )
         with pytest.raises(MavlinkError, match="no current samples"):
             ctl.run()
         leg = rd.read_leg(0)

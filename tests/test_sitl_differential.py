@@ -34,13 +34,13 @@ SPEEDUP = 20
 
 # (frame, command, autocontinue, p1, p2, p3, p4, x degE7, y degE7, z m) for seq 1..; seq 0 is home
 MISSION = [
-    (2, 178, 1, 1, 3.0, -1, 0, 0, 0, 0),                                 # 1 DO_CHANGE_SPEED frame 2
-    (3, 16, 1, 2, 25, 3, 7, LAT0 + int(D * 1e7), LON0, 12.34),            # 2 NAV_WAYPOINT p1..p4 + alt
-    (6, 16, 1, 0, 25, 0, 0, LAT0 + int(2 * D * 1e7), LON0, 0),            # 3 NAV_WAYPOINT frame 6
+    (2, 178, 1, 1, 3.0, -1, 0, 0, 0, 0),  # 1 DO_CHANGE_SPEED frame 2
+    (3, 16, 1, 2, 25, 3, 7, LAT0 + int(D * 1e7), LON0, 12.34),  # 2 NAV_WAYPOINT p1..p4 + alt
+    (6, 16, 1, 0, 25, 0, 0, LAT0 + int(2 * D * 1e7), LON0, 0),  # 3 NAV_WAYPOINT frame 6
     (3, 19, 1, 2, 0, 10, 0, LAT0 + int(2 * D * 1e7), LON0 + int(1.3 * D * 1e7), 0),  # 4 LOITER_TIME 2 s, p3 10
-    (0, 183, 1, 5, 1500, 0, 0, 0, 0, 0),                                  # 5 DO_SET_SERVO
-    (0, 177, 1, 3, 1, 0, 0, 0, 0, 0),                                     # 6 DO_JUMP to 3, once
-    (3, 20, 1, 0, 0, 0, 0, 0, 0, 0),                                      # 7 RTL frame 3
+    (0, 183, 1, 5, 1500, 0, 0, 0, 0, 0),  # 5 DO_SET_SERVO
+    (0, 177, 1, 3, 1, 0, 0, 0, 0, 0),  # 6 DO_JUMP to 3, once
+    (3, 20, 1, 0, 0, 0, 0, 0, 0, 0),  # 7 RTL frame 3
 ]
 
 #: what Rover 4.7 SITL answered to the conversation (see module docstring)
@@ -60,9 +60,13 @@ FIRMWARE_ANSWERS = {
     "modes": [(0, False), (0, True), (10, True), (4, True)],  # (custom_mode, armed) as the HEARTBEAT went
     "mission_current_end": (7, 5),  # MISSION_CURRENT (total, mission_state) after "Mission Complete"
     # STATUSTEXT "Reached waypoint ..." in order: the DO_JUMP loop flies 3 and 4 twice; RTL (7) has no text
-    "reached_texts": ["Reached waypoint #2. Loiter for 2 seconds", "Reached waypoint #3",
-                      "Reached waypoint #4. Loiter for 2 seconds", "Reached waypoint #3",
-                      "Reached waypoint #4. Loiter for 2 seconds"],
+    "reached_texts": [
+        "Reached waypoint #2. Loiter for 2 seconds",
+        "Reached waypoint #3",
+        "Reached waypoint #4. Loiter for 2 seconds",
+        "Reached waypoint #3",
+        "Reached waypoint #4. Loiter for 2 seconds",
+    ],
     # MISSION_ITEM_REACHED seqs: DO_CHANGE_SPEED (1) counts (Rover verifies it), DO_SET_SERVO (5) does not
     "items_reached": [1, 2, 3, 4, 3, 4, 7],
     "mission_complete_texts": 1,
@@ -156,12 +160,16 @@ def conversation(p: Peer) -> dict:
         p.wait(("EKF_STATUS_REPORT", "GLOBAL_POSITION_INT"), timeout=max(ready_by - p.t, 0.1), what="readiness")
     hb0 = len(p.log)
     items = [M.MAVLink_mission_item_int_message(1, 1, 0, 0, 16, 0, 1, 0, 0, 0, 0, LAT0, LON0, 0, 0)]
-    items += [M.MAVLink_mission_item_int_message(1, 1, i + 1, f, c, 0, a, p1, p2, p3, p4, x, y, z, 0)
-              for i, (f, c, a, p1, p2, p3, p4, x, y, z) in enumerate(MISSION)]
+    items += [
+        M.MAVLink_mission_item_int_message(1, 1, i + 1, f, c, 0, a, p1, p2, p3, p4, x, y, z, 0)
+        for i, (f, c, a, p1, p2, p3, p4, x, y, z) in enumerate(MISSION)
+    ]
     out: dict = {"mission_ack": [_upload(p, items)]}
     got = _download(p)
-    out["readback"] = [(g.frame, g.command, g.autocontinue, g.param1, g.param2, g.param3, g.param4, g.x, g.y,
-                        round(g.z, 4)) for g in got[1:]]
+    out["readback"] = [
+        (g.frame, g.command, g.autocontinue, g.param1, g.param2, g.param3, g.param4, g.x, g.y, round(g.z, 4))
+        for g in got[1:]
+    ]
     out["home_readback"] = (got[0].frame, got[0].command)
     out["home_latlon"] = (got[0].x / 1e7, got[0].y / 1e7)
     acks = [_command(p, M.MAV_CMD_COMPONENT_ARM_DISARM, 1)]

@@ -56,10 +56,17 @@ def _field(tmp_path, n_times: int = 4):
 def _mission(field, path, **over):
     from passt_mav.mission.config import validate_mission
 
-    data = {"name": "sitl_faults", "region": field.grid.describe(), "field": {"source": str(path)},
-            "model": "persistence", "planner": {"name": "greedy", "path_length": 2}, "legs": 2,
-            "vehicle": {"speed_mps": 4.0, "wp_radius_m": 3.0}, "geofence_margin_m": 30.0,
-            "gp": {"hyper": "first_leg"}}
+    data = {
+        "name": "sitl_faults",
+        "region": field.grid.describe(),
+        "field": {"source": str(path)},
+        "model": "persistence",
+        "planner": {"name": "greedy", "path_length": 2},
+        "legs": 2,
+        "vehicle": {"speed_mps": 4.0, "wp_radius_m": 3.0},
+        "geofence_margin_m": 30.0,
+        "gp": {"hyper": "first_leg"},
+    }
     data.update(over)
     return validate_mission(data, source="sitl faults test")
 
@@ -93,14 +100,28 @@ def _controller(cfg, field, link, rd, lines, **kw):
     pred, info = build_predictor(cfg.model, field, echo=lambda s: None)
     veh = Vehicle(link, MissionClient(link, no_space_delay_s=0.2), retry_delay_s=0.1)
     kw.setdefault("pause_timeout_s", 30.0)
-    return MissionController(cfg, link, rd, field=field, predictor=pred, predictor_info=info, vehicle=veh,
-                             speedup_hint=SPEEDUP, ready_timeout_s=120.0, echo=lambda s: lines.append(s) or print(s),
-                             **kw)
+    return MissionController(
+        cfg,
+        link,
+        rd,
+        field=field,
+        predictor=pred,
+        predictor_info=info,
+        vehicle=veh,
+        speedup_hint=SPEEDUP,
+        ready_timeout_s=120.0,
+        echo=lambda s: lines.append(s) or print(s),
+        **kw,
+    )
 
 
 def _in_leg(ctl, leg: int, reached: int = 1):
-    return (ctl.collector is not None and ctl.collector.leg == leg and ctl.vehicle.mode == AUTO
-            and len(ctl.vehicle.progress.reached) >= reached)
+    return (
+        ctl.collector is not None
+        and ctl.collector.leg == leg
+        and ctl.vehicle.mode == AUTO
+        and len(ctl.vehicle.progress.reached) >= reached
+    )
 
 
 def _wait(cond, timeout: float) -> bool:
@@ -169,8 +190,10 @@ def test_autopilot_killed_and_restarted_mid_leg_resumes_and_completes_without_a_
     with SampleStore(rd.samples_db, readonly=True) as st:
         boots = {s.boot for s in st.for_leg(0)}
     assert boots == {0, 1}  # leg 0 has samples from before and after the crash
-    print(f"crashed at item {crash['item']}; console {len(console.splitlines())} lines, the most repeated "
-          f"{_max_repeats(console)}x; events: {ev}")
+    print(
+        f"crashed at item {crash['item']}; console {len(console.splitlines())} lines, the most repeated "
+        f"{_max_repeats(console)}x; events: {ev}"
+    )
 
 
 # -- a pilot takes AUTO away from a second GCS link -------------------------------------------------------
@@ -193,8 +216,13 @@ def test_pilot_takeover_from_a_second_link_pauses_then_continues(tmp_path, sitl_
         def pilot():  # the pilot's GCS on SERIAL1 (port + 2), its own system id
             if not _wait(lambda: _in_leg(ctl, 0), 60):
                 return
-            m = mavutil.mavlink_connection(f"tcp:127.0.0.1:{sitl.port + 2}", source_system=254, source_component=190,
-                                           autoreconnect=False, retries=1)
+            m = mavutil.mavlink_connection(
+                f"tcp:127.0.0.1:{sitl.port + 2}",
+                source_system=254,
+                source_component=190,
+                autoreconnect=False,
+                retries=1,
+            )
             try:
                 m.mav.command_long_send(1, 1, M.MAV_CMD_DO_SET_MODE, 0, 1, MANUAL, 0, 0, 0, 0, 0)
                 got["manual"] = m.recv_match(type="COMMAND_ACK", blocking=True, timeout=5)
@@ -312,8 +340,20 @@ def test_controller_killed_mid_leg_then_resume_completes(tmp_path, sitl_factory)
     sitl = _boot(tmp_path, sitl_factory, path)
     run_dir = tmp_path / "run"
     env = dict(os.environ, OMP_NUM_THREADS="1", PYTHONUNBUFFERED="1")
-    cmd = [str(Path(sys.executable).parent / "passt-mav"), "run", str(mfile), "--connect", sitl.connect,
-           "--out", str(run_dir), "--speedup-hint", f"{SPEEDUP:g}", "--ready-timeout", "120", "--no-report"]
+    cmd = [
+        str(Path(sys.executable).parent / "passt-mav"),
+        "run",
+        str(mfile),
+        "--connect",
+        sitl.connect,
+        "--out",
+        str(run_dir),
+        "--speedup-hint",
+        f"{SPEEDUP:g}",
+        "--ready-timeout",
+        "120",
+        "--no-report",
+    ]
     ctl = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, env=env, text=True)
     rd = RunDir(run_dir)
 

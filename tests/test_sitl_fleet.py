@@ -44,15 +44,32 @@ def test_three_sitl_boats_complete_a_fleet_mission(tmp_path, sitl_factory):
     # 12 snapshots keep the truth defined for all of them
     field, path = _field(tmp_path, n_times=12)
     sitls = [_boot_at(tmp_path, sitl_factory, field, path, k, c) for k, c in enumerate(CELLS)]
-    cfg = validate_mission({
-        "name": "sitl_fleet", "region": field.grid.describe(), "field": {"source": str(path)},
-        "model": "persistence", "planner": {"name": "greedy", "path_length": 2}, "legs": 2,
-        "vehicles": [{"connect": s.connect, "speed_mps": 4.0, "wp_radius_m": 3.0} for s in sitls],
-        "geofence_margin_m": 30.0, "gp": {"hyper": "first_leg"}}, source="sitl fleet test")
+    cfg = validate_mission(
+        {
+            "name": "sitl_fleet",
+            "region": field.grid.describe(),
+            "field": {"source": str(path)},
+            "model": "persistence",
+            "planner": {"name": "greedy", "path_length": 2},
+            "legs": 2,
+            "vehicles": [{"connect": s.connect, "speed_mps": 4.0, "wp_radius_m": 3.0} for s in sitls],
+            "geofence_margin_m": 30.0,
+            "gp": {"hyper": "first_leg"},
+        },
+        source="sitl fleet test",
+    )
     rd = RunDir(tmp_path / "run").create()
     lines: list[str] = []
-    summary = execute(cfg, connect=cfg.vehicle.connect, run_dir=rd, mission_text=None, speedup=SPEEDUP,
-                      ready_timeout=120.0, echo=lambda s: lines.append(s) or print(s), report=False)
+    summary = execute(
+        cfg,
+        connect=cfg.vehicle.connect,
+        run_dir=rd,
+        mission_text=None,
+        speedup=SPEEDUP,
+        ready_timeout=120.0,
+        echo=lambda s: lines.append(s) or print(s),
+        report=False,
+    )
     assert summary["status"] == "complete", summary["events"]
     assert sorted(b["sysid"] for b in summary["boats"]) == [1, 2, 3]
     assert [b["status"] for b in summary["boats"]] == ["complete"] * 3

@@ -36,11 +36,13 @@ def test_qgc_going_silent_trips_the_gcs_failsafe_unless_we_speak_as_its_id(sitl_
     from passt_mav.mavlink import Link, LinkConfig, Vehicle
 
     s = sitl_factory(speedup=10, home=HOME)
-    link = Link(LinkConfig(s.connect, connect_timeout_s=60, source_system=our_system,
-                           heartbeat_period_s=0.05)).connect()
+    link = Link(
+        LinkConfig(s.connect, connect_timeout_s=60, source_system=our_system, heartbeat_period_s=0.05)
+    ).connect()
     os.environ.setdefault("MAVLINK20", "1")
-    qgc = mavutil.mavlink_connection(f"tcp:127.0.0.1:{s.port + 2}", source_system=255, source_component=190,
-                                     autoreconnect=False)
+    qgc = mavutil.mavlink_connection(
+        f"tcp:127.0.0.1:{s.port + 2}", source_system=255, source_component=190, autoreconnect=False
+    )
     assert qgc.wait_heartbeat(timeout=30) is not None
     beating, stop = threading.Event(), threading.Event()
     beating.set()

@@ -63,23 +63,43 @@ def test_two_legs_through_radio_and_mavproxy_beside_a_qgc_like_client(tmp_path, 
     cfg = _mission(field, fpath, planner={"name": "greedy", "path_length": 3})
     sitl = _boot(tmp_path, sitl_factory, fpath)
     ctl_port, qgc_port = _free_udp_port(), _free_udp_port()
-    radio = RadioProxy(("127.0.0.1", sitl.port), RadioConfig(baud=57600, latency_s=0.1, loss=0.03,
-                                                            buffer_bytes=2048, seed=28)).start()
+    radio = RadioProxy(
+        ("127.0.0.1", sitl.port), RadioConfig(baud=57600, latency_s=0.1, loss=0.03, buffer_bytes=2048, seed=28)
+    ).start()
     state = tmp_path / "mavproxy"
     state.mkdir()
     # --streamrate=-1: MAVProxy leaves the vehicle's stream rates alone (its default asks every stream
     # at 4 Hz, which fills a 57600 radio); the controller asks for what it needs
-    mp = subprocess.Popen(_mavproxy() + [f"--master=tcp:127.0.0.1:{radio.port}", f"--out=udp:127.0.0.1:{ctl_port}",
-                                         f"--out=udp:127.0.0.1:{qgc_port}", "--daemon", "--non-interactive",
-                                         "--streamrate=-1", f"--state-basedir={state}"],
-                          stdin=subprocess.DEVNULL, stdout=open(state / "out.txt", "w"), stderr=subprocess.STDOUT,  # noqa: SIM115 - MAVProxy writes it
-                          cwd=state)
+    mp = subprocess.Popen(
+        _mavproxy()
+        + [
+            f"--master=tcp:127.0.0.1:{radio.port}",
+            f"--out=udp:127.0.0.1:{ctl_port}",
+            f"--out=udp:127.0.0.1:{qgc_port}",
+            "--daemon",
+            "--non-interactive",
+            "--streamrate=-1",
+            f"--state-basedir={state}",
+        ],
+        stdin=subprocess.DEVNULL,
+        stdout=open(state / "out.txt", "w"),  # noqa: SIM115 - MAVProxy writes it
+        stderr=subprocess.STDOUT,
+        cwd=state,
+    )
     qgc = None
     link = None
     try:
-        link = Link(LinkConfig(f"udpin:127.0.0.1:{ctl_port}", source_system=CONTROLLER_IDS[0],
-                               source_component=CONTROLLER_IDS[1], connect_timeout_s=120.0, timeout_s=1.5,
-                               retries=8, link_lost_s=10.0)).connect(timeout=120.0)
+        link = Link(
+            LinkConfig(
+                f"udpin:127.0.0.1:{ctl_port}",
+                source_system=CONTROLLER_IDS[0],
+                source_component=CONTROLLER_IDS[1],
+                connect_timeout_s=120.0,
+                timeout_s=1.5,
+                retries=8,
+                link_lost_s=10.0,
+            )
+        ).connect(timeout=120.0)
         qgc = QgcLike(f"udpin:127.0.0.1:{qgc_port}", period_s=40.0 / SPEEDUP).start()
         lines: list[str] = []
         rd = RunDir(tmp_path / "run").create()
@@ -107,8 +127,10 @@ def test_two_legs_through_radio_and_mavproxy_beside_a_qgc_like_client(tmp_path, 
         radio.stop()
     rstats = radio.stats()
     print(f"radio down {dict(rstats['down'])}; up {dict(rstats['up'])}")
-    print(f"controller: vehicle sends {summary['link_vehicle_bytes_per_s']} B/s of vehicle time; readings used "
-          f"{summary['readings_used']}")
+    print(
+        f"controller: vehicle sends {summary['link_vehicle_bytes_per_s']} B/s of vehicle time; readings used "
+        f"{summary['readings_used']}"
+    )
     print("QGC-like downloads:", [(d.ok, len(d.items), round(d.seconds, 2), d.error) for d in qgc.downloads])
     assert summary["status"] == "complete", summary["events"]
     assert [x["index"] for x in summary["legs"]] == [0, 1]

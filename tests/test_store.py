@@ -22,8 +22,17 @@ REPO = Path(__file__).resolve().parent.parent
 
 
 def _s(tb: int, leg: int = 0, source: str = "mav:1/1", **kw) -> Sample:
-    return Sample(time_boot_ms=tb, utc=1.7e9 + tb / 1000, lat=40.0 + tb * 1e-7, lon=-63.0 - tb * 1e-7,
-                  u=0.001 * tb, v=-0.5, leg=leg, source=source, **kw)
+    return Sample(
+        time_boot_ms=tb,
+        utc=1.7e9 + tb / 1000,
+        lat=40.0 + tb * 1e-7,
+        lon=-63.0 - tb * 1e-7,
+        u=0.001 * tb,
+        v=-0.5,
+        leg=leg,
+        source=source,
+        **kw,
+    )
 
 
 def test_round_trip_exact(tmp_path):
@@ -185,8 +194,9 @@ def test_a_version_1_store_without_gap_ms_still_opens_and_gets_the_column(tmp_pa
         (old,) = ro.all()
         assert (old.time_boot_ms, old.u, old.row, old.gap_ms) == (1000, 0.5, 3, None)
     with SampleStore(path) as st:
-        assert st.append(time_boot_ms=1250, utc=1.7e9, lat=40.0, lon=-63.0, u=0.1, v=0.2, leg=0, source="mav:1/1",
-                         gap_ms=1000)
+        assert st.append(
+            time_boot_ms=1250, utc=1.7e9, lat=40.0, lon=-63.0, u=0.1, v=0.2, leg=0, source="mav:1/1", gap_ms=1000
+        )
         assert [s.gap_ms for s in st.all()] == [None, 1000]
     con = sqlite3.connect(path)
     assert con.execute("PRAGMA user_version").fetchone()[0] == 2

@@ -97,28 +97,30 @@ def _scenario():
     hb(10, True)
     V(veh.mission_current_encode(1, 3, 3))
     step(0)
-    step(0, v_offset=3)            # u and v 3 ms apart: still one sample
-    step(0, pos_offset=150)        # fixes at -1000 and +150 ms: interpolated, gap 1150 ms
-    step(0, pos_offset=450)        # fixes at -850 and +450 ms: interpolated, gap 1300 ms
-    step(0, with_v=False)          # u without v: dropped
+    step(0, v_offset=3)  # u and v 3 ms apart: still one sample
+    step(0, pos_offset=150)  # fixes at -1000 and +150 ms: interpolated, gap 1150 ms
+    step(0, pos_offset=450)  # fixes at -850 and +450 ms: interpolated, gap 1300 ms
+    step(0, with_v=False)  # u without v: dropped
     for s in (1, 2, 3):
         V(veh.mission_item_reached_encode(s))
     V(veh.statustext_encode(6, b"Reached waypoint #3"))
     V(veh.mission_current_encode(3, 3, 5))
     V(veh.statustext_encode(6, b"Mission Complete"))
-    step(-1)                       # between legs
+    step(-1)  # between legs
     upload([(LAT0 + 0.02, LON0)], result=4)  # NO_SPACE: no leg
     upload([(LAT0 + 0.02, LON0 + 0.02), (LAT0 + 0.03, LON0 + 0.02)], use_int=False)
-    V(veh.mission_current_encode(3, 3, 5))   # still reporting the old mission complete
+    V(veh.mission_current_encode(3, 3, 5))  # still reporting the old mission complete
     step(1)
     V(veh.mission_current_encode(1, 2, 3))
-    step(1, name_u=b"XX_U")        # other name: not a sample
+    step(1, name_u=b"XX_U")  # other name: not a sample
     step(1)
-    hb(4, True)                    # HOLD
+    hb(4, True)  # HOLD
     # every reading lies on the track: straight lines between the 1 Hz fixes (np.interp, not geo.track)
     tr = np.array(exp["track"])
-    exp["samples"] = [(tb, float(np.interp(tb, tr[:, 0], tr[:, 1])), float(np.interp(tb, tr[:, 0], tr[:, 2])), u, v, leg)
-                      for tb, _, _, u, v, leg in exp["samples"]]
+    exp["samples"] = [
+        (tb, float(np.interp(tb, tr[:, 0], tr[:, 1])), float(np.interp(tb, tr[:, 0], tr[:, 2])), u, v, leg)
+        for tb, _, _, u, v, leg in exp["samples"]
+    ]
     return frames, exp
 
 
@@ -308,7 +310,8 @@ def _write_bin(path, pos_rows, cur_rows, nvf_rows=()):
     def fmt_record(f):
         cols = ",".join(f.columns).encode()
         return struct.pack("<BBB", 0xA3, 0x95, 0x80) + struct.pack(
-            fmt_fmt.msg_struct, f.type, struct.calcsize(f.msg_struct) + 3, f.name.encode(), f.format.encode(), cols)
+            fmt_fmt.msg_struct, f.type, struct.calcsize(f.msg_struct) + 3, f.name.encode(), f.format.encode(), cols
+        )
 
     out += fmt_record(fmt_fmt)
     for f in fmts.values():
@@ -344,7 +347,9 @@ def test_read_dataflash(tmp_path):
 
     # named values (NVF) paired by time instead of a script message
     b2 = tmp_path / "nvf.bin"
-    nvf = [(1_000_000 * i, b"CUR_U", 0.1 * i) for i in range(1, 4)] + [(1_000_000 * i + 2000, b"CUR_V", 0.2) for i in range(1, 4)]
+    nvf = [(1_000_000 * i, b"CUR_U", 0.1 * i) for i in range(1, 4)] + [
+        (1_000_000 * i + 2000, b"CUR_V", 0.2) for i in range(1, 4)
+    ]
     _write_bin(b2, pos, [], nvf)
     c2 = read_dataflash(b2)
     assert [round(x.u, 5) for x in c2.samples] == [0.1, 0.2, 0.3]
@@ -366,12 +371,16 @@ def test_tlog_written_by_the_simulator(tmp_path):
     sim = Simulator(None, home=home, config=SimConfig.fast(tlog=str(tlog)), uniform_current=(0.2, -0.1))
     sim.run_until(2.0)
     c = SimClient(sim)
-    legs = [[(home[0] + 1e-4, home[1]), (home[0] + 2e-4, home[1])],
-            [(home[0] + 2e-4, home[1] + 1e-4), (home[0] + 2e-4, home[1] + 2e-4)]]
+    legs = [
+        [(home[0] + 1e-4, home[1]), (home[0] + 2e-4, home[1])],
+        [(home[0] + 2e-4, home[1] + 1e-4), (home[0] + 2e-4, home[1] + 2e-4)],
+    ]
     try:
         assert c.arm().result == 0
         for wps in legs:
-            items = [SimClient.waypoint(0, *home)] + [SimClient.waypoint(i, la, lo) for i, (la, lo) in enumerate(wps, 1)]
+            items = [SimClient.waypoint(0, *home)] + [
+                SimClient.waypoint(i, la, lo) for i, (la, lo) in enumerate(wps, 1)
+            ]
             assert c.upload(items).type == M.MAV_MISSION_ACCEPTED
             assert c.set_mode(MODES["AUTO"]).result == 0
             assert c.wait("STATUSTEXT", lambda m: m.text == "Mission Complete", timeout=120) is not None
@@ -439,13 +448,23 @@ def test_invalid_sequence_ack_mid_upload_does_not_end_it(tmp_path):
     gcs = ml.MAVLink(None, srcSystem=GCS, srcComponent=190)
     wps = [(LAT0 + 0.01, LON0), (LAT0 + 0.02, LON0 + 0.01)]
     items = [(LAT0, LON0)] + wps
-    frames = [bytes(veh.heartbeat_encode(11, 3, 1, 0, 4).pack(veh)),
-              bytes(gcs.mission_count_encode(VEH, 1, len(items)).pack(gcs))]
+    frames = [
+        bytes(veh.heartbeat_encode(11, 3, 1, 0, 4).pack(veh)),
+        bytes(gcs.mission_count_encode(VEH, 1, len(items)).pack(gcs)),
+    ]
     for seq, (la, lo) in enumerate(items):
         frames.append(bytes(veh.mission_request_encode(GCS, 190, seq).pack(veh)))
-        frames.append(bytes(gcs.mission_item_int_encode(VEH, 1, seq, 6, 16, 0, 1, 0, 2, 0, 0, _deg7(la), _deg7(lo), 0).pack(gcs)))
+        frames.append(
+            bytes(gcs.mission_item_int_encode(VEH, 1, seq, 6, 16, 0, 1, 0, 2, 0, 0, _deg7(la), _deg7(lo), 0).pack(gcs))
+        )
         if seq == 1:  # a late duplicate of item 0 is refused, the transfer goes on
-            frames.append(bytes(gcs.mission_item_int_encode(VEH, 1, 0, 6, 16, 0, 1, 0, 2, 0, 0, _deg7(LAT0), _deg7(LON0), 0).pack(gcs)))
+            frames.append(
+                bytes(
+                    gcs.mission_item_int_encode(VEH, 1, 0, 6, 16, 0, 1, 0, 2, 0, 0, _deg7(LAT0), _deg7(LON0), 0).pack(
+                        gcs
+                    )
+                )
+            )
             frames.append(bytes(veh.mission_ack_encode(GCS, 190, 13).pack(veh)))
     # and one after the last item, before the final ACK (seen in a demo run at 150x: the report then
     # counted the upload as rejected and drew the wrong leg's track)
@@ -454,4 +473,6 @@ def test_invalid_sequence_ack_mid_upload_does_not_end_it(tmp_path):
     c = read_tlog(_record_tlog(frames, tmp_path))
     assert len(c.missions) == 1 and c.missions[0].accepted
     assert len(c.legs) == 1
-    np.testing.assert_allclose(np.array(c.missions[0].waypoints), np.array([(_deg7(a) * 1e-7, _deg7(b) * 1e-7) for a, b in wps]), atol=1e-9)
+    np.testing.assert_allclose(
+        np.array(c.missions[0].waypoints), np.array([(_deg7(a) * 1e-7, _deg7(b) * 1e-7) for a, b in wps]), atol=1e-9
+    )

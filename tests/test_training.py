@@ -15,7 +15,17 @@ torch = pytest.importorskip("torch")
 
 from test_models import SMALL, _one_thread, wave_field  # noqa: F401 - _one_thread: the same autouse fixture here
 
-LOOP = dict(loss="rollout", horizon=4, curriculum=0.5, noise="gp", noise_samples=4, noise_path_length=20, val_frac=0.25, zero_init=True, train_batch=16)
+LOOP = dict(
+    loss="rollout",
+    horizon=4,
+    curriculum=0.5,
+    noise="gp",
+    noise_samples=4,
+    noise_path_length=20,
+    val_frac=0.25,
+    zero_init=True,
+    train_batch=16,
+)
 
 
 @pytest.fixture(scope="module")
@@ -83,7 +93,9 @@ def test_rollout_training_improves_validation_and_keeps_the_best_epoch(wave, tmp
     m.save(tmp_path / "k")
     meta = json.loads((tmp_path / "k.json").read_text())
     assert meta["params"]["loss"] == "rollout" and meta["best_epoch"] == m.best_epoch_ and len(meta["val_curve"]) == 31
-    np.testing.assert_array_equal(load_predictor(tmp_path / "k.pt").predict(wave.data[30], 2), m.predict(wave.data[30], 2))
+    np.testing.assert_array_equal(
+        load_predictor(tmp_path / "k.pt").predict(wave.data[30], 2), m.predict(wave.data[30], 2)
+    )
 
 
 def test_bad_training_options():
@@ -119,8 +131,27 @@ def test_train_cli_prints_skill_and_warns(tmp_path, capsys):
 
     nc = wave_field(T=40).to_netcdf(tmp_path / "w.nc")
     out = tmp_path / "k"
-    rc = main(["model", "train", "--data", str(nc), "--start", "0", "--stop", "40", "--epochs", "1", "--horizon", "3",
-               "--substeps", "1", "--out", str(out), "--no-progress"])
+    rc = main(
+        [
+            "model",
+            "train",
+            "--data",
+            str(nc),
+            "--start",
+            "0",
+            "--stop",
+            "40",
+            "--epochs",
+            "1",
+            "--horizon",
+            "3",
+            "--substeps",
+            "1",
+            "--out",
+            str(out),
+            "--no-progress",
+        ]
+    )
     assert rc == 0
     text = capsys.readouterr().out
     assert "skill on the held-out window 32:40" in text and "from GP reconstructions" in text
@@ -188,7 +219,9 @@ def test_fast_predict_equals_eager_and_follows_the_network(wave):
         with torch.profiler.profile() as prof:
             m.predict(x, 1)
         ops = {e.key for e in prof.key_averages()}
-        assert "mkldnn::_convolution_pointwise" in ops and "aten::convolution" not in ops, sorted(o for o in ops if "conv" in o)
+        assert "mkldnn::_convolution_pointwise" in ops and "aten::convolution" not in ops, sorted(
+            o for o in ops if "conv" in o
+        )
     w = cloudpickle.loads(cloudpickle.dumps(m))
     assert w.fast_predict and "_fast_step" not in vars(w)
     np.testing.assert_allclose(w.predict(x, 4), eager, rtol=1e-5, atol=1e-5)
@@ -211,16 +244,29 @@ def test_fine_tuning_starts_from_the_checkpoint_and_never_ends_worse(wave, tmp_p
     x = wave.data[33]
     # 0 epochs from the start model: the same predictions (weights AND scaler carried over), on a
     # different window, whose own scaler would differ
-    same = make_predictor("knode", epochs=0, substeps=2, seed=0, init=str(tmp_path / "base.pt"), **LOOP, **SMALL).fit(wave, start=4, stop=36)
+    same = make_predictor("knode", epochs=0, substeps=2, seed=0, init=str(tmp_path / "base.pt"), **LOOP, **SMALL).fit(
+        wave, start=4, stop=36
+    )
     np.testing.assert_allclose(same.predict(x, 3), base.predict(x, 3), atol=1e-6)
-    tuned = make_predictor("knode", epochs=6, lr=1e-3, substeps=2, seed=1, init=str(tmp_path / "base.pt"), **dict(LOOP, horizon=6, curriculum=0.0), **SMALL).fit(wave, start=0, stop=32)
+    tuned = make_predictor(
+        "knode",
+        epochs=6,
+        lr=1e-3,
+        substeps=2,
+        seed=1,
+        init=str(tmp_path / "base.pt"),
+        **dict(LOOP, horizon=6, curriculum=0.0),
+        **SMALL,
+    ).fit(wave, start=0, stop=32)
     assert tuned.val_curve_[tuned.best_epoch_] <= tuned.val_curve_[0]
     tuned.save(tmp_path / "tuned")
     assert json.loads((tmp_path / "tuned.json").read_text())["params"]["init"] == str(tmp_path / "base.pt")
     np.testing.assert_allclose(load_predictor(tmp_path / "tuned.pt").predict(x, 2), tuned.predict(x, 2), atol=1e-6)
     small = wave_field(T=40, R=12, C=12)
     with pytest.raises(ModelError, match="do not match"):
-        make_predictor("knode", epochs=1, substeps=2, init=str(tmp_path / "base.pt"), **LOOP, **SMALL).fit(small, start=0, stop=32)
+        make_predictor("knode", epochs=1, substeps=2, init=str(tmp_path / "base.pt"), **LOOP, **SMALL).fit(
+            small, start=0, stop=32
+        )
 
 
 def test_a_window_too_short_for_the_horizon_is_a_one_line_error(tmp_path, capsys):
@@ -230,7 +276,9 @@ def test_a_window_too_short_for_the_horizon_is_a_one_line_error(tmp_path, capsys
 
     path = tmp_path / "short.nc"
     wave_field(T=17).to_netcdf(path)
-    assert main(["model", "train", "--data", str(path), "--epochs", "2", "--no-skill", "--out", str(tmp_path / "k")]) == 2
+    assert (
+        main(["model", "train", "--data", str(path), "--epochs", "2", "--no-skill", "--out", str(tmp_path / "k")]) == 2
+    )
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "too few for a roll-out of 10" in err[0] and "--horizon" in err[0]
 
@@ -278,7 +326,9 @@ def test_row_shift_augmentation_generalises_to_a_displaced_band(tmp_path):
     shifted = make_predictor("knode", shift_rows=3, **kw).fit(train, start=0, stop=32)
     e_plain = lookahead_errors(plain, test.data, (0, 40), (4,), ic_stride=2)[4]["mse"]
     e_shift = lookahead_errors(shifted, test.data, (0, 40), (4,), ic_stride=2)[4]["mse"]
-    e_pers = lookahead_errors(make_predictor("persistence").fit(train, start=0, stop=32), test.data, (0, 40), (4,), ic_stride=2)[4]["mse"]
+    e_pers = lookahead_errors(
+        make_predictor("persistence").fit(train, start=0, stop=32), test.data, (0, 40), (4,), ic_stride=2
+    )[4]["mse"]
     print("displaced band, h=4 MSE: plain", e_plain, "shift_rows=3", e_shift, "persistence", e_pers)
     assert e_shift < e_pers < e_plain
     shifted.save(tmp_path / "s")
@@ -297,7 +347,24 @@ def test_row_shift_augmentation_refuses_land_and_too_large_shifts(tmp_path, caps
     with pytest.raises(ModelError, match="below the grid's 16 rows"):
         make_predictor("knode", epochs=1, shift_rows=16, **LOOP, **SMALL).fit(band_field(), start=0, stop=32)
     nc = band_field().to_netcdf(tmp_path / "b.nc")
-    assert main(["model", "train", "--data", str(nc), "--epochs", "1", "--shift-rows", "-1", "--no-skill", "--out", str(tmp_path / "k")]) == 2
+    assert (
+        main(
+            [
+                "model",
+                "train",
+                "--data",
+                str(nc),
+                "--epochs",
+                "1",
+                "--shift-rows",
+                "-1",
+                "--no-skill",
+                "--out",
+                str(tmp_path / "k"),
+            ]
+        )
+        == 2
+    )
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "shift_rows must be a non-negative integer" in err[0]
 
@@ -315,10 +382,24 @@ def test_shift_fraction_draws_that_share_of_shifts_and_weighs_validation_alike()
     counts = np.bincount(idx, minlength=5)[1:] / n_draw
     np.testing.assert_allclose(counts, 0.25 / 4, atol=0.01)
     assert k._shift_weight(0, 5) == pytest.approx(0.75) and k._shift_weight(-2, 5) == pytest.approx(0.0625)
-    assert np.all(make_predictor("knode", shift_rows=2, shift_fraction=0.0, **SMALL)._draw_shifts(np.random.default_rng(1), 5, 100) == 0)
-    assert np.all(make_predictor("knode", shift_rows=2, shift_fraction=1.0, **SMALL)._draw_shifts(np.random.default_rng(1), 5, 100) > 0)
+    assert np.all(
+        make_predictor("knode", shift_rows=2, shift_fraction=0.0, **SMALL)._draw_shifts(
+            np.random.default_rng(1), 5, 100
+        )
+        == 0
+    )
+    assert np.all(
+        make_predictor("knode", shift_rows=2, shift_fraction=1.0, **SMALL)._draw_shifts(
+            np.random.default_rng(1), 5, 100
+        )
+        > 0
+    )
     old = make_predictor("knode", shift_rows=2, **SMALL)
-    np.testing.assert_array_equal(old._draw_shifts(np.random.default_rng(3), 5, 50), np.random.default_rng(3).integers(5, size=50))
+    np.testing.assert_array_equal(
+        old._draw_shifts(np.random.default_rng(3), 5, 50), np.random.default_rng(3).integers(5, size=50)
+    )
     assert old._shift_weight(0, 5) == old._shift_weight(2, 5) == 1.0
     with pytest.raises(ModelError, match="shift_fraction"):
-        make_predictor("knode", shift_rows=0, shift_fraction=0.5, epochs=1, **LOOP, **SMALL).fit(band_field(), start=0, stop=32)
+        make_predictor("knode", shift_rows=0, shift_fraction=0.5, epochs=1, **LOOP, **SMALL).fit(
+            band_field(), start=0, stop=32
+        )

@@ -32,27 +32,77 @@ def make_live_run(root) -> RunDir:
     land[-2:, -3:] = True
     w = RecordWriter(rd.root)
     w.field_time = lambda: 1234.5
-    w.meta({"mission": "t", "grid": GRID.describe(), "land": land.astype(int).tolist(), "geofence_margin_m": 500.0,
-            "boats": 1, "legs_per_boat": 3, "truth_known": True, "skill_warning": "model worse than persistence"})
+    w.meta(
+        {
+            "mission": "t",
+            "grid": GRID.describe(),
+            "land": land.astype(int).tolist(),
+            "geofence_margin_m": 500.0,
+            "boats": 1,
+            "legs_per_boat": 3,
+            "truth_known": True,
+            "skill_warning": "model worse than persistence",
+        }
+    )
     w.event("leg_start", "leg 1/3 started")
     w.event("link_lost", "leg 0: link lost")
     w.event("link_back", "leg 0: link back")
     lat, lon = GRID.cell_to_latlon(5, 6)
-    w.status({"sysid": 1, "lat": float(lat), "lon": float(lon), "heading_deg": 90.0, "mode": "AUTO", "armed": True,
-              "link_lost": False, "rtt_ms": 3.0, "loss_pct": 0.0, "leg": 1, "leg_k": 2, "legs_n": 3, "flying": True,
-              "samples_leg": 4, "leg_end_s": 600.0, "leg_end_wall_s": 4.0})
+    w.status(
+        {
+            "sysid": 1,
+            "lat": float(lat),
+            "lon": float(lon),
+            "heading_deg": 90.0,
+            "mode": "AUTO",
+            "armed": True,
+            "link_lost": False,
+            "rtt_ms": 3.0,
+            "loss_pct": 0.0,
+            "leg": 1,
+            "leg_k": 2,
+            "legs_n": 3,
+            "flying": True,
+            "samples_leg": 4,
+            "leg_end_s": 600.0,
+            "leg_end_wall_s": 4.0,
+        }
+    )
     uv = np.stack([np.full(GRID.shape, 0.3), np.full(GRID.shape, -0.1)]).astype(np.float32)
     uv[:, land] = np.nan
     for i, status in ((0, "complete"), (1, "flying")):
-        rd.write_leg(i, {"index": i, "status": status, "path": [[1, 1], [2, 2], [3, 3]], "t_start": 100.0 * i,
-                         "t_end": 100.0 * (i + 1), "rmse_passt": 0.02 if status == "complete" else None,
-                         "rmse_model": 0.05 if status == "complete" else None,
-                         "reward_map": np.tile(np.linspace(0, 1, GRID.cols), (GRID.rows, 1)).tolist()})
-    FlowField(uv[None], GRID, np.array([100.0]), None).to_netcdf(rd.estimate_file(0), std=np.full((1, 2) + GRID.shape, 0.05,
-                                                                                             np.float32))
+        rd.write_leg(
+            i,
+            {
+                "index": i,
+                "status": status,
+                "path": [[1, 1], [2, 2], [3, 3]],
+                "t_start": 100.0 * i,
+                "t_end": 100.0 * (i + 1),
+                "rmse_passt": 0.02 if status == "complete" else None,
+                "rmse_model": 0.05 if status == "complete" else None,
+                "reward_map": np.tile(np.linspace(0, 1, GRID.cols), (GRID.rows, 1)).tolist(),
+            },
+        )
+    FlowField(uv[None], GRID, np.array([100.0]), None).to_netcdf(
+        rd.estimate_file(0), std=np.full((1, 2) + GRID.shape, 0.05, np.float32)
+    )
     with SampleStore(rd.samples_db) as st:
-        st.append_many([{"time_boot_ms": 1000 * k, "utc": 1.0e9 + k, "lat": 40.1 + 0.01 * k, "lon": -62.9,
-                         "u": 0.3, "v": -0.1, "leg": 0 if k < 5 else 1, "source": "mav:1/1"} for k in range(9)])
+        st.append_many(
+            [
+                {
+                    "time_boot_ms": 1000 * k,
+                    "utc": 1.0e9 + k,
+                    "lat": 40.1 + 0.01 * k,
+                    "lon": -62.9,
+                    "u": 0.3,
+                    "v": -0.1,
+                    "leg": 0 if k < 5 else 1,
+                    "source": "mav:1/1",
+                }
+                for k in range(9)
+            ]
+        )
     return rd
 
 
@@ -79,8 +129,16 @@ def test_record_writer_writes_events_and_status_and_never_raises(tmp_path):
     w.start_status(lambda: {"lat": 1.0}, period_s=0.01)
     time.sleep(0.05)
     w.stop_status(lambda: 1 / 0)
-    assert {"link_lost", "link_back", "pilot_takeover", "reboot", "fence_refused", "boat_dropped",
-            "leg_start", "leg_end"} <= set(KINDS)
+    assert {
+        "link_lost",
+        "link_back",
+        "pilot_takeover",
+        "reboot",
+        "fence_refused",
+        "boat_dropped",
+        "leg_start",
+        "leg_end",
+    } <= set(KINDS)
 
 
 def test_a_waypoint_outside_the_geofence_is_an_alert(tmp_path):
@@ -177,8 +235,11 @@ def test_server_serves_page_state_stream_and_rasters_on_loopback(tmp_path):
     try:
         assert vp.url.startswith("http://127.0.0.1:") and "token" not in vp.url
         code, ctype, body = _get(vp.url)
-        assert code == 200 and b"static/vendor/leaflet/leaflet.js" in body and b"http" not in body.lower().replace(
-            b"http-equiv", b"")  # nothing from outside
+        assert (
+            code == 200
+            and b"static/vendor/leaflet/leaflet.js" in body
+            and b"http" not in body.lower().replace(b"http-equiv", b"")
+        )  # nothing from outside
         assert _get(vp.url + "static/vendor/leaflet/leaflet.js")[0] == 200
         assert _get(vp.url + "static/vendor/leaflet/LICENSE")[0] == 200
         code, ctype, body = _get(vp.url + "api/state")
@@ -239,10 +300,15 @@ def test_the_view_never_outlives_the_mission_process(tmp_path):
     from pathlib import Path
 
     rd = make_live_run(tmp_path / "run")
-    code = ("import os, sys; from passt_mav.view import start_view; "
-            "print(start_view(sys.argv[1]).proc.pid, flush=True); os._exit(0)")
-    pid = int(subprocess.run([sys.executable, "-c", code, str(rd.root)], capture_output=True, text=True,
-                             timeout=60, check=True).stdout)
+    code = (
+        "import os, sys; from passt_mav.view import start_view; "
+        "print(start_view(sys.argv[1]).proc.pid, flush=True); os._exit(0)"
+    )
+    pid = int(
+        subprocess.run(
+            [sys.executable, "-c", code, str(rd.root)], capture_output=True, text=True, timeout=60, check=True
+        ).stdout
+    )
 
     def alive() -> bool:
         try:
@@ -274,16 +340,24 @@ def test_run_view_option_serves_the_run_dir(tmp_path):
 
 
 def test_view_of_a_bad_run_dir_is_one_line_and_exit_2(tmp_path):
-    p = subprocess.run([sys.executable, "-m", "passt_mav.cli", "view", str(tmp_path / "nope")],
-                       capture_output=True, text=True, timeout=60)
+    p = subprocess.run(
+        [sys.executable, "-m", "passt_mav.cli", "view", str(tmp_path / "nope")],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
     assert p.returncode == 2 and p.stderr.count("\n") == 1 and "not a run directory" in p.stderr, p.stderr
 
 
 def test_view_command_reopens_a_finished_run(tmp_path):
     rd = make_live_run(tmp_path / "run")
     rd.write_summary({"mission": "t", "status": "complete", "finished_utc": "2026-01-01T00:00:00Z"})
-    p = subprocess.Popen([sys.executable, "-m", "passt_mav.cli", "view", str(rd.root)], stdout=subprocess.PIPE,
-                         stderr=subprocess.STDOUT, text=True)
+    p = subprocess.Popen(
+        [sys.executable, "-m", "passt_mav.cli", "view", str(rd.root)],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+    )
     try:
         line = p.stdout.readline()
         assert "http://127.0.0.1:" in line, line
@@ -302,7 +376,9 @@ def test_view_command_reopens_a_finished_run(tmp_path):
 
 
 def test_help_imports_no_web_server():
-    code = ("import sys; from passt_mav.cli import build_parser; build_parser(); "
-            "print([m for m in ('starlette', 'uvicorn', 'torch', 'matplotlib') if m in sys.modules])")
+    code = (
+        "import sys; from passt_mav.cli import build_parser; build_parser(); "
+        "print([m for m in ('starlette', 'uvicorn', 'torch', 'matplotlib') if m in sys.modules])"
+    )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60).stdout
     assert out.strip() == "[]"

@@ -26,8 +26,16 @@ from urllib.parse import urlparse
 
 import pytest
 
-FLAGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
-         "--disable-background-networking", "--disable-component-update", "--disable-sync"]
+FLAGS = [
+    "--headless",
+    "--no-sandbox",
+    "--disable-gpu",
+    "--disable-quic",
+    "--no-first-run",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--disable-sync",
+]
 
 
 def _browser() -> str | None:
@@ -70,8 +78,10 @@ def _wait(cond, timeout: float, what: str, proc=None, out=None):
         if proc is not None and proc.poll() is not None and out is not None:
             pytest.fail(f"demo exited ({proc.returncode}) before {what}:\n{out.read_text()[-3000:]}")
         time.sleep(0.25)
-    pytest.fail(f"timed out after {timeout:.0f} s waiting for {what}" +
-                (f"\n{out.read_text()[-3000:]}" if out is not None else ""))
+    pytest.fail(
+        f"timed out after {timeout:.0f} s waiting for {what}"
+        + (f"\n{out.read_text()[-3000:]}" if out is not None else "")
+    )
 
 
 MARKERS = "Array.from(document.querySelectorAll('.boat-marker')).map(e => e.style.transform)"
@@ -81,6 +91,7 @@ LEGS_DONE = "(() => { const e = document.getElementById('legs-done-n'); return e
 
 def _watch_demo(page, demo, out: Path, shots: Path) -> Path:
     """Steps 1-4 of the test on the page of the running demo; returns the end-of-demo screenshot."""
+
     def js(expr):
         return page.evaluate(expr)
 
@@ -92,8 +103,13 @@ def _watch_demo(page, demo, out: Path, shots: Path) -> Path:
     _wait(lambda: js(MARKERS) != m1 and js(POSITIONS) != p1, 60, "the markers to move", demo, out)
     page.screenshot(path=str(shots / "view_2.png"))
     # 2. the injected link drop's alert
-    _wait(lambda: js("document.querySelectorAll('#alerts .alert.kind-link_lost').length") > 0, 120,
-          "the link-lost alert", demo, out)
+    _wait(
+        lambda: js("document.querySelectorAll('#alerts .alert.kind-link_lost').length") > 0,
+        120,
+        "the link-lost alert",
+        demo,
+        out,
+    )
     alert = js("document.querySelector('#alerts .alert.kind-link_lost').textContent")
     assert "boat 1" in alert and "LINK LOST" in alert, alert
     # 3. the leg counter advances (every boat completes its leg)
@@ -115,8 +131,25 @@ def test_demo_three_boats_live_view_in_headless_chromium(tmp_path):
     env = dict(os.environ, OMP_NUM_THREADS="1")
     # boat 1's link goes down 3500 s of simulated time after the simulator's clock starts (in its first
     # leg, ~1500..5500 s) for 900 s (6 s of wall time at 150x: well past the 2 s that make a link lost)
-    cmd = [sys.executable, "-m", "passt_mav.cli", "demo", "--boats", "3", "--legs", "1", "--moves", "2",
-           "--view", str(port), "--no-report", "--out", str(tmp_path / "demo"), "--inject-link-drop", "1:3500:900"]
+    cmd = [
+        sys.executable,
+        "-m",
+        "passt_mav.cli",
+        "demo",
+        "--boats",
+        "3",
+        "--legs",
+        "1",
+        "--moves",
+        "2",
+        "--view",
+        str(port),
+        "--no-report",
+        "--out",
+        str(tmp_path / "demo"),
+        "--inject-link-drop",
+        "1:3500:900",
+    ]
     t0 = time.monotonic()
     with open(out, "w") as log:
         demo = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=env)
@@ -125,8 +158,12 @@ def test_demo_three_boats_live_view_in_headless_chromium(tmp_path):
         _wait(lambda: f"http://127.0.0.1:{port}/" in out.read_text(), 60, "the view's address", demo, out)
         with sync_playwright() as pw:
             # (Playwright gives every launch a fresh profile: its own --user-data-dir)
-            browser = pw.chromium.launch(executable_path=exe, headless=True, args=FLAGS,
-                                         proxy={"server": "http://127.0.0.1:9", "bypass": "127.0.0.1"})
+            browser = pw.chromium.launch(
+                executable_path=exe,
+                headless=True,
+                args=FLAGS,
+                proxy={"server": "http://127.0.0.1:9", "bypass": "127.0.0.1"},
+            )
             ctx = browser.new_context(viewport={"width": 1400, "height": 900})
             ctx.on("request", lambda r: requests.append(r.url))
             page = ctx.new_page()
@@ -146,8 +183,10 @@ def test_demo_three_boats_live_view_in_headless_chromium(tmp_path):
     hosts = {urlparse(u).hostname for u in requests}
     assert requests and hosts == {"127.0.0.1"}, sorted(set(requests))
     assert any("leaflet.js" in u for u in requests) and any("/api/stream" in u for u in requests)
-    print(f"demo --boats 3 with the view in Chromium: {time.monotonic() - t0:.1f} s; {len(requests)} requests; "
-          f"screenshot {final}")
+    print(
+        f"demo --boats 3 with the view in Chromium: {time.monotonic() - t0:.1f} s; {len(requests)} requests; "
+        f"screenshot {final}"
+    )
 
 
 def test_no_browser_skips_but_fails_when_a_browser_is_required(monkeypatch):

@@ -56,12 +56,26 @@ __all__ = ["Autopilot", "MODES", "MODE_NAMES", "DEFAULT_PARAMS"]
 M = mavlink2
 
 MODES = {
-    "MANUAL": 0, "ACRO": 1, "STEERING": 3, "HOLD": 4, "LOITER": 5, "FOLLOW": 6, "SIMPLE": 7, "DOCK": 8,
-    "CIRCLE": 9, "AUTO": 10, "RTL": 11, "SMART_RTL": 12, "GUIDED": 15, "INITIALISING": 16,
+    "MANUAL": 0,
+    "ACRO": 1,
+    "STEERING": 3,
+    "HOLD": 4,
+    "LOITER": 5,
+    "FOLLOW": 6,
+    "SIMPLE": 7,
+    "DOCK": 8,
+    "CIRCLE": 9,
+    "AUTO": 10,
+    "RTL": 11,
+    "SMART_RTL": 12,
+    "GUIDED": 15,
+    "INITIALISING": 16,
 }
 MODE_NAMES = {v: k for k, v in MODES.items()}
 SETTABLE = frozenset(v for k, v in MODES.items() if k != "INITIALISING")
-NEEDS_POSITION = frozenset(MODES[k] for k in ("AUTO", "GUIDED", "LOITER", "RTL", "SMART_RTL", "CIRCLE", "FOLLOW", "DOCK"))
+NEEDS_POSITION = frozenset(
+    MODES[k] for k in ("AUTO", "GUIDED", "LOITER", "RTL", "SMART_RTL", "CIRCLE", "FOLLOW", "DOCK")
+)
 STATION_KEEPING = frozenset(MODES[k] for k in ("HOLD", "LOITER", "CIRCLE", "FOLLOW", "DOCK"))
 MANUAL_INPUT = frozenset(MODES[k] for k in ("MANUAL", "ACRO", "STEERING"))
 
@@ -88,7 +102,18 @@ DEFAULT_PARAMS: dict[str, tuple[float, int]] = {
     "WP_RADIUS": (2.0, _F),
     "WP_SPEED": (2.0, _F),
 }
-_STREAM_PARAMS = ("RAW_SENS", "EXT_STAT", "RC_CHAN", "RAW_CTRL", "POSITION", "EXTRA1", "EXTRA2", "EXTRA3", "PARAMS", "ADSB")
+_STREAM_PARAMS = (
+    "RAW_SENS",
+    "EXT_STAT",
+    "RC_CHAN",
+    "RAW_CTRL",
+    "POSITION",
+    "EXTRA1",
+    "EXTRA2",
+    "EXTRA3",
+    "PARAMS",
+    "ADSB",
+)
 for _n in range(1, 5):
     for _s in _STREAM_PARAMS:
         DEFAULT_PARAMS[f"MAV{_n}_{_s}"] = (1 if _s not in ("RC_CHAN", "RAW_CTRL", "RAW_SENS", "ADSB") else 0, _I16)
@@ -137,8 +162,16 @@ class Autopilot:
 
     MAVLINK = mavlink2
 
-    def __init__(self, home: tuple[float, float], current: CurrentModel, config: SimConfig,
-                 send: Callable, links: Callable[[], list], epoch0: float | None = None, home_alt: float = 0.0):
+    def __init__(
+        self,
+        home: tuple[float, float],
+        current: CurrentModel,
+        config: SimConfig,
+        send: Callable,
+        links: Callable[[], list],
+        epoch0: float | None = None,
+        home_alt: float = 0.0,
+    ):
         self.cfg = config
         self.current_model = current
         self._send_raw = send
@@ -148,7 +181,7 @@ class Autopilot:
         self.home_alt = float(home_alt)
         self.frame = LocalFrame(*self.home_latlon)
         self.boat = BoatState()
-        self.t = 0.0      # seconds since the last boot (time_boot_ms)
+        self.t = 0.0  # seconds since the last boot (time_boot_ms)
         self.clock = 0.0  # seconds since the simulation started: runs on through reboots
         self.boot_count = 0
         self.down_until: float | None = None  # clock time a rebooting vehicle speaks again
@@ -164,13 +197,21 @@ class Autopilot:
         self.armed = False
         self.home_set = False
         self.store = MissionStore(config.mission_capacity)
-        self.missions = MissionServer(self.store, config, self.send, self.text, self.home, self._mission_changed,
-                                      sysid=self.sysid, compid=self.compid)
+        self.missions = MissionServer(
+            self.store,
+            config,
+            self.send,
+            self.text,
+            self.home,
+            self._mission_changed,
+            sysid=self.sysid,
+            compid=self.compid,
+        )
         # mission executor
-        self.mission_index = 0          # current nav index (0 = none)
+        self.mission_index = 0  # current nav index (0 = none)
         self.mission_state = "stopped"  # stopped | running | complete
         self.mission_started = False
-        self.active_item = None         # cached item being executed (continues by old sequence)
+        self.active_item = None  # cached item being executed (continues by old sequence)
         self.leg_origin: tuple[float, float] | None = None
         self.loiter_until: float | None = None
         self.reached_current = False
@@ -183,9 +224,14 @@ class Autopilot:
         self.failsafe = False
         # sensors
         self._rng = random.Random(config.seed)
-        self._gps_rng = random.Random(config.seed * 7919 + 17)  # its own stream: adding GPS noise keeps the current noise
-        self._gps_err = [self._gps_rng.gauss(0.0, config.gps_noise_m), self._gps_rng.gauss(0.0, config.gps_noise_m)] \
-            if config.gps_noise_m > 0 else [0.0, 0.0]
+        self._gps_rng = random.Random(
+            config.seed * 7919 + 17
+        )  # its own stream: adding GPS noise keeps the current noise
+        self._gps_err = (
+            [self._gps_rng.gauss(0.0, config.gps_noise_m), self._gps_rng.gauss(0.0, config.gps_noise_m)]
+            if config.gps_noise_m > 0
+            else [0.0, 0.0]
+        )
         self._next_sample = 0.0
         self.samples_sent = 0
         self._energy_wh = 0.0
@@ -212,7 +258,9 @@ class Autopilot:
         self.send(link, M.MAVLink_statustext_message(severity, text.encode()[:50], 0, 0))
 
     def _ack(self, link, msg, command: int, result: int) -> None:
-        self.send(link, M.MAVLink_command_ack_message(command, result, 0, 0, msg.get_srcSystem(), msg.get_srcComponent()))
+        self.send(
+            link, M.MAVLink_command_ack_message(command, result, 0, 0, msg.get_srcSystem(), msg.get_srcComponent())
+        )
 
     # -- derived state ----------------------------------------------------------------
     @property
@@ -265,8 +313,17 @@ class Autopilot:
         self.armed = False
         self.home_set = False
         self.home_latlon = self.position()  # the new home is where the boat is when GPS comes back
-        self.missions = MissionServer(self.store, self.cfg, self.send, self.text, self.home, self._mission_changed,
-                                      sysid=self.sysid, compid=self.compid, normalise=self.missions.normalise)
+        self.missions = MissionServer(
+            self.store,
+            self.cfg,
+            self.send,
+            self.text,
+            self.home,
+            self._mission_changed,
+            sysid=self.sysid,
+            compid=self.compid,
+            normalise=self.missions.normalise,
+        )
         self.mission_index = 0
         self.mission_state = "stopped"
         self.mission_started = False
@@ -314,7 +371,9 @@ class Autopilot:
             if msg.get_srcSystem() == int(self.p("MAV_GCS_SYSID")):
                 self.last_gcs_hb = self.t
             return
-        if self.missions.handle(link, msg, self.t) and not (typ in ("MISSION_ITEM_INT", "MISSION_ITEM") and int(msg.current) in (2, 3)):
+        if self.missions.handle(link, msg, self.t) and not (
+            typ in ("MISSION_ITEM_INT", "MISSION_ITEM") and int(msg.current) in (2, 3)
+        ):
             return
         ts = getattr(msg, "target_system", None)
         if ts is not None and ts not in (0, self.sysid):
@@ -350,7 +409,11 @@ class Autopilot:
         R = M
         result = R.MAV_RESULT_UNSUPPORTED
         if cmd == R.MAV_CMD_DO_SET_MODE:
-            result = self.set_mode(int(p[1]), link) if int(p[0]) & R.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED else R.MAV_RESULT_UNSUPPORTED
+            result = (
+                self.set_mode(int(p[1]), link)
+                if int(p[0]) & R.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED
+                else R.MAV_RESULT_UNSUPPORTED
+            )
         elif cmd == R.MAV_CMD_MISSION_START:
             # first/last item arguments are not supported by ArduPilot: DENIED unless both are 0
             result = self.set_mode(MODES["AUTO"], link) if p[0] == 0 and p[1] == 0 else R.MAV_RESULT_DENIED
@@ -398,7 +461,11 @@ class Autopilot:
                 self.send(None, self._home_position())
                 result = R.MAV_RESULT_ACCEPTED
         elif cmd == R.MAV_CMD_DO_SET_MISSION_CURRENT:
-            result = R.MAV_RESULT_ACCEPTED if self.set_mission_current(int(p[0]), reset=int(p[1]) == 1) else R.MAV_RESULT_DENIED
+            result = (
+                R.MAV_RESULT_ACCEPTED
+                if self.set_mission_current(int(p[0]), reset=int(p[1]) == 1)
+                else R.MAV_RESULT_DENIED
+            )
         elif cmd == R.MAV_CMD_DO_CHANGE_SPEED:
             if p[1] > 0:
                 self.speed_override = float(p[1])
@@ -423,7 +490,11 @@ class Autopilot:
         self._ack(link, msg, cmd, result)
 
     def _on_set_mode(self, link, msg):
-        result = self.set_mode(int(msg.custom_mode), link) if msg.base_mode & M.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED else M.MAV_RESULT_UNSUPPORTED
+        result = (
+            self.set_mode(int(msg.custom_mode), link)
+            if msg.base_mode & M.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED
+            else M.MAV_RESULT_UNSUPPORTED
+        )
         # ArduPilot acknowledges SET_MODE with a COMMAND_ACK whose command is the message id (11)
         self._ack(link, msg, M.MAVLINK_MSG_ID_SET_MODE, result)
 
@@ -567,8 +638,13 @@ class Autopilot:
                 else:
                     idx += 1
                 continue
-            if it.command in (M.MAV_CMD_NAV_WAYPOINT, M.MAV_CMD_NAV_LOITER_UNLIM, M.MAV_CMD_NAV_LOITER_TIME,
-                              M.MAV_CMD_NAV_LOITER_TURNS, M.MAV_CMD_NAV_RETURN_TO_LAUNCH):
+            if it.command in (
+                M.MAV_CMD_NAV_WAYPOINT,
+                M.MAV_CMD_NAV_LOITER_UNLIM,
+                M.MAV_CMD_NAV_LOITER_TIME,
+                M.MAV_CMD_NAV_LOITER_TURNS,
+                M.MAV_CMD_NAV_RETURN_TO_LAUNCH,
+            ):
                 break
             idx += 1  # other DO_/CONDITION_ items: nothing to simulate
         prev_target = self._item_xy(self.active_item) if self.active_item is not None else None
@@ -727,7 +803,12 @@ class Autopilot:
         self._boot_events()
         self.missions.update(self.t)
         self._failsafe_check()
-        if self.mode == MODES["AUTO"] and self.mission_state == "running" and self.loiter_until is not None and self.t >= self.loiter_until:
+        if (
+            self.mode == MODES["AUTO"]
+            and self.mission_state == "running"
+            and self.loiter_until is not None
+            and self.t >= self.loiter_until
+        ):
             self._advance()
         lat, lon = self.position()
         current = self.current_model.at(self.clock, lat, lon)
@@ -798,9 +879,23 @@ class Autopilot:
                 return 1.0 / hz if hz > 0 else -1.0
         return -1.0
 
-    STREAMED = ("HEARTBEAT", "SYS_STATUS", "GPS_RAW_INT", "GLOBAL_POSITION_INT", "ATTITUDE", "VFR_HUD",
-                "MISSION_CURRENT", "EKF_STATUS_REPORT", "BATTERY_STATUS", "SYSTEM_TIME", "TIMESYNC",
-                "NAV_CONTROLLER_OUTPUT", "LOCAL_POSITION_NED", "POWER_STATUS", "MEMINFO")
+    STREAMED = (
+        "HEARTBEAT",
+        "SYS_STATUS",
+        "GPS_RAW_INT",
+        "GLOBAL_POSITION_INT",
+        "ATTITUDE",
+        "VFR_HUD",
+        "MISSION_CURRENT",
+        "EKF_STATUS_REPORT",
+        "BATTERY_STATUS",
+        "SYSTEM_TIME",
+        "TIMESYNC",
+        "NAV_CONTROLLER_OUTPUT",
+        "LOCAL_POSITION_NED",
+        "POWER_STATUS",
+        "MEMINFO",
+    )
 
     def _telemetry(self) -> None:
         cache: dict[str, object] = {}
@@ -827,7 +922,9 @@ class Autopilot:
         rate = self.cfg.current_rate_hz
         if rate <= 0 or not self.gps_ok or self.t + 1e-9 < self._next_sample:
             return
-        self._next_sample = max(self._next_sample + 1.0 / rate, self.t) if self._next_sample > 0 else self.t + 1.0 / rate
+        self._next_sample = (
+            max(self._next_sample + 1.0 / rate, self.t) if self._next_sample > 0 else self.t + 1.0 / rate
+        )
         lat, lon = self.position()
         uv = self.current_model.measure(self.clock, lat, lon)  # measured where the boat really is
         if uv is None:
@@ -896,15 +993,25 @@ class Autopilot:
             status = M.MAV_STATE_CRITICAL
         else:
             status = M.MAV_STATE_ACTIVE if self.armed else M.MAV_STATE_STANDBY
-        return M.MAVLink_heartbeat_message(M.MAV_TYPE_SURFACE_BOAT, M.MAV_AUTOPILOT_ARDUPILOTMEGA, base, self.mode, status, 3)
+        return M.MAVLink_heartbeat_message(
+            M.MAV_TYPE_SURFACE_BOAT, M.MAV_AUTOPILOT_ARDUPILOTMEGA, base, self.mode, status, 3
+        )
 
     def _sys_status(self):
-        sensors = (M.MAV_SYS_STATUS_SENSOR_3D_GYRO | M.MAV_SYS_STATUS_SENSOR_3D_ACCEL | M.MAV_SYS_STATUS_SENSOR_3D_MAG
-                   | M.MAV_SYS_STATUS_SENSOR_GPS | M.MAV_SYS_STATUS_SENSOR_MOTOR_OUTPUTS | M.MAV_SYS_STATUS_AHRS
-                   | M.MAV_SYS_STATUS_SENSOR_BATTERY)
+        sensors = (
+            M.MAV_SYS_STATUS_SENSOR_3D_GYRO
+            | M.MAV_SYS_STATUS_SENSOR_3D_ACCEL
+            | M.MAV_SYS_STATUS_SENSOR_3D_MAG
+            | M.MAV_SYS_STATUS_SENSOR_GPS
+            | M.MAV_SYS_STATUS_SENSOR_MOTOR_OUTPUTS
+            | M.MAV_SYS_STATUS_AHRS
+            | M.MAV_SYS_STATUS_SENSOR_BATTERY
+        )
         health = sensors if self.gps_ok else sensors & ~M.MAV_SYS_STATUS_SENSOR_GPS
         volt, amps, pct = self._battery()
-        return M.MAVLink_sys_status_message(sensors, sensors, health, 100, int(volt * 1000), int(amps * 100), pct, 0, 0, 0, 0, 0, 0)
+        return M.MAVLink_sys_status_message(
+            sensors, sensors, health, 100, int(volt * 1000), int(amps * 100), pct, 0, 0, 0, 0, 0, 0
+        )
 
     def _battery(self) -> tuple[float, float, int]:
         frac = max(0.0, 1.0 - self._energy_wh / self.cfg.battery_wh)
@@ -915,18 +1022,39 @@ class Autopilot:
         volt, amps, pct = self._battery()
         cells = [int(volt * 1000)] + [65535] * 9
         mah = int(self._energy_wh / 12.0 * 1000)
-        return M.MAVLink_battery_status_message(0, M.MAV_BATTERY_FUNCTION_ALL, M.MAV_BATTERY_TYPE_LIPO, 32767, cells,
-                                                int(amps * 100), mah, int(self._energy_wh * 36), pct)
+        return M.MAVLink_battery_status_message(
+            0,
+            M.MAV_BATTERY_FUNCTION_ALL,
+            M.MAV_BATTERY_TYPE_LIPO,
+            32767,
+            cells,
+            int(amps * 100),
+            mah,
+            int(self._energy_wh * 36),
+            pct,
+        )
 
     def _gps_raw_int(self):
         if not self.gps_ok:
-            return M.MAVLink_gps_raw_int_message(int(self.t * 1e6), M.GPS_FIX_TYPE_NO_GPS, 0, 0, 0, 65535, 65535, 0, 65535, 0)
+            return M.MAVLink_gps_raw_int_message(
+                int(self.t * 1e6), M.GPS_FIX_TYPE_NO_GPS, 0, 0, 0, 65535, 65535, 0, 65535, 0
+            )
         lat, lon = self.reported_position()
         b = self.boat
         gs = math.hypot(b.ground_ve, b.ground_vn)
         cog = (math.degrees(math.atan2(b.ground_ve, b.ground_vn)) % 360.0) if gs > 0.05 else 0.0
-        return M.MAVLink_gps_raw_int_message(int(self.t * 1e6), M.GPS_FIX_TYPE_3D_FIX, int(round(lat * 1e7)), int(round(lon * 1e7)),
-                                             int(self.home_alt * 1000), 121, 200, int(gs * 100), int(cog * 100) % 36000, 10)
+        return M.MAVLink_gps_raw_int_message(
+            int(self.t * 1e6),
+            M.GPS_FIX_TYPE_3D_FIX,
+            int(round(lat * 1e7)),
+            int(round(lon * 1e7)),
+            int(self.home_alt * 1000),
+            121,
+            200,
+            int(gs * 100),
+            int(cog * 100) % 36000,
+            10,
+        )
 
     def _global_position_int(self):
         b = self.boat
@@ -935,8 +1063,16 @@ class Autopilot:
             return M.MAVLink_global_position_int_message(self.time_boot_ms, 0, 0, 0, 0, 0, 0, 0, hdg)
         lat, lon = self.reported_position()
         return M.MAVLink_global_position_int_message(
-            self.time_boot_ms, int(round(lat * 1e7)), int(round(lon * 1e7)), int(self.home_alt * 1000), 0,
-            int(round(b.ground_vn * 100)), int(round(b.ground_ve * 100)), 0, hdg)
+            self.time_boot_ms,
+            int(round(lat * 1e7)),
+            int(round(lon * 1e7)),
+            int(self.home_alt * 1000),
+            0,
+            int(round(b.ground_vn * 100)),
+            int(round(b.ground_ve * 100)),
+            0,
+            hdg,
+        )
 
     def _attitude(self):
         b = self.boat
@@ -946,7 +1082,9 @@ class Autopilot:
         b = self.boat
         gs = math.hypot(b.ground_ve, b.ground_vn)
         thr = int(min(100, round(100 * b.speed / max(self.cfg.boat.max_speed, 1e-6))))
-        return M.MAVLink_vfr_hud_message(b.speed, gs, int(round(math.degrees(b.heading))) % 360, thr, self.home_alt, 0.0)
+        return M.MAVLink_vfr_hud_message(
+            b.speed, gs, int(round(math.degrees(b.heading))) % 360, thr, self.home_alt, 0.0
+        )
 
     def _system_time(self):
         # UTC comes from the GPS (0 before a fix, as on Rover) and runs on through reboots
@@ -961,7 +1099,9 @@ class Autopilot:
         seq = self.mission_index if self.store.count(0) > 1 else 0
         if self.mission_state == "complete":
             seq = total
-        return M.MAVLink_mission_current_message(seq, total, self.mission_state_code(), 1 if self.mode == MODES["AUTO"] else 0)
+        return M.MAVLink_mission_current_message(
+            seq, total, self.mission_state_code(), 1 if self.mode == MODES["AUTO"] else 0
+        )
 
     def _ekf_status_report(self):
         if self.mode == MODES["INITIALISING"]:
@@ -980,14 +1120,18 @@ class Autopilot:
             dist = int(min(65535, math.hypot(tx - b.x, ty - b.y)))
         else:
             brg, dist = int(round(math.degrees(b.heading))) % 360, 0
-        return M.MAVLink_nav_controller_output_message(0.0, 0.0, int(round(math.degrees(b.heading))), brg, dist, 0.0, 0.0, 0.0)
+        return M.MAVLink_nav_controller_output_message(
+            0.0, 0.0, int(round(math.degrees(b.heading))), brg, dist, 0.0, 0.0, 0.0
+        )
 
     def _local_position_ned(self):
         if not self.ekf_abs:
             return None  # no EKF origin yet
         b = self.boat
         hx, hy = self.frame.to_xy(*self.home_latlon)
-        return M.MAVLink_local_position_ned_message(self.time_boot_ms, b.y - hy, b.x - hx, 0.0, b.ground_vn, b.ground_ve, 0.0)
+        return M.MAVLink_local_position_ned_message(
+            self.time_boot_ms, b.y - hy, b.x - hx, 0.0, b.ground_vn, b.ground_ve, 0.0
+        )
 
     def _power_status(self):
         return M.MAVLink_power_status_message(5000, 0, M.MAV_POWER_STATUS_BRICK_VALID)
@@ -997,22 +1141,41 @@ class Autopilot:
 
     def _home_position(self):
         lat, lon, alt = self.home()
-        return M.MAVLink_home_position_message(int(round(lat * 1e7)), int(round(lon * 1e7)), int(alt * 1000),
-                                               0.0, 0.0, 0.0, [1.0, 0.0, 0.0, 0.0], 0.0, 0.0, 0.0, int(self.t * 1e6))
+        return M.MAVLink_home_position_message(
+            int(round(lat * 1e7)),
+            int(round(lon * 1e7)),
+            int(alt * 1000),
+            0.0,
+            0.0,
+            0.0,
+            [1.0, 0.0, 0.0, 0.0],
+            0.0,
+            0.0,
+            0.0,
+            int(self.t * 1e6),
+        )
 
     def _autopilot_version(self):
-        caps = (M.MAV_PROTOCOL_CAPABILITY_MISSION_FLOAT | M.MAV_PROTOCOL_CAPABILITY_PARAM_FLOAT
-                | M.MAV_PROTOCOL_CAPABILITY_MISSION_INT | M.MAV_PROTOCOL_CAPABILITY_COMMAND_INT
-                | M.MAV_PROTOCOL_CAPABILITY_SET_POSITION_TARGET_GLOBAL_INT | M.MAV_PROTOCOL_CAPABILITY_MAVLINK2
-                | M.MAV_PROTOCOL_CAPABILITY_MISSION_FENCE | M.MAV_PROTOCOL_CAPABILITY_MISSION_RALLY)
+        caps = (
+            M.MAV_PROTOCOL_CAPABILITY_MISSION_FLOAT
+            | M.MAV_PROTOCOL_CAPABILITY_PARAM_FLOAT
+            | M.MAV_PROTOCOL_CAPABILITY_MISSION_INT
+            | M.MAV_PROTOCOL_CAPABILITY_COMMAND_INT
+            | M.MAV_PROTOCOL_CAPABILITY_SET_POSITION_TARGET_GLOBAL_INT
+            | M.MAV_PROTOCOL_CAPABILITY_MAVLINK2
+            | M.MAV_PROTOCOL_CAPABILITY_MISSION_FENCE
+            | M.MAV_PROTOCOL_CAPABILITY_MISSION_RALLY
+        )
         # 4.7.0-dev: major<<24 | minor<<16 | patch<<8 | type (0 = dev)
-        return M.MAVLink_autopilot_version_message(caps, (4 << 24) | (7 << 16), 0, 0, 0, [0] * 8, [0] * 8, [0] * 8,
-                                                   0, 0, self.sysid, [0] * 18)
+        return M.MAVLink_autopilot_version_message(
+            caps, (4 << 24) | (7 << 16), 0, 0, 0, [0] * 8, [0] * 8, [0] * 8, 0, 0, self.sysid, [0] * 18
+        )
 
     def _param_value(self, name: str, index: int | None = None):
         idx = self._param_names.index(name) if index is None else index
-        return M.MAVLink_param_value_message(name.encode(), float(self.params[name]), DEFAULT_PARAMS[name][1],
-                                             len(self._param_names), idx)
+        return M.MAVLink_param_value_message(
+            name.encode(), float(self.params[name]), DEFAULT_PARAMS[name][1], len(self._param_names), idx
+        )
 
 
 def _pname(raw) -> str:

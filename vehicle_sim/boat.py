@@ -67,7 +67,9 @@ class LocalFrame:
         from pyproj import CRS, Transformer
 
         self.lat0, self.lon0 = float(lat0), float(lon0)
-        crs = CRS.from_proj4(f"+proj=aeqd +lat_0={self.lat0:.10f} +lon_0={self.lon0:.10f} +datum=WGS84 +units=m +no_defs")
+        crs = CRS.from_proj4(
+            f"+proj=aeqd +lat_0={self.lat0:.10f} +lon_0={self.lon0:.10f} +datum=WGS84 +units=m +no_defs"
+        )
         self._fwd = Transformer.from_crs("EPSG:4326", crs, always_xy=True)
         self._inv = Transformer.from_crs(crs, "EPSG:4326", always_xy=True)
 
@@ -99,15 +101,24 @@ class CurrentModel:
             drift).
     """
 
-    def __init__(self, field=None, *, start_time: float | None = None, velocity_scale: float = 1.0,
-                 time_scale: float = 1.0, uniform: tuple[float, float] = (0.0, 0.0)):
+    def __init__(
+        self,
+        field=None,
+        *,
+        start_time: float | None = None,
+        velocity_scale: float = 1.0,
+        time_scale: float = 1.0,
+        uniform: tuple[float, float] = (0.0, 0.0),
+    ):
         if not (velocity_scale > 0 and time_scale > 0):
             raise ValueError("velocity_scale and time_scale must be positive")
         self.field = field
         self.velocity_scale = float(velocity_scale)
         self.time_scale = float(time_scale)
         self.uniform = (float(uniform[0]), float(uniform[1]))
-        self.start_time = float(field.times[0]) if (start_time is None and field is not None) else float(start_time or 0.0)
+        self.start_time = (
+            float(field.times[0]) if (start_time is None and field is not None) else float(start_time or 0.0)
+        )
         self._times = field.times.tolist() if field is not None else []
         self._rotate = getattr(field.grid, "velocity_to_local", None) if field is not None else None
         if field is not None and field.is_geographic:
@@ -144,7 +155,7 @@ class CurrentModel:
         for dt_, w_t in ((0, 1.0 - wt), (1, wt)):
             if w_t <= 0.0:
                 continue
-            blk = f.data[min(t0 + dt_, T - 1), :, r0:r0 + 2, c0:c0 + 2].tolist()  # [2][2][2] floats
+            blk = f.data[min(t0 + dt_, T - 1), :, r0 : r0 + 2, c0 : c0 + 2].tolist()  # [2][2][2] floats
             for dr, w_r in ((0, 1.0 - wr), (1, wr)):
                 for dc, w_c in ((0, 1.0 - wc), (1, wc)):
                     w = w_t * w_r * w_c
@@ -221,8 +232,14 @@ class BoatState:
     current: tuple[float, float] = (0.0, 0.0)
 
 
-def guidance(state: BoatState, target: tuple[float, float], speed: float, current: tuple[float, float],
-             params: BoatParams, origin: tuple[float, float] | None = None) -> tuple[float, float]:
+def guidance(
+    state: BoatState,
+    target: tuple[float, float],
+    speed: float,
+    current: tuple[float, float],
+    params: BoatParams,
+    origin: tuple[float, float] | None = None,
+) -> tuple[float, float]:
     """Commanded ``(heading rad, water speed m/s)`` to reach ``target`` (east, north m).
 
     ``origin`` is the previous waypoint (start of the leg) used by the
@@ -250,7 +267,7 @@ def guidance(state: BoatState, target: tuple[float, float], speed: float, curren
     gx, gy = gx / g, gy / g
     # velocity triangle: water velocity w such that w + current is parallel to (gx, gy)
     cu, cv = current
-    c_perp = -cu * gy + cv * gx          # current across the desired track (left +)
+    c_perp = -cu * gy + cv * gx  # current across the desired track (left +)
     c_par = cu * gx + cv * gy
     if abs(c_perp) >= speed:
         # too strong to cancel: push straight against it
@@ -263,8 +280,9 @@ def guidance(state: BoatState, target: tuple[float, float], speed: float, curren
     return math.atan2(wx, wy), speed
 
 
-def step_boat(state: BoatState, cmd_heading: float, cmd_speed: float, current: tuple[float, float],
-              dt: float, params: BoatParams) -> BoatState:
+def step_boat(
+    state: BoatState, cmd_heading: float, cmd_speed: float, current: tuple[float, float], dt: float, params: BoatParams
+) -> BoatState:
     """Advance ``state`` by ``dt`` seconds (in place; also returned).
 
     The heading turns toward ``cmd_heading`` at most ``max_turn_rate_dps``; the
@@ -277,7 +295,11 @@ def step_boat(state: BoatState, cmd_heading: float, cmd_speed: float, current: t
     state.heading = wrap_pi(state.heading + turn)
     state.turn_rate = turn / dt if dt > 0 else 0.0
     target = max(0.0, min(params.max_speed, cmd_speed))
-    dv = (target - state.speed) * (1.0 - math.exp(-dt / params.speed_tau_s)) if params.speed_tau_s > 0 else target - state.speed
+    dv = (
+        (target - state.speed) * (1.0 - math.exp(-dt / params.speed_tau_s))
+        if params.speed_tau_s > 0
+        else target - state.speed
+    )
     dv = max(-params.max_accel * dt, min(params.max_accel * dt, dv))
     state.speed += dv
     ve = state.speed * math.sin(state.heading) + current[0]

@@ -88,54 +88,118 @@ def build_parser() -> argparse.ArgumentParser:
         epilog="examples:" + EXAMPLES,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    p.add_argument("--field", default=None, help="FILE.nc | builtin:ocean | builtin:cylinder | builtin:oscillating | none (still water)")
+    p.add_argument(
+        "--field",
+        default=None,
+        help="FILE.nc | builtin:ocean | builtin:cylinder | builtin:oscillating | none (still water)",
+    )
     p.add_argument("--home", default=None, help="start/home LAT,LON (default: centre of the field's region)")
-    p.add_argument("--listen", action="append", default=None,
-                   help="tcp:HOST:PORT, udpin:HOST:PORT or udpout:HOST:PORT; repeatable (default tcp:127.0.0.1:5760); "
-                        "with --boats, boat I gets PORT + 10*I")
-    p.add_argument("--boats", type=int, default=1,
-                   help="number of boats N (default 1): boat I on port + 10*I with system id I+1, all in one field and clock")
-    p.add_argument("--base-port", type=int, default=None,
-                   help="boat 0's TCP port (boat I: BASE + 10*I), i.e. --listen tcp:127.0.0.1:BASE; 0 = OS-chosen ports (printed)")
-    p.add_argument("--start", action="append", default=[],
-                   help="a boat's start/home LAT,LON; repeatable, once per boat (default: spread over the field's region)")
-    p.add_argument("--start-cell", action="append", default=[],
-                   help="a boat's start as ROW,COL of the field's grid (cell centre; row 0 = south); repeatable, once per boat")
-    p.add_argument("--boat-param", action="append", default=[],
-                   help="I:NAME=VALUE parameter of boat I only (after --param); repeatable; I:MAV_SYSID=S sets its system id")
-    p.add_argument("--boat-drop", action="append", default=[],
-                   help="I:START:DURATION link outage of boat I only (sim seconds); repeatable")
-    p.add_argument("--region", default=None, help="crop the field to SOUTH,WEST,NORTH,EAST degrees (default: whole grid)")
-    p.add_argument("--velocity-scale", type=float, default=None, help="m/s per field velocity unit (metric fields; default 1)")
-    p.add_argument("--time-scale", type=float, default=None, help="seconds per field time unit (metric fields; default 1)")
+    p.add_argument(
+        "--listen",
+        action="append",
+        default=None,
+        help="tcp:HOST:PORT, udpin:HOST:PORT or udpout:HOST:PORT; repeatable (default tcp:127.0.0.1:5760); "
+        "with --boats, boat I gets PORT + 10*I",
+    )
+    p.add_argument(
+        "--boats",
+        type=int,
+        default=1,
+        help="number of boats N (default 1): boat I on port + 10*I with system id I+1, all in one field and clock",
+    )
+    p.add_argument(
+        "--base-port",
+        type=int,
+        default=None,
+        help="boat 0's TCP port (boat I: BASE + 10*I), i.e. --listen tcp:127.0.0.1:BASE; 0 = OS-chosen ports (printed)",
+    )
+    p.add_argument(
+        "--start",
+        action="append",
+        default=[],
+        help="a boat's start/home LAT,LON; repeatable, once per boat (default: spread over the field's region)",
+    )
+    p.add_argument(
+        "--start-cell",
+        action="append",
+        default=[],
+        help="a boat's start as ROW,COL of the field's grid (cell centre; row 0 = south); repeatable, once per boat",
+    )
+    p.add_argument(
+        "--boat-param",
+        action="append",
+        default=[],
+        help="I:NAME=VALUE parameter of boat I only (after --param); repeatable; I:MAV_SYSID=S sets its system id",
+    )
+    p.add_argument(
+        "--boat-drop",
+        action="append",
+        default=[],
+        help="I:START:DURATION link outage of boat I only (sim seconds); repeatable",
+    )
+    p.add_argument(
+        "--region", default=None, help="crop the field to SOUTH,WEST,NORTH,EAST degrees (default: whole grid)"
+    )
+    p.add_argument(
+        "--velocity-scale", type=float, default=None, help="m/s per field velocity unit (metric fields; default 1)"
+    )
+    p.add_argument(
+        "--time-scale", type=float, default=None, help="seconds per field time unit (metric fields; default 1)"
+    )
     p.add_argument("--anchor", default=None, help="LAT,LON of a metric field's centre (re-anchors it)")
     p.add_argument("--scale", type=float, default=None, help="Earth metres per data metre of a metric field")
     p.add_argument("--rotation", type=float, default=None, help="counter-clockwise rotation of a metric field, degrees")
-    p.add_argument("--start-time", default=None,
-                   help="field time at boot: a number in the field's time units, or an ISO UTC time for geographic fields (default: first snapshot)")
+    p.add_argument(
+        "--start-time",
+        default=None,
+        help="field time at boot: a number in the field's time units, or an ISO UTC time for geographic fields (default: first snapshot)",
+    )
     p.add_argument("--speedup", type=float, default=1.0, help="simulated seconds per wall second (default 1)")
-    p.add_argument("--lockstep", action="store_true",
-                   help="time stands still until a GCS sends COMMAND_LONG 31010 (MAV_CMD_USER_1) with param1 = seconds to run")
-    p.add_argument("--no-wait", action="store_true",
-                   help="start the clock at once (default with a tcp listener: hold it until the first TCP client connects, like SITL)")
+    p.add_argument(
+        "--lockstep",
+        action="store_true",
+        help="time stands still until a GCS sends COMMAND_LONG 31010 (MAV_CMD_USER_1) with param1 = seconds to run",
+    )
+    p.add_argument(
+        "--no-wait",
+        action="store_true",
+        help="start the clock at once (default with a tcp listener: hold it until the first TCP client connects, like SITL)",
+    )
     p.add_argument("--loss", type=float, default=0.0, help="frame loss probability each way (0..1)")
     p.add_argument("--latency", type=float, default=0.0, help="one-way latency, simulated seconds")
     p.add_argument("--baud", type=int, default=0, help="emulate a serial radio of this many bit/s (0 = unlimited)")
-    p.add_argument("--radio-buffer", type=int, default=0,
-                   help="the radio's transmit buffer, bytes: a frame that does not fit is dropped (0 = no limit; "
-                        "a SiK radio: 2048). A SiK-like radio: --baud 57600 --latency 0.1 --loss 0.03 --radio-buffer 2048")
-    p.add_argument("--drop", action="append", default=[], help="scheduled link outage START:DURATION (sim seconds); repeatable")
+    p.add_argument(
+        "--radio-buffer",
+        type=int,
+        default=0,
+        help="the radio's transmit buffer, bytes: a frame that does not fit is dropped (0 = no limit; "
+        "a SiK radio: 2048). A SiK-like radio: --baud 57600 --latency 0.1 --loss 0.03 --radio-buffer 2048",
+    )
+    p.add_argument(
+        "--drop", action="append", default=[], help="scheduled link outage START:DURATION (sim seconds); repeatable"
+    )
     p.add_argument("--seed", type=int, default=0, help="seed of link loss and sensor noise")
     p.add_argument("--current-noise", type=float, default=0.0, help="std of Gaussian noise on CUR_U/CUR_V, m/s")
     p.add_argument("--current-rate", type=float, default=1.0, help="CUR_U/CUR_V rate, Hz of simulated time (0 = off)")
-    p.add_argument("--gps-noise", type=float, default=0.0,
-                   help="std of the reported position's error, m per axis (Gauss-Markov, 60 s correlation; seeded by --seed)")
-    p.add_argument("--utc-at-boot", default=None,
-                   help="UTC of the vehicle clock at boot (SYSTEM_TIME): an ISO time, 'field' (the field's time at "
-                        "--start-time, so a controller mapping UTC samples the same hour), or 'none' (no clock: "
-                        "time_unix_usec stays 0); default: now")
-    p.add_argument("--nav", choices=("pursuit", "crosstrack"), default="pursuit",
-                   help="pursuit: crab not compensated (default); crosstrack: hold the line like L1")
+    p.add_argument(
+        "--gps-noise",
+        type=float,
+        default=0.0,
+        help="std of the reported position's error, m per axis (Gauss-Markov, 60 s correlation; seeded by --seed)",
+    )
+    p.add_argument(
+        "--utc-at-boot",
+        default=None,
+        help="UTC of the vehicle clock at boot (SYSTEM_TIME): an ISO time, 'field' (the field's time at "
+        "--start-time, so a controller mapping UTC samples the same hour), or 'none' (no clock: "
+        "time_unix_usec stays 0); default: now",
+    )
+    p.add_argument(
+        "--nav",
+        choices=("pursuit", "crosstrack"),
+        default="pursuit",
+        help="pursuit: crab not compensated (default); crosstrack: hold the line like L1",
+    )
     p.add_argument("--param", action="append", default=[], help="NAME=VALUE initial parameter; repeatable")
     p.add_argument("--signing-key", default=None, help="MAVLink 2 signing: 64 hex digits or a passphrase (sha256)")
     p.add_argument("--tlog", default=None, help="write a .tlog of everything sent and received")
@@ -161,9 +225,18 @@ def _load_field(args):
         import geo
 
         lat, lon = _latlon(args.anchor, "--anchor") if args.anchor else (g.anchor_lat, g.anchor_lon)
-        grid = geo.MetricRegionGrid(g.x0, g.x1, g.y0, g.y1, g.rows, g.cols, anchor_lat=lat, anchor_lon=lon,
-                                    rotation_deg=g.rotation_deg if args.rotation is None else args.rotation,
-                                    scale=g.scale if args.scale is None else args.scale)
+        grid = geo.MetricRegionGrid(
+            g.x0,
+            g.x1,
+            g.y0,
+            g.y1,
+            g.rows,
+            g.cols,
+            anchor_lat=lat,
+            anchor_lon=lon,
+            rotation_deg=g.rotation_deg if args.rotation is None else args.rotation,
+            scale=g.scale if args.scale is None else args.scale,
+        )
         from passt_mav.fields.field import FlowField
 
         field = FlowField(field.data, grid, field.times, field.time_origin, field.units, field.attrs)
@@ -340,9 +413,14 @@ def _run(args) -> int:
             raise _Bad(f"unknown parameter {k!r} in --param")
     base = SimConfig.fast() if args.fast_boot else SimConfig()
     cfg = base.replace(
-        seed=args.seed, current_noise_std=args.current_noise, current_rate_hz=args.current_rate,
-        gps_noise_m=args.gps_noise, utc_clock=(args.utc_at_boot or "").strip().lower() != "none",
-        boat=BoatParams(nav=args.nav), params=tuple(params), tlog=args.tlog,
+        seed=args.seed,
+        current_noise_std=args.current_noise,
+        current_rate_hz=args.current_rate,
+        gps_noise_m=args.gps_noise,
+        utc_clock=(args.utc_at_boot or "").strip().lower() != "none",
+        boat=BoatParams(nav=args.nav),
+        params=tuple(params),
+        tlog=args.tlog,
         signing_key=secret_from_key(args.signing_key) if args.signing_key else None,
     )
     drops = tuple(_drop(d) for d in args.drop)
@@ -352,10 +430,24 @@ def _run(args) -> int:
         p0 = dict(params + boat_params[0])
         # MAV_SYSID is the system id, as in a SITL params file (ArduPilot reads it at boot)
         cfg = cfg.replace(params=tuple(params + boat_params[0]), sysid=int(p0.get("MAV_SYSID", cfg.sysid)))
-        link_cfg = LinkConfig(loss=args.loss, latency_s=args.latency, baud=args.baud, buffer_bytes=args.radio_buffer,
-                              drops=drops + tuple(boat_drops[0]), seed=args.seed)
-        server = Simulator(field, home=home, config=cfg, velocity_scale=vs, time_scale=ts,
-                           start_time=start, link_config=link_cfg, epoch0=epoch0)
+        link_cfg = LinkConfig(
+            loss=args.loss,
+            latency_s=args.latency,
+            baud=args.baud,
+            buffer_bytes=args.radio_buffer,
+            drops=drops + tuple(boat_drops[0]),
+            seed=args.seed,
+        )
+        server = Simulator(
+            field,
+            home=home,
+            config=cfg,
+            velocity_scale=vs,
+            time_scale=ts,
+            start_time=start,
+            link_config=link_cfg,
+            epoch0=epoch0,
+        )
         boats = [server]
     else:
         from vehicle_sim.fleet import Fleet, boat_config
@@ -364,10 +456,27 @@ def _run(args) -> int:
             configs = [boat_config(cfg.replace(params=tuple(params + boat_params[i])), i) for i in range(n)]
         except ValueError as exc:
             raise _Bad(str(exc)) from None
-        link_cfgs = [LinkConfig(loss=args.loss, latency_s=args.latency, baud=args.baud, buffer_bytes=args.radio_buffer,
-                                drops=drops + tuple(boat_drops[i]), seed=args.seed + i) for i in range(n)]
-        server = Fleet(field, starts=starts, configs=configs, velocity_scale=vs, time_scale=ts, start_time=start,
-                       link_configs=link_cfgs, epoch0=epoch0)
+        link_cfgs = [
+            LinkConfig(
+                loss=args.loss,
+                latency_s=args.latency,
+                baud=args.baud,
+                buffer_bytes=args.radio_buffer,
+                drops=drops + tuple(boat_drops[i]),
+                seed=args.seed + i,
+            )
+            for i in range(n)
+        ]
+        server = Fleet(
+            field,
+            starts=starts,
+            configs=configs,
+            velocity_scale=vs,
+            time_scale=ts,
+            start_time=start,
+            link_configs=link_cfgs,
+            epoch0=epoch0,
+        )
         boats = server.boats
     stop = {"flag": False}
 
@@ -394,8 +503,12 @@ def _run(args) -> int:
             where = ", ".join(f"{s} (port {bound[s]})" if s.endswith(":0") and s in bound else s for s in specs)
             lat, lon = starts[i]
             who = "boat" if n == 1 else f"boat {i} (sysid {b.config.sysid})"
-            print(f"vehicle-sim: {who} at {lat:.6f},{lon:.6f}; listening on {where}; "
-                  f"speedup {args.speedup:g}" + (" (signed)" if cfg.signing_key else ""), file=sys.stderr, flush=True)
+            print(
+                f"vehicle-sim: {who} at {lat:.6f},{lon:.6f}; listening on {where}; "
+                f"speedup {args.speedup:g}" + (" (signed)" if cfg.signing_key else ""),
+                file=sys.stderr,
+                flush=True,
+            )
     try:
         last = 0.0
         while not stop["flag"] and server.running:
@@ -410,8 +523,11 @@ def _run(args) -> int:
                     ap = b.autopilot
                     lat, lon = ap.position()
                     who = "" if n == 1 else f"boat {i} "
-                    print(f"{who}t={ap.t:8.1f}s mode={MODE_NAMES.get(ap.mode, ap.mode)} armed={ap.armed} "
-                          f"pos={lat:.6f},{lon:.6f} links={len(b.links)}", file=sys.stderr)
+                    print(
+                        f"{who}t={ap.t:8.1f}s mode={MODE_NAMES.get(ap.mode, ap.mode)} armed={ap.armed} "
+                        f"pos={lat:.6f},{lon:.6f} links={len(b.links)}",
+                        file=sys.stderr,
+                    )
     except KeyboardInterrupt:
         pass
     finally:

@@ -37,8 +37,16 @@ class LinkConfig:
     buffer_bytes: int = 0
 
     @classmethod
-    def radio(cls, baud: int = 57600, *, latency_s: float = 0.1, loss: float = 0.03, buffer_bytes: int = 2048,
-              seed: int = 0, **kw) -> LinkConfig:
+    def radio(
+        cls,
+        baud: int = 57600,
+        *,
+        latency_s: float = 0.1,
+        loss: float = 0.03,
+        buffer_bytes: int = 2048,
+        seed: int = 0,
+        **kw,
+    ) -> LinkConfig:
         """A SiK-like telemetry radio (:mod:`vehicle_sim.radio`): ``baud``, 100 ms one way, 3 % loss, 2 kB buffer."""
         return cls(loss=loss, latency_s=latency_s, baud=baud, buffer_bytes=buffer_bytes, seed=seed, **kw)
 

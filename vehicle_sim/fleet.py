@@ -131,11 +131,21 @@ class Fleet(Clocked):
         epoch0: UTC epoch seconds at boot, the same for every boat (default: now).
     """
 
-    def __init__(self, field=None, *, starts: Sequence[tuple[float, float]], config: SimConfig | None = None,
-                 configs: Sequence[SimConfig] | None = None, velocity_scale: float = 1.0, time_scale: float = 1.0,
-                 start_time: float | None = None, uniform_current: tuple[float, float] = (0.0, 0.0),
-                 link_config: LinkConfig | None = None, link_configs: Sequence[LinkConfig] | None = None,
-                 epoch0: float | None = None):
+    def __init__(
+        self,
+        field=None,
+        *,
+        starts: Sequence[tuple[float, float]],
+        config: SimConfig | None = None,
+        configs: Sequence[SimConfig] | None = None,
+        velocity_scale: float = 1.0,
+        time_scale: float = 1.0,
+        start_time: float | None = None,
+        uniform_current: tuple[float, float] = (0.0, 0.0),
+        link_config: LinkConfig | None = None,
+        link_configs: Sequence[LinkConfig] | None = None,
+        epoch0: float | None = None,
+    ):
         n = len(starts)
         if n < 1:
             raise ValueError("a fleet needs at least one boat")
@@ -150,16 +160,23 @@ class Fleet(Clocked):
         if len(set(sysids)) != n:
             raise ValueError(f"two boats share a system id: {sysids}")
         self.field = field
-        self.current = CurrentModel(field, start_time=start_time, velocity_scale=velocity_scale,
-                                    time_scale=time_scale, uniform=uniform_current)
+        self.current = CurrentModel(
+            field, start_time=start_time, velocity_scale=velocity_scale, time_scale=time_scale, uniform=uniform_current
+        )
         self.epoch0 = time.time() if epoch0 is None else float(epoch0)
         self.physics_dt = configs[0].physics_dt
         # one lock for every boat: the serving thread and a client stepping a boat must not interleave
         self._lock = threading.RLock()
         self.boats: list[Simulator] = []
         for i, (home, cfg) in enumerate(zip(starts, configs)):
-            sim = Simulator(field, home=home, config=cfg, link_config=(link_configs[i] if link_configs else link_config),
-                            epoch0=self.epoch0, current=self.current)
+            sim = Simulator(
+                field,
+                home=home,
+                config=cfg,
+                link_config=(link_configs[i] if link_configs else link_config),
+                epoch0=self.epoch0,
+                current=self.current,
+            )
             sim._lock = self._lock
             sim._fleet = self
             self.boats.append(sim)
@@ -216,9 +233,15 @@ class Fleet(Clocked):
             b._close_entry(e)
 
     # -- serving ---------------------------------------------------------------------------
-    def serve(self, listen: Iterable[str] = (f"tcp:127.0.0.1:{BASE_PORT}",), speedup: float = 1.0,
-              wait_for_client: bool = False, poll_s: float = 0.002, lockstep: bool = False,
-              per_boat: Sequence[Sequence[str]] | None = None) -> None:
+    def serve(
+        self,
+        listen: Iterable[str] = (f"tcp:127.0.0.1:{BASE_PORT}",),
+        speedup: float = 1.0,
+        wait_for_client: bool = False,
+        poll_s: float = 0.002,
+        lockstep: bool = False,
+        per_boat: Sequence[Sequence[str]] | None = None,
+    ) -> None:
         """Serve every boat from one background thread (see :meth:`Simulator.serve` for the specs).
 
         ``listen``: the specs of boat 0; boat ``i`` gets each port + 10 * i (:func:`boat_listen`;
@@ -233,7 +256,11 @@ class Fleet(Clocked):
         if speedup <= 0:
             raise ValueError("speedup must be positive")
         listen = list(listen)
-        specs = [list(s) for s in per_boat] if per_boat is not None else [boat_listen(listen, i) for i in range(len(self.boats))]
+        specs = (
+            [list(s) for s in per_boat]
+            if per_boat is not None
+            else [boat_listen(listen, i) for i in range(len(self.boats))]
+        )
         if len(specs) != len(self.boats):
             raise ValueError(f"per_boat needs {len(self.boats)} lists of specs")
         opened = []
@@ -253,8 +280,9 @@ class Fleet(Clocked):
             b.running = True
         self._stop.clear()
         self.running = True
-        self._thread = threading.Thread(target=self._serve_loop, args=(speedup, wait_for_client, poll_s),
-                                        name="vehicle-sim-fleet", daemon=True)
+        self._thread = threading.Thread(
+            target=self._serve_loop, args=(speedup, wait_for_client, poll_s), name="vehicle-sim-fleet", daemon=True
+        )
         self._thread.start()
 
     def ports(self) -> list[list[tuple[str, int]]]:
@@ -360,8 +388,12 @@ class Fleet(Clocked):
             # has the ACK (on one boat's link) has everything the other boats said until now
             with self._lock:
                 for b, link, msg in acks:
-                    link.send(b.autopilot.MAVLINK.MAVLink_command_ack_message(
-                        STEP_COMMAND, 0, 0, 0, msg.get_srcSystem(), msg.get_srcComponent()), b.autopilot.clock)
+                    link.send(
+                        b.autopilot.MAVLINK.MAVLink_command_ack_message(
+                            STEP_COMMAND, 0, 0, 0, msg.get_srcSystem(), msg.get_srcComponent()
+                        ),
+                        b.autopilot.clock,
+                    )
                 for b in self.boats:
                     b._deliver_inprocess()
             self._flush()

@@ -41,8 +41,7 @@ class InProcessMavfile(mavutil.mavfile):
     def __init__(self, endpoint, source_system: int = 255, source_component: int = 0, autostep: float | None = None):
         self.endpoint = endpoint
         self.autostep = autostep
-        super().__init__(None, "inprocess", source_system=source_system, source_component=source_component,
-                         input=False)
+        super().__init__(None, "inprocess", source_system=source_system, source_component=source_component, input=False)
         # talk MAVLink 2 from the first byte, whatever mavutil's global dialect is
         self.mav = mavlink2.MAVLink(self, srcSystem=source_system, srcComponent=source_component, use_native=False)
         self.mav.robust_parsing = True

@@ -68,7 +68,7 @@ class TlogWriter:
     def __init__(self, path: str | Path, epoch0: float):
         self.path = Path(path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
-        self._f = open(self.path, "ab")
+        self._f = open(self.path, "ab")  # noqa: SIM115 - the telemetry log stays open for the link's life
         self._epoch0 = float(epoch0)
         self._lock = threading.Lock()
 
@@ -87,7 +87,7 @@ class TlogWriter:
 class _Writer:
     """File-like sink pymavlink's MAVLink writes packed frames into."""
 
-    def __init__(self, link: "Link"):
+    def __init__(self, link: Link):
         self._link = link
 
     def write(self, buf: bytes) -> None:
@@ -106,8 +106,17 @@ class Link:
         name: for logs ("tcp:127.0.0.1:5760 #2", "inprocess").
     """
 
-    def __init__(self, index: int, config: LinkConfig, *, sysid: int = 1, compid: int = 1,
-                 tlog: TlogWriter | None = None, signing_secret: bytes | None = None, name: str = ""):
+    def __init__(
+        self,
+        index: int,
+        config: LinkConfig,
+        *,
+        sysid: int = 1,
+        compid: int = 1,
+        tlog: TlogWriter | None = None,
+        signing_secret: bytes | None = None,
+        name: str = "",
+    ):
         self.index = int(index)
         self.config = config
         self.name = name or f"link{index}"

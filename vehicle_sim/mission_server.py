@@ -64,32 +64,32 @@ TYPES = (0, 1, 2)
 #   "" dropped (reads back 0)
 #: command -> (stores a location, kinds of param1..param4)
 STORED_FIELDS: dict[int, tuple[bool, tuple[str, str, str, str]]] = {
-    16: (True, ("u16", "", "", "")),          # NAV_WAYPOINT: hold time; acceptance radius is WP_RADIUS
-    17: (True, ("", "", "+u16", "")),         # NAV_LOITER_UNLIM
-    18: (True, ("u8", "", "+u8", "flag")),    # NAV_LOITER_TURNS
+    16: (True, ("u16", "", "", "")),  # NAV_WAYPOINT: hold time; acceptance radius is WP_RADIUS
+    17: (True, ("", "", "+u16", "")),  # NAV_LOITER_UNLIM
+    18: (True, ("u8", "", "+u8", "flag")),  # NAV_LOITER_TURNS
     19: (True, ("u16", "", "sign", "flag")),  # NAV_LOITER_TIME: the radius keeps only its direction
-    20: (False, ("", "", "", "")),            # NAV_RETURN_TO_LAUNCH
-    21: (True, ("u16", "", "", "sign")),      # NAV_LAND
-    22: (True, ("u16", "", "", "")),          # NAV_TAKEOFF
-    82: (True, ("u16", "", "", "")),          # NAV_SPLINE_WAYPOINT
-    93: (False, ("f", "i8", "i8", "i8")),     # NAV_DELAY
-    112: (False, ("f", "", "", "")),          # CONDITION_DELAY
-    114: (False, ("f", "", "", "")),          # CONDITION_DISTANCE
-    115: (False, ("f", "f", "i8", "u8")),     # CONDITION_YAW
-    177: (False, ("u16", "i16", "", "")),     # DO_JUMP
-    178: (False, ("u8", "f", "f", "")),       # DO_CHANGE_SPEED
-    179: (True, ("u16", "", "", "")),         # DO_SET_HOME
-    181: (False, ("u8", "u8", "", "")),       # DO_SET_RELAY
-    182: (False, ("u8", "i16", "f", "")),     # DO_REPEAT_RELAY
-    183: (False, ("u16", "u16", "", "")),     # DO_SET_SERVO
-    184: (False, ("u16", "u16", "i16", "f")), # DO_REPEAT_SERVO
-    189: (True, ("", "", "", "")),            # DO_LAND_START
-    194: (False, ("u16", "", "", "")),        # DO_SET_REVERSE
-    201: (True, ("u16", "", "", "")),         # DO_SET_ROI
-    206: (False, ("f", "", "", "")),          # DO_SET_CAM_TRIGG_DIST
-    207: (False, ("u16", "", "", "")),        # DO_FENCE_ENABLE
-    211: (False, ("u8", "u8", "", "")),       # DO_GRIPPER
-    215: (False, ("u16", "", "", "")),        # DO_SET_RESUME_REPEAT_DIST
+    20: (False, ("", "", "", "")),  # NAV_RETURN_TO_LAUNCH
+    21: (True, ("u16", "", "", "sign")),  # NAV_LAND
+    22: (True, ("u16", "", "", "")),  # NAV_TAKEOFF
+    82: (True, ("u16", "", "", "")),  # NAV_SPLINE_WAYPOINT
+    93: (False, ("f", "i8", "i8", "i8")),  # NAV_DELAY
+    112: (False, ("f", "", "", "")),  # CONDITION_DELAY
+    114: (False, ("f", "", "", "")),  # CONDITION_DISTANCE
+    115: (False, ("f", "f", "i8", "u8")),  # CONDITION_YAW
+    177: (False, ("u16", "i16", "", "")),  # DO_JUMP
+    178: (False, ("u8", "f", "f", "")),  # DO_CHANGE_SPEED
+    179: (True, ("u16", "", "", "")),  # DO_SET_HOME
+    181: (False, ("u8", "u8", "", "")),  # DO_SET_RELAY
+    182: (False, ("u8", "i16", "f", "")),  # DO_REPEAT_RELAY
+    183: (False, ("u16", "u16", "", "")),  # DO_SET_SERVO
+    184: (False, ("u16", "u16", "i16", "f")),  # DO_REPEAT_SERVO
+    189: (True, ("", "", "", "")),  # DO_LAND_START
+    194: (False, ("u16", "", "", "")),  # DO_SET_REVERSE
+    201: (True, ("u16", "", "", "")),  # DO_SET_ROI
+    206: (False, ("f", "", "", "")),  # DO_SET_CAM_TRIGG_DIST
+    207: (False, ("u16", "", "", "")),  # DO_FENCE_ENABLE
+    211: (False, ("u8", "u8", "", "")),  # DO_GRIPPER
+    215: (False, ("u16", "", "", "")),  # DO_SET_RESUME_REPEAT_DIST
 }
 #: frames a location command may use, and the frame it reads back in
 _LOCATION_FRAMES = {0: 0, 2: 0, 5: 0, 3: 3, 6: 3, 10: 10, 11: 10}
@@ -152,8 +152,19 @@ def firmware_form(item: Item, count: int) -> Item | int:
         frame, x, y, z = _LOCATION_FRAMES[item.frame], item.x, item.y, _as_f32(cm / 100.0)
     else:
         frame, x, y, z = 0, 0, 0, 0.0
-    return replace(item, frame=frame, current=0, autocontinue=1, param1=params[0], param2=params[1],
-                   param3=params[2], param4=params[3], x=x, y=y, z=z)
+    return replace(
+        item,
+        frame=frame,
+        current=0,
+        autocontinue=1,
+        param1=params[0],
+        param2=params[1],
+        param3=params[2],
+        param4=params[3],
+        x=x,
+        y=y,
+        z=z,
+    )
 
 
 @dataclass(frozen=True)
@@ -193,21 +204,60 @@ class Item:
             x, y = int(m.x), int(m.y)
         x = max(-(2**31), min(2**31 - 1, x))
         y = max(-(2**31), min(2**31 - 1, y))
-        return cls(int(m.seq), _INT_TO_PLAIN.get(frame, frame), int(m.command), int(m.current), int(m.autocontinue),
-                   float(m.param1), float(m.param2), float(m.param3), float(m.param4), x, y, float(m.z),
-                   int(getattr(m, "mission_type", 0)))
+        return cls(
+            int(m.seq),
+            _INT_TO_PLAIN.get(frame, frame),
+            int(m.command),
+            int(m.current),
+            int(m.autocontinue),
+            float(m.param1),
+            float(m.param2),
+            float(m.param3),
+            float(m.param4),
+            x,
+            y,
+            float(m.z),
+            int(getattr(m, "mission_type", 0)),
+        )
 
     def to_int_msg(self, target_system: int, target_component: int):
         return M.MAVLink_mission_item_int_message(
-            target_system, target_component, self.seq, self.frame, self.command, self.current, self.autocontinue,
-            self.param1, self.param2, self.param3, self.param4, self.x, self.y, self.z, self.mission_type)
+            target_system,
+            target_component,
+            self.seq,
+            self.frame,
+            self.command,
+            self.current,
+            self.autocontinue,
+            self.param1,
+            self.param2,
+            self.param3,
+            self.param4,
+            self.x,
+            self.y,
+            self.z,
+            self.mission_type,
+        )
 
     def to_float_msg(self, target_system: int, target_component: int):
         g = self.frame in GLOBAL_FRAMES
         return M.MAVLink_mission_item_message(
-            target_system, target_component, self.seq, self.frame, self.command, self.current, self.autocontinue,
-            self.param1, self.param2, self.param3, self.param4,
-            self.x / 1e7 if g else float(self.x), self.y / 1e7 if g else float(self.y), self.z, self.mission_type)
+            target_system,
+            target_component,
+            self.seq,
+            self.frame,
+            self.command,
+            self.current,
+            self.autocontinue,
+            self.param1,
+            self.param2,
+            self.param3,
+            self.param4,
+            self.x / 1e7 if g else float(self.x),
+            self.y / 1e7 if g else float(self.y),
+            self.z,
+            self.mission_type,
+        )
 
 
 class MissionStore:
@@ -222,8 +272,21 @@ class MissionStore:
 
     @staticmethod
     def home_item(lat: float, lon: float, alt: float) -> Item:
-        return Item(0, 0, M.MAV_CMD_NAV_WAYPOINT, 0, 1, 0.0, 0.0, 0.0, 0.0,
-                    int(round(lat * 1e7)), int(round(lon * 1e7)), float(alt), 0)
+        return Item(
+            0,
+            0,
+            M.MAV_CMD_NAV_WAYPOINT,
+            0,
+            1,
+            0.0,
+            0.0,
+            0.0,
+            0.0,
+            int(round(lat * 1e7)),
+            int(round(lon * 1e7)),
+            float(alt),
+            0,
+        )
 
     def set_home(self, lat: float, lon: float, alt: float) -> None:
         self.items[0][0] = self.home_item(lat, lon, alt)
@@ -277,9 +340,18 @@ class MissionServer:
             False stores them verbatim (settable later as the attribute of the same name).
     """
 
-    def __init__(self, store: MissionStore, config, send: Callable, text: Callable, home: Callable,
-                 on_change: Callable[[int], None] | None = None, sysid: int = 1, compid: int = 1,
-                 normalise: bool = True):
+    def __init__(
+        self,
+        store: MissionStore,
+        config,
+        send: Callable,
+        text: Callable,
+        home: Callable,
+        on_change: Callable[[int], None] | None = None,
+        sysid: int = 1,
+        compid: int = 1,
+        normalise: bool = True,
+    ):
         self.store, self.cfg = store, config
         self.normalise = bool(normalise)
         self._send, self._text, self._home = send, text, home
@@ -309,8 +381,18 @@ class MissionServer:
         return replace(it, seq=seq, current=0, mission_type=mtype)
 
     # -- message handling -----------------------------------------------------------
-    HANDLED = frozenset({"MISSION_COUNT", "MISSION_ITEM_INT", "MISSION_ITEM", "MISSION_REQUEST_LIST",
-                         "MISSION_REQUEST_INT", "MISSION_REQUEST", "MISSION_CLEAR_ALL", "MISSION_ACK"})
+    HANDLED = frozenset(
+        {
+            "MISSION_COUNT",
+            "MISSION_ITEM_INT",
+            "MISSION_ITEM",
+            "MISSION_REQUEST_LIST",
+            "MISSION_REQUEST_INT",
+            "MISSION_REQUEST",
+            "MISSION_CLEAR_ALL",
+            "MISSION_ACK",
+        }
+    )
 
     def handle(self, link, msg, t: float) -> bool:
         """Process one message; True if it was a mission-protocol message."""
@@ -409,8 +491,12 @@ class MissionServer:
         if mtype in self.uploads:
             self._ack(link, msg, mtype, M.MAV_MISSION_DENIED)
             return
-        self._send(link, M.MAVLink_mission_count_message(msg.get_srcSystem(), msg.get_srcComponent(),
-                                                         self.store.count(mtype), mtype))
+        self._send(
+            link,
+            M.MAVLink_mission_count_message(
+                msg.get_srcSystem(), msg.get_srcComponent(), self.store.count(mtype), mtype
+            ),
+        )
 
     def _download_item(self, link, msg, mtype, as_float: bool):
         if mtype in self.uploads:
@@ -479,7 +565,10 @@ class MissionServer:
             if t - up.last_rx > self.cfg.mission_timeout_s:
                 del self.uploads[mtype]
                 self._text(up.link, M.MAV_SEVERITY_WARNING, "Mission upload timeout")
-                self._send(up.link, M.MAVLink_mission_ack_message(up.sysid, up.compid, M.MAV_MISSION_OPERATION_CANCELLED, mtype))
+                self._send(
+                    up.link,
+                    M.MAVLink_mission_ack_message(up.sysid, up.compid, M.MAV_MISSION_OPERATION_CANCELLED, mtype),
+                )
                 self._on_change(mtype)
                 continue
             if up.want_request:

@@ -64,8 +64,9 @@ class RadioConfig:
         return self.baud / 10.0 if self.baud else float("inf")
 
 
-def queue_frame(t: float, nbytes: int, free_at: float, baud: int, buffer_bytes: int = 0,
-                max_queue_s: float = float("inf")) -> float | None:
+def queue_frame(
+    t: float, nbytes: int, free_at: float, baud: int, buffer_bytes: int = 0, max_queue_s: float = float("inf")
+) -> float | None:
     """When a frame of ``nbytes`` offered at time ``t`` has left the radio, or None when it is dropped.
 
     ``free_at``: when the radio finishes what it already holds (same clock as ``t``, s). The

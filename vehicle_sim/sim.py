@@ -172,16 +172,35 @@ class Simulator(Clocked):
         epoch0: UTC epoch seconds at boot (default: now).
     """
 
-    def __init__(self, field=None, *, home: tuple[float, float], config: SimConfig | None = None,
-                 velocity_scale: float = 1.0, time_scale: float = 1.0, start_time: float | None = None,
-                 uniform_current: tuple[float, float] = (0.0, 0.0), link_config: LinkConfig | None = None,
-                 epoch0: float | None = None, current: CurrentModel | None = None):
+    def __init__(
+        self,
+        field=None,
+        *,
+        home: tuple[float, float],
+        config: SimConfig | None = None,
+        velocity_scale: float = 1.0,
+        time_scale: float = 1.0,
+        start_time: float | None = None,
+        uniform_current: tuple[float, float] = (0.0, 0.0),
+        link_config: LinkConfig | None = None,
+        epoch0: float | None = None,
+        current: CurrentModel | None = None,
+    ):
         self.config = config or SimConfig()
         self.field = field
         # ``current``: a CurrentModel shared with other boats (a Fleet); it replaces the one
         # built from field/start_time/velocity_scale/time_scale/uniform_current
-        self.current = current if current is not None else CurrentModel(
-            field, start_time=start_time, velocity_scale=velocity_scale, time_scale=time_scale, uniform=uniform_current)
+        self.current = (
+            current
+            if current is not None
+            else CurrentModel(
+                field,
+                start_time=start_time,
+                velocity_scale=velocity_scale,
+                time_scale=time_scale,
+                uniform=uniform_current,
+            )
+        )
         self.link_config = link_config or LinkConfig()
         self.epoch0 = time.time() if epoch0 is None else float(epoch0)
         self.links: list[Link] = []
@@ -254,8 +273,12 @@ class Simulator(Clocked):
                 if data:
                     link.feed(data, ap.clock)
             for msg in link.pop_incoming(ap.clock):
-                if self._lockstep and msg.get_type() == "COMMAND_LONG" and msg.command == STEP_COMMAND \
-                        and msg.target_system in (0, self.config.sysid):
+                if (
+                    self._lockstep
+                    and msg.get_type() == "COMMAND_LONG"
+                    and msg.command == STEP_COMMAND
+                    and msg.target_system in (0, self.config.sysid)
+                ):
                     self._step_budget += max(0.0, float(msg.param1)) if msg.param1 == msg.param1 else 0.0
                     self._step_waiters.append((link, msg))
                     continue
@@ -276,8 +299,15 @@ class Simulator(Clocked):
         """A new link (channel); its index picks its MAVn_* stream parameters."""
         with self._lock:
             cfg = config or self.link_config
-            link = Link(self._next_index, cfg, sysid=self.config.sysid, compid=self.config.compid, tlog=self.tlog,
-                        signing_secret=self.config.signing_key, name=name)
+            link = Link(
+                self._next_index,
+                cfg,
+                sysid=self.config.sysid,
+                compid=self.config.compid,
+                tlog=self.tlog,
+                signing_secret=self.config.signing_key,
+                name=name,
+            )
             self._next_index += 1
             self.links.append(link)
             return link
@@ -299,8 +329,15 @@ class Simulator(Clocked):
             return ep
 
     # -- serving over sockets -------------------------------------------------------------
-    def serve(self, listen: Iterable[str] = (), speedup: float = 1.0, wait_for_client: bool = False,
-              link_configs: dict[str, LinkConfig] | None = None, poll_s: float = 0.002, lockstep: bool = False) -> None:
+    def serve(
+        self,
+        listen: Iterable[str] = (),
+        speedup: float = 1.0,
+        wait_for_client: bool = False,
+        link_configs: dict[str, LinkConfig] | None = None,
+        poll_s: float = 0.002,
+        lockstep: bool = False,
+    ) -> None:
         """Run in a background thread: simulated time = ``speedup`` x wall time.
 
         ``lockstep``: the clock stands still (messages are still answered at the
@@ -323,8 +360,9 @@ class Simulator(Clocked):
         self._stop.clear()
         self.running = True
         self._lockstep = bool(lockstep)
-        self._thread = threading.Thread(target=self._serve_loop, args=(speedup, wait_for_client, poll_s),
-                                        name="vehicle-sim", daemon=True)
+        self._thread = threading.Thread(
+            target=self._serve_loop, args=(speedup, wait_for_client, poll_s), name="vehicle-sim", daemon=True
+        )
         self._thread.start()
 
     def _open_listeners(self, listen: Iterable[str], link_configs: dict[str, LinkConfig] | None) -> None:
@@ -402,8 +440,12 @@ class Simulator(Clocked):
             if self._step_budget <= 1e-9 and self._step_waiters:
                 self._step_budget = 0.0
                 for link, msg in self._step_waiters:
-                    link.send(self.autopilot.MAVLINK.MAVLink_command_ack_message(
-                        STEP_COMMAND, 0, 0, 0, msg.get_srcSystem(), msg.get_srcComponent()), self.autopilot.clock)
+                    link.send(
+                        self.autopilot.MAVLINK.MAVLink_command_ack_message(
+                            STEP_COMMAND, 0, 0, 0, msg.get_srcSystem(), msg.get_srcComponent()
+                        ),
+                        self.autopilot.clock,
+                    )
                 self._step_waiters.clear()
             self._deliver_inprocess()
         self._flush_sockets()
@@ -536,6 +578,6 @@ def _split_frames(data: bytes) -> list[bytes]:
         else:
             out.append(data[i:])
             break
-        out.append(data[i:i + ln])
+        out.append(data[i : i + ln])
         i += ln
     return out

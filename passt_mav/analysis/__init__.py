@@ -14,8 +14,12 @@ from __future__ import annotations
 
 __all__ = ["replay", "write_report", "load_run", "lawnmower_counterfactual"]
 
-_WHERE = {"replay": "replay", "write_report": "report", "load_run": "report",
-          "lawnmower_counterfactual": "counterfactual"}
+_WHERE = {
+    "replay": "replay",
+    "write_report": "report",
+    "load_run": "report",
+    "lawnmower_counterfactual": "counterfactual",
+}
 
 
 def __getattr__(name: str):

@@ -23,7 +23,9 @@ import numpy as np
 __all__ = ["lawnmower_counterfactual", "same_loop_counterfactual"]
 
 
-def lawnmower_counterfactual(field, legs: list[dict], *, path_length: int, start_cell, noise_std: float = 0.02, seed: int = 0, gp_seed: int = 0) -> list[float | None]:
+def lawnmower_counterfactual(
+    field, legs: list[dict], *, path_length: int, start_cell, noise_std: float = 0.02, seed: int = 0, gp_seed: int = 0
+) -> list[float | None]:
     """RMSE (field units) of a lawnmower+GP survey at the end of each of ``legs``.
 
     ``legs``: the run's leg records (``t_start``, ``t_end`` in field time units, in
@@ -34,7 +36,16 @@ def lawnmower_counterfactual(field, legs: list[dict], *, path_length: int, start
     from passt_mav.passt import FieldSampler, PasstLoop
 
     land = field.land_mask
-    loop = PasstLoop(None, field.grid, planner="lawnmower", path_length=int(path_length), prior="none", land=land, gp_kw={"seed": gp_seed}, seed=seed)
+    loop = PasstLoop(
+        None,
+        field.grid,
+        planner="lawnmower",
+        path_length=int(path_length),
+        prior="none",
+        land=land,
+        gp_kw={"seed": gp_seed},
+        seed=seed,
+    )
     sampler = FieldSampler(field, noise_std=noise_std, seed=seed + 7919, steps_per_leg=1, sample_at="spread")
     state = np.zeros((2,) + field.grid.shape, np.float32)  # no knowledge before the first samples
     state[:, land] = np.nan
@@ -69,7 +80,9 @@ def _fly_legs(loop, sampler, field, legs: list[dict], state, t_state: float, sta
     return out
 
 
-def same_loop_counterfactual(config, field, predictor, legs: list[dict], *, planner: str = "random", start_cell=None) -> list[float | None]:
+def same_loop_counterfactual(
+    config, field, predictor, legs: list[dict], *, planner: str = "random", start_cell=None
+) -> list[float | None]:
     """RMSE (field units) at the end of each of ``legs`` of the run's OWN loop with another planner.
 
     The same model (``predictor``), the same GP (the mission's options, its background and
@@ -87,7 +100,9 @@ def same_loop_counterfactual(config, field, predictor, legs: list[dict], *, plan
     cfg = config.model_copy(update={"planner": config.planner.model_copy(update={"name": planner, "options": {}})})
     land = field.land_mask
     loop = build_loop(cfg, predictor, field.grid, land=land)
-    sampler = FieldSampler(field, noise_std=config.sensors.noise_std, seed=config.seeds.sensor + 7919, steps_per_leg=1, sample_at="spread")
+    sampler = FieldSampler(
+        field, noise_std=config.sensors.noise_std, seed=config.seeds.sensor + 7919, steps_per_leg=1, sample_at="spread"
+    )
     state = np.array(field.data[config.t0], dtype=np.float32)
     state[:, land] = np.nan
     start = start_cell or config.start_cell or (field.grid.rows // 2, field.grid.cols // 2)

@@ -59,16 +59,28 @@ import numpy as np
 from passt_mav.errors import UserError
 from passt_mav.runs.rundir import RunDir, RunDirError
 
-__all__ = ["FORMATS", "ExportError", "RunData", "load_run", "export_run", "default_name", "source_commit",
-           "estimate_dataset", "samples_dataset", "write_atomic"]
+__all__ = [
+    "FORMATS",
+    "ExportError",
+    "RunData",
+    "load_run",
+    "export_run",
+    "default_name",
+    "source_commit",
+    "estimate_dataset",
+    "samples_dataset",
+    "write_atomic",
+]
 
 #: formats of :func:`export_run`
 FORMATS = ("netcdf", "geojson", "kml", "csv")
 _EPOCH_UNITS = "seconds since 1970-01-01T00:00:00Z"
-_STD_COMMENT = ("the GP's predictive standard deviation at the cell as the PASST loop computes it (scikit-learn's "
-                "convention: it includes the sensor-noise (WhiteKernel) variance, so it never falls below the fitted "
-                "noise level, which it equals everywhere when the leg's samples showed no signal beyond noise); it "
-                "is the uncertainty of the GP's correction to the model forecast, not of the forecast itself")
+_STD_COMMENT = (
+    "the GP's predictive standard deviation at the cell as the PASST loop computes it (scikit-learn's "
+    "convention: it includes the sensor-noise (WhiteKernel) variance, so it never falls below the fitted "
+    "noise level, which it equals everywhere when the leg's samples showed no signal beyond noise); it "
+    "is the uncertainty of the GP's correction to the model forecast, not of the forecast itself"
+)
 
 
 class ExportError(UserError):
@@ -164,7 +176,9 @@ def source_commit() -> str:
     if not (root / ".git").exists():
         return "unknown"
     try:
-        r = subprocess.run(["git", "-C", str(root), "rev-parse", "HEAD"], capture_output=True, text=True, timeout=5, check=False)
+        r = subprocess.run(
+            ["git", "-C", str(root), "rev-parse", "HEAD"], capture_output=True, text=True, timeout=5, check=False
+        )
     except (OSError, subprocess.SubprocessError):
         return "unknown"
     sha = r.stdout.strip()
@@ -182,7 +196,7 @@ def _global_attrs(run: RunData, title: str, summary: str, command: str) -> dict[
         "title": title,
         "summary": summary,
         "source": f"passt_mav {__version__} PASST mission controller (GP reconstruction of current samples "
-                  "taken by ArduPilot Rover boats over MAVLink)",
+        "taken by ArduPilot Rover boats over MAVLink)",
         "history": f"{now} {command}",
         "date_created": now,
         "institution": "unknown",
@@ -202,15 +216,22 @@ def _global_attrs(run: RunData, title: str, summary: str, command: str) -> dict[
 def _geo_extent(attrs: dict, lat: np.ndarray, lon: np.ndarray) -> None:
     lat, lon = np.asarray(lat, float), np.asarray(lon, float)
     if lat.size:
-        attrs.update(geospatial_lat_min=float(np.nanmin(lat)), geospatial_lat_max=float(np.nanmax(lat)),
-                     geospatial_lon_min=float(np.nanmin(lon)), geospatial_lon_max=float(np.nanmax(lon)),
-                     geospatial_lat_units="degrees_north", geospatial_lon_units="degrees_east")
+        attrs.update(
+            geospatial_lat_min=float(np.nanmin(lat)),
+            geospatial_lat_max=float(np.nanmax(lat)),
+            geospatial_lon_min=float(np.nanmin(lon)),
+            geospatial_lon_max=float(np.nanmax(lon)),
+            geospatial_lat_units="degrees_north",
+            geospatial_lon_units="degrees_east",
+        )
 
 
 def _time_extent(attrs: dict, epoch_s: np.ndarray) -> None:
     if epoch_s.size:
-        iso = [_dt.datetime.fromtimestamp(float(x), _dt.UTC).strftime("%Y-%m-%dT%H:%M:%SZ")
-               for x in (np.min(epoch_s), np.max(epoch_s))]
+        iso = [
+            _dt.datetime.fromtimestamp(float(x), _dt.UTC).strftime("%Y-%m-%dT%H:%M:%SZ")
+            for x in (np.min(epoch_s), np.max(epoch_s))
+        ]
         attrs.update(time_coverage_start=iso[0], time_coverage_end=iso[1])
 
 
@@ -246,9 +267,11 @@ def _estimates(run: RunData) -> tuple[list, list[dict], list[str]]:
     kept, notes = [], []
     for item in found:
         if kept and item[0] == kept[-1][0]:
-            notes.append(f"leg {int(kept[-1][4].get('index', -1))}'s estimate at the same time as leg "
-                         f"{int(item[4].get('index', -1))}'s is left out (the later is the fleet's newest "
-                         "estimate at that time)")
+            notes.append(
+                f"leg {int(kept[-1][4].get('index', -1))}'s estimate at the same time as leg "
+                f"{int(item[4].get('index', -1))}'s is left out (the later is the fleet's newest "
+                "estimate at that time)"
+            )
             kept[-1] = item
         else:
             kept.append(item)
@@ -271,15 +294,29 @@ def estimate_dataset(run: RunData, command: str = "passt-mav export"):
     dims, coords, crs = _grid_coords(f0)
     epoch = _epoch_of_field_times(f0.time_origin, t_field)
     if epoch is not None:
-        coords["time"] = ("time", epoch, {"standard_name": "time", "long_name": "field time of the estimate (UTC)",
-                                          "units": _EPOCH_UNITS, "calendar": "standard", "axis": "T"})
+        coords["time"] = (
+            "time",
+            epoch,
+            {
+                "standard_name": "time",
+                "long_name": "field time of the estimate (UTC)",
+                "units": _EPOCH_UNITS,
+                "calendar": "standard",
+                "axis": "T",
+            },
+        )
     else:
-        coords["time"] = ("time", t_field, {"units": "1", "long_name": "field time of the estimate (non-dimensional: "
-                                            "the field has no UTC origin)"})
+        coords["time"] = (
+            "time",
+            t_field,
+            {"units": "1", "long_name": "field time of the estimate (non-dimensional: the field has no UTC origin)"},
+        )
     geographic = f0.is_geographic and f0.units == "m s-1"
     dvars: dict[str, Any] = {}
-    for k, name, std_name, word in ((0, "u", "eastward_sea_water_velocity", "eastward"),
-                                    (1, "v", "northward_sea_water_velocity", "northward")):
+    for k, name, std_name, word in (
+        (0, "u", "eastward_sea_water_velocity", "eastward"),
+        (1, "v", "northward_sea_water_velocity", "northward"),
+    ):
         a = {"units": f0.units, "long_name": f"{word} current, GP estimate after the leg", "grid_mapping": "crs"}
         if geographic:
             a["standard_name"] = std_name
@@ -296,13 +333,23 @@ def estimate_dataset(run: RunData, command: str = "passt-mav export"):
             dvars[f"{name}_std"] = (dims, std[:, k], sa)
         dvars[name] = (dims, data[:, k], a)
     dvars["crs"] = ((), np.int32(0), crs)
-    dvars["leg"] = ("time", np.array([int(r.get("index", -1)) for r in recs], np.int32),
-                    {"long_name": "index of the leg (0-based) whose samples made this estimate", "units": "1"})
-    dvars["boat"] = ("time", np.array([int(r.get("boat", 0) or 0) for r in recs], np.int32),
-                     {"long_name": "boat (0-based) that flew the leg", "units": "1"})
-    attrs = _global_attrs(run, f"PASST field estimate of run {run.name}",
-                          "Gaussian-process estimate of the surface current after each leg of a PASST adaptive "
-                          "sampling mission, on the mission grid, with its posterior standard deviation.", command)
+    dvars["leg"] = (
+        "time",
+        np.array([int(r.get("index", -1)) for r in recs], np.int32),
+        {"long_name": "index of the leg (0-based) whose samples made this estimate", "units": "1"},
+    )
+    dvars["boat"] = (
+        "time",
+        np.array([int(r.get("boat", 0) or 0) for r in recs], np.int32),
+        {"long_name": "boat (0-based) that flew the leg", "units": "1"},
+    )
+    attrs = _global_attrs(
+        run,
+        f"PASST field estimate of run {run.name}",
+        "Gaussian-process estimate of the surface current after each leg of a PASST adaptive "
+        "sampling mission, on the mission grid, with its posterior standard deviation.",
+        command,
+    )
     attrs["cdm_data_type"] = "Grid"
     attrs["field_time_origin"] = str(f0.time_origin or "none (non-dimensional field time)")
     attrs["passt_grid"] = __import__("json").dumps(g.describe())
@@ -321,23 +368,42 @@ def _grid_coords(f) -> tuple[tuple, dict, dict]:
     """(dims of u/v, coordinate variables, crs attributes) of a field's grid: 1-D lat/lon (deg) for a
     geographic grid; data-frame x/y (m) with 2-D lat/lon auxiliary coordinates for a metric one."""
     g = f.grid
-    wgs84 = {"grid_mapping_name": "latitude_longitude", "semi_major_axis": 6378137.0,
-             "inverse_flattening": 298.257223563, "longitude_of_prime_meridian": 0.0,
-             "long_name": "WGS84 geographic coordinates"}
+    wgs84 = {
+        "grid_mapping_name": "latitude_longitude",
+        "semi_major_axis": 6378137.0,
+        "inverse_flattening": 298.257223563,
+        "longitude_of_prime_meridian": 0.0,
+        "long_name": "WGS84 geographic coordinates",
+    }
     lat_a = {"standard_name": "latitude", "units": "degrees_north", "long_name": "cell-centre latitude"}
     lon_a = {"standard_name": "longitude", "units": "degrees_east", "long_name": "cell-centre longitude"}
     if f.is_geographic:
-        return (("time", "lat", "lon"), {"lat": ("lat", np.asarray(g.lats, float), {**lat_a, "axis": "Y"}),
-                                         "lon": ("lon", np.asarray(g.lons, float), {**lon_a, "axis": "X"})}, wgs84)
+        return (
+            ("time", "lat", "lon"),
+            {
+                "lat": ("lat", np.asarray(g.lats, float), {**lat_a, "axis": "Y"}),
+                "lon": ("lon", np.asarray(g.lons, float), {**lon_a, "axis": "X"}),
+            },
+            wgs84,
+        )
     rr, cc = np.meshgrid(np.arange(g.rows), np.arange(g.cols), indexing="ij")
     la, lo = (np.asarray(x, float) for x in g.cell_to_latlon(rr, cc))
     # data-frame metres are no projection coordinates (scaled and rotated onto the sea): no axis or
     # standard name, the 2-D lat/lon auxiliary coordinates place the cells
-    coords = {"y": ("y", np.asarray(g.ys, float), {"units": "m",
-                    "long_name": "cell-centre y in the field's data frame (before scale and rotation)"}),
-              "x": ("x", np.asarray(g.xs, float), {"units": "m",
-                    "long_name": "cell-centre x in the field's data frame (before scale and rotation)"}),
-              "lat": (("y", "x"), la, lat_a), "lon": (("y", "x"), lo, lon_a)}
+    coords = {
+        "y": (
+            "y",
+            np.asarray(g.ys, float),
+            {"units": "m", "long_name": "cell-centre y in the field's data frame (before scale and rotation)"},
+        ),
+        "x": (
+            "x",
+            np.asarray(g.xs, float),
+            {"units": "m", "long_name": "cell-centre x in the field's data frame (before scale and rotation)"},
+        ),
+        "lat": (("y", "x"), la, lat_a),
+        "lon": (("y", "x"), lo, lon_a),
+    }
     return ("time", "y", "x"), coords, wgs84
 
 
@@ -349,9 +415,17 @@ def sample_table(run: RunData) -> dict[str, np.ndarray]:
 
     s = run.samples
     c = sample_columns(s)  # time_boot_ms float64 (exact ms below 2**53): CF 1.8 has no int64
-    cols = {"utc": c["utc"], "lat": c["lat"], "lon": c["lon"], "u": c["u"], "v": c["v"],
-            "boat": np.array([run.boat_of[x.source] for x in s], np.int32), "leg": c["leg"].astype(np.int32),
-            "time_boot_ms": c["time_boot_ms"], "boot": c["boot"].astype(np.int32)}
+    cols = {
+        "utc": c["utc"],
+        "lat": c["lat"],
+        "lon": c["lon"],
+        "u": c["u"],
+        "v": c["v"],
+        "boat": np.array([run.boat_of[x.source] for x in s], np.int32),
+        "leg": c["leg"].astype(np.int32),
+        "time_boot_ms": c["time_boot_ms"],
+        "boot": c["boot"].astype(np.int32),
+    }
     order = np.lexsort((np.arange(len(s)), cols["utc"], cols["boat"]))
     return {k: v[order] for k, v in cols.items()}
 
@@ -367,31 +441,109 @@ def samples_dataset(run: RunData, command: str = "passt-mav export --samples"):
     rows = np.array([int(np.count_nonzero(c["boat"] == b)) for b in boats], np.int32)
     obs = {"coordinates": "time lat lon", "platform": "platform"}
     dv: dict[str, Any] = {
-        "trajectory": ("trajectory", boats, {"cf_role": "trajectory_id", "long_name": "boat (0-based) of the track",
-                                             "comment": "a fleet's boat I is MAVLink system id I+1"}),
+        "trajectory": (
+            "trajectory",
+            boats,
+            {
+                "cf_role": "trajectory_id",
+                "long_name": "boat (0-based) of the track",
+                "comment": "a fleet's boat I is MAVLink system id I+1",
+            },
+        ),
         "rowSize": ("trajectory", rows, {"sample_dimension": "obs", "long_name": "number of samples of this boat"}),
-        "u": ("obs", c["u"], {**obs, "standard_name": "eastward_sea_water_velocity", "units": "m s-1",
-                              "long_name": "eastward current measured by the boat"}),
-        "v": ("obs", c["v"], {**obs, "standard_name": "northward_sea_water_velocity", "units": "m s-1",
-                              "long_name": "northward current measured by the boat"}),
-        "leg": ("obs", c["leg"], {"coordinates": "time lat lon", "units": "1",
-                                  "long_name": "leg index (0-based) the sample was taken in; -1: outside any leg"}),
-        "time_boot_ms": ("obs", c["time_boot_ms"], {"units": "ms", "coordinates": "time lat lon",
-                                                    "long_name": "autopilot time since boot of the reading"}),
-        "boot": ("obs", c["boot"], {"units": "1", "coordinates": "time lat lon",
-                                    "long_name": "autopilot boot counter (bumped when time_boot_ms jumps back)"}),
-        "platform": ((), np.int32(0), {"long_name": f"passt_mav boats of mission {run.name}",
-                                       "type": "unmanned surface vehicle", "comment": "ArduPilot Rover (boat frame)"}),
+        "u": (
+            "obs",
+            c["u"],
+            {
+                **obs,
+                "standard_name": "eastward_sea_water_velocity",
+                "units": "m s-1",
+                "long_name": "eastward current measured by the boat",
+            },
+        ),
+        "v": (
+            "obs",
+            c["v"],
+            {
+                **obs,
+                "standard_name": "northward_sea_water_velocity",
+                "units": "m s-1",
+                "long_name": "northward current measured by the boat",
+            },
+        ),
+        "leg": (
+            "obs",
+            c["leg"],
+            {
+                "coordinates": "time lat lon",
+                "units": "1",
+                "long_name": "leg index (0-based) the sample was taken in; -1: outside any leg",
+            },
+        ),
+        "time_boot_ms": (
+            "obs",
+            c["time_boot_ms"],
+            {"units": "ms", "coordinates": "time lat lon", "long_name": "autopilot time since boot of the reading"},
+        ),
+        "boot": (
+            "obs",
+            c["boot"],
+            {
+                "units": "1",
+                "coordinates": "time lat lon",
+                "long_name": "autopilot boot counter (bumped when time_boot_ms jumps back)",
+            },
+        ),
+        "platform": (
+            (),
+            np.int32(0),
+            {
+                "long_name": f"passt_mav boats of mission {run.name}",
+                "type": "unmanned surface vehicle",
+                "comment": "ArduPilot Rover (boat frame)",
+            },
+        ),
     }
-    coords = {"time": ("obs", c["utc"], {"standard_name": "time", "units": _EPOCH_UNITS, "calendar": "standard",
-                                         "axis": "T", "long_name": "UTC time the sample was received"}),
-              "lat": ("obs", c["lat"], {"standard_name": "latitude", "units": "degrees_north", "axis": "Y",
-                                        "long_name": "boat latitude at the reading (WGS84)"}),
-              "lon": ("obs", c["lon"], {"standard_name": "longitude", "units": "degrees_east", "axis": "X",
-                                        "long_name": "boat longitude at the reading (WGS84)"})}
-    attrs = _global_attrs(run, f"PASST current samples of run {run.name}",
-                          "Surface-current samples taken by the boats of a PASST adaptive sampling mission, one "
-                          "trajectory per boat (CF contiguous ragged array).", command)
+    coords = {
+        "time": (
+            "obs",
+            c["utc"],
+            {
+                "standard_name": "time",
+                "units": _EPOCH_UNITS,
+                "calendar": "standard",
+                "axis": "T",
+                "long_name": "UTC time the sample was received",
+            },
+        ),
+        "lat": (
+            "obs",
+            c["lat"],
+            {
+                "standard_name": "latitude",
+                "units": "degrees_north",
+                "axis": "Y",
+                "long_name": "boat latitude at the reading (WGS84)",
+            },
+        ),
+        "lon": (
+            "obs",
+            c["lon"],
+            {
+                "standard_name": "longitude",
+                "units": "degrees_east",
+                "axis": "X",
+                "long_name": "boat longitude at the reading (WGS84)",
+            },
+        ),
+    }
+    attrs = _global_attrs(
+        run,
+        f"PASST current samples of run {run.name}",
+        "Surface-current samples taken by the boats of a PASST adaptive sampling mission, one "
+        "trajectory per boat (CF contiguous ragged array).",
+        command,
+    )
     attrs.update(featureType="trajectory", cdm_data_type="Trajectory", cdm_trajectory_variables="trajectory")
     _geo_extent(attrs, c["lat"], c["lon"])
     _time_extent(attrs, c["utc"])
@@ -435,12 +587,17 @@ def _write_netcdf(ds, path: Path) -> None:
 
 def default_name(fmt: str, samples: bool = False) -> str:
     """The file name an export gets under ``RUN_DIR/export/`` without ``--out``."""
-    return {"netcdf": "samples.nc" if samples else "estimate.nc", "geojson": "run.geojson", "kml": "run.kml",
-            "csv": "samples.csv"}[fmt]
+    return {
+        "netcdf": "samples.nc" if samples else "estimate.nc",
+        "geojson": "run.geojson",
+        "kml": "run.kml",
+        "csv": "samples.csv",
+    }[fmt]
 
 
-def export_run(run_dir: str | Path, fmt: str, out: str | Path | None = None, *, samples: bool = False,
-               command: str | None = None) -> tuple[Path, dict]:
+def export_run(
+    run_dir: str | Path, fmt: str, out: str | Path | None = None, *, samples: bool = False, command: str | None = None
+) -> tuple[Path, dict]:
     """Export a run directory in ``fmt`` (:data:`FORMATS`) to ``out`` (default ``RUN_DIR/export/NAME``,
     an existing folder gets NAME inside it). Returns ``(path written, summary dict of counts)``."""
     from passt_mav.analysis import export_geo
@@ -457,15 +614,20 @@ def export_run(run_dir: str | Path, fmt: str, out: str | Path | None = None, *, 
     out = Path(out)
     if out.is_dir():
         out = out / default_name(fmt, samples)
-    command = command or (f"passt-mav export {run.rd.root} --format {fmt}" + (" --samples" if samples else "")
-                          + f" --out {out}")
+    command = command or (
+        f"passt-mav export {run.rd.root} --format {fmt}" + (" --samples" if samples else "") + f" --out {out}"
+    )
     if fmt == "netcdf":
         ds = samples_dataset(run, command) if samples else estimate_dataset(run, command)
         write_atomic(out, lambda p: _write_netcdf(ds, p))
-        info = ({"trajectories": int(ds.sizes["trajectory"]), "samples": int(ds.sizes["obs"])} if samples else
-                {"legs": int(ds["leg"].size), "posterior_std": "u_std" in ds})
+        info = (
+            {"trajectories": int(ds.sizes["trajectory"]), "samples": int(ds.sizes["obs"])}
+            if samples
+            else {"legs": int(ds["leg"].size), "posterior_std": "u_std" in ds}
+        )
     else:
-        text, info = {"geojson": export_geo.geojson_text, "kml": export_geo.kml_text,
-                      "csv": export_geo.csv_text}[fmt](run)
+        text, info = {"geojson": export_geo.geojson_text, "kml": export_geo.kml_text, "csv": export_geo.csv_text}[fmt](
+            run
+        )
         write_atomic(out, lambda p: p.write_text(text, encoding="utf-8"))
     return out, {"out": str(out), "format": fmt, "samples": samples, **info}

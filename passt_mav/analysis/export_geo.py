@@ -52,8 +52,11 @@ def features(run) -> list[dict[str, Any]]:
         for b in np.unique(c["boat"]):
             k = c["boat"] == b
             pts = _pos(c["lat"][k], c["lon"][k])
-            geom = ({"type": "LineString", "coordinates": pts} if len(pts) >= 2
-                    else {"type": "Point", "coordinates": pts[0]})
+            geom = (
+                {"type": "LineString", "coordinates": pts}
+                if len(pts) >= 2
+                else {"type": "Point", "coordinates": pts[0]}
+            )
             out.append(_feature(geom, kind="track", boat=int(b), n_samples=int(k.sum())))
     g = run.grid
     for rec in run.legs:
@@ -61,16 +64,32 @@ def features(run) -> list[dict[str, Any]]:
         path = np.asarray(rec.get("path") or [], int).reshape(-1, 2)
         if len(path) >= 2:
             lat, lon = g.cell_to_latlon(path[:, 0], path[:, 1])
-            out.append(_feature({"type": "LineString", "coordinates": _pos(lat, lon)}, kind="planned_path", leg=i,
-                                boat=boat, cells=path.tolist(), status=str(rec.get("status", ""))))
+            out.append(
+                _feature(
+                    {"type": "LineString", "coordinates": _pos(lat, lon)},
+                    kind="planned_path",
+                    leg=i,
+                    boat=boat,
+                    cells=path.tolist(),
+                    status=str(rec.get("status", "")),
+                )
+            )
         seqs = rec.get("waypoint_seqs") or []
         for j, wp in enumerate(rec.get("waypoints") or []):
-            out.append(_feature({"type": "Point", "coordinates": _pos(wp[0], wp[1])[0]}, kind="waypoint", leg=i,
-                                boat=boat, seq=int(seqs[j]) if j < len(seqs) else j + 1))
+            out.append(
+                _feature(
+                    {"type": "Point", "coordinates": _pos(wp[0], wp[1])[0]},
+                    kind="waypoint",
+                    leg=i,
+                    boat=boat,
+                    seq=int(seqs[j]) if j < len(seqs) else j + 1,
+                )
+            )
     ring = g.geofence(run.margin_m)
     coords = _pos(ring[:, 0], ring[:, 1])
-    out.append(_feature({"type": "Polygon", "coordinates": [coords + [coords[0]]]}, kind="geofence",
-                        margin_m=run.margin_m))
+    out.append(
+        _feature({"type": "Polygon", "coordinates": [coords + [coords[0]]]}, kind="geofence", margin_m=run.margin_m)
+    )
     return out
 
 
@@ -119,8 +138,12 @@ def _placemark(ET, folder, f: dict) -> None:
     """One KML Placemark (name, description, style, geometry) for a GeoJSON feature."""
     p, g = f["properties"], f["geometry"]
     pm = ET.SubElement(folder, _k("Placemark"))
-    name = {"track": f"boat {p.get('boat')} track", "planned_path": f"leg {p.get('leg')} planned path",
-            "waypoint": f"leg {p.get('leg')} waypoint seq {p.get('seq')}", "geofence": "geofence"}[p["kind"]]
+    name = {
+        "track": f"boat {p.get('boat')} track",
+        "planned_path": f"leg {p.get('leg')} planned path",
+        "waypoint": f"leg {p.get('leg')} waypoint seq {p.get('seq')}",
+        "geofence": "geofence",
+    }[p["kind"]]
     ET.SubElement(pm, _k("name")).text = name
     ET.SubElement(pm, _k("description")).text = json.dumps({k: v for k, v in p.items() if k != "cells"})
     if "boat" in p and g["type"] == "LineString":

@@ -53,7 +53,6 @@ from passt_mav.runs.legs import LoggedLeg, LogRebuild, rebuild_from_tlog  # noqa
 __all__ = ["ReplayError", "ReplayLeg", "ReplayResult", "waypoints_to_path", "replay"]
 
 
-
 class ReplayError(UserError):
     """The replay's input is missing, not a run, or does not hold what a replay needs."""
 
@@ -121,8 +120,12 @@ def _search_clock(step, clock, state, t_state, legs, starts, paths, budget: int 
                 return [cand] + rest
         return None
 
-    return dfs(0, copy.deepcopy(step, {id(step.loop.predictor): step.loop.predictor, id(step.field): step.field}),
-               state, t_state)
+    return dfs(
+        0,
+        copy.deepcopy(step, {id(step.loop.predictor): step.loop.predictor, id(step.field): step.field}),
+        state,
+        t_state,
+    )
 
 
 # -- results --------------------------------------------------------------------------------------
@@ -195,8 +198,9 @@ def _load_config(mission, summary: dict | None, rd) -> tuple[Any, str]:
         return load_mission(rd.mission_file), str(rd.mission_file)
     if summary and isinstance(summary.get("config"), dict):
         return validate_mission(summary["config"], source=f"{rd.summary_file}:config"), f"{rd.summary_file}:config"
-    raise ReplayError("no mission: the run directory has neither mission.yaml nor a config in summary.json; "
-                      "pass --mission M.yaml")
+    raise ReplayError(
+        "no mission: the run directory has neither mission.yaml nor a config in summary.json; pass --mission M.yaml"
+    )
 
 
 def _diff_paths(rec, new) -> list[dict]:
@@ -211,8 +215,18 @@ def _diff_paths(rec, new) -> list[dict]:
     return out
 
 
-def replay(source, *, out=None, model: str | None = None, planner: str | None = None, reward: str | None = None,
-           mission=None, rmse_tol: float = 1e-6, echo=None, progress: bool = False) -> ReplayResult:
+def replay(
+    source,
+    *,
+    out=None,
+    model: str | None = None,
+    planner: str | None = None,
+    reward: str | None = None,
+    mission=None,
+    rmse_tol: float = 1e-6,
+    echo=None,
+    progress: bool = False,
+) -> ReplayResult:
     """Replay ``source`` (run directory, or ``.tlog`` with ``mission``); see the module docstring.
 
     Args:
@@ -290,8 +304,11 @@ def replay(source, *, out=None, model: str | None = None, planner: str | None = 
     predictor, pinfo = build_predictor(spec, field, echo=say)
     dt = float(field.dt)
     clk = (summary or {}).get("clock") or {}
-    clock = FieldClock(float(clk.get("t_boot0", field.times[cfg.t0])), float(clk.get("time_scale", cfg.field.time_scale)),
-                       later_boots=tuple(float(x) for x in clk.get("later_boots") or ()))
+    clock = FieldClock(
+        float(clk.get("t_boot0", field.times[cfg.t0])),
+        float(clk.get("time_scale", cfg.field.time_scale)),
+        later_boots=tuple(float(x) for x in clk.get("later_boots") or ()),
+    )
     loop = build_loop(cfg, predictor, grid, land=field.land_mask)
     step = LegStep(cfg, field, loop, truth_known=summary is None or summary.get("rmse") is not None)
 
@@ -302,11 +319,18 @@ def replay(source, *, out=None, model: str | None = None, planner: str | None = 
             raise ReplayError("counterfactual replays (--model/--planner/--reward) of a fleet run are not supported")
         legs, info, notes, first_div = _replay_fleet(rd, summary, cfg, step, rmse_tol, say)
         reproduced = first_div is None and bool(legs)
-        settings = {"mission": mission_src, "model": pinfo.get("used"), "planner": cfg.planner.name,
-                    "reward": cfg.planner.reward, "path_length": cfg.planner.path_length, "field": str(cfg.field.source),
-                    "boats": len(summary["boats"])}
-        result = ReplayResult(str(src), kind, cf, legs, info, reproduced, first_div, float(rmse_tol), settings,
-                              notes=notes)
+        settings = {
+            "mission": mission_src,
+            "model": pinfo.get("used"),
+            "planner": cfg.planner.name,
+            "reward": cfg.planner.reward,
+            "path_length": cfg.planner.path_length,
+            "field": str(cfg.field.source),
+            "boats": len(summary["boats"]),
+        }
+        result = ReplayResult(
+            str(src), kind, cf, legs, info, reproduced, first_div, float(rmse_tol), settings, notes=notes
+        )
         return _write_result(result, out, rd, src)
     try:
         if kind == "dataflash":
@@ -335,8 +359,10 @@ def replay(source, *, out=None, model: str | None = None, planner: str | None = 
         finally:
             st.close()
     if log.bad_frames:
-        notes.append(f"the log is damaged: {log.bad_frames} bad stretch(es), {log.skipped_bytes} byte(s) skipped; "
-                     "replayed what was readable")
+        notes.append(
+            f"the log is damaged: {log.bad_frames} bad stretch(es), {log.skipped_bytes} byte(s) skipped; "
+            "replayed what was readable"
+        )
     if not log.legs:
         notes.append("no leg (upload followed by AUTO) found in the log")
 
@@ -352,8 +378,10 @@ def replay(source, *, out=None, model: str | None = None, planner: str | None = 
             starts.append(tuple(paths[-1][0]) if paths[-1] else (int(pr), int(pc)))
         chosen = _search_clock(step, clock, state, t_state, usable, starts, paths)
         if chosen is None:
-            notes.append("no sequence of clock readings in the log's brackets reproduces every uploaded path; "
-                         "each leg takes the first that reproduces its own")
+            notes.append(
+                "no sequence of clock readings in the log's brackets reproduces every uploaded path; "
+                "each leg takes the first that reproduces its own"
+            )
     from passt_mav.progress import progress as _progress
 
     legs: list[ReplayLeg] = []
@@ -363,8 +391,25 @@ def replay(source, *, out=None, model: str | None = None, planner: str | None = 
         rec = recorded.get(lg.index)
         if lg.start_latlon is None or lg.t_now_ms is None:
             lnotes.append("no position or vehicle time before the upload: leg skipped")
-            legs.append(ReplayLeg(lg.index, len(lg.samples), 0, [], float("nan"), 0, 0, [], None, None, [], 0.0,
-                                  None, None, notes=lnotes))
+            legs.append(
+                ReplayLeg(
+                    lg.index,
+                    len(lg.samples),
+                    0,
+                    [],
+                    float("nan"),
+                    0,
+                    0,
+                    [],
+                    None,
+                    None,
+                    [],
+                    0.0,
+                    None,
+                    None,
+                    notes=lnotes,
+                )
+            )
             if not cf and first_div is None:
                 first_div = lg.index
             break  # the state after it is unknown
@@ -379,13 +424,17 @@ def replay(source, *, out=None, model: str | None = None, planner: str | None = 
             rec_path = rec.get("path")
             start = tuple(int(x) for x in (rec.get("start_cell") or pos_cell))
             if start != pos_cell:
-                lnotes.append(f"recorded start cell {list(start)}, the log's last position before the upload is in "
-                              f"{list(pos_cell)}")
+                lnotes.append(
+                    f"recorded start cell {list(start)}, the log's last position before the upload is in "
+                    f"{list(pos_cell)}"
+                )
             if rec.get("forecast_steps_before") is not None:
                 ks = [int(rec["forecast_steps_before"])]
                 if lg.clock is not None and int(lg.clock[2]) != ks[0]:
-                    lnotes.append(f"recorded forecast steps before planning {ks[0]}, the log's clock STATUSTEXT "
-                                  f"says {lg.clock[2]}")
+                    lnotes.append(
+                        f"recorded forecast steps before planning {ks[0]}, the log's clock STATUSTEXT "
+                        f"says {lg.clock[2]}"
+                    )
                 elif not k_lo <= ks[0] <= k_hi:
                     lnotes.append(f"recorded forecast steps before planning {ks[0]} outside the log's [{k_lo}, {k_hi}]")
             else:
@@ -411,11 +460,16 @@ def replay(source, *, out=None, model: str | None = None, planner: str | None = 
                 planned, k = pl, cand
                 break
         if rec is None and lg.clock is None and k_hi > k_lo:
-            lnotes.append(f"the log brackets the controller's clock reading by {k_lo}..{k_hi} forecast steps; "
-                          f"used {k}")
+            lnotes.append(f"the log brackets the controller's clock reading by {k_lo}..{k_hi} forecast steps; used {k}")
         ab = step.absorb(planned, lg.samples, clock, strict=False)
-        plan, samples, new_state, t_new, r_p, r_m = planned.plan, ab.samples, ab.state, ab.t_state, ab.rmse_passt, \
-            ab.rmse_model
+        plan, samples, new_state, t_new, r_p, r_m = (
+            planned.plan,
+            ab.samples,
+            ab.state,
+            ab.t_state,
+            ab.rmse_passt,
+            ab.rmse_model,
+        )
         if ab.note:
             lnotes.append(ab.note + " (the controller would have stopped)")
         diffs = [] if rec_path is None else _diff_paths(rec_path, plan.path.tolist())
@@ -424,24 +478,46 @@ def replay(source, *, out=None, model: str | None = None, planner: str | None = 
         rm_rec = None if rec is None else rec.get("rmse_model")
         r_same = None
         if rp_rec is not None or rm_rec is not None:
-            r_same = all(a is None or (b is not None and abs(a - b) <= rmse_tol) for a, b in ((rp_rec, r_p), (rm_rec, r_m)))
+            r_same = all(
+                a is None or (b is not None and abs(a - b) <= rmse_tol) for a, b in ((rp_rec, r_p), (rm_rec, r_m))
+            )
         if lg.index in store_legs:  # the controller's own store: the log must give the same measurements
             a = store_legs[lg.index]
             b = {(int(x["time_boot_ms"]), x["lat"], x["lon"], x["u"], x["v"]) for x in lg.samples}
             if a != b:
-                lnotes.append(f"samples differ from the run's store: {len(a - b)} only in the store, "
-                              f"{len(b - a)} only in the log")
+                lnotes.append(
+                    f"samples differ from the run's store: {len(a - b)} only in the store, {len(b - a)} only in the log"
+                )
         if rec is not None and rec.get("n_samples") is not None and int(rec["n_samples"]) != len(lg.samples):
             lnotes.append(f"{len(lg.samples)} samples rebuilt from the log, {rec['n_samples']} recorded")
-        leg = ReplayLeg(lg.index, len(lg.samples), len(samples), list(start), float(plan.t_start), int(plan.steps), int(k),
-                        plan.path.tolist(), rec_path, same, diffs, float(path_reward(plan.reward, plan.path)),
-                        r_p, r_m, rp_rec, rm_rec, r_same, lnotes)
+        leg = ReplayLeg(
+            lg.index,
+            len(lg.samples),
+            len(samples),
+            list(start),
+            float(plan.t_start),
+            int(plan.steps),
+            int(k),
+            plan.path.tolist(),
+            rec_path,
+            same,
+            diffs,
+            float(path_reward(plan.reward, plan.path)),
+            r_p,
+            r_m,
+            rp_rec,
+            rm_rec,
+            r_same,
+            lnotes,
+        )
         legs.append(leg)
         if first_div is None and (same is False or r_same is False):
             first_div = lg.index
         state, t_state = new_state, t_new
-        say(f"leg {lg.index}: {len(lg.samples)} samples, path {'identical' if same else 'differs' if same is False else '?'}"
-            + ("" if r_p is None else f", RMSE {r_p:.6f}"))
+        say(
+            f"leg {lg.index}: {len(lg.samples)} samples, path {'identical' if same else 'differs' if same is False else '?'}"
+            + ("" if r_p is None else f", RMSE {r_p:.6f}")
+        )
     if rd is not None and len(recorded) > len(legs):
         notes.append(f"{len(recorded)} legs recorded, {len(legs)} rebuilt from the log")
     if cf:
@@ -452,13 +528,34 @@ def replay(source, *, out=None, model: str | None = None, planner: str | None = 
             reproduced = False
             if first_div is None:
                 first_div = len(legs)
-    settings = {"mission": mission_src, "model": pinfo.get("used"), "planner": cfg.planner.name,
-                "reward": cfg.planner.reward, "path_length": cfg.planner.path_length, "clock": clock.describe(),
-                "field": str(cfg.field.source)}
-    result = ReplayResult(str(src), kind, cf, legs, {"path": str(tlog), "n_messages": log.n_messages,
-                          "bad_frames": log.bad_frames, "skipped_bytes": log.skipped_bytes, "n_bytes": log.n_bytes,
-                          "samples_outside_legs": log.n_samples_outside_legs}, reproduced,
-                          None if cf else first_div, float(rmse_tol), settings, notes=notes)
+    settings = {
+        "mission": mission_src,
+        "model": pinfo.get("used"),
+        "planner": cfg.planner.name,
+        "reward": cfg.planner.reward,
+        "path_length": cfg.planner.path_length,
+        "clock": clock.describe(),
+        "field": str(cfg.field.source),
+    }
+    result = ReplayResult(
+        str(src),
+        kind,
+        cf,
+        legs,
+        {
+            "path": str(tlog),
+            "n_messages": log.n_messages,
+            "bad_frames": log.bad_frames,
+            "skipped_bytes": log.skipped_bytes,
+            "n_bytes": log.n_bytes,
+            "samples_outside_legs": log.n_samples_outside_legs,
+        },
+        reproduced,
+        None if cf else first_div,
+        float(rmse_tol),
+        settings,
+        notes=notes,
+    )
     return _write_result(result, out, rd, src)
 
 
@@ -487,8 +584,14 @@ def _replay_fleet(rd, summary: dict, cfg, step, rmse_tol: float, say):
         raise ReplayError(str(exc)) from None
     notes: list[str] = []
     logged: dict[int, Any] = {}
-    info = {"path": [str(p) for p in rd.boat_tlogs()], "n_messages": 0, "bad_frames": 0, "skipped_bytes": 0,
-            "n_bytes": 0, "samples_outside_legs": 0}
+    info = {
+        "path": [str(p) for p in rd.boat_tlogs()],
+        "n_messages": 0,
+        "bad_frames": 0,
+        "skipped_bytes": 0,
+        "n_bytes": 0,
+        "samples_outside_legs": 0,
+    }
     for p in rd.boat_tlogs():
         log = rebuild_from_tlog(p, u_name=cfg.sensors.u, v_name=cfg.sensors.v)
         for key in ("n_messages", "bad_frames", "skipped_bytes", "n_bytes"):
@@ -500,17 +603,23 @@ def _replay_fleet(rd, summary: dict, cfg, step, rmse_tol: float, say):
     clocks = {}
     for b in summary["boats"]:
         c = b.get("clock") or {}
-        clocks[int(b["boat"])] = FieldClock(float(c.get("t_boot0", 0.0)), float(c.get("time_scale", 1.0)),
-                                            later_boots=tuple(float(x) for x in c.get("later_boots") or ()))
-    events = sorted([(int(r["fleet_seq"]["plan"]), 0, i) for i, r in records.items()]
-                    + [(int(r["fleet_seq"]["absorb"]), 1, i) for i, r in records.items()])
+        clocks[int(b["boat"])] = FieldClock(
+            float(c.get("t_boot0", 0.0)),
+            float(c.get("time_scale", 1.0)),
+            later_boots=tuple(float(x) for x in c.get("later_boots") or ()),
+        )
+    events = sorted(
+        [(int(r["fleet_seq"]["plan"]), 0, i) for i, r in records.items()]
+        + [(int(r["fleet_seq"]["absorb"]), 1, i) for i, r in records.items()]
+    )
     fs, planned, out, first_div = FleetStep(step), {}, {}, None
     for _, kind, i in events:
         rec = records[i]
         boat = int(rec["boat"])
         if kind == 0:
-            planned[i] = fs.plan_for(boat, i, tuple(int(x) for x in rec["start_cell"]),
-                                     k=int(rec["forecast_steps_before"]))
+            planned[i] = fs.plan_for(
+                boat, i, tuple(int(x) for x in rec["start_cell"]), k=int(rec["forecast_steps_before"])
+            )
             continue
         lg = logged.get(i)
         if lg is None:
@@ -520,15 +629,35 @@ def _replay_fleet(rd, summary: dict, cfg, step, rmse_tol: float, say):
         pl = planned[i]
         ab = fs.absorb(boat, pl, lg.samples, clocks[boat])
         diffs = _diff_paths(rec["path"], pl.plan.path.tolist())
-        r_same = all(a is None or (b is not None and abs(a - b) <= rmse_tol)
-                     for a, b in ((rec.get("rmse_passt"), ab.rmse_passt), (rec.get("rmse_model"), ab.rmse_model)))
+        r_same = all(
+            a is None or (b is not None and abs(a - b) <= rmse_tol)
+            for a, b in ((rec.get("rmse_passt"), ab.rmse_passt), (rec.get("rmse_model"), ab.rmse_model))
+        )
         lnotes = [f"boat {boat}"] + ([] if rec.get("status") == "complete" else [f"status {rec.get('status')}"])
-        out[i] = ReplayLeg(i, len(lg.samples), len(ab.samples), list(rec["start_cell"]), float(pl.t_start),
-                           int(ab.steps), int(pl.k), pl.plan.path.tolist(), rec["path"], not diffs, diffs,
-                           float(path_reward(pl.plan.reward, pl.plan.path)), ab.rmse_passt, ab.rmse_model,
-                           rec.get("rmse_passt"), rec.get("rmse_model"), r_same, lnotes)
+        out[i] = ReplayLeg(
+            i,
+            len(lg.samples),
+            len(ab.samples),
+            list(rec["start_cell"]),
+            float(pl.t_start),
+            int(ab.steps),
+            int(pl.k),
+            pl.plan.path.tolist(),
+            rec["path"],
+            not diffs,
+            diffs,
+            float(path_reward(pl.plan.reward, pl.plan.path)),
+            ab.rmse_passt,
+            ab.rmse_model,
+            rec.get("rmse_passt"),
+            rec.get("rmse_model"),
+            r_same,
+            lnotes,
+        )
         if (diffs or not r_same) and first_div is None:
             first_div = i
-        say(f"leg {i} (boat {boat}): {len(lg.samples)} samples, path {'identical' if not diffs else 'differs'}"
-            + ("" if ab.rmse_passt is None else f", RMSE {ab.rmse_passt:.6f}"))
+        say(
+            f"leg {i} (boat {boat}): {len(lg.samples)} samples, path {'identical' if not diffs else 'differs'}"
+            + ("" if ab.rmse_passt is None else f", RMSE {ab.rmse_passt:.6f}")
+        )
     return [out[i] for i in sorted(out)], info, notes, first_div

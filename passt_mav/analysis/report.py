@@ -171,8 +171,11 @@ def _load_tlog(run: Run) -> None:
         if tl.track:
             run.boat_tracks[k] = np.array([(q.lat, q.lon) for q in tl.track], np.float64)
     if not run.rundir.tlog.exists():
-        run.notes["tlog"] = ("Telemetry log " + NOT_RECORDED) if not run.boat_tracks else \
-            f"a fleet run: one telemetry log per boat ({', '.join(p.name for p in run.rundir.boat_tlogs())})"
+        run.notes["tlog"] = (
+            ("Telemetry log " + NOT_RECORDED)
+            if not run.boat_tracks
+            else f"a fleet run: one telemetry log per boat ({', '.join(p.name for p in run.rundir.boat_tlogs())})"
+        )
         return
 
     try:
@@ -241,16 +244,20 @@ def _leg_windows(run: Run) -> tuple[dict[int, tuple[float, float]], str]:
     for j, i in enumerate(order):
         if i not in spans:
             spans[i] = (starts[i], starts[order[j + 1]] if j + 1 < len(order) else math.inf)
-    how = [f"{n_store} legs as numbered in {run.samples_source}" if n_store else "",
-           f"{len(spans) - n_store} legs from their clock readings" if len(spans) > n_store else ""]
+    how = [
+        f"{n_store} legs as numbered in {run.samples_source}" if n_store else "",
+        f"{len(spans) - n_store} legs from their clock readings" if len(spans) > n_store else "",
+    ]
     return spans, ", ".join(h for h in how if h)
 
 
 def _load_tracks(run: Run) -> None:
     _load_run_tracks(run)
     if run.boat_tracks:
-        run.track_source = (f"each boat's own telemetry log (flight_boatN.tlog, GLOBAL_POSITION_INT; "
-                            f"{sum(len(t) for t in run.boat_tracks.values())} points), one colour per boat")
+        run.track_source = (
+            f"each boat's own telemetry log (flight_boatN.tlog, GLOBAL_POSITION_INT; "
+            f"{sum(len(t) for t in run.boat_tracks.values())} points), one colour per boat"
+        )
 
 
 def _load_run_tracks(run: Run) -> None:
@@ -366,8 +373,17 @@ def _fig_track(run: Run, plt):
     for leg in run.legs:
         wp = np.asarray(leg.get("waypoints") or [], float).reshape(-1, 2)
         if len(wp):
-            ax.plot(wp[:, 1], wp[:, 0], "w--", lw=1.0, marker="o", ms=3, mfc="white", mec="k",
-                    label="planned waypoints" if leg is run.legs[0] else None)
+            ax.plot(
+                wp[:, 1],
+                wp[:, 0],
+                "w--",
+                lw=1.0,
+                marker="o",
+                ms=3,
+                mfc="white",
+                mec="k",
+                label="planned waypoints" if leg is run.legs[0] else None,
+            )
     if run.boat_tracks:  # a fleet: every boat's track in its own colour
         colours = plt.get_cmap("tab10")
         sysids = {int(b.get("boat", -1)): b.get("sysid") for b in (run.summary or {}).get("boats") or []}
@@ -474,17 +490,34 @@ def _fig_samples(run: Run, plt):
     blat, blon, bu, bv, _ = binned_arrows(s["lat"], s["lon"], s["u"], s["v"])
     bsp = np.hypot(bu, bv)
     vmax = float(bsp.max()) if bsp.size and bsp.max() > 0 else 1.0
-    q = ax.quiver(blon, blat, bu, bv, angles="uv", scale_units="inches", scale=vmax / 0.35, width=0.0035,
-                  color="k", edgecolor="w", linewidth=0.5, zorder=3)
-    ax.quiverkey(q, 0.86, 1.015, vmax, f"{vmax:.2g} {run.units}", labelpos="W", coordinates="axes", fontproperties={"size": 8})
+    q = ax.quiver(
+        blon,
+        blat,
+        bu,
+        bv,
+        angles="uv",
+        scale_units="inches",
+        scale=vmax / 0.35,
+        width=0.0035,
+        color="k",
+        edgecolor="w",
+        linewidth=0.5,
+        zorder=3,
+    )
+    ax.quiverkey(
+        q, 0.86, 1.015, vmax, f"{vmax:.2g} {run.units}", labelpos="W", coordinates="axes", fontproperties={"size": 8}
+    )
     if la.size:
         ax.set_xlim(float(lo.min()) - pad_lon, float(lo.max()) + pad_lon)
         ax.set_ylim(float(la.min()) - pad_lat, float(la.max()) + pad_lat)
         ax.set_aspect(_aspect(la))
     ax.set_xlabel("longitude (deg E)")
     ax.set_ylabel("latitude (deg N)")
-    ax.set_title(f"{len(sp)} samples coloured by measured speed; arrows: mean u, v of the samples\n"
-                 f"in each of {len(bu)} spatial bins", fontsize=10)
+    ax.set_title(
+        f"{len(sp)} samples coloured by measured speed; arrows: mean u, v of the samples\n"
+        f"in each of {len(bu)} spatial bins",
+        fontsize=10,
+    )
     ax.grid(alpha=0.3)
     return fig
 
@@ -520,9 +553,12 @@ def _series(xs) -> np.ndarray:
 
 
 #: (summary key, line style, legend) of the RMSE curves, in drawing order
-_RMSE_CURVES = (("passt", "o-", "PASST"), ("model", "s--", "model alone (from the true initial state)"),
-                ("random", "v-.", "random walk, same model + GP (counterfactual, offline)"),
-                ("lawnmower", "^:", "lawnmower+GP (counterfactual, offline)"))
+_RMSE_CURVES = (
+    ("passt", "o-", "PASST"),
+    ("model", "s--", "model alone (from the true initial state)"),
+    ("random", "v-.", "random walk, same model + GP (counterfactual, offline)"),
+    ("lawnmower", "^:", "lawnmower+GP (counterfactual, offline)"),
+)
 
 
 def _log_if_spread(ax, ys: np.ndarray) -> None:
@@ -652,8 +688,10 @@ class _Page:
         path.write_bytes(data)  # the same bytes on disk and in the page
         self.figures.append(path)
         b64 = base64.b64encode(data).decode("ascii")
-        self.add(f'<figure><img alt="{html.escape(alt)}" src="data:image/png;base64,{b64}">'
-                 f"<figcaption>{html.escape(alt)} ({html.escape(name)})</figcaption></figure>")
+        self.add(
+            f'<figure><img alt="{html.escape(alt)}" src="data:image/png;base64,{b64}">'
+            f"<figcaption>{html.escape(alt)} ({html.escape(name)})</figcaption></figure>"
+        )
 
     def table(self, rows: list[tuple[str, str]]) -> None:
         body = "".join(f"<tr><th>{html.escape(k)}</th><td>{v}</td></tr>" for k, v in rows)
@@ -669,7 +707,15 @@ def write_report(run_dir: str | Path, out: str | Path | None = None) -> Path:
     run = load_run(run_dir)
     out_dir = Path(out) if out is not None else run.rundir.report_dir
     out_dir.mkdir(parents=True, exist_ok=True)
-    for name in ("track_field.png", "legs.png", "reward.png", "samples.png", "reconstruction.png", "rmse.png", "pod.png"):
+    for name in (
+        "track_field.png",
+        "legs.png",
+        "reward.png",
+        "samples.png",
+        "reconstruction.png",
+        "rmse.png",
+        "pod.png",
+    ):
         (out_dir / name).unlink(missing_ok=True)  # a figure from an earlier report must not outlive its data
     plt = _plt()
     page = _Page(out_dir)
@@ -677,8 +723,10 @@ def write_report(run_dir: str | Path, out: str | Path | None = None) -> Path:
     title = str(s.get("mission") or run.root.name)
     page.add(f"<h1>Run report: {html.escape(title)}</h1>")
     if run.in_progress:
-        page.add('<p class="status">No summary.json yet: the run is still in progress (or stopped before writing it). '
-                 "Shown: what the legs and logs recorded so far.</p>")
+        page.add(
+            '<p class="status">No summary.json yet: the run is still in progress (or stopped before writing it). '
+            "Shown: what the legs and logs recorded so far.</p>"
+        )
     else:
         page.add(f'<p class="status">Status: {html.escape(str(s.get("status", "unknown")))}</p>')
     _section_summary(page, run)
@@ -693,9 +741,12 @@ def write_report(run_dir: str | Path, out: str | Path | None = None) -> Path:
     _section_tlog(page, run)
     gen = _dt.datetime.now(_dt.UTC).strftime("%Y-%m-%d %H:%M UTC")
     page.add(f'<p class="note">Written by passt-mav report from {html.escape(str(run.root))} at {gen}.</p>')
-    doc = ("<!DOCTYPE html>\n<html lang=\"en\"><head><meta charset=\"utf-8\">"
-           f"<title>{html.escape(title)} - passt-mav report</title><style>{_CSS}</style></head><body>\n"
-           + "\n".join(page.parts) + "\n</body></html>\n")
+    doc = (
+        '<!DOCTYPE html>\n<html lang="en"><head><meta charset="utf-8">'
+        f"<title>{html.escape(title)} - passt-mav report</title><style>{_CSS}</style></head><body>\n"
+        + "\n".join(page.parts)
+        + "\n</body></html>\n"
+    )
     path = out_dir / "report.html"
     path.write_text(doc, encoding="utf-8")
     return path
@@ -704,15 +755,24 @@ def write_report(run_dir: str | Path, out: str | Path | None = None) -> Path:
 def _section_summary(page: _Page, run: Run) -> None:
     s = run.summary or {}
     rows: list[tuple[str, str]] = []
-    for key, label in (("mission", "mission"), ("status", "status"), ("started_utc", "started (UTC)"),
-                       ("finished_utc", "finished (UTC)")):
+    for key, label in (
+        ("mission", "mission"),
+        ("status", "status"),
+        ("started_utc", "started (UTC)"),
+        ("finished_utc", "finished (UTC)"),
+    ):
         if key in s:
             rows.append((label, _fmt(s[key])))
     a, b = _iso(s.get("started_utc")), _iso(s.get("finished_utc"))
     if a and b:
         rows.append(("duration", f"{(b - a).total_seconds() / 60:.1f} min"))
     if "field" in s:
-        rows.append(("truth field", _fmt(s["field"]) + (f" ({html.escape(run.notes['field'])})" if "field" in run.notes else "")))
+        rows.append(
+            (
+                "truth field",
+                _fmt(s["field"]) + (f" ({html.escape(run.notes['field'])})" if "field" in run.notes else ""),
+            )
+        )
     g = run.grid
     if g is not None:
         desc = f"{g.rows} x {g.cols} cells, {g.kind}"
@@ -792,10 +852,12 @@ def _section_reward(page: _Page, run: Run, plt) -> None:
         return
     page.figure(_fig_reward(run, plt, legs), "reward.png", "reward map per leg with the planned path", plt)
     reward = (run.summary or {}).get("reward")
-    page.note("Planned path cyan (square = start) over the map the planner maximised"
-              + (f" (reward {html.escape(str(reward))})" if reward else "")
-              + ": with variance_reduction, the error variance one sample there would remove from the next "
-              "reconstruction under the GP's own prior; with speed, the predicted current speed.")
+    page.note(
+        "Planned path cyan (square = start) over the map the planner maximised"
+        + (f" (reward {html.escape(str(reward))})" if reward else "")
+        + ": with variance_reduction, the error variance one sample there would remove from the next "
+        "reconstruction under the GP's own prior; with speed, the predicted current speed."
+    )
 
 
 def _section_samples(page: _Page, run: Run, plt) -> None:
@@ -826,7 +888,9 @@ def _section_recon(page: _Page, run: Run, plt) -> None:
     if rows:
         page.table(rows)
     else:
-        page.missing("Truth at the reconstruction times " + NOT_RECORDED + f" ({run.notes.get('field', 'outside the field')})")
+        page.missing(
+            "Truth at the reconstruction times " + NOT_RECORDED + f" ({run.notes.get('field', 'outside the field')})"
+        )
 
 
 def _per_leg_rmse(run: Run) -> dict[str, Any]:
@@ -834,13 +898,16 @@ def _per_leg_rmse(run: Run) -> dict[str, Any]:
     ``lawnmower`` (float arrays, NaN where not recorded); empty if no leg recorded any. The
     counterfactuals (``summary.json`` ``counterfactual.random`` / ``.lawnmower``, one value per
     leg in order, written by ``passt-mav demo``) are used only with one value per leg."""
+
     def num(x):
         return float(x) if isinstance(x, (int, float)) and not isinstance(x, bool) else np.nan
 
-    cf = ((run.summary or {}).get("counterfactual") or {})
-    out = {"index": [int(leg.get("index", n)) for n, leg in enumerate(run.legs)],
-           "passt": np.array([num(leg.get("rmse_passt")) for leg in run.legs], float),
-           "model": np.array([num(leg.get("rmse_model")) for leg in run.legs], float)}
+    cf = (run.summary or {}).get("counterfactual") or {}
+    out = {
+        "index": [int(leg.get("index", n)) for n, leg in enumerate(run.legs)],
+        "passt": np.array([num(leg.get("rmse_passt")) for leg in run.legs], float),
+        "model": np.array([num(leg.get("rmse_model")) for leg in run.legs], float),
+    }
     for key in ("random", "lawnmower"):
         vals = cf.get(key) if isinstance(cf, dict) else None
         if not isinstance(vals, list) or len(vals) != len(run.legs):
@@ -886,8 +953,10 @@ def _section_timings(page: _Page, run: Run) -> None:
     if not any(k in leg for leg in run.legs for k in keys):
         page.missing("Timings (planning, upload, leg duration) " + NOT_RECORDED)
     else:
-        head = ("<tr><th>leg</th><th>planning (s)</th><th>upload (s)</th><th>leg duration (s)</th><th>samples</th>"
-                "<th>readings used</th></tr>")
+        head = (
+            "<tr><th>leg</th><th>planning (s)</th><th>upload (s)</th><th>leg duration (s)</th><th>samples</th>"
+            "<th>readings used</th></tr>"
+        )
         body, tot = [], [0.0, 0.0, 0.0, 0]
         for n, leg in enumerate(run.legs):
             vals = [leg.get(k) for k in keys]
@@ -896,27 +965,34 @@ def _section_timings(page: _Page, run: Run) -> None:
                     tot[j] += float(v)
             ns = leg.get("n_samples")
             tot[3] += int(ns) if isinstance(ns, int) else 0
-            body.append("<tr><td>" + _fmt(leg.get("index", n)) + "</td>"
-                        + "".join(f'<td class="num">{_fmt(v)}</td>' for v in vals + [ns])
-                        + f'<td class="num">{_readings_used(leg.get("readings"))}</td></tr>')
+            body.append(
+                "<tr><td>"
+                + _fmt(leg.get("index", n))
+                + "</td>"
+                + "".join(f'<td class="num">{_fmt(v)}</td>' for v in vals + [ns])
+                + f'<td class="num">{_readings_used(leg.get("readings"))}</td></tr>'
+            )
         body.append("<tr><th>total</th>" + "".join(f'<td class="num">{_fmt(v)}</td>' for v in tot) + "<td></td></tr>")
         page.add(f"<table>{head}{''.join(body)}</table>")
     links = [(leg.get("index", n), leg["link"]) for n, leg in enumerate(run.legs) if isinstance(leg.get("link"), dict)]
     tl = run.tlog
     if links:
-        head = ("<tr><th>leg</th><th>round trip (ms)</th><th>loss</th><th>messages</th>"
-                "<th>vehicle sends (B/s)</th></tr>")
+        head = "<tr><th>leg</th><th>round trip (ms)</th><th>loss</th><th>messages</th><th>vehicle sends (B/s)</th></tr>"
         body = []
         for i, ln in links:
             loss = ln.get("loss")
             loss_s = f"{100 * float(loss):.1f} %" if isinstance(loss, (int, float)) else "&ndash;"
-            body.append(f"<tr><td>{_fmt(i)}</td><td class=\"num\">{_fmt(ln.get('rtt_ms'))}</td>"
-                        f"<td class=\"num\">{loss_s}</td><td class=\"num\">{_fmt(ln.get('messages'))}</td>"
-                        f"<td class=\"num\">{_fmt(ln.get('vehicle_bytes_per_s'))}</td></tr>")
+            body.append(
+                f'<tr><td>{_fmt(i)}</td><td class="num">{_fmt(ln.get("rtt_ms"))}</td>'
+                f'<td class="num">{loss_s}</td><td class="num">{_fmt(ln.get("messages"))}</td>'
+                f'<td class="num">{_fmt(ln.get("vehicle_bytes_per_s"))}</td></tr>'
+            )
         page.add(f"<table>{head}{''.join(body)}</table>")
     elif tl is not None and tl.link_loss is not None:
-        page.note(f"Link (from {run.rundir.TLOG}): {tl.message_counts.get('_vehicle_frames', 0)} vehicle frames, "
-                  f"{tl.seq_lost} missing by sequence number ({100 * tl.link_loss:.1f} %).")
+        page.note(
+            f"Link (from {run.rundir.TLOG}): {tl.message_counts.get('_vehicle_frames', 0)} vehicle frames, "
+            f"{tl.seq_lost} missing by sequence number ({100 * tl.link_loss:.1f} %)."
+        )
     else:
         page.missing("Link quality " + NOT_RECORDED)
 
@@ -935,9 +1011,11 @@ def _section_tlog(page: _Page, run: Run) -> None:
         page.missing(run.notes.get("tlog", "Telemetry log " + NOT_RECORDED))
         return
     dur = (tl.utc_last - tl.utc_first) / 60 if tl.utc_first is not None else 0.0
-    page.note(f"{run.rundir.TLOG}: {tl.n_messages} messages over {dur:.1f} min, vehicle system "
-              f"{tl.vehicle_sysid if tl.vehicle_sysid is not None else 'unknown'}; "
-              f"{len(tl.missions)} uploads, {tl.bad_frames} bad frames, {tl.skipped_bytes} bytes skipped.")
+    page.note(
+        f"{run.rundir.TLOG}: {tl.n_messages} messages over {dur:.1f} min, vehicle system "
+        f"{tl.vehicle_sysid if tl.vehicle_sysid is not None else 'unknown'}; "
+        f"{len(tl.missions)} uploads, {tl.bad_frames} bad frames, {tl.skipped_bytes} bytes skipped."
+    )
     leg_of = {lg.mission: lg for lg in tl.legs}
     items = []
     for m in tl.missions:

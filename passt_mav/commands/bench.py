@@ -42,24 +42,41 @@ Exit code 1 when any benchmark failed (the table says which and why).
 #: "NAME.path.in.json" as in the table; '*' globs pick the first match. A ratio
 #: whose keys are absent is listed as unavailable.
 RATIOS: list[tuple[str, str, str]] = [
-    ("CFD time per snapshot / KNODE prediction time per snapshot",
-     "cfd.time_per_snapshot", "models.*predict*per_snapshot*"),
+    (
+        "CFD time per snapshot / KNODE prediction time per snapshot",
+        "cfd.time_per_snapshot",
+        "models.*predict*per_snapshot*",
+    ),
     ("simulator real-time factor (lockstep)", "sim.rtf_lockstep.rtf", ""),
-    ("upload at 57600 baud, no vehicle pacing / stop-and-wait bound",
-     "sim.upload[3].items_per_sim_s", "sim.stop_and_wait_bound_57600"),
+    (
+        "upload at 57600 baud, no vehicle pacing / stop-and-wait bound",
+        "sim.upload[3].items_per_sim_s",
+        "sim.stop_and_wait_bound_57600",
+    ),
 ]
 
 _MAX_LIST = 8  # longer numeric lists are summarised, not exploded into rows
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--dir", metavar="DIR", default=None,
-                   help="directory holding bench_*.py (default: the project's benchmarks/)")
-    p.add_argument("--only", metavar="NAME", action="append", default=[],
-                   help="run only this benchmark (NAME of bench_NAME.py; repeatable)")
+    p.add_argument(
+        "--dir", metavar="DIR", default=None, help="directory holding bench_*.py (default: the project's benchmarks/)"
+    )
+    p.add_argument(
+        "--only",
+        metavar="NAME",
+        action="append",
+        default=[],
+        help="run only this benchmark (NAME of bench_NAME.py; repeatable)",
+    )
     p.add_argument("--quick", action="store_true", help="pass --quick to benchmarks that support it")
-    p.add_argument("--timeout", type=float, default=None, metavar="S",
-                   help="seconds allowed per benchmark (default 600 with --quick, else 3600)")
+    p.add_argument(
+        "--timeout",
+        type=float,
+        default=None,
+        metavar="S",
+        help="seconds allowed per benchmark (default 600 with --quick, else 3600)",
+    )
     p.add_argument("--out", metavar="FILE", default=None, help="write the collected results as JSON here")
     p.add_argument("--json", action="store_true", help="print the JSON instead of the table")
     p.add_argument("--list", action="store_true", help="list the benchmarks found and exit")
@@ -76,7 +93,7 @@ def default_bench_dir() -> Path:
 
 def find_benchmarks(bench_dir: Path) -> dict[str, Path]:
     """``{NAME: path}`` for every ``bench_NAME.py`` in ``bench_dir``, sorted by name."""
-    return {p.stem[len("bench_"):]: p for p in sorted(Path(bench_dir).glob("bench_*.py")) if p.is_file()}
+    return {p.stem[len("bench_") :]: p for p in sorted(Path(bench_dir).glob("bench_*.py")) if p.is_file()}
 
 
 def supports_flag(script: Path, flag: str) -> bool:
@@ -189,7 +206,9 @@ def run_benchmark(name: str, script: Path, *, quick: bool, timeout: float) -> di
     rec["wall_s"] = time.perf_counter() - t0
     rec["returncode"] = proc.returncode
     if proc.returncode != 0:
-        rec.update(status="failed", error=f"exit {proc.returncode}: {_last_line(proc.stderr) or _last_line(proc.stdout)}")
+        rec.update(
+            status="failed", error=f"exit {proc.returncode}: {_last_line(proc.stderr) or _last_line(proc.stdout)}"
+        )
         return rec
     try:
         rec["result"] = _parse_json(proc.stdout)
@@ -263,10 +282,12 @@ def _fmt(v: Any) -> str:
 def format_table(report: dict[str, Any]) -> str:
     """The human-readable table of a collected report (see :func:`collect`)."""
     m = report["machine"]
-    lines = [(f"machine: {m['cpu']}, {m['cores']} cores ({m['cores_usable']} usable), "
-              f"{m['memory_gib']} GiB; {m['os']}"),
-             f"python {m['python']}, torch {m['torch']}, numpy {m['numpy']}, pymavlink {m['pymavlink']}",
-             f"date: {report['date_utc']}, quick: {report['quick']}", ""]
+    lines = [
+        (f"machine: {m['cpu']}, {m['cores']} cores ({m['cores_usable']} usable), {m['memory_gib']} GiB; {m['os']}"),
+        f"python {m['python']}, torch {m['torch']}, numpy {m['numpy']}, pymavlink {m['pymavlink']}",
+        f"date: {report['date_utc']}, quick: {report['quick']}",
+        "",
+    ]
     rows: list[tuple[str, str, str]] = []
     for name, rec in report["benchmarks"].items():
         head = f"{rec['status']}, {rec.get('wall_s', 0.0):.1f} s wall"
@@ -310,8 +331,12 @@ def collect(bench_dir: Path, *, only=(), quick=False, timeout=None, progress=Tru
         records[name] = run_benchmark(name, found[name], quick=quick, timeout=timeout)
         if progress:
             r = records[name]
-            print(f"[{i}/{len(names)}] {name}: {r['status']} in {r.get('wall_s', 0):.1f} s"
-                  + (f" ({r['error']})" if r["status"] != "ok" else ""), file=sys.stderr, flush=True)
+            print(
+                f"[{i}/{len(names)}] {name}: {r['status']} in {r.get('wall_s', 0):.1f} s"
+                + (f" ({r['error']})" if r["status"] != "ok" else ""),
+                file=sys.stderr,
+                flush=True,
+            )
     return {
         "date_utc": _dt.datetime.now(_dt.UTC).strftime("%Y-%m-%dT%H:%M:%SZ"),
         "quick": bool(quick),

@@ -32,8 +32,11 @@ REGIONS = {"north_atlantic": "the paper's 30x30 North Atlantic region (geo.north
 
 
 def _add_cylinder(sub, name: str, oscillating: bool) -> None:
-    help_ = ("cylinder wake CFD, Re 200 (static cylinder)" if not oscillating
-             else "cylinder wake CFD, Re 200, cylinder oscillating once per 96 snapshots")
+    help_ = (
+        "cylinder wake CFD, Re 200 (static cylinder)"
+        if not oscillating
+        else "cylinder wake CFD, Re 200, cylinder oscillating once per 96 snapshots"
+    )
     try:
         # stdlib-only module: importing it here keeps the parser complete without numpy
         cylinder_cli = importlib.import_module("passt_mav.fields.cylinder_cli")
@@ -52,7 +55,9 @@ def _add_cylinder(sub, name: str, oscillating: bool) -> None:
 def _cylinder_missing(args) -> int:
     from passt_mav.errors import UserError
 
-    raise UserError("the cylinder CFD generator is not part of this installation (passt_mav/fields/cylinder_cli.py is missing)")
+    raise UserError(
+        "the cylinder CFD generator is not part of this installation (passt_mav/fields/cylinder_cli.py is missing)"
+    )
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -60,23 +65,32 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     _add_cylinder(sub, "cylinder", oscillating=False)
     _add_cylinder(sub, "oscillating", oscillating=True)
 
-    o = sub.add_parser("ocean", help="synthetic North Atlantic currents (jet, rings, M2 tide), seconds to make",
-                       description="Write the embedded synthetic North Atlantic surface-current field "
-                       "(meandering jet, drifting rings, M2 tide; 30x30 hourly, m/s) to a NetCDF file.")
+    o = sub.add_parser(
+        "ocean",
+        help="synthetic North Atlantic currents (jet, rings, M2 tide), seconds to make",
+        description="Write the embedded synthetic North Atlantic surface-current field "
+        "(meandering jet, drifting rings, M2 tide; 30x30 hourly, m/s) to a NetCDF file.",
+    )
     o.add_argument("--out", required=True, help="output .nc file")
     o.add_argument("--seed", type=int, default=0, help="realisation seed (default 0)")
     o.add_argument("--hours", type=int, default=504, help="number of hourly snapshots (default 504)")
     o.add_argument("--json", action="store_true", help="print a JSON summary")
     o.set_defaults(_data_run=_run_ocean)
 
-    i = sub.add_parser("import", help="regrid a real model/radar file (HYCOM, RTOFS, Copernicus, HF radar) to a region grid",
-                       description="Read surface currents from an ocean-model or HF-radar NetCDF file, convert units "
-                       "to m/s, pick the surface, select the time window and regrid bilinearly to a region grid. "
-                       "Cells without data stay NaN (masked).")
+    i = sub.add_parser(
+        "import",
+        help="regrid a real model/radar file (HYCOM, RTOFS, Copernicus, HF radar) to a region grid",
+        description="Read surface currents from an ocean-model or HF-radar NetCDF file, convert units "
+        "to m/s, pick the surface, select the time window and regrid bilinearly to a region grid. "
+        "Cells without data stay NaN (masked).",
+    )
     i.add_argument("file", help="source NetCDF file")
-    i.add_argument("--region", default="north_atlantic",
-                   help="S,W,N,E cell-centre corners in degrees (write --region=S,W,N,E when S is negative), "
-                   "or a named region: " + ", ".join(REGIONS) + " (default)")
+    i.add_argument(
+        "--region",
+        default="north_atlantic",
+        help="S,W,N,E cell-centre corners in degrees (write --region=S,W,N,E when S is negative), "
+        "or a named region: " + ", ".join(REGIONS) + " (default)",
+    )
     i.add_argument("--grid", default="30x30", help="ROWSxCOLS (default 30x30)")
     i.add_argument("--start", default=None, help="first time, ISO-8601 UTC (default: the file's first)")
     i.add_argument("--hours", type=int, default=None, help="window length in hours (default: the rest of the file)")
@@ -86,43 +100,73 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     i.add_argument("--json", action="store_true", help="print the coverage report as JSON")
     i.set_defaults(_data_run=_run_import)
 
-    n = sub.add_parser("info", help="shape, times, units, grid, coverage, speeds, POD energies of a field file",
-                       description="Describe a passt_mav field file (or builtin:ocean / builtin:cylinder ...).")
+    n = sub.add_parser(
+        "info",
+        help="shape, times, units, grid, coverage, speeds, POD energies of a field file",
+        description="Describe a passt_mav field file (or builtin:ocean / builtin:cylinder ...).",
+    )
     n.add_argument("file", help="field .nc file or builtin:NAME")
     n.add_argument("--modes", type=int, default=5, help="number of POD modes to report (default 5)")
     n.add_argument("--json", action="store_true", help="print JSON instead of text")
     n.set_defaults(_data_run=_run_info)
 
-    s = sub.add_parser("show", help="plot one snapshot: speed colour map and arrows",
-                       description="Plot one snapshot of a field file: speed colour map with velocity arrows "
-                       "(lat/lon axes for geographic fields, x/y metres for metric ones).")
+    s = sub.add_parser(
+        "show",
+        help="plot one snapshot: speed colour map and arrows",
+        description="Plot one snapshot of a field file: speed colour map with velocity arrows "
+        "(lat/lon axes for geographic fields, x/y metres for metric ones).",
+    )
     s.add_argument("file", help="field .nc file or builtin:NAME")
     s.add_argument("--out", required=True, help="output image (.png, .pdf, .svg)")
     s.add_argument("--time", type=int, default=0, help="snapshot index (negative counts from the end; default 0)")
     s.set_defaults(_data_run=_run_show)
 
-    x = sub.add_parser("export-lua", help="write the binary grid file read by the ArduPilot Lua current sensor",
-                       formatter_class=argparse.RawDescriptionHelpFormatter,
-                       description="Write a field as the little-endian grid file that vehicle_sim/lua/current_sensor.lua "
-                       "reads on ArduPilot (SITL or a real autopilot): a 128-byte header (lat/lon -> cell map, "
-                       "field time at boot, snapshot times) and float32 u/v (m/s east/north, NaN = land). The "
-                       "script sends CUR_U/CUR_V for field time = time_at_boot + millis()/1000.",
-                       epilog="Copy the file next to the script: SITL reads WORKDIR/scripts/current_grid.bin "
-                       "(start-sitl --scripts DIR copies only *.lua, so put the .bin in WORKDIR/scripts yourself, "
-                       "or use --scripts-dir and copy that folder), a real autopilot APM/scripts/current_grid.bin.")
+    x = sub.add_parser(
+        "export-lua",
+        help="write the binary grid file read by the ArduPilot Lua current sensor",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+        description="Write a field as the little-endian grid file that vehicle_sim/lua/current_sensor.lua "
+        "reads on ArduPilot (SITL or a real autopilot): a 128-byte header (lat/lon -> cell map, "
+        "field time at boot, snapshot times) and float32 u/v (m/s east/north, NaN = land). The "
+        "script sends CUR_U/CUR_V for field time = time_at_boot + millis()/1000.",
+        epilog="Copy the file next to the script: SITL reads WORKDIR/scripts/current_grid.bin "
+        "(start-sitl --scripts DIR copies only *.lua, so put the .bin in WORKDIR/scripts yourself, "
+        "or use --scripts-dir and copy that folder), a real autopilot APM/scripts/current_grid.bin.",
+    )
     x.add_argument("file", help="field .nc file or builtin:NAME")
-    x.add_argument("--out", default=None, help="output file (default current_grid.bin, or DIR/current_grid.bin "
-                   "with --scripts-dir)")
-    x.add_argument("--scripts-dir", default=None, help="also copy current_sensor.lua into this folder "
-                   "(ready for start-sitl --scripts DIR / the autopilot's scripts folder)")
-    x.add_argument("--time-at-boot", type=float, default=None, help="field time (field units, like the mission's "
-                   "--field-time-at-boot) at vehicle boot (default: the mission's snapshot t0, else the first snapshot)")
-    x.add_argument("--region", default=None, help="crop to the cells whose centres lie in S,W,N,E degrees "
-                   "(write --region=S,W,N,E when S is negative)")
-    x.add_argument("--snapshots", default=None, help="START:STOP snapshot indices to keep (Python slice, "
-                   "e.g. 0:48); the vehicle holds the last one after the span")
-    x.add_argument("--mission", default=None, help="mission YAML: its field velocity_scale/time_scale, t0 and, "
-                   "for a metric field, the region that places it on Earth")
+    x.add_argument(
+        "--out", default=None, help="output file (default current_grid.bin, or DIR/current_grid.bin with --scripts-dir)"
+    )
+    x.add_argument(
+        "--scripts-dir",
+        default=None,
+        help="also copy current_sensor.lua into this folder "
+        "(ready for start-sitl --scripts DIR / the autopilot's scripts folder)",
+    )
+    x.add_argument(
+        "--time-at-boot",
+        type=float,
+        default=None,
+        help="field time (field units, like the mission's "
+        "--field-time-at-boot) at vehicle boot (default: the mission's snapshot t0, else the first snapshot)",
+    )
+    x.add_argument(
+        "--region",
+        default=None,
+        help="crop to the cells whose centres lie in S,W,N,E degrees (write --region=S,W,N,E when S is negative)",
+    )
+    x.add_argument(
+        "--snapshots",
+        default=None,
+        help="START:STOP snapshot indices to keep (Python slice, "
+        "e.g. 0:48); the vehicle holds the last one after the span",
+    )
+    x.add_argument(
+        "--mission",
+        default=None,
+        help="mission YAML: its field velocity_scale/time_scale, t0 and, "
+        "for a metric field, the region that places it on Earth",
+    )
     x.add_argument("--anchor", default=None, help="LAT,LON: put a metric field's centre here (overrides its anchor)")
     x.add_argument("--json", action="store_true", help="print a JSON summary")
     x.set_defaults(_data_run=_run_export_lua)
@@ -133,8 +177,10 @@ def run(args: argparse.Namespace) -> int:
     if fn is None:
         from passt_mav.errors import UserError
 
-        raise UserError("choose a subcommand: cylinder, oscillating, ocean, import, info, show, export-lua "
-                        "(see 'passt-mav data --help')")
+        raise UserError(
+            "choose a subcommand: cylinder, oscillating, ocean, import, info, show, export-lua "
+            "(see 'passt-mav data --help')"
+        )
     return int(fn(args) or 0)
 
 
@@ -146,13 +192,21 @@ def _run_ocean(args) -> int:
     f.attrs["command"] = f"passt-mav data ocean --seed {args.seed} --hours {args.hours}"
     path = f.to_netcdf(args.out)
     sp = f.speed()
-    summary = {"out": str(path), "shape": list(f.shape), "seed": args.seed, "max_speed_m_s": float(sp.max()),
-               "mean_speed_m_s": float(sp.mean()), "data_hash": f.data_hash()}
+    summary = {
+        "out": str(path),
+        "shape": list(f.shape),
+        "seed": args.seed,
+        "max_speed_m_s": float(sp.max()),
+        "mean_speed_m_s": float(sp.mean()),
+        "data_hash": f.data_hash(),
+    }
     if args.json:
         print(json.dumps(summary, indent=2))
     else:
-        print(f"ocean field {f.shape[0]} x {f.shape[2]}x{f.shape[3]} (seed {args.seed}), "
-              f"speed max {summary['max_speed_m_s']:.2f} m/s, mean {summary['mean_speed_m_s']:.2f} m/s")
+        print(
+            f"ocean field {f.shape[0]} x {f.shape[2]}x{f.shape[3]} (seed {args.seed}), "
+            f"speed max {summary['max_speed_m_s']:.2f} m/s, mean {summary['mean_speed_m_s']:.2f} m/s"
+        )
         print(f"wrote {path}")
     return 0
 
@@ -191,19 +245,30 @@ def _run_import(args) -> int:
     f = import_currents(args.file, grid, start=args.start, hours=args.hours, variables=variables, units=args.units)
     f.attrs["command"] = "passt-mav data import " + " ".join(
         [str(args.file), "--region", args.region, "--grid", args.grid]
-        + (["--start", args.start] if args.start else []) + (["--hours", str(args.hours)] if args.hours else [])
-        + (["--variables", args.variables] if args.variables else []) + (["--units", args.units] if args.units else []))
+        + (["--start", args.start] if args.start else [])
+        + (["--hours", str(args.hours)] if args.hours else [])
+        + (["--variables", args.variables] if args.variables else [])
+        + (["--units", args.units] if args.units else [])
+    )
     path = f.to_netcdf(args.out)
     rep = coverage_report(f)
-    rep.update(out=str(path), time_origin=f.time_origin, variables=f.attrs["variables"],
-               time_selection=f.attrs["time_selection"])
+    rep.update(
+        out=str(path),
+        time_origin=f.time_origin,
+        variables=f.attrs["variables"],
+        time_selection=f.attrs["time_selection"],
+    )
     if args.json:
         print(json.dumps(rep, indent=2))
     else:
-        print(f"imported {f.attrs['variables'][0]}/{f.attrs['variables'][1]} -> {f.n_times} snapshots from {f.time_origin} "
-              f"on {grid.rows}x{grid.cols} ({f.attrs['time_selection']})")
-        print(f"coverage {rep['coverage']:.1%} of cell-times; cells with data at every time {rep['cells_all']:.1%}, "
-              f"at some time {rep['cells_any']:.1%}")
+        print(
+            f"imported {f.attrs['variables'][0]}/{f.attrs['variables'][1]} -> {f.n_times} snapshots from {f.time_origin} "
+            f"on {grid.rows}x{grid.cols} ({f.attrs['time_selection']})"
+        )
+        print(
+            f"coverage {rep['coverage']:.1%} of cell-times; cells with data at every time {rep['cells_all']:.1%}, "
+            f"at some time {rep['cells_any']:.1%}"
+        )
         print(f"wrote {path}")
     return 0
 
@@ -254,7 +319,8 @@ def field_info(f, n_modes: int = 5) -> dict:
     info["speed"] = (
         {k: float(fn(sp[ok])) for k, fn in (("min", np.min), ("mean", np.mean), ("median", np.median), ("max", np.max))}
         | {"p95": float(np.percentile(sp[ok], 95))}
-        if ok.any() else None
+        if ok.any()
+        else None
     )
     info["strouhal"] = _find_key(f.attrs, "strouhal")
     pod = None
@@ -262,8 +328,11 @@ def field_info(f, n_modes: int = 5) -> dict:
         try:
             e = pod_energy(f.data, n_modes, cumulative=False)
             valid_cells = int(np.isfinite(f.data).all(axis=(0, 1)).sum())
-            pod = {"modes": [float(x) for x in e], "cumulative": [float(x) for x in np.cumsum(e)],
-                   "cells_used": valid_cells}
+            pod = {
+                "modes": [float(x) for x in e],
+                "cumulative": [float(x) for x in np.cumsum(e)],
+                "cells_used": valid_cells,
+            }
         except ValueError as exc:  # no cell valid at every time
             pod = {"error": str(exc)}
     info["pod_energy"] = pod
@@ -291,25 +360,36 @@ def _run_info(args) -> int:
         print(f"title       {info['title']}")
     print(f"shape       {info['shape']} (time, u/v, rows, cols), units {info['units']}")
     if g["kind"] == "geographic":
-        print(f"grid        lat {g['south']:.4f}..{g['north']:.4f}, lon {g['west']:.4f}..{g['east']:.4f} "
-              f"(cell centres), {g['rows']}x{g['cols']}, cells {info['cell_size_m'][0] / 1e3:.2f} x {info['cell_size_m'][1] / 1e3:.2f} km")
+        print(
+            f"grid        lat {g['south']:.4f}..{g['north']:.4f}, lon {g['west']:.4f}..{g['east']:.4f} "
+            f"(cell centres), {g['rows']}x{g['cols']}, cells {info['cell_size_m'][0] / 1e3:.2f} x {info['cell_size_m'][1] / 1e3:.2f} km"
+        )
     else:
-        print(f"grid        metric x {g['x0']:g}..{g['x1']:g}, y {g['y0']:g}..{g['y1']:g} m, {g['rows']}x{g['cols']}, "
-              f"anchor {g['anchor_lat']:.5f},{g['anchor_lon']:.5f}, scale {g['scale']:g}, rotation {g['rotation_deg']:g} deg")
+        print(
+            f"grid        metric x {g['x0']:g}..{g['x1']:g}, y {g['y0']:g}..{g['y1']:g} m, {g['rows']}x{g['cols']}, "
+            f"anchor {g['anchor_lat']:.5f},{g['anchor_lon']:.5f}, scale {g['scale']:g}, rotation {g['rotation_deg']:g} deg"
+        )
     dt = info["dt"]
     dt_s = "uneven" if dt is None else (f"{dt / 3600:g} h" if info["time_origin"] else f"{dt:g}")
     print(f"times       {info['n_times']} snapshots, {info['first_time']} .. {info['last_time']}, step {dt_s}")
     c = info["coverage"]
-    print(f"coverage    {c['coverage']:.1%} of cell-times; cells with data always {c['cells_all']:.1%}, ever {c['cells_any']:.1%}")
+    print(
+        f"coverage    {c['coverage']:.1%} of cell-times; cells with data always {c['cells_all']:.1%}, ever {c['cells_any']:.1%}"
+    )
     s = info["speed"]
     if s:
-        print(f"speed       min {s['min']:.3f}, mean {s['mean']:.3f}, median {s['median']:.3f}, p95 {s['p95']:.3f}, max {s['max']:.3f}")
+        print(
+            f"speed       min {s['min']:.3f}, mean {s['mean']:.3f}, median {s['median']:.3f}, p95 {s['p95']:.3f}, max {s['max']:.3f}"
+        )
     if info["strouhal"] is not None:
         print(f"strouhal    {info['strouhal']:.4f}")
     pod = info["pod_energy"]
     if pod and "modes" in pod:
-        print("POD energy  " + ", ".join(f"{x:.3f}" for x in pod["modes"])
-              + f" (cumulative {pod['cumulative'][-1]:.3f} in {len(pod['modes'])} modes; {pod['cells_used']} cells valid at every time)")
+        print(
+            "POD energy  "
+            + ", ".join(f"{x:.3f}" for x in pod["modes"])
+            + f" (cumulative {pod['cumulative'][-1]:.3f} in {len(pod['modes'])} modes; {pod['cells_used']} cells valid at every time)"
+        )
     elif pod:
         print(f"POD energy  n/a ({pod['error']})")
     for k in ("generator", "seed", "source_file", "command"):
@@ -349,8 +429,9 @@ def lua_script_path():
     return Path(next(iter(spec.submodule_search_locations))) / "lua" / "current_sensor.lua"
 
 
-def export_lua_grid(field, path, *, time_at_boot: float | None = None, velocity_scale: float = 1.0,
-                    time_scale: float = 1.0, grid=None) -> dict:
+def export_lua_grid(
+    field, path, *, time_at_boot: float | None = None, velocity_scale: float = 1.0, time_scale: float = 1.0, grid=None
+) -> dict:
     """Write ``field`` as the Lua current sensor's grid file; returns a JSON-able summary.
 
     Args:
@@ -406,27 +487,54 @@ def export_lua_grid(field, path, *, time_at_boot: float | None = None, velocity_
         ca = c_ref + jac[1, 0] * (la - lat_ref) + jac[1, 1] * (lo - lon_ref)
         map_err = float(np.max(np.hypot(ra - cr, ca - cc)))
         if map_err > 0.01:
-            raise FieldError(f"the metric grid is too large for a linear lat/lon map ({map_err:.3f} cells off at "
-                             "a corner); export a smaller --region or a smaller scale")
+            raise FieldError(
+                f"the metric grid is too large for a linear lat/lon map ({map_err:.3f} cells off at "
+                "a corner); export a smaller --region or a smaller scale"
+            )
     times_s = field.times * float(time_scale)
     if T > 1:
         dt_s = field.dt * float(time_scale)
     else:
         dt_s = 0.0
     t_boot = float(field.times[0] if time_at_boot is None else time_at_boot) * float(time_scale)
-    header = struct.pack(_LUA_HEADER_FMT, LUA_MAGIC, LUA_VERSION, LUA_HEADER_BYTES, R, C, T,
-                         float(lat_ref), float(lon_ref), float(r_ref), float(c_ref),
-                         float(jac[0, 0]), float(jac[0, 1]), float(jac[1, 0]), float(jac[1, 1]),
-                         t_boot, float(times_s[0]), float(dt_s))
+    header = struct.pack(
+        _LUA_HEADER_FMT,
+        LUA_MAGIC,
+        LUA_VERSION,
+        LUA_HEADER_BYTES,
+        R,
+        C,
+        T,
+        float(lat_ref),
+        float(lon_ref),
+        float(r_ref),
+        float(c_ref),
+        float(jac[0, 0]),
+        float(jac[0, 1]),
+        float(jac[1, 0]),
+        float(jac[1, 1]),
+        t_boot,
+        float(times_s[0]),
+        float(dt_s),
+    )
     header = header.ljust(LUA_HEADER_BYTES, b"\0")
     body = np.ascontiguousarray(data.astype("<f4")).tobytes()
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_bytes(header + body)
-    return {"out": str(path), "bytes": len(header) + len(body), "rows": R, "cols": C, "snapshots": T,
-            "time_at_boot_s": t_boot, "t0_s": float(times_s[0]), "dt_s": float(dt_s),
-            "span_s": float(times_s[-1] - times_s[0]), "max_map_error_cells": map_err,
-            "land_cells": int(field.land_mask.sum())}
+    return {
+        "out": str(path),
+        "bytes": len(header) + len(body),
+        "rows": R,
+        "cols": C,
+        "snapshots": T,
+        "time_at_boot_s": t_boot,
+        "t0_s": float(times_s[0]),
+        "dt_s": float(dt_s),
+        "span_s": float(times_s[-1] - times_s[0]),
+        "max_map_error_cells": map_err,
+        "land_cells": int(field.land_mask.sum()),
+    }
 
 
 def read_lua_grid(path) -> dict:
@@ -442,8 +550,25 @@ def read_lua_grid(path) -> dict:
     n = struct.calcsize(_LUA_HEADER_FMT)
     if len(b) < n or b[:4] != LUA_MAGIC:
         raise FieldError(f"{path} is not a Lua current grid file")
-    keys = ("magic", "version", "header", "rows", "cols", "snapshots", "lat_ref", "lon_ref", "r_ref", "c_ref",
-            "drdlat", "drdlon", "dcdlat", "dcdlon", "time_at_boot_s", "t0_s", "dt_s")
+    keys = (
+        "magic",
+        "version",
+        "header",
+        "rows",
+        "cols",
+        "snapshots",
+        "lat_ref",
+        "lon_ref",
+        "r_ref",
+        "c_ref",
+        "drdlat",
+        "drdlon",
+        "dcdlat",
+        "dcdlon",
+        "time_at_boot_s",
+        "t0_s",
+        "dt_s",
+    )
     h = dict(zip(keys, struct.unpack(_LUA_HEADER_FMT, b[:n])))
     shape = (h["snapshots"], 2, h["rows"], h["cols"])
     h["data"] = np.frombuffer(b, dtype="<f4", offset=h["header"]).reshape(shape)
@@ -467,8 +592,10 @@ def _run_export_lua(args) -> int:
         placement, seed = cfg.grid(), cfg.seeds.field
     f = resolve_field(args.file, seed=seed)
     if placement is not None and placement.shape != f.grid.shape:
-        raise UserError(f"the mission's region is {placement.shape[0]}x{placement.shape[1]} but the field is "
-                        f"{f.grid.shape[0]}x{f.grid.shape[1]}")
+        raise UserError(
+            f"the mission's region is {placement.shape[0]}x{placement.shape[1]} but the field is "
+            f"{f.grid.shape[0]}x{f.grid.shape[1]}"
+        )
     if f.is_geographic:
         placement = None  # a lat/lon field places itself
         if args.anchor:
@@ -515,9 +642,12 @@ def _run_export_lua(args) -> int:
         f = f.isel(rows=slice(int(rows[0]), int(rows[-1]) + 1), cols=slice(int(cols[0]), int(cols[-1]) + 1))
     if time_at_boot is None:
         time_at_boot = float(f.times[0])
-    out = Path(args.out) if args.out else (Path(args.scripts_dir) if args.scripts_dir else Path(".")) / "current_grid.bin"
-    summary = export_lua_grid(f, out, time_at_boot=time_at_boot, velocity_scale=velocity_scale,
-                              time_scale=time_scale, grid=placement)
+    out = (
+        Path(args.out) if args.out else (Path(args.scripts_dir) if args.scripts_dir else Path(".")) / "current_grid.bin"
+    )
+    summary = export_lua_grid(
+        f, out, time_at_boot=time_at_boot, velocity_scale=velocity_scale, time_scale=time_scale, grid=placement
+    )
     if args.scripts_dir:
         d = Path(args.scripts_dir)
         d.mkdir(parents=True, exist_ok=True)
@@ -526,9 +656,11 @@ def _run_export_lua(args) -> int:
     if args.json:
         print(json.dumps(summary, indent=2))
     else:
-        print(f"Lua grid {summary['rows']}x{summary['cols']}, {summary['snapshots']} snapshots every "
-              f"{summary['dt_s']:g} s, field time at boot {summary['time_at_boot_s']:g} s, "
-              f"{summary['bytes'] / 1024:.1f} KiB")
+        print(
+            f"Lua grid {summary['rows']}x{summary['cols']}, {summary['snapshots']} snapshots every "
+            f"{summary['dt_s']:g} s, field time at boot {summary['time_at_boot_s']:g} s, "
+            f"{summary['bytes'] / 1024:.1f} KiB"
+        )
         if "script" in summary:
             print(f"wrote {summary['script']}")
         print(f"wrote {summary['out']}")

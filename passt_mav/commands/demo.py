@@ -37,12 +37,21 @@ SENSOR_RATE_HZ = 0.2
 #: missions/north_atlantic.yaml (used when the repository's missions/ folder is not beside the package)
 _EMBEDDED = {
     "name": "north_atlantic",
-    "region": {"kind": "geographic", "south": 39.360065, "west": -64.24, "north": 41.130714, "east": -61.92004,
-               "rows": 30, "cols": 30},
+    "region": {
+        "kind": "geographic",
+        "south": 39.360065,
+        "west": -64.24,
+        "north": 41.130714,
+        "east": -61.92004,
+        "rows": 30,
+        "cols": 30,
+    },
     "field": {"source": "builtin:ocean", "velocity_scale": 1.0, "time_scale": 1.0},
     "model": "builtin:ocean",
     "planner": {"name": "information", "path_length": 10, "reward": "variance_reduction"},
-    "legs": 4, "start_cell": [15, 15], "t0": 0,
+    "legs": 4,
+    "start_cell": [15, 15],
+    "t0": 0,
     "vehicle": {"connect": "tcp:127.0.0.1:5760", "speed_mps": 2.0, "wp_radius_m": 10.0},
     "sensors": {"u": "CUR_U", "v": "CUR_V", "noise_std": 0.02},
     "geofence_margin_m": 500.0,
@@ -53,33 +62,60 @@ _EMBEDDED = {
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--legs", type=int, default=DEMO_OVERRIDES["legs"], help="legs to fly (default 3)")
-    p.add_argument("--moves", type=int, default=DEMO_OVERRIDES["planner.path_length"],
-                   help="grid moves per leg L (default 5)")
+    p.add_argument(
+        "--moves", type=int, default=DEMO_OVERRIDES["planner.path_length"], help="grid moves per leg L (default 5)"
+    )
     p.add_argument("--out", help="run directory (default runs/demo-<UTC>)")
-    p.add_argument("--speedup", type=float, default=150.0,
-                   help="simulator speed-up (simulated s per wall s; default 150). The simulated vehicle's "
-                        "mission-transfer timeouts (8 s) run in simulated time: at 250x and more on two cores "
-                        "uploads are cancelled before the controller can answer")
+    p.add_argument(
+        "--speedup",
+        type=float,
+        default=150.0,
+        help="simulator speed-up (simulated s per wall s; default 150). The simulated vehicle's "
+        "mission-transfer timeouts (8 s) run in simulated time: at 250x and more on two cores "
+        "uploads are cancelled before the controller can answer",
+    )
     p.add_argument("--model", help="predictor instead of the shipped KNODE (dmd, persistence, a .pt)")
     p.add_argument("--mission", help="base mission file instead of missions/north_atlantic.yaml")
-    p.add_argument("--field", help="field to replay: builtin:NAME uses missions/NAME.yaml when it exists "
-                   "(builtin:rtofs: real NOAA currents with land); a .nc replaces the base mission's field and "
-                   "region (model persistence unless --model)")
-    p.add_argument("--boats", type=int, default=1,
-                   help="a fleet of N boats sharing one estimate (vehicle-sim --boats N, mission vehicles:; "
-                        "default 1)")
+    p.add_argument(
+        "--field",
+        help="field to replay: builtin:NAME uses missions/NAME.yaml when it exists "
+        "(builtin:rtofs: real NOAA currents with land); a .nc replaces the base mission's field and "
+        "region (model persistence unless --model)",
+    )
+    p.add_argument(
+        "--boats",
+        type=int,
+        default=1,
+        help="a fleet of N boats sharing one estimate (vehicle-sim --boats N, mission vehicles:; default 1)",
+    )
     p.add_argument("--no-report", action="store_true", help="skip the HTML report")
     # live view (issue 29): served by default, the address printed (no browser is launched)
     from passt_mav.commands.view import port
 
-    p.add_argument("--view", nargs="?", type=port, const=0, default=0, metavar="PORT",
-                   help="serve the live view on PORT (default: a free port); the address is printed")
+    p.add_argument(
+        "--view",
+        nargs="?",
+        type=port,
+        const=0,
+        default=0,
+        metavar="PORT",
+        help="serve the live view on PORT (default: a free port); the address is printed",
+    )
     p.add_argument("--no-view", action="store_true", help="do not serve the live view")
-    p.add_argument("--view-host", default="127.0.0.1", metavar="HOST",
-                   help="address to bind the view to (default 127.0.0.1); any other needs the token printed at start")
-    p.add_argument("--inject-link-drop", action="append", default=[], metavar="BOAT:START:DURATION",
-                   help="a link outage of boat BOAT (0-based) from START for DURATION simulated seconds of the "
-                        "simulator's clock (vehicle-sim --boat-drop); repeatable")
+    p.add_argument(
+        "--view-host",
+        default="127.0.0.1",
+        metavar="HOST",
+        help="address to bind the view to (default 127.0.0.1); any other needs the token printed at start",
+    )
+    p.add_argument(
+        "--inject-link-drop",
+        action="append",
+        default=[],
+        metavar="BOAT:START:DURATION",
+        help="a link outage of boat BOAT (0-based) from START for DURATION simulated seconds of the "
+        "simulator's clock (vehicle-sim --boat-drop); repeatable",
+    )
 
 
 def _free_port(boats: int = 1) -> int:
@@ -111,14 +147,27 @@ def fleet_starts(grid, land, start, boats: int, spacing: int = 6) -> list[tuple[
     import numpy as np
 
     r0, c0 = start
-    offsets = [(0, 0), (0, -spacing), (0, spacing), (-spacing, 0), (spacing, 0), (-spacing, -spacing),
-               (spacing, spacing), (-spacing, spacing), (spacing, -spacing)]
+    offsets = [
+        (0, 0),
+        (0, -spacing),
+        (0, spacing),
+        (-spacing, 0),
+        (spacing, 0),
+        (-spacing, -spacing),
+        (spacing, spacing),
+        (-spacing, spacing),
+        (spacing, -spacing),
+    ]
     water = np.argwhere(~np.asarray(land, bool))
     out: list[tuple[int, int]] = []
     for k in range(boats):
         dr, dc = offsets[k % len(offsets)]
-        want = np.array([min(max(r0 + dr * (1 + k // len(offsets)), 0), grid.rows - 1),
-                         min(max(c0 + dc * (1 + k // len(offsets)), 0), grid.cols - 1)])
+        want = np.array(
+            [
+                min(max(r0 + dr * (1 + k // len(offsets)), 0), grid.rows - 1),
+                min(max(c0 + dc * (1 + k // len(offsets)), 0), grid.cols - 1),
+            ]
+        )
         order = np.argsort(((water - want) ** 2).sum(axis=1), kind="stable")
         cell = next(tuple(int(x) for x in water[j]) for j in order if tuple(int(x) for x in water[j]) not in out)
         out.append(cell)
@@ -162,8 +211,11 @@ def mission_mapping(mission: str | None = None, field: str | None = None) -> tup
 
         fl = resolve_field(field)
         data = dict(data)
-        data["field"] = {"source": str(Path(field).resolve()) if not field.startswith("builtin:") else field,
-                         "velocity_scale": 1.0, "time_scale": 1.0}
+        data["field"] = {
+            "source": str(Path(field).resolve()) if not field.startswith("builtin:") else field,
+            "velocity_scale": 1.0,
+            "time_scale": 1.0,
+        }
         data["region"] = fl.grid.describe()
         data["model"] = "persistence"
         water = np.argwhere(~fl.land_mask)
@@ -180,7 +232,7 @@ def _stamp() -> str:
     """Now in UTC for a run directory's name (``2026-01-01T12-00-00Z``)."""
     import datetime as _dt
 
-    return _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%dT%H-%M-%SZ")
+    return _dt.datetime.now(_dt.UTC).strftime("%Y-%m-%dT%H-%M-%SZ")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -209,27 +261,62 @@ def run(args: argparse.Namespace) -> int:
     fleet_args: list[str] = []
     if args.boats > 1:
         data, config, fleet_args = _as_fleet(data, config, field, (r0, c0), args.boats, port, origin)
-    sim_cmd = [sys.executable, "-c", "import sys; from vehicle_sim.cli import main; sys.exit(main())",
-               "--field", config.field.source, "--listen", f"tcp:127.0.0.1:{port}",
-               *(fleet_args or ["--home", f"{hlat:.7f},{hlon:.7f}"]),
-               "--start-time", repr(t_boot0), "--speedup", repr(args.speedup),
-               "--param", f"WP_SPEED={config.fleet[0].speed_mps}", "--current-noise", repr(config.sensors.noise_std),
-               "--current-rate", repr(SENSOR_RATE_HZ), "--seed", str(config.seeds.sensor), "--quiet",
-               *sim_placement(config), *drops]
-    print(f"demo: mission {config.name} ({origin} + {over}); {config.legs} legs of {config.planner.path_length} moves "
-          f"at {config.fleet[0].speed_mps} m/s", flush=True)
+    sim_cmd = [
+        sys.executable,
+        "-c",
+        "import sys; from vehicle_sim.cli import main; sys.exit(main())",
+        "--field",
+        config.field.source,
+        "--listen",
+        f"tcp:127.0.0.1:{port}",
+        *(fleet_args or ["--home", f"{hlat:.7f},{hlon:.7f}"]),
+        "--start-time",
+        repr(t_boot0),
+        "--speedup",
+        repr(args.speedup),
+        "--param",
+        f"WP_SPEED={config.fleet[0].speed_mps}",
+        "--current-noise",
+        repr(config.sensors.noise_std),
+        "--current-rate",
+        repr(SENSOR_RATE_HZ),
+        "--seed",
+        str(config.seeds.sensor),
+        "--quiet",
+        *sim_placement(config),
+        *drops,
+    ]
+    print(
+        f"demo: mission {config.name} ({origin} + {over}); {config.legs} legs of {config.planner.path_length} moves "
+        f"at {config.fleet[0].speed_mps} m/s",
+        flush=True,
+    )
     print(f"demo: starting vehicle-sim on tcp:127.0.0.1:{port} at {args.speedup:g}x", flush=True)
     view = _start_view(args, rd)  # (it exits with this process too, whatever happens)
-    sim_log = open(rd.root / "vehicle_sim.log", "w")
+    sim_log = open(rd.root / "vehicle_sim.log", "w")  # noqa: SIM115 - the simulator child writes it until it ends
     sim = subprocess.Popen(sim_cmd, stdout=sim_log, stderr=subprocess.STDOUT)
     try:
         _wait_listening(port, sim, timeout=60.0)
-        extra = {"demo": {"simulator": sim_cmd[3:], "overrides": over, "base_mission": origin,
-                          "sensor_rate_hz": SENSOR_RATE_HZ, "speedup": args.speedup}}
-        summary = execute(config, connect=f"tcp:127.0.0.1:{port}", run_dir=rd,
-                          mission_text=yaml.safe_dump(data, sort_keys=False), speedup=args.speedup,
-                          field_time_at_boot=t_boot0, echo=lambda s: print(s, flush=True), extra_summary=extra,
-                          report=not args.no_report)
+        extra = {
+            "demo": {
+                "simulator": sim_cmd[3:],
+                "overrides": over,
+                "base_mission": origin,
+                "sensor_rate_hz": SENSOR_RATE_HZ,
+                "speedup": args.speedup,
+            }
+        }
+        summary = execute(
+            config,
+            connect=f"tcp:127.0.0.1:{port}",
+            run_dir=rd,
+            mission_text=yaml.safe_dump(data, sort_keys=False),
+            speedup=args.speedup,
+            field_time_at_boot=t_boot0,
+            echo=lambda s: print(s, flush=True),
+            extra_summary=extra,
+            report=not args.no_report,
+        )
     finally:
         if view is not None:
             view.stop(grace_s=1.5)  # the page gets the last changes first
@@ -262,20 +349,27 @@ def _demo_mission(args: argparse.Namespace):
     if args.model:
         over["model"] = args.model
     data = mission_overrides(base, over)
-    config = validate_mission(data, source="demo mission",
-                              base_dir=Path(origin).parent if origin.endswith(".yaml") else ".")
+    config = validate_mission(
+        data, source="demo mission", base_dir=Path(origin).parent if origin.endswith(".yaml") else "."
+    )
     return data, config, over, origin
 
 
 def _print_outcome(args, config, field, summary: dict, rd, viewed: bool, wall: float) -> None:
     """The demo's last lines: status, final RMSE (against the counterfactual paths for one boat), report, view."""
-    print(f"demo {summary['status']} in {wall:.0f} s: {len(summary['legs'])} legs, {summary['n_samples']} samples; "
-          f"run directory {rd.root}", flush=True)
+    print(
+        f"demo {summary['status']} in {wall:.0f} s: {len(summary['legs'])} legs, {summary['n_samples']} samples; "
+        f"run directory {rd.root}",
+        flush=True,
+    )
     legs = summary["legs"]
     if args.boats > 1 and legs and legs[-1].get("rmse_passt") is not None:
-        print(f"final RMSE: PASST ({args.boats} boats) {legs[-1]['rmse_passt']:.4f} m/s, model alone "
-              f"{legs[-1]['rmse_model']:.4f} m/s; boats: "
-              + ", ".join(f"{b['boat']} {b['status']}" for b in summary.get("boats", [])), flush=True)
+        print(
+            f"final RMSE: PASST ({args.boats} boats) {legs[-1]['rmse_passt']:.4f} m/s, model alone "
+            f"{legs[-1]['rmse_model']:.4f} m/s; boats: "
+            + ", ".join(f"{b['boat']} {b['status']}" for b in summary.get("boats", [])),
+            flush=True,
+        )
     elif legs and legs[-1].get("rmse_passt") is not None:
         lawn, walk = _counterfactual(config, field, summary, rd, report=not args.no_report)
         print(final_line(legs[-1]["rmse_passt"], legs[-1]["rmse_model"], walk, lawn), flush=True)
@@ -317,8 +411,18 @@ def sim_placement(config) -> list[str]:
     g = config.grid()
     if getattr(g, "kind", "") != "metric":
         return []
-    return ["--anchor", f"{g.anchor_lat!r},{g.anchor_lon!r}", "--rotation", repr(g.rotation_deg), "--scale", repr(g.scale),
-            "--velocity-scale", repr(float(config.field.velocity_scale)), "--time-scale", repr(float(config.field.time_scale))]
+    return [
+        "--anchor",
+        f"{g.anchor_lat!r},{g.anchor_lon!r}",
+        "--rotation",
+        repr(g.rotation_deg),
+        "--scale",
+        repr(g.scale),
+        "--velocity-scale",
+        repr(float(config.field.velocity_scale)),
+        "--time-scale",
+        repr(float(config.field.time_scale)),
+    ]
 
 
 def _as_fleet(data: dict, config, field, start, boats: int, port: int, origin: str):
@@ -331,10 +435,12 @@ def _as_fleet(data: dict, config, field, start, boats: int, port: int, origin: s
     cells = fleet_starts(config.grid(), field.land_mask, start, boats)
     veh = data.get("vehicle") or {}
     data = {k: v for k, v in data.items() if k != "vehicle"}
-    data["vehicles"] = [{**veh, "connect": f"tcp:127.0.0.1:{port + 10 * i}", "start_cell": list(c)}
-                        for i, c in enumerate(cells)]
-    config = validate_mission(data, source="demo mission",
-                              base_dir=Path(origin).parent if origin.endswith(".yaml") else ".")
+    data["vehicles"] = [
+        {**veh, "connect": f"tcp:127.0.0.1:{port + 10 * i}", "start_cell": list(c)} for i, c in enumerate(cells)
+    ]
+    config = validate_mission(
+        data, source="demo mission", base_dir=Path(origin).parent if origin.endswith(".yaml") else "."
+    )
     args = ["--boats", str(boats)]
     for r, c in cells:
         lat, lon = (float(x) for x in config.grid().cell_to_latlon(r, c))
@@ -345,6 +451,7 @@ def _as_fleet(data: dict, config, field, start, boats: int, port: int, origin: s
 def final_line(passt: float, model: float | None, walk: float | None, lawn: float | None) -> str:
     """The demo's last line: PASST beside the model alone and the two counterfactuals, and in words
     which of the comparisons holds (PASST below the model alone, below the same-loop random walk)."""
+
     def f(x):
         return "n/a" if x is None else f"{x:.4f} m/s"
 
@@ -352,11 +459,17 @@ def final_line(passt: float, model: float | None, walk: float | None, lawn: floa
     for name, x in (("the model alone", model), ("the random walk", walk)):
         if x is not None:
             # within 0.5 % is "level": a difference in the 4th digit is not a result
-            word = "level with" if abs(passt - x) <= 0.005 * max(abs(x), 1e-12) else ("below" if passt < x else "NOT below")
+            word = (
+                "level with"
+                if abs(passt - x) <= 0.005 * max(abs(x), 1e-12)
+                else ("below" if passt < x else "NOT below")
+            )
             verdict.append(f"{word} {name}")
-    return (f"final RMSE: PASST {passt:.4f} m/s, model alone {f(model)}, random walk through the same model + GP "
-            f"{f(walk)}, lawnmower+GP {f(lawn)} (both offline counterfactuals over the same legs)"
-            + (f"; PASST is {' and '.join(verdict)}" if verdict else ""))
+    return (
+        f"final RMSE: PASST {passt:.4f} m/s, model alone {f(model)}, random walk through the same model + GP "
+        f"{f(walk)}, lawnmower+GP {f(lawn)} (both offline counterfactuals over the same legs)"
+        + (f"; PASST is {' and '.join(verdict)}" if verdict else "")
+    )
 
 
 def _counterfactual(config, field, summary: dict, rd, *, report: bool) -> tuple[float | None, float | None]:
@@ -368,19 +481,30 @@ def _counterfactual(config, field, summary: dict, rd, *, report: bool) -> tuple[
 
     legs = summary["legs"]
     r0, c0 = config.start_cell or (config.grid().rows // 2, config.grid().cols // 2)
-    cf = lawnmower_counterfactual(field, legs, path_length=config.planner.path_length, start_cell=(r0, c0),
-                                  noise_std=config.sensors.noise_std, seed=config.seeds.sensor, gp_seed=config.seeds.gp)
+    cf = lawnmower_counterfactual(
+        field,
+        legs,
+        path_length=config.planner.path_length,
+        start_cell=(r0, c0),
+        noise_std=config.sensors.noise_std,
+        seed=config.seeds.sensor,
+        gp_seed=config.seeds.gp,
+    )
     predictor, _ = build_predictor(config.model, field, echo=lambda s: None)
     walk = same_loop_counterfactual(config, field, predictor, legs, planner="random", start_cell=(r0, c0))
     s = rd.read_summary()
     s.setdefault("rmse", {})["lawnmower"] = cf
     s["rmse"]["random"] = walk
     s["rmse"].setdefault("t", [x.get("t_end") for x in legs])
-    s["counterfactual"] = {"lawnmower": cf, "how": "offline: lawnmower legs of the same length, start and field-time span, "
-                           "sampled from the true field with the mission's sensor noise, GP prior none",
-                           "random": walk, "how_random": "offline: random-walk legs of the same length, start and "
-                           "field-time span through the run's own model + GP loop (same model, GP options, seeds), "
-                           "sampled from the true field with the mission's sensor noise"}
+    s["counterfactual"] = {
+        "lawnmower": cf,
+        "how": "offline: lawnmower legs of the same length, start and field-time span, "
+        "sampled from the true field with the mission's sensor noise, GP prior none",
+        "random": walk,
+        "how_random": "offline: random-walk legs of the same length, start and "
+        "field-time span through the run's own model + GP loop (same model, GP options, seeds), "
+        "sampled from the true field with the mission's sensor noise",
+    }
     rd.write_summary(s)
     summary.update(rmse=s["rmse"], counterfactual=s["counterfactual"])
     if report:

@@ -25,35 +25,117 @@ DEFAULT_PATH_LENGTHS = "25,50,75,100,150,200"
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--data", required=True, help="field: builtin:cylinder | builtin:oscillating | builtin:ocean | FILE.nc")
-    p.add_argument("--model", required=True, help="predictor: builtin:cylinder | builtin:ocean | CHECKPOINT | a predictor name (fitted on --data)")
+    p.add_argument(
+        "--data", required=True, help="field: builtin:cylinder | builtin:oscillating | builtin:ocean | FILE.nc"
+    )
+    p.add_argument(
+        "--model",
+        required=True,
+        help="predictor: builtin:cylinder | builtin:ocean | CHECKPOINT | a predictor name (fitted on --data)",
+    )
     p.add_argument("--trials", type=int, default=30, help="trials per path length (default 30)")
-    p.add_argument("--path-lengths", default=DEFAULT_PATH_LENGTHS, help=f"comma-separated moves per leg (default {DEFAULT_PATH_LENGTHS})")
+    p.add_argument(
+        "--path-lengths",
+        default=DEFAULT_PATH_LENGTHS,
+        help=f"comma-separated moves per leg (default {DEFAULT_PATH_LENGTHS})",
+    )
     p.add_argument("--planner", default="policy_gradient", help="PASST's planner (default policy_gradient)")
-    p.add_argument("--reward", default="speed", help="reward map: speed | vorticity | std | speed_std | change (the predicted change over the leg) (default speed)")
-    p.add_argument("--steps", type=int, default=300, help="snapshots estimated after the start (default 300, clipped to the data)")
+    p.add_argument(
+        "--reward",
+        default="speed",
+        help="reward map: speed | vorticity | std | speed_std | change (the predicted change over the leg) (default speed)",
+    )
+    p.add_argument(
+        "--steps", type=int, default=300, help="snapshots estimated after the start (default 300, clipped to the data)"
+    )
     p.add_argument("--t0", type=int, default=0, help="start snapshot index (default 0)")
-    p.add_argument("--steps-per-leg", type=int, default=10, help="snapshots one leg spans = re-initialisation interval (default 10)")
+    p.add_argument(
+        "--steps-per-leg",
+        type=int,
+        default=10,
+        help="snapshots one leg spans = re-initialisation interval (default 10)",
+    )
     p.add_argument("--noise", type=float, default=0.02, help="sensor noise std, field units (default 0.02)")
-    p.add_argument("--sampling", choices=("end", "spread"), default="end", help="when a leg's cells are read: all at the leg's end (default; the paper's offline protocol, one snapshot per leg) or spread over the leg at constant speed")
-    p.add_argument("--hyper", default="every_leg", help="GP hyper-parameter fits: every_leg | first_leg | state | auto (residual GPs every leg, sample-only GPs once on the initial state) (default every_leg)")
-    p.add_argument("--baseline-prior", choices=("none", "forecast"), default="none", help="baselines: GP alone (none, default) or the full loop with the model (forecast)")
-    p.add_argument("--methods", default=",".join(METHODS), help=f"subset of {','.join(METHODS)}; also PLANNER_gp for any planner (e.g. information_gp) and METHOD@REWARD (e.g. passt@variance_reduction) to compare planners and rewards in one loop")
+    p.add_argument(
+        "--sampling",
+        choices=("end", "spread"),
+        default="end",
+        help="when a leg's cells are read: all at the leg's end (default; the paper's offline protocol, one snapshot per leg) or spread over the leg at constant speed",
+    )
+    p.add_argument(
+        "--hyper",
+        default="every_leg",
+        help="GP hyper-parameter fits: every_leg | first_leg | state | auto (residual GPs every leg, sample-only GPs once on the initial state) (default every_leg)",
+    )
+    p.add_argument(
+        "--baseline-prior",
+        choices=("none", "forecast"),
+        default="none",
+        help="baselines: GP alone (none, default) or the full loop with the model (forecast)",
+    )
+    p.add_argument(
+        "--methods",
+        default=",".join(METHODS),
+        help=f"subset of {','.join(METHODS)}; also PLANNER_gp for any planner (e.g. information_gp) and METHOD@REWARD (e.g. passt@variance_reduction) to compare planners and rewards in one loop",
+    )
     p.add_argument("--window", type=int, default=50, help="final window (steps) for the ratio table (default 50)")
-    p.add_argument("--snapshot-step", type=int, default=250, help="step of the 2-D snapshot figure (default 250, clipped)")
+    p.add_argument(
+        "--snapshot-step", type=int, default=250, help="step of the 2-D snapshot figure (default 250, clipped)"
+    )
     p.add_argument("--seed", type=int, default=0, help="base seed (trial i uses seed + i)")
     p.add_argument("--workers", type=int, default=1, help="local worker processes (joblib; default 1)")
-    p.add_argument("--scheduler", default=None, help="address of an existing Dask distributed scheduler (runs trials there)")
-    p.add_argument("--engine", choices=tuple(ENGINES), default="serial", help="serial (default: one trial at a time) or lockstep (a path length's trials advance together, one batched predictor call per leg and one batched policy-gradient planning call; 2.4x the serial engine's trial-legs/s with the same GP options, benchmarks/bench_passt.py, 15 trials). Same numbers for predictors whose batched and single predictions agree bit for bit (DMD, persistence); with the KNODE, batched convolutions round differently and paths can diverge (shipped ocean model, L=50, 2 trials: PASST 0.2445 lockstep vs 0.2550 serial)")
-    p.add_argument("--batch", type=int, default=None, help="lockstep: trials per batch = unit of work for --workers/--scheduler (default: all trials of a path length)")
-    p.add_argument("--gp-solver", choices=("cholesky", "sklearn"), default="sklearn", help="GP posterior with the fitted kernel: sklearn's regressor (default) or a direct Cholesky solve (faster; equal to sklearn to 1e-6 per reconstruction, which a long campaign can amplify into different paths)")
-    p.add_argument("--fast-predict", action="store_true", help="run a KNODE through its compiled prediction path (torch.compile with freezing: ~1.6x, fp32 rounding of the eager path, a few seconds of compiling per batch shape; what passt-mav paper uses)")
-    p.add_argument("--background", type=int, default=DEFAULT_BACKGROUND, metavar="STEPS", help=f"residual GPs (PASST's; the baselines' with --baseline-prior forecast) add a model-based background covariance: the anomalies of STEPS snapshots of the model's roll-out from the initial state (ensemble optimal interpolation) (default {DEFAULT_BACKGROUND}; 0 = stationary kernels only)")
-    p.add_argument("--prior-blend", choices=("off", "bma"), default="off", help="residual GPs' prior mean: the model's forecast (off, default) or bma: the model's forecast and persistence weighed leg by leg by how well each explains the leg's samples (Bayesian model averaging with a forgetting factor)")
-    p.add_argument("--gp-bias", action="store_true", help="the residual GP may add a constant offset over the region (u, v), kept only where the samples' likelihood pays for it (GPReconstructor bias)")
-    p.add_argument("--boats", type=int, default=1, help="N > 1: the fleet comparison instead of the campaign: "
-                   "PASST with 1..N boats of L moves each vs 1 boat of N*L moves per leg interval (the same "
-                   "budget), L = the first of --path-lengths; writes fleet.json and fleet_rmse.png")
+    p.add_argument(
+        "--scheduler", default=None, help="address of an existing Dask distributed scheduler (runs trials there)"
+    )
+    p.add_argument(
+        "--engine",
+        choices=tuple(ENGINES),
+        default="serial",
+        help="serial (default: one trial at a time) or lockstep (a path length's trials advance together, one batched predictor call per leg and one batched policy-gradient planning call; 2.4x the serial engine's trial-legs/s with the same GP options, benchmarks/bench_passt.py, 15 trials). Same numbers for predictors whose batched and single predictions agree bit for bit (DMD, persistence); with the KNODE, batched convolutions round differently and paths can diverge (shipped ocean model, L=50, 2 trials: PASST 0.2445 lockstep vs 0.2550 serial)",
+    )
+    p.add_argument(
+        "--batch",
+        type=int,
+        default=None,
+        help="lockstep: trials per batch = unit of work for --workers/--scheduler (default: all trials of a path length)",
+    )
+    p.add_argument(
+        "--gp-solver",
+        choices=("cholesky", "sklearn"),
+        default="sklearn",
+        help="GP posterior with the fitted kernel: sklearn's regressor (default) or a direct Cholesky solve (faster; equal to sklearn to 1e-6 per reconstruction, which a long campaign can amplify into different paths)",
+    )
+    p.add_argument(
+        "--fast-predict",
+        action="store_true",
+        help="run a KNODE through its compiled prediction path (torch.compile with freezing: ~1.6x, fp32 rounding of the eager path, a few seconds of compiling per batch shape; what passt-mav paper uses)",
+    )
+    p.add_argument(
+        "--background",
+        type=int,
+        default=DEFAULT_BACKGROUND,
+        metavar="STEPS",
+        help=f"residual GPs (PASST's; the baselines' with --baseline-prior forecast) add a model-based background covariance: the anomalies of STEPS snapshots of the model's roll-out from the initial state (ensemble optimal interpolation) (default {DEFAULT_BACKGROUND}; 0 = stationary kernels only)",
+    )
+    p.add_argument(
+        "--prior-blend",
+        choices=("off", "bma"),
+        default="off",
+        help="residual GPs' prior mean: the model's forecast (off, default) or bma: the model's forecast and persistence weighed leg by leg by how well each explains the leg's samples (Bayesian model averaging with a forgetting factor)",
+    )
+    p.add_argument(
+        "--gp-bias",
+        action="store_true",
+        help="the residual GP may add a constant offset over the region (u, v), kept only where the samples' likelihood pays for it (GPReconstructor bias)",
+    )
+    p.add_argument(
+        "--boats",
+        type=int,
+        default=1,
+        help="N > 1: the fleet comparison instead of the campaign: "
+        "PASST with 1..N boats of L moves each vs 1 boat of N*L moves per leg interval (the same "
+        "budget), L = the first of --path-lengths; writes fleet.json and fleet_rmse.png",
+    )
     p.add_argument("--json", action="store_true", help="print the summary as JSON on stdout")
     p.add_argument("--out", required=True, help="output directory")
 
@@ -69,8 +151,11 @@ def write_fleet_figure(result: dict, out_dir):
 
     fig, ax = plt.subplots(figsize=(8, 4.5), constrained_layout=True)
     for name, run in result["runs"].items():
-        ax.plot(run["rmse_mean"], label=f"{name} (final {run['final_rmse']:.3f})",
-                ls="--" if run["boats"] == 1 and run["path_length"] != result["config"]["path_length"] else "-")
+        ax.plot(
+            run["rmse_mean"],
+            label=f"{name} (final {run['final_rmse']:.3f})",
+            ls="--" if run["boats"] == 1 and run["path_length"] != result["config"]["path_length"] else "-",
+        )
     c = result["config"]
     ax.set_xlabel(f"steps after the start (snapshots; legs of {c['steps_per_leg']})")
     ax.set_ylabel("RMSE (field units)")
@@ -145,7 +230,11 @@ def write_figures(summary: dict, out_dir) -> list:
     snaps = summary.get("_snapshots", {})
     step = min(summary["config"]["snapshot_step"], summary["config"]["steps"])
     for L in Ls:
-        panels = [("truth", snaps.get("truth")), ("PASST", snaps.get(f"passt@L{L}")), ("pure model", snaps.get("model"))]
+        panels = [
+            ("truth", snaps.get("truth")),
+            ("PASST", snaps.get(f"passt@L{L}")),
+            ("pure model", snaps.get("model")),
+        ]
         panels = [(t, np.asarray(a)) for t, a in panels if a is not None]
         if len(panels) < 2:
             continue
@@ -204,18 +293,54 @@ def run(args: argparse.Namespace) -> int:
         raise PlannerError("--boats must be >= 1")
     if args.boats > 1:
         return _run_fleet(args, field, predictor, lengths[0], out_dir)
-    summary = run_campaign(field, predictor, path_lengths=lengths, trials=args.trials, planner=args.planner, reward=args.reward, steps=args.steps, t0=args.t0, steps_per_leg=args.steps_per_leg, noise=args.noise, hyper=args.hyper, sampling=args.sampling, baseline_prior=args.baseline_prior, methods=methods, window=args.window, snapshot_step=args.snapshot_step, seed=args.seed, workers=args.workers, scheduler=args.scheduler, engine=args.engine, batch=args.batch, gp_solver=args.gp_solver, fast_predict=args.fast_predict, background=args.background, prior_blend=args.prior_blend, gp_bias=args.gp_bias)
-    summary["config"].update(data=args.data, model=args.model, command="passt-mav evaluate " + " ".join(sys.argv[2:]) if sys.argv[1:2] == ["evaluate"] else None)
+    summary = run_campaign(
+        field,
+        predictor,
+        path_lengths=lengths,
+        trials=args.trials,
+        planner=args.planner,
+        reward=args.reward,
+        steps=args.steps,
+        t0=args.t0,
+        steps_per_leg=args.steps_per_leg,
+        noise=args.noise,
+        hyper=args.hyper,
+        sampling=args.sampling,
+        baseline_prior=args.baseline_prior,
+        methods=methods,
+        window=args.window,
+        snapshot_step=args.snapshot_step,
+        seed=args.seed,
+        workers=args.workers,
+        scheduler=args.scheduler,
+        engine=args.engine,
+        batch=args.batch,
+        gp_solver=args.gp_solver,
+        fast_predict=args.fast_predict,
+        background=args.background,
+        prior_blend=args.prior_blend,
+        gp_bias=args.gp_bias,
+    )
+    summary["config"].update(
+        data=args.data,
+        model=args.model,
+        command="passt-mav evaluate " + " ".join(sys.argv[2:]) if sys.argv[1:2] == ["evaluate"] else None,
+    )
     files = write_figures(summary, out_dir)
     snaps = summary.pop("_snapshots")
     (out_dir / "results.json").write_text(json.dumps(summary) + "\n")
     (out_dir / "snapshots.json").write_text(json.dumps(snaps) + "\n")
-    table = {L: {"final_rmse": per["final_rmse"], "ratio_to_passt": per.get("ratio_to_passt")} for L, per in summary["per_L"].items()}
+    table = {
+        L: {"final_rmse": per["final_rmse"], "ratio_to_passt": per.get("ratio_to_passt")}
+        for L, per in summary["per_L"].items()
+    }
     if args.json:
         print(json.dumps({"out": str(out_dir), "window": summary["config"]["window"], "per_L": table}))
     else:
         ms = list(next(iter(table.values()))["final_rmse"])
-        print(f"final-window RMSE (last {summary['config']['window']} steps), mean over {args.trials} trials; ratio = method / passt")
+        print(
+            f"final-window RMSE (last {summary['config']['window']} steps), mean over {args.trials} trials; ratio = method / passt"
+        )
         print("L".rjust(6) + "".join(m.rjust(16) for m in ms))
         for L, row in table.items():
             cells = []
@@ -233,9 +358,24 @@ def _run_fleet(args, field, predictor, L: int, out_dir) -> int:
 
     from passt_mav.campaign import fleet_comparison
 
-    res = fleet_comparison(field, predictor, boats=args.boats, path_length=L, trials=args.trials, planner=args.planner,
-                           reward=args.reward, steps=args.steps, t0=args.t0, steps_per_leg=args.steps_per_leg,
-                           noise=args.noise, hyper=args.hyper, sampling=args.sampling, window=args.window, seed=args.seed, background=args.background)
+    res = fleet_comparison(
+        field,
+        predictor,
+        boats=args.boats,
+        path_length=L,
+        trials=args.trials,
+        planner=args.planner,
+        reward=args.reward,
+        steps=args.steps,
+        t0=args.t0,
+        steps_per_leg=args.steps_per_leg,
+        noise=args.noise,
+        hyper=args.hyper,
+        sampling=args.sampling,
+        window=args.window,
+        seed=args.seed,
+        background=args.background,
+    )
     res["config"].update(data=args.data, model=args.model)
     fig = write_fleet_figure(res, out_dir)
     (out_dir / "fleet.json").write_text(json.dumps(res) + "\n")

@@ -25,10 +25,12 @@ The estimate file re-imports with 'passt-mav data import FILE --region S,W,N,E -
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("run_dir", metavar="RUN_DIR", help="run directory (passt-mav run / demo)")
     # validated in run() (not argparse choices) so a bad value is one line on stderr
-    p.add_argument("--format", default="netcdf", metavar="FORMAT",
-                   help="netcdf (default), geojson, kml or csv")
-    p.add_argument("--samples", action="store_true",
-                   help="netcdf only: the samples as a CF trajectory file instead of the estimate grid")
+    p.add_argument("--format", default="netcdf", metavar="FORMAT", help="netcdf (default), geojson, kml or csv")
+    p.add_argument(
+        "--samples",
+        action="store_true",
+        help="netcdf only: the samples as a CF trajectory file instead of the estimate grid",
+    )
     p.add_argument("--out", metavar="FILE", help="output file (default RUN_DIR/export/NAME; a folder gets NAME inside)")
     p.add_argument("--json", action="store_true", help="print what was written as JSON")
 

@@ -42,7 +42,11 @@ EXAMPLES = """examples:
 """
 
 #: (name, field, model) of the paper's three scenarios
-SCENARIOS = (("cylinder", "builtin:cylinder", "builtin:cylinder"), ("oscillating", "builtin:oscillating", "builtin:cylinder"), ("ocean", "builtin:ocean", "builtin:ocean"))
+SCENARIOS = (
+    ("cylinder", "builtin:cylinder", "builtin:cylinder"),
+    ("oscillating", "builtin:oscillating", "builtin:cylinder"),
+    ("ocean", "builtin:ocean", "builtin:ocean"),
+)
 PATH_LENGTHS = (25, 50, 75, 100, 150, 200)
 #: PASST's planner and reward on the page (``--planner`` / ``--reward``)
 DEFAULT_PLANNER, DEFAULT_REWARD = "policy_gradient", "speed"
@@ -54,22 +58,73 @@ QUICK = dict(trials=2, steps=30, path_lengths=(50,), lookaheads=(1, 5, 20), ic_s
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", required=True, help="output directory (paper.html, figures, results.json)")
-    p.add_argument("--quick", action="store_true", help=f"a short version for CI: {QUICK['trials']} trials, {QUICK['steps']} steps, L={QUICK['path_lengths'][0]}, coarse model evaluation")
-    p.add_argument("--trials", type=int, default=None, help="trials per scenario and path length (default 30; --quick 2)")
-    p.add_argument("--steps", type=int, default=None, help="snapshots estimated after the start (default 300; --quick 30)")
-    p.add_argument("--path-lengths", default=None, help="comma-separated moves per leg (default 25,50,75,100,150,200; --quick 50)")
-    p.add_argument("--scenarios", default=",".join(s[0] for s in SCENARIOS), help="subset of cylinder,oscillating,ocean")
-    p.add_argument("--hyper", default="auto", help="GP hyper-parameters: auto (default: each GP fitted on what it models - PASST's residual GP on every leg's residuals, the GP-only baselines once on the initial state) | state | first_leg | every_leg")
-    p.add_argument("--background", type=int, default=DEFAULT_BACKGROUND, metavar="STEPS", help=f"PASST's residual GP adds the anomaly covariance of STEPS snapshots of the model's roll-out (default {DEFAULT_BACKGROUND}; 0 = stationary kernels only)")
-    p.add_argument("--gp-solver", choices=("cholesky", "sklearn"), default="cholesky", help="GP posterior with the fixed kernel: a direct Cholesky solve with cached covariance columns (default; the mean only, unless the reward needs the std) or sklearn's regressor per leg (~10x slower per leg; equal to 1e-6 per reconstruction)")
-    p.add_argument("--planner", default=DEFAULT_PLANNER, help=f"PASST's planner (default {DEFAULT_PLANNER}; the paper's: policy_gradient)")
-    p.add_argument("--reward", default=DEFAULT_REWARD, help=f"PASST's reward (default {DEFAULT_REWARD}; the paper's: speed)")
-    p.add_argument("--prior-blend", choices=("off", "bma"), default="off", help="PASST's GP prior: the model's forecast (off, default) or the model and persistence weighed leg by leg (bma)")
-    p.add_argument("--scheduler", default=None, help="address of a Dask distributed scheduler: the campaign's batches run there")
-    p.add_argument("--workers", type=int, default=1, help="local worker processes (joblib) when no --scheduler (default 1)")
-    p.add_argument("--batch", type=int, default=None, help="trials per lockstep batch = unit of work on a cluster (default: all trials of a path length)")
+    p.add_argument(
+        "--quick",
+        action="store_true",
+        help=f"a short version for CI: {QUICK['trials']} trials, {QUICK['steps']} steps, L={QUICK['path_lengths'][0]}, coarse model evaluation",
+    )
+    p.add_argument(
+        "--trials", type=int, default=None, help="trials per scenario and path length (default 30; --quick 2)"
+    )
+    p.add_argument(
+        "--steps", type=int, default=None, help="snapshots estimated after the start (default 300; --quick 30)"
+    )
+    p.add_argument(
+        "--path-lengths", default=None, help="comma-separated moves per leg (default 25,50,75,100,150,200; --quick 50)"
+    )
+    p.add_argument(
+        "--scenarios", default=",".join(s[0] for s in SCENARIOS), help="subset of cylinder,oscillating,ocean"
+    )
+    p.add_argument(
+        "--hyper",
+        default="auto",
+        help="GP hyper-parameters: auto (default: each GP fitted on what it models - PASST's residual GP on every leg's residuals, the GP-only baselines once on the initial state) | state | first_leg | every_leg",
+    )
+    p.add_argument(
+        "--background",
+        type=int,
+        default=DEFAULT_BACKGROUND,
+        metavar="STEPS",
+        help=f"PASST's residual GP adds the anomaly covariance of STEPS snapshots of the model's roll-out (default {DEFAULT_BACKGROUND}; 0 = stationary kernels only)",
+    )
+    p.add_argument(
+        "--gp-solver",
+        choices=("cholesky", "sklearn"),
+        default="cholesky",
+        help="GP posterior with the fixed kernel: a direct Cholesky solve with cached covariance columns (default; the mean only, unless the reward needs the std) or sklearn's regressor per leg (~10x slower per leg; equal to 1e-6 per reconstruction)",
+    )
+    p.add_argument(
+        "--planner",
+        default=DEFAULT_PLANNER,
+        help=f"PASST's planner (default {DEFAULT_PLANNER}; the paper's: policy_gradient)",
+    )
+    p.add_argument(
+        "--reward", default=DEFAULT_REWARD, help=f"PASST's reward (default {DEFAULT_REWARD}; the paper's: speed)"
+    )
+    p.add_argument(
+        "--prior-blend",
+        choices=("off", "bma"),
+        default="off",
+        help="PASST's GP prior: the model's forecast (off, default) or the model and persistence weighed leg by leg (bma)",
+    )
+    p.add_argument(
+        "--scheduler", default=None, help="address of a Dask distributed scheduler: the campaign's batches run there"
+    )
+    p.add_argument(
+        "--workers", type=int, default=1, help="local worker processes (joblib) when no --scheduler (default 1)"
+    )
+    p.add_argument(
+        "--batch",
+        type=int,
+        default=None,
+        help="trials per lockstep batch = unit of work on a cluster (default: all trials of a path length)",
+    )
     p.add_argument("--seed", type=int, default=0, help="base seed (trial i uses seed + i)")
-    p.add_argument("--dry-run", action="store_true", help="print the work and a wall-time estimate (short calibration run), run nothing else")
+    p.add_argument(
+        "--dry-run",
+        action="store_true",
+        help="print the work and a wall-time estimate (short calibration run), run nothing else",
+    )
 
 
 def _protocol(args) -> dict:
@@ -79,7 +134,9 @@ def _protocol(args) -> dict:
     q = args.quick
     trials = args.trials if args.trials is not None else (QUICK["trials"] if q else 30)
     steps = args.steps if args.steps is not None else (QUICK["steps"] if q else 300)
-    lengths = _parse_lengths(args.path_lengths) if args.path_lengths else list(QUICK["path_lengths"] if q else PATH_LENGTHS)
+    lengths = (
+        _parse_lengths(args.path_lengths) if args.path_lengths else list(QUICK["path_lengths"] if q else PATH_LENGTHS)
+    )
     names = [s.strip() for s in args.scenarios.split(",") if s.strip()]
     known = {s[0]: s for s in SCENARIOS}
     bad = [n for n in names if n not in known]
@@ -97,8 +154,27 @@ def _protocol(args) -> dict:
     from passt_mav.planning import PLANNERS, REWARDS
 
     if args.planner not in PLANNERS or args.reward not in REWARDS:
-        raise PlannerError(f"--planner {args.planner!r} / --reward {args.reward!r}: choose a planner of {', '.join(PLANNERS)} and a reward of {', '.join(REWARDS)}")
-    return dict(planner=args.planner, reward=args.reward, prior_blend=getattr(args, "prior_blend", "off"), background=args.background, trials=trials, steps=steps, path_lengths=lengths, scenarios=[known[n] for n in names], steps_per_leg=10, noise=0.02, t0=0, hyper=args.hyper, gp_solver=args.gp_solver, seed=args.seed, snapshot_step=250, window=50)
+        raise PlannerError(
+            f"--planner {args.planner!r} / --reward {args.reward!r}: choose a planner of {', '.join(PLANNERS)} and a reward of {', '.join(REWARDS)}"
+        )
+    return dict(
+        planner=args.planner,
+        reward=args.reward,
+        prior_blend=getattr(args, "prior_blend", "off"),
+        background=args.background,
+        trials=trials,
+        steps=steps,
+        path_lengths=lengths,
+        scenarios=[known[n] for n in names],
+        steps_per_leg=10,
+        noise=0.02,
+        t0=0,
+        hyper=args.hyper,
+        gp_solver=args.gp_solver,
+        seed=args.seed,
+        snapshot_step=250,
+        window=50,
+    )
 
 
 #: the campaign's methods: the paper's five, and the random walk and greedy planner flown through
@@ -117,10 +193,47 @@ def _trial_legs(proto: dict) -> int:
     return len(proto["scenarios"]) * len(proto["path_lengths"]) * proto["trials"] * LOOP_METHODS * legs
 
 
-def _campaign(field, predictor, proto: dict, path_lengths, trials: int, steps: int, *, scheduler=None, workers: int = 1, batch=None, progress=True) -> dict:
+def _campaign(
+    field,
+    predictor,
+    proto: dict,
+    path_lengths,
+    trials: int,
+    steps: int,
+    *,
+    scheduler=None,
+    workers: int = 1,
+    batch=None,
+    progress=True,
+) -> dict:
     from passt_mav.campaign import run_campaign
 
-    return run_campaign(field, predictor, path_lengths=tuple(path_lengths), trials=trials, steps=steps, t0=proto["t0"], steps_per_leg=proto["steps_per_leg"], noise=proto["noise"], hyper=proto["hyper"], seed=proto["seed"], snapshot_step=proto["snapshot_step"], window=proto["window"], engine="lockstep", batch=batch, scheduler=scheduler, workers=workers, progress=progress, fast_predict=True, gp_solver=proto.get("gp_solver", "cholesky"), background=proto.get("background", 0), methods=PAPER_METHODS, planner=proto.get("planner", "policy_gradient"), reward=proto.get("reward", "speed"), prior_blend=proto.get("prior_blend", "off"))
+    return run_campaign(
+        field,
+        predictor,
+        path_lengths=tuple(path_lengths),
+        trials=trials,
+        steps=steps,
+        t0=proto["t0"],
+        steps_per_leg=proto["steps_per_leg"],
+        noise=proto["noise"],
+        hyper=proto["hyper"],
+        seed=proto["seed"],
+        snapshot_step=proto["snapshot_step"],
+        window=proto["window"],
+        engine="lockstep",
+        batch=batch,
+        scheduler=scheduler,
+        workers=workers,
+        progress=progress,
+        fast_predict=True,
+        gp_solver=proto.get("gp_solver", "cholesky"),
+        background=proto.get("background", 0),
+        methods=PAPER_METHODS,
+        planner=proto.get("planner", "policy_gradient"),
+        reward=proto.get("reward", "speed"),
+        prior_blend=proto.get("prior_blend", "off"),
+    )
 
 
 def _load(spec_field: str, spec_model: str, cache: dict):
@@ -158,7 +271,9 @@ def estimate(proto: dict, echo=print) -> dict:
         n = len(proto["path_lengths"]) * proto["trials"] * LOOP_METHODS * legs
         per[name] = {"s_per_trial_leg": round(c, 4), "trial_legs": n, "estimate_s": round(c * n)}
         total += c * n
-        echo(f"  {name}: {c * 1e3:.1f} ms per trial-leg (calibrated on L={Ls}, 4 trials x 2 legs) x {n} trial-legs = {c * n / 60:.1f} min")
+        echo(
+            f"  {name}: {c * 1e3:.1f} ms per trial-leg (calibrated on L={Ls}, 4 trials x 2 legs) x {n} trial-legs = {c * n / 60:.1f} min"
+        )
     return {"per_scenario": per, "trial_legs": _trial_legs(proto), "estimate_s": round(total)}
 
 
@@ -175,9 +290,23 @@ def claims(res: dict) -> list[dict]:
 
     if "cylinder" in camp:
         r = {L: fin("cylinder", L, "passt") / fin("cylinder", L, "model") for L in camp["cylinder"]["per_L"]}
-        out.append({"claim": "static cylinder: PASST final RMSE <= 0.5 x the model alone", "paper": "<= 0.5", "ours": ", ".join(f"L={L}: {v:.2f}" for L, v in r.items()), "held": all(v <= 0.5 for v in r.values())})
+        out.append(
+            {
+                "claim": "static cylinder: PASST final RMSE <= 0.5 x the model alone",
+                "paper": "<= 0.5",
+                "ours": ", ".join(f"L={L}: {v:.2f}" for L, v in r.items()),
+                "held": all(v <= 0.5 for v in r.values()),
+            }
+        )
     else:
-        out.append({"claim": "static cylinder: PASST final RMSE <= 0.5 x the model alone", "paper": "<= 0.5", "ours": "not run", "held": None})
+        out.append(
+            {
+                "claim": "static cylinder: PASST final RMSE <= 0.5 x the model alone",
+                "paper": "<= 0.5",
+                "ours": "not run",
+                "held": None,
+            }
+        )
     for other, label in (("model", "the model alone"), ("lawnmower_gp", "lawnmower+GP")):
         parts, ok = [], True
         for sc in ("cylinder", "oscillating", "ocean"):
@@ -189,7 +318,14 @@ def claims(res: dict) -> list[dict]:
             parts.append(f"{sc}: PASST/{other} <= {worst:.2f}")
             if worst >= 1.0:
                 ok = False
-        out.append({"claim": f"PASST < {label} in all three scenarios (every path length)", "paper": "< 1 everywhere", "ours": "; ".join(parts), "held": ok})
+        out.append(
+            {
+                "claim": f"PASST < {label} in all three scenarios (every path length)",
+                "paper": "< 1 everywhere",
+                "ours": "; ".join(parts),
+                "held": ok,
+            }
+        )
     out += _same_loop_claims(camp)
     me = res.get("model_eval")
     if me:
@@ -198,11 +334,25 @@ def claims(res: dict) -> list[dict]:
         if model in la and "persistence" in la:
             hs = [h for h in la[model] if int(h) <= 20 and h in la["persistence"]]
             r = {h: la[model][h]["mse"] / la["persistence"][h]["mse"] for h in hs}
-            out.append({"claim": "cylinder KNODE more accurate than persistence for lookahead <= 20 (test window, MSE)", "paper": "KNODE < persistence", "ours": ", ".join(f"h={h}: {v:.2f}" for h, v in r.items()) + " (KNODE/persistence)", "held": bool(r) and all(v < 1 for v in r.values())})
+            out.append(
+                {
+                    "claim": "cylinder KNODE more accurate than persistence for lookahead <= 20 (test window, MSE)",
+                    "paper": "KNODE < persistence",
+                    "ours": ", ".join(f"h={h}: {v:.2f}" for h, v in r.items()) + " (KNODE/persistence)",
+                    "held": bool(r) and all(v < 1 for v in r.values()),
+                }
+            )
         pod = me.get("pod", {}).get(model)
         if pod and pod.get("predicted") and len(pod["predicted"]) >= 4 and pod["predicted"][3] is not None:
             p4, t4 = pod["predicted"][3], pod["true"][3]
-            out.append({"claim": f"POD: first-4-mode energy of the KNODE roll-out close to the truth (|diff| <= {POD_TOL})", "paper": f"{PAPER_POD4[0]} vs {PAPER_POD4[1]}", "ours": f"{p4:.3f} vs {t4:.3f}", "held": abs(p4 - t4) <= POD_TOL})
+            out.append(
+                {
+                    "claim": f"POD: first-4-mode energy of the KNODE roll-out close to the truth (|diff| <= {POD_TOL})",
+                    "paper": f"{PAPER_POD4[0]} vs {PAPER_POD4[1]}",
+                    "ours": f"{p4:.3f} vs {t4:.3f}",
+                    "held": abs(p4 - t4) <= POD_TOL,
+                }
+            )
     return out
 
 
@@ -215,7 +365,9 @@ def _same_loop_claims(camp: dict) -> list[dict]:
     parts, ok = [], True
     for sc in ("cylinder", "oscillating", "ocean"):
         per = camp.get(sc, {}).get("per_L", {})
-        if not per or any("random_loop" not in d["final_rmse"] or "greedy_loop" not in d["final_rmse"] for d in per.values()):
+        if not per or any(
+            "random_loop" not in d["final_rmse"] or "greedy_loop" not in d["final_rmse"] for d in per.values()
+        ):
             parts.append(f"{sc}: not run")
             ok = None if ok is not False else False
             continue
@@ -224,8 +376,14 @@ def _same_loop_claims(camp: dict) -> list[dict]:
         parts.append(f"{sc}: PASST/random <= {rr:.2f}, PASST/greedy <= {rg:.2f}")
         if rr > VS_RANDOM or rg >= 1.0:
             ok = False
-    rows.append({"claim": f"planner vs random walk / greedy (same loop): PASST <= {VS_RANDOM} x random walk and < greedy, every scenario and L",
-                 "paper": "(not in the paper)", "ours": "; ".join(parts), "held": ok})
+    rows.append(
+        {
+            "claim": f"planner vs random walk / greedy (same loop): PASST <= {VS_RANDOM} x random walk and < greedy, every scenario and L",
+            "paper": "(not in the paper)",
+            "ours": "; ".join(parts),
+            "held": ok,
+        }
+    )
     parts, ok = [], True
     for sc in ("cylinder", "oscillating", "ocean"):
         per = camp.get(sc, {}).get("per_L", {})
@@ -241,14 +399,28 @@ def _same_loop_claims(camp: dict) -> list[dict]:
         parts.append(f"{sc}: max over steps of PASST/model {worst:.2f}")
         if worst > NEVER_WORSE:
             ok = False
-    rows.append({"claim": f"sampling never worse than the model alone (mean RMSE at every step <= {NEVER_WORSE} x the model's)",
-                 "paper": "(implied)", "ours": "; ".join(parts), "held": ok})
+    rows.append(
+        {
+            "claim": f"sampling never worse than the model alone (mean RMSE at every step <= {NEVER_WORSE} x the model's)",
+            "paper": "(implied)",
+            "ours": "; ".join(parts),
+            "held": ok,
+        }
+    )
     return rows
 
 
 # -- page --------------------------------------------------------------------------
 
-_METHOD_STYLE = {"passt": ("C3", 1.8), "model": ("C0", 1.2), "lawnmower_gp": ("C2", 1.0), "greedy_gp": ("C1", 1.0), "random_gp": ("C7", 1.0), "random_loop": ("C5", 1.0), "greedy_loop": ("C8", 1.0)}
+_METHOD_STYLE = {
+    "passt": ("C3", 1.8),
+    "model": ("C0", 1.2),
+    "lawnmower_gp": ("C2", 1.0),
+    "greedy_gp": ("C1", 1.0),
+    "random_gp": ("C7", 1.0),
+    "random_loop": ("C5", 1.0),
+    "greedy_loop": ("C8", 1.0),
+}
 
 
 def _fig_lookahead(me: dict, plt):
@@ -310,7 +482,7 @@ def _fig_rmse(camp: dict, name: str, plt):
         ax.set_title(f"{name}, L = {L}")
         ax.set_xlabel("steps after start")
         ax.grid(alpha=0.3)
-    for ax in axes.ravel()[len(Ls):]:
+    for ax in axes.ravel()[len(Ls) :]:
         ax.axis("off")
     axes[0, 0].set_ylabel("RMSE")
     axes[0, 0].legend(fontsize=7)
@@ -324,7 +496,17 @@ def _fig_snapshots(camp: dict, name: str, plt):
     snaps = camp.get("_snapshots", {})
     Ls = list(camp["per_L"])
     L = "50" if "50" in Ls else Ls[0]
-    panels = [(t, snaps.get(k)) for t, k in (("truth", "truth"), ("PASST", f"passt@L{L}"), ("model alone", "model"), ("lawnmower+GP", f"lawnmower_gp@L{L}"), ("greedy+GP", f"greedy_gp@L{L}"), ("random+GP", f"random_gp@L{L}"))]
+    panels = [
+        (t, snaps.get(k))
+        for t, k in (
+            ("truth", "truth"),
+            ("PASST", f"passt@L{L}"),
+            ("model alone", "model"),
+            ("lawnmower+GP", f"lawnmower_gp@L{L}"),
+            ("greedy+GP", f"greedy_gp@L{L}"),
+            ("random+GP", f"random_gp@L{L}"),
+        )
+    ]
     panels = [(t, np.asarray(a, float)) for t, a in panels if a is not None]
     step = min(camp["config"]["snapshot_step"], camp["config"]["steps"])
     fig, axes = plt.subplots(1, len(panels), figsize=(2.9 * len(panels), 3.0), squeeze=False)
@@ -341,7 +523,7 @@ def _fig_snapshots(camp: dict, name: str, plt):
     return fig
 
 
-def write_page(res: dict, out_dir) -> "Path":  # noqa: F821 - pathlib imported inside
+def write_page(res: dict, out_dir) -> Path:  # noqa: F821 - pathlib imported inside
     """Write ``paper.html`` (+ PNGs) from the results dict of :func:`run_paper`; returns its path."""
     import datetime as _dt
     import html
@@ -355,59 +537,96 @@ def write_page(res: dict, out_dir) -> "Path":  # noqa: F821 - pathlib imported i
     page = _Page(out)
     proto = res["protocol"]
     page.add("<h1>PASST: the paper's offline evaluation</h1>")
-    page.add(f'<p class="status">{"Quick version (CI): few trials and steps - not the paper&#39;s numbers. " if proto.get("quick") else ""}'
-             f'{len(proto["scenarios"])} scenario(s) x L = {html.escape(str(proto["path_lengths"]))} x {proto["trials"]} trials x {proto["steps"]} steps; '
-             f'GP hyper-parameters: {html.escape(proto["hyper"])}, background roll-out {proto.get("background", 0)} snapshots, solver {html.escape(str(proto.get("gp_solver", "sklearn")))}; {res.get("trial_legs", 0)} trial-legs in {res.get("wall_s", 0):.0f} s.</p>')
+    page.add(
+        f'<p class="status">{"Quick version (CI): few trials and steps - not the paper&#39;s numbers. " if proto.get("quick") else ""}'
+        f"{len(proto['scenarios'])} scenario(s) x L = {html.escape(str(proto['path_lengths']))} x {proto['trials']} trials x {proto['steps']} steps; "
+        f"GP hyper-parameters: {html.escape(proto['hyper'])}, background roll-out {proto.get('background', 0)} snapshots, solver {html.escape(str(proto.get('gp_solver', 'sklearn')))}; {res.get('trial_legs', 0)} trial-legs in {res.get('wall_s', 0):.0f} s.</p>"
+    )
     page.h2("The paper's claims beside our numbers")
     rows = "".join(
         f"<tr><td>{html.escape(c['claim'])}</td><td>{html.escape(str(c['paper']))}</td><td>{html.escape(c['ours'])}</td>"
-        f"<td class=\"{ {True: 'held', False: 'notheld', None: 'missing'}[c['held']] }\">{ {True: '&#10004; held', False: '&#10008; not held', None: '- not measured'}[c['held']] }</td></tr>"
-        for c in res["claims"])
+        f'<td class="{ {True: "held", False: "notheld", None: "missing"}[c["held"]] }">{ {True: "&#10004; held", False: "&#10008; not held", None: "- not measured"}[c["held"]] }</td></tr>'
+        for c in res["claims"]
+    )
     page.add(f'<table class="claims"><tr><th>claim</th><th>paper</th><th>ours</th><th>verdict</th></tr>{rows}</table>')
     me = res.get("model_eval")
     if me:
         page.h2("Model error vs lookahead (train / test / oscillating)")
-        page.figure(_fig_lookahead(me, plt), "lookahead.png", "MSE and cosine distance vs lookahead, per window and predictor", plt)
+        page.figure(
+            _fig_lookahead(me, plt),
+            "lookahead.png",
+            "MSE and cosine distance vs lookahead, per window and predictor",
+            plt,
+        )
         if me.get("pod"):
             page.h2("POD energy: model roll-out vs truth")
-            page.figure(_fig_pod(me, plt), "pod.png", f"cumulative POD energy, snapshots {me['pod'][next(iter(me['pod']))]['window']}", plt)
+            page.figure(
+                _fig_pod(me, plt),
+                "pod.png",
+                f"cumulative POD energy, snapshots {me['pod'][next(iter(me['pod']))]['window']}",
+                plt,
+            )
     else:
         page.missing("model evaluation not run")
     for name, camp in res["campaigns"].items():
         page.h2(f"RMSE over time: {name} ({camp['config'].get('data')}, model {camp['config'].get('model')})")
-        page.figure(_fig_rmse(camp, name, plt), f"rmse_{name}.png", f"{name}: RMSE over time, mean +- std over {proto['trials']} trials", plt)
-        body = "".join(f"<tr><th>L = {L}</th>" + "".join(f"<td>{per['final_rmse'][m]:.4f}</td>" for m in per["final_rmse"]) + "</tr>" for L, per in camp["per_L"].items())
+        page.figure(
+            _fig_rmse(camp, name, plt),
+            f"rmse_{name}.png",
+            f"{name}: RMSE over time, mean +- std over {proto['trials']} trials",
+            plt,
+        )
+        body = "".join(
+            f"<tr><th>L = {L}</th>"
+            + "".join(f"<td>{per['final_rmse'][m]:.4f}</td>" for m in per["final_rmse"])
+            + "</tr>"
+            for L, per in camp["per_L"].items()
+        )
         ms = list(next(iter(camp["per_L"].values()))["final_rmse"])
-        page.add(f"<table><tr><th>final-window RMSE (last {camp['config']['window']} steps)</th>" + "".join(f"<th>{html.escape(m)}</th>" for m in ms) + f"</tr>{body}</table>")
+        page.add(
+            f"<table><tr><th>final-window RMSE (last {camp['config']['window']} steps)</th>"
+            + "".join(f"<th>{html.escape(m)}</th>" for m in ms)
+            + f"</tr>{body}</table>"
+        )
         if camp.get("_snapshots"):
             page.figure(_fig_snapshots(camp, name, plt), f"snapshots_{name}.png", f"{name}: 2-D snapshots", plt)
     if res.get("timings"):
         page.h2("Compute")
         page.table([(k, html.escape(str(v))) for k, v in res["timings"].items()])
-    gen = _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
+    gen = _dt.datetime.now(_dt.UTC).strftime("%Y-%m-%d %H:%M UTC")
     page.add(f'<p class="note">Written by {html.escape(res.get("command") or "passt-mav paper")} at {gen}.</p>')
     css = _CSS + "td.held{color:#1a7f37;font-weight:600}td.notheld{color:#b42318;font-weight:600}td.missing{color:#888}"
-    doc = ("<!DOCTYPE html>\n<html lang=\"en\"><head><meta charset=\"utf-8\"><title>PASST paper evaluation - passt-mav</title>"
-           f"<style>{css}</style></head><body>\n" + "\n".join(page.parts) + "\n</body></html>\n")
+    doc = (
+        '<!DOCTYPE html>\n<html lang="en"><head><meta charset="utf-8"><title>PASST paper evaluation - passt-mav</title>'
+        f"<style>{css}</style></head><body>\n" + "\n".join(page.parts) + "\n</body></html>\n"
+    )
     path = out / "paper.html"
     path.write_text(doc, encoding="utf-8")
     return path
 
 
-def run_paper(proto: dict, *, quick: bool = False, scheduler=None, workers: int = 1, batch=None, progress: bool = True, echo=print) -> dict:
+def run_paper(
+    proto: dict, *, quick: bool = False, scheduler=None, workers: int = 1, batch=None, progress: bool = True, echo=print
+) -> dict:
     """Model evaluation + the three campaigns; returns the JSON-able results (with ``_snapshots``)."""
     import time
 
     from passt_mav.models.evaluate import evaluate_command
 
-    res: dict = {"protocol": {k: (v if k != "scenarios" else [s[0] for s in v]) for k, v in proto.items()}, "campaigns": {}, "timings": {}}
+    res: dict = {
+        "protocol": {k: (v if k != "scenarios" else [s[0] for s in v]) for k, v in proto.items()},
+        "campaigns": {},
+        "timings": {},
+    }
     res["protocol"]["quick"] = quick
     t_all = time.perf_counter()
     if any(s[2] == "builtin:cylinder" for s in proto["scenarios"]):
         echo("model evaluation: cylinder KNODE vs DMD and persistence (train / test / oscillating)")
         t = time.perf_counter()
         kw = dict(lookaheads=QUICK["lookaheads"], ic_stride=QUICK["ic_stride"], gp_starts=False) if quick else {}
-        me = evaluate_command(model="builtin:cylinder", data="builtin:cylinder", oscillating="builtin:oscillating", **kw)
+        me = evaluate_command(
+            model="builtin:cylinder", data="builtin:cylinder", oscillating="builtin:oscillating", **kw
+        )
         me["model_name"] = next(iter(me["pod"])) if me.get("pod") else None
         res["model_eval"] = me
         res["timings"]["model evaluation (s)"] = round(time.perf_counter() - t, 1)
@@ -417,15 +636,30 @@ def run_paper(proto: dict, *, quick: bool = False, scheduler=None, workers: int 
     legs = 0
     # scenario by scenario (each campaign shows its trials too): a bar on a terminal, plain lines in a log
     for name, fs, ms in _progress(proto["scenarios"], "paper", "scenario", quiet=not progress, every_pct=1):
-        echo(f"campaign {name}: {fs} with {ms}, L = {proto['path_lengths']}, {proto['trials']} trials x {proto['steps']} steps")
+        echo(
+            f"campaign {name}: {fs} with {ms}, L = {proto['path_lengths']}, {proto['trials']} trials x {proto['steps']} steps"
+        )
         t = time.perf_counter()
         field, pred = _load(fs, ms, cache)
-        s = _campaign(field, pred, proto, proto["path_lengths"], proto["trials"], proto["steps"], scheduler=scheduler, workers=workers, batch=batch, progress=progress)
+        s = _campaign(
+            field,
+            pred,
+            proto,
+            proto["path_lengths"],
+            proto["trials"],
+            proto["steps"],
+            scheduler=scheduler,
+            workers=workers,
+            batch=batch,
+            progress=progress,
+        )
         s["config"].update(data=fs, model=ms)
         res["campaigns"][name] = s
         legs += s["trial_legs"]
         res["timings"][f"campaign {name} (s)"] = round(time.perf_counter() - t, 1)
-        res["timings"][f"campaign {name}: compute split (s, summed over trial-legs)"] = {k: round(sum(d[k] for d in s["timings_s"].values()), 1) for k in ("predict", "reward", "plan", "gp")}
+        res["timings"][f"campaign {name}: compute split (s, summed over trial-legs)"] = {
+            k: round(sum(d[k] for d in s["timings_s"].values()), 1) for k in ("predict", "reward", "plan", "gp")
+        }
     res["trial_legs"] = legs
     res["wall_s"] = time.perf_counter() - t_all
     res["claims"] = claims(res)
@@ -440,13 +674,24 @@ def run(args: argparse.Namespace) -> int:
     out = Path(args.out)
     if args.dry_run:
         n = _trial_legs(proto)
-        print(f"protocol: {len(proto['scenarios'])} scenarios x L={proto['path_lengths']} x {proto['trials']} trials x {proto['steps']} steps x {LOOP_METHODS} loop methods = {n} trial-legs (+ model evaluation)")
+        print(
+            f"protocol: {len(proto['scenarios'])} scenarios x L={proto['path_lengths']} x {proto['trials']} trials x {proto['steps']} steps x {LOOP_METHODS} loop methods = {n} trial-legs (+ model evaluation)"
+        )
         print("calibrating (serial, this machine):")
         est = estimate(proto)
-        print(f"estimated campaign wall time, serial on one idle core: {est['estimate_s'] / 60:.1f} min ({est['estimate_s']} s); with N workers on N idle cores about 1/N of that (+ the model evaluation, minutes)")
+        print(
+            f"estimated campaign wall time, serial on one idle core: {est['estimate_s'] / 60:.1f} min ({est['estimate_s']} s); with N workers on N idle cores about 1/N of that (+ the model evaluation, minutes)"
+        )
         return 0
     out.mkdir(parents=True, exist_ok=True)
-    res = run_paper(proto, quick=args.quick, scheduler=args.scheduler, workers=args.workers, batch=args.batch, echo=lambda m: print(m, file=sys.stderr))
+    res = run_paper(
+        proto,
+        quick=args.quick,
+        scheduler=args.scheduler,
+        workers=args.workers,
+        batch=args.batch,
+        echo=lambda m: print(m, file=sys.stderr),
+    )
     res["command"] = "passt-mav paper " + " ".join(sys.argv[2:]) if sys.argv[1:2] == ["paper"] else None
     path = write_page(res, out)
     snaps = {n: c.pop("_snapshots", None) for n, c in res["campaigns"].items()}

@@ -30,10 +30,16 @@ EXAMPLES = """examples:
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("mission", help="mission YAML file (see missions/)")
-    p.add_argument("--state", default=None, help="field file (.nc) holding the state snapshot (default: the mission's field)")
+    p.add_argument(
+        "--state", default=None, help="field file (.nc) holding the state snapshot (default: the mission's field)"
+    )
     p.add_argument("--time", type=int, default=None, help="snapshot index of the state (default: the mission's t0)")
-    p.add_argument("--start", default=None, help="start cell ROW,COL (default: the mission's start_cell, else the centre)")
-    p.add_argument("--length", type=int, default=None, help="moves in the leg L (default: the mission's planner.path_length)")
+    p.add_argument(
+        "--start", default=None, help="start cell ROW,COL (default: the mission's start_cell, else the centre)"
+    )
+    p.add_argument(
+        "--length", type=int, default=None, help="moves in the leg L (default: the mission's planner.path_length)"
+    )
     p.add_argument("--model", default=None, help="override the mission's model; 'none' plans on the state itself")
     p.add_argument("--planner", default=None, help="override the mission's planner (e.g. policy_gradient, information)")
     p.add_argument("--reward", default=None, help="override the mission's reward (e.g. speed, variance_reduction)")
@@ -134,12 +140,19 @@ def run(args: argparse.Namespace) -> int:
     from passt_mav.planning import PLANNERS, REWARDS
 
     if pl.get("name", cfg.planner.name) not in PLANNERS or pl.get("reward", cfg.planner.reward) not in REWARDS:
-        raise PlannerError(f"--planner / --reward: choose a planner of {', '.join(PLANNERS)} and a reward of {', '.join(REWARDS)}")
+        raise PlannerError(
+            f"--planner / --reward: choose a planner of {', '.join(PLANNERS)} and a reward of {', '.join(REWARDS)}"
+        )
     loop = build_loop(cfg.model_copy(update={"planner": cfg.planner.model_copy(update=pl)}), predictor, grid, land=land)
     state = np.array(field.data[k], dtype=np.float32)
     leg = loop.plan_leg(state, start, float(field.times[k]), 1.0, steps=1)
-    mission = WaypointMission.from_path(grid, leg.path, speed=cfg.vehicle.speed_mps,
-                                        wp_radius_m=cfg.vehicle.wp_radius_m, fence_margin_m=cfg.geofence_margin_m)
+    mission = WaypointMission.from_path(
+        grid,
+        leg.path,
+        speed=cfg.vehicle.speed_mps,
+        wp_radius_m=cfg.vehicle.wp_radius_m,
+        fence_margin_m=cfg.geofence_margin_m,
+    )
 
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -170,12 +183,20 @@ def run(args: argparse.Namespace) -> int:
     f_json = out / "path.json"
     f_json.write_text(json.dumps(summary) + "\n")
     if args.json:
-        print(json.dumps({k2: summary[k2] for k2 in ("mission", "start", "path_length", "reward_collected",
-                                                       "waypoint_cells", "note")}
-                         | {"out": str(out), "files": [str(f_plan), str(f_wpl), str(f_json)]}))
+        print(
+            json.dumps(
+                {
+                    k2: summary[k2]
+                    for k2 in ("mission", "start", "path_length", "reward_collected", "waypoint_cells", "note")
+                }
+                | {"out": str(out), "files": [str(f_plan), str(f_wpl), str(f_json)]}
+            )
+        )
     else:
-        print(f"planned {L} moves from {start} with {cfg.planner.name} on the {cfg.planner.reward} reward: "
-              f"{len(mission.waypoints)} waypoints, reward collected {collected:.3f}")
+        print(
+            f"planned {L} moves from {start} with {cfg.planner.name} on the {cfg.planner.reward} reward: "
+            f"{len(mission.waypoints)} waypoints, reward collected {collected:.3f}"
+        )
         print(f"wrote {f_plan}, {f_wpl}, {f_json}")
         print(f"results written to {out}")
     return 0

@@ -22,11 +22,20 @@ Exit 0: reproduced (or a counterfactual run), 1: diverged with the same settings
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("source", metavar="RUN_DIR|FILE.tlog|FILE.bin",
-                   help="run directory, or a telemetry log or ArduPilot DataFlash log (needs --mission)")
-    p.add_argument("--mission", metavar="M.yaml", default=None,
-                   help="mission file (region, field, model, planner); required for a bare log")
-    p.add_argument("--model", metavar="SPEC", default=None, help="counterfactual predictor (registry name, builtin:*, .pt)")
+    p.add_argument(
+        "source",
+        metavar="RUN_DIR|FILE.tlog|FILE.bin",
+        help="run directory, or a telemetry log or ArduPilot DataFlash log (needs --mission)",
+    )
+    p.add_argument(
+        "--mission",
+        metavar="M.yaml",
+        default=None,
+        help="mission file (region, field, model, planner); required for a bare log",
+    )
+    p.add_argument(
+        "--model", metavar="SPEC", default=None, help="counterfactual predictor (registry name, builtin:*, .pt)"
+    )
     p.add_argument("--planner", metavar="NAME", default=None, help="counterfactual planner")
     p.add_argument("--reward", metavar="NAME", default=None, help="counterfactual reward map")
     p.add_argument("--out", metavar="DIR", default=None, help="output directory (default RUN_DIR/replay)")
@@ -42,19 +51,31 @@ def run(args: argparse.Namespace) -> int:
 
     from passt_mav.analysis.replay import replay
 
-    res = replay(args.source, out=args.out, model=args.model, planner=args.planner, reward=args.reward,
-                 mission=args.mission, progress=True)
+    res = replay(
+        args.source,
+        out=args.out,
+        model=args.model,
+        planner=args.planner,
+        reward=args.reward,
+        mission=args.mission,
+        progress=True,
+    )
     if args.json:
         print(json.dumps(res.to_dict(), indent=2))
         return res.exit_code
     cf = ", ".join(f"{k}={v}" for k, v in res.counterfactual.items())
-    print(f"replay of {res.source} ({res.settings['planner']}, model {res.settings['model']}"
-          + (f"; counterfactual {cf}" if cf else "") + ")")
+    print(
+        f"replay of {res.source} ({res.settings['planner']}, model {res.settings['model']}"
+        + (f"; counterfactual {cf}" if cf else "")
+        + ")"
+    )
     print(f"{'leg':>3}  {'samples':>7}  {'path':<9}  {'rmse rec':>9}  {'rmse replay':>11}  {'reward':>8}")
     for leg in res.legs:
         same = {True: "identical", False: "differs", None: "?"}[leg.path_identical]
-        print(f"{leg.index:>3}  {leg.n_samples:>7}  {same:<9}  {_f(leg.rmse_passt_recorded):>9}  "
-              f"{_f(leg.rmse_passt):>11}  {leg.reward_collected:>8.4f}")
+        print(
+            f"{leg.index:>3}  {leg.n_samples:>7}  {same:<9}  {_f(leg.rmse_passt_recorded):>9}  "
+            f"{_f(leg.rmse_passt):>11}  {leg.reward_collected:>8.4f}"
+        )
         if leg.path_identical is False:
             print(f"     recorded {leg.recorded_path}")
             print(f"     replayed {leg.path}")
@@ -65,8 +86,7 @@ def run(args: argparse.Namespace) -> int:
     if res.reproduced is None:
         print("counterfactual: paths above are what that choice would have planned on the same data")
     elif res.reproduced:
-        print("reproduced: every path identical, every RMSE within "
-              f"{res.rmse_tol:g}")
+        print(f"reproduced: every path identical, every RMSE within {res.rmse_tol:g}")
     else:
         print(f"DIVERGED: first at leg {res.first_divergence}")
     if res.out_dir:

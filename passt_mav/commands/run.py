@@ -22,32 +22,64 @@ EXAMPLES = """examples:
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("mission", help="mission file (YAML, see missions/)")
-    p.add_argument("--connect", help="MAVLink connection: tcp:HOST:PORT, udpin:HOST:PORT, DEVICE,BAUD "
-                                     "(default: the mission's vehicle.connect)")
-    p.add_argument("--out", help="run directory (default runs/<UTC>_<mission name>); with --resume: the run to continue")
+    p.add_argument(
+        "--connect",
+        help="MAVLink connection: tcp:HOST:PORT, udpin:HOST:PORT, DEVICE,BAUD (default: the mission's vehicle.connect)",
+    )
+    p.add_argument(
+        "--out", help="run directory (default runs/<UTC>_<mission name>); with --resume: the run to continue"
+    )
     p.add_argument("--legs", type=int, help="number of legs (default: the mission's legs)")
     p.add_argument("--resume", action="store_true", help="continue the run in --out after the controller stopped")
-    p.add_argument("--speedup-hint", type=float, default=1.0,
-                   help="simulated seconds per wall second of a simulator (scales wall-clock timeouts; default 1)")
-    p.add_argument("--field-time-at-boot", type=float,
-                   help="field time at vehicle boot, for simulators without a clock: field time = this + "
-                        "time_boot_ms/1000/field.time_scale (default: the mission's field.clock: the vehicle's UTC "
-                        "when it lies inside the field's snapshots, else snapshot t0)")
+    p.add_argument(
+        "--speedup-hint",
+        type=float,
+        default=1.0,
+        help="simulated seconds per wall second of a simulator (scales wall-clock timeouts; default 1)",
+    )
+    p.add_argument(
+        "--field-time-at-boot",
+        type=float,
+        help="field time at vehicle boot, for simulators without a clock: field time = this + "
+        "time_boot_ms/1000/field.time_scale (default: the mission's field.clock: the vehicle's UTC "
+        "when it lies inside the field's snapshots, else snapshot t0)",
+    )
     p.add_argument("--signing-key", help="MAVLink 2 signing passphrase or 64 hex digits")
-    p.add_argument("--pause-timeout", type=float, default=300.0,
-                   help="wall seconds to wait for AUTO after a pilot takes over before stopping in HOLD (default 300)")
-    p.add_argument("--ready-timeout", type=float, default=120.0,
-                   help="wall seconds to wait for the vehicle: its link (refused / unreachable / no heartbeat are "
-                        "retried with back-off, one line each) and then EKF/GPS (default 120)")
-    p.add_argument("--source-system", type=int, default=None,
-                   help="our MAVLink system id (default: the mission's vehicle.source_system, else 245; not 255, "
-                        "QGroundControl's: see README 'Identity on a shared link')")
-    p.add_argument("--source-component", type=int, default=None,
-                   help="our MAVLink component id (default: the mission's vehicle.source_component, else 195 "
-                        "MAV_COMP_ID_PATHPLANNER)")
-    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
-                   help="override a mission key (dotted, YAML value), e.g. --set planner.path_length=8; repeatable; "
-                        "the run directory keeps the mission as flown")
+    p.add_argument(
+        "--pause-timeout",
+        type=float,
+        default=300.0,
+        help="wall seconds to wait for AUTO after a pilot takes over before stopping in HOLD (default 300)",
+    )
+    p.add_argument(
+        "--ready-timeout",
+        type=float,
+        default=120.0,
+        help="wall seconds to wait for the vehicle: its link (refused / unreachable / no heartbeat are "
+        "retried with back-off, one line each) and then EKF/GPS (default 120)",
+    )
+    p.add_argument(
+        "--source-system",
+        type=int,
+        default=None,
+        help="our MAVLink system id (default: the mission's vehicle.source_system, else 245; not 255, "
+        "QGroundControl's: see README 'Identity on a shared link')",
+    )
+    p.add_argument(
+        "--source-component",
+        type=int,
+        default=None,
+        help="our MAVLink component id (default: the mission's vehicle.source_component, else 195 "
+        "MAV_COMP_ID_PATHPLANNER)",
+    )
+    p.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="override a mission key (dotted, YAML value), e.g. --set planner.path_length=8; repeatable; "
+        "the run directory keeps the mission as flown",
+    )
     p.add_argument("--no-report", action="store_true", help="do not write report/report.html at the end")
     p.add_argument("--quiet", action="store_true", help="no per-leg status lines")
     from passt_mav.commands.view import add_view_options  # live view (issue 29): --view [PORT], --view-host
@@ -67,31 +99,65 @@ def link_config_for(connect: str, *, speedup: float = 1.0, tlog=None, signing_ke
         # Python reader parses on a loaded core, and the reply to a mission request then comes later than
         # the vehicle's 8 s (simulated) transfer timeout. Ask only for what the controller uses.
         kw["stream_rates_hz"] = LEAN_STREAMS
-    return LinkConfig(connect, tlog=None if tlog is None else str(tlog), signing_key=signing_key,
-                      connect_timeout_s=30.0, link_lost_s=5.0 if speedup <= 1.0 else 2.0, **kw)
+    return LinkConfig(
+        connect,
+        tlog=None if tlog is None else str(tlog),
+        signing_key=signing_key,
+        connect_timeout_s=30.0,
+        link_lost_s=5.0 if speedup <= 1.0 else 2.0,
+        **kw,
+    )
 
 
 #: telemetry the controller needs (Hz of vehicle time; 0 = off), used for fast simulators
-LEAN_STREAMS = (("GLOBAL_POSITION_INT", 1.0), ("MISSION_CURRENT", 1.0), ("EKF_STATUS_REPORT", 0.5),
-                ("SYSTEM_TIME", 0.2), ("SYS_STATUS", 0), ("GPS_RAW_INT", 0), ("ATTITUDE", 0),
-                ("VFR_HUD", 0), ("BATTERY_STATUS", 0), ("NAV_CONTROLLER_OUTPUT", 0), ("LOCAL_POSITION_NED", 0),
-                ("POWER_STATUS", 0), ("MEMINFO", 0))
+LEAN_STREAMS = (
+    ("GLOBAL_POSITION_INT", 1.0),
+    ("MISSION_CURRENT", 1.0),
+    ("EKF_STATUS_REPORT", 0.5),
+    ("SYSTEM_TIME", 0.2),
+    ("SYS_STATUS", 0),
+    ("GPS_RAW_INT", 0),
+    ("ATTITUDE", 0),
+    ("VFR_HUD", 0),
+    ("BATTERY_STATUS", 0),
+    ("NAV_CONTROLLER_OUTPUT", 0),
+    ("LOCAL_POSITION_NED", 0),
+    ("POWER_STATUS", 0),
+    ("MEMINFO", 0),
+)
 
 
-def execute(config, *, connect: str, run_dir, mission_text: str | None, legs=None, resume=False, speedup=1.0,
-            field_time_at_boot=None, signing_key=None, pause_timeout=300.0, ready_timeout=120.0, echo=print,
-            extra_summary=None, report=True, link_factory=None, identity=(None, None), progress=True) -> dict:
+def execute(
+    config,
+    *,
+    connect: str,
+    run_dir,
+    mission_text: str | None,
+    legs=None,
+    resume=False,
+    speedup=1.0,
+    field_time_at_boot=None,
+    signing_key=None,
+    pause_timeout=300.0,
+    ready_timeout=120.0,
+    echo=print,
+    extra_summary=None,
+    report=True,
+    link_factory=None,
+    identity=(None, None),
+    progress=True,
+) -> dict:
     """Everything ``run`` does after parsing: field, predictor, link, controller, report. Returns the summary.
 
     ``progress``: show the wait for a vehicle that is not ready yet (EKF/GPS; :mod:`passt_mav.progress`).
     ``identity``: our (system, component) ids from the command line; None = the mission's
     ``vehicle.source_system/source_component``, else the link's defaults.
     """
+    import sys
+
     from passt_mav.controller import MissionController, build_predictor
     from passt_mav.fields.datasets import mission_field
     from passt_mav.mavlink import Link
-
-    import sys
 
     if speedup > 1.0:
         # hand the GIL over faster (default 5 ms): a mission request must be answered within the
@@ -102,22 +168,58 @@ def execute(config, *, connect: str, run_dir, mission_text: str | None, legs=Non
     if config.vehicles is not None:
         if resume:
             raise _user("--resume is not supported for a fleet (vehicles:) yet")
-        summary = _execute_fleet(config, run_dir, field, predictor, pinfo, mission_text=mission_text, legs=legs,
-                                 speedup=speedup, field_time_at_boot=field_time_at_boot, signing_key=signing_key,
-                                 pause_timeout=pause_timeout, ready_timeout=ready_timeout, echo=echo,
-                                 extra_summary=extra_summary, link_factory=link_factory, identity=identity,
-                                 progress=progress)
+        summary = _execute_fleet(
+            config,
+            run_dir,
+            field,
+            predictor,
+            pinfo,
+            mission_text=mission_text,
+            legs=legs,
+            speedup=speedup,
+            field_time_at_boot=field_time_at_boot,
+            signing_key=signing_key,
+            pause_timeout=pause_timeout,
+            ready_timeout=ready_timeout,
+            echo=echo,
+            extra_summary=extra_summary,
+            link_factory=link_factory,
+            identity=identity,
+            progress=progress,
+        )
         return _report(summary, run_dir, report)
-    link = Link(link_config_for(connect, speedup=speedup, tlog=run_dir.tlog, signing_key=signing_key,
-                                identity=_identity(identity, config.vehicle)), connection_factory=link_factory)
+    link = Link(
+        link_config_for(
+            connect,
+            speedup=speedup,
+            tlog=run_dir.tlog,
+            signing_key=signing_key,
+            identity=_identity(identity, config.vehicle),
+        ),
+        connection_factory=link_factory,
+    )
     echo(f"connecting to {connect} as system {link.config.source_system} component {link.config.source_component} ...")
     link.connect(wait_s=ready_timeout, say=echo)
     try:
         veh = _vehicle_for(link, speedup, progress)
-        ctl = MissionController(config, link, run_dir, field=field, predictor=predictor, predictor_info=pinfo,
-                                vehicle=veh, legs=legs, field_time_at_boot=field_time_at_boot, speedup_hint=speedup,
-                                pause_timeout_s=pause_timeout, ready_timeout_s=ready_timeout, resume=resume,
-                                echo=echo, mission_text=mission_text, extra_summary=extra_summary)
+        ctl = MissionController(
+            config,
+            link,
+            run_dir,
+            field=field,
+            predictor=predictor,
+            predictor_info=pinfo,
+            vehicle=veh,
+            legs=legs,
+            field_time_at_boot=field_time_at_boot,
+            speedup_hint=speedup,
+            pause_timeout_s=pause_timeout,
+            ready_timeout_s=ready_timeout,
+            resume=resume,
+            echo=echo,
+            mission_text=mission_text,
+            extra_summary=extra_summary,
+        )
         summary = ctl.run()
     finally:
         link.close()
@@ -140,9 +242,26 @@ def _vehicle_for(link, speedup: float, progress: bool = True):
     return Vehicle(link, mc, retry_delay_s=max(0.02, 1.0 / max(speedup, 1.0)), show_progress=progress)
 
 
-def _execute_fleet(config, run_dir, field, predictor, pinfo, *, mission_text, legs, speedup, field_time_at_boot,
-                   signing_key, pause_timeout, ready_timeout, echo, extra_summary, link_factory, identity,
-                   progress=True) -> dict:
+def _execute_fleet(
+    config,
+    run_dir,
+    field,
+    predictor,
+    pinfo,
+    *,
+    mission_text,
+    legs,
+    speedup,
+    field_time_at_boot,
+    signing_key,
+    pause_timeout,
+    ready_timeout,
+    echo,
+    extra_summary,
+    link_factory,
+    identity,
+    progress=True,
+) -> dict:
     """``vehicles:``: one link per boat (its own tlog), one :class:`FleetController`."""
     from passt_mav.fleet_controller import FleetController
     from passt_mav.mavlink import Link
@@ -151,15 +270,35 @@ def _execute_fleet(config, run_dir, field, predictor, pinfo, *, mission_text, le
     try:
         for k, vc in enumerate(config.fleet):
             factory = None if link_factory is None else (lambda f=link_factory, c=vc.connect: f(c))
-            link = Link(link_config_for(vc.connect, speedup=speedup, tlog=run_dir.boat_tlog(k), signing_key=signing_key,
-                                        identity=_identity(identity, vc)), connection_factory=factory)
+            link = Link(
+                link_config_for(
+                    vc.connect,
+                    speedup=speedup,
+                    tlog=run_dir.boat_tlog(k),
+                    signing_key=signing_key,
+                    identity=_identity(identity, vc),
+                ),
+                connection_factory=factory,
+            )
             echo(f"boat {k}: connecting to {vc.connect} ...")
             links.append(link.connect(wait_s=ready_timeout, say=echo))
-        fleet = FleetController(config, links, run_dir, field=field, predictor=predictor, predictor_info=pinfo,
-                                vehicles=[_vehicle_for(x, speedup, progress) for x in links], legs=legs, echo=echo,
-                                mission_text=mission_text, extra_summary=extra_summary,
-                                field_time_at_boot=field_time_at_boot, speedup_hint=speedup,
-                                pause_timeout_s=pause_timeout, ready_timeout_s=ready_timeout)
+        fleet = FleetController(
+            config,
+            links,
+            run_dir,
+            field=field,
+            predictor=predictor,
+            predictor_info=pinfo,
+            vehicles=[_vehicle_for(x, speedup, progress) for x in links],
+            legs=legs,
+            echo=echo,
+            mission_text=mission_text,
+            extra_summary=extra_summary,
+            field_time_at_boot=field_time_at_boot,
+            speedup_hint=speedup,
+            pause_timeout_s=pause_timeout,
+            ready_timeout_s=ready_timeout,
+        )
         return fleet.run()
     finally:
         for link in links:
@@ -239,12 +378,23 @@ def run(args: argparse.Namespace) -> int:
             raise _user(f"--{name.replace('_', '-')} must be 1..255, got {v}")
     view = _live_view(args, rd)
     try:
-        summary = execute(config, connect=args.connect or config.vehicle.connect, run_dir=rd,
-                          mission_text=mission_text, legs=args.legs, resume=args.resume,
-                          speedup=args.speedup_hint, field_time_at_boot=args.field_time_at_boot,
-                          signing_key=args.signing_key, pause_timeout=args.pause_timeout,
-                          ready_timeout=args.ready_timeout, echo=echo, report=not args.no_report,
-                          identity=(args.source_system, args.source_component), progress=not args.quiet)
+        summary = execute(
+            config,
+            connect=args.connect or config.vehicle.connect,
+            run_dir=rd,
+            mission_text=mission_text,
+            legs=args.legs,
+            resume=args.resume,
+            speedup=args.speedup_hint,
+            field_time_at_boot=args.field_time_at_boot,
+            signing_key=args.signing_key,
+            pause_timeout=args.pause_timeout,
+            ready_timeout=args.ready_timeout,
+            echo=echo,
+            report=not args.no_report,
+            identity=(args.source_system, args.source_component),
+            progress=not args.quiet,
+        )
     finally:
         if view is not None:
             view.stop(grace_s=1.5)

@@ -34,10 +34,21 @@ def port(text: str) -> int:
 def add_view_options(p: argparse.ArgumentParser, *, port_flag: str = "--view") -> None:
     """``--view [PORT]`` and ``--view-host HOST`` (used by run and demo too)."""
     if port_flag == "--view":
-        p.add_argument("--view", nargs="?", type=port, const=0, default=None, metavar="PORT",
-                       help="serve the live view on 127.0.0.1:PORT (no PORT: a free one); the address is printed")
-    p.add_argument("--view-host", default="127.0.0.1", metavar="HOST",
-                   help="address to bind the view to (default 127.0.0.1); any other needs the token printed at start")
+        p.add_argument(
+            "--view",
+            nargs="?",
+            type=port,
+            const=0,
+            default=None,
+            metavar="PORT",
+            help="serve the live view on 127.0.0.1:PORT (no PORT: a free one); the address is printed",
+        )
+    p.add_argument(
+        "--view-host",
+        default="127.0.0.1",
+        metavar="HOST",
+        help="address to bind the view to (default 127.0.0.1); any other needs the token printed at start",
+    )
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:

@@ -201,7 +201,9 @@ def crop_grid(anchor_lat: float = DEFAULT_ANCHOR[0], anchor_lon: float = DEFAULT
     return geo.MetricRegionGrid(x0, x1, y0, y1, rows, cols, anchor_lat=anchor_lat, anchor_lon=anchor_lon)
 
 
-def strouhal_number(signal, dt: float, *, diameter: float = 2 * RADIUS, speed: float = 1.0, f_min: float | None = None) -> float:
+def strouhal_number(
+    signal, dt: float, *, diameter: float = 2 * RADIUS, speed: float = 1.0, f_min: float | None = None
+) -> float:
     """Strouhal number ``f D / U`` of the dominant oscillation of a signal.
 
     ``signal`` is a 1-D time series sampled every ``dt`` (non-dimensional time),
@@ -246,7 +248,9 @@ class _Lattice:
     that set ``open_x=False``).
     """
 
-    def __init__(self, ny: int, nx: int, tau: float, *, magic: float | None = None, open_x: bool = True, force=(0.0, 0.0)):
+    def __init__(
+        self, ny: int, nx: int, tau: float, *, magic: float | None = None, open_x: bool = True, force=(0.0, 0.0)
+    ):
         import torch
 
         self.torch = torch
@@ -407,7 +411,9 @@ class _Lattice:
         return out
 
 
-def poiseuille_profile_lbm(ny: int = 21, *, tau: float = 0.8, u_max: float = 0.05, steps: int = 4000, magic: float | None = None):
+def poiseuille_profile_lbm(
+    ny: int = 21, *, tau: float = 0.8, u_max: float = 0.05, steps: int = 4000, magic: float | None = None
+):
     """Plane Poiseuille flow on this module's lattice, for checking the solver.
 
     A channel of ``ny`` fluid rows between half-way bounce-back walls (one solid row
@@ -455,11 +461,16 @@ def _sponges(xs: np.ndarray, ys: np.ndarray):
     xmin, xmax, _ymin, ymax = DOMAIN
     X, Y = np.meshgrid(xs, ys)
     ramp = lambda d, w: np.clip(d / w, 0.0, 1.0) ** 2
-    sig = np.maximum.reduce([
-        ramp(np.abs(Y) - sp["y_abs"], ymax - sp["y_abs"]),
-        ramp(sp["x_in"] - X, sp["x_in"] - xmin),
-        ramp(X - sp["x_out"], xmax - sp["x_out"]),
-    ]) * sp["sigma_max"]
+    sig = (
+        np.maximum.reduce(
+            [
+                ramp(np.abs(Y) - sp["y_abs"], ymax - sp["y_abs"]),
+                ramp(sp["x_in"] - X, sp["x_in"] - xmin),
+                ramp(X - sp["x_out"], xmax - sp["x_out"]),
+            ]
+        )
+        * sp["sigma_max"]
+    )
     ny, nx = sig.shape
     mid = np.flatnonzero(~(np.abs(ys) > sp["y_abs"]))
     r_lo, r_hi = int(mid[0]), int(mid[-1]) + 1  # rows outside the lateral bands
@@ -572,7 +583,9 @@ def run_cylinder_lbm(config: CylinderConfig, progress: bool = True) -> CylinderR
     if progress:
         from tqdm import tqdm
 
-        bar = tqdm(total=total, unit="step", desc="cylinder LBM" + (" (oscillating)" if cfg.amplitude else ""), mininterval=2.0)
+        bar = tqdm(
+            total=total, unit="step", desc="cylinder LBM" + (" (oscillating)" if cfg.amplitude else ""), mininterval=2.0
+        )
     t0 = _time.perf_counter()
     k_out = 0
     for s in range(total):
@@ -638,7 +651,9 @@ def generate_cylinder(config: CylinderConfig | None = None, progress: bool = Tru
     pod4 = float(pod_energy(run.data[lo:hi], 4)[-1]) if hi - lo >= 5 else float("nan")
     lp = cfg.lattice()
     attrs = {
-        "title": f"flow past an oscillating cylinder, Re {cfg.reynolds:g}" if cfg.amplitude else f"flow past a cylinder, Re {cfg.reynolds:g}",
+        "title": f"flow past an oscillating cylinder, Re {cfg.reynolds:g}"
+        if cfg.amplitude
+        else f"flow past a cylinder, Re {cfg.reynolds:g}",
         "generator": "passt_mav.fields.cylinder (D2Q9 BGK lattice Boltzmann, torch CPU)",
         "scenario": "oscillating" if cfg.amplitude else "cylinder",
         **{f"config_{k}": (v if v is not None else "none") for k, v in asdict(cfg).items()},
@@ -669,4 +684,3 @@ def generate_cylinder(config: CylinderConfig | None = None, progress: bool = Tru
         )
     grid = crop_grid(cfg.anchor_lat, cfg.anchor_lon)
     return FlowField(run.data, grid, run.times, None, "1", attrs)
-

@@ -38,29 +38,53 @@ def add_cylinder_arguments(parser: argparse.ArgumentParser) -> None:
     """Options of ``data cylinder`` and ``data oscillating`` (same set for both)."""
     d = DEFAULTS
     parser.add_argument("--out", required=True, metavar="FILE.nc", help="output NetCDF file")
-    parser.add_argument("--seed", type=int, default=d["seed"], help="seed of the symmetry-breaking start perturbation (default %(default)s)")
-    parser.add_argument("--snapshots", type=int, default=d["snapshots"], help="output snapshots after the spin-up (default %(default)s)")
     parser.add_argument(
-        "--resolution", type=int, default=d["resolution"],
+        "--seed",
+        type=int,
+        default=d["seed"],
+        help="seed of the symmetry-breaking start perturbation (default %(default)s)",
+    )
+    parser.add_argument(
+        "--snapshots", type=int, default=d["snapshots"], help="output snapshots after the spin-up (default %(default)s)"
+    )
+    parser.add_argument(
+        "--resolution",
+        type=int,
+        default=d["resolution"],
         help="lattice cells per cylinder radius (default %(default)s; 6 is a quick coarse run)",
     )
     parser.add_argument(
-        "--dt", type=float, default=d["dt"],
+        "--dt",
+        type=float,
+        default=d["dt"],
         help="output interval, non-dimensional time (default %(default)s: ~25 snapshots per shedding period)",
     )
     parser.add_argument(
-        "--spin-up", type=float, default=d["spin_up"], dest="spin_up",
+        "--spin-up",
+        type=float,
+        default=d["spin_up"],
+        dest="spin_up",
         help="non-dimensional time simulated before the first snapshot (default %(default)s)",
     )
     parser.add_argument(
-        "--amplitude", type=float, default=None,
+        "--amplitude",
+        type=float,
+        default=None,
         help=f"cylinder oscillation amplitude in radii (oscillating only; default {d['amplitude_oscillating']})",
     )
     parser.add_argument(
-        "--period-snapshots", type=int, default=d["period_snapshots"], dest="period_snapshots",
+        "--period-snapshots",
+        type=int,
+        default=d["period_snapshots"],
+        dest="period_snapshots",
         help="oscillation period in output snapshots (default %(default)s)",
     )
-    parser.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's choice; results do not depend on it)")
+    parser.add_argument(
+        "--threads",
+        type=int,
+        default=None,
+        help="torch CPU threads (default: torch's choice; results do not depend on it)",
+    )
     parser.add_argument("--json", action="store_true", help="print the summary as JSON")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
 
@@ -130,7 +154,9 @@ def run_cylinder(args: argparse.Namespace, oscillating: bool) -> int:
         else:
             print("Strouhal number: n/a (record shorter than 2 shedding periods; use more --snapshots)")
         print(f"POD energy of the first 4 modes (snapshots {lo}-{hi}): {a['pod4_energy']:.4f}")
-        print(f"mean drag coefficient: {a['drag_coefficient_mean']:.3f}; wall time {a['wall_time_s']:.0f} s; data hash {summary['data_hash']}")
+        print(
+            f"mean drag coefficient: {a['drag_coefficient_mean']:.3f}; wall time {a['wall_time_s']:.0f} s; data hash {summary['data_hash']}"
+        )
         print(f"wrote {out}")
     return 0
 

@@ -37,12 +37,16 @@ def load_dataset(name: str, *, seed: int = 0):
     if name in ("cylinder", "oscillating"):
         path = ASSETS / f"{name}.nc"
         if not path.exists():
-            raise FieldError(f"shipped dataset {path.name} is missing; regenerate it with 'passt-mav data {name} --out {path}'")
+            raise FieldError(
+                f"shipped dataset {path.name} is missing; regenerate it with 'passt-mav data {name} --out {path}'"
+            )
         return load_field(path)
     if name == "rtofs":
         path = ASSETS / "rtofs.nc"
         if not path.exists():
-            raise FieldError(f"shipped dataset {path.name} is missing; see passt_mav/assets/README.md for the command that makes it")
+            raise FieldError(
+                f"shipped dataset {path.name} is missing; see passt_mav/assets/README.md for the command that makes it"
+            )
         return load_field(path)
     raise FieldError(f"unknown dataset {name!r}; choose one of {', '.join(DATASETS)}")
 
@@ -85,14 +89,21 @@ def field_on_region(field, grid, *, source: str):
 
     fg = field.grid
     if tuple(fg.shape) != tuple(grid.shape):
-        raise FieldError(f"the field {source} is a {fg.rows}x{fg.cols} grid, the mission's region {grid.rows}x{grid.cols}")
+        raise FieldError(
+            f"the field {source} is a {fg.rows}x{fg.cols} grid, the mission's region {grid.rows}x{grid.cols}"
+        )
     f_metric, m_metric = isinstance(fg, MetricRegionGrid), isinstance(grid, MetricRegionGrid)
     if f_metric != m_metric:
         kind = "metric" if f_metric else "geographic"
-        raise FieldError(f"the field {source} is on a {kind} grid; the mission's region must be 'kind: {kind}' "
-                         f"(it is {'metric' if m_metric else 'geographic'})")
+        raise FieldError(
+            f"the field {source} is on a {kind} grid; the mission's region must be 'kind: {kind}' "
+            f"(it is {'metric' if m_metric else 'geographic'})"
+        )
     if f_metric:
-        keys, steps = ("x0", "x1", "y0", "y1"), ((fg.x1 - fg.x0) / max(fg.cols - 1, 1), (fg.y1 - fg.y0) / max(fg.rows - 1, 1))
+        keys, steps = (
+            ("x0", "x1", "y0", "y1"),
+            ((fg.x1 - fg.x0) / max(fg.cols - 1, 1), (fg.y1 - fg.y0) / max(fg.rows - 1, 1)),
+        )
         step_of = {"x0": steps[0], "x1": steps[0], "y0": steps[1], "y1": steps[1]}
         unit = "data m"
     else:
@@ -103,8 +114,10 @@ def field_on_region(field, grid, *, source: str):
     for k in keys:
         a, b = float(getattr(fg, k)), float(getattr(grid, k))
         if abs(a - b) > _SAME_GRID_CELLS * abs(step_of[k]):
-            raise FieldError(f"the mission's region {k} = {b:g} {unit} is not the field's ({source}: {a:g}); "
-                             f"use the field's region (passt-mav data info {source})")
+            raise FieldError(
+                f"the mission's region {k} = {b:g} {unit} is not the field's ({source}: {a:g}); "
+                f"use the field's region (passt-mav data info {source})"
+            )
     if f_metric and fg != grid:
         from passt_mav.fields.field import FlowField
 

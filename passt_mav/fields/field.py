@@ -134,7 +134,9 @@ class FlowField:
         return t0 + (self.times * 1000.0).round().astype("timedelta64[ms]")
 
     # -- slicing ------------------------------------------------------------
-    def isel(self, time: slice | int | np.ndarray | None = None, rows: slice | None = None, cols: slice | None = None) -> FlowField:
+    def isel(
+        self, time: slice | int | np.ndarray | None = None, rows: slice | None = None, cols: slice | None = None
+    ) -> FlowField:
         """Subset by snapshot index and/or a contiguous cell window (step 1)."""
         t = slice(None) if time is None else time
         if isinstance(t, (int, np.integer)):
@@ -163,7 +165,11 @@ class FlowField:
         out = np.full(t.shape + (2,), np.nan)
         R, C = self.grid.shape
         T = self.n_times
-        ft = np.interp(t, self.times, np.arange(T), left=np.nan, right=np.nan) if T > 1 else np.where(t == self.times[0], 0.0, np.nan)
+        ft = (
+            np.interp(t, self.times, np.arange(T), left=np.nan, right=np.nan)
+            if T > 1
+            else np.where(t == self.times[0], 0.0, np.nan)
+        )
         ok = np.isfinite(ft) & (r >= 0) & (r <= R - 1) & (c >= 0) & (c <= C - 1)
         if not np.any(ok):
             return out
@@ -221,16 +227,32 @@ class FlowField:
         if self.is_geographic:
             dims = ("time", "lat", "lon")
             coords = {
-                "lat": ("lat", g.lats, {"standard_name": "latitude", "units": "degrees_north", "long_name": "cell-centre latitude"}),
-                "lon": ("lon", g.lons, {"standard_name": "longitude", "units": "degrees_east", "long_name": "cell-centre longitude"}),
+                "lat": (
+                    "lat",
+                    g.lats,
+                    {"standard_name": "latitude", "units": "degrees_north", "long_name": "cell-centre latitude"},
+                ),
+                "lon": (
+                    "lon",
+                    g.lons,
+                    {"standard_name": "longitude", "units": "degrees_east", "long_name": "cell-centre longitude"},
+                ),
             }
             u_attrs = {"standard_name": CF_U, "units": self.units, "long_name": "eastward current"}
             v_attrs = {"standard_name": CF_V, "units": self.units, "long_name": "northward current"}
         else:
             dims = ("time", "y", "x")
             coords = {
-                "y": ("y", g.ys, {"units": "m", "long_name": "cross-stream coordinate of cell centre (data frame)", "axis": "Y"}),
-                "x": ("x", g.xs, {"units": "m", "long_name": "stream-wise coordinate of cell centre (data frame)", "axis": "X"}),
+                "y": (
+                    "y",
+                    g.ys,
+                    {"units": "m", "long_name": "cross-stream coordinate of cell centre (data frame)", "axis": "Y"},
+                ),
+                "x": (
+                    "x",
+                    g.xs,
+                    {"units": "m", "long_name": "stream-wise coordinate of cell centre (data frame)", "axis": "X"},
+                ),
             }
             u_attrs = {"units": self.units, "long_name": "x velocity (inflow = 1)"}
             v_attrs = {"units": self.units, "long_name": "y velocity (inflow = 1)"}
@@ -259,8 +281,10 @@ class FlowField:
         path = Path(path)
         path.parent.mkdir(parents=True, exist_ok=True)
         ds = self.to_dataset(std)
-        enc = {k: {"_FillValue": np.float32(np.nan), "dtype": "float32", "zlib": True, "complevel": 4}
-               for k in ds.data_vars}
+        enc = {
+            k: {"_FillValue": np.float32(np.nan), "dtype": "float32", "zlib": True, "complevel": 4}
+            for k in ds.data_vars
+        }
         # decode_times stays off on read: seconds are stored raw, never as datetime objects
         enc["time"] = {"dtype": "float64"}
         ds.to_netcdf(path, encoding=enc, engine="netcdf4")
@@ -280,7 +304,9 @@ class FlowField:
             raise FieldError(f"cannot read {path} as NetCDF: {exc}") from None
         with ds:
             if "passt_grid" not in ds.attrs:
-                raise FieldError(f"{path} is not a passt_mav field file (no passt_grid attribute); use 'passt-mav data import'")
+                raise FieldError(
+                    f"{path} is not a passt_mav field file (no passt_grid attribute); use 'passt-mav data import'"
+                )
             missing = [k for k in ("u", "v", "time") if k not in ds.variables]
             if missing:
                 raise FieldError(f"{path} lacks the variable(s) {', '.join(missing)} of a passt_mav field file")
@@ -319,14 +345,30 @@ def _subgrid(grid, rs: range, cs: range):
         xs, ys = grid.xs, grid.ys
         # the anchor stays where it is: the sub-grid keeps its absolute placement
         sub = MetricRegionGrid(
-            xs[cs.start], xs[cs.stop - 1], ys[rs.start], ys[rs.stop - 1], len(rs), len(cs),
-            anchor_lat=grid.anchor_lat, anchor_lon=grid.anchor_lon, rotation_deg=grid.rotation_deg, scale=grid.scale,
+            xs[cs.start],
+            xs[cs.stop - 1],
+            ys[rs.start],
+            ys[rs.stop - 1],
+            len(rs),
+            len(cs),
+            anchor_lat=grid.anchor_lat,
+            anchor_lon=grid.anchor_lon,
+            rotation_deg=grid.rotation_deg,
+            scale=grid.scale,
         )
         # re-anchor so the sub-grid's centre lands where it was in the parent
         lat, lon = grid.fcell_to_latlon((rs.start + rs.stop - 1) / 2, (cs.start + cs.stop - 1) / 2)
         return MetricRegionGrid(
-            sub.x0, sub.x1, sub.y0, sub.y1, sub.rows, sub.cols,
-            anchor_lat=float(lat), anchor_lon=float(lon), rotation_deg=grid.rotation_deg, scale=grid.scale,
+            sub.x0,
+            sub.x1,
+            sub.y0,
+            sub.y1,
+            sub.rows,
+            sub.cols,
+            anchor_lat=float(lat),
+            anchor_lon=float(lon),
+            rotation_deg=grid.rotation_deg,
+            scale=grid.scale,
         )
     lats, lons = grid.lats, grid.lons
     return RegionGrid(lats[rs.start], lons[cs.start], lats[rs.stop - 1], lons[cs.stop - 1], len(rs), len(cs))

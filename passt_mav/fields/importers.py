@@ -68,10 +68,20 @@ __all__ = ["import_currents", "coverage_report", "velocity_scale", "U_NAMES", "V
 #: candidate variable names, tried in order after CF standard names
 U_NAMES = ("water_u", "uo", "u", "u_velocity", "ugos", "ucur", "U", "east_vel", "eastward_velocity")
 V_NAMES = ("water_v", "vo", "v", "v_velocity", "vgos", "vcur", "V", "north_vel", "northward_velocity")
-_U_STD = ("eastward_sea_water_velocity", "surface_eastward_sea_water_velocity", "sea_water_x_velocity",
-          "baroclinic_eastward_sea_water_velocity", "eastward_sea_water_velocity_assuming_no_tide")
-_V_STD = ("northward_sea_water_velocity", "surface_northward_sea_water_velocity", "sea_water_y_velocity",
-          "baroclinic_northward_sea_water_velocity", "northward_sea_water_velocity_assuming_no_tide")
+_U_STD = (
+    "eastward_sea_water_velocity",
+    "surface_eastward_sea_water_velocity",
+    "sea_water_x_velocity",
+    "baroclinic_eastward_sea_water_velocity",
+    "eastward_sea_water_velocity_assuming_no_tide",
+)
+_V_STD = (
+    "northward_sea_water_velocity",
+    "surface_northward_sea_water_velocity",
+    "sea_water_y_velocity",
+    "baroclinic_northward_sea_water_velocity",
+    "northward_sea_water_velocity_assuming_no_tide",
+)
 _LAT_NAMES = ("lat", "latitude", "Latitude", "LATITUDE", "nav_lat", "lat_rho")
 _LON_NAMES = ("lon", "longitude", "Longitude", "LONGITUDE", "nav_lon", "lon_rho")
 _DEPTH_NAMES = ("depth", "z", "Depth", "lev", "level", "deptht", "depthu", "depthv", "s_rho", "altitude", "height")
@@ -89,16 +99,31 @@ def velocity_scale(units: str | None) -> float:
     ``meters per second``, ``cm/s``, ``cm s-1``, ``mm/s``, ``knots``/``kt``.
     """
     if units is None or not str(units).strip():
-        raise FieldError("velocity variable has no 'units' attribute: give them with --units (e.g. --units m/s "
-                         "or --units cm/s; units= in Python)")
+        raise FieldError(
+            "velocity variable has no 'units' attribute: give them with --units (e.g. --units m/s "
+            "or --units cm/s; units= in Python)"
+        )
     s = str(units).strip().lower()
     s = s.replace("**", "").replace("^", "").replace("·", " ").replace(".", " ").replace("_", " ")
     s = re.sub(r"\s+per\s+", "/", s)
     s = re.sub(r"\s*/\s*", "/", s)
     s = re.sub(r"\s+", " ", s).strip()
-    lengths = {"m": 1.0, "meter": 1.0, "meters": 1.0, "metre": 1.0, "metres": 1.0,
-               "cm": 0.01, "centimeter": 0.01, "centimeters": 0.01, "centimetre": 0.01, "centimetres": 0.01,
-               "mm": 0.001, "millimeter": 0.001, "millimeters": 0.001, "km": 1000.0}
+    lengths = {
+        "m": 1.0,
+        "meter": 1.0,
+        "meters": 1.0,
+        "metre": 1.0,
+        "metres": 1.0,
+        "cm": 0.01,
+        "centimeter": 0.01,
+        "centimeters": 0.01,
+        "centimetre": 0.01,
+        "centimetres": 0.01,
+        "mm": 0.001,
+        "millimeter": 0.001,
+        "millimeters": 0.001,
+        "km": 1000.0,
+    }
     seconds = ("s", "sec", "second", "seconds")
     if s in ("kt", "kts", "knot", "knots", "kn"):
         return _KNOT
@@ -107,8 +132,10 @@ def velocity_scale(units: str | None) -> float:
         length, sec = m.group(1), m.group(2) or m.group(3) or m.group(4)
         if length in lengths and sec in seconds:
             return lengths[length]
-    raise FieldError(f"unknown velocity units {units!r} (expected m/s, cm/s, mm/s or knots): give the real ones "
-                     "with --units (e.g. --units m/s; units= in Python)")
+    raise FieldError(
+        f"unknown velocity units {units!r} (expected m/s, cm/s, mm/s or knots): give the real ones "
+        "with --units (e.g. --units m/s; units= in Python)"
+    )
 
 
 # -- detection ------------------------------------------------------------------
@@ -139,14 +166,20 @@ def _find_velocity(ds, variables) -> tuple[str, str]:
 
 def _is_lat(name: str, var) -> bool:
     a = var.attrs
-    return a.get("standard_name") == "latitude" or str(a.get("units", "")).lower() in (
-        "degrees_north", "degree_north", "degrees_n", "degree_n") or name in _LAT_NAMES
+    return (
+        a.get("standard_name") == "latitude"
+        or str(a.get("units", "")).lower() in ("degrees_north", "degree_north", "degrees_n", "degree_n")
+        or name in _LAT_NAMES
+    )
 
 
 def _is_lon(name: str, var) -> bool:
     a = var.attrs
-    return a.get("standard_name") == "longitude" or str(a.get("units", "")).lower() in (
-        "degrees_east", "degree_east", "degrees_e", "degree_e") or name in _LON_NAMES
+    return (
+        a.get("standard_name") == "longitude"
+        or str(a.get("units", "")).lower() in ("degrees_east", "degree_east", "degrees_e", "degree_e")
+        or name in _LON_NAMES
+    )
 
 
 def _horizontal(ds, u) -> tuple[str, str, np.ndarray, np.ndarray]:
@@ -178,7 +211,9 @@ def _time_dim(ds, u) -> str | None:
     for d in u.dims:
         if d in ds.coords and np.issubdtype(ds[d].dtype, np.datetime64):
             return str(d)
-        if d in ds.variables and (str(d) in _TIME_NAMES or ds[d].attrs.get("axis") == "T" or ds[d].attrs.get("standard_name") == "time"):
+        if d in ds.variables and (
+            str(d) in _TIME_NAMES or ds[d].attrs.get("axis") == "T" or ds[d].attrs.get("standard_name") == "time"
+        ):
             return str(d)
     return None
 
@@ -198,7 +233,9 @@ def _to_datetime64(values) -> np.ndarray:
     if np.issubdtype(v.dtype, np.datetime64):
         return v.astype("datetime64[ns]")
     if v.dtype == object and v.size and hasattr(v.flat[0], "year"):
-        return np.array([np.datetime64(_dt.datetime(t.year, t.month, t.day, t.hour, t.minute, t.second), "ns") for t in v.flat]).reshape(v.shape)
+        return np.array(
+            [np.datetime64(_dt.datetime(t.year, t.month, t.day, t.hour, t.minute, t.second), "ns") for t in v.flat]
+        ).reshape(v.shape)
     raise FieldError("the time coordinate is not CF-encoded (needs units like 'hours since 2018-03-01')")
 
 
@@ -308,7 +345,11 @@ def import_currents(path, grid, *, start=None, hours=None, variables=None, units
         if tdim is not None:
             t64 = _to_datetime64(ds[tdim].values)
         else:
-            tc = [c for c in u.coords if u[c].ndim == 0 and (np.issubdtype(u[c].dtype, np.datetime64) or str(c) in _TIME_NAMES)]
+            tc = [
+                c
+                for c in u.coords
+                if u[c].ndim == 0 and (np.issubdtype(u[c].dtype, np.datetime64) or str(c) in _TIME_NAMES)
+            ]
             if not tc:
                 raise FieldError(f"{u_name} has no time coordinate")
             t64 = _to_datetime64(np.atleast_1d(u[tc[0]].values))
@@ -331,7 +372,14 @@ def import_currents(path, grid, *, start=None, hours=None, variables=None, units
         i1 = min(int(np.searchsorted(lat_s, glat[-1], side="left")) + 1, lat_s.size)
         j0 = max(int(np.searchsorted(lon_s, glon[0], side="right")) - 1, 0)
         j1 = min(int(np.searchsorted(lon_s, glon[-1], side="left")) + 1, lon_s.size)
-        if i1 - i0 < 2 or j1 - j0 < 2 or lat_s[-1] < glat[0] or lat_s[0] > glat[-1] or lon_s[-1] < glon[0] or lon_s[0] > glon[-1]:
+        if (
+            i1 - i0 < 2
+            or j1 - j0 < 2
+            or lat_s[-1] < glat[0]
+            or lat_s[0] > glat[-1]
+            or lon_s[-1] < glon[0]
+            or lon_s[0] > glon[-1]
+        ):
             raise FieldError(
                 f"region lat {glat[0]:.3f}..{glat[-1]:.3f}, lon {glon[0]:.3f}..{glon[-1]:.3f} does not overlap the file "
                 f"(lat {lat_s[0]:.3f}..{lat_s[-1]:.3f}, lon {lon_s[0]:.3f}..{lon_s[-1]:.3f})"
@@ -389,7 +437,8 @@ def import_currents(path, grid, *, start=None, hours=None, variables=None, units
         "start": None if start is None else str(start),
         "hours": None if hours is None else int(hours),
         "regrid": "bilinear (scipy RegularGridInterpolator); stencils touching missing nodes stay NaN",
-        "edges": "; ".join(f"{ax}: {x}" for ax, x in (("lat", lat_note), ("lon", lon_note)) if x) or "no edge adjustment",
+        "edges": "; ".join(f"{ax}: {x}" for ax, x in (("lat", lat_note), ("lon", lon_note)) if x)
+        or "no edge adjustment",
         "undeclared_fill_values": n_fill,
     }
     field = FlowField(data, grid, times, origin, "m s-1", attrs)
@@ -420,8 +469,9 @@ def _align_to_nodes(x: np.ndarray, nodes: np.ndarray) -> tuple[np.ndarray, str]:
         local = np.diff(nodes[max(k - 1, 0) : min(k + n + 1, nodes.size)]).min()
         dev = float(np.max(np.abs(x - run)) / local)
     if dev < 0.01:
-        return run.copy(), (f"the file's own grid (centres within {dev:.2g} cell of its nodes): its node values used"
-                            if dev > 0 else "")
+        return run.copy(), (
+            f"the file's own grid (centres within {dev:.2g} cell of its nodes): its node values used" if dev > 0 else ""
+        )
     if dev < 0.5:
         lo_tol = hi_tol = 0.5 * float(np.diff(nodes).min())
     else:

@@ -22,8 +22,15 @@ def _time_label(field: FlowField, k: int) -> str:
     return f"t = {field.times[k]:.3g}"
 
 
-def plot_snapshot(field: FlowField, time_index: int, out: str | Path, *, title: str | None = None,
-                  max_arrows: int = 16, dpi: int = 120) -> Path:
+def plot_snapshot(
+    field: FlowField,
+    time_index: int,
+    out: str | Path,
+    *,
+    title: str | None = None,
+    max_arrows: int = 16,
+    dpi: int = 120,
+) -> Path:
     """Speed colour map with velocity arrows of snapshot ``time_index``, saved to ``out``.
 
     Geographic fields are drawn on longitude/latitude axes (equal-distance aspect
@@ -67,9 +74,20 @@ def plot_snapshot(field: FlowField, time_index: int, out: str | Path, *, title: 
     ok = finite[sl]
     if ok.any():
         # arrows in data units per unit speed; scale so the typical arrow spans ~1 thinned cell
-        q = ax.quiver(X[sl][ok], Y[sl][ok], u[sl][ok], v[sl][ok], color="white", edgecolor="black",
-                      linewidth=0.3, pivot="middle", angles="uv", scale_units="inches",
-                      scale=max(vmax, 1e-9) / 0.35, width=0.004)
+        q = ax.quiver(
+            X[sl][ok],
+            Y[sl][ok],
+            u[sl][ok],
+            v[sl][ok],
+            color="white",
+            edgecolor="black",
+            linewidth=0.3,
+            pivot="middle",
+            angles="uv",
+            scale_units="inches",
+            scale=max(vmax, 1e-9) / 0.35,
+            width=0.004,
+        )
         ref = round(vmax / 2, 2) or vmax / 2
         # below the axes, right of the x label: the title stays clear
         ax.quiverkey(q, 0.97, -0.09, ref, f"{ref:g} {units}", labelpos="W", coordinates="axes")
@@ -77,8 +95,12 @@ def plot_snapshot(field: FlowField, time_index: int, out: str | Path, *, title: 
     ax.set_xlabel(xlabel)
     ax.set_ylabel(ylabel)
     cov = float(finite.mean())
-    ax.set_title(title or f"{field.attrs.get('title', 'flow field')}\n{_time_label(field, k)} (snapshot {k}/{n - 1}, "
-                 f"{cov:.0%} cells with data)", fontsize=10)
+    ax.set_title(
+        title
+        or f"{field.attrs.get('title', 'flow field')}\n{_time_label(field, k)} (snapshot {k}/{n - 1}, "
+        f"{cov:.0%} cells with data)",
+        fontsize=10,
+    )
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
     try:

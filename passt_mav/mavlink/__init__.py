@@ -13,16 +13,39 @@ first); command-line modules import it inside ``run``.
     vehicle.wait_mission_complete(len(waypoints))   # then HOLD
 """
 
-from passt_mav.mavlink.link import (DEFAULT_SOURCE_COMPONENT, DEFAULT_SOURCE_SYSTEM, Link, LinkConfig, LinkStats,
-                                   Subscription, result_name, secret_from_key)
+from passt_mav.mavlink.link import (
+    DEFAULT_SOURCE_COMPONENT,
+    DEFAULT_SOURCE_SYSTEM,
+    Link,
+    LinkConfig,
+    LinkStats,
+    Subscription,
+    result_name,
+    secret_from_key,
+)
 from passt_mav.mavlink.mission_client import MissionClient, MissionWatch, UploadResult, from_msg, to_msg, with_home
 from passt_mav.mavlink.samples import SampleCollector
 from passt_mav.mavlink.vehicle import ROVER_MODE_NAMES, ROVER_MODES, MissionProgress, Vehicle, mode_number
 
 __all__ = [
-    "Link", "LinkConfig", "LinkStats", "Subscription", "result_name", "secret_from_key",
-    "DEFAULT_SOURCE_SYSTEM", "DEFAULT_SOURCE_COMPONENT",
-    "MissionClient", "MissionWatch", "UploadResult", "with_home", "to_msg", "from_msg",
-    "Vehicle", "MissionProgress", "ROVER_MODES", "ROVER_MODE_NAMES", "mode_number",
+    "Link",
+    "LinkConfig",
+    "LinkStats",
+    "Subscription",
+    "result_name",
+    "secret_from_key",
+    "DEFAULT_SOURCE_SYSTEM",
+    "DEFAULT_SOURCE_COMPONENT",
+    "MissionClient",
+    "MissionWatch",
+    "UploadResult",
+    "with_home",
+    "to_msg",
+    "from_msg",
+    "Vehicle",
+    "MissionProgress",
+    "ROVER_MODES",
+    "ROVER_MODE_NAMES",
+    "mode_number",
     "SampleCollector",
 ]

@@ -28,8 +28,9 @@ import struct
 import threading
 import time
 import warnings
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
-from typing import Callable, Iterable
+from typing import Self
 
 os.environ.setdefault("MAVLINK20", "1")  # before pymavlink is imported: talk MAVLink 2
 from pymavlink import mavutil  # noqa: E402
@@ -37,8 +38,18 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink2  # noqa: E402
 
 from passt_mav.errors import CommandRejected, LinkTimeout, LinkUnavailable, MavlinkError, UserError  # noqa: E402
 
-__all__ = ["LinkConfig", "Link", "Subscription", "LinkStats", "secret_from_key", "result_name", "mavlink2",
-           "DEFAULT_SOURCE_SYSTEM", "DEFAULT_SOURCE_COMPONENT", "GCS_IDENTITY"]
+__all__ = [
+    "LinkConfig",
+    "Link",
+    "Subscription",
+    "LinkStats",
+    "secret_from_key",
+    "result_name",
+    "mavlink2",
+    "DEFAULT_SOURCE_SYSTEM",
+    "DEFAULT_SOURCE_COMPONENT",
+    "GCS_IDENTITY",
+]
 
 log = logging.getLogger(__name__)
 
@@ -59,16 +70,23 @@ _TCP_CONNECT_TIMEOUT_S = 5.0
 _CONNECT_PREFIXES = ("tcp:", "tcpin:", "udp:", "udpin:", "udpout:", "udpbcast:")
 #: messages a signing GCS still accepts unsigned (as ArduPilot does: the radio's own reports)
 _UNSIGNED_OK = frozenset({mavlink2.MAVLINK_MSG_ID_RADIO_STATUS})
-_DEFAULT_STREAMS = (("GLOBAL_POSITION_INT", 1.0), ("MISSION_CURRENT", 1.0), ("EKF_STATUS_REPORT", 1.0),
-                    ("SYSTEM_TIME", 1.0))
+_DEFAULT_STREAMS = (
+    ("GLOBAL_POSITION_INT", 1.0),
+    ("MISSION_CURRENT", 1.0),
+    ("EKF_STATUS_REPORT", 1.0),
+    ("SYSTEM_TIME", 1.0),
+)
 #: messages that are not streams: ArduPilot refuses SET_MESSAGE_INTERVAL for them (TIMESYNC: result 2
 #: and "No ap_message for mavlink id (111)"); the link sends TIMESYNC requests itself instead
 _NOT_STREAMS = frozenset({"TIMESYNC"})
 #: REQUEST_DATA_STREAM stream ids of the messages the controller uses (ArduPilot's stream groups,
 #: ``MAVn_POSITION``, ``MAVn_EXT_STAT``, ``MAVn_EXTRA3``): the fallback where SET_MESSAGE_INTERVAL is refused
-STREAM_GROUPS = {"GLOBAL_POSITION_INT": mavlink2.MAV_DATA_STREAM_POSITION,
-                 "MISSION_CURRENT": mavlink2.MAV_DATA_STREAM_EXTENDED_STATUS,
-                 "EKF_STATUS_REPORT": mavlink2.MAV_DATA_STREAM_EXTRA3, "SYSTEM_TIME": mavlink2.MAV_DATA_STREAM_EXTRA3}
+STREAM_GROUPS = {
+    "GLOBAL_POSITION_INT": mavlink2.MAV_DATA_STREAM_POSITION,
+    "MISSION_CURRENT": mavlink2.MAV_DATA_STREAM_EXTENDED_STATUS,
+    "EKF_STATUS_REPORT": mavlink2.MAV_DATA_STREAM_EXTRA3,
+    "SYSTEM_TIME": mavlink2.MAV_DATA_STREAM_EXTRA3,
+}
 _SIGNING_HINT = "the vehicle may require MAVLink 2 signing (signing key, --signing-key)"
 
 
@@ -91,7 +109,9 @@ def _why_not_open(exc: BaseException) -> str:
     import errno
 
     if isinstance(exc, ConnectionRefusedError):
-        return "connection refused (nothing listens there: is the vehicle, SITL or the router running, is the port right?)"
+        return (
+            "connection refused (nothing listens there: is the vehicle, SITL or the router running, is the port right?)"
+        )
     if isinstance(exc, socket.gaierror):
         return f"unknown host ({exc.strerror or exc})"
     if isinstance(exc, (socket.timeout, TimeoutError)):
@@ -208,8 +228,10 @@ class LinkConfig:
             if not dev or not baud.isdigit():
                 raise UserError(f"bad serial connection {c!r}; expected DEVICE,BAUD e.g. /dev/ttyUSB0,57600")
         elif not (c.startswith("/") or c.upper().startswith("COM")):
-            raise UserError(f"bad connection string {c!r}; expected tcp:HOST:PORT, udpin:HOST:PORT, "
-                            "udpout:HOST:PORT or a serial DEVICE[,BAUD]")
+            raise UserError(
+                f"bad connection string {c!r}; expected tcp:HOST:PORT, udpin:HOST:PORT, "
+                "udpout:HOST:PORT or a serial DEVICE[,BAUD]"
+            )
         for name in ("source_system", "source_component"):
             if not 1 <= getattr(self, name) <= 255:
                 raise UserError(f"{name} must be in 1..255")
@@ -268,7 +290,7 @@ class Subscription:
     next message or None.
     """
 
-    def __init__(self, link: "Link", types: frozenset[str] | None, maxsize: int = 10000):
+    def __init__(self, link: Link, types: frozenset[str] | None, maxsize: int = 10000):
         self._link, self.types = link, types
         self._q: queue.Queue = queue.Queue(maxsize)
 
@@ -298,7 +320,7 @@ class Subscription:
     def close(self) -> None:
         self._link._unsubscribe(self)
 
-    def __enter__(self) -> "Subscription":
+    def __enter__(self) -> Self:
         return self
 
     def __exit__(self, *exc) -> None:
@@ -313,7 +335,7 @@ class _Tlog:
     """
 
     def __init__(self, path: str):
-        self._f = open(path, "ab")
+        self._f = open(path, "ab")  # noqa: SIM115 - the telemetry log stays open for the link's life (close())
         self._lock = threading.Lock()
 
     def write(self, frame: bytes) -> None:
@@ -329,8 +351,16 @@ class _Tlog:
 
 
 def _is_vehicle_heartbeat(msg) -> bool:
-    return msg.type not in (mavlink2.MAV_TYPE_GCS, mavlink2.MAV_TYPE_GIMBAL, mavlink2.MAV_TYPE_ADSB,
-                            mavlink2.MAV_TYPE_ONBOARD_CONTROLLER) and msg.autopilot != mavlink2.MAV_AUTOPILOT_INVALID
+    return (
+        msg.type
+        not in (
+            mavlink2.MAV_TYPE_GCS,
+            mavlink2.MAV_TYPE_GIMBAL,
+            mavlink2.MAV_TYPE_ADSB,
+            mavlink2.MAV_TYPE_ONBOARD_CONTROLLER,
+        )
+        and msg.autopilot != mavlink2.MAV_AUTOPILOT_INVALID
+    )
 
 
 class Link:
@@ -370,8 +400,9 @@ class Link:
         self.closed_reason: str | None = None
 
     # -- lifecycle -------------------------------------------------------------------
-    def connect(self, timeout: float | None = None, *, wait_s: float = 0.0,
-                say: Callable[[str], None] | None = None) -> "Link":
+    def connect(
+        self, timeout: float | None = None, *, wait_s: float = 0.0, say: Callable[[str], None] | None = None
+    ) -> Link:
         """Open the connection, find the vehicle by its HEARTBEAT, start the threads,
         request the telemetry streams and measure the round trip. Returns self.
 
@@ -403,11 +434,14 @@ class Link:
                 left = deadline - time.monotonic()
                 if left <= 0:
                     tries = f" after {attempt} attempts over {time.monotonic() - t0:.0f} s" if attempt > 1 else ""
-                    raise LinkUnavailable(f"no vehicle at {self.config.connect}{tries}: {_strip_address(exc, self.config.connect)}"
-                                          ) from None
+                    raise LinkUnavailable(
+                        f"no vehicle at {self.config.connect}{tries}: {_strip_address(exc, self.config.connect)}"
+                    ) from None
                 pause = min(delay, left)
-                say(f"{self.config.connect}: {_strip_address(exc, self.config.connect)}; retrying in {pause:.1f} s "
-                    f"(attempt {attempt}, giving up in {left:.0f} s)")
+                say(
+                    f"{self.config.connect}: {_strip_address(exc, self.config.connect)}; retrying in {pause:.1f} s "
+                    f"(attempt {attempt}, giving up in {left:.0f} s)"
+                )
                 time.sleep(pause)
                 delay = min(delay * 2.0, max_delay)
             except BaseException:
@@ -428,15 +462,19 @@ class Link:
             raise LinkUnavailable(f"{self.config.connect}: {_why_not_open(exc)}") from exc
         if getattr(conn, "WIRE_PROTOCOL_VERSION", "2.0") != "2.0":
             # pymavlink was imported elsewhere before MAVLINK20 was set: force MAVLink 2 on this connection
-            conn.mav = mavlink2.MAVLink(conn, srcSystem=self.config.source_system,
-                                        srcComponent=self.config.source_component, use_native=False)
+            conn.mav = mavlink2.MAVLink(
+                conn, srcSystem=self.config.source_system, srcComponent=self.config.source_component, use_native=False
+            )
             conn.mav.robust_parsing = True
             conn.WIRE_PROTOCOL_VERSION = "2.0"
             conn.first_byte = False
         conn.mav.srcSystem, conn.mav.srcComponent = self.config.source_system, self.config.source_component
         if self.config.signing_key is not None:
-            conn.setup_signing(secret_from_key(self.config.signing_key), sign_outgoing=True,
-                               allow_unsigned_callback=lambda _mav, msgid: msgid in _UNSIGNED_OK)
+            conn.setup_signing(
+                secret_from_key(self.config.signing_key),
+                sign_outgoing=True,
+                allow_unsigned_callback=lambda _mav, msgid: msgid in _UNSIGNED_OK,
+            )
         if self._tlog is not None:
             conn.mav.set_send_callback(lambda m: self._tlog.write(m.get_msgbuf()))
         _hook_transport_end(conn)
@@ -447,8 +485,10 @@ class Link:
         self._last_seq.clear()
         self._stop.clear()
         self._last_hb = None
-        self._threads = [threading.Thread(target=self._reader, name="mavlink-reader", daemon=True),
-                         threading.Thread(target=self._heartbeat_loop, name="mavlink-heartbeat", daemon=True)]
+        self._threads = [
+            threading.Thread(target=self._reader, name="mavlink-reader", daemon=True),
+            threading.Thread(target=self._heartbeat_loop, name="mavlink-heartbeat", daemon=True),
+        ]
         for th in self._threads:
             th.start()
 
@@ -458,8 +498,11 @@ class Link:
             while True:
                 m = sub.get(end - time.monotonic())
                 if m is None:
-                    raise LinkTimeout(f"no vehicle heartbeat on {self.config.connect} within {timeout:.1f} s"
-                                      + self._what_arrived() + self._why(lost=False))
+                    raise LinkTimeout(
+                        f"no vehicle heartbeat on {self.config.connect} within {timeout:.1f} s"
+                        + self._what_arrived()
+                        + self._why(lost=False)
+                    )
                 if not _is_vehicle_heartbeat(m):
                     continue  # another GCS
                 if self.target_system is not None and m.get_srcSystem() != self.target_system:
@@ -469,17 +512,24 @@ class Link:
         self.vehicle_type, self.autopilot = m.type, m.autopilot
         me = (self.config.source_system, self.config.source_component)
         if me == (self.target_system, self.target_component):
-            raise UserError(f"our MAVLink identity {me[0]}/{me[1]} is the vehicle's own autopilot's: choose another "
-                            f"component (default {DEFAULT_SOURCE_COMPONENT}) or system (default {DEFAULT_SOURCE_SYSTEM})")
+            raise UserError(
+                f"our MAVLink identity {me[0]}/{me[1]} is the vehicle's own autopilot's: choose another "
+                f"component (default {DEFAULT_SOURCE_COMPONENT}) or system (default {DEFAULT_SOURCE_SYSTEM})"
+            )
         if me == GCS_IDENTITY:
-            log.warning("speaking as %d/%d, QGroundControl's and Mission Planner's identity: a ground station on the "
-                        "same link takes our replies and we take its; the vehicle's GCS failsafe counts our heartbeats",
-                        *me)
+            log.warning(
+                "speaking as %d/%d, QGroundControl's and Mission Planner's identity: a ground station on the "
+                "same link takes our replies and we take its; the vehicle's GCS failsafe counts our heartbeats",
+                *me,
+            )
         self._last_hb = time.monotonic()
         if m.type != mavlink2.MAV_TYPE_SURFACE_BOAT or m.autopilot != mavlink2.MAV_AUTOPILOT_ARDUPILOTMEGA:
-            warnings.warn(f"vehicle {self.target_system} is {result_name('MAV_TYPE', m.type)} on "
-                          f"{result_name('MAV_AUTOPILOT', m.autopilot)}, not a boat on ArduPilot; continuing",
-                          RuntimeWarning, stacklevel=3)
+            warnings.warn(
+                f"vehicle {self.target_system} is {result_name('MAV_TYPE', m.type)} on "
+                f"{result_name('MAV_AUTOPILOT', m.autopilot)}, not a boat on ArduPilot; continuing",
+                RuntimeWarning,
+                stacklevel=3,
+            )
 
     def close(self) -> None:
         """Stop the threads and close the connection and the tlog."""
@@ -496,11 +546,11 @@ class Link:
         if self.conn is not None:
             try:
                 self.conn.close()
-            except Exception:  # noqa: BLE001 - closing a dead transport must not raise
+            except Exception:  # noqa: BLE001, S110 - closing a dead transport must not raise
                 pass
             self.conn = None
 
-    def reconnect(self, attempts: int | None = None) -> "Link":
+    def reconnect(self, attempts: int | None = None) -> Link:
         """Close and reopen, with doubling back-off between attempts; re-finds the vehicle
         and re-requests the streams. Subscriptions and listeners carry over.
 
@@ -522,15 +572,21 @@ class Link:
             except (OSError, MavlinkError) as exc:
                 last = exc
                 # one line per attempt (never per frame): the console stays readable during an outage
-                log.warning("reconnect attempt %d/%d to %s failed: %s%s", i + 1, attempts, self.config.connect, exc,
-                            f"; next in {delay:.2g} s" if i + 1 < attempts else "")
+                log.warning(
+                    "reconnect attempt %d/%d to %s failed: %s%s",
+                    i + 1,
+                    attempts,
+                    self.config.connect,
+                    exc,
+                    f"; next in {delay:.2g} s" if i + 1 < attempts else "",
+                )
                 if i + 1 < attempts:
                     time.sleep(delay)
                     delay = min(delay * 2.0, max_delay)
         self._shutdown()
         raise LinkTimeout(f"could not reconnect to {self.config.connect} after {attempts} attempts: {last}")
 
-    def __enter__(self) -> "Link":
+    def __enter__(self) -> Self:
         return self
 
     def __exit__(self, *exc) -> None:
@@ -611,8 +667,11 @@ class Link:
             if self.closed_reason is not None:
                 return  # nothing to send on: reconnect() starts a new loop
             try:
-                self.send(mavlink2.MAVLink_heartbeat_message(mavlink2.MAV_TYPE_GCS, mavlink2.MAV_AUTOPILOT_INVALID,
-                                                             0, 0, mavlink2.MAV_STATE_ACTIVE, 3))
+                self.send(
+                    mavlink2.MAVLink_heartbeat_message(
+                        mavlink2.MAV_TYPE_GCS, mavlink2.MAV_AUTOPILOT_INVALID, 0, 0, mavlink2.MAV_STATE_ACTIVE, 3
+                    )
+                )
                 if period > 0 and time.monotonic() >= next_sync and self.target_system is not None:
                     # TIMESYNC is not a stream on ArduPilot: keep the RTT current with requests (tc1 = 0)
                     next_sync = time.monotonic() + period
@@ -709,8 +768,10 @@ class Link:
             elif sg.secret_key is not None and sg.badsig_count > 0 and sg.goodsig_count == 0:
                 parts.append("its frames fail our signature check: the signing key differs from the vehicle's")
             elif sg.secret_key is not None and sg.goodsig_count == 0 and sg.reject_count > 0:
-                parts.append("it sends unsigned frames, which a signing link drops: the vehicle has no signing key "
-                             "set; connect without one, or set it on the vehicle")
+                parts.append(
+                    "it sends unsigned frames, which a signing link drops: the vehicle has no signing key "
+                    "set; connect without one, or set it on the vehicle"
+                )
         return f" ({'; '.join(parts)})" if parts else ""
 
     def signing_hint(self) -> str:
@@ -741,8 +802,11 @@ class Link:
         Only recent messages count: after a reboot a stream that stopped (e.g. ATTITUDE switched off)
         would otherwise keep the old boot's larger time.
         """
-        msgs = [m for typ in ("SYSTEM_TIME", "GLOBAL_POSITION_INT", "ATTITUDE", "NAMED_VALUE_FLOAT")
-                if (m := self._latest.get(typ)) is not None]
+        msgs = [
+            m
+            for typ in ("SYSTEM_TIME", "GLOBAL_POSITION_INT", "ATTITUDE", "NAMED_VALUE_FLOAT")
+            if (m := self._latest.get(typ)) is not None
+        ]
         if not msgs:
             return None
         newest = max((getattr(m, "_timestamp", None) or 0.0) for m in msgs)
@@ -774,8 +838,12 @@ class Link:
         """Forget the reader's or sender's last error (:attr:`error`) before a reconnect."""
         self.error = None
 
-    def wait(self, types: str | Iterable[str], condition: Callable[[object], bool] | None = None,
-             timeout: float | None = None):
+    def wait(
+        self,
+        types: str | Iterable[str],
+        condition: Callable[[object], bool] | None = None,
+        timeout: float | None = None,
+    ):
         """Next message of ``types`` satisfying ``condition`` within ``timeout`` s; raises LinkTimeout."""
         timeout = self.reply_timeout if timeout is None else timeout
         with self.subscribe(types) as sub:
@@ -793,8 +861,15 @@ class Link:
         tc = getattr(msg, "target_component", 0)
         return ts in (0, self.config.source_system) and tc in (0, self.config.source_component)
 
-    def command_long(self, command: int, *params: float, timeout: float | None = None, retries: int | None = None,
-                     target_component: int | None = None, accept: Iterable[int] = (0,)):
+    def command_long(
+        self,
+        command: int,
+        *params: float,
+        timeout: float | None = None,
+        retries: int | None = None,
+        target_component: int | None = None,
+        accept: Iterable[int] = (0,),
+    ):
         """Send COMMAND_LONG and wait for its COMMAND_ACK.
 
         Resends (``confirmation`` + 1) when no ACK arrives within the reply timeout,
@@ -812,7 +887,9 @@ class Link:
                 timeout_ = self.reply_timeout if timeout is None else timeout
                 texts: list[tuple[int, str]] = []
                 t_sent = time.monotonic()
-                self.send(mavlink2.MAVLink_command_long_message(self.target_system, tc, int(command), attempt % 256, *p))
+                self.send(
+                    mavlink2.MAVLink_command_long_message(self.target_system, tc, int(command), attempt % 256, *p)
+                )
                 end = t_sent + timeout_
                 while True:
                     m = sub.get(end - time.monotonic())
@@ -838,10 +915,12 @@ class Link:
                         if t.get_type() == "STATUSTEXT":
                             texts.append((int(t.severity), _text(t)))
                     important = [s for sev, s in texts if sev <= mavlink2.MAV_SEVERITY_WARNING] or [s for _, s in texts]
-                    raise CommandRejected(result_name("MAV_CMD", command).removeprefix("MAV_CMD_"), m.result,
-                                          "; ".join(important))
-        raise LinkTimeout(f"no COMMAND_ACK for {result_name('MAV_CMD', command)} after {retries + 1} tries"
-                          + self._why())
+                    raise CommandRejected(
+                        result_name("MAV_CMD", command).removeprefix("MAV_CMD_"), m.result, "; ".join(important)
+                    )
+        raise LinkTimeout(
+            f"no COMMAND_ACK for {result_name('MAV_CMD', command)} after {retries + 1} tries" + self._why()
+        )
 
     # -- streams and round trip ------------------------------------------------------------------
     def request_streams(self, rates: Iterable[tuple[str, float]] | None = None) -> dict[str, bool]:
@@ -876,16 +955,20 @@ class Link:
                 if group is None or hz <= 0:
                     log.warning("stream %s at %.1f Hz not set: %s", name, hz, exc)
                     continue
-                log.warning("stream %s at %.1f Hz not set (%s): requesting its stream group %d instead",
-                            name, hz, exc, group)
+                log.warning(
+                    "stream %s at %.1f Hz not set (%s): requesting its stream group %d instead", name, hz, exc, group
+                )
                 self._request_data_stream(group, hz)
         return out
 
     def _request_data_stream(self, stream_id: int, hz: float) -> None:
         """REQUEST_DATA_STREAM to the vehicle (``hz`` <= 0 stops the stream; rates are whole Hz, at least 1)."""
         rate = max(1, round(hz)) if hz > 0 else 0
-        self.send(self.conn.mav.request_data_stream_encode(self.target_system, self.target_component or 0,
-                                                           int(stream_id), rate, 1 if rate else 0))
+        self.send(
+            self.conn.mav.request_data_stream_encode(
+                self.target_system, self.target_component or 0, int(stream_id), rate, 1 if rate else 0
+            )
+        )
 
     def measure_rtt(self, samples: int = 3) -> float | None:
         """Round trip by TIMESYNC (``tc1 = 0`` request, the vehicle echoes ``ts1``); falls back to
@@ -909,7 +992,7 @@ class Link:
 def _strip_address(exc: BaseException, address: str) -> str:
     """The message of ``exc`` without a leading ``ADDRESS: `` (the caller names the address once)."""
     text = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
-    return text[len(address) + 2:] if text.startswith(address + ": ") else text
+    return text[len(address) + 2 :] if text.startswith(address + ": ") else text
 
 
 def _hook_transport_end(conn) -> None:

@@ -32,15 +32,24 @@ import logging
 import math
 import struct
 import time
+from collections.abc import Callable, Sequence
 from dataclasses import replace
-from typing import Callable, Sequence
 
 from passt_mav.errors import CommandRejected, LinkTimeout, MissionRejected, MissionVerifyError
 from passt_mav.mavlink.link import Link, mavlink2, result_name
 from passt_mav.mission.items import GLOBAL_FRAMES, MAV_FRAME_GLOBAL, MAV_MISSION_TYPE_MISSION, MissionItem
 
-__all__ = ["MissionClient", "MissionWatch", "with_home", "to_msg", "from_msg", "UploadResult", "rover_stored",
-           "ROVER_STORAGE", "differences"]
+__all__ = [
+    "MissionClient",
+    "MissionWatch",
+    "with_home",
+    "to_msg",
+    "from_msg",
+    "UploadResult",
+    "rover_stored",
+    "ROVER_STORAGE",
+    "differences",
+]
 
 log = logging.getLogger(__name__)
 M = mavlink2
@@ -52,6 +61,7 @@ _ACCEPTED = M.MAV_MISSION_ACCEPTED
 # small field (or is dropped), and only "location" commands keep x/y/z and an altitude frame.
 # Measured on the SITL build in ../shared/sitl (tests/test_sitl_differential.py checks this
 # table against it item by item); the command list follows AP_Mission::mavlink_int_to_mission_cmd.
+
 
 def _f32(v: float) -> float:
     """A float param stored as float32 (NaN stays NaN)."""
@@ -68,19 +78,20 @@ def _int_wrap(bits: int, signed: bool) -> Callable[[float], float]:
         if signed and n >= 1 << (bits - 1):
             n -= 1 << bits
         return float(n)
+
     return conv
 
 
 def _sign(v: float) -> float:
-    return -1.0 if v < 0 else 1.0       # loiter direction kept as a flag: radius 10 reads back 1
+    return -1.0 if v < 0 else 1.0  # loiter direction kept as a flag: radius 10 reads back 1
 
 
 def _positive(v: float) -> float:
-    return 1.0 if v > 0 else 0.0        # e.g. LOITER_TIME param4 "xtrack" kept as a flag
+    return 1.0 if v > 0 else 0.0  # e.g. LOITER_TIME param4 "xtrack" kept as a flag
 
 
 def _signed_abs(conv: Callable[[float], float]) -> Callable[[float], float]:
-    return lambda v: -conv(abs(v)) if v < 0 else conv(abs(v))   # magnitude in a field, sign as "ccw"
+    return lambda v: -conv(abs(v)) if v < 0 else conv(abs(v))  # magnitude in a field, sign as "ccw"
 
 
 _U8, _U16, _I8, _I16 = _int_wrap(8, False), _int_wrap(16, False), _int_wrap(8, True), _int_wrap(16, True)
@@ -90,32 +101,32 @@ _0 = None  # dropped: reads back 0
 #: MAV_CMD -> (keeps a location (x, y, z, altitude frame), (param1..param4 conversions or None = dropped)).
 #: Commands not listed are refused by Rover with MAV_MISSION_UNSUPPORTED.
 ROVER_STORAGE: dict[int, tuple[bool, tuple]] = {
-    16: (True, (_U16, _0, _0, _0)),                         # NAV_WAYPOINT: hold s; radius/pass-by/yaw dropped
-    17: (True, (_0, _0, _signed_abs(_U16), _0)),            # NAV_LOITER_UNLIM: radius (sign = ccw)
-    18: (True, (_U8, _0, _signed_abs(_U8), _positive)),     # NAV_LOITER_TURNS: turns, radius in one byte each
-    19: (True, (_U16, _0, _sign, _positive)),               # NAV_LOITER_TIME: time s; param3 only its sign
-    20: (False, (_0, _0, _0, _0)),                          # NAV_RETURN_TO_LAUNCH: nothing, not even frame/x/y
-    21: (True, (_U16, _0, _0, _sign)),                      # NAV_LAND
-    22: (True, (_U16, _0, _0, _0)),                         # NAV_TAKEOFF
-    82: (True, (_U16, _0, _0, _0)),                         # NAV_SPLINE_WAYPOINT: hold s
-    93: (False, (_F, _I8, _I8, _I8)),                       # NAV_DELAY: s, hour/min/sec UTC
-    112: (False, (_F, _0, _0, _0)),                         # CONDITION_DELAY: s
-    114: (False, (_F, _0, _0, _0)),                         # CONDITION_DISTANCE: m
-    115: (False, (_F, _F, _I8, _U8)),                       # CONDITION_YAW
-    177: (False, (_U16, _I16, _0, _0)),                     # DO_JUMP: target seq, repeat count
-    178: (False, (_U8, _F, _F, _0)),                        # DO_CHANGE_SPEED: type, m/s, throttle %
-    179: (True, (_U16, _0, _0, _0)),                        # DO_SET_HOME
-    181: (False, (_U8, _U8, _0, _0)),                       # DO_SET_RELAY
-    182: (False, (_U8, _I16, _F, _0)),                      # DO_REPEAT_RELAY
-    183: (False, (_U16, _U16, _0, _0)),                     # DO_SET_SERVO: channel, PWM
-    184: (False, (_U16, _U16, _I16, _F)),                   # DO_REPEAT_SERVO
-    189: (True, (_0, _0, _0, _0)),                          # DO_LAND_START
-    194: (False, (_U16, _0, _0, _0)),                       # DO_SET_REVERSE
-    201: (True, (_U16, _0, _0, _0)),                        # DO_SET_ROI
-    206: (False, (_F, _0, _0, _0)),                         # DO_SET_CAM_TRIGG_DIST
-    207: (False, (_U16, _0, _0, _0)),                       # DO_FENCE_ENABLE
-    211: (False, (_U8, _U8, _0, _0)),                       # DO_GRIPPER
-    215: (False, (_U16, _0, _0, _0)),                       # DO_SET_RESUME_REPEAT_DIST
+    16: (True, (_U16, _0, _0, _0)),  # NAV_WAYPOINT: hold s; radius/pass-by/yaw dropped
+    17: (True, (_0, _0, _signed_abs(_U16), _0)),  # NAV_LOITER_UNLIM: radius (sign = ccw)
+    18: (True, (_U8, _0, _signed_abs(_U8), _positive)),  # NAV_LOITER_TURNS: turns, radius in one byte each
+    19: (True, (_U16, _0, _sign, _positive)),  # NAV_LOITER_TIME: time s; param3 only its sign
+    20: (False, (_0, _0, _0, _0)),  # NAV_RETURN_TO_LAUNCH: nothing, not even frame/x/y
+    21: (True, (_U16, _0, _0, _sign)),  # NAV_LAND
+    22: (True, (_U16, _0, _0, _0)),  # NAV_TAKEOFF
+    82: (True, (_U16, _0, _0, _0)),  # NAV_SPLINE_WAYPOINT: hold s
+    93: (False, (_F, _I8, _I8, _I8)),  # NAV_DELAY: s, hour/min/sec UTC
+    112: (False, (_F, _0, _0, _0)),  # CONDITION_DELAY: s
+    114: (False, (_F, _0, _0, _0)),  # CONDITION_DISTANCE: m
+    115: (False, (_F, _F, _I8, _U8)),  # CONDITION_YAW
+    177: (False, (_U16, _I16, _0, _0)),  # DO_JUMP: target seq, repeat count
+    178: (False, (_U8, _F, _F, _0)),  # DO_CHANGE_SPEED: type, m/s, throttle %
+    179: (True, (_U16, _0, _0, _0)),  # DO_SET_HOME
+    181: (False, (_U8, _U8, _0, _0)),  # DO_SET_RELAY
+    182: (False, (_U8, _I16, _F, _0)),  # DO_REPEAT_RELAY
+    183: (False, (_U16, _U16, _0, _0)),  # DO_SET_SERVO: channel, PWM
+    184: (False, (_U16, _U16, _I16, _F)),  # DO_REPEAT_SERVO
+    189: (True, (_0, _0, _0, _0)),  # DO_LAND_START
+    194: (False, (_U16, _0, _0, _0)),  # DO_SET_REVERSE
+    201: (True, (_U16, _0, _0, _0)),  # DO_SET_ROI
+    206: (False, (_F, _0, _0, _0)),  # DO_SET_CAM_TRIGG_DIST
+    207: (False, (_U16, _0, _0, _0)),  # DO_FENCE_ENABLE
+    211: (False, (_U8, _U8, _0, _0)),  # DO_GRIPPER
+    215: (False, (_U16, _0, _0, _0)),  # DO_SET_RESUME_REPEAT_DIST
 }
 #: altitude frame a location command is stored and read back in (the _INT frames and MISSION fold)
 _STORED_FRAME = {0: 0, 2: 0, 5: 0, 3: 3, 6: 3, 10: 10, 11: 10}
@@ -145,28 +156,71 @@ def rover_stored(item: MissionItem) -> MissionItem:
         lat, lon, alt = item.x_int / 1e7, item.y_int / 1e7, _alt_cm(item.alt)
     else:
         frame, lat, lon, alt = MAV_FRAME_GLOBAL, 0.0, 0.0, 0.0
-    return replace(item, frame=frame, current=0, autocontinue=1, param1=p[0], param2=p[1], param3=p[2],
-                   param4=p[3], lat=lat, lon=lon, alt=alt)
+    return replace(
+        item,
+        frame=frame,
+        current=0,
+        autocontinue=1,
+        param1=p[0],
+        param2=p[1],
+        param3=p[2],
+        param4=p[3],
+        lat=lat,
+        lon=lon,
+        alt=alt,
+    )
 
 
-def with_home(waypoints: Sequence[MissionItem], home: tuple[float, float] = (0.0, 0.0),
-              mission_type: int = MAV_MISSION_TYPE_MISSION) -> list[MissionItem]:
+def with_home(
+    waypoints: Sequence[MissionItem],
+    home: tuple[float, float] = (0.0, 0.0),
+    mission_type: int = MAV_MISSION_TYPE_MISSION,
+) -> list[MissionItem]:
     """Items ready to upload: a home placeholder at seq 0 (mission type 0 only) and
     ``waypoints`` renumbered from 1. ArduPilot overwrites seq 0 with its own home."""
     out = []
     if mission_type == MAV_MISSION_TYPE_MISSION:
         out.append(MissionItem(0, frame=MAV_FRAME_GLOBAL, lat=home[0], lon=home[1], mission_type=mission_type))
     for w in waypoints:
-        out.append(MissionItem(len(out), w.frame, w.command, 0, w.autocontinue, w.param1, w.param2, w.param3,
-                               w.param4, w.lat, w.lon, w.alt, mission_type))
+        out.append(
+            MissionItem(
+                len(out),
+                w.frame,
+                w.command,
+                0,
+                w.autocontinue,
+                w.param1,
+                w.param2,
+                w.param3,
+                w.param4,
+                w.lat,
+                w.lon,
+                w.alt,
+                mission_type,
+            )
+        )
     return out
 
 
 def to_msg(item: MissionItem, target_system: int, target_component: int):
     """MISSION_ITEM_INT for ``item`` (lat/lon -> int32 degE7 for global frames)."""
     return M.MAVLink_mission_item_int_message(
-        target_system, target_component, item.seq, item.frame, item.command, item.current, item.autocontinue,
-        item.param1, item.param2, item.param3, item.param4, item.x_int, item.y_int, item.alt, item.mission_type)
+        target_system,
+        target_component,
+        item.seq,
+        item.frame,
+        item.command,
+        item.current,
+        item.autocontinue,
+        item.param1,
+        item.param2,
+        item.param3,
+        item.param4,
+        item.x_int,
+        item.y_int,
+        item.alt,
+        item.mission_type,
+    )
 
 
 def from_msg(m) -> MissionItem:
@@ -176,9 +230,21 @@ def from_msg(m) -> MissionItem:
         lat, lon = (m.x / 1e7, m.y / 1e7) if g else (float(m.x), float(m.y))
     else:
         lat, lon = float(m.x), float(m.y)
-    return MissionItem(int(m.seq), int(m.frame), int(m.command), int(m.current), int(m.autocontinue),
-                       float(m.param1), float(m.param2), float(m.param3), float(m.param4), lat, lon, float(m.z),
-                       int(getattr(m, "mission_type", 0)))
+    return MissionItem(
+        int(m.seq),
+        int(m.frame),
+        int(m.command),
+        int(m.current),
+        int(m.autocontinue),
+        float(m.param1),
+        float(m.param2),
+        float(m.param3),
+        float(m.param4),
+        lat,
+        lon,
+        float(m.z),
+        int(getattr(m, "mission_type", 0)),
+    )
 
 
 class UploadResult:
@@ -218,9 +284,17 @@ class MissionClient:
             timeout ran out, e.g. under heavy loss) is started again from MISSION_COUNT this many times.
     """
 
-    def __init__(self, link: Link, *, item_timeout_s: float | None = None, retries: int | None = None,
-                 no_space_retries: int = 5, no_space_delay_s: float = 1.0, boot_grace_s: float = 30.0,
-                 cancel_restarts: int = 3):
+    def __init__(
+        self,
+        link: Link,
+        *,
+        item_timeout_s: float | None = None,
+        retries: int | None = None,
+        no_space_retries: int = 5,
+        no_space_delay_s: float = 1.0,
+        boot_grace_s: float = 30.0,
+        cancel_restarts: int = 3,
+    ):
         self.link = link
         self.item_timeout_s = item_timeout_s
         self.retries = max(link.config.retries, 10) if retries is None else retries
@@ -237,8 +311,11 @@ class MissionClient:
     def _deadline(self, n: int, timeout: float | None) -> float:
         if timeout is None:
             # the vehicle's own pace (~48 items/s on ArduPilot) with generous slack, plus NO_SPACE retries
-            timeout = 4 * (self.retries + 1) * self._t_item + n * (0.1 + self._t_item / 4) \
+            timeout = (
+                4 * (self.retries + 1) * self._t_item
+                + n * (0.1 + self._t_item / 4)
                 + self.no_space_retries * self.no_space_delay_s
+            )
         return time.monotonic() + timeout
 
     def _initialising(self) -> bool:
@@ -258,12 +335,18 @@ class MissionClient:
 
     def _reject(self, result: int, since: float, detail: str = "") -> MissionRejected:
         text = self._recent_text(since)
-        return MissionRejected(result, result_name("MAV_MISSION_RESULT", result),
-                               "; ".join(x for x in (detail, text) if x))
+        return MissionRejected(
+            result, result_name("MAV_MISSION_RESULT", result), "; ".join(x for x in (detail, text) if x)
+        )
 
     # -- upload ---------------------------------------------------------------------------------
-    def upload(self, items: Sequence[MissionItem], mission_type: int = MAV_MISSION_TYPE_MISSION, *,
-               timeout: float | None = None) -> UploadResult:
+    def upload(
+        self,
+        items: Sequence[MissionItem],
+        mission_type: int = MAV_MISSION_TYPE_MISSION,
+        *,
+        timeout: float | None = None,
+    ) -> UploadResult:
         """Upload ``items`` (seq 0..n-1; for mission type 0, seq 0 is the home placeholder).
 
         Returns an :class:`UploadResult` once the vehicle answered MISSION_ACK ACCEPTED.
@@ -283,8 +366,10 @@ class MissionClient:
             while True:
                 remaining = tr.deadline - time.monotonic()
                 if remaining <= 0:
-                    raise LinkTimeout(f"mission upload of {tr.n} items not finished within the deadline "
-                                      f"({time.monotonic() - tr.t0:.1f} s; last item sent {tr.last_seq})")
+                    raise LinkTimeout(
+                        f"mission upload of {tr.n} items not finished within the deadline "
+                        f"({time.monotonic() - tr.t0:.1f} s; last item sent {tr.last_seq})"
+                    )
                 m = sub.get(min(self._t_item, remaining))
                 if m is None:
                     tr.on_silence()
@@ -296,8 +381,9 @@ class MissionClient:
                     return res
 
     # -- download -------------------------------------------------------------------------------
-    def download(self, mission_type: int = MAV_MISSION_TYPE_MISSION, *,
-                 timeout: float | None = None) -> list[MissionItem]:
+    def download(
+        self, mission_type: int = MAV_MISSION_TYPE_MISSION, *, timeout: float | None = None
+    ) -> list[MissionItem]:
         """Read the list back: MISSION_REQUEST_LIST -> COUNT -> REQUEST_INT/ITEM_INT per item -> ACK.
 
         For mission type 0 item 0 is the vehicle's home. Raises MissionRejected / LinkTimeout.
@@ -307,6 +393,7 @@ class MissionClient:
         t0 = time.monotonic()
         deadline = self._deadline(0, timeout)
         with link.subscribe(("MISSION_COUNT", "MISSION_ITEM_INT", "MISSION_ACK")) as sub:
+
             def wait(pred, send, what):
                 for _ in range(self.retries + 1):
                     send()
@@ -324,22 +411,32 @@ class MissionClient:
                         break
                 raise LinkTimeout(f"mission download: no {what}" + (" (link lost)" if link.lost else ""))
 
-            cm = wait(lambda m: m.get_type() == "MISSION_COUNT",
-                      lambda: link.send(M.MAVLink_mission_request_list_message(ts, tc, mission_type)), "MISSION_COUNT")
+            cm = wait(
+                lambda m: m.get_type() == "MISSION_COUNT",
+                lambda: link.send(M.MAVLink_mission_request_list_message(ts, tc, mission_type)),
+                "MISSION_COUNT",
+            )
             count = int(cm.count)
             if timeout is None:
                 deadline = max(deadline, self._deadline(count, None))
             out = []
             for seq in range(count):
-                m = wait(lambda m, s=seq: m.get_type() == "MISSION_ITEM_INT" and m.seq == s,
-                         lambda s=seq: link.send(M.MAVLink_mission_request_int_message(ts, tc, s, mission_type)),
-                         f"item {seq}/{count}")
+                m = wait(
+                    lambda m, s=seq: m.get_type() == "MISSION_ITEM_INT" and m.seq == s,
+                    lambda s=seq: link.send(M.MAVLink_mission_request_int_message(ts, tc, s, mission_type)),
+                    f"item {seq}/{count}",
+                )
                 out.append(from_msg(m))
             link.send(M.MAVLink_mission_ack_message(ts, tc, _ACCEPTED, mission_type))
         return out
 
-    def upload_verified(self, items: Sequence[MissionItem], mission_type: int = MAV_MISSION_TYPE_MISSION, *,
-                        timeout: float | None = None) -> list[MissionItem]:
+    def upload_verified(
+        self,
+        items: Sequence[MissionItem],
+        mission_type: int = MAV_MISSION_TYPE_MISSION,
+        *,
+        timeout: float | None = None,
+    ) -> list[MissionItem]:
         """Upload, then read back and compare (command, frame, lat/lon to 1e-7 deg, params, alt;
         seq 0 of mission type 0 is home and skipped). Returns the list read back.
 
@@ -395,24 +492,22 @@ class _Upload:
     """One upload's transfer state (:meth:`MissionClient.upload`): what was requested and sent, silences,
     and the vehicle's answers (requests and MISSION_ACKs)."""
 
-    def __init__(self, client: MissionClient, items: list[MissionItem], mission_type: int, timeout: float | None,
-                 sub):
+    def __init__(self, client: MissionClient, items: list[MissionItem], mission_type: int, timeout: float | None, sub):
         self.client, self.items, self.mission_type, self.timeout, self.sub = client, items, mission_type, timeout, sub
         self.link = client.link
         self.n = len(items)
         self.t0 = time.monotonic()
         self.deadline = client._deadline(self.n, timeout)
         self.res = UploadResult(count=self.n)
-        self.requested = False   # a request of this transfer has arrived
-        self.last_seq = -1       # last item requested and sent
-        self.silent = 0          # consecutive silent periods
+        self.requested = False  # a request of this transfer has arrived
+        self.last_seq = -1  # last item requested and sent
+        self.silent = 0  # consecutive silent periods
         self.last_resends = 0
 
     def send_count(self) -> None:
         self.res.count_sends += 1
         link = self.link
-        link.send(M.MAVLink_mission_count_message(link.target_system, link.target_component, self.n,
-                                                  self.mission_type))
+        link.send(M.MAVLink_mission_count_message(link.target_system, link.target_component, self.n, self.mission_type))
 
     def send_item(self, seq: int) -> None:
         self.res.items_sent += 1
@@ -422,8 +517,10 @@ class _Upload:
         """No answer for an item timeout: send again what the vehicle may have missed."""
         self.silent += 1
         if self.silent > self.client.retries:
-            raise LinkTimeout(f"vehicle silent during mission upload (item {self.last_seq + 1}/{self.n})"
-                              + (" (link lost)" if self.link.lost else ""))
+            raise LinkTimeout(
+                f"vehicle silent during mission upload (item {self.last_seq + 1}/{self.n})"
+                + (" (link lost)" if self.link.lost else "")
+            )
         if not self.requested:
             self.send_count()
         elif self.last_seq == self.n - 1:
@@ -451,13 +548,20 @@ class _Upload:
             return None  # a duplicate item after a lost request: ArduPilot goes on with the transfer
         if result == M.MAV_MISSION_ERROR and self.last_seq == n - 1 and (self.last_resends or self.silent):
             return self._ack_lost(result)
-        if (result == M.MAV_MISSION_OPERATION_CANCELLED and self.requested
-                and res.cancel_restarts < client.cancel_restarts):
+        if (
+            result == M.MAV_MISSION_OPERATION_CANCELLED
+            and self.requested
+            and res.cancel_restarts < client.cancel_restarts
+        ):
             # the vehicle gave up waiting (its 8 s item timeout); the stored list is now a
             # mix of old and new items, so start the whole transfer again
             res.cancel_restarts += 1
-            log.info("mission upload cancelled by the vehicle at item %d/%d; restarting (%d)",
-                     self.last_seq + 1, n, res.cancel_restarts)
+            log.info(
+                "mission upload cancelled by the vehicle at item %d/%d; restarting (%d)",
+                self.last_seq + 1,
+                n,
+                res.cancel_restarts,
+            )
             self.sub.drain()
             self.requested, self.last_seq, self.silent, self.last_resends = False, -1, 0, 0
             if self.timeout is None:
@@ -470,8 +574,9 @@ class _Upload:
 
     def _ack_lost(self, result: int) -> UploadResult:
         """ERROR after our last item was sent again: the vehicle closed the transfer and its ACK was lost."""
-        got = self.client.download(self.mission_type,
-                                   timeout=max(self.deadline - time.monotonic(), self.client._t_item * 4))
+        got = self.client.download(
+            self.mission_type, timeout=max(self.deadline - time.monotonic(), self.client._t_item * 4)
+        )
         bad = differences(self.items, got, self.mission_type)
         if bad:
             raise self.client._reject(result, self.t0, f"final ACK lost and the read-back differs: {bad}")
@@ -485,15 +590,21 @@ class _Upload:
         client, res = self.client, self.res
         if client._initialising() and res.no_space_retries < client.no_space_retries:
             res.no_space_retries += 1
-            log.info("NO_SPACE while the vehicle initialises; retry %d in %.1f s",
-                     res.no_space_retries, client.no_space_delay_s)
+            log.info(
+                "NO_SPACE while the vehicle initialises; retry %d in %.1f s",
+                res.no_space_retries,
+                client.no_space_delay_s,
+            )
             time.sleep(min(client.no_space_delay_s, max(self.deadline - time.monotonic(), 0)))
             self.sub.drain()
             self.silent = 0
             self.send_count()
-            return None
-        detail = (f"still NO_SPACE after {res.no_space_retries} retries" if res.no_space_retries
-                  else f"the vehicle has no room for {self.n} items (capacity limit)")
+            return
+        detail = (
+            f"still NO_SPACE after {res.no_space_retries} retries"
+            if res.no_space_retries
+            else f"the vehicle has no room for {self.n} items (capacity limit)"
+        )
         raise client._reject(result, self.t0, detail)
 
 
@@ -518,12 +629,12 @@ class MissionWatch:
 
     def __init__(self, link: Link):
         self.link = link
-        self.expected_total: int | None = None   # items after home of our last upload
-        self.expected_id = 0                     # opaque id of our last upload (0 = none sent)
+        self.expected_total: int | None = None  # items after home of our last upload
+        self.expected_id = 0  # opaque id of our last upload (0 = none sent)
         self.total: int | None = None
         self.mission_id = 0
-        self.foreign_uploads = 0                 # MISSION_ACK ACCEPTED to another GCS (seen through a router)
-        self.foreign_requests = 0                # MISSION_REQUEST(_INT) to another GCS: an upload in progress
+        self.foreign_uploads = 0  # MISSION_ACK ACCEPTED to another GCS (seen through a router)
+        self.foreign_requests = 0  # MISSION_REQUEST(_INT) to another GCS: an upload in progress
         self.foreign_peer: tuple[int, int] | None = None
         link.add_listener(self._on, ("MISSION_CURRENT", "MISSION_ACK", "MISSION_REQUEST", "MISSION_REQUEST_INT"))
 

@@ -45,7 +45,7 @@ from __future__ import annotations
 import collections
 import threading
 import time
-from typing import Callable
+from collections.abc import Callable
 
 from geo.track import Track
 from passt_mav.measurement import RULES, BootCounter, HalfPairer
@@ -77,37 +77,47 @@ class SampleCollector:
 
     TYPES = ("NAMED_VALUE_FLOAT", "GLOBAL_POSITION_INT", "SYSTEM_TIME")
 
-    def __init__(self, on_sample: Callable[[dict], None], *, u_name: str = "CUR_U", v_name: str = "CUR_V",
-                 max_gap_ms: int = RULES.max_gap_ms, expire_ms: int = 10_000, source: str = "mavlink",
-                 reboot_back_ms: int = RULES.reboot_back_ms, on_reboot: Callable[[int, int, int], None] | None = None,
-                 boot_base: int = 0, pair_tolerance_ms: int = RULES.pair_tolerance_ms):
+    def __init__(
+        self,
+        on_sample: Callable[[dict], None],
+        *,
+        u_name: str = "CUR_U",
+        v_name: str = "CUR_V",
+        max_gap_ms: int = RULES.max_gap_ms,
+        expire_ms: int = 10_000,
+        source: str = "mavlink",
+        reboot_back_ms: int = RULES.reboot_back_ms,
+        on_reboot: Callable[[int, int, int], None] | None = None,
+        boot_base: int = 0,
+        pair_tolerance_ms: int = RULES.pair_tolerance_ms,
+    ):
         if u_name == v_name:
             raise ValueError("u_name and v_name must differ")
         self.on_sample = on_sample
         self.u_name, self.v_name = u_name, v_name
         self.expire_ms = int(expire_ms)
-        self.track = Track(max_gap_ms)                       # this boot's fixes (time_boot_ms, lat, lon)
+        self.track = Track(max_gap_ms)  # this boot's fixes (time_boot_ms, lat, lon)
         self.source = source
         self.leg: int | None = None
         self._lock = threading.Lock()
         self.pairer = HalfPairer(pair_tolerance_ms, keep_ms=self.expire_ms)  # halves waiting for their partner
-        self._seen: dict[tuple[int, str], None] = {}         # (time_boot_ms, name) already taken
+        self._seen: dict[tuple[int, str], None] = {}  # (time_boot_ms, name) already taken
         self._held: dict[int, tuple[float, float, float | None, int | None]] = {}  # tb -> (u, v, rx, leg)
         self._leg_counts: collections.Counter = collections.Counter()  # (leg, what) -> n
-        self._utc_offset: float | None = None                # unix s - boot s
+        self._utc_offset: float | None = None  # unix s - boot s
         self._newest = 0
-        self.counts = collections.Counter()                  # readings, emitted, gap, duplicates, expired, reboots
+        self.counts = collections.Counter()  # readings, emitted, gap, duplicates, expired, reboots
         self._link = None
         self.reboot_back_ms = int(reboot_back_ms)
         self._clock = BootCounter(self.reboot_back_ms)
         self.on_reboot = on_reboot
-        self.boot = 0                                        # reboots seen since attach
-        self.boot_base = int(boot_base)                      # records carry boot_base + boot
+        self.boot = 0  # reboots seen since attach
+        self.boot_base = int(boot_base)  # records carry boot_base + boot
         #: per boot: {"utc_boot": vehicle UTC at boot (s) or None, "wall": wall time first seen, "last_tb": ms}
         self.boots: list[dict] = [{"utc_boot": None, "wall": time.time(), "last_tb": 0}]
 
     # -- wiring ------------------------------------------------------------------------------
-    def attach(self, link) -> "SampleCollector":
+    def attach(self, link) -> SampleCollector:
         """Listen on a :class:`~passt_mav.mavlink.link.Link` (reader thread)."""
         self._link = link
         link.add_listener(self.handle, self.TYPES)
@@ -234,8 +244,17 @@ class SampleCollector:
                 utc = self._utc_offset + tb / 1e3
             else:
                 utc = rx if rx is not None else time.time()
-            rec = {"time_boot_ms": tb, "utc": utc, "lat": pos.lat, "lon": pos.lon, "u": u, "v": v,
-                   "gap_ms": pos.gap_ms, "source": self.source, "boot": self.boot_base + self.boot}
+            rec = {
+                "time_boot_ms": tb,
+                "utc": utc,
+                "lat": pos.lat,
+                "lon": pos.lon,
+                "u": u,
+                "v": v,
+                "gap_ms": pos.gap_ms,
+                "source": self.source,
+                "boot": self.boot_base + self.boot,
+            }
             if leg is not None:
                 rec["leg"] = leg
             self._count("emitted", leg)

@@ -29,8 +29,20 @@ M = mavlink2
 
 #: ArduPilot Rover 4.x custom modes (pymavlink still lists LEARNING = 2; Rover no longer has it)
 ROVER_MODES = {
-    "MANUAL": 0, "ACRO": 1, "STEERING": 3, "HOLD": 4, "LOITER": 5, "FOLLOW": 6, "SIMPLE": 7, "DOCK": 8,
-    "CIRCLE": 9, "AUTO": 10, "RTL": 11, "SMART_RTL": 12, "GUIDED": 15, "INITIALISING": 16,
+    "MANUAL": 0,
+    "ACRO": 1,
+    "STEERING": 3,
+    "HOLD": 4,
+    "LOITER": 5,
+    "FOLLOW": 6,
+    "SIMPLE": 7,
+    "DOCK": 8,
+    "CIRCLE": 9,
+    "AUTO": 10,
+    "RTL": 11,
+    "SMART_RTL": 12,
+    "GUIDED": 15,
+    "INITIALISING": 16,
 }
 ROVER_MODE_NAMES = {v: k for k, v in ROVER_MODES.items()}
 
@@ -84,9 +96,8 @@ class MissionProgress:
             if m.get_type() == "MISSION_CURRENT":
                 self.current, self.total = int(m.seq), int(getattr(m, "total", 0))
                 self.state = int(getattr(m, "mission_state", 0))
-            elif m.get_type() == "MISSION_ITEM_REACHED":
-                if not self.reached or self.reached[-1] != int(m.seq):
-                    self.reached.append(int(m.seq))
+            elif m.get_type() == "MISSION_ITEM_REACHED" and (not self.reached or self.reached[-1] != int(m.seq)):
+                self.reached.append(int(m.seq))
             self.changed.notify_all()
 
 
@@ -101,8 +112,14 @@ class Vehicle:
             a bar on a terminal, a plain line every 5 s otherwise).
     """
 
-    def __init__(self, link: Link, mission: MissionClient | None = None, *, retry_delay_s: float = 1.0,
-                 show_progress: bool = False):
+    def __init__(
+        self,
+        link: Link,
+        mission: MissionClient | None = None,
+        *,
+        retry_delay_s: float = 1.0,
+        show_progress: bool = False,
+    ):
         self.link = link
         self.show_progress = bool(show_progress)
         self.mission = mission or MissionClient(link)
@@ -156,13 +173,20 @@ class Vehicle:
         bar = None  # shown only once there is something to wait for
         with self.link.subscribe(("EKF_STATUS_REPORT", "GLOBAL_POSITION_INT")) as sub:
             try:
-                while (reason := self._ready_reason()):
+                while reason := self._ready_reason():
                     if time.monotonic() >= end:
-                        raise VehicleNotReady(f"vehicle not ready after {timeout:.1f} s: {reason}"
-                                              + (" (link lost)" if self.link.lost else ""))
+                        raise VehicleNotReady(
+                            f"vehicle not ready after {timeout:.1f} s: {reason}"
+                            + (" (link lost)" if self.link.lost else "")
+                        )
                     if bar is None:
-                        bar = progress(None, f"waiting for the vehicle (up to {timeout:.0f} s)", "s",
-                                       quiet=not self.show_progress, every_s=5.0)
+                        bar = progress(
+                            None,
+                            f"waiting for the vehicle (up to {timeout:.0f} s)",
+                            "s",
+                            quiet=not self.show_progress,
+                            every_s=5.0,
+                        )
                     bar.note(reason)
                     bar.tick()
                     sub.get(min(end - time.monotonic(), 1.0))
@@ -183,8 +207,9 @@ class Vehicle:
             while (m := sub.get(end - time.monotonic())) is not None:
                 if m.get_srcSystem() == self.link.target_system and cond(m):
                     return
-        raise LinkTimeout(f"vehicle heartbeat never showed {what} within {timeout:.1f} s"
-                          + (" (link lost)" if self.link.lost else ""))
+        raise LinkTimeout(
+            f"vehicle heartbeat never showed {what} within {timeout:.1f} s" + (" (link lost)" if self.link.lost else "")
+        )
 
     def set_mode(self, mode: str | int, *, timeout: float | None = None) -> int:
         """MAV_CMD_DO_SET_MODE (176, param1 = 1 custom) and wait until the HEARTBEAT shows it.
@@ -223,15 +248,21 @@ class Vehicle:
             wait = max(default, end - time.monotonic())
             hb = self._next_heartbeat(wait)
             if hb is None:
-                raise LinkTimeout(f"vehicle heartbeat never showed armed within {wait:.1f} s"
-                                  + (" (link lost)" if self.link.lost else ""))
+                raise LinkTimeout(
+                    f"vehicle heartbeat never showed armed within {wait:.1f} s"
+                    + (" (link lost)" if self.link.lost else "")
+                )
             if hb.base_mode & armed:
                 return
-            log.warning("the vehicle accepted arming but its heartbeat says disarmed (attempt %d/%d)",
-                        attempt, attempts)
-        raise CommandRejected(M.MAV_CMD_COMPONENT_ARM_DISARM, M.MAV_RESULT_FAILED,
-                              f"the vehicle accepted arming {attempts} times but disarmed again each time "
-                              "(an autopilot failsafe; see its messages)")
+            log.warning(
+                "the vehicle accepted arming but its heartbeat says disarmed (attempt %d/%d)", attempt, attempts
+            )
+        raise CommandRejected(
+            M.MAV_CMD_COMPONENT_ARM_DISARM,
+            M.MAV_RESULT_FAILED,
+            f"the vehicle accepted arming {attempts} times but disarmed again each time "
+            "(an autopilot failsafe; see its messages)",
+        )
 
     def _arm_command(self, force: bool, end: float) -> None:
         """MAV_CMD_COMPONENT_ARM_DISARM(1) until accepted; transient refusals retried until ``end``."""
@@ -240,7 +271,9 @@ class Vehicle:
                 self.link.command_long(M.MAV_CMD_COMPONENT_ARM_DISARM, 1, 2989 if force else 0)
                 return
             except CommandRejected as exc:
-                transient = any(s in exc.text.lower() for s in _NOT_YET) or exc.result == M.MAV_RESULT_TEMPORARILY_REJECTED
+                transient = (
+                    any(s in exc.text.lower() for s in _NOT_YET) or exc.result == M.MAV_RESULT_TEMPORARILY_REJECTED
+                )
                 if not transient or time.monotonic() + self.retry_delay_s > end:
                     raise
                 log.info("arming refused (%s); retrying", exc.text)
@@ -276,18 +309,27 @@ class Vehicle:
                     if accept(last):
                         return last
         if last is not None:
-            raise CommandRejected(f"PARAM_SET {name}", M.MAV_RESULT_DENIED, f"{what}: the vehicle keeps {name} = {last:g}")
-        raise LinkTimeout(f"{what}: no PARAM_VALUE for {name} (unknown parameter on this firmware?)"
-                          + (" (link lost)" if link.lost else ""))
+            raise CommandRejected(
+                f"PARAM_SET {name}", M.MAV_RESULT_DENIED, f"{what}: the vehicle keeps {name} = {last:g}"
+            )
+        raise LinkTimeout(
+            f"{what}: no PARAM_VALUE for {name} (unknown parameter on this firmware?)"
+            + (" (link lost)" if link.lost else "")
+        )
 
     def get_param(self, name: str, *, timeout: float | None = None) -> float:
         """Value of parameter ``name`` (PARAM_REQUEST_READ -> PARAM_VALUE). LinkTimeout if the
         vehicle never answers (ArduPilot stays silent for names it does not have)."""
         link = self.link
         return self._param_exchange(
-            name, lambda: link.send(M.MAVLink_param_request_read_message(
-                link.target_system, link.target_component, name.encode(), -1)),
-            lambda v: True, f"reading {name}", timeout)
+            name,
+            lambda: link.send(
+                M.MAVLink_param_request_read_message(link.target_system, link.target_component, name.encode(), -1)
+            ),
+            lambda v: True,
+            f"reading {name}",
+            timeout,
+        )
 
     def set_param(self, name: str, value: float, *, timeout: float | None = None, tol: float = 1e-4) -> float:
         """PARAM_SET ``name`` = ``value``, confirmed by the PARAM_VALUE echo (float32, ``tol``
@@ -303,9 +345,14 @@ class Vehicle:
         link = self.link
         ptype = PARAM_TYPES.get(name, M.MAV_PARAM_TYPE_REAL32)
         return self._param_exchange(
-            name, lambda: link.send(M.MAVLink_param_set_message(
-                link.target_system, link.target_component, name.encode(), value, ptype)),
-            lambda v: abs(v - value) <= tol * max(1.0, abs(value)), f"setting {name} to {value:g}", timeout)
+            name,
+            lambda: link.send(
+                M.MAVLink_param_set_message(link.target_system, link.target_component, name.encode(), value, ptype)
+            ),
+            lambda v: abs(v - value) <= tol * max(1.0, abs(value)),
+            f"setting {name} to {value:g}",
+            timeout,
+        )
 
     def set_wp_radius(self, radius_m: float) -> float:
         """Waypoint acceptance radius (m) through WP_RADIUS (Rover ignores a waypoint's param2).
@@ -349,8 +396,9 @@ class Vehicle:
         else:
             self.set_mode("AUTO")
 
-    def wait_mission_complete(self, n_items: int, *, timeout: float = 3600.0, hold: bool = True,
-                              on_progress=None) -> MissionProgress:
+    def wait_mission_complete(
+        self, n_items: int, *, timeout: float = 3600.0, hold: bool = True, on_progress=None
+    ) -> MissionProgress:
         """Wait until MISSION_CURRENT says complete (mission_state 5 with ``total == n_items``) or
         item ``n_items`` is reached (``n_items`` excludes home); then switch to HOLD (a boat
         otherwise stays armed in AUTO, loitering). ``on_progress(progress)`` on each update.
@@ -364,8 +412,10 @@ class Vehicle:
             while not ((p.state == M.MISSION_STATE_COMPLETE and p.total == n_items) or n_items in p.reached):
                 left = end - time.monotonic()
                 if left <= 0:
-                    raise LinkTimeout(f"mission not complete after {timeout:.0f} s (item {p.current}/{p.total}, "
-                                      f"reached {p.reached[-5:]})" + (" (link lost)" if self.link.lost else ""))
+                    raise LinkTimeout(
+                        f"mission not complete after {timeout:.0f} s (item {p.current}/{p.total}, "
+                        f"reached {p.reached[-5:]})" + (" (link lost)" if self.link.lost else "")
+                    )
                 p.changed.wait(min(left, 0.5))
                 if on_progress is not None:
                     on_progress(p)

@@ -37,7 +37,7 @@ source, model checkpoint) are relative to the YAML file's directory.
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Annotated, Any, Literal, Union
+from typing import Annotated, Any, Literal
 
 from pydantic import (
     BaseModel,
@@ -75,8 +75,12 @@ BUILTIN_FIELDS = ("ocean", "cylinder", "oscillating", "rtofs")
 #: shipped predictor checkpoints (resolved by passt_mav.models)
 SHIPPED_MODELS = ("cylinder", "ocean")
 #: the default model of each built-in field: the oscillating cylinder uses the static one (paper)
-DEFAULT_MODEL = {"ocean": "builtin:ocean", "cylinder": "builtin:cylinder", "oscillating": "builtin:cylinder",
-                 "rtofs": "persistence"}  # no KNODE is trained on the real RTOFS currents
+DEFAULT_MODEL = {
+    "ocean": "builtin:ocean",
+    "cylinder": "builtin:cylinder",
+    "oscillating": "builtin:cylinder",
+    "rtofs": "persistence",
+}  # no KNODE is trained on the real RTOFS currents
 #: predictor registry names accepted when passt_mav.models cannot be imported (yet)
 _KNOWN_PREDICTORS = ("knode", "dmd", "persistence")
 _NAMED_VALUE_MAX = 10  # NAMED_VALUE_FLOAT.name is char[10]
@@ -138,8 +142,18 @@ class MetricRegion(_Strict):
         """The :class:`geo.MetricRegionGrid`."""
         from geo import MetricRegionGrid
 
-        return MetricRegionGrid(self.x0, self.x1, self.y0, self.y1, self.rows, self.cols, anchor_lat=self.anchor_lat,
-                                anchor_lon=self.anchor_lon, rotation_deg=self.rotation_deg, scale=self.scale)
+        return MetricRegionGrid(
+            self.x0,
+            self.x1,
+            self.y0,
+            self.y1,
+            self.rows,
+            self.cols,
+            anchor_lat=self.anchor_lat,
+            anchor_lon=self.anchor_lon,
+            rotation_deg=self.rotation_deg,
+            scale=self.scale,
+        )
 
 
 def _region_kind(v: Any) -> str | None:
@@ -153,10 +167,13 @@ def _region_kind(v: Any) -> str | None:
 
 
 Region = Annotated[
-    Union[Annotated[GeographicRegion, Tag("geographic")], Annotated[MetricRegion, Tag("metric")]],
-    Discriminator(_region_kind, custom_error_type="region_kind",
-                  custom_error_message="must be a mapping with south/west/north/east/rows/cols (geographic) "
-                                       "or x0/x1/y0/y1/rows/cols/anchor_lat/anchor_lon (metric)"),
+    Annotated[GeographicRegion, Tag("geographic")] | Annotated[MetricRegion, Tag("metric")],
+    Discriminator(
+        _region_kind,
+        custom_error_type="region_kind",
+        custom_error_message="must be a mapping with south/west/north/east/rows/cols (geographic) "
+        "or x0/x1/y0/y1/rows/cols/anchor_lat/anchor_lon (metric)",
+    ),
 ]
 
 
@@ -191,11 +208,16 @@ class FieldConfig(_Strict):
         if v.startswith("builtin:"):
             name = v.split(":", 1)[1]
             if name not in BUILTIN_FIELDS:
-                raise ValueError(f"unknown built-in field {name!r}; choose one of "
-                                 + ", ".join(f"builtin:{n}" for n in BUILTIN_FIELDS) + " or a .nc file")
+                raise ValueError(
+                    f"unknown built-in field {name!r}; choose one of "
+                    + ", ".join(f"builtin:{n}" for n in BUILTIN_FIELDS)
+                    + " or a .nc file"
+                )
             return v
         if not v.endswith(".nc"):
-            raise ValueError("must be builtin:ocean, builtin:cylinder, builtin:oscillating, builtin:rtofs or a path to a .nc file")
+            raise ValueError(
+                "must be builtin:ocean, builtin:cylinder, builtin:oscillating, builtin:rtofs or a path to a .nc file"
+            )
         p = Path(v)
         p = p if p.is_absolute() else _base_dir(info) / p
         if not p.exists():
@@ -301,6 +323,7 @@ class GPConfig(_Strict):
         if problem:
             raise ValueError(problem)
         return v
+
     options: dict[str, Any] = Field(default_factory=dict)
 
     @property
@@ -350,8 +373,10 @@ class MissionConfig(_Strict):
         if v.startswith(("builtin:", "shipped:")):
             name = v.split(":", 1)[1]
             if name not in SHIPPED_MODELS:
-                raise ValueError(f"unknown shipped model {name!r}; choose one of "
-                                 + ", ".join(f"builtin:{n}" for n in SHIPPED_MODELS))
+                raise ValueError(
+                    f"unknown shipped model {name!r}; choose one of "
+                    + ", ".join(f"builtin:{n}" for n in SHIPPED_MODELS)
+                )
             return f"builtin:{name}"
         if v.endswith((".pt", ".pth")):
             p = Path(v)
@@ -361,8 +386,10 @@ class MissionConfig(_Strict):
             return str(p)
         names = _predictor_names()
         if v not in names:
-            raise ValueError(f"unknown model {v!r}; use builtin:cylinder, builtin:ocean, a .pt checkpoint or one of "
-                             + ", ".join(names))
+            raise ValueError(
+                f"unknown model {v!r}; use builtin:cylinder, builtin:ocean, a .pt checkpoint or one of "
+                + ", ".join(names)
+            )
         return v
 
     @model_validator(mode="after")
@@ -371,8 +398,9 @@ class MissionConfig(_Strict):
             src = self.field.builtin
             object.__setattr__(self, "model", DEFAULT_MODEL[src] if src else "dmd")
         g = self.region
-        cells = [("start_cell", self.start_cell)] + [(f"vehicles[{k}].start_cell", v.start_cell)
-                                                     for k, v in enumerate(self.vehicles or ())]
+        cells = [("start_cell", self.start_cell)] + [
+            (f"vehicles[{k}].start_cell", v.start_cell) for k, v in enumerate(self.vehicles or ())
+        ]
         for key, cell in cells:
             if cell is not None and not (0 <= cell[0] < g.rows and 0 <= cell[1] < g.cols):
                 raise ValueError(f"{key} {list(cell)} lies outside the {g.rows}x{g.cols} grid")
@@ -443,8 +471,7 @@ def _fmt_error(e: dict, model_cls: type[BaseModel]) -> str:
         b = int(b) if isinstance(b, float) and b.is_integer() else b
         return f"{where}: must be {bounds[typ]} {b} (got {_short(inp)})"
     msg = str(e["msg"])
-    if msg.startswith("Value error, "):
-        msg = msg[len("Value error, "):]
+    msg = msg.removeprefix("Value error, ")
     msg = msg[0].lower() + msg[1:] if msg else msg
     if typ in ("value_error", "assertion_error"):
         return f"{where}: {msg}" if where else msg
@@ -473,7 +500,9 @@ def _allowed_keys(model_cls: type[BaseModel], loc: tuple) -> list[str]:
 def validate_mission(data: Any, *, source: str = "mission", base_dir: str | Path = ".") -> MissionConfig:
     """Validate a parsed mapping; errors raise :class:`MissionConfigError` ``"SOURCE: key: problem"``."""
     if not isinstance(data, dict):
-        raise MissionConfigError(f"{source}: the mission file must be a YAML mapping of keys, got {type(data).__name__}")
+        raise MissionConfigError(
+            f"{source}: the mission file must be a YAML mapping of keys, got {type(data).__name__}"
+        )
     try:
         return MissionConfig.model_validate(data, context={"base_dir": str(base_dir)})
     except ValidationError as exc:

@@ -78,20 +78,34 @@ class MissionItem:
         """longitude as int32 degE7 (or the raw y for non-global frames)."""
         return int(round(self.lon * 1e7)) if self.is_global else int(round(self.lon))
 
-    def same_as(self, other: "MissionItem", *, deg_tol: float = 1e-7, param_tol: float = 1e-4,
-                alt_tol: float = 1e-3, check_frame: bool = True) -> bool:
+    def same_as(
+        self,
+        other: MissionItem,
+        *,
+        deg_tol: float = 1e-7,
+        param_tol: float = 1e-4,
+        alt_tol: float = 1e-3,
+        check_frame: bool = True,
+    ) -> bool:
         """Equal within wire tolerances: command, frame, lat/lon to ``deg_tol`` degrees
         (one degE7 step), params to ``param_tol`` (float32 on the wire), alt to ``alt_tol`` m."""
         if self.seq != other.seq or self.command != other.command or self.mission_type != other.mission_type:
             return False
         if check_frame and _plain_frame(self.frame) != _plain_frame(other.frame):
             return False
-        for a, b in ((self.param1, other.param1), (self.param2, other.param2),
-                     (self.param3, other.param3), (self.param4, other.param4)):
+        for a, b in (
+            (self.param1, other.param1),
+            (self.param2, other.param2),
+            (self.param3, other.param3),
+            (self.param4, other.param4),
+        ):
             if not (math.isnan(a) and math.isnan(b)) and not abs(a - b) <= param_tol * max(1.0, abs(a)):
                 return False
-        return (abs(self.lat - other.lat) <= deg_tol + 1e-12 and abs(self.lon - other.lon) <= deg_tol + 1e-12
-                and abs(self.alt - other.alt) <= alt_tol)
+        return (
+            abs(self.lat - other.lat) <= deg_tol + 1e-12
+            and abs(self.lon - other.lon) <= deg_tol + 1e-12
+            and abs(self.alt - other.alt) <= alt_tol
+        )
 
 
 def _plain_frame(frame: int) -> int:

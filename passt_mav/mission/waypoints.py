@@ -32,9 +32,10 @@ from __future__ import annotations
 
 import json
 import math
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Iterable, Sequence
+from typing import Any
 
 import numpy as np
 
@@ -124,9 +125,17 @@ class WaypointMission:
 
     # -- construction ------------------------------------------------------------
     @classmethod
-    def from_path(cls, grid, path, *, home: Sequence[float] | None = None, alt: float = 0.0,
-                  speed: float | None = None, wp_radius_m: float = 0.0,
-                  fence_margin_m: float | None = 0.0) -> "WaypointMission":
+    def from_path(
+        cls,
+        grid,
+        path,
+        *,
+        home: Sequence[float] | None = None,
+        alt: float = 0.0,
+        speed: float | None = None,
+        wp_radius_m: float = 0.0,
+        fence_margin_m: float | None = 0.0,
+    ) -> WaypointMission:
         """A mission from an 8-connected grid path ``(L+1, 2)`` (row, col) on ``grid``.
 
         Straight runs merge into one waypoint (:func:`geo.path_to_waypoints`).
@@ -139,8 +148,15 @@ class WaypointMission:
         wps = geo.path_to_waypoints(grid, path)
         fence = None if fence_margin_m is None else grid.geofence(float(fence_margin_m))
         cells = geo.waypoint_cells(grid, path)
-        return cls(wps, home=None if home is None else tuple(home), alt=alt, speed=speed,
-                   wp_radius_m=wp_radius_m, fence=fence, meta={"cells": cells.tolist()})
+        return cls(
+            wps,
+            home=None if home is None else tuple(home),
+            alt=alt,
+            speed=speed,
+            wp_radius_m=wp_radius_m,
+            fence=fence,
+            meta={"cells": cells.tolist()},
+        )
 
     # -- MAVLink items ---------------------------------------------------------------
     @property
@@ -161,11 +177,28 @@ class WaypointMission:
             hlat, hlon, halt = float(self.waypoints[0, 0]), float(self.waypoints[0, 1]), 0.0
         out = [MissionItem(seq=0, frame=MAV_FRAME_GLOBAL, command=MAV_CMD_NAV_WAYPOINT, lat=hlat, lon=hlon, alt=halt)]
         if self.speed is not None:
-            out.append(MissionItem(seq=1, frame=MAV_FRAME_MISSION, command=MAV_CMD_DO_CHANGE_SPEED,
-                                   param1=float(_SPEED_TYPE_GROUND), param2=self.speed, param3=-1.0))
+            out.append(
+                MissionItem(
+                    seq=1,
+                    frame=MAV_FRAME_MISSION,
+                    command=MAV_CMD_DO_CHANGE_SPEED,
+                    param1=float(_SPEED_TYPE_GROUND),
+                    param2=self.speed,
+                    param3=-1.0,
+                )
+            )
         for lat, lon in self.waypoints:
-            out.append(MissionItem(seq=len(out), frame=MAV_FRAME_GLOBAL_RELATIVE_ALT, command=MAV_CMD_NAV_WAYPOINT,
-                                   param2=self.wp_radius_m, lat=float(lat), lon=float(lon), alt=self.alt))
+            out.append(
+                MissionItem(
+                    seq=len(out),
+                    frame=MAV_FRAME_GLOBAL_RELATIVE_ALT,
+                    command=MAV_CMD_NAV_WAYPOINT,
+                    param2=self.wp_radius_m,
+                    lat=float(lat),
+                    lon=float(lon),
+                    alt=self.alt,
+                )
+            )
         return out
 
     def fence_items(self) -> list[MissionItem]:
@@ -174,13 +207,23 @@ class WaypointMission:
         if self.fence is None:
             return []
         k = len(self.fence)
-        return [MissionItem(seq=i, frame=MAV_FRAME_GLOBAL, command=MAV_CMD_NAV_FENCE_POLYGON_VERTEX_INCLUSION,
-                            param1=float(k), lat=float(lat), lon=float(lon), mission_type=MAV_MISSION_TYPE_FENCE)
-                for i, (lat, lon) in enumerate(self.fence)]
+        return [
+            MissionItem(
+                seq=i,
+                frame=MAV_FRAME_GLOBAL,
+                command=MAV_CMD_NAV_FENCE_POLYGON_VERTEX_INCLUSION,
+                param1=float(k),
+                lat=float(lat),
+                lon=float(lon),
+                mission_type=MAV_MISSION_TYPE_FENCE,
+            )
+            for i, (lat, lon) in enumerate(self.fence)
+        ]
 
     @classmethod
-    def from_items(cls, items: Iterable[MissionItem], fence_items: Iterable[MissionItem] = (), *,
-                   source: str = "mission") -> "WaypointMission":
+    def from_items(
+        cls, items: Iterable[MissionItem], fence_items: Iterable[MissionItem] = (), *, source: str = "mission"
+    ) -> WaypointMission:
         """Inverse of :meth:`items` (+ :meth:`fence_items`); fence items may also be mixed into
         ``items`` (told apart by ``mission_type``). Seq 0 becomes :attr:`home`.
 
@@ -203,7 +246,9 @@ class WaypointMission:
         wps, alts, radii, speed = [], [], [], None
         for it in mission[1:]:
             if it.mission_type != MAV_MISSION_TYPE_MISSION:
-                raise MissionFileError(f"{source}: item {it.seq} has mission_type {it.mission_type} (rally points are not supported)")
+                raise MissionFileError(
+                    f"{source}: item {it.seq} has mission_type {it.mission_type} (rally points are not supported)"
+                )
             if it.command == MAV_CMD_NAV_WAYPOINT:
                 if not it.is_global:
                     raise MissionFileError(f"{source}: waypoint {it.seq} is in frame {it.frame}, not a lat/lon frame")
@@ -213,41 +258,72 @@ class WaypointMission:
             elif it.command == MAV_CMD_DO_CHANGE_SPEED:
                 speed = it.param2
             else:
-                raise MissionFileError(f"{source}: item {it.seq} has command {it.command}; only NAV_WAYPOINT (16) "
-                                       "and DO_CHANGE_SPEED (178) are supported")
+                raise MissionFileError(
+                    f"{source}: item {it.seq} has command {it.command}; only NAV_WAYPOINT (16) "
+                    "and DO_CHANGE_SPEED (178) are supported"
+                )
         if not wps:
             raise MissionFileError(f"{source}: the mission has no waypoints after home (seq 0)")
         if max(alts) - min(alts) > 1e-3 or max(radii) - min(radii) > 1e-4:
             raise MissionFileError(f"{source}: waypoints must share one altitude and one acceptance radius")
         try:
-            return cls(np.array(wps), home=home, alt=alts[0], speed=speed, wp_radius_m=radii[0],
-                       fence=_fence_from_items(fence, source))
+            return cls(
+                np.array(wps),
+                home=home,
+                alt=alts[0],
+                speed=speed,
+                wp_radius_m=radii[0],
+                fence=_fence_from_items(fence, source),
+            )
         except MissionFileError as exc:
             msg = str(exc)
             raise MissionFileError(msg if msg.startswith(f"{source}:") else f"{source}: {msg}") from None
 
-    def same_as(self, other: "WaypointMission", *, deg_tol: float = 1e-7, tol: float = 1e-4) -> bool:
+    def same_as(self, other: WaypointMission, *, deg_tol: float = 1e-7, tol: float = 1e-4) -> bool:
         """Same mission within wire tolerances (``deg_tol`` degrees, ``tol`` for alt/speed/radius)."""
-        def close(a, b):
-            return (a is None and b is None) or (a is not None and b is not None and abs(a - b) <= tol * max(1.0, abs(a)))
 
-        if self.waypoints.shape != other.waypoints.shape or not np.allclose(self.waypoints, other.waypoints, rtol=0, atol=deg_tol):
+        def close(a, b):
+            return (a is None and b is None) or (
+                a is not None and b is not None and abs(a - b) <= tol * max(1.0, abs(a))
+            )
+
+        if self.waypoints.shape != other.waypoints.shape or not np.allclose(
+            self.waypoints, other.waypoints, rtol=0, atol=deg_tol
+        ):
             return False
         if (self.home is None) != (other.home is None) or (self.fence is None) != (other.fence is None):
             return False
-        if self.home is not None and not (np.allclose(self.home[:2], other.home[:2], rtol=0, atol=deg_tol) and close(self.home[2], other.home[2])):
+        if self.home is not None and not (
+            np.allclose(self.home[:2], other.home[:2], rtol=0, atol=deg_tol) and close(self.home[2], other.home[2])
+        ):
             return False
-        if self.fence is not None and (self.fence.shape != other.fence.shape or not np.allclose(self.fence, other.fence, rtol=0, atol=deg_tol)):
+        if self.fence is not None and (
+            self.fence.shape != other.fence.shape or not np.allclose(self.fence, other.fence, rtol=0, atol=deg_tol)
+        ):
             return False
-        return close(self.alt, other.alt) and close(self.speed, other.speed) and close(self.wp_radius_m, other.wp_radius_m)
+        return (
+            close(self.alt, other.alt) and close(self.speed, other.speed) and close(self.wp_radius_m, other.wp_radius_m)
+        )
 
     # -- QGC WPL 110 ------------------------------------------------------------------
     def wpl_text(self) -> str:
         """The mission as QGC WPL 110 text (home at seq 0 with current = 1, as QGC writes it)."""
         lines = [WPL_HEADER]
         for it in self.items():
-            vals = [it.seq, 1 if it.seq == 0 else 0, it.frame, it.command, it.param1, it.param2, it.param3,
-                    it.param4, it.lat, it.lon, it.alt, it.autocontinue]
+            vals = [
+                it.seq,
+                1 if it.seq == 0 else 0,
+                it.frame,
+                it.command,
+                it.param1,
+                it.param2,
+                it.param3,
+                it.param4,
+                it.lat,
+                it.lon,
+                it.alt,
+                it.autocontinue,
+            ]
             lines.append("\t".join(_num(v) for v in vals))
         return "\n".join(lines) + "\n"
 
@@ -258,7 +334,7 @@ class WaypointMission:
         return p
 
     @classmethod
-    def from_wpl(cls, path: str | Path) -> "WaypointMission":
+    def from_wpl(cls, path: str | Path) -> WaypointMission:
         """Read a QGC WPL 110 file (tabs or spaces between the 12 fields)."""
         p = Path(path)
         text = _read_text(p)
@@ -272,9 +348,14 @@ class WaypointMission:
             params = [it.param1, it.param2, it.param3, it.param4, it.lat, it.lon, it.alt]
             if it.command == MAV_CMD_DO_CHANGE_SPEED:
                 params[4:] = [0.0, 0.0, 0.0]
-            d = {"autoContinue": bool(it.autocontinue), "command": it.command, "doJumpId": i, "frame": it.frame,
-                 "params": [None if (isinstance(v, float) and math.isnan(v)) else v for v in params],
-                 "type": "SimpleItem"}
+            d = {
+                "autoContinue": bool(it.autocontinue),
+                "command": it.command,
+                "doJumpId": i,
+                "frame": it.frame,
+                "params": [None if (isinstance(v, float) and math.isnan(v)) else v for v in params],
+                "type": "SimpleItem",
+            }
             if it.command == MAV_CMD_NAV_WAYPOINT:
                 d.update({"AMSLAltAboveTerrain": None, "Altitude": it.alt, "AltitudeMode": 1})
             items.append(d)
@@ -296,8 +377,9 @@ class WaypointMission:
             "geoFence": {
                 "version": 2,
                 "circles": [],
-                "polygons": [] if self.fence is None else [
-                    {"inclusion": True, "polygon": self.fence.tolist(), "version": 1}],
+                "polygons": []
+                if self.fence is None
+                else [{"inclusion": True, "polygon": self.fence.tolist(), "version": 1}],
             },
             "rallyPoints": {"version": 2, "points": []},
         }
@@ -309,7 +391,7 @@ class WaypointMission:
         return p
 
     @classmethod
-    def from_plan(cls, path: str | Path) -> "WaypointMission":
+    def from_plan(cls, path: str | Path) -> WaypointMission:
         """Read a QGroundControl ``.plan`` file (SimpleItems; one inclusion polygon at most)."""
         p = Path(path)
         try:
@@ -319,32 +401,53 @@ class WaypointMission:
         return cls.from_plan_dict(d, source=str(p))
 
     @classmethod
-    def from_plan_dict(cls, d: Any, *, source: str = "plan") -> "WaypointMission":
+    def from_plan_dict(cls, d: Any, *, source: str = "plan") -> WaypointMission:
         if not isinstance(d, dict) or d.get("fileType") != "Plan":
-            raise MissionFileError(f"{source}: not a QGroundControl plan (fileType must be \"Plan\")")
+            raise MissionFileError(f'{source}: not a QGroundControl plan (fileType must be "Plan")')
         m = d.get("mission")
         if not isinstance(m, dict) or not isinstance(m.get("items"), list):
             raise MissionFileError(f"{source}: mission.items is missing")
         home = m.get("plannedHomePosition")
         if not (isinstance(home, list) and len(home) == 3 and all(isinstance(x, (int, float)) for x in home)):
             raise MissionFileError(f"{source}: mission.plannedHomePosition must be [lat, lon, alt]")
-        items = [MissionItem(seq=0, frame=MAV_FRAME_GLOBAL, command=MAV_CMD_NAV_WAYPOINT,
-                             lat=float(home[0]), lon=float(home[1]), alt=float(home[2]))]
+        items = [
+            MissionItem(
+                seq=0,
+                frame=MAV_FRAME_GLOBAL,
+                command=MAV_CMD_NAV_WAYPOINT,
+                lat=float(home[0]),
+                lon=float(home[1]),
+                alt=float(home[2]),
+            )
+        ]
         for i, it in enumerate(m["items"]):
             where = f"{source}: mission.items[{i}]"
             if not isinstance(it, dict):
                 raise MissionFileError(f"{where}: not an object")
             if it.get("type") != "SimpleItem":
-                raise MissionFileError(f"{where}: item type {it.get('type')!r} is not supported (only SimpleItem; "
-                                       "convert surveys/patterns to waypoints in QGroundControl first)")
+                raise MissionFileError(
+                    f"{where}: item type {it.get('type')!r} is not supported (only SimpleItem; "
+                    "convert surveys/patterns to waypoints in QGroundControl first)"
+                )
             try:
                 params = [math.nan if v is None else float(v) for v in it["params"]]
                 if len(params) != 7:
                     raise ValueError(f"params needs 7 values, got {len(params)}")
-                items.append(MissionItem(seq=len(items), frame=int(it["frame"]), command=int(it["command"]),
-                                         autocontinue=int(bool(it.get("autoContinue", True))),
-                                         param1=params[0], param2=params[1], param3=params[2], param4=params[3],
-                                         lat=params[4], lon=params[5], alt=params[6]))
+                items.append(
+                    MissionItem(
+                        seq=len(items),
+                        frame=int(it["frame"]),
+                        command=int(it["command"]),
+                        autocontinue=int(bool(it.get("autoContinue", True))),
+                        param1=params[0],
+                        param2=params[1],
+                        param3=params[2],
+                        param4=params[3],
+                        lat=params[4],
+                        lon=params[5],
+                        alt=params[6],
+                    )
+                )
             except KeyError as exc:
                 raise MissionFileError(f"{where}: missing key {exc.args[0]!r}") from None
             except (TypeError, ValueError) as exc:
@@ -354,11 +457,13 @@ class WaypointMission:
         polys = gf.get("polygons", []) if isinstance(gf, dict) else None
         if not isinstance(polys, list):
             raise MissionFileError(f"{source}: geoFence.polygons must be a list")
-        if (gf.get("circles") if isinstance(gf, dict) else None):
+        if gf.get("circles") if isinstance(gf, dict) else None:
             raise MissionFileError(f"{source}: geoFence circles are not supported (use one inclusion polygon)")
         incl = [pg for pg in polys if isinstance(pg, dict) and pg.get("inclusion", True)]
         if len(incl) != len(polys) or len(polys) > 1:
-            raise MissionFileError(f"{source}: only one inclusion fence polygon is supported, got {len(polys)} polygon(s)")
+            raise MissionFileError(
+                f"{source}: only one inclusion fence polygon is supported, got {len(polys)} polygon(s)"
+            )
         if polys:
             fence = _latlon_array(polys[0].get("polygon"), f"{source}: geoFence polygon vertices")
         mission = cls.from_items(items, source=source)
@@ -393,7 +498,9 @@ def _parse_wpl(text: str, source: str) -> list[MissionItem]:
     if not numbered or not numbered[0][1].strip().startswith("QGC WPL"):
         raise MissionFileError(f"{source}: not a QGC WPL file (first line must be '{WPL_HEADER}')")
     if numbered[0][1].split()[-1] != "110":
-        raise MissionFileError(f"{source}: unsupported WPL version {numbered[0][1].strip()!r} (expected '{WPL_HEADER}')")
+        raise MissionFileError(
+            f"{source}: unsupported WPL version {numbered[0][1].strip()!r} (expected '{WPL_HEADER}')"
+        )
     items = []
     for n, ln in numbered[1:]:
         if ln.lstrip().startswith("#"):  # comment lines, as pymavlink's mavwp writes them
@@ -406,8 +513,22 @@ def _parse_wpl(text: str, source: str) -> list[MissionItem]:
             fl = [float(x) for x in f[4:11]]
         except ValueError as exc:
             raise MissionFileError(f"{source}: line {n}: {exc}") from None
-        items.append(MissionItem(seq=ints[0], current=ints[1], frame=ints[2], command=ints[3], autocontinue=ints[4],
-                                 param1=fl[0], param2=fl[1], param3=fl[2], param4=fl[3], lat=fl[4], lon=fl[5], alt=fl[6]))
+        items.append(
+            MissionItem(
+                seq=ints[0],
+                current=ints[1],
+                frame=ints[2],
+                command=ints[3],
+                autocontinue=ints[4],
+                param1=fl[0],
+                param2=fl[1],
+                param3=fl[2],
+                param4=fl[3],
+                lat=fl[4],
+                lon=fl[5],
+                alt=fl[6],
+            )
+        )
     return items
 
 
@@ -417,9 +538,13 @@ def _fence_from_items(items: list[MissionItem], source: str) -> np.ndarray | Non
     items = sorted(items, key=lambda it: it.seq)
     bad = [it.command for it in items if it.command != MAV_CMD_NAV_FENCE_POLYGON_VERTEX_INCLUSION]
     if bad:
-        raise MissionFileError(f"{source}: fence command {bad[0]} is not supported (only inclusion polygon vertices, 5001)")
+        raise MissionFileError(
+            f"{source}: fence command {bad[0]} is not supported (only inclusion polygon vertices, 5001)"
+        )
     k = int(round(items[0].param1))
     if k != len(items) or any(int(round(it.param1)) != k for it in items):
-        raise MissionFileError(f"{source}: fence vertices say {k} per polygon but {len(items)} were given "
-                               "(only one inclusion polygon is supported)")
+        raise MissionFileError(
+            f"{source}: fence vertices say {k} per polygon but {len(items)} were given "
+            "(only one inclusion polygon is supported)"
+        )
     return np.array([(it.lat, it.lon) for it in items], dtype=np.float64)

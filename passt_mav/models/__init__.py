@@ -22,4 +22,13 @@ from passt_mav.models.base import (
     shipped_model,
 )
 
-__all__ = ["PREDICTORS", "SHIPPED", "Predictor", "load_predictor", "make_predictor", "predictor_class", "read_metadata", "shipped_model"]
+__all__ = [
+    "PREDICTORS",
+    "SHIPPED",
+    "Predictor",
+    "load_predictor",
+    "make_predictor",
+    "predictor_class",
+    "read_metadata",
+    "shipped_model",
+]

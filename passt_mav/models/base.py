@@ -27,7 +27,16 @@ import numpy as np
 
 from passt_mav.errors import ModelError
 
-__all__ = ["PREDICTORS", "Predictor", "make_predictor", "load_predictor", "predictor_class", "read_metadata", "SHIPPED", "shipped_model"]
+__all__ = [
+    "PREDICTORS",
+    "Predictor",
+    "make_predictor",
+    "load_predictor",
+    "predictor_class",
+    "read_metadata",
+    "SHIPPED",
+    "shipped_model",
+]
 
 #: name -> "module:Class". Room for "lstm", "transformer", ... later.
 PREDICTORS: dict[str, str] = {
@@ -50,7 +59,9 @@ def shipped_model(name: str) -> Path:
         raise ModelError(f"no shipped model {name!r}; choose one of {', '.join(SHIPPED)}")
     p = SHIPPED[name].with_suffix(".pt")
     if not p.exists():
-        raise ModelError(f"shipped model {p} is missing; train it with 'passt-mav model train --data builtin:{name} --out {SHIPPED[name]}' (see passt_mav/assets/README.md)")
+        raise ModelError(
+            f"shipped model {p} is missing; train it with 'passt-mav model train --data builtin:{name} --out {SHIPPED[name]}' (see passt_mav/assets/README.md)"
+        )
     return p
 
 
@@ -99,7 +110,7 @@ def load_predictor(spec: str | Path) -> Predictor:
     s = str(spec)
     for prefix in ("shipped:", "builtin:"):
         if s.startswith(prefix):
-            s = str(shipped_model(s[len(prefix):]))
+            s = str(shipped_model(s[len(prefix) :]))
             break
     meta = read_metadata(s)
     name = meta.get("predictor")
@@ -155,7 +166,9 @@ class Predictor:
         a = 0 if start is None else int(start)
         b = n if stop is None else int(stop)
         if not (0 <= a < b <= n) or b - a < 2:
-            raise ModelError(f"training window {a}..{b} invalid for {n} snapshots (need 0 <= start < stop <= {n}, at least 2 snapshots)")
+            raise ModelError(
+                f"training window {a}..{b} invalid for {n} snapshots (need 0 <= start < stop <= {n}, at least 2 snapshots)"
+            )
         return np.asarray(data[a:b], dtype=np.float32)
 
     def predict(self, state, steps: int) -> np.ndarray:
@@ -168,7 +181,9 @@ class Predictor:
         if single:
             s = s[None]
         if s.ndim != 4 or s.shape[1:] != (2, *self.grid_shape_):
-            raise ModelError(f"state must be (2, {self.grid_shape_[0]}, {self.grid_shape_[1]}) or a batch of those, got {np.shape(state)}")
+            raise ModelError(
+                f"state must be (2, {self.grid_shape_[0]}, {self.grid_shape_[1]}) or a batch of those, got {np.shape(state)}"
+            )
         if not np.isfinite(s).all():
             raise ModelError("state holds NaN/inf; fill land or missing cells (e.g. with 0) before predicting")
         out = np.asarray(self._predict_batch(s, int(steps)), dtype=np.float32)

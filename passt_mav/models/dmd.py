@@ -87,8 +87,22 @@ class DMDPredictor(Predictor):
 
     def save(self, path, *, command: str | None = None, extra: dict | None = None):
         self._check_fitted()
-        meta = {"predictor": self.name, "format": 1, "params": {"rank": self.rank, "energy": self.energy, "center": self.center, "stable": self.stable}, "rank_": self.rank_, "grid_shape": list(self.grid_shape_), "data_hash": self.data_hash_, "command": command, **(extra or {})}
-        st = {"modes": np.ascontiguousarray(self.modes_), "A": np.ascontiguousarray(self.A_), "mean": self.mean_, "water": self.water_.astype(np.uint8)}
+        meta = {
+            "predictor": self.name,
+            "format": 1,
+            "params": {"rank": self.rank, "energy": self.energy, "center": self.center, "stable": self.stable},
+            "rank_": self.rank_,
+            "grid_shape": list(self.grid_shape_),
+            "data_hash": self.data_hash_,
+            "command": command,
+            **(extra or {}),
+        }
+        st = {
+            "modes": np.ascontiguousarray(self.modes_),
+            "A": np.ascontiguousarray(self.A_),
+            "mean": self.mean_,
+            "water": self.water_.astype(np.uint8),
+        }
         import torch
 
         return write_checkpoint(path, {k: torch.from_numpy(np.asarray(v)) for k, v in st.items()}, meta)

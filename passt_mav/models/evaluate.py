@@ -25,12 +25,33 @@ import numpy as np
 from passt_mav.errors import ModelError
 from passt_mav.models.metrics import cosine_distance, mse
 
-__all__ = ["LOOKAHEADS", "lookahead_errors", "gp_initial_states", "skill_report", "skill_lines", "skill_warning", "echo_skill", "pod_comparison", "evaluate_predictors", "evaluate_command", "format_table", "write_plots"]
+__all__ = [
+    "LOOKAHEADS",
+    "lookahead_errors",
+    "gp_initial_states",
+    "skill_report",
+    "skill_lines",
+    "skill_warning",
+    "echo_skill",
+    "pod_comparison",
+    "evaluate_predictors",
+    "evaluate_command",
+    "format_table",
+    "write_plots",
+]
 
 LOOKAHEADS = (1, 2, 5, 10, 20, 50, 100)
 
 
-def lookahead_errors(predictor, data: np.ndarray, window: tuple[int, int], lookaheads=LOOKAHEADS, *, ic_stride: int = 1, initial_states: dict | None = None) -> dict:
+def lookahead_errors(
+    predictor,
+    data: np.ndarray,
+    window: tuple[int, int],
+    lookaheads=LOOKAHEADS,
+    *,
+    ic_stride: int = 1,
+    initial_states: dict | None = None,
+) -> dict:
     """``{h: {"mse", "cosine", "n_ic"}}`` for the lookaheads the window allows (see module docstring).
 
     ``data``: ``(time, 2, rows, cols)`` float32 (NaN = land/missing).
@@ -53,7 +74,11 @@ def lookahead_errors(predictor, data: np.ndarray, window: tuple[int, int], looka
         if H == 0:
             continue
         sel = ics[need == H]
-        x = np.nan_to_num(data[sel], nan=0.0) if initial_states is None else np.stack([initial_states[int(t)] for t in sel])
+        x = (
+            np.nan_to_num(data[sel], nan=0.0)
+            if initial_states is None
+            else np.stack([initial_states[int(t)] for t in sel])
+        )
         p = predictor.predict(x, H)  # (n, H, 2, R, C)
         for t, pt in zip(sel, p):
             preds[int(t)] = pt
@@ -66,7 +91,16 @@ def lookahead_errors(predictor, data: np.ndarray, window: tuple[int, int], looka
     return out
 
 
-def gp_initial_states(field, window: tuple[int, int], *, ic_stride: int = 1, path_length: int = 50, noise_std: float = 0.02, seed: int = 0, progress: bool = False) -> dict:
+def gp_initial_states(
+    field,
+    window: tuple[int, int],
+    *,
+    ic_stride: int = 1,
+    path_length: int = 50,
+    noise_std: float = 0.02,
+    seed: int = 0,
+    progress: bool = False,
+) -> dict:
     """``{t: (2, R, C)}``: GP reconstructions of snapshots of ``window`` as the loop makes them.
 
     Samples along a random ``path_length``-move path at ``t`` with sensor noise
@@ -78,11 +112,30 @@ def gp_initial_states(field, window: tuple[int, int], *, ic_stride: int = 1, pat
 
     a, b = int(window[0]), int(window[1])
     ts = np.arange(max(a, 1), b - 1, max(1, int(ic_stride)))
-    rec = reconstruct_states(field.data, field.grid, field.times, ts, path_length=path_length, noise_std=noise_std, seed=seed, land=field.land_mask, progress=progress)
+    rec = reconstruct_states(
+        field.data,
+        field.grid,
+        field.times,
+        ts,
+        path_length=path_length,
+        noise_std=noise_std,
+        seed=seed,
+        land=field.land_mask,
+        progress=progress,
+    )
     return {int(t): r for t, r in zip(ts, rec)}
 
 
-def skill_report(predictor, field, *, train: tuple[int, int], val: tuple[int, int], horizon: int = 10, seed: int = 0, lookaheads=(1, 2, 5, 10, 20, 50)) -> dict:
+def skill_report(
+    predictor,
+    field,
+    *,
+    train: tuple[int, int],
+    val: tuple[int, int],
+    horizon: int = 10,
+    seed: int = 0,
+    lookaheads=(1, 2, 5, 10, 20, 50),
+) -> dict:
     """Skill of ``predictor`` on the held-out window ``val``: MSE vs lookahead beside persistence and DMD.
 
     DMD is fitted on the training part ``(train[0], val[0])``. Errors from the true states
@@ -104,13 +157,21 @@ def skill_report(predictor, field, *, train: tuple[int, int], val: tuple[int, in
     gp_states = gp_initial_states(field, win, seed=seed + 31)
     rep: dict = {"window": list(win), "fit_window": list(fit_win), "lookaheads": hs, "horizon": int(horizon)}
     for start, init in (("true", None), ("gp", gp_states)):
-        rep[start] = {n: {str(h): v["mse"] for h, v in lookahead_errors(p, field.data, win, hs, initial_states=init).items()} for n, p in preds.items()}
+        rep[start] = {
+            n: {str(h): v["mse"] for h, v in lookahead_errors(p, field.data, win, hs, initial_states=init).items()}
+            for n, p in preds.items()
+        }
     verdict = {}
     for start in ("true", "gp"):
         keep = [str(h) for h in hs if h <= horizon] or [str(hs[0])]
         m = float(np.mean([rep[start]["model"][h] for h in keep]))
         pz = float(np.mean([rep[start]["persistence"][h] for h in keep]))
-        verdict[start] = {"model": m, "persistence": pz, "ratio": m / pz if pz > 0 else None, "beats_persistence": bool(m < pz)}
+        verdict[start] = {
+            "model": m,
+            "persistence": pz,
+            "ratio": m / pz if pz > 0 else None,
+            "beats_persistence": bool(m < pz),
+        }
     rep["verdict"] = verdict
     return rep
 
@@ -120,11 +181,16 @@ def skill_lines(rep: dict) -> list[str]:
     lines = [f"skill on the held-out window {rep['window'][0]}:{rep['window'][1]} (MSE in field units^2, e.g. (m/s)^2)"]
     for start in ("true", "gp"):
         names = list(rep[start])
-        lines.append(f"  {'from true states' if start == 'true' else 'from GP reconstructions'}".ljust(28) + "".join(f"{n:>13}" for n in names))
+        lines.append(
+            f"  {'from true states' if start == 'true' else 'from GP reconstructions'}".ljust(28)
+            + "".join(f"{n:>13}" for n in names)
+        )
         for h in rep["lookaheads"]:
             lines.append(f"    h={h}".ljust(28) + "".join(f"{rep[start][n][str(h)]:>13.3e}" for n in names))
     v = rep["verdict"]
-    lines.append(f"  over the leg horizon (h <= {rep['horizon']}): model/persistence = {v['true']['ratio']:.3f} from true states, {v['gp']['ratio']:.3f} from GP states")
+    lines.append(
+        f"  over the leg horizon (h <= {rep['horizon']}): model/persistence = {v['true']['ratio']:.3f} from true states, {v['gp']['ratio']:.3f} from GP states"
+    )
     return lines
 
 
@@ -137,9 +203,11 @@ def skill_warning(meta: dict) -> str | None:
     if not bad:
         return None
     v = rep["verdict"][bad[-1]]
-    return (f"warning: this model is worse than persistence over the leg horizon on its validation window "
-            f"({'GP-reconstructed' if bad[-1] == 'gp' else 'true'} starts: MSE {v['model']:.3g} vs {v['persistence']:.3g}); "
-            f"consider --model persistence or more training data")
+    return (
+        f"warning: this model is worse than persistence over the leg horizon on its validation window "
+        f"({'GP-reconstructed' if bad[-1] == 'gp' else 'true'} starts: MSE {v['model']:.3g} vs {v['persistence']:.3g}); "
+        f"consider --model persistence or more training data"
+    )
 
 
 def echo_skill(spec: str, meta: dict | None, echo: Callable[[str], None]) -> None:
@@ -149,8 +217,10 @@ def echo_skill(spec: str, meta: dict | None, echo: Callable[[str], None]) -> Non
         echo(f"model {spec}: no skill report stored (trained before skill reports, or without a validation window)")
         return
     v = rep["verdict"]
-    echo(f"model {spec}: skill on its validation window {rep['window'][0]}:{rep['window'][1]}, MSE model/persistence over "
-         f"h <= {rep['horizon']}: {v['true']['ratio']:.3f} from true states, {v['gp']['ratio']:.3f} from GP reconstructions")
+    echo(
+        f"model {spec}: skill on its validation window {rep['window'][0]}:{rep['window'][1]}, MSE model/persistence over "
+        f"h <= {rep['horizon']}: {v['true']['ratio']:.3f} from true states, {v['gp']['ratio']:.3f} from GP reconstructions"
+    )
     w = skill_warning(meta)
     if w:
         echo(w)
@@ -176,7 +246,15 @@ def pod_comparison(predictor, data: np.ndarray, window: tuple[int, int], n_modes
     return {"window": [a, b], "predicted": fin(e_pred), "true": fin(e_true)}
 
 
-def evaluate_predictors(predictors: dict, windows: dict, lookaheads=LOOKAHEADS, *, ic_stride: int = 1, pod: tuple | None = None, pod_modes: int = 6) -> dict:
+def evaluate_predictors(
+    predictors: dict,
+    windows: dict,
+    lookaheads=LOOKAHEADS,
+    *,
+    ic_stride: int = 1,
+    pod: tuple | None = None,
+    pod_modes: int = 6,
+) -> dict:
     """Every predictor on every window.
 
     ``windows``: ``{label: (data (T,2,R,C), (a, b))}`` or ``{label: (data, (a, b), initial_states)}``
@@ -188,7 +266,12 @@ def evaluate_predictors(predictors: dict, windows: dict, lookaheads=LOOKAHEADS, 
         res["lookahead"][label] = {}
         for name, p in predictors.items():
             t0 = time.perf_counter()
-            res["lookahead"][label][name] = {str(h): v for h, v in lookahead_errors(p, data, win, lookaheads, ic_stride=ic_stride, initial_states=init[0] if init else None).items()}
+            res["lookahead"][label][name] = {
+                str(h): v
+                for h, v in lookahead_errors(
+                    p, data, win, lookaheads, ic_stride=ic_stride, initial_states=init[0] if init else None
+                ).items()
+            }
             res["seconds"][f"{label}/{name}"] = round(time.perf_counter() - t0, 3)
     if pod is not None:
         for name, p in predictors.items():
@@ -209,7 +292,12 @@ def format_table(res: dict) -> str:
     if res.get("pod"):
         lines.append("[POD] cumulative energy of the first modes, predicted roll-out vs true")
         for n, d in res["pod"].items():
-            lines.append(f"{n:>12} {d['window']}: predicted " + " ".join("n/a" if x is None else f"{x:.3f}" for x in d["predicted"]) + " | true " + " ".join(f"{x:.3f}" for x in d["true"]))
+            lines.append(
+                f"{n:>12} {d['window']}: predicted "
+                + " ".join("n/a" if x is None else f"{x:.3f}" for x in d["predicted"])
+                + " | true "
+                + " ".join(f"{x:.3f}" for x in d["true"])
+            )
     return "\n".join(lines)
 
 
@@ -248,7 +336,9 @@ def write_plots(res: dict, out_dir: Path) -> list[str]:
         w = 0.8 / (len(names) + 1)
         ax.bar(k - 0.4 + w / 2, first["true"], w, label="true")
         for i, n in enumerate(names):
-            ax.bar(k - 0.4 + w * (i + 1.5), [np.nan if x is None else x for x in res["pod"][n]["predicted"]], w, label=n)
+            ax.bar(
+                k - 0.4 + w * (i + 1.5), [np.nan if x is None else x for x in res["pod"][n]["predicted"]], w, label=n
+            )
         ax.set_xlabel("POD modes")
         ax.set_ylabel("cumulative energy fraction")
         ax.set_ylim(0, 1.05)
@@ -271,7 +361,26 @@ def _model_from_spec(spec: str, field, train: tuple[int, int]):
     return p.name, p
 
 
-def evaluate_command(*, model: str, data: str, train=(200, 300), test=(300, 400), oscillating: str | None = None, lookaheads=LOOKAHEADS, baselines=("dmd", "persistence"), ic_stride: int = 1, pod_window=(300, 350), pod_modes: int = 6, threads: int | None = None, out: str | None = None, gp_starts: bool = True, gp_ic_stride: int = 4, gp_path_length: int = 50, gp_noise: float = 0.02, seed: int = 0) -> dict:
+def evaluate_command(
+    *,
+    model: str,
+    data: str,
+    train=(200, 300),
+    test=(300, 400),
+    oscillating: str | None = None,
+    lookaheads=LOOKAHEADS,
+    baselines=("dmd", "persistence"),
+    ic_stride: int = 1,
+    pod_window=(300, 350),
+    pod_modes: int = 6,
+    threads: int | None = None,
+    out: str | None = None,
+    gp_starts: bool = True,
+    gp_ic_stride: int = 4,
+    gp_path_length: int = 50,
+    gp_noise: float = 0.02,
+    seed: int = 0,
+) -> dict:
     """What ``passt-mav model evaluate`` does; returns the JSON-able results (and writes them under ``out``).
 
     With ``gp_starts``, every test window is also scored from GP reconstructions of its
@@ -289,7 +398,9 @@ def evaluate_command(*, model: str, data: str, train=(200, 300), test=(300, 400)
     field = resolve_field(data)
     name, m = _model_from_spec(model, field, train)
     if tuple(getattr(m, "grid_shape_", ())) != field.data.shape[2:]:
-        raise ModelError(f"model grid {getattr(m, 'grid_shape_', None)} does not match the field's {field.data.shape[2:]}")
+        raise ModelError(
+            f"model grid {getattr(m, 'grid_shape_', None)} does not match the field's {field.data.shape[2:]}"
+        )
     predictors = {name: m}
     for bname in baselines:
         if bname not in predictors:
@@ -303,15 +414,35 @@ def evaluate_command(*, model: str, data: str, train=(200, 300), test=(300, 400)
     if gp_starts:
         for label, fld in (("test", field), ("oscillating", osc if oscillating else None)):
             if fld is not None:
-                init = gp_initial_states(fld, test, ic_stride=gp_ic_stride, path_length=gp_path_length, noise_std=gp_noise, seed=seed)
+                init = gp_initial_states(
+                    fld, test, ic_stride=gp_ic_stride, path_length=gp_path_length, noise_std=gp_noise, seed=seed
+                )
                 windows[f"{label}/gp"] = (fld.data, test, init)
     pw = (pod_window[0], min(pod_window[1], field.n_times))
-    res = evaluate_predictors(predictors, windows, lookaheads, ic_stride=ic_stride, pod=(field.data, pw), pod_modes=pod_modes)
+    res = evaluate_predictors(
+        predictors, windows, lookaheads, ic_stride=ic_stride, pod=(field.data, pw), pod_modes=pod_modes
+    )
     meta = getattr(m, "metadata_", None)
     if meta and meta.get("skill"):
         res["skill"] = meta["skill"]
         res["skill_warning"] = skill_warning(meta)
-    res["config"] = {"gp_starts": gp_starts, "gp_ic_stride": gp_ic_stride, "gp_path_length": gp_path_length, "gp_noise": gp_noise, "seed": seed, "model": model, "data": data, "train": list(train), "test": list(test), "oscillating": oscillating, "lookaheads": list(lookaheads), "ic_stride": ic_stride, "pod_window": list(pw), "baselines": list(baselines), "data_hash": field.data_hash()}
+    res["config"] = {
+        "gp_starts": gp_starts,
+        "gp_ic_stride": gp_ic_stride,
+        "gp_path_length": gp_path_length,
+        "gp_noise": gp_noise,
+        "seed": seed,
+        "model": model,
+        "data": data,
+        "train": list(train),
+        "test": list(test),
+        "oscillating": oscillating,
+        "lookaheads": list(lookaheads),
+        "ic_stride": ic_stride,
+        "pod_window": list(pw),
+        "baselines": list(baselines),
+        "data_hash": field.data_hash(),
+    }
     if out:
         od = Path(out)
         od.mkdir(parents=True, exist_ok=True)

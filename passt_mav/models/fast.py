@@ -58,7 +58,9 @@ def compiled_or_eager(eager: Callable, module=None, *, warn=None, options: dict 
                 state["fn"] = fn
                 return out
             except Exception as exc:  # noqa: BLE001 - any compiler failure: run eager instead
-                (warn or (lambda m: print(m, file=sys.stderr)))(f"torch.compile unavailable ({type(exc).__name__}: {str(exc).splitlines()[0][:120]}); using the eager path")
+                (warn or (lambda m: print(m, file=sys.stderr)))(
+                    f"torch.compile unavailable ({type(exc).__name__}: {str(exc).splitlines()[0][:120]}); using the eager path"
+                )
                 state["fn"] = eager
         if state["fn"] is eager:
             return eager(*args, **kw)

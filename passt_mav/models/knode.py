@@ -38,7 +38,15 @@ from passt_mav.errors import ModelError
 from passt_mav.models.base import Predictor, load_state_dict, read_metadata, write_checkpoint
 from passt_mav.models.noise import CorrelatedNoise, measure_residual, reconstruct_states
 
-__all__ = ["KnodePredictor", "KnodeNet", "gaussian_kernel", "ode_step", "odeint_fixed", "conv_output_shape", "INTEGRATORS"]
+__all__ = [
+    "KnodePredictor",
+    "KnodeNet",
+    "gaussian_kernel",
+    "ode_step",
+    "odeint_fixed",
+    "conv_output_shape",
+    "INTEGRATORS",
+]
 
 CHANNELS = (32, 64, 128, 128, 128)
 # (kernel, stride, padding) of the five convolutions, as in the authors' code
@@ -88,18 +96,31 @@ def _build_net_class():
     class _KnodeNet(nn.Module):
         """The vector field N(z) followed by the smoothing K: (B, 2, R, C) -> (B, 2, R, C)."""
 
-        def __init__(self, rows: int, cols: int, *, channels=CHANNELS, hidden: int = 128, kernel_size: int = 5, kernel_variance: float = 0.1):
+        def __init__(
+            self,
+            rows: int,
+            cols: int,
+            *,
+            channels=CHANNELS,
+            hidden: int = 128,
+            kernel_size: int = 5,
+            kernel_variance: float = 0.1,
+        ):
             super().__init__()
             fr, fc = conv_output_shape(rows, cols)
             if fr < 1 or fc < 1:
                 raise ModelError(f"grid {rows}x{cols} is too small for KNODE's convolutions (at least 13x13)")
             self.rows, self.cols = rows, cols
             chans = (2, *channels)
-            self.convs = nn.ModuleList(nn.Conv2d(chans[i], chans[i + 1], k, stride=s, padding=p) for i, (k, s, p) in enumerate(CONV_SPEC))
+            self.convs = nn.ModuleList(
+                nn.Conv2d(chans[i], chans[i + 1], k, stride=s, padding=p) for i, (k, s, p) in enumerate(CONV_SPEC)
+            )
             self.fc1 = nn.Linear(channels[-1] * fr * fc, hidden)
             self.fc2 = nn.Linear(hidden, 2 * rows * cols)
             # fixed (not trained, but saved so a checkpoint is self-contained)
-            self.register_buffer("smooth", torch.from_numpy(gaussian_kernel(kernel_size, kernel_variance))[None, None].repeat(2, 1, 1, 1))
+            self.register_buffer(
+                "smooth", torch.from_numpy(gaussian_kernel(kernel_size, kernel_variance))[None, None].repeat(2, 1, 1, 1)
+            )
 
         def vector_field(self, z):
             h = z
@@ -235,8 +256,45 @@ class KnodePredictor(Predictor):
 
     name = "knode"
 
-    def __init__(self, *, epochs: int = 100, lr: float = 1e-3, noise_var: float = 1e-3, n_batches: int = 1, substeps: int = 6, method: str = "euler", channels: tuple = CHANNELS, hidden: int = 128, kernel_size: int = 5, kernel_variance: float = 0.1, seed: int = 0, device: str = "cpu", progress: bool = True, batch_size: int = 256,
-                 loss: str = "one_step", horizon: int = 10, curriculum: float = 0.5, noise: str = "white", noise_scale: float = 1.0, noise_samples: int = 12, noise_path_length: int = 50, noise_sensor_std: float = 0.02, val_frac: float = 0.0, val_every: int = 1, patience: int = 0, train_batch: int = 64, max_ics: int = 0, clip_grad: float = 1.0, zero_init: bool = False, compile: bool = False, init: str | None = None, select: str = "best", fast_predict: bool = False, shift_rows: int = 0, shift_fraction: float | None = None):
+    def __init__(
+        self,
+        *,
+        epochs: int = 100,
+        lr: float = 1e-3,
+        noise_var: float = 1e-3,
+        n_batches: int = 1,
+        substeps: int = 6,
+        method: str = "euler",
+        channels: tuple = CHANNELS,
+        hidden: int = 128,
+        kernel_size: int = 5,
+        kernel_variance: float = 0.1,
+        seed: int = 0,
+        device: str = "cpu",
+        progress: bool = True,
+        batch_size: int = 256,
+        loss: str = "one_step",
+        horizon: int = 10,
+        curriculum: float = 0.5,
+        noise: str = "white",
+        noise_scale: float = 1.0,
+        noise_samples: int = 12,
+        noise_path_length: int = 50,
+        noise_sensor_std: float = 0.02,
+        val_frac: float = 0.0,
+        val_every: int = 1,
+        patience: int = 0,
+        train_batch: int = 64,
+        max_ics: int = 0,
+        clip_grad: float = 1.0,
+        zero_init: bool = False,
+        compile: bool = False,
+        init: str | None = None,
+        select: str = "best",
+        fast_predict: bool = False,
+        shift_rows: int = 0,
+        shift_fraction: float | None = None,
+    ):
         self.epochs = epochs
         self.lr = lr
         self.noise_var = noise_var
@@ -282,10 +340,37 @@ class KnodePredictor(Predictor):
 
     # -- hyper-parameters that define the model (saved) --------------------------------
     def _arch(self) -> dict:
-        return {"channels": list(self.channels), "hidden": self.hidden, "kernel_size": self.kernel_size, "kernel_variance": self.kernel_variance, "substeps": self.substeps, "method": self.method}
+        return {
+            "channels": list(self.channels),
+            "hidden": self.hidden,
+            "kernel_size": self.kernel_size,
+            "kernel_variance": self.kernel_variance,
+            "substeps": self.substeps,
+            "method": self.method,
+        }
 
     def _train_params(self) -> dict:
-        keys = ("loss", "horizon", "curriculum", "noise", "noise_scale", "noise_samples", "noise_path_length", "noise_sensor_std", "val_frac", "val_every", "patience", "train_batch", "max_ics", "clip_grad", "zero_init", "init", "select", "shift_rows", "shift_fraction")
+        keys = (
+            "loss",
+            "horizon",
+            "curriculum",
+            "noise",
+            "noise_scale",
+            "noise_samples",
+            "noise_path_length",
+            "noise_sensor_std",
+            "val_frac",
+            "val_every",
+            "patience",
+            "train_batch",
+            "max_ics",
+            "clip_grad",
+            "zero_init",
+            "init",
+            "select",
+            "shift_rows",
+            "shift_fraction",
+        )
         return {k: getattr(self, k, None) for k in keys}
 
     def _check_params(self) -> None:
@@ -309,7 +394,9 @@ class KnodePredictor(Predictor):
             raise ModelError(f"shift_rows must be a non-negative integer, got {self.shift_rows!r}")
         frac = getattr(self, "shift_fraction", None)
         if frac is not None and not (0.0 <= frac <= 1.0 and self.shift_rows > 0):
-            raise ModelError(f"shift_fraction must be in [0, 1] and needs shift_rows > 0, got {frac!r} with shift_rows {self.shift_rows}")
+            raise ModelError(
+                f"shift_fraction must be in [0, 1] and needs shift_rows > 0, got {frac!r} with shift_rows {self.shift_rows}"
+            )
         if len(self.channels) != len(CONV_SPEC):
             raise ModelError(f"channels must list {len(CONV_SPEC)} widths, got {self.channels}")
 
@@ -324,9 +411,13 @@ class KnodePredictor(Predictor):
         """Snapshots of an ``n``-snapshot window used for training (the rest validates)."""
         if not self.val_frac:
             return n
-        n_val = max(int(round(n * float(self.val_frac))), 2 if self.loss == "one_step" else min(int(self.horizon), 10) + 1)
+        n_val = max(
+            int(round(n * float(self.val_frac))), 2 if self.loss == "one_step" else min(int(self.horizon), 10) + 1
+        )
         if n - n_val < 3:
-            raise ModelError(f"window of {n} snapshots is too short for a validation part of {n_val}; give more data or val_frac=0")
+            raise ModelError(
+                f"window of {n} snapshots is too short for a validation part of {n_val}; give more data or val_frac=0"
+            )
         return n - n_val
 
     def _horizon_at(self, ep: int, n_ep: int) -> int:
@@ -347,7 +438,9 @@ class KnodePredictor(Predictor):
             tot = tot + (((z - target[:, k]) ** 2) * w).sum() / (n_w * len(z0))
         return tot / H
 
-    def fit(self, field, *, start: int | None = None, stop: int | None = None, epochs: int | None = None, callback=None) -> KnodePredictor:
+    def fit(
+        self, field, *, start: int | None = None, stop: int | None = None, epochs: int | None = None, callback=None
+    ) -> KnodePredictor:
         """Train on snapshots ``start..stop-1`` of ``field`` (a FlowField or ``(T,2,R,C)`` array).
 
         The last ``val_frac`` of the window is held out for validation (early stopping,
@@ -368,12 +461,16 @@ class KnodePredictor(Predictor):
         T, _, R, C = train.shape
         H_max = 1 if self.loss == "one_step" else int(self.horizon)
         if T - H_max < 1:
-            raise ModelError(f"the training part has {T} snapshots, too few for a roll-out of {H_max}: give more data or a shorter --horizon (at most {max(T - 1, 1)})")
+            raise ModelError(
+                f"the training part has {T} snapshots, too few for a roll-out of {H_max}: give more data or a shorter --horizon (at most {max(T - 1, 1)})"
+            )
         water = np.isfinite(data).all(axis=(0, 1))  # (R, C): cells with data at every time
         if not water.any():
             raise ModelError("training window has no cell with data at every time")
         if self.shift_rows and not water.all():
-            raise ModelError(f"shift_rows={self.shift_rows} needs a field without land or missing cells ({int((~water).sum())} of {water.size} cells have none at some time)")
+            raise ModelError(
+                f"shift_rows={self.shift_rows} needs a field without land or missing cells ({int((~water).sum())} of {water.size} cells have none at some time)"
+            )
         if self.shift_rows >= R:
             raise ModelError(f"shift_rows={self.shift_rows} must be below the grid's {R} rows")
         filled = np.where(np.isfinite(train), train, np.float32(0))
@@ -391,7 +488,14 @@ class KnodePredictor(Predictor):
         dev = torch.device(self.device)
         with torch.random.fork_rng(devices=[]):
             torch.manual_seed(int(self.seed))
-            net = KnodeNet(R, C, channels=self.channels, hidden=self.hidden, kernel_size=self.kernel_size, kernel_variance=self.kernel_variance).to(dev)
+            net = KnodeNet(
+                R,
+                C,
+                channels=self.channels,
+                hidden=self.hidden,
+                kernel_size=self.kernel_size,
+                kernel_variance=self.kernel_variance,
+            ).to(dev)
             if start_from is not None:
                 net.load_state_dict(start_from.net_.state_dict())
             elif self.zero_init:
@@ -421,7 +525,11 @@ class KnodePredictor(Predictor):
         best = (math.inf, -1, None)
         if val_sets and (self.zero_init or start_from is not None):
             # epoch 0 (persistence, or the start model) competes too: a network that never beats it on validation is not kept
-            best = (self._val_loss(net, val_sets, w, n_w, val_weights), 0, {k: t.detach().clone() for k, t in net.state_dict().items()})
+            best = (
+                self._val_loss(net, val_sets, w, n_w, val_weights),
+                0,
+                {k: t.detach().clone() for k, t in net.state_dict().items()},
+            )
             vcurve.append(best[0])
         from passt_mav.progress import progress
 
@@ -433,8 +541,14 @@ class KnodePredictor(Predictor):
             H = self._horizon_at(ep, n_ep)
             ics = np.arange(T - H)
             if self.max_ics and len(ics) > self.max_ics:
-                ics = np.sort(np.random.default_rng(int(self.seed) * 7919 + ep).choice(ics, self.max_ics, replace=False))
-            order = np.random.default_rng(int(self.seed) + 104729 * (ep + 1)).permutation(ics) if self.n_batches > 1 or self.train_batch < len(ics) else ics
+                ics = np.sort(
+                    np.random.default_rng(int(self.seed) * 7919 + ep).choice(ics, self.max_ics, replace=False)
+                )
+            order = (
+                np.random.default_rng(int(self.seed) + 104729 * (ep + 1)).permutation(ics)
+                if self.n_batches > 1 or self.train_batch < len(ics)
+                else ics
+            )
             bs = int(math.ceil(len(order) / self.n_batches)) if self.n_batches > 1 else int(self.train_batch)
             tot = 0.0
             net.train()
@@ -455,7 +569,9 @@ class KnodePredictor(Predictor):
                 tot += float(loss.detach()) * len(b)
             curve.append(tot / len(order))
             if not math.isfinite(curve[-1]):
-                raise ModelError(f"KNODE training diverged at epoch {ep + 1} (loss {curve[-1]}); lower lr or raise substeps")
+                raise ModelError(
+                    f"KNODE training diverged at epoch {ep + 1} (loss {curve[-1]}); lower lr or raise substeps"
+                )
             if val_sets and (ep + 1) % self.val_every == 0 or (val_sets and ep == n_ep - 1):
                 v = self._val_loss(net, val_sets, w, n_w, val_weights)
                 vcurve.append(v)
@@ -523,7 +639,9 @@ class KnodePredictor(Predictor):
         if not isinstance(p, KnodePredictor):
             raise ModelError(f"--init {self.init}: not a KNODE checkpoint")
         if tuple(p.grid_shape_) != tuple(grid_shape) or p._arch() != self._arch():
-            raise ModelError(f"--init {self.init}: grid {tuple(p.grid_shape_)} / architecture {p._arch()} do not match this model's {tuple(grid_shape)} / {self._arch()}")
+            raise ModelError(
+                f"--init {self.init}: grid {tuple(p.grid_shape_)} / architecture {p._arch()} do not match this model's {tuple(grid_shape)} / {self._arch()}"
+            )
         return p
 
     def _stepper(self, net):
@@ -539,16 +657,35 @@ class KnodePredictor(Predictor):
         """The training input-noise sampler ``noise(shape, generator)`` (see ``noise`` param)."""
         torch = _torch()
         sd = math.sqrt(self.noise_var)
-        white = (lambda shape, gen: sd * torch.randn(shape, generator=gen, device=dev)) if sd > 0 else (lambda shape, gen: 0.0)
+        white = (
+            (lambda shape, gen: sd * torch.randn(shape, generator=gen, device=dev))
+            if sd > 0
+            else (lambda shape, gen: 0.0)
+        )
         self.noise_info_ = {"kind": self.noise, "white_var": self.noise_var}
         if self.noise != "gp":
             return white
         grid = getattr(field, "grid", None)
         if grid is None:
-            raise ModelError("noise='gp' needs a FlowField (its grid) to measure the GP-reconstruction residual; use noise='white' for a bare array")
+            raise ModelError(
+                "noise='gp' needs a FlowField (its grid) to measure the GP-reconstruction residual; use noise='white' for a bare array"
+            )
         land = ~self.water_
         times = np.asarray(field.times)[s0 : s0 + data.shape[0]]
-        m = measure_residual(data[:n_tr], grid, times[:n_tr], (0, n_tr), self.mean_, self.std_, n=self.noise_samples, path_length=self.noise_path_length, lag=1, noise_std=self.noise_sensor_std, seed=int(self.seed) + 17, land=land)
+        m = measure_residual(
+            data[:n_tr],
+            grid,
+            times[:n_tr],
+            (0, n_tr),
+            self.mean_,
+            self.std_,
+            n=self.noise_samples,
+            path_length=self.noise_path_length,
+            lag=1,
+            noise_std=self.noise_sensor_std,
+            seed=int(self.seed) + 17,
+            land=land,
+        )
         cn = CorrelatedNoise(m["amplitude"] * float(self.noise_scale), m["corr_cells"], device=dev)
         self.noise_info_.update({k: v for k, v in m.items() if k != "amplitude"}, scale=float(self.noise_scale))
         return lambda shape, gen: cn.sample(shape, gen) + white(shape, gen)
@@ -567,7 +704,17 @@ class KnodePredictor(Predictor):
         grid = getattr(field, "grid", None)
         if grid is not None and self.noise == "gp":
             times = np.asarray(field.times)[s0 : s0 + data.shape[0]]
-            rec = reconstruct_states(data, grid, times, ics, path_length=self.noise_path_length, lag=1, noise_std=self.noise_sensor_std, seed=int(self.seed) + 29, land=~self.water_)
+            rec = reconstruct_states(
+                data,
+                grid,
+                times,
+                ics,
+                path_length=self.noise_path_length,
+                lag=1,
+                noise_std=self.noise_sensor_std,
+                seed=int(self.seed) + 29,
+                land=~self.water_,
+            )
             sets.append((torch.from_numpy(scale(rec)).to(dev), tgt))
         return sets
 
@@ -622,12 +769,32 @@ class KnodePredictor(Predictor):
 
         self._check_fitted()
         state = {f"net.{k}": v for k, v in self.net_.state_dict().items()}
-        state.update({"scaler.mean": torch.from_numpy(self.mean_), "scaler.std": torch.from_numpy(self.std_), "water": torch.from_numpy(self.water_.astype(np.uint8))})
+        state.update(
+            {
+                "scaler.mean": torch.from_numpy(self.mean_),
+                "scaler.std": torch.from_numpy(self.std_),
+                "water": torch.from_numpy(self.water_.astype(np.uint8)),
+            }
+        )
         meta = {
             "predictor": self.name,
             "format": 1,
-            "architecture": dict(self._arch(), conv_spec=[list(c) for c in CONV_SPEC], flatten=int(self.channels[-1] * np.prod(conv_output_shape(*self.grid_shape_))), n_params=self.n_params(), time_unit="one snapshot interval per predict step"),
-            "params": {"epochs": self.epochs_trained_, "lr": self.lr, "noise_var": self.noise_var, "n_batches": self.n_batches, "seed": self.seed, **self._train_params(), **self._arch()},
+            "architecture": dict(
+                self._arch(),
+                conv_spec=[list(c) for c in CONV_SPEC],
+                flatten=int(self.channels[-1] * np.prod(conv_output_shape(*self.grid_shape_))),
+                n_params=self.n_params(),
+                time_unit="one snapshot interval per predict step",
+            ),
+            "params": {
+                "epochs": self.epochs_trained_,
+                "lr": self.lr,
+                "noise_var": self.noise_var,
+                "n_batches": self.n_batches,
+                "seed": self.seed,
+                **self._train_params(),
+                **self._arch(),
+            },
             "grid_shape": list(self.grid_shape_),
             "dt": self.dt_,
             "scaler": "per-pixel standard scaling over the training window (tensors scaler.mean/scaler.std in the .pt)",
@@ -661,7 +828,14 @@ class KnodePredictor(Predictor):
         p["channels"] = tuple(p["channels"])
         self = cls(**p, device=device, progress=False)
         R, C = meta["grid_shape"]
-        net = KnodeNet(R, C, channels=self.channels, hidden=self.hidden, kernel_size=self.kernel_size, kernel_variance=self.kernel_variance)
+        net = KnodeNet(
+            R,
+            C,
+            channels=self.channels,
+            hidden=self.hidden,
+            kernel_size=self.kernel_size,
+            kernel_variance=self.kernel_variance,
+        )
         try:
             net.load_state_dict({k[4:]: v for k, v in sd.items() if k.startswith("net.")})
             self.mean_ = sd["scaler.mean"].numpy().astype(np.float32)

@@ -28,7 +28,19 @@ import numpy as np
 __all__ = ["reconstruct_states", "measure_residual", "CorrelatedNoise", "correlation_length"]
 
 
-def reconstruct_states(data: np.ndarray, grid, times, ts, *, path_length: int = 50, lag: int = 1, noise_std: float = 0.02, seed: int = 0, land=None, progress: bool = False) -> np.ndarray:
+def reconstruct_states(
+    data: np.ndarray,
+    grid,
+    times,
+    ts,
+    *,
+    path_length: int = 50,
+    lag: int = 1,
+    noise_std: float = 0.02,
+    seed: int = 0,
+    land=None,
+    progress: bool = False,
+) -> np.ndarray:
     """GP reconstructions of snapshots ``ts`` of ``data`` from sparse noisy samples.
 
     Args:
@@ -104,7 +116,21 @@ def correlation_length(res: np.ndarray, max_lag: int = 6) -> float:
     return float(1.0 / math.sqrt(max(inv_l2, 1e-6)))
 
 
-def measure_residual(data: np.ndarray, grid, times, window: tuple[int, int], mean: np.ndarray, std: np.ndarray, *, n: int = 12, path_length: int = 50, lag: int = 1, noise_std: float = 0.02, seed: int = 0, land=None) -> dict:
+def measure_residual(
+    data: np.ndarray,
+    grid,
+    times,
+    window: tuple[int, int],
+    mean: np.ndarray,
+    std: np.ndarray,
+    *,
+    n: int = 12,
+    path_length: int = 50,
+    lag: int = 1,
+    noise_std: float = 0.02,
+    seed: int = 0,
+    land=None,
+) -> dict:
     """Size and correlation of the GP-reconstruction residual over snapshots of ``window``.
 
     ``mean``/``std``: the model's per-pixel scaler ``(2, R, C)``; the residual is reported
@@ -115,7 +141,9 @@ def measure_residual(data: np.ndarray, grid, times, window: tuple[int, int], mea
     rng = np.random.default_rng(seed)
     lo = a + lag
     ts = np.sort(rng.choice(np.arange(lo, b), size=min(n, b - lo), replace=False))
-    rec = reconstruct_states(data, grid, times, ts, path_length=path_length, lag=lag, noise_std=noise_std, seed=seed, land=land)
+    rec = reconstruct_states(
+        data, grid, times, ts, path_length=path_length, lag=lag, noise_std=noise_std, seed=seed, land=land
+    )
     truth = np.nan_to_num(data[ts])
     res = rec - truth
     scaled = res / std

@@ -30,7 +30,14 @@ class PersistencePredictor(Predictor):
         import torch
 
         self._check_fitted()
-        meta = {"predictor": self.name, "format": 1, "grid_shape": list(self.grid_shape_), "data_hash": self.data_hash_, "command": command, **(extra or {})}
+        meta = {
+            "predictor": self.name,
+            "format": 1,
+            "grid_shape": list(self.grid_shape_),
+            "data_hash": self.data_hash_,
+            "command": command,
+            **(extra or {}),
+        }
         return write_checkpoint(path, {"grid_shape": torch.tensor(self.grid_shape_)}, meta)
 
     @classmethod

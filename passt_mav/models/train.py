@@ -1,6 +1,6 @@
 """Train a predictor on a field window and write its checkpoint (used by ``passt-mav model train``).
 
-    passt-mav model train --data builtin:cylinder --start 200 --stop 300 --epochs 200 --out DIR/knode_cylinder
+passt-mav model train --data builtin:cylinder --start 200 --stop 300 --epochs 200 --out DIR/knode_cylinder
 """
 
 from __future__ import annotations
@@ -10,13 +10,45 @@ import time
 #: training recipes for the KNODE (constructor options); explicit options override them
 RECIPES: dict[str, dict] = {
     # how the model is used in the PASST loop: started from a GP reconstruction, rolled out over a leg
-    "loop": {"loss": "rollout", "horizon": 10, "curriculum": 0.3, "noise": "gp", "val_frac": 0.2, "patience": 60, "train_batch": 32, "zero_init": True},
+    "loop": {
+        "loss": "rollout",
+        "horizon": 10,
+        "curriculum": 0.3,
+        "noise": "gp",
+        "val_frac": 0.2,
+        "patience": 60,
+        "train_batch": 32,
+        "zero_init": True,
+    },
     # the paper: one-step MSE over all pairs, white input noise
     "paper": {"loss": "one_step", "noise": "white", "val_frac": 0.0},
 }
 
 
-def train(data: str, *, out: str, model: str = "knode", start: int | None = None, stop: int | None = None, epochs: int = 100, seed: int = 0, lr: float = 1e-3, n_batches: int = 1, substeps: int = 6, method: str = "euler", kernel_variance: float = 0.1, noise_var: float = 1e-3, device: str = "cpu", threads: int | None = None, progress: bool = True, command: str | None = None, log=None, recipe: str = "loop", overrides: dict | None = None, skill: bool = True) -> dict:
+def train(
+    data: str,
+    *,
+    out: str,
+    model: str = "knode",
+    start: int | None = None,
+    stop: int | None = None,
+    epochs: int = 100,
+    seed: int = 0,
+    lr: float = 1e-3,
+    n_batches: int = 1,
+    substeps: int = 6,
+    method: str = "euler",
+    kernel_variance: float = 0.1,
+    noise_var: float = 1e-3,
+    device: str = "cpu",
+    threads: int | None = None,
+    progress: bool = True,
+    command: str | None = None,
+    log=None,
+    recipe: str = "loop",
+    overrides: dict | None = None,
+    skill: bool = True,
+) -> dict:
     """Fit predictor ``model`` on ``data`` (``builtin:NAME`` or a .nc path), save it to ``out``; returns the summary.
 
     ``recipe``: a key of :data:`RECIPES`, with ``overrides`` on top. ``log(epoch, loss)``
@@ -42,7 +74,20 @@ def train(data: str, *, out: str, model: str = "knode", start: int | None = None
 
             raise ModelError(f"unknown recipe {recipe!r}; choose one of {', '.join(RECIPES)}")
         opts = {**RECIPES[recipe], **(overrides or {})}
-        p = make_predictor("knode", epochs=epochs, seed=seed, lr=lr, n_batches=n_batches, substeps=substeps, method=method, kernel_variance=kernel_variance, noise_var=noise_var, device=device, progress=progress, **opts)
+        p = make_predictor(
+            "knode",
+            epochs=epochs,
+            seed=seed,
+            lr=lr,
+            n_batches=n_batches,
+            substeps=substeps,
+            method=method,
+            kernel_variance=kernel_variance,
+            noise_var=noise_var,
+            device=device,
+            progress=progress,
+            **opts,
+        )
         t0 = time.perf_counter()
         p.fit(field, start=start, stop=stop, callback=log)
         wall = time.perf_counter() - t0
@@ -51,17 +96,45 @@ def train(data: str, *, out: str, model: str = "knode", start: int | None = None
             # a fine-tuning run: the commands that made its start model, oldest first, so the
             # checkpoint can be rebuilt from scratch by running them and then this run's command
             meta0 = getattr(p, "init_metadata_", None) or {}
-            extra["lineage"] = list(meta0.get("lineage", [])) + [{"command": meta0.get("command"), "wall_s": meta0.get("wall_s"), "epochs": meta0.get("epochs"), "best_epoch": meta0.get("best_epoch")}]
+            extra["lineage"] = list(meta0.get("lineage", [])) + [
+                {
+                    "command": meta0.get("command"),
+                    "wall_s": meta0.get("wall_s"),
+                    "epochs": meta0.get("epochs"),
+                    "best_epoch": meta0.get("best_epoch"),
+                }
+            ]
         path = p.save(out, command=command, extra=extra)
-        summary = {"out": str(path), "model": model, "recipe": recipe, "data": data, "data_hash": p.data_hash_, "epochs": p.epochs_trained_, "best_epoch": p.best_epoch_, "seed": seed, "final_loss": p.final_loss_, "final_epoch_loss": p.loss_curve_[-1] if p.loss_curve_ else None, "first_epoch_loss": p.loss_curve_[0] if p.loss_curve_ else None, "n_params": p.n_params(), "wall_s": round(wall, 2), "s_per_epoch": round(wall / max(1, p.epochs_trained_), 3)}
+        summary = {
+            "out": str(path),
+            "model": model,
+            "recipe": recipe,
+            "data": data,
+            "data_hash": p.data_hash_,
+            "epochs": p.epochs_trained_,
+            "best_epoch": p.best_epoch_,
+            "seed": seed,
+            "final_loss": p.final_loss_,
+            "final_epoch_loss": p.loss_curve_[-1] if p.loss_curve_ else None,
+            "first_epoch_loss": p.loss_curve_[0] if p.loss_curve_ else None,
+            "n_params": p.n_params(),
+            "wall_s": round(wall, 2),
+            "s_per_epoch": round(wall / max(1, p.epochs_trained_), 3),
+        }
         if skill and p.val_window_ is not None:
             from passt_mav.models.evaluate import skill_report
 
-            rep = skill_report(p, field, train=tuple(p.train_window_), val=tuple(p.val_window_), horizon=int(opts.get("horizon", 10)), seed=seed)
+            rep = skill_report(
+                p,
+                field,
+                train=tuple(p.train_window_),
+                val=tuple(p.val_window_),
+                horizon=int(opts.get("horizon", 10)),
+                seed=seed,
+            )
             path = p.save(out, command=command, extra={**extra, "skill": rep})
             summary["skill"] = rep
         return summary
     p = make_predictor(model).fit(field, start=start, stop=stop)
     path = p.save(out, command=command, extra={"data": data})
     return {"out": str(path), "model": model, "data": data, "data_hash": field.data_hash()}
-

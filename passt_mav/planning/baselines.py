@@ -163,7 +163,9 @@ class GreedyPlanner:
             score = np.where(first_fresh | ~first_fresh.any(axis=1, keepdims=True), score, -np.inf)
             best = np.argmax(score, axis=1)
             nxt = np.stack([rr[rows, best, 0], cc[rows, best, 0]], axis=1)
-            for b in np.flatnonzero(~np.isfinite(score).any(axis=1)):  # cannot happen after check_inputs, kept for safety
+            for b in np.flatnonzero(
+                ~np.isfinite(score).any(axis=1)
+            ):  # cannot happen after check_inputs, kept for safety
                 nxt[b] = _fallback_step(tuple(cur[b]), visited[b], T[b], rngs[b])
             cur = nxt
             visited[rows, cur[:, 0], cur[:, 1]] = True

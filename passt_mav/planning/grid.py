@@ -86,7 +86,9 @@ def check_many(rewards, starts, budget, seeds, masks=None) -> tuple[list, list, 
     for i in range(G):
         q, s0, L, trav = check_inputs(rewards[i], starts[i], budget, None if masks is None else masks[i])
         if qs and q.shape != qs[0].shape:
-            raise PlannerError(f"plan_many: reward map {i} has shape {q.shape}, map 0 {qs[0].shape}; one grid per batch")
+            raise PlannerError(
+                f"plan_many: reward map {i} has shape {q.shape}, map 0 {qs[0].shape}; one grid per batch"
+            )
         qs.append(q)
         st.append(s0)
         travs.append(trav)
@@ -219,7 +221,9 @@ def _free_straight_line(src, dst, traversable: np.ndarray, visited: np.ndarray) 
     return [src, *cells]
 
 
-def cheapest_path(src, dst, traversable: np.ndarray, visited: np.ndarray, *, revisit_cost: float = 8.0) -> list[tuple[int, int]] | None:
+def cheapest_path(
+    src, dst, traversable: np.ndarray, visited: np.ndarray, *, revisit_cost: float = 8.0
+) -> list[tuple[int, int]] | None:
     """Dijkstra over traversable cells from ``src`` to ``dst`` (both included), where
     a move costs its length (1 or sqrt 2) times ``revisit_cost`` when it enters a visited
     cell, so a transfer between
@@ -233,7 +237,9 @@ def cheapest_path(src, dst, traversable: np.ndarray, visited: np.ndarray, *, rev
     return line if line is not None else _dijkstra(src, dst, traversable, visited, revisit_cost)
 
 
-def _dijkstra(src: tuple[int, int], dst: tuple[int, int], traversable: np.ndarray, visited: np.ndarray, revisit_cost: float) -> list[tuple[int, int]] | None:
+def _dijkstra(
+    src: tuple[int, int], dst: tuple[int, int], traversable: np.ndarray, visited: np.ndarray, revisit_cost: float
+) -> list[tuple[int, int]] | None:
     """The search of :func:`cheapest_path` (int ``src``, ``dst``; ``dst`` traversable)."""
     import heapq
 

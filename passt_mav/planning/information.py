@@ -97,7 +97,9 @@ class InformationModel:
         d = np.asarray(d, dtype=np.float64).reshape(-1)
         s = np.asarray(noise, dtype=np.float64).reshape(-1)
         if F.ndim != 2 or F.shape[0] != 2 * N or d.shape != (2 * N,) or s.shape != (2 * N,):
-            raise PlannerError(f"information model: F must be (2N, r), d and noise (2N,) with N = {N}; got {F.shape}, {d.shape}, {s.shape}")
+            raise PlannerError(
+                f"information model: F must be (2N, r), d and noise (2N,) with N = {N}; got {F.shape}, {d.shape}, {s.shape}"
+            )
         if not (np.isfinite(F).all() and np.isfinite(d).all() and (d >= 0).all() and (s > 0).all()):
             raise PlannerError("information model: F and d must be finite, d >= 0 and the noise variance > 0")
         self.F, self.d, self.noise = F, d, s
@@ -141,7 +143,20 @@ class InformationModel:
         full = cells is None
         c = np.arange(self.N) if full else np.asarray(cells, dtype=np.int64).reshape(-1)
         Fc, e, w, d = self._rows(c)
-        g = candidate_scores(self.P[None], self.M[None], np.array([self.trPM]), np.array([self.sumd]), self.trW, Fc[None], e[None], w[None], d[None])[0][0] - self.reduction
+        g = (
+            candidate_scores(
+                self.P[None],
+                self.M[None],
+                np.array([self.trPM]),
+                np.array([self.sumd]),
+                self.trW,
+                Fc[None],
+                e[None],
+                w[None],
+                d[None],
+            )[0][0]
+            - self.reduction
+        )
         g = np.where(self.observed[c], 0.0, np.maximum(g, 0.0))
         return g.reshape(self.shape) if full else g
 
@@ -191,7 +206,9 @@ def candidate_scores(P, M, trPM, sumd, trW, Fc, e, w, d):
     YMY = np.einsum("knar,knbr->knab", MYt, Yt)
     Tn = T - T @ Si @ T
     c = w * w - 2.0 * w
-    trPM_new = trPM[:, None] - np.einsum("knab,knba->kn", Si, YMY) + (c * np.stack([Tn[..., 0, 0], Tn[..., 1, 1]], -1)).sum(-1)
+    trPM_new = (
+        trPM[:, None] - np.einsum("knab,knba->kn", Si, YMY) + (c * np.stack([Tn[..., 0, 0], Tn[..., 1, 1]], -1)).sum(-1)
+    )
     sumd_new = sumd[:, None] + (d * w).sum(-1)
     return trW + sumd_new - trPM_new, Yt, Si, trPM_new, sumd_new
 
@@ -267,7 +284,9 @@ class InformationPlanner:
             fresh = ok & ~np.take_along_axis(visited, flat, axis=1)
             allow = np.where(fresh.any(axis=1, keepdims=True), fresh, ok)
             total = np.where(allow, st.totals(flat, fresh & allow), -np.inf)
-            jitter = rng.random(total.shape) * 1e-12 * max(1.0, float(np.abs(total[np.isfinite(total)]).max(initial=0.0)))
+            jitter = (
+                rng.random(total.shape) * 1e-12 * max(1.0, float(np.abs(total[np.isfinite(total)]).max(initial=0.0)))
+            )
             order = np.argsort(-(total + jitter), axis=None, kind="stable")
             chosen, seen = [], set()
             for o in order:
@@ -327,7 +346,17 @@ class _InfoBeams:
         B, n = flat.shape
         Fc, e, w, d = self.m._rows(flat.reshape(-1))
         r = Fc.shape[-1]
-        Rn = candidate_scores(self.P, self.M, self.trPM, self.sumd, self.m.trW, Fc.reshape(B, n, 2, r), e.reshape(B, n, 2), w.reshape(B, n, 2), d.reshape(B, n, 2))[0]
+        Rn = candidate_scores(
+            self.P,
+            self.M,
+            self.trPM,
+            self.sumd,
+            self.m.trW,
+            Fc.reshape(B, n, 2, r),
+            e.reshape(B, n, 2),
+            w.reshape(B, n, 2),
+            d.reshape(B, n, 2),
+        )[0]
         base = (self.m.trW + self.sumd - self.trPM)[:, None]
         return np.where(fresh, Rn, base) - self.offset
 

@@ -81,7 +81,9 @@ def _integral(eff: np.ndarray) -> np.ndarray:
     return S
 
 
-def features(q: np.ndarray, trav: np.ndarray, visited: np.ndarray, pos: np.ndarray, frac_left: float, moves: np.ndarray = MOVES8) -> np.ndarray:
+def features(
+    q: np.ndarray, trav: np.ndarray, visited: np.ndarray, pos: np.ndarray, frac_left: float, moves: np.ndarray = MOVES8
+) -> np.ndarray:
     """Per-direction features, batched.
 
     q, trav: (R, C) reward (0 on land) and traversable mask, shared by the batch, or
@@ -96,7 +98,9 @@ def _uncollected(q: np.ndarray, trav: np.ndarray, visited: np.ndarray) -> np.nda
     return np.broadcast_to(q * trav, visited.shape) * ~visited
 
 
-def _features_eff(eff: np.ndarray, pos: np.ndarray, frac_left: float, moves: np.ndarray, buf: dict | None = None) -> np.ndarray:
+def _features_eff(
+    eff: np.ndarray, pos: np.ndarray, frac_left: float, moves: np.ndarray, buf: dict | None = None
+) -> np.ndarray:
     """:func:`features` from the uncollected reward ``eff`` (B, R, C) = q * trav * ~visited.
 
     ``buf``: a dict the caller keeps across the steps of one roll-out; the summed-area
@@ -134,7 +138,9 @@ def _features_eff(eff: np.ndarray, pos: np.ndarray, frac_left: float, moves: np.
     return np.concatenate([absf, rel, left], axis=-1)
 
 
-def _allowed(trav: np.ndarray, visited: np.ndarray, pos: np.ndarray, moves: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _allowed(
+    trav: np.ndarray, visited: np.ndarray, pos: np.ndarray, moves: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
     """(B, M) allowed-move mask and the (B, M, 2) target cells (clipped)."""
     R, C = visited.shape[1:]
     nb = pos[:, None, :] + moves[None]
@@ -149,7 +155,20 @@ def _allowed(trav: np.ndarray, visited: np.ndarray, pos: np.ndarray, moves: np.n
     return allowed, np.stack([rr, cc], axis=-1)
 
 
-def rollout(weights: PolicyWeights, q, trav, start, budget: int, *, n: int, rng, greedy_first: bool = False, moves: np.ndarray = MOVES8, record: bool = False, temperature: float = 1.0):
+def rollout(
+    weights: PolicyWeights,
+    q,
+    trav,
+    start,
+    budget: int,
+    *,
+    n: int,
+    rng,
+    greedy_first: bool = False,
+    moves: np.ndarray = MOVES8,
+    record: bool = False,
+    temperature: float = 1.0,
+):
     """Run ``n`` roll-outs of ``budget`` moves in parallel.
 
     q, trav: (R, C) or (B=n, R, C); start: (2,) or (n, 2). With ``greedy_first`` the
@@ -218,7 +237,9 @@ def rollout(weights: PolicyWeights, q, trav, start, budget: int, *, n: int, rng,
 # -- training -------------------------------------------------------------------
 
 
-def random_reward_map(rng: np.random.Generator, rows: int, cols: int, *, land: bool = True) -> tuple[np.ndarray, np.ndarray]:
+def random_reward_map(
+    rng: np.random.Generator, rows: int, cols: int, *, land: bool = True
+) -> tuple[np.ndarray, np.ndarray]:
     """A random Gaussian-mixture reward map in [0, 1] and its traversable mask.
 
     1-6 Gaussian bumps (widths 1.5-8 cells, amplitudes 0.2-1), a weak random
@@ -248,7 +269,19 @@ def _init_weights(rng: np.random.Generator, hidden: int) -> PolicyWeights:
     )
 
 
-def train_policy(*, episodes: int = 6000, batch: int = 32, hidden: int = 16, lr: float = 0.01, gamma: float = 0.97, entropy: float = 0.01, seed: int = 0, grid_range=(16, 36), budget_range=(10, 120), progress: bool = True):
+def train_policy(
+    *,
+    episodes: int = 6000,
+    batch: int = 32,
+    hidden: int = 16,
+    lr: float = 0.01,
+    gamma: float = 0.97,
+    entropy: float = 0.01,
+    seed: int = 0,
+    grid_range=(16, 36),
+    budget_range=(10, 120),
+    progress: bool = True,
+):
     """REINFORCE on random Gaussian-mixture maps. Returns ``(weights, curve)``.
 
     Each iteration draws one grid size and budget, ``batch`` maps and start cells,
@@ -320,7 +353,15 @@ def save_policy(weights: PolicyWeights, path: str | Path, meta: dict) -> tuple[P
         "b2": torch.tensor([weights.b2], dtype=torch.float32),
     }
     torch.save(sd, path)
-    meta = dict(meta, architecture={"type": "per-direction MLP", "hidden": int(weights.W1.shape[0]), "n_features": N_FEATURES, "scales": [list(s) for s in SCALES]})
+    meta = dict(
+        meta,
+        architecture={
+            "type": "per-direction MLP",
+            "hidden": int(weights.W1.shape[0]),
+            "n_features": N_FEATURES,
+            "scales": [list(s) for s in SCALES],
+        },
+    )
     jpath = path.with_suffix(".json")
     jpath.write_text(json.dumps(meta, indent=1) + "\n")
     return path, jpath
@@ -330,16 +371,22 @@ def load_policy(path: str | Path | None = None) -> PolicyWeights:
     """Load a checkpoint written by :func:`save_policy` (``weights_only=True``)."""
     path = Path(path) if path is not None else DEFAULT_CHECKPOINT
     if not path.exists():
-        raise PlannerError(f"policy checkpoint {path} not found; train one with 'python -m passt_mav.planning.train --out {path}'")
+        raise PlannerError(
+            f"policy checkpoint {path} not found; train one with 'python -m passt_mav.planning.train --out {path}'"
+        )
     import torch
 
     try:
         sd = torch.load(path, map_location="cpu", weights_only=True)
-        w = PolicyWeights(sd["W1"].double().numpy(), sd["b1"].double().numpy(), sd["w2"].double().numpy(), float(sd["b2"][0]))
+        w = PolicyWeights(
+            sd["W1"].double().numpy(), sd["b1"].double().numpy(), sd["w2"].double().numpy(), float(sd["b2"][0])
+        )
     except Exception as exc:  # noqa: BLE001 - any unreadable checkpoint is a user error
         raise PlannerError(f"cannot read policy checkpoint {path}: {exc}") from None
     if w.W1.shape[1] != N_FEATURES:
-        raise PlannerError(f"policy checkpoint {path} expects {w.W1.shape[1]} features, this version computes {N_FEATURES}")
+        raise PlannerError(
+            f"policy checkpoint {path} expects {w.W1.shape[1]} features, this version computes {N_FEATURES}"
+        )
     return w
 
 
@@ -355,7 +402,9 @@ class PolicyGradientPlanner:
     ``plan`` returns the roll-out collecting the most reward (ties: the greedy one).
     """
 
-    def __init__(self, *, checkpoint: str | Path | None = None, n_rollouts: int = 12, moves: int = 8, temperature: float = 1.0):
+    def __init__(
+        self, *, checkpoint: str | Path | None = None, n_rollouts: int = 12, moves: int = 8, temperature: float = 1.0
+    ):
         self.checkpoint = checkpoint
         self.n_rollouts = n_rollouts
         self.moves = moves
@@ -393,5 +442,16 @@ class PolicyGradientPlanner:
         T = np.repeat(np.stack(travs), n, axis=0)
         S0 = np.repeat(np.array(st, dtype=np.int64), n, axis=0)
         rngs = [np.random.default_rng(sd) for sd in seeds]
-        paths, rets = rollout(self._weights(), Q, T, S0, L, n=G * n, rng=rngs, greedy_first=True, moves=moves, temperature=self.temperature)
+        paths, rets = rollout(
+            self._weights(),
+            Q,
+            T,
+            S0,
+            L,
+            n=G * n,
+            rng=rngs,
+            greedy_first=True,
+            moves=moves,
+            temperature=self.temperature,
+        )
         return [paths[g * n + int(np.argmax(rets[g * n : (g + 1) * n]))] for g in range(G)]

@@ -18,7 +18,20 @@ import numpy as np
 
 from passt_mav.errors import PlannerError
 
-__all__ = ["REWARDS", "REWARDS_USING_STATE", "REWARDS_USING_STD", "compute_reward", "traversable", "speed", "vorticity", "std", "speed_std", "change", "variance_reduction", "REWARDS_USING_PRIOR"]
+__all__ = [
+    "REWARDS",
+    "REWARDS_USING_STATE",
+    "REWARDS_USING_STD",
+    "compute_reward",
+    "traversable",
+    "speed",
+    "vorticity",
+    "std",
+    "speed_std",
+    "change",
+    "variance_reduction",
+    "REWARDS_USING_PRIOR",
+]
 
 
 def _check(prediction) -> np.ndarray:

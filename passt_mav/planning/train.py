@@ -66,7 +66,9 @@ def main(argv: list[str] | None = None) -> int:
         "heldout_30x30_40maps_fraction_of_top_L": {k: round(float(np.mean(v)), 4) for k, v in fr.items()},
     }
     p, j = save_policy(w, out, meta)
-    print(f"trained in {train_s:.0f} s; held-out fraction of top-L bound: {meta['heldout_30x30_40maps_fraction_of_top_L']}")
+    print(
+        f"trained in {train_s:.0f} s; held-out fraction of top-L bound: {meta['heldout_30x30_40maps_fraction_of_top_L']}"
+    )
     print(f"wrote {p} and {j}")
     return 0
 

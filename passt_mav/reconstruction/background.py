@@ -24,7 +24,13 @@ import numpy as np
 
 from passt_mav.errors import ReconstructionError
 
-__all__ = ["model_background", "background_steps_problem", "BACKGROUND_ENERGY", "BACKGROUND_MAX_MODES", "DEFAULT_BACKGROUND"]
+__all__ = [
+    "model_background",
+    "background_steps_problem",
+    "BACKGROUND_ENERGY",
+    "BACKGROUND_MAX_MODES",
+    "DEFAULT_BACKGROUND",
+]
 
 #: the product's roll-out length (snapshots) for the background (mission files, ``evaluate``,
 #: ``paper``): 8 shedding periods of the cylinder wake, 200 h of the ocean default
@@ -45,7 +51,9 @@ def background_steps_problem(steps) -> str | None:
     return f"a background roll-out needs 0 (none) or at least 2 snapshots, got {steps}"
 
 
-def model_background(predictor, state, steps: int, *, land=None, energy: float = BACKGROUND_ENERGY, max_modes: int = BACKGROUND_MAX_MODES) -> np.ndarray | None:
+def model_background(
+    predictor, state, steps: int, *, land=None, energy: float = BACKGROUND_ENERGY, max_modes: int = BACKGROUND_MAX_MODES
+) -> np.ndarray | None:
     """Background covariance modes from ``steps`` predicted snapshots after ``state``.
 
     Args:

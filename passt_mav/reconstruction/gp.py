@@ -113,7 +113,25 @@ class GPReconstructor:
     chosen with ``bias``; field units^2).
     """
 
-    def __init__(self, *, grid_xy, kernel: str = "matern52", length_scale: float | None = None, noise_std: float = 0.02, alpha: float = 1e-8, prior: str = "forecast", max_length_cells: float = 6.0, max_fit_points: int = 60, space_time: bool = True, n_restarts: int = 0, seed: int = 0, solver: str = "sklearn", background=None, background_scale="ml", bias: bool = False):
+    def __init__(
+        self,
+        *,
+        grid_xy,
+        kernel: str = "matern52",
+        length_scale: float | None = None,
+        noise_std: float = 0.02,
+        alpha: float = 1e-8,
+        prior: str = "forecast",
+        max_length_cells: float = 6.0,
+        max_fit_points: int = 60,
+        space_time: bool = True,
+        n_restarts: int = 0,
+        seed: int = 0,
+        solver: str = "sklearn",
+        background=None,
+        background_scale="ml",
+        bias: bool = False,
+    ):
         self.grid_xy = grid_xy
         self.bias = bias
         self.background = background
@@ -149,7 +167,9 @@ class GPReconstructor:
         fa = None
         if self.prior == "forecast":
             if forecast_at_samples is None:
-                raise ReconstructionError("prior='forecast' needs the forecast at the sample positions (forecast_at_samples)")
+                raise ReconstructionError(
+                    "prior='forecast' needs the forecast at the sample positions (forecast_at_samples)"
+                )
             fa = np.asarray(forecast_at_samples, dtype=np.float64).reshape(-1, 2)
             if fa.shape != uv.shape:
                 raise ReconstructionError("forecast_at_samples must have one (u, v) per sample")
@@ -227,13 +247,19 @@ class GPReconstructor:
             with threadpool_limits(1):
                 return self._regressor(kernel, optimize).fit(xy, y)
         except np.linalg.LinAlgError as exc:
-            raise ReconstructionError(f"GP fit failed (Cholesky: {exc}); increase the noise level: alpha (now {self.alpha:g}) or noise_std") from None
+            raise ReconstructionError(
+                f"GP fit failed (Cholesky: {exc}); increase the noise level: alpha (now {self.alpha:g}) or noise_std"
+            ) from None
         except ValueError as exc:
             if "alpha" in str(exc) or "positive definite" in str(exc):
-                raise ReconstructionError(f"GP fit failed ({str(exc).splitlines()[0]}); increase the noise level: alpha (now {self.alpha:g}) or noise_std") from None
+                raise ReconstructionError(
+                    f"GP fit failed ({str(exc).splitlines()[0]}); increase the noise level: alpha (now {self.alpha:g}) or noise_std"
+                ) from None
             raise
 
-    def _posterior_fixed(self, kernel, xy, y, grid_pts, with_std: bool = True, comp: int = 0) -> tuple[np.ndarray, np.ndarray | None]:
+    def _posterior_fixed(
+        self, kernel, xy, y, grid_pts, with_std: bool = True, comp: int = 0
+    ) -> tuple[np.ndarray, np.ndarray | None]:
         """Posterior mean and std at ``grid_pts`` for a fixed kernel, as sklearn computes them.
 
         Same algebra as ``GaussianProcessRegressor(optimizer=None, normalize_y=False)``:
@@ -250,7 +276,9 @@ class GPReconstructor:
         try:
             Lc = cholesky(K, lower=True, check_finite=False)
         except np.linalg.LinAlgError as exc:
-            raise ReconstructionError(f"GP fit failed (Cholesky: {exc}); increase the noise level: alpha (now {self.alpha:g}) or noise_std") from None
+            raise ReconstructionError(
+                f"GP fit failed (Cholesky: {exc}); increase the noise level: alpha (now {self.alpha:g}) or noise_std"
+            ) from None
         a = cho_solve((Lc, True), y, check_finite=False)
         Ks = self._cross_cov(comp, kernel, xy, grid_pts)
         mean = Ks @ a
@@ -377,7 +405,11 @@ class GPReconstructor:
         xy = np.asarray(samples_xy, dtype=np.float64).reshape(-1, 2)
         r = np.asarray(residual_uv, dtype=np.float64).reshape(-1, 2)
         n = len(xy)
-        Bg = self._background_modes(X.shape) * np.sqrt(self._background_factor()) if self.background is not None else None
+        Bg = (
+            self._background_modes(X.shape) * np.sqrt(self._background_factor())
+            if self.background is not None
+            else None
+        )
         kernels, fitted = self._prior_kernels(Bg)
         bias_var = float(getattr(self, "bias_var_", 0.0)) if self._bias_on() and fitted else 0.0
         if bias_var > 0:
@@ -402,7 +434,9 @@ class GPReconstructor:
         try:
             Lc = cholesky(K, lower=True, check_finite=False)
         except np.linalg.LinAlgError as exc:
-            raise ReconstructionError(f"innovation likelihood: Cholesky failed ({exc}); increase alpha (now {self.alpha:g}) or noise_std") from None
+            raise ReconstructionError(
+                f"innovation likelihood: Cholesky failed ({exc}); increase alpha (now {self.alpha:g}) or noise_std"
+            ) from None
         return -0.5 * float(y @ cho_solve((Lc, True), y, check_finite=False))
 
     def _evidence_gate(self, gp, y, comp: int):
@@ -481,7 +515,9 @@ class GPReconstructor:
         try:
             f = float(self.background_scale)
         except (TypeError, ValueError):
-            raise ReconstructionError(f"background_scale must be a number >= 0 or 'ml', got {self.background_scale!r}") from None
+            raise ReconstructionError(
+                f"background_scale must be a number >= 0 or 'ml', got {self.background_scale!r}"
+            ) from None
         if not f >= 0:
             raise ReconstructionError(f"background_scale must be a number >= 0 or 'ml', got {self.background_scale!r}")
         return f
@@ -602,7 +638,18 @@ class GPReconstructor:
         self.n_inputs_ = 2
         return self
 
-    def reconstruct(self, samples_xy, samples_uv, forecast=None, *, forecast_at_samples=None, mask=None, samples_t=None, t=None, with_std: bool = True) -> tuple[np.ndarray, np.ndarray | None]:
+    def reconstruct(
+        self,
+        samples_xy,
+        samples_uv,
+        forecast=None,
+        *,
+        forecast_at_samples=None,
+        mask=None,
+        samples_t=None,
+        t=None,
+        with_std: bool = True,
+    ) -> tuple[np.ndarray, np.ndarray | None]:
         """Posterior mean and std on the grid, with the fitted kernels held fixed.
 
         forecast: (2, rows, cols) prior mean on the grid (required for
@@ -638,7 +685,9 @@ class GPReconstructor:
         use_t = getattr(self, "n_inputs_", 2) == 3
         if use_t and (samples_t is None or t is None):
             raise ReconstructionError("this GP was fitted over space and time: pass samples_t and t")
-        xy, target, ok = self._check(samples_xy, samples_uv, forecast_at_samples, samples_t if use_t else None, with_mask=True)
+        xy, target, ok = self._check(
+            samples_xy, samples_uv, forecast_at_samples, samples_t if use_t else None, with_mask=True
+        )
         offset = np.zeros(2) if self.prior == "forecast" else target.mean(axis=0)  # constant prior mean
         target = target - offset
         if use_t:
@@ -761,7 +810,9 @@ class GPReconstructor:
                 Lc = cholesky(K0 + a * J, lower=True, check_finite=False)
             except np.linalg.LinAlgError:
                 continue
-            lls.append((-0.5 * float(y @ cho_solve((Lc, True), y, check_finite=False)) - float(np.log(np.diag(Lc)).sum()), a))
+            lls.append(
+                (-0.5 * float(y @ cho_solve((Lc, True), y, check_finite=False)) - float(np.log(np.diag(Lc)).sum()), a)
+            )
         if not lls or lls[0][1] != 0.0:
             return 0.0
         best_ll, best = max(lls)
@@ -796,7 +847,9 @@ class GPReconstructor:
         try:
             Lc = cholesky(K, lower=True, check_finite=False)
         except np.linalg.LinAlgError as exc:
-            raise ReconstructionError(f"GP fit failed (Cholesky: {exc}); increase the noise level: alpha (now {self.alpha:g}) or noise_std") from None
+            raise ReconstructionError(
+                f"GP fit failed (Cholesky: {exc}); increase the noise level: alpha (now {self.alpha:g}) or noise_std"
+            ) from None
         y = np.concatenate([target[:, 0], target[:, 1]])
         a = cho_solve((Lc, True), y, check_finite=False)
         w = Hb @ a  # (m,)
@@ -809,6 +862,10 @@ class GPReconstructor:
                 C = Bg[:, k, :].T @ Hb  # (N, 2n)
                 C[:, k * n : (k + 1) * n] += Ks
                 V = solve_triangular(Lc, C.T, lower=True, check_finite=False)
-                var = np.einsum("ij,ij->j", Bg[:, k, :], Bg[:, k, :]) + self.kernels_[k].diag(grid_pts) - np.einsum("ij,ij->j", V, V)
+                var = (
+                    np.einsum("ij,ij->j", Bg[:, k, :], Bg[:, k, :])
+                    + self.kernels_[k].diag(grid_pts)
+                    - np.einsum("ij,ij->j", V, V)
+                )
                 std[k] = np.sqrt(np.maximum(var, 0.0)).reshape(shape)
         return mean, std

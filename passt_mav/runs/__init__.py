@@ -17,7 +17,10 @@ from __future__ import annotations
 __all__ = ["RunDir", "SampleStore", "Sample", "read_tlog", "read_dataflash"]
 
 _WHERE = {
-    "RunDir": "rundir", "SampleStore": "store", "Sample": "store", "read_tlog": "tlog",
+    "RunDir": "rundir",
+    "SampleStore": "store",
+    "Sample": "store",
+    "read_tlog": "tlog",
     "read_dataflash": "tlog",
 }
 

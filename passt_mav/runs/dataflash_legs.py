@@ -128,9 +128,14 @@ def _events(path: Path) -> list[tuple[int, str, Any]]:
     return out
 
 
-def rebuild_from_dataflash(path: str | Path, *, u_name: str = "CUR_U", v_name: str = "CUR_V",
-                           pair_tolerance_ms: int = RULES.pair_tolerance_ms,
-                           max_gap_ms: int = RULES.max_gap_ms) -> LogRebuild:
+def rebuild_from_dataflash(
+    path: str | Path,
+    *,
+    u_name: str = "CUR_U",
+    v_name: str = "CUR_V",
+    pair_tolerance_ms: int = RULES.pair_tolerance_ms,
+    max_gap_ms: int = RULES.max_gap_ms,
+) -> LogRebuild:
     """Legs, positions, clock readings and samples from an ArduPilot DataFlash ``.bin`` (module docstring).
 
     ``u_name`` / ``v_name``: the NVF names of the east / north current (m/s);
@@ -145,8 +150,9 @@ def rebuild_from_dataflash(path: str | Path, *, u_name: str = "CUR_U", v_name: s
         LogReadError: the file is missing or no DataFlash log.
     """
     path = Path(path)
-    tl = read_dataflash(path, u_name=u_name, v_name=v_name, pair_tolerance_ms=int(pair_tolerance_ms),
-                        max_gap_ms=int(max_gap_ms))
+    tl = read_dataflash(
+        path, u_name=u_name, v_name=v_name, pair_tolerance_ms=int(pair_tolerance_ms), max_gap_ms=int(max_gap_ms)
+    )
     events = _events(path)
     if tl.n_messages == 0 and not events:
         raise LogReadError(f"{path}: no DataFlash records in the file")
@@ -163,7 +169,7 @@ def rebuild_from_dataflash(path: str | Path, *, u_name: str = "CUR_U", v_name: s
     legs: list[DataflashLeg] = []
     cur: DataflashLeg | None = None
     pending: DataflashLeg | None = None
-    upload: dict[str, Any] | None = None    # the mission block being read: {"total": CTot, "items": {CNum: ..}}
+    upload: dict[str, Any] | None = None  # the mission block being read: {"total": CTot, "items": {CNum: ..}}
     last_upload: dict[int, tuple[int, float, float]] | None = None
     clock: tuple[tuple[int, int, int], str] | None = None
     mode: int | None = None
@@ -234,8 +240,11 @@ def rebuild_from_dataflash(path: str | Path, *, u_name: str = "CUR_U", v_name: s
                 cur.t_auto_ms = t_ms
                 if cur.start_latlon is None:
                     cur.start_latlon = pos_at(t_ms)
-                cur.waypoints = [(la, lo) for s, (cmd, la, lo) in sorted((last_upload or {}).items())
-                                 if s >= 1 and cmd == _NAV_WAYPOINT]
+                cur.waypoints = [
+                    (la, lo)
+                    for s, (cmd, la, lo) in sorted((last_upload or {}).items())
+                    if s >= 1 and cmd == _NAV_WAYPOINT
+                ]
                 legs.append(cur)
             elif new != _AUTO and cur is not None and rsn == _GCS_COMMAND:
                 cur.closed, cur.t_end_ms = True, t_ms
@@ -261,7 +270,18 @@ def rebuild_from_dataflash(path: str | Path, *, u_name: str = "CUR_U", v_name: s
         if lg is None:
             outside += 1
             continue
-        lg.samples.append({"time_boot_ms": tb, "utc": float("nan"), "lat": float(s.lat), "lon": float(s.lon),
-                           "u": float(s.u), "v": float(s.v), "gap_ms": s.gap_ms, "source": "dataflash", "boot": boot,
-                           "leg": lg.index})
+        lg.samples.append(
+            {
+                "time_boot_ms": tb,
+                "utc": float("nan"),
+                "lat": float(s.lat),
+                "lon": float(s.lon),
+                "u": float(s.u),
+                "v": float(s.v),
+                "gap_ms": s.gap_ms,
+                "source": "dataflash",
+                "boot": boot,
+                "leg": lg.index,
+            }
+        )
     return LogRebuild(path, list(legs), tl.n_messages, tl.bad_frames, tl.skipped_bytes, tl.n_bytes, outside)

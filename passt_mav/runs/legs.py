@@ -104,8 +104,16 @@ def rebuild_from_tlog(path: str | Path, *, u_name: str = "CUR_U", v_name: str = 
     if veh is None:
         raise LogReadError(f"{path}: no vehicle messages (HEARTBEAT or GLOBAL_POSITION_INT) in the log")
     legs: list[LoggedLeg] = []
-    state: dict[str, Any] = {"cur": None, "pending": None, "upload": None, "pos": None, "tb": None, "outside": 0,
-                             "tb_lo": None, "clock": None}
+    state: dict[str, Any] = {
+        "cur": None,
+        "pending": None,
+        "upload": None,
+        "pos": None,
+        "tb": None,
+        "outside": 0,
+        "tb_lo": None,
+        "clock": None,
+    }
 
     def on_sample(rec: dict) -> None:
         # the leg open when the reading arrived (a reading waits for the fix after it: the leg may have ended)
@@ -142,12 +150,22 @@ def rebuild_from_tlog(path: str | Path, *, u_name: str = "CUR_U", v_name: str = 
             continue
         if typ == "MISSION_COUNT" and getattr(m, "mission_type", 0) == 0 and m.target_system in (0, veh):
             if state["pending"] is None and state["cur"] is None:  # first upload of a new leg: planned just before
-                state["pending"] = LoggedLeg(len(legs), state["pos"], state["tb"], state["tb_lo"], clock=state["clock"],
-                                             planned_index=state.get("clock_leg"))
+                state["pending"] = LoggedLeg(
+                    len(legs),
+                    state["pos"],
+                    state["tb"],
+                    state["tb_lo"],
+                    clock=state["clock"],
+                    planned_index=state.get("clock_leg"),
+                )
                 state["clock"] = state["clock_leg"] = None
             state["upload"] = {"count": int(m.count), "items": {}}
-        elif typ in ("MISSION_ITEM_INT", "MISSION_ITEM") and state["upload"] is not None \
-                and getattr(m, "mission_type", 0) == 0 and 0 <= m.seq < state["upload"]["count"]:
+        elif (
+            typ in ("MISSION_ITEM_INT", "MISSION_ITEM")
+            and state["upload"] is not None
+            and getattr(m, "mission_type", 0) == 0
+            and 0 <= m.seq < state["upload"]["count"]
+        ):
             scale = 1e-7 if typ == "MISSION_ITEM_INT" else 1.0
             state["upload"]["items"][int(m.seq)] = (int(m.command), m.x * scale, m.y * scale)
         else:
@@ -164,8 +182,9 @@ def rebuild_from_tlog(path: str | Path, *, u_name: str = "CUR_U", v_name: str = 
             if mode == _AUTO and state["cur"] is None and state["pending"] is not None:
                 leg = state["pending"]
                 up = state["upload"] or {"items": {}}
-                leg.waypoints = [(la, lo) for s, (cmd, la, lo) in sorted(up["items"].items())
-                                 if s >= 1 and cmd == _NAV_WAYPOINT]
+                leg.waypoints = [
+                    (la, lo) for s, (cmd, la, lo) in sorted(up["items"].items()) if s >= 1 and cmd == _NAV_WAYPOINT
+                ]
                 legs.append(leg)
                 state["cur"], state["pending"] = leg, None
                 col.leg = leg.index
@@ -178,5 +197,3 @@ def rebuild_from_tlog(path: str | Path, *, u_name: str = "CUR_U", v_name: str = 
     for leg in legs:
         leg.n_readings = col.leg_counts(leg.index)["readings"]
     return LogRebuild(path, legs, n, scan.bad, scan.skipped, len(data), state["outside"])
-
-

@@ -22,8 +22,9 @@ import datetime as _dt
 import json
 import logging
 import threading
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 __all__ = ["RecordWriter", "KINDS", "EVENTS", "read_events", "read_statuses"]
 
@@ -34,15 +35,27 @@ LIVE = "live"
 
 #: event kind -> level (the page shows "alert" and "warn" as banners; "ok" closes one)
 KINDS = {
-    "run_start": "info", "run_end": "info", "leg_start": "info", "leg_end": "info",
-    "link_lost": "alert", "link_back": "ok", "pilot_takeover": "alert", "pilot_released": "ok",
-    "reboot": "alert", "reboot_recovered": "ok", "fence_refused": "alert", "boat_dropped": "alert",
-    "boat_back": "ok", "mission_replaced": "warn", "warning": "warn", "stopped": "alert",
+    "run_start": "info",
+    "run_end": "info",
+    "leg_start": "info",
+    "leg_end": "info",
+    "link_lost": "alert",
+    "link_back": "ok",
+    "pilot_takeover": "alert",
+    "pilot_released": "ok",
+    "reboot": "alert",
+    "reboot_recovered": "ok",
+    "fence_refused": "alert",
+    "boat_dropped": "alert",
+    "boat_back": "ok",
+    "mission_replaced": "warn",
+    "warning": "warn",
+    "stopped": "alert",
 }
 
 
 def _utc_now() -> str:
-    return _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="milliseconds").replace("+00:00", "Z")
+    return _dt.datetime.now(_dt.UTC).isoformat(timespec="milliseconds").replace("+00:00", "Z")
 
 
 class RecordWriter:
@@ -59,7 +72,7 @@ class RecordWriter:
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
 
-    def for_boat(self, boat: int) -> "RecordWriter":
+    def for_boat(self, boat: int) -> RecordWriter:
         """The writer of boat ``boat`` of a fleet: the same files, events tagged with its number."""
         return RecordWriter(self.root, boat=boat, _shared=self._shared)
 
@@ -78,18 +91,26 @@ class RecordWriter:
 
     def event(self, kind: str, text: str, *, level: str | None = None, boat: int | None = None) -> None:
         """One line of ``events.jsonl`` (appended and flushed under a lock shared by the fleet)."""
+
         def write():
             try:
                 t = self.field_time()
             except Exception:  # noqa: BLE001 - a clock not ready yet
                 t = None
-            rec = {"utc": _utc_now(), "field_time": t, "boat": self.boat if boat is None else int(boat),
-                   "kind": kind, "level": level or KINDS.get(kind, "info"), "text": text}
+            rec = {
+                "utc": _utc_now(),
+                "field_time": t,
+                "boat": self.boat if boat is None else int(boat),
+                "kind": kind,
+                "level": level or KINDS.get(kind, "info"),
+                "text": text,
+            }
             line = json.dumps(rec, default=float) + "\n"
             with self._shared["lock"]:
                 self.root.mkdir(parents=True, exist_ok=True)
                 with open(self.root / EVENTS, "a") as f:
                     f.write(line)
+
         self._guard(EVENTS, write)
 
     def status(self, fields: dict[str, Any]) -> None:
@@ -97,8 +118,9 @@ class RecordWriter:
         from passt_mav.runs.rundir import write_json_atomic
 
         rec = {"boat": self.boat, "utc": _utc_now(), **fields}
-        self._guard(f"live/boat_{self.boat}.json",
-                    lambda: write_json_atomic(self.root / LIVE / f"boat_{self.boat}.json", rec))
+        self._guard(
+            f"live/boat_{self.boat}.json", lambda: write_json_atomic(self.root / LIVE / f"boat_{self.boat}.json", rec)
+        )
 
     # -- the status thread -------------------------------------------------------------------------
     def start_status(self, fn: Callable[[], dict[str, Any]], period_s: float = 1.0) -> None:
@@ -111,6 +133,7 @@ class RecordWriter:
                 self._write_from(fn)
                 if self._stop.wait(period_s):
                     return
+
         self._thread = threading.Thread(target=loop, name=f"live-status-{self.boat}", daemon=True)
         self._thread.start()
 

@@ -159,7 +159,7 @@ class RunDir:
 
     def boat_tlogs(self) -> list[Path]:
         """Every boat's telemetry log of a fleet run, in boat order (empty for a one-boat run)."""
-        return sorted(self.root.glob("flight_boat*.tlog"), key=lambda p: int(p.stem[len("flight_boat"):] or 0))
+        return sorted(self.root.glob("flight_boat*.tlog"), key=lambda p: int(p.stem[len("flight_boat") :] or 0))
 
     @property
     def samples_db(self) -> Path:

@@ -120,9 +120,20 @@ def _row_values(s: Sample) -> tuple:
         x = getattr(s, name)
         if not isinstance(x, (int, float)) or not math.isfinite(x):
             raise SampleStoreError(f"sample {name} must be a finite number, got {x!r}")
-    return (int(s.time_boot_ms), float(s.utc), float(s.lat), float(s.lon), float(s.u), float(s.v), int(s.leg),
-            str(s.source), None if s.row is None else int(s.row), None if s.col is None else int(s.col), int(s.boot),
-            None if s.gap_ms is None else int(s.gap_ms))
+    return (
+        int(s.time_boot_ms),
+        float(s.utc),
+        float(s.lat),
+        float(s.lon),
+        float(s.u),
+        float(s.v),
+        int(s.leg),
+        str(s.source),
+        None if s.row is None else int(s.row),
+        None if s.col is None else int(s.col),
+        int(s.boot),
+        None if s.gap_ms is None else int(s.gap_ms),
+    )
 
 
 class SampleStore:
@@ -141,8 +152,9 @@ class SampleStore:
             if readonly:
                 if not self.path.exists():
                     raise SampleStoreError(f"sample store not found: {self.path}")
-                self._con = sqlite3.connect(f"{self.path.resolve().as_uri()}?mode=ro", uri=True,
-                                            check_same_thread=False, isolation_level=None)
+                self._con = sqlite3.connect(
+                    f"{self.path.resolve().as_uri()}?mode=ro", uri=True, check_same_thread=False, isolation_level=None
+                )
             else:
                 self.path.parent.mkdir(parents=True, exist_ok=True)
                 # autocommit mode: every statement outside an explicit BEGIN is its own committed transaction
@@ -173,7 +185,9 @@ class SampleStore:
         s = Sample.coerce(kw if sample is None else sample)
         vals = _row_values(s)
         with self._lock:
-            cur = self._execute(f"INSERT OR IGNORE INTO samples ({', '.join(_COLUMNS)}) VALUES ({', '.join('?' * len(_COLUMNS))})", vals)
+            cur = self._execute(
+                f"INSERT OR IGNORE INTO samples ({', '.join(_COLUMNS)}) VALUES ({', '.join('?' * len(_COLUMNS))})", vals
+            )
             return cur.rowcount == 1
 
     def append_many(self, samples: Iterable[Sample | Mapping[str, Any]]) -> int:
@@ -184,7 +198,9 @@ class SampleStore:
             try:
                 self._execute("BEGIN IMMEDIATE")
                 self._con.executemany(
-                    f"INSERT OR IGNORE INTO samples ({', '.join(_COLUMNS)}) VALUES ({', '.join('?' * len(_COLUMNS))})", rows)
+                    f"INSERT OR IGNORE INTO samples ({', '.join(_COLUMNS)}) VALUES ({', '.join('?' * len(_COLUMNS))})",
+                    rows,
+                )
                 self._execute("COMMIT")
             except BaseException:
                 if self._con.in_transaction:
@@ -241,4 +257,3 @@ class SampleStore:
 
     def __repr__(self) -> str:
         return f"SampleStore({str(self.path)!r})"
-

@@ -233,10 +233,20 @@ class TelemetryLog:
 # -- tlog scanning ---------------------------------------------------------------------
 _MAGIC_V1, _MAGIC_V2 = 0xFE, 0xFD
 _TS_MIN, _TS_MAX = 946_684_800_000_000, 4_102_444_800_000_000  # 2000-01-01 .. 2100-01-01 in µs
-_INTERESTING = frozenset({
-    "HEARTBEAT", "GLOBAL_POSITION_INT", "NAMED_VALUE_FLOAT", "MISSION_COUNT", "MISSION_ITEM", "MISSION_ITEM_INT",
-    "MISSION_ACK", "MISSION_CURRENT", "MISSION_ITEM_REACHED", "STATUSTEXT",
-})
+_INTERESTING = frozenset(
+    {
+        "HEARTBEAT",
+        "GLOBAL_POSITION_INT",
+        "NAMED_VALUE_FLOAT",
+        "MISSION_COUNT",
+        "MISSION_ITEM",
+        "MISSION_ITEM_INT",
+        "MISSION_ACK",
+        "MISSION_CURRENT",
+        "MISSION_ITEM_REACHED",
+        "STATUSTEXT",
+    }
+)
 
 
 def _check_file(path: str | Path, what: str) -> bytes:
@@ -292,7 +302,9 @@ class _TlogScanner:
         if p + 8 >= n:
             return "short"
         ts = struct.unpack_from(">Q", data, p)[0]
-        if resync and not (_TS_MIN <= ts <= _TS_MAX or (self.last_ts is not None and abs(ts - self.last_ts) < 3_600_000_000)):
+        if resync and not (
+            _TS_MIN <= ts <= _TS_MAX or (self.last_ts is not None and abs(ts - self.last_ts) < 3_600_000_000)
+        ):
             return None
         flen = _frame_len(data, p + 8)
         if flen is None:
@@ -347,9 +359,15 @@ def _mode_names(mav_type: int) -> dict[int, str]:
         return {}
 
 
-def read_tlog(path: str | Path, *, u_name: str = "CUR_U", v_name: str = "CUR_V",
-              pair_tolerance_ms: int = RULES.pair_tolerance_ms, max_gap_ms: int = RULES.max_gap_ms,
-              vehicle_sysid: int | None = None) -> TelemetryLog:
+def read_tlog(
+    path: str | Path,
+    *,
+    u_name: str = "CUR_U",
+    v_name: str = "CUR_V",
+    pair_tolerance_ms: int = RULES.pair_tolerance_ms,
+    max_gap_ms: int = RULES.max_gap_ms,
+    vehicle_sysid: int | None = None,
+) -> TelemetryLog:
     """Read a ``.tlog`` (see module docstring).
 
     Args:
@@ -549,8 +567,9 @@ class _Interpreter:
         if not 0 <= m.seq < up.count:
             return
         scale = 1e-7 if is_int else 1.0
-        up.items_by_seq[int(m.seq)] = MissionItem(int(m.seq), int(m.command), int(m.frame), m.x * scale, m.y * scale,
-                                                  float(m.z), is_int)
+        up.items_by_seq[int(m.seq)] = MissionItem(
+            int(m.seq), int(m.command), int(m.frame), m.x * scale, m.y * scale, float(m.z), is_int
+        )
 
     def _gcs_mission_item(self, utc: float, m) -> None:
         self._gcs_mission_item_int(utc, m, is_int=False)
@@ -568,8 +587,9 @@ class _Interpreter:
             pos = tracks[boot].at(r.t_ms) if boot in tracks else None
             if pos is None:
                 continue
-            self.out.samples.append(Sample(r.t_ms, utc, pos.lat, pos.lon, r.u, r.v, leg, source, boot=boot,
-                                           gap_ms=pos.gap_ms))
+            self.out.samples.append(
+                Sample(r.t_ms, utc, pos.lat, pos.lon, r.u, r.v, leg, source, boot=boot, gap_ms=pos.gap_ms)
+            )
         self.out.n_readings = len(legs)
         return legs
 
@@ -582,9 +602,15 @@ def _ignore(*_: Any) -> None:
 _DF_HEAD = b"\xa3\x95"
 
 
-def read_dataflash(path: str | Path, *, u_name: str = "CUR_U", v_name: str = "CUR_V", cur_message: str = "CUR",
-                   pair_tolerance_ms: int = RULES.pair_tolerance_ms,
-                   max_gap_ms: int = RULES.max_gap_ms) -> TelemetryLog:
+def read_dataflash(
+    path: str | Path,
+    *,
+    u_name: str = "CUR_U",
+    v_name: str = "CUR_V",
+    cur_message: str = "CUR",
+    pair_tolerance_ms: int = RULES.pair_tolerance_ms,
+    max_gap_ms: int = RULES.max_gap_ms,
+) -> TelemetryLog:
     """Read an ArduPilot DataFlash ``.bin`` log (see module docstring).
 
     Positions come from ``POS`` (``Lat``/``Lng``), or ``GPS`` when the log has no
@@ -622,7 +648,9 @@ def read_dataflash(path: str | Path, *, u_name: str = "CUR_U", v_name: str = "CU
     def fmt_record(body: bytes):
         try:
             ftype, flen, name, fmt, cols = struct.unpack(fmt_fmt.msg_struct, body)
-            f = DFReader.DFFormat(ftype, DFReader.null_term(name), flen, DFReader.null_term(fmt), DFReader.null_term(cols))
+            f = DFReader.DFFormat(
+                ftype, DFReader.null_term(name), flen, DFReader.null_term(fmt), DFReader.null_term(cols)
+            )
             if struct.calcsize(f.msg_struct) + 3 != flen:
                 return None
             return f
@@ -683,8 +711,9 @@ def read_dataflash(path: str | Path, *, u_name: str = "CUR_U", v_name: str = "CU
     return out
 
 
-def _df_interpret(out: TelemetryLog, records: dict[str, list], u_name: str, v_name: str, cur_message: str, tol: int,
-                  max_gap_ms: int) -> None:
+def _df_interpret(
+    out: TelemetryLog, records: dict[str, list], u_name: str, v_name: str, cur_message: str, tol: int, max_gap_ms: int
+) -> None:
     nan = float("nan")
     pos_name = "POS" if records.get("POS") else "GPS"
     for m in records.get(pos_name, []):
@@ -724,4 +753,3 @@ def _df_interpret(out: TelemetryLog, records: dict[str, list], u_name: str, v_na
         if pos is None:
             continue
         out.samples.append(Sample(tb, nan, pos.lat, pos.lon, u, v, -1, "dataflash", gap_ms=pos.gap_ms))
-

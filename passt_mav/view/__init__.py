@@ -69,8 +69,14 @@ class ViewProcess:
                 self.proc.wait(5.0)
 
 
-def start_view(root: str | Path, *, port: int = 0, host: str = "127.0.0.1", log_file: str | Path | None = None,
-               wait_s: float = 30.0) -> ViewProcess:
+def start_view(
+    root: str | Path,
+    *,
+    port: int = 0,
+    host: str = "127.0.0.1",
+    log_file: str | Path | None = None,
+    wait_s: float = 30.0,
+) -> ViewProcess:
     """Serve the run in ``root`` from a subprocess (``python -m passt_mav.view``); returns once it answers.
 
     Raises ``OSError`` when it does not listen within ``wait_s`` (the mission goes on without it).

@@ -12,8 +12,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("root")
     p.add_argument("--host", default="127.0.0.1")
     p.add_argument("--port", type=int, default=0)
-    p.add_argument("--exit-with-parent", action="store_true",
-                   help="stop when the process that started this one is gone (the mission's: never an orphan)")
+    p.add_argument(
+        "--exit-with-parent",
+        action="store_true",
+        help="stop when the process that started this one is gone (the mission's: never an orphan)",
+    )
     a = p.parse_args(argv)
     if a.exit_with_parent:
         _watch_parent(os.getppid())

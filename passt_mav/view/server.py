@@ -75,8 +75,10 @@ def make_app(root: str | Path, *, token: str | None = None):
                     yield ": keep-alive\n\n"
                 await asyncio.sleep(POLL_S)
                 quiet += POLL_S
-        return StreamingResponse(events(), media_type="text/event-stream",
-                                 headers={"Cache-Control": "no-store", "X-Accel-Buffering": "no"})
+
+        return StreamingResponse(
+            events(), media_type="text/event-stream", headers={"Cache-Control": "no-store", "X-Accel-Buffering": "no"}
+        )
 
     async def raster(request):
         what = request.path_params["what"]
@@ -90,10 +92,15 @@ def make_app(root: str | Path, *, token: str | None = None):
             return Response(status_code=404)
         return Response(png, media_type="image/png", headers={"Cache-Control": "max-age=3600"})
 
-    app = Starlette(routes=[
-        Route("/", index), Route("/api/state", api_state), Route("/api/stream", stream),
-        Route("/api/raster/{what}.png", raster), Mount("/static", StaticFiles(directory=STATIC), name="static"),
-    ])
+    app = Starlette(
+        routes=[
+            Route("/", index),
+            Route("/api/state", api_state),
+            Route("/api/stream", stream),
+            Route("/api/raster/{what}.png", raster),
+            Mount("/static", StaticFiles(directory=STATIC), name="static"),
+        ]
+    )
     return _TokenGate(app, token) if token else app
 
 
@@ -108,8 +115,7 @@ def is_loopback(host: str) -> bool:
         return False
 
 
-def serve(root: str | Path, *, host: str = "127.0.0.1", port: int = 0, token: str | None = None,
-          on_ready=None) -> None:
+def serve(root: str | Path, *, host: str = "127.0.0.1", port: int = 0, token: str | None = None, on_ready=None) -> None:
     """Serve the run in ``root`` until interrupted (blocking). ``port`` 0 picks a free one;
     ``on_ready(port)`` is called once it listens."""
     import socket

@@ -70,9 +70,16 @@ class RunState:
         m = _read_json(self.root / "live" / "meta.json")
         if m is None:  # a run from before the live view: what the summary has
             s = _read_json(self.rd.summary_file) or {}
-            m = {"mission": s.get("mission"), "grid": s.get("grid"), "land": None, "boats": len(s.get("boats") or [1]),
-                 "legs_per_boat": s.get("legs_planned"), "geofence_margin_m": (s.get("config") or {}).get(
-                     "geofence_margin_m", 0.0), "truth_known": s.get("rmse") is not None, "skill_warning": None}
+            m = {
+                "mission": s.get("mission"),
+                "grid": s.get("grid"),
+                "land": None,
+                "boats": len(s.get("boats") or [1]),
+                "legs_per_boat": s.get("legs_planned"),
+                "geofence_margin_m": (s.get("config") or {}).get("geofence_margin_m", 0.0),
+                "truth_known": s.get("rmse") is not None,
+                "skill_warning": None,
+            }
         return m
 
     def grid(self, meta: dict):
@@ -89,8 +96,9 @@ class RunState:
         try:
             con = sqlite3.connect(f"file:{db}?mode=ro", uri=True, timeout=1.0)
             try:
-                rows = con.execute("SELECT id, lat, lon, u, v, leg, source FROM samples WHERE id > ? ORDER BY id",
-                                   (self._last_id,)).fetchall()
+                rows = con.execute(
+                    "SELECT id, lat, lon, u, v, leg, source FROM samples WHERE id > ? ORDER BY id", (self._last_id,)
+                ).fetchall()
             finally:
                 con.close()
         except sqlite3.Error as exc:  # the writer holds the database a moment: next time
@@ -110,15 +118,28 @@ class RunState:
         out = []
         for rec in self._legs():
             path = rec.get("path") or []
-            lat, lon = (grid.cell_to_latlon(np.array([p[0] for p in path]), np.array([p[1] for p in path]))
-                        if path and grid is not None else ([], []))
-            out.append({"index": int(rec.get("index", 0)), "boat": int(rec.get("boat", 0)),
-                        "sysid": rec.get("sysid"), "status": rec.get("status"),
-                        "path": [[round(float(a), 6), round(float(b), 6)] for a, b in zip(lat, lon)],
-                        "waypoints": rec.get("waypoints") or [], "t_start": rec.get("t_start"),
-                        "t_end": rec.get("t_end"), "rmse_passt": rec.get("rmse_passt"),
-                        "rmse_model": rec.get("rmse_model"), "n_samples": rec.get("n_samples"),
-                        "has_reward": bool(rec.get("reward_map")), "reward_range": _range(rec.get("reward_map"))})
+            lat, lon = (
+                grid.cell_to_latlon(np.array([p[0] for p in path]), np.array([p[1] for p in path]))
+                if path and grid is not None
+                else ([], [])
+            )
+            out.append(
+                {
+                    "index": int(rec.get("index", 0)),
+                    "boat": int(rec.get("boat", 0)),
+                    "sysid": rec.get("sysid"),
+                    "status": rec.get("status"),
+                    "path": [[round(float(a), 6), round(float(b), 6)] for a, b in zip(lat, lon)],
+                    "waypoints": rec.get("waypoints") or [],
+                    "t_start": rec.get("t_start"),
+                    "t_end": rec.get("t_end"),
+                    "rmse_passt": rec.get("rmse_passt"),
+                    "rmse_model": rec.get("rmse_model"),
+                    "n_samples": rec.get("n_samples"),
+                    "has_reward": bool(rec.get("reward_map")),
+                    "reward_range": _range(rec.get("reward_map")),
+                }
+            )
         return out
 
     def _legs(self) -> list[dict]:
@@ -142,23 +163,35 @@ class RunState:
             statuses = read_statuses(self.root)
             legs = self._leg_rows(grid)
             summary = _read_json(self.rd.summary_file) or {}
-            return {"meta": {k: v for k, v in meta.items() if k != "land"}, "root": str(self.root),
-                    "status": summary.get("status") or "running", "finished": bool(summary.get("finished_utc")),
-                    "region": self._region(grid, meta), "boats": self._boats(statuses, legs, meta),
-                    "legs": legs, "events": self._events[-300:], "n_events": len(self._events),
-                    "estimate": self._estimate_info(grid, meta, legs), "rmse": _rmse(legs),
-                    "n_samples": len(self._samples)}
+            return {
+                "meta": {k: v for k, v in meta.items() if k != "land"},
+                "root": str(self.root),
+                "status": summary.get("status") or "running",
+                "finished": bool(summary.get("finished_utc")),
+                "region": self._region(grid, meta),
+                "boats": self._boats(statuses, legs, meta),
+                "legs": legs,
+                "events": self._events[-300:],
+                "n_events": len(self._events),
+                "estimate": self._estimate_info(grid, meta, legs),
+                "rmse": _rmse(legs),
+                "n_samples": len(self._samples),
+            }
 
     def _region(self, grid, meta: dict) -> dict | None:
         if grid is None:
             return None
         r, c = grid.shape
-        lat, lon = grid.fcell_to_latlon(np.array([-0.5, r - 0.5, -0.5, r - 0.5]),
-                                        np.array([-0.5, c - 0.5, c - 0.5, -0.5]))
+        lat, lon = grid.fcell_to_latlon(
+            np.array([-0.5, r - 0.5, -0.5, r - 0.5]), np.array([-0.5, c - 0.5, c - 0.5, -0.5])
+        )
         fence = grid.geofence(float(meta.get("geofence_margin_m") or 0.0))
-        return {"bounds": [[float(lat.min()), float(lon.min())], [float(lat.max()), float(lon.max())]],
-                "outline": grid.geofence(0.0).round(6).tolist(), "fence": np.asarray(fence).round(6).tolist(),
-                "has_land": bool(meta.get("land")) and bool(np.any(meta["land"]))}
+        return {
+            "bounds": [[float(lat.min()), float(lon.min())], [float(lat.max()), float(lon.max())]],
+            "outline": grid.geofence(0.0).round(6).tolist(),
+            "fence": np.asarray(fence).round(6).tolist(),
+            "has_land": bool(meta.get("land")) and bool(np.any(meta["land"])),
+        }
 
     def _boats(self, statuses: dict, legs: list[dict], meta: dict) -> list[dict]:
         n = max([int(meta.get("boats") or 1)] + [b + 1 for b in statuses])
@@ -185,8 +218,15 @@ class RunState:
             if st.get("lat") is not None:
                 tr.append((st["lat"], st["lon"]))
             done = sum(1 for r in legs if r["boat"] == b and r["status"] == "complete")
-            out.append({"boat": b, "status": st, "track": [[round(a, 6), round(o, 6)] for a, o in tr],
-                        "samples": samples[b][-2000:], "legs_done": done})
+            out.append(
+                {
+                    "boat": b,
+                    "status": st,
+                    "track": [[round(a, 6), round(o, 6)] for a, o in tr],
+                    "samples": samples[b][-2000:],
+                    "legs_done": done,
+                }
+            )
         return out
 
     def _leg_std(self, leg: int) -> np.ndarray | None:
@@ -208,23 +248,30 @@ class RunState:
         kind, leg = ("estimate", est[-1]) if est else (("forecast", pred[-1]) if pred else (None, None))
         reward = [r["index"] for r in legs if r["has_reward"]]
         std = self._leg_std(est[-1]) if est else None
-        info = {"kind": kind, "leg": leg, "reward_leg": reward[-1] if reward else None,
-                "reward_range": next((r["reward_range"] for r in legs if reward and r["index"] == reward[-1]), None),
-                "std": std is not None, "std_range": None if std is None else _range(np.hypot(std[0], std[1]))}
+        info = {
+            "kind": kind,
+            "leg": leg,
+            "reward_leg": reward[-1] if reward else None,
+            "reward_range": next((r["reward_range"] for r in legs if reward and r["index"] == reward[-1]), None),
+            "std": std is not None,
+            "std_range": None if std is None else _range(np.hypot(std[0], std[1])),
+        }
         if kind is None:
             return info
         uv = self.field_uv(kind, leg)
         if uv is None:
             return info
         step = max(1, int(np.ceil(max(grid.shape) / MAX_ARROWS_SIDE)))
-        rows, cols = np.mgrid[0:grid.shape[0]:step, 0:grid.shape[1]:step]
+        rows, cols = np.mgrid[0 : grid.shape[0] : step, 0 : grid.shape[1] : step]
         lat, lon = grid.cell_to_latlon(rows.ravel(), cols.ravel())
         u, v = uv[0][rows, cols].ravel(), uv[1][rows, cols].ravel()
         ok = np.isfinite(u) & np.isfinite(v)
         speed = np.hypot(uv[0], uv[1])
-        info.update(arrows=np.column_stack([lat[ok], lon[ok], u[ok], v[ok]]).round(5).tolist(),
-                    vmax=float(np.nanmax(speed)) if np.isfinite(speed).any() else 1.0,
-                    cell_m=float(grid.mean_cell_size_m) * step)
+        info.update(
+            arrows=np.column_stack([lat[ok], lon[ok], u[ok], v[ok]]).round(5).tolist(),
+            vmax=float(np.nanmax(speed)) if np.isfinite(speed).any() else 1.0,
+            cell_m=float(grid.mean_cell_size_m) * step,
+        )
         return info
 
     # -- fields and rasters ---------------------------------------------------------------------------
@@ -261,8 +308,11 @@ class RunState:
             if leg is None:
                 return None
             if what == "speed":
-                uv = self.field_uv("estimate", leg) if self.rd.estimate_file(leg).exists() else \
-                    self.field_uv("forecast", leg)
+                uv = (
+                    self.field_uv("estimate", leg)
+                    if self.rd.estimate_file(leg).exists()
+                    else self.field_uv("forecast", leg)
+                )
                 return None if uv is None else _png(np.hypot(uv[0], uv[1]), "viridis", vmin=0.0)
             if what == "std":
                 std = self._leg_std(leg)
@@ -304,7 +354,13 @@ def _range(a) -> list[float] | None:
 
 def _rmse(legs: list[dict]) -> dict:
     """RMSE of the estimate and of the model alone after each complete leg, in field-time order."""
-    done = sorted((r for r in legs if r["status"] == "complete" and r.get("rmse_passt") is not None),
-                  key=lambda r: (r.get("t_end") or 0.0, r["index"]))
-    return {"t": [r.get("t_end") for r in done], "passt": [r["rmse_passt"] for r in done],
-            "model": [r.get("rmse_model") for r in done], "leg": [r["index"] for r in done]}
+    done = sorted(
+        (r for r in legs if r["status"] == "complete" and r.get("rmse_passt") is not None),
+        key=lambda r: (r.get("t_end") or 0.0, r["index"]),
+    )
+    return {
+        "t": [r.get("t_end") for r in done],
+        "passt": [r["rmse_passt"] for r in done],
+        "model": [r.get("rmse_model") for r in done],
+        "leg": [r["index"] for r in done],
+    }
