@@ -13,6 +13,7 @@ from __future__ import annotations
 import json
 import random
 import shutil
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -310,3 +311,23 @@ def test_bad_inputs_exit_2(flown, tmp_path, capsys):
         assert err.count("\n") == 0 and err.startswith("passt-mav: error:"), (argv, err)
     with pytest.raises(ReplayError, match="no vehicle messages"):
         replay(junk, mission=mfile, out=False)
+
+
+def test_a_run_replays_with_the_gp_bias_it_ran_with():
+    """gp.bias became the mission default (issue 27): a run whose recorded config has no ``bias`` ran
+    without it and replays without it; a recorded value wins over today's default either way."""
+    from passt_mav.analysis.replay import _as_recorded
+    from passt_mav.mission.config import BIAS_DEFAULT, load_mission
+
+    cfg = load_mission(Path(__file__).resolve().parents[1] / "missions" / "north_atlantic.yaml")
+    assert cfg.gp.bias is True and BIAS_DEFAULT is True
+    old_run = {"config": {"gp": {"prior": "forecast", "background": 200}}}
+    assert _as_recorded(cfg, old_run).gp.bias is False
+    assert _as_recorded(cfg, {"config": {"gp": {"bias": True}}}).gp.bias is True
+    assert (
+        _as_recorded(
+            cfg.model_copy(update={"gp": cfg.gp.model_copy(update={"bias": False})}), {"config": {"gp": {"bias": True}}}
+        ).gp.bias
+        is True
+    )
+    assert _as_recorded(cfg, None) is cfg

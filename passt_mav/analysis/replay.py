@@ -187,6 +187,23 @@ class ReplayResult:
 
 # -- replay ---------------------------------------------------------------------------------------
 def _load_config(mission, summary: dict | None, rd) -> tuple[Any, str]:
+    """The mission to replay with, and where it came from; a run's own GP settings as it ran them."""
+    cfg, src = _mission_of(mission, summary, rd)
+    return (cfg if mission is not None else _as_recorded(cfg, summary)), src
+
+
+def _as_recorded(cfg, summary: dict | None):
+    """``cfg`` with ``gp.bias`` as the run resolved it (summary.json ``config``): a default that changed
+    since (bias became the mission default in issue 27) must not make an older run's replay diverge. A run
+    whose recorded config has no ``bias`` ran before the option existed: without it."""
+    recorded = (summary or {}).get("config")
+    if not isinstance(recorded, dict) or not isinstance(recorded.get("gp"), dict):
+        return cfg
+    bias = bool(recorded["gp"].get("bias", False))
+    return cfg if cfg.gp.bias == bias else cfg.model_copy(update={"gp": cfg.gp.model_copy(update={"bias": bias})})
+
+
+def _mission_of(mission, summary: dict | None, rd) -> tuple[Any, str]:
     from passt_mav.mission.config import load_mission, validate_mission
 
     if mission is not None:
