@@ -91,6 +91,8 @@ import queue
 import threading
 import time
 from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -250,6 +252,27 @@ class OwnState:
         return None if leg is None else leg + 1
 
 
+@dataclass(frozen=True)
+class BoatParts:
+    """What a fleet's boat shares with the fleet instead of owning it (each None = the controller's own):
+    its :class:`~passt_mav.legstep.LegStep`, state keeper (:class:`OwnState`'s methods), lock, live-view
+    writer and summary writer."""
+
+    step: LegStep | None = None
+    share: Any = None
+    lock: Any = None
+    record: RecordWriter | None = None
+    write_summary: Callable[[], None] | None = None
+
+
+def _check_field(config, field) -> None:
+    """The mission's field can carry a run: two snapshots at least (dt), and t0 inside it."""
+    if field.n_times < 2:
+        raise UserError("the mission's field needs at least 2 snapshots (dt)")
+    if not 0 <= config.t0 < field.n_times - 1:
+        raise UserError(f"t0={config.t0} lies outside the field's {field.n_times} snapshots")
+
+
 class MissionController:
     """Runs a mission config on a connected vehicle, writing a run directory.
 
@@ -270,9 +293,7 @@ class MissionController:
         echo: where one-line progress goes (print; None = silent).
         mission_text: text of the mission file as run (written to the run directory).
         extra_summary: merged into summary.json (e.g. the demo's simulator settings).
-        step / share / lock / record / write_summary: a fleet's boat's shared parts (its
-            :class:`~passt_mav.legstep.LegStep`, state keeper (:class:`OwnState`'s methods), lock, live-view
-            writer and summary); default: this controller's own.
+        parts: a fleet's boat's shared parts (:class:`BoatParts`); default: this controller's own.
     """
 
     def __init__(
@@ -295,75 +316,65 @@ class MissionController:
         echo: Callable[[str], None] | None = print,
         mission_text: str | None = None,
         extra_summary: dict | None = None,
-        step: LegStep | None = None,
-        share=None,
-        lock=None,
-        record: RecordWriter | None = None,
-        write_summary: Callable[[], None] | None = None,
+        parts: BoatParts | None = None,
     ):
         from passt_mav.mavlink import Vehicle
 
-        self.config = config
-        self.link = link
-        self.rd = run_dir
-        self.field = field
-        self.grid = field.grid
+        self.config, self.link, self.rd, self.field, self.grid = config, link, run_dir, field, field.grid
         self.predictor = predictor
         self.predictor_info = predictor_info or {"requested": config.model, "used": config.model, "fallback": None}
         self.vehicle = vehicle or Vehicle(link)
         self.n_legs = int(legs or config.legs)
-        if field.n_times < 2:
-            raise UserError("the mission's field needs at least 2 snapshots (dt)")
-        if not 0 <= config.t0 < field.n_times - 1:
-            raise UserError(f"t0={config.t0} lies outside the field's {field.n_times} snapshots")
+        _check_field(config, field)
         self.dt = float(field.dt)
         self.speedup = max(float(speedup_hint), 1e-6)
-        self.resume = resume
-        self.truth_known = truth_known
-        self.mission_text = mission_text
+        self.resume, self.truth_known, self.mission_text = resume, truth_known, mission_text
         self.extra_summary = dict(extra_summary or {})
         self.land = field.land_mask
-        if step is None:  # the loop keeps the GP std: estimate.nc u_std/v_std (exports, live view)
-            step = LegStep(
-                config, field, build_loop(config, predictor, self.grid, land=self.land), truth_known=truth_known
-            )
+        parts = parts or BoatParts()
+        # the loop keeps the GP std: estimate.nc u_std/v_std (exports, live view)
+        step = parts.step or LegStep(
+            config, field, build_loop(config, predictor, self.grid, land=self.land), truth_known
+        )
         self.step, self.loop = step, step.loop
-        self.share = share or OwnState(step)
+        self.share = parts.share or OwnState(step)
         #: held while writing netCDF/HDF5 files and running the predictor (neither is thread-safe: a fleet's boats)
-        self.lock = lock or threading.RLock()
+        self.lock = parts.lock or threading.RLock()
         self.leg_records: list[dict] = []
         self.leg_rec: dict | None = None  # the record of the leg in flight
         self.status = "running"
         self.started_utc = utc_now()
-        self.store = None
-        self.collector = None
-        self.writer = None
-        self.record = record or RecordWriter(run_dir.root)  # the live view's files (passt_mav.runs.live)
+        self.store = self.collector = self.writer = None  # set by run()
+        self.record = parts.record or RecordWriter(run_dir.root)  # the live view's files (passt_mav.runs.live)
         self.journal = Journal(echo or (lambda s: None), self.record)
-        self.run_clock = RunClock(
-            field,
-            config.field,
-            link,
-            self.journal,
-            forced=field_time_at_boot is not None,
-            t_boot0=float(field.times[config.t0]) if field_time_at_boot is None else float(field_time_at_boot),
-            speedup=self.speedup,
-        )
+        self.run_clock = self._make_clock(field_time_at_boot)
         self.record.field_time = self.run_clock.field_time_now
-        self.session = VehicleSession(
-            link,
+        self.session = self._make_session(ready_timeout_s, pause_timeout_s)
+        self._write_summary = parts.write_summary or self._write_own_summary
+        self._n_stored: int | None = None  # the store's count when last read
+        self._last_clock: tuple[int, int, int, int] | None = None  # (leg, time_boot_ms, boot, k) last sent
+        self.live_leg: tuple[int | None, float | None] = (None, None)  # (leg in flight, uptime s it should end)
+
+    def _make_clock(self, field_time_at_boot: float | None) -> RunClock:
+        """The run's clock (vehicle time -> field time); ``field_time_at_boot`` forces the boot anchor."""
+        t0 = float(self.field.times[self.config.t0]) if field_time_at_boot is None else float(field_time_at_boot)
+        forced = field_time_at_boot is not None
+        return RunClock(
+            self.field, self.config.field, self.link, self.journal, forced=forced, t_boot0=t0, speedup=self.speedup
+        )
+
+    def _make_session(self, ready_timeout_s: float, pause_timeout_s: float) -> VehicleSession:
+        """The vehicle side of this controller's legs (timeouts in wall seconds)."""
+        return VehicleSession(
+            self.link,
             self.vehicle,
             self.journal,
             speed_mps=self.speed,
-            on_reboot=config.vehicle.on_reboot,
+            on_reboot=self.config.vehicle.on_reboot,
             speedup=self.speedup,
             ready_timeout_s=ready_timeout_s,
             pause_timeout_s=pause_timeout_s,
         )
-        self._write_summary = write_summary or self._write_own_summary
-        self._n_stored: int | None = None  # the store's count when last read
-        self._last_clock: tuple[int, int, int, int] | None = None  # (leg, time_boot_ms, boot, k) last sent
-        self.live_leg: tuple[int | None, float | None] = (None, None)  # (leg in flight, uptime s it should end)
 
     # -- helpers --------------------------------------------------------------------------
     @property
@@ -404,47 +415,8 @@ class MissionController:
 
     # -- summary ------------------------------------------------------------------------------
     def summary(self) -> dict:
-        cfg = self.config
-        legs = [dict(x) for x in self.leg_records]
-        rm = {
-            "t": [x.get("t_end") for x in legs],
-            "passt": [x.get("rmse_passt") for x in legs],
-            "model": [x.get("rmse_model") for x in legs],
-        }
-        s = {
-            "mission": cfg.name,
-            "status": self.status,
-            "started_utc": self.started_utc,
-            "finished_utc": utc_now() if self.status != "running" else None,
-            "field": cfg.field.source,
-            "field_time_origin": self.field.time_origin,
-            "grid": self.grid.describe(),
-            "model": self.predictor_info.get("used"),
-            "model_requested": self.predictor_info.get("requested"),
-            "model_fallback": self.predictor_info.get("fallback"),
-            "planner": cfg.planner.name,
-            "reward": cfg.planner.reward,
-            "path_length": cfg.planner.path_length,
-            "seeds": cfg.seeds.model_dump(),
-            "config": cfg.model_dump(mode="json"),
-            "legs_planned": self.n_legs,
-            "legs": legs,
-            "n_samples": self._n_samples(),
-            "readings_used": [(x.get("readings") or {}).get("fraction_used") for x in legs],
-            "link_vehicle_bytes_per_s": [(x.get("link") or {}).get("vehicle_bytes_per_s") for x in legs],
-            "rmse": rm if self.truth_known else None,
-            "rmse_note": "RMSE over water cells vs the mission's field at the state time; 'model' = the predictor "
-            "alone from the true state at t0, never re-initialised"
-            if self.truth_known
-            else None,
-            "clock": self._clock_with_boots().describe(),
-            "thinning": THINNING,
-            "dt": self.dt,
-            "connect": self.link.config.connect,
-            "events": list(self.events),
-        }
-        s.update(self.extra_summary)
-        return s
+        """summary.json's content now (see :mod:`passt_mav.runs.rundir`)."""
+        return run_summary(self)
 
     def _n_samples(self) -> int:
         try:
@@ -800,3 +772,49 @@ def _progress_line(rec: dict) -> str:
         f"loss {100 * link['loss']:.1f} %"
         + ("" if link.get("vehicle_bytes_per_s") is None else f", vehicle sends {link['vehicle_bytes_per_s']:.0f} B/s")
     )
+
+
+def run_summary(ctl) -> dict:
+    """summary.json of controller ``ctl`` now: the mission, its settings, every leg record, RMSE over time
+    (field units) where the truth is known, the clock, the events (keys: :mod:`passt_mav.runs.rundir`)."""
+    cfg = ctl.config
+    legs = [dict(x) for x in ctl.leg_records]
+    rm = {
+        "t": [x.get("t_end") for x in legs],
+        "passt": [x.get("rmse_passt") for x in legs],
+        "model": [x.get("rmse_model") for x in legs],
+    }
+    s = {
+        "mission": cfg.name,
+        "status": ctl.status,
+        "started_utc": ctl.started_utc,
+        "finished_utc": utc_now() if ctl.status != "running" else None,
+        "field": cfg.field.source,
+        "field_time_origin": ctl.field.time_origin,
+        "grid": ctl.grid.describe(),
+        "model": ctl.predictor_info.get("used"),
+        "model_requested": ctl.predictor_info.get("requested"),
+        "model_fallback": ctl.predictor_info.get("fallback"),
+        "planner": cfg.planner.name,
+        "reward": cfg.planner.reward,
+        "path_length": cfg.planner.path_length,
+        "seeds": cfg.seeds.model_dump(),
+        "config": cfg.model_dump(mode="json"),
+        "legs_planned": ctl.n_legs,
+        "legs": legs,
+        "n_samples": ctl._n_samples(),
+        "readings_used": [(x.get("readings") or {}).get("fraction_used") for x in legs],
+        "link_vehicle_bytes_per_s": [(x.get("link") or {}).get("vehicle_bytes_per_s") for x in legs],
+        "rmse": rm if ctl.truth_known else None,
+        "rmse_note": "RMSE over water cells vs the mission's field at the state time; 'model' = the predictor "
+        "alone from the true state at t0, never re-initialised"
+        if ctl.truth_known
+        else None,
+        "clock": ctl._clock_with_boots().describe(),
+        "thinning": THINNING,
+        "dt": ctl.dt,
+        "connect": ctl.link.config.connect,
+        "events": list(ctl.events),
+    }
+    s.update(ctl.extra_summary)
+    return s

@@ -43,7 +43,7 @@ import threading
 import time
 from collections.abc import Callable
 
-from passt_mav.controller import MissionController, StoreWriter
+from passt_mav.controller import BoatParts, MissionController, StoreWriter
 from passt_mav.errors import MavlinkError, PlannerError, ReconstructionError
 from passt_mav.legstep import FleetStep, LegStep, build_loop
 from passt_mav.live_record import live_meta
@@ -125,11 +125,7 @@ class BoatController(MissionController):
             vehicle=vehicle,
             legs=fleet.n_legs,
             echo=lambda s: echo(f"boat {boat}: {s}"),
-            step=fleet.step,
-            share=SharedState(fleet, boat, link),
-            lock=fleet.lock,
-            record=record,
-            write_summary=fleet.write_summary,
+            parts=BoatParts(fleet.step, SharedState(fleet, boat, link), fleet.lock, record, fleet.write_summary),
             **kw,
         )
         self.fleet, self.boat = fleet, int(boat)
