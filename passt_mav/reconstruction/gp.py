@@ -411,10 +411,7 @@ class GPReconstructor:
             else None
         )
         kernels, fitted = self._prior_kernels(Bg)
-        bias_var = float(getattr(self, "bias_var_", 0.0)) if self._bias_on() and fitted else 0.0
-        if bias_var > 0:
-            Bb = self._bias_modes(X.size) * np.sqrt(bias_var)
-            Bg = Bb if Bg is None else np.concatenate([Bg, Bb])
+        Bg = self._with_offset_modes(Bg, X.size)
         if not fitted:
             inputs = xy
         else:
@@ -476,24 +473,34 @@ class GPReconstructor:
     def _fit_background_scale(self, target, cells, Bg) -> float:
         """The factor in :data:`BACKGROUND_SCALES` that maximises the joint log marginal likelihood
         of the samples' targets (n, 2) (u and v; zero-mean) under factor x ``B`` + the fitted
-        sensor noise; ``cells``: each sample's flat cell index, ``Bg``: (m, 2, R*C) modes."""
+        sensor noise; ``cells``: each sample's flat cell index, ``Bg``: (m, 2, R*C) modes.
+        The modes are weighed against the sensor noise alone: how much of the residual do they
+        explain? (with the stationary kernels included, a fitted stationary kernel has already
+        taken a smooth drift's variance and the likelihood then under-weights the modes: measured
+        on the ocean default, 6 trials, L=50, final RMSE 0.0678 that way, 0.0627 this way, 0.0564
+        with the factor fixed at 1, which however spoils a leg where the model is right)."""
+        return self._fit_factor(target, cells, np.zeros((0,) + Bg.shape[1:]), Bg, self.BACKGROUND_SCALES)
+
+    def _fit_factor(self, target, cells, Bg, modes, candidates) -> float:
+        """The variance in ``candidates`` (0 first) on ``modes`` (m, 2, N; unit factor) that maximises
+        the joint log marginal likelihood of the residuals ``target`` (n, 2) under those modes + the
+        modes ``Bg`` already in (factors applied) + the fitted sensor noise; 0 unless it raises it
+        over 0 by the information criterion's 0.5 ln(2n) (one fitted parameter; see
+        :meth:`_evidence_gate`: a factor fitted to noise drags a right forecast off). The
+        stationary kernels are left out (see :meth:`_fit_background_scale`)."""
         from scipy.linalg import cho_solve, cholesky
 
         n = len(target)
-        Hb = np.concatenate([Bg[:, 0, cells], Bg[:, 1, cells]], axis=1)
-        HtH = Hb.T @ Hb
-        # the modes against the sensor noise alone: how much of the residual do they explain?
-        # (with the stationary kernels included, a fitted stationary kernel has already taken
-        # a smooth drift's variance and the likelihood then under-weights the modes: measured
-        # on the ocean default, 6 trials, L=50, final RMSE 0.0678 that way, 0.0627 this way,
-        # 0.0564 with the factor fixed at 1, which however spoils a leg where the model is right)
-        noise = np.concatenate([np.full(n, float(self.kernels_[k].k2.noise_level)) for k in range(2)])
-        K0 = np.diag(noise + float(self.alpha))
         y = np.concatenate([target[:, 0], target[:, 1]])
+        noise = np.concatenate([np.full(n, float(self.kernels_[k].k2.noise_level)) for k in range(2)])
+        Hb = np.concatenate([Bg[:, 0, cells], Bg[:, 1, cells]], axis=1)
+        K0 = Hb.T @ Hb + np.diag(noise + float(self.alpha))
+        Hm = np.concatenate([modes[:, 0, cells], modes[:, 1, cells]], axis=1)
+        J = Hm.T @ Hm
         best, best_ll, ll0 = 1.0, -np.inf, None
-        for a in self.BACKGROUND_SCALES:
+        for a in candidates:
             try:
-                Lc = cholesky(K0 + a * HtH, lower=True, check_finite=False)
+                Lc = cholesky(K0 + a * J, lower=True, check_finite=False)
             except np.linalg.LinAlgError:
                 continue
             ll = -0.5 * float(y @ cho_solve((Lc, True), y, check_finite=False)) - float(np.log(np.diag(Lc)).sum())
@@ -501,9 +508,6 @@ class GPReconstructor:
                 ll0 = ll
             if ll > best_ll:
                 best, best_ll = a, ll
-        # the modes only where the samples show them beyond the noise: the factor is one more
-        # fitted parameter, kept when it pays the information criterion's 0.5 ln(2n) (see
-        # _evidence_gate; a factor fitted to noise drags a right forecast off)
         if ll0 is not None and best > 0 and best_ll - ll0 < 0.5 * np.log(max(2 * n, 2)):
             return 0.0
         return float(best)
@@ -572,10 +576,7 @@ class GPReconstructor:
             Bg = self._background_modes(X.shape) * np.sqrt(self._background_factor())  # (m, 2, N)
             Bg[:, :, ~water] = 0.0
         kernels, fitted = self._prior_kernels(Bg)
-        bias_var = float(getattr(self, "bias_var_", 0.0)) if self._bias_on() and fitted else 0.0
-        if bias_var > 0:
-            Bb = self._bias_modes(N, water) * np.sqrt(bias_var)
-            Bg = Bb if Bg is None else np.concatenate([Bg, Bb])
+        Bg = self._with_offset_modes(Bg, N, water)
         n_in = getattr(self, "n_inputs_", 2) if fitted else 2
         pts = np.column_stack([X.ravel()[wi], Y.ravel()[wi]] + ([np.zeros(wi.size)] if n_in == 3 else []))
         rank_cap = int(self.PRIOR_KERNEL_RANK if kernel_rank is None else kernel_rank)
@@ -751,13 +752,13 @@ class GPReconstructor:
             Bg = Bg * np.sqrt(self._background_factor())
         if self._bias_on():
             v0 = max(float(np.mean(target**2)), float(self.noise_std) ** 2, 1e-12)
-            self.bias_var_ = self._fit_mode_var(target, cells, Bg, self._bias_modes(N), v0)
+            self.bias_var_ = self._fit_factor(target, cells, Bg, self._bias_modes(N), self._bias_candidates(v0))
             if self.bias_var_ > 0:
                 Bg = np.concatenate([Bg, self._bias_modes(N) * np.sqrt(self.bias_var_)])
             self.scale_var_ = 0.0
             anom = self._anomaly_mode(fc)
             if anom is not None:
-                self.scale_var_ = self._fit_mode_var(target, cells, Bg, anom, 1.0)
+                self.scale_var_ = self._fit_factor(target, cells, Bg, anom, self._bias_candidates(1.0))
                 if self.scale_var_ > 0:
                     Bg = np.concatenate([Bg, anom * np.sqrt(self.scale_var_)])
         return Bg if Bg.shape[0] or self.background is not None else None
@@ -788,35 +789,18 @@ class GPReconstructor:
     #: the residuals' mean square; the forecast-anomaly factor: 1)
     BIAS_FRACTIONS = tuple(float(x) for x in np.logspace(-2, 1, 10))
 
-    def _fit_mode_var(self, target, cells, Bg, modes, v0: float) -> float:
-        """The variance on ``modes`` (m, 2, N; unit factor), from ``v0`` x :data:`BIAS_FRACTIONS`
-        and 0, that maximises the joint log marginal likelihood of the residuals ``target`` (n, 2)
-        under those modes + the modes ``Bg`` already in (factors applied) + the fitted sensor
-        noise; 0 unless it raises it by the information criterion's 0.5 ln(2n) (one parameter).
-        The stationary kernels are left out for the reason given in :meth:`_fit_background_scale`
-        (fitted on the same residuals, they have already taken a smooth drift's variance)."""
-        from scipy.linalg import cho_solve, cholesky
+    def _bias_candidates(self, v0: float) -> tuple[float, ...]:
+        """The variances a ``bias`` fit tries: 0, then ``v0`` x :data:`BIAS_FRACTIONS`."""
+        return (0.0,) + tuple(v0 * f for f in self.BIAS_FRACTIONS)
 
-        n = len(target)
-        y = np.concatenate([target[:, 0], target[:, 1]])
-        noise = np.concatenate([np.full(n, float(self.kernels_[k].k2.noise_level)) for k in range(2)])
-        Hb = np.concatenate([Bg[:, 0, cells], Bg[:, 1, cells]], axis=1)
-        K0 = Hb.T @ Hb + np.diag(noise + float(self.alpha))
-        Hm = np.concatenate([modes[:, 0, cells], modes[:, 1, cells]], axis=1)
-        J = Hm.T @ Hm
-        lls = []
-        for a in (0.0,) + tuple(v0 * f for f in self.BIAS_FRACTIONS):
-            try:
-                Lc = cholesky(K0 + a * J, lower=True, check_finite=False)
-            except np.linalg.LinAlgError:
-                continue
-            lls.append(
-                (-0.5 * float(y @ cho_solve((Lc, True), y, check_finite=False)) - float(np.log(np.diag(Lc)).sum()), a)
-            )
-        if not lls or lls[0][1] != 0.0:
-            return 0.0
-        best_ll, best = max(lls)
-        return float(best) if best_ll - lls[0][0] >= 0.5 * np.log(max(2 * n, 2)) else 0.0
+    def _with_offset_modes(self, Bg, N: int, water=None):
+        """``Bg`` (m, 2, N) or None, with the offset modes of the last ``bias`` fit appended (when one
+        was kept after a fit): the prior as the next reconstruction will start it."""
+        var = float(getattr(self, "bias_var_", 0.0)) if self._bias_on() and hasattr(self, "kernels_") else 0.0
+        if var <= 0:
+            return Bg
+        Bb = self._bias_modes(N, water) * np.sqrt(var)
+        return Bb if Bg is None else np.concatenate([Bg, Bb])
 
     def _background_modes(self, shape) -> np.ndarray:
         """The background modes as (m, 2, R*C) float64, land (NaN) as 0."""
