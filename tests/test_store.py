@@ -201,3 +201,21 @@ def test_a_version_1_store_without_gap_ms_still_opens_and_gets_the_column(tmp_pa
     con = sqlite3.connect(path)
     assert con.execute("PRAGMA user_version").fetchone()[0] == 2
     con.close()
+
+
+def test_since_follows_a_store_being_written(tmp_path):
+    """A reader following a live store (the live view) gets each sample once, in arrival order."""
+    db = tmp_path / "s.sqlite"
+    with SampleStore(db) as w:
+        w.append_many(
+            [
+                {"time_boot_ms": k, "utc": 1.0e9 + k, "lat": 40.0, "lon": -62.0 + k, "u": 0.1 * k, "v": 0.0}
+                for k in range(3)
+            ]
+        )
+        with SampleStore(db, readonly=True) as r:
+            first = r.since(0)
+            assert [s.u for _, s in first] == pytest.approx([0.0, 0.1, 0.2])
+            w.append(time_boot_ms=9, utc=1.0e9 + 9, lat=40.0, lon=-61.0, u=0.9, v=0.0)
+            later = r.since(first[-1][0])
+    assert [s.u for _, s in later] == pytest.approx([0.9]) and later[0][0] > first[-1][0]

@@ -226,6 +226,15 @@ class SampleStore:
         """Every stored sample, in arrival order."""
         return self._select()
 
+    def since(self, last_id: int) -> list[tuple[int, Sample]]:
+        """``(id, sample)`` of the samples stored after row ``last_id`` (0: all), in arrival order: a
+        reader following a store that is still being written (the live view)."""
+        with self._lock:
+            rows = self._execute(
+                f"SELECT id, {self._select_cols} FROM samples WHERE id > ? ORDER BY id", (int(last_id),)
+            ).fetchall()
+        return [(int(r[0]), Sample(*r[1:])) for r in rows]
+
     def for_leg(self, leg: int) -> list[Sample]:
         """The samples of leg ``leg`` (-1: those taken outside any leg), in arrival order."""
         return self._select("WHERE leg = ?", (int(leg),))

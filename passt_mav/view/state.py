@@ -19,6 +19,7 @@ import numpy as np
 
 from passt_mav.runs.live import read_events, read_statuses
 from passt_mav.runs.rundir import RunDir
+from passt_mav.runs.store import SampleStore, SampleStoreError
 
 __all__ = ["RunState", "signature"]
 
@@ -94,19 +95,14 @@ class RunState:
         if not db.exists():
             return
         try:
-            con = sqlite3.connect(f"file:{db}?mode=ro", uri=True, timeout=1.0)
-            try:
-                rows = con.execute(
-                    "SELECT id, lat, lon, u, v, leg, source FROM samples WHERE id > ? ORDER BY id", (self._last_id,)
-                ).fetchall()
-            finally:
-                con.close()
-        except sqlite3.Error as exc:  # the writer holds the database a moment: next time
+            with SampleStore(db, readonly=True) as store:
+                new = store.since(self._last_id)
+        except (SampleStoreError, sqlite3.Error) as exc:  # the writer holds the database a moment: next time
             log.debug("samples not read now: %s", exc)
             return
-        if rows:
-            self._samples += rows
-            self._last_id = rows[-1][0]
+        if new:
+            self._samples += [(i, x.lat, x.lon, x.u, x.v, x.leg, x.source) for i, x in new]
+            self._last_id = new[-1][0]
 
     def _boat_of(self, statuses: dict, legs: list[dict]) -> dict[int, int]:
         """sysid -> boat, from the statuses and the leg records."""
