@@ -644,7 +644,12 @@ def _replay_fleet(rd, summary: dict, cfg, step, rmse_tol: float, say):
             first_div = i if first_div is None else first_div
             break
         pl = planned[i]
-        ab = fs.absorb(boat, pl, lg.samples, clocks[boat])
+        # the state saw the leg's first n_samples readings (arrival order), those in the store when the
+        # boat absorbed its leg; a reading that completed in the log after that moment (the other half
+        # of a pair still on the wire) was logged but not absorbed
+        n_rec = rec.get("n_samples")
+        samples = lg.samples if n_rec is None else lg.samples[: int(n_rec)]
+        ab = fs.absorb(boat, pl, samples, clocks[boat])
         diffs = _diff_paths(rec["path"], pl.plan.path.tolist())
         r_same = all(
             a is None or (b is not None and abs(a - b) <= rmse_tol)
