@@ -184,19 +184,10 @@ def rollout(
     so a group's paths equal those of its own call (tested).
     """
     R, C = q.shape[-2:]
-    rngs = list(rng) if isinstance(rng, (list, tuple)) else [rng]
-    G = len(rngs)
-    if n % G:
-        raise PlannerError(f"{n} roll-outs do not split into {G} equal groups")
-    ng = n // G
-    firsts = np.arange(0, n, ng)
+    rngs, ng = _split_generators(rng, n)
     L = int(budget)
-    pos = np.broadcast_to(np.asarray(start, dtype=np.int64), (n, 2)).copy()
-    visited = np.zeros((n, R, C), bool)
+    pos, visited, paths = _start(start, n, R, C, L)
     b = np.arange(n)
-    visited[b, pos[:, 0], pos[:, 1]] = True
-    paths = np.empty((n, L + 1, 2), np.int64)
-    paths[:, 0] = pos
     rets = np.zeros(n)
     rec = ([], [], [], []) if record else None
     # the uncollected reward, kept up to date cell by cell (a move zeroes one cell per
@@ -206,25 +197,14 @@ def rollout(
     for t in range(L):
         f = _features_eff(eff, pos, 1.0 - t / L, moves, buf)
         allowed, tgt = _allowed(trav, visited, pos, moves)
-        s = weights.scores(f) / max(temperature, 1e-6)
-        s = np.where(allowed, s, -np.inf)
-        s = s - s.max(axis=1, keepdims=True)
-        p = np.exp(s)
-        p /= p.sum(axis=1, keepdims=True)
-        u = rngs[0].random((n, 1)) if G == 1 else np.concatenate([g.random((ng, 1)) for g in rngs])
-        a = np.minimum((p.cumsum(axis=1) < u).sum(axis=1), len(moves) - 1)
-        a = np.where(allowed[b, a], a, np.argmax(p, axis=1))  # guard against round-off at the top end
-        if greedy_first:
-            a[firsts] = np.argmax(s[firsts], axis=1)
+        s, p = _move_probabilities(weights, f, allowed, temperature)
+        a = _sample_moves(p, s, allowed, rngs, ng, greedy_first)
         new = tgt[b, a]
-        qv = q[new[:, 0], new[:, 1]] if q.ndim == 2 else q[b, new[:, 0], new[:, 1]]
-        gain = np.where(visited[b, new[:, 0], new[:, 1]], 0.0, qv)
+        gain = _gain(q, visited, new)
         rets += gain
         if record:
-            rec[0].append(f)
-            rec[1].append(allowed)
-            rec[2].append(a)
-            rec[3].append(gain)
+            for kept, x in zip(rec, (f, allowed, a, gain), strict=True):
+                kept.append(x)
         visited[b, new[:, 0], new[:, 1]] = True
         eff[b, new[:, 0], new[:, 1]] = 0.0
         pos = new
@@ -232,6 +212,77 @@ def rollout(
     if record:
         return paths, rets, tuple(np.stack(x) for x in rec)
     return paths, rets
+
+
+def _split_generators(rng, n: int) -> tuple[list, int]:
+    """:func:`rollout`'s ``rng`` as a list of G generators, and the group size ``n // G``.
+
+    Raises :class:`PlannerError` when ``n`` roll-outs do not split into G equal groups.
+    """
+    rngs = list(rng) if isinstance(rng, (list, tuple)) else [rng]
+    G = len(rngs)
+    if n % G:
+        raise PlannerError(f"{n} roll-outs do not split into {G} equal groups")
+    return rngs, n // G
+
+
+def _start(start, n: int, R: int, C: int, L: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The first state of ``n`` roll-outs of ``L`` moves on an (R, C) grid.
+
+    Returns the start cells ``pos`` (n, 2) int64 (``start`` is (2,) or (n, 2)), the visited
+    masks (n, R, C) with each start cell visited, and ``paths`` (n, L+1, 2) with the start
+    cells as first row (the rest left to fill).
+    """
+    pos = np.broadcast_to(np.asarray(start, dtype=np.int64), (n, 2)).copy()
+    visited = np.zeros((n, R, C), bool)
+    visited[np.arange(n), pos[:, 0], pos[:, 1]] = True
+    paths = np.empty((n, L + 1, 2), np.int64)
+    paths[:, 0] = pos
+    return pos, visited, paths
+
+
+def _move_probabilities(
+    weights: PolicyWeights, f: np.ndarray, allowed: np.ndarray, temperature: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """The policy's move distribution from the features ``f`` (B, M, F) over the ``allowed`` moves (B, M).
+
+    Returns the scores divided by ``temperature``, shifted so each row's maximum is 0, with -inf
+    on disallowed moves, and their softmax ``p`` (B, M) (0 on disallowed moves).
+    """
+    s = weights.scores(f) / max(temperature, 1e-6)
+    s = np.where(allowed, s, -np.inf)
+    s = s - s.max(axis=1, keepdims=True)
+    p = np.exp(s)
+    p /= p.sum(axis=1, keepdims=True)
+    return s, p
+
+
+def _sample_moves(
+    p: np.ndarray, s: np.ndarray, allowed: np.ndarray, rngs: list, ng: int, greedy_first: bool
+) -> np.ndarray:
+    """One move index per roll-out (n,), drawn from ``p`` (n, M) by inverse CDF.
+
+    Group g (``ng`` consecutive rows) draws its uniforms from ``rngs[g]``; a draw that lands on a
+    disallowed move by round-off at the top end takes the most likely move instead. With
+    ``greedy_first`` each group's first roll-out takes the argmax of its scores ``s``.
+    """
+    n, M = p.shape
+    b = np.arange(n)
+    u = rngs[0].random((n, 1)) if len(rngs) == 1 else np.concatenate([g.random((ng, 1)) for g in rngs])
+    a = np.minimum((p.cumsum(axis=1) < u).sum(axis=1), M - 1)
+    a = np.where(allowed[b, a], a, np.argmax(p, axis=1))  # guard against round-off at the top end
+    if greedy_first:
+        firsts = np.arange(0, n, ng)
+        a[firsts] = np.argmax(s[firsts], axis=1)
+    return a
+
+
+def _gain(q: np.ndarray, visited: np.ndarray, new: np.ndarray) -> np.ndarray:
+    """Reward (n,) of each roll-out's move into the cells ``new`` (n, 2): ``q`` there (``q`` is (R, C)
+    or (n, R, C)), 0 for a cell already visited."""
+    b = np.arange(len(new))
+    qv = q[new[:, 0], new[:, 1]] if q.ndim == 2 else q[b, new[:, 0], new[:, 1]]
+    return np.where(visited[b, new[:, 0], new[:, 1]], 0.0, qv)
 
 
 # -- training -------------------------------------------------------------------
@@ -305,39 +356,69 @@ def train_policy(
 
         it_range = tqdm(it_range, desc="train policy", unit="it")
     for it in it_range:
-        rows, cols = (int(x) for x in rng.integers(grid_range[0], grid_range[1] + 1, 2))
-        L = int(rng.integers(budget_range[0], budget_range[1] + 1))
-        maps = [random_reward_map(rng, rows, cols) for _ in range(batch)]
-        q = np.stack([m[0] for m in maps])
-        trav = np.stack([m[1] for m in maps])
-        starts = np.empty((batch, 2), np.int64)
-        for i in range(batch):
-            cells = np.argwhere(trav[i])
-            starts[i] = cells[rng.integers(len(cells))]
-        cur = PolicyWeights(*(p.detach().numpy().copy() for p in params[:3]), float(params[3].detach()))
-        _, rets, (F, A, act, rew) = rollout(cur, q, trav, starts, L, n=batch, rng=rng, record=True)
-        G = np.zeros_like(rew)
-        acc = np.zeros(batch)
-        for t in range(L - 1, -1, -1):
-            acc = rew[t] + gamma * acc
-            G[t] = acc
-        adv = G - G.mean(axis=1, keepdims=True)
-        adv = adv / (adv.std() + 1e-8)
-        Ft = torch.from_numpy(F)
-        h = torch.tanh(Ft @ params[0].T + params[1])
-        s = h @ params[2] + params[3]
-        s = s.masked_fill(~torch.from_numpy(A), -1e9)
-        logp = torch.log_softmax(s, dim=-1)
-        lp = logp.gather(-1, torch.from_numpy(act)[..., None])[..., 0]
-        ent = -(logp.exp() * logp).sum(-1).mean()
-        loss = -(lp * torch.from_numpy(adv)).mean() - entropy * ent
+        q, trav, starts, L = _training_batch(rng, batch, grid_range, budget_range)
+        _, rets, (F, A, act, rew) = rollout(_numpy_weights(params), q, trav, starts, L, n=batch, rng=rng, record=True)
+        loss = _reinforce_loss(params, F, A, act, _advantages(rew, gamma), entropy)
         opt.zero_grad()
         loss.backward()
         opt.step()
         bound = np.mean([top_l_bound(q[i], starts[i], L) for i in range(batch)])
         curve.append([(it + 1) * batch, float(rets.mean() / max(bound, 1e-9))])
-    final = PolicyWeights(*(p.detach().numpy().copy() for p in params[:3]), float(params[3].detach()))
-    return final, curve
+    return _numpy_weights(params), curve
+
+
+def _training_batch(
+    rng: np.random.Generator, batch: int, grid_range, budget_range
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
+    """One training iteration's problems, drawn from ``rng``: a grid size (rows, cols in ``grid_range``,
+    inclusive) and budget ``L`` (in ``budget_range``, inclusive) shared by the batch, ``batch``
+    random reward maps and a random traversable start cell on each.
+
+    Returns ``q`` (batch, rows, cols), ``trav`` (same shape, bool), ``starts`` (batch, 2) int64 and ``L``.
+    """
+    rows, cols = (int(x) for x in rng.integers(grid_range[0], grid_range[1] + 1, 2))
+    L = int(rng.integers(budget_range[0], budget_range[1] + 1))
+    maps = [random_reward_map(rng, rows, cols) for _ in range(batch)]
+    q = np.stack([m[0] for m in maps])
+    trav = np.stack([m[1] for m in maps])
+    starts = np.empty((batch, 2), np.int64)
+    for i in range(batch):
+        cells = np.argwhere(trav[i])
+        starts[i] = cells[rng.integers(len(cells))]
+    return q, trav, starts, L
+
+
+def _numpy_weights(params) -> PolicyWeights:
+    """A numpy copy of the torch parameters ``[W1, b1, w2, b2]`` being trained."""
+    return PolicyWeights(*(p.detach().numpy().copy() for p in params[:3]), float(params[3].detach()))
+
+
+def _advantages(rew: np.ndarray, gamma: float) -> np.ndarray:
+    """REINFORCE advantages (L, B) from the rewards ``rew`` (L, B): the return-to-go discounted by
+    ``gamma``, minus its batch mean at each step, divided by the std over all steps and roll-outs."""
+    G = np.zeros_like(rew)
+    acc = np.zeros(rew.shape[1])
+    for t in range(rew.shape[0] - 1, -1, -1):
+        acc = rew[t] + gamma * acc
+        G[t] = acc
+    adv = G - G.mean(axis=1, keepdims=True)
+    return adv / (adv.std() + 1e-8)
+
+
+def _reinforce_loss(params, F: np.ndarray, A: np.ndarray, act: np.ndarray, adv: np.ndarray, entropy: float):
+    """The policy-gradient loss ``-mean(log pi(a|s) * adv) - entropy * H`` (a torch scalar) of the
+    recorded roll-outs: features ``F`` (L, B, M, F), allowed moves ``A`` (L, B, M), actions ``act``
+    (L, B), advantages ``adv`` (L, B); ``H`` is the mean entropy of the move distributions."""
+    import torch
+
+    Ft = torch.from_numpy(F)
+    h = torch.tanh(Ft @ params[0].T + params[1])
+    s = h @ params[2] + params[3]
+    s = s.masked_fill(~torch.from_numpy(A), -1e9)
+    logp = torch.log_softmax(s, dim=-1)
+    lp = logp.gather(-1, torch.from_numpy(act)[..., None])[..., 0]
+    ent = -(logp.exp() * logp).sum(-1).mean()
+    return -(lp * torch.from_numpy(adv)).mean() - entropy * ent
 
 
 def save_policy(weights: PolicyWeights, path: str | Path, meta: dict) -> tuple[Path, Path]:
