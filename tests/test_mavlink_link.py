@@ -181,7 +181,7 @@ def test_timesync_is_requested_not_streamed_and_keeps_the_rtt_current():
         orig = link.send
         link.send = lambda m: (sent.append(m), orig(m))[1]
         assert link.request_streams() == {"GLOBAL_POSITION_INT": True}  # TIMESYNC skipped, not refused
-        n0 = len(link._rtt_samples)
+        n0 = len(link._acct.rtt_samples)
         time.sleep(0.6)
         link.send = orig
     intervals = [
@@ -190,7 +190,7 @@ def test_timesync_is_requested_not_streamed_and_keeps_the_rtt_current():
     assert intervals == [M.MAVLINK_MSG_ID_GLOBAL_POSITION_INT]
     requests = [m for m in sent if m.get_type() == "TIMESYNC" and m.tc1 == 0]
     assert 3 <= len(requests) <= 8  # one per 0.1 s on the heartbeat thread (0.05 s period)
-    assert len(link._rtt_samples) > n0  # answered and measured
+    assert len(link._acct.rtt_samples) > n0  # answered and measured
 
 
 def test_sim_refuses_timesync_as_a_stream_like_the_firmware():

@@ -22,7 +22,6 @@ import collections
 import hashlib
 import logging
 import os
-import queue
 import socket
 import struct
 import threading
@@ -37,6 +36,9 @@ from pymavlink import mavutil  # noqa: E402
 from pymavlink.dialects.v20 import ardupilotmega as mavlink2  # noqa: E402
 
 from passt_mav.errors import CommandRejected, LinkTimeout, LinkUnavailable, MavlinkError, UserError  # noqa: E402
+from passt_mav.mavlink.link_stats import LinkAccounting, LinkStats  # noqa: E402
+from passt_mav.mavlink.routing import MessageRouter, Subscription  # noqa: E402
+from passt_mav.mavlink.streams import request_streams  # noqa: E402
 
 __all__ = [
     "LinkConfig",
@@ -76,17 +78,6 @@ _DEFAULT_STREAMS = (
     ("EKF_STATUS_REPORT", 1.0),
     ("SYSTEM_TIME", 1.0),
 )
-#: messages that are not streams: ArduPilot refuses SET_MESSAGE_INTERVAL for them (TIMESYNC: result 2
-#: and "No ap_message for mavlink id (111)"); the link sends TIMESYNC requests itself instead
-_NOT_STREAMS = frozenset({"TIMESYNC"})
-#: REQUEST_DATA_STREAM stream ids of the messages the controller uses (ArduPilot's stream groups,
-#: ``MAVn_POSITION``, ``MAVn_EXT_STAT``, ``MAVn_EXTRA3``): the fallback where SET_MESSAGE_INTERVAL is refused
-STREAM_GROUPS = {
-    "GLOBAL_POSITION_INT": mavlink2.MAV_DATA_STREAM_POSITION,
-    "MISSION_CURRENT": mavlink2.MAV_DATA_STREAM_EXTENDED_STATUS,
-    "EKF_STATUS_REPORT": mavlink2.MAV_DATA_STREAM_EXTRA3,
-    "SYSTEM_TIME": mavlink2.MAV_DATA_STREAM_EXTRA3,
-}
 _SIGNING_HINT = "the vehicle may require MAVLink 2 signing (signing key, --signing-key)"
 
 
@@ -185,7 +176,7 @@ class LinkConfig:
         tlog: path of a telemetry log (MAVProxy ``.tlog`` format, in and out), or None.
         stream_rates_hz: ``((MESSAGE_NAME, hz), ...)`` requested with SET_MESSAGE_INTERVAL. TIMESYNC is
             skipped (not a stream on ArduPilot: refused); see ``timesync_period_s``. A message the vehicle
-            refuses it for is asked for by its REQUEST_DATA_STREAM group instead (``STREAM_GROUPS``).
+            refuses it for is asked for by its REQUEST_DATA_STREAM group instead (``streams.STREAM_GROUPS``).
         quiet_other_streams: when ``stream_rates_hz`` is not empty, first stop every data stream on this
             link (REQUEST_DATA_STREAM, all streams, rate 0), so that the vehicle sends only
             ``stream_rates_hz`` (plus what is never a stream: HEARTBEAT, STATUSTEXT, replies,
@@ -264,69 +255,6 @@ class LinkConfig:
             raise LinkUnavailable(f"{c}: {_why_not_open(exc)}") from exc
 
 
-@dataclass
-class LinkStats:
-    """Counters of one link (since :meth:`Link.connect`)."""
-
-    received: int = 0
-    sent: int = 0
-    bad: int = 0
-    drops: int = 0  # frames missing from the vehicle's sequence numbers
-    vehicle_bytes: int = 0  # bytes of the frames received from the vehicle's system (the link budget it uses)
-    rtt_s: float | None = None
-    by_type: collections.Counter = field(default_factory=collections.Counter)
-
-    @property
-    def loss(self) -> float:
-        """Fraction of the vehicle's frames that never arrived (from sequence gaps)."""
-        total = self.received + self.drops
-        return self.drops / total if total else 0.0
-
-
-class Subscription:
-    """A queue of the messages of some types, filled by the reader thread.
-
-    Use as a context manager (unsubscribes on exit). ``get(timeout)`` returns the
-    next message or None.
-    """
-
-    def __init__(self, link: Link, types: frozenset[str] | None, maxsize: int = 10000):
-        self._link, self.types = link, types
-        self._q: queue.Queue = queue.Queue(maxsize)
-
-    def _offer(self, msg) -> None:
-        try:
-            self._q.put_nowait(msg)
-        except queue.Full:  # a consumer that stopped reading must not stall the reader
-            pass
-
-    def get(self, timeout: float | None) -> object | None:
-        """The next message, or None after ``timeout`` s (or at once when the link's transport dies)."""
-        try:
-            return self._q.get(timeout=max(timeout, 0.0) if timeout is not None else None)
-        except queue.Empty:
-            return None
-
-    def drain(self) -> list:
-        out = []
-        while True:
-            try:
-                m = self._q.get_nowait()
-            except queue.Empty:
-                return out
-            if m is not None:  # a wake-up of a dying link (Link._wake_subscribers), not a message
-                out.append(m)
-
-    def close(self) -> None:
-        self._link._unsubscribe(self)
-
-    def __enter__(self) -> Self:
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()
-
-
 class _Tlog:
     """MAVProxy/pymavlink ``.tlog``: 8-byte big-endian µs UTC timestamp + frame, both directions.
 
@@ -381,19 +309,13 @@ class Link:
         self.target_component: int = 1
         self.vehicle_type: int | None = None
         self.autopilot: int | None = None
-        self.stats = LinkStats()
+        self._acct = LinkAccounting()
+        self._router = MessageRouter()
         self._send_lock = threading.Lock()
-        self._sub_lock = threading.Lock()
-        self._subs: list[Subscription] = []
-        self._listeners: list[tuple[Callable, frozenset[str] | None]] = []
-        self._latest: dict[str, object] = {}
-        self._last_seq: dict[tuple[int, int], int] = {}
         self._last_hb: float | None = None
         self._stop = threading.Event()
         self._threads: list[threading.Thread] = []
         self._tlog = _Tlog(self.config.tlog) if self.config.tlog else None
-        self._rtt_samples: collections.deque[float] = collections.deque(maxlen=16)
-        self._timesync_pending: dict[int, float] = {}
         self.texts: collections.deque[tuple[float, int, str]] = collections.deque(maxlen=200)
         self.error: BaseException | None = None
         #: why the transport is dead (EOF, reset, read error), None while it is open and alive
@@ -422,7 +344,7 @@ class Link:
         attempt = 0
         while True:
             attempt += 1
-            self.stats = LinkStats()  # what this attempt received (_what_arrived)
+            self._acct.new_stats()  # what this attempt received (_what_arrived)
             try:
                 self._open()
                 left = deadline - time.monotonic()
@@ -460,29 +382,13 @@ class Link:
             conn = self._factory()
         except OSError as exc:  # a connection_factory of our own raises LinkUnavailable itself
             raise LinkUnavailable(f"{self.config.connect}: {_why_not_open(exc)}") from exc
-        if getattr(conn, "WIRE_PROTOCOL_VERSION", "2.0") != "2.0":
-            # pymavlink was imported elsewhere before MAVLINK20 was set: force MAVLink 2 on this connection
-            conn.mav = mavlink2.MAVLink(
-                conn, srcSystem=self.config.source_system, srcComponent=self.config.source_component, use_native=False
-            )
-            conn.mav.robust_parsing = True
-            conn.WIRE_PROTOCOL_VERSION = "2.0"
-            conn.first_byte = False
-        conn.mav.srcSystem, conn.mav.srcComponent = self.config.source_system, self.config.source_component
-        if self.config.signing_key is not None:
-            conn.setup_signing(
-                secret_from_key(self.config.signing_key),
-                sign_outgoing=True,
-                allow_unsigned_callback=lambda _mav, msgid: msgid in _UNSIGNED_OK,
-            )
+        _speak_as_configured(conn, self.config)
         if self._tlog is not None:
             conn.mav.set_send_callback(lambda m: self._tlog.write(m.get_msgbuf()))
         _hook_transport_end(conn)
         self.conn = conn
         self.closed_reason = None
-        # a new transport (or a rebooted vehicle) restarts the sequence numbers: frames missed during an
-        # outage are not loss on the link
-        self._last_seq.clear()
+        self._acct.restart_sequences()
         self._stop.clear()
         self._last_hb = None
         self._threads = [
@@ -605,7 +511,7 @@ class Link:
                 self.error = exc
                 self.closed_reason = str(exc) or type(exc).__name__
                 log.warning("link to %s closed: %s", self.config.connect, self.closed_reason)
-                self._wake_subscribers()
+                self._router.wake_subscribers()
                 return
             except Exception as exc:  # noqa: BLE001 - pymavlink may raise on garbage; keep reading
                 self.stats.bad += 1
@@ -624,41 +530,15 @@ class Link:
         now = time.monotonic()
         if self._tlog is not None:
             self._tlog.write(msg.get_msgbuf())
-        st = self.stats
-        st.received += 1
-        st.by_type[typ] += 1
-        src = (msg.get_srcSystem(), msg.get_srcComponent())
-        if self.target_system is None or src[0] == self.target_system:
-            last = self._last_seq.get(src)
-            if last is not None:
-                st.drops += (msg.get_seq() - last - 1) % 256
-            self._last_seq[src] = msg.get_seq()
-        from_vehicle = self.target_system is not None and src[0] == self.target_system
-        if from_vehicle:
-            st.vehicle_bytes += len(msg.get_msgbuf())
+        from_vehicle = self._acct.count(msg, typ, self.target_system)
         if typ == "HEARTBEAT" and from_vehicle and _is_vehicle_heartbeat(msg):
             self._last_hb = now
         elif typ == "TIMESYNC" and msg.tc1 != 0:
-            sent = self._timesync_pending.pop(int(msg.ts1), None)
-            if sent is not None:
-                self._add_rtt(now - sent)
+            self._acct.timesync_answered(int(msg.ts1), now)
         elif typ == "STATUSTEXT":
             text = msg.text if isinstance(msg.text, str) else bytes(msg.text).decode("ascii", "replace")
             self.texts.append((now, int(msg.severity), text.rstrip("\x00")))
-        if from_vehicle or self.target_system is None:
-            self._latest[typ] = msg
-        with self._sub_lock:
-            subs = list(self._subs)
-            listeners = list(self._listeners)
-        for s in subs:
-            if s.types is None or typ in s.types:
-                s._offer(msg)
-        for cb, types in listeners:
-            if types is None or typ in types:
-                try:
-                    cb(msg)
-                except Exception:  # noqa: BLE001 - one faulty listener must not kill the reader
-                    log.exception("listener %r failed on %s", cb, typ)
+        self._router.route(msg, typ, keep=from_vehicle or self.target_system is None)
 
     def _heartbeat_loop(self) -> None:
         period = self.config.timesync_period_s
@@ -682,56 +562,29 @@ class Link:
 
     def _send_timesync(self) -> int:
         """Send one TIMESYNC request; the reader turns its answer into an RTT sample. Returns its ts1."""
-        now = time.monotonic()
-        for k in [k for k, t in self._timesync_pending.items() if now - t > 30.0]:
-            self._timesync_pending.pop(k, None)  # requests the vehicle never answered
-        ts1 = time.time_ns()
-        self._timesync_pending[ts1] = now
+        ts1 = self._acct.timesync_request()
         self.send(mavlink2.MAVLink_timesync_message(0, ts1))
         return ts1
 
     # -- subscribers -----------------------------------------------------------------------
     def subscribe(self, types: str | Iterable[str] | None = None) -> Subscription:
         """A queue of every message of ``types`` (None = all) received from now on."""
-        if isinstance(types, str):
-            types = (types,)
-        sub = Subscription(self, frozenset(types) if types is not None else None)
-        with self._sub_lock:
-            self._subs.append(sub)
-        return sub
-
-    def _wake_subscribers(self) -> None:
-        """The transport died: every waiting ``Subscription.get`` returns None now (as on a timeout), so a
-        protocol exchange in progress fails at once on its next send instead of waiting out its timeout."""
-        with self._sub_lock:
-            subs = list(self._subs)
-        for s in subs:
-            s._offer(None)
-
-    def _unsubscribe(self, sub: Subscription) -> None:
-        with self._sub_lock:
-            if sub in self._subs:
-                self._subs.remove(sub)
+        return self._router.subscribe(types)
 
     def add_listener(self, callback: Callable[[object], None], types: str | Iterable[str] | None = None) -> None:
         """Call ``callback(msg)`` from the reader thread for each message of ``types`` (keep it quick)."""
-        if isinstance(types, str):
-            types = (types,)
-        with self._sub_lock:
-            self._listeners.append((callback, frozenset(types) if types is not None else None))
+        self._router.add_listener(callback, types)
 
     def remove_listener(self, callback: Callable[[object], None]) -> None:
-        with self._sub_lock:
-            self._listeners = [(c, t) for c, t in self._listeners if c is not callback]
+        self._router.remove_listener(callback)
 
     def latest(self, typ: str):
         """The last message of type ``typ`` from the vehicle, or None."""
-        return self._latest.get(typ)
+        return self._router.latest(typ)
 
     def forget(self, *types: str) -> None:
         """Drop the last message of each of ``types`` (e.g. after a reboot made them stale)."""
-        for t in types:
-            self._latest.pop(t, None)
+        self._router.forget(*types)
 
     # -- state -------------------------------------------------------------------------------
     @property
@@ -760,18 +613,9 @@ class Link:
         elif lost and self.lost:
             parts.append("link lost")
         mav = getattr(self.conn, "mav", None)
-        sg = getattr(mav, "signing", None)
-        if sg is not None:
-            if sg.secret_key is None and sg.sig_count > 0:
-                # the vehicle signs what it sends and ignores our unsigned commands
-                parts.append(f"it sends signed frames: {_SIGNING_HINT}")
-            elif sg.secret_key is not None and sg.badsig_count > 0 and sg.goodsig_count == 0:
-                parts.append("its frames fail our signature check: the signing key differs from the vehicle's")
-            elif sg.secret_key is not None and sg.goodsig_count == 0 and sg.reject_count > 0:
-                parts.append(
-                    "it sends unsigned frames, which a signing link drops: the vehicle has no signing key "
-                    "set; connect without one, or set it on the vehicle"
-                )
+        signing = _signing_problem(getattr(mav, "signing", None))
+        if signing is not None:
+            parts.append(signing)
         return f" ({'; '.join(parts)})" if parts else ""
 
     def signing_hint(self) -> str:
@@ -779,16 +623,14 @@ class Link:
         return self._why()
 
     @property
+    def stats(self) -> LinkStats:
+        """Counters since the last connect attempt."""
+        return self._acct.stats
+
+    @property
     def rtt(self) -> float | None:
         """Median measured round-trip time, seconds (None before any sample)."""
-        if not self._rtt_samples:
-            return None
-        s = sorted(self._rtt_samples)
-        return s[len(s) // 2]
-
-    def _add_rtt(self, dt: float) -> None:
-        self._rtt_samples.append(dt)
-        self.stats.rtt_s = self.rtt
+        return self._acct.rtt
 
     @property
     def reply_timeout(self) -> float:
@@ -805,7 +647,7 @@ class Link:
         msgs = [
             m
             for typ in ("SYSTEM_TIME", "GLOBAL_POSITION_INT", "ATTITUDE", "NAMED_VALUE_FLOAT")
-            if (m := self._latest.get(typ)) is not None
+            if (m := self._router.latest(typ)) is not None
         ]
         if not msgs:
             return None
@@ -903,7 +745,7 @@ class Link:
                     if m.result == mavlink2.MAV_RESULT_IN_PROGRESS:
                         end = time.monotonic() + timeout_
                         continue
-                    self._add_rtt(time.monotonic() - t_sent)
+                    self._acct.add_rtt(time.monotonic() - t_sent)
                     if m.result in tuple(accept):
                         return m
                     # the STATUSTEXT explaining a refusal may follow the ACK by a moment
@@ -924,51 +766,11 @@ class Link:
 
     # -- streams and round trip ------------------------------------------------------------------
     def request_streams(self, rates: Iterable[tuple[str, float]] | None = None) -> dict[str, bool]:
-        """SET_MESSAGE_INTERVAL for each ``(MESSAGE_NAME, hz)``; returns name -> accepted.
-
-        With ``quiet_other_streams`` every data stream is stopped first. A refusal is logged, not
-        raised; a refused message of :data:`STREAM_GROUPS` is requested by its stream group at the
-        same rate (REQUEST_DATA_STREAM has no answer: the message's arrival is the check).
-        """
-        out = {}
-        rates = list(self.config.stream_rates_hz if rates is None else rates)
-        if self.config.quiet_other_streams and rates:  # (no rates: leave the vehicle's streams as they are)
-            # REQUEST_DATA_STREAM has no answer and the stop is idempotent: sent three times, a lossy
-            # radio (3 % loss) leaves every stream running with p = 3e-5 instead of 3 % (seen once at
-            # 19200 baud in the radio test: the vehicle kept all its streams)
-            for _ in range(3):
-                self._request_data_stream(mavlink2.MAV_DATA_STREAM_ALL, 0)
-        for name, hz in rates:
-            msgid = getattr(mavlink2, f"MAVLINK_MSG_ID_{name}", None)
-            if msgid is None:
-                raise UserError(f"unknown MAVLink message {name!r} in stream_rates_hz")
-            if name in _NOT_STREAMS:
-                log.debug("%s is not a stream (ArduPilot refuses it); measured with requests instead", name)
-                continue
-            interval_us = -1 if hz <= 0 else 1e6 / hz
-            try:
-                self.command_long(mavlink2.MAV_CMD_SET_MESSAGE_INTERVAL, msgid, interval_us, retries=2)
-                out[name] = True
-            except (CommandRejected, LinkTimeout) as exc:
-                out[name] = False
-                group = STREAM_GROUPS.get(name)
-                if group is None or hz <= 0:
-                    log.warning("stream %s at %.1f Hz not set: %s", name, hz, exc)
-                    continue
-                log.warning(
-                    "stream %s at %.1f Hz not set (%s): requesting its stream group %d instead", name, hz, exc, group
-                )
-                self._request_data_stream(group, hz)
-        return out
-
-    def _request_data_stream(self, stream_id: int, hz: float) -> None:
-        """REQUEST_DATA_STREAM to the vehicle (``hz`` <= 0 stops the stream; rates are whole Hz, at least 1)."""
-        rate = max(1, round(hz)) if hz > 0 else 0
-        self.send(
-            self.conn.mav.request_data_stream_encode(
-                self.target_system, self.target_component or 0, int(stream_id), rate, 1 if rate else 0
-            )
-        )
+        """SET_MESSAGE_INTERVAL for each ``(MESSAGE_NAME, hz)`` (default ``config.stream_rates_hz``); returns
+        name -> accepted. See :func:`passt_mav.mavlink.streams.request_streams` (with ``quiet_other_streams``
+        every data stream is stopped first; a refused message is requested by its stream group)."""
+        rates = self.config.stream_rates_hz if rates is None else rates
+        return request_streams(self, rates, quiet_others=self.config.quiet_other_streams)
 
     def measure_rtt(self, samples: int = 3) -> float | None:
         """Round trip by TIMESYNC (``tc1 = 0`` request, the vehicle echoes ``ts1``); falls back to
@@ -980,8 +782,8 @@ class Link:
                 while (m := sub.get(end - time.monotonic())) is not None:
                     if m.tc1 != 0 and m.ts1 == ts1:
                         break
-            self._timesync_pending.pop(ts1, None)
-        if not self._rtt_samples:
+            self._acct.timesync_abandoned(ts1)
+        if self._acct.rtt is None:
             try:
                 self.command_long(mavlink2.MAV_CMD_REQUEST_MESSAGE, mavlink2.MAVLINK_MSG_ID_HEARTBEAT, retries=1)
             except (CommandRejected, LinkTimeout) as exc:
@@ -993,6 +795,46 @@ def _strip_address(exc: BaseException, address: str) -> str:
     """The message of ``exc`` without a leading ``ADDRESS: `` (the caller names the address once)."""
     text = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
     return text[len(address) + 2 :] if text.startswith(address + ": ") else text
+
+
+def _signing_problem(sg) -> str | None:
+    """What pymavlink's signing state ``sg`` (``conn.mav.signing``, or None) says is wrong between us and the
+    vehicle: it signs and we do not, our keys differ, or we sign and it does not. None when nothing points
+    at signing."""
+    if sg is None:
+        return None
+    if sg.secret_key is None and sg.sig_count > 0:
+        # the vehicle signs what it sends and ignores our unsigned commands
+        return f"it sends signed frames: {_SIGNING_HINT}"
+    if sg.secret_key is not None and sg.badsig_count > 0 and sg.goodsig_count == 0:
+        return "its frames fail our signature check: the signing key differs from the vehicle's"
+    if sg.secret_key is not None and sg.goodsig_count == 0 and sg.reject_count > 0:
+        return (
+            "it sends unsigned frames, which a signing link drops: the vehicle has no signing key "
+            "set; connect without one, or set it on the vehicle"
+        )
+    return None
+
+
+def _speak_as_configured(conn, config: LinkConfig) -> None:
+    """Make a freshly opened pymavlink connection speak MAVLink 2 as ``config`` says: our source system and
+    component, and signing when ``config.signing_key`` is set (unsigned frames accepted only for
+    :data:`_UNSIGNED_OK`)."""
+    if getattr(conn, "WIRE_PROTOCOL_VERSION", "2.0") != "2.0":
+        # pymavlink was imported elsewhere before MAVLINK20 was set: force MAVLink 2 on this connection
+        conn.mav = mavlink2.MAVLink(
+            conn, srcSystem=config.source_system, srcComponent=config.source_component, use_native=False
+        )
+        conn.mav.robust_parsing = True
+        conn.WIRE_PROTOCOL_VERSION = "2.0"
+        conn.first_byte = False
+    conn.mav.srcSystem, conn.mav.srcComponent = config.source_system, config.source_component
+    if config.signing_key is not None:
+        conn.setup_signing(
+            secret_from_key(config.signing_key),
+            sign_outgoing=True,
+            allow_unsigned_callback=lambda _mav, msgid: msgid in _UNSIGNED_OK,
+        )
 
 
 def _hook_transport_end(conn) -> None:
