@@ -258,113 +258,184 @@ def replay(
     Raises:
         ReplayError / UserError: bad input (the CLI prints one line, exit 2).
     """
-    from passt_mav.fields.datasets import mission_field
-    from passt_mav.legstep import FieldClock, LegStep, build_loop, build_predictor
-    from passt_mav.planning import PLANNERS, REWARDS, path_reward
-    from passt_mav.runs.rundir import RunDir, RunDirError
-
     say = echo or (lambda s: None)
-    src = Path(source)
+    inp = _open_source(Path(source), mission)
+    cfg, mission_src = _load_config(mission, inp.summary, inp.rd)
+    cfg, cf = _counterfactual(cfg, model, planner, reward)
+    setup = _build_setup(cfg, mission_src, inp, cf, say)
+    if inp.kind == "fleet":
+        if cf:
+            raise ReplayError("counterfactual replays (--model/--planner/--reward) of a fleet run are not supported")
+        result = _fleet_result(inp, setup, rmse_tol, say)
+    else:
+        result = _LogReplay(inp, setup, cf, rmse_tol, say).result(progress)
+    return _write_result(result, out, inp.rd, inp.src)
+
+
+# -- inputs ---------------------------------------------------------------------------------------
+@dataclass
+class _Source:
+    """What a replay reads: ``src`` as given; ``kind`` "run", "fleet", "tlog" or "dataflash"; ``tlog`` the log
+    to rebuild (a fleet's first boat log); for a run directory its :class:`RunDir` and summary.json (None if
+    it has none)."""
+
+    src: Path
+    kind: str
+    tlog: Path
+    rd: Any = None
+    summary: dict | None = None
+
+
+def _open_source(src: Path, mission) -> _Source:
+    """The replay's input from ``source``: a run directory, or a bare ``.tlog``/``.bin`` (which needs ``mission``)."""
     if not src.exists():
         raise ReplayError(f"replay source not found: {src}")
-    rd = summary = None
     if src.is_dir():
-        rd = RunDir(src)
-        if not rd.is_run_dir():
-            raise ReplayError(f"{src} is not a run directory")
-        fleet_logs = rd.boat_tlogs()
-        if not rd.tlog.is_file() and not fleet_logs:
-            raise ReplayError(f"{rd.tlog} not found: the run has no telemetry log to replay")
-        tlog = rd.tlog if not fleet_logs else fleet_logs[0]
-        if rd.summary_file.exists():
-            try:
-                summary = rd.read_summary()
-            except RunDirError as exc:
-                raise ReplayError(str(exc)) from None
-        kind = "fleet" if fleet_logs else "run"
-        if kind == "fleet" and not (summary or {}).get("boats"):
-            raise ReplayError(f"{src}: a fleet run (flight_boatN.tlog) needs its summary.json (the boats' clocks)")
-    else:
-        if src.suffix.lower() not in (".tlog", ".bin"):
-            raise ReplayError(f"{src}: expected a run directory, a .tlog or an ArduPilot DataFlash .bin file")
-        if mission is None:
-            raise ReplayError(f"replaying a bare log needs --mission M.yaml (region, model, planner): {src}")
-        tlog, kind = src, "dataflash" if src.suffix.lower() == ".bin" else "tlog"
-    cfg, mission_src = _load_config(mission, summary, rd)
+        return _run_dir_source(src)
+    if src.suffix.lower() not in (".tlog", ".bin"):
+        raise ReplayError(f"{src}: expected a run directory, a .tlog or an ArduPilot DataFlash .bin file")
+    if mission is None:
+        raise ReplayError(f"replaying a bare log needs --mission M.yaml (region, model, planner): {src}")
+    return _Source(src, "dataflash" if src.suffix.lower() == ".bin" else "tlog", src)
+
+
+def _run_dir_source(src: Path) -> _Source:
+    """A run directory's log (a fleet's boat logs) and summary.json, checked to hold what a replay needs."""
+    from passt_mav.runs.rundir import RunDir, RunDirError
+
+    rd = RunDir(src)
+    if not rd.is_run_dir():
+        raise ReplayError(f"{src} is not a run directory")
+    fleet_logs = rd.boat_tlogs()
+    if not rd.tlog.is_file() and not fleet_logs:
+        raise ReplayError(f"{rd.tlog} not found: the run has no telemetry log to replay")
+    summary = None
+    if rd.summary_file.exists():
+        try:
+            summary = rd.read_summary()
+        except RunDirError as exc:
+            raise ReplayError(str(exc)) from None
+    kind = "fleet" if fleet_logs else "run"
+    if kind == "fleet" and not (summary or {}).get("boats"):
+        raise ReplayError(f"{src}: a fleet run (flight_boatN.tlog) needs its summary.json (the boats' clocks)")
+    return _Source(src, kind, rd.tlog if not fleet_logs else fleet_logs[0], rd, summary)
+
+
+def _counterfactual(cfg, model: str | None, planner: str | None, reward: str | None) -> tuple[Any, dict[str, str]]:
+    """``cfg`` with the counterfactual choices applied, and those choices (empty: replay as the run ran)."""
+    from passt_mav.planning import PLANNERS, REWARDS
+
     if planner is not None and planner not in PLANNERS:
         raise ReplayError(f"unknown planner {planner!r}; choose one of {', '.join(PLANNERS)}")
     if reward is not None and reward not in REWARDS:
         raise ReplayError(f"unknown reward {reward!r}; choose one of {', '.join(REWARDS)}")
     cf = {k: v for k, v in (("model", model), ("planner", planner), ("reward", reward)) if v is not None}
-    if cf:
-        upd: dict[str, Any] = {}
-        if "model" in cf:
-            upd["model"] = model
-        if planner is not None or reward is not None:
-            pl = {"name": planner or cfg.planner.name, "reward": reward or cfg.planner.reward}
-            if planner is not None and planner != cfg.planner.name:
-                pl["options"] = {}  # the run's planner options belong to its planner
-            upd["planner"] = cfg.planner.model_copy(update=pl)
-        cfg = cfg.model_copy(update=upd)
+    if not cf:
+        return cfg, cf
+    upd: dict[str, Any] = {}
+    if "model" in cf:
+        upd["model"] = model
+    if planner is not None or reward is not None:
+        pl = {"name": planner or cfg.planner.name, "reward": reward or cfg.planner.reward}
+        if planner is not None and planner != cfg.planner.name:
+            pl["options"] = {}  # the run's planner options belong to its planner
+        upd["planner"] = cfg.planner.model_copy(update=pl)
+    return cfg.model_copy(update=upd), cf
 
-    base = None if rd is None else rd.root
-    fsrc = cfg.field.source
-    if base is not None and not str(fsrc).startswith("builtin:") and not Path(fsrc).is_absolute():
-        fsrc = str(base / fsrc) if (base / fsrc).exists() else fsrc
-    field = mission_field(cfg, fsrc)  # the same rule as plan and run
-    grid = field.grid
+
+@dataclass
+class _Setup:
+    """The controller rebuilt offline: the mission ``cfg`` replayed (counterfactual applied) and where it came
+    from, its ``field``, the vehicle-to-field ``clock``, the between-leg ``step`` and the predictor's info
+    (``pinfo["used"]``: the model it runs)."""
+
+    cfg: Any
+    mission_src: str
+    field: Any
+    clock: Any
+    step: Any
+    pinfo: dict
+
+    def settings(self) -> dict[str, Any]:
+        """The settings a replay reports (mission, model, planner, reward, path length), in that order."""
+        return {
+            "mission": self.mission_src,
+            "model": self.pinfo.get("used"),
+            "planner": self.cfg.planner.name,
+            "reward": self.cfg.planner.reward,
+            "path_length": self.cfg.planner.path_length,
+        }
+
+
+def _build_setup(cfg, mission_src: str, inp: _Source, cf: dict, say) -> _Setup:
+    """Field, predictor, clock and :class:`~passt_mav.legstep.LegStep` as the run had them (the model it fell
+    back to, its clock from summary.json, else the mission's start time and time scale)."""
+    from passt_mav.fields.datasets import mission_field
+    from passt_mav.legstep import LegStep, build_loop, build_predictor
+
+    summary = inp.summary
+    field = mission_field(cfg, _field_source(cfg, inp.rd))  # the same rule as plan and run
     if field.n_times < 2:
         raise ReplayError("the mission's field needs at least 2 snapshots (dt)")
     spec = cfg.model
     if summary and not cf.get("model") and summary.get("model") and summary.get("model_fallback"):
         spec = summary["model"]  # the run fell back (e.g. to dmd): replay what it used
     predictor, pinfo = build_predictor(spec, field, echo=say)
-    dt = float(field.dt)
-    clk = (summary or {}).get("clock") or {}
-    clock = FieldClock(
-        float(clk.get("t_boot0", field.times[cfg.t0])),
-        float(clk.get("time_scale", cfg.field.time_scale)),
+    clock = _field_clock((summary or {}).get("clock") or {}, field.times[cfg.t0], cfg.field.time_scale)
+    loop = build_loop(cfg, predictor, field.grid, land=field.land_mask)
+    step = LegStep(cfg, field, loop, truth_known=summary is None or summary.get("rmse") is not None)
+    return _Setup(cfg, mission_src, field, clock, step, pinfo)
+
+
+def _field_source(cfg, rd) -> str:
+    """The mission's field source; a relative file path resolved against the run directory where it exists."""
+    base = None if rd is None else rd.root
+    fsrc = cfg.field.source
+    if base is not None and not str(fsrc).startswith("builtin:") and not Path(fsrc).is_absolute():
+        fsrc = str(base / fsrc) if (base / fsrc).exists() else fsrc
+    return fsrc
+
+
+def _field_clock(clk: dict, t_boot0, time_scale):
+    """:class:`~passt_mav.legstep.FieldClock` from a summary.json ``clock`` record (``t_boot0``: field time s at
+    the vehicle's boot, ``time_scale``: field s per vehicle s, ``later_boots``), the defaults where it has none."""
+    from passt_mav.legstep import FieldClock
+
+    return FieldClock(
+        float(clk.get("t_boot0", t_boot0)),
+        float(clk.get("time_scale", time_scale)),
         later_boots=tuple(float(x) for x in clk.get("later_boots") or ()),
     )
-    loop = build_loop(cfg, predictor, grid, land=field.land_mask)
-    step = LegStep(cfg, field, loop, truth_known=summary is None or summary.get("rmse") is not None)
 
+
+def _read_log(inp: _Source, cfg):
+    """The legs rebuilt from the source's telemetry or DataFlash log (a reader's error as a :class:`ReplayError`)."""
     from passt_mav.runs.tlog import LogReadError
 
-    if kind == "fleet":
-        if cf:
-            raise ReplayError("counterfactual replays (--model/--planner/--reward) of a fleet run are not supported")
-        legs, info, notes, first_div = _replay_fleet(rd, summary, cfg, step, rmse_tol, say)
-        reproduced = first_div is None and bool(legs)
-        settings = {
-            "mission": mission_src,
-            "model": pinfo.get("used"),
-            "planner": cfg.planner.name,
-            "reward": cfg.planner.reward,
-            "path_length": cfg.planner.path_length,
-            "field": str(cfg.field.source),
-            "boats": len(summary["boats"]),
-        }
-        result = ReplayResult(
-            str(src), kind, cf, legs, info, reproduced, first_div, float(rmse_tol), settings, notes=notes
-        )
-        return _write_result(result, out, rd, src)
     try:
-        if kind == "dataflash":
+        if inp.kind == "dataflash":
             from passt_mav.runs.dataflash_legs import rebuild_from_dataflash
 
-            log = rebuild_from_dataflash(tlog, u_name=cfg.sensors.u, v_name=cfg.sensors.v)
-        else:
-            log = rebuild_from_tlog(tlog, u_name=cfg.sensors.u, v_name=cfg.sensors.v)
+            return rebuild_from_dataflash(inp.tlog, u_name=cfg.sensors.u, v_name=cfg.sensors.v)
+        return rebuild_from_tlog(inp.tlog, u_name=cfg.sensors.u, v_name=cfg.sensors.v)
     except LogReadError as exc:
         raise ReplayError(str(exc)) from None
-    recorded = {}
-    if rd is not None:
-        try:
-            recorded = {int(r["index"]): r for r in rd.read_legs()}
-        except RunDirError as exc:
-            raise ReplayError(str(exc)) from None
-    notes: list[str] = []
+
+
+def _recorded_legs(rd) -> dict[int, dict]:
+    """The run directory's leg records by leg index (none for a bare log)."""
+    from passt_mav.runs.rundir import RunDirError
+
+    if rd is None:
+        return {}
+    try:
+        return {int(r["index"]): r for r in rd.read_legs()}
+    except RunDirError as exc:
+        raise ReplayError(str(exc)) from None
+
+
+def _stored_samples(rd) -> dict[int, set]:
+    """The run's sample store by leg: sets of (time_boot_ms, lat, lon, u, v); empty without a store."""
     store_legs: dict[int, set] = {}
     if rd is not None and rd.samples_db.is_file():
         from passt_mav.runs.store import SampleStore
@@ -375,6 +446,12 @@ def replay(
                 store_legs.setdefault(int(x.leg), set()).add((int(x.time_boot_ms), x.lat, x.lon, x.u, x.v))
         finally:
             st.close()
+    return store_legs
+
+
+def _log_notes(log) -> list[str]:
+    """What the log reader had to skip, and a log without legs."""
+    notes: list[str] = []
     if log.bad_frames:
         notes.append(
             f"the log is damaged: {log.bad_frames} bad stretch(es), {log.skipped_bytes} byte(s) skipped; "
@@ -382,198 +459,278 @@ def replay(
         )
     if not log.legs:
         notes.append("no leg (upload followed by AUTO) found in the log")
+    return notes
 
-    state, t_state = step.initial_state()
-    chosen = None
-    usable = [lg for lg in log.legs if lg.start_latlon is not None and lg.t_now_ms is not None]
-    if rd is None and usable and len(usable) == len(log.legs) and any(lg.clock is None for lg in usable):
-        starts, paths = [], []
-        for lg in usable:
-            p = waypoints_to_path(grid, lg.waypoints)
-            paths.append(None if p is None else p.tolist())
-            pr, pc = grid.latlon_to_cell(lg.start_latlon[0], lg.start_latlon[1], clip=True)
-            starts.append(tuple(paths[-1][0]) if paths[-1] else (int(pr), int(pc)))
-        chosen = _search_clock(step, clock, state, t_state, usable, starts, paths)
+
+def _log_info(path, logs) -> dict[str, Any]:
+    """The log reader's account: ``path``, and messages, damaged stretches, skipped bytes, bytes and samples
+    outside any leg summed over ``logs``."""
+    return {
+        "path": path,
+        "n_messages": sum(x.n_messages for x in logs),
+        "bad_frames": sum(x.bad_frames for x in logs),
+        "skipped_bytes": sum(x.skipped_bytes for x in logs),
+        "n_bytes": sum(x.n_bytes for x in logs),
+        "samples_outside_legs": sum(x.n_samples_outside_legs for x in logs),
+    }
+
+
+# -- leg by leg -----------------------------------------------------------------------------------
+def _cell_of(grid, latlon) -> tuple[int, int]:
+    """The grid cell (row, col) holding ``latlon`` (deg), clipped to the grid."""
+    r, c = grid.latlon_to_cell(latlon[0], latlon[1], clip=True)
+    return int(r), int(c)
+
+
+def _uploaded_path(grid, lg) -> tuple[list[list[int]] | None, tuple[int, int]]:
+    """The leg's uploaded waypoints expanded into a grid path (None if they do not expand) and the cell the
+    controller planned from: the path's first, else the cell of the leg's start position."""
+    p = waypoints_to_path(grid, lg.waypoints)
+    path = None if p is None else p.tolist()
+    return path, (tuple(path[0]) if path else _cell_of(grid, lg.start_latlon))
+
+
+def _rmse_match(pairs, tol: float) -> bool:
+    """Every (recorded, replayed) RMSE pair matches within ``tol``; a recorded None matches anything."""
+    return all(a is None or (b is not None and abs(a - b) <= tol) for a, b in pairs)
+
+
+def _progress_line(label: str, n_samples: int, same: bool | None, rmse: float | None) -> str:
+    """The one line a replay prints per leg: samples, path verdict, replayed RMSE."""
+    verdict = "identical" if same else "differs" if same is False else "?"
+    return f"{label}: {n_samples} samples, path {verdict}" + ("" if rmse is None else f", RMSE {rmse:.6f}")
+
+
+def _skipped_leg(lg) -> ReplayLeg:
+    """A leg the log gives no position or vehicle time before the upload for: not replayed."""
+    return ReplayLeg(
+        index=lg.index,
+        n_samples=len(lg.samples),
+        n_gp_points=0,
+        start_cell=[],
+        t_start=float("nan"),
+        steps=0,
+        forecast_steps_before=0,
+        path=[],
+        recorded_path=None,
+        path_identical=None,
+        differing_cells=[],
+        reward_collected=0.0,
+        rmse_passt=None,
+        rmse_model=None,
+        notes=["no position or vehicle time before the upload: leg skipped"],
+    )
+
+
+class _LogReplay:
+    """Replay of one log (a run directory's, a bare tlog or DataFlash log): its legs in order through the
+    setup's :class:`~passt_mav.legstep.LegStep`, the GP state carried from leg to leg."""
+
+    def __init__(self, inp: _Source, setup: _Setup, cf: dict[str, str], rmse_tol: float, say):
+        self.inp, self.setup, self.cf, self.rmse_tol, self.say = inp, setup, cf, rmse_tol, say
+        self.grid = setup.field.grid
+        self.dt = float(setup.field.dt)
+        self.recorded: dict[int, dict] = {}
+        self.store_legs: dict[int, set] = {}
+        self.chosen: list | None = None
+
+    def result(self, progress: bool) -> ReplayResult:
+        """Read the log, replay its legs, compare them with the run's records."""
+        log = _read_log(self.inp, self.setup.cfg)
+        self.recorded = _recorded_legs(self.inp.rd)
+        self.store_legs = _stored_samples(self.inp.rd)
+        notes = _log_notes(log)
+        state, t_state = self.setup.step.initial_state()
+        if self.inp.rd is None:
+            self.chosen = self._search_clocks(log, state, t_state, notes)
+        legs, first_div = self._replay_legs(log, state, t_state, progress)
+        reproduced, first_div = self._verdict(legs, first_div, notes)
+        return ReplayResult(
+            source=str(self.inp.src),
+            kind=self.inp.kind,
+            counterfactual=self.cf,
+            legs=legs,
+            log=_log_info(str(self.inp.tlog), [log]),
+            reproduced=reproduced,
+            first_divergence=None if self.cf else first_div,
+            rmse_tol=float(self.rmse_tol),
+            settings={
+                **self.setup.settings(),
+                "clock": self.setup.clock.describe(),
+                "field": str(self.setup.cfg.field.source),
+            },
+            notes=notes,
+        )
+
+    def _search_clocks(self, log, state, t_state, notes: list[str]) -> list | None:
+        """For a bare log of a controller without the clock STATUSTEXT: the forecast steps per leg whose plans
+        are the uploaded paths (:func:`_search_clock`); None when not needed, or not found (then a note)."""
+        usable = [lg for lg in log.legs if lg.start_latlon is not None and lg.t_now_ms is not None]
+        if not (usable and len(usable) == len(log.legs) and any(lg.clock is None for lg in usable)):
+            return None
+        uploaded = [_uploaded_path(self.grid, lg) for lg in usable]
+        paths, starts = [p for p, _ in uploaded], [s for _, s in uploaded]
+        chosen = _search_clock(self.setup.step, self.setup.clock, state, t_state, usable, starts, paths)
         if chosen is None:
             notes.append(
                 "no sequence of clock readings in the log's brackets reproduces every uploaded path; "
                 "each leg takes the first that reproduces its own"
             )
-    from passt_mav.progress import progress as _progress
+        return chosen
 
-    legs: list[ReplayLeg] = []
-    first_div = None
-    for lg in _progress(log.legs, "replay", "leg", quiet=not progress, every_pct=1):
-        lnotes: list[str] = []
-        rec = recorded.get(lg.index)
-        if lg.start_latlon is None or lg.t_now_ms is None:
-            lnotes.append("no position or vehicle time before the upload: leg skipped")
-            legs.append(
-                ReplayLeg(
-                    lg.index,
-                    len(lg.samples),
-                    0,
-                    [],
-                    float("nan"),
-                    0,
-                    0,
-                    [],
-                    None,
-                    None,
-                    [],
-                    0.0,
-                    None,
-                    None,
-                    notes=lnotes,
-                )
-            )
-            if not cf and first_div is None:
+    def _replay_legs(self, log, state, t_state, progress: bool) -> tuple[list[ReplayLeg], int | None]:
+        """Every leg in order until one the log cannot place (the state after it is unknown); the first that
+        differs from its record."""
+        from passt_mav.progress import progress as _progress
+
+        legs: list[ReplayLeg] = []
+        first_div = None
+        for lg in _progress(log.legs, "replay", "leg", quiet=not progress, every_pct=1):
+            if lg.start_latlon is None or lg.t_now_ms is None:
+                legs.append(_skipped_leg(lg))
+                if not self.cf and first_div is None:
+                    first_div = lg.index
+                break  # the state after it is unknown
+            leg, state, t_state = self._replay_leg(lg, state, t_state)
+            legs.append(leg)
+            if first_div is None and (leg.path_identical is False or leg.rmse_identical is False):
                 first_div = lg.index
-            break  # the state after it is unknown
-        r, c = grid.latlon_to_cell(lg.start_latlon[0], lg.start_latlon[1], clip=True)
-        pos_cell = (int(r), int(c))
+        return legs, first_div
+
+    def _verdict(
+        self, legs: list[ReplayLeg], first_div: int | None, notes: list[str]
+    ) -> tuple[bool | None, int | None]:
+        """(reproduced, first divergence): None for a counterfactual; a run whose records hold more legs than
+        the log is not reproduced."""
+        missing = self.inp.rd is not None and len(self.recorded) > len(legs)
+        if missing:
+            notes.append(f"{len(self.recorded)} legs recorded, {len(legs)} rebuilt from the log")
+        if self.cf:
+            return None, first_div
+        reproduced = first_div is None and bool(legs) and all(x.path_identical is not False for x in legs)
+        if missing:
+            reproduced = False
+            if first_div is None:
+                first_div = len(legs)
+        return reproduced, first_div
+
+    def _replay_leg(self, lg, state, t_state):
+        """Plan and absorb one leg from ``state`` (field time ``t_state`` s); (its replay, the state after it)."""
+        step, clock = self.setup.step, self.setup.clock
+        lnotes: list[str] = []
+        rec = self.recorded.get(lg.index)
+        pos_cell = _cell_of(self.grid, lg.start_latlon)
         if not lg.closed:
             lnotes.append("the log ends inside this leg (no HOLD after it): its samples may be incomplete")
         # the controller's clock reading before planning lies between two log times (see LoggedLeg)
-        bracket = _clock_bracket(lg, clock, t_state, dt)
+        bracket = _clock_bracket(lg, clock, t_state, self.dt)
         k_lo, k_hi = bracket[0], bracket[-1]
         if rec is not None:
-            rec_path = rec.get("path")
-            start = tuple(int(x) for x in (rec.get("start_cell") or pos_cell))
-            if start != pos_cell:
-                lnotes.append(
-                    f"recorded start cell {list(start)}, the log's last position before the upload is in "
-                    f"{list(pos_cell)}"
-                )
-            if rec.get("forecast_steps_before") is not None:
-                ks = [int(rec["forecast_steps_before"])]
-                if lg.clock is not None and int(lg.clock[2]) != ks[0]:
-                    lnotes.append(
-                        f"recorded forecast steps before planning {ks[0]}, the log's clock STATUSTEXT "
-                        f"says {lg.clock[2]}"
-                    )
-                elif not k_lo <= ks[0] <= k_hi:
-                    lnotes.append(f"recorded forecast steps before planning {ks[0]} outside the log's [{k_lo}, {k_hi}]")
-            else:
-                ks = list(range(k_lo, k_hi + 1))
+            rec_path, start, ks = self._recorded_target(lg, rec, pos_cell, k_lo, k_hi, lnotes)
         else:
-            p = waypoints_to_path(grid, lg.waypoints)
-            rec_path = None if p is None else p.tolist()
-            if rec_path is None:
-                lnotes.append("no recorded path (no uploaded waypoints that expand into a grid path)")
-            # the uploaded path starts at the cell the controller planned from
-            start = tuple(rec_path[0]) if rec_path else pos_cell
-            ks = sorted(range(k_lo, k_hi + 1), key=lambda x: abs(x - (k_lo + k_hi) / 2))
-            if lg.clock is not None:
-                ks = [int(lg.clock[2])]  # the controller said which (its clock STATUSTEXT)
-            elif chosen is not None:
-                ks = [chosen[lg.index]]
-        planned, k = None, ks[0]
-        for cand in ks:  # the clock reading whose plan is the uploaded one
-            pl = step.plan(lg.index, state, t_state, start, k=cand)
-            if planned is None:
-                planned, k = pl, cand
-            if rec_path is not None and pl.plan.path.tolist() == rec_path:
-                planned, k = pl, cand
-                break
+            rec_path, start, ks = self._uploaded_target(lg, k_lo, k_hi, lnotes)
+        planned, k = self._plan(lg, state, t_state, start, ks, rec_path)
         if rec is None and lg.clock is None and k_hi > k_lo:
             lnotes.append(f"the log brackets the controller's clock reading by {k_lo}..{k_hi} forecast steps; used {k}")
         ab = step.absorb(planned, lg.samples, clock, strict=False)
-        plan, samples, new_state, t_new, r_p, r_m = (
-            planned.plan,
-            ab.samples,
-            ab.state,
-            ab.t_state,
-            ab.rmse_passt,
-            ab.rmse_model,
-        )
         if ab.note:
             lnotes.append(ab.note + " (the controller would have stopped)")
+        plan = planned.plan
         diffs = [] if rec_path is None else _diff_paths(rec_path, plan.path.tolist())
         same = None if rec_path is None else not diffs
         rp_rec = None if rec is None else rec.get("rmse_passt")
         rm_rec = None if rec is None else rec.get("rmse_model")
         r_same = None
         if rp_rec is not None or rm_rec is not None:
-            r_same = all(
-                a is None or (b is not None and abs(a - b) <= rmse_tol) for a, b in ((rp_rec, r_p), (rm_rec, r_m))
+            r_same = _rmse_match(((rp_rec, ab.rmse_passt), (rm_rec, ab.rmse_model)), self.rmse_tol)
+        lnotes.extend(self._sample_notes(lg, rec))
+        leg = ReplayLeg(
+            index=lg.index,
+            n_samples=len(lg.samples),
+            n_gp_points=len(ab.samples),
+            start_cell=list(start),
+            t_start=float(plan.t_start),
+            steps=int(plan.steps),
+            forecast_steps_before=int(k),
+            path=plan.path.tolist(),
+            recorded_path=rec_path,
+            path_identical=same,
+            differing_cells=diffs,
+            reward_collected=_path_reward(plan),
+            rmse_passt=ab.rmse_passt,
+            rmse_model=ab.rmse_model,
+            rmse_passt_recorded=rp_rec,
+            rmse_model_recorded=rm_rec,
+            rmse_identical=r_same,
+            notes=lnotes,
+        )
+        self.say(_progress_line(f"leg {lg.index}", len(lg.samples), same, ab.rmse_passt))
+        return leg, ab.state, ab.t_state
+
+    def _recorded_target(self, lg, rec: dict, pos_cell, k_lo: int, k_hi: int, lnotes: list[str]):
+        """(recorded path, start cell, forecast steps to try) from the run's leg record, checked against the log."""
+        rec_path = rec.get("path")
+        start = tuple(int(x) for x in (rec.get("start_cell") or pos_cell))
+        if start != pos_cell:
+            lnotes.append(
+                f"recorded start cell {list(start)}, the log's last position before the upload is in {list(pos_cell)}"
             )
-        if lg.index in store_legs:  # the controller's own store: the log must give the same measurements
-            a = store_legs[lg.index]
+        if rec.get("forecast_steps_before") is None:
+            return rec_path, start, list(range(k_lo, k_hi + 1))
+        ks = [int(rec["forecast_steps_before"])]
+        if lg.clock is not None and int(lg.clock[2]) != ks[0]:
+            lnotes.append(
+                f"recorded forecast steps before planning {ks[0]}, the log's clock STATUSTEXT says {lg.clock[2]}"
+            )
+        elif not k_lo <= ks[0] <= k_hi:
+            lnotes.append(f"recorded forecast steps before planning {ks[0]} outside the log's [{k_lo}, {k_hi}]")
+        return rec_path, start, ks
+
+    def _uploaded_target(self, lg, k_lo: int, k_hi: int, lnotes: list[str]):
+        """(uploaded path, start cell, forecast steps to try) for a bare log: the clock STATUSTEXT's steps,
+        else the searched ones, else the bracket from its middle out."""
+        rec_path, start = _uploaded_path(self.grid, lg)  # the uploaded path starts at the cell planned from
+        if rec_path is None:
+            lnotes.append("no recorded path (no uploaded waypoints that expand into a grid path)")
+        ks = sorted(range(k_lo, k_hi + 1), key=lambda x: abs(x - (k_lo + k_hi) / 2))
+        if lg.clock is not None:
+            ks = [int(lg.clock[2])]  # the controller said which (its clock STATUSTEXT)
+        elif self.chosen is not None:
+            ks = [self.chosen[lg.index]]
+        return rec_path, start, ks
+
+    def _plan(self, lg, state, t_state, start, ks: list[int], rec_path):
+        """(plan, forecast steps): the first candidate whose plan is the recorded path, else the first's."""
+        planned, k = None, ks[0]
+        for cand in ks:  # the clock reading whose plan is the uploaded one
+            pl = self.setup.step.plan(lg.index, state, t_state, start, k=cand)
+            if planned is None:
+                planned, k = pl, cand
+            if rec_path is not None and pl.plan.path.tolist() == rec_path:
+                planned, k = pl, cand
+                break
+        return planned, k
+
+    def _sample_notes(self, lg, rec: dict | None) -> list[str]:
+        """Where the log's samples disagree with the run's store or with the recorded count."""
+        notes = []
+        if lg.index in self.store_legs:  # the controller's own store: the log must give the same measurements
+            a = self.store_legs[lg.index]
             b = {(int(x["time_boot_ms"]), x["lat"], x["lon"], x["u"], x["v"]) for x in lg.samples}
             if a != b:
-                lnotes.append(
+                notes.append(
                     f"samples differ from the run's store: {len(a - b)} only in the store, {len(b - a)} only in the log"
                 )
         if rec is not None and rec.get("n_samples") is not None and int(rec["n_samples"]) != len(lg.samples):
-            lnotes.append(f"{len(lg.samples)} samples rebuilt from the log, {rec['n_samples']} recorded")
-        leg = ReplayLeg(
-            lg.index,
-            len(lg.samples),
-            len(samples),
-            list(start),
-            float(plan.t_start),
-            int(plan.steps),
-            int(k),
-            plan.path.tolist(),
-            rec_path,
-            same,
-            diffs,
-            float(path_reward(plan.reward, plan.path)),
-            r_p,
-            r_m,
-            rp_rec,
-            rm_rec,
-            r_same,
-            lnotes,
-        )
-        legs.append(leg)
-        if first_div is None and (same is False or r_same is False):
-            first_div = lg.index
-        state, t_state = new_state, t_new
-        say(
-            f"leg {lg.index}: {len(lg.samples)} samples, path {'identical' if same else 'differs' if same is False else '?'}"
-            + ("" if r_p is None else f", RMSE {r_p:.6f}")
-        )
-    if rd is not None and len(recorded) > len(legs):
-        notes.append(f"{len(recorded)} legs recorded, {len(legs)} rebuilt from the log")
-    if cf:
-        reproduced = None
-    else:
-        reproduced = first_div is None and bool(legs) and all(x.path_identical is not False for x in legs)
-        if rd is not None and len(recorded) > len(legs):
-            reproduced = False
-            if first_div is None:
-                first_div = len(legs)
-    settings = {
-        "mission": mission_src,
-        "model": pinfo.get("used"),
-        "planner": cfg.planner.name,
-        "reward": cfg.planner.reward,
-        "path_length": cfg.planner.path_length,
-        "clock": clock.describe(),
-        "field": str(cfg.field.source),
-    }
-    result = ReplayResult(
-        str(src),
-        kind,
-        cf,
-        legs,
-        {
-            "path": str(tlog),
-            "n_messages": log.n_messages,
-            "bad_frames": log.bad_frames,
-            "skipped_bytes": log.skipped_bytes,
-            "n_bytes": log.n_bytes,
-            "samples_outside_legs": log.n_samples_outside_legs,
-        },
-        reproduced,
-        None if cf else first_div,
-        float(rmse_tol),
-        settings,
-        notes=notes,
-    )
-    return _write_result(result, out, rd, src)
+            notes.append(f"{len(lg.samples)} samples rebuilt from the log, {rec['n_samples']} recorded")
+        return notes
+
+
+def _path_reward(plan) -> float:
+    """The reward a plan collects along its path."""
+    from passt_mav.planning import path_reward
+
+    return float(path_reward(plan.reward, plan.path))
 
 
 def _write_result(result: ReplayResult, out, rd, src: Path) -> ReplayResult:
@@ -587,50 +744,38 @@ def _write_result(result: ReplayResult, out, rd, src: Path) -> ReplayResult:
     return result
 
 
+# -- fleet ----------------------------------------------------------------------------------------
+def _fleet_result(inp: _Source, setup: _Setup, rmse_tol: float, say) -> ReplayResult:
+    """Replay of a fleet run directory (:func:`_replay_fleet`)."""
+    legs, info, notes, first_div = _replay_fleet(inp.rd, inp.summary, setup.cfg, setup.step, rmse_tol, say)
+    return ReplayResult(
+        source=str(inp.src),
+        kind=inp.kind,
+        counterfactual={},
+        legs=legs,
+        log=info,
+        reproduced=first_div is None and bool(legs),
+        first_divergence=first_div,
+        rmse_tol=float(rmse_tol),
+        settings={**setup.settings(), "field": str(setup.cfg.field.source), "boats": len(inp.summary["boats"])},
+        notes=notes,
+    )
+
+
 def _replay_fleet(rd, summary: dict, cfg, step, rmse_tol: float, say):
     """A fleet run (:mod:`passt_mav.fleet_controller`): each boat's legs and samples from its own tlog,
     the fleet's plans and updates repeated in the order they were made (``fleet_seq`` of the leg
     records) through :class:`~passt_mav.legstep.FleetStep`. Returns (legs, log info, notes, first divergence)."""
-    from passt_mav.legstep import FieldClock, FleetStep
-    from passt_mav.planning import path_reward
-    from passt_mav.runs.rundir import RunDirError
+    from passt_mav.legstep import FleetStep
 
-    try:
-        records = {int(r["index"]): r for r in rd.read_legs() if r.get("fleet_seq")}
-    except RunDirError as exc:
-        raise ReplayError(str(exc)) from None
+    records = _fleet_records(rd)
+    logs = [rebuild_from_tlog(p, u_name=cfg.sensors.u, v_name=cfg.sensors.v) for p in rd.boat_tlogs()]
+    info = _log_info([str(p) for p in rd.boat_tlogs()], logs)
+    logged = {int(lg.planned_index): lg for log in logs for lg in log.legs if lg.planned_index is not None}
+    clocks = {int(b["boat"]): _field_clock(b.get("clock") or {}, 0.0, 1.0) for b in summary["boats"]}
     notes: list[str] = []
-    logged: dict[int, Any] = {}
-    info = {
-        "path": [str(p) for p in rd.boat_tlogs()],
-        "n_messages": 0,
-        "bad_frames": 0,
-        "skipped_bytes": 0,
-        "n_bytes": 0,
-        "samples_outside_legs": 0,
-    }
-    for p in rd.boat_tlogs():
-        log = rebuild_from_tlog(p, u_name=cfg.sensors.u, v_name=cfg.sensors.v)
-        for key in ("n_messages", "bad_frames", "skipped_bytes", "n_bytes"):
-            info[key] += getattr(log, key)
-        info["samples_outside_legs"] += log.n_samples_outside_legs
-        for lg in log.legs:
-            if lg.planned_index is not None:
-                logged[int(lg.planned_index)] = lg
-    clocks = {}
-    for b in summary["boats"]:
-        c = b.get("clock") or {}
-        clocks[int(b["boat"])] = FieldClock(
-            float(c.get("t_boot0", 0.0)),
-            float(c.get("time_scale", 1.0)),
-            later_boots=tuple(float(x) for x in c.get("later_boots") or ()),
-        )
-    events = sorted(
-        [(int(r["fleet_seq"]["plan"]), 0, i) for i, r in records.items()]
-        + [(int(r["fleet_seq"]["absorb"]), 1, i) for i, r in records.items()]
-    )
     fs, planned, out, first_div = FleetStep(step), {}, {}, None
-    for _, kind, i in events:
+    for _, kind, i in _fleet_events(records):
         rec = records[i]
         boat = int(rec["boat"])
         if kind == 0:
@@ -643,43 +788,60 @@ def _replay_fleet(rd, summary: dict, cfg, step, rmse_tol: float, say):
             notes.append(f"leg {i} (boat {boat}): not found in flight_boat{boat}.tlog; the replay stops there")
             first_div = i if first_div is None else first_div
             break
-        pl = planned[i]
-        # the state saw the leg's first n_samples readings (arrival order), those in the store when the
-        # boat absorbed its leg; a reading that completed in the log after that moment (the other half
-        # of a pair still on the wire) was logged but not absorbed
-        n_rec = rec.get("n_samples")
-        samples = lg.samples if n_rec is None else lg.samples[: int(n_rec)]
-        ab = fs.absorb(boat, pl, samples, clocks[boat])
-        diffs = _diff_paths(rec["path"], pl.plan.path.tolist())
-        r_same = all(
-            a is None or (b is not None and abs(a - b) <= rmse_tol)
-            for a, b in ((rec.get("rmse_passt"), ab.rmse_passt), (rec.get("rmse_model"), ab.rmse_model))
-        )
-        lnotes = [f"boat {boat}"] + ([] if rec.get("status") == "complete" else [f"status {rec.get('status')}"])
-        out[i] = ReplayLeg(
-            i,
-            len(lg.samples),
-            len(ab.samples),
-            list(rec["start_cell"]),
-            float(pl.t_start),
-            int(ab.steps),
-            int(pl.k),
-            pl.plan.path.tolist(),
-            rec["path"],
-            not diffs,
-            diffs,
-            float(path_reward(pl.plan.reward, pl.plan.path)),
-            ab.rmse_passt,
-            ab.rmse_model,
-            rec.get("rmse_passt"),
-            rec.get("rmse_model"),
-            r_same,
-            lnotes,
-        )
-        if (diffs or not r_same) and first_div is None:
+        out[i] = leg = _fleet_leg(fs, i, rec, lg, planned[i], clocks[boat], rmse_tol)
+        if (leg.differing_cells or not leg.rmse_identical) and first_div is None:
             first_div = i
-        say(
-            f"leg {i} (boat {boat}): {len(lg.samples)} samples, path {'identical' if not diffs else 'differs'}"
-            + ("" if ab.rmse_passt is None else f", RMSE {ab.rmse_passt:.6f}")
-        )
+        say(_progress_line(f"leg {i} (boat {boat})", len(lg.samples), leg.path_identical, leg.rmse_passt))
     return [out[i] for i in sorted(out)], info, notes, first_div
+
+
+def _fleet_records(rd) -> dict[int, dict]:
+    """A fleet run's leg records (those with a ``fleet_seq``) by leg index."""
+    from passt_mav.runs.rundir import RunDirError
+
+    try:
+        return {int(r["index"]): r for r in rd.read_legs() if r.get("fleet_seq")}
+    except RunDirError as exc:
+        raise ReplayError(str(exc)) from None
+
+
+def _fleet_events(records: dict[int, dict]) -> list[tuple[int, int, int]]:
+    """The fleet's plans (kind 0) and updates (kind 1) as (sequence number, kind, leg) in the order made."""
+    return sorted(
+        [(int(r["fleet_seq"]["plan"]), 0, i) for i, r in records.items()]
+        + [(int(r["fleet_seq"]["absorb"]), 1, i) for i, r in records.items()]
+    )
+
+
+def _fleet_leg(fs, i: int, rec: dict, lg, pl, clock, rmse_tol: float) -> ReplayLeg:
+    """Absorb fleet leg ``i`` (planned ``pl``) into the boat's state; its replay against the record ``rec``."""
+    boat = int(rec["boat"])
+    # the state saw the leg's first n_samples readings (arrival order), those in the store when the
+    # boat absorbed its leg; a reading that completed in the log after that moment (the other half
+    # of a pair still on the wire) was logged but not absorbed
+    n_rec = rec.get("n_samples")
+    samples = lg.samples if n_rec is None else lg.samples[: int(n_rec)]
+    ab = fs.absorb(boat, pl, samples, clock)
+    diffs = _diff_paths(rec["path"], pl.plan.path.tolist())
+    r_same = _rmse_match(((rec.get("rmse_passt"), ab.rmse_passt), (rec.get("rmse_model"), ab.rmse_model)), rmse_tol)
+    lnotes = [f"boat {boat}"] + ([] if rec.get("status") == "complete" else [f"status {rec.get('status')}"])
+    return ReplayLeg(
+        index=i,
+        n_samples=len(lg.samples),
+        n_gp_points=len(ab.samples),
+        start_cell=list(rec["start_cell"]),
+        t_start=float(pl.t_start),
+        steps=int(ab.steps),
+        forecast_steps_before=int(pl.k),
+        path=pl.plan.path.tolist(),
+        recorded_path=rec["path"],
+        path_identical=not diffs,
+        differing_cells=diffs,
+        reward_collected=_path_reward(pl.plan),
+        rmse_passt=ab.rmse_passt,
+        rmse_model=ab.rmse_model,
+        rmse_passt_recorded=rec.get("rmse_passt"),
+        rmse_model_recorded=rec.get("rmse_model"),
+        rmse_identical=r_same,
+        notes=lnotes,
+    )

@@ -156,101 +156,139 @@ def rebuild_from_dataflash(
     events = _events(path)
     if tl.n_messages == 0 and not events:
         raise LogReadError(f"{path}: no DataFlash records in the file")
-    track = [(p.time_boot_ms, p.lat, p.lon) for p in tl.track]
-    track_t = [t for t, _, _ in track]
-
-    def pos_at(t_ms: int) -> tuple[float, float] | None:
-        """The newest position at or before ``t_ms`` (what the controller had then), else the first after."""
-        i = bisect.bisect_right(track_t, t_ms)
-        if i:
-            return track[i - 1][1], track[i - 1][2]
-        return (track[0][1], track[0][2]) if track else None
-
-    legs: list[DataflashLeg] = []
-    cur: DataflashLeg | None = None
-    pending: DataflashLeg | None = None
-    upload: dict[str, Any] | None = None  # the mission block being read: {"total": CTot, "items": {CNum: ..}}
-    last_upload: dict[int, tuple[int, float, float]] | None = None
-    clock: tuple[tuple[int, int, int], str] | None = None
-    mode: int | None = None
-    t_lo = track_t[0] if track_t else 0
-    boots: list[int] = []
-    fresh = False  # a mission block since the last leg opened
-    text = ""
+    legs = _DataflashLegs([(p.time_boot_ms, p.lat, p.lon) for p in tl.track])
     for tus, typ, m in events:
-        t_ms = tus // 1000
+        legs.handle(tus // 1000, typ, m)
+    outside = _place_samples(legs.legs, tl, legs.boot)
+    return LogRebuild(path, list(legs.legs), tl.n_messages, tl.bad_frames, tl.skipped_bytes, tl.n_bytes, outside)
+
+
+class _DataflashLegs:
+    """Legs from the log's MSG, CMD and MODE records in file order (module docstring); ``track``: the
+    positions ``(time_boot_ms, lat, lon)`` (deg) in time order."""
+
+    def __init__(self, track: list[tuple[int, float, float]]):
+        self.track = track
+        self.track_t = [t for t, _, _ in track]
+        self.legs: list[DataflashLeg] = []
+        self.cur: DataflashLeg | None = None  # the leg flying (AUTO until the GCS's next mode change)
+        self.pending: DataflashLeg | None = None  # the leg uploaded, not yet started
+        self.upload: dict[str, Any] | None = None  # the mission block being read: {"total": CTot, "items": {CNum: ..}}
+        self.last_upload: dict[int, tuple[int, float, float]] | None = None
+        self.clock: tuple[tuple[int, int, int], str] | None = None  # a clock reading not yet given to a leg
+        self.mode: int | None = None
+        self.t_lo = self.track_t[0] if self.track_t else 0
+        self.boots: list[int] = []
+        self.fresh = False  # a mission block since the last leg opened
+        self.text = ""  # the last MSG
+
+    @property
+    def boot(self) -> int:
+        """The vehicle boot the log belongs to: its first clock STATUSTEXT's (0 without one)."""
+        return self.boots[0] if self.boots else 0
+
+    def pos_at(self, t_ms: int) -> tuple[float, float] | None:
+        """The newest position at or before ``t_ms`` (what the controller had then), else the first after."""
+        i = bisect.bisect_right(self.track_t, t_ms)
+        if i:
+            return self.track[i - 1][1], self.track[i - 1][2]
+        return (self.track[0][1], self.track[0][2]) if self.track else None
+
+    def handle(self, t_ms: int, typ: str, m) -> None:
+        """One MSG, CMD or MODE record (``t_ms``: its ``TimeUS`` in ms)."""
         if typ == "MSG":
-            prev_text, text = text, str(getattr(m, "Message", "") or "")
-            parsed = parse_clock_statustext(text)
-            if parsed is not None:
-                boots.append(parsed[2])
-                if cur is None:
-                    clock = (parsed[1:], text)
-                    if pending is not None:
-                        pending.clock, pending.clock_text = clock
-                continue
-            if text == "New mission":
-                upload = {"total": None, "items": {}}
-                # an upload ("Flight plan received" just before) anchors the leg: planned just before its
-                # first upload; the block a log opens with (the stored mission) anchors nothing
-                if prev_text == "Flight plan received" and cur is None and pending is None:
-                    pending = DataflashLeg(len(legs), pos_at(t_ms), t_ms, t_lo)
-                    if clock is not None:
-                        pending.clock, pending.clock_text = clock
-                        clock = None
-            elif cur is not None and text.startswith("Reached waypoint #"):
-                try:
-                    cur.reached.append((t_ms, int(text.rsplit("#", 1)[1])))
-                except ValueError:
-                    pass
-            elif cur is not None and text == "Mission Complete" and cur.complete_ms is None:
-                cur.complete_ms = t_ms
+            self._msg(t_ms, m)
         elif typ == "CMD":
-            if upload is None:
-                continue  # an item logged outside a mission block
-            try:
-                n, total = int(m.CNum), int(m.CTot)
-                item = (int(m.CId), float(m.Lat), float(m.Lng))
-            except (AttributeError, TypeError, ValueError):
-                continue
-            if n in upload["items"] or not 0 <= n < total:
-                continue
-            upload["total"] = total
-            upload["items"][n] = item
-            last_upload, fresh = upload["items"], True
-            if len(upload["items"]) == total:
-                upload = None  # complete: later CMDs are no part of it
+            self._cmd(m)
         elif typ == "MODE":
+            self._mode(t_ms, m)
+
+    def _open_pending(self, t_ms: int) -> None:
+        """A leg planned just before ``t_ms``, holding the clock reading sent for it."""
+        self.pending = DataflashLeg(len(self.legs), self.pos_at(t_ms), t_ms, self.t_lo)
+        if self.clock is not None:
+            self.pending.clock, self.pending.clock_text = self.clock
+            self.clock = None
+
+    def _msg(self, t_ms: int, m) -> None:
+        """A text: the controller's clock reading, a mission upload, a waypoint reached, the mission's end."""
+        prev_text, self.text = self.text, str(getattr(m, "Message", "") or "")
+        text, cur = self.text, self.cur
+        parsed = parse_clock_statustext(text)
+        if parsed is not None:
+            self.boots.append(parsed[2])
+            if cur is None:
+                self.clock = (parsed[1:], text)
+                if self.pending is not None:
+                    self.pending.clock, self.pending.clock_text = self.clock
+            return
+        if text == "New mission":
+            self.upload = {"total": None, "items": {}}
+            # an upload ("Flight plan received" just before) anchors the leg: planned just before its
+            # first upload; the block a log opens with (the stored mission) anchors nothing
+            if prev_text == "Flight plan received" and cur is None and self.pending is None:
+                self._open_pending(t_ms)
+        elif cur is not None and text.startswith("Reached waypoint #"):
             try:
-                new, rsn = int(m.ModeNum), int(getattr(m, "Rsn", -1))
-            except (AttributeError, TypeError, ValueError):
-                continue
-            changed, mode = new != mode, new
-            if not changed:
-                continue  # the current mode written again (after a mission block, at log start)
-            if new == _AUTO and cur is None and pending is None and fresh:
-                # the log began after the upload (LOG_DISARMED 0: logging starts at arming): its opening
-                # block is the mission flown, and the leg is anchored at AUTO
-                pending = DataflashLeg(len(legs), pos_at(t_ms), t_ms, t_lo)
-                if clock is not None:
-                    pending.clock, pending.clock_text = clock
-                    clock = None
-            if new == _AUTO and cur is None and pending is not None:
-                cur, pending, fresh = pending, None, False
-                cur.t_auto_ms = t_ms
-                if cur.start_latlon is None:
-                    cur.start_latlon = pos_at(t_ms)
-                cur.waypoints = [
-                    (la, lo)
-                    for s, (cmd, la, lo) in sorted((last_upload or {}).items())
-                    if s >= 1 and cmd == _NAV_WAYPOINT
-                ]
-                legs.append(cur)
-            elif new != _AUTO and cur is not None and rsn == _GCS_COMMAND:
-                cur.closed, cur.t_end_ms = True, t_ms
-                cur = None
-                t_lo = t_ms
-    boot = boots[0] if boots else 0
+                cur.reached.append((t_ms, int(text.rsplit("#", 1)[1])))
+            except ValueError:
+                pass
+        elif cur is not None and text == "Mission Complete" and cur.complete_ms is None:
+            cur.complete_ms = t_ms
+
+    def _cmd(self, m) -> None:
+        """A mission item of the block being read (once per ``CNum``)."""
+        upload = self.upload
+        if upload is None:
+            return  # an item logged outside a mission block
+        try:
+            n, total = int(m.CNum), int(m.CTot)
+            item = (int(m.CId), float(m.Lat), float(m.Lng))
+        except (AttributeError, TypeError, ValueError):
+            return
+        if n in upload["items"] or not 0 <= n < total:
+            return
+        upload["total"] = total
+        upload["items"][n] = item
+        self.last_upload, self.fresh = upload["items"], True
+        if len(upload["items"]) == total:
+            self.upload = None  # complete: later CMDs are no part of it
+
+    def _mode(self, t_ms: int, m) -> None:
+        """A mode change: AUTO after an upload starts a leg, the GCS's change away from AUTO ends it."""
+        try:
+            new, rsn = int(m.ModeNum), int(getattr(m, "Rsn", -1))
+        except (AttributeError, TypeError, ValueError):
+            return
+        changed, self.mode = new != self.mode, new
+        if not changed:
+            return  # the current mode written again (after a mission block, at log start)
+        if new == _AUTO and self.cur is None and self.pending is None and self.fresh:
+            # the log began after the upload (LOG_DISARMED 0: logging starts at arming): its opening
+            # block is the mission flown, and the leg is anchored at AUTO
+            self._open_pending(t_ms)
+        if new == _AUTO and self.cur is None and self.pending is not None:
+            self._start(t_ms)
+        elif new != _AUTO and self.cur is not None and rsn == _GCS_COMMAND:
+            self.cur.closed, self.cur.t_end_ms = True, t_ms
+            self.cur = None
+            self.t_lo = t_ms
+
+    def _start(self, t_ms: int) -> None:
+        """The pending leg starts flying at ``t_ms``: its waypoints are the last mission block's."""
+        cur, self.pending, self.fresh = self.pending, None, False
+        self.cur = cur
+        cur.t_auto_ms = t_ms
+        if cur.start_latlon is None:
+            cur.start_latlon = self.pos_at(t_ms)
+        cur.waypoints = [
+            (la, lo) for s, (cmd, la, lo) in sorted((self.last_upload or {}).items()) if s >= 1 and cmd == _NAV_WAYPOINT
+        ]
+        self.legs.append(cur)
+
+
+def _place_samples(legs: list[DataflashLeg], tl, boot: int) -> int:
+    """Count each leg's readings and give it the samples in its [AUTO, end) span; the samples outside any leg."""
     starts = [lg.t_auto_ms for lg in legs]
 
     def leg_at(tb: int) -> DataflashLeg | None:
@@ -284,4 +322,4 @@ def rebuild_from_dataflash(
                 "leg": lg.index,
             }
         )
-    return LogRebuild(path, list(legs), tl.n_messages, tl.bad_frames, tl.skipped_bytes, tl.n_bytes, outside)
+    return outside

@@ -95,7 +95,6 @@ def rebuild_from_tlog(path: str | Path, *, u_name: str = "CUR_U", v_name: str = 
     Damaged logs are read as far as they are readable (the scanner of
     :mod:`passt_mav.runs.tlog`: CRC-checked records, resynchronisation after junk).
     """
-    from passt_mav.mavlink.samples import SampleCollector
     from passt_mav.runs.tlog import _check_file, _TlogScanner, read_tlog
 
     path = Path(path)
@@ -103,97 +102,124 @@ def rebuild_from_tlog(path: str | Path, *, u_name: str = "CUR_U", v_name: str = 
     veh = read_tlog(path, u_name=u_name, v_name=v_name).vehicle_sysid  # the vehicle's system id
     if veh is None:
         raise LogReadError(f"{path}: no vehicle messages (HEARTBEAT or GLOBAL_POSITION_INT) in the log")
-    legs: list[LoggedLeg] = []
-    state: dict[str, Any] = {
-        "cur": None,
-        "pending": None,
-        "upload": None,
-        "pos": None,
-        "tb": None,
-        "outside": 0,
-        "tb_lo": None,
-        "clock": None,
-    }
-
-    def on_sample(rec: dict) -> None:
-        # the leg open when the reading arrived (a reading waits for the fix after it: the leg may have ended)
-        if rec.get("leg") is None:
-            state["outside"] += 1
-        else:
-            legs[rec["leg"]].samples.append(rec)
-
-    col = SampleCollector(on_sample, u_name=u_name, v_name=v_name)
+    legs = _TlogLegs(veh, u_name, v_name)
     scan = _TlogScanner(data)
     n = 0
     for ts, m in scan:
         n += 1
+        legs.handle(ts, m)
+    return LogRebuild(path, legs.finish(), n, scan.bad, scan.skipped, len(data), legs.outside)
+
+
+class _TlogLegs:
+    """Legs from a tlog's messages in order: the vehicle's (``veh``) feed the sample collector and the clock
+    and position the controller had; the GCS's (clock STATUSTEXT, uploads, mode commands) open and close legs."""
+
+    def __init__(self, veh: int, u_name: str, v_name: str):
+        from passt_mav.mavlink.samples import SampleCollector
+
+        self.veh = veh
+        self.legs: list[LoggedLeg] = []
+        self.cur: LoggedLeg | None = None  # the leg flying (between AUTO and the next mode command)
+        self.pending: LoggedLeg | None = None  # the leg being uploaded
+        self.upload: dict[str, Any] | None = None  # the upload being sent: {"count": n, "items": {seq: ..}}
+        self.pos: tuple[float, float] | None = None  # newest vehicle position (deg)
+        self.tb: int | None = None  # newest vehicle time_boot_ms
+        self.tb_lo: int | None = None  # time_boot_ms when the previous leg ended (the log's first)
+        self.clock: tuple[int, int, int] | None = None  # the clock STATUSTEXT not yet given to a leg
+        self.clock_leg: int | None = None  # the controller's leg number in it
+        self.outside = 0  # samples outside any leg
+        self.collector = SampleCollector(self._on_sample, u_name=u_name, v_name=v_name)
+
+    def _on_sample(self, rec: dict) -> None:
+        """The leg open when the reading arrived (a reading waits for the fix after it: the leg may have ended)."""
+        if rec.get("leg") is None:
+            self.outside += 1
+        else:
+            self.legs[rec["leg"]].samples.append(rec)
+
+    def handle(self, ts: int, m) -> None:
+        """One message (``ts``: the tlog's reception time, µs UTC)."""
         typ = m.get_type()
-        src = m.get_srcSystem()
-        if src == veh:
-            if typ in SampleCollector.TYPES:
-                m._timestamp = ts * 1e-6  # reception time, as pymavlink stamps a live message
-                col.handle(m)
-            if typ in ("SYSTEM_TIME", "GLOBAL_POSITION_INT", "ATTITUDE", "NAMED_VALUE_FLOAT"):
-                state["tb"] = max(state["tb"] or 0, int(m.time_boot_ms))  # Link.vehicle_uptime_s
-                if state["tb_lo"] is None:
-                    state["tb_lo"] = state["tb"]
-            if typ == "GLOBAL_POSITION_INT" and not (m.lat == 0 and m.lon == 0):
-                state["pos"] = (m.lat * 1e-7, m.lon * 1e-7)
-            continue
-        # -- GCS side: the clock reading, uploads and mode commands, as the controller sends them
-        if typ == "STATUSTEXT":
-            parsed = parse_clock_statustext(m.text if isinstance(m.text, str) else m.text.decode(errors="replace"))
-            if parsed is not None and state["cur"] is None:
-                state["clock"], state["clock_leg"] = parsed[1:], parsed[0]
-                if state["pending"] is not None:
-                    state["pending"].clock, state["pending"].planned_index = parsed[1:], parsed[0]
-            continue
-        if typ == "MISSION_COUNT" and getattr(m, "mission_type", 0) == 0 and m.target_system in (0, veh):
-            if state["pending"] is None and state["cur"] is None:  # first upload of a new leg: planned just before
-                state["pending"] = LoggedLeg(
-                    len(legs),
-                    state["pos"],
-                    state["tb"],
-                    state["tb_lo"],
-                    clock=state["clock"],
-                    planned_index=state.get("clock_leg"),
-                )
-                state["clock"] = state["clock_leg"] = None
-            state["upload"] = {"count": int(m.count), "items": {}}
+        if m.get_srcSystem() == self.veh:
+            self._vehicle(ts, m, typ)
+        elif typ == "STATUSTEXT":
+            self._statustext(m)
+        elif typ == "MISSION_COUNT" and getattr(m, "mission_type", 0) == 0 and m.target_system in (0, self.veh):
+            self._mission_count(m)
         elif (
             typ in ("MISSION_ITEM_INT", "MISSION_ITEM")
-            and state["upload"] is not None
+            and self.upload is not None
             and getattr(m, "mission_type", 0) == 0
-            and 0 <= m.seq < state["upload"]["count"]
+            and 0 <= m.seq < self.upload["count"]
         ):
             scale = 1e-7 if typ == "MISSION_ITEM_INT" else 1.0
-            state["upload"]["items"][int(m.seq)] = (int(m.command), m.x * scale, m.y * scale)
+            self.upload["items"][int(m.seq)] = (int(m.command), m.x * scale, m.y * scale)
         else:
-            mode = None
-            if typ == "COMMAND_LONG" and m.target_system in (0, veh):
-                if m.command == _DO_SET_MODE:
-                    mode = int(m.param2)
-                elif m.command == _MISSION_START:
-                    mode = _AUTO
-            elif typ == "SET_MODE" and m.target_system in (0, veh):
-                mode = int(m.custom_mode)
-            if mode is None:
-                continue
-            if mode == _AUTO and state["cur"] is None and state["pending"] is not None:
-                leg = state["pending"]
-                up = state["upload"] or {"items": {}}
-                leg.waypoints = [
-                    (la, lo) for s, (cmd, la, lo) in sorted(up["items"].items()) if s >= 1 and cmd == _NAV_WAYPOINT
-                ]
-                legs.append(leg)
-                state["cur"], state["pending"] = leg, None
-                col.leg = leg.index
-            elif mode != _AUTO and state["cur"] is not None:
-                state["cur"].closed = True
-                state["cur"] = None
-                state["tb_lo"] = state["tb"]
-                col.leg = None
-    col.flush()  # readings still waiting for a fix after them: the log has none
-    for leg in legs:
-        leg.n_readings = col.leg_counts(leg.index)["readings"]
-    return LogRebuild(path, legs, n, scan.bad, scan.skipped, len(data), state["outside"])
+            mode = self._commanded_mode(m, typ)
+            if mode is not None:
+                self._mode(mode)
+
+    def _vehicle(self, ts: int, m, typ: str) -> None:
+        """A vehicle message: readings to the collector, the vehicle clock and position the controller read."""
+        if typ in self.collector.TYPES:
+            m._timestamp = ts * 1e-6  # reception time, as pymavlink stamps a live message
+            self.collector.handle(m)
+        if typ in ("SYSTEM_TIME", "GLOBAL_POSITION_INT", "ATTITUDE", "NAMED_VALUE_FLOAT"):
+            self.tb = max(self.tb or 0, int(m.time_boot_ms))  # Link.vehicle_uptime_s
+            if self.tb_lo is None:
+                self.tb_lo = self.tb
+        if typ == "GLOBAL_POSITION_INT" and not (m.lat == 0 and m.lon == 0):
+            self.pos = (m.lat * 1e-7, m.lon * 1e-7)
+
+    def _statustext(self, m) -> None:
+        """The controller's clock reading (:func:`clock_statustext`), sent before it plans a leg."""
+        parsed = parse_clock_statustext(m.text if isinstance(m.text, str) else m.text.decode(errors="replace"))
+        if parsed is not None and self.cur is None:
+            self.clock, self.clock_leg = parsed[1:], parsed[0]
+            if self.pending is not None:
+                self.pending.clock, self.pending.planned_index = parsed[1:], parsed[0]
+
+    def _mission_count(self, m) -> None:
+        """An upload begins; the first of a new leg opens it with the position and time it was planned from."""
+        if self.pending is None and self.cur is None:  # first upload of a new leg: planned just before
+            self.pending = LoggedLeg(
+                len(self.legs), self.pos, self.tb, self.tb_lo, clock=self.clock, planned_index=self.clock_leg
+            )
+            self.clock = self.clock_leg = None
+        self.upload = {"count": int(m.count), "items": {}}
+
+    def _commanded_mode(self, m, typ: str) -> int | None:
+        """The mode a GCS command to the vehicle sets (MISSION_START: AUTO), None for any other message."""
+        if typ == "COMMAND_LONG" and m.target_system in (0, self.veh):
+            if m.command == _DO_SET_MODE:
+                return int(m.param2)
+            if m.command == _MISSION_START:
+                return _AUTO
+        elif typ == "SET_MODE" and m.target_system in (0, self.veh):
+            return int(m.custom_mode)
+        return None
+
+    def _mode(self, mode: int) -> None:
+        """AUTO after an upload starts the pending leg (its waypoints: the last upload's); another mode ends it."""
+        if mode == _AUTO and self.cur is None and self.pending is not None:
+            leg = self.pending
+            up = self.upload or {"items": {}}
+            leg.waypoints = [
+                (la, lo) for s, (cmd, la, lo) in sorted(up["items"].items()) if s >= 1 and cmd == _NAV_WAYPOINT
+            ]
+            self.legs.append(leg)
+            self.cur, self.pending = leg, None
+            self.collector.leg = leg.index
+        elif mode != _AUTO and self.cur is not None:
+            self.cur.closed = True
+            self.cur = None
+            self.tb_lo = self.tb
+            self.collector.leg = None
+
+    def finish(self) -> list[LoggedLeg]:
+        """The legs, once the log ends (readings still waiting for a fix after them: the log has none)."""
+        self.collector.flush()
+        for leg in self.legs:
+            leg.n_readings = self.collector.leg_counts(leg.index)["readings"]
+        return self.legs

@@ -385,41 +385,61 @@ def read_tlog(
     data = _check_file(path, "telemetry log")
     scan = _TlogScanner(data)
     out = TelemetryLog(path=path, kind="tlog", n_bytes=len(data))
-    kept: list[tuple[float, Any]] = []
-    hb_count: Counter = Counter()
-    pos_count: Counter = Counter()
-    last_seq: dict[tuple[int, int], int] = {}
-    frames: Counter = Counter()
-    lost: Counter = Counter()
+    tally = _TlogTally(out)
     for ts, msg in scan:
+        tally.add(ts, msg)
+    out.bad_frames, out.skipped_bytes = scan.bad, scan.skipped
+    if vehicle_sysid is None:
+        vehicle_sysid = tally.vehicle_sysid()
+    out.vehicle_sysid = vehicle_sysid
+    if vehicle_sysid is not None:
+        out.message_counts["_vehicle_frames"] = tally.frames[vehicle_sysid]
+        out.seq_lost = tally.lost[vehicle_sysid]
+        _Interpreter(out, vehicle_sysid, u_name, v_name, int(pair_tolerance_ms), int(max_gap_ms)).run(tally.kept)
+    return out
+
+
+class _TlogTally:
+    """One pass over a tlog's messages: message counts and first/last UTC into ``out``; per system the
+    frames, the frames lost (sequence gaps), the vehicle HEARTBEATs and positions; the messages the
+    interpreter needs (``kept``: (utc s, message))."""
+
+    def __init__(self, out: TelemetryLog):
+        self.out = out
+        self.kept: list[tuple[float, Any]] = []
+        self.hb_count: Counter = Counter()
+        self.pos_count: Counter = Counter()
+        self.last_seq: dict[tuple[int, int], int] = {}
+        self.frames: Counter = Counter()
+        self.lost: Counter = Counter()
+
+    def add(self, ts: int, msg) -> None:
+        """One message received at ``ts`` (µs UTC)."""
+        out = self.out
         out.n_messages += 1
         t = msg.get_type()
         key = (msg.get_srcSystem(), msg.get_srcComponent())
         seq = msg.get_seq()
-        if key in last_seq:
-            lost[key[0]] += (seq - last_seq[key] - 1) % 256
-        last_seq[key] = seq
-        frames[key[0]] += 1
+        if key in self.last_seq:
+            self.lost[key[0]] += (seq - self.last_seq[key] - 1) % 256
+        self.last_seq[key] = seq
+        self.frames[key[0]] += 1
         out.message_counts[t] += 1
         utc = ts * 1e-6
         out.utc_first = utc if out.utc_first is None else out.utc_first
         out.utc_last = utc
         if t in _INTERESTING:
-            kept.append((utc, msg))
+            self.kept.append((utc, msg))
             if t == "HEARTBEAT" and msg.autopilot != 8 and msg.type != 6:  # not INVALID autopilot, not a GCS
-                hb_count[msg.get_srcSystem()] += 1
+                self.hb_count[msg.get_srcSystem()] += 1
             elif t == "GLOBAL_POSITION_INT":
-                pos_count[msg.get_srcSystem()] += 1
-    out.bad_frames, out.skipped_bytes = scan.bad, scan.skipped
-    if vehicle_sysid is None and (hb_count or pos_count):
-        vehicle_sysid = (hb_count or pos_count).most_common(1)[0][0]
-    out.vehicle_sysid = vehicle_sysid
-    if vehicle_sysid is not None:
-        out.message_counts["_vehicle_frames"] = frames[vehicle_sysid]
-        out.seq_lost = lost[vehicle_sysid]
-    if vehicle_sysid is not None:
-        _Interpreter(out, vehicle_sysid, u_name, v_name, int(pair_tolerance_ms), int(max_gap_ms)).run(kept)
-    return out
+                self.pos_count[msg.get_srcSystem()] += 1
+
+    def vehicle_sysid(self) -> int | None:
+        """The system sending the most vehicle HEARTBEATs, else the most positions; None if none did."""
+        if not (self.hb_count or self.pos_count):
+            return None
+        return (self.hb_count or self.pos_count).most_common(1)[0][0]
 
 
 class _Interpreter:
@@ -625,90 +645,122 @@ def read_dataflash(
     Raises:
         LogReadError: the file is missing or unreadable.
     """
-    from pymavlink import DFReader
-
     path = Path(path)
     data = _check_file(path, "DataFlash log")
-    n = len(data)
-    fmt_fmt = DFReader.DFFormat(0x80, "FMT", 89, "BBnNZ", "Type,Length,Name,Format,Columns")
-    formats: dict[int, Any] = {0x80: fmt_fmt}
-    out = TelemetryLog(path=path, kind="dataflash", n_bytes=n)
-    records: dict[str, list] = {}
+    out = TelemetryLog(path=path, kind="dataflash", n_bytes=len(data))
+    records = _DataflashScanner(data, out).scan()
+    _df_interpret(out, records, u_name, v_name, cur_message, int(pair_tolerance_ms), int(max_gap_ms))
+    return out
 
-    def header_ok(p: int) -> bool:
-        return p + 3 <= n and data[p : p + 2] == _DF_HEAD and data[p + 2] in formats
 
-    def follows_ok(p: int) -> bool:
+class _DataflashScanner:
+    """Walks the records of a DataFlash log (FMT records describe the others), decoding each through
+    ``DFReader``'s format classes; a record counts only when another header (or the end of the file)
+    follows it, damage is skipped to the next such record. Counts go to ``out``."""
+
+    def __init__(self, data: bytes, out: TelemetryLog):
+        from pymavlink import DFReader
+
+        self.data, self.n, self.out = data, len(data), out
+        self.fmt_fmt = DFReader.DFFormat(0x80, "FMT", 89, "BBnNZ", "Type,Length,Name,Format,Columns")
+        self.formats: dict[int, Any] = {0x80: self.fmt_fmt}
+        self.records: dict[str, list] = {}
+        self._message = DFReader.DFMessage
+
+    def scan(self) -> dict[str, list]:
+        """The decoded records (``DFMessage``) by message name, in file order."""
+        p = 0
+        while p < self.n:
+            end = self._record(p) if self._header_ok(p) else None
+            p = self._resync(p) if end is None else end
+        return self.records
+
+    def _header_ok(self, p: int) -> bool:
+        """A record header of a known format starts at ``p``."""
+        return p + 3 <= self.n and self.data[p : p + 2] == _DF_HEAD and self.data[p + 2] in self.formats
+
+    def _follows_ok(self, p: int) -> bool:
         """A valid record of known length starts at ``p`` and ends at EOF or before another header."""
-        if not header_ok(p):
+        if not self._header_ok(p):
             return False
-        end = p + formats[data[p + 2]].len
-        return end == n or header_ok(end)
+        end = p + self.formats[self.data[p + 2]].len
+        return end == self.n or self._header_ok(end)
 
-    def fmt_record(body: bytes):
-        try:
-            ftype, flen, name, fmt, cols = struct.unpack(fmt_fmt.msg_struct, body)
-            f = DFReader.DFFormat(
-                ftype, DFReader.null_term(name), flen, DFReader.null_term(fmt), DFReader.null_term(cols)
-            )
-            if struct.calcsize(f.msg_struct) + 3 != flen:
+    def _record(self, p: int) -> int | None:
+        """The end of the record at ``p`` once kept (a FMT's format installed); None if it is damaged; the end
+        of the file if the record is cut off by it."""
+        fmt = self.formats[self.data[p + 2]]
+        end = p + fmt.len
+        if end > self.n:  # the last record, cut off by the end of the file (still being written, power cut)
+            self.out.truncated_bytes = self.n - p
+            return self.n
+        body = self.data[p + 3 : end]
+        if fmt.type == 0x80:
+            if not self._install_format(body, end):
                 return None
-            return f
-        except Exception:  # noqa: BLE001 - an FMT that does not describe itself consistently is damage
+        elif not (end == self.n or self._header_ok(end)):
             return None
+        else:
+            self._keep(fmt, body)
+        self.out.n_messages += 1
+        self.out.message_counts[fmt.name] += 1
+        return end
 
-    p = 0
-    while p < n:
-        if header_ok(p):
-            fmt = formats[data[p + 2]]
-            end = p + fmt.len
-            if end > n:  # the last record, cut off by the end of the file (still being written, power cut)
-                out.truncated_bytes = n - p
-                break
-            body = data[p + 3 : end]
-            newfmt = fmt_record(body) if fmt.type == 0x80 else None
-            if fmt.type == 0x80 and newfmt is None:
-                ok = False
+    def _install_format(self, body: bytes, end: int) -> bool:
+        """Install the format a FMT record's ``body`` describes; False (the previous one kept) if it does not
+        describe itself consistently or no record header follows at ``end``."""
+        newfmt = _format_record(self.fmt_fmt, body)
+        if newfmt is None:
+            return False
+        saved = self.formats.get(newfmt.type)
+        self.formats[newfmt.type] = newfmt
+        ok = end == self.n or self._header_ok(end)
+        if not ok:
+            if saved is None:
+                self.formats.pop(newfmt.type, None)
             else:
-                saved = formats.get(newfmt.type) if newfmt else None
-                if newfmt:
-                    formats[newfmt.type] = newfmt
-                ok = end == n or header_ok(end)
-                if not ok and newfmt:
-                    if saved is None:
-                        formats.pop(newfmt.type, None)
-                    else:
-                        formats[newfmt.type] = saved
-            if ok:
-                if fmt.type != 0x80:
-                    try:
-                        elements = list(struct.unpack(fmt.msg_struct, body))
-                    except struct.error:
-                        elements = None
-                    if elements is not None:
-                        m = DFReader.DFMessage(fmt, elements, True, None)
-                        records.setdefault(fmt.name, []).append(m)
-                out.n_messages += 1
-                out.message_counts[fmt.name] += 1
-                p = end
-                continue
-        # damaged: skip to the next record header that is followed by another one
+                self.formats[newfmt.type] = saved
+        return ok
+
+    def _keep(self, fmt, body: bytes) -> None:
+        """Decode a data record (dropped if its body does not unpack)."""
+        try:
+            elements = list(struct.unpack(fmt.msg_struct, body))
+        except struct.error:
+            return
+        self.records.setdefault(fmt.name, []).append(self._message(fmt, elements, True, None))
+
+    def _resync(self, p: int) -> int:
+        """Skip the damage at ``p`` to the next header followed by another; the end of the file if there is
+        none (a tail shorter than any record counts as truncated, not skipped)."""
+        out, n = self.out, self.n
         out.bad_frames += 1
-        q = data.find(_DF_HEAD, p + 1)
-        while q != -1 and not follows_ok(q):
-            q = data.find(_DF_HEAD, q + 1)
+        q = self.data.find(_DF_HEAD, p + 1)
+        while q != -1 and not self._follows_ok(q):
+            q = self.data.find(_DF_HEAD, q + 1)
         if q == -1:
             if n - p < 3 + 256:  # no header after it and shorter than any record: a cut-off tail
                 out.bad_frames -= 1
                 out.truncated_bytes = n - p
             else:
                 out.skipped_bytes += n - p
-            break
+            return n
         out.skipped_bytes += q - p
-        p = q
+        return q
 
-    _df_interpret(out, records, u_name, v_name, cur_message, int(pair_tolerance_ms), int(max_gap_ms))
-    return out
+
+def _format_record(fmt_fmt, body: bytes):
+    """The ``DFFormat`` a FMT record's ``body`` describes, None if it does not describe itself consistently."""
+    from pymavlink import DFReader
+
+    try:
+        ftype, flen, name, fmt, cols = struct.unpack(fmt_fmt.msg_struct, body)
+        f = DFReader.DFFormat(ftype, DFReader.null_term(name), flen, DFReader.null_term(fmt), DFReader.null_term(cols))
+        if struct.calcsize(f.msg_struct) + 3 != flen:
+            return None
+        return f
+    except Exception:  # noqa: BLE001 - an FMT that does not describe itself consistently is damage
+        return None
 
 
 def _df_interpret(
