@@ -319,7 +319,23 @@ class _Lattice:
     # -- one time step ------------------------------------------------------
     def step(self, want_force: bool = False):
         """Collide, stream, apply boundaries. Returns (Fx, Fy) on the solid if asked (lattice units)."""
-        torch = self.torch
+        self._collide()
+        if self.sponges:
+            self._relax_sponges()
+        # post-collision populations that will hit the wall
+        flat = self.f.view(9, -1)
+        saved = [(j, idx, flat[j].index_select(0, idx)) for j, idx in self.links]
+        self._stream()
+        force = self._bounce_back(saved, want_force)
+        if self.solid_idx is not None:
+            self._rest_solid()
+        if self.open_x:
+            self._open_boundaries()
+        return force if want_force else None
+
+    def _collide(self) -> None:
+        """TRT collision of ``f`` in place (with the Guo body force when ``force`` is set); stores the
+        pre-collision moments ``rho``, ``ux``, ``uy`` (lattice units)."""
         f = self.f
         rho = f.sum(0)
         jx = f[1] + f[5] + f[8] - f[3] - f[6] - f[7]
@@ -351,21 +367,29 @@ class _Lattice:
                 da = da - fa_src
             f[i] -= ds + da
             f[k] -= ds - da
-        if self.sponges:
-            # absorbing layers: relax towards the free stream (rho 1, u = inlet) so that acoustic
-            # waves leave instead of standing between the periodic lateral boundaries
-            eq = self._eq_const(1.0, self.inlet_u, 0.0)
-            for rs, cs, sig in self.sponges:
-                for i in range(9):
-                    blk = f[i, rs, cs]
-                    blk += sig * (eq[i] - blk)
-        # post-collision populations that will hit the wall
-        flat = f.view(9, -1)
-        saved = [(j, idx, flat[j].index_select(0, idx)) for j, idx in self.links]
-        # streaming: population i moves by (cx, cy)
+
+    def _relax_sponges(self) -> None:
+        """Absorbing layers: relax ``f`` towards the free stream (rho 1, u = inlet) in the sponge
+        slabs, so that acoustic waves leave instead of standing between the periodic lateral boundaries."""
+        f = self.f
+        eq = self._eq_const(1.0, self.inlet_u, 0.0)
+        for rs, cs, sig in self.sponges:
+            for i in range(9):
+                blk = f[i, rs, cs]
+                blk += sig * (eq[i] - blk)
+
+    def _stream(self) -> None:
+        """Streaming, in place: population i moves by (cx, cy), periodic in both directions."""
+        torch = self.torch
+        f = self.f
         for i in range(1, 9):
             f[i] = torch.roll(f[i], shifts=(_CY[i], _CX[i]), dims=(0, 1))
-        flat = f.view(9, -1)
+
+    def _bounce_back(self, saved: list, want_force: bool) -> tuple[float, float]:
+        """Half-way bounce-back of the ``saved`` post-collision wall populations ``(j, idx, f_j)``,
+        with Ladd's moving-wall term; returns the force (Fx, Fy) on the solid (lattice units,
+        summed only when ``want_force``)."""
+        flat = self.f.view(9, -1)
         wx, wy = self.wall_u
         fxw = fyw = 0.0
         for j, idx, fj in saved:
@@ -380,26 +404,35 @@ class _Lattice:
                 s = float((fj + val).sum())
                 fxw += _CX[j] * s
                 fyw += _CY[j] * s
-        if self.solid_idx is not None:
-            # keep solid nodes at rest equilibrium moving with the wall, so that nodes a moving
-            # cylinder uncovers start from a sensible state (and nothing inside can blow up)
-            eq = self._eq_const(1.0, wx, wy)
-            for i in range(9):
-                flat[i].index_fill_(0, self.solid_idx, eq[i])
-        if self.open_x:
-            # inlet: non-equilibrium extrapolation (Guo, Zheng & Shi 2002): equilibrium at the
-            # prescribed velocity with the neighbour's density, plus the neighbour's
-            # non-equilibrium part. A plain equilibrium inlet (density fixed at 1) reflects
-            # the start-up pressure waves and grows a checkerboard mode at tau ~ 0.53.
-            f1 = f[:, :, 1]
-            rho1 = f1.sum(0)
-            ux1 = (f1[1] + f1[5] + f1[8] - f1[3] - f1[6] - f1[7]) / rho1
-            uy1 = (f1[2] + f1[5] + f1[6] - f1[4] - f1[7] - f1[8]) / rho1
-            ub = torch.full_like(ux1, self.inlet_u)
-            f[:, :, 0] = self.equilibrium(rho1, ub, torch.zeros_like(ux1)) + (f1 - self.equilibrium(rho1, ux1, uy1))
-            # outlet: zero normal gradient
-            f[:, :, -1] = f[:, :, -2]
-        return (fxw, fyw) if want_force else None
+        return fxw, fyw
+
+    def _rest_solid(self) -> None:
+        """Keep solid nodes at rest equilibrium moving with the wall, so that nodes a moving
+        cylinder uncovers start from a sensible state (and nothing inside can blow up)."""
+        flat = self.f.view(9, -1)
+        wx, wy = self.wall_u
+        eq = self._eq_const(1.0, wx, wy)
+        for i in range(9):
+            flat[i].index_fill_(0, self.solid_idx, eq[i])
+
+    def _open_boundaries(self) -> None:
+        """Inlet (left column) and outlet (right column) populations.
+
+        Inlet: non-equilibrium extrapolation (Guo, Zheng & Shi 2002): equilibrium at the
+        prescribed velocity with the neighbour's density, plus the neighbour's
+        non-equilibrium part. A plain equilibrium inlet (density fixed at 1) reflects
+        the start-up pressure waves and grows a checkerboard mode at tau ~ 0.53.
+        Outlet: zero normal gradient.
+        """
+        torch = self.torch
+        f = self.f
+        f1 = f[:, :, 1]
+        rho1 = f1.sum(0)
+        ux1 = (f1[1] + f1[5] + f1[8] - f1[3] - f1[6] - f1[7]) / rho1
+        uy1 = (f1[2] + f1[5] + f1[6] - f1[4] - f1[7] - f1[8]) / rho1
+        ub = torch.full_like(ux1, self.inlet_u)
+        f[:, :, 0] = self.equilibrium(rho1, ub, torch.zeros_like(ux1)) + (f1 - self.equilibrium(rho1, ux1, uy1))
+        f[:, :, -1] = f[:, :, -2]
 
     @staticmethod
     def _eq_const(rho: float, ux: float, uy: float) -> list[float]:
@@ -496,38 +529,76 @@ def _bilinear_plan(xs_lat: np.ndarray, ys_lat: np.ndarray, nx: int):
     return idx, w
 
 
-def run_cylinder_lbm(config: CylinderConfig, progress: bool = True) -> CylinderRun:
-    """Time-step the lattice and sample the crop; see the module docstring for the set-up."""
-    import torch
+@dataclass(frozen=True)
+class _Motion:
+    """The cylinder's prescribed transverse oscillation (none when ``cfg.amplitude`` is 0), phase 0
+    at the first output snapshot (lattice step ``spin_steps``; ``spo`` lattice steps per snapshot)."""
 
-    cfg = config.validate()
-    if cfg.threads is not None:
-        torch.set_num_threads(int(cfg.threads))
-    lp = cfg.lattice()
-    dx, u_lat, tau = lp["dx"], lp["u_lat"], lp["tau"]
-    spo, spin_steps = lp["steps_per_output"], lp["spin_up_steps"]
-    xmin, xmax, ymin, ymax = DOMAIN
-    nx = int(round((xmax - xmin) / dx)) + 1
-    ny = int(round((ymax - ymin) / dx))  # periodic in y: ny nodes cover the 40 m period
-    xs = xmin + dx * np.arange(nx)
-    ys = ymin + dx * np.arange(ny)
-    X, Y = np.meshgrid(xs, ys)
+    cfg: CylinderConfig
+    spin_steps: int
+    spo: int
+    u_lat: float
 
-    def cylinder_centre(step: int) -> float:
-        """Cylinder y (m) at lattice step ``step``; phase 0 at the first output snapshot."""
-        if cfg.amplitude == 0:
+    def centre(self, step: int) -> float:
+        """Cylinder y (m) at lattice step ``step``."""
+        if self.cfg.amplitude == 0:
             return 0.0
-        t = (step - spin_steps) / spo  # in output snapshots
-        return cfg.amplitude * RADIUS * math.sin(2 * math.pi * t / cfg.period_snapshots)
+        t = (step - self.spin_steps) / self.spo  # in output snapshots
+        return self.cfg.amplitude * RADIUS * math.sin(2 * math.pi * t / self.cfg.period_snapshots)
 
-    def wall_velocity(step: int) -> float:
+    def wall_velocity(self, step: int) -> float:
         """Cylinder y velocity in lattice units at ``step``."""
+        cfg = self.cfg
         if cfg.amplitude == 0:
             return 0.0
-        t = (step - spin_steps) / spo
+        t = (step - self.spin_steps) / self.spo
         w = 2 * math.pi / (cfg.period_snapshots * cfg.dt_out)  # rad per non-dim time
-        return cfg.amplitude * RADIUS * w * math.cos(2 * math.pi * t / cfg.period_snapshots) * u_lat
+        return cfg.amplitude * RADIUS * w * math.cos(2 * math.pi * t / cfg.period_snapshots) * self.u_lat
 
+
+class _CylinderWindow:
+    """The lattice nodes around the cylinder where its solid mask can change (moving case):
+    columns ``wi`` and rows ``wj`` within ``RADIUS (1 + amplitude) + 3 dx`` of the origin."""
+
+    def __init__(self, xs: np.ndarray, ys: np.ndarray, dx: float, amplitude: float):
+        reach = RADIUS * (1 + amplitude) + 3 * dx
+        self.wi = np.flatnonzero(np.abs(xs) <= reach)
+        self.wj = np.flatnonzero(np.abs(ys) <= reach)
+        self.Xw, self.Yw = np.meshgrid(xs[self.wi], ys[self.wj])
+        self.offset = (int(self.wj[0]), int(self.wi[0]))  # lattice (row, col) of the window's node (0, 0)
+
+    def mask(self, yc: float) -> np.ndarray:
+        """Solid nodes of the window for a cylinder centred at ``(0, yc)`` m ((len(wj), len(wi)) bool)."""
+        return self.Xw**2 + (self.Yw - yc) ** 2 <= RADIUS**2
+
+
+class _CropSampler:
+    """Bilinear interpolation of the lattice velocity onto the :data:`CROP` cell centres."""
+
+    def __init__(self, nx: int, dx: float, u_lat: float):
+        import torch
+
+        xmin, _xmax, ymin, _ymax = DOMAIN
+        x0, x1, y0, y1, self.rows, self.cols = CROP
+        tx = (np.linspace(x0, x1, self.cols) - xmin) / dx
+        ty = (np.linspace(y0, y1, self.rows) - ymin) / dx
+        pidx, pw = _bilinear_plan(tx, ty, nx)
+        self.pidx_t = torch.from_numpy(pidx.ravel())
+        self.pw_np = pw.astype(np.float64)
+        self.u_lat = u_lat
+
+    def sample(self, lat: _Lattice, out: np.ndarray) -> None:
+        """Write the crop's (u, v) into ``out`` ``(2, rows, cols)`` in units of the inflow, from the
+        macroscopic velocity of the state just before the lattice's last collision."""
+        ux = lat.ux.view(-1).index_select(0, self.pidx_t).double().numpy().reshape(4, -1)
+        uy = lat.uy.view(-1).index_select(0, self.pidx_t).double().numpy().reshape(4, -1)
+        out[0] = ((ux * self.pw_np).sum(0) / self.u_lat).reshape(self.rows, self.cols)
+        out[1] = ((uy * self.pw_np).sum(0) / self.u_lat).reshape(self.rows, self.cols)
+
+
+def _initial_velocity(cfg: CylinderConfig, X: np.ndarray, Y: np.ndarray, u_lat: float, yc0: float):
+    """Initial ``(ux, uy)`` (lattice units) on the node coordinates ``X``, ``Y`` (m): potential flow
+    round the cylinder centred at ``(0, yc0)`` plus the seeded symmetry-breaking perturbation."""
     # seeded symmetry-breaking perturbation: a transverse velocity blob of random sign,
     # strength and offset just behind the cylinder, so shedding starts within a few periods.
     # (No white noise: grid-scale noise seeded checkerboard modes at the inlet.)
@@ -538,106 +609,124 @@ def run_cylinder_lbm(config: CylinderConfig, progress: bool = True) -> CylinderR
     blob = np.exp(-((X - xc_p) ** 2 + (Y - yc_p) ** 2) / (1.5 * RADIUS) ** 2)
     # start from potential flow round the cylinder, not an impulsive uniform stream: the
     # impulsive start launches pressure waves strong enough to destabilise the lattice at tau ~ 0.53
-    yc0 = cylinder_centre(0)
     r2 = np.maximum(X**2 + (Y - yc0) ** 2, RADIUS**2)
     ux0 = u_lat * (1 - RADIUS**2 * (X**2 - (Y - yc0) ** 2) / r2**2)
     uy0 = u_lat * (-2 * RADIUS**2 * X * (Y - yc0) / r2**2 + amp * blob)
+    return ux0, uy0
 
-    # window around the cylinder where the mask can change (moving case)
-    reach = RADIUS * (1 + cfg.amplitude) + 3 * dx
-    wi = np.flatnonzero(np.abs(xs) <= reach)
-    wj = np.flatnonzero(np.abs(ys) <= reach)
-    Xw, Yw = np.meshgrid(xs[wi], ys[wj])
 
-    woff = (int(wj[0]), int(wi[0]))
+class _CylinderSimulation:
+    """One run of a (validated) config: the lattice at its initial state, the cylinder's motion,
+    the window of its solid mask and the crop sampler; :meth:`run` time-steps it."""
 
-    def solid_mask(yc: float) -> np.ndarray:
-        """Solid nodes of the window around the cylinder ((len(wj), len(wi)) bool)."""
-        return Xw**2 + (Yw - yc) ** 2 <= RADIUS**2
+    def __init__(self, cfg: CylinderConfig):
+        self.cfg = cfg
+        self.lp = lp = cfg.lattice()
+        dx, u_lat = lp["dx"], lp["u_lat"]
+        self.spin_steps, self.spo = lp["spin_up_steps"], lp["steps_per_output"]
+        xmin, xmax, ymin, ymax = DOMAIN
+        nx = int(round((xmax - xmin) / dx)) + 1
+        ny = int(round((ymax - ymin) / dx))  # periodic in y: ny nodes cover the 40 m period
+        xs = xmin + dx * np.arange(nx)
+        ys = ymin + dx * np.arange(ny)
+        self.motion = _Motion(cfg, self.spin_steps, self.spo, u_lat)
+        self.window = _CylinderWindow(xs, ys, dx, cfg.amplitude)
+        self.lat = self._initial_lattice(xs, ys)
+        self.sampler = _CropSampler(nx, dx, u_lat)
+        self.n_out = int(cfg.n_snapshots)
+        self.total = self.spin_steps + (self.n_out - 1) * self.spo + 1  # lattice steps in all
 
-    lat = _Lattice(ny, nx, tau, open_x=True)
-    solid_w = solid_mask(cylinder_centre(0))
-    inside = np.zeros((ny, nx), bool)
-    inside[np.ix_(wj, wi)] = solid_w
-    ux0[inside] = 0.0
-    uy0[inside] = 0.0
-    lat.init(torch.from_numpy(ux0.astype(np.float32)), torch.from_numpy(uy0.astype(np.float32)))
-    lat.inlet_u = u_lat
-    lat.set_solid(solid_w, woff)
-    lat.sponges = _sponges(xs, ys)
+    def _initial_lattice(self, xs: np.ndarray, ys: np.ndarray) -> _Lattice:
+        """The lattice at its initial state (fluid at rest inside the cylinder), with the cylinder's
+        solid mask (kept in ``solid_w``), the inlet speed and the sponges set."""
+        import torch
 
-    x0, x1, y0, y1, rows, cols = CROP
-    tx = (np.linspace(x0, x1, cols) - xmin) / dx
-    ty = (np.linspace(y0, y1, rows) - ymin) / dx
-    pidx, pw = _bilinear_plan(tx, ty, nx)
-    pidx_t = torch.from_numpy(pidx.ravel())
-    pw_np = pw.astype(np.float64)
+        lp = self.lp
+        X, Y = np.meshgrid(xs, ys)
+        ux0, uy0 = _initial_velocity(self.cfg, X, Y, lp["u_lat"], self.motion.centre(0))
+        lat = _Lattice(len(ys), len(xs), lp["tau"], open_x=True)
+        self.solid_w = self.window.mask(self.motion.centre(0))
+        inside = np.zeros((len(ys), len(xs)), bool)
+        inside[np.ix_(self.window.wj, self.window.wi)] = self.solid_w
+        ux0[inside] = 0.0
+        uy0[inside] = 0.0
+        lat.init(torch.from_numpy(ux0.astype(np.float32)), torch.from_numpy(uy0.astype(np.float32)))
+        lat.inlet_u = lp["u_lat"]
+        lat.set_solid(self.solid_w, self.window.offset)
+        lat.sponges = _sponges(xs, ys)
+        return lat
 
-    n_out = int(cfg.n_snapshots)
-    total = spin_steps + (n_out - 1) * spo + 1
-    data = np.empty((n_out, 2, rows, cols), np.float32)
-    force_scale = 1.0 / (u_lat**2 * (RADIUS / dx))  # 1 / (1/2 rho U^2 D) in lattice units, D = 2 R / dx
-    lift, drag = [], []
+    def _move_cylinder(self, s: int) -> None:
+        """Moving wall: re-mask when the staircase changes, Ladd's wall-velocity term every step."""
+        m = self.window.mask(self.motion.centre(s))
+        if not np.array_equal(m, self.solid_w):
+            self.solid_w = m
+            self.lat.set_solid(self.solid_w, self.window.offset)
+        self.lat.wall_u = (0.0, self.motion.wall_velocity(s))
 
+    def run(self, bar=None) -> tuple[np.ndarray, list[float], list[float]]:
+        """Take every lattice step; returns the crop snapshots ``(n_out, 2, rows, cols)`` and the lift
+        and drag coefficients of every step after the spin-up. ``bar``: a tqdm bar or None."""
+        lat, spin_steps, spo, u_lat = self.lat, self.spin_steps, self.spo, self.lp["u_lat"]
+        data = np.empty((self.n_out, 2, self.sampler.rows, self.sampler.cols), np.float32)
+        force_scale = 1.0 / (u_lat**2 * (RADIUS / self.lp["dx"]))  # 1 / (1/2 rho U^2 D) in lattice units, D = 2 R / dx
+        lift, drag = [], []
+        k_out = 0
+        for s in range(self.total):
+            if self.cfg.amplitude:
+                self._move_cylinder(s)
+            sample = s >= spin_steps and (s - spin_steps) % spo == 0
+            fxy = lat.step(want_force=s >= spin_steps)
+            if fxy is not None:
+                drag.append(fxy[0] * force_scale)
+                lift.append(fxy[1] * force_scale)
+            if sample:
+                self.sampler.sample(lat, data[k_out])
+                if not np.all(np.isfinite(data[k_out])):
+                    raise FloatingPointError(
+                        f"lattice Boltzmann run diverged at step {s} (tau {self.lp['tau']:.4f}); raise the resolution or lower u_lattice"
+                    )
+                k_out += 1
+            if bar is not None and (s % 200 == 0 or s == self.total - 1):
+                bar.n = s + 1
+                bar.refresh()
+        return data, lift, drag
+
+
+def run_cylinder_lbm(config: CylinderConfig, progress: bool = True) -> CylinderRun:
+    """Time-step the lattice and sample the crop; see the module docstring for the set-up."""
+    import torch
+
+    cfg = config.validate()
+    if cfg.threads is not None:
+        torch.set_num_threads(int(cfg.threads))
+    sim = _CylinderSimulation(cfg)
     bar = None
     if progress:
         from tqdm import tqdm
 
         bar = tqdm(
-            total=total, unit="step", desc="cylinder LBM" + (" (oscillating)" if cfg.amplitude else ""), mininterval=2.0
+            total=sim.total,
+            unit="step",
+            desc="cylinder LBM" + (" (oscillating)" if cfg.amplitude else ""),
+            mininterval=2.0,
         )
     t0 = _time.perf_counter()
-    k_out = 0
-    for s in range(total):
-        if cfg.amplitude:
-            # moving wall: re-mask when the staircase changes, Ladd's wall-velocity term every step
-            m = solid_mask(cylinder_centre(s))
-            if not np.array_equal(m, solid_w):
-                solid_w = m
-                lat.set_solid(solid_w, woff)
-            lat.wall_u = (0.0, wall_velocity(s))
-        sample = s >= spin_steps and (s - spin_steps) % spo == 0
-        fxy = lat.step(want_force=s >= spin_steps)
-        if fxy is not None:
-            drag.append(fxy[0] * force_scale)
-            lift.append(fxy[1] * force_scale)
-        if sample:
-            # macroscopic velocity of the state just before this step's collision
-            ux = lat.ux.view(-1).index_select(0, pidx_t).double().numpy().reshape(4, -1)
-            uy = lat.uy.view(-1).index_select(0, pidx_t).double().numpy().reshape(4, -1)
-            data[k_out, 0] = ((ux * pw_np).sum(0) / u_lat).reshape(rows, cols)
-            data[k_out, 1] = ((uy * pw_np).sum(0) / u_lat).reshape(rows, cols)
-            if not np.all(np.isfinite(data[k_out])):
-                raise FloatingPointError(
-                    f"lattice Boltzmann run diverged at step {s} (tau {tau:.4f}); raise the resolution or lower u_lattice"
-                )
-            k_out += 1
-        if bar is not None and (s % 200 == 0 or s == total - 1):
-            bar.n = s + 1
-            bar.refresh()
+    data, lift, drag = sim.run(bar)
     wall = _time.perf_counter() - t0
     if bar is not None:
         bar.close()
+    lp = sim.lp
     # rounded so that the stored times read 120.0, 120.4, ... instead of carrying lattice round-off
-    out_times = np.round(spin_steps * lp["dt_lat"] + cfg.dt_out * np.arange(n_out), 9)
-    return CylinderRun(data, out_times, np.asarray(lift), np.asarray(drag), lp["dt_lat"], wall, total)
+    out_times = np.round(lp["spin_up_steps"] * lp["dt_lat"] + cfg.dt_out * np.arange(sim.n_out), 9)
+    return CylinderRun(data, out_times, np.asarray(lift), np.asarray(drag), lp["dt_lat"], wall, sim.total)
 
 
-def generate_cylinder(config: CylinderConfig | None = None, progress: bool = True, *, command: str | None = None):
-    """Run the CFD and return the crop as a :class:`FlowField` with provenance attrs.
-
-    The field is ``(n_snapshots, 2, 30, 30)`` float32 on
-    ``MetricRegionGrid(2.6, 11.4, -4.7, 4.7, 30, 30)`` anchored at
-    ``config.anchor_lat/lon``, units ``"1"`` (inflow = 1), times non-dimensional.
-    attrs hold the generator name, every config parameter, the derived lattice
-    parameters, the Strouhal number (from the lift coefficient), the mean drag
-    coefficient, the POD-4 energy of snapshots 200-400 and the command.
-    """
+def _physics_checks(cfg: CylinderConfig, run: CylinderRun) -> dict:
+    """Strouhal numbers (lift coefficient; ``v`` at a wake probe) and the POD-4 energy of the run
+    (NaN where the record is too short), with the POD window ``[lo, hi)``."""
     from passt_mav.fields.analysis import pod_energy
-    from passt_mav.fields.field import FlowField
 
-    cfg = (config or CylinderConfig()).validate()
-    run = run_cylinder_lbm(cfg, progress=progress)
     # the oscillation frequency itself is not shedding: look above it
     f_min = None
     if cfg.amplitude:
@@ -649,6 +738,12 @@ def generate_cylinder(config: CylinderConfig | None = None, progress: bool = Tru
     st_probe = strouhal_number(run.data[:, 1, 15, 8], cfg.dt_out, f_min=f_min) if probe_ok else float("nan")
     lo, hi = (200, 400) if run.data.shape[0] >= 400 else (run.data.shape[0] // 2, run.data.shape[0])
     pod4 = float(pod_energy(run.data[lo:hi], 4)[-1]) if hi - lo >= 5 else float("nan")
+    return {"strouhal": st, "strouhal_probe": st_probe, "pod4_energy": pod4, "pod4_window": [lo, hi]}
+
+
+def _cylinder_attrs(cfg: CylinderConfig, run: CylinderRun, command: str | None) -> dict:
+    """The data set's provenance attrs: generator, config, derived lattice parameters, physics checks, command."""
+    checks = _physics_checks(cfg, run)
     lp = cfg.lattice()
     attrs = {
         "title": f"flow past an oscillating cylinder, Re {cfg.reynolds:g}"
@@ -662,18 +757,18 @@ def generate_cylinder(config: CylinderConfig | None = None, progress: bool = Tru
         "cylinder_radius_m": RADIUS,
         "boundaries": "velocity inlet u=1 (non-equilibrium extrapolation), zero-gradient outlet, periodic lateral, "
         "sponge layers |y|>15, x<-6, x>30; half-way bounce-back cylinder (moving-wall term when oscillating)",
-        "strouhal_probe": st_probe,
+        "strouhal_probe": checks["strouhal_probe"],
         "strouhal_probe_source": "v at crop cell (row 15, col 8) = (x 5.0, y 0.16) m",
         "lattice_dx_m": lp["dx"],
         "lattice_tau": lp["tau"],
         "lattice_u": lp["u_lat"],
         "lattice_steps_per_output": lp["steps_per_output"],
-        "strouhal": st,
+        "strouhal": checks["strouhal"],
         "strouhal_source": "lift coefficient spectrum after spin-up",
         "drag_coefficient_mean": float(np.mean(run.drag)),
         "lift_coefficient_rms": float(np.std(run.lift)),
-        "pod4_energy": pod4,
-        "pod4_window": [lo, hi],
+        "pod4_energy": checks["pod4_energy"],
+        "pod4_window": checks["pod4_window"],
         "wall_time_s": round(run.wall_s, 1),
         "lattice_steps": run.steps,
         "command": command or f"passt_mav.fields.cylinder.generate_cylinder({cfg!r})",
@@ -682,5 +777,22 @@ def generate_cylinder(config: CylinderConfig | None = None, progress: bool = Tru
         attrs["oscillation"] = (
             f"cylinder centre y = {cfg.amplitude} R sin(2 pi k / {cfg.period_snapshots}) at snapshot k"
         )
+    return attrs
+
+
+def generate_cylinder(config: CylinderConfig | None = None, progress: bool = True, *, command: str | None = None):
+    """Run the CFD and return the crop as a :class:`FlowField` with provenance attrs.
+
+    The field is ``(n_snapshots, 2, 30, 30)`` float32 on
+    ``MetricRegionGrid(2.6, 11.4, -4.7, 4.7, 30, 30)`` anchored at
+    ``config.anchor_lat/lon``, units ``"1"`` (inflow = 1), times non-dimensional.
+    attrs hold the generator name, every config parameter, the derived lattice
+    parameters, the Strouhal number (from the lift coefficient), the mean drag
+    coefficient, the POD-4 energy of snapshots 200-400 and the command.
+    """
+    from passt_mav.fields.field import FlowField
+
+    cfg = (config or CylinderConfig()).validate()
+    run = run_cylinder_lbm(cfg, progress=progress)
     grid = crop_grid(cfg.anchor_lat, cfg.anchor_lon)
-    return FlowField(run.data, grid, run.times, None, "1", attrs)
+    return FlowField(run.data, grid, run.times, None, "1", _cylinder_attrs(cfg, run, command))

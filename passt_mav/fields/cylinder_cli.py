@@ -96,6 +96,36 @@ def _command_line() -> str:
     return " ".join([argv0] + [shlex.quote(a) for a in sys.argv[1:]])
 
 
+def _amplitude(amplitude: float | None, oscillating: bool) -> float:
+    """The cylinder's oscillation amplitude (radii) from ``--amplitude``: the oscillating default when
+    not given, 0 for the static cylinder (which refuses a non-zero one)."""
+    from passt_mav.errors import FieldError
+
+    if oscillating:
+        amplitude = DEFAULTS["amplitude_oscillating"] if amplitude is None else amplitude
+        if amplitude <= 0:
+            raise FieldError(f"--amplitude must be positive for the oscillating cylinder, got {amplitude}")
+    else:
+        if amplitude not in (None, 0, 0.0):
+            raise FieldError("--amplitude applies to 'data oscillating' only (the static cylinder does not move)")
+        amplitude = 0.0
+    return amplitude
+
+
+def _print_summary(summary: dict) -> None:
+    """Print a run's summary (see :func:`run_cylinder`) as text lines."""
+    lo, hi = summary["pod4_window"]
+    if summary["strouhal"] == summary["strouhal"]:
+        print(f"Strouhal number: {summary['strouhal']:.4f} (lift spectrum; literature 0.19-0.20 at Re 200)")
+    else:
+        print("Strouhal number: n/a (record shorter than 2 shedding periods; use more --snapshots)")
+    print(f"POD energy of the first 4 modes (snapshots {lo}-{hi}): {summary['pod4_energy']:.4f}")
+    print(
+        f"mean drag coefficient: {summary['drag_coefficient_mean']:.3f}; wall time {summary['wall_time_s']:.0f} s; data hash {summary['data_hash']}"
+    )
+    print(f"wrote {summary['out']}")
+
+
 def run_cylinder(args: argparse.Namespace, oscillating: bool) -> int:
     """Generate the static (``oscillating=False``) or oscillating cylinder data set.
 
@@ -108,15 +138,7 @@ def run_cylinder(args: argparse.Namespace, oscillating: bool) -> int:
     out = Path(args.out)
     if out.suffix != ".nc":
         raise FieldError(f"--out must name a .nc file, got {out}")
-    amplitude = args.amplitude
-    if oscillating:
-        amplitude = DEFAULTS["amplitude_oscillating"] if amplitude is None else amplitude
-        if amplitude <= 0:
-            raise FieldError(f"--amplitude must be positive for the oscillating cylinder, got {amplitude}")
-    else:
-        if amplitude not in (None, 0, 0.0):
-            raise FieldError("--amplitude applies to 'data oscillating' only (the static cylinder does not move)")
-        amplitude = 0.0
+    amplitude = _amplitude(args.amplitude, oscillating)
     cfg = CylinderConfig(
         resolution=args.resolution,
         n_snapshots=args.snapshots,
@@ -148,16 +170,7 @@ def run_cylinder(args: argparse.Namespace, oscillating: bool) -> int:
     if getattr(args, "json", False):
         print(json.dumps(summary, indent=2))
     else:
-        lo, hi = a["pod4_window"]
-        if a["strouhal"] == a["strouhal"]:
-            print(f"Strouhal number: {a['strouhal']:.4f} (lift spectrum; literature 0.19-0.20 at Re 200)")
-        else:
-            print("Strouhal number: n/a (record shorter than 2 shedding periods; use more --snapshots)")
-        print(f"POD energy of the first 4 modes (snapshots {lo}-{hi}): {a['pod4_energy']:.4f}")
-        print(
-            f"mean drag coefficient: {a['drag_coefficient_mean']:.3f}; wall time {a['wall_time_s']:.0f} s; data hash {summary['data_hash']}"
-        )
-        print(f"wrote {out}")
+        _print_summary(summary)
     return 0
 
 

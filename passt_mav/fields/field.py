@@ -214,16 +214,33 @@ class FlowField:
         """
         import xarray as xr
 
-        g = self.grid
+        attrs = self._cf_global_attrs()
+        dims, coords, u_attrs, v_attrs = self._cf_space()
+        coords["time"] = ("time", self.times, self._cf_time_attrs())
+        data_vars = {"u": (dims, self.data[:, 0], u_attrs), "v": (dims, self.data[:, 1], v_attrs)}
+        if std is not None:
+            data_vars.update(self._cf_std_vars(std, dims, u_attrs, v_attrs))
+        ds = xr.Dataset(data_vars, coords=coords, attrs=attrs)
+        return ds
+
+    def _cf_global_attrs(self) -> dict[str, Any]:
+        """The data set's global attributes: CF conventions, title, grid and provenance as JSON, and
+        every scalar (str/number, not bool) entry of ``attrs``."""
         attrs: dict[str, Any] = {
             "Conventions": "CF-1.8",
             "title": str(self.attrs.get("title", "passt_mav flow field")),
-            "passt_grid": json.dumps(g.describe()),
+            "passt_grid": json.dumps(self.grid.describe()),
             "passt_provenance": json.dumps(_jsonable(self.attrs), sort_keys=True),
         }
         for k, v in self.attrs.items():
             if isinstance(v, (str, int, float, np.integer, np.floating)) and not isinstance(v, bool):
                 attrs.setdefault(k, v)
+        return attrs
+
+    def _cf_space(self) -> tuple[tuple[str, str, str], dict, dict, dict]:
+        """``(dims, coords, u_attrs, v_attrs)`` of the spatial frame: lat/lon cell centres (degrees)
+        and eastward/northward currents on a geographic grid, else x/y cell centres (m, data frame)."""
+        g = self.grid
         if self.is_geographic:
             dims = ("time", "lat", "lon")
             coords = {
@@ -256,25 +273,29 @@ class FlowField:
             }
             u_attrs = {"units": self.units, "long_name": "x velocity (inflow = 1)"}
             v_attrs = {"units": self.units, "long_name": "y velocity (inflow = 1)"}
+        return dims, coords, u_attrs, v_attrs
+
+    def _cf_time_attrs(self) -> dict[str, str]:
+        """Attributes of the time coordinate: seconds since ``time_origin``, or non-dimensional time."""
         if self.time_origin is not None:
             origin = _parse_iso(self.time_origin).strftime("%Y-%m-%d %H:%M:%S")
-            tattrs = {"standard_name": "time", "units": f"seconds since {origin}", "calendar": "standard"}
-        else:
-            tattrs = {"units": "1", "long_name": "non-dimensional time (lengths in m, inflow speed 1)"}
-        coords["time"] = ("time", self.times, tattrs)
-        data_vars = {"u": (dims, self.data[:, 0], u_attrs), "v": (dims, self.data[:, 1], v_attrs)}
-        if std is not None:
-            std = np.asarray(std, np.float32)
-            if std.shape != self.data.shape:
-                raise FieldError(f"posterior std must have the field's shape {self.data.shape}, got {std.shape}")
-            for k, name, a in ((0, "u", u_attrs), (1, "v", v_attrs)):
-                sa = {"units": self.units, "long_name": f"posterior standard deviation of {name} (GP)"}
-                if "standard_name" in a:
-                    sa["standard_name"] = a["standard_name"] + " standard_error"
-                data_vars[f"{name}_std"] = (dims, std[:, k], sa)
-                a["ancillary_variables"] = f"{name}_std"
-        ds = xr.Dataset(data_vars, coords=coords, attrs=attrs)
-        return ds
+            return {"standard_name": "time", "units": f"seconds since {origin}", "calendar": "standard"}
+        return {"units": "1", "long_name": "non-dimensional time (lengths in m, inflow speed 1)"}
+
+    def _cf_std_vars(self, std, dims: tuple, u_attrs: dict, v_attrs: dict) -> dict:
+        """``u_std``/``v_std`` data variables from the posterior std ``std`` (checked against the field's
+        shape); names them in ``u_attrs``/``v_attrs``'s ``ancillary_variables``."""
+        std = np.asarray(std, np.float32)
+        if std.shape != self.data.shape:
+            raise FieldError(f"posterior std must have the field's shape {self.data.shape}, got {std.shape}")
+        out = {}
+        for k, name, a in ((0, "u", u_attrs), (1, "v", v_attrs)):
+            sa = {"units": self.units, "long_name": f"posterior standard deviation of {name} (GP)"}
+            if "standard_name" in a:
+                sa["standard_name"] = a["standard_name"] + " standard_error"
+            out[f"{name}_std"] = (dims, std[:, k], sa)
+            a["ancillary_variables"] = f"{name}_std"
+        return out
 
     def to_netcdf(self, path: str | Path, std: np.ndarray | None = None) -> Path:
         """Write CF NetCDF-4 (NaN fill for missing); ``std`` as in :meth:`to_dataset`. Returns the path."""

@@ -55,6 +55,7 @@ from __future__ import annotations
 import datetime as _dt
 import math
 import re
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -295,69 +296,164 @@ def import_currents(path, grid, *, start=None, hours=None, variables=None, units
         source has no data; ``attrs`` record the source, variables, unit factor,
         depth, time selection and ``coverage``.
     """
-    import xarray as xr
-    from scipy.interpolate import RegularGridInterpolator
-
     import geo
 
     if not isinstance(grid, geo.RegionGrid) or isinstance(grid, geo.MetricRegionGrid):
         raise FieldError("importing needs a geographic RegionGrid (lat/lon) as target")
     path = Path(path)
+    with _open_currents(path) as ds:
+        src = _read_surface_currents(ds, path.name, grid, start, hours, variables, units)
+    data = _regrid_bilinear(src.values, src.window, grid)
+    origin = str(src.times[0].astype("datetime64[s]")) + "Z"
+    times = (src.times - src.times[0]).astype("timedelta64[ms]").astype(np.float64) / 1000.0
+    attrs: dict[str, Any] = {
+        "title": "imported surface currents",
+        "generator": "passt_mav.fields.importers.import_currents",
+        "source_file": path.name,
+        "source_attrs": src.attrs,
+        "variables": list(src.variables),
+        "units_factor_to_m_s": list(src.scales),
+        "depth_m": src.depth_m,
+        "time_selection": src.time_note,
+        "start": None if start is None else str(start),
+        "hours": None if hours is None else int(hours),
+        "regrid": "bilinear (scipy RegularGridInterpolator); stencils touching missing nodes stay NaN",
+        "edges": src.window.edges_note(),
+        "undeclared_fill_values": src.n_fill,
+    }
+    field = FlowField(data, grid, times, origin, "m s-1", attrs)
+    field.attrs["coverage"] = round(field.coverage, 6)
+    return field
+
+
+@dataclass(frozen=True)
+class _SurfaceCurrents:
+    """What :func:`import_currents` reads from a file: ``values`` ``(T, nlat, nlon, 2)`` float64 m/s
+    on the region window's nodes (NaN = missing), their ``times`` (datetime64), the ``(u, v)``
+    variable names and factors to m/s, the depth used (m, None without a depth axis), the time
+    selection note, the count of undeclared fill values and the file's descriptive attrs."""
+
+    values: np.ndarray
+    window: _RegionWindow
+    times: np.ndarray
+    variables: tuple[str, str]
+    scales: tuple[float, float]
+    depth_m: float | None
+    time_note: str
+    n_fill: int
+    attrs: dict[str, str]
+
+
+def _read_surface_currents(ds, name: str, grid, start, hours, variables, units) -> _SurfaceCurrents:
+    """The surface currents of the open file ``ds`` (called ``name`` in messages) over ``grid``'s
+    region and the time window ``start``/``hours``; see :func:`import_currents` for the options."""
+    u_name, v_name = _find_velocity(ds, variables)
+    u, v = ds[u_name], ds[v_name]
+    if u.dims != v.dims:
+        raise FieldError(f"{u_name} and {v_name} have different dimensions {u.dims} vs {v.dims}")
+    su, sv = _velocity_scales(u, v, units, f"{name} ({u_name}/{v_name})")
+    lat_dim, lon_dim, lat, lon = _horizontal(ds, u)
+    tdim = _time_dim(ds, u)
+    isel, depth_used = _surface_selection(ds, u, u_name, (lat_dim, lon_dim, tdim))
+    t64 = _source_times(ds, u, u_name, tdim)
+    tsel, time_note = _select_times(t64, start, hours)
+    if tdim is not None:
+        isel[tdim] = tsel
+    win = _RegionWindow.of(lat, lon, grid)
+    isel[lat_dim] = win.lat_idx
+    isel[lon_dim] = win.lon_idx
+    order = [tdim, lat_dim, lon_dim] if tdim is not None else [lat_dim, lon_dim]
+    a_u, fill_u = _read_velocity(u, isel, order, su)
+    a_v, fill_v = _read_velocity(v, isel, order, sv)
+    return _SurfaceCurrents(
+        values=np.stack([a_u, a_v], axis=-1),
+        window=win,
+        times=t64[tsel],
+        variables=(u_name, v_name),
+        scales=(su, sv),
+        depth_m=depth_used,
+        time_note=time_note,
+        n_fill=fill_u + fill_v,
+        attrs={k: str(v_) for k, v_ in ds.attrs.items() if k in ("title", "institution", "source", "product_id")},
+    )
+
+
+def _open_currents(path: Path):
+    """The file at ``path`` opened as an ``xarray.Dataset`` (a missing or unreadable file is a :class:`FieldError`)."""
+    import xarray as xr
+
     if not path.exists():
         raise FieldError(f"current file not found: {path}")
     try:
-        ds = xr.open_dataset(path)
+        return xr.open_dataset(path)
     except Exception as exc:  # noqa: BLE001 - every reader failure means a bad file for the user
         msg = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
         raise FieldError(f"cannot read {path} as NetCDF: {msg}") from None
-    with ds:
-        u_name, v_name = _find_velocity(ds, variables)
-        u, v = ds[u_name], ds[v_name]
-        if u.dims != v.dims:
-            raise FieldError(f"{u_name} and {v_name} have different dimensions {u.dims} vs {v.dims}")
-        if units is not None:
-            su = sv = velocity_scale(units)
+
+
+def _velocity_scales(u, v, units: str | None, where: str) -> tuple[float, float]:
+    """Factors to m/s of ``u`` and ``v``: from ``units`` when given, else from each variable's
+    ``units`` attribute (an unknown unit is a :class:`FieldError` prefixed with ``where``)."""
+    if units is not None:
+        s = velocity_scale(units)
+        return s, s
+    try:
+        return velocity_scale(u.attrs.get("units")), velocity_scale(v.attrs.get("units"))
+    except FieldError as exc:
+        raise FieldError(f"{where}: {exc}") from None
+
+
+def _surface_selection(ds, u, u_name: str, keep: tuple) -> tuple[dict[str, Any], float | None]:
+    """``(isel, depth_m)``: indices reducing ``u``'s dimensions other than ``keep`` (lat, lon, time)
+    to the surface: the level nearest depth 0 (``depth_m``, None without a depth axis) and
+    index 0 of any other size-1 dimension; another extra dimension is a :class:`FieldError`."""
+    isel: dict[str, Any] = {}
+    depth_used = None
+    for d in u.dims:
+        if d in keep:
+            continue
+        if _is_depth(str(d), ds):
+            z = ds[d].values.astype(float) if d in ds.variables else np.arange(u.sizes[d], dtype=float)
+            k = int(np.nanargmin(np.abs(z)))
+            isel[d] = k
+            depth_used = float(z[k])
+        elif u.sizes[d] == 1:
+            isel[d] = 0
         else:
-            try:
-                su, sv = velocity_scale(u.attrs.get("units")), velocity_scale(v.attrs.get("units"))
-            except FieldError as exc:
-                raise FieldError(f"{path.name} ({u_name}/{v_name}): {exc}") from None
-        lat_dim, lon_dim, lat, lon = _horizontal(ds, u)
-        tdim = _time_dim(ds, u)
+            raise FieldError(f"{u_name} has an extra dimension {d!r} of size {u.sizes[d]} that is not depth")
+    return isel, depth_used
 
-        # -- reduce extra dimensions to the surface ------------------------------
-        isel: dict[str, Any] = {}
-        depth_used = None
-        for d in u.dims:
-            if d in (lat_dim, lon_dim, tdim):
-                continue
-            if _is_depth(str(d), ds):
-                z = ds[d].values.astype(float) if d in ds.variables else np.arange(u.sizes[d], dtype=float)
-                k = int(np.nanargmin(np.abs(z)))
-                isel[d] = k
-                depth_used = float(z[k])
-            elif u.sizes[d] == 1:
-                isel[d] = 0
-            else:
-                raise FieldError(f"{u_name} has an extra dimension {d!r} of size {u.sizes[d]} that is not depth")
 
-        # -- times ---------------------------------------------------------------
-        if tdim is not None:
-            t64 = _to_datetime64(ds[tdim].values)
-        else:
-            tc = [
-                c
-                for c in u.coords
-                if u[c].ndim == 0 and (np.issubdtype(u[c].dtype, np.datetime64) or str(c) in _TIME_NAMES)
-            ]
-            if not tc:
-                raise FieldError(f"{u_name} has no time coordinate")
-            t64 = _to_datetime64(np.atleast_1d(u[tc[0]].values))
-        tsel, time_note = _select_times(t64, start, hours)
-        if tdim is not None:
-            isel[tdim] = tsel
+def _source_times(ds, u, u_name: str, tdim: str | None) -> np.ndarray:
+    """The file's times as ``datetime64``: the time dimension ``tdim``, or else ``u``'s scalar time coordinate."""
+    if tdim is not None:
+        return _to_datetime64(ds[tdim].values)
+    tc = [c for c in u.coords if u[c].ndim == 0 and (np.issubdtype(u[c].dtype, np.datetime64) or str(c) in _TIME_NAMES)]
+    if not tc:
+        raise FieldError(f"{u_name} has no time coordinate")
+    return _to_datetime64(np.atleast_1d(u[tc[0]].values))
 
-        # -- region window (lon wrapped to -180..180, both axes ascending) ---------
+
+@dataclass(frozen=True)
+class _RegionWindow:
+    """The source nodes around the target region: ``lat_idx``/``lon_idx`` index the file's lat/lon
+    axes (in ascending coordinate order), ``sub_lat``/``sub_lon`` are those nodes' coordinates
+    (degrees, longitudes wrapped to -180..180), ``glat``/``glon`` the target centres adjusted to
+    the nodes, and ``lat_note``/``lon_note`` say what was adjusted (module docstring, step 4)."""
+
+    lat_idx: np.ndarray
+    lon_idx: np.ndarray
+    sub_lat: np.ndarray
+    sub_lon: np.ndarray
+    glat: np.ndarray
+    glon: np.ndarray
+    lat_note: str
+    lon_note: str
+
+    @classmethod
+    def of(cls, lat: np.ndarray, lon: np.ndarray, grid) -> _RegionWindow:
+        """The window of the file's axes ``lat``, ``lon`` (degrees) around ``grid``'s cell centres;
+        duplicate coordinates or a region that misses the file are a :class:`FieldError`."""
         lon_w = (lon + 180.0) % 360.0 - 180.0
         lon_order = np.argsort(lon_w, kind="stable")
         lat_order = np.argsort(lat, kind="stable")
@@ -384,33 +480,42 @@ def import_currents(path, grid, *, start=None, hours=None, variables=None, units
                 f"region lat {glat[0]:.3f}..{glat[-1]:.3f}, lon {glon[0]:.3f}..{glon[-1]:.3f} does not overlap the file "
                 f"(lat {lat_s[0]:.3f}..{lat_s[-1]:.3f}, lon {lon_s[0]:.3f}..{lon_s[-1]:.3f})"
             )
-        isel[lat_dim] = lat_order[i0:i1]
-        isel[lon_dim] = lon_order[j0:j1]
-        order = [tdim, lat_dim, lon_dim] if tdim is not None else [lat_dim, lon_dim]
-        arrays = []
-        n_fill = 0
-        for var, scale in ((u, su), (v, sv)):
-            a = var.isel(isel).transpose(*order).values.astype(np.float64)
-            if tdim is None:
-                a = a[None]
-            lo_v, hi_v = _valid_range(var)
-            a = np.where((a < lo_v) | (a > hi_v), np.nan, a)
-            # fill values a file does not declare (1.26765e30 of GrADS/OPeNDAP, 9.96921e36 of
-            # netCDF, 1e20 ...) are no current: |v| >= 1e10 in any unit is missing, never data
-            fill = np.abs(a) >= _UNDECLARED_FILL
-            n_fill += int(np.count_nonzero(fill))
-            arrays.append(np.where(fill, np.nan, a) * scale)
-        src = np.stack(arrays, axis=-1)  # (T, nlat, nlon, 2) m/s, NaN = missing
-        sub_lat, sub_lon = lat_s[i0:i1], lon_s[j0:j1]
-        attrs_src = {k: str(v_) for k, v_ in ds.attrs.items() if k in ("title", "institution", "source", "product_id")}
+        return cls(lat_order[i0:i1], lon_order[j0:j1], lat_s[i0:i1], lon_s[j0:j1], glat, glon, lat_note, lon_note)
 
-    # -- bilinear regridding ------------------------------------------------------
+    def edges_note(self) -> str:
+        """The ``edges`` attribute: the adjustments of the target centres, or ``"no edge adjustment"``."""
+        return "; ".join(f"{ax}: {x}" for ax, x in (("lat", self.lat_note), ("lon", self.lon_note)) if x) or (
+            "no edge adjustment"
+        )
+
+
+def _read_velocity(var, isel: dict, order: list, scale: float) -> tuple[np.ndarray, int]:
+    """``(a, n_fill)``: the selected values of ``var`` as ``(T, nlat, nlon)`` float64 m/s (times
+    ``scale``), NaN outside the valid range and at undeclared fill values (``n_fill`` of them)."""
+    a = var.isel(isel).transpose(*order).values.astype(np.float64)
+    if len(order) == 2:  # (lat, lon): a file without a time dimension holds one time
+        a = a[None]
+    lo_v, hi_v = _valid_range(var)
+    a = np.where((a < lo_v) | (a > hi_v), np.nan, a)
+    # fill values a file does not declare (1.26765e30 of GrADS/OPeNDAP, 9.96921e36 of
+    # netCDF, 1e20 ...) are no current: |v| >= 1e10 in any unit is missing, never data
+    fill = np.abs(a) >= _UNDECLARED_FILL
+    return np.where(fill, np.nan, a) * scale, int(np.count_nonzero(fill))
+
+
+def _regrid_bilinear(src: np.ndarray, win: _RegionWindow, grid) -> np.ndarray:
+    """``src`` ``(T, nlat, nlon, 2)`` (m/s on the window's nodes, NaN = missing) bilinearly
+    regridded onto ``grid``'s cells: ``(T, 2, rows, cols)`` float32, NaN where the stencil's weight
+    on missing nodes reaches the tolerance (module docstring, step 5)."""
+    from scipy.interpolate import RegularGridInterpolator
+
+    sub_lat, sub_lon = win.sub_lat, win.sub_lon
     T = src.shape[0]
     valid = np.isfinite(src).all(axis=-1)  # (T, nlat, nlon)
     # RegularGridInterpolator interpolates trailing dims together: values (nlat, nlon, T*2)
     vals = np.where(valid[..., None], src, 0.0).transpose(1, 2, 0, 3).reshape(sub_lat.size, sub_lon.size, T * 2)
     wval = valid.transpose(1, 2, 0).astype(np.float64)
-    pts = np.stack(np.meshgrid(glat, glon, indexing="ij"), axis=-1).reshape(-1, 2)
+    pts = np.stack(np.meshgrid(win.glat, win.glon, indexing="ij"), axis=-1).reshape(-1, 2)
     kw = dict(method="linear", bounds_error=False, fill_value=np.nan)
     num = RegularGridInterpolator((sub_lat, sub_lon), vals, **kw)(pts)  # (cells, T*2)
     wv = RegularGridInterpolator((sub_lat, sub_lon), wval, **kw)(pts)  # (cells, T): weight on valid nodes
@@ -420,30 +525,7 @@ def import_currents(path, grid, *, start=None, hours=None, variables=None, units
     with np.errstate(invalid="ignore", divide="ignore"):
         out = num.reshape(-1, T, 2) / wv[..., None]
     out = np.where(ok[..., None], out, np.nan)
-    data = out.reshape(grid.rows, grid.cols, T, 2).transpose(2, 3, 0, 1).astype(np.float32)
-
-    t_kept = t64[tsel]
-    origin = str(t_kept[0].astype("datetime64[s]")) + "Z"
-    times = (t_kept - t_kept[0]).astype("timedelta64[ms]").astype(np.float64) / 1000.0
-    attrs: dict[str, Any] = {
-        "title": "imported surface currents",
-        "generator": "passt_mav.fields.importers.import_currents",
-        "source_file": path.name,
-        "source_attrs": attrs_src,
-        "variables": [u_name, v_name],
-        "units_factor_to_m_s": [su, sv],
-        "depth_m": depth_used,
-        "time_selection": time_note,
-        "start": None if start is None else str(start),
-        "hours": None if hours is None else int(hours),
-        "regrid": "bilinear (scipy RegularGridInterpolator); stencils touching missing nodes stay NaN",
-        "edges": "; ".join(f"{ax}: {x}" for ax, x in (("lat", lat_note), ("lon", lon_note)) if x)
-        or "no edge adjustment",
-        "undeclared_fill_values": n_fill,
-    }
-    field = FlowField(data, grid, times, origin, "m s-1", attrs)
-    field.attrs["coverage"] = round(field.coverage, 6)
-    return field
+    return out.reshape(grid.rows, grid.cols, T, 2).transpose(2, 3, 0, 1).astype(np.float32)
 
 
 def _align_to_nodes(x: np.ndarray, nodes: np.ndarray) -> tuple[np.ndarray, str]:

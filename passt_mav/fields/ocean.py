@@ -36,6 +36,7 @@ Pure numpy; no I/O.
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -135,6 +136,65 @@ def _tide(t: np.ndarray, p: dict[str, Any]) -> tuple[np.ndarray, np.ndarray]:
     return a * math.cos(th) - b * math.sin(th), a * math.sin(th) + b * math.cos(th)
 
 
+@dataclass(frozen=True)
+class _Stencil:
+    """The centred-difference stencil of every cell centre: the local plane coordinates ``(x, y)``
+    (m, east/north of the grid's centre) of its four neighbours ``_H_DEG`` north, south, east and
+    west, the cosine of its latitude and the stencil's full width ``dphi`` (radians)."""
+
+    north: tuple[np.ndarray, np.ndarray]
+    south: tuple[np.ndarray, np.ndarray]
+    east: tuple[np.ndarray, np.ndarray]
+    west: tuple[np.ndarray, np.ndarray]
+    coslat: np.ndarray
+    dphi: float
+
+    @classmethod
+    def of(cls, grid, lat0: float, lon0: float) -> _Stencil:
+        """The stencil of ``grid``'s cell centres, plane coordinates about ``(lat0, lon0)`` (degrees)."""
+        lat, lon = np.meshgrid(grid.lats, grid.lons, indexing="ij")  # (rows, cols) degrees
+        R, h = EARTH_RADIUS_M, _H_DEG
+        coslat0 = math.cos(math.radians(lat0))
+
+        def xy(la, lo):
+            return R * coslat0 * np.radians(lo - lon0), R * np.radians(la - lat0)
+
+        # the four stencil points are fixed in space; only psi's time argument changes
+        return cls(
+            xy(lat + h, lon),
+            xy(lat - h, lon),
+            xy(lat, lon + h),
+            xy(lat, lon - h),
+            np.cos(np.radians(lat)),
+            math.radians(2 * h),
+        )
+
+    def velocity(self, t: float, p: dict[str, Any]) -> tuple[np.ndarray, np.ndarray]:
+        """``(u, v)`` (m/s, east/north) of the streamfunction at time ``t`` (s): exactly solenoidal on the sphere."""
+        R = EARTH_RADIUS_M
+        u = -(_psi(*self.north, t, p) - _psi(*self.south, t, p)) / (R * self.dphi)
+        v = (_psi(*self.east, t, p) - _psi(*self.west, t, p)) / (R * self.coslat * self.dphi)
+        return u, v
+
+
+def _check_ocean_args(grid, hours, seed) -> tuple[Any, int, int]:
+    """``(grid, hours, seed)`` checked: a geographic grid (default ``geo.north_atlantic_grid()``),
+    a positive whole number of hours and a non-negative seed."""
+    import geo
+
+    if grid is None:
+        grid = geo.north_atlantic_grid()
+    if not isinstance(grid, geo.RegionGrid) or isinstance(grid, geo.MetricRegionGrid):
+        raise FieldError("the synthetic ocean field needs a geographic RegionGrid (lat/lon)")
+    if int(hours) != hours or hours < 1:
+        raise FieldError(f"hours must be a positive integer, got {hours!r}")
+    hours = int(hours)
+    seed = int(seed)
+    if seed < 0:
+        raise FieldError(f"seed must be >= 0, got {seed}")
+    return grid, hours, seed
+
+
 def make_ocean_default(*, seed: int = 0, hours: int = 504, grid=None) -> FlowField:
     """Synthetic North Atlantic surface currents (see module docstring).
 
@@ -150,43 +210,16 @@ def make_ocean_default(*, seed: int = 0, hours: int = 504, grid=None) -> FlowFie
         A :class:`FlowField`, data ``(hours, 2, rows, cols)`` float32 in m/s
         (u east, v north, row 0 south), times in seconds since 2018-03-01T00Z.
     """
-    import geo
-
-    if grid is None:
-        grid = geo.north_atlantic_grid()
-    if not isinstance(grid, geo.RegionGrid) or isinstance(grid, geo.MetricRegionGrid):
-        raise FieldError("the synthetic ocean field needs a geographic RegionGrid (lat/lon)")
-    if int(hours) != hours or hours < 1:
-        raise FieldError(f"hours must be a positive integer, got {hours!r}")
-    hours = int(hours)
-    seed = int(seed)
-    if seed < 0:
-        raise FieldError(f"seed must be >= 0, got {seed}")
+    grid, hours, seed = _check_ocean_args(grid, hours, seed)
     p = _draw_parameters(np.random.default_rng(seed))
-
     lat0 = (grid.south + grid.north) / 2.0
     lon0 = (grid.west + grid.east) / 2.0
-    lat, lon = np.meshgrid(grid.lats, grid.lons, indexing="ij")  # (rows, cols) degrees
-    R, h = EARTH_RADIUS_M, _H_DEG
-    coslat0 = math.cos(math.radians(lat0))
-
-    def xy(la, lo):
-        return R * coslat0 * np.radians(lo - lon0), R * np.radians(la - lat0)
-
-    # the four stencil points are fixed in space; only psi's time argument changes
-    x_n, y_n = xy(lat + h, lon)
-    x_s, y_s = xy(lat - h, lon)
-    x_e, y_e = xy(lat, lon + h)
-    x_w, y_w = xy(lat, lon - h)
-    dphi = math.radians(2 * h)
-    coslat = np.cos(np.radians(lat))
+    stencil = _Stencil.of(grid, lat0, lon0)
     times = np.arange(hours, dtype=np.float64) * 3600.0
     tu, tv = _tide(times, p)
     out = np.empty((hours, 2, grid.rows, grid.cols), dtype=np.float32)
     for i, t in enumerate(times):
-        # spherical streamfunction -> velocity: exactly solenoidal on the sphere
-        u = -(_psi(x_n, y_n, t, p) - _psi(x_s, y_s, t, p)) / (R * dphi)
-        v = (_psi(x_e, y_e, t, p) - _psi(x_w, y_w, t, p)) / (R * coslat * dphi)
+        u, v = stencil.velocity(t, p)
         out[i, 0] = u + tu[i]
         out[i, 1] = v + tv[i]
     attrs = {

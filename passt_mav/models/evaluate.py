@@ -389,43 +389,18 @@ def evaluate_command(
     PASST loop starts its model from.
     """
     from passt_mav.fields.datasets import resolve_field
-    from passt_mav.models.base import make_predictor
 
     if threads is not None:
-        import torch
-
-        torch.set_num_threads(int(threads))
+        _set_torch_threads(threads)
     field = resolve_field(data)
-    name, m = _model_from_spec(model, field, train)
-    if tuple(getattr(m, "grid_shape_", ())) != field.data.shape[2:]:
-        raise ModelError(
-            f"model grid {getattr(m, 'grid_shape_', None)} does not match the field's {field.data.shape[2:]}"
-        )
-    predictors = {name: m}
-    for bname in baselines:
-        if bname not in predictors:
-            predictors[bname] = make_predictor(bname).fit(field, start=train[0], stop=train[1])
-    windows = {"train": (field.data, train), "test": (field.data, test)}
-    if oscillating:
-        osc = resolve_field(oscillating)
-        if osc.data.shape[2:] != field.data.shape[2:]:
-            raise ModelError(f"--oscillating grid {osc.data.shape[2:]} differs from --data's {field.data.shape[2:]}")
-        windows["oscillating"] = (osc.data, test)
-    if gp_starts:
-        for label, fld in (("test", field), ("oscillating", osc if oscillating else None)):
-            if fld is not None:
-                init = gp_initial_states(
-                    fld, test, ic_stride=gp_ic_stride, path_length=gp_path_length, noise_std=gp_noise, seed=seed
-                )
-                windows[f"{label}/gp"] = (fld.data, test, init)
+    m, predictors = _predictors(model, field, train, baselines)
+    gp = dict(ic_stride=gp_ic_stride, path_length=gp_path_length, noise_std=gp_noise, seed=seed) if gp_starts else None
+    windows = _evaluation_windows(field, train, test, oscillating, gp)
     pw = (pod_window[0], min(pod_window[1], field.n_times))
     res = evaluate_predictors(
         predictors, windows, lookaheads, ic_stride=ic_stride, pod=(field.data, pw), pod_modes=pod_modes
     )
-    meta = getattr(m, "metadata_", None)
-    if meta and meta.get("skill"):
-        res["skill"] = meta["skill"]
-        res["skill_warning"] = skill_warning(meta)
+    res.update(_stored_skill(getattr(m, "metadata_", None)))
     res["config"] = {
         "gp_starts": gp_starts,
         "gp_ic_stride": gp_ic_stride,
@@ -444,9 +419,64 @@ def evaluate_command(
         "data_hash": field.data_hash(),
     }
     if out:
-        od = Path(out)
-        od.mkdir(parents=True, exist_ok=True)
-        res["files"] = write_plots(res, od)
-        (od / "results.json").write_text(json.dumps(res, indent=1) + "\n")
-        res["out"] = str(od)
+        _write_results(res, Path(out))
     return res
+
+
+def _set_torch_threads(threads: int) -> None:
+    """Run torch on ``threads`` CPU threads."""
+    import torch
+
+    torch.set_num_threads(int(threads))
+
+
+def _stored_skill(meta: dict | None) -> dict:
+    """``skill`` and ``skill_warning`` entries of the results from a checkpoint's metadata that holds a
+    skill report (else none)."""
+    if meta and meta.get("skill"):
+        return {"skill": meta["skill"], "skill_warning": skill_warning(meta)}
+    return {}
+
+
+def _predictors(model: str, field, train: tuple[int, int], baselines) -> tuple[object, dict]:
+    """``(m, predictors)``: the model ``m`` of spec ``model`` (checked to be on the field's grid) and
+    ``{name: predictor}`` of it plus each baseline in ``baselines``, fitted on ``field``'s ``train`` window."""
+    from passt_mav.models.base import make_predictor
+
+    name, m = _model_from_spec(model, field, train)
+    if tuple(getattr(m, "grid_shape_", ())) != field.data.shape[2:]:
+        raise ModelError(
+            f"model grid {getattr(m, 'grid_shape_', None)} does not match the field's {field.data.shape[2:]}"
+        )
+    predictors = {name: m}
+    for bname in baselines:
+        if bname not in predictors:
+            predictors[bname] = make_predictor(bname).fit(field, start=train[0], stop=train[1])
+    return m, predictors
+
+
+def _evaluation_windows(field, train, test, oscillating: str | None, gp: dict | None) -> dict:
+    """The windows to score: ``train`` and ``test`` of ``field``, ``test`` of the ``oscillating``
+    field when given, and with ``gp`` (keywords of :func:`gp_initial_states`) the test windows
+    again from GP-reconstructed initial states (labels ``test/gp``, ``oscillating/gp``)."""
+    from passt_mav.fields.datasets import resolve_field
+
+    windows = {"train": (field.data, train), "test": (field.data, test)}
+    if oscillating:
+        osc = resolve_field(oscillating)
+        if osc.data.shape[2:] != field.data.shape[2:]:
+            raise ModelError(f"--oscillating grid {osc.data.shape[2:]} differs from --data's {field.data.shape[2:]}")
+        windows["oscillating"] = (osc.data, test)
+    if gp is not None:
+        for label, fld in (("test", field), ("oscillating", osc if oscillating else None)):
+            if fld is not None:
+                windows[f"{label}/gp"] = (fld.data, test, gp_initial_states(fld, test, **gp))
+    return windows
+
+
+def _write_results(res: dict, od: Path) -> None:
+    """Write the plots and ``results.json`` under ``od`` (created); records ``files`` and ``out`` in ``res``."""
+    od.mkdir(parents=True, exist_ok=True)
+    res["files"] = write_plots(res, od)
+    (od / "results.json").write_text(json.dumps(res, indent=1) + "\n")
+    res["out"] = str(od)

@@ -28,15 +28,13 @@ with Adam and zero-mean Gaussian input noise (variance ``noise_var``) for stabil
 
 from __future__ import annotations
 
-import math
-import time
 from collections.abc import Callable
+from dataclasses import dataclass
 
 import numpy as np
 
 from passt_mav.errors import ModelError
 from passt_mav.models.base import Predictor, load_state_dict, read_metadata, write_checkpoint
-from passt_mav.models.noise import CorrelatedNoise, measure_residual, reconstruct_states
 
 __all__ = [
     "KnodePredictor",
@@ -189,6 +187,7 @@ def odeint_fixed(f: Callable, u0, t_end: float, n_steps: int, method: str = "eul
     return ode_step(f, u0, t_end, n_steps, method)
 
 
+@dataclass(eq=False, repr=False, kw_only=True)
 class KnodePredictor(Predictor):
     """KNODE predictor (sklearn-like; hyper-parameters keyword-only, learned state ends in ``_``).
 
@@ -256,80 +255,48 @@ class KnodePredictor(Predictor):
 
     name = "knode"
 
-    def __init__(
-        self,
-        *,
-        epochs: int = 100,
-        lr: float = 1e-3,
-        noise_var: float = 1e-3,
-        n_batches: int = 1,
-        substeps: int = 6,
-        method: str = "euler",
-        channels: tuple = CHANNELS,
-        hidden: int = 128,
-        kernel_size: int = 5,
-        kernel_variance: float = 0.1,
-        seed: int = 0,
-        device: str = "cpu",
-        progress: bool = True,
-        batch_size: int = 256,
-        loss: str = "one_step",
-        horizon: int = 10,
-        curriculum: float = 0.5,
-        noise: str = "white",
-        noise_scale: float = 1.0,
-        noise_samples: int = 12,
-        noise_path_length: int = 50,
-        noise_sensor_std: float = 0.02,
-        val_frac: float = 0.0,
-        val_every: int = 1,
-        patience: int = 0,
-        train_batch: int = 64,
-        max_ics: int = 0,
-        clip_grad: float = 1.0,
-        zero_init: bool = False,
-        compile: bool = False,
-        init: str | None = None,
-        select: str = "best",
-        fast_predict: bool = False,
-        shift_rows: int = 0,
-        shift_fraction: float | None = None,
-    ):
-        self.epochs = epochs
-        self.lr = lr
-        self.noise_var = noise_var
-        self.n_batches = n_batches
-        self.substeps = substeps
-        self.method = method
-        self.channels = tuple(channels)
-        self.hidden = hidden
-        self.kernel_size = kernel_size
-        self.kernel_variance = kernel_variance
-        self.seed = seed
-        self.device = device
-        self.progress = progress
-        self.batch_size = batch_size
-        self.loss = loss
-        self.horizon = horizon
-        self.curriculum = curriculum
-        self.noise = noise
-        self.noise_scale = noise_scale
-        self.noise_samples = noise_samples
-        self.noise_path_length = noise_path_length
-        self.noise_sensor_std = noise_sensor_std
-        self.val_frac = val_frac
-        self.val_every = val_every
-        self.patience = patience
-        self.train_batch = train_batch
-        self.max_ics = max_ics
-        self.clip_grad = clip_grad
-        self.zero_init = zero_init
-        self.compile = compile
-        self.init = None if init is None else str(init)
-        self.select = select
-        self.fast_predict = bool(fast_predict)
-        self.shift_rows = shift_rows
-        self.shift_fraction = None if shift_fraction is None else float(shift_fraction)
+    epochs: int = 100
+    lr: float = 1e-3
+    noise_var: float = 1e-3
+    n_batches: int = 1
+    substeps: int = 6
+    method: str = "euler"
+    channels: tuple = CHANNELS
+    hidden: int = 128
+    kernel_size: int = 5
+    kernel_variance: float = 0.1
+    seed: int = 0
+    device: str = "cpu"
+    progress: bool = True
+    batch_size: int = 256
+    loss: str = "one_step"
+    horizon: int = 10
+    curriculum: float = 0.5
+    noise: str = "white"
+    noise_scale: float = 1.0
+    noise_samples: int = 12
+    noise_path_length: int = 50
+    noise_sensor_std: float = 0.02
+    val_frac: float = 0.0
+    val_every: int = 1
+    patience: int = 0
+    train_batch: int = 64
+    max_ics: int = 0
+    clip_grad: float = 1.0
+    zero_init: bool = False
+    compile: bool = False
+    init: str | None = None
+    select: str = "best"
+    fast_predict: bool = False
+    shift_rows: int = 0
+    shift_fraction: float | None = None
+
+    def __post_init__(self) -> None:
+        """Normalise the hyper-parameters' types (the model starts unfitted)."""
+        self.channels = tuple(self.channels)
+        self.init = None if self.init is None else str(self.init)
+        self.fast_predict = bool(self.fast_predict)
+        self.shift_fraction = None if self.shift_fraction is None else float(self.shift_fraction)
         self.grid_shape_ = None
 
     def __getstate__(self) -> dict:
@@ -449,167 +416,11 @@ class KnodePredictor(Predictor):
         ``std_``, ``water_``, ``loss_curve_`` (training), ``val_curve_`` (validation
         roll-out loss from GP-reconstructed states, or ``[]``), ``best_epoch_``,
         ``noise_info_``, ``final_loss_`` (noise-free one-step, scaled units),
-        ``train_seconds_``, ``data_hash_``, ``dt_``.
+        ``train_seconds_``, ``data_hash_``, ``dt_``. The machinery is in :mod:`passt_mav.models.knode_fit`.
         """
-        torch = _torch()
-        self._check_params()
-        data = self._training_window(field, start, stop)
-        n_ep = int(self.epochs if epochs is None else epochs)
-        s0 = 0 if start is None else int(start)
-        n_tr = self._split(data.shape[0])
-        train = data[:n_tr]  # validation: _validation_sets() on data[n_tr:]
-        T, _, R, C = train.shape
-        H_max = 1 if self.loss == "one_step" else int(self.horizon)
-        if T - H_max < 1:
-            raise ModelError(
-                f"the training part has {T} snapshots, too few for a roll-out of {H_max}: give more data or a shorter --horizon (at most {max(T - 1, 1)})"
-            )
-        water = np.isfinite(data).all(axis=(0, 1))  # (R, C): cells with data at every time
-        if not water.any():
-            raise ModelError("training window has no cell with data at every time")
-        if self.shift_rows and not water.all():
-            raise ModelError(
-                f"shift_rows={self.shift_rows} needs a field without land or missing cells ({int((~water).sum())} of {water.size} cells have none at some time)"
-            )
-        if self.shift_rows >= R:
-            raise ModelError(f"shift_rows={self.shift_rows} must be below the grid's {R} rows")
-        filled = np.where(np.isfinite(train), train, np.float32(0))
-        if self.shift_rows:  # the scaler covers what the network is trained on: every shifted copy
-            filled = np.concatenate([shift_field_rows(filled, s) for s in self._shifts()])
-        mean = np.where(water, filled.mean(axis=0), 0).astype(np.float32)
-        std = filled.std(axis=0)
-        # land and constant cells get std 1 so scaling stays finite
-        std = np.where(water & (std > 1e-8), std, 1.0).astype(np.float32)
-        start_from = self._init_checkpoint((R, C)) if self.init else None
-        if start_from is not None:  # fine-tuning: the weights were trained in the start model's scaling
-            mean, std = start_from.mean_, start_from.std_
-            self.init_metadata_ = getattr(start_from, "metadata_", None)
-        scale = lambda a: ((np.where(np.isfinite(a), a, np.float32(0)) - mean) / std * water).astype(np.float32)
-        dev = torch.device(self.device)
-        with torch.random.fork_rng(devices=[]):
-            torch.manual_seed(int(self.seed))
-            net = KnodeNet(
-                R,
-                C,
-                channels=self.channels,
-                hidden=self.hidden,
-                kernel_size=self.kernel_size,
-                kernel_variance=self.kernel_variance,
-            ).to(dev)
-            if start_from is not None:
-                net.load_state_dict(start_from.net_.state_dict())
-            elif self.zero_init:
-                # dz/dt = 0 at the start: the untrained model is persistence, and training
-                # (with best-epoch selection on validation) departs from it only where that helps
-                torch.nn.init.zeros_(net.fc2.weight)
-                torch.nn.init.zeros_(net.fc2.bias)
-        gen = torch.Generator(device=dev).manual_seed(int(self.seed) + 1)
-        Z = torch.from_numpy(scale(train)).to(dev)
-        # the training window at every row shift (shift_rows augmentation; index 0 = unshifted),
-        # each scaled after shifting (the scaler is per pixel)
-        shifts = self._shifts()
-        Zs = torch.stack([Z] + [torch.from_numpy(scale(shift_field_rows(train, s))).to(dev) for s in shifts[1:]])
-        w = torch.from_numpy(water.astype(np.float32)).to(dev)
-        n_w = float(water.sum()) * 2
-        self.mean_, self.std_, self.water_, self.grid_shape_ = mean, std, water, (R, C)
-        noise = self._make_noise(field, data, s0, n_tr, dev)
-        val_sets, val_weights = [], []
-        for s in shifts:
-            sets = self._validation_sets(field, shift_field_rows(data, s), s0, n_tr, scale, dev)
-            val_sets += sets
-            val_weights += [self._shift_weight(s, len(shifts))] * len(sets)
-        opt = torch.optim.Adam(net.parameters(), lr=self.lr)
-        self._step = self._stepper(net)
-        curve: list[float] = []
-        vcurve: list[float] = []
-        best = (math.inf, -1, None)
-        if val_sets and (self.zero_init or start_from is not None):
-            # epoch 0 (persistence, or the start model) competes too: a network that never beats it on validation is not kept
-            best = (
-                self._val_loss(net, val_sets, w, n_w, val_weights),
-                0,
-                {k: t.detach().clone() for k, t in net.state_dict().items()},
-            )
-            vcurve.append(best[0])
-        from passt_mav.progress import progress
+        from passt_mav.models.knode_fit import fit_knode
 
-        # a bar with ETA on a terminal, a plain line every 10 % in a log
-        bar = progress(n_ep, "KNODE training", "epoch", quiet=not self.progress)
-        t0 = time.perf_counter()
-        since_best = 0
-        for ep in range(n_ep):
-            H = self._horizon_at(ep, n_ep)
-            ics = np.arange(T - H)
-            if self.max_ics and len(ics) > self.max_ics:
-                ics = np.sort(
-                    np.random.default_rng(int(self.seed) * 7919 + ep).choice(ics, self.max_ics, replace=False)
-                )
-            order = (
-                np.random.default_rng(int(self.seed) + 104729 * (ep + 1)).permutation(ics)
-                if self.n_batches > 1 or self.train_batch < len(ics)
-                else ics
-            )
-            bs = int(math.ceil(len(order) / self.n_batches)) if self.n_batches > 1 else int(self.train_batch)
-            tot = 0.0
-            net.train()
-            shift_rng = np.random.default_rng(int(self.seed) * 31 + 7 * ep + 3)
-            for a in range(0, len(order), bs):
-                b = torch.from_numpy(order[a : a + bs]).to(dev)
-                # each initial condition's row shift, an index into shifts (all 0 without augmentation)
-                sh = torch.from_numpy(self._draw_shifts(shift_rng, len(shifts), len(b))).to(dev)
-                x = Zs[sh, b]
-                x = x + noise(x.shape, gen)
-                target = torch.stack([Zs[sh, b + k] for k in range(1, H + 1)], dim=1)
-                loss = self._rollout_loss(net, x, target, w, n_w)
-                opt.zero_grad()
-                loss.backward()
-                if self.clip_grad:
-                    torch.nn.utils.clip_grad_norm_(net.parameters(), float(self.clip_grad))
-                opt.step()
-                tot += float(loss.detach()) * len(b)
-            curve.append(tot / len(order))
-            if not math.isfinite(curve[-1]):
-                raise ModelError(
-                    f"KNODE training diverged at epoch {ep + 1} (loss {curve[-1]}); lower lr or raise substeps"
-                )
-            if val_sets and (ep + 1) % self.val_every == 0 or (val_sets and ep == n_ep - 1):
-                v = self._val_loss(net, val_sets, w, n_w, val_weights)
-                vcurve.append(v)
-                # the best epoch is chosen once the roll-out length is the full horizon
-                if H == self._horizon_at(n_ep - 1, n_ep) and v < best[0]:
-                    best = (v, ep + 1, {k: t.detach().clone() for k, t in net.state_dict().items()})
-                    since_best = 0
-                elif H == self._horizon_at(n_ep - 1, n_ep):
-                    since_best += self.val_every
-            bar.note(f"loss {curve[-1]:.3e}, H {H}")
-            bar.update()
-            if callback is not None:
-                callback(ep, curve[-1])
-            if self.patience and since_best >= self.patience and self.select == "best":
-                break
-        bar.close()
-        self.train_seconds_ = time.perf_counter() - t0
-        if best[2] is not None and self.select == "best":
-            net.load_state_dict(best[2])
-        net.eval()
-        self.net_ = net
-        self._step = None
-        self.loss_curve_ = curve
-        self.val_curve_ = vcurve
-        self.best_epoch_ = best[1] if best[2] is not None and self.select == "best" else len(curve)
-        with torch.no_grad():
-            pred = self._advance(net, Z[:-1])
-            self.final_loss_ = float((((pred - Z[1:]) ** 2) * w).sum() / (n_w * (T - 1)))
-        self.epochs_trained_ = len(curve)
-        self.n_train_ = T
-        self.data_hash_ = field.data_hash() if hasattr(field, "data_hash") else None
-        try:
-            self.dt_ = float(field.dt)
-        except Exception:  # noqa: BLE001 - a bare array or irregular times: no physical dt
-            self.dt_ = None
-        self.train_window_ = [s0, s0 + data.shape[0]]
-        self.val_window_ = [s0 + n_tr, s0 + data.shape[0]] if n_tr < data.shape[0] else None
-        return self
+        return fit_knode(self, field, start, stop, epochs, callback)
 
     def _shifts(self) -> list[int]:
         """Row shifts of the ``shift_rows`` augmentation, 0 first: ``[0, -n, .., -1, 1, .., n]``."""
@@ -652,81 +463,6 @@ class KnodePredictor(Predictor):
         from passt_mav.models.fast import compiled_or_eager
 
         return compiled_or_eager(eager, net)
-
-    def _make_noise(self, field, data, s0: int, n_tr: int, dev):
-        """The training input-noise sampler ``noise(shape, generator)`` (see ``noise`` param)."""
-        torch = _torch()
-        sd = math.sqrt(self.noise_var)
-        white = (
-            (lambda shape, gen: sd * torch.randn(shape, generator=gen, device=dev))
-            if sd > 0
-            else (lambda shape, gen: 0.0)
-        )
-        self.noise_info_ = {"kind": self.noise, "white_var": self.noise_var}
-        if self.noise != "gp":
-            return white
-        grid = getattr(field, "grid", None)
-        if grid is None:
-            raise ModelError(
-                "noise='gp' needs a FlowField (its grid) to measure the GP-reconstruction residual; use noise='white' for a bare array"
-            )
-        land = ~self.water_
-        times = np.asarray(field.times)[s0 : s0 + data.shape[0]]
-        m = measure_residual(
-            data[:n_tr],
-            grid,
-            times[:n_tr],
-            (0, n_tr),
-            self.mean_,
-            self.std_,
-            n=self.noise_samples,
-            path_length=self.noise_path_length,
-            lag=1,
-            noise_std=self.noise_sensor_std,
-            seed=int(self.seed) + 17,
-            land=land,
-        )
-        cn = CorrelatedNoise(m["amplitude"] * float(self.noise_scale), m["corr_cells"], device=dev)
-        self.noise_info_.update({k: v for k, v in m.items() if k != "amplitude"}, scale=float(self.noise_scale))
-        return lambda shape, gen: cn.sample(shape, gen) + white(shape, gen)
-
-    def _validation_sets(self, field, data, s0: int, n_tr: int, scale, dev):
-        """``[(z0, targets)]``: validation ICs from true states and from GP reconstructions."""
-        torch = _torch()
-        val = data[n_tr:]
-        H = 1 if self.loss == "one_step" else int(self.horizon)
-        H = min(H, len(val) - 1)
-        if H < 1:
-            return []
-        ics = np.arange(n_tr, data.shape[0] - H)
-        tgt = torch.from_numpy(np.stack([scale(data[ics + k]) for k in range(1, H + 1)], axis=1)).to(dev)
-        sets = [(torch.from_numpy(scale(data[ics])).to(dev), tgt)]
-        grid = getattr(field, "grid", None)
-        if grid is not None and self.noise == "gp":
-            times = np.asarray(field.times)[s0 : s0 + data.shape[0]]
-            rec = reconstruct_states(
-                data,
-                grid,
-                times,
-                ics,
-                path_length=self.noise_path_length,
-                lag=1,
-                noise_std=self.noise_sensor_std,
-                seed=int(self.seed) + 29,
-                land=~self.water_,
-            )
-            sets.append((torch.from_numpy(scale(rec)).to(dev), tgt))
-        return sets
-
-    def _val_loss(self, net, sets, w, n_w, weights=None) -> float:
-        """Validation roll-out loss: the mean over ``sets``, weighted by ``weights`` when they differ."""
-        torch = _torch()
-        net.eval()
-        with torch.no_grad():
-            losses = [float(self._rollout_loss(net, z0, tgt, w, n_w)) for z0, tgt in sets]
-        if weights is None or len(set(weights)) <= 1:
-            return float(np.mean(losses))
-        return float(np.average(losses, weights=weights))
 
     # -- predict ----------------------------------------------------------------------
     def _predict_step(self):
