@@ -383,30 +383,39 @@ def run_campaign(field, predictor, **options) -> dict:
     return summary
 
 
+#: the options of :class:`CampaignOptions` a unit of work receives as given, in the order the summary's
+#: config lists them (``steps`` is replaced by the clipped value)
+_TASK_OPTIONS = (
+    "seed",
+    "t0",
+    "steps",
+    "steps_per_leg",
+    "noise",
+    "hyper",
+    "sampling",
+    "planner",
+    "reward",
+    "baseline_prior",
+    "methods",
+    "snapshot_step",
+    "pod_modes",
+    "engine",
+)
+
+
 def _campaign_cfg(o: CampaignOptions, steps: int) -> dict:
     """The configuration every unit of work receives (and the summary reports), ``steps`` (snapshots)
     already clipped to the field."""
-    return dict(
-        seed=o.seed,
-        t0=o.t0,
+    cfg = {k: getattr(o, k) for k in _TASK_OPTIONS}
+    cfg.update(
         steps=steps,
-        steps_per_leg=o.steps_per_leg,
-        noise=o.noise,
-        hyper=o.hyper,
-        sampling=o.sampling,
-        planner=o.planner,
-        reward=o.reward,
-        baseline_prior=o.baseline_prior,
-        methods=o.methods,
-        snapshot_step=o.snapshot_step,
-        pod_modes=o.pod_modes,
-        engine=o.engine,
         gp_kw={"solver": o.gp_solver, **({"bias": True} if o.gp_bias else {})},
         keep_paths=bool(o.keep_trials),
         fast_predict=bool(o.fast_predict),
         background=int(o.background),
         prior_blend=o.prior_blend,
     )
+    return cfg
 
 
 def _check_campaign(field, predictor, o: CampaignOptions) -> None:
