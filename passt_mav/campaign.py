@@ -24,7 +24,9 @@ ratio of each method's final-window RMSE to PASST's. :func:`fleet_comparison`: t
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import sys
+from collections.abc import Sequence
 
 from passt_mav.reconstruction.background import background_steps_problem
 
@@ -32,6 +34,7 @@ __all__ = [
     "METHODS",
     "ENGINES",
     "CAMPAIGN_HYPER",
+    "CampaignOptions",
     "run_campaign",
     "fleet_comparison",
     "fleet_starts",
@@ -298,165 +301,157 @@ def _serial_body(field, predictor, cfg: dict, L: int, trials: list[int]) -> list
 ENGINES = {"lockstep": _lockstep_body, "serial": _serial_body}
 
 
-def run_campaign(
-    field,
-    predictor,
-    *,
-    path_lengths=(25, 50, 75, 100, 150, 200),
-    trials: int = 30,
-    planner: str = "policy_gradient",
-    reward: str = "speed",
-    steps: int = 300,
-    t0: int = 0,
-    steps_per_leg: int = 10,
-    noise: float = 0.02,
-    hyper: str = "every_leg",
-    sampling: str = "end",
-    baseline_prior: str = "none",
-    methods=METHODS,
-    window: int = 50,
-    snapshot_step: int = 250,
-    seed: int = 0,
-    pod_modes: int = 6,
-    workers: int = 1,
-    scheduler=None,
-    progress: bool = True,
-    engine: str = "serial",
-    batch: int | None = None,
-    gp_solver: str = "sklearn",
-    keep_trials: bool = False,
-    fast_predict: bool = False,
-    background: int = 0,
-    prior_blend: str = "off",
-    gp_bias: bool = False,
-) -> dict:
-    """Run the campaign; returns the results dict (JSON-able; RMSE in field units, steps in snapshots).
-    ``scheduler``: a Dask address string or a ``distributed.Client``. Same seeds give the same numbers
-    whichever way the trials are spread.
+@dataclasses.dataclass
+class CampaignOptions:
+    """The options of :func:`run_campaign` (its keyword arguments), checked together before any work.
 
-    engine: a name in :data:`ENGINES`: "serial" (default: one trial after another) or
-    "lockstep" (the trials of one path length advance together in batches of ``batch``
-    (default: all), one predictor call per leg for the batch). A unit of work sent to a
-    worker is one batch. gp_solver: "sklearn" (default; a GaussianProcessRegressor per
-    leg) or "cholesky" (direct posterior with the fitted kernel; the same reconstruction
-    to ~1e-12). Lockstep gives the serial numbers exactly only for predictors whose
-    batched and single predictions agree bit for bit (DMD, persistence; tested): a
-    KNODE's batched convolutions round differently and a campaign's paths can then
-    diverge (measured on the shipped ocean model), hence the serial default.
-    keep_trials: also return the per-trial records (``_trials``, with every leg's path)
-    for tests and debugging. fast_predict: run a KNODE through its compiled prediction
-    path (:attr:`passt_mav.models.knode.KnodePredictor.fast_predict`, 1.6x, fp32
-    rounding of the eager path) for the model-alone roll-out and every leg, in every
-    worker; other predictors ignore it. background: snapshots of the model's roll-out
-    whose anomaly covariance every residual GP (PASST's, and the baselines' with
-    ``baseline_prior="forecast"``) adds to its stationary kernels
-    (:func:`passt_mav.reconstruction.model_background`); 0 = none. prior_blend: "off" or
-    "bma" (:class:`passt_mav.passt.PasstLoop`: every residual loop weighs the model's forecast
-    against persistence leg by leg).
+    scheduler: a Dask address string or a ``distributed.Client``. engine: a name in :data:`ENGINES`:
+    "serial" (default: one trial after another) or "lockstep" (the trials of one path length advance
+    together in batches of ``batch`` (default: all), one predictor call per leg for the batch). A unit
+    of work sent to a worker is one batch. gp_solver: "sklearn" (default; a GaussianProcessRegressor
+    per leg) or "cholesky" (direct posterior with the fitted kernel; the same reconstruction to
+    ~1e-12). Lockstep gives the serial numbers exactly only for predictors whose batched and single
+    predictions agree bit for bit (DMD, persistence; tested): a KNODE's batched convolutions round
+    differently and a campaign's paths can then diverge (measured on the shipped ocean model), hence
+    the serial default. keep_trials: also return the per-trial records (``_trials``, with every leg's
+    path) for tests and debugging. fast_predict: run a KNODE through its compiled prediction path
+    (:attr:`passt_mav.models.knode.KnodePredictor.fast_predict`, 1.6x, fp32 rounding of the eager
+    path) for the model-alone roll-out and every leg, in every worker; other predictors ignore it.
+    background: snapshots of the model's roll-out whose anomaly covariance every residual GP
+    (PASST's, and the baselines' with ``baseline_prior="forecast"``) adds to its stationary kernels
+    (:func:`passt_mav.reconstruction.model_background`); 0 = none. prior_blend: "off" or "bma"
+    (:class:`passt_mav.passt.PasstLoop`: every residual loop weighs the model's forecast against
+    persistence leg by leg). ``methods`` is kept as a list.
+    """
+
+    path_lengths: tuple = (25, 50, 75, 100, 150, 200)
+    trials: int = 30
+    planner: str = "policy_gradient"
+    reward: str = "speed"
+    steps: int = 300
+    t0: int = 0
+    steps_per_leg: int = 10
+    noise: float = 0.02
+    hyper: str = "every_leg"
+    sampling: str = "end"
+    baseline_prior: str = "none"
+    methods: Sequence[str] = METHODS
+    window: int = 50
+    snapshot_step: int = 250
+    seed: int = 0
+    pod_modes: int = 6
+    workers: int = 1
+    scheduler: object = None
+    progress: bool = True
+    engine: str = "serial"
+    batch: int | None = None
+    gp_solver: str = "sklearn"
+    keep_trials: bool = False
+    fast_predict: bool = False
+    background: int = 0
+    prior_blend: str = "off"
+    gp_bias: bool = False
+
+    def __post_init__(self) -> None:
+        self.methods = list(self.methods)
+
+
+def run_campaign(field, predictor, **options) -> dict:
+    """Run the campaign; returns the results dict (JSON-able; RMSE in field units, steps in snapshots).
+    ``options``: the fields of :class:`CampaignOptions`. Same seeds give the same numbers whichever
+    way the trials are spread.
     """
     import numpy as np
 
     from passt_mav.passt import run_pure_model
 
-    methods = list(methods)
-    _check_campaign(
-        field,
-        predictor,
-        methods=methods,
-        planner=planner,
-        reward=reward,
-        trials=trials,
-        path_lengths=path_lengths,
-        t0=t0,
-        engine=engine,
-        hyper=hyper,
-        batch=batch,
-        background=background,
-        prior_blend=prior_blend,
-    )
-    steps = int(min(steps, field.n_times - 1 - t0))
-    cfg = dict(
-        seed=seed,
-        t0=t0,
-        steps=steps,
-        steps_per_leg=steps_per_leg,
-        noise=noise,
-        hyper=hyper,
-        sampling=sampling,
-        planner=planner,
-        reward=reward,
-        baseline_prior=baseline_prior,
-        methods=methods,
-        snapshot_step=snapshot_step,
-        pod_modes=pod_modes,
-        engine=engine,
-        gp_kw={"solver": gp_solver, **({"bias": True} if gp_bias else {})},
-        keep_paths=bool(keep_trials),
-        fast_predict=bool(fast_predict),
-        background=int(background),
-        prior_blend=prior_blend,
-    )
+    o = CampaignOptions(**options)
+    _check_campaign(field, predictor, o)
+    cfg = _campaign_cfg(o, steps=int(min(o.steps, field.n_times - 1 - o.t0)))
+    t0, steps = o.t0, cfg["steps"]
     truth = field.data[t0 : t0 + steps + 1].astype(np.float64)
-    with _fast_path(predictor, fast_predict):
-        pure = run_pure_model(field, predictor, t0=t0, n_steps=steps) if "model" in methods else None
-    tasks = campaign_tasks(path_lengths, trials, engine, batch)
-    results = _execute(field, predictor, cfg, tasks, workers=workers, scheduler=scheduler, progress=progress)
+    with _fast_path(predictor, o.fast_predict):
+        pure = run_pure_model(field, predictor, t0=t0, n_steps=steps) if "model" in o.methods else None
+    tasks = campaign_tasks(o.path_lengths, o.trials, o.engine, o.batch)
+    results = _execute(field, predictor, cfg, tasks, workers=o.workers, scheduler=o.scheduler, progress=o.progress)
     results.sort(key=lambda r: (r["L"], r["trial"]))
     summary = _summarise(
-        cfg, results, truth, pure, path_lengths=path_lengths, trials=trials, window=window, n_times=field.n_times
+        cfg, results, truth, pure, path_lengths=o.path_lengths, trials=o.trials, window=o.window, n_times=field.n_times
     )
-    if keep_trials:
+    if o.keep_trials:
         summary["_trials"] = results
     return summary
 
 
-def _check_campaign(
-    field,
-    predictor,
-    *,
-    methods,
-    planner,
-    reward,
-    trials,
-    path_lengths,
-    t0,
-    engine,
-    hyper,
-    batch,
-    background,
-    prior_blend,
-) -> None:
+#: the options of :class:`CampaignOptions` a unit of work receives as given, in the order the summary's
+#: config lists them (``steps`` is replaced by the clipped value)
+_TASK_OPTIONS = (
+    "seed",
+    "t0",
+    "steps",
+    "steps_per_leg",
+    "noise",
+    "hyper",
+    "sampling",
+    "planner",
+    "reward",
+    "baseline_prior",
+    "methods",
+    "snapshot_step",
+    "pod_modes",
+    "engine",
+)
+
+
+def _campaign_cfg(o: CampaignOptions, steps: int) -> dict:
+    """The configuration every unit of work receives (and the summary reports), ``steps`` (snapshots)
+    already clipped to the field."""
+    cfg = {k: getattr(o, k) for k in _TASK_OPTIONS}
+    cfg.update(
+        steps=steps,
+        gp_kw={"solver": o.gp_solver, **({"bias": True} if o.gp_bias else {})},
+        keep_paths=bool(o.keep_trials),
+        fast_predict=bool(o.fast_predict),
+        background=int(o.background),
+        prior_blend=o.prior_blend,
+    )
+    return cfg
+
+
+def _check_campaign(field, predictor, o: CampaignOptions) -> None:
     """Every option of :func:`run_campaign` checked once, before any work; raises the error naming it."""
     from passt_mav.errors import ModelError, PlannerError
     from passt_mav.passt import PRIOR_BLENDS
     from passt_mav.planning import PLANNERS, REWARDS
 
-    if not methods:
+    if not o.methods:
         raise PlannerError(f"no methods; choose from {', '.join(METHODS)}")
-    for m in methods:
+    for m in o.methods:
         if (problem := method_problem(m)) is not None:
             raise PlannerError(problem)
-    if planner not in PLANNERS and planner != "pg":
-        raise PlannerError(f"unknown planner {planner!r}; choose one of {', '.join(PLANNERS)}")
-    if reward not in REWARDS:
-        raise PlannerError(f"unknown reward {reward!r}; choose one of {', '.join(REWARDS)}")
-    if predictor is None and {"passt", "model"} & {m.partition("@")[0] for m in methods}:
+    if o.planner not in PLANNERS and o.planner != "pg":
+        raise PlannerError(f"unknown planner {o.planner!r}; choose one of {', '.join(PLANNERS)}")
+    if o.reward not in REWARDS:
+        raise PlannerError(f"unknown reward {o.reward!r}; choose one of {', '.join(REWARDS)}")
+    if predictor is None and {"passt", "model"} & {m.partition("@")[0] for m in o.methods}:
         raise ModelError("methods 'passt' and 'model' need a predictor")
-    if trials < 1 or not path_lengths or min(path_lengths) < 1:
+    if o.trials < 1 or not o.path_lengths or min(o.path_lengths) < 1:
         raise PlannerError("need at least one trial and positive path lengths")
-    if not (0 <= t0 < field.n_times - 1):
-        raise PlannerError(f"--t0 {t0} must lie in [0, {field.n_times - 2}]")
-    if engine not in ENGINES:
-        raise PlannerError(f"unknown engine {engine!r}; choose one of {', '.join(ENGINES)}")
-    if hyper not in CAMPAIGN_HYPER:
-        raise PlannerError(f"unknown GP hyper-parameter schedule {hyper!r}; choose one of {', '.join(CAMPAIGN_HYPER)}")
-    if batch is not None and int(batch) < 1:
+    if not (0 <= o.t0 < field.n_times - 1):
+        raise PlannerError(f"--t0 {o.t0} must lie in [0, {field.n_times - 2}]")
+    if o.engine not in ENGINES:
+        raise PlannerError(f"unknown engine {o.engine!r}; choose one of {', '.join(ENGINES)}")
+    if o.hyper not in CAMPAIGN_HYPER:
+        raise PlannerError(
+            f"unknown GP hyper-parameter schedule {o.hyper!r}; choose one of {', '.join(CAMPAIGN_HYPER)}"
+        )
+    if o.batch is not None and int(o.batch) < 1:
         raise PlannerError("--batch must be >= 1")
-    problem = background_steps_problem(background)
+    problem = background_steps_problem(o.background)
     if problem:
         raise PlannerError(f"--background: {problem}")
-    if prior_blend not in PRIOR_BLENDS:
-        raise PlannerError(f"--prior-blend: unknown {prior_blend!r}; choose one of {', '.join(PRIOR_BLENDS)}")
+    if o.prior_blend not in PRIOR_BLENDS:
+        raise PlannerError(f"--prior-blend: unknown {o.prior_blend!r}; choose one of {', '.join(PRIOR_BLENDS)}")
 
 
 def _summarise(
@@ -557,45 +552,49 @@ def fleet_comparison(
     (:func:`passt_mav.engine.run_trials`, one trial of N boats per run). Returns per configuration
     the mean RMSE over time, the final-window mean and each trial's final-window value (field units).
     ``background``: as in :func:`run_campaign`."""
-    import numpy as np
+    configs = [(f"{n} boat{'s' if n > 1 else ''} x {path_length}", n, path_length) for n in range(1, boats + 1)]
+    configs.append((f"1 boat x {boats * path_length}", 1, boats * path_length))
+    T = int(min(steps, field.n_times - 1 - t0))
+    config = {
+        "boats": boats,
+        "path_length": path_length,
+        "trials": trials,
+        "steps": T,
+        "t0": t0,
+        "steps_per_leg": steps_per_leg,
+        "noise": noise,
+        "window": window,
+        "seed": seed,
+        "planner": planner,
+        "reward": reward,
+        "hyper": hyper,
+        "sampling": sampling,
+        "background": background,
+    }
+    series = _fleet_series(field, predictor, configs, config, progress=progress)
+    return {"config": config, "runs": _fleet_runs(configs, series, window)}
+
+
+def _fleet_series(field, predictor, configs: list[tuple], config: dict, *, progress: bool) -> dict[str, list]:
+    """Per fleet configuration (name, boats, moves per boat) its trials' RMSE-over-time series (field
+    units, ``config["steps"] + 1`` snapshots each), one engine run of all its boats per trial."""
     from threadpoolctl import threadpool_limits
 
     from passt_mav.engine import run_trials
     from passt_mav.passt import LoopOptions
     from passt_mav.progress import progress as _progress
 
-    configs = [(f"{n} boat{'s' if n > 1 else ''} x {path_length}", n, path_length) for n in range(1, boats + 1)]
-    configs.append((f"1 boat x {boats * path_length}", 1, boats * path_length))
-    T = int(min(steps, field.n_times - 1 - t0))
+    t0, T, seed = config["t0"], config["steps"], config["seed"]
     truth = field.data[t0 : t0 + T + 1].astype("float64")
-    out: dict = {
-        "config": {
-            "boats": boats,
-            "path_length": path_length,
-            "trials": trials,
-            "steps": T,
-            "t0": t0,
-            "steps_per_leg": steps_per_leg,
-            "noise": noise,
-            "window": window,
-            "seed": seed,
-            "planner": planner,
-            "reward": reward,
-            "hyper": hyper,
-            "sampling": sampling,
-            "background": background,
-        },
-        "runs": {},
-    }
     base = LoopOptions(
-        planner=planner,
-        reward=reward,
-        steps_per_leg=steps_per_leg,
-        hyper=_hyper_for(hyper, residual=True),
-        background=background,
+        planner=config["planner"],
+        reward=config["reward"],
+        steps_per_leg=config["steps_per_leg"],
+        hyper=_hyper_for(config["hyper"], residual=True),
+        background=config["background"],
     )
     it = _progress(
-        [(name, n, L, i) for name, n, L in configs for i in range(trials)],
+        [(name, n, L, i) for name, n, L in configs for i in range(config["trials"])],
         "fleet comparison",
         "trial",
         quiet=not progress,
@@ -607,25 +606,34 @@ def fleet_comparison(
                 field,
                 predictor,
                 LoopOptions.of(base, path_length=L),
-                starts=[fleet_starts(field, seed, i, path_length, n)],
+                starts=[fleet_starts(field, seed, i, config["path_length"], n)],
                 seeds=[seed + i],
                 t0=t0,
                 n_steps=T,
-                noise_std=noise,
-                sample_at=sampling,
+                noise_std=config["noise"],
+                sample_at=config["sampling"],
             )
             series.setdefault(name, []).append(_rmse_series(r.estimate, truth))
+    return series
+
+
+def _fleet_runs(configs: list[tuple], series: dict[str, list], window: int) -> dict:
+    """Per fleet configuration: its mean RMSE over time and the final-window (``window`` steps) RMSE,
+    mean and per trial (field units)."""
+    import numpy as np
+
+    runs = {}
     for name, n, L in configs:
         arr = np.array(series[name])
         finals = arr[:, -window:].mean(axis=1)
-        out["runs"][name] = {
+        runs[name] = {
             "boats": n,
             "path_length": L,
             "rmse_mean": arr.mean(axis=0).tolist(),
             "final_rmse": float(finals.mean()),
             "final_rmse_trials": finals.tolist(),
         }
-    return out
+    return runs
 
 
 def campaign_tasks(

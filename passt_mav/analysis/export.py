@@ -290,11 +290,38 @@ def estimate_dataset(run: RunData, command: str = "passt-mav export"):
     t_field = np.array([float(f.times[-1]) for f, _ in fields])
     have_std = all(s is not None for _, s in fields)
     std = np.concatenate([s for _, s in fields]).astype(np.float32) if have_std else None
-    g = f0.grid
     dims, coords, crs = _grid_coords(f0)
     epoch = _epoch_of_field_times(f0.time_origin, t_field)
+    coords["time"] = _estimate_time_coord(t_field, epoch)
+    dvars = _estimate_velocity_vars(f0, dims, data, std)
+    dvars["crs"] = ((), np.int32(0), crs)
+    dvars.update(_estimate_leg_vars(recs))
+    attrs = _global_attrs(
+        run,
+        f"PASST field estimate of run {run.name}",
+        "Gaussian-process estimate of the surface current after each leg of a PASST adaptive "
+        "sampling mission, on the mission grid, with its posterior standard deviation.",
+        command,
+    )
+    attrs["cdm_data_type"] = "Grid"
+    attrs["field_time_origin"] = str(f0.time_origin or "none (non-dimensional field time)")
+    attrs["passt_grid"] = __import__("json").dumps(f0.grid.describe())
+    comment = [] if have_std else ["posterior std not recorded by this run (estimate.nc without u_std/v_std)"]
+    attrs["comment"] = "; ".join(comment + notes) or "one time step per leg"
+    lat, lon = (coords["lat"][1], coords["lon"][1])
+    _geo_extent(attrs, lat, lon)
     if epoch is not None:
-        coords["time"] = (
+        _time_extent(attrs, epoch)
+    ds = xr.Dataset(dvars, coords=coords, attrs=attrs)
+    # a non-dimensional field time is no CF time axis: named so that no reader takes it for one
+    return ds if epoch is not None else ds.rename({"time": "field_time"})
+
+
+def _estimate_time_coord(t_field: np.ndarray, epoch: np.ndarray | None) -> tuple:
+    """The estimate's time coordinate: UTC (s since the epoch) where the field has a UTC origin, else
+    the field time ``t_field`` itself (non-dimensional)."""
+    if epoch is not None:
+        return (
             "time",
             epoch,
             {
@@ -305,12 +332,16 @@ def estimate_dataset(run: RunData, command: str = "passt-mav export"):
                 "axis": "T",
             },
         )
-    else:
-        coords["time"] = (
-            "time",
-            t_field,
-            {"units": "1", "long_name": "field time of the estimate (non-dimensional: the field has no UTC origin)"},
-        )
+    return (
+        "time",
+        t_field,
+        {"units": "1", "long_name": "field time of the estimate (non-dimensional: the field has no UTC origin)"},
+    )
+
+
+def _estimate_velocity_vars(f0, dims: tuple, data: np.ndarray, std: np.ndarray | None) -> dict[str, Any]:
+    """The estimate's u and v (each after its ``_std`` if the posterior std was recorded), in the field's
+    units: east/north on a lat/lon field, x/y of the data frame on a metric one."""
     geographic = f0.is_geographic and f0.units == "m s-1"
     dvars: dict[str, Any] = {}
     for k, name, std_name, word in (
@@ -332,36 +363,23 @@ def estimate_dataset(run: RunData, command: str = "passt-mav export"):
                 sa["standard_name"] = f"{std_name} standard_error"
             dvars[f"{name}_std"] = (dims, std[:, k], sa)
         dvars[name] = (dims, data[:, k], a)
-    dvars["crs"] = ((), np.int32(0), crs)
-    dvars["leg"] = (
-        "time",
-        np.array([int(r.get("index", -1)) for r in recs], np.int32),
-        {"long_name": "index of the leg (0-based) whose samples made this estimate", "units": "1"},
-    )
-    dvars["boat"] = (
-        "time",
-        np.array([int(r.get("boat", 0) or 0) for r in recs], np.int32),
-        {"long_name": "boat (0-based) that flew the leg", "units": "1"},
-    )
-    attrs = _global_attrs(
-        run,
-        f"PASST field estimate of run {run.name}",
-        "Gaussian-process estimate of the surface current after each leg of a PASST adaptive "
-        "sampling mission, on the mission grid, with its posterior standard deviation.",
-        command,
-    )
-    attrs["cdm_data_type"] = "Grid"
-    attrs["field_time_origin"] = str(f0.time_origin or "none (non-dimensional field time)")
-    attrs["passt_grid"] = __import__("json").dumps(g.describe())
-    comment = [] if have_std else ["posterior std not recorded by this run (estimate.nc without u_std/v_std)"]
-    attrs["comment"] = "; ".join(comment + notes) or "one time step per leg"
-    lat, lon = (coords["lat"][1], coords["lon"][1])
-    _geo_extent(attrs, lat, lon)
-    if epoch is not None:
-        _time_extent(attrs, epoch)
-    ds = xr.Dataset(dvars, coords=coords, attrs=attrs)
-    # a non-dimensional field time is no CF time axis: named so that no reader takes it for one
-    return ds if epoch is not None else ds.rename({"time": "field_time"})
+    return dvars
+
+
+def _estimate_leg_vars(recs: list[dict]) -> dict[str, Any]:
+    """Per estimate (time step) the leg (0-based) whose samples made it and the boat that flew it."""
+    return {
+        "leg": (
+            "time",
+            np.array([int(r.get("index", -1)) for r in recs], np.int32),
+            {"long_name": "index of the leg (0-based) whose samples made this estimate", "units": "1"},
+        ),
+        "boat": (
+            "time",
+            np.array([int(r.get("boat", 0) or 0) for r in recs], np.int32),
+            {"long_name": "boat (0-based) that flew the leg", "units": "1"},
+        ),
+    }
 
 
 def _grid_coords(f) -> tuple[tuple, dict, dict]:
@@ -439,7 +457,6 @@ def samples_dataset(run: RunData, command: str = "passt-mav export --samples"):
     c = sample_table(run)
     boats = np.unique(c["boat"]).astype(np.int32)
     rows = np.array([int(np.count_nonzero(c["boat"] == b)) for b in boats], np.int32)
-    obs = {"coordinates": "time lat lon", "platform": "platform"}
     dv: dict[str, Any] = {
         "trajectory": (
             "trajectory",
@@ -451,6 +468,35 @@ def samples_dataset(run: RunData, command: str = "passt-mav export --samples"):
             },
         ),
         "rowSize": ("trajectory", rows, {"sample_dimension": "obs", "long_name": "number of samples of this boat"}),
+        **_sample_obs_vars(c),
+        "platform": (
+            (),
+            np.int32(0),
+            {
+                "long_name": f"passt_mav boats of mission {run.name}",
+                "type": "unmanned surface vehicle",
+                "comment": "ArduPilot Rover (boat frame)",
+            },
+        ),
+    }
+    attrs = _global_attrs(
+        run,
+        f"PASST current samples of run {run.name}",
+        "Surface-current samples taken by the boats of a PASST adaptive sampling mission, one "
+        "trajectory per boat (CF contiguous ragged array).",
+        command,
+    )
+    attrs.update(featureType="trajectory", cdm_data_type="Trajectory", cdm_trajectory_variables="trajectory")
+    _geo_extent(attrs, c["lat"], c["lon"])
+    _time_extent(attrs, c["utc"])
+    return xr.Dataset(dv, coords=_sample_coords(c), attrs=attrs)
+
+
+def _sample_obs_vars(c: dict[str, np.ndarray]) -> dict[str, Any]:
+    """The per-sample (``obs``) variables of the trajectory file: the measured current u/v (m/s,
+    east/north), the leg, and the autopilot's time since boot (ms) and boot counter."""
+    obs = {"coordinates": "time lat lon", "platform": "platform"}
+    return {
         "u": (
             "obs",
             c["u"],
@@ -494,17 +540,13 @@ def samples_dataset(run: RunData, command: str = "passt-mav export --samples"):
                 "long_name": "autopilot boot counter (bumped when time_boot_ms jumps back)",
             },
         ),
-        "platform": (
-            (),
-            np.int32(0),
-            {
-                "long_name": f"passt_mav boats of mission {run.name}",
-                "type": "unmanned surface vehicle",
-                "comment": "ArduPilot Rover (boat frame)",
-            },
-        ),
     }
-    coords = {
+
+
+def _sample_coords(c: dict[str, np.ndarray]) -> dict[str, Any]:
+    """The trajectory file's ``obs`` coordinates: UTC receive time (s since the epoch) and the boat's
+    WGS84 latitude/longitude (degrees) at the reading."""
+    return {
         "time": (
             "obs",
             c["utc"],
@@ -537,17 +579,6 @@ def samples_dataset(run: RunData, command: str = "passt-mav export --samples"):
             },
         ),
     }
-    attrs = _global_attrs(
-        run,
-        f"PASST current samples of run {run.name}",
-        "Surface-current samples taken by the boats of a PASST adaptive sampling mission, one "
-        "trajectory per boat (CF contiguous ragged array).",
-        command,
-    )
-    attrs.update(featureType="trajectory", cdm_data_type="Trajectory", cdm_trajectory_variables="trajectory")
-    _geo_extent(attrs, c["lat"], c["lon"])
-    _time_extent(attrs, c["utc"])
-    return xr.Dataset(dv, coords=coords, attrs=attrs)
 
 
 # -- writing -----------------------------------------------------------------------------------

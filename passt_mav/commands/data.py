@@ -14,6 +14,7 @@ from __future__ import annotations
 import argparse
 import importlib
 import json
+from typing import Any, NamedTuple
 
 HELP = "Make, import, inspect or plot a flow field (.nc)"
 EXAMPLES = """examples:
@@ -449,7 +450,6 @@ def export_lua_grid(
     the tangent map at the grid centre and ``max_map_error_cells`` says how far it is off at
     the corners (it must stay below 0.01 cell).
     """
-    import struct
     from pathlib import Path
 
     import numpy as np
@@ -459,65 +459,20 @@ def export_lua_grid(
     g = field.grid if grid is None else grid
     if g.shape != field.grid.shape:
         raise FieldError(f"placement grid {g.shape} does not match the field's {field.grid.shape}")
-    R, C = g.shape
-    T = field.n_times
+    (R, C), T = g.shape, field.n_times
     data = field.data.astype(np.float64) * float(velocity_scale)
     if field.is_geographic and grid is None:
-        lat_ref, lon_ref, r_ref, c_ref = g.south, g.west, 0.0, 0.0
-        jac = np.array([[1.0 / g.dlat, 0.0], [0.0, 1.0 / g.dlon]])
-        map_err = 0.0
+        cell_map = _LatLonCellMap(g.south, g.west, 0.0, 0.0, np.array([[1.0 / g.dlat, 0.0], [0.0, 1.0 / g.dlon]]), 0.0)
     else:
         rot = getattr(g, "velocity_to_local", None)
         if rot is not None:
             u, v = rot(data[:, 0], data[:, 1])
             data = np.stack([u, v], axis=1)
-        r_ref, c_ref = (R - 1) / 2.0, (C - 1) / 2.0
-        lat_ref, lon_ref = (float(x) for x in g.fcell_to_latlon(r_ref, c_ref))
-        h = 1e-4  # degrees: central differences of a smooth projection, error ~h^2
-        jac = np.empty((2, 2))
-        for j, (dla, dlo) in enumerate(((h, 0.0), (0.0, h))):
-            rp, cp = g.latlon_to_fcell(lat_ref + dla, lon_ref + dlo)
-            rm, cm = g.latlon_to_fcell(lat_ref - dla, lon_ref - dlo)
-            jac[0, j] = (float(rp) - float(rm)) / (2 * h)
-            jac[1, j] = (float(cp) - float(cm)) / (2 * h)
-        cr = np.array([0.0, 0.0, R - 1.0, R - 1.0])
-        cc = np.array([0.0, C - 1.0, 0.0, C - 1.0])
-        la, lo = g.fcell_to_latlon(cr, cc)
-        ra = r_ref + jac[0, 0] * (la - lat_ref) + jac[0, 1] * (lo - lon_ref)
-        ca = c_ref + jac[1, 0] * (la - lat_ref) + jac[1, 1] * (lo - lon_ref)
-        map_err = float(np.max(np.hypot(ra - cr, ca - cc)))
-        if map_err > 0.01:
-            raise FieldError(
-                f"the metric grid is too large for a linear lat/lon map ({map_err:.3f} cells off at "
-                "a corner); export a smaller --region or a smaller scale"
-            )
+        cell_map = _tangent_cell_map(g)
     times_s = field.times * float(time_scale)
-    if T > 1:
-        dt_s = field.dt * float(time_scale)
-    else:
-        dt_s = 0.0
+    dt_s = field.dt * float(time_scale) if T > 1 else 0.0
     t_boot = float(field.times[0] if time_at_boot is None else time_at_boot) * float(time_scale)
-    header = struct.pack(
-        _LUA_HEADER_FMT,
-        LUA_MAGIC,
-        LUA_VERSION,
-        LUA_HEADER_BYTES,
-        R,
-        C,
-        T,
-        float(lat_ref),
-        float(lon_ref),
-        float(r_ref),
-        float(c_ref),
-        float(jac[0, 0]),
-        float(jac[0, 1]),
-        float(jac[1, 0]),
-        float(jac[1, 1]),
-        t_boot,
-        float(times_s[0]),
-        float(dt_s),
-    )
-    header = header.ljust(LUA_HEADER_BYTES, b"\0")
+    header = _lua_header((R, C, T), cell_map, t_boot=t_boot, t0_s=float(times_s[0]), dt_s=float(dt_s))
     body = np.ascontiguousarray(data.astype("<f4")).tobytes()
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -532,9 +487,82 @@ def export_lua_grid(
         "t0_s": float(times_s[0]),
         "dt_s": float(dt_s),
         "span_s": float(times_s[-1] - times_s[0]),
-        "max_map_error_cells": map_err,
+        "max_map_error_cells": cell_map.error_cells,
         "land_cells": int(field.land_mask.sum()),
     }
+
+
+class _LatLonCellMap(NamedTuple):
+    """The grid file's affine map from lat/lon (degrees) to fractional cell (row, col):
+    ``cell = (r_ref, c_ref) + jac @ (lat - lat_ref, lon - lon_ref)``; ``error_cells``: how far it is
+    off at the grid's corners (cells)."""
+
+    lat_ref: float
+    lon_ref: float
+    r_ref: float
+    c_ref: float
+    jac: Any
+    error_cells: float
+
+
+def _tangent_cell_map(g) -> _LatLonCellMap:
+    """The tangent map of metric grid ``g`` at its centre (central differences of its projection),
+    or the error naming how far off it is at a corner when that exceeds 0.01 cell."""
+    import numpy as np
+
+    from passt_mav.errors import FieldError
+
+    R, C = g.shape
+    r_ref, c_ref = (R - 1) / 2.0, (C - 1) / 2.0
+    lat_ref, lon_ref = (float(x) for x in g.fcell_to_latlon(r_ref, c_ref))
+    h = 1e-4  # degrees: central differences of a smooth projection, error ~h^2
+    jac = np.empty((2, 2))
+    for j, (dla, dlo) in enumerate(((h, 0.0), (0.0, h))):
+        rp, cp = g.latlon_to_fcell(lat_ref + dla, lon_ref + dlo)
+        rm, cm = g.latlon_to_fcell(lat_ref - dla, lon_ref - dlo)
+        jac[0, j] = (float(rp) - float(rm)) / (2 * h)
+        jac[1, j] = (float(cp) - float(cm)) / (2 * h)
+    cr = np.array([0.0, 0.0, R - 1.0, R - 1.0])
+    cc = np.array([0.0, C - 1.0, 0.0, C - 1.0])
+    la, lo = g.fcell_to_latlon(cr, cc)
+    ra = r_ref + jac[0, 0] * (la - lat_ref) + jac[0, 1] * (lo - lon_ref)
+    ca = c_ref + jac[1, 0] * (la - lat_ref) + jac[1, 1] * (lo - lon_ref)
+    map_err = float(np.max(np.hypot(ra - cr, ca - cc)))
+    if map_err > 0.01:
+        raise FieldError(
+            f"the metric grid is too large for a linear lat/lon map ({map_err:.3f} cells off at "
+            "a corner); export a smaller --region or a smaller scale"
+        )
+    return _LatLonCellMap(lat_ref, lon_ref, r_ref, c_ref, jac, map_err)
+
+
+def _lua_header(shape: tuple[int, int, int], m: _LatLonCellMap, *, t_boot: float, t0_s: float, dt_s: float) -> bytes:
+    """The grid file's header (``LUA_HEADER_BYTES``, zero-padded): ``shape`` (rows, cols, snapshots),
+    the lat/lon-to-cell map, field time at boot, first snapshot and step (seconds)."""
+    import struct
+
+    R, C, T = shape
+    header = struct.pack(
+        _LUA_HEADER_FMT,
+        LUA_MAGIC,
+        LUA_VERSION,
+        LUA_HEADER_BYTES,
+        R,
+        C,
+        T,
+        float(m.lat_ref),
+        float(m.lon_ref),
+        float(m.r_ref),
+        float(m.c_ref),
+        float(m.jac[0, 0]),
+        float(m.jac[0, 1]),
+        float(m.jac[1, 0]),
+        float(m.jac[1, 1]),
+        t_boot,
+        t0_s,
+        dt_s,
+    )
+    return header.ljust(LUA_HEADER_BYTES, b"\0")
 
 
 def read_lua_grid(path) -> dict:
@@ -579,7 +607,6 @@ def _run_export_lua(args) -> int:
     import shutil
     from pathlib import Path
 
-    import geo
     from passt_mav.errors import UserError
     from passt_mav.fields.datasets import resolve_field
 
@@ -591,55 +618,16 @@ def _run_export_lua(args) -> int:
         velocity_scale, time_scale, t0 = cfg.field.velocity_scale, cfg.field.time_scale, cfg.t0
         placement, seed = cfg.grid(), cfg.seeds.field
     f = resolve_field(args.file, seed=seed)
-    if placement is not None and placement.shape != f.grid.shape:
-        raise UserError(
-            f"the mission's region is {placement.shape[0]}x{placement.shape[1]} but the field is "
-            f"{f.grid.shape[0]}x{f.grid.shape[1]}"
-        )
-    if f.is_geographic:
-        placement = None  # a lat/lon field places itself
-        if args.anchor:
-            raise UserError("--anchor is for metric fields (x/y metres); this field is already on lat/lon")
-    else:
-        g = placement or f.grid
-        if args.anchor:
-            try:
-                alat, alon = (float(x) for x in args.anchor.split(","))
-            except ValueError:
-                raise UserError(f"--anchor must be LAT,LON in degrees, got {args.anchor!r}") from None
-            d = g.describe()
-            d.update(anchor_lat=alat, anchor_lon=alon)
-            d.pop("kind")
-            g = geo.MetricRegionGrid(**d)
-        placement = g
+    placement = _lua_placement(f, placement, args.anchor)
     time_at_boot = args.time_at_boot
     if time_at_boot is None and t0 is not None:
         if not 0 <= t0 < f.n_times:
             raise UserError(f"the mission's t0 {t0} is outside the field's {f.n_times} snapshots")
         time_at_boot = float(f.times[t0])
     if args.snapshots:
-        try:
-            a, b = (int(x) if x.strip() else None for x in args.snapshots.split(":"))
-        except ValueError:
-            raise UserError(f"--snapshots must be START:STOP snapshot indices, got {args.snapshots!r}") from None
-        sl = slice(a, b)
-        if len(range(f.n_times)[sl]) < 1:
-            raise UserError(f"--snapshots {args.snapshots} keeps none of the field's {f.n_times} snapshots")
-        f = f.isel(time=sl)
+        f = _keep_snapshots(f, args.snapshots)
     if args.region:
-        if not f.is_geographic:
-            raise UserError("--region crops lat/lon fields; for a metric field export its mission region")
-        import numpy as np
-
-        try:
-            s_, w_, n_, e_ = (float(x) for x in args.region.split(","))
-        except ValueError:
-            raise UserError(f"--region must be S,W,N,E in degrees, got {args.region!r}") from None
-        rows = np.nonzero((f.grid.lats >= s_) & (f.grid.lats <= n_))[0]
-        cols = np.nonzero((f.grid.lons >= w_) & (f.grid.lons <= e_))[0]
-        if rows.size < 2 or cols.size < 2:
-            raise UserError(f"--region {args.region} holds fewer than 2x2 cell centres of the field")
-        f = f.isel(rows=slice(int(rows[0]), int(rows[-1]) + 1), cols=slice(int(cols[0]), int(cols[-1]) + 1))
+        f = _crop_region(f, args.region)
     if time_at_boot is None:
         time_at_boot = float(f.times[0])
     out = (
@@ -665,3 +653,65 @@ def _run_export_lua(args) -> int:
             print(f"wrote {summary['script']}")
         print(f"wrote {summary['out']}")
     return 0
+
+
+def _lua_placement(f, placement, anchor: str | None):
+    """Where the exported grid lies on Earth: ``None`` for a lat/lon field (it places itself), else the
+    mission's region (``placement``) or the field's own metric grid, moved to ``--anchor LAT,LON``
+    (degrees) if given."""
+    import geo
+    from passt_mav.errors import UserError
+
+    if placement is not None and placement.shape != f.grid.shape:
+        raise UserError(
+            f"the mission's region is {placement.shape[0]}x{placement.shape[1]} but the field is "
+            f"{f.grid.shape[0]}x{f.grid.shape[1]}"
+        )
+    if f.is_geographic:
+        if anchor:
+            raise UserError("--anchor is for metric fields (x/y metres); this field is already on lat/lon")
+        return None
+    g = placement or f.grid
+    if anchor:
+        try:
+            alat, alon = (float(x) for x in anchor.split(","))
+        except ValueError:
+            raise UserError(f"--anchor must be LAT,LON in degrees, got {anchor!r}") from None
+        d = g.describe()
+        d.update(anchor_lat=alat, anchor_lon=alon)
+        d.pop("kind")
+        g = geo.MetricRegionGrid(**d)
+    return g
+
+
+def _keep_snapshots(f, spec: str):
+    """Field ``f`` cut to ``--snapshots START:STOP`` (snapshot indices, either may be empty)."""
+    from passt_mav.errors import UserError
+
+    try:
+        a, b = (int(x) if x.strip() else None for x in spec.split(":"))
+    except ValueError:
+        raise UserError(f"--snapshots must be START:STOP snapshot indices, got {spec!r}") from None
+    sl = slice(a, b)
+    if len(range(f.n_times)[sl]) < 1:
+        raise UserError(f"--snapshots {spec} keeps none of the field's {f.n_times} snapshots")
+    return f.isel(time=sl)
+
+
+def _crop_region(f, spec: str):
+    """Lat/lon field ``f`` cropped to the cell centres inside ``--region S,W,N,E`` (degrees)."""
+    import numpy as np
+
+    from passt_mav.errors import UserError
+
+    if not f.is_geographic:
+        raise UserError("--region crops lat/lon fields; for a metric field export its mission region")
+    try:
+        s_, w_, n_, e_ = (float(x) for x in spec.split(","))
+    except ValueError:
+        raise UserError(f"--region must be S,W,N,E in degrees, got {spec!r}") from None
+    rows = np.nonzero((f.grid.lats >= s_) & (f.grid.lats <= n_))[0]
+    cols = np.nonzero((f.grid.lons >= w_) & (f.grid.lons <= e_))[0]
+    if rows.size < 2 or cols.size < 2:
+        raise UserError(f"--region {spec} holds fewer than 2x2 cell centres of the field")
+    return f.isel(rows=slice(int(rows[0]), int(rows[-1]) + 1), cols=slice(int(cols[0]), int(cols[-1]) + 1))

@@ -275,12 +275,11 @@ def run(args: argparse.Namespace) -> int:
     import json
     from pathlib import Path
 
-    from passt_mav.campaign import load_predictor, run_campaign
+    from passt_mav.campaign import load_predictor
     from passt_mav.errors import PlannerError
     from passt_mav.fields.datasets import resolve_field
 
     lengths = _parse_lengths(args.path_lengths)
-    methods = [m.strip() for m in args.methods.split(",") if m.strip()]
     if args.workers < 1:
         raise PlannerError("--workers must be >= 1")
     if args.steps < 1 or args.steps_per_leg < 1:
@@ -293,6 +292,29 @@ def run(args: argparse.Namespace) -> int:
         raise PlannerError("--boats must be >= 1")
     if args.boats > 1:
         return _run_fleet(args, field, predictor, lengths[0], out_dir)
+    summary = _campaign(args, field, predictor, lengths)
+    files = write_figures(summary, out_dir)
+    snaps = summary.pop("_snapshots")
+    (out_dir / "results.json").write_text(json.dumps(summary) + "\n")
+    (out_dir / "snapshots.json").write_text(json.dumps(snaps) + "\n")
+    table = {
+        L: {"final_rmse": per["final_rmse"], "ratio_to_passt": per.get("ratio_to_passt")}
+        for L, per in summary["per_L"].items()
+    }
+    if args.json:
+        print(json.dumps({"out": str(out_dir), "window": summary["config"]["window"], "per_L": table}))
+    else:
+        _print_table(table, window=summary["config"]["window"], trials=args.trials)
+        print(f"figures: {', '.join(f.name for f in files)}")
+    print(f"results written to {out_dir}", file=sys.stderr if args.json else sys.stdout)
+    return 0
+
+
+def _campaign(args: argparse.Namespace, field, predictor, lengths: list[int]) -> dict:
+    """The campaign the command line asks for (:func:`passt_mav.campaign.run_campaign`), its summary's
+    config completed with the data, model and command."""
+    from passt_mav.campaign import run_campaign
+
     summary = run_campaign(
         field,
         predictor,
@@ -307,7 +329,7 @@ def run(args: argparse.Namespace) -> int:
         hyper=args.hyper,
         sampling=args.sampling,
         baseline_prior=args.baseline_prior,
-        methods=methods,
+        methods=[m.strip() for m in args.methods.split(",") if m.strip()],
         window=args.window,
         snapshot_step=args.snapshot_step,
         seed=args.seed,
@@ -326,31 +348,20 @@ def run(args: argparse.Namespace) -> int:
         model=args.model,
         command="passt-mav evaluate " + " ".join(sys.argv[2:]) if sys.argv[1:2] == ["evaluate"] else None,
     )
-    files = write_figures(summary, out_dir)
-    snaps = summary.pop("_snapshots")
-    (out_dir / "results.json").write_text(json.dumps(summary) + "\n")
-    (out_dir / "snapshots.json").write_text(json.dumps(snaps) + "\n")
-    table = {
-        L: {"final_rmse": per["final_rmse"], "ratio_to_passt": per.get("ratio_to_passt")}
-        for L, per in summary["per_L"].items()
-    }
-    if args.json:
-        print(json.dumps({"out": str(out_dir), "window": summary["config"]["window"], "per_L": table}))
-    else:
-        ms = list(next(iter(table.values()))["final_rmse"])
-        print(
-            f"final-window RMSE (last {summary['config']['window']} steps), mean over {args.trials} trials; ratio = method / passt"
-        )
-        print("L".rjust(6) + "".join(m.rjust(16) for m in ms))
-        for L, row in table.items():
-            cells = []
-            for m in ms:
-                r = row["ratio_to_passt"][m] if row["ratio_to_passt"] else float("nan")
-                cells.append(f"{row['final_rmse'][m]:.4f} ({r:.2f})".rjust(16))
-            print(str(L).rjust(6) + "".join(cells))
-        print(f"figures: {', '.join(f.name for f in files)}")
-    print(f"results written to {out_dir}", file=sys.stderr if args.json else sys.stdout)
-    return 0
+    return summary
+
+
+def _print_table(table: dict, *, window: int, trials: int) -> None:
+    """Print per path length each method's final-window RMSE (field units) and its ratio to PASST's."""
+    ms = list(next(iter(table.values()))["final_rmse"])
+    print(f"final-window RMSE (last {window} steps), mean over {trials} trials; ratio = method / passt")
+    print("L".rjust(6) + "".join(m.rjust(16) for m in ms))
+    for L, row in table.items():
+        cells = []
+        for m in ms:
+            r = row["ratio_to_passt"][m] if row["ratio_to_passt"] else float("nan")
+            cells.append(f"{row['final_rmse'][m]:.4f} ({r:.2f})".rjust(16))
+        print(str(L).rjust(6) + "".join(cells))
 
 
 def _run_fleet(args, field, predictor, L: int, out_dir) -> int:

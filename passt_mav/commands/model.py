@@ -205,18 +205,7 @@ def _train(args) -> int:
 
     from passt_mav.models.train import train
 
-    logf = None
-    if args.log:
-        from pathlib import Path
-
-        from passt_mav.errors import UserError
-
-        # a recorded command may log into a folder this checkout does not have yet
-        try:
-            Path(args.log).parent.mkdir(parents=True, exist_ok=True)
-            logf = open(args.log, "a")  # noqa: SIM115 - closed below
-        except OSError as exc:
-            raise UserError(f"--log {args.log}: cannot write it ({exc.strerror})") from None
+    logf = _open_log(args.log) if args.log else None
 
     def log(ep, loss):
         if logf is not None:
@@ -245,27 +234,7 @@ def _train(args) -> int:
             command=cmd,
             log=log,
             recipe=args.recipe,
-            overrides={
-                k: getattr(args, k)
-                for k in (
-                    "loss",
-                    "horizon",
-                    "curriculum",
-                    "noise",
-                    "noise_scale",
-                    "val_frac",
-                    "val_every",
-                    "patience",
-                    "train_batch",
-                    "max_ics",
-                    "init",
-                    "select",
-                    "shift_rows",
-                    "shift_fraction",
-                )
-                if getattr(args, k) is not None
-            }
-            | ({"compile": True} if args.compile else {}),
+            overrides=_recipe_overrides(args),
             skill=not args.no_skill,
         )
     finally:
@@ -274,18 +243,61 @@ def _train(args) -> int:
     if args.json:
         print(json.dumps(s))
     else:
-        for k, v in s.items():
-            if k != "skill":
-                print(f"{k:>18}: {v}")
-        if s.get("skill"):
-            from passt_mav.models.evaluate import skill_lines, skill_warning
-
-            print("\n".join(skill_lines(s["skill"])))
-            w = skill_warning({"skill": s["skill"]})
-            if w:
-                print(w)
-        print(f"checkpoint written: {s['out']} (+ .json)")
+        _print_trained(s)
     return 0
+
+
+def _open_log(path: str):
+    """The loss log ``path`` opened for appending (its folder made), or the error naming it."""
+    from pathlib import Path
+
+    from passt_mav.errors import UserError
+
+    # a recorded command may log into a folder this checkout does not have yet
+    try:
+        Path(path).parent.mkdir(parents=True, exist_ok=True)
+        return open(path, "a")  # noqa: SIM115 - closed by the caller
+    except OSError as exc:
+        raise UserError(f"--log {path}: cannot write it ({exc.strerror})") from None
+
+
+def _recipe_overrides(args) -> dict:
+    """The training options given on the command line that override the recipe's."""
+    return {
+        k: getattr(args, k)
+        for k in (
+            "loss",
+            "horizon",
+            "curriculum",
+            "noise",
+            "noise_scale",
+            "val_frac",
+            "val_every",
+            "patience",
+            "train_batch",
+            "max_ics",
+            "init",
+            "select",
+            "shift_rows",
+            "shift_fraction",
+        )
+        if getattr(args, k) is not None
+    } | ({"compile": True} if args.compile else {})
+
+
+def _print_trained(s: dict) -> None:
+    """Print a training summary: its fields, the checkpoint's skill (and warning) and where it went."""
+    for k, v in s.items():
+        if k != "skill":
+            print(f"{k:>18}: {v}")
+    if s.get("skill"):
+        from passt_mav.models.evaluate import skill_lines, skill_warning
+
+        print("\n".join(skill_lines(s["skill"])))
+        w = skill_warning({"skill": s["skill"]})
+        if w:
+            print(w)
+    print(f"checkpoint written: {s['out']} (+ .json)")
 
 
 def _evaluate(args) -> int:

@@ -537,59 +537,16 @@ def write_page(res: dict, out_dir) -> Path:  # noqa: F821 - pathlib imported ins
     page = _Page(out)
     proto = res["protocol"]
     page.add("<h1>PASST: the paper's offline evaluation</h1>")
-    page.add(
-        f'<p class="status">{"Quick version (CI): few trials and steps - not the paper&#39;s numbers. " if proto.get("quick") else ""}'
-        f"{len(proto['scenarios'])} scenario(s) x L = {html.escape(str(proto['path_lengths']))} x {proto['trials']} trials x {proto['steps']} steps; "
-        f"GP hyper-parameters: {html.escape(proto['hyper'])}, background roll-out {proto.get('background', 0)} snapshots, solver {html.escape(str(proto.get('gp_solver', 'sklearn')))}; {res.get('trial_legs', 0)} trial-legs in {res.get('wall_s', 0):.0f} s.</p>"
-    )
+    page.add(_status_line(res))
     page.h2("The paper's claims beside our numbers")
-    rows = "".join(
-        f"<tr><td>{html.escape(c['claim'])}</td><td>{html.escape(str(c['paper']))}</td><td>{html.escape(c['ours'])}</td>"
-        f'<td class="{ {True: "held", False: "notheld", None: "missing"}[c["held"]] }">{ {True: "&#10004; held", False: "&#10008; not held", None: "- not measured"}[c["held"]] }</td></tr>'
-        for c in res["claims"]
-    )
-    page.add(f'<table class="claims"><tr><th>claim</th><th>paper</th><th>ours</th><th>verdict</th></tr>{rows}</table>')
+    page.add(_claims_table(res["claims"]))
     me = res.get("model_eval")
     if me:
-        page.h2("Model error vs lookahead (train / test / oscillating)")
-        page.figure(
-            _fig_lookahead(me, plt),
-            "lookahead.png",
-            "MSE and cosine distance vs lookahead, per window and predictor",
-            plt,
-        )
-        if me.get("pod"):
-            page.h2("POD energy: model roll-out vs truth")
-            page.figure(
-                _fig_pod(me, plt),
-                "pod.png",
-                f"cumulative POD energy, snapshots {me['pod'][next(iter(me['pod']))]['window']}",
-                plt,
-            )
+        _model_eval_section(page, me, plt)
     else:
         page.missing("model evaluation not run")
     for name, camp in res["campaigns"].items():
-        page.h2(f"RMSE over time: {name} ({camp['config'].get('data')}, model {camp['config'].get('model')})")
-        page.figure(
-            _fig_rmse(camp, name, plt),
-            f"rmse_{name}.png",
-            f"{name}: RMSE over time, mean +- std over {proto['trials']} trials",
-            plt,
-        )
-        body = "".join(
-            f"<tr><th>L = {L}</th>"
-            + "".join(f"<td>{per['final_rmse'][m]:.4f}</td>" for m in per["final_rmse"])
-            + "</tr>"
-            for L, per in camp["per_L"].items()
-        )
-        ms = list(next(iter(camp["per_L"].values()))["final_rmse"])
-        page.add(
-            f"<table><tr><th>final-window RMSE (last {camp['config']['window']} steps)</th>"
-            + "".join(f"<th>{html.escape(m)}</th>" for m in ms)
-            + f"</tr>{body}</table>"
-        )
-        if camp.get("_snapshots"):
-            page.figure(_fig_snapshots(camp, name, plt), f"snapshots_{name}.png", f"{name}: 2-D snapshots", plt)
+        _campaign_section(page, name, camp, proto["trials"], plt)
     if res.get("timings"):
         page.h2("Compute")
         page.table([(k, html.escape(str(v))) for k, v in res["timings"].items()])
@@ -603,6 +560,75 @@ def write_page(res: dict, out_dir) -> Path:  # noqa: F821 - pathlib imported ins
     path = out / "paper.html"
     path.write_text(doc, encoding="utf-8")
     return path
+
+
+def _status_line(res: dict) -> str:
+    """The page's status paragraph: quick or not, the protocol's size, GP options, trial-legs and wall time (s)."""
+    import html
+
+    proto = res["protocol"]
+    return (
+        f'<p class="status">{"Quick version (CI): few trials and steps - not the paper&#39;s numbers. " if proto.get("quick") else ""}'
+        f"{len(proto['scenarios'])} scenario(s) x L = {html.escape(str(proto['path_lengths']))} x {proto['trials']} trials x {proto['steps']} steps; "
+        f"GP hyper-parameters: {html.escape(proto['hyper'])}, background roll-out {proto.get('background', 0)} snapshots, solver {html.escape(str(proto.get('gp_solver', 'sklearn')))}; {res.get('trial_legs', 0)} trial-legs in {res.get('wall_s', 0):.0f} s.</p>"
+    )
+
+
+def _claims_table(checked: list[dict]) -> str:
+    """The claims table: each claim, the paper's number, ours and the verdict (held / not held / not measured)."""
+    import html
+
+    rows = "".join(
+        f"<tr><td>{html.escape(c['claim'])}</td><td>{html.escape(str(c['paper']))}</td><td>{html.escape(c['ours'])}</td>"
+        f'<td class="{ {True: "held", False: "notheld", None: "missing"}[c["held"]] }">{ {True: "&#10004; held", False: "&#10008; not held", None: "- not measured"}[c["held"]] }</td></tr>'
+        for c in checked
+    )
+    return f'<table class="claims"><tr><th>claim</th><th>paper</th><th>ours</th><th>verdict</th></tr>{rows}</table>'
+
+
+def _model_eval_section(page, me: dict, plt) -> None:
+    """The model evaluation's figures: error vs lookahead and, if run, POD energy of the roll-out vs truth."""
+    page.h2("Model error vs lookahead (train / test / oscillating)")
+    page.figure(
+        _fig_lookahead(me, plt),
+        "lookahead.png",
+        "MSE and cosine distance vs lookahead, per window and predictor",
+        plt,
+    )
+    if me.get("pod"):
+        page.h2("POD energy: model roll-out vs truth")
+        page.figure(
+            _fig_pod(me, plt),
+            "pod.png",
+            f"cumulative POD energy, snapshots {me['pod'][next(iter(me['pod']))]['window']}",
+            plt,
+        )
+
+
+def _campaign_section(page, name: str, camp: dict, trials: int, plt) -> None:
+    """One scenario's campaign: RMSE over time (mean +- std over ``trials``), the final-window RMSE
+    table per path length and method, and its snapshots if kept."""
+    import html
+
+    page.h2(f"RMSE over time: {name} ({camp['config'].get('data')}, model {camp['config'].get('model')})")
+    page.figure(
+        _fig_rmse(camp, name, plt),
+        f"rmse_{name}.png",
+        f"{name}: RMSE over time, mean +- std over {trials} trials",
+        plt,
+    )
+    body = "".join(
+        f"<tr><th>L = {L}</th>" + "".join(f"<td>{per['final_rmse'][m]:.4f}</td>" for m in per["final_rmse"]) + "</tr>"
+        for L, per in camp["per_L"].items()
+    )
+    ms = list(next(iter(camp["per_L"].values()))["final_rmse"])
+    page.add(
+        f"<table><tr><th>final-window RMSE (last {camp['config']['window']} steps)</th>"
+        + "".join(f"<th>{html.escape(m)}</th>" for m in ms)
+        + f"</tr>{body}</table>"
+    )
+    if camp.get("_snapshots"):
+        page.figure(_fig_snapshots(camp, name, plt), f"snapshots_{name}.png", f"{name}: 2-D snapshots", plt)
 
 
 def run_paper(

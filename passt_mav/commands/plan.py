@@ -106,10 +106,8 @@ def run(args: argparse.Namespace) -> int:
 
     from passt_mav.errors import FieldError, PlannerError
     from passt_mav.fields.datasets import mission_field
-    from passt_mav.legstep import build_loop
     from passt_mav.mission import WaypointMission
     from passt_mav.mission.config import load_mission
-    from passt_mav.planning import path_reward
 
     cfg = load_mission(args.mission)
     grid = cfg.grid()
@@ -120,30 +118,10 @@ def run(args: argparse.Namespace) -> int:
     L = cfg.planner.path_length if args.length is None else int(args.length)
     if L < 1:
         raise PlannerError(f"--length must be >= 1, got {L}")
-    land = field.land_mask
-    if args.start is not None:
-        start = _parse_start(args.start, grid.shape)
-        if land[start]:
-            raise PlannerError(f"--start {start[0]},{start[1]} is a land cell")
-    else:
-        start = tuple(cfg.start_cell) if cfg.start_cell is not None else (grid.rows // 2, grid.cols // 2)
-        start = _nearest_water(start, land)
-
+    start = _leg_start(args.start, cfg, grid, field.land_mask)
     predictor, note = _predictor(args.model if args.model is not None else cfg.model, field)
     print(f"note: {note}", file=sys.stderr)
-    # the mission's own loop (GP noise, background, prior blend, seeds), as `run` builds it
-    pl = {"path_length": L}
-    if args.planner is not None:
-        pl.update(name=args.planner, options={})
-    if args.reward is not None:
-        pl["reward"] = args.reward
-    from passt_mav.planning import PLANNERS, REWARDS
-
-    if pl.get("name", cfg.planner.name) not in PLANNERS or pl.get("reward", cfg.planner.reward) not in REWARDS:
-        raise PlannerError(
-            f"--planner / --reward: choose a planner of {', '.join(PLANNERS)} and a reward of {', '.join(REWARDS)}"
-        )
-    loop = build_loop(cfg.model_copy(update={"planner": cfg.planner.model_copy(update=pl)}), predictor, grid, land=land)
+    loop = _mission_loop(args, cfg, predictor, grid, field.land_mask, L)
     state = np.array(field.data[k], dtype=np.float32)
     leg = loop.plan_leg(state, start, float(field.times[k]), 1.0, steps=1)
     mission = WaypointMission.from_path(
@@ -158,28 +136,8 @@ def run(args: argparse.Namespace) -> int:
     out.mkdir(parents=True, exist_ok=True)
     f_plan = mission.to_plan(out / "leg.plan")
     f_wpl = mission.to_wpl(out / "leg.waypoints")
-    collected = float(path_reward(leg.reward, leg.path))
-    summary = {
-        "mission": cfg.name,
-        "mission_file": str(args.mission),
-        "state": str(args.state) if args.state else cfg.field.source,
-        "time_index": k,
-        "start": list(start),
-        "path_length": L,
-        "planner": cfg.planner.name,
-        "reward": cfg.planner.reward,
-        "model": None if predictor is None else (args.model or cfg.model),
-        "note": note,
-        "seed": cfg.seeds.planner,
-        "reward_collected": collected,
-        "path": leg.path.tolist(),
-        "waypoint_cells": mission.meta["cells"],
-        "waypoints_latlon": mission.waypoints.tolist(),
-        "waypoint_seqs": mission.waypoint_seqs(),
-        "grid": grid.describe(),
-        "reward_map": np.asarray(leg.reward, dtype=float).round(6).tolist(),
-        "timings_s": leg.timings,
-    }
+    summary = _plan_summary(args, cfg, k, start, L, model=None if predictor is None else (args.model or cfg.model))
+    summary.update(_leg_record(leg, mission, note=note, seed=cfg.seeds.planner, grid=grid))
     f_json = out / "path.json"
     f_json.write_text(json.dumps(summary) + "\n")
     if args.json:
@@ -195,8 +153,77 @@ def run(args: argparse.Namespace) -> int:
     else:
         print(
             f"planned {L} moves from {start} with {cfg.planner.name} on the {cfg.planner.reward} reward: "
-            f"{len(mission.waypoints)} waypoints, reward collected {collected:.3f}"
+            f"{len(mission.waypoints)} waypoints, reward collected {summary['reward_collected']:.3f}"
         )
         print(f"wrote {f_plan}, {f_wpl}, {f_json}")
         print(f"results written to {out}")
     return 0
+
+
+def _leg_start(spec: str | None, cfg, grid, land) -> tuple[int, int]:
+    """The leg's start cell (row, col): ``--start`` (a water cell), else the mission's start cell or the
+    grid's centre, moved to the nearest water cell."""
+    from passt_mav.errors import PlannerError
+
+    if spec is not None:
+        start = _parse_start(spec, grid.shape)
+        if land[start]:
+            raise PlannerError(f"--start {start[0]},{start[1]} is a land cell")
+        return start
+    start = tuple(cfg.start_cell) if cfg.start_cell is not None else (grid.rows // 2, grid.cols // 2)
+    return _nearest_water(start, land)
+
+
+def _mission_loop(args: argparse.Namespace, cfg, predictor, grid, land, L: int):
+    """The mission's own loop (GP noise, background, prior blend, seeds), as ``run`` builds it, with
+    legs of ``L`` moves and the planner and reward ``--planner`` / ``--reward`` name."""
+    from passt_mav.errors import PlannerError
+    from passt_mav.legstep import build_loop
+    from passt_mav.planning import PLANNERS, REWARDS
+
+    pl = {"path_length": L}
+    if args.planner is not None:
+        pl.update(name=args.planner, options={})
+    if args.reward is not None:
+        pl["reward"] = args.reward
+    if pl.get("name", cfg.planner.name) not in PLANNERS or pl.get("reward", cfg.planner.reward) not in REWARDS:
+        raise PlannerError(
+            f"--planner / --reward: choose a planner of {', '.join(PLANNERS)} and a reward of {', '.join(REWARDS)}"
+        )
+    return build_loop(cfg.model_copy(update={"planner": cfg.planner.model_copy(update=pl)}), predictor, grid, land=land)
+
+
+def _plan_summary(args: argparse.Namespace, cfg, k: int, start, L: int, *, model) -> dict:
+    """The head of ``path.json``: which mission, state (snapshot ``k``), start, leg length and model."""
+    return {
+        "mission": cfg.name,
+        "mission_file": str(args.mission),
+        "state": str(args.state) if args.state else cfg.field.source,
+        "time_index": k,
+        "start": list(start),
+        "path_length": L,
+        "planner": cfg.planner.name,
+        "reward": cfg.planner.reward,
+        "model": model,
+    }
+
+
+def _leg_record(leg, mission, *, note: str, seed, grid) -> dict:
+    """The rest of ``path.json``: the planned leg (cells, reward collected and map), its waypoints
+    (cells, lat/lon degrees, mission item seqs), the grid and the planning timings (s)."""
+    import numpy as np
+
+    from passt_mav.planning import path_reward
+
+    return {
+        "note": note,
+        "seed": seed,
+        "reward_collected": float(path_reward(leg.reward, leg.path)),
+        "path": leg.path.tolist(),
+        "waypoint_cells": mission.meta["cells"],
+        "waypoints_latlon": mission.waypoints.tolist(),
+        "waypoint_seqs": mission.waypoint_seqs(),
+        "grid": grid.describe(),
+        "reward_map": np.asarray(leg.reward, dtype=float).round(6).tolist(),
+        "timings_s": leg.timings,
+    }

@@ -3,6 +3,9 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
+from collections.abc import Callable
+from typing import Any
 
 HELP = "Run a PASST mission on a vehicle (real or simulated) over MAVLink"
 EXAMPLES = """examples:
@@ -155,9 +158,8 @@ def execute(
     """
     import sys
 
-    from passt_mav.controller import MissionController, build_predictor
+    from passt_mav.controller import build_predictor
     from passt_mav.fields.datasets import mission_field
-    from passt_mav.mavlink import Link
 
     if speedup > 1.0:
         # hand the GIL over faster (default 5 ms): a mission request must be answered within the
@@ -165,43 +167,75 @@ def execute(
         sys.setswitchinterval(min(sys.getswitchinterval(), 0.001))
     field = mission_field(config)  # the same rule as plan, replay and report
     predictor, pinfo = build_predictor(config.model, field, echo=echo)
+    opts = _RunOptions(
+        mission_text=mission_text,
+        legs=legs,
+        speedup=speedup,
+        field_time_at_boot=field_time_at_boot,
+        signing_key=signing_key,
+        pause_timeout=pause_timeout,
+        ready_timeout=ready_timeout,
+        echo=echo,
+        extra_summary=extra_summary,
+        link_factory=link_factory,
+        identity=identity,
+        progress=progress,
+    )
     if config.vehicles is not None:
         if resume:
             raise _user("--resume is not supported for a fleet (vehicles:) yet")
-        summary = _execute_fleet(
-            config,
-            run_dir,
-            field,
-            predictor,
-            pinfo,
-            mission_text=mission_text,
-            legs=legs,
-            speedup=speedup,
-            field_time_at_boot=field_time_at_boot,
-            signing_key=signing_key,
-            pause_timeout=pause_timeout,
-            ready_timeout=ready_timeout,
-            echo=echo,
-            extra_summary=extra_summary,
-            link_factory=link_factory,
-            identity=identity,
-            progress=progress,
-        )
-        return _report(summary, run_dir, report)
-    link = Link(
+        summary = _execute_fleet(config, run_dir, field, predictor, pinfo, opts)
+    else:
+        summary = _execute_boat(config, connect, run_dir, field, predictor, pinfo, opts, resume=resume)
+    return _report(summary, run_dir, report)
+
+
+@dataclasses.dataclass(frozen=True)
+class _RunOptions:
+    """The options of :func:`execute` that every link and controller of a run shares (timeouts in
+    seconds of wall time)."""
+
+    mission_text: str | None
+    legs: Any
+    speedup: float
+    field_time_at_boot: Any
+    signing_key: Any
+    pause_timeout: float
+    ready_timeout: float
+    echo: Callable
+    extra_summary: Any
+    link_factory: Any
+    identity: tuple
+    progress: bool
+
+
+def _link(connect: str, tlog, vc, factory, opts: _RunOptions):
+    """A (not yet connected) MAVLink link to ``connect``, logging to ``tlog``, with our ids for vehicle
+    entry ``vc`` (:func:`_identity`)."""
+    from passt_mav.mavlink import Link
+
+    return Link(
         link_config_for(
             connect,
-            speedup=speedup,
-            tlog=run_dir.tlog,
-            signing_key=signing_key,
-            identity=_identity(identity, config.vehicle),
+            speedup=opts.speedup,
+            tlog=tlog,
+            signing_key=opts.signing_key,
+            identity=_identity(opts.identity, vc),
         ),
-        connection_factory=link_factory,
+        connection_factory=factory,
     )
+
+
+def _execute_boat(config, connect: str, run_dir, field, predictor, pinfo, opts: _RunOptions, *, resume) -> dict:
+    """One boat (``vehicle:``): its link, a :class:`MissionController` run over it; returns the summary."""
+    from passt_mav.controller import MissionController
+
+    link = _link(connect, run_dir.tlog, config.vehicle, opts.link_factory, opts)
+    echo = opts.echo
     echo(f"connecting to {connect} as system {link.config.source_system} component {link.config.source_component} ...")
-    link.connect(wait_s=ready_timeout, say=echo)
+    link.connect(wait_s=opts.ready_timeout, say=echo)
     try:
-        veh = _vehicle_for(link, speedup, progress)
+        veh = _vehicle_for(link, opts.speedup, opts.progress)
         ctl = MissionController(
             config,
             link,
@@ -210,20 +244,19 @@ def execute(
             predictor=predictor,
             predictor_info=pinfo,
             vehicle=veh,
-            legs=legs,
-            field_time_at_boot=field_time_at_boot,
-            speedup_hint=speedup,
-            pause_timeout_s=pause_timeout,
-            ready_timeout_s=ready_timeout,
+            legs=opts.legs,
+            field_time_at_boot=opts.field_time_at_boot,
+            speedup_hint=opts.speedup,
+            pause_timeout_s=opts.pause_timeout,
+            ready_timeout_s=opts.ready_timeout,
             resume=resume,
             echo=echo,
-            mission_text=mission_text,
-            extra_summary=extra_summary,
+            mission_text=opts.mission_text,
+            extra_summary=opts.extra_summary,
         )
-        summary = ctl.run()
+        return ctl.run()
     finally:
         link.close()
-    return _report(summary, run_dir, report)
 
 
 def _report(summary: dict, run_dir, report: bool) -> dict:
@@ -242,46 +275,17 @@ def _vehicle_for(link, speedup: float, progress: bool = True):
     return Vehicle(link, mc, retry_delay_s=max(0.02, 1.0 / max(speedup, 1.0)), show_progress=progress)
 
 
-def _execute_fleet(
-    config,
-    run_dir,
-    field,
-    predictor,
-    pinfo,
-    *,
-    mission_text,
-    legs,
-    speedup,
-    field_time_at_boot,
-    signing_key,
-    pause_timeout,
-    ready_timeout,
-    echo,
-    extra_summary,
-    link_factory,
-    identity,
-    progress=True,
-) -> dict:
+def _execute_fleet(config, run_dir, field, predictor, pinfo, opts: _RunOptions) -> dict:
     """``vehicles:``: one link per boat (its own tlog), one :class:`FleetController`."""
     from passt_mav.fleet_controller import FleetController
-    from passt_mav.mavlink import Link
 
     links = []
     try:
         for k, vc in enumerate(config.fleet):
-            factory = None if link_factory is None else (lambda f=link_factory, c=vc.connect: f(c))
-            link = Link(
-                link_config_for(
-                    vc.connect,
-                    speedup=speedup,
-                    tlog=run_dir.boat_tlog(k),
-                    signing_key=signing_key,
-                    identity=_identity(identity, vc),
-                ),
-                connection_factory=factory,
-            )
-            echo(f"boat {k}: connecting to {vc.connect} ...")
-            links.append(link.connect(wait_s=ready_timeout, say=echo))
+            factory = None if opts.link_factory is None else (lambda f=opts.link_factory, c=vc.connect: f(c))
+            link = _link(vc.connect, run_dir.boat_tlog(k), vc, factory, opts)
+            opts.echo(f"boat {k}: connecting to {vc.connect} ...")
+            links.append(link.connect(wait_s=opts.ready_timeout, say=opts.echo))
         fleet = FleetController(
             config,
             links,
@@ -289,15 +293,15 @@ def _execute_fleet(
             field=field,
             predictor=predictor,
             predictor_info=pinfo,
-            vehicles=[_vehicle_for(x, speedup, progress) for x in links],
-            legs=legs,
-            echo=echo,
-            mission_text=mission_text,
-            extra_summary=extra_summary,
-            field_time_at_boot=field_time_at_boot,
-            speedup_hint=speedup,
-            pause_timeout_s=pause_timeout,
-            ready_timeout_s=ready_timeout,
+            vehicles=[_vehicle_for(x, opts.speedup, opts.progress) for x in links],
+            legs=opts.legs,
+            echo=opts.echo,
+            mission_text=opts.mission_text,
+            extra_summary=opts.extra_summary,
+            field_time_at_boot=opts.field_time_at_boot,
+            speedup_hint=opts.speedup,
+            pause_timeout_s=opts.pause_timeout,
+            ready_timeout_s=opts.ready_timeout,
         )
         return fleet.run()
     finally:

@@ -402,70 +402,14 @@ class WaypointMission:
 
     @classmethod
     def from_plan_dict(cls, d: Any, *, source: str = "plan") -> WaypointMission:
+        """The mission of a parsed QGroundControl plan ``d`` (``source`` names it in errors)."""
         if not isinstance(d, dict) or d.get("fileType") != "Plan":
             raise MissionFileError(f'{source}: not a QGroundControl plan (fileType must be "Plan")')
         m = d.get("mission")
         if not isinstance(m, dict) or not isinstance(m.get("items"), list):
             raise MissionFileError(f"{source}: mission.items is missing")
-        home = m.get("plannedHomePosition")
-        if not (isinstance(home, list) and len(home) == 3 and all(isinstance(x, (int, float)) for x in home)):
-            raise MissionFileError(f"{source}: mission.plannedHomePosition must be [lat, lon, alt]")
-        items = [
-            MissionItem(
-                seq=0,
-                frame=MAV_FRAME_GLOBAL,
-                command=MAV_CMD_NAV_WAYPOINT,
-                lat=float(home[0]),
-                lon=float(home[1]),
-                alt=float(home[2]),
-            )
-        ]
-        for i, it in enumerate(m["items"]):
-            where = f"{source}: mission.items[{i}]"
-            if not isinstance(it, dict):
-                raise MissionFileError(f"{where}: not an object")
-            if it.get("type") != "SimpleItem":
-                raise MissionFileError(
-                    f"{where}: item type {it.get('type')!r} is not supported (only SimpleItem; "
-                    "convert surveys/patterns to waypoints in QGroundControl first)"
-                )
-            try:
-                params = [math.nan if v is None else float(v) for v in it["params"]]
-                if len(params) != 7:
-                    raise ValueError(f"params needs 7 values, got {len(params)}")
-                items.append(
-                    MissionItem(
-                        seq=len(items),
-                        frame=int(it["frame"]),
-                        command=int(it["command"]),
-                        autocontinue=int(bool(it.get("autoContinue", True))),
-                        param1=params[0],
-                        param2=params[1],
-                        param3=params[2],
-                        param4=params[3],
-                        lat=params[4],
-                        lon=params[5],
-                        alt=params[6],
-                    )
-                )
-            except KeyError as exc:
-                raise MissionFileError(f"{where}: missing key {exc.args[0]!r}") from None
-            except (TypeError, ValueError) as exc:
-                raise MissionFileError(f"{where}: {exc}") from None
-        fence = None
-        gf = d.get("geoFence") or {}
-        polys = gf.get("polygons", []) if isinstance(gf, dict) else None
-        if not isinstance(polys, list):
-            raise MissionFileError(f"{source}: geoFence.polygons must be a list")
-        if gf.get("circles") if isinstance(gf, dict) else None:
-            raise MissionFileError(f"{source}: geoFence circles are not supported (use one inclusion polygon)")
-        incl = [pg for pg in polys if isinstance(pg, dict) and pg.get("inclusion", True)]
-        if len(incl) != len(polys) or len(polys) > 1:
-            raise MissionFileError(
-                f"{source}: only one inclusion fence polygon is supported, got {len(polys)} polygon(s)"
-            )
-        if polys:
-            fence = _latlon_array(polys[0].get("polygon"), f"{source}: geoFence polygon vertices")
+        items = _plan_items(m, source)
+        fence = _plan_fence(d, source)
         mission = cls.from_items(items, source=source)
         if fence is not None:
             mission.fence = fence
@@ -474,6 +418,76 @@ class WaypointMission:
 
 
 # -- helpers ---------------------------------------------------------------------------
+
+
+def _plan_items(m: dict, source: str) -> list[MissionItem]:
+    """A plan's ``mission`` as mission items: its planned home (seq 0, lat/lon degrees, alt m), then
+    its SimpleItems."""
+    home = m.get("plannedHomePosition")
+    if not (isinstance(home, list) and len(home) == 3 and all(isinstance(x, (int, float)) for x in home)):
+        raise MissionFileError(f"{source}: mission.plannedHomePosition must be [lat, lon, alt]")
+    items = [
+        MissionItem(
+            seq=0,
+            frame=MAV_FRAME_GLOBAL,
+            command=MAV_CMD_NAV_WAYPOINT,
+            lat=float(home[0]),
+            lon=float(home[1]),
+            alt=float(home[2]),
+        )
+    ]
+    for i, it in enumerate(m["items"]):
+        items.append(_plan_simple_item(it, len(items), f"{source}: mission.items[{i}]"))
+    return items
+
+
+def _plan_simple_item(it: Any, seq: int, where: str) -> MissionItem:
+    """Mission item ``seq`` from a plan's SimpleItem ``it`` (its 7 params: None = NaN); ``where`` names
+    it in errors."""
+    if not isinstance(it, dict):
+        raise MissionFileError(f"{where}: not an object")
+    if it.get("type") != "SimpleItem":
+        raise MissionFileError(
+            f"{where}: item type {it.get('type')!r} is not supported (only SimpleItem; "
+            "convert surveys/patterns to waypoints in QGroundControl first)"
+        )
+    try:
+        params = [math.nan if v is None else float(v) for v in it["params"]]
+        if len(params) != 7:
+            raise ValueError(f"params needs 7 values, got {len(params)}")
+        return MissionItem(
+            seq=seq,
+            frame=int(it["frame"]),
+            command=int(it["command"]),
+            autocontinue=int(bool(it.get("autoContinue", True))),
+            param1=params[0],
+            param2=params[1],
+            param3=params[2],
+            param4=params[3],
+            lat=params[4],
+            lon=params[5],
+            alt=params[6],
+        )
+    except KeyError as exc:
+        raise MissionFileError(f"{where}: missing key {exc.args[0]!r}") from None
+    except (TypeError, ValueError) as exc:
+        raise MissionFileError(f"{where}: {exc}") from None
+
+
+def _plan_fence(d: dict, source: str) -> np.ndarray | None:
+    """A plan's geofence: its one inclusion polygon's vertices (lat/lon degrees), or None."""
+    gf = d.get("geoFence") or {}
+    polys = gf.get("polygons", []) if isinstance(gf, dict) else None
+    if not isinstance(polys, list):
+        raise MissionFileError(f"{source}: geoFence.polygons must be a list")
+    if gf.get("circles") if isinstance(gf, dict) else None:
+        raise MissionFileError(f"{source}: geoFence circles are not supported (use one inclusion polygon)")
+    incl = [pg for pg in polys if isinstance(pg, dict) and pg.get("inclusion", True)]
+    if len(incl) != len(polys) or len(polys) > 1:
+        raise MissionFileError(f"{source}: only one inclusion fence polygon is supported, got {len(polys)} polygon(s)")
+    if polys:
+        return _latlon_array(polys[0].get("polygon"), f"{source}: geoFence polygon vertices")
+    return None
 
 
 def _num(v) -> str:
