@@ -100,8 +100,10 @@ class GPReconstructor:
             (u, v) beside the background's: ordinary kriging's unknown constant mean, here as a
             prior term so that the gate below can refuse it. ``s^2`` is chosen at every
             :meth:`reconstruct` from a log grid (``mean(y^2)`` x 1e-2 .. 10, and 0) by the joint
-            marginal likelihood of the samples' residuals under the offset plus the background
-            (factor in use) plus the fitted sensor noise, and kept only when it raises that
+            marginal likelihood of the samples' residuals under the offset plus the rest of the
+            prior the posterior uses (background with its factor, the fitted stationary kernels,
+            sensor noise: a local error seen by bunched samples is the kernels' to explain, not
+            an offset of the whole field's), and kept only when it raises that
             likelihood by more than the information criterion's ``0.5 ln(2n)`` (one parameter).
             A forecast that is right (residual = noise) then keeps ``s^2 = 0`` and nothing
             changes; a stale forecast of a field that moved as a whole is shifted everywhere,
@@ -481,20 +483,32 @@ class GPReconstructor:
         with the factor fixed at 1, which however spoils a leg where the model is right)."""
         return self._fit_factor(target, cells, np.zeros((0,) + Bg.shape[1:]), Bg, self.BACKGROUND_SCALES)
 
-    def _fit_factor(self, target, cells, Bg, modes, candidates) -> float:
+    def _fit_factor(self, target, cells, Bg, modes, candidates, xy=None) -> float:
         """The variance in ``candidates`` (0 first) on ``modes`` (m, 2, N; unit factor) that maximises
         the joint log marginal likelihood of the residuals ``target`` (n, 2) under those modes + the
         modes ``Bg`` already in (factors applied) + the fitted sensor noise; 0 unless it raises it
         over 0 by the information criterion's 0.5 ln(2n) (one fitted parameter; see
-        :meth:`_evidence_gate`: a factor fitted to noise drags a right forecast off). The
-        stationary kernels are left out (see :meth:`_fit_background_scale`)."""
+        :meth:`_evidence_gate`: a factor fitted to noise drags a right forecast off). Without the
+        samples' inputs ``xy`` the stationary kernels are left out (the background factor, see
+        :meth:`_fit_background_scale`); with them (the ``bias`` fits) the prior is the one the
+        posterior uses, kernels included, so that a mode spread over the whole region must explain
+        what a local correction cannot: samples bunched in one corner show a local error, which
+        against noise alone looks like an offset of the whole field (measured, 30 trials, random
+        walk, L = 50, offset fitted against noise alone: 0.1107 m/s on the ocean default against
+        0.0609 without the offset)."""
         from scipy.linalg import cho_solve, cholesky
 
         n = len(target)
         y = np.concatenate([target[:, 0], target[:, 1]])
-        noise = np.concatenate([np.full(n, float(self.kernels_[k].k2.noise_level)) for k in range(2)])
         Hb = np.concatenate([Bg[:, 0, cells], Bg[:, 1, cells]], axis=1)
-        K0 = Hb.T @ Hb + np.diag(noise + float(self.alpha))
+        K0 = Hb.T @ Hb
+        if xy is None:
+            noise = np.concatenate([np.full(n, float(self.kernels_[k].k2.noise_level)) for k in range(2)])
+            K0 += np.diag(noise)
+        else:
+            for k in range(2):
+                K0[k * n : (k + 1) * n, k * n : (k + 1) * n] += self.kernels_[k](xy)
+        K0[np.diag_indices_from(K0)] += float(self.alpha)
         Hm = np.concatenate([modes[:, 0, cells], modes[:, 1, cells]], axis=1)
         J = Hm.T @ Hm
         best, best_ll, ll0 = 1.0, -np.inf, None
@@ -701,7 +715,7 @@ class GPReconstructor:
         modes = None
         if self.background is not None or self._bias_on():
             cells = self._nearest_cells(np.asarray(samples_xy, dtype=np.float64).reshape(-1, 2)[ok], X, Y)
-            modes = self._fitted_modes(target, cells, X.shape, fc)
+            modes = self._fitted_modes(target, cells, X.shape, fc, xy)
         if modes is not None:
             mean, std = self._posterior_joint(xy, target, grid_pts, cells, modes, with_std)
             mean = mean + offset[:, None, None]
@@ -737,7 +751,7 @@ class GPReconstructor:
     def _bias_on(self) -> bool:
         return bool(getattr(self, "bias", False)) and self.prior == "forecast"
 
-    def _fitted_modes(self, target, cells, shape, fc=None) -> np.ndarray | None:
+    def _fitted_modes(self, target, cells, shape, fc=None, xy=None) -> np.ndarray | None:
         """The low-rank prior modes of this reconstruction, (m, 2, R*C) with their factors applied:
         the background modes (factor refitted when ``background_scale="ml"``), then with ``bias``
         the two offset modes and the forecast's own anomaly (``fc`` (2, R, C) minus its water
@@ -752,13 +766,13 @@ class GPReconstructor:
             Bg = Bg * np.sqrt(self._background_factor())
         if self._bias_on():
             v0 = max(float(np.mean(target**2)), float(self.noise_std) ** 2, 1e-12)
-            self.bias_var_ = self._fit_factor(target, cells, Bg, self._bias_modes(N), self._bias_candidates(v0))
+            self.bias_var_ = self._fit_factor(target, cells, Bg, self._bias_modes(N), self._bias_candidates(v0), xy)
             if self.bias_var_ > 0:
                 Bg = np.concatenate([Bg, self._bias_modes(N) * np.sqrt(self.bias_var_)])
             self.scale_var_ = 0.0
             anom = self._anomaly_mode(fc)
             if anom is not None:
-                self.scale_var_ = self._fit_factor(target, cells, Bg, anom, self._bias_candidates(1.0))
+                self.scale_var_ = self._fit_factor(target, cells, Bg, anom, self._bias_candidates(1.0), xy)
                 if self.scale_var_ > 0:
                     Bg = np.concatenate([Bg, anom * np.sqrt(self.scale_var_)])
         return Bg if Bg.shape[0] or self.background is not None else None
