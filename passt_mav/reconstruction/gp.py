@@ -46,6 +46,8 @@ from __future__ import annotations
 import numpy as np
 
 from passt_mav.errors import ReconstructionError
+from passt_mav.reconstruction import lowrank
+from passt_mav.reconstruction.kernels import CrossCovCache, base_kernel, evidence_gate, fit_on_field
 
 __all__ = ["GPReconstructor"]
 
@@ -195,36 +197,10 @@ class GPReconstructor:
         return np.argmin(d2, axis=1)
 
     def _base_kernel(self, t_span: float | None = None):
-        from sklearn.gaussian_process.kernels import RBF, ConstantKernel, Matern, WhiteKernel
-
+        """The kernel a fit starts from and the cell size (metres): see
+        :func:`~passt_mav.reconstruction.kernels.base_kernel`."""
         X, Y = self._grid()
-        R, C = X.shape
-        # mean spacing of neighbouring centres, metres
-        dx = np.nanmean(np.hypot(np.diff(X, axis=1), np.diff(Y, axis=1))) if C > 1 else 1.0
-        dy = np.nanmean(np.hypot(np.diff(X, axis=0), np.diff(Y, axis=0))) if R > 1 else 1.0
-        cell = float(np.sqrt(dx * dy))
-        diag = float(np.hypot(np.ptp(X), np.ptp(Y)))
-        ls = float(self.length_scale) if self.length_scale is not None else 3.0 * cell
-        # An upper bound of a few cells keeps a correction local: fitted on samples
-        # along one leg (a line), the likelihood often prefers a length scale as long
-        # as allowed, and the GP then extrapolates the residual across the region
-        # (measured on a drifting-model test: the estimate's RMSE tripled in one leg).
-        bounds = (0.5 * cell, max(min(float(self.max_length_cells) * cell, 0.5 * diag), 1.0 * cell))
-        ls = float(np.clip(ls, *bounds))
-        if t_span is not None:  # anisotropic over (east, north, time)
-            ls = [ls, ls, float(t_span)]
-            bounds = [bounds, bounds, (t_span / 50.0, t_span * 1e3)]
-        if self.kernel == "rbf":
-            k = RBF(ls, bounds)
-        else:
-            k = Matern(ls, bounds, nu=1.5 if self.kernel == "matern32" else 2.5)
-        nl = max(float(self.noise_std) ** 2, 1e-10)
-        # the noise never drops below the sensor's own (noise_std): a residual cannot be less
-        # noisy than the instrument, and a fit allowed below it (it was (noise_std/2)^2) turns
-        # sensor noise into "signal" that drags the estimate off a good forecast (measured:
-        # a forecast within 0.005 of the truth, 51 samples with noise 0.05, 20 seeds: the
-        # estimate's RMSE was 1.26 x the forecast's; 1.60 x with background modes)
-        return ConstantKernel(1.0, (1e-8, 1e3)) * k + WhiteKernel(nl, (nl, max(nl * 100, 1.0))), cell
+        return base_kernel(X, Y, self.kernel, self.length_scale, self.max_length_cells, self.noise_std, t_span)
 
     def _regressor(self, kernel, optimize: bool):
         from sklearn.gaussian_process import GaussianProcessRegressor
@@ -271,16 +247,11 @@ class GPReconstructor:
         comes from the column cache of component ``comp`` (:meth:`_cross_cov`, the
         same numbers). ``with_std=False`` skips the variance (returns ``(mean, None)``).
         """
-        from scipy.linalg import cho_solve, cholesky, solve_triangular
+        from scipy.linalg import cho_solve, solve_triangular
 
         K = kernel(xy)
         K[np.diag_indices_from(K)] += float(self.alpha)
-        try:
-            Lc = cholesky(K, lower=True, check_finite=False)
-        except np.linalg.LinAlgError as exc:
-            raise ReconstructionError(
-                f"GP fit failed (Cholesky: {exc}); increase the noise level: alpha (now {self.alpha:g}) or noise_std"
-            ) from None
+        Lc = lowrank.cholesky_or_error(K, self.alpha)
         a = cho_solve((Lc, True), y, check_finite=False)
         Ks = self._cross_cov(comp, kernel, xy, grid_pts)
         mean = Ks @ a
@@ -290,50 +261,12 @@ class GPReconstructor:
         var = kernel.diag(grid_pts) - np.einsum("ij,ij->j", V, V)
         return mean, np.sqrt(np.maximum(var, 0.0))
 
-    #: at most this many cached grid-to-sample covariance columns per component
-    #: (30 x 30 grid: 900 columns = 6.5 MB)
-    max_cached_columns = 2048
-
     def _cross_cov(self, comp: int, kernel, xy: np.ndarray, grid_pts: np.ndarray) -> np.ndarray:
-        """``kernel(grid_pts, xy)`` ((n_cells, n) float64), its columns cached by sample position.
-
-        A leg's samples sit where earlier legs' did (cell centres along a path, times
-        at the same offset from the reconstructed time), so the same columns are
-        evaluated leg after leg; evaluating them is most of a leg's GP time (5 ms of
-        the 18 ms of a 201-sample, 900-cell space-time reconstruction; numpy's float64
-        ``exp`` is not vectorised here). Written by hand because sklearn has no
-        such cache. A column is computed once by the kernel itself, from the very
-        same inputs, so the result is bit-identical to ``kernel(grid_pts, xy)``. The
-        cache belongs to one kernel object and one set of grid points; a refit or
-        another grid starts a new one.
-        """
-        state = getattr(self, "_col_cache", None)
-        if state is None:
-            state = self._col_cache = [None, None]
-        entry = state[comp]
-        if entry is None or entry[0] is not kernel or not np.array_equal(entry[1], grid_pts):
-            # [kernel, grid points, sample position -> row of the buffer, buffer (capacity, n_cells):
-            # column j of kernel(grid_pts, xy) stored as a contiguous row]
-            entry = state[comp] = [kernel, grid_pts, {}, np.empty((0, len(grid_pts)))]
-        where = entry[2]
-        keys = [row.tobytes() for row in xy]
-        missing = list(dict.fromkeys(k for k in keys if k not in where))
-        if missing:
-            n_old = len(where)
-            if n_old + len(missing) > self.max_cached_columns:
-                return kernel(grid_pts, xy)
-            new = np.frombuffer(b"".join(missing), dtype=np.float64).reshape(len(missing), xy.shape[1])
-            if n_old + len(missing) > entry[3].shape[0]:  # grow by doubling
-                grown = np.empty((min(max(2 * (n_old + len(missing)), 64), self.max_cached_columns), len(grid_pts)))
-                grown[:n_old] = entry[3][:n_old]
-                entry[3] = grown
-            entry[3][n_old : n_old + len(missing)] = kernel(grid_pts, new).T
-            where.update((k, n_old + j) for j, k in enumerate(missing))
-        # one gather of contiguous rows, transposed into the (n_cells, n) C-ordered layout the
-        # kernel returns (the same values and layout, so the same BLAS path downstream):
-        # 0.22 ms for 200 of 900 cells, against 0.36 ms for a stack of per-column arrays
-        # and 0.46 ms for a column gather (np.take on axis 1)
-        return np.ascontiguousarray(entry[3][[where[k] for k in keys]].T)
+        """``kernel(grid_pts, xy)`` ((n_cells, n) float64), its columns cached by sample position
+        (:class:`~passt_mav.reconstruction.kernels.CrossCovCache`, one per reconstructor)."""
+        if getattr(self, "_col_cache", None) is None:
+            self._col_cache = CrossCovCache()
+        return self._col_cache(comp, kernel, xy, grid_pts)
 
     # -- public -----------------------------------------------------------------
     def _inputs(self, xy, samples_t, n_ok_mask=None):
@@ -401,8 +334,6 @@ class GPReconstructor:
         leg's samples, before the GP adapts to them: the score of
         :class:`passt_mav.passt.PasstLoop`'s prior weighting. ``samples_t``: sample times for a
         space-time kernel (only their differences matter)."""
-        from scipy.linalg import cho_solve, cholesky
-
         X, Y = self._grid()
         xy = np.asarray(samples_xy, dtype=np.float64).reshape(-1, 2)
         r = np.asarray(residual_uv, dtype=np.float64).reshape(-1, 2)
@@ -421,53 +352,18 @@ class GPReconstructor:
             inputs = np.column_stack([xy, np.asarray(samples_t, dtype=np.float64).reshape(-1)]) if use_t else xy
             if getattr(self, "n_inputs_", 2) == 3 and not use_t:
                 inputs = np.column_stack([xy, np.zeros(n)])
-        K = np.zeros((2 * n, 2 * n))
-        for k in range(2):
-            K[k * n : (k + 1) * n, k * n : (k + 1) * n] = kernels[k](inputs)
-        if Bg is not None:
-            cells = self._nearest_cells(xy, X, Y)
-            Hb = np.concatenate([Bg[:, 0, cells], Bg[:, 1, cells]], axis=1)
-            K += Hb.T @ Hb
-        K[np.diag_indices_from(K)] += float(self.alpha)
-        y = np.concatenate([r[:, 0], r[:, 1]])
-        try:
-            Lc = cholesky(K, lower=True, check_finite=False)
-        except np.linalg.LinAlgError as exc:
-            raise ReconstructionError(
-                f"innovation likelihood: Cholesky failed ({exc}); increase alpha (now {self.alpha:g}) or noise_std"
-            ) from None
-        return -0.5 * float(y @ cho_solve((Lc, True), y, check_finite=False))
+        cells = self._nearest_cells(xy, X, Y) if Bg is not None else None
+        return lowrank.innovation_quadratic(kernels, inputs, Bg, cells, r, self.alpha)
 
     def _evidence_gate(self, gp, y, comp: int):
-        """The fitted kernel of component ``comp``, or, when the samples do not show a signal
-        beyond the sensor noise, the kernel with its signal switched off.
-
-        The stationary kernel is kept only when it raises the log marginal likelihood of the
-        targets ``y`` over white noise alone (variance ``max(noise_std^2, mean y^2)``, itself
-        fitted) by more than the Bayesian information criterion's penalty for its extra
-        parameters, ``0.5 k ln n`` (Schwarz 1978; k = signal variance + length scales). A
-        maximum-likelihood fit on pure noise finds some "signal" in one seed out of two (the
-        sample variance exceeds the noise's), and a correction fitted to noise only adds
-        error where the model was right. A real drift of the model raises the likelihood by
-        orders more than the penalty. Records ``evidence_[comp]`` = (likelihood gain, penalty).
-        """
-        from sklearn.gaussian_process.kernels import ConstantKernel, WhiteKernel
-
-        y = np.asarray(y, dtype=np.float64)
-        n = y.size
-        floor = max(float(self.noise_std) ** 2, 1e-10)
-        s0 = max(floor, float(np.mean(y**2)))
-        lml0 = -0.5 * n * (np.log(2 * np.pi * s0) + float(np.mean(y**2)) / s0)
-        k_sig = gp.kernel_.k1
-        penalty = 0.5 * (k_sig.theta.size) * np.log(max(n, 2))
-        gain = float(gp.log_marginal_likelihood_value_) - lml0
+        """The fitted kernel of component ``comp``, or the kernel with its signal switched off when
+        the samples show no signal beyond the sensor noise (:func:`~passt_mav.reconstruction.kernels.evidence_gate`).
+        Records ``evidence_[comp]`` = (likelihood gain, penalty)."""
+        kernel, evidence = evidence_gate(gp, y, self.noise_std)
         ev = getattr(self, "evidence_", None) or [None, None]
-        ev[comp] = (gain, float(penalty))
+        ev[comp] = evidence
         self.evidence_ = ev
-        if gain >= penalty:
-            return gp.kernel_
-        off = ConstantKernel(1e-8, "fixed") * k_sig.k2
-        return off + WhiteKernel(s0, "fixed")
+        return kernel
 
     #: candidate factors on the background covariance for ``background_scale="ml"``
     BACKGROUND_SCALES = (0.0,) + tuple(float(x) for x in np.logspace(-4, 1, 11))
@@ -481,50 +377,7 @@ class GPReconstructor:
         taken a smooth drift's variance and the likelihood then under-weights the modes: measured
         on the ocean default, 6 trials, L=50, final RMSE 0.0678 that way, 0.0627 this way, 0.0564
         with the factor fixed at 1, which however spoils a leg where the model is right)."""
-        return self._fit_factor(target, cells, np.zeros((0,) + Bg.shape[1:]), Bg, self.BACKGROUND_SCALES)
-
-    def _fit_factor(self, target, cells, Bg, modes, candidates, xy=None) -> float:
-        """The variance in ``candidates`` (0 first) on ``modes`` (m, 2, N; unit factor) that maximises
-        the joint log marginal likelihood of the residuals ``target`` (n, 2) under those modes + the
-        modes ``Bg`` already in (factors applied) + the fitted sensor noise; 0 unless it raises it
-        over 0 by the information criterion's 0.5 ln(2n) (one fitted parameter; see
-        :meth:`_evidence_gate`: a factor fitted to noise drags a right forecast off). Without the
-        samples' inputs ``xy`` the stationary kernels are left out (the background factor, see
-        :meth:`_fit_background_scale`); with them (the ``bias`` fits) the prior is the one the
-        posterior uses, kernels included, so that a mode spread over the whole region must explain
-        what a local correction cannot: samples bunched in one corner show a local error, which
-        against noise alone looks like an offset of the whole field (measured, 30 trials, random
-        walk, L = 50, offset fitted against noise alone: 0.1107 m/s on the ocean default against
-        0.0609 without the offset)."""
-        from scipy.linalg import cho_solve, cholesky
-
-        n = len(target)
-        y = np.concatenate([target[:, 0], target[:, 1]])
-        Hb = np.concatenate([Bg[:, 0, cells], Bg[:, 1, cells]], axis=1)
-        K0 = Hb.T @ Hb
-        if xy is None:
-            noise = np.concatenate([np.full(n, float(self.kernels_[k].k2.noise_level)) for k in range(2)])
-            K0 += np.diag(noise)
-        else:
-            for k in range(2):
-                K0[k * n : (k + 1) * n, k * n : (k + 1) * n] += self.kernels_[k](xy)
-        K0[np.diag_indices_from(K0)] += float(self.alpha)
-        Hm = np.concatenate([modes[:, 0, cells], modes[:, 1, cells]], axis=1)
-        J = Hm.T @ Hm
-        best, best_ll, ll0 = 1.0, -np.inf, None
-        for a in candidates:
-            try:
-                Lc = cholesky(K0 + a * J, lower=True, check_finite=False)
-            except np.linalg.LinAlgError:
-                continue
-            ll = -0.5 * float(y @ cho_solve((Lc, True), y, check_finite=False)) - float(np.log(np.diag(Lc)).sum())
-            if a == 0.0:
-                ll0 = ll
-            if ll > best_ll:
-                best, best_ll = a, ll
-        if ll0 is not None and best > 0 and best_ll - ll0 < 0.5 * np.log(max(2 * n, 2)):
-            return 0.0
-        return float(best)
+        return lowrank.gp_mode_variance(self, target, cells, np.zeros((0,) + Bg.shape[1:]), Bg, self.BACKGROUND_SCALES)
 
     def _background_factor(self) -> float:
         """The factor on the background covariance now in use (see ``background_scale``)."""
@@ -563,93 +416,15 @@ class GPReconstructor:
         return [k, k], False
 
     def prior_factors(self, land=None, *, kernel_rank: int | None = None, kernel_energy: float | None = None):
-        """The prior covariance of the next reconstruction's error over the grid, factored.
-
-        Returns ``(F (2N, r), d (2N,), noise (2N,))`` with ``Sigma = F F^T + diag(d)``: rows
-        ``k * N + cell`` (k = 0 u east, 1 v north; flat cell = row * C + col), in (field
-        velocity units)^2. F holds the background modes times the square root of the factor
-        in use (:meth:`_background_factor`: the last one fitted), then each component's
-        stationary signal kernel (the fitted ``k1``, at zero time lag for a space-time
-        kernel) on the water cells by its leading eigenpairs; ``d`` is what the dropped
-        eigenpairs leave on the diagonal (exactly the kernel's variance minus the kept
-        part); ``noise`` the fitted sensor-noise variance (the WhiteKernel). Land cells
-        (``land`` True) get zero rows. Before any fit the kernels are the initial ones
-        (length scale 3 cells, noise ``noise_std``) with a signal variance equal to the
-        background's mean variance (or ``noise_std**2`` without one): the leg is planned on
-        the structure of the prior, whose scale no sample has fixed yet.
-        """
-        from scipy.linalg import eigh
-
-        X, Y = self._grid()
-        R, C = X.shape
-        N = R * C
-        water = np.ones(N, bool) if land is None else ~np.asarray(land, bool).reshape(-1)
-        wi = np.flatnonzero(water)
-        Bg = None
-        if self.background is not None:
-            Bg = self._background_modes(X.shape) * np.sqrt(self._background_factor())  # (m, 2, N)
-            Bg[:, :, ~water] = 0.0
-        kernels, fitted = self._prior_kernels(Bg)
-        Bg = self._with_offset_modes(Bg, N, water)
-        n_in = getattr(self, "n_inputs_", 2) if fitted else 2
-        pts = np.column_stack([X.ravel()[wi], Y.ravel()[wi]] + ([np.zeros(wi.size)] if n_in == 3 else []))
-        rank_cap = int(self.PRIOR_KERNEL_RANK if kernel_rank is None else kernel_rank)
-        energy = float(self.PRIOR_KERNEL_ENERGY if kernel_energy is None else kernel_energy)
-        cols = [] if Bg is None else [Bg.reshape(Bg.shape[0], 2 * N).T]
-        d = np.zeros(2 * N)
-        noise = np.ones(2 * N)
-        for k in range(2):
-            K = kernels[k].k1(pts)
-            top = min(rank_cap, wi.size)
-            lam, U = eigh(K, subset_by_index=[wi.size - top, wi.size - 1], check_finite=False)
-            lam, U = np.clip(lam[::-1], 0.0, None), U[:, ::-1]
-            tr = float(np.trace(K))
-            keep = int(np.searchsorted(np.cumsum(lam) / tr, energy) + 1) if tr > 0 else 0
-            keep = min(keep, top)
-            Fk = np.zeros((2 * N, keep))
-            Fk[k * N + wi] = U[:, :keep] * np.sqrt(lam[:keep])
-            cols.append(Fk)
-            d[k * N + wi] = np.clip(np.diag(K) - np.einsum("ij,ij->i", Fk[k * N + wi], Fk[k * N + wi]), 0.0, None)
-            noise[k * N : (k + 1) * N] = float(kernels[k].k2.noise_level) + float(self.alpha)
-        return np.hstack(cols) if cols else np.zeros((2 * N, 0)), d, noise
+        """The prior covariance of the next reconstruction's error over the grid, factored:
+        ``(F (2N, r), d (2N,), noise (2N,))`` with ``Sigma = F F^T + diag(d)`` (field velocity units
+        squared; land rows 0); see :func:`passt_mav.reconstruction.lowrank.prior_factors`."""
+        return lowrank.prior_factors(self, land, kernel_rank=kernel_rank, kernel_energy=kernel_energy)
 
     def fit_field(self, snapshot, *, max_points: int = 150) -> GPReconstructor:
-        """Fit the signal variance and length scale on a gridded snapshot ``(2, R, C)``.
-
-        The preferred once-per-campaign fit: the model's initial state shows the
-        field's full 2-D structure, whereas one leg's samples lie along a line
-        (and, in residual mode, are ~0 on the first leg). Up to ``max_points``
-        water cells (seeded subsample) minus their mean are used; the WhiteKernel
-        is held at ``noise_std**2`` since a gridded state carries no sensor noise.
-        """
-        import warnings
-
-        from sklearn.exceptions import ConvergenceWarning
-        from sklearn.gaussian_process.kernels import WhiteKernel
-
-        X, Y = self._grid()
-        a = np.asarray(snapshot, dtype=np.float64)
-        if a.shape != (2,) + X.shape:
-            raise ReconstructionError(f"snapshot must have shape {(2,) + X.shape}, got {a.shape}")
-        ok = np.isfinite(a).all(axis=0).ravel()
-        idx = np.flatnonzero(ok)
-        if idx.size < 4:
-            raise ReconstructionError("snapshot has fewer than 4 water cells to fit the GP on")
-        rng = np.random.default_rng(self.seed)
-        if idx.size > max_points:
-            idx = np.sort(rng.choice(idx, max_points, replace=False))
-        xy = np.column_stack([X.ravel()[idx], Y.ravel()[idx]])
-        base, cell = self._base_kernel()
-        base = base.k1 + WhiteKernel(max(float(self.noise_std) ** 2, 1e-10), "fixed")
-        kernels = []
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", category=ConvergenceWarning)
-            for k in range(2):
-                y = a[k].ravel()[idx]
-                gp = self._fit_gp(base, xy, y - y.mean(), optimize=True)
-                kernels.append(gp.kernel_)
-        self.kernels_ = kernels
-        self.cell_m_ = cell
+        """Fit the signal variance and length scale on a gridded snapshot ``(2, R, C)``: the preferred
+        once-per-campaign fit (:func:`passt_mav.reconstruction.kernels.fit_on_field`)."""
+        self.kernels_, self.cell_m_ = fit_on_field(self, snapshot, max_points)
         self.n_inputs_ = 2
         return self
 
@@ -675,26 +450,11 @@ class GPReconstructor:
         was never called. ``samples_t`` (n,) and ``t`` (the snapshot's time) switch on
         the space-time kernel (see ``space_time``). Returns ``(mean (2, R, C)
         float32, std (2, R, C) float32)``; with ``with_std=False`` (cholesky solver
-        only) the std is not computed and ``None`` is returned in its place (the
-        variance's triangular solve against every grid cell is most of the rest of
-        a leg's GP time, and only a std-based reward reads it).
+        only) the std is not computed and ``None`` is returned in its place (its triangular
+        solve against every grid cell is most of a leg's GP time; only a std reward reads it).
         """
         X, Y = self._grid()
-        land = np.zeros(X.shape, bool)
-        if mask is not None:
-            land |= ~np.asarray(mask, bool)
-        fc = None
-        if forecast is not None:
-            fc = np.asarray(forecast, dtype=np.float64)
-            if fc.shape != (2,) + X.shape:
-                raise ReconstructionError(f"forecast must have shape {(2,) + X.shape}, got {fc.shape}")
-            land |= ~np.isfinite(fc).all(axis=0)
-        if self.prior == "forecast":
-            if fc is None:
-                raise ReconstructionError("prior='forecast' needs the forecast field (forecast=...)")
-            if forecast_at_samples is None:
-                idx = self._nearest_cells(np.asarray(samples_xy, dtype=np.float64).reshape(-1, 2), X, Y)
-                forecast_at_samples = fc.reshape(2, -1)[:, idx].T
+        fc, land, forecast_at_samples = self._prior_mean(samples_xy, forecast, forecast_at_samples, mask)
         if not hasattr(self, "kernels_"):
             self.fit(samples_xy, samples_uv, forecast_at_samples, samples_t=samples_t)
         use_t = getattr(self, "n_inputs_", 2) == 3
@@ -715,9 +475,9 @@ class GPReconstructor:
         modes = None
         if self.background is not None or self._bias_on():
             cells = self._nearest_cells(np.asarray(samples_xy, dtype=np.float64).reshape(-1, 2)[ok], X, Y)
-            modes = self._fitted_modes(target, cells, X.shape, fc, xy)
+            modes = lowrank.fit_prior_modes(self, target, cells, X.shape, fc, xy)
         if modes is not None:
-            mean, std = self._posterior_joint(xy, target, grid_pts, cells, modes, with_std)
+            mean, std = lowrank.joint_posterior(self, xy, target, grid_pts, cells, modes, with_std)
             mean = mean + offset[:, None, None]
         else:
             mean, std = self._posterior_components(xy, target, offset, grid_pts, X.shape, with_std)
@@ -728,6 +488,28 @@ class GPReconstructor:
             return mean.astype(np.float32), None
         std[:, land] = np.nan
         return mean.astype(np.float32), std.astype(np.float32)
+
+    def _prior_mean(self, samples_xy, forecast, forecast_at_samples, mask):
+        """The forecast (2, R, C) float64 or None, the land mask (R, C; ``mask`` False or a NaN
+        forecast) and the forecast at the samples (n, 2; from the nearest cell centre when not
+        given) of a :meth:`reconstruct` call."""
+        X, Y = self._grid()
+        land = np.zeros(X.shape, bool)
+        if mask is not None:
+            land |= ~np.asarray(mask, bool)
+        fc = None
+        if forecast is not None:
+            fc = np.asarray(forecast, dtype=np.float64)
+            if fc.shape != (2,) + X.shape:
+                raise ReconstructionError(f"forecast must have shape {(2,) + X.shape}, got {fc.shape}")
+            land |= ~np.isfinite(fc).all(axis=0)
+        if self.prior == "forecast":
+            if fc is None:
+                raise ReconstructionError("prior='forecast' needs the forecast field (forecast=...)")
+            if forecast_at_samples is None:
+                idx = self._nearest_cells(np.asarray(samples_xy, dtype=np.float64).reshape(-1, 2), X, Y)
+                forecast_at_samples = fc.reshape(2, -1)[:, idx].T
+        return fc, land, forecast_at_samples
 
     def _posterior_components(self, xy, target, offset, grid_pts, shape, with_std: bool):
         """Independent u and v posteriors (no background): mean (2, R, C) and std or None."""
@@ -751,54 +533,6 @@ class GPReconstructor:
     def _bias_on(self) -> bool:
         return bool(getattr(self, "bias", False)) and self.prior == "forecast"
 
-    def _fitted_modes(self, target, cells, shape, fc=None, xy=None) -> np.ndarray | None:
-        """The low-rank prior modes of this reconstruction, (m, 2, R*C) with their factors applied:
-        the background modes (factor refitted when ``background_scale="ml"``), then with ``bias``
-        the two offset modes and the forecast's own anomaly (``fc`` (2, R, C) minus its water
-        mean) where the samples keep them (``bias_var_``, ``scale_var_`` refitted); None when
-        there are none."""
-        N = int(np.prod(shape))
-        Bg = np.zeros((0, 2, N))
-        if self.background is not None:
-            Bg = self._background_modes(shape)
-            if self.background_scale == "ml":
-                self.background_scale_ = self._fit_background_scale(target, cells, Bg)
-            Bg = Bg * np.sqrt(self._background_factor())
-        if self._bias_on():
-            v0 = max(float(np.mean(target**2)), float(self.noise_std) ** 2, 1e-12)
-            self.bias_var_ = self._fit_factor(target, cells, Bg, self._bias_modes(N), self._bias_candidates(v0), xy)
-            if self.bias_var_ > 0:
-                Bg = np.concatenate([Bg, self._bias_modes(N) * np.sqrt(self.bias_var_)])
-            self.scale_var_ = 0.0
-            anom = self._anomaly_mode(fc)
-            if anom is not None:
-                self.scale_var_ = self._fit_factor(target, cells, Bg, anom, self._bias_candidates(1.0), xy)
-                if self.scale_var_ > 0:
-                    Bg = np.concatenate([Bg, anom * np.sqrt(self.scale_var_)])
-        return Bg if Bg.shape[0] or self.background is not None else None
-
-    @staticmethod
-    def _anomaly_mode(fc) -> np.ndarray | None:
-        """The forecast's anomaly as one joint u/v mode (1, 2, N): ``fc`` minus its mean over the
-        water cells per component, land 0; None without a forecast or with a flat one. A factor
-        ``c ~ N(0, s^2)`` on it lets the samples say the forecast's structure is too strong
-        (c < 0: c = -1 removes it, the stale pattern of a rotating tide) or too weak (c > 0)."""
-        if fc is None:
-            return None
-        a = np.asarray(fc, np.float64).reshape(2, -1)
-        water = np.isfinite(a).all(axis=0)
-        if water.sum() < 2:
-            return None
-        a = np.where(water, a - np.nanmean(a[:, water], axis=1, keepdims=True), 0.0)
-        return a[None] if float(np.abs(a).max()) > 0 else None
-
-    @staticmethod
-    def _bias_modes(N: int, water=None) -> np.ndarray:
-        """The two offset modes (2, 2, N): ones on u, ones on v (zero off ``water`` when given)."""
-        m = np.zeros((2, 2, N))
-        m[0, 0] = m[1, 1] = 1.0 if water is None else np.asarray(water, np.float64)
-        return m
-
     #: variances tried by the ``bias`` fits, as multiples of a reference variance (the offset:
     #: the residuals' mean square; the forecast-anomaly factor: 1)
     BIAS_FRACTIONS = tuple(float(x) for x in np.logspace(-2, 1, 10))
@@ -813,7 +547,7 @@ class GPReconstructor:
         var = float(getattr(self, "bias_var_", 0.0)) if self._bias_on() and hasattr(self, "kernels_") else 0.0
         if var <= 0:
             return Bg
-        Bb = self._bias_modes(N, water) * np.sqrt(var)
+        Bb = lowrank.offset_modes(N, water) * np.sqrt(var)
         return Bb if Bg is None else np.concatenate([Bg, Bb])
 
     def _background_modes(self, shape) -> np.ndarray:
@@ -822,48 +556,3 @@ class GPReconstructor:
         if b.ndim != 4 or b.shape[1:] != (2,) + tuple(shape):
             raise ReconstructionError(f"background modes must have shape (m, 2, {shape[0]}, {shape[1]}), got {b.shape}")
         return np.nan_to_num(b, nan=0.0).reshape(b.shape[0], 2, -1)
-
-    def _posterior_joint(self, xy, target, grid_pts, cells, Bg, with_std: bool) -> tuple[np.ndarray, np.ndarray | None]:
-        """Joint u/v posterior with the background modes plus the fitted stationary kernels.
-
-        Observations ``y = [u residuals; v residuals]`` (2n). Prior covariance between
-        component a at point p and component b at point q:
-        ``sum_j b_j[a, p] b_j[b, q] + [a == b] k_a(p, q)`` (k_a includes the sensor-noise
-        WhiteKernel on the samples). Mean ``C_* K^-1 y`` and variance ``diag C_** - |L^-1 C_*^T|^2``
-        with ``K = C(samples) + alpha I = L L^T``, written out with scipy's Cholesky
-        because no library GP takes a low-rank cross-component covariance.
-        """
-        from scipy.linalg import cho_solve, cholesky, solve_triangular
-
-        shape = self._grid()[0].shape
-        n = len(xy)  # Bg: (m, 2, N) modes with the factor applied
-        Hb = np.concatenate([Bg[:, 0, cells], Bg[:, 1, cells]], axis=1)  # (m, 2n)
-        K = Hb.T @ Hb
-        for k in range(2):
-            K[k * n : (k + 1) * n, k * n : (k + 1) * n] += self.kernels_[k](xy)
-        K[np.diag_indices_from(K)] += float(self.alpha)
-        try:
-            Lc = cholesky(K, lower=True, check_finite=False)
-        except np.linalg.LinAlgError as exc:
-            raise ReconstructionError(
-                f"GP fit failed (Cholesky: {exc}); increase the noise level: alpha (now {self.alpha:g}) or noise_std"
-            ) from None
-        y = np.concatenate([target[:, 0], target[:, 1]])
-        a = cho_solve((Lc, True), y, check_finite=False)
-        w = Hb @ a  # (m,)
-        mean = np.empty((2,) + shape)
-        std = np.empty((2,) + shape) if with_std else None
-        for k in range(2):
-            Ks = self._cross_cov(k, self.kernels_[k], xy, grid_pts)  # (N, n)
-            mean[k] = (Bg[:, k, :].T @ w + Ks @ a[k * n : (k + 1) * n]).reshape(shape)
-            if with_std:
-                C = Bg[:, k, :].T @ Hb  # (N, 2n)
-                C[:, k * n : (k + 1) * n] += Ks
-                V = solve_triangular(Lc, C.T, lower=True, check_finite=False)
-                var = (
-                    np.einsum("ij,ij->j", Bg[:, k, :], Bg[:, k, :])
-                    + self.kernels_[k].diag(grid_pts)
-                    - np.einsum("ij,ij->j", V, V)
-                )
-                std[k] = np.sqrt(np.maximum(var, 0.0)).reshape(shape)
-        return mean, std
