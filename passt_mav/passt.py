@@ -243,6 +243,28 @@ class LoopOptions:
         return PasstLoop(predictor, grid, land=land, seed=seed, **self.as_kwargs())
 
 
+def _check_loop_options(reward, hyper, path_length, steps_per_leg, background, prior_blend, forgetting) -> None:
+    """Raise :class:`PlannerError` / :class:`ReconstructionError` (one line naming the problem) for
+    an unknown reward, GP schedule or prior blend, a non-positive path length or leg span, a bad
+    background roll-out length or a forgetting factor outside [0, 1]."""
+    from passt_mav.planning import REWARDS
+    from passt_mav.reconstruction.background import background_steps_problem
+
+    if reward not in REWARDS:
+        raise PlannerError(f"unknown reward {reward!r}; choose one of {', '.join(REWARDS)}")
+    if hyper not in HYPER:
+        raise ReconstructionError(f"unknown GP hyper-parameter schedule {hyper!r}; choose one of {', '.join(HYPER)}")
+    if int(path_length) < 1 or int(steps_per_leg) < 1:
+        raise PlannerError("path_length and steps_per_leg must be positive integers")
+    problem = background_steps_problem(background)
+    if problem:
+        raise ReconstructionError(problem)
+    if prior_blend not in PRIOR_BLENDS:
+        raise ReconstructionError(f"unknown prior blend {prior_blend!r}; choose one of {', '.join(PRIOR_BLENDS)}")
+    if not 0.0 <= float(forgetting) <= 1.0:
+        raise ReconstructionError(f"forgetting factor must lie in [0, 1], got {forgetting!r}")
+
+
 class PasstLoop:
     """The PASST algorithm, leg by leg.
 
@@ -302,20 +324,12 @@ class PasstLoop:
         prior_blend: str = "off",
         forgetting: float = 0.8,
     ):
-        from passt_mav.planning import REWARDS, make_planner
+        from passt_mav.planning import make_planner
         from passt_mav.planning.rewards import REWARDS_USING_STD
         from passt_mav.reconstruction import GPReconstructor
-        from passt_mav.reconstruction.background import background_steps_problem
 
-        if reward not in REWARDS:
-            raise PlannerError(f"unknown reward {reward!r}; choose one of {', '.join(REWARDS)}")
-        if hyper not in HYPER:
-            raise ReconstructionError(
-                f"unknown GP hyper-parameter schedule {hyper!r}; choose one of {', '.join(HYPER)}"
-            )
+        _check_loop_options(reward, hyper, path_length, steps_per_leg, background, prior_blend, forgetting)
         self.hyper = hyper
-        if int(path_length) < 1 or int(steps_per_leg) < 1:
-            raise PlannerError("path_length and steps_per_leg must be positive integers")
         self.predictor = predictor
         self.grid = grid
         self.planner_name = planner
@@ -326,9 +340,6 @@ class PasstLoop:
         self.land = np.zeros(grid.shape, bool) if land is None else np.asarray(land, bool)
         self.seed = int(seed)
         self.gp = GPReconstructor(grid_xy=grid.centres_xy(), prior=prior, **(gp_kw or {}))
-        problem = background_steps_problem(background)
-        if problem:
-            raise ReconstructionError(problem)
         self.background_steps = int(background) if predictor is not None and prior == "forecast" else 0
         self._background_pending = bool(self.background_steps)
         # GP posterior std of the last reconstruction; computed only for a reward that
@@ -342,10 +353,6 @@ class PasstLoop:
         self.keep_std = False
         self.leg_index = 0
         self._cell = grid.cell_size_m
-        if prior_blend not in PRIOR_BLENDS:
-            raise ReconstructionError(f"unknown prior blend {prior_blend!r}; choose one of {', '.join(PRIOR_BLENDS)}")
-        if not 0.0 <= float(forgetting) <= 1.0:
-            raise ReconstructionError(f"forgetting factor must lie in [0, 1], got {forgetting!r}")
         self.prior_blend = prior_blend if predictor is not None and prior == "forecast" else "off"
         self.forgetting = float(forgetting)
         #: log weights of the candidate priors (:data:`PRIOR_CANDIDATES`), and one record per leg

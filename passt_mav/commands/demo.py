@@ -236,14 +236,9 @@ def _stamp() -> str:
 
 
 def run(args: argparse.Namespace) -> int:
-    import subprocess
-    import sys
     import time
     from pathlib import Path
 
-    import yaml
-
-    from passt_mav.commands.run import execute
     from passt_mav.runs.rundir import RunDir
 
     drops = _drop_args(args.inject_link_drop, args.boats)
@@ -261,7 +256,27 @@ def run(args: argparse.Namespace) -> int:
     fleet_args: list[str] = []
     if args.boats > 1:
         data, config, fleet_args = _as_fleet(data, config, field, (r0, c0), args.boats, port, origin)
-    sim_cmd = [
+    sim_cmd = _sim_command(args, config, port, fleet_args or ["--home", f"{hlat:.7f},{hlon:.7f}"], t_boot0, drops)
+    print(
+        f"demo: mission {config.name} ({origin} + {over}); {config.legs} legs of {config.planner.path_length} moves "
+        f"at {config.fleet[0].speed_mps} m/s",
+        flush=True,
+    )
+    print(f"demo: starting vehicle-sim on tcp:127.0.0.1:{port} at {args.speedup:g}x", flush=True)
+    view = _start_view(args, rd)  # (it exits with this process too, whatever happens)
+    summary = _fly_with_simulator(args, config, data, rd, sim_cmd, port, t_boot0, over, origin, view)
+    _print_outcome(args, config, field, summary, rd, view is not None, time.monotonic() - t_start0)
+    return 0 if summary["status"] == "complete" else 1
+
+
+def _sim_command(args: argparse.Namespace, config, port: int, placement: list[str], t_boot0: float, drops) -> list[str]:
+    """The vehicle-sim command line of a demo: the mission's field replayed from ``t_boot0`` (field
+    seconds) at ``args.speedup``, listening on ``tcp:127.0.0.1:port``, the boats placed by
+    ``placement`` (``--home LAT,LON`` or the fleet's arguments), the mission's sensor noise and
+    seed, the injected link drops."""
+    import sys
+
+    return [
         sys.executable,
         "-c",
         "import sys; from vehicle_sim.cli import main; sys.exit(main())",
@@ -269,7 +284,7 @@ def run(args: argparse.Namespace) -> int:
         config.field.source,
         "--listen",
         f"tcp:127.0.0.1:{port}",
-        *(fleet_args or ["--home", f"{hlat:.7f},{hlon:.7f}"]),
+        *placement,
         "--start-time",
         repr(t_boot0),
         "--speedup",
@@ -286,13 +301,18 @@ def run(args: argparse.Namespace) -> int:
         *sim_placement(config),
         *drops,
     ]
-    print(
-        f"demo: mission {config.name} ({origin} + {over}); {config.legs} legs of {config.planner.path_length} moves "
-        f"at {config.fleet[0].speed_mps} m/s",
-        flush=True,
-    )
-    print(f"demo: starting vehicle-sim on tcp:127.0.0.1:{port} at {args.speedup:g}x", flush=True)
-    view = _start_view(args, rd)  # (it exits with this process too, whatever happens)
+
+
+def _fly_with_simulator(args, config, data, rd, sim_cmd, port: int, t_boot0: float, over, origin, view) -> dict:
+    """Start vehicle-sim (its output in the run directory's ``vehicle_sim.log``), fly the mission
+    against it through :func:`passt_mav.commands.run.execute`, and stop the simulator (and the
+    live view) whatever happens; returns the run's summary."""
+    import subprocess
+
+    import yaml
+
+    from passt_mav.commands.run import execute
+
     sim_log = open(rd.root / "vehicle_sim.log", "w")  # noqa: SIM115 - the simulator child writes it until it ends
     sim = subprocess.Popen(sim_cmd, stdout=sim_log, stderr=subprocess.STDOUT)
     try:
@@ -327,8 +347,7 @@ def run(args: argparse.Namespace) -> int:
             sim.kill()
             sim.wait()
         sim_log.close()
-    _print_outcome(args, config, field, summary, rd, view is not None, time.monotonic() - t_start0)
-    return 0 if summary["status"] == "complete" else 1
+    return summary
 
 
 def _demo_mission(args: argparse.Namespace):

@@ -327,7 +327,14 @@ def claims(res: dict) -> list[dict]:
             }
         )
     out += _same_loop_claims(camp)
-    me = res.get("model_eval")
+    out += _model_claims(res.get("model_eval"))
+    return out
+
+
+def _model_claims(me: dict | None) -> list[dict]:
+    """The paper's claims on the cylinder model itself (lookahead MSE against persistence, POD
+    energy of its roll-out) from the model evaluation ``me`` of a paper run; [] when not run."""
+    out = []
     if me:
         la = me["lookahead"].get("test", {})
         model = me.get("model_name")

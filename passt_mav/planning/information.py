@@ -287,22 +287,7 @@ class InformationPlanner:
             jitter = (
                 rng.random(total.shape) * 1e-12 * max(1.0, float(np.abs(total[np.isfinite(total)]).max(initial=0.0)))
             )
-            order = np.argsort(-(total + jitter), axis=None, kind="stable")
-            chosen, seen = [], set()
-            for o in order:
-                b, a = divmod(int(o), 8)
-                if not np.isfinite(total[b, a]):
-                    break
-                # one candidate per (cell, score): two paths that reach the same cell with the same
-                # score (to 10 significant digits, relative, so scores of any size stay apart)
-                # are the same cells visited, and keeping both would waste a beam slot
-                key = (int(flat[b, a]), float(f"{float(total[b, a]):.10g}"))
-                if key in seen:
-                    continue
-                seen.add(key)
-                chosen.append((b, a))
-                if len(chosen) == K:
-                    break
+            chosen = _best_distinct(total, jitter, flat, K)
             bi = np.array([b for b, _ in chosen])
             ai = np.array([a for _, a in chosen])
             new_flat = flat[bi, ai]
@@ -315,6 +300,27 @@ class InformationPlanner:
             paths = paths[bi].copy()
             paths[:, i] = pos
         return paths[int(np.argmax(score))]
+
+
+def _best_distinct(total, jitter, flat, K: int) -> list[tuple[int, int]]:
+    """The (beam, move) pairs of the ``K`` best finite candidate scores ``total`` (B, 8) (ties
+    broken by ``jitter``), one per (cell ``flat`` (B, 8), score): two paths that reach the same
+    cell with the same score (to 10 significant digits, relative, so scores of any size stay
+    apart) are the same cells visited, and keeping both would waste a beam slot."""
+    order = np.argsort(-(total + jitter), axis=None, kind="stable")
+    chosen, seen = [], set()
+    for o in order:
+        b, a = divmod(int(o), 8)
+        if not np.isfinite(total[b, a]):
+            break
+        key = (int(flat[b, a]), float(f"{float(total[b, a]):.10g}"))
+        if key in seen:
+            continue
+        seen.add(key)
+        chosen.append((b, a))
+        if len(chosen) == K:
+            break
+    return chosen
 
 
 class _AdditiveBeams:
