@@ -184,11 +184,3 @@ def test_bad_arguments():
     metric = geo.MetricRegionGrid(0, 10, 0, 10, 5, 5, anchor_lat=40, anchor_lon=-63)
     with pytest.raises(FieldError):
         make_ocean_default(grid=metric)
-
-
-def test_generation_is_fast():
-    import time
-
-    t = time.perf_counter()
-    make_ocean_default(seed=5)
-    assert time.perf_counter() - t < 5.0

@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import time
-
 import numpy as np
 import pytest
 
@@ -95,7 +93,7 @@ def test_forecast_prior_recovers_forecast_far_from_samples(grid):
     np.testing.assert_allclose(m2, mean, atol=1e-5)
 
 
-def test_land_stays_nan_and_fixed_kernel_is_fast(grid):
+def test_land_stays_nan_and_kernel_is_held_fixed(grid):
     rng = np.random.default_rng(2)
     X, Y = grid.centres_xy()
     forecast = analytic(X, Y)
@@ -104,13 +102,10 @@ def test_land_stays_nan_and_fixed_kernel_is_fast(grid):
     xy, uv = samples(grid, cells, rng)
     gp = GPReconstructor(grid_xy=(X, Y), noise_std=NOISE).fit_field(analytic(X, Y))
     k0 = [str(k) for k in gp.kernels_]
-    t = time.perf_counter()
     mean, std = gp.reconstruct(xy, uv, forecast=forecast)
-    dt = time.perf_counter() - t
     assert np.isnan(mean[:, 20:25, 5:9]).all() and np.isnan(std[:, 20:25, 5:9]).all()
     assert np.isfinite(mean).sum() == 2 * (R * C - 20)
     assert [str(k) for k in gp.kernels_] == k0  # held fixed
-    assert dt < 0.5  # one Cholesky per component for 90 samples (measured ~ 5 ms)
     # the field fit finds the field's scale: length scale of a few km, below the 20-25 km wavelength
     ls = gp.kernels_[0].k1.k2.length_scale
     assert 2e3 < ls < 20e3
