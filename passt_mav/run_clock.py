@@ -15,6 +15,7 @@ import time
 
 from passt_mav.errors import MavlinkError, UserError
 from passt_mav.legstep import FieldClock, utc_epoch
+from passt_mav.measurement import RULES
 
 __all__ = ["RunClock"]
 
@@ -121,7 +122,7 @@ class RunClock:
         self.old_anchors = anchors[: b_last + 1]
         self.boot_base = b_last + 1
         up = self.link.vehicle_uptime_s()
-        if up is not None and up * 1000.0 + 3000.0 < tb_last:
+        if up is not None and up * 1000.0 + RULES.reboot_back_ms < tb_last:  # the measurement rules' reboot
             self.rebooted_since = (tb_last, up)
             self.journal.events.append(
                 f"resume: the vehicle rebooted since the run stopped (uptime {up:.0f} s, "
