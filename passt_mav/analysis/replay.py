@@ -632,7 +632,7 @@ class _LogReplay:
         planned, k = self._plan(lg, state, t_state, start, ks, rec_path)
         if rec is None and lg.clock is None and k_hi > k_lo:
             lnotes.append(f"the log brackets the controller's clock reading by {k_lo}..{k_hi} forecast steps; used {k}")
-        ab = step.absorb(planned, lg.samples, clock, strict=False)
+        ab = step.absorb(planned, _absorbed(lg.samples, rec), clock, strict=False)
         if ab.note:
             lnotes.append(ab.note + " (the controller would have stopped)")
         plan = planned.plan
@@ -726,6 +726,15 @@ class _LogReplay:
         return notes
 
 
+def _absorbed(samples: list, rec: dict | None) -> list:
+    """The readings of a leg's log that the boat's state absorbed: the first ``n_samples`` of its
+    record (arrival order), those in the store when the controller absorbed the leg; a reading whose
+    pair completed on the wire after that moment (the other half still in flight) was logged but
+    not absorbed. All of them without a record."""
+    n_rec = None if rec is None else rec.get("n_samples")
+    return samples if n_rec is None else samples[: int(n_rec)]
+
+
 def _path_reward(plan) -> float:
     """The reward a plan collects along its path."""
     from passt_mav.planning import path_reward
@@ -816,12 +825,7 @@ def _fleet_events(records: dict[int, dict]) -> list[tuple[int, int, int]]:
 def _fleet_leg(fs, i: int, rec: dict, lg, pl, clock, rmse_tol: float) -> ReplayLeg:
     """Absorb fleet leg ``i`` (planned ``pl``) into the boat's state; its replay against the record ``rec``."""
     boat = int(rec["boat"])
-    # the state saw the leg's first n_samples readings (arrival order), those in the store when the
-    # boat absorbed its leg; a reading that completed in the log after that moment (the other half
-    # of a pair still on the wire) was logged but not absorbed
-    n_rec = rec.get("n_samples")
-    samples = lg.samples if n_rec is None else lg.samples[: int(n_rec)]
-    ab = fs.absorb(boat, pl, samples, clock)
+    ab = fs.absorb(boat, pl, _absorbed(lg.samples, rec), clock)
     diffs = _diff_paths(rec["path"], pl.plan.path.tolist())
     r_same = _rmse_match(((rec.get("rmse_passt"), ab.rmse_passt), (rec.get("rmse_model"), ab.rmse_model)), rmse_tol)
     lnotes = [f"boat {boat}"] + ([] if rec.get("status") == "complete" else [f"status {rec.get('status')}"])
