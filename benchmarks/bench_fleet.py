@@ -1,11 +1,11 @@
-"""Benchmark: joint planning per leg interval of the offline fleet (passt_mav.engine.run_offline_fleet) vs one boat.
+"""Benchmark: joint planning per leg interval of the offline fleet (passt_mav.loop.engine.run_offline_fleet) vs one boat.
 
     .venv/bin/python benchmarks/bench_fleet.py --json
     .venv/bin/python benchmarks/bench_fleet.py --boats 3 --path-length 100 --legs 4
 
 The field is builtin:cylinder (30x30) with the shipped cylinder KNODE and the policy-gradient
 planner, L moves per boat per leg. Offline, the fleet's boats plan from one forecast and one
-reward map, each keeping out of the earlier boats' cells (passt_mav.engine.run_offline_fleet);
+reward map, each keeping out of the earlier boats' cells (passt_mav.loop.engine.run_offline_fleet);
 the joint planning of one leg interval is the reward map and every boat's planner call
 (with its same-move repairs). The forecast is shared by all boats and reported apart: offline it
 is the whole leg's roll-out (10 snapshots, the GP prior), while planning needs only its first
@@ -30,8 +30,8 @@ KEYS = ("reward", "plan")  # joint planning; "predict" is the shared forecast
 
 
 def _intervals(field, predictor, boats: int, path_length: int, legs: int) -> dict:
-    from passt_mav.campaign import fleet_starts
-    from passt_mav.engine import run_offline_fleet
+    from passt_mav.loop.campaign import fleet_starts
+    from passt_mav.loop.engine import run_offline_fleet
 
     r = run_offline_fleet(
         field,

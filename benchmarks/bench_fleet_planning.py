@@ -1,4 +1,4 @@
-"""Benchmark: per-leg planning of a live fleet (passt_mav.legstep.FleetStep.plan_for) vs one boat.
+"""Benchmark: per-leg planning of a live fleet (passt_mav.loop.legstep.FleetStep.plan_for) vs one boat.
 
     .venv/bin/python benchmarks/bench_fleet_planning.py --json
     .venv/bin/python benchmarks/bench_fleet_planning.py --boats 3 --path-length 100 --repeats 3
@@ -26,7 +26,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 def _fleet_step(boats: int, path_length: int, model: str):
     from passt_mav.commands.demo import fleet_starts, mission_mapping
     from passt_mav.fields.datasets import resolve_field
-    from passt_mav.legstep import FleetStep, LegStep, build_loop, build_predictor
+    from passt_mav.loop.legstep import FleetStep, LegStep, build_loop, build_predictor
     from passt_mav.mission.config import mission_overrides, validate_mission
 
     base, _ = mission_mapping()

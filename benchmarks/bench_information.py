@@ -34,7 +34,7 @@ VARIANTS = (
 def _leg_times(field, predictor, planner: str, reward: str, kw: dict, L: int, repeats: int) -> dict:
     import numpy as np
 
-    from passt_mav.passt import FieldSampler, PasstLoop
+    from passt_mav.loop.passt import FieldSampler, PasstLoop
 
     loop = PasstLoop(
         predictor,
@@ -83,8 +83,8 @@ def main(argv=None) -> int:
     import torch
     from threadpoolctl import threadpool_limits
 
-    from passt_mav.campaign import load_predictor
     from passt_mav.fields.datasets import resolve_field
+    from passt_mav.loop.campaign import load_predictor
 
     torch.set_num_threads(1)
     field = resolve_field(a.data)

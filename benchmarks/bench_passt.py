@@ -63,7 +63,7 @@ def _predictor(spec, field):
 def per_leg(field, predictor, L: int, legs: int, steps_per_leg: int) -> dict:
     import numpy as np
 
-    from passt_mav.passt import FieldSampler, PasstLoop
+    from passt_mav.loop.passt import FieldSampler, PasstLoop
 
     loop = PasstLoop(
         predictor,
@@ -92,7 +92,7 @@ def per_leg(field, predictor, L: int, legs: int, steps_per_leg: int) -> dict:
 
 
 def _timed(field, predictor, **kw) -> tuple[float, dict]:
-    from passt_mav.campaign import run_campaign
+    from passt_mav.loop.campaign import run_campaign
 
     t = time.perf_counter()
     out = run_campaign(field, predictor, **kw)

@@ -19,13 +19,13 @@ from mavlink_helpers import HOME, served, vehicle
 
 import geo
 from passt_mav.commands.run import LEAN_STREAMS
-from passt_mav.controller import FieldClock, MissionController, build_predictor, thin_samples, to_field_units
 from passt_mav.fields import FlowField
 from passt_mav.mavlink.mission_client import rover_stored
 from passt_mav.mission.config import validate_mission
 from passt_mav.mission.waypoints import WaypointMission
 from passt_mav.runs.rundir import RunDir
 from passt_mav.runs.store import SampleStore
+from passt_mav.vehicle.controller import FieldClock, MissionController, build_predictor, thin_samples, to_field_units
 from vehicle_sim import SimConfig
 
 SPEEDUP = 50.0  # the vehicle's mission-transfer timers run in sim time: see the module docstring
@@ -229,7 +229,7 @@ def test_leg_deadline_counts_vehicle_time_not_wall_time(monkeypatch):
     clock only backs it up (ten times more generous); after a reboot what was left counts again."""
     import time as _time
 
-    from passt_mav.controller import _Deadline
+    from passt_mav.vehicle.controller import _Deadline
 
     class FakeLink:
         up = 100.0

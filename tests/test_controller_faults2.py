@@ -27,11 +27,11 @@ from test_controller import SPEEDUP, controller, mission, sim_config, wave_field
 from test_controller_faults import _modes
 
 from passt_mav.commands.run import LEAN_STREAMS
-from passt_mav.controller import MissionController, build_predictor
 from passt_mav.errors import LinkTimeout, MissionRejected
 from passt_mav.mavlink import Link
 from passt_mav.runs.rundir import RunDir
 from passt_mav.runs.store import SampleStore
+from passt_mav.vehicle.controller import MissionController, build_predictor
 from vehicle_sim.link import secret_from_key
 
 AUTO = 10  # ArduPilot Rover custom_mode

@@ -18,11 +18,11 @@ from test_controller import controller, mission, sim_config, wave_field
 from test_controller_faults import _modes
 
 from passt_mav.commands.run import LEAN_STREAMS
-from passt_mav.controller import utc_epoch
 from passt_mav.errors import UserError
 from passt_mav.fields.field import load_field
 from passt_mav.runs.rundir import RunDir
 from passt_mav.runs.store import SampleStore
+from passt_mav.vehicle.controller import utc_epoch
 
 AUTO, HOLD = 10, 4
 ORIGIN = utc_epoch("2020-01-01T00:00:00Z")

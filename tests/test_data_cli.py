@@ -276,8 +276,8 @@ def test_builtin_rtofs_real_currents_with_land(capsys):
     offline PASST run never plans onto land nor puts an estimate there."""
     from pathlib import Path
 
-    from passt_mav.engine import run_offline
     from passt_mav.fields.datasets import load_dataset
+    from passt_mav.loop.engine import run_offline
     from passt_mav.mission.config import load_mission
     from passt_mav.models.base import make_predictor
 

@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 from test_passt import WRONG_VEL, Persistence, ShiftPredictor, make_field
 
-from passt_mav.campaign import METHODS, run_campaign
 from passt_mav.cli import main
 from passt_mav.commands.evaluate import write_figures
+from passt_mav.loop.campaign import METHODS, run_campaign
 
 SMALL = dict(path_lengths=(12, 24), trials=2, steps=20, steps_per_leg=10, noise=0.01, progress=False)
 
@@ -201,8 +201,8 @@ def test_auto_gp_schedule_fits_each_gp_on_what_it_models():
     (or background length) is refused."""
     from types import SimpleNamespace
 
-    from passt_mav.campaign import _method_kw, run_campaign
     from passt_mav.errors import PlannerError
+    from passt_mav.loop.campaign import _method_kw, run_campaign
 
     cfg = dict(hyper="auto", planner="policy_gradient", reward="speed", baseline_prior="none")
     assert _method_kw(cfg, "passt", object())[1]["hyper"] == "every_leg"
@@ -226,7 +226,7 @@ def test_campaign_tasks_reuse_the_heap_under_dask_malloc_settings():
 
     code = (
         "import resource, numpy as np\n"
-        "from passt_mav.campaign import _heap_reuse\n"
+        "from passt_mav.loop.campaign import _heap_reuse\n"
         "def faults():\n"
         "    f0 = resource.getrusage(resource.RUSAGE_SELF).ru_minflt\n"
         "    for _ in range(100):\n"

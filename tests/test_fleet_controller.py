@@ -1,4 +1,4 @@
-"""A fleet of three boats flying one PASST loop (passt_mav.fleet_controller) against vehicle_sim.
+"""A fleet of three boats flying one PASST loop (passt_mav.vehicle.fleet_controller) against vehicle_sim.
 
 ``vehicle-sim --boats 3`` (:class:`vehicle_sim.fleet.Fleet`: one field, one clock, system
 ids 1-3, started in different cells of the wave field of test_controller) served on
@@ -16,11 +16,11 @@ from mavlink_helpers import inprocess_factory, link_config, vehicle
 from test_controller import mission, sim_config, wave_field
 
 from passt_mav.commands.run import LEAN_STREAMS
-from passt_mav.controller import build_predictor
-from passt_mav.fleet_controller import FleetController
 from passt_mav.mavlink import Link
 from passt_mav.runs.rundir import RunDir
 from passt_mav.runs.store import SampleStore
+from passt_mav.vehicle.controller import build_predictor
+from passt_mav.vehicle.fleet_controller import FleetController
 from vehicle_sim import Simulator
 
 SPEEDUP = 20.0  # three simulators and three boat threads share the GIL: slower than one boat's 50x

@@ -1,4 +1,4 @@
-"""PASST with a fleet, offline (passt_mav.engine.run_offline_fleet, ``passt-mav evaluate --boats``)."""
+"""PASST with a fleet, offline (passt_mav.loop.engine.run_offline_fleet, ``passt-mav evaluate --boats``)."""
 
 from __future__ import annotations
 
@@ -7,9 +7,9 @@ import json
 import numpy as np
 import pytest
 
-from passt_mav.campaign import fleet_comparison
-from passt_mav.engine import run_offline, run_offline_fleet, same_step_clashes
 from passt_mav.fields.datasets import resolve_field
+from passt_mav.loop.campaign import fleet_comparison
+from passt_mav.loop.engine import run_offline, run_offline_fleet, same_step_clashes
 from passt_mav.models import make_predictor
 
 
@@ -22,7 +22,7 @@ def cylinder():
 def test_one_boat_fleet_equals_the_independent_lockstep_engine(cylinder):
     """``run_offline`` is the one-boat fleet; the lockstep engine (written separately, batching trials)
     must give the same estimates and paths (DMD: batched and single predictions agree bit for bit)."""
-    from passt_mav.engine import run_offline_lockstep
+    from passt_mav.loop.engine import run_offline_lockstep
 
     field, dmd = cylinder
     kw = dict(t0=300, n_steps=40, path_length=20, steps_per_leg=10, noise_std=0.02, planner="greedy")
@@ -93,7 +93,7 @@ def test_boats_packed_together_never_meet_and_repeat(cylinder, seed, monkeypatch
     seeds 0-2). After the repair no two boats share a cell at the same move, every path is a
     valid grid path, and a second run gives the same paths and estimate."""
     import geo
-    from passt_mav import engine
+    from passt_mav.loop import engine
 
     field, _ = cylinder
     pers = make_predictor("persistence").fit(field)
@@ -247,10 +247,10 @@ def test_evaluate_boats_cli_writes_the_comparison_and_figure(tmp_path, capsys):
 
 
 def test_keep_out_is_one_rule_for_live_times_and_offline_moves():
-    """:func:`passt_mav.engine.keep_out` on field times (as the live FleetStep gives it: boats of
+    """:func:`passt_mav.loop.engine.keep_out` on field times (as the live FleetStep gives it: boats of
     different speeds, a tolerance of one move of the slower) and on move counts (offline): a cell
     clashes when another boat is at it within the tolerance, or stands on it after its path ended."""
-    from passt_mav.engine import keep_out
+    from passt_mav.loop.engine import keep_out
 
     a = np.array([[0, 0], [0, 1], [0, 2]])
     ta = np.array([0.0, 10.0, 20.0])  # a: 10 s a move
@@ -271,7 +271,7 @@ def test_keep_out_is_one_rule_for_live_times_and_offline_moves():
 def test_loop_options_are_one_set_for_every_offline_shape(cylinder):
     """LoopOptions built once and passed: the same run as the loop's options given as keywords; an
     unknown option is refused by name."""
-    from passt_mav.passt import LoopOptions
+    from passt_mav.loop.passt import LoopOptions
 
     field, dmd = cylinder
     opts = LoopOptions(planner="greedy", path_length=20, steps_per_leg=10)

@@ -1,4 +1,4 @@
-"""The measurement rules (passt_mav.measurement, issue 30): one pairing, one reboot rule, one truth, one RMSE,
+"""The measurement rules (passt_mav.loop.measurement, issue 30): one pairing, one reboot rule, one truth, one RMSE,
 one records-to-columns, and the live collector and the log readers giving the same samples from the same stream."""
 
 from __future__ import annotations
@@ -13,7 +13,7 @@ os.environ.setdefault("MAVLINK20", "1")
 from pymavlink.dialects.v20 import ardupilotmega as M
 
 from passt_mav.errors import UserError
-from passt_mav.measurement import RULES, BootCounter, HalfPairer, rmse, sample_columns, truth_at
+from passt_mav.loop.measurement import RULES, BootCounter, HalfPairer, rmse, sample_columns, truth_at
 
 
 # -- the constants ------------------------------------------------------------------------------

@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 from test_passt import WRONG_VEL, ShiftPredictor, make_field
 
-from passt_mav.campaign import run_campaign
 from passt_mav.cli import main
 from passt_mav.commands.paper import claims, write_page
+from passt_mav.loop.campaign import run_campaign
 
 
 def _fake_campaign(ratios: dict) -> dict:

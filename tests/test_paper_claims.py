@@ -16,7 +16,7 @@ import json
 import numpy as np
 import pytest
 
-from passt_mav.campaign import run_campaign
+from passt_mav.loop.campaign import run_campaign
 from passt_mav.reconstruction.background import DEFAULT_BACKGROUND
 
 pytestmark = pytest.mark.slow

@@ -11,10 +11,10 @@ import numpy as np
 import pytest
 
 import geo
-from passt_mav.engine import run_offline
 from passt_mav.errors import PlannerError
 from passt_mav.fields.field import FlowField
-from passt_mav.passt import FieldSampler, PasstLoop, Sampler, Samples, run_pure_model, steps_for_leg
+from passt_mav.loop.engine import run_offline
+from passt_mav.loop.passt import FieldSampler, PasstLoop, Sampler, Samples, run_pure_model, steps_for_leg
 from passt_mav.planning import check_path
 
 # -- stand-ins -------------------------------------------------------------------
@@ -280,7 +280,7 @@ def test_lockstep_equals_serial_runs(field, hyper, background):
     """B trials in lockstep (one batched predictor call per leg) give each trial's serial
     run_offline exactly: same paths, estimates to 1e-6 (with a background covariance too,
     computed once for the batch)."""
-    from passt_mav.engine import run_offline_lockstep
+    from passt_mav.loop.engine import run_offline_lockstep
 
     starts, seeds = [(3, 4), (20, 11), (9, 27)], [5, 6, 7]
     kw = dict(

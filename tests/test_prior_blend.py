@@ -14,9 +14,9 @@ import numpy as np
 import pytest
 from test_passt import ShiftPredictor, make_field
 
-from passt_mav.engine import run_offline
 from passt_mav.errors import ReconstructionError
-from passt_mav.passt import PasstLoop
+from passt_mav.loop.engine import run_offline
+from passt_mav.loop.passt import PasstLoop
 
 TRUE_VEL = (0.05, 0.12)
 
@@ -63,7 +63,7 @@ def test_a_right_model_keeps_its_weight(field):
     state = field.data[0]
     for k in range(3):
         leg = loop.plan_leg(state, (10, 10), float(5 * k), 1.0, steps=5)
-        from passt_mav.passt import FieldSampler
+        from passt_mav.loop.passt import FieldSampler
 
         state = loop.update(
             leg, FieldSampler(field, noise_std=0.02, steps_per_leg=5, seed=k).sample_path(leg.path, leg.t_start)

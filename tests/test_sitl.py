@@ -127,12 +127,12 @@ def test_wp_radius_parameter_on_the_firmware(sitl):
 
 
 def test_one_leg_on_ardurover_sitl(tmp_path, sitl):
-    from passt_mav.controller import MissionController
     from passt_mav.errors import MavlinkError
     from passt_mav.fields import FlowField
     from passt_mav.mavlink import Link, LinkConfig, Vehicle
     from passt_mav.mission.config import validate_mission
     from passt_mav.runs.rundir import RunDir
+    from passt_mav.vehicle.controller import MissionController
 
     n, d = 6, 0.0004  # ~40 m cells
     grid = geo.RegionGrid(HOME[0] - d * 2.5, HOME[1] - d * 2.5, HOME[0] + d * 2.5, HOME[1] + d * 2.5, n, n)

@@ -94,8 +94,8 @@ def _link(sitl, **kw):
 
 
 def _controller(cfg, field, link, rd, lines, **kw):
-    from passt_mav.controller import MissionController, build_predictor
     from passt_mav.mavlink import MissionClient, Vehicle
+    from passt_mav.vehicle.controller import MissionController, build_predictor
 
     pred, info = build_predictor(cfg.model, field, echo=lambda s: None)
     veh = Vehicle(link, MissionClient(link, no_space_delay_s=0.2), retry_delay_s=0.1)

@@ -18,7 +18,7 @@ os.environ.setdefault("MAVLINK20", "1")
 from pymavlink import DFReader, mavutil
 
 from passt_mav.errors import UserError
-from passt_mav.measurement import RULES
+from passt_mav.loop.measurement import RULES
 from passt_mav.runs.tlog import read_dataflash, read_tlog
 
 LAT0, LON0 = 50.10, -30.20

@@ -145,8 +145,8 @@ def test_a_waypoint_outside_the_geofence_is_an_alert(tmp_path):
     """The controller's geofence check refuses a leg before upload: the view gets a fence_refused alert."""
     from types import SimpleNamespace
 
-    from passt_mav.controller import MissionController
     from passt_mav.errors import PlannerError
+    from passt_mav.vehicle.controller import MissionController
 
     ctl = object.__new__(MissionController)  # only what _checked_mission reads
     ctl.grid, ctl.record = GRID, RecordWriter(tmp_path)

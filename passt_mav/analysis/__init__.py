@@ -1,7 +1,7 @@
 """Analysis: what is built on top of a finished (or running) mission, above the controller.
 
 * :func:`replay` (``replay``): rebuild a run from its telemetry or DataFlash log and re-run
-  every between-leg decision offline through :class:`passt_mav.legstep.LegStep`.
+  every between-leg decision offline through :class:`passt_mav.loop.legstep.LegStep`.
 * :func:`write_report`, :func:`load_run` (``report``): the self-contained HTML report.
 * :func:`lawnmower_counterfactual` (``counterfactual``): what a lawnmower survey would have done.
 

@@ -33,7 +33,7 @@ def lawnmower_counterfactual(
     leg; ``noise_std``: sensor noise (field units). ``None`` where a leg has no end time
     or the truth is not defined there (outside the field's time span).
     """
-    from passt_mav.passt import FieldSampler, PasstLoop
+    from passt_mav.loop.passt import FieldSampler, PasstLoop
 
     land = field.land_mask
     loop = PasstLoop(
@@ -57,7 +57,7 @@ def _fly_legs(loop, sampler, field, legs: list[dict], state, t_state: float, sta
     forecast to each leg's start (a loop without a model holds the state), plan, sample the truth
     along the path, reconstruct; the RMSE vs the truth at each leg's end (None where the leg has
     no times or lies outside the field)."""
-    from passt_mav.measurement import rmse, truth_at
+    from passt_mav.loop.measurement import rmse, truth_at
 
     start = tuple(int(x) for x in start_cell)
     out: list[float | None] = []
@@ -86,7 +86,7 @@ def same_loop_counterfactual(
     """RMSE (field units) at the end of each of ``legs`` of the run's OWN loop with another planner.
 
     The same model (``predictor``), the same GP (the mission's options, its background and
-    seeds: :func:`passt_mav.legstep.build_loop`), the same legs (field-time spans, moves per
+    seeds: :func:`passt_mav.loop.legstep.build_loop`), the same legs (field-time spans, moves per
     leg, first start cell), only the path differs: ``planner`` (default the random walk, the
     baseline an adaptive planner must beat). Starts from the truth at the mission's ``t0`` as
     the run does, forecasts each state to the next leg's start as the run does between legs,
@@ -94,8 +94,8 @@ def same_loop_counterfactual(
     cell, with the mission's sensor noise and seed. Offline arithmetic, like
     :func:`lawnmower_counterfactual`: link, turns and thinning do not enter.
     """
-    from passt_mav.legstep import build_loop
-    from passt_mav.passt import FieldSampler
+    from passt_mav.loop.legstep import build_loop
+    from passt_mav.loop.passt import FieldSampler
 
     cfg = config.model_copy(update={"planner": config.planner.model_copy(update={"name": planner, "options": {}})})
     land = field.land_mask

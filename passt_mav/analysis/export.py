@@ -39,7 +39,7 @@ the evidence gate found no signal beyond noise in the leg's samples, as on the d
 the uncertainty of the GP's correction to the forecast, not of the model's forecast itself.
 
 The posterior std: runs record it in ``legs/NNN/estimate.nc`` since this export exists (the
-loop built by :func:`passt_mav.legstep.build_loop` keeps it); an older run's estimate has none
+loop built by :func:`passt_mav.loop.legstep.build_loop` keeps it); an older run's estimate has none
 and its export says so in the ``comment`` attribute instead of inventing one.
 """
 
@@ -429,7 +429,7 @@ def _grid_coords(f) -> tuple[tuple, dict, dict]:
 def sample_table(run: RunData) -> dict[str, np.ndarray]:
     """The run's samples as columns sorted by (boat, UTC): ``utc`` (UNIX s), ``lat``/``lon`` (deg),
     ``u``/``v`` (m/s east/north), ``boat``, ``leg`` (-1 outside any leg), ``time_boot_ms``, ``boot``."""
-    from passt_mav.measurement import sample_columns
+    from passt_mav.loop.measurement import sample_columns
 
     s = run.samples
     c = sample_columns(s)  # time_boot_ms float64 (exact ms below 2**53): CF 1.8 has no int64

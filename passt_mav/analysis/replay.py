@@ -11,7 +11,7 @@
    approximation of it). Leg windows follow the controller's: a leg's samples are
    those emitted between the GCS's switch to AUTO and its next mode command (HOLD);
 2. re-runs the between-leg step offline with the controller's own code,
-   :class:`~passt_mav.legstep.LegStep` (``plan`` / ``absorb``), legs in order through one
+   :class:`~passt_mav.loop.legstep.LegStep` (``plan`` / ``absorb``), legs in order through one
    loop (its GP hyper-parameters, posterior std and planner seed carry from leg to leg
    exactly as in the controller);
 3. compares leg by leg: the re-planned grid path against the recorded one
@@ -368,10 +368,10 @@ class _Setup:
 
 
 def _build_setup(cfg, mission_src: str, inp: _Source, cf: dict, say) -> _Setup:
-    """Field, predictor, clock and :class:`~passt_mav.legstep.LegStep` as the run had them (the model it fell
+    """Field, predictor, clock and :class:`~passt_mav.loop.legstep.LegStep` as the run had them (the model it fell
     back to, its clock from summary.json, else the mission's start time and time scale)."""
     from passt_mav.fields.datasets import mission_field
-    from passt_mav.legstep import LegStep, build_loop, build_predictor
+    from passt_mav.loop.legstep import LegStep, build_loop, build_predictor
 
     summary = inp.summary
     field = mission_field(cfg, _field_source(cfg, inp.rd))  # the same rule as plan and run
@@ -397,9 +397,9 @@ def _field_source(cfg, rd) -> str:
 
 
 def _field_clock(clk: dict, t_boot0, time_scale):
-    """:class:`~passt_mav.legstep.FieldClock` from a summary.json ``clock`` record (``t_boot0``: field time s at
+    """:class:`~passt_mav.loop.legstep.FieldClock` from a summary.json ``clock`` record (``t_boot0``: field time s at
     the vehicle's boot, ``time_scale``: field s per vehicle s, ``later_boots``), the defaults where it has none."""
-    from passt_mav.legstep import FieldClock
+    from passt_mav.loop.legstep import FieldClock
 
     return FieldClock(
         float(clk.get("t_boot0", t_boot0)),
@@ -524,7 +524,7 @@ def _skipped_leg(lg) -> ReplayLeg:
 
 class _LogReplay:
     """Replay of one log (a run directory's, a bare tlog or DataFlash log): its legs in order through the
-    setup's :class:`~passt_mav.legstep.LegStep`, the GP state carried from leg to leg."""
+    setup's :class:`~passt_mav.loop.legstep.LegStep`, the GP state carried from leg to leg."""
 
     def __init__(self, inp: _Source, setup: _Setup, cf: dict[str, str], rmse_tol: float, say):
         self.inp, self.setup, self.cf, self.rmse_tol, self.say = inp, setup, cf, rmse_tol, say
@@ -772,10 +772,10 @@ def _fleet_result(inp: _Source, setup: _Setup, rmse_tol: float, say) -> ReplayRe
 
 
 def _replay_fleet(rd, summary: dict, cfg, step, rmse_tol: float, say):
-    """A fleet run (:mod:`passt_mav.fleet_controller`): each boat's legs and samples from its own tlog,
+    """A fleet run (:mod:`passt_mav.vehicle.fleet_controller`): each boat's legs and samples from its own tlog,
     the fleet's plans and updates repeated in the order they were made (``fleet_seq`` of the leg
-    records) through :class:`~passt_mav.legstep.FleetStep`. Returns (legs, log info, notes, first divergence)."""
-    from passt_mav.legstep import FleetStep
+    records) through :class:`~passt_mav.loop.legstep.FleetStep`. Returns (legs, log info, notes, first divergence)."""
+    from passt_mav.loop.legstep import FleetStep
 
     records = _fleet_records(rd)
     logs = [rebuild_from_tlog(p, u_name=cfg.sensors.u, v_name=cfg.sensors.v) for p in rd.boat_tlogs()]

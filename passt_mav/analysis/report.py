@@ -42,8 +42,8 @@ from typing import Any
 import numpy as np
 
 from passt_mav.errors import UserError
-from passt_mav.measurement import rmse as recon_rmse  # (the name tests and users know) the one RMSE rule
-from passt_mav.measurement import sample_columns, truth_at
+from passt_mav.loop.measurement import rmse as recon_rmse  # (the name tests and users know) the one RMSE rule
+from passt_mav.loop.measurement import sample_columns, truth_at
 from passt_mav.runs.rundir import RunDir, RunDirError
 
 __all__ = ["MAX_ARROWS", "Run", "binned_arrows", "load_run", "recon_rmse", "write_report"]
@@ -57,7 +57,7 @@ class Run:
     """What a run directory recorded (None / empty where it did not).
 
     ``samples``: dict of arrays (``time_boot_ms``, ``utc``, ``lat``, ``lon``, ``u``,
-    ``v`` m/s east/north, ``leg``, ``boot``: :func:`passt_mav.measurement.sample_columns`);
+    ``v`` m/s east/north, ``leg``, ``boot``: :func:`passt_mav.loop.measurement.sample_columns`);
     ``track``: ``(n, 2)`` lat/lon; ``leg_tracks``:
     leg index -> ``(n, 2)`` lat/lon executed positions; ``estimates``: leg index
     -> reconstruction FlowField; ``notes``: part -> why it is missing.

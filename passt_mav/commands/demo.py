@@ -496,7 +496,7 @@ def _counterfactual(config, field, summary: dict, rd, *, report: bool) -> tuple[
     (passt_mav.analysis.counterfactual); stored in summary.json beside PASST and the model alone,
     and the report redrawn with them. Returns their last legs' RMSE (lawnmower, random walk)."""
     from passt_mav.analysis.counterfactual import lawnmower_counterfactual, same_loop_counterfactual
-    from passt_mav.legstep import build_predictor
+    from passt_mav.loop.legstep import build_predictor
 
     legs = summary["legs"]
     r0, c0 = config.start_cell or (config.grid().rows // 2, config.grid().cols // 2)

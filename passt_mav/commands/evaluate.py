@@ -1,6 +1,6 @@
 """passt-mav evaluate: offline PASST campaign - trials x path lengths, RMSE over time and POD energy.
 
-The CLI over :mod:`passt_mav.campaign` (the methods, engines and protocol are described there):
+The CLI over :mod:`passt_mav.loop.campaign` (the methods, engines and protocol are described there):
 arguments, figures, and the summary printed. Written under --out: ``results.json`` and PNG
 figures (``fleet.json`` and ``fleet_rmse.png`` with ``--boats N``); the directory is named at the end.
 """
@@ -10,7 +10,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from passt_mav.campaign import ENGINES, METHODS
+from passt_mav.loop.campaign import ENGINES, METHODS
 from passt_mav.reconstruction.background import DEFAULT_BACKGROUND
 
 HELP = "Offline PASST campaign: trials x path lengths, RMSE over time and POD energy"
@@ -275,9 +275,9 @@ def run(args: argparse.Namespace) -> int:
     import json
     from pathlib import Path
 
-    from passt_mav.campaign import load_predictor
     from passt_mav.errors import PlannerError
     from passt_mav.fields.datasets import resolve_field
+    from passt_mav.loop.campaign import load_predictor
 
     lengths = _parse_lengths(args.path_lengths)
     if args.workers < 1:
@@ -311,9 +311,9 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _campaign(args: argparse.Namespace, field, predictor, lengths: list[int]) -> dict:
-    """The campaign the command line asks for (:func:`passt_mav.campaign.run_campaign`), its summary's
+    """The campaign the command line asks for (:func:`passt_mav.loop.campaign.run_campaign`), its summary's
     config completed with the data, model and command."""
-    from passt_mav.campaign import run_campaign
+    from passt_mav.loop.campaign import run_campaign
 
     summary = run_campaign(
         field,
@@ -367,7 +367,7 @@ def _print_table(table: dict, *, window: int, trials: int) -> None:
 def _run_fleet(args, field, predictor, L: int, out_dir) -> int:
     import json
 
-    from passt_mav.campaign import fleet_comparison
+    from passt_mav.loop.campaign import fleet_comparison
 
     res = fleet_comparison(
         field,

@@ -10,11 +10,11 @@ leg's residuals vs the forecast (the model's error grows and changes over a camp
 GP-only baselines once on the initial state (one fit per configuration, then held fixed:
 the paper's fixed kernel); ``--hyper first_leg`` fits the residual GP once, ``--hyper
 state`` fits every GP on the initial state (wrong for a residual GP: it made PASST worse
-than the model alone, see :data:`passt_mav.campaign.CAMPAIGN_HYPER`). PASST's
+than the model alone, see :data:`passt_mav.loop.campaign.CAMPAIGN_HYPER`). PASST's
 residual GP also carries the model's background covariance (``--background``, default
 200 snapshots of the model's roll-out; :func:`passt_mav.reconstruction.model_background`).
 
-The campaign runs on the lockstep engine (:func:`passt_mav.campaign.run_campaign`):
+The campaign runs on the lockstep engine (:func:`passt_mav.loop.campaign.run_campaign`):
 a path length's trials advance together, one batched model call per leg (the KNODE's
 compiled fast path), and every GP conditions with a direct Cholesky solve of the fixed
 kernel (``--gp-solver cholesky``; ``sklearn`` is the older, ~10x slower path). With
@@ -206,7 +206,7 @@ def _campaign(
     batch=None,
     progress=True,
 ) -> dict:
-    from passt_mav.campaign import run_campaign
+    from passt_mav.loop.campaign import run_campaign
 
     return run_campaign(
         field,
@@ -237,8 +237,8 @@ def _campaign(
 
 
 def _load(spec_field: str, spec_model: str, cache: dict):
-    from passt_mav.campaign import load_predictor
     from passt_mav.fields.datasets import resolve_field
+    from passt_mav.loop.campaign import load_predictor
 
     field = resolve_field(spec_field)
     if spec_model not in cache:

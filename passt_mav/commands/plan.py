@@ -178,7 +178,7 @@ def _mission_loop(args: argparse.Namespace, cfg, predictor, grid, land, L: int):
     """The mission's own loop (GP noise, background, prior blend, seeds), as ``run`` builds it, with
     legs of ``L`` moves and the planner and reward ``--planner`` / ``--reward`` name."""
     from passt_mav.errors import PlannerError
-    from passt_mav.legstep import build_loop
+    from passt_mav.loop.legstep import build_loop
     from passt_mav.planning import PLANNERS, REWARDS
 
     pl = {"path_length": L}

@@ -158,8 +158,8 @@ def execute(
     """
     import sys
 
-    from passt_mav.controller import build_predictor
     from passt_mav.fields.datasets import mission_field
+    from passt_mav.vehicle.controller import build_predictor
 
     if speedup > 1.0:
         # hand the GIL over faster (default 5 ms): a mission request must be answered within the
@@ -228,7 +228,7 @@ def _link(connect: str, tlog, vc, factory, opts: _RunOptions):
 
 def _execute_boat(config, connect: str, run_dir, field, predictor, pinfo, opts: _RunOptions, *, resume) -> dict:
     """One boat (``vehicle:``): its link, a :class:`MissionController` run over it; returns the summary."""
-    from passt_mav.controller import MissionController
+    from passt_mav.vehicle.controller import MissionController
 
     link = _link(connect, run_dir.tlog, config.vehicle, opts.link_factory, opts)
     echo = opts.echo
@@ -277,7 +277,7 @@ def _vehicle_for(link, speedup: float, progress: bool = True):
 
 def _execute_fleet(config, run_dir, field, predictor, pinfo, opts: _RunOptions) -> dict:
     """``vehicles:``: one link per boat (its own tlog), one :class:`FleetController`."""
-    from passt_mav.fleet_controller import FleetController
+    from passt_mav.vehicle.fleet_controller import FleetController
 
     links = []
     try:

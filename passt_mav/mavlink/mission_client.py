@@ -624,7 +624,7 @@ class MissionWatch:
       upload; their MISSION_REQUESTs show an upload in progress (``foreign_peer`` says who).
 
     None of these sees a same-length upload on a direct link to ArduPilot 4.7; the controller's
-    read-back does (see :meth:`passt_mav.vehicle_session.VehicleSession.swap`).
+    read-back does (see :meth:`passt_mav.vehicle.session.VehicleSession.swap`).
     """
 
     def __init__(self, link: Link):

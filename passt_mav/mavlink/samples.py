@@ -7,7 +7,7 @@ reading are paired when at most ``pair_tolerance_ms`` apart, and the reading tak
 u half's time. The reading's position is the vehicle's track at that time: linear
 interpolation between the GLOBAL_POSITION_INT fixes before and after it, when they are
 at most ``max_gap_ms`` apart (:class:`geo.track.Track`). Both rules, and the reboot rule
-below, are :mod:`passt_mav.measurement`'s, which the log readers and the report follow too.
+below, are :mod:`passt_mav.loop.measurement`'s, which the log readers and the report follow too.
 
 :class:`SampleCollector` emits one record once the u half, the v half and the fix
 after the reading are there. A reading whose next fix has not arrived yet is held
@@ -48,7 +48,7 @@ import time
 from collections.abc import Callable
 
 from geo.track import Track
-from passt_mav.measurement import RULES, BootCounter, HalfPairer
+from passt_mav.loop.measurement import RULES, BootCounter, HalfPairer
 
 __all__ = ["SampleCollector"]
 
@@ -208,7 +208,7 @@ class SampleCollector:
         """Returns ``(boot, last_tb_ms, first_tb_ms)`` when ``tb`` starts a new boot, else None."""
         last = self._clock.see(tb)
         if last is not None:
-            # vehicle time went back: a reboot (passt_mav.measurement.Rules.reboot_back_s). The old keys
+            # vehicle time went back: a reboot (passt_mav.loop.measurement.Rules.reboot_back_s). The old keys
             # would shadow the new boot's readings at the same times.
             self.counts["reboots"] += 1
             self.pairer.clear(), self._seen.clear()

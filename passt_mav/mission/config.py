@@ -11,7 +11,7 @@ Example (``missions/north_atlantic.yaml``)::
     start_cell: [15, 15]
     t0: 0
     vehicle: {connect: "tcp:127.0.0.1:5760", speed_mps: 2.0, wp_radius_m: 5.0, on_reboot: resume}
-    # or a fleet sharing one field estimate (passt_mav.fleet_controller), one entry per boat:
+    # or a fleet sharing one field estimate (passt_mav.vehicle.fleet_controller), one entry per boat:
     # vehicles: [{connect: "tcp:127.0.0.1:5760"}, {connect: "tcp:127.0.0.1:5770", start_cell: [5, 5]}]
     sensors: {u: CUR_U, v: CUR_V, noise_std: 0.02}
     geofence_margin_m: 500
@@ -304,7 +304,7 @@ class GPConfig(_Strict):
     kernels (0 = none; see :func:`passt_mav.reconstruction.model_background`); ``prior_blend``:
     ``off`` (the model's forecast is the prior) or ``bma`` (the model and persistence weighed leg
     by leg by how well each explains the leg's samples, memory ``forgetting``; see
-    :class:`passt_mav.passt.PasstLoop`); ``bias``: the residual GP may shift the forecast by a
+    :class:`passt_mav.loop.passt.PasstLoop`); ``bias``: the residual GP may shift the forecast by a
     constant and rescale its anomaly where a leg's samples show it (kept only when their
     likelihood pays for it; :class:`passt_mav.reconstruction.gp.GPReconstructor` ``bias``);
     GPReconstructor options."""
@@ -328,7 +328,7 @@ class GPConfig(_Strict):
 
     @property
     def loop_prior(self) -> str:
-        """The name :class:`passt_mav.passt.PasstLoop` uses ("forecast" or "none")."""
+        """The name :class:`passt_mav.loop.passt.PasstLoop` uses ("forecast" or "none")."""
         return "forecast" if self.prior == "forecast" else "none"
 
 

@@ -7,7 +7,7 @@ A predictor forecasts a flow field from one snapshot:
 * ``predict(state, steps)``: ``state`` float32 ``(2, rows, cols)`` (u east, v
   north; row 0 south) -> ``(steps, 2, rows, cols)``, the snapshots 1 .. steps
   intervals after it; a batch ``(B, 2, rows, cols)`` -> ``(B, steps, 2, rows, cols)``.
-  NaN is rejected (callers fill land cells before predicting, see ``passt.py``).
+  NaN is rejected (callers fill land cells before predicting, see ``loop/passt.py``).
 * ``save(path)`` writes ``PATH.pt`` (a ``state_dict`` of tensors) and
   ``PATH.json`` (metadata); :func:`load_predictor` reads it back with
   ``torch.load(..., weights_only=True)``. Nothing is pickled.

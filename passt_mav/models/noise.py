@@ -56,7 +56,7 @@ def reconstruct_states(
 
     Returns ``(len(ts), 2, R, C)`` float32 with land set to 0 (as predictors take it).
     """
-    from passt_mav.passt import Samples
+    from passt_mav.loop.passt import Samples
     from passt_mav.planning import make_planner
     from passt_mav.reconstruction import GPReconstructor
 

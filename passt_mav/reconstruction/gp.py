@@ -332,7 +332,7 @@ class GPReconstructor:
         ``-0.5 r^T K^-1 r`` with ``K = L L^T``; the ``log |K|`` term is the same for every
         forecast scored at the same samples and is left out. How well a forecast explains a
         leg's samples, before the GP adapts to them: the score of
-        :class:`passt_mav.passt.PasstLoop`'s prior weighting. ``samples_t``: sample times for a
+        :class:`passt_mav.loop.passt.PasstLoop`'s prior weighting. ``samples_t``: sample times for a
         space-time kernel (only their differences matter)."""
         X, Y = self._grid()
         xy = np.asarray(samples_xy, dtype=np.float64).reshape(-1, 2)

@@ -5,9 +5,14 @@
 * :func:`read_tlog`, :func:`read_dataflash` (``tlog``): rebuild samples, track,
   uploads and legs from MAVLink ``.tlog`` / ArduPilot ``.bin`` logs.
 
-The controller writes into these modules; nothing here imports the controller, the
-MAVLink client or the analysis built on top (:mod:`passt_mav.analysis`: replay, report,
-counterfactual). ``tests/test_layers.py`` keeps it so.
+The controller (:mod:`passt_mav.vehicle`) writes into these modules; nothing here imports the
+controller or the analysis built on top (:mod:`passt_mav.analysis`: replay, report, counterfactual).
+Of the MAVLink client it imports only the live sample collector
+(:class:`passt_mav.mavlink.samples.SampleCollector`, in ``legs``: a log's messages go through the
+collector's rules, so a rebuilt leg has the samples the controller had; importing it loads the
+:mod:`passt_mav.mavlink` package, pymavlink included), and pymavlink itself to decode logs; below that,
+the track (:mod:`geo.track`), the measurement rules (:mod:`passt_mav.loop.measurement`) and the errors.
+``tests/test_layers.py`` keeps it so.
 
 Submodules are imported on demand: ``import passt_mav.runs`` stays light.
 """

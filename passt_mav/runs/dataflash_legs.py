@@ -39,7 +39,7 @@ GCS-commanded change away from AUTO (``Rsn`` 2): as in the tlog, where a leg end
 the GCS's next mode command and a pilot's RC takeover does not end it. Samples
 (:func:`~passt_mav.runs.tlog.read_dataflash`: an NVF CUR_U paired with the CUR_V and
 placed on the track by interpolating between the positions around it, at most
-``max_gap_ms`` apart: :mod:`passt_mav.measurement`, the live collector's rules) belong to the leg
+``max_gap_ms`` apart: :mod:`passt_mav.loop.measurement`, the live collector's rules) belong to the leg
 whose [AUTO, close) span holds their time.
 
 Differences from the tlog rebuild (measured on SITL, see tests/test_dataflash_legs.py):
@@ -66,7 +66,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from passt_mav.measurement import RULES
+from passt_mav.loop.measurement import RULES
 from passt_mav.runs.legs import LoggedLeg, LogRebuild, parse_clock_statustext
 from passt_mav.runs.tlog import LogReadError, read_dataflash
 

@@ -5,7 +5,7 @@ the analysis on top. :func:`rebuild_from_tlog` reads a MAVLink telemetry log
 (``.tlog``); a leg is the stretch between the GCS's switch to AUTO (after a mission
 upload) and its next mode command. :class:`LoggedLeg` is what
 :func:`passt_mav.analysis.replay.replay` feeds through the between-leg step
-(:class:`passt_mav.legstep.LegStep`).
+(:class:`passt_mav.loop.legstep.LegStep`).
 """
 
 from __future__ import annotations

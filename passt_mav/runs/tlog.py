@@ -13,7 +13,7 @@ From it, it rebuilds
   GLOBAL_POSITION_INT fixes around it when they are at most ``max_gap_ms`` apart
   (the gap is the sample's ``gap_ms``). ``n_readings`` counts the u/v pairs, placed or not.
   Pairing, placing and boots (``time_boot_ms`` going back: a reboot; every position and
-  sample carries its ``boot``) follow :mod:`passt_mav.measurement`, the live collector's rules;
+  sample carries its ``boot``) follow :mod:`passt_mav.loop.measurement`, the live collector's rules;
 * ``missions``: mission uploads from a GCS (MISSION_COUNT + MISSION_ITEM_INT or
   MISSION_ITEM, re-sent items kept once) and the vehicle's MISSION_ACK result;
 * ``legs``: one per accepted upload (MISSION_ACK 0). A leg is complete at
@@ -56,7 +56,7 @@ from typing import Any
 
 from geo.track import Track
 from passt_mav.errors import UserError
-from passt_mav.measurement import RULES, BootCounter, HalfPairer
+from passt_mav.loop.measurement import RULES, BootCounter, HalfPairer
 from passt_mav.runs.store import Sample
 
 __all__ = [
@@ -80,7 +80,7 @@ class LogReadError(UserError):
 @dataclass(frozen=True)
 class TrackPoint:
     """A vehicle position: ``time_boot_ms``, WGS84 ``lat``/``lon`` (deg), reception ``utc`` (epoch s), ``leg``,
-    ``boot`` (the autopilot's boot, 0 = the first in the log: :class:`passt_mav.measurement.BootCounter`)."""
+    ``boot`` (the autopilot's boot, 0 = the first in the log: :class:`passt_mav.loop.measurement.BootCounter`)."""
 
     time_boot_ms: int
     lat: float
@@ -636,7 +636,7 @@ def read_dataflash(
     Positions come from ``POS`` (``Lat``/``Lng``), or ``GPS`` when the log has no
     ``POS``. Samples come from ``cur_message`` records (columns ``U``, ``V``) or
     from ``NVF`` named values ``u_name``/``v_name`` (u paired with the v nearest in ``TimeUS``
-    within ``pair_tolerance_ms``, in file order: :class:`passt_mav.measurement.HalfPairer`), placed on the
+    within ``pair_tolerance_ms``, in file order: :class:`passt_mav.loop.measurement.HalfPairer`), placed on the
     track at their time as in :func:`read_tlog`
     (fixes at most ``max_gap_ms`` apart; ``gap_ms`` recorded). ``time_boot_ms`` = ``TimeUS //
     1000``; a DataFlash log holds no reception time, so ``utc`` is NaN. Legs are not

@@ -6,12 +6,12 @@ one-boat trials in lockstep (:func:`run_offline_lockstep`, one batched predictor
 one batched planning call per leg). :func:`run_trials` is the one entry point they share.
 Each leg interval, per trial: the forecast from the trial's state, boat 0's plan, the other
 boats planned in turn under the fleet's keep-out rule, every boat's path sampled by
-:class:`~passt_mav.passt.FieldSampler`, one GP update of the trial's state
-(:meth:`PasstLoop.update <passt_mav.passt.PasstLoop.update>`, the same call the live
-:class:`~passt_mav.legstep.LegStep` makes).
+:class:`~passt_mav.loop.passt.FieldSampler`, one GP update of the trial's state
+(:meth:`PasstLoop.update <passt_mav.loop.passt.PasstLoop.update>`, the same call the live
+:class:`~passt_mav.loop.legstep.LegStep` makes).
 
 The keep-out rule (:func:`keep_out`, :func:`plan_keeping_out`) is the live fleet's too
-(:class:`passt_mav.legstep.FleetStep`): a boat first plans outside every cell the other
+(:class:`passt_mav.loop.legstep.FleetStep`): a boat first plans outside every cell the other
 boats' paths hold this leg; boxed in, it plans with those cells' reward zeroed and only keeps
 out of the cells another boat is at when it gets there (within one move's duration; a boat
 whose path has ended holds its last cell), repaired over at most :data:`KEEP_OUT_ROUNDS` plans.
@@ -29,7 +29,7 @@ from collections.abc import Callable
 import numpy as np
 
 from passt_mav.errors import PlannerError
-from passt_mav.passt import FieldSampler, LegPlan, LoopOptions, OfflineResult, Samples, _background_or_none
+from passt_mav.loop.passt import FieldSampler, LegPlan, LoopOptions, OfflineResult, Samples, _background_or_none
 
 __all__ = [
     "KEEP_OUT_ROUNDS",
@@ -81,7 +81,7 @@ def plan_keeping_out(plan: Callable, taken: np.ndarray, conflicts: Callable, wha
     """One boat's plan under the fleet's keep-out rule (module docstring).
 
     ``plan(taken=, avoid=)``: the boat's planner call ((R, C) bool masks, see
-    :meth:`passt_mav.passt.PasstLoop.plan_leg`); ``taken``: the cells the other boats' paths hold,
+    :meth:`passt_mav.loop.passt.PasstLoop.plan_leg`); ``taken``: the cells the other boats' paths hold,
     the boat's own start cell already cleared; ``conflicts(planned)``: (R, C) bool of
     :func:`keep_out`. Raises :class:`PlannerError` naming ``what`` when no path keeps clear.
     """
@@ -171,11 +171,11 @@ class OfflineStep:
     Args:
         field: the truth (:class:`~passt_mav.fields.field.FlowField`); predictor: the model or ``None``
             (the GP-only "hold" loops).
-        options: the loops' :class:`~passt_mav.passt.LoopOptions`.
+        options: the loops' :class:`~passt_mav.loop.passt.LoopOptions`.
         starts: per trial, its boats' start cells ((row, col), distinct within a trial).
         seeds: per trial: planner seeds ``seed + leg``, sensor noise from ``seed + 7919``.
         t0: start snapshot index; noise_std: sensor noise (field units); sample_at: see
-            :class:`~passt_mav.passt.FieldSampler`; initial_state: (2, R, C), default the truth at t0.
+            :class:`~passt_mav.loop.passt.FieldSampler`; initial_state: (2, R, C), default the truth at t0.
         batched: the trials' forecasts in one predictor call and their boat-0 plans in one planning
             call per leg (lockstep), else one call per trial.
     """
@@ -331,7 +331,7 @@ def run_trials(
     kernel_cache: dict | None = None,
 ) -> list[OfflineResult]:
     """PASST offline on ground truth ``field`` from snapshot ``t0`` for ``n_steps`` steps (clipped to the
-    data): one :class:`~passt_mav.passt.OfflineResult` per trial (``starts[b]``: its boats' start cells,
+    data): one :class:`~passt_mav.loop.passt.OfflineResult` per trial (``starts[b]``: its boats' start cells,
     ``seeds[b]``); arguments as :class:`OfflineStep`. Batched, what the trials share is computed once
     (:meth:`OfflineStep.share_setup`, once per ``kernel_cache`` dict across calls). Deterministic given
     the seeds."""
@@ -382,7 +382,7 @@ def run_offline(
     **loop_kw,
 ) -> OfflineResult:
     """One boat, one trial (:func:`run_trials`). The loop's options: ``options`` with any
-    :class:`~passt_mav.passt.LoopOptions` field given as a keyword (``planner=``, ``path_length=``, ...).
+    :class:`~passt_mav.loop.passt.LoopOptions` field given as a keyword (``planner=``, ``path_length=``, ...).
     ``predictor=None`` runs the GP-only ("hold") variant."""
     return run_offline_fleet(
         field,

@@ -8,7 +8,7 @@ disagree on the same log. Its users:
 * the log readers :func:`passt_mav.runs.tlog.read_tlog` and :func:`~passt_mav.runs.tlog.read_dataflash`
   (rules 1-3; the DataFlash replay :func:`passt_mav.runs.dataflash_legs.rebuild_from_dataflash`
   reads through the latter);
-* the between-leg step :mod:`passt_mav.legstep` (rules 4-6) and the report
+* the between-leg step :mod:`passt_mav.loop.legstep` (rules 4-6) and the report
   :mod:`passt_mav.analysis.report` (rules 4-6; its boots are the tlog reader's, rule 3).
 
 The rules, in the order a reading meets them:
@@ -255,7 +255,7 @@ def sample_columns(recs) -> dict:
     """Sample records (:class:`~passt_mav.runs.store.Sample` rows, or dicts as the collector writes them)
     as arrays, one entry per record.
 
-    Keys: ``time_boot_ms`` (float64 ms; exact below 2**53, and :func:`passt_mav.legstep.in_field_time`
+    Keys: ``time_boot_ms`` (float64 ms; exact below 2**53, and :func:`passt_mav.loop.legstep.in_field_time`
     records carry field time there), ``utc`` (epoch s), ``lat``/``lon`` (deg), ``u``/``v`` (m/s
     east/north), all float64 with NaN where a record has none; ``leg`` (int64, -1 where none) and
     ``boot`` (int64, 0 where none).

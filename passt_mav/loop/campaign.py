@@ -14,7 +14,7 @@ true state at ``t0`` by:
                      ``baseline_prior="forecast"`` they instead run the full loop with
                      the model, so only the planner differs.
 
-Every loop runs on the offline engine (:func:`passt_mav.engine.run_trials`); :data:`ENGINES` names
+Every loop runs on the offline engine (:func:`passt_mav.loop.engine.run_trials`); :data:`ENGINES` names
 how a unit of work drives it (one trial at a time, or a batch of trials in lockstep). Reported: RMSE
 over time (mean +- std over trials, field units), POD energy of the estimated vs true series, and the
 ratio of each method's final-window RMSE to PASST's. :func:`fleet_comparison`: the same loop with
@@ -153,7 +153,7 @@ def _start_cell(field, cfg: dict, L: int, trial: int) -> tuple[int, int]:
     return tuple(int(x) for x in water[rng.integers(len(water))])
 
 
-#: GP hyper-parameter schedules of a campaign: passt_mav.passt.HYPER, or "auto" = each GP fitted
+#: GP hyper-parameter schedules of a campaign: passt_mav.loop.passt.HYPER, or "auto" = each GP fitted
 #: on what it models: a GP on the residual vs the forecast on every leg's residuals
 #: ("every_leg": the model's error grows and changes shape over a campaign), a GP on the
 #: samples alone once on the initial state ("state"). A residual GP whose kernel was fitted on
@@ -167,7 +167,7 @@ CAMPAIGN_HYPER = ("every_leg", "first_leg", "state", "auto")
 
 
 def _hyper_for(hyper: str, residual: bool) -> str:
-    """The :data:`passt_mav.passt.HYPER` schedule of one GP: ``auto`` resolved by what it models."""
+    """The :data:`passt_mav.loop.passt.HYPER` schedule of one GP: ``auto`` resolved by what it models."""
     if hyper != "auto":
         return hyper
     return "every_leg" if residual else "state"
@@ -227,8 +227,8 @@ def _summarise_trial(out: dict, m: str, r, truth, cfg: dict, trial: int) -> None
 
 
 def _loop_options(cfg: dict, m: str, predictor, L: int) -> tuple:
-    """(predictor, :class:`~passt_mav.passt.LoopOptions`) of loop method ``m`` at path length ``L``."""
-    from passt_mav.passt import LoopOptions
+    """(predictor, :class:`~passt_mav.loop.passt.LoopOptions`) of loop method ``m`` at path length ``L``."""
+    from passt_mav.loop.passt import LoopOptions
 
     pred, kw = _method_kw(cfg, m, predictor)
     return pred, LoopOptions(
@@ -258,7 +258,7 @@ def _trial_setup(field, cfg: dict, L: int, trials) -> tuple:
 def _lockstep_body(field, predictor, cfg: dict, L: int, trials: list[int]) -> list[dict]:
     """The trials together: per loop method one batched run of the engine (one predictor call and one
     planning call per leg for the batch)."""
-    from passt_mav.engine import run_trials
+    from passt_mav.loop.engine import run_trials
 
     truth, starts, seeds, outs, run = _trial_setup(field, cfg, L, trials)
     for m in cfg["methods"]:
@@ -282,7 +282,7 @@ def _lockstep_body(field, predictor, cfg: dict, L: int, trials: list[int]) -> li
 
 def _serial_body(field, predictor, cfg: dict, L: int, trials: list[int]) -> list[dict]:
     """One trial after another, each method's loop on its own."""
-    from passt_mav.engine import run_trials
+    from passt_mav.loop.engine import run_trials
 
     truth, starts, seeds, outs, run = _trial_setup(field, cfg, L, trials)
     for out, st, sd, i in zip(outs, starts, seeds, trials):
@@ -320,7 +320,7 @@ class CampaignOptions:
     background: snapshots of the model's roll-out whose anomaly covariance every residual GP
     (PASST's, and the baselines' with ``baseline_prior="forecast"``) adds to its stationary kernels
     (:func:`passt_mav.reconstruction.model_background`); 0 = none. prior_blend: "off" or "bma"
-    (:class:`passt_mav.passt.PasstLoop`: every residual loop weighs the model's forecast against
+    (:class:`passt_mav.loop.passt.PasstLoop`: every residual loop weighs the model's forecast against
     persistence leg by leg). ``methods`` is kept as a list.
     """
 
@@ -363,7 +363,7 @@ def run_campaign(field, predictor, **options) -> dict:
     """
     import numpy as np
 
-    from passt_mav.passt import run_pure_model
+    from passt_mav.loop.passt import run_pure_model
 
     o = CampaignOptions(**options)
     _check_campaign(field, predictor, o)
@@ -421,7 +421,7 @@ def _campaign_cfg(o: CampaignOptions, steps: int) -> dict:
 def _check_campaign(field, predictor, o: CampaignOptions) -> None:
     """Every option of :func:`run_campaign` checked once, before any work; raises the error naming it."""
     from passt_mav.errors import ModelError, PlannerError
-    from passt_mav.passt import PRIOR_BLENDS
+    from passt_mav.loop.passt import PRIOR_BLENDS
     from passt_mav.planning import PLANNERS, REWARDS
 
     if not o.methods:
@@ -549,7 +549,7 @@ def fleet_comparison(
 ) -> dict:
     """PASST with 1..``boats`` boats of ``path_length`` moves each, and one boat of ``boats`` x
     ``path_length`` moves (the fleet's budget in one path), over ``trials`` seeded trials
-    (:func:`passt_mav.engine.run_trials`, one trial of N boats per run). Returns per configuration
+    (:func:`passt_mav.loop.engine.run_trials`, one trial of N boats per run). Returns per configuration
     the mean RMSE over time, the final-window mean and each trial's final-window value (field units).
     ``background``: as in :func:`run_campaign`."""
     configs = [(f"{n} boat{'s' if n > 1 else ''} x {path_length}", n, path_length) for n in range(1, boats + 1)]
@@ -580,8 +580,8 @@ def _fleet_series(field, predictor, configs: list[tuple], config: dict, *, progr
     units, ``config["steps"] + 1`` snapshots each), one engine run of all its boats per trial."""
     from threadpoolctl import threadpool_limits
 
-    from passt_mav.engine import run_trials
-    from passt_mav.passt import LoopOptions
+    from passt_mav.loop.engine import run_trials
+    from passt_mav.loop.passt import LoopOptions
     from passt_mav.progress import progress as _progress
 
     t0, T, seed = config["t0"], config["steps"], config["seed"]

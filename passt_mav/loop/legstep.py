@@ -1,9 +1,9 @@
 """The between-leg step of PASST on a vehicle: one implementation for the controller and the replay.
 
 Pure: no MAVLink, no vehicle, no files. :class:`LegStep` takes the loop
-(:class:`~passt_mav.passt.PasstLoop`), the state, the vehicle's position and clock
+(:class:`~passt_mav.loop.passt.PasstLoop`), the state, the vehicle's position and clock
 reading, and the leg's samples, and returns the plan and the new state with every
-figure the controller records. :class:`passt_mav.controller.MissionController` calls it
+figure the controller records. :class:`passt_mav.vehicle.controller.MissionController` calls it
 between the legs it flies; :func:`passt_mav.analysis.replay.replay` calls it on legs
 rebuilt from a log, so a replay repeats the controller's decisions exactly.
 
@@ -39,8 +39,8 @@ from typing import Any
 import numpy as np
 
 from passt_mav.errors import ReconstructionError, UserError
-from passt_mav.measurement import rmse, truth_at  # noqa: F401 - the measurement rules, re-exported
-from passt_mav.measurement import sample_columns as _columns
+from passt_mav.loop.measurement import rmse, truth_at  # noqa: F401 - the measurement rules, re-exported
+from passt_mav.loop.measurement import sample_columns as _columns
 
 __all__ = [
     "THINNING",
@@ -122,12 +122,12 @@ def to_field_units(grid, u, v, velocity_scale: float = 1.0) -> tuple[np.ndarray,
 
 
 def thin_samples(grid, t, lat, lon, u, v, *, t_start: float, dt: float):
-    """:class:`~passt_mav.passt.Samples` averaged per (nearest cell, snapshot bin); see module doc.
+    """:class:`~passt_mav.loop.passt.Samples` averaged per (nearest cell, snapshot bin); see module doc.
 
     t: field time of each sample; lat/lon degrees; u/v in field units. Samples off
     the grid are dropped. Returns Samples with fractional cells (mean position).
     """
-    from passt_mav.passt import Samples
+    from passt_mav.loop.passt import Samples
 
     t, lat, lon, u, v = (np.asarray(a, float).reshape(-1) for a in (t, lat, lon, u, v))
     if t.size == 0:
@@ -152,13 +152,13 @@ def leg_steps(config, grid, speed: float, dt: float, time_scale: float) -> int:
 
     speed in m/s, dt in field time units, time_scale in vehicle seconds per field time unit.
     """
-    from passt_mav.passt import steps_for_leg
+    from passt_mav.loop.passt import steps_for_leg
 
     return steps_for_leg(config.planner.path_length, grid.mean_cell_size_m, speed, dt * time_scale)
 
 
 def extend_leg_to_end(loop, plan, t_samples, dt: float) -> int:
-    """Stretch ``plan`` (a :class:`~passt_mav.passt.LegPlan`) to the time the leg really ended.
+    """Stretch ``plan`` (a :class:`~passt_mav.loop.passt.LegPlan`) to the time the leg really ended.
 
     The leg was sized before it flew (L x mean cell / speed); diagonal moves, turns and the
     current make the real leg longer. Reconstructing at the planned end would compare late
@@ -230,7 +230,7 @@ def build_predictor(spec: str, field, *, echo: Callable[[str], None] = print) ->
 
 def build_loop(config, predictor, grid, land=None):
     """:class:`PasstLoop` from a mission config (planner, reward, L, GP prior/options, seeds)."""
-    from passt_mav.passt import LoopOptions
+    from passt_mav.loop.passt import LoopOptions
 
     gp_kw = {"seed": config.seeds.gp}
     if config.sensors.noise_std > 0:
@@ -261,7 +261,7 @@ def build_loop(config, predictor, grid, land=None):
 # -- the step -------------------------------------------------------------------------------------
 @dataclass
 class PlannedLeg:
-    """A leg as planned: where from, when, and the plan (:class:`~passt_mav.passt.LegPlan`).
+    """A leg as planned: where from, when, and the plan (:class:`~passt_mav.loop.passt.LegPlan`).
 
     ``start_cell`` (row, col); ``start_latlon`` deg or None; ``t_now`` field time of the
     clock reading (None when ``k`` was given); ``k`` snapshots forecast before planning;
@@ -309,7 +309,7 @@ class PlannedLeg:
 class AbsorbedLeg:
     """What a leg's samples made of the state.
 
-    ``samples``: the thinned :class:`~passt_mav.passt.Samples` the GP got (field units);
+    ``samples``: the thinned :class:`~passt_mav.loop.passt.Samples` the GP got (field units);
     ``state`` (2, R, C) float32 at field time ``t_state`` (the leg's end); ``steps`` the
     leg's snapshots after stretching to its last sample; ``gp_s`` wall seconds of the
     update; RMSE in field units over water cells vs the truth at ``t_state`` (None when
@@ -349,7 +349,7 @@ class LegStep:
     Args:
         config: :class:`~passt_mav.mission.MissionConfig` (planner, vehicle speed, margins, units).
         field: the mission's field (dt, land, and the truth for RMSE).
-        loop: the :class:`~passt_mav.passt.PasstLoop` (:func:`build_loop`); its GP
+        loop: the :class:`~passt_mav.loop.passt.PasstLoop` (:func:`build_loop`); its GP
             hyper-parameters and planner seeds carry from leg to leg.
         truth_known: compute RMSE vs ``field`` (the field is what the vehicle measures).
     """
@@ -554,7 +554,7 @@ FIELD_TIME = FieldClock(0.0, 1e-3)
 class FleetStep:
     """The between-leg step of a fleet: one state, the boats' paths in flight, joint planning.
 
-    Pure (no MAVLink); :class:`passt_mav.fleet_controller.FleetController` calls it under its
+    Pure (no MAVLink); :class:`passt_mav.vehicle.fleet_controller.FleetController` calls it under its
     lock and :func:`passt_mav.analysis.replay.replay` repeats a fleet run's calls in the order
     they were made (``seq``: one count per plan and per update).
 
@@ -564,7 +564,7 @@ class FleetStep:
     with those cells' reward zeroed instead and keeps out of any cell another boat's path
     reaches at the same time (within one move's duration, from the paths, the boats' speeds
     (``config.fleet[k].speed_mps``, m/s) and their legs' start times) or holds after its path
-    ended: the offline engine's rule (:func:`passt_mav.engine.plan_keeping_out`).
+    ended: the offline engine's rule (:func:`passt_mav.loop.engine.plan_keeping_out`).
 
     Absorbing (:meth:`absorb`): the GP prior is the leg's own forecast (from the state it was
     planned from, so every sample is compared with the forecast at its own time), and the
@@ -603,9 +603,9 @@ class FleetStep:
 
     def _conflicts(self, boat: int, path, t_start: float) -> np.ndarray:
         """(R, C) bool: cells of ``path`` (after its start) another boat is at when this one gets there
-        (:func:`passt_mav.engine.keep_out`, the offline engine's rule too: within one move of either boat,
+        (:func:`passt_mav.loop.engine.keep_out`, the offline engine's rule too: within one move of either boat,
         or on its last cell after its path ended)."""
-        from passt_mav.engine import keep_out
+        from passt_mav.loop.engine import keep_out
 
         speed = float(self.config.fleet[boat].speed_mps)
         others = [
@@ -637,7 +637,7 @@ class FleetStep:
         # starting hours after them (the 3-boat demo's last leg: 0.023 m/s against the model
         # alone's 0.010)
         kw.setdefault("speed", float(self.config.fleet[boat].speed_mps))
-        from passt_mav.engine import plan_keeping_out
+        from passt_mav.loop.engine import plan_keeping_out
 
         planned = plan_keeping_out(
             lambda taken, avoid: self.step.plan(i, self.state, self.t_state, start, taken=taken, avoid=avoid, **kw),

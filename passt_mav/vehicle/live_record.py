@@ -1,6 +1,6 @@
 """What the controller tells the live view: a boat's status and the run's metadata, read off a controller.
 
-Kept out of :mod:`passt_mav.controller` so that the controller only calls its
+Kept out of :mod:`passt_mav.vehicle.controller` so that the controller only calls its
 :class:`~passt_mav.runs.live.RecordWriter` (the files and their layout are described there).
 These functions run in the writer's status thread: they only read what the link's reader
 thread keeps (latest messages, counters) and never send anything to the vehicle.

@@ -1,6 +1,6 @@
 """One boat's clock for a run: the vehicle's time since boot -> field time, across reboots and resumes.
 
-The rules are in :mod:`passt_mav.controller`'s docstring ("Clock"): a :class:`RunClock` chooses
+The rules are in :mod:`passt_mav.vehicle.controller`'s docstring ("Clock"): a :class:`RunClock` chooses
 ``t_boot0`` once the vehicle is ready (:meth:`RunClock.choose`: ``utc``, ``boot`` or ``auto``),
 keeps a ``t_boot0`` for every later boot (:meth:`RunClock.with_boots`, from the
 :class:`~passt_mav.mavlink.SampleCollector`'s boots) and, on ``--resume``, takes the boots of the
@@ -14,8 +14,8 @@ import datetime as _dt
 import time
 
 from passt_mav.errors import MavlinkError, UserError
-from passt_mav.legstep import FieldClock, utc_epoch
-from passt_mav.measurement import RULES
+from passt_mav.loop.legstep import FieldClock, utc_epoch
+from passt_mav.loop.measurement import RULES
 
 __all__ = ["RunClock"]
 
@@ -27,7 +27,7 @@ class RunClock:
         field: the mission's field (times, time origin).
         field_config: the mission's ``field:`` (``clock``, ``time_scale`` in seconds per field time unit).
         link: the boat's :class:`~passt_mav.mavlink.Link` (SYSTEM_TIME, time since boot).
-        journal: :class:`~passt_mav.vehicle_session.Journal` (what the clock chose, and why).
+        journal: :class:`~passt_mav.vehicle.session.Journal` (what the clock chose, and why).
         t_boot0: field time at vehicle boot until :meth:`choose` (``field.times[t0]`` or ``--field-time-at-boot``).
         forced: ``--field-time-at-boot`` was given (the clock is not chosen from the vehicle's UTC).
         speedup: simulated / wall seconds of the vehicle.

@@ -1,7 +1,7 @@
 """The vehicle side of a mission: one boat's link, its leg swaps and its faults.
 
 A :class:`VehicleSession` owns what the controller does *to the vehicle*; the controller
-(:mod:`passt_mav.controller`) keeps the PASST loop, the clock and the run's records. Per leg:
+(:mod:`passt_mav.vehicle.controller`) keeps the PASST loop, the clock and the run's records. Per leg:
 
 * :meth:`VehicleSession.swap` - HOLD, verified upload, set-current 1, arm, AUTO (transactional:
   a link lost on the way is reconnected and the swap starts again from HOLD);

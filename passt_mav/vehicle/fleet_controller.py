@@ -1,9 +1,9 @@
 """A fleet: several boats flying one PASST loop, sharing one field estimate.
 
 :class:`FleetController` runs a mission whose ``vehicles:`` lists N boats (``passt-mav
-run``). Each boat is a :class:`BoatController` (a :class:`~passt_mav.controller.MissionController`
+run``). Each boat is a :class:`BoatController` (a :class:`~passt_mav.vehicle.controller.MissionController`
 on its own link, with all of its fault handling: reconnects, reboots, a pilot taking over)
-working in a thread of its own; what they share is :class:`passt_mav.legstep.FleetStep`
+working in a thread of its own; what they share is :class:`passt_mav.loop.legstep.FleetStep`
 (pure: the replay repeats it), called under one lock:
 
 * **one state**: the field estimate and its field time. Every boat plans from it and
@@ -33,7 +33,7 @@ its own time), and the GP gets this leg's samples *and* those of every leg absor
 since this one was planned (their information is not in its forecast). The result
 replaces the shared state, at the leg's end or at the state's time if that is later
 (the state never goes back in time, and concurrent legs never run it ahead). With one
-boat this is exactly :class:`~passt_mav.controller.MissionController`'s update.
+boat this is exactly :class:`~passt_mav.vehicle.controller.MissionController`'s update.
 """
 
 from __future__ import annotations
@@ -43,12 +43,12 @@ import threading
 import time
 from collections.abc import Callable
 
-from passt_mav.controller import BoatParts, MissionController, StoreWriter
 from passt_mav.errors import MavlinkError, PlannerError, ReconstructionError
-from passt_mav.legstep import FleetStep, LegStep, build_loop
-from passt_mav.live_record import live_meta
+from passt_mav.loop.legstep import FleetStep, LegStep, build_loop
 from passt_mav.runs.live import RecordWriter
-from passt_mav.vehicle_session import Paused, utc_now
+from passt_mav.vehicle.controller import BoatParts, MissionController, StoreWriter
+from passt_mav.vehicle.live_record import live_meta
+from passt_mav.vehicle.session import Paused, utc_now
 
 __all__ = ["FleetController", "BoatController", "SharedState"]
 
@@ -56,8 +56,8 @@ log = logging.getLogger(__name__)
 
 
 class SharedState:
-    """One boat's view of the fleet's one state (:class:`~passt_mav.legstep.FleetStep`), called under the
-    fleet's lock: the state keeper a :class:`BoatController` flies with (:class:`~passt_mav.controller.OwnState`'s
+    """One boat's view of the fleet's one state (:class:`~passt_mav.loop.legstep.FleetStep`), called under the
+    fleet's lock: the state keeper a :class:`BoatController` flies with (:class:`~passt_mav.vehicle.controller.OwnState`'s
     methods). Remembers the boat's leg in flight and the fleet steps it was planned and absorbed at."""
 
     def __init__(self, fleet: FleetController, boat: int, link):

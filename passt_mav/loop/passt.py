@@ -1,7 +1,7 @@
 """The PASST loop (Predictive-model based Adaptive Sampling of a Spatio-Temporal process).
 
 ONE implementation, driven offline by :class:`FieldSampler` (ground truth, through the
-offline engine :mod:`passt_mav.engine`) and on a vehicle by :class:`passt_mav.legstep.LegStep`
+offline engine :mod:`passt_mav.loop.engine`) and on a vehicle by :class:`passt_mav.loop.legstep.LegStep`
 (the controller flies the leg, the step turns its logged samples into :class:`Samples`)::
 
     state U(t_k) --predict S steps--> forecast --one-step reward--> plan L moves
@@ -27,7 +27,7 @@ downstream sees a land value.
 
 Step-by-step API for a controller: :class:`PasstLoop` ``.plan_leg(state, start,
 t_start)`` -> :class:`LegPlan`, fly / sample, ``.update(leg, samples)`` -> new state. The loop's
-options are one frozen :class:`LoopOptions`. Offline: :func:`passt_mav.engine.run_offline`
+options are one frozen :class:`LoopOptions`. Offline: :func:`passt_mav.loop.engine.run_offline`
 (and its fleet and lockstep forms). Everything random is seeded.
 """
 

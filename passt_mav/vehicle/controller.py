@@ -1,17 +1,17 @@
 """The mission controller: the PASST loop flown by a live vehicle over MAVLink.
 
 One :class:`MissionController` runs one mission (``passt-mav run`` / ``passt-mav
-demo``). It reuses :class:`passt_mav.passt.PasstLoop` unchanged; only the sampler
+demo``). It reuses :class:`passt_mav.loop.passt.PasstLoop` unchanged; only the sampler
 differs: instead of reading the ground-truth field, each leg is uploaded to the
 vehicle and flown, and the current samples it streams back are the leg's samples.
-Everything between two legs is :class:`passt_mav.legstep.LegStep` (pure, shared with
+Everything between two legs is :class:`passt_mav.loop.legstep.LegStep` (pure, shared with
 ``passt-mav replay``); this module adds the vehicle, through parts with one job each:
 
-* :class:`~passt_mav.vehicle_session.VehicleSession`: the vehicle side (swap, fly, and the
+* :class:`~passt_mav.vehicle.session.VehicleSession`: the vehicle side (swap, fly, and the
   faults below: reconnects, reboots, a pilot, another ground station);
-* :class:`~passt_mav.run_clock.RunClock`: vehicle time -> field time (below, "Clock");
+* :class:`~passt_mav.vehicle.clock.RunClock`: vehicle time -> field time (below, "Clock");
 * a state keeper: :class:`OwnState` for one boat, the fleet's shared state for a fleet's boat
-  (:class:`passt_mav.fleet_controller.SharedState`);
+  (:class:`passt_mav.vehicle.fleet_controller.SharedState`);
 * :class:`StoreWriter` (samples to the store) and the live view's
   :class:`~passt_mav.runs.live.RecordWriter`.
 
@@ -97,7 +97,7 @@ from typing import Any
 import numpy as np
 
 from passt_mav.errors import LinkTimeout, MavlinkError, PlannerError, ReconstructionError, UserError
-from passt_mav.legstep import (  # noqa: F401 - the between-leg step's building blocks, re-exported
+from passt_mav.loop.legstep import (  # noqa: F401 - the between-leg step's building blocks, re-exported
     THINNING,
     FieldClock,
     LegStep,
@@ -112,12 +112,12 @@ from passt_mav.legstep import (  # noqa: F401 - the between-leg step's building 
     truth_at,
     utc_epoch,
 )
-from passt_mav.live_record import live_meta, live_status
-from passt_mav.run_clock import RunClock
 from passt_mav.runs.legs import clock_statustext
 from passt_mav.runs.live import RecordWriter
-from passt_mav.vehicle_session import Deadline as _Deadline  # noqa: F401 - tests import it from here
-from passt_mav.vehicle_session import Journal, Paused, VehicleSession, expected_vehicle_s, utc_now
+from passt_mav.vehicle.clock import RunClock
+from passt_mav.vehicle.live_record import live_meta, live_status
+from passt_mav.vehicle.session import Deadline as _Deadline  # noqa: F401 - tests import it from here
+from passt_mav.vehicle.session import Journal, Paused, VehicleSession, expected_vehicle_s, utc_now
 
 __all__ = [
     "FieldClock",
@@ -216,8 +216,8 @@ class StoreWriter:
 
 class OwnState:
     """How one boat plans from and updates the estimate: the state travels through its own legs
-    (:class:`~passt_mav.legstep.LegStep`). A fleet's boat gets the fleet's shared state instead
-    (:class:`passt_mav.fleet_controller.SharedState`, the same methods)."""
+    (:class:`~passt_mav.loop.legstep.LegStep`). A fleet's boat gets the fleet's shared state instead
+    (:class:`passt_mav.vehicle.fleet_controller.SharedState`, the same methods)."""
 
     def __init__(self, step: LegStep):
         self.step = step
@@ -255,7 +255,7 @@ class OwnState:
 @dataclass(frozen=True)
 class BoatParts:
     """What a fleet's boat shares with the fleet instead of owning it (each None = the controller's own):
-    its :class:`~passt_mav.legstep.LegStep`, state keeper (:class:`OwnState`'s methods), lock, live-view
+    its :class:`~passt_mav.loop.legstep.LegStep`, state keeper (:class:`OwnState`'s methods), lock, live-view
     writer and summary writer."""
 
     step: LegStep | None = None
