@@ -196,5 +196,20 @@ def test_file_errors_of_every_command_are_one_line(capsys, tmp_path):
         _one_line_exit_2(capsys, argv, needle)
 
 
+def test_a_new_run_into_an_old_run_directory_is_refused(capsys, tmp_path):
+    # a second run's samples would go into the first run's sample store and both runs' legs would
+    # count them (found: a demo into a reused --out reported 4365 samples of 2181 readings)
+    old = tmp_path / "old"
+    old.mkdir()
+    (old / "summary.json").write_text('{"status": "complete"}')
+    before = sorted((p.name, p.read_bytes()) for p in old.iterdir())
+    for argv in (
+        ["run", MISSION, "--connect", "tcp:127.0.0.1:5760", "--out", old],
+        ["demo", "--out", old, "--no-view"],
+    ):
+        _one_line_exit_2(capsys, argv, "already holds a run")
+    assert sorted((p.name, p.read_bytes()) for p in old.iterdir()) == before  # nothing written, nothing lost
+
+
 def test_a_bad_identity_is_one_line(capsys, tmp_path):
     _one_line_exit_2(capsys, ["run", MISSION, "--source-system", "0", "--out", tmp_path / "r"], "--source-system")

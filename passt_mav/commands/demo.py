@@ -244,7 +244,7 @@ def run(args: argparse.Namespace) -> int:
     drops = _drop_args(args.inject_link_drop, args.boats)
     data, config, over, origin = _demo_mission(args)
     grid = config.grid()
-    rd = RunDir(args.out or Path("runs") / f"demo-{_stamp()}").create()
+    rd = RunDir(args.out or Path("runs") / f"demo-{_stamp()}").create_fresh()
     from passt_mav.fields.datasets import mission_field
 
     t_start0 = time.monotonic()

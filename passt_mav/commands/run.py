@@ -372,7 +372,7 @@ def run(args: argparse.Namespace) -> int:
         if not rd.is_run_dir():
             raise _user(f"--resume: {args.out} is not a run directory")
     else:
-        rd = RunDir(args.out).create() if args.out else RunDir.new("runs", config.name)
+        rd = RunDir(args.out).create_fresh() if args.out else RunDir.new("runs", config.name)
     echo = (lambda s: None) if args.quiet else (lambda s: print(s, flush=True))
     if args.connect and config.vehicles is not None:
         raise _user("--connect names one vehicle; a fleet's connections are in the mission's vehicles:")

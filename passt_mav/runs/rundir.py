@@ -120,6 +120,17 @@ class RunDir:
         (self.root / self.LEGS).mkdir(parents=True, exist_ok=True)
         return self
 
+    def create_fresh(self) -> RunDir:
+        """:meth:`create` for a new run: a directory that already holds a run is refused (its sample
+        store would take the new run's samples beside the old ones, and both runs' legs would count
+        them), with one line that says what to do instead."""
+        if self.is_run_dir():
+            raise RunDirError(
+                f"{self.root} already holds a run; choose another --out (or continue that run with passt-mav run "
+                f"MISSION --out {self.root} --resume)"
+            )
+        return self.create()
+
     @classmethod
     def new(cls, parent: str | Path, name: str = "run", *, utc: str | None = None) -> RunDir:
         """A fresh run directory ``PARENT/YYYY-MM-DDTHH-MM-SSZ_NAME`` (suffix ``_2``, ``_3`` if taken)."""
