@@ -510,7 +510,9 @@ class PasstLoop:
         used (``noise_std``, m/s per component u, v: fitted by marginal likelihood, never below
         the sensor's ``noise_std``), whether the samples showed a signal beyond that noise
         (``signal_kept``; otherwise the forecast was left alone there), the background factor,
-        the offset variance (``offset_var``, with the GP's ``bias``) and the prior weights (``prior_blend="bma"``)."""
+        with the GP's ``bias`` the offset and forecast-anomaly variances (``offset_var``,
+        ``anomaly_var``; 0 = not kept) and the share of the region the samples saw (``bias_coverage``,
+        the modes' gate), and the prior weights (``prior_blend="bma"``)."""
         gp = self.gp
         out: dict = {"sensor_noise_std": float(gp.noise_std)}
         ks = getattr(gp, "kernels_", None)
@@ -523,6 +525,9 @@ class PasstLoop:
             out["background_factor"] = gp._background_factor()
         if getattr(gp, "bias", False):
             out["offset_var"] = float(getattr(gp, "bias_var_", 0.0))  # (field units)^2, 0 = no offset kept
+            out["anomaly_var"] = float(getattr(gp, "scale_var_", 0.0))  # factor variance on the forecast anomaly
+            cov = getattr(gp, "bias_coverage_", None)  # share of the region the samples see (the modes' gate)
+            out["bias_coverage"] = None if cov is None else round(float(cov), 3)
         if self.blend_history_:
             out["prior_weights"] = dict(self.blend_history_[-1]["weights"])
         return out
