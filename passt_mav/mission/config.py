@@ -292,8 +292,9 @@ class SensorConfig(_Strict):
     noise_std: float = Field(default=0.0, ge=0)
 
 
-#: the mission default of ``gp.bias`` (see GPConfig): on, measured in the same loop on all three scenarios
-#: and on two real current files held back from any tuning (README "A forecast that is off as a whole")
+#: the mission default of ``gp.bias`` (see GPConfig): on. In the same loop it helps the missions' planner
+#: (information) on the three scenarios, and its coverage gate keeps the modes from samples bunched in a
+#: corner, which they made worse (README "A forecast that is off as a whole")
 BIAS_DEFAULT = True
 
 
@@ -305,8 +306,9 @@ class GPConfig(_Strict):
     ``off`` (the model's forecast is the prior) or ``bma`` (the model and persistence weighed leg
     by leg by how well each explains the leg's samples, memory ``forgetting``; see
     :class:`passt_mav.loop.passt.PasstLoop`); ``bias``: the residual GP may shift the forecast by a
-    constant and rescale its anomaly where a leg's samples show it (kept only when their
-    likelihood pays for it; :class:`passt_mav.reconstruction.gp.GPReconstructor` ``bias``);
+    constant and rescale its anomaly where a leg's samples show it (fitted only from samples that
+    see half of the region, kept only when their likelihood pays for it;
+    :class:`passt_mav.reconstruction.gp.GPReconstructor` ``bias``);
     GPReconstructor options."""
 
     prior: Literal["forecast", "constant"] = "forecast"

@@ -96,20 +96,18 @@ class GPReconstructor:
             then gets a factor ~0, a drift shaped like the modes a large one, whatever
             the stationary kernels' schedule (the model's error grows over a campaign).
 
-        bias: with ``prior="forecast"``, the residual may carry a constant offset over the
-            region (one per component: the whole current sped up or turned since the forecast,
-            as a tide does), a factor ``b`` with ``b ~ N(0, s^2 I_2)`` on two modes of ones
-            (u, v) beside the background's: ordinary kriging's unknown constant mean, here as a
-            prior term so that the gate below can refuse it. ``s^2`` is chosen at every
-            :meth:`reconstruct` from a log grid (``mean(y^2)`` x 1e-2 .. 10, and 0) by the joint
-            marginal likelihood of the samples' residuals under the offset plus the rest of the
-            prior the posterior uses (background with its factor, the fitted stationary kernels,
-            sensor noise: a local error seen by bunched samples is the kernels' to explain, not
-            an offset of the whole field's), and kept only when it raises that
-            likelihood by more than the information criterion's ``0.5 ln(2n)`` (one parameter).
-            A forecast that is right (residual = noise) then keeps ``s^2 = 0`` and nothing
-            changes; a stale forecast of a field that moved as a whole is shifted everywhere,
-            not only within a length scale of the samples. Default False.
+        bias: with ``prior="forecast"``, the residual may carry a constant offset over the region
+            (one per component: the current sped up or turned as a whole, as a tide does) and a
+            rescaling of the forecast's anomaly: factors ``b ~ N(0, s^2)`` on two modes of ones and
+            on the anomaly, beside the background's (ordinary kriging's unknown mean, as a prior term
+            that a gate can refuse). Each ``s^2`` is chosen at every :meth:`reconstruct` from a log
+            grid (and 0) by the samples' joint marginal likelihood under the prior the posterior uses
+            (kernels, background, noise), kept only when it gains the information criterion's
+            ``0.5 ln(2n)``, and fitted at all only when the samples see half of the region
+            (:func:`~passt_mav.reconstruction.lowrank.sample_coverage`: a corner's samples cannot tell
+            a local error from a global one). A right forecast keeps ``s^2 = 0``; a stale forecast
+            of a field that moved as a whole is shifted everywhere, not only within a length scale
+            of the samples. Default False. Modes, fits and gate: :mod:`~passt_mav.reconstruction.lowrank`.
 
     Learned state: ``kernels_`` (fitted kernel per component), ``cell_m_``,
     ``n_inputs_`` (2 = space, 3 = space-time), ``background_scale_`` (the last factor chosen
