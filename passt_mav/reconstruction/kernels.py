@@ -11,7 +11,24 @@ import numpy as np
 
 from passt_mav.errors import ReconstructionError
 
-__all__ = ["CrossCovCache", "base_kernel", "evidence_gate", "fit_on_field"]
+__all__ = ["CrossCovCache", "base_kernel", "evidence_gate", "fit_on_field", "length_bounds"]
+
+
+def length_bounds(X, Y, max_length_cells: float) -> tuple[float, tuple[float, float]]:
+    """The grid's cell size (metres: the geometric mean spacing of neighbouring centres of ``X, Y``
+    (rows, cols)) and the bounds of the kernels' spatial length scale (metres): [0.5 cell,
+    min(``max_length_cells`` cells, half the grid's diagonal)], at least one cell at the top."""
+    R, C = X.shape
+    # mean spacing of neighbouring centres, metres
+    dx = np.nanmean(np.hypot(np.diff(X, axis=1), np.diff(Y, axis=1))) if C > 1 else 1.0
+    dy = np.nanmean(np.hypot(np.diff(X, axis=0), np.diff(Y, axis=0))) if R > 1 else 1.0
+    cell = float(np.sqrt(dx * dy))
+    diag = float(np.hypot(np.ptp(X), np.ptp(Y)))
+    # An upper bound of a few cells keeps a correction local: fitted on samples
+    # along one leg (a line), the likelihood often prefers a length scale as long
+    # as allowed, and the GP then extrapolates the residual across the region
+    # (measured on a drifting-model test: the estimate's RMSE tripled in one leg).
+    return cell, (0.5 * cell, max(min(float(max_length_cells) * cell, 0.5 * diag), 1.0 * cell))
 
 
 def base_kernel(
@@ -24,18 +41,8 @@ def base_kernel(
     min(``max_length_cells`` cells, half the grid's diagonal)], noise from ``noise_std``."""
     from sklearn.gaussian_process.kernels import RBF, ConstantKernel, Matern, WhiteKernel
 
-    R, C = X.shape
-    # mean spacing of neighbouring centres, metres
-    dx = np.nanmean(np.hypot(np.diff(X, axis=1), np.diff(Y, axis=1))) if C > 1 else 1.0
-    dy = np.nanmean(np.hypot(np.diff(X, axis=0), np.diff(Y, axis=0))) if R > 1 else 1.0
-    cell = float(np.sqrt(dx * dy))
-    diag = float(np.hypot(np.ptp(X), np.ptp(Y)))
+    cell, bounds = length_bounds(X, Y, max_length_cells)
     ls = float(length_scale) if length_scale is not None else 3.0 * cell
-    # An upper bound of a few cells keeps a correction local: fitted on samples
-    # along one leg (a line), the likelihood often prefers a length scale as long
-    # as allowed, and the GP then extrapolates the residual across the region
-    # (measured on a drifting-model test: the estimate's RMSE tripled in one leg).
-    bounds = (0.5 * cell, max(min(float(max_length_cells) * cell, 0.5 * diag), 1.0 * cell))
     ls = float(np.clip(ls, *bounds))
     if t_span is not None:  # anisotropic over (east, north, time)
         ls = [ls, ls, float(t_span)]

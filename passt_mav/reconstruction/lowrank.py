@@ -34,6 +34,7 @@ __all__ = [
     "gp_mode_variance",
     "innovation_quadratic",
     "joint_posterior",
+    "kernel_blocks",
     "kernel_factors",
     "offset_modes",
     "prior_factors",
@@ -68,6 +69,16 @@ def anomaly_mode(fc) -> np.ndarray | None:
         return None
     a = np.where(water, a - np.nanmean(a[:, water], axis=1, keepdims=True), 0.0)
     return a[None] if float(np.abs(a).max()) > 0 else None
+
+
+def kernel_blocks(kernels, inputs) -> np.ndarray:
+    """The stationary part of the prior at the samples, (2n, 2n): ``kernels[0](inputs)`` in the u
+    block, ``kernels[1](inputs)`` in the v block (sensor-noise WhiteKernel included), 0 between."""
+    n = len(inputs)
+    K = np.zeros((2 * n, 2 * n))
+    for k in range(2):
+        K[k * n : (k + 1) * n, k * n : (k + 1) * n] = kernels[k](inputs)
+    return K
 
 
 def fit_mode_variance(target, cells, Bg, modes, candidates, base_cov) -> float:
@@ -129,9 +140,7 @@ def joint_posterior(gp, xy, target, grid_pts, cells, Bg, with_std: bool) -> tupl
     shape = gp._grid()[0].shape
     n = len(xy)  # Bg: (m, 2, N) modes with the factor applied
     Hb = sample_rows(Bg, cells)  # (m, 2n)
-    K = Hb.T @ Hb
-    for k in range(2):
-        K[k * n : (k + 1) * n, k * n : (k + 1) * n] += gp.kernels_[k](xy)
+    K = Hb.T @ Hb + kernel_blocks(gp.kernels_, xy)
     K[np.diag_indices_from(K)] += float(gp.alpha)
     Lc = cholesky_or_error(K, gp.alpha)
     y = np.concatenate([target[:, 0], target[:, 1]])
@@ -187,10 +196,7 @@ def innovation_quadratic(kernels, inputs, Bg, cells, r, alpha: float) -> float:
     plus the modes ``Bg`` (m, 2, N) or None at the samples' ``cells``, jitter ``alpha``."""
     from scipy.linalg import cho_solve, cholesky
 
-    n = len(r)
-    K = np.zeros((2 * n, 2 * n))
-    for k in range(2):
-        K[k * n : (k + 1) * n, k * n : (k + 1) * n] = kernels[k](inputs)
+    K = kernel_blocks(kernels, inputs)
     if Bg is not None:
         Hb = sample_rows(Bg, cells)
         K += Hb.T @ Hb
@@ -258,9 +264,7 @@ def gp_mode_variance(gp, target, cells, Bg, modes, candidates, xy=None) -> float
     if xy is None:
         base = np.diag(np.concatenate([np.full(n, float(gp.kernels_[k].k2.noise_level)) for k in range(2)]))
     else:
-        base = np.zeros((2 * n, 2 * n))
-        for k in range(2):
-            base[k * n : (k + 1) * n, k * n : (k + 1) * n] = gp.kernels_[k](xy)
+        base = kernel_blocks(gp.kernels_, xy)
     base[np.diag_indices_from(base)] += float(gp.alpha)
     return fit_mode_variance(target, cells, Bg, modes, candidates, base)
 
@@ -290,9 +294,9 @@ def sample_coverage(gp, cells, shape, fc=None) -> float:
     water = np.ones(int(np.prod(shape)), bool) if fc is None else np.isfinite(np.asarray(fc).reshape(2, -1)).all(0)
     if not water.any():
         return 0.0
-    _, cell = gp._base_kernel()
-    diag = float(np.hypot(np.ptp(X), np.ptp(Y)))
-    reach = max(min(float(gp.max_length_cells) * cell, 0.5 * diag), cell)
+    from passt_mav.reconstruction.kernels import length_bounds
+
+    reach = length_bounds(X, Y, gp.max_length_cells)[1][1]
     idx = np.unique(cells)
     d2 = (X.ravel()[water][:, None] - X.ravel()[idx][None]) ** 2 + (
         Y.ravel()[water][:, None] - Y.ravel()[idx][None]
