@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["lawnmower_counterfactual", "same_loop_counterfactual"]
+__all__ = ["fleet_rounds", "lawnmower_counterfactual", "same_loop_counterfactual"]
 
 
 def lawnmower_counterfactual(
@@ -53,17 +53,28 @@ def lawnmower_counterfactual(
 
 
 def _fly_legs(loop, sampler, field, legs: list[dict], state, t_state: float, start_cell) -> list[float | None]:
-    """Fly ``legs`` (their field-time spans) offline with ``loop`` from ``state`` at ``t_state``:
-    forecast to each leg's start (a loop without a model holds the state), plan, sample the truth
-    along the path, reconstruct; the RMSE vs the truth at each leg's end (None where the leg has
-    no times or lies outside the field)."""
-    from passt_mav.loop.measurement import rmse, truth_at
+    """Fly ``legs`` (their field-time spans) offline with ``loop`` from ``state`` at ``t_state``, one
+    boat from ``start_cell``: :func:`_fly_rounds` with one boat."""
+    return _fly_rounds(
+        loop, sampler, field, [(x.get("t_start"), x.get("t_end")) for x in legs], state, t_state, [start_cell]
+    )
 
-    start = tuple(int(x) for x in start_cell)
+
+def _fly_rounds(loop, sampler, field, spans, state, t_state: float, starts) -> list[float | None]:
+    """Fly leg intervals ``spans`` ((t_start, t_end) in field time, s) offline with ``loop`` from
+    ``state`` at ``t_state``, one boat per cell of ``starts``: per interval, forecast to its start
+    (a loop without a model holds the state), plan boat 0, then each other boat under the fleet's
+    keep-out rule (:func:`passt_mav.loop.engine.plan_after`), sample the truth along every path,
+    one GP update with all the samples. The RMSE vs the truth at each interval's end (None where
+    it has no times or lies outside the field)."""
+    from passt_mav.loop.engine import plan_after
+    from passt_mav.loop.measurement import rmse, truth_at
+    from passt_mav.loop.passt import Samples
+
+    starts = [tuple(int(x) for x in c) for c in starts]
     out: list[float | None] = []
     t_lo, t_hi = float(field.times[0]), float(field.times[-1])
-    for leg in legs:
-        t0, t1 = leg.get("t_start"), leg.get("t_end")
+    for t0, t1 in spans:
         if t0 is None or t1 is None or not (t_lo <= t0 < t1 <= t_hi):
             out.append(None)
             continue
@@ -71,17 +82,49 @@ def _fly_legs(loop, sampler, field, legs: list[dict], state, t_state: float, sta
         if k and loop.predictor is not None:
             state = loop.forecast(state, k)[-1]
         steps = max(1, int(round((t1 - t0) / field.dt)))
-        plan = loop.plan_leg(state, start, float(t0), field.dt, steps=steps)
+        plans = [loop.plan_leg(state, starts[0], float(t0), field.dt, steps=steps)]
+        for n in range(1, len(starts)):
+            plans.append(plan_after(loop, starts[n], float(t0), field.dt, steps, plans, f"boat {n}"))
         sampler.steps_per_leg = (t1 - t0) / field.dt
-        state = loop.update(plan, sampler.sample_path(plan.path, float(t0)))
+        parts = [sampler.sample_path(p.path, float(t0)) for p in plans]
+        samples = Samples(*(np.concatenate([getattr(x, f) for x in parts]) for f in ("t", "r", "c", "u", "v")))
+        state = loop.update(plans[0], samples)
         t_state = float(t0) + steps * field.dt
         out.append(rmse(state, truth_at(field, float(t1))))
-        start = tuple(int(x) for x in plan.path[-1])
+        starts = [tuple(int(x) for x in p.path[-1]) for p in plans]
+    return out
+
+
+def fleet_rounds(legs: list[dict]) -> list[tuple[float | None, float | None]]:
+    """A fleet run's legs as synchronous leg intervals, for an offline counterfactual: interval j
+    runs from the earliest start of the boats' j-th legs to the latest end of them (field time, s;
+    ``boat`` names a leg's boat), and starts no earlier than interval j-1 ended (live, the boats'
+    legs drift apart; offline they leave together and move in step). ``(None, None)`` where no
+    boat's j-th leg has both times."""
+    per: dict[int, list[dict]] = {}
+    for leg in legs:
+        per.setdefault(int(leg.get("boat", 0)), []).append(leg)
+    out: list[tuple[float | None, float | None]] = []
+    t_prev = None
+    for j in range(max((len(v) for v in per.values()), default=0)):
+        nth = [
+            v[j]
+            for v in per.values()
+            if len(v) > j and v[j].get("t_start") is not None and v[j].get("t_end") is not None
+        ]
+        if not nth:
+            out.append((None, None))
+            continue
+        t0 = min(float(x["t_start"]) for x in nth)
+        t1 = max(float(x["t_end"]) for x in nth)
+        t0 = t0 if t_prev is None else max(t0, t_prev)
+        out.append((t0, t1) if t1 > t0 else (None, None))
+        t_prev = t1
     return out
 
 
 def same_loop_counterfactual(
-    config, field, predictor, legs: list[dict], *, planner: str = "random", start_cell=None
+    config, field, predictor, legs: list[dict], *, planner: str = "random", start_cell=None, start_cells=None
 ) -> list[float | None]:
     """RMSE (field units) at the end of each of ``legs`` of the run's OWN loop with another planner.
 
@@ -93,6 +136,13 @@ def same_loop_counterfactual(
     and samples the true field along the path at the times a constant-speed boat passes each
     cell, with the mission's sensor noise and seed. Offline arithmetic, like
     :func:`lawnmower_counterfactual`: link, turns and thinning do not enter.
+
+    A fleet (``start_cells``: each boat's first start cell (row, col)): the boats fly
+    synchronous leg intervals (:func:`fleet_rounds`), boat 0 planned first and the others in
+    turn under the keep-out rule, every boat's samples in one GP update per interval, as the
+    offline fleet engine does (:mod:`passt_mav.loop.engine`); one RMSE per interval. The live
+    fleet's legs are asynchronous (each boat plans from the newest shared state), so this is the
+    same model + GP loop over the same time span, not the run's exact schedule.
     """
     from passt_mav.loop.legstep import build_loop
     from passt_mav.loop.passt import FieldSampler
@@ -105,5 +155,7 @@ def same_loop_counterfactual(
     )
     state = np.array(field.data[config.t0], dtype=np.float32)
     state[:, land] = np.nan
+    if start_cells is not None:  # a fleet: its legs as synchronous intervals, all boats' samples in one update
+        return _fly_rounds(loop, sampler, field, fleet_rounds(legs), state, float(field.times[config.t0]), start_cells)
     start = start_cell or config.start_cell or (field.grid.rows // 2, field.grid.cols // 2)
     return _fly_legs(loop, sampler, field, legs, state, float(field.times[config.t0]), start)

@@ -193,14 +193,18 @@ def _load_config(mission, summary: dict | None, rd) -> tuple[Any, str]:
 
 
 def _as_recorded(cfg, summary: dict | None):
-    """``cfg`` with ``gp.bias`` as the run resolved it (summary.json ``config``): a default that changed
-    since (bias became the mission default in issue 27) must not make an older run's replay diverge. A run
-    whose recorded config has no ``bias`` ran before the option existed: without it."""
+    """``cfg`` with ``gp.bias`` and ``gp.prior_blend`` as the run resolved them (summary.json ``config``):
+    a default that changed since (both became mission defaults in issue 27) must not make an older run's
+    replay diverge. A run whose recorded config lacks one ran before it was a mission default: ``bias``
+    off, ``prior_blend`` "off"."""
     recorded = (summary or {}).get("config")
     if not isinstance(recorded, dict) or not isinstance(recorded.get("gp"), dict):
         return cfg
-    bias = bool(recorded["gp"].get("bias", False))
-    return cfg if cfg.gp.bias == bias else cfg.model_copy(update={"gp": cfg.gp.model_copy(update={"bias": bias})})
+    as_run = {"bias": bool(recorded["gp"].get("bias", False)), "prior_blend": recorded["gp"].get("prior_blend", "off")}
+    if as_run["prior_blend"] not in ("off", "bma"):
+        as_run["prior_blend"] = "off"
+    changed = {k: v for k, v in as_run.items() if getattr(cfg.gp, k) != v}
+    return cfg if not changed else cfg.model_copy(update={"gp": cfg.gp.model_copy(update=changed)})
 
 
 def _mission_of(mission, summary: dict | None, rd) -> tuple[Any, str]:

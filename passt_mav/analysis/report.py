@@ -577,10 +577,13 @@ def _fig_rmse(run: Run, plt, over_time: dict | None, per_leg: dict[str, list]):
         ax = axes[0, k]
         k += 1
         div, lab = _time_label(run)
-        t = _series(over_time["t"]) / div
         for key, style, name in _RMSE_CURVES:
             if key in over_time:
                 y = _series(over_time[key])
+                # a curve on times of its own (``t_KEY``: a fleet's counterfactual, one value per round)
+                t = _series(over_time.get(f"t_{key}", over_time["t"])) / div
+                if t.shape != y.shape:
+                    continue
                 ok = np.isfinite(y) & np.isfinite(t)
                 ax.plot(t[ok], y[ok], style, label=name)
         ax.set_xlabel(lab)

@@ -382,16 +382,11 @@ def _print_outcome(args, config, field, summary: dict, rd, viewed: bool, wall: f
         flush=True,
     )
     legs = summary["legs"]
-    if args.boats > 1 and legs and legs[-1].get("rmse_passt") is not None:
-        print(
-            f"final RMSE: PASST ({args.boats} boats) {legs[-1]['rmse_passt']:.4f} m/s, model alone "
-            f"{legs[-1]['rmse_model']:.4f} m/s; boats: "
-            + ", ".join(f"{b['boat']} {b['status']}" for b in summary.get("boats", [])),
-            flush=True,
-        )
-    elif legs and legs[-1].get("rmse_passt") is not None:
-        lawn, walk = _counterfactual(config, field, summary, rd, report=not args.no_report)
-        print(final_line(legs[-1]["rmse_passt"], legs[-1]["rmse_model"], walk, lawn), flush=True)
+    if legs and legs[-1].get("rmse_passt") is not None:
+        lawn, walk = _counterfactual(config, field, summary, rd, report=not args.no_report, boats=args.boats)
+        print(final_line(legs[-1]["rmse_passt"], legs[-1]["rmse_model"], walk, lawn, boats=args.boats), flush=True)
+        if args.boats > 1:
+            print("boats: " + ", ".join(f"{b['boat']} {b['status']}" for b in summary.get("boats", [])), flush=True)
     if summary.get("report"):
         print(f"report: {summary['report']}", flush=True)
     if viewed:
@@ -467,9 +462,10 @@ def _as_fleet(data: dict, config, field, start, boats: int, port: int, origin: s
     return data, config, args
 
 
-def final_line(passt: float, model: float | None, walk: float | None, lawn: float | None) -> str:
-    """The demo's last line: PASST beside the model alone and the two counterfactuals, and in words
-    which of the comparisons holds (PASST below the model alone, below the same-loop random walk)."""
+def final_line(passt: float, model: float | None, walk: float | None, lawn: float | None, *, boats: int = 1) -> str:
+    """The demo's last line: PASST beside the model alone and the counterfactuals (a fleet: the
+    random walk only), and in words which of the comparisons holds (PASST below the model alone,
+    below the same-loop random walk)."""
 
     def f(x):
         return "n/a" if x is None else f"{x:.4f} m/s"
@@ -484,46 +480,84 @@ def final_line(passt: float, model: float | None, walk: float | None, lawn: floa
                 else ("below" if passt < x else "NOT below")
             )
             verdict.append(f"{word} {name}")
-    return (
-        f"final RMSE: PASST {passt:.4f} m/s, model alone {f(model)}, random walk through the same model + GP "
-        f"{f(walk)}, lawnmower+GP {f(lawn)} (both offline counterfactuals over the same legs)"
-        + (f"; PASST is {' and '.join(verdict)}" if verdict else "")
-    )
+    if boats > 1:
+        what = (
+            f"final RMSE: PASST ({boats} boats) {passt:.4f} m/s, model alone {f(model)}, {boats} random walks "
+            f"through the same model + GP {f(walk)} (offline counterfactual, synchronous legs over the same span)"
+        )
+    else:
+        what = (
+            f"final RMSE: PASST {passt:.4f} m/s, model alone {f(model)}, random walk through the same model + GP "
+            f"{f(walk)}, lawnmower+GP {f(lawn)} (both offline counterfactuals over the same legs)"
+        )
+    return what + (f"; PASST is {' and '.join(verdict)}" if verdict else "")
 
 
-def _counterfactual(config, field, summary: dict, rd, *, report: bool) -> tuple[float | None, float | None]:
-    """Lawnmower+GP, and a random walk through the run's own model + GP loop, over the run's legs
-    (passt_mav.analysis.counterfactual); stored in summary.json beside PASST and the model alone,
-    and the report redrawn with them. Returns their last legs' RMSE (lawnmower, random walk)."""
-    from passt_mav.analysis.counterfactual import lawnmower_counterfactual, same_loop_counterfactual
+def _fleet_starts(config, legs: list[dict]) -> list[tuple[int, int]]:
+    """Each boat's first start cell (row, col): its first leg's, else where the mission starts it."""
+    firsts: dict[int, tuple[int, int]] = {}
+    for leg in legs:
+        b = int(leg.get("boat", 0))
+        if b not in firsts and leg.get("start_cell") is not None:
+            firsts[b] = tuple(int(x) for x in leg["start_cell"])
+    out = []
+    for b, v in enumerate(config.fleet):
+        cell = firsts.get(b) or v.start_cell or config.start_cell
+        out.append(tuple(int(x) for x in (cell or (config.grid().rows // 2, config.grid().cols // 2))))
+    return out
+
+
+def _counterfactual(
+    config, field, summary: dict, rd, *, report: bool, boats: int = 1
+) -> tuple[float | None, float | None]:
+    """Lawnmower+GP (one boat), and a random walk through the run's own model + GP loop (a fleet:
+    one per boat, synchronous legs), over the run's legs (passt_mav.analysis.counterfactual);
+    stored in summary.json beside PASST and the model alone, and the report redrawn with them.
+    Returns their last legs' RMSE (lawnmower or None for a fleet, random walk)."""
+    from passt_mav.analysis.counterfactual import fleet_rounds, lawnmower_counterfactual, same_loop_counterfactual
     from passt_mav.loop.legstep import build_predictor
 
     legs = summary["legs"]
     r0, c0 = config.start_cell or (config.grid().rows // 2, config.grid().cols // 2)
-    cf = lawnmower_counterfactual(
-        field,
-        legs,
-        path_length=config.planner.path_length,
-        start_cell=(r0, c0),
-        noise_std=config.sensors.noise_std,
-        seed=config.seeds.sensor,
-        gp_seed=config.seeds.gp,
-    )
     predictor, _ = build_predictor(config.model, field, echo=lambda s: None)
-    walk = same_loop_counterfactual(config, field, predictor, legs, planner="random", start_cell=(r0, c0))
     s = rd.read_summary()
-    s.setdefault("rmse", {})["lawnmower"] = cf
-    s["rmse"]["random"] = walk
-    s["rmse"].setdefault("t", [x.get("t_end") for x in legs])
-    s["counterfactual"] = {
-        "lawnmower": cf,
-        "how": "offline: lawnmower legs of the same length, start and field-time span, "
-        "sampled from the true field with the mission's sensor noise, GP prior none",
-        "random": walk,
-        "how_random": "offline: random-walk legs of the same length, start and "
-        "field-time span through the run's own model + GP loop (same model, GP options, seeds), "
-        "sampled from the true field with the mission's sensor noise",
-    }
+    s.setdefault("rmse", {})
+    if boats > 1:
+        cf = None
+        starts = _fleet_starts(config, legs)
+        walk = same_loop_counterfactual(config, field, predictor, legs, planner="random", start_cells=starts)
+        s["rmse"]["random"] = walk
+        s["rmse"]["t_random"] = [t1 for _, t1 in fleet_rounds(legs)]
+        s["counterfactual"] = {
+            "random": walk,
+            "how_random": f"offline: {boats} random walks (keep-out rule) from the boats' first start cells, "
+            "synchronous legs of the run's moves per leg spanning each round of the boats' legs, through "
+            "the run's own model + GP loop (same model, GP options, seeds), all boats' samples in one "
+            "update per round, sampled from the true field with the mission's sensor noise",
+        }
+    else:
+        cf = lawnmower_counterfactual(
+            field,
+            legs,
+            path_length=config.planner.path_length,
+            start_cell=(r0, c0),
+            noise_std=config.sensors.noise_std,
+            seed=config.seeds.sensor,
+            gp_seed=config.seeds.gp,
+        )
+        walk = same_loop_counterfactual(config, field, predictor, legs, planner="random", start_cell=(r0, c0))
+        s["rmse"]["lawnmower"] = cf
+        s["rmse"]["random"] = walk
+        s["rmse"].setdefault("t", [x.get("t_end") for x in legs])
+        s["counterfactual"] = {
+            "lawnmower": cf,
+            "how": "offline: lawnmower legs of the same length, start and field-time span, "
+            "sampled from the true field with the mission's sensor noise, GP prior none",
+            "random": walk,
+            "how_random": "offline: random-walk legs of the same length, start and "
+            "field-time span through the run's own model + GP loop (same model, GP options, seeds), "
+            "sampled from the true field with the mission's sensor noise",
+        }
     rd.write_summary(s)
     summary.update(rmse=s["rmse"], counterfactual=s["counterfactual"])
     if report:

@@ -35,6 +35,7 @@ __all__ = [
     "KEEP_OUT_ROUNDS",
     "OfflineStep",
     "keep_out",
+    "plan_after",
     "plan_keeping_out",
     "same_step_clashes",
     "run_trials",
@@ -100,6 +101,26 @@ def plan_keeping_out(plan: Callable, taken: np.ndarray, conflicts: Callable, wha
     if conflicts(planned).any():
         raise PlannerError(f"{what} finds no path that keeps out of the other boats' way")
     return planned
+
+
+def plan_after(loop, start, t_start: float, dt: float, steps: int, earlier: list[LegPlan], what: str) -> LegPlan:
+    """A boat's leg planned by ``loop`` from ``start`` after the boats of ``earlier`` (their plans this
+    leg interval, the first one's forecast shared), under the keep-out rule with offline timing
+    (boats leave together, move in step: :func:`same_step_clashes`). ``t_start``/``dt``: field time
+    (s); ``steps``: snapshots the leg spans; ``what`` names the boat in the error."""
+    start = tuple(int(x) for x in start)
+    shape = loop.grid.shape
+    taken = np.zeros(shape, bool)
+    for p in earlier:
+        taken[p.path[:, 0], p.path[:, 1]] = True
+    taken[start] = False
+
+    def plan(taken=None, avoid=None):
+        return loop.plan_leg(
+            None, start, t_start, dt, steps=steps, forecast=earlier[0].forecast, taken=taken, avoid=avoid
+        )
+
+    return plan_keeping_out(plan, taken, lambda q: same_step_clashes(q.path, [p.path for p in earlier], shape), what)
 
 
 # -- batched forecast and planning ------------------------------------------------------------------
@@ -251,20 +272,7 @@ class OfflineStep:
 
     def _plan_boat(self, b: int, n: int, t_start: float, S: int, earlier: list[LegPlan]) -> LegPlan:
         """Boat ``n`` (> 0) of trial ``b`` planned after the boats before it, under the keep-out rule."""
-        lp, start, shape = self.loops[b], self.starts[b][n], self.field.grid.shape
-        taken = np.zeros(shape, bool)
-        for p in earlier:
-            taken[p.path[:, 0], p.path[:, 1]] = True
-        taken[start] = False
-
-        def plan(taken=None, avoid=None):
-            return lp.plan_leg(
-                None, start, t_start, self.field.dt, steps=S, forecast=earlier[0].forecast, taken=taken, avoid=avoid
-            )
-
-        return plan_keeping_out(
-            plan, taken, lambda q: same_step_clashes(q.path, [p.path for p in earlier], shape), f"boat {n}"
-        )
+        return plan_after(self.loops[b], self.starts[b][n], t_start, self.field.dt, S, earlier, f"boat {n}")
 
     def advance(self, k: int, S: int) -> list[tuple[dict, np.ndarray]]:
         """The leg interval of ``S`` snapshots from step ``k``: per trial (the leg's record, the estimate
