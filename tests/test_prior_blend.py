@@ -50,6 +50,20 @@ def _final(field, predictor, blend, seeds=range(3)):
     return float(np.mean(out))
 
 
+def _three_legs(field, predictor, blend: str) -> PasstLoop:
+    """A loop with ``prior_blend=blend`` after three random-walk legs of 5 snapshots from (10, 10)."""
+    from passt_mav.loop.passt import FieldSampler
+
+    loop = PasstLoop(predictor, field.grid, planner="random", path_length=25, steps_per_leg=5, prior_blend=blend)
+    state = field.data[0]
+    for k in range(3):
+        leg = loop.plan_leg(state, (10, 10), float(5 * k), 1.0, steps=5)
+        state = loop.update(
+            leg, FieldSampler(field, noise_std=0.02, steps_per_leg=5, seed=k).sample_path(leg.path, leg.t_start)
+        )
+    return loop
+
+
 @pytest.fixture(scope="module")
 def field():
     return make_field(T=61, R=20, C=20, vel=TRUE_VEL)
@@ -59,15 +73,7 @@ def test_a_right_model_keeps_its_weight(field):
     good = ShiftPredictor(TRUE_VEL)
     off, bma = _final(field, good, "off"), _final(field, good, "bma")
     assert bma <= 1.01 * off
-    loop = PasstLoop(good, field.grid, planner="random", path_length=25, steps_per_leg=5, prior_blend="bma")
-    state = field.data[0]
-    for k in range(3):
-        leg = loop.plan_leg(state, (10, 10), float(5 * k), 1.0, steps=5)
-        from passt_mav.loop.passt import FieldSampler
-
-        state = loop.update(
-            leg, FieldSampler(field, noise_std=0.02, steps_per_leg=5, seed=k).sample_path(leg.path, leg.t_start)
-        )
+    loop = _three_legs(field, good, "bma")
     assert loop.weights()[0] > 0.99  # the model (exact here) against persistence
     assert len(loop.blend_history_) == 3 and set(loop.blend_history_[0]["weights"]) == {"model", "persistence"}
 
@@ -85,3 +91,19 @@ def test_bad_settings_are_refused(field):
         PasstLoop(Persistence(), field.grid, prior_blend="mix")
     with pytest.raises(ReconstructionError, match="forgetting"):
         PasstLoop(Persistence(), field.grid, prior_blend="bma", forgetting=1.5)
+
+
+def test_select_takes_the_more_probable_prior_alone(field):
+    """prior_blend="select": the right model is never mixed with persistence (the estimate is the
+    model-only loop's to the bit while the model stays the more probable), and a model worse than
+    persistence is switched off (PASST within 5 % of persistence-prior PASST). The weights recorded
+    are the ones the prior used (one-hot), beside the posterior."""
+    good = ShiftPredictor(TRUE_VEL)
+    assert _final(field, good, "select") == _final(field, good, "off")
+    wrong = ShiftPredictor((-3 * TRUE_VEL[0], -3 * TRUE_VEL[1]))
+    sel, off, pers = _final(field, wrong, "select"), _final(field, wrong, "off"), _final(field, Persistence(), "off")
+    assert sel <= 1.05 * pers and sel < 0.8 * off, (sel, off, pers)
+    loop = _three_legs(field, wrong, "select")
+    last = loop.blend_history_[-1]
+    assert last["weights"] == {"model": 0.0, "persistence": 1.0}
+    assert last["posterior"]["persistence"] > 0.5 and np.array_equal(loop.mixing_weights(), [0.0, 1.0])

@@ -334,14 +334,15 @@ def test_a_run_replays_with_the_gp_bias_it_ran_with():
 
 
 def test_a_run_replays_with_the_prior_blend_it_ran_with():
-    """gp.prior_blend became the mission default "bma" (issue 27): a run whose recorded config has no
-    ``prior_blend``, or "off", replays with the model-only prior; one recorded with "bma" keeps it."""
+    """gp.prior_blend became the mission default "select" (issue 27): a run whose recorded config has no
+    ``prior_blend``, or "off", replays with the model-only prior; one recorded with a blend keeps it."""
     from passt_mav.analysis.replay import _as_recorded
     from passt_mav.mission.config import PRIOR_BLEND_DEFAULT, load_mission
 
     cfg = load_mission(Path(__file__).resolve().parents[1] / "missions" / "north_atlantic.yaml")
-    assert cfg.gp.prior_blend == "bma" == PRIOR_BLEND_DEFAULT
+    assert cfg.gp.prior_blend == "select" == PRIOR_BLEND_DEFAULT
     assert _as_recorded(cfg, {"config": {"gp": {"bias": True}}}).gp.prior_blend == "off"
     assert _as_recorded(cfg, {"config": {"gp": {"bias": True, "prior_blend": "off"}}}).gp.prior_blend == "off"
-    kept = _as_recorded(cfg, {"config": {"gp": {"bias": True, "prior_blend": "bma"}}})
-    assert kept is cfg and kept.gp.prior_blend == "bma"
+    kept = _as_recorded(cfg, {"config": {"gp": {"bias": True, "prior_blend": "select"}}})
+    assert kept is cfg and kept.gp.prior_blend == "select"
+    assert _as_recorded(cfg, {"config": {"gp": {"bias": True, "prior_blend": "bma"}}}).gp.prior_blend == "bma"

@@ -201,7 +201,7 @@ def _as_recorded(cfg, summary: dict | None):
     if not isinstance(recorded, dict) or not isinstance(recorded.get("gp"), dict):
         return cfg
     as_run = {"bias": bool(recorded["gp"].get("bias", False)), "prior_blend": recorded["gp"].get("prior_blend", "off")}
-    if as_run["prior_blend"] not in ("off", "bma"):
+    if as_run["prior_blend"] not in ("off", "bma", "select"):
         as_run["prior_blend"] = "off"
     changed = {k: v for k, v in as_run.items() if getattr(cfg.gp, k) != v}
     return cfg if not changed else cfg.model_copy(update={"gp": cfg.gp.model_copy(update=changed)})

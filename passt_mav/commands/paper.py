@@ -103,9 +103,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument(
         "--prior-blend",
-        choices=("off", "bma"),
+        choices=("off", "bma", "select"),
         default="off",
-        help="PASST's GP prior: the model's forecast (off, default) or the model and persistence weighed leg by leg (bma)",
+        help="PASST's GP prior: the model's forecast (off, default), the model and persistence weighed leg by leg (bma), or the more probable of the two alone (select)",
     )
     p.add_argument(
         "--scheduler", default=None, help="address of a Dask distributed scheduler: the campaign's batches run there"

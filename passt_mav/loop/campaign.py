@@ -319,7 +319,7 @@ class CampaignOptions:
     path) for the model-alone roll-out and every leg, in every worker; other predictors ignore it.
     background: snapshots of the model's roll-out whose anomaly covariance every residual GP
     (PASST's, and the baselines' with ``baseline_prior="forecast"``) adds to its stationary kernels
-    (:func:`passt_mav.reconstruction.model_background`); 0 = none. prior_blend: "off" or "bma"
+    (:func:`passt_mav.reconstruction.model_background`); 0 = none. prior_blend: "off", "bma" or "select"
     (:class:`passt_mav.loop.passt.PasstLoop`: every residual loop weighs the model's forecast against
     persistence leg by leg). ``methods`` is kept as a list.
     """

@@ -15,7 +15,7 @@ Example (``missions/north_atlantic.yaml``)::
     # vehicles: [{connect: "tcp:127.0.0.1:5760"}, {connect: "tcp:127.0.0.1:5770", start_cell: [5, 5]}]
     sensors: {u: CUR_U, v: CUR_V, noise_std: 0.02}
     geofence_margin_m: 500
-    gp: {prior: forecast, hyper: every_leg, background: 200, prior_blend: bma, forgetting: 0.8, options: {}}
+    gp: {prior: forecast, hyper: every_leg, background: 200, prior_blend: select, forgetting: 0.8, options: {}}
     seeds: {planner: 0, gp: 0, sensor: 0, field: 0}
 
 ``region`` is geographic (south/west/north/east/rows/cols: the lat/lon of the
@@ -296,12 +296,15 @@ class SensorConfig(_Strict):
 #: (information) on the three scenarios, and its coverage gate keeps the modes from samples bunched in a
 #: corner, which they made worse (README "A forecast that is off as a whole")
 BIAS_DEFAULT = True
-#: the mission default of ``gp.prior_blend``: ``bma``. With bias on it loses nothing where the model is the
-#: better prior (same loop, 6 trials, L = 50: static 0.0614 and oscillating 0.0957 either way, ocean 0.0541 ->
-#: 0.0533) and saves the run where it is not: a DMD fitted on the first half of a real series
-#: (gridded_current) and flown on the second ends at 0.41 m/s without it, worse than the DMD alone (0.22),
-#: and at persistence-prior PASST's 0.136 with it (README "A prior that knows when it is wrong")
-PRIOR_BLEND_DEFAULT = "bma"
+#: the mission default of ``gp.prior_blend``: ``select`` (the model's forecast or persistence, whichever the
+#: legs' samples make more probable). Where the model is the better prior it is the model-only loop to the bit
+#: (same loop, 6 trials, L = 50, bias on: static 0.0614, oscillating 0.0957, ocean 0.0541); where it is not,
+#: it switches: a DMD fitted on the first half of a real series (gridded_current) and flown on the second ends
+#: at 0.41 m/s without it, worse than the DMD alone (0.22), and at persistence-prior PASST's 0.136 with it.
+#: ``bma`` (the mixture) did as well there, but mixed 14 % persistence into the right model after the default
+#: demo's first leg and ended it at 0.0089 m/s against the model alone's 0.0071 (README "A prior that knows
+#: when it is wrong")
+PRIOR_BLEND_DEFAULT = "select"
 
 
 class GPConfig(_Strict):
@@ -309,9 +312,9 @@ class GPConfig(_Strict):
     (the paper's GP on samples alone); hyper-parameter schedule; ``background``: snapshots of
     the model's roll-out whose anomaly covariance the residual GP adds to its stationary
     kernels (0 = none; see :func:`passt_mav.reconstruction.model_background`); ``prior_blend``:
-    ``off`` (the model's forecast is the prior) or ``bma`` (the model and persistence weighed leg
-    by leg by how well each explains the leg's samples, memory ``forgetting``; see
-    :class:`passt_mav.loop.passt.PasstLoop`); ``bias``: the residual GP may shift the forecast by a
+    ``off`` (the model's forecast is the prior), ``bma`` (the model and persistence weighed leg
+    by leg by how well each explains the leg's samples, memory ``forgetting``) or ``select`` (the
+    more probable of the two alone; see :class:`passt_mav.loop.passt.PasstLoop`); ``bias``: the residual GP may shift the forecast by a
     constant and rescale its anomaly where a leg's samples show it (fitted only from samples that
     see half of the region, kept only when their likelihood pays for it;
     :class:`passt_mav.reconstruction.gp.GPReconstructor` ``bias``);
@@ -320,7 +323,7 @@ class GPConfig(_Strict):
     prior: Literal["forecast", "constant"] = "forecast"
     hyper: Literal["first_leg", "state", "every_leg"] = "every_leg"
     background: int = Field(default=DEFAULT_BACKGROUND, ge=0)
-    prior_blend: Literal["off", "bma"] = PRIOR_BLEND_DEFAULT
+    prior_blend: Literal["off", "bma", "select"] = PRIOR_BLEND_DEFAULT
     forgetting: float = Field(default=0.8, ge=0.0, le=1.0)
     bias: bool = BIAS_DEFAULT
 
