@@ -87,7 +87,7 @@ def _fly_rounds(loop, sampler, field, spans, state, t_state: float, starts) -> l
             plans.append(plan_after(loop, starts[n], float(t0), field.dt, steps, plans, f"boat {n}"))
         sampler.steps_per_leg = (t1 - t0) / field.dt
         parts = [sampler.sample_path(p.path, float(t0)) for p in plans]
-        samples = Samples(*(np.concatenate([getattr(x, f) for x in parts]) for f in ("t", "r", "c", "u", "v")))
+        samples = Samples.concat(parts)
         state = loop.update(plans[0], samples)
         t_state = float(t0) + steps * field.dt
         out.append(rmse(state, truth_at(field, float(t1))))

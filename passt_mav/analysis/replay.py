@@ -197,11 +197,13 @@ def _as_recorded(cfg, summary: dict | None):
     a default that changed since (both became mission defaults in issue 27) must not make an older run's
     replay diverge. A run whose recorded config lacks one ran before it was a mission default: ``bias``
     off, ``prior_blend`` "off"."""
+    from passt_mav.loop.passt import PRIOR_BLENDS
+
     recorded = (summary or {}).get("config")
     if not isinstance(recorded, dict) or not isinstance(recorded.get("gp"), dict):
         return cfg
     as_run = {"bias": bool(recorded["gp"].get("bias", False)), "prior_blend": recorded["gp"].get("prior_blend", "off")}
-    if as_run["prior_blend"] not in ("off", "bma", "select"):
+    if as_run["prior_blend"] not in PRIOR_BLENDS:
         as_run["prior_blend"] = "off"
     changed = {k: v for k, v in as_run.items() if getattr(cfg.gp, k) != v}
     return cfg if not changed else cfg.model_copy(update={"gp": cfg.gp.model_copy(update=changed)})

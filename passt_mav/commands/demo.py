@@ -526,7 +526,6 @@ def _counterfactual(
         cf = None
         starts = _fleet_starts(config, legs)
         walk = same_loop_counterfactual(config, field, predictor, legs, planner="random", start_cells=starts)
-        s["rmse"]["random"] = walk
         s["rmse"]["t_random"] = [t1 for _, t1 in fleet_rounds(legs)]
         s["counterfactual"] = {
             "random": walk,
@@ -547,7 +546,6 @@ def _counterfactual(
         )
         walk = same_loop_counterfactual(config, field, predictor, legs, planner="random", start_cell=(r0, c0))
         s["rmse"]["lawnmower"] = cf
-        s["rmse"]["random"] = walk
         s["rmse"].setdefault("t", [x.get("t_end") for x in legs])
         s["counterfactual"] = {
             "lawnmower": cf,
@@ -558,6 +556,7 @@ def _counterfactual(
             "field-time span through the run's own model + GP loop (same model, GP options, seeds), "
             "sampled from the true field with the mission's sensor noise",
         }
+    s["rmse"]["random"] = walk
     rd.write_summary(s)
     summary.update(rmse=s["rmse"], counterfactual=s["counterfactual"])
     if report:

@@ -298,7 +298,7 @@ class OfflineStep:
                 except PlannerError as exc:
                     raise PlannerError(f"leg at step {k}: {exc}") from None
             parts = [self.samplers[b].sample_path(p.path, p.t_start) for p in plans]
-            samples = Samples(*(np.concatenate([getattr(x, f) for x in parts]) for f in ("t", "r", "c", "u", "v")))
+            samples = Samples.concat(parts)
             est = np.array(lp.blend(plans[0].forecast)[1 : S + 1])  # before the update moves the blend's weights
             self.states[b] = lp.update(plans[0], samples) if S == self.options.steps_per_leg else est[S - 1]
             est[S - 1] = self.states[b]

@@ -92,6 +92,11 @@ class Samples:
         r, c = grid.latlon_to_fcell(np.asarray(lat, float), np.asarray(lon, float))
         return cls(t, r, c, u, v)
 
+    @classmethod
+    def concat(cls, parts) -> Samples:
+        """One set of the samples of ``parts`` (a fleet's boats in one leg interval), in order."""
+        return cls(*(np.concatenate([getattr(x, f) for x in parts]) for f in ("t", "r", "c", "u", "v")))
+
     def xy(self, grid) -> np.ndarray:
         """(n, 2) local east/north metres of the samples (the grid's frame)."""
         x, y = grid.latlon_to_xy(*grid.fcell_to_latlon(self.r, self.c))

@@ -314,8 +314,8 @@ class GPConfig(_Strict):
     kernels (0 = none; see :func:`passt_mav.reconstruction.model_background`); ``prior_blend``:
     ``off`` (the model's forecast is the prior), ``bma`` (the model and persistence weighed leg
     by leg by how well each explains the leg's samples, memory ``forgetting``) or ``select`` (the
-    more probable of the two alone; see :class:`passt_mav.loop.passt.PasstLoop`); ``bias``: the residual GP may shift the forecast by a
-    constant and rescale its anomaly where a leg's samples show it (fitted only from samples that
+    more probable of the two alone; see :class:`passt_mav.loop.passt.PasstLoop`); ``bias``: the
+    residual GP may shift the forecast by a constant and rescale its anomaly where a leg's samples show it (fitted only from samples that
     see half of the region, kept only when their likelihood pays for it;
     :class:`passt_mav.reconstruction.gp.GPReconstructor` ``bias``);
     GPReconstructor options."""
