@@ -42,12 +42,16 @@ ALLOWED = {
 }
 
 
-@pytest.mark.parametrize("baud", [57600, 19200])
-def test_two_legs_through_a_sik_like_radio(tmp_path, baud):
+# radio seeds whose loss sequences (one per direction, over that direction's frames) lose a frame within
+# the first 20 each way, so "the mission flew through loss both ways" holds however the frames interleave
+# in wall time (the controller sends ~130 frames; with seed=baud the vehicle's first lost frame was the
+# 106th and CI once saw none lost)
+@pytest.mark.parametrize("baud,seed", [(57600, 0), (19200, 1)])
+def test_two_legs_through_a_sik_like_radio(tmp_path, baud, seed):
     field = wave_field()
     cfg = mission(tmp_path, field, legs=2)
     rd = RunDir(tmp_path / "run").create()
-    radio = SimLinkConfig.radio(baud, seed=baud)
+    radio = SimLinkConfig.radio(baud, seed=seed)
     types: dict[str, int] = {}
     readbacks = []
     # link timeouts in wall seconds: 100 ms one way is 2 ms of wall time at 50x; 0.5 s leaves 12 s of sim time

@@ -132,7 +132,12 @@ class Link:
 
             self.mav.signing.timestamp = int(max(_time.time() - 1420070400, 0) * 1e5)
             self.mav.signing.allow_unsigned_callback = lambda _mav, msgid: msgid in UNSIGNED_OK
-        self._rng = random.Random((config.seed * 1_000_003 + self.index) & 0xFFFFFFFF)
+        # one generator per direction: each direction's losses are a fixed sequence over its own frames,
+        # whatever the interleaving of the two directions in wall time (a shared generator made "which
+        # frame is lost" depend on thread timing)
+        base = (config.seed * 1_000_003 + self.index) & 0xFFFFFFFF
+        self._rng_tx = random.Random(base)
+        self._rng_rx = random.Random(base ^ 0x5A5A5A5A)
         self._now = 0.0
         self._out: collections.deque[tuple[float, bytes]] = collections.deque()
         self._in: collections.deque[tuple[float, object]] = collections.deque()
@@ -170,7 +175,7 @@ class Link:
         if self.tlog is not None:
             self.tlog.write(t, frame)
         self.stats["tx_frames"] += 1
-        if self.is_down(t) or (self.config.loss > 0 and self._rng.random() < self.config.loss):
+        if self.is_down(t) or (self.config.loss > 0 and self._rng_tx.random() < self.config.loss):
             self.stats["tx_lost"] += 1
             return
         done = self._serialise(t, len(frame), self._tx_free)
@@ -212,7 +217,7 @@ class Link:
                 if m.get_type() == "BAD_DATA":
                     self.stats["rx_bad"] += 1
                     continue
-                if self.is_down(t) or (self.config.loss > 0 and self._rng.random() < self.config.loss):
+                if self.is_down(t) or (self.config.loss > 0 and self._rng_rx.random() < self.config.loss):
                     self.stats["rx_lost"] += 1
                     continue
                 if self.tlog is not None:  # what the vehicle really received (after the radio's losses)
