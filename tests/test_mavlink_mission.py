@@ -18,7 +18,7 @@ from pymavlink.dialects.v20 import ardupilotmega as M
 
 from passt_mav.errors import LinkTimeout, MissionRejected
 from passt_mav.mavlink import Link, MissionClient, with_home
-from passt_mav.mavlink.mission_client import rover_stored
+from passt_mav.mavlink.mission_client import rover_stored, to_msg
 from passt_mav.mission.items import MissionItem
 from vehicle_sim import LinkConfig as SimLinkConfig
 from vehicle_sim import SimConfig, Simulator
@@ -247,3 +247,51 @@ def test_wp_radius_goes_through_the_parameter_and_is_restored():
         assert sim.autopilot.params["WP_RADIUS"] == pytest.approx(2.0) and v.changed_params == {}
         with pytest.raises(LinkTimeout, match="ARMING_CHECK"):
             v.get_param("ARMING_CHECK", timeout=0.5)  # 4.7 has no such parameter: no answer at all
+
+
+def test_a_stale_error_ack_does_not_fail_the_read_back():
+    """ArduPilot answers an item that arrives while no upload runs with MISSION_ACK ERROR: the echo of an
+    upload's last item resent as its ACCEPTED crossed it. Landing in the read-back that follows (here the
+    stray item goes out just before MISSION_REQUEST_LIST, so the vehicle's ERROR precedes its COUNT), the
+    download asks again and reads the mission; a vehicle that keeps answering ERROR is still reported. Before
+    an upload's first request the echo is ignored too."""
+    with paced() as (_sim, link):
+        mc = MissionClient(link)
+        items = with_home(waypoints(OFFSETS[:3]))
+        mc.upload(items)
+        send = link.send
+        strays = []
+
+        def with_stray(m):
+            if m.get_type() == "MISSION_REQUEST_LIST" and not strays:
+                stray = to_msg(items[-1], link.target_system, link.target_component)
+                strays.append(stray)
+                send(stray)
+            send(m)
+
+        link.send = with_stray
+        got = mc.download()
+        assert strays and [(g.x_int, g.y_int) for g in got[1:]] == [(i.x_int, i.y_int) for i in items[1:]]
+
+        def always_stray(m):
+            if m.get_type() == "MISSION_REQUEST_LIST":
+                send(to_msg(items[-1], link.target_system, link.target_component))
+            else:
+                send(m)
+
+        link.send = always_stray
+        with pytest.raises(MissionRejected, match="MAV_MISSION_ERROR"):
+            mc.download()
+
+        # the same echo ahead of the next upload's first request: ignored there too
+        strays.clear()
+
+        def stray_before_count(m):
+            if m.get_type() == "MISSION_COUNT" and not strays:
+                strays.append(m)
+                send(to_msg(items[-1], link.target_system, link.target_component))
+            send(m)
+
+        link.send = stray_before_count
+        res = mc.upload(items)
+        assert strays and res.count == len(items)

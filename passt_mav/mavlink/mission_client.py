@@ -395,6 +395,7 @@ class MissionClient:
         with link.subscribe(("MISSION_COUNT", "MISSION_ITEM_INT", "MISSION_ACK")) as sub:
 
             def wait(pred, send, what):
+                error = None
                 for _ in range(self.retries + 1):
                     send()
                     end = min(time.monotonic() + self._t_item, deadline)
@@ -402,6 +403,13 @@ class MissionClient:
                         if not self._ours(m, mission_type):
                             continue
                         if m.get_type() == "MISSION_ACK":
+                            if m.type == M.MAV_MISSION_ERROR:
+                                # ArduPilot answers an item that arrives while no upload runs with
+                                # ERROR: the echo of our upload's last item, resent as its ACCEPTED
+                                # crossed it, can land in the read-back that follows. Asked again,
+                                # as after silence; reported if the vehicle keeps answering ERROR
+                                error = m.type
+                                break
                             if m.type != _ACCEPTED:
                                 raise self._reject(m.type, t0, f"while downloading ({what})")
                             continue
@@ -409,6 +417,8 @@ class MissionClient:
                             return m
                     if time.monotonic() >= deadline:
                         break
+                if error is not None:
+                    raise self._reject(error, t0, f"while downloading ({what})")
                 raise LinkTimeout(f"mission download: no {what}" + (" (link lost)" if link.lost else ""))
 
             cm = wait(
@@ -503,6 +513,7 @@ class _Upload:
         self.last_seq = -1  # last item requested and sent
         self.silent = 0  # consecutive silent periods
         self.last_resends = 0
+        self.stale_errors = 0  # ERROR acks ignored before the first request (see on_ack)
 
     def send_count(self) -> None:
         self.res.count_sends += 1
@@ -548,6 +559,12 @@ class _Upload:
             return None  # a duplicate item after a lost request: ArduPilot goes on with the transfer
         if result == M.MAV_MISSION_ERROR and self.last_seq == n - 1 and (self.last_resends or self.silent):
             return self._ack_lost(result)
+        if result == M.MAV_MISSION_ERROR and not self.requested and self.stale_errors < client.retries:
+            # ERROR answers an item that arrived while no upload ran; before the vehicle asked for any
+            # item of this transfer it answers an earlier one (our last item, resent as its ACCEPTED
+            # crossed it). Ignored a few times; a vehicle that keeps answering ERROR is reported
+            self.stale_errors += 1
+            return None
         if (
             result == M.MAV_MISSION_OPERATION_CANCELLED
             and self.requested
