@@ -390,6 +390,8 @@ def test_demo_run_exports(tmp_path, boats):
             "-m",
             "passt_mav.cli",
             "demo",
+            "--field",  # a geographic region (the default demo's wake is a metric one): the round trip
+            "builtin:ocean",  # through `data import --region S,W,N,E` below needs its bounds
             "--legs",
             "2",
             "--moves",

@@ -306,3 +306,33 @@ def test_lockstep_equals_serial_runs(field, hyper, background):
     np.testing.assert_allclose(lock[1].estimate, ser.estimate, atol=1e-6, rtol=0)
     with pytest.raises(PlannerError, match="seed"):
         run_offline_lockstep(field, None, start_cells=starts, seeds=seeds[:2], **kw)
+
+
+def test_prepare_does_the_first_legs_slow_work_before_the_vehicle_is_waited_for(field):
+    """PasstLoop.prepare (a live mission calls it before it waits for the vehicle): the background
+    roll-out and the information reward's prior are computed from the initial state, and the first
+    leg's plan then neither rolls the model out again nor refactors the prior; the plan is the one
+    a loop without prepare() makes."""
+    pred = ShiftPredictor(WRONG_VEL)
+
+    def loop():
+        return PasstLoop(
+            pred, field.grid, planner="information", reward="variance_reduction", path_length=10, background=40
+        )
+
+    a, b = loop(), loop()
+    state = field.data[0]
+    a.prepare(state)
+    assert a.gp.background is not None and a.background_steps == 40
+    info = a.information_model(state)
+    calls = []
+    pred_predict = pred.predict
+    pred.predict = lambda s, n: calls.append(n) or pred_predict(s, n)
+    try:
+        plan_a = a.plan_leg(state, (15, 15), 0.0, 1.0, steps=5)
+    finally:
+        del pred.predict
+    assert max(calls) <= 5 and a.info_ is info  # no 40-snapshot roll-out, the prior reused
+    plan_b = b.plan_leg(state, (15, 15), 0.0, 1.0, steps=5)
+    assert [tuple(c) for c in plan_a.path] == [tuple(c) for c in plan_b.path]
+    np.testing.assert_array_equal(a.gp.background, b.gp.background)

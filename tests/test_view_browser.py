@@ -129,13 +129,17 @@ def test_demo_three_boats_live_view_in_headless_chromium(tmp_path):
     shots.mkdir(parents=True, exist_ok=True)
     port, out = _free_port(), tmp_path / "demo.log"
     env = dict(os.environ, OMP_NUM_THREADS="1")
-    # boat 1's link goes down 3500 s of simulated time after the simulator's clock starts (in its first
-    # leg, ~1500..5500 s) for 900 s (6 s of wall time at 150x: well past the 2 s that make a link lost)
+    # the North Atlantic mission (6.6 km cells: a 2-move leg lasts ~1500..5500 s of simulated time; the
+    # default demo's 30 m cells would end the leg before the drop): boat 1's link goes down 3500 s of
+    # simulated time after the simulator's clock starts, for 900 s (6 s of wall time at 150x: well past
+    # the 2 s that make a link lost)
     cmd = [
         sys.executable,
         "-m",
         "passt_mav.cli",
         "demo",
+        "--field",
+        "builtin:ocean",
         "--boats",
         "3",
         "--legs",

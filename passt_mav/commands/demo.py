@@ -1,16 +1,22 @@
 """passt-mav demo: Embedded default: start the simulator, run a short PASST mission with the shipped model, write a report.
 
 What it does: starts ``vehicle-sim`` as a subprocess on loopback (a free TCP port)
-replaying the embedded synthetic North Atlantic field (``builtin:ocean``) with the
-boat at the centre of the start cell, the field clock at snapshot ``t0`` and
-``--speedup`` x real time; then runs ``missions/north_atlantic.yaml`` with demo
-overrides (``--legs`` legs of ``--moves`` moves, a 5 m/s boat so that a leg of
-~33 km takes ~1.9 h of simulated time, ~50 s of wall time at the default 150x) through the same code as ``passt-mav run``;
-writes the run directory and its report; stops the simulator.
+replaying the wake behind a cylinder that oscillates across the stream
+(``builtin:oscillating``, placed on the sea at 100x: 30 m cells, 0.5 m/s inflow) with
+the boat at the centre of the start cell, the field clock at snapshot ``t0`` and
+``--speedup`` x real time; then runs ``missions/oscillating_cylinder.yaml`` (5 legs of
+50 moves, the static-wake KNODE as the model: a process it never saw, so the model
+alone drifts and the samples must correct it) with a 5 m/s boat (a leg of ~1.6 km takes
+~400 s of simulated time, ~3 s of wall time at the default 150x) through the same code
+as ``passt-mav run``; sets random walks flown offline through the same model + GP loop
+over the same legs beside it; writes the run directory and its report; stops the
+simulator. ``--field builtin:ocean`` flies the North Atlantic mission instead
+(``missions/north_atlantic.yaml``; there the shipped model is within the sensor noise and
+sampling rightly leaves it alone), ``--field builtin:rtofs`` real NOAA currents.
 
 The boat speed (``WP_SPEED``) and the sensor rate are set on the simulator to
-match the mission (CUR_U/CUR_V every 5 simulated seconds: ~260 per 6.6 km cell,
-far more than the GP is given after thinning).
+match the mission (CUR_U/CUR_V every 5 simulated seconds, far more than the GP is
+given after thinning).
 """
 
 from __future__ import annotations
@@ -30,40 +36,55 @@ EXAMPLES = """examples:
     passt-mav demo --inject-link-drop 0:2500:900  # boat 0's link down for 900 simulated s (watch the alert)
 """
 
-#: the demo's changes to missions/north_atlantic.yaml
-DEMO_OVERRIDES = {"planner.path_length": 5, "legs": 3, "vehicle.speed_mps": 5.0, "vehicle.wp_radius_m": 25.0}
+#: the demo's changes to any base mission: a 5 m/s boat, 25 m waypoint radius
+DEMO_OVERRIDES = {"vehicle.speed_mps": 5.0, "vehicle.wp_radius_m": 25.0}
+#: legs and moves of a base mission other than the default (``--mission``, ``--field``; the default
+#: flies its mission's own 5 legs of 50 moves): 5 moves of the ocean's 6.6 km cells are ~33 km
+SHORT_LEGS = {"legs": 3, "planner.path_length": 5}
+#: the default base mission (missions/NAME.yaml)
+DEFAULT_MISSION = "oscillating_cylinder"
 SENSOR_RATE_HZ = 0.2
 
-#: missions/north_atlantic.yaml (used when the repository's missions/ folder is not beside the package)
+#: missions/oscillating_cylinder.yaml (used when the repository's missions/ folder is not beside the package;
+#: tests/test_demo.py checks that the two agree)
 _EMBEDDED = {
-    "name": "north_atlantic",
+    "name": "oscillating_cylinder",
     "region": {
-        "kind": "geographic",
-        "south": 39.360065,
-        "west": -64.24,
-        "north": 41.130714,
-        "east": -61.92004,
+        "kind": "metric",
+        "x0": 2.6,
+        "x1": 11.4,
+        "y0": -4.7,
+        "y1": 4.7,
         "rows": 30,
         "cols": 30,
+        "anchor_lat": 40.2,
+        "anchor_lon": -63.1,
+        "rotation_deg": 0.0,
+        "scale": 100.0,
     },
-    "field": {"source": "builtin:ocean", "velocity_scale": 1.0, "time_scale": 1.0},
-    "model": "builtin:ocean",
-    "planner": {"name": "information", "path_length": 10, "reward": "variance_reduction"},
-    "legs": 4,
-    "start_cell": [15, 15],
-    "t0": 0,
-    "vehicle": {"connect": "tcp:127.0.0.1:5760", "speed_mps": 2.0, "wp_radius_m": 10.0},
-    "sensors": {"u": "CUR_U", "v": "CUR_V", "noise_std": 0.02},
-    "geofence_margin_m": 500.0,
-    "gp": {"prior": "forecast", "hyper": "every_leg"},
-    "seeds": {"planner": 0, "gp": 0, "sensor": 0, "field": 0},
+    "field": {"source": "builtin:oscillating", "velocity_scale": 0.5, "time_scale": 200.0},
+    "model": "builtin:cylinder",
+    "planner": {"name": "information", "path_length": 50, "reward": "variance_reduction"},
+    "legs": 5,
+    "start_cell": [15, 2],
+    "t0": 300,
+    "steps_per_leg": 10,
+    "vehicle": {"connect": "tcp:127.0.0.1:5760", "speed_mps": 2.0, "wp_radius_m": 3.0},
+    "sensors": {"u": "CUR_U", "v": "CUR_V", "noise_std": 0.01},
+    "geofence_margin_m": 20.0,
+    "gp": {"prior": "forecast", "hyper": "every_leg", "background": 200, "bias": True, "prior_blend": "select"},
+    "seeds": {"planner": 0, "gp": 0, "sensor": 0},
 }
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--legs", type=int, default=DEMO_OVERRIDES["legs"], help="legs to fly (default 3)")
     p.add_argument(
-        "--moves", type=int, default=DEMO_OVERRIDES["planner.path_length"], help="grid moves per leg L (default 5)"
+        "--legs", type=int, help="legs to fly (default: the default mission's 5; 3 with --mission or --field)"
+    )
+    p.add_argument(
+        "--moves",
+        type=int,
+        help="grid moves per leg L (default: the default mission's 50; 5 with --mission or --field)",
     )
     p.add_argument("--out", help="run directory (default runs/demo-<UTC>)")
     p.add_argument(
@@ -75,7 +96,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "uploads are cancelled before the controller can answer",
     )
     p.add_argument("--model", help="predictor instead of the shipped KNODE (dmd, persistence, a .pt)")
-    p.add_argument("--mission", help="base mission file instead of missions/north_atlantic.yaml")
+    p.add_argument("--mission", help="base mission file instead of missions/oscillating_cylinder.yaml")
     p.add_argument(
         "--field",
         help="field to replay: builtin:NAME uses missions/NAME.yaml when it exists "
@@ -177,10 +198,12 @@ def fleet_starts(grid, land, start, boats: int, spacing: int = 6) -> list[tuple[
 def mission_mapping(mission: str | None = None, field: str | None = None) -> tuple[dict, str]:
     """(mapping, where from) of the demo's base mission.
 
-    ``mission``: a mission file; ``field``: ``builtin:NAME`` picks ``missions/NAME.yaml``
-    (``builtin:ocean``: north_atlantic) when it exists; any other field replaces the base
-    mission's ``field.source`` and region (from the field's grid), with persistence as the model
-    and the water cell nearest the centre as the start.
+    Neither: ``missions/oscillating_cylinder.yaml`` (:data:`DEFAULT_MISSION`; its embedded copy
+    when missions/ is not beside the package). ``mission``: a mission file; ``field``:
+    ``builtin:NAME`` picks ``missions/NAME.yaml`` (``builtin:ocean``: north_atlantic,
+    ``builtin:oscillating``: oscillating_cylinder) when it exists; any other field replaces
+    ``missions/north_atlantic.yaml``'s ``field.source`` and region (from the field's grid), with
+    persistence as the model and the water cell nearest the centre as the start.
     """
     from pathlib import Path
 
@@ -190,7 +213,9 @@ def mission_mapping(mission: str | None = None, field: str | None = None) -> tup
 
     missions = Path(__file__).resolve().parents[2] / "missions"
     if mission is None and field is not None and field.startswith("builtin:"):
-        name = {"ocean": "north_atlantic"}.get(field.split(":", 1)[1], field.split(":", 1)[1])
+        name = {"ocean": "north_atlantic", "oscillating": "oscillating_cylinder"}.get(
+            field.split(":", 1)[1], field.split(":", 1)[1]
+        )
         if (missions / f"{name}.yaml").exists():
             mission = str(missions / f"{name}.yaml")
     if mission is not None:
@@ -198,11 +223,16 @@ def mission_mapping(mission: str | None = None, field: str | None = None) -> tup
         if not f.exists():
             raise UserError(f"mission file not found: {f}")
         data, origin = yaml.safe_load(f.read_text()), str(f)
-    elif (missions / "north_atlantic.yaml").exists():
+    elif field is None and (missions / f"{DEFAULT_MISSION}.yaml").exists():
+        f = missions / f"{DEFAULT_MISSION}.yaml"
+        data, origin = yaml.safe_load(f.read_text()), str(f)
+    elif field is None:
+        data, origin = dict(_EMBEDDED), f"embedded copy of missions/{DEFAULT_MISSION}.yaml"
+    elif (missions / "north_atlantic.yaml").exists():  # another field on the ocean mission's settings
         f = missions / "north_atlantic.yaml"
         data, origin = yaml.safe_load(f.read_text()), str(f)
     else:
-        data, origin = dict(_EMBEDDED), "embedded copy of missions/north_atlantic.yaml"
+        raise UserError(f"--field {field}: missions/north_atlantic.yaml (its base mission) is not beside the package")
     src = (data.get("field") or {}).get("source") if isinstance(data.get("field"), dict) else data.get("field")
     if field is not None and field != src:
         import numpy as np
@@ -357,14 +387,20 @@ def _demo_mission(args: argparse.Namespace):
     from passt_mav.errors import UserError
     from passt_mav.mission.config import mission_overrides, validate_mission
 
-    if args.legs < 1 or args.moves < 1:
+    if (args.legs is not None and args.legs < 1) or (args.moves is not None and args.moves < 1):
         raise UserError("--legs and --moves must be >= 1")
     if not 1 <= args.boats <= 9:
         raise UserError("--boats must be 1..9")
     if args.speedup <= 0:
         raise UserError("--speedup must be positive")
     base, origin = mission_mapping(args.mission, args.field)
-    over = dict(DEMO_OVERRIDES, legs=args.legs, **{"planner.path_length": args.moves})
+    over = dict(DEMO_OVERRIDES)
+    if args.mission is not None or args.field is not None:
+        over.update(SHORT_LEGS)
+    if args.legs is not None:
+        over["legs"] = args.legs
+    if args.moves is not None:
+        over["planner.path_length"] = args.moves
     if args.model:
         over["model"] = args.model
     data = mission_overrides(base, over)
@@ -383,8 +419,8 @@ def _print_outcome(args, config, field, summary: dict, rd, viewed: bool, wall: f
     )
     legs = summary["legs"]
     if legs and legs[-1].get("rmse_passt") is not None:
-        lawn, walk = _counterfactual(config, field, summary, rd, report=not args.no_report, boats=args.boats)
-        print(final_line(legs[-1]["rmse_passt"], legs[-1]["rmse_model"], walk, lawn, boats=args.boats), flush=True)
+        lawn, walks = _counterfactual(config, field, summary, rd, report=not args.no_report, boats=args.boats)
+        print(final_line(legs[-1]["rmse_passt"], legs[-1]["rmse_model"], walks, lawn, boats=args.boats), flush=True)
         if args.boats > 1:
             print("boats: " + ", ".join(f"{b['boat']} {b['status']}" for b in summary.get("boats", [])), flush=True)
     if summary.get("report"):
@@ -462,16 +498,21 @@ def _as_fleet(data: dict, config, field, start, boats: int, port: int, origin: s
     return data, config, args
 
 
-def final_line(passt: float, model: float | None, walk: float | None, lawn: float | None, *, boats: int = 1) -> str:
+def final_line(
+    passt: float, model: float | None, walks: list[float | None] | None, lawn: float | None, *, boats: int = 1
+) -> str:
     """The demo's last line: PASST beside the model alone and the counterfactuals (a fleet: the
-    random walk only), and in words which of the comparisons holds (PASST below the model alone,
-    below the same-loop random walk)."""
+    random walks only; ``walks``: each walk's final RMSE, their mean compared), and in words which
+    of the comparisons holds (PASST below the model alone, below the same-loop random walks' mean)
+    and how many of the single walks PASST is below."""
 
     def f(x):
         return "n/a" if x is None else f"{x:.4f} m/s"
 
+    done = [w for w in (walks or []) if w is not None]
+    walk = sum(done) / len(done) if done and len(done) == len(walks) else None
     verdict = []
-    for name, x in (("the model alone", model), ("the random walk", walk)):
+    for name, x in (("the model alone", model), ("the random walks' mean", walk)):
         if x is not None:
             # within 0.5 % is "level": a difference in the 4th digit is not a result
             word = (
@@ -480,15 +521,20 @@ def final_line(passt: float, model: float | None, walk: float | None, lawn: floa
                 else ("below" if passt < x else "NOT below")
             )
             verdict.append(f"{word} {name}")
+    if walk is not None:
+        verdict[-1] += f" (below {sum(passt < w for w in done)} of the {len(done)} walks)"
+        spread = f"{walk:.4f} m/s (mean of {len(done)}, {min(done):.4f}-{max(done):.4f})"
+    else:
+        spread = "n/a"
     if boats > 1:
         what = (
             f"final RMSE: PASST ({boats} boats) {passt:.4f} m/s, model alone {f(model)}, {boats} random walks "
-            f"through the same model + GP {f(walk)} (offline counterfactual, synchronous legs over the same span)"
+            f"through the same model + GP {spread} (offline counterfactual, synchronous legs over the same span)"
         )
     else:
         what = (
             f"final RMSE: PASST {passt:.4f} m/s, model alone {f(model)}, random walk through the same model + GP "
-            f"{f(walk)}, lawnmower+GP {f(lawn)} (both offline counterfactuals over the same legs)"
+            f"{spread}, lawnmower+GP {f(lawn)} (both offline counterfactuals over the same legs)"
         )
     return what + (f"; PASST is {' and '.join(verdict)}" if verdict else "")
 
@@ -507,14 +553,19 @@ def _fleet_starts(config, legs: list[dict]) -> list[tuple[int, int]]:
     return out
 
 
+#: random walks set beside a demo run: one walk is one draw from a wide distribution
+RANDOM_WALKS = 5
+
+
 def _counterfactual(
     config, field, summary: dict, rd, *, report: bool, boats: int = 1
-) -> tuple[float | None, float | None]:
-    """Lawnmower+GP (one boat), and a random walk through the run's own model + GP loop (a fleet:
-    one per boat, synchronous legs), over the run's legs (passt_mav.analysis.counterfactual);
-    stored in summary.json beside PASST and the model alone, and the report redrawn with them.
-    Returns their last legs' RMSE (lawnmower or None for a fleet, random walk)."""
-    from passt_mav.analysis.counterfactual import fleet_rounds, lawnmower_counterfactual, same_loop_counterfactual
+) -> tuple[float | None, list[float | None]]:
+    """Lawnmower+GP (one boat), and :data:`RANDOM_WALKS` random walks through the run's own model +
+    GP loop (a fleet: one per boat, synchronous legs), over the run's legs
+    (passt_mav.analysis.counterfactual); stored in summary.json beside PASST and the model alone
+    (``rmse.random``: the walks' mean per leg; ``counterfactual.random_walks``: each), and the report
+    redrawn with them. Returns the lawnmower's last leg's RMSE (None for a fleet) and each walk's."""
+    from passt_mav.analysis.counterfactual import fleet_rounds, lawnmower_counterfactual, same_loop_counterfactuals
     from passt_mav.loop.legstep import build_predictor
 
     legs = summary["legs"]
@@ -522,18 +573,20 @@ def _counterfactual(
     predictor, _ = build_predictor(config.model, field, echo=lambda s: None)
     s = rd.read_summary()
     s.setdefault("rmse", {})
+    seeds = [config.seeds.planner + k for k in range(RANDOM_WALKS)]
+    walks_of = f"{RANDOM_WALKS} walks (planner seeds {seeds[0]}-{seeds[-1]}; the 'random' curve is their mean)"
     if boats > 1:
         cf = None
         starts = _fleet_starts(config, legs)
-        walk = same_loop_counterfactual(config, field, predictor, legs, planner="random", start_cells=starts)
+        walks = same_loop_counterfactuals(config, field, predictor, legs, seeds=seeds, start_cells=starts)
         s["rmse"]["t_random"] = [t1 for _, t1 in fleet_rounds(legs)]
-        s["counterfactual"] = {
-            "random": walk,
-            "how_random": f"offline: {boats} random walks (keep-out rule) from the boats' first start cells, "
+        how = (
+            f"offline: {boats} random walks (keep-out rule) from the boats' first start cells, "
             "synchronous legs of the run's moves per leg spanning each round of the boats' legs, through "
-            "the run's own model + GP loop (same model, GP options, seeds), all boats' samples in one "
-            "update per round, sampled from the true field with the mission's sensor noise",
-        }
+            "the run's own model + GP loop (same model, GP options, sensor and GP seeds), all boats' samples "
+            f"in one update per round, sampled from the true field with the mission's sensor noise; {walks_of}"
+        )
+        s["counterfactual"] = {}
     else:
         cf = lawnmower_counterfactual(
             field,
@@ -544,26 +597,32 @@ def _counterfactual(
             seed=config.seeds.sensor,
             gp_seed=config.seeds.gp,
         )
-        walk = same_loop_counterfactual(config, field, predictor, legs, planner="random", start_cell=(r0, c0))
+        walks = same_loop_counterfactuals(config, field, predictor, legs, seeds=seeds, start_cell=(r0, c0))
         s["rmse"]["lawnmower"] = cf
         s["rmse"].setdefault("t", [x.get("t_end") for x in legs])
+        how = (
+            "offline: random-walk legs of the same length, start and field-time span through the run's own "
+            "model + GP loop (same model, GP options, sensor and GP seeds), sampled from the true field with "
+            f"the mission's sensor noise; {walks_of}"
+        )
         s["counterfactual"] = {
             "lawnmower": cf,
             "how": "offline: lawnmower legs of the same length, start and field-time span, "
             "sampled from the true field with the mission's sensor noise, GP prior none",
-            "random": walk,
-            "how_random": "offline: random-walk legs of the same length, start and "
-            "field-time span through the run's own model + GP loop (same model, GP options, seeds), "
-            "sampled from the true field with the mission's sensor noise",
         }
-    s["rmse"]["random"] = walk
+    mean = [
+        None if any(w[j] is None for w in walks) else sum(w[j] for w in walks) / len(walks)
+        for j in range(len(walks[0]))
+    ]
+    s["counterfactual"].update(random=mean, random_walks=walks, how_random=how)
+    s["rmse"]["random"] = mean
     rd.write_summary(s)
     summary.update(rmse=s["rmse"], counterfactual=s["counterfactual"])
     if report:
         from passt_mav.analysis.report import write_report
 
         summary["report"] = str(write_report(rd.root))
-    return (cf[-1] if cf else None), (walk[-1] if walk else None)
+    return (cf[-1] if cf else None), [w[-1] if w else None for w in walks]
 
 
 def _wait_listening(port: int, proc, timeout: float) -> None:

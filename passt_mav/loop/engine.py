@@ -255,7 +255,7 @@ class OfflineStep:
                 modes = _background_or_none(self.predictor, state0, loops[0].background_steps, self.land)
                 cache[bkey] = (self.predictor, modes)
             for lp in loops:
-                lp.gp.background, lp._background_pending = cache[bkey][1], False
+                lp.set_background(cache[bkey][1])
 
     def _forecasts(self, S: int) -> tuple[list[np.ndarray], list[float]]:
         """Each trial's (S+1, 2, R, C) forecast from its state, and the seconds each cost."""

@@ -295,9 +295,14 @@ class PasstLoop:
             that knows when it is wrong. Each leg's samples are evidence about the forecasts
             that could have been used: the model's and persistence's (the leg's initial
             state held). Each is scored by the innovation likelihood of its residual at the
-            samples under the GP's own prior covariance as it stands before this leg's fit
-            (:meth:`GPReconstructor.innovation_loglik`: kernels, background, sensor noise;
-            one covariance for both, so the smaller and smoother residual wins); log weights add up
+            samples under the GP's stationary kernels and sensor noise as they stand before this
+            leg's fit (:meth:`GPReconstructor.innovation_loglik` with ``modes=False``; one
+            covariance for both, so the smaller and smoother residual wins). Not under the
+            background and offset modes: those are the flow's own variability, i.e. the error
+            persistence makes, and under them a larger persistence residual scored better than
+            a smaller model one (the oscillating wake's demo legs: at-sample RMS 0.21 against
+            the KNODE's 0.14 m/s scored -46.5 against -56.4 nats; "select" switched to
+            persistence and PASST ended at 0.34 m/s against 0.11 without the blend). Log weights add up
             leg by leg with a ``forgetting`` factor (``lw <- forgetting * lw + ll``: memory
             of about 1 / (1 - forgetting) legs), and the prior mean is the weighted mixture
             (Bayesian model averaging; Hoeting, Madigan, Raftery & Volinsky 1999, Statist.
@@ -453,7 +458,7 @@ class PasstLoop:
         would). Built once per leg and GP state (a fleet's boats share it)."""
         from passt_mav.planning import InformationModel
 
-        self._ensure_background(state)
+        self.ensure_background(state)
         key = (
             self.leg_index,
             id(getattr(self.gp, "kernels_", None)),
@@ -464,8 +469,26 @@ class PasstLoop:
             self._info_cache, self._info_key = InformationModel(F, d, noise, self.grid.shape), key
         return self._info_cache
 
-    def _ensure_background(self, state) -> None:
-        """The background modes from ``state`` (the first leg's initial state), once."""
+    def prepare(self, state) -> None:
+        """What the first leg's planning needs from its initial ``state`` alone, computed ahead: the
+        background roll-out and, for a reward that uses the reconstruction's prior, that prior's
+        factors (:meth:`information_model`, cached for the leg)."""
+        from passt_mav.planning.rewards import REWARDS_USING_PRIOR
+
+        self.ensure_background(state)
+        if self.reward_name in REWARDS_USING_PRIOR:
+            self.information_model(state)
+
+    def set_background(self, modes) -> None:
+        """Use ``modes`` (another loop's background from the same predictor and initial state, or
+        None) instead of rolling the model out again."""
+        self.gp.background, self._background_pending = modes, False
+
+    def ensure_background(self, state) -> None:
+        """The background modes from ``state`` (the first leg's initial state, (2, R, C) in the
+        field's units), once: a ``background``-snapshot roll-out of the predictor (seconds on a CPU).
+        A live mission calls it before it waits for the vehicle, so that the first leg's planning
+        does not keep a boat waiting while the current moves on (:meth:`prepare`)."""
         if self._background_pending:
             self._background_pending = False
             if self.gp.background is None:
@@ -490,7 +513,7 @@ class PasstLoop:
         xy = samples.xy(self.grid)
         t_end = leg.t_start + leg.dt * leg.steps
         st = samples.t if self.hyper != "state" else None  # a field fit is spatial only
-        self._ensure_background(fc[0])  # once, from the first leg's initial state
+        self.ensure_background(fc[0])  # once, from the first leg's initial state
         if self.prior_blend != "off":
             fc, f_at = self._weigh_priors(fc, traj, ts, samples, xy, st)
         if self.hyper == "every_leg" or not hasattr(self.gp, "kernels_"):
@@ -583,7 +606,9 @@ class PasstLoop:
         sub_t = None if st is None else np.asarray(st)[ok]
         ll = np.array(
             [
-                self.gp.innovation_loglik(xy[ok], samples.uv[ok] - a[ok], samples_t=sub_t) if ok.sum() >= 2 else 0.0
+                self.gp.innovation_loglik(xy[ok], samples.uv[ok] - a[ok], samples_t=sub_t, modes=False)
+                if ok.sum() >= 2
+                else 0.0
                 for a in ats
             ]
         )

@@ -321,7 +321,7 @@ class GPReconstructor:
 
     fit_hyperparameters = fit
 
-    def innovation_loglik(self, samples_xy, residual_uv, *, samples_t=None) -> float:
+    def innovation_loglik(self, samples_xy, residual_uv, *, samples_t=None, modes: bool = True) -> float:
         """Log density (nats, up to a constant shared by every residual at these positions) of
         residuals ``residual_uv`` (n, 2; m/s east/north) at ``samples_xy`` (n, 2 metres) under
         this GP's own prior covariance as it stands: the fitted kernels of u and v (sensor
@@ -331,7 +331,9 @@ class GPReconstructor:
         forecast scored at the same samples and is left out. How well a forecast explains a
         leg's samples, before the GP adapts to them: the score of
         :class:`passt_mav.loop.passt.PasstLoop`'s prior weighting. ``samples_t``: sample times for a
-        space-time kernel (only their differences matter)."""
+        space-time kernel (only their differences matter). ``modes=False``: the stationary kernels
+        and the noise alone, without the background and offset modes (how the loop scores its
+        candidate priors, see ``PasstLoop(prior_blend=...)``)."""
         X, Y = self._grid()
         xy = np.asarray(samples_xy, dtype=np.float64).reshape(-1, 2)
         r = np.asarray(residual_uv, dtype=np.float64).reshape(-1, 2)
@@ -342,7 +344,7 @@ class GPReconstructor:
             else None
         )
         kernels, fitted = self._prior_kernels(Bg)
-        Bg = self._with_offset_modes(Bg, X.size)
+        Bg = self._with_offset_modes(Bg, X.size) if modes else None
         if not fitted:
             inputs = xy
         else:

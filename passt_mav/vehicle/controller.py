@@ -492,6 +492,7 @@ class MissionController:
                 f"model {self.predictor_info.get('used')}, planner {self.config.planner.name}; "
                 "waiting for the vehicle"
             )
+            self.step.prepare(state)
             self._prepare_vehicle()
             for i in range(first, self.n_legs):
                 state, t_state = self._leg(i, state, t_state)

@@ -313,6 +313,7 @@ class FleetController:
             f"moves, model {self.predictor_info.get('used')}, planner {cfg.planner.name}; one shared estimate"
         )
         self.record.meta(live_meta(self.boats[0], len(self.boats)))
+        self.step.prepare(self.step.initial_state()[0])
         threads = [threading.Thread(target=b.fly, name=f"boat-{b.boat}", daemon=True) for b in self.boats]
         try:
             for t in threads:
