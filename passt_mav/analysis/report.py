@@ -556,7 +556,7 @@ def _series(xs) -> np.ndarray:
 _RMSE_CURVES = (
     ("passt", "o-", "PASST"),
     ("model", "s--", "model alone (from the true initial state)"),
-    ("random", "v-.", "random walk, same model + GP (counterfactual, offline)"),
+    ("random", "v-.", "random walk(s), same model + GP (counterfactual, offline; several: their mean)"),
     ("lawnmower", "^:", "lawnmower+GP (counterfactual, offline)"),
 )
 
