@@ -50,18 +50,21 @@ def _final(field, predictor, blend, seeds=range(3)):
     return float(np.mean(out))
 
 
-def _three_legs(field, predictor, blend: str) -> PasstLoop:
-    """A loop with ``prior_blend=blend`` after three random-walk legs of 5 snapshots from (10, 10)."""
+def _legs(field, predictor, blend: str, n: int = 3, *, seed: int = 0, **kw) -> tuple[PasstLoop, object]:
+    """(loop, last leg's samples): a loop with ``prior_blend=blend`` (``kw``: more PasstLoop options)
+    after ``n`` random-walk legs of 5 snapshots from (10, 10); leg k's sensor seed is k + 10 * seed."""
     from passt_mav.loop.passt import FieldSampler
 
-    loop = PasstLoop(predictor, field.grid, planner="random", path_length=25, steps_per_leg=5, prior_blend=blend)
-    state = field.data[0]
-    for k in range(3):
+    loop = PasstLoop(
+        predictor, field.grid, planner="random", path_length=25, steps_per_leg=5, prior_blend=blend, seed=seed, **kw
+    )
+    state, samples = field.data[0], None
+    for k in range(n):
         leg = loop.plan_leg(state, (10, 10), float(5 * k), 1.0, steps=5)
-        state = loop.update(
-            leg, FieldSampler(field, noise_std=0.02, steps_per_leg=5, seed=k).sample_path(leg.path, leg.t_start)
-        )
-    return loop
+        sampler = FieldSampler(field, noise_std=0.02, steps_per_leg=5, seed=k + 10 * seed)
+        samples = sampler.sample_path(leg.path, leg.t_start)
+        state = loop.update(leg, samples)
+    return loop, samples
 
 
 @pytest.fixture(scope="module")
@@ -73,7 +76,7 @@ def test_a_right_model_keeps_its_weight(field):
     good = ShiftPredictor(TRUE_VEL)
     off, bma = _final(field, good, "off"), _final(field, good, "bma")
     assert bma <= 1.01 * off
-    loop = _three_legs(field, good, "bma")
+    loop, _ = _legs(field, good, "bma")
     assert loop.weights()[0] > 0.99  # the model (exact here) against persistence
     assert len(loop.blend_history_) == 3 and set(loop.blend_history_[0]["weights"]) == {"model", "persistence"}
 
@@ -103,7 +106,7 @@ def test_select_takes_the_more_probable_prior_alone(field):
     wrong = ShiftPredictor((-3 * TRUE_VEL[0], -3 * TRUE_VEL[1]))
     sel, off, pers = _final(field, wrong, "select"), _final(field, wrong, "off"), _final(field, Persistence(), "off")
     assert sel <= 1.05 * pers and sel < 0.8 * off, (sel, off, pers)
-    loop = _three_legs(field, wrong, "select")
+    loop, _ = _legs(field, wrong, "select")
     last = loop.blend_history_[-1]
     assert last["weights"] == {"model": 0.0, "persistence": 1.0}
     assert last["posterior"]["persistence"] > 0.5 and np.array_equal(loop.mixing_weights(), [0.0, 1.0])
@@ -117,27 +120,9 @@ def test_background_modes_do_not_score_persistence_up(field):
     modes on: its score beats persistence's by > 10 nats on every leg (measured 17-63 on 3 seeds x
     6 legs; scored with the modes, 0.5-6.3, and on the oscillating wake's demo legs persistence
     won with a residual of 0.21 m/s against the KNODE's 0.14 and PASST ended at 0.34 against 0.11)."""
-    from passt_mav.loop.passt import FieldSampler
-
     half = ShiftPredictor((0.5 * TRUE_VEL[0], 0.5 * TRUE_VEL[1]))
     for s in range(3):
-        loop = PasstLoop(
-            half,
-            field.grid,
-            planner="random",
-            path_length=25,
-            steps_per_leg=5,
-            prior_blend="select",
-            background=40,
-            seed=s,
-        )
-        state = field.data[0]
-        for k in range(6):
-            leg = loop.plan_leg(state, (10, 10), float(5 * k), 1.0, steps=5)
-            samples = FieldSampler(field, noise_std=0.02, steps_per_leg=5, seed=k + 10 * s).sample_path(
-                leg.path, leg.t_start
-            )
-            state = loop.update(leg, samples)
+        loop, samples = _legs(field, half, "select", 6, seed=s, background=40)
         assert loop.gp.background is not None
         margins = [h["log_likelihood"]["model"] - h["log_likelihood"]["persistence"] for h in loop.blend_history_]
         assert min(margins) > 10.0, margins
