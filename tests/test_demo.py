@@ -89,3 +89,15 @@ def test_final_line_sets_the_run_beside_the_walks_mean():
     assert "NOT below the random walks' mean (below 1 of the 3 walks)" in line and "3 random walks" in line
     # a walk without a final figure: no mean, no verdict on the walks (nor on a missing model alone)
     assert "GP n/a" in final_line(0.1, None, [0.1, None], None) and "PASST is" not in final_line(0.1, None, None, None)
+
+
+def test_the_default_speed_up_keeps_a_wall_second_under_a_snapshot():
+    """150x, or less where snapshots are short (a wall second of planning is at most 0.625 snapshot):
+    the oscillating wake's 80 s snapshots 50x, the ocean's hourly ones 150x."""
+    from passt_mav.commands.demo import _demo_mission, default_speedup
+    from passt_mav.fields.datasets import mission_field
+
+    _, cfg, _, _ = _demo_mission(_args())
+    f = mission_field(cfg)
+    assert float(f.dt) * cfg.field.time_scale == pytest.approx(80.0)
+    assert default_speedup(80.0) == 50.0 and default_speedup(3600.0) == 150.0 and default_speedup(0.5) == 1.0
