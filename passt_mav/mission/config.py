@@ -301,9 +301,12 @@ BIAS_DEFAULT = True
 #: (same loop, 6 trials, L = 50, bias on: static 0.0614, oscillating 0.0957, ocean 0.0541); where it is not,
 #: it switches: a DMD fitted on the first half of a real series (gridded_current) and flown on the second ends
 #: at 0.41 m/s without it, worse than the DMD alone (0.22), and at persistence-prior PASST's 0.136 with it.
-#: ``bma`` (the mixture) did as well there, but mixed 14 % persistence into the right model after the default
-#: demo's first leg and ended it at 0.0089 m/s against the model alone's 0.0071 (README "A prior that knows
-#: when it is wrong")
+#: ``bma`` (the mixture) did as well there, but mixed 14 % persistence into the right model after the North
+#: Atlantic demo's first leg and ended it at 0.0089 m/s against the model alone's 0.0071. The candidates are
+#: scored without the GP's background modes (scored with them, select switched the oscillating wake's demo
+#: legs to persistence: 0.34 m/s against 0.12); re-measured then: the three scenarios unchanged, held-out
+#: gridded_current 0.1496 with the DMD's background (persistence-prior PASST 0.1343), RTOFS 0.1415 against
+#: 0.1346 without a blend (README "A prior that knows when it is wrong")
 PRIOR_BLEND_DEFAULT = "select"
 
 
