@@ -119,7 +119,7 @@ def test_background_modes_do_not_score_persistence_up(field):
     model with half the true drift (far better than persistence over the field) with background
     modes on: its score beats persistence's by > 10 nats on every leg (measured 17-63 on 3 seeds x
     6 legs; scored with the modes, 0.5-6.3, and on the oscillating wake's demo legs persistence
-    won with a residual of 0.21 m/s against the KNODE's 0.14 and PASST ended at 0.34 against 0.11)."""
+    won with a residual of 0.21 against the KNODE's 0.14 (wake units) and PASST ended at 0.34 against 0.12)."""
     half = ShiftPredictor((0.5 * TRUE_VEL[0], 0.5 * TRUE_VEL[1]))
     for s in range(3):
         loop, samples = _legs(field, half, "select", 6, seed=s, background=40)

@@ -277,7 +277,7 @@ def default_speedup(snapshot_s: float) -> float:
     :data:`MAX_SPEEDUP`, or less so that one wall second is at most :data:`SNAPSHOTS_PER_WALL_S` of a
     snapshot. The controller plans and reconstructs in wall time while the simulated field runs on:
     on the oscillating wake (80 s snapshots) at 150x, with a busy second core, its legs started
-    5-7 time units late and PASST ended above the model alone (0.183 vs 0.158 m/s); at 50x it ended
+    5-7 time units late and PASST ended above the model alone (0.183 vs 0.158, wake units); at 50x it ended
     below both the model alone and the random walks (0.104 vs 0.147 and 0.147). The ocean's hourly
     snapshots keep 150x."""
     return float(min(MAX_SPEEDUP, max(1.0, round(SNAPSHOTS_PER_WALL_S * float(snapshot_s)))))
@@ -440,7 +440,17 @@ def _print_outcome(args, config, field, summary: dict, rd, viewed: bool, wall: f
     legs = summary["legs"]
     if legs and legs[-1].get("rmse_passt") is not None:
         lawn, walks = _counterfactual(config, field, summary, rd, report=not args.no_report, boats=args.boats)
-        print(final_line(legs[-1]["rmse_passt"], legs[-1]["rmse_model"], walks, lawn, boats=args.boats), flush=True)
+        # the run's RMSEs are in the field's velocity units (the wake's: inflow = 1); velocity_scale is
+        # m/s per unit (the wake 0.5, the ocean and RTOFS 1)
+        vs = float(config.field.velocity_scale)
+
+        def ms(x):
+            return None if x is None else float(x) * vs
+
+        line = final_line(
+            ms(legs[-1]["rmse_passt"]), ms(legs[-1]["rmse_model"]), [ms(w) for w in walks], ms(lawn), boats=args.boats
+        )
+        print(line, flush=True)
         if args.boats > 1:
             print("boats: " + ", ".join(f"{b['boat']} {b['status']}" for b in summary.get("boats", [])), flush=True)
     if summary.get("report"):
@@ -521,7 +531,7 @@ def _as_fleet(data: dict, config, field, start, boats: int, port: int, origin: s
 def final_line(
     passt: float, model: float | None, walks: list[float | None] | None, lawn: float | None, *, boats: int = 1
 ) -> str:
-    """The demo's last line: PASST beside the model alone and the counterfactuals (a fleet: the
+    """The demo's last line (RMSE in m/s): PASST beside the model alone and the counterfactuals (a fleet: the
     random walks only; ``walks``: each walk's final RMSE, their mean compared), and in words which
     of the comparisons holds (PASST below the model alone, below the same-loop random walks' mean)
     and how many of the single walks PASST is below."""

@@ -301,8 +301,8 @@ class PasstLoop:
             background and offset modes: those are the flow's own variability, i.e. the error
             persistence makes, and under them a larger persistence residual scored better than
             a smaller model one (the oscillating wake's demo legs: at-sample RMS 0.21 against
-            the KNODE's 0.14 m/s scored -46.5 against -56.4 nats; "select" switched to
-            persistence and PASST ended at 0.34 m/s against 0.11 without the blend). Log weights add up
+            the KNODE's 0.14, wake units, scored -46.5 against -56.4 nats; "select" switched to
+            persistence and PASST ended at 0.34 against 0.12 without the blend). Log weights add up
             leg by leg with a ``forgetting`` factor (``lw <- forgetting * lw + ll``: memory
             of about 1 / (1 - forgetting) legs), and the prior mean is the weighted mixture
             (Bayesian model averaging; Hoeting, Madigan, Raftery & Volinsky 1999, Statist.

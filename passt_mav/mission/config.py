@@ -304,7 +304,7 @@ BIAS_DEFAULT = True
 #: ``bma`` (the mixture) did as well there, but mixed 14 % persistence into the right model after the North
 #: Atlantic demo's first leg and ended it at 0.0089 m/s against the model alone's 0.0071. The candidates are
 #: scored without the GP's background modes (scored with them, select switched the oscillating wake's demo
-#: legs to persistence: 0.34 m/s against 0.12); re-measured then: the three scenarios unchanged, held-out
+#: legs to persistence: 0.34 against 0.12 in the wake's units); re-measured then: the three scenarios unchanged, held-out
 #: gridded_current 0.1496 with the DMD's background (persistence-prior PASST 0.1343), RTOFS 0.1415 against
 #: 0.1346 without a blend (README "A prior that knows when it is wrong")
 PRIOR_BLEND_DEFAULT = "select"
