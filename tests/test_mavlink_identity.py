@@ -87,7 +87,8 @@ def test_through_a_router_replies_to_qgc_are_not_ours_and_ours_not_qgcs():
     read back five missions. Every one of ours is verified (read-back = what we sent; with both sides
     speaking as 255/190 our upload is DENIED at once, as the issue's QGC downloads timed out), and every
     item QGC downloads is the item of that seq of one of our missions. (A download may mix two of them: the
-    vehicle keeps no download state, so our upload can land between QGC's item requests, as on ArduPilot.)"""
+    vehicle keeps no download state, so our upload can land between QGC's item requests, as on ArduPilot;
+    and after the vehicle cancelled one of our uploads it may hold only the items stored before.)"""
     sim = Simulator(None, home=HOME, config=SimConfig.fast())
     router = Router(sim)
     link, wire = _link(sim, router.port())
@@ -117,8 +118,14 @@ def test_through_a_router_replies_to_qgc_are_not_ours_and_ours_not_qgcs():
     assert wire.ids == {OURS}
     whole = [g for g in got if isinstance(g, list)]
     assert len(whole) >= 3, [type(g).__name__ if not isinstance(g, list) else len(g) for g in got]
+    # the vehicle cancelled one of our uploads half-way: its 8 s transfer timeout runs on the simulated
+    # clock, which QGC's client advances as fast as its thread runs while ours may have no CPU (CI, a
+    # loaded two-core machine); ArduPilot keeps the partial list, and our client restarts the transfer
+    cancelled = any("Mission upload timeout" in t for _, _, t in list(link.texts))
     for g in whole:
-        assert len(g) in (1, 4), len(g)  # home only (before our first upload), or home + our 3 items
+        # home only (before our first upload), or home + our 3 items; after a cancel, home + the items
+        # stored before it
+        assert len(g) in (1, 4) or (cancelled and 1 < len(g) < 4), (len(g), cancelled)
         for m in g[1:]:
             assert any(rover_stored(_item(m)).same_as(rover_stored(items[m.seq])) for items in sent), m
 
