@@ -55,9 +55,12 @@ def lawnmower_counterfactual(
 def _fly_legs(loop, sampler, field, legs: list[dict], state, t_state: float, start_cell) -> list[float | None]:
     """Fly ``legs`` (their field-time spans) offline with ``loop`` from ``state`` at ``t_state``, one
     boat from ``start_cell``: :func:`_fly_rounds` with one boat."""
-    return _fly_rounds(
-        loop, sampler, field, [(x.get("t_start"), x.get("t_end")) for x in legs], state, t_state, [start_cell]
-    )
+    return _fly_rounds(loop, sampler, field, _leg_spans(legs), state, t_state, [start_cell])
+
+
+def _leg_spans(legs: list[dict]) -> list[tuple[float | None, float | None]]:
+    """(t_start, t_end) of each leg record (field time; None where not recorded)."""
+    return [(x.get("t_start"), x.get("t_end")) for x in legs]
 
 
 def _fly_rounds(loop, sampler, field, spans, state, t_state: float, starts) -> list[float | None]:
@@ -168,6 +171,12 @@ def same_loop_counterfactuals(
     from passt_mav.loop.passt import FieldSampler
 
     land = field.land_mask
+    t_state = float(field.times[config.t0])
+    if start_cells is not None:  # a fleet: its legs as synchronous intervals, all boats' samples in one update
+        spans, starts = fleet_rounds(legs), start_cells
+    else:
+        spans = _leg_spans(legs)
+        starts = [start_cell or config.start_cell or (field.grid.rows // 2, field.grid.cols // 2)]
     out, first = [], None
     for seed in seeds:
         cfg = config.model_copy(
@@ -189,10 +198,5 @@ def same_loop_counterfactuals(
         )
         state = np.array(field.data[config.t0], dtype=np.float32)
         state[:, land] = np.nan
-        t_state = float(field.times[config.t0])
-        if start_cells is not None:  # a fleet: its legs as synchronous intervals, all boats' samples in one update
-            out.append(_fly_rounds(loop, sampler, field, fleet_rounds(legs), state, t_state, start_cells))
-        else:
-            start = start_cell or config.start_cell or (field.grid.rows // 2, field.grid.cols // 2)
-            out.append(_fly_legs(loop, sampler, field, legs, state, t_state, start))
+        out.append(_fly_rounds(loop, sampler, field, spans, state, t_state, starts))
     return out
