@@ -10,6 +10,7 @@ when it keeps replacing it, the controller stops in HOLD). Everything runs in lo
 
 from __future__ import annotations
 
+import contextlib
 import threading
 import time
 
@@ -29,6 +30,10 @@ QGC = (255, 190)
 OURS = (link_mod.DEFAULT_SOURCE_SYSTEM, link_mod.DEFAULT_SOURCE_COMPONENT)
 
 
+class _Stopped(Exception):
+    """The test is over: a client following another's clock stops waiting."""
+
+
 class QgcClient(SimClient):
     """A ground station like QGroundControl (255/190) on its own endpoint: it ignores replies addressed to
     another system/component (so it can share a router with us)."""
@@ -39,6 +44,30 @@ class QgcClient(SimClient):
             self.ep.close()
             self.ep = ep
             self.mav.file = ep
+
+    def follow_clock(self, stop: threading.Event) -> None:
+        """Let another client drive the simulated clock: :meth:`wait` polls without stepping the
+        simulator, and raises :class:`_Stopped` once ``stop`` is set (the clock stands still then). Two clients stepping one clock race
+        each other: QGC's thread could run the vehicle's 8 s transfer timeout out while ours had no CPU."""
+        self._stop = stop
+
+    def wait(self, types, cond=None, timeout: float = 5.0, dt: float | None = None):
+        stop = getattr(self, "_stop", None)
+        if stop is None:
+            return super().wait(types, cond, timeout, dt)
+        if isinstance(types, str):
+            types = (types,)
+        end = self.sim.t + timeout
+        while not stop.is_set():
+            self.pump()
+            while self.queue:
+                m = self.queue.popleft()
+                if m.get_type() in types and (cond is None or cond(m)):
+                    return m
+            if self.sim.t >= end:
+                return None
+            time.sleep(0.001)  # our link's reader steps the simulator
+        raise _Stopped
 
     def pump(self) -> None:
         super().pump()
@@ -88,18 +117,22 @@ def test_through_a_router_replies_to_qgc_are_not_ours_and_ours_not_qgcs():
     speaking as 255/190 our upload is DENIED at once, as the issue's QGC downloads timed out), and every
     item QGC downloads is the item of that seq of one of our missions. (A download may mix two of them: the
     vehicle keeps no download state, so our upload can land between QGC's item requests, as on ArduPilot;
-    and after the vehicle cancelled one of our uploads it may hold only the items stored before.)"""
+    and after the vehicle cancelled one of our uploads it may hold only the items stored before.)
+    One clock: our link's reader steps the simulator and QGC follows it (QGC stepping it too raced our
+    thread: the vehicle's transfer timeout could run out in QGC's steps while ours had no CPU)."""
     sim = Simulator(None, home=HOME, config=SimConfig.fast())
     router = Router(sim)
     link, wire = _link(sim, router.port())
     qgc = QgcClient(sim, router.port())
     stop = threading.Event()
+    qgc.follow_clock(stop)  # one clock, driven by our link's reader only
     got: list = []
 
     def qgc_loop():
-        while not stop.is_set():
-            qgc.heartbeat()
-            got.append(qgc.download(timeout=5.0, item_timeout=0.5))
+        with contextlib.suppress(_Stopped):
+            while not stop.is_set():
+                qgc.heartbeat()
+                got.append(qgc.download(timeout=5.0, item_timeout=0.5))
 
     th = threading.Thread(target=qgc_loop, daemon=True)
     th.start()
@@ -111,6 +144,11 @@ def test_through_a_router_replies_to_qgc_are_not_ours_and_ours_not_qgcs():
             back = mc.upload_verified(items)
             assert [rover_stored(a).same_as(b) for a, b in zip(items[1:], back[1:])] == [True] * 3
             sent.append(items)
+            # ArduPilot DENIES a download while an upload runs, and ours come back to back: leave QGC 2
+            # simulated seconds (our reader steps the clock) to read whole lists between them too
+            t, wall = sim.t, time.monotonic() + 60
+            while sim.t - t < 2.0 and time.monotonic() < wall:
+                time.sleep(0.005)
     finally:
         stop.set()
         th.join(timeout=30)
@@ -119,7 +157,7 @@ def test_through_a_router_replies_to_qgc_are_not_ours_and_ours_not_qgcs():
     whole = [g for g in got if isinstance(g, list)]
     assert len(whole) >= 3, [type(g).__name__ if not isinstance(g, list) else len(g) for g in got]
     # the vehicle cancelled one of our uploads half-way: its 8 s transfer timeout runs on the simulated
-    # clock, which QGC's client advances as fast as its thread runs while ours may have no CPU (CI, a
+    # clock, which our link's reader advances while the thread sending the items may have no CPU (CI, a
     # loaded two-core machine); ArduPilot keeps the partial list, and our client restarts the transfer
     cancelled = any("Mission upload timeout" in t for _, _, t in list(link.texts))
     for g in whole:
