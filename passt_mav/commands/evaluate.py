@@ -129,6 +129,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="the residual GP may add a constant offset over the region (u, v), kept only where the samples' likelihood pays for it (GPReconstructor bias)",
     )
     p.add_argument(
+        "--gp-nugget",
+        choices=("state", "noise"),
+        default="state",
+        help="the white variance the residual GP fits above the sensor's: the field's grid-scale error, which a sample corrects in its own cell (state, default), or measurement noise (noise, the reading before 2026-11-27)",
+    )
+    p.add_argument(
         "--boats",
         type=int,
         default=1,
@@ -342,6 +348,7 @@ def _campaign(args: argparse.Namespace, field, predictor, lengths: list[int]) ->
         background=args.background,
         prior_blend=args.prior_blend,
         gp_bias=args.gp_bias,
+        gp_nugget=args.gp_nugget,
     )
     summary["config"].update(
         data=args.data,

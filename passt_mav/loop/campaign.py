@@ -321,7 +321,8 @@ class CampaignOptions:
     (PASST's, and the baselines' with ``baseline_prior="forecast"``) adds to its stationary kernels
     (:func:`passt_mav.reconstruction.model_background`); 0 = none. prior_blend: "off", "bma" or "select"
     (:class:`passt_mav.loop.passt.PasstLoop`: every residual loop weighs the model's forecast against
-    persistence leg by leg). ``methods`` is kept as a list.
+    persistence leg by leg). gp_bias / gp_nugget: the residual GPs' ``bias`` and ``nugget``
+    (:class:`passt_mav.reconstruction.GPReconstructor`). ``methods`` is kept as a list.
     """
 
     path_lengths: tuple = (25, 50, 75, 100, 150, 200)
@@ -351,6 +352,7 @@ class CampaignOptions:
     background: int = 0
     prior_blend: str = "off"
     gp_bias: bool = False
+    gp_nugget: str = "state"
 
     def __post_init__(self) -> None:
         self.methods = list(self.methods)
@@ -409,7 +411,11 @@ def _campaign_cfg(o: CampaignOptions, steps: int) -> dict:
     cfg = {k: getattr(o, k) for k in _TASK_OPTIONS}
     cfg.update(
         steps=steps,
-        gp_kw={"solver": o.gp_solver, **({"bias": True} if o.gp_bias else {})},
+        gp_kw={
+            "solver": o.gp_solver,
+            **({"bias": True} if o.gp_bias else {}),
+            **({"nugget": o.gp_nugget} if o.gp_nugget != "state" else {}),
+        },
         keep_paths=bool(o.keep_trials),
         fast_predict=bool(o.fast_predict),
         background=int(o.background),

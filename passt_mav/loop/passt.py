@@ -541,7 +541,8 @@ class PasstLoop:
     def gp_summary(self) -> dict:
         """What the last reconstruction assumed, for a run's leg record: the sensor noise the GP
         used (``noise_std``, m/s per component u, v: fitted by marginal likelihood, never below
-        the sensor's ``noise_std``), whether the samples showed a signal beyond that noise
+        the sensor's ``noise_std``; the white variance fitted above it that the GP holds as the
+        field's grid-scale error, ``nugget_std``, is not in it), whether the samples showed a signal beyond that noise
         (``signal_kept``; otherwise the forecast was left alone there), the background factor,
         with the GP's ``bias`` the offset and forecast-anomaly variances (``offset_var``,
         ``anomaly_var``; 0 = not kept) and the share of the region the samples saw (``bias_coverage``,
@@ -550,7 +551,11 @@ class PasstLoop:
         out: dict = {"sensor_noise_std": float(gp.noise_std)}
         ks = getattr(gp, "kernels_", None)
         if ks is not None:
-            out["noise_std"] = [float(np.sqrt(k.k2.noise_level)) for k in ks]
+            nug = gp._nugget_vars()
+            # the white std the GP fitted, and its part that is the field's grid-scale error (the
+            # state nugget: a sample corrects its own cell by it), m/s per component u, v
+            out["noise_std"] = [float(np.sqrt(max(k.k2.noise_level - v, 0.0))) for k, v in zip(ks, nug)]
+            out["nugget_std"] = [float(np.sqrt(v)) for v in nug]
         ev = getattr(gp, "evidence_", None)
         if ev is not None:
             out["signal_kept"] = [None if e is None else bool(e[0] >= e[1]) for e in ev]

@@ -38,6 +38,19 @@ Oceanic Technol. 19: the background covariance of the anomalies of one long mode
 roll-out. The stationary kernels still carry what the modes do not span. The factor on
 ``B`` is fitted with the other hyper-parameters (``background_scale="ml"``).
 
+Nugget (``nugget="state"``, the default): the WhiteKernel variance fitted above the sensor's
+``noise_std**2`` is the field's error at grid scale (what the model got wrong cell by cell, which
+a smooth kernel cannot carry), not measurement noise: a sample then corrects its own cell by that
+share (a second sample in the cell sees the same error), while the sensor noise alone stays
+independent between samples. It is kept only when the samples' likelihood pays for it over the
+sensor noise alone (the information criterion's ``0.5 ln n``, one parameter) and the signal kernel
+was kept. Between samples in distinct cells the two readings give the same covariance; they
+differ at the sampled cells' own estimate (and in the planner's prior: a fresh cell is worth its
+nugget). Measured on the ocean default (4 trials, L = 50, bias on, information planner): final
+RMSE 0.0487 -> 0.0392 m/s; ``nugget="noise"`` is the reading before (everything above the
+sensor's variance is noise). (Cressie 1993, Statistics for Spatial Data, sec. 3.2.1: the nugget
+effect as micro-scale variation plus measurement error.)
+
 Land / missing cells (NaN in the forecast, or ``mask`` False) stay NaN.
 """
 
@@ -54,6 +67,7 @@ __all__ = ["GPReconstructor"]
 _PRIORS = ("forecast", "none")
 _KERNELS = ("matern32", "matern52", "rbf")
 _SOLVERS = ("sklearn", "cholesky")
+_NUGGETS = ("state", "noise")
 
 
 class GPReconstructor:
@@ -109,7 +123,11 @@ class GPReconstructor:
             of a field that moved as a whole is shifted everywhere, not only within a length scale
             of the samples. Default False. Modes, fits and gate: :mod:`~passt_mav.reconstruction.lowrank`.
 
-    Learned state: ``kernels_`` (fitted kernel per component), ``cell_m_``,
+        nugget: "state" (default) or "noise": what the fitted white variance above the sensor's
+            ``noise_std**2`` is (see the module docstring).
+
+    Learned state: ``kernels_`` (fitted kernel per component), ``nugget_var_`` (per component, the
+    state part of the white variance: field units^2, 0 = none), ``cell_m_``,
     ``n_inputs_`` (2 = space, 3 = space-time), ``background_scale_`` (the last factor chosen
     with a background and ``background_scale="ml"``), ``bias_var_`` (the last offset variance
     chosen with ``bias``; field units^2).
@@ -133,8 +151,10 @@ class GPReconstructor:
         background=None,
         background_scale="ml",
         bias: bool = False,
+        nugget: str = "state",
     ):
         self.grid_xy = grid_xy
+        self.nugget = nugget
         self.bias = bias
         self.background = background
         self.background_scale = background_scale
@@ -162,6 +182,8 @@ class GPReconstructor:
             raise ReconstructionError(f"unknown GP prior {self.prior!r}; choose one of {', '.join(_PRIORS)}")
         if self.kernel not in _KERNELS:
             raise ReconstructionError(f"unknown GP kernel {self.kernel!r}; choose one of {', '.join(_KERNELS)}")
+        if getattr(self, "nugget", "noise") not in _NUGGETS:
+            raise ReconstructionError(f"unknown GP nugget {self.nugget!r}; choose one of {', '.join(_NUGGETS)}")
         xy = np.asarray(samples_xy, dtype=np.float64).reshape(-1, 2)
         uv = np.asarray(samples_uv, dtype=np.float64).reshape(-1, 2)
         if xy.shape != uv.shape:
@@ -352,7 +374,12 @@ class GPReconstructor:
             inputs = np.column_stack([xy, np.asarray(samples_t, dtype=np.float64).reshape(-1)]) if use_t else xy
             if getattr(self, "n_inputs_", 2) == 3 and not use_t:
                 inputs = np.column_stack([xy, np.zeros(n)])
-        cells = self._nearest_cells(xy, X, Y) if Bg is not None else None
+        nug = self._nugget_vars() if fitted else np.zeros(2)
+        cells = self._nearest_cells(xy, X, Y) if Bg is not None or nug.any() else None
+        if nug.any():  # the state nugget: samples in one cell share it
+            kernels = self._noise_kernels(kernels, nug)
+            ind = lowrank.cell_modes(cells, nug, X.size)
+            Bg = ind if Bg is None else np.concatenate([Bg, ind])
         return lowrank.innovation_quadratic(kernels, inputs, Bg, cells, r, self.alpha)
 
     def _evidence_gate(self, gp, y, comp: int):
@@ -363,7 +390,52 @@ class GPReconstructor:
         ev = getattr(self, "evidence_", None) or [None, None]
         ev[comp] = evidence
         self.evidence_ = ev
+        nug = list(getattr(self, "nugget_var_", None) or [0.0, 0.0])
+        nug[comp] = self._state_nugget(gp, kernel, y)
+        self.nugget_var_ = nug
         return kernel
+
+    def _state_nugget(self, gp, kernel, y) -> float:
+        """The part of ``kernel``'s white variance above the sensor's that is the field's grid-scale
+        error (``nugget="state"``): the excess, when the log marginal likelihood of the fitted ``gp``
+        beats the same kernel with the sensor's variance alone by 0.5 ln n; else 0."""
+        if getattr(self, "nugget", "noise") != "state":
+            return 0.0
+        s2 = max(float(self.noise_std) ** 2, 1e-10)
+        excess = float(kernel.k2.noise_level) - s2
+        if excess <= 1e-12 * s2:
+            return 0.0
+        n = np.size(y)
+        if kernel is gp.kernel_:  # the fitted kernel, against itself with the sensor's variance
+            k_s = kernel.clone_with_theta(kernel.theta)
+            k_s.set_params(k2__noise_level=s2)
+            try:
+                gain = float(gp.log_marginal_likelihood_value_) - float(gp.log_marginal_likelihood(k_s.theta))
+            except (np.linalg.LinAlgError, ValueError):
+                return excess
+        else:  # no signal kept: white noise of the residuals' variance against the sensor's
+            ms, v = float(np.mean(np.square(y))), s2 + excess
+            gain = -0.5 * n * (np.log(v / s2) + ms / v - ms / s2)
+        return excess if gain >= 0.5 * np.log(max(n, 2)) else 0.0
+
+    def _nugget_vars(self) -> np.ndarray:
+        """(2,) the state nugget of u and v in use (field units^2; zeros before a fit or with
+        ``nugget="noise"``)."""
+        nug = getattr(self, "nugget_var_", None)
+        if nug is None or not hasattr(self, "kernels_") or getattr(self, "nugget", "noise") != "state":
+            return np.zeros(2)
+        return np.asarray(nug, dtype=np.float64)
+
+    def _noise_kernels(self, kernels, nug):
+        """``kernels`` with the state nugget ``nug`` (2,) taken out of their white variance (the
+        sensor's part stays)."""
+        out = []
+        for k, v in zip(kernels, nug):
+            if v > 0:
+                k = k.clone_with_theta(k.theta)
+                k.set_params(k2__noise_level=max(float(k.k2.noise_level) - float(v), 1e-10))
+            out.append(k)
+        return out
 
     #: candidate factors on the background covariance for ``background_scale="ml"``
     BACKGROUND_SCALES = (0.0,) + tuple(float(x) for x in np.logspace(-4, 1, 11))
@@ -426,6 +498,7 @@ class GPReconstructor:
         once-per-campaign fit (:func:`passt_mav.reconstruction.kernels.fit_on_field`)."""
         self.kernels_, self.cell_m_ = fit_on_field(self, snapshot, max_points)
         self.n_inputs_ = 2
+        self.nugget_var_ = None
         return self
 
     def reconstruct(
@@ -473,11 +546,15 @@ class GPReconstructor:
         if self.solver not in _SOLVERS:
             raise ReconstructionError(f"unknown GP solver {self.solver!r}; choose one of {', '.join(_SOLVERS)}")
         modes = None
-        if self.background is not None or self._bias_on():
+        nug = self._nugget_vars()
+        if self.background is not None or self._bias_on() or nug.any():
             cells = self._nearest_cells(np.asarray(samples_xy, dtype=np.float64).reshape(-1, 2)[ok], X, Y)
+        if self.background is not None or self._bias_on():
             modes = lowrank.fit_prior_modes(self, target, cells, X.shape, fc, xy)
+        if modes is None and nug.any():
+            modes = np.zeros((0, 2, X.size))
         if modes is not None:
-            mean, std = lowrank.joint_posterior(self, xy, target, grid_pts, cells, modes, with_std)
+            mean, std = lowrank.joint_posterior(self, xy, target, grid_pts, cells, modes, with_std, nugget=nug)
             mean = mean + offset[:, None, None]
         else:
             mean, std = self._posterior_components(xy, target, offset, grid_pts, X.shape, with_std)

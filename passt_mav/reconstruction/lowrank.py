@@ -28,6 +28,7 @@ from passt_mav.errors import ReconstructionError
 
 __all__ = [
     "anomaly_mode",
+    "cell_modes",
     "cholesky_or_error",
     "fit_mode_variance",
     "fit_prior_modes",
@@ -69,6 +70,18 @@ def anomaly_mode(fc) -> np.ndarray | None:
         return None
     a = np.where(water, a - np.nanmean(a[:, water], axis=1, keepdims=True), 0.0)
     return a[None] if float(np.abs(a).max()) > 0 else None
+
+
+def cell_modes(cells, nug, N: int) -> np.ndarray:
+    """The state nugget as modes: one per distinct cell in ``cells`` and component with
+    ``nug[k] > 0``, ``sqrt(nug[k])`` at that cell and component, 0 elsewhere; (m, 2, N). Samples in
+    one cell share its mode (see :class:`~passt_mav.reconstruction.GPReconstructor`'s ``nugget``)."""
+    uc = np.unique(np.asarray(cells, dtype=np.int64))
+    comps = [k for k in range(2) if nug[k] > 0]
+    out = np.zeros((len(comps) * uc.size, 2, N))
+    for j, k in enumerate(comps):
+        out[j * uc.size + np.arange(uc.size), k, uc] = np.sqrt(float(nug[k]))
+    return out
 
 
 def kernel_blocks(kernels, inputs) -> np.ndarray:
@@ -125,7 +138,9 @@ def cholesky_or_error(K, alpha: float, what: str = "GP fit"):
         ) from None
 
 
-def joint_posterior(gp, xy, target, grid_pts, cells, Bg, with_std: bool) -> tuple[np.ndarray, np.ndarray | None]:
+def joint_posterior(
+    gp, xy, target, grid_pts, cells, Bg, with_std: bool, nugget=None
+) -> tuple[np.ndarray, np.ndarray | None]:
     """Joint u/v posterior of the residual on the grid with the modes ``Bg`` plus the fitted
     stationary kernels of ``gp`` (a fitted :class:`~passt_mav.reconstruction.GPReconstructor`).
 
@@ -133,14 +148,21 @@ def joint_posterior(gp, xy, target, grid_pts, cells, Bg, with_std: bool) -> tupl
     component a at point p and component b at point q:
     ``sum_j b_j[a, p] b_j[b, q] + [a == b] k_a(p, q)`` (k_a includes the sensor-noise
     WhiteKernel on the samples). Mean ``C_* K^-1 y`` and variance ``diag C_** - |L^-1 C_*^T|^2``
-    with ``K = C(samples) + alpha I = L L^T``. Returns mean (2, R, C) and std (2, R, C) or None.
+    with ``K = C(samples) + alpha I = L L^T``. ``nugget`` (2,) or None: the state nugget of u and v
+    (field units^2), taken out of the kernels' white variance and put on the sampled cells
+    (:func:`cell_modes`): a sample corrects its own cell by it. Returns mean (2, R, C) and std
+    (2, R, C) or None (the prior variance on the grid: modes + kernel, white variance included).
     """
     from scipy.linalg import cho_solve, solve_triangular
 
     shape = gp._grid()[0].shape
     n = len(xy)  # Bg: (m, 2, N) modes with the factor applied
+    kernels, m0 = gp.kernels_, Bg.shape[0]
+    if nugget is not None and np.any(nugget):
+        kernels = gp._noise_kernels(kernels, nugget)
+        Bg = np.concatenate([Bg, cell_modes(cells, nugget, Bg.shape[2])])
     Hb = sample_rows(Bg, cells)  # (m, 2n)
-    K = Hb.T @ Hb + kernel_blocks(gp.kernels_, xy)
+    K = Hb.T @ Hb + kernel_blocks(kernels, xy)
     K[np.diag_indices_from(K)] += float(gp.alpha)
     Lc = cholesky_or_error(K, gp.alpha)
     y = np.concatenate([target[:, 0], target[:, 1]])
@@ -156,7 +178,7 @@ def joint_posterior(gp, xy, target, grid_pts, cells, Bg, with_std: bool) -> tupl
             C[:, k * n : (k + 1) * n] += Ks
             V = solve_triangular(Lc, C.T, lower=True, check_finite=False)
             var = (
-                np.einsum("ij,ij->j", Bg[:, k, :], Bg[:, k, :])
+                np.einsum("ij,ij->j", Bg[:m0, k, :], Bg[:m0, k, :])  # the nugget is in the kernel's diag
                 + gp.kernels_[k].diag(grid_pts)
                 - np.einsum("ij,ij->j", V, V)
             )
@@ -221,7 +243,8 @@ def prior_factors(gp, land=None, *, kernel_rank: int | None = None, kernel_energ
     stationary signal kernel (the fitted ``k1``, at zero time lag for a space-time
     kernel) on the water cells by its leading eigenpairs; ``d`` is what the dropped
     eigenpairs leave on the diagonal (exactly the kernel's variance minus the kept
-    part); ``noise`` the fitted sensor-noise variance (the WhiteKernel). Land cells
+    part) plus the state nugget (``gp.nugget_var_``); ``noise`` the fitted white variance less
+    that nugget (the sensor's part). Land cells
     (``land`` True) get zero rows. Before any fit the kernels are the initial ones
     (length scale 3 cells, noise ``noise_std``) with a signal variance equal to the
     background's mean variance (or ``noise_std**2`` without one): the leg is planned on
@@ -244,6 +267,10 @@ def prior_factors(gp, land=None, *, kernel_rank: int | None = None, kernel_energ
     energy = float(gp.PRIOR_KERNEL_ENERGY if kernel_energy is None else kernel_energy)
     cols = [] if Bg is None else [Bg.reshape(Bg.shape[0], 2 * N).T]
     kcols, d, noise = kernel_factors(kernels, pts, wi, N, rank_cap, energy, gp.alpha)
+    nug = gp._nugget_vars() if fitted else np.zeros(2)
+    for k in range(2):  # the state nugget: the cell's own error, not the sensor's noise
+        d[k * N + wi] += nug[k]
+        noise[k * N : (k + 1) * N] -= nug[k]
     cols += kcols
     return np.hstack(cols) if cols else np.zeros((2 * N, 0)), d, noise
 
