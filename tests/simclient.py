@@ -60,7 +60,11 @@ class SimClient:
                     return m
             if self.sim.t >= end:
                 return None
-            self.sim.step(dt)
+            self.advance(dt)
+
+    def advance(self, dt: float) -> None:
+        """Let ``dt`` simulated seconds pass while waiting: this client steps the simulator."""
+        self.sim.step(dt)
 
     def collect(self, duration: float, dt: float = 0.05) -> list:
         """All messages received during the next ``duration`` sim seconds."""

@@ -47,27 +47,17 @@ class QgcClient(SimClient):
 
     def follow_clock(self, stop: threading.Event) -> None:
         """Let another client drive the simulated clock: :meth:`wait` polls without stepping the
-        simulator, and raises :class:`_Stopped` once ``stop`` is set (the clock stands still then). Two clients stepping one clock race
+        simulator (:meth:`advance`), and raises :class:`_Stopped` once ``stop`` is set (the clock
+        stands still then). Two clients stepping one clock race
         each other: QGC's thread could run the vehicle's 8 s transfer timeout out while ours had no CPU."""
         self._stop = stop
 
-    def wait(self, types, cond=None, timeout: float = 5.0, dt: float | None = None):
-        stop = getattr(self, "_stop", None)
-        if stop is None:
-            return super().wait(types, cond, timeout, dt)
-        if isinstance(types, str):
-            types = (types,)
-        end = self.sim.t + timeout
-        while not stop.is_set():
-            self.pump()
-            while self.queue:
-                m = self.queue.popleft()
-                if m.get_type() in types and (cond is None or cond(m)):
-                    return m
-            if self.sim.t >= end:
-                return None
-            time.sleep(0.001)  # our link's reader steps the simulator
-        raise _Stopped
+    def advance(self, dt: float) -> None:
+        if getattr(self, "_stop", None) is None:
+            return super().advance(dt)
+        if self._stop.is_set():
+            raise _Stopped
+        time.sleep(0.001)  # our link's reader steps the simulator
 
     def pump(self) -> None:
         super().pump()
