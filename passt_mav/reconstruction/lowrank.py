@@ -159,8 +159,7 @@ def joint_posterior(
     n = len(xy)  # Bg: (m, 2, N) modes with the factor applied
     kernels, m0 = gp.kernels_, Bg.shape[0]
     if nugget is not None and np.any(nugget):
-        kernels = gp._noise_kernels(kernels, nugget)
-        Bg = np.concatenate([Bg, cell_modes(cells, nugget, Bg.shape[2])])
+        kernels, Bg = gp._with_cell_nugget(kernels, Bg, cells, nugget, Bg.shape[2])
     Hb = sample_rows(Bg, cells)  # (m, 2n)
     K = Hb.T @ Hb + kernel_blocks(kernels, xy)
     K[np.diag_indices_from(K)] += float(gp.alpha)
