@@ -80,7 +80,12 @@ def test_tcp_loopback_connect_streams_rtt_tlog_and_gcs_heartbeats(tmp_path):
             got = sub.drain()
         tb = sorted({m.time_boot_ms for m in got})
         span = (tb[-1] - tb[0]) / 1000.0
-        assert (len(tb) - 1) / span == pytest.approx(6.0, abs=1.0)
+        # 5 Hz, plus up to 1 Hz of fixes where their stamps differ from the stream's. The served
+        # simulator steps by wall time and stamps a tick at the step that reaches it, so intervals
+        # jitter by a step: a run with every fix on a stream tick read 4.997 Hz in CI. The bound
+        # still tells the requested 5 Hz from the default rate (1-2 Hz).
+        rate = (len(tb) - 1) / span
+        assert 4.5 <= rate <= 7.0, rate
         # our heartbeats (system 245) do not feed the vehicle's GCS failsafe (MAV_GCS_SYSID 255's)
         assert sim.autopilot.last_gcs_hb is None
         link.command_long(M.MAV_CMD_DO_SET_MODE, 1, 4)
