@@ -72,6 +72,30 @@ def test_scheduled_drop_silences_the_link():
     assert any(t < 5.0 for t in times) and any(t >= 8.0 for t in times)
 
 
+def test_arm_relative_drop_counts_from_the_first_arming():
+    # LinkConfig.arm_drops (vehicle-sim --drop arm+START:DURATION): the outage falls the same number of
+    # simulated seconds into the mission however long the vehicle waited for a client before arming
+    sim = Simulator(None, home=HOME, config=SimConfig.fast())
+    c = SimClient(sim, link_config=LinkConfig(arm_drops=((2.0, 3.0),)))
+    c.collect(6.0)  # 6 s unarmed: no outage yet (an outage at 2..5 s on the clock would show here)
+    hb = [t for t, m in c.log if m.get_type() == "HEARTBEAT"]
+    assert any(2.5 < t < 5.0 for t in hb)
+    c.arm(force=True)
+    t_arm = sim.autopilot.first_armed_clock
+    assert t_arm is not None and 5.9 <= t_arm < 7.0
+    c.collect(8.0)
+    hb = [t for t, m in c.log if m.get_type() == "HEARTBEAT"]
+    assert not any(t_arm + 2.05 < t < t_arm + 5.0 for t in hb)
+    assert any(t_arm < t < t_arm + 2.0 for t in hb) and any(t >= t_arm + 5.0 for t in hb)
+
+
+def test_cli_parses_arm_relative_drops():
+    from vehicle_sim.cli import _drop, _split_drops
+
+    d = [_drop("10:5"), _drop("arm+300:900")]
+    assert _split_drops(d) == {"drops": ((10.0, 5.0),), "arm_drops": ((300.0, 900.0),)}
+
+
 def _frames(rng: random.Random, n: int) -> list[bytes]:
     """Valid frames of many message types (packed by pymavlink), for mutation."""
     mav = M.MAVLink(None, srcSystem=255, srcComponent=190)

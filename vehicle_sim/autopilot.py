@@ -195,6 +195,7 @@ class Autopilot:
         self._param_names = sorted(self.params)
         self.mode = MODES["INITIALISING"]
         self.armed = False
+        self.first_armed_clock: float | None = None  # ``clock`` at the first arming (kept over reboots)
         self.home_set = False
         self.store = MissionStore(config.mission_capacity)
         self.missions = MissionServer(
@@ -578,6 +579,8 @@ class Autopilot:
             self.text(link, M.MAV_SEVERITY_CRITICAL, "Arm: System not initialised")
             return M.MAV_RESULT_FAILED
         self.armed = True
+        if self.first_armed_clock is None:
+            self.first_armed_clock = self.clock
         return M.MAV_RESULT_ACCEPTED
 
     def disarm(self) -> int:

@@ -47,14 +47,25 @@ def _latlon(s: str, what: str) -> tuple[float, float]:
     return a, b
 
 
-def _drop(s: str) -> tuple[float, float]:
+def _drop(s: str) -> tuple[bool, float, float]:
+    """``START:DURATION`` (seconds on the simulator's clock) or ``arm+START:DURATION`` (seconds after the
+    vehicle first arms) -> (after_arm, start, duration)."""
+    after_arm = s.startswith("arm+")
     try:
-        a, b = (float(x) for x in s.split(":"))
+        a, b = (float(x) for x in s.removeprefix("arm+").split(":"))
     except ValueError:
-        raise _Bad(f"--drop must be START:DURATION in seconds, got {s!r}") from None
+        raise _Bad(f"--drop must be START:DURATION or arm+START:DURATION in seconds, got {s!r}") from None
     if a < 0 or b <= 0:
         raise _Bad(f"--drop needs START >= 0 and DURATION > 0, got {s!r}")
-    return a, b
+    return after_arm, a, b
+
+
+def _split_drops(drops) -> dict:
+    """LinkConfig keywords of parsed drops: ``drops`` (clock) and ``arm_drops`` (after the first arming)."""
+    return {
+        "drops": tuple((a, b) for arm, a, b in drops if not arm),
+        "arm_drops": tuple((a, b) for arm, a, b in drops if arm),
+    }
 
 
 def _boat_prefixed(s: str, what: str, n: int) -> tuple[int, str]:
@@ -135,7 +146,8 @@ def build_parser() -> argparse.ArgumentParser:
         "--boat-drop",
         action="append",
         default=[],
-        help="I:START:DURATION link outage of boat I only (sim seconds); repeatable",
+        help="I:START:DURATION link outage of boat I only (sim seconds; I:arm+START:DURATION counts START from "
+        "the boat's first arming); repeatable",
     )
     p.add_argument(
         "--region", default=None, help="crop the field to SOUTH,WEST,NORTH,EAST degrees (default: whole grid)"
@@ -176,7 +188,12 @@ def build_parser() -> argparse.ArgumentParser:
         "a SiK radio: 2048). A SiK-like radio: --baud 57600 --latency 0.1 --loss 0.03 --radio-buffer 2048",
     )
     p.add_argument(
-        "--drop", action="append", default=[], help="scheduled link outage START:DURATION (sim seconds); repeatable"
+        "--drop",
+        action="append",
+        default=[],
+        help="scheduled link outage START:DURATION (sim seconds since the clock started) or arm+START:DURATION "
+        "(since the vehicle first armed: the same moment of the mission however long a client took to connect); "
+        "repeatable",
     )
     p.add_argument("--seed", type=int, default=0, help="seed of link loss and sensor noise")
     p.add_argument("--current-noise", type=float, default=0.0, help="std of Gaussian noise on CUR_U/CUR_V, m/s")
@@ -393,7 +410,7 @@ def _run(args) -> int:
     for s in args.boat_param:
         i, kv = _boat_prefixed(s, "--boat-param", n)
         boat_params[i].append(_param_kv(kv, "--boat-param"))
-    boat_drops: list[list[tuple[float, float]]] = [[] for _ in range(n)]
+    boat_drops: list[list[tuple[bool, float, float]]] = [[] for _ in range(n)]
     for s in args.boat_drop:
         i, d = _boat_prefixed(s, "--boat-drop", n)
         boat_drops[i].append(_drop(d))
@@ -423,7 +440,7 @@ def _run(args) -> int:
         tlog=args.tlog,
         signing_key=secret_from_key(args.signing_key) if args.signing_key else None,
     )
-    drops = tuple(_drop(d) for d in args.drop)
+    drops = [_drop(d) for d in args.drop]
     start = _start_time(args.start_time, field)
     epoch0 = _utc_at_boot(args.utc_at_boot, field, start, ts)
     if n == 1:
@@ -435,7 +452,7 @@ def _run(args) -> int:
             latency_s=args.latency,
             baud=args.baud,
             buffer_bytes=args.radio_buffer,
-            drops=drops + tuple(boat_drops[0]),
+            **_split_drops(drops + boat_drops[0]),
             seed=args.seed,
         )
         server = Simulator(
@@ -462,7 +479,7 @@ def _run(args) -> int:
                 latency_s=args.latency,
                 baud=args.baud,
                 buffer_bytes=args.radio_buffer,
-                drops=drops + tuple(boat_drops[i]),
+                **_split_drops(drops + boat_drops[i]),
                 seed=args.seed + i,
             )
             for i in range(n)

@@ -20,8 +20,10 @@ class LinkConfig:
             unlimited. Frames are serialised one after another at ``baud/10``
             bytes per simulated second; a frame that would wait more than
             ``max_queue_s`` in the radio's buffer is dropped, like a full radio.
-        drops: scheduled outages ``((start_s, duration_s), ...)``: nothing passes
-            either way during them.
+        drops: scheduled outages ``((start_s, duration_s), ...)`` on the simulator's clock (seconds
+            since it started): nothing passes either way during them.
+        arm_drops: outages ``((start_s, duration_s), ...)`` counted from the vehicle's first arming
+            (the start of its mission, whatever the wall time the clock ran before a client got there).
         seed: seed of the loss generator (each link adds its index).
         max_queue_s: radio buffer size, expressed as seconds of backlog.
         buffer_bytes: radio transmit buffer in bytes (0 = only ``max_queue_s``): a frame that does not
@@ -32,6 +34,7 @@ class LinkConfig:
     latency_s: float = 0.0
     baud: int = 0
     drops: tuple[tuple[float, float], ...] = ()
+    arm_drops: tuple[tuple[float, float], ...] = ()
     seed: int = 0
     max_queue_s: float = 2.0
     buffer_bytes: int = 0

@@ -119,6 +119,7 @@ class Link:
     ):
         self.index = int(index)
         self.config = config
+        self.armed_at: float | None = None  # the vehicle's first arming, simulated s (set by the simulator)
         self.name = name or f"link{index}"
         self.tlog = tlog
         self.mav = mavlink2.MAVLink(_Writer(self), srcSystem=sysid, srcComponent=compid, use_native=False)
@@ -150,8 +151,11 @@ class Link:
 
     # -- impairment ------------------------------------------------------------
     def is_down(self, t: float) -> bool:
-        """True during a scheduled outage."""
-        return any(start <= t < start + dur for start, dur in self.config.drops)
+        """True during a scheduled outage (``drops`` on the clock, ``arm_drops`` after ``armed_at``)."""
+        if any(start <= t < start + dur for start, dur in self.config.drops):
+            return True
+        a = self.armed_at
+        return a is not None and any(a + start <= t < a + start + dur for start, dur in self.config.arm_drops)
 
     def _serialise(self, t: float, nbytes: int, free_at: float) -> float | None:
         """Delivery time of a frame given the serial budget, or None if the buffer overflows."""

@@ -33,7 +33,7 @@ EXAMPLES = """examples:
     passt-mav demo --mission missions/cylinder.yaml
     passt-mav demo --boats 3                      # a fleet: three boats, one shared estimate
     passt-mav demo --boats 3 --view 8765          # its live view on http://127.0.0.1:8765/
-    passt-mav demo --inject-link-drop 0:2500:900  # boat 0's link down for 900 simulated s (watch the alert)
+    passt-mav demo --inject-link-drop 0:300:900  # boat 0's link down 300 simulated s after it arms, for 900 s
 """
 
 #: the demo's changes to any base mission: a 5 m/s boat, 25 m waypoint radius
@@ -136,8 +136,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         action="append",
         default=[],
         metavar="BOAT:START:DURATION",
-        help="a link outage of boat BOAT (0-based) from START for DURATION simulated seconds of the "
-        "simulator's clock (vehicle-sim --boat-drop); repeatable",
+        help="a link outage of boat BOAT (0-based) START simulated seconds after the boat first arms, for "
+        "DURATION simulated seconds (vehicle-sim --boat-drop BOAT:arm+START:DURATION); repeatable",
     )
 
 
@@ -481,7 +481,10 @@ def _drop_args(specs: list[str], boats: int) -> list[str]:
             raise UserError(f"--inject-link-drop needs BOAT:START:DURATION, got {spec!r}") from None
         if not 0 <= b < boats or start < 0 or dur <= 0 or len(parts) != 3:
             raise UserError(f"--inject-link-drop {spec}: BOAT must be 0..{boats - 1}, START >= 0, DURATION > 0")
-        out += ["--boat-drop", f"{b}:{start:g}:{dur:g}"] if boats > 1 else ["--drop", f"{start:g}:{dur:g}"]
+        # counted from the arming, not the simulator's clock: how long the boats took to connect (the
+        # machine's load) must not move the outage before the mission starts
+        d = f"arm+{start:g}:{dur:g}"
+        out += ["--boat-drop", f"{b}:{d}"] if boats > 1 else ["--drop", d]
     return out
 
 
