@@ -11,7 +11,9 @@ snapshot ``n/2`` and flown to the end in legs of one snapshot, ``--moves`` moves
 planner with the variance-reduction reward, GP with the sensor noise ``--noise`` (m/s), ``bias`` on
 and the DMD's 200-snapshot background; the samples read from the true field along each path at the
 times a constant-speed boat passes each cell. Rows: the DMD prior without a blend, with ``select``
-and with ``bma``, and persistence as the prior. Printed: each row's mean RMSE (m/s, over water)
+and with ``bma``, persistence as the prior without a blend and with ``select`` (which may move it to
+none, the GP of the samples alone), and a lawnmower with the GP alone (no prior mean, the
+demo's counterfactual) over the same legs. Printed: each row's mean RMSE (m/s, over water)
 over the last half of the legs, mean over ``--seeds`` seeds (planner, GP and sensor seed s), and
 each seed's figure. Offline arithmetic (analysis.counterfactual's leg flyer), no vehicle.
 """
@@ -28,7 +30,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-ROWS = ("dmd off", "dmd select", "dmd bma", "persistence prior")
+ROWS = ("dmd off", "dmd select", "dmd bma", "persistence prior", "persistence select", "lawnmower + GP")
 
 
 def fly(field, predictor, blend: str, seed: int, *, moves: int = 10, noise: float = 0.02) -> float:
@@ -41,17 +43,26 @@ def fly(field, predictor, blend: str, seed: int, *, moves: int = 10, noise: floa
     n = field.n_times
     half = n // 2
     land = field.land_mask
-    opts = LoopOptions(
-        planner="information",
-        reward="variance_reduction",
-        path_length=moves,
-        steps_per_leg=1,
-        prior="forecast",
-        gp_kw={"seed": seed, "noise_std": noise, "bias": True},
-        hyper="every_leg",
-        background=0 if isinstance(predictor, PersistencePredictor) else 200,
-        prior_blend=blend,
-    )
+    if blend == "lawnmower":  # the GP alone on a lawnmower (analysis.counterfactual's baseline)
+        opts = LoopOptions(
+            planner="lawnmower",
+            path_length=moves,
+            steps_per_leg=1,
+            prior="none",
+            gp_kw={"seed": seed, "noise_std": noise},
+        )
+    else:
+        opts = LoopOptions(
+            planner="information",
+            reward="variance_reduction",
+            path_length=moves,
+            steps_per_leg=1,
+            prior="forecast",
+            gp_kw={"seed": seed, "noise_std": noise, "bias": True},
+            hyper="every_leg",
+            background=0 if isinstance(predictor, PersistencePredictor) else 200,
+            prior_blend=blend,
+        )
     loop = opts.loop(predictor, field.grid, land=land, seed=seed)
     sampler = FieldSampler(field, noise_std=noise, seed=seed + 7919, steps_per_leg=1, sample_at="spread")
     state = np.array(field.data[half], np.float32)
@@ -88,6 +99,8 @@ def main(argv=None) -> int:
             "dmd select": (dmd, "select"),
             "dmd bma": (dmd, "bma"),
             "persistence prior": (pers, "off"),
+            "persistence select": (pers, "select"),
+            "lawnmower + GP": (None, "lawnmower"),
         }
         result[name] = {}
         for label in ROWS:

@@ -135,6 +135,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="the white variance the residual GP fits above the sensor's: the field's grid-scale error, which a sample corrects in its own cell (state, default), or measurement noise (noise, the reading before 2026-11-27)",
     )
     p.add_argument(
+        "--memory",
+        choices=("off", "fitted"),
+        default="off",
+        help="the information reward's prior remembers, cell by cell, the local error past legs' samples removed, with a persistence per leg fitted by the innovations' likelihood (fitted), or starts every leg from the stationary prior (off, default)",
+    )
+    p.add_argument(
         "--boats",
         type=int,
         default=1,
@@ -349,6 +355,7 @@ def _campaign(args: argparse.Namespace, field, predictor, lengths: list[int]) ->
         prior_blend=args.prior_blend,
         gp_bias=args.gp_bias,
         gp_nugget=args.gp_nugget,
+        memory=args.memory,
     )
     summary["config"].update(
         data=args.data,

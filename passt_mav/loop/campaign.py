@@ -237,6 +237,7 @@ def _loop_options(cfg: dict, m: str, predictor, L: int) -> tuple:
         gp_kw=cfg.get("gp_kw"),
         background=cfg.get("background", 0),
         prior_blend=cfg.get("prior_blend", "off"),
+        memory=cfg.get("memory", "off"),
         **kw,
     )
 
@@ -322,7 +323,9 @@ class CampaignOptions:
     (:func:`passt_mav.reconstruction.model_background`); 0 = none. prior_blend: "off", "bma" or "select"
     (:class:`passt_mav.loop.passt.PasstLoop`: every residual loop weighs the model's forecast against
     persistence leg by leg). gp_bias / gp_nugget: the residual GPs' ``bias`` and ``nugget``
-    (:class:`passt_mav.reconstruction.GPReconstructor`). ``methods`` is kept as a list.
+    (:class:`passt_mav.reconstruction.GPReconstructor`). memory: "off" or "fitted", the information
+    prior's per-cell memory of past samples (:class:`passt_mav.loop.memory.CellMemory`; loops with a
+    reward that uses the prior). ``methods`` is kept as a list.
     """
 
     path_lengths: tuple = (25, 50, 75, 100, 150, 200)
@@ -353,6 +356,7 @@ class CampaignOptions:
     prior_blend: str = "off"
     gp_bias: bool = False
     gp_nugget: str = "state"
+    memory: str = "off"
 
     def __post_init__(self) -> None:
         self.methods = list(self.methods)
@@ -420,6 +424,7 @@ def _campaign_cfg(o: CampaignOptions, steps: int) -> dict:
         fast_predict=bool(o.fast_predict),
         background=int(o.background),
         prior_blend=o.prior_blend,
+        memory=o.memory,
     )
     return cfg
 
@@ -427,7 +432,7 @@ def _campaign_cfg(o: CampaignOptions, steps: int) -> dict:
 def _check_campaign(field, predictor, o: CampaignOptions) -> None:
     """Every option of :func:`run_campaign` checked once, before any work; raises the error naming it."""
     from passt_mav.errors import ModelError, PlannerError
-    from passt_mav.loop.passt import PRIOR_BLENDS
+    from passt_mav.loop.passt import MEMORIES, PRIOR_BLENDS
     from passt_mav.planning import PLANNERS, REWARDS
 
     if not o.methods:
@@ -458,6 +463,8 @@ def _check_campaign(field, predictor, o: CampaignOptions) -> None:
         raise PlannerError(f"--background: {problem}")
     if o.prior_blend not in PRIOR_BLENDS:
         raise PlannerError(f"--prior-blend: unknown {o.prior_blend!r}; choose one of {', '.join(PRIOR_BLENDS)}")
+    if o.memory not in MEMORIES:
+        raise PlannerError(f"--memory: unknown {o.memory!r}; choose one of {', '.join(MEMORIES)}")
 
 
 def _summarise(

@@ -250,6 +250,7 @@ def build_loop(config, predictor, grid, land=None):
         background=config.gp.background,
         prior_blend=config.gp.prior_blend,
         forgetting=config.gp.forgetting,
+        memory=config.planner.memory,
     )
     loop = options.loop(predictor, grid, land=land, seed=config.seeds.planner)
     # a mission's estimate is written with its posterior std (estimate.nc u_std/v_std; exports read it):

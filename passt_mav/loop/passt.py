@@ -233,6 +233,7 @@ class LoopOptions:
     background: int = 0
     prior_blend: str = "off"
     forgetting: float = 0.8
+    memory: str = "off"
 
     @classmethod
     def of(cls, options: LoopOptions | None = None, **changes) -> LoopOptions:
@@ -248,7 +249,9 @@ class LoopOptions:
         return PasstLoop(predictor, grid, land=land, seed=seed, **self.as_kwargs())
 
 
-def _check_loop_options(reward, hyper, path_length, steps_per_leg, background, prior_blend, forgetting) -> None:
+def _check_loop_options(
+    reward, hyper, path_length, steps_per_leg, background, prior_blend, forgetting, memory="off"
+) -> None:
     """Raise :class:`PlannerError` / :class:`ReconstructionError` (one line naming the problem) for
     an unknown reward, GP schedule or prior blend, a non-positive path length or leg span, a bad
     background roll-out length or a forgetting factor outside [0, 1]."""
@@ -268,6 +271,8 @@ def _check_loop_options(reward, hyper, path_length, steps_per_leg, background, p
         raise ReconstructionError(f"unknown prior blend {prior_blend!r}; choose one of {', '.join(PRIOR_BLENDS)}")
     if not 0.0 <= float(forgetting) <= 1.0:
         raise ReconstructionError(f"forgetting factor must lie in [0, 1], got {forgetting!r}")
+    if memory not in MEMORIES:
+        raise PlannerError(f"unknown planner memory {memory!r}; choose one of {', '.join(MEMORIES)}")
 
 
 class PasstLoop:
@@ -293,8 +298,10 @@ class PasstLoop:
             itself beforehand (the lockstep engine computes it once for all trials).
         prior_blend: "off" (the model's forecast is the GP's prior mean) or "bma": a prior
             that knows when it is wrong. Each leg's samples are evidence about the forecasts
-            that could have been used: the model's and persistence's (the leg's initial
-            state held). Each is scored by the innovation likelihood of its residual at the
+            that could have been used: the model's, persistence's (the leg's initial
+            state held) and none (a zero prior mean: the GP of the samples alone, as the
+            lawnmower baseline reconstructs; where currents turn with the tide a stale snapshot
+            is a worse prior than no forecast at all). Each is scored by the innovation likelihood of its residual at the
             samples under the GP's stationary kernels and sensor noise as they stand before this
             leg's fit (:meth:`GPReconstructor.innovation_loglik` with ``modes=False``; one
             covariance for both, so the smaller and smoother residual wins). Not under the
@@ -318,6 +325,10 @@ class PasstLoop:
             mixed with a share of persistence that one leg's few samples could not rule out
             (:meth:`mixing_weights`; the default demo with "bma": 14 % persistence after its
             first leg, PASST 0.0089 m/s against the model alone's 0.0071).
+        memory: "off" or "fitted": the information reward's prior remembers, cell by cell, the
+            local error variance that past legs' samples removed, with a persistence per leg
+            fitted by the innovations' likelihood (:class:`passt_mav.loop.memory.CellMemory`;
+            0 = off until cells sampled twice show it). Only with a reward that uses the prior.
     """
 
     def __init__(
@@ -338,12 +349,13 @@ class PasstLoop:
         background: int = 0,
         prior_blend: str = "off",
         forgetting: float = 0.8,
+        memory: str = "off",
     ):
         from passt_mav.planning import make_planner
         from passt_mav.planning.rewards import REWARDS_USING_STD
         from passt_mav.reconstruction import GPReconstructor
 
-        _check_loop_options(reward, hyper, path_length, steps_per_leg, background, prior_blend, forgetting)
+        _check_loop_options(reward, hyper, path_length, steps_per_leg, background, prior_blend, forgetting, memory)
         self.hyper = hyper
         self.predictor = predictor
         self.grid = grid
@@ -373,6 +385,15 @@ class PasstLoop:
         #: log weights of the candidate priors (:data:`PRIOR_CANDIDATES`), and one record per leg
         self.log_weights_ = np.log(np.array(PRIOR_START_WEIGHTS))
         self.blend_history_: list[dict] = []
+        from passt_mav.planning.rewards import REWARDS_USING_PRIOR
+
+        #: per-cell memory of the local error past samples removed (``memory="fitted"``), else None
+        self.memory = None
+        if memory == "fitted" and reward in REWARDS_USING_PRIOR:
+            from passt_mav.loop.memory import CellMemory
+
+            self.memory = CellMemory(grid.shape[0] * grid.shape[1])
+        self._memory_diag = None  # (modes, local, noise) variances (2, N) of the last unscaled prior
 
     def forecast(self, state: np.ndarray, steps: int) -> np.ndarray:
         """(steps+1, 2, R, C) float32: ``state`` then the model's ``steps`` predictions."""
@@ -465,9 +486,25 @@ class PasstLoop:
             self.gp._background_factor() if self.gp.background is not None else None,
         )
         if getattr(self, "_info_key", None) != key:
-            F, d, noise = self.gp.prior_factors(self.land)
+            if self.memory is None:
+                F, d, noise = self.gp.prior_factors(self.land)
+            else:
+                F, d, noise = self._remembered_prior()
             self._info_cache, self._info_key = InformationModel(F, d, noise, self.grid.shape), key
         return self._info_cache
+
+    def _remembered_prior(self):
+        """The prior factors with each cell's local part (kernel columns and diagonal) scaled by the
+        memory's fractions (:class:`passt_mav.loop.memory.CellMemory`); the modes stay whole. Keeps
+        the unscaled variances per cell for the memory's update after the leg."""
+        F, d, noise, m = self.gp.prior_factors(self.land, with_mode_count=True)
+        N = F.shape[0] // 2
+        modes = np.sum(F[:, :m] ** 2, axis=1)
+        local = np.sum(F[:, m:] ** 2, axis=1) + d
+        self._memory_diag = (modes.reshape(2, N), local.reshape(2, N), np.asarray(noise, float).reshape(2, N))
+        s2 = np.tile(self.memory.fractions(), 2)
+        F = np.concatenate([F[:, :m], F[:, m:] * np.sqrt(s2)[:, None]], axis=1)
+        return F, d * s2, noise
 
     def prepare(self, state) -> None:
         """What the first leg's planning needs from its initial ``state`` alone, computed ahead: the
@@ -535,8 +572,29 @@ class PasstLoop:
         )
         leg.timings["gp"] = time.perf_counter() - t0
         self.std = std
+        if self.memory is not None:
+            self._remember(samples, f_at)
         self.leg_index += 1
         return mean
+
+    def _remember(self, samples: Samples, f_at: np.ndarray) -> None:
+        """The memory's update from a leg's samples (mean innovation per sampled cell) under the prior
+        the leg was planned on (:meth:`_remembered_prior`; none yet: nothing to score, the fractions
+        only relax)."""
+        if self._memory_diag is None or len(samples) == 0:
+            self.memory.observe([], [], np.zeros((0, 2)), None, None, None)
+            return
+        R, C = self.grid.shape
+        r = np.clip(np.round(samples.r).astype(int), 0, R - 1)
+        c = np.clip(np.round(samples.c).astype(int), 0, C - 1)
+        inn = samples.uv - np.asarray(f_at, float).reshape(samples.uv.shape)
+        ok = np.isfinite(inn).all(axis=1)
+        flat = (r * C + c)[ok]
+        cells, inv, counts = np.unique(flat, return_inverse=True, return_counts=True)
+        mean_inn = np.zeros((cells.size, 2))
+        np.add.at(mean_inn, inv, inn[ok])
+        mean_inn /= counts[:, None]
+        self.memory.observe(cells, counts, mean_inn, *self._memory_diag)
 
     def gp_summary(self) -> dict:
         """What the last reconstruction assumed, for a run's leg record: the sensor noise the GP
@@ -568,11 +626,13 @@ class PasstLoop:
             out["bias_coverage"] = None if cov is None else round(float(cov), 3)
         if self.blend_history_:
             out["prior_weights"] = dict(self.blend_history_[-1]["weights"])
+        if self.memory is not None:
+            out["memory"] = self.memory.record()
         return out
 
     def _candidates(self, fc: np.ndarray) -> list[np.ndarray]:
         """The candidate prior trajectories of :data:`PRIOR_CANDIDATES` for a model forecast ``fc``."""
-        return [fc, np.repeat(fc[:1], fc.shape[0], axis=0)]
+        return [fc, np.repeat(fc[:1], fc.shape[0], axis=0), np.where(np.isfinite(fc), 0.0, np.nan)]
 
     def weights(self) -> np.ndarray:
         """Current weights of :data:`PRIOR_CANDIDATES` (sum 1)."""
@@ -636,12 +696,15 @@ class PasstLoop:
         return mix, f_at
 
 
-#: the priors a ``prior_blend="bma"`` loop weighs: the model's forecast, persistence (state held)
-PRIOR_CANDIDATES = ("model", "persistence")
+#: the priors a ``prior_blend="bma"`` loop weighs: the model's forecast, persistence (state held),
+#: none (zero mean: the samples' GP alone)
+PRIOR_CANDIDATES = ("model", "persistence", "none")
 #: their weights before any leg: the model trusted (its own validation said it beats persistence)
-PRIOR_START_WEIGHTS = (0.9, 0.1)
+PRIOR_START_WEIGHTS = (0.9, 0.1, 0.1)
 #: values of ``PasstLoop(prior_blend=...)``
 PRIOR_BLENDS = ("off", "bma", "select")
+#: the information prior's per-cell memory of past samples (:class:`passt_mav.loop.memory.CellMemory`)
+MEMORIES = ("off", "fitted")
 
 
 def _background_or_none(predictor, state, steps: int, land):

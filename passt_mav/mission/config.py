@@ -231,12 +231,16 @@ class FieldConfig(_Strict):
 
 
 class PlannerConfig(_Strict):
-    """Planner name (``passt_mav.planning.PLANNERS``), moves per leg L, reward, planner options."""
+    """Planner name (``passt_mav.planning.PLANNERS``), moves per leg L, reward, planner options;
+    ``memory``: ``fitted`` = the information reward's prior remembers per cell the local error past
+    legs' samples removed (:class:`passt_mav.loop.memory.CellMemory`), ``off`` = the stationary prior
+    every leg."""
 
     name: str = "policy_gradient"
     path_length: int = Field(default=50, ge=1)
     reward: str = "speed"
     options: dict[str, Any] = Field(default_factory=dict)
+    memory: Literal["off", "fitted"] = "off"
 
     @field_validator("name")
     @classmethod

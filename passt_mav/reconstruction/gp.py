@@ -489,11 +489,20 @@ class GPReconstructor:
         k = ConstantKernel(amp, "fixed") * base.k1.k2 + WhiteKernel(max(float(self.noise_std) ** 2, 1e-10), "fixed")
         return [k, k], False
 
-    def prior_factors(self, land=None, *, kernel_rank: int | None = None, kernel_energy: float | None = None):
+    def prior_factors(
+        self,
+        land=None,
+        *,
+        kernel_rank: int | None = None,
+        kernel_energy: float | None = None,
+        with_mode_count: bool = False,
+    ):
         """The prior covariance of the next reconstruction's error over the grid, factored:
         ``(F (2N, r), d (2N,), noise (2N,))`` with ``Sigma = F F^T + diag(d)`` (field velocity units
         squared; land rows 0); see :func:`passt_mav.reconstruction.lowrank.prior_factors`."""
-        return lowrank.prior_factors(self, land, kernel_rank=kernel_rank, kernel_energy=kernel_energy)
+        return lowrank.prior_factors(
+            self, land, kernel_rank=kernel_rank, kernel_energy=kernel_energy, with_mode_count=with_mode_count
+        )
 
     def fit_field(self, snapshot, *, max_points: int = 150) -> GPReconstructor:
         """Fit the signal variance and length scale on a gridded snapshot ``(2, R, C)``: the preferred

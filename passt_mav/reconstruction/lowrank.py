@@ -232,7 +232,14 @@ def innovation_quadratic(kernels, inputs, Bg, cells, r, alpha: float) -> float:
     return -0.5 * float(y @ cho_solve((Lc, True), y, check_finite=False))
 
 
-def prior_factors(gp, land=None, *, kernel_rank: int | None = None, kernel_energy: float | None = None):
+def prior_factors(
+    gp,
+    land=None,
+    *,
+    kernel_rank: int | None = None,
+    kernel_energy: float | None = None,
+    with_mode_count: bool = False,
+):
     """The prior covariance of the next reconstruction's error over the grid, factored.
 
     Returns ``(F (2N, r), d (2N,), noise (2N,))`` with ``Sigma = F F^T + diag(d)``: rows
@@ -270,8 +277,10 @@ def prior_factors(gp, land=None, *, kernel_rank: int | None = None, kernel_energ
     for k in range(2):  # the state nugget: the cell's own error, not the sensor's noise
         d[k * N + wi] += nug[k]
         noise[k * N : (k + 1) * N] -= nug[k]
+    m = cols[0].shape[1] if cols else 0
     cols += kcols
-    return np.hstack(cols) if cols else np.zeros((2 * N, 0)), d, noise
+    F = np.hstack(cols) if cols else np.zeros((2 * N, 0))
+    return (F, d, noise, m) if with_mode_count else (F, d, noise)
 
 
 def gp_mode_variance(gp, target, cells, Bg, modes, candidates, xy=None) -> float:
