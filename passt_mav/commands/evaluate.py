@@ -121,7 +121,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "--prior-blend",
         choices=("off", "bma", "select"),
         default="off",
-        help="residual GPs' prior mean: the model's forecast (off, default) or bma: the model's forecast and persistence weighed leg by leg by how well each explains the leg's samples (Bayesian model averaging with a forgetting factor), or select: the most probable of the two alone, leg by leg",
+        help="residual GPs' prior mean: the model's forecast (off, default) or bma: the model's forecast, persistence and none (a zero mean: the samples' GP alone) weighed leg by leg by how well each explains the leg's samples (Bayesian model averaging with a forgetting factor), or select: the most probable of the three alone, leg by leg",
     )
     p.add_argument(
         "--gp-bias",

@@ -254,7 +254,7 @@ def _check_loop_options(
 ) -> None:
     """Raise :class:`PlannerError` / :class:`ReconstructionError` (one line naming the problem) for
     an unknown reward, GP schedule or prior blend, a non-positive path length or leg span, a bad
-    background roll-out length or a forgetting factor outside [0, 1]."""
+    background roll-out length, a forgetting factor outside [0, 1] or an unknown planner memory."""
     from passt_mav.planning import REWARDS
     from passt_mav.reconstruction.background import background_steps_problem
 
@@ -301,10 +301,10 @@ class PasstLoop:
             that could have been used: the model's, persistence's (the leg's initial
             state held) and none (a zero prior mean: the GP of the samples alone, as the
             lawnmower baseline reconstructs; where currents turn with the tide a stale snapshot
-            is a worse prior than no forecast at all). Each is scored by the innovation likelihood of its residual at the
-            samples under the GP's stationary kernels and sensor noise as they stand before this
-            leg's fit (:meth:`GPReconstructor.innovation_loglik` with ``modes=False``; one
-            covariance for both, so the smaller and smoother residual wins). Not under the
+            is a worse prior than no forecast at all). Each is scored by the innovation
+            likelihood of its residual at the samples under the GP's stationary kernels and
+            sensor noise as they stand before this leg's fit (:meth:`GPReconstructor.innovation_loglik` with ``modes=False``; one
+            covariance for all, so the smaller and smoother residual wins). Not under the
             background and offset modes: those are the flow's own variability, i.e. the error
             persistence makes, and under them a larger persistence residual scored better than
             a smaller model one (the oscillating wake's demo legs: at-sample RMS 0.21 against

@@ -300,8 +300,9 @@ class SensorConfig(_Strict):
 #: (information) on the three scenarios, and its coverage gate keeps the modes from samples bunched in a
 #: corner, which they made worse (README "A forecast that is off as a whole")
 BIAS_DEFAULT = True
-#: the mission default of ``gp.prior_blend``: ``select`` (the model's forecast or persistence, whichever the
-#: legs' samples make more probable). Where the model is the better prior it is the model-only loop to the bit
+#: the mission default of ``gp.prior_blend``: ``select`` (the model's forecast, persistence or none -- the
+#: samples' GP alone -- whichever the legs' samples make more probable). Where the model is the better prior it is
+#: the model-only loop to the bit
 #: (same loop, 6 trials, L = 50, bias on: static 0.0614, oscillating 0.0957, ocean 0.0541); where it is not,
 #: it switches: a DMD fitted on the first half of a real series (gridded_current) and flown on the second ends
 #: at 0.41 m/s without it, worse than the DMD alone (0.22), and at persistence-prior PASST's 0.136 with it.
