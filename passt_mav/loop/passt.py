@@ -303,8 +303,8 @@ class PasstLoop:
             lawnmower baseline reconstructs; where currents turn with the tide a stale snapshot
             is a worse prior than no forecast at all). Each is scored by the innovation
             likelihood of its residual at the samples under the GP's stationary kernels and
-            sensor noise as they stand before this leg's fit (:meth:`GPReconstructor.innovation_loglik` with ``modes=False``; one
-            covariance for all, so the smaller and smoother residual wins). Not under the
+            sensor noise as they stand before this leg's fit
+            (:meth:`GPReconstructor.innovation_loglik` with ``modes=False``; one covariance for all, so the smaller and smoother residual wins). Not under the
             background and offset modes: those are the flow's own variability, i.e. the error
             persistence makes, and under them a larger persistence residual scored better than
             a smaller model one (the oscillating wake's demo legs: at-sample RMS 0.21 against
