@@ -87,6 +87,9 @@ def test_arm_relative_drop_counts_from_the_first_arming():
     hb = [t for t, m in c.log if m.get_type() == "HEARTBEAT"]
     assert not any(t_arm + 2.05 < t < t_arm + 5.0 for t in hb)
     assert any(t_arm < t < t_arm + 2.0 for t in hb) and any(t >= t_arm + 5.0 for t in hb)
+    # a link opened after the arming (a GCS reconnecting) counts from the same arming
+    SimClient(sim, link_config=LinkConfig(arm_drops=((2.0, 3.0),)))
+    assert sim.links[-1].armed_at == t_arm and sim.links[-1].is_down(t_arm + 3.0)
 
 
 def test_cli_parses_arm_relative_drops():

@@ -581,6 +581,8 @@ class Autopilot:
         self.armed = True
         if self.first_armed_clock is None:
             self.first_armed_clock = self.clock
+            for ln in self._links():  # arm-relative outages (LinkConfig.arm_drops) count from here
+                ln.armed_at = self.clock
         return M.MAV_RESULT_ACCEPTED
 
     def disarm(self) -> int:

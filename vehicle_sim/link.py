@@ -119,7 +119,7 @@ class Link:
     ):
         self.index = int(index)
         self.config = config
-        self.armed_at: float | None = None  # the vehicle's first arming, simulated s (set by the simulator)
+        self.armed_at: float | None = None  # the vehicle's first arming, simulated s (set by its autopilot)
         self.name = name or f"link{index}"
         self.tlog = tlog
         self.mav = mavlink2.MAVLink(_Writer(self), srcSystem=sysid, srcComponent=compid, use_native=False)

@@ -259,9 +259,6 @@ class Simulator(Clocked):
     def _tick(self, h: float) -> None:
         self._process_incoming()
         self.autopilot.update(h)
-        if (armed_at := self.autopilot.first_armed_clock) is not None:
-            for link in self.links:  # arm-relative outages (LinkConfig.arm_drops) start counting
-                link.armed_at = armed_at
         self._deliver_inprocess()
         if self.autopilot.reboot_requested:  # MAV_CMD_PREFLIGHT_REBOOT_SHUTDOWN, acknowledged above
             self._flush_sockets()  # the ACK goes out before the links drop, as on ArduPilot
@@ -311,6 +308,7 @@ class Simulator(Clocked):
                 signing_secret=self.config.signing_key,
                 name=name,
             )
+            link.armed_at = self.autopilot.first_armed_clock  # a link opened after the first arming
             self._next_index += 1
             self.links.append(link)
             return link
