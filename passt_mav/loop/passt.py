@@ -352,7 +352,7 @@ class PasstLoop:
         memory: str = "off",
     ):
         from passt_mav.planning import make_planner
-        from passt_mav.planning.rewards import REWARDS_USING_STD
+        from passt_mav.planning.rewards import REWARDS_USING_PRIOR, REWARDS_USING_STD
         from passt_mav.reconstruction import GPReconstructor
 
         _check_loop_options(reward, hyper, path_length, steps_per_leg, background, prior_blend, forgetting, memory)
@@ -385,8 +385,6 @@ class PasstLoop:
         #: log weights of the candidate priors (:data:`PRIOR_CANDIDATES`), and one record per leg
         self.log_weights_ = np.log(np.array(PRIOR_START_WEIGHTS))
         self.blend_history_: list[dict] = []
-        from passt_mav.planning.rewards import REWARDS_USING_PRIOR
-
         #: per-cell memory of the local error past samples removed (``memory="fitted"``), else None
         self.memory = None
         if memory == "fitted" and reward in REWARDS_USING_PRIOR:
