@@ -33,7 +33,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 ROWS = ("dmd off", "dmd select", "dmd bma", "persistence prior", "persistence select", "lawnmower + GP")
 
 
-def fly(field, predictor, blend: str, seed: int, *, moves: int = 10, noise: float = 0.02) -> float:
+def fly(field, predictor, blend: str, seed: int, *, moves: int = 10, noise: float = 0.02, share: float = 0.0) -> float:
     """Mean RMSE (field units) over the last half of the one-snapshot legs flown over the second
     half of ``field`` from the truth at its middle snapshot (see the module docstring)."""
     from passt_mav.analysis.counterfactual import _fly_rounds
@@ -62,6 +62,7 @@ def fly(field, predictor, blend: str, seed: int, *, moves: int = 10, noise: floa
             hyper="every_leg",
             background=0 if isinstance(predictor, PersistencePredictor) else 200,
             prior_blend=blend,
+            share=share,
         )
     loop = opts.loop(predictor, field.grid, land=land, seed=seed)
     sampler = FieldSampler(field, noise_std=noise, seed=seed + 7919, steps_per_leg=1, sample_at="spread")
@@ -81,6 +82,7 @@ def main(argv=None) -> int:
     ap.add_argument("--seeds", type=int, default=4)
     ap.add_argument("--moves", type=int, default=10)
     ap.add_argument("--noise", type=float, default=0.02)
+    ap.add_argument("--share", type=float, default=0.0, help="the blend's fixed share (PasstLoop share)")
     ap.add_argument("--json", action="store_true")
     args = ap.parse_args(argv)
     warnings.filterwarnings("ignore")
@@ -105,7 +107,10 @@ def main(argv=None) -> int:
         result[name] = {}
         for label in ROWS:
             pred, blend = rows[label]
-            v = [fly(field, pred, blend, s, moves=args.moves, noise=args.noise) for s in range(args.seeds)]
+            v = [
+                fly(field, pred, blend, s, moves=args.moves, noise=args.noise, share=args.share)
+                for s in range(args.seeds)
+            ]
             result[name][label] = {"mean": float(np.mean(v)), "per_seed": v}
             print(f"{name} {label:18s} {np.mean(v):.4f}  per seed {np.round(v, 4).tolist()}", flush=True)
     if args.json:

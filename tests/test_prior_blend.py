@@ -161,3 +161,21 @@ def test_background_modes_do_not_score_persistence_up(field):
         bg, loop.gp.background = loop.gp.background, None
         assert no_modes == pytest.approx(loop.gp.innovation_loglik(xy, r), rel=1e-12)
         loop.gp.background = bg
+
+
+@pytest.mark.parametrize("share, back", [(0.0, False), (0.05, True)])
+def test_fixed_share_wins_a_good_model_back_after_one_bad_leg(field, monkeypatch, share, back):
+    """share (fixed share, Herbster & Warmuth 1998): one leg where the model misses by 100 nats
+    then one where it is 10 nats better than persistence. Without the share the first leg's loss
+    (x 0.8 forgetting) still rules and "select" keeps persistence; with share 0.05 no candidate
+    fell below 0.05 / 3 before the second leg (ln = -4.1), so the model is selected again."""
+    from passt_mav.reconstruction.gp import GPReconstructor
+
+    scores = iter([-100.0, 0.0, -100.0, 0.0, -10.0, -100.0])  # (model, persistence, none) per leg
+    monkeypatch.setattr(GPReconstructor, "innovation_loglik", lambda self, *a, **k: next(scores))
+    loop, _ = _legs(field, ShiftPredictor(TRUE_VEL), "select", 2, share=share)
+    first, second = (h["weights"] for h in loop.blend_history_)
+    assert first == {"model": 0.0, "persistence": 1.0, "none": 0.0}
+    assert second["model"] == (1.0 if back else 0.0), second
+    with pytest.raises(ReconstructionError, match="share"):
+        PasstLoop(Persistence(), field.grid, prior_blend="bma", share=1.5)

@@ -124,6 +124,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="residual GPs' prior mean: the model's forecast (off, default) or bma: the model's forecast, persistence and none (a zero mean: the samples' GP alone) weighed leg by leg by how well each explains the leg's samples (Bayesian model averaging with a forgetting factor), or select: the most probable of the three alone, leg by leg",
     )
     p.add_argument(
+        "--prior-share",
+        type=float,
+        default=0.0,
+        metavar="BETA",
+        help="with --prior-blend: fixed share of the prior weights (each candidate keeps at least BETA/3 before every leg's update, so one leg where a good model misses is won back in a few nats; default 0 = off)",
+    )
+    p.add_argument(
         "--gp-bias",
         action="store_true",
         help="the residual GP may add a constant offset over the region (u, v), kept only where the samples' likelihood pays for it (GPReconstructor bias)",
@@ -356,6 +363,7 @@ def _campaign(args: argparse.Namespace, field, predictor, lengths: list[int]) ->
         gp_bias=args.gp_bias,
         gp_nugget=args.gp_nugget,
         memory=args.memory,
+        prior_share=args.prior_share,
     )
     summary["config"].update(
         data=args.data,

@@ -237,6 +237,7 @@ def _loop_options(cfg: dict, m: str, predictor, L: int) -> tuple:
         gp_kw=cfg.get("gp_kw"),
         background=cfg.get("background", 0),
         prior_blend=cfg.get("prior_blend", "off"),
+        share=cfg.get("prior_share", 0.0),
         memory=cfg.get("memory", "off"),
         **kw,
     )
@@ -323,7 +324,8 @@ class CampaignOptions:
     (:func:`passt_mav.reconstruction.model_background`); 0 = none. prior_blend: "off", "bma" or "select"
     (:class:`passt_mav.loop.passt.PasstLoop`: every residual loop weighs the model's forecast against
     persistence leg by leg). gp_bias / gp_nugget: the residual GPs' ``bias`` and ``nugget``
-    (:class:`passt_mav.reconstruction.GPReconstructor`). memory: "off" or "fitted", the information
+    (:class:`passt_mav.reconstruction.GPReconstructor`). prior_share: the blend's fixed share
+    (``PasstLoop(share=...)``). memory: "off" or "fitted", the information
     prior's per-cell memory of past samples (:class:`passt_mav.loop.memory.CellMemory`; loops with a
     reward that uses the prior). ``methods`` is kept as a list.
     """
@@ -357,6 +359,7 @@ class CampaignOptions:
     gp_bias: bool = False
     gp_nugget: str = "state"
     memory: str = "off"
+    prior_share: float = 0.0
 
     def __post_init__(self) -> None:
         self.methods = list(self.methods)
@@ -425,6 +428,7 @@ def _campaign_cfg(o: CampaignOptions, steps: int) -> dict:
         background=int(o.background),
         prior_blend=o.prior_blend,
         memory=o.memory,
+        prior_share=float(o.prior_share),
     )
     return cfg
 
@@ -463,6 +467,8 @@ def _check_campaign(field, predictor, o: CampaignOptions) -> None:
         raise PlannerError(f"--background: {problem}")
     if o.prior_blend not in PRIOR_BLENDS:
         raise PlannerError(f"--prior-blend: unknown {o.prior_blend!r}; choose one of {', '.join(PRIOR_BLENDS)}")
+    if not 0.0 <= float(o.prior_share) <= 1.0:
+        raise PlannerError(f"--prior-share must lie in [0, 1], got {o.prior_share!r}")
     if o.memory not in MEMORIES:
         raise PlannerError(f"--memory: unknown {o.memory!r}; choose one of {', '.join(MEMORIES)}")
 
