@@ -87,7 +87,7 @@ class CellMemory:
         """
         cells = np.asarray(cells, int)
         if cells.size == 0:
-            self._relax()
+            self.relax()
             return
         n = np.asarray(counts, float)[None, :]  # (1, n)
         d2 = np.asarray(innovation, float).T ** 2  # (2, n)
@@ -107,9 +107,10 @@ class CellMemory:
         best = np.unravel_index(np.argmax(self.loglik), self.loglik.shape)[0]
         # a tie keeps the lower rho (argmax takes the first): no memory until the data ask for it
         self.best = int(best)
-        self._relax()
+        self.relax()
 
-    def _relax(self) -> None:
+    def relax(self) -> None:
+        """The step between legs: every candidate's fractions relax towards 1 by its ``rho``."""
         self.s = 1.0 - self.rhos[:, None] * (1.0 - self.s)
 
     def record(self) -> dict:

@@ -595,7 +595,7 @@ class PasstLoop:
         the leg was planned on (:meth:`_remembered_prior`; none yet: nothing to score, the fractions
         only relax)."""
         if self._memory_diag is None or len(samples) == 0:
-            self.memory.observe([], [], np.zeros((0, 2)), None, None, None)
+            self.memory.relax()
             return
         R, C = self.grid.shape
         r = np.clip(np.round(samples.r).astype(int), 0, R - 1)
