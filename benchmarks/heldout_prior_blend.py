@@ -33,7 +33,17 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 ROWS = ("dmd off", "dmd select", "dmd bma", "persistence prior", "persistence select", "lawnmower + GP")
 
 
-def fly(field, predictor, blend: str, seed: int, *, moves: int = 10, noise: float = 0.02, share: float = 0.0) -> float:
+def fly(
+    field,
+    predictor,
+    blend: str,
+    seed: int,
+    *,
+    moves: int = 10,
+    noise: float = 0.02,
+    share: float = 0.0,
+    forgetting: float = 0.8,
+) -> float:
     """Mean RMSE (field units) over the last half of the one-snapshot legs flown over the second
     half of ``field`` from the truth at its middle snapshot (see the module docstring)."""
     from passt_mav.analysis.counterfactual import _fly_rounds
@@ -63,6 +73,7 @@ def fly(field, predictor, blend: str, seed: int, *, moves: int = 10, noise: floa
             background=0 if isinstance(predictor, PersistencePredictor) else 200,
             prior_blend=blend,
             share=share,
+            forgetting=forgetting,
         )
     loop = opts.loop(predictor, field.grid, land=land, seed=seed)
     sampler = FieldSampler(field, noise_std=noise, seed=seed + 7919, steps_per_leg=1, sample_at="spread")
@@ -83,8 +94,18 @@ def main(argv=None) -> int:
     ap.add_argument("--moves", type=int, default=10)
     ap.add_argument("--noise", type=float, default=0.02)
     ap.add_argument("--share", type=float, default=0.0, help="the blend's fixed share (PasstLoop share)")
+    ap.add_argument(
+        "--forgetting", type=float, default=0.8, help="the blend's forgetting factor (PasstLoop forgetting)"
+    )
+    ap.add_argument(
+        "--rows", default=",".join(ROWS), help="comma-separated subset of the rows (default all): " + ", ".join(ROWS)
+    )
     ap.add_argument("--json", action="store_true")
     args = ap.parse_args(argv)
+    wanted = [r.strip() for r in args.rows.split(",") if r.strip()]
+    unknown = [r for r in wanted if r not in ROWS]
+    if unknown:
+        ap.error(f"--rows: unknown {', '.join(map(repr, unknown))}; choose from {', '.join(ROWS)}")
     warnings.filterwarnings("ignore")
     from passt_mav.fields.datasets import resolve_field
     from passt_mav.models.dmd import DMDPredictor
@@ -105,10 +126,19 @@ def main(argv=None) -> int:
             "lawnmower + GP": (None, "lawnmower"),
         }
         result[name] = {}
-        for label in ROWS:
+        for label in [r for r in ROWS if r in wanted]:
             pred, blend = rows[label]
             v = [
-                fly(field, pred, blend, s, moves=args.moves, noise=args.noise, share=args.share)
+                fly(
+                    field,
+                    pred,
+                    blend,
+                    s,
+                    moves=args.moves,
+                    noise=args.noise,
+                    share=args.share,
+                    forgetting=args.forgetting,
+                )
                 for s in range(args.seeds)
             ]
             result[name][label] = {"mean": float(np.mean(v)), "per_seed": v}

@@ -62,6 +62,13 @@ def test_defaults_and_normalisation():
     assert (
         cfg.gp.background == 200 and MissionConfig.model_validate({**GOOD, "gp": {"background": 0}}).gp.background == 0
     )
+    # the blend's fixed share reaches the loop a mission builds (0 = off, the default)
+    from passt_mav.loop.legstep import build_loop
+    from passt_mav.models import make_predictor
+
+    shared = MissionConfig.model_validate({**GOOD, "gp": {"prior_blend": "bma", "prior_share": 0.05}})
+    loops = [build_loop(c, make_predictor("persistence"), c.grid()) for c in (cfg, shared)]
+    assert [lp.share for lp in loops] == [0.0, 0.05] and loops[1].prior_blend == "bma"
 
 
 def test_field_file_relative_to_mission_file(tmp_path):
@@ -145,6 +152,7 @@ BROKEN = [
         "gp.background: a background roll-out needs 0 (none) or at least 2 snapshots",
     ),
     ("background_negative", _with(gp__background=-5), "gp.background: must be >= 0 (got -5)"),
+    ("share_above_one", _with(gp__prior_share=1.5), "gp.prior_share: must be <= 1 (got 1.5)"),
     ("unknown_model", _with(model="transformer"), "model: unknown model 'transformer'"),
     ("missing_ckpt", _with(model="nope.pt"), "model: model checkpoint not found"),
 ]

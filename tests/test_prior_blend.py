@@ -179,3 +179,19 @@ def test_fixed_share_wins_a_good_model_back_after_one_bad_leg(field, monkeypatch
     assert second["model"] == (1.0 if back else 0.0), second
     with pytest.raises(ReconstructionError, match="share"):
         PasstLoop(Persistence(), field.grid, prior_blend="bma", share=1.5)
+
+
+def test_with_a_share_the_model_starts_alone_and_the_share_is_the_only_doubt(field, monkeypatch):
+    """With a fixed share the blend starts on the model alone: a first leg whose samples cannot tell
+    the candidates apart (equal scores) leaves bma's weights at the share's floor, 1 - share + share/3
+    against share/3 each (0.9667 / 0.0167 / 0.0167 for 0.05), not at the start weights 0.9 / 0.1 / 0.1
+    of a loop without a share (the North Atlantic demo's first short leg mixed 16 % persistence into
+    the right model that way). Forgetting 1 here: the factor tempers the weights (w ** 0.8), which
+    would move both rows towards the uniform."""
+    from passt_mav.reconstruction.gp import GPReconstructor
+
+    monkeypatch.setattr(GPReconstructor, "innovation_loglik", lambda self, *a, **k: 0.0)
+    for share, want in [(0.05, [1 - 0.05 + 0.05 / 3, 0.05 / 3, 0.05 / 3]), (0.0, [0.9 / 1.1, 0.1 / 1.1, 0.1 / 1.1])]:
+        loop, _ = _legs(field, ShiftPredictor(TRUE_VEL), "bma", 1, share=share, forgetting=1.0)
+        got = loop.blend_history_[0]["weights"]
+        assert [got[k] for k in ("model", "persistence", "none")] == pytest.approx(want, abs=1e-12), share

@@ -581,3 +581,31 @@ def test_rmse_figure_with_the_lawnmower_counterfactual(tmp_path):
     finally:
         plt.close(fig)
     assert "No lawnmower+GP counterfactual for this run" in write_report(rd.root).read_text()
+
+
+def test_prior_per_leg_table(tmp_path):
+    """The prior blend per leg (issue 27, item 6): each leg's weights and evidence (summary.json
+    legs[i].gp prior_weights / prior_loglik) in a table; a run without a blend gets no section."""
+    rd = make_run(tmp_path / "run", n_legs=2)
+    s = rd.read_summary()
+    assert "Prior per leg" not in write_report(rd.root).read_text()
+    s["legs"][0]["gp"] = {
+        "prior_weights": {"model": 0.9667, "persistence": 0.0333, "none": 0.0},
+        "prior_loglik": {"model": -12.25, "persistence": -12.5, "none": -480.0},
+    }
+    s["legs"][1]["gp"] = {"prior_weights": {"model": 0.0, "persistence": 0.0, "none": 1.0}}  # older run: no loglik
+    rd.write_summary(s)
+    text = write_report(rd.root).read_text()
+    assert "<h2>Prior per leg</h2>" in text
+    table = text.split("<h2>Prior per leg</h2>")[1].split("</table>")[0]
+    rows = table.split("<tr>")[2:]
+    assert "weight: persistence" in table and "log likelihood: none (nats)" in table
+    assert [c.split("<")[0] for c in rows[0].split('class="num">')[1:]] == [
+        "0.967",
+        "0.033",
+        "0.000",
+        "-12.2",
+        "-12.5",
+        "-480.0",
+    ]
+    assert rows[1].count("&ndash;") == 3 and ">1.000<" in rows[1]

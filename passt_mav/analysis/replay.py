@@ -193,16 +193,20 @@ def _load_config(mission, summary: dict | None, rd) -> tuple[Any, str]:
 
 
 def _as_recorded(cfg, summary: dict | None):
-    """``cfg`` with ``gp.bias`` and ``gp.prior_blend`` as the run resolved them (summary.json ``config``):
+    """``cfg`` with ``gp.bias``, ``gp.prior_blend`` and ``gp.prior_share`` as the run resolved them (summary.json ``config``):
     a default that changed since (both became mission defaults in issue 27) must not make an older run's
     replay diverge. A run whose recorded config lacks one ran before it was a mission default: ``bias``
-    off, ``prior_blend`` "off"."""
+    off, ``prior_blend`` "off", ``prior_share`` 0 (the key came with issue 27's fixed share)."""
     from passt_mav.loop.passt import PRIOR_BLENDS
 
     recorded = (summary or {}).get("config")
     if not isinstance(recorded, dict) or not isinstance(recorded.get("gp"), dict):
         return cfg
-    as_run = {"bias": bool(recorded["gp"].get("bias", False)), "prior_blend": recorded["gp"].get("prior_blend", "off")}
+    as_run = {
+        "bias": bool(recorded["gp"].get("bias", False)),
+        "prior_blend": recorded["gp"].get("prior_blend", "off"),
+        "prior_share": float(recorded["gp"].get("prior_share", 0.0) or 0.0),
+    }
     if as_run["prior_blend"] not in PRIOR_BLENDS:
         as_run["prior_blend"] = "off"
     changed = {k: v for k, v in as_run.items() if getattr(cfg.gp, k) != v}

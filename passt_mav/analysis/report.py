@@ -739,6 +739,7 @@ def write_report(run_dir: str | Path, out: str | Path | None = None) -> Path:
     _section_samples(page, run, plt)
     _section_recon(page, run, plt)
     _section_rmse(page, run, plt)
+    _section_prior(page, run)
     _section_pod(page, run, plt)
     _section_timings(page, run)
     _section_tlog(page, run)
@@ -939,6 +940,39 @@ def _section_rmse(page: _Page, run: Run, plt) -> None:
         page.note("Lawnmower+GP counterfactual: " + cf["how"] + ".")
     elif not (over or {}).get("lawnmower"):
         page.note("No lawnmower+GP counterfactual for this run (passt-mav demo adds one to summary.json).")
+
+
+def _section_prior(page: _Page, run: Run) -> None:
+    """The prior blend per leg (issue 27, item 6): the weight of each candidate prior (the model's
+    forecast, persistence, none) the leg's estimate used, and the leg's evidence for each (its
+    samples' innovation log likelihood, nats), from summary.json ``legs[i].gp``."""
+    rows = [
+        (leg.get("index", n), leg["gp"])
+        for n, leg in enumerate(run.legs)
+        if isinstance(leg.get("gp"), dict) and isinstance(leg["gp"].get("prior_weights"), dict)
+    ]
+    if not rows:
+        return  # no blend (gp.prior_blend off): the model's forecast was the prior on every leg
+    page.h2("Prior per leg")
+    names = list(rows[0][1]["prior_weights"])
+    head = (
+        "<tr><th>leg</th>"
+        + "".join(f"<th>weight: {html.escape(k)}</th>" for k in names)
+        + "".join(f"<th>log likelihood: {html.escape(k)} (nats)</th>" for k in names)
+        + "</tr>"
+    )
+    body = []
+    for i, gp in rows:
+        w, ll = gp["prior_weights"], gp.get("prior_loglik") or {}
+        cells = [f"{float(w[k]):.3f}" if isinstance(w.get(k), (int, float)) else "&ndash;" for k in names]
+        cells += [f"{float(ll[k]):.1f}" if isinstance(ll.get(k), (int, float)) else "&ndash;" for k in names]
+        body.append(f"<tr><td>{_fmt(i)}</td>" + "".join(f'<td class="num">{c}</td>' for c in cells) + "</tr>")
+    page.add(f"<table>{head}{''.join(body)}</table>")
+    page.note(
+        "The prior mean of each leg's GP: the model's forecast, persistence (the leg's first estimate held) "
+        "or none (the samples' GP alone), weighed by how well each explained the legs' samples "
+        "(gp.prior_blend: select takes the most probable alone, bma mixes them)."
+    )
 
 
 def _section_pod(page: _Page, run: Run, plt) -> None:

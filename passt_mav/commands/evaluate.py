@@ -131,6 +131,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="with --prior-blend: fixed share of the prior weights (each candidate keeps at least BETA/3 before every leg's update, so one leg where a good model misses is won back in a few nats; default 0 = off)",
     )
     p.add_argument(
+        "--prior-forgetting",
+        type=float,
+        default=0.8,
+        metavar="F",
+        help="with --prior-blend: forgetting factor of the prior weights per leg (log weights <- F x log weights + the leg's log likelihood; 1 = none; default 0.8, the missions' gp.forgetting)",
+    )
+    p.add_argument(
         "--gp-bias",
         action="store_true",
         help="the residual GP may add a constant offset over the region (u, v), kept only where the samples' likelihood pays for it (GPReconstructor bias)",
@@ -303,6 +310,9 @@ def run(args: argparse.Namespace) -> int:
         raise PlannerError("--workers must be >= 1")
     if args.steps < 1 or args.steps_per_leg < 1:
         raise PlannerError("--steps and --steps-per-leg must be >= 1")
+    for opt, v in (("--prior-share", args.prior_share), ("--prior-forgetting", args.prior_forgetting)):
+        if not 0.0 <= v <= 1.0:  # before the field loads and the run directory is made
+            raise PlannerError(f"{opt} must lie in [0, 1], got {v!r}")
     field = resolve_field(args.data)
     predictor = load_predictor(args.model, field)
     out_dir = Path(args.out)
@@ -364,6 +374,7 @@ def _campaign(args: argparse.Namespace, field, predictor, lengths: list[int]) ->
         gp_nugget=args.gp_nugget,
         memory=args.memory,
         prior_share=args.prior_share,
+        prior_forgetting=args.prior_forgetting,
     )
     summary["config"].update(
         data=args.data,

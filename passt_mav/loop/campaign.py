@@ -238,6 +238,7 @@ def _loop_options(cfg: dict, m: str, predictor, L: int) -> tuple:
         background=cfg.get("background", 0),
         prior_blend=cfg.get("prior_blend", "off"),
         share=cfg.get("prior_share", 0.0),
+        forgetting=cfg.get("prior_forgetting", 0.8),
         memory=cfg.get("memory", "off"),
         **kw,
     )
@@ -325,7 +326,7 @@ class CampaignOptions:
     (:class:`passt_mav.loop.passt.PasstLoop`: every residual loop weighs the model's forecast against
     persistence leg by leg). gp_bias / gp_nugget: the residual GPs' ``bias`` and ``nugget``
     (:class:`passt_mav.reconstruction.GPReconstructor`). prior_share: the blend's fixed share
-    (``PasstLoop(share=...)``). memory: "off" or "fitted", the information
+    (``PasstLoop(share=...)``); prior_forgetting its forgetting factor (``PasstLoop(forgetting=...)``). memory: "off" or "fitted", the information
     prior's per-cell memory of past samples (:class:`passt_mav.loop.memory.CellMemory`; loops with a
     reward that uses the prior). ``methods`` is kept as a list.
     """
@@ -360,6 +361,7 @@ class CampaignOptions:
     gp_nugget: str = "state"
     memory: str = "off"
     prior_share: float = 0.0
+    prior_forgetting: float = 0.8
 
     def __post_init__(self) -> None:
         self.methods = list(self.methods)
@@ -429,6 +431,7 @@ def _campaign_cfg(o: CampaignOptions, steps: int) -> dict:
         prior_blend=o.prior_blend,
         memory=o.memory,
         prior_share=float(o.prior_share),
+        prior_forgetting=float(o.prior_forgetting),
     )
     return cfg
 
@@ -469,6 +472,8 @@ def _check_campaign(field, predictor, o: CampaignOptions) -> None:
         raise PlannerError(f"--prior-blend: unknown {o.prior_blend!r}; choose one of {', '.join(PRIOR_BLENDS)}")
     if not 0.0 <= float(o.prior_share) <= 1.0:
         raise PlannerError(f"--prior-share must lie in [0, 1], got {o.prior_share!r}")
+    if not 0.0 <= float(o.prior_forgetting) <= 1.0:
+        raise PlannerError(f"--prior-forgetting must lie in [0, 1], got {o.prior_forgetting!r}")
     if o.memory not in MEMORIES:
         raise PlannerError(f"--memory: unknown {o.memory!r}; choose one of {', '.join(MEMORIES)}")
 

@@ -250,6 +250,7 @@ def build_loop(config, predictor, grid, land=None):
         background=config.gp.background,
         prior_blend=config.gp.prior_blend,
         forgetting=config.gp.forgetting,
+        share=config.gp.prior_share,
         memory=config.planner.memory,
     )
     loop = options.loop(predictor, grid, land=land, seed=config.seeds.planner)

@@ -15,7 +15,7 @@ Example (``missions/north_atlantic.yaml``)::
     # vehicles: [{connect: "tcp:127.0.0.1:5760"}, {connect: "tcp:127.0.0.1:5770", start_cell: [5, 5]}]
     sensors: {u: CUR_U, v: CUR_V, noise_std: 0.02}
     geofence_margin_m: 500
-    gp: {prior: forecast, hyper: every_leg, background: 200, prior_blend: select, forgetting: 0.8, options: {}}
+    gp: {prior: forecast, hyper: every_leg, background: 200, prior_blend: select, forgetting: 0.8, prior_share: 0, options: {}}
     seeds: {planner: 0, gp: 0, sensor: 0, field: 0}
 
 ``region`` is geographic (south/west/north/east/rows/cols: the lat/lon of the
@@ -322,7 +322,9 @@ class GPConfig(_Strict):
     kernels (0 = none; see :func:`passt_mav.reconstruction.model_background`); ``prior_blend``:
     ``off`` (the model's forecast is the prior), ``bma`` (the model and persistence weighed leg
     by leg by how well each explains the leg's samples, memory ``forgetting``) or ``select`` (the
-    more probable of the two alone; see :class:`passt_mav.loop.passt.PasstLoop`); ``bias``: the
+    most probable alone; see :class:`passt_mav.loop.passt.PasstLoop`); ``prior_share``: the blend's
+    fixed share (every candidate keeps ``prior_share / 3`` of the weight, so one bad leg of a good
+    model is won back; 0 = off, ``PasstLoop(share=...)``); ``bias``: the
     residual GP may shift the forecast by a constant and rescale its anomaly where a leg's samples show it (fitted only from samples that
     see half of the region, kept only when their likelihood pays for it;
     :class:`passt_mav.reconstruction.gp.GPReconstructor` ``bias``);
@@ -333,6 +335,7 @@ class GPConfig(_Strict):
     background: int = Field(default=DEFAULT_BACKGROUND, ge=0)
     prior_blend: Literal["off", "bma", "select"] = PRIOR_BLEND_DEFAULT
     forgetting: float = Field(default=0.8, ge=0.0, le=1.0)
+    prior_share: float = Field(default=0.0, ge=0.0, le=1.0)
     bias: bool = BIAS_DEFAULT
 
     @field_validator("background")
