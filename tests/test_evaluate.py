@@ -145,7 +145,17 @@ def test_bad_inputs_exit_2(tmp_path, capsys):
     )
     capsys.readouterr()
     for opt in ("--prior-share", "--prior-forgetting"):  # the blend's settings, checked before any work
-        argv = ["evaluate", "--data", "builtin:ocean", "--model", "persistence", opt, "1.5", "--out", str(tmp_path / "x")]
+        argv = [
+            "evaluate",
+            "--data",
+            "builtin:ocean",
+            "--model",
+            "persistence",
+            opt,
+            "1.5",
+            "--out",
+            str(tmp_path / "x"),
+        ]
         assert main(argv) == 2, opt
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and f"{opt} must lie in [0, 1], got 1.5" in err[0], err
