@@ -195,3 +195,29 @@ def test_with_a_share_the_model_starts_alone_and_the_share_is_the_only_doubt(fie
         loop, _ = _legs(field, ShiftPredictor(TRUE_VEL), "bma", 1, share=share, forgetting=1.0)
         got = loop.blend_history_[0]["weights"]
         assert [got[k] for k in ("model", "persistence", "none")] == pytest.approx(want, abs=1e-12), share
+
+
+def test_forgetting_returns_to_the_start_weights_not_to_the_uniform(field, monkeypatch):
+    """The forgetting factor discounts old evidence towards the start weights (0.9 / 0.1 / 0.1: a
+    margin of ln 9 = 2.20 nats for the model), not towards the uniform. Three legs whose samples
+    cannot tell the model from persistence, then one leg 1.5 nats in persistence's favour (the size
+    of the swing that flipped a North Atlantic demo walk to persistence, 5x the model's RMSE):
+    "select" keeps the model (2.20 - 1.5 = 0.70; forgetting towards the uniform had left
+    2.20 x 0.8^3 = 1.12 and switched). Evidence that persists still rules: 1 nat a leg for
+    persistence switches on the third leg (margins 1.20, 0.40, -0.24)."""
+    from passt_mav.reconstruction.gp import GPReconstructor
+
+    def run(scores, n):
+        it = iter(scores)
+        monkeypatch.setattr(GPReconstructor, "innovation_loglik", lambda self, *a, **k: next(it))
+        loop, _ = _legs(field, ShiftPredictor(TRUE_VEL), "select", n)
+        return loop
+
+    quiet = [-5.0, -5.0, -400.0] * 3 + [-6.5, -5.0, -400.0]
+    loop = run(quiet, 4)
+    assert [h["weights"]["model"] for h in loop.blend_history_] == [1.0] * 4
+    post = loop.blend_history_[-1]["posterior"]
+    assert np.log(post["model"] / post["persistence"]) == pytest.approx(np.log(9.0) - 1.5, abs=1e-9)
+    steady = [-6.0, -5.0, -400.0] * 4
+    loop = run(steady, 4)
+    assert [h["weights"]["model"] for h in loop.blend_history_] == [1.0, 1.0, 0.0, 0.0]

@@ -135,7 +135,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         type=float,
         default=0.8,
         metavar="F",
-        help="with --prior-blend: forgetting factor of the prior weights per leg (log weights <- F x log weights + the leg's log likelihood; 1 = none; default 0.8, the missions' gp.forgetting)",
+        help="with --prior-blend: forgetting factor of the prior weights per leg (log weights <- F x log weights + the leg's log likelihood, which flattens the weights towards the uniform; select forgets towards the start weights; 1 = none; default 0.8, the missions' gp.forgetting)",
     )
     p.add_argument(
         "--gp-bias",
