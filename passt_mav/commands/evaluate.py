@@ -303,16 +303,16 @@ def run(args: argparse.Namespace) -> int:
 
     from passt_mav.errors import PlannerError
     from passt_mav.fields.datasets import resolve_field
-    from passt_mav.loop.campaign import load_predictor
+    from passt_mav.loop.campaign import blend_options_problem, load_predictor
 
     lengths = _parse_lengths(args.path_lengths)
     if args.workers < 1:
         raise PlannerError("--workers must be >= 1")
     if args.steps < 1 or args.steps_per_leg < 1:
         raise PlannerError("--steps and --steps-per-leg must be >= 1")
-    for opt, v in (("--prior-share", args.prior_share), ("--prior-forgetting", args.prior_forgetting)):
-        if not 0.0 <= v <= 1.0:  # before the field loads and the run directory is made
-            raise PlannerError(f"{opt} must lie in [0, 1], got {v!r}")
+    problem = blend_options_problem(args.prior_share, args.prior_forgetting)
+    if problem:  # before the field loads and the run directory is made
+        raise PlannerError(problem)
     field = resolve_field(args.data)
     predictor = load_predictor(args.model, field)
     out_dir = Path(args.out)

@@ -436,6 +436,15 @@ def _campaign_cfg(o: CampaignOptions, steps: int) -> dict:
     return cfg
 
 
+def blend_options_problem(share, forgetting) -> str | None:
+    """One line naming the prior blend's setting outside [0, 1] (``--prior-share``, ``--prior-forgetting``),
+    or None: the campaign's check, and ``passt-mav evaluate``'s before it loads a field."""
+    for opt, v in (("--prior-share", share), ("--prior-forgetting", forgetting)):
+        if not 0.0 <= float(v) <= 1.0:
+            return f"{opt} must lie in [0, 1], got {v!r}"
+    return None
+
+
 def _check_campaign(field, predictor, o: CampaignOptions) -> None:
     """Every option of :func:`run_campaign` checked once, before any work; raises the error naming it."""
     from passt_mav.errors import ModelError, PlannerError
@@ -470,10 +479,9 @@ def _check_campaign(field, predictor, o: CampaignOptions) -> None:
         raise PlannerError(f"--background: {problem}")
     if o.prior_blend not in PRIOR_BLENDS:
         raise PlannerError(f"--prior-blend: unknown {o.prior_blend!r}; choose one of {', '.join(PRIOR_BLENDS)}")
-    if not 0.0 <= float(o.prior_share) <= 1.0:
-        raise PlannerError(f"--prior-share must lie in [0, 1], got {o.prior_share!r}")
-    if not 0.0 <= float(o.prior_forgetting) <= 1.0:
-        raise PlannerError(f"--prior-forgetting must lie in [0, 1], got {o.prior_forgetting!r}")
+    problem = blend_options_problem(o.prior_share, o.prior_forgetting)
+    if problem:
+        raise PlannerError(problem)
     if o.memory not in MEMORIES:
         raise PlannerError(f"--memory: unknown {o.memory!r}; choose one of {', '.join(MEMORIES)}")
 
