@@ -338,7 +338,7 @@ class PasstLoop:
             tracking the best expert): before each leg's update the weights are mixed with
             ``share`` of the uniform, so no candidate falls below ``share / 3`` and one leg where
             a good model misses costs at most about ln(3 / share) nats to win back (0 = off, the
-            default). With a share the blend starts on the model alone (:func:`_start_weights`):
+            default). With a share the blend starts on the model alone:
             the share is the only doubt a trusted model starts with. Measured with 0.05 and "bma"
             (held-out real series, 4 seeds, ``benchmarks/heldout_prior_blend.py --share 0.05``):
             RTOFS, DMD prior 0.1337 m/s against 0.1349 without a blend; gridded_current 0.1598
@@ -409,10 +409,12 @@ class PasstLoop:
         self.forgetting = float(forgetting)
         self.share = float(share)
         #: log weights of the candidate priors (:data:`PRIOR_CANDIDATES`), and one record per leg
-        with np.errstate(divide="ignore"):  # a share starts on the model alone: log 0 = -inf, mixed before use
-            self.log_weights_ = np.log(_start_weights(self.share))
         #: what the forgetting factor returns the weights to without evidence (:func:`_prior_weights`)
         self._log_prior = np.log(_prior_weights(self.share))
+        # the start: those weights, but with a share the model alone (the share's first mixing gives the
+        # others share / K: the share is the only doubt a trusted model starts with); log 0 = -inf, mixed before use
+        with np.errstate(divide="ignore"):
+            self.log_weights_ = np.log(np.eye(len(PRIOR_CANDIDATES))[0]) if self.share > 0 else self._log_prior.copy()
         self.blend_history_: list[dict] = []
         #: per-cell memory of the local error past samples removed (``memory="fitted"``), else None
         self.memory = None
@@ -736,16 +738,6 @@ class PasstLoop:
 PRIOR_CANDIDATES = ("model", "persistence", "none")
 #: their weights before any leg: the model trusted (its own validation said it beats persistence)
 PRIOR_START_WEIGHTS = (0.9, 0.1, 0.1)
-
-
-def _start_weights(share: float) -> np.ndarray:
-    """Weights of :data:`PRIOR_CANDIDATES` before any leg: :data:`PRIOR_START_WEIGHTS`, or with a
-    fixed ``share`` > 0 the model alone, which the first leg's share mixes to ``1 - share + share / K``
-    against ``share / K`` for each other candidate: the share is then the only doubt a trusted model
-    starts with, as it is the floor every candidate keeps later."""
-    if share <= 0:
-        return np.array(PRIOR_START_WEIGHTS, np.float64)
-    return np.eye(len(PRIOR_CANDIDATES))[0]
 
 
 def _prior_weights(share: float) -> np.ndarray:
