@@ -62,13 +62,14 @@ def test_defaults_and_normalisation():
     assert (
         cfg.gp.background == 200 and MissionConfig.model_validate({**GOOD, "gp": {"background": 0}}).gp.background == 0
     )
-    # the blend's fixed share reaches the loop a mission builds (0 = off, the default)
+    # the blend's fixed share reaches the loop a mission builds (0.05 the default, 0 = off)
     from passt_mav.loop.legstep import build_loop
     from passt_mav.models import make_predictor
 
-    shared = MissionConfig.model_validate({**GOOD, "gp": {"prior_blend": "bma", "prior_share": 0.05}})
-    loops = [build_loop(c, make_predictor("persistence"), c.grid()) for c in (cfg, shared)]
-    assert [lp.share for lp in loops] == [0.0, 0.05] and loops[1].prior_blend == "bma"
+    unshared = MissionConfig.model_validate({**GOOD, "gp": {"prior_blend": "bma", "prior_share": 0}})
+    loops = [build_loop(c, make_predictor("persistence"), c.grid()) for c in (cfg, unshared)]
+    assert [lp.share for lp in loops] == [0.05, 0.0] and loops[1].prior_blend == "bma"
+    assert loops[0].prior_blend == "select"
 
 
 def test_field_file_relative_to_mission_file(tmp_path):

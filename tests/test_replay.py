@@ -343,20 +343,20 @@ def test_a_run_replays_with_the_prior_blend_it_ran_with():
     assert cfg.gp.prior_blend == "select" == PRIOR_BLEND_DEFAULT
     assert _as_recorded(cfg, {"config": {"gp": {"bias": True}}}).gp.prior_blend == "off"
     assert _as_recorded(cfg, {"config": {"gp": {"bias": True, "prior_blend": "off"}}}).gp.prior_blend == "off"
-    kept = _as_recorded(cfg, {"config": {"gp": {"bias": True, "prior_blend": "select"}}})
+    kept = _as_recorded(cfg, {"config": {"gp": {"bias": True, "prior_blend": "select", "prior_share": 0.05}}})
     assert kept is cfg and kept.gp.prior_blend == "select"
     assert _as_recorded(cfg, {"config": {"gp": {"bias": True, "prior_blend": "bma"}}}).gp.prior_blend == "bma"
 
 
 def test_a_run_replays_with_the_prior_share_it_ran_with():
-    """gp.prior_share (issue 27's fixed share): a run recorded without it ran without a share and replays
-    so even if the mission file now sets one; a recorded share is kept."""
+    """gp.prior_share (issue 27's fixed share, a mission default of 0.05 since): a run recorded without it
+    ran without a share and replays so although the mission file now sets one; a recorded share is kept."""
     from passt_mav.analysis.replay import _as_recorded
-    from passt_mav.mission.config import load_mission
+    from passt_mav.mission.config import PRIOR_SHARE_DEFAULT, load_mission
 
     cfg = load_mission(Path(__file__).resolve().parents[1] / "missions" / "north_atlantic.yaml")
-    assert cfg.gp.prior_share == 0.0
-    shared = cfg.model_copy(update={"gp": cfg.gp.model_copy(update={"prior_share": 0.05})})
-    assert _as_recorded(shared, {"config": {"gp": {"bias": True, "prior_blend": "select"}}}).gp.prior_share == 0.0
-    rec = {"config": {"gp": {"bias": True, "prior_blend": "bma", "prior_share": 0.05}}}
-    assert _as_recorded(cfg, rec).gp.prior_share == pytest.approx(0.05)
+    assert cfg.gp.prior_share == 0.05 == PRIOR_SHARE_DEFAULT
+    assert _as_recorded(cfg, {"config": {"gp": {"bias": True, "prior_blend": "select"}}}).gp.prior_share == 0.0
+    unshared = cfg.model_copy(update={"gp": cfg.gp.model_copy(update={"prior_share": 0.0})})
+    rec = {"config": {"gp": {"bias": True, "prior_blend": "bma", "prior_share": 0.02}}}
+    assert _as_recorded(unshared, rec).gp.prior_share == pytest.approx(0.02)

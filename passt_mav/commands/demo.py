@@ -72,7 +72,14 @@ _EMBEDDED = {
     "vehicle": {"connect": "tcp:127.0.0.1:5760", "speed_mps": 2.0, "wp_radius_m": 3.0},
     "sensors": {"u": "CUR_U", "v": "CUR_V", "noise_std": 0.01},
     "geofence_margin_m": 20.0,
-    "gp": {"prior": "forecast", "hyper": "every_leg", "background": 200, "bias": True, "prior_blend": "select"},
+    "gp": {
+        "prior": "forecast",
+        "hyper": "every_leg",
+        "background": 200,
+        "bias": True,
+        "prior_blend": "select",
+        "prior_share": 0.05,
+    },
     "seeds": {"planner": 0, "gp": 0, "sensor": 0},
 }
 
