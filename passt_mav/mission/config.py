@@ -321,8 +321,8 @@ PRIOR_BLEND_DEFAULT = "select"
 #: RTOFS with persistence as the model 0.1465 (persistence-prior PASST 0.1922); gridded_current DMD 0.1429
 #: (persistence-prior PASST 0.1698); the three scenarios equal to no blend (6 trials, L = 50: 0.0581 / 0.0964 /
 #: 0.0405). ``bma`` with the share did as well on the real series but mixed 3.6 % persistence into the right model
-#: on the North Atlantic demo's first short leg (PASST 0.0078 against the model alone's 0.0071); README "The blend's
-#: share as the default"
+#: on the North Atlantic demo's first short leg (PASST 0.0078 against the model alone's 0.0071); README "The share
+#: as the missions' default"
 PRIOR_SHARE_DEFAULT = 0.05
 
 
@@ -335,7 +335,7 @@ class GPConfig(_Strict):
     by leg by how well each explains the leg's samples, memory ``forgetting``) or ``select`` (the
     most probable alone; see :class:`passt_mav.loop.passt.PasstLoop`); ``prior_share``: the blend's
     fixed share (every candidate keeps ``prior_share / 3`` of the weight, so one bad leg of a good
-    model is won back; 0 = off, ``PasstLoop(share=...)``); ``bias``: the
+    model is won back; default :data:`PRIOR_SHARE_DEFAULT` 0.05, 0 = off, ``PasstLoop(share=...)``); ``bias``: the
     residual GP may shift the forecast by a constant and rescale its anomaly where a leg's samples show it (fitted only from samples that
     see half of the region, kept only when their likelihood pays for it;
     :class:`passt_mav.reconstruction.gp.GPReconstructor` ``bias``);
