@@ -42,6 +42,7 @@ import contextlib
 import copy
 import json
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -77,21 +78,14 @@ def _oracle_installed(field, *, mode: str, candidates: int, score: str, noise: f
         self.info_ = None  # the beam search then sums the map over the path's distinct cells
         return np.where(mask, np.nansum(err**2, axis=0), 0.0), mask
 
-    def flown(self, base, path, t_end: float, k: int, rng) -> float:
-        """The oracle's score of ``path``: the outcome of a copy of the loop updated with the truth's samples."""
-        p = np.asarray(path, float)
-        t = np.full(len(p), t_end)
-        uv = field.interp(t, p[:, 0], p[:, 1]) + rng.normal(0.0, noise, (len(p), 2))
+    def flown(self, base, path, k: int) -> float:
+        """The oracle's score of ``path``: the outcome of a copy of the loop updated with the truth's samples
+        (the campaign's sensor model; the same noise draws for every candidate of a leg)."""
+        sampler = P.FieldSampler(field, noise_std=noise, seed=[self.seed, self.leg_index], steps_per_leg=base.steps)
         trial = copy.deepcopy(self, memo={id(self.predictor): self.predictor})
-        leg = P.LegPlan(
-            path=np.asarray(path), reward=base.reward, forecast=base.forecast, t_start=base.t_start,
-            dt=base.dt, steps=base.steps, timings={},
-        )  # fmt: skip
-        state = trial.update(leg, P.Samples(t, p[:, 0], p[:, 1], uv[:, 0], uv[:, 1]))
-        if score == "recon":
-            return rmse(state, field.data[k])
+        state = trial.update(replace(base, path=np.asarray(path)), sampler.sample_path(path, base.t_start))
         n = min(base.steps, len(times) - 1 - k)
-        if n < 1:
+        if score == "recon" or n < 1:
             return rmse(state, field.data[k])
         fc = trial.forecast(state, n)
         return float(np.mean([rmse(fc[j], field.data[k + j]) for j in range(1, n + 1)]))
@@ -114,15 +108,10 @@ def _oracle_installed(field, *, mode: str, candidates: int, score: str, noise: f
             RandomPlanner().plan(base.reward, start, self.path_length, seed=10_000 * self.leg_index + j, mask=mask)
             for j in range(candidates)
         ]
-        rng_seed = [self.seed, self.leg_index]
-        # every candidate sees the same sensor noise draws (a fair comparison of paths)
-        scores = [flown(self, base, p, self._oracle_t_end, k, np.random.default_rng(rng_seed)) for p in paths]
+        scores = [flown(self, base, p, k) for p in paths]
         best = int(np.argmin(scores))
         picks.append(best)
-        return P.LegPlan(
-            path=np.asarray(paths[best]), reward=base.reward, forecast=base.forecast, t_start=base.t_start,
-            dt=base.dt, steps=base.steps, timings=base.timings,
-        )  # fmt: skip
+        return replace(base, path=np.asarray(paths[best]))
 
     RW.REWARDS[ORACLE_REWARD] = RW.REWARDS["variance_reduction"]
     if mode == "pick":
