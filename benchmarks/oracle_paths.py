@@ -61,8 +61,8 @@ def _oracle_installed(field, *, mode: str, candidates: int, score: str, noise: f
     from passt_mav.planning.baselines import RandomPlanner
 
     times = np.asarray(field.times, float)
-    saved = (P.PasstLoop.plan_leg, P.PasstLoop._reward_map, dict(RW.REWARDS), RW.REWARDS_USING_PRIOR)
-    orig_plan, orig_reward_map = saved[0], saved[1]
+    orig_plan, orig_reward_map = P.PasstLoop.plan_leg, P.PasstLoop._reward_map
+    saved_rewards, saved_using_prior = dict(RW.REWARDS), RW.REWARDS_USING_PRIOR
 
     def truth_index(t: float) -> int:
         k = int(np.argmin(np.abs(times - t)))
@@ -74,7 +74,7 @@ def _oracle_installed(field, *, mode: str, candidates: int, score: str, noise: f
         if self.reward_name != ORACLE_REWARD or mode != "error":
             return orig_reward_map(self, fc, start, taken, avoid)
         err = fc[-1] - field.data[truth_index(self._oracle_t_end)]
-        mask = ~self.land & np.isfinite(fc[1]).all(axis=0)
+        mask = ~self.land & RW.traversable(fc[1])
         self.info_ = None  # the beam search then sums the map over the path's distinct cells
         return np.where(mask, np.nansum(err**2, axis=0), 0.0), mask
 
@@ -103,7 +103,7 @@ def _oracle_installed(field, *, mode: str, candidates: int, score: str, noise: f
         finally:
             self.reward_name = ORACLE_REWARD
         k = truth_index(self._oracle_t_end)
-        mask = ~self.land & np.isfinite(base.forecast[1]).all(axis=0)
+        mask = ~self.land & RW.traversable(base.forecast[1])
         paths = [base.path] + [
             RandomPlanner().plan(base.reward, start, self.path_length, seed=10_000 * self.leg_index + j, mask=mask)
             for j in range(candidates)
@@ -122,8 +122,8 @@ def _oracle_installed(field, *, mode: str, candidates: int, score: str, noise: f
     finally:
         P.PasstLoop.plan_leg, P.PasstLoop._reward_map = orig_plan, orig_reward_map
         RW.REWARDS.clear()
-        RW.REWARDS.update(saved[2])
-        RW.REWARDS_USING_PRIOR = saved[3]
+        RW.REWARDS.update(saved_rewards)
+        RW.REWARDS_USING_PRIOR = saved_using_prior
 
 
 def main(argv=None) -> int:
