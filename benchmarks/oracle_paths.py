@@ -48,6 +48,9 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from _loop_patch import loop_patched  # noqa: E402
 
 ORACLE_REWARD = "oracle"
 
@@ -62,7 +65,6 @@ def _oracle_installed(field, *, mode: str, candidates: int, score: str, noise: f
 
     times = np.asarray(field.times, float)
     orig_plan, orig_reward_map = P.PasstLoop.plan_leg, P.PasstLoop._reward_map
-    saved_rewards, saved_using_prior = dict(RW.REWARDS), RW.REWARDS_USING_PRIOR
 
     def truth_index(t: float) -> int:
         k = int(np.argmin(np.abs(times - t)))
@@ -113,17 +115,12 @@ def _oracle_installed(field, *, mode: str, candidates: int, score: str, noise: f
         picks.append(best)
         return replace(base, path=np.asarray(paths[best]))
 
-    RW.REWARDS[ORACLE_REWARD] = RW.REWARDS["variance_reduction"]
-    if mode == "pick":
-        RW.REWARDS_USING_PRIOR = frozenset(RW.REWARDS_USING_PRIOR | {ORACLE_REWARD})
-    P.PasstLoop.plan_leg, P.PasstLoop._reward_map = plan_leg, reward_map
-    try:
+    with loop_patched(
+        ORACLE_REWARD,
+        using_prior=mode == "pick",
+        replacements=[(P.PasstLoop, "plan_leg", plan_leg), (P.PasstLoop, "_reward_map", reward_map)],
+    ):
         yield
-    finally:
-        P.PasstLoop.plan_leg, P.PasstLoop._reward_map = orig_plan, orig_reward_map
-        RW.REWARDS.clear()
-        RW.REWARDS.update(saved_rewards)
-        RW.REWARDS_USING_PRIOR = saved_using_prior
 
 
 def main(argv=None) -> int:

@@ -1,0 +1,35 @@
+"""A context manager the same-loop benchmarks share: an alias reward and patched loop methods, restored after.
+
+A benchmark that plans with something no loop may hold (the truth, an experimental prior) flies it
+as one more method of an ordinary campaign: ``information_loop@ALIAS``, where ALIAS is
+registered as the ``variance_reduction`` reward map, and the loop's methods are swapped for the
+benchmark's own only inside the block.
+"""
+
+from __future__ import annotations
+
+import contextlib
+
+
+@contextlib.contextmanager
+def loop_patched(alias: str, *, using_prior: bool, replacements):
+    """Within the block: reward ``alias`` maps to ``variance_reduction`` (in ``REWARDS_USING_PRIOR`` when
+    ``using_prior``), and each ``(owner, name, function)`` of ``replacements`` is set on its owner.
+    Everything is put back on exit, exceptions included."""
+    from passt_mav.planning import rewards as RW
+
+    saved_rewards, saved_using_prior = dict(RW.REWARDS), RW.REWARDS_USING_PRIOR
+    saved_attrs = [(owner, name, getattr(owner, name)) for owner, name, _ in replacements]
+    RW.REWARDS[alias] = RW.REWARDS["variance_reduction"]
+    if using_prior:
+        RW.REWARDS_USING_PRIOR = frozenset(RW.REWARDS_USING_PRIOR | {alias})
+    for owner, name, fn in replacements:
+        setattr(owner, name, fn)
+    try:
+        yield
+    finally:
+        for owner, name, fn in saved_attrs:
+            setattr(owner, name, fn)
+        RW.REWARDS.clear()
+        RW.REWARDS.update(saved_rewards)
+        RW.REWARDS_USING_PRIOR = saved_using_prior
