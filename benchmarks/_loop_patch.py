@@ -1,4 +1,5 @@
-"""A context manager the same-loop benchmarks share: an alias reward and patched loop methods, restored after.
+"""What the same-loop benchmarks share: an alias reward and patched loop methods, restored after, and the
+item-4 campaign they fly.
 
 A benchmark that plans with something no loop may hold (the truth, an experimental prior) flies it
 as one more method of an ordinary campaign: ``information_loop@ALIAS``, where ALIAS is
@@ -33,3 +34,40 @@ def loop_patched(alias: str, *, using_prior: bool, replacements):
         RW.REWARDS.clear()
         RW.REWARDS.update(saved_rewards)
         RW.REWARDS_USING_PRIOR = saved_using_prior
+
+
+def item4_final_rmse(
+    field,
+    predictor,
+    *,
+    methods,
+    path_length: int,
+    trials: int,
+    seed: int,
+    noise: float,
+    window: int,
+    memory: str = "off",
+) -> dict:
+    """Each of ``methods``' final-window RMSE (field units, mean over trials) in issue 27 item 4's protocol:
+    lockstep engine, Cholesky GP, ``bias`` on, the model's default background, samples at each leg's end."""
+    from passt_mav.loop.campaign import run_campaign
+    from passt_mav.reconstruction.background import DEFAULT_BACKGROUND
+
+    res = run_campaign(
+        field,
+        predictor,
+        path_lengths=(path_length,),
+        trials=trials,
+        seed=seed,
+        engine="lockstep",
+        gp_solver="cholesky",
+        gp_bias=True,
+        background=DEFAULT_BACKGROUND,
+        noise=noise,
+        window=window,
+        memory=memory,
+        methods=list(methods),
+        progress=False,
+    )
+    per = res["per_L"].get(path_length, res["per_L"].get(str(path_length)))
+    return per["final_rmse"]

@@ -50,7 +50,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from _loop_patch import loop_patched  # noqa: E402
+from _loop_patch import item4_final_rmse, loop_patched  # noqa: E402
 
 ORACLE_REWARD = "oracle"
 
@@ -125,8 +125,7 @@ def _oracle_installed(field, *, mode: str, candidates: int, score: str, noise: f
 
 def main(argv=None) -> int:
     from passt_mav.fields.datasets import resolve_field
-    from passt_mav.loop.campaign import load_predictor, run_campaign
-    from passt_mav.reconstruction.background import DEFAULT_BACKGROUND
+    from passt_mav.loop.campaign import load_predictor
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--data", default="builtin:ocean")
@@ -146,13 +145,17 @@ def main(argv=None) -> int:
     picks: list[int] = []
     methods = [f"information_loop@{ORACLE_REWARD}", "information_loop@variance_reduction", "random_loop"]
     with _oracle_installed(field, mode=a.oracle, candidates=a.candidates, score=a.score, noise=a.noise, picks=picks):
-        res = run_campaign(
-            field, predictor, path_lengths=(a.path_length,), trials=a.trials, seed=a.seed, engine="lockstep",
-            gp_solver="cholesky", gp_bias=True, background=DEFAULT_BACKGROUND, noise=a.noise, window=a.window,
-            memory=a.memory, methods=methods, progress=False,
-        )  # fmt: skip
-    per = res["per_L"].get(a.path_length, res["per_L"].get(str(a.path_length)))
-    fin = per["final_rmse"]
+        fin = item4_final_rmse(
+            field,
+            predictor,
+            methods=methods,
+            path_length=a.path_length,
+            trials=a.trials,
+            seed=a.seed,
+            noise=a.noise,
+            window=a.window,
+            memory=a.memory,
+        )
     info, rand, orc = fin[methods[1]], fin[methods[2]], fin[methods[0]]
     out = {
         "data": a.data, "model": a.model, "L": a.path_length, "trials": a.trials, "seed": a.seed,

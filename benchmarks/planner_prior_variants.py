@@ -50,7 +50,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from _loop_patch import loop_patched  # noqa: E402
+from _loop_patch import item4_final_rmse, loop_patched  # noqa: E402
 
 VARIANT_REWARD = "variance_reduction_variant"
 
@@ -125,8 +125,7 @@ def _variant_installed(variant: str, eps: float):
 
 def main(argv=None) -> int:
     from passt_mav.fields.datasets import resolve_field
-    from passt_mav.loop.campaign import load_predictor, run_campaign
-    from passt_mav.reconstruction.background import DEFAULT_BACKGROUND
+    from passt_mav.loop.campaign import load_predictor
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--variant", choices=("ml", "forecast"), required=True)
@@ -147,13 +146,16 @@ def main(argv=None) -> int:
     predictor = load_predictor(a.model, field)
     methods = ["information_loop@variance_reduction", f"information_loop@{VARIANT_REWARD}", "random_loop"]
     with _variant_installed(a.variant, a.eps):
-        res = run_campaign(
-            field, predictor, path_lengths=(a.path_length,), trials=a.trials, seed=a.seed, engine="lockstep",
-            gp_solver="cholesky", gp_bias=True, background=DEFAULT_BACKGROUND, noise=a.noise, window=a.window,
-            methods=methods, progress=False,
-        )  # fmt: skip
-    per = res["per_L"].get(a.path_length, res["per_L"].get(str(a.path_length)))
-    fin = per["final_rmse"]
+        fin = item4_final_rmse(
+            field,
+            predictor,
+            methods=methods,
+            path_length=a.path_length,
+            trials=a.trials,
+            seed=a.seed,
+            noise=a.noise,
+            window=a.window,
+        )
     shipped, variant, rand = (fin[m] for m in methods)
     out = {
         "data": a.data, "model": a.model, "L": a.path_length, "trials": a.trials, "seed": a.seed,
