@@ -96,6 +96,20 @@ def test_lockstep_engine_equals_serial(field, serial, batch):
     assert lock["trial_legs"] == 4 * 4 * 2 and set(lock["timings_s"]["passt"]) == {"predict", "reward", "plan", "gp"}
 
 
+def test_gp_fit_points_reach_the_hyper_parameter_fit(field, serial):
+    """--gp-fit-points caps the samples a leg's fit sees: at or above a leg's sample count (25 at L = 24)
+    the campaign is the default's to the digit; below it the fitted kernels, hence the numbers, differ."""
+    kw = dict(SMALL, path_lengths=(24,), methods=["passt"], engine="serial")
+    same = run_campaign(field, ShiftPredictor(WRONG_VEL), gp_fit_points=25, **kw)
+    fewer = run_campaign(field, ShiftPredictor(WRONG_VEL), gp_fit_points=5, **kw)
+    ref = serial["per_L"]["24"]["rmse_mean"]["passt"]
+    np.testing.assert_array_equal(same["per_L"]["24"]["rmse_mean"]["passt"], ref)
+    # the first leg's estimate is the model's (the samples enter at its end); after it the fit differs
+    # (by ~2e-8 on this smooth synthetic field; the same run is equal to the last bit, so any change is the option's)
+    assert np.max(np.abs(np.subtract(fewer["per_L"]["24"]["rmse_mean"]["passt"], ref))) > 1e-12
+    assert fewer["config"]["gp_kw"]["max_fit_points"] == 5 and "max_fit_points" not in serial["config"]["gp_kw"]
+
+
 def test_fixed_kernel_campaign_solvers_agree(field):
     """hyper='state' (kernel fitted once on the initial state): sklearn per-leg regressors and the
     direct Cholesky posterior give the same paths and RMSE (1e-6), lockstep vs serial."""
@@ -160,6 +174,11 @@ def test_bad_inputs_exit_2(tmp_path, capsys):
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and f"{opt} must lie in [0, 1], got 1.5" in err[0], err
         assert not (tmp_path / "x").exists()
+    argv = ["evaluate", "--data", "builtin:ocean", "--model", "persistence", "--gp-fit-points", "2"]
+    assert main([*argv, "--out", str(tmp_path / "x")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--gp-fit-points must be an integer >= 3, got 2" in err[0], err
+    assert not (tmp_path / "x").exists()
 
 
 def test_unknown_method_or_planner(field):

@@ -12,6 +12,7 @@ import sys
 
 from passt_mav.loop.campaign import ENGINES, METHODS
 from passt_mav.reconstruction.background import DEFAULT_BACKGROUND
+from passt_mav.reconstruction.gp import MAX_FIT_POINTS
 
 HELP = "Offline PASST campaign: trials x path lengths, RMSE over time and POD energy"
 EXAMPLES = """examples:
@@ -147,6 +148,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         choices=("state", "noise"),
         default="state",
         help="the white variance the residual GP fits above the sensor's: the field's grid-scale error, which a sample corrects in its own cell (state, default), or measurement noise (noise, the reading before 2026-11-27)",
+    )
+    p.add_argument(
+        "--gp-fit-points",
+        type=int,
+        default=MAX_FIT_POINTS,
+        metavar="N",
+        help="at most N of a leg's samples (evenly spread along the track) enter the residual GP's hyper-parameter fit; the reconstruction uses all (GPReconstructor max_fit_points; default %(default)s)",
     )
     p.add_argument(
         "--memory",
@@ -303,14 +311,14 @@ def run(args: argparse.Namespace) -> int:
 
     from passt_mav.errors import PlannerError
     from passt_mav.fields.datasets import resolve_field
-    from passt_mav.loop.campaign import blend_options_problem, load_predictor
+    from passt_mav.loop.campaign import blend_options_problem, fit_points_problem, load_predictor
 
     lengths = _parse_lengths(args.path_lengths)
     if args.workers < 1:
         raise PlannerError("--workers must be >= 1")
     if args.steps < 1 or args.steps_per_leg < 1:
         raise PlannerError("--steps and --steps-per-leg must be >= 1")
-    problem = blend_options_problem(args.prior_share, args.prior_forgetting)
+    problem = blend_options_problem(args.prior_share, args.prior_forgetting) or fit_points_problem(args.gp_fit_points)
     if problem:  # before the field loads and the run directory is made
         raise PlannerError(problem)
     field = resolve_field(args.data)
@@ -373,6 +381,7 @@ def _campaign(args: argparse.Namespace, field, predictor, lengths: list[int]) ->
         gp_bias=args.gp_bias,
         gp_nugget=args.gp_nugget,
         memory=args.memory,
+        gp_fit_points=args.gp_fit_points,
         prior_share=args.prior_share,
         prior_forgetting=args.prior_forgetting,
     )

@@ -29,6 +29,7 @@ import sys
 from collections.abc import Sequence
 
 from passt_mav.reconstruction.background import background_steps_problem
+from passt_mav.reconstruction.gp import MAX_FIT_POINTS
 
 __all__ = [
     "METHODS",
@@ -328,7 +329,8 @@ class CampaignOptions:
     (:class:`passt_mav.reconstruction.GPReconstructor`). prior_share: the blend's fixed share
     (``PasstLoop(share=...)``); prior_forgetting its forgetting factor (``PasstLoop(forgetting=...)``). memory: "off" or "fitted", the information
     prior's per-cell memory of past samples (:class:`passt_mav.loop.memory.CellMemory`; loops with a
-    reward that uses the prior). ``methods`` is kept as a list.
+    reward that uses the prior). gp_fit_points: the residual GPs' ``max_fit_points`` (samples a leg's
+    hyper-parameter fit sees at most, >= 3). ``methods`` is kept as a list.
     """
 
     path_lengths: tuple = (25, 50, 75, 100, 150, 200)
@@ -360,6 +362,7 @@ class CampaignOptions:
     gp_bias: bool = False
     gp_nugget: str = "state"
     memory: str = "off"
+    gp_fit_points: int = MAX_FIT_POINTS
     prior_share: float = 0.0
     prior_forgetting: float = 0.8
 
@@ -424,6 +427,7 @@ def _campaign_cfg(o: CampaignOptions, steps: int) -> dict:
             "solver": o.gp_solver,
             **({"bias": True} if o.gp_bias else {}),
             **({"nugget": o.gp_nugget} if o.gp_nugget != "state" else {}),
+            **({"max_fit_points": int(o.gp_fit_points)} if int(o.gp_fit_points) != MAX_FIT_POINTS else {}),
         },
         keep_paths=bool(o.keep_trials),
         fast_predict=bool(o.fast_predict),
@@ -434,6 +438,13 @@ def _campaign_cfg(o: CampaignOptions, steps: int) -> dict:
         prior_forgetting=float(o.prior_forgetting),
     )
     return cfg
+
+
+def fit_points_problem(n) -> str | None:
+    """One line naming a bad ``--gp-fit-points`` (samples a hyper-parameter fit sees: an integer >= 3), or None."""
+    if isinstance(n, bool) or not isinstance(n, int) or n < 3:
+        return f"--gp-fit-points must be an integer >= 3, got {n!r}"
+    return None
 
 
 def blend_options_problem(share, forgetting) -> str | None:
@@ -484,6 +495,9 @@ def _check_campaign(field, predictor, o: CampaignOptions) -> None:
         raise PlannerError(problem)
     if o.memory not in MEMORIES:
         raise PlannerError(f"--memory: unknown {o.memory!r}; choose one of {', '.join(MEMORIES)}")
+    problem = fit_points_problem(o.gp_fit_points)
+    if problem:
+        raise PlannerError(problem)
 
 
 def _summarise(

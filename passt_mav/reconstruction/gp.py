@@ -62,12 +62,14 @@ from passt_mav.errors import ReconstructionError
 from passt_mav.reconstruction import lowrank
 from passt_mav.reconstruction.kernels import CrossCovCache, base_kernel, evidence_gate, fit_on_field
 
-__all__ = ["GPReconstructor"]
+__all__ = ["MAX_FIT_POINTS", "GPReconstructor"]
 
 _PRIORS = ("forecast", "none")
 _KERNELS = ("matern32", "matern52", "rbf")
 _SOLVERS = ("sklearn", "cholesky")
 _NUGGETS = ("state", "noise")
+#: samples a hyper-parameter fit sees at most by default (``max_fit_points``; evenly spread along the track)
+MAX_FIT_POINTS = 60
 
 
 class GPReconstructor:
@@ -81,7 +83,7 @@ class GPReconstructor:
             bounds are [0.5 cell, min(max_length_cells cells, half the grid's diagonal)].
         max_length_cells: upper bound of the length scale in cells (default 6).
         max_fit_points: at most this many samples (evenly spread) enter a
-            hyper-parameter fit (default 60); reconstruction uses all.
+            hyper-parameter fit (default :data:`MAX_FIT_POINTS`, 60); reconstruction uses all.
         space_time: when sample times are given, the kernel also spans time
             (anisotropic Matern/RBF over east, north, time) and the snapshot is
             predicted at the query time, so a residual seen early in a leg counts
@@ -143,7 +145,7 @@ class GPReconstructor:
         alpha: float = 1e-8,
         prior: str = "forecast",
         max_length_cells: float = 6.0,
-        max_fit_points: int = 60,
+        max_fit_points: int = MAX_FIT_POINTS,
         space_time: bool = True,
         n_restarts: int = 0,
         seed: int = 0,
