@@ -442,7 +442,9 @@ def _campaign_cfg(o: CampaignOptions, steps: int) -> dict:
 
 def fit_points_problem(n) -> str | None:
     """One line naming a bad ``--gp-fit-points`` (samples a hyper-parameter fit sees: an integer >= 3), or None."""
-    if isinstance(n, bool) or not isinstance(n, int) or n < 3:
+    import numbers
+
+    if isinstance(n, bool) or not isinstance(n, numbers.Integral) or n < 3:
         return f"--gp-fit-points must be an integer >= 3, got {n!r}"
     return None
 
