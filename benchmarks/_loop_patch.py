@@ -1,5 +1,5 @@
 """What the same-loop benchmarks share: an alias reward and patched loop methods, restored after, and the
-item-4 campaign they fly.
+item-4 campaign they fly, with its command-line arguments.
 
 A benchmark that plans with something no loop may hold (the truth, an experimental prior) flies it
 as one more method of an ordinary campaign: ``information_loop@ALIAS``, where ALIAS is
@@ -34,6 +34,18 @@ def loop_patched(alias: str, *, using_prior: bool, replacements):
         RW.REWARDS.clear()
         RW.REWARDS.update(saved_rewards)
         RW.REWARDS_USING_PRIOR = saved_using_prior
+
+
+def add_item4_arguments(ap) -> None:
+    """The item-4 protocol's command-line arguments, the same in every same-loop benchmark (argparse parser
+    ``ap``): data, model, path length, trials, seed, sensor noise, window."""
+    ap.add_argument("--data", default="builtin:ocean")
+    ap.add_argument("--model", default="builtin:ocean")
+    ap.add_argument("--path-length", type=int, default=100)
+    ap.add_argument("--trials", type=int, default=6)
+    ap.add_argument("--seed", type=int, default=0, help="trial i uses seed + i, as in passt-mav evaluate")
+    ap.add_argument("--noise", type=float, default=0.02, help="sensor noise (field units)")
+    ap.add_argument("--window", type=int, default=50)
 
 
 def item4_final_rmse(

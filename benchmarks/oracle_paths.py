@@ -50,7 +50,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from _loop_patch import item4_final_rmse, loop_patched  # noqa: E402
+from _loop_patch import add_item4_arguments, item4_final_rmse, loop_patched  # noqa: E402
 
 ORACLE_REWARD = "oracle"
 
@@ -128,16 +128,10 @@ def main(argv=None) -> int:
     from passt_mav.loop.campaign import load_predictor
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--data", default="builtin:ocean")
-    ap.add_argument("--model", default="builtin:ocean")
-    ap.add_argument("--path-length", type=int, default=100)
-    ap.add_argument("--trials", type=int, default=6)
-    ap.add_argument("--seed", type=int, default=0, help="trial i uses seed + i, as in passt-mav evaluate")
+    add_item4_arguments(ap)
     ap.add_argument("--oracle", choices=("pick", "error"), default="pick")
     ap.add_argument("--candidates", type=int, default=16, help="random walks beside the information path")
     ap.add_argument("--score", choices=("recon", "next"), default="recon")
-    ap.add_argument("--noise", type=float, default=0.02, help="sensor noise (field units)")
-    ap.add_argument("--window", type=int, default=50)
     ap.add_argument("--memory", default="off", help="the planner memory of all three methods (off | fitted)")
     a = ap.parse_args(argv)
     field = resolve_field(a.data)

@@ -50,7 +50,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from _loop_patch import item4_final_rmse, loop_patched  # noqa: E402
+from _loop_patch import add_item4_arguments, item4_final_rmse, loop_patched  # noqa: E402
 
 VARIANT_REWARD = "variance_reduction_variant"
 
@@ -129,16 +129,10 @@ def main(argv=None) -> int:
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--variant", choices=("ml", "forecast"), required=True)
-    ap.add_argument("--data", default="builtin:ocean")
-    ap.add_argument("--model", default="builtin:ocean")
-    ap.add_argument("--path-length", type=int, default=100)
-    ap.add_argument("--trials", type=int, default=6)
-    ap.add_argument("--seed", type=int, default=0, help="trial i uses seed + i, as in passt-mav evaluate")
+    add_item4_arguments(ap)
     ap.add_argument(
         "--eps", type=float, default=1.0, help="--variant forecast: the perturbation's scale (1 = the prior's std)"
     )
-    ap.add_argument("--noise", type=float, default=0.02, help="sensor noise (field units)")
-    ap.add_argument("--window", type=int, default=50)
     a = ap.parse_args(argv)
     if not a.eps > 0:
         ap.error(f"--eps must be > 0, got {a.eps}")
