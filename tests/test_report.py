@@ -609,3 +609,28 @@ def test_prior_per_leg_table(tmp_path):
         "-480.0",
     ]
     assert rows[1].count("&ndash;") == 3 and ">1.000<" in rows[1]
+
+
+def test_guard_table_and_alarm_note(tmp_path):
+    """The guard per leg (summary.json legs[i].guard): each leg's RMSE at its own samples of the restarted
+    forecast and of the model alone (m/s) and the background it kept, legs numbered from 1; an alarm's
+    one line ("sampling is not helping: ...") heads the report. A run without a guard gets neither."""
+    from passt_mav.loop.guard import guard_message
+
+    rd = make_run(tmp_path / "run", n_legs=2)
+    s = rd.read_summary()
+    assert "Guard:" not in write_report(rd.root).read_text()
+    ok = {"rmse_loop": 0.05, "rmse_open_loop": 0.06, "behind": False, "fallback": False, "alarm": False}
+    bad = {"rmse_loop": 0.31, "rmse_open_loop": 0.12, "behind": True, "fallback": True, "alarm": True}
+    for rec, g in zip(s["legs"], (ok, bad)):
+        g.update(rmse_loop_m_s=g["rmse_loop"], rmse_open_loop_m_s=g["rmse_open_loop"])
+        g["message"] = guard_message(g, leg_label=f"leg {int(rec.get('index', 0)) + 1}")
+        rec["guard"] = g
+    rd.write_summary(s)
+    text = write_report(rd.root).read_text()
+    head = text.split("<h2>")[0]
+    assert '<p class="status warn">sampling is not helping: at leg 2&#x27;s samples' in head
+    table = text.split("<h2>Guard: the estimate&#x27;s forecast against the model alone</h2>")[1].split("</table>")[0]
+    rows = table.split("<tr>")[2:]
+    assert [c.split("<")[0] for c in rows[1].split('class="num">')[1:]] == ["0.3100", "0.1200", "model alone", "yes"]
+    assert rows[0].startswith("<td>1</td>") and "restarted forecast" in rows[0]

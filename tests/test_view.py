@@ -382,3 +382,17 @@ def test_help_imports_no_web_server():
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60).stdout
     assert out.strip() == "[]"
+
+
+def test_guard_banner_follows_the_latest_scored_leg():
+    """The live view's banner (state ``guard_warning``): the guard's alarm of the latest leg it scored
+    (by field time), nothing for a fallback without an alarm, and nothing once a later leg is fine."""
+    from passt_mav.view.state import _guard_warning
+
+    alarm = {"alarm": True, "message": "sampling is not helping: at leg 2's samples ..."}
+    quiet = {"alarm": False, "message": "at leg 3's samples ... falls back"}
+    legs = [{"t_end": 10.0, "guard": {"alarm": False, "message": None}}, {"t_end": 20.0, "guard": alarm}]
+    assert _guard_warning(legs) == alarm["message"]
+    assert _guard_warning(legs + [{"t_end": 30.0, "guard": quiet}]) is None
+    assert _guard_warning(legs + [{"t_end": 5.0, "guard": quiet}, {"t_end": 40.0}]) == alarm["message"]
+    assert _guard_warning([]) is None

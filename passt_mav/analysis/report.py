@@ -636,7 +636,7 @@ body{font-family:system-ui,-apple-system,'Segoe UI',sans-serif;margin:2em auto;m
 h1{font-size:1.6em;margin-bottom:.2em}h2{font-size:1.2em;border-bottom:1px solid #ccc;margin-top:1.8em}
 table{border-collapse:collapse;margin:.6em 0}th,td{border:1px solid #ccc;padding:.25em .6em;text-align:left}
 th{background:#f3f3f3;font-weight:600}td.num{text-align:right}img{max-width:100%;border:1px solid #ddd}
-.missing{color:#a33;font-style:italic}.note{color:#555}.status{font-weight:600}
+.missing{color:#a33;font-style:italic}.note{color:#555}.status{font-weight:600}.warn{color:#a33}
 """
 
 
@@ -732,6 +732,10 @@ def write_report(run_dir: str | Path, out: str | Path | None = None) -> Path:
         )
     else:
         page.add(f'<p class="status">Status: {html.escape(str(s.get("status", "unknown")))}</p>')
+    for leg in run.legs:  # the guard's alarms head the report: the run said so at the leg
+        g = leg.get("guard") if isinstance(leg.get("guard"), dict) else {}
+        if g.get("alarm") and isinstance(g.get("message"), str):
+            page.add(f'<p class="status warn">{html.escape(g["message"])}</p>')
     _section_summary(page, run)
     _section_track(page, run, plt)
     _section_legs(page, run, plt)
@@ -740,6 +744,7 @@ def write_report(run_dir: str | Path, out: str | Path | None = None) -> Path:
     _section_recon(page, run, plt)
     _section_rmse(page, run, plt)
     _section_prior(page, run)
+    _section_guard(page, run)
     _section_pod(page, run, plt)
     _section_timings(page, run)
     _section_tlog(page, run)
@@ -943,9 +948,9 @@ def _section_rmse(page: _Page, run: Run, plt) -> None:
 
 
 def _section_prior(page: _Page, run: Run) -> None:
-    """The prior blend per leg (issue 27, item 6): the weight of each candidate prior (the model's
-    forecast, persistence, none) the leg's estimate used, and the leg's evidence for each (its
-    samples' innovation log likelihood, nats), from summary.json ``legs[i].gp``."""
+    """The prior blend per leg: the weight of each candidate prior (the forecast restarted from the
+    estimate, the model alone, persistence) the leg's estimate used, and the leg's evidence for each
+    (its samples' innovation log likelihood, nats), from summary.json ``legs[i].gp``."""
     rows = [
         (leg.get("index", n), leg["gp"])
         for n, leg in enumerate(run.legs)
@@ -969,9 +974,42 @@ def _section_prior(page: _Page, run: Run) -> None:
         body.append(f"<tr><td>{_fmt(i)}</td>" + "".join(f'<td class="num">{c}</td>' for c in cells) + "</tr>")
     page.add(f"<table>{head}{''.join(body)}</table>")
     page.note(
-        "The prior mean of each leg's GP: the model's forecast, persistence (the leg's first estimate held) "
-        "or none (the samples' GP alone), weighed by how well each explained the legs' samples "
-        "(gp.prior_blend: select takes the most probable alone, bma mixes them)."
+        "The prior mean of each leg's GP: the forecast restarted from the last estimate (model), the model alone "
+        "from the mission's first state (open_loop) or persistence (the leg's first estimate held), weighed by how "
+        "well each explained the legs' samples (gp.prior_blend: select takes the most probable alone, bma mixes "
+        "them). Each is a whole-field forecast: where no sample reaches, the estimate is a forecast."
+    )
+
+
+def _section_guard(page: _Page, run: Run) -> None:
+    """The guard per leg (:mod:`passt_mav.loop.guard`): how far off, at the leg's own samples, the
+    forecast restarted from the estimate and the model alone were (RMSE, m/s), and whether the leg fell
+    back to the model alone, from summary.json ``legs[i].guard``. No truth is used."""
+    rows = [(leg.get("index", n), leg["guard"]) for n, leg in enumerate(run.legs) if isinstance(leg.get("guard"), dict)]
+    if not rows:
+        return  # no guard (gp.guard off, or no model)
+    page.h2("Guard: the estimate's forecast against the model alone")
+    head = (
+        "<tr><th>leg</th><th>restarted forecast at the samples (RMSE, m/s)</th>"
+        "<th>model alone at the samples (RMSE, m/s)</th><th>background</th><th>alarm</th></tr>"
+    )
+    body = []
+    for i, g in rows:
+        a, b = g.get("rmse_loop_m_s"), g.get("rmse_open_loop_m_s")
+        cells = [
+            f"{a:.4f}" if isinstance(a, (int, float)) else "&ndash;",
+            f"{b:.4f}" if isinstance(b, (int, float)) else "&ndash;",
+            "model alone" if g.get("fallback") else "restarted forecast",
+            "yes" if g.get("alarm") else "",
+        ]
+        n = _fmt(i + 1) if isinstance(i, int) else _fmt(i)
+        body.append(f"<tr><td>{n}</td>" + "".join(f'<td class="num">{c}</td>' for c in cells) + "</tr>")
+    page.add(f"<table>{head}{''.join(body)}</table>")
+    page.note(
+        "Before a leg's samples enter the estimate, the forecast restarted from the last estimate and the model "
+        "alone (never re-initialised) are compared at them; the leg's background is the one that fits them better. "
+        "Two legs running, or one by more than 10 %, where the model alone fits better raise the alarm "
+        "'sampling is not helping'. Legs are numbered from 1."
     )
 
 

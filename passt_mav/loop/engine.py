@@ -240,7 +240,8 @@ class OfflineStep:
     def share_setup(self, n_steps: int, cache: dict) -> None:
         """What every trial shares, computed once (and once per ``cache`` dict across calls): the GP
         kernel fitted on the initial state (``hyper="state"``; key = GP options + state bytes) and the
-        model background's modes (key = predictor object, length, state)."""
+        model background's modes (key = predictor object, length, state) and the model alone from the initial
+        state (the guard's and the prior blend's open loop; key = predictor object, state)."""
         loops, state0, opts = self.loops, self.state0, self.options
         if opts.hyper == "state":  # a loop would fit on its first leg's forecast[0] = this state
             key = (repr(sorted((opts.gp_kw or {}).items())), opts.prior, state0.tobytes())
@@ -256,6 +257,13 @@ class OfflineStep:
                 cache[bkey] = (self.predictor, modes)
             for lp in loops:
                 lp.set_background(cache[bkey][1])
+        if self.predictor is not None and (loops[0].guard == "on" or loops[0].prior_blend != "off"):
+            okey = ("open_loop", id(self.predictor), state0.tobytes())
+            if okey not in cache or cache[okey][0] is not self.predictor or len(cache[okey][1]) <= n_steps:
+                cache[okey] = (self.predictor, loops[0].forecast(state0, max(int(n_steps), 1)))
+            t0 = float(self.field.times[self.t0])
+            for lp in loops:
+                lp.set_open_loop(cache[okey][1], t0, float(self.field.dt))
 
     def _forecasts(self, S: int) -> tuple[list[np.ndarray], list[float]]:
         """Each trial's (S+1, 2, R, C) forecast from its state, and the seconds each cost."""
@@ -299,7 +307,8 @@ class OfflineStep:
                     raise PlannerError(f"leg at step {k}: {exc}") from None
             parts = [self.samplers[b].sample_path(p.path, p.t_start) for p in plans]
             samples = Samples.concat(parts)
-            est = np.array(lp.blend(plans[0].forecast)[1 : S + 1])  # before the update moves the blend's weights
+            # before the update moves the blend's weights
+            est = np.array(lp.blend(plans[0].forecast, plans[0].t_start, plans[0].dt)[1 : S + 1])
             self.states[b] = lp.update(plans[0], samples) if S == self.options.steps_per_leg else est[S - 1]
             est[S - 1] = self.states[b]
             out.append(

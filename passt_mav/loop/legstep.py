@@ -252,6 +252,7 @@ def build_loop(config, predictor, grid, land=None):
         forgetting=config.gp.forgetting,
         share=config.gp.prior_share,
         memory=config.planner.memory,
+        guard=config.gp.guard,
     )
     loop = options.loop(predictor, grid, land=land, seed=config.seeds.planner)
     # a mission's estimate is written with its posterior std (estimate.nc u_std/v_std; exports read it):
@@ -330,6 +331,9 @@ class AbsorbedLeg:
     gp: dict | None = None
     #: GP posterior std (2, R, C) float32 of ``state`` (field units; None when the state is the forecast)
     std: np.ndarray | None = None
+    #: the guard's record (:func:`passt_mav.loop.guard.guard_record`) with its RMSE in m/s and its
+    #: one-line ``message`` (None when the loop's forecast fitted the samples at least as well)
+    guard: dict | None = None
 
     def record(self) -> dict[str, Any]:
         return {
@@ -341,6 +345,7 @@ class AbsorbedLeg:
             "rmse_passt": self.rmse_passt,
             "rmse_model": self.rmse_model,
             "gp": self.gp,
+            "guard": self.guard,
         }
 
 
@@ -510,6 +515,10 @@ class LegStep:
         gp_s = time.perf_counter() - t0
         r_p, r_m = self.rmse_at(state, t_new)
         std = None if note is not None or self.loop.std is None else np.asarray(self.loop.std, np.float32)
+        gp = self.loop.gp_summary()
+        guard = gp.pop("guard", None) if note is None else None
+        if guard is not None:
+            guard = self.guard_for_people(guard, planned.index)
         return AbsorbedLeg(
             samples,
             state,
@@ -520,9 +529,22 @@ class LegStep:
             r_p,
             r_m,
             note,
-            self.loop.gp_summary(),
+            gp,
             std,
+            guard,
         )
+
+    def guard_for_people(self, guard: dict, index: int) -> dict:
+        """The guard's record of leg ``index`` (0-based) with its RMSE in m/s (``*_m_s``; the field's
+        units times ``field.velocity_scale``) and its one-line ``message`` naming leg ``index + 1``."""
+        from passt_mav.loop.guard import guard_message
+
+        scale = float(self.config.field.velocity_scale)
+        out = dict(guard)
+        out["rmse_loop_m_s"] = scale * guard["rmse_loop"]
+        out["rmse_open_loop_m_s"] = scale * guard["rmse_open_loop"]
+        out["message"] = guard_message(guard, leg_label=f"leg {index + 1}", scale=scale)
+        return out
 
     def rmse_at(self, state, t: float) -> tuple[float | None, float | None]:
         """RMSE (field units) of ``state`` and of the model alone (from the truth at t0, never

@@ -40,6 +40,7 @@ from typing import Any, Protocol, runtime_checkable
 import numpy as np
 
 from passt_mav.errors import PlannerError, ReconstructionError
+from passt_mav.loop.guard import GUARDS, OpenLoop, guard_record
 
 __all__ = [
     "Samples",
@@ -219,7 +220,7 @@ class LoopOptions:
     in ``passt_mav.planning.REWARDS``; path_length: moves per leg ``L``; steps_per_leg: snapshots
     a leg spans ``S``; prior: "forecast" | "none"; gp_kw: :class:`GPReconstructor` options;
     hyper: :data:`HYPER`; background: roll-out snapshots of the model background (0 = none);
-    prior_blend / forgetting: see :class:`PasstLoop`. Validated by the loop that takes them.
+    prior_blend / forgetting / share / memory / guard: see :class:`PasstLoop`. Validated by the loop that takes them.
     """
 
     planner: str = "policy_gradient"
@@ -235,6 +236,7 @@ class LoopOptions:
     forgetting: float = 0.8
     share: float = 0.0
     memory: str = "off"
+    guard: str = "on"
 
     @classmethod
     def of(cls, options: LoopOptions | None = None, **changes) -> LoopOptions:
@@ -251,11 +253,11 @@ class LoopOptions:
 
 
 def _check_loop_options(
-    reward, hyper, path_length, steps_per_leg, background, prior_blend, forgetting, memory="off", share=0.0
+    reward, hyper, path_length, steps_per_leg, background, prior_blend, forgetting, memory="off", share=0.0, guard="on"
 ) -> None:
     """Raise :class:`PlannerError` / :class:`ReconstructionError` (one line naming the problem) for
     an unknown reward, GP schedule or prior blend, a non-positive path length or leg span, a bad
-    background roll-out length, a forgetting factor or share outside [0, 1] or an unknown planner memory."""
+    background roll-out length, a forgetting factor or share outside [0, 1], an unknown planner memory or guard."""
     from passt_mav.planning import REWARDS
     from passt_mav.reconstruction.background import background_steps_problem
 
@@ -276,6 +278,8 @@ def _check_loop_options(
         raise ReconstructionError(f"prior share must lie in [0, 1], got {share!r}")
     if memory not in MEMORIES:
         raise PlannerError(f"unknown planner memory {memory!r}; choose one of {', '.join(MEMORIES)}")
+    if guard not in GUARDS:
+        raise ReconstructionError(f"unknown guard {guard!r}; choose one of {', '.join(GUARDS)}")
 
 
 class PasstLoop:
@@ -299,59 +303,40 @@ class PasstLoop:
             (:func:`passt_mav.reconstruction.model_background`); 0 = none (default). Only
             with a predictor and ``prior="forecast"``. A caller may set ``gp.background``
             itself beforehand (the lockstep engine computes it once for all trials).
-        prior_blend: "off" (the model's forecast is the GP's prior mean) or "bma": a prior
-            that knows when it is wrong. Each leg's samples are evidence about the forecasts
-            that could have been used: the model's, persistence's (the leg's initial
-            state held) and none (a zero prior mean: the GP of the samples alone, as the
-            lawnmower baseline reconstructs; where currents turn with the tide a stale snapshot
-            is a worse prior than no forecast at all). Each is scored by the innovation
-            likelihood of its residual at the samples under the GP's stationary kernels and
-            sensor noise as they stand before this leg's fit
-            (:meth:`GPReconstructor.innovation_loglik` with ``modes=False``; one covariance for all, so the smaller and smoother residual wins). Not under the
-            background and offset modes: those are the flow's own variability, i.e. the error
-            persistence makes, and under them a larger persistence residual scored better than
-            a smaller model one (the oscillating wake's demo legs: at-sample RMS 0.21 against
-            the KNODE's 0.14, wake units, scored -46.5 against -56.4 nats; "select" switched to
-            persistence and PASST ended at 0.34 against 0.12 without the blend). Log weights add up
-            leg by leg with a ``forgetting`` factor (``lw <- forgetting * lw + ll``: memory of
-            about 1 / (1 - forgetting) legs, the weights flattened towards the uniform), and the
-            prior mean is the weighted mixture (Bayesian model averaging; Hoeting, Madigan,
-            Raftery & Volinsky 1999, Statist. Sci. 14; the forgetting factor as in Raftery, Karny
-            & Ettler 2010, Technometrics 52). "select" forgets towards the start weights ``p0``
-            instead (``lw <- forgetting * lw + (1 - forgetting) * log p0 + ll``): flattened, a
-            trusted model's margin (ln 9) decayed leg by leg where samples could not tell it from
-            persistence, until one leg's noise (1.5 nats, a North Atlantic demo walk) switched
-            "select" to persistence at 5x the model's RMSE. For "bma" the flattening stays: there
-            it measured better (ocean, 6 trials, L = 50, share 0.05: 0.0398 against 0.0427 forgetting
-            towards ``p0``; RTOFS DMD 0.1337 against 0.1416). The weights are updated with the leg's own samples before its
-            reconstruction, and the same mixture carries the estimate between legs
-            (:meth:`blend`). Recorded per leg in ``blend_history_``. Measured (same loop, 6
-            trials, L = 50): cylinder 0.0827 -> 0.0784, ocean 0.0645 -> 0.0611, but the
-            oscillating wake 0.1328 -> 0.1588 (persistence's residual scores better on legs
-            where the displaced KNODE wake is still the better prior): hence off by default.
-            ``"select"``: the same weights, but the prior is the most probable candidate alone
-            (model selection leg by leg, the model on a tie), so a right model is never
-            mixed with a share of persistence that one leg's few samples could not rule out
-            (:meth:`mixing_weights`; the default demo with "bma": 14 % persistence after its
-            first leg, PASST 0.0089 m/s against the model alone's 0.0071).
-        share: "fixed share" of the prior weights (Herbster & Warmuth 1998, Machine Learning 32,
-            tracking the best expert): before each leg's update the weights are mixed with
-            ``share`` of the uniform, so no candidate falls below ``share / 3`` and one leg where
-            a good model misses costs at most about ln(3 / share) nats to win back (0 = off, the
-            default). With a share the blend starts on the model alone:
-            the share is the only doubt a trusted model starts with. Measured with 0.05 and "bma"
-            (held-out real series, 4 seeds, ``benchmarks/heldout_prior_blend.py --share 0.05``):
-            RTOFS, DMD prior 0.1337 m/s against 0.1349 without a blend; gridded_current 0.1598
-            against persistence-prior PASST's 0.1670; ocean (6 trials, L = 50) 0.0398 against
-            0.0405. Started at 0.9 / 0.1 / 0.1 instead, the real series gained more (0.1283, 0.1486)
-            but the North Atlantic demo's first short leg, whose samples could not tell the model
-            from persistence, mixed 16 % persistence into the right model (0.0092 against the model
-            alone's 0.0071; with the model-alone start 0.0070 against 0.0066). The missions' default
-            is ``select`` with share 0.05 (:data:`passt_mav.mission.config.PRIOR_SHARE_DEFAULT`):
-            there the share caps how far a candidate falls behind, so ``select`` switches back
-            after a leg where the model missed (RTOFS, DMD prior, 24 seeds: 0.1388 against 0.1408
-            without a blend; without the share, 8 seeds, 0.1480 against 0.1380), and the right model
-            is never mixed.
+        prior_blend: "off" (the forecast restarted from the last estimate is the GP's prior mean),
+            "bma" or "select": a prior that knows when it is wrong. Each leg's samples are
+            evidence about the full-field forecasts that could have been the leg's background
+            (:data:`PRIOR_CANDIDATES`): the model restarted from the last estimate ("model"), the
+            model alone from the first leg's initial state ("open_loop", never re-initialised, so
+            what no leg could see is never lost) and persistence (the leg's initial state held).
+            Each is scored by the innovation likelihood of its residual at the samples under the
+            GP's stationary kernels and sensor noise as they stand before this leg's fit
+            (:meth:`GPReconstructor.innovation_loglik` with ``modes=False``: one covariance for
+            all, so the smaller and smoother residual wins; the background and offset modes are
+            left out because they describe the flow's own variability, under which a larger
+            residual can score better). Every candidate is a whole-field forecast: far from the
+            samples the analysis is a forecast, never a zero mean. Log weights add up leg by leg
+            with a ``forgetting`` factor: "bma" forgets towards the uniform
+            (``lw <- forgetting * lw + ll``; Bayesian model averaging, Hoeting et al. 1999,
+            Statist. Sci. 14; forgetting as in Raftery, Karny & Ettler 2010, Technometrics 52)
+            and mixes the candidates by their weights; "select" forgets towards the start weights
+            (``lw <- forgetting * lw + (1 - forgetting) * log p0 + ll``) and takes the most
+            probable candidate alone (the model on a tie), so a right model is never mixed with a
+            share of a worse one. The weights are updated with the leg's own samples before its
+            reconstruction, the same mixture carries the estimate between legs (:meth:`blend`),
+            and each leg's record is in ``blend_history_``.
+        forgetting: the blend's forgetting factor in [0, 1] (memory of about 1 / (1 - forgetting) legs).
+        share: "fixed share" of the prior weights in [0, 1] (Herbster & Warmuth 1998, Machine
+            Learning 32): before each leg's update the weights are mixed with ``share`` of the
+            uniform, so no candidate falls below ``share / K`` and one leg where a good model
+            misses costs at most about ln(K / share) nats to win back (0 = off). With a share the
+            blend starts on the model alone.
+        guard: "on" (default) or "off": before a leg's samples enter the estimate, the loop's
+            forecast (restarted from the last estimate) and the model alone are scored at them
+            (RMSE and innovation likelihood, :func:`passt_mav.loop.guard.guard_record`; no truth
+            read); when the loop's forecast fits them worse on two legs running, or by more than
+            10 % on one, the leg's background is the model alone (``guard_history_``; the record's
+            ``fallback``). Only with a predictor and ``prior="forecast"``.
         memory: "off" or "fitted": the information reward's prior remembers, cell by cell, the
             local error variance that past legs' samples removed, with a persistence per leg
             fitted by the innovations' likelihood (:class:`passt_mav.loop.memory.CellMemory`;
@@ -378,13 +363,14 @@ class PasstLoop:
         forgetting: float = 0.8,
         share: float = 0.0,
         memory: str = "off",
+        guard: str = "on",
     ):
         from passt_mav.planning import make_planner
         from passt_mav.planning.rewards import REWARDS_USING_PRIOR, REWARDS_USING_STD
         from passt_mav.reconstruction import GPReconstructor
 
         _check_loop_options(
-            reward, hyper, path_length, steps_per_leg, background, prior_blend, forgetting, memory, share
+            reward, hyper, path_length, steps_per_leg, background, prior_blend, forgetting, memory, share, guard
         )
         self.hyper = hyper
         self.predictor = predictor
@@ -428,6 +414,11 @@ class PasstLoop:
 
             self.memory = CellMemory(grid.shape[0] * grid.shape[1])
         self._memory_diag = None  # (modes, local, noise) variances (2, N) of the last unscaled prior
+        self.guard = guard if predictor is not None and prior == "forecast" else "off"
+        #: the model alone from the first leg's initial state (:class:`passt_mav.loop.guard.OpenLoop`)
+        self.open_loop_: OpenLoop | None = None
+        #: one :func:`passt_mav.loop.guard.guard_record` per leg (``guard="on"``)
+        self.guard_history_: list[dict] = []
 
     def forecast(self, state: np.ndarray, steps: int) -> np.ndarray:
         """(steps+1, 2, R, C) float32: ``state`` then the model's ``steps`` predictions."""
@@ -437,6 +428,26 @@ class PasstLoop:
         else:
             pred = np.asarray(self.predictor.predict(np.where(self.land, np.float32(0), s), steps), dtype=np.float32)
         out = np.concatenate([s[None], pred], axis=0)
+        out[:, :, self.land] = np.nan
+        return out
+
+    def anchor_open_loop(self, state, t_start: float, dt: float) -> None:
+        """Start the model alone (:class:`passt_mav.loop.guard.OpenLoop`) from ``state`` ((2, R, C),
+        field units) at field time ``t_start``, ``dt`` field time per snapshot, unless started
+        already: the first leg's initial state, which :meth:`plan_leg` and :meth:`update` pass."""
+        if self.open_loop_ is None and self.predictor is not None:
+            self.open_loop_ = OpenLoop(self.forecast, state, t_start, dt)
+
+    def set_open_loop(self, trajectory, t0: float, dt: float) -> None:
+        """Use ``trajectory`` ((n, 2, R, C): the model alone from the first state at field time
+        ``t0``, one snapshot every ``dt``) instead of rolling it out again (the lockstep engine
+        computes it once for all trials)."""
+        if self.predictor is not None:
+            self.open_loop_ = OpenLoop(self.forecast, trajectory[0], t0, dt, trajectory=trajectory)
+
+    def open_loop_forecast(self, t_start: float, dt: float, n: int) -> np.ndarray:
+        """(n, 2, R, C) float64: the model alone at field times ``t_start + i * dt`` (NaN on land)."""
+        out = self.open_loop_.at(t_start, dt, n)
         out[:, :, self.land] = np.nan
         return out
 
@@ -466,6 +477,7 @@ class PasstLoop:
         t0 = time.perf_counter()
         fc = self.forecast(state, max(S, 1)) if forecast is None else forecast
         tm["predict"] = time.perf_counter() - t0
+        self.anchor_open_loop(fc[0], t_start, dt)
         t0 = time.perf_counter()
         q, mask = self._reward_map(fc, start, taken, avoid)
         tm["reward"] = time.perf_counter() - t0
@@ -585,8 +597,20 @@ class PasstLoop:
         t_end = leg.t_start + leg.dt * leg.steps
         st = samples.t if self.hyper != "state" else None  # a field fit is spatial only
         self.ensure_background(fc[0])  # once, from the first leg's initial state
+        self.anchor_open_loop(fc[0], leg.t_start, leg.dt)
+        open_fc = open_at = guard = None
+        if self.guard == "on" or self.prior_blend != "off":
+            open_fc = self.open_loop_forecast(leg.t_start, leg.dt, fc.shape[0])
+            open_at = FlowField(open_fc, self.grid, traj.times).interp(ts, samples.r, samples.c)
+        if self.guard == "on":
+            guard = guard_record(
+                self.leg_index, samples.uv, f_at, open_at, self._loglik_at(samples, xy, st), self.guard_history_
+            )
+            self.guard_history_.append(guard)
         if self.prior_blend != "off":
-            fc, f_at = self._weigh_priors(fc, traj, ts, samples, xy, st)
+            fc, f_at = self._weigh_priors(fc, traj, ts, samples, xy, st, open_fc, open_at)
+        if guard is not None and guard["fallback"]:  # the forecast alone is the leg's background
+            fc, f_at = open_fc.astype(np.float32), open_at
         if self.hyper == "every_leg" or not hasattr(self.gp, "kernels_"):
             if self.hyper == "state":
                 self.gp.fit_field(fc[0])
@@ -648,6 +672,10 @@ class PasstLoop:
             # state nugget: a sample corrects its own cell by it), m/s per component u, v
             out["noise_std"] = [float(np.sqrt(max(k.k2.noise_level - v, 0.0))) for k, v in zip(ks, nug)]
             out["nugget_std"] = [float(np.sqrt(v)) for v in nug]
+        tsf = getattr(gp, "time_scale_factor_", None)
+        if tsf is not None and getattr(gp, "n_inputs_", 2) == 3:
+            # the kept / fitted time length scale per component (forward validation; 1 = the likelihood's)
+            out["time_scale_factor"] = [float(f) for f in tsf]
         ev = getattr(gp, "evidence_", None)
         if ev is not None:
             out["signal_kept"] = [None if e is None else bool(e[0] >= e[1]) for e in ev]
@@ -664,11 +692,31 @@ class PasstLoop:
             out["prior_loglik"] = {k: round(v, 3) for k, v in self.blend_history_[-1]["log_likelihood"].items()}
         if self.memory is not None:
             out["memory"] = self.memory.record()
+        if self.guard_history_:
+            out["guard"] = dict(self.guard_history_[-1])
         return out
 
-    def _candidates(self, fc: np.ndarray) -> list[np.ndarray]:
-        """The candidate prior trajectories of :data:`PRIOR_CANDIDATES` for a model forecast ``fc``."""
-        return [fc, np.repeat(fc[:1], fc.shape[0], axis=0), np.where(np.isfinite(fc), 0.0, np.nan)]
+    def _loglik_at(self, samples: Samples, xy: np.ndarray, st):
+        """``residual (n, 2) -> nats``: the innovation log likelihood at ``samples`` under the GP's
+        stationary kernels and noise as they stand (0 with fewer than 2 finite rows)."""
+
+        def loglik(residual) -> float:
+            r = np.asarray(residual, float)
+            ok = np.isfinite(samples.uv).all(axis=1) & np.isfinite(r).all(axis=1)
+            if ok.sum() < 2:
+                return 0.0
+            sub_t = None if st is None else np.asarray(st)[ok]
+            return float(self.gp.innovation_loglik(xy[ok], r[ok], samples_t=sub_t, modes=False))
+
+        return loglik
+
+    def _candidates(self, fc: np.ndarray, t_start: float, dt: float, open_fc=None) -> list[np.ndarray]:
+        """The candidate prior trajectories of :data:`PRIOR_CANDIDATES` for the loop's forecast ``fc``
+        ((S+1, 2, R, C) from field time ``t_start``, ``dt`` apart); ``open_fc``: the model alone over
+        the same times, if at hand."""
+        if open_fc is None:
+            open_fc = self.open_loop_forecast(t_start, dt, fc.shape[0])
+        return [fc, np.asarray(open_fc, np.float64), np.repeat(fc[:1], fc.shape[0], axis=0)]
 
     def weights(self) -> np.ndarray:
         """Current weights of :data:`PRIOR_CANDIDATES` (sum 1)."""
@@ -686,22 +734,26 @@ class PasstLoop:
         one[int(np.argmax(w))] = 1.0
         return one
 
-    def blend(self, fc: np.ndarray) -> np.ndarray:
-        """The estimate a model forecast ``fc`` ((S+1, 2, R, C)) stands for: ``fc`` itself, or with
-        ``prior_blend`` "bma" / "select" the candidates' mixture under :meth:`mixing_weights` (float32)."""
+    def blend(self, fc: np.ndarray, t_start: float = 0.0, dt: float = 1.0) -> np.ndarray:
+        """The estimate a model forecast ``fc`` ((S+1, 2, R, C) from field time ``t_start``, ``dt``
+        apart) stands for: ``fc`` itself, or with ``prior_blend`` "bma" / "select" the candidates'
+        mixture under :meth:`mixing_weights` (float32)."""
         if self.prior_blend == "off":
             return fc
         w = self.mixing_weights()
-        return sum(float(wk) * ck for wk, ck in zip(w, self._candidates(np.asarray(fc, np.float64)))).astype(np.float32)
+        if np.count_nonzero(w) == 1 and w[0] == 1.0:
+            return fc
+        cands = self._candidates(np.asarray(fc, np.float64), t_start, dt)
+        return sum(float(wk) * ck for wk, ck in zip(w, cands) if wk).astype(np.float32)
 
-    def _weigh_priors(self, fc, traj, ts, samples, xy, st):
+    def _weigh_priors(self, fc, traj, ts, samples, xy, st, open_fc, open_at):
         """Score the candidate priors on this leg's samples, update the weights, return the
         mixture trajectory and its values at the samples (see ``prior_blend``)."""
         from passt_mav.fields.field import FlowField
 
-        cands = self._candidates(np.asarray(fc, np.float64))
-        ats = [traj.interp(ts, samples.r, samples.c)]
-        for c in cands[1:]:
+        cands = self._candidates(np.asarray(fc, np.float64), traj.times[0], 0.0, open_fc)
+        ats = [traj.interp(ts, samples.r, samples.c), open_at]
+        for c in cands[2:]:
             ats.append(FlowField(c, self.grid, traj.times).interp(ts, samples.r, samples.c))
         ok = np.isfinite(samples.uv).all(axis=1) & np.logical_and.reduce([np.isfinite(a).all(axis=1) for a in ats])
         sub_t = None if st is None else np.asarray(st)[ok]
@@ -733,14 +785,15 @@ class PasstLoop:
                 ),
             }
         )
-        mix = sum(float(wk) * c for wk, c in zip(w, cands)).astype(np.float32)
-        f_at = sum(float(wk) * a for wk, a in zip(w, ats))
+        mix = sum(float(wk) * c for wk, c in zip(w, cands) if wk).astype(np.float32)
+        f_at = sum(float(wk) * a for wk, a in zip(w, ats) if wk)
         return mix, f_at
 
 
-#: the priors a ``prior_blend="bma"`` loop weighs: the model's forecast, persistence (state held),
-#: none (zero mean: the samples' GP alone)
-PRIOR_CANDIDATES = ("model", "persistence", "none")
+#: the priors a ``prior_blend="bma"`` / ``"select"`` loop weighs, each a whole-field forecast: the model
+#: restarted from the last estimate, the model alone from the first leg's initial state, persistence
+#: (the leg's initial state held)
+PRIOR_CANDIDATES = ("model", "open_loop", "persistence")
 #: their weights before any leg: the model trusted (its own validation said it beats persistence)
 PRIOR_START_WEIGHTS = (0.9, 0.1, 0.1)
 

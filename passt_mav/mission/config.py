@@ -331,9 +331,12 @@ class GPConfig(_Strict):
     (the paper's GP on samples alone); hyper-parameter schedule; ``background``: snapshots of
     the model's roll-out whose anomaly covariance the residual GP adds to its stationary
     kernels (0 = none; see :func:`passt_mav.reconstruction.model_background`); ``prior_blend``:
-    ``off`` (the model's forecast is the prior), ``bma`` (the model and persistence weighed leg
-    by leg by how well each explains the leg's samples, memory ``forgetting``) or ``select`` (the
-    most probable alone; see :class:`passt_mav.loop.passt.PasstLoop`); ``prior_share``: the blend's
+    ``off`` (the forecast restarted from the last estimate is the prior), ``bma`` (that forecast, the
+    model alone from the mission's first state and persistence, weighed leg by leg by how well each
+    explains the leg's samples, memory ``forgetting``) or ``select`` (the most probable alone; see
+    :class:`passt_mav.loop.passt.PasstLoop`); ``guard``: ``on`` (default) scores the loop's forecast
+    against the model alone at each leg's samples before they enter the estimate, says so when the
+    loop's fits worse and falls back to the model alone (:mod:`passt_mav.loop.guard`); ``prior_share``: the blend's
     fixed share (every candidate keeps ``prior_share / 3`` of the weight, so one bad leg of a good
     model is won back; default :data:`PRIOR_SHARE_DEFAULT` 0.05, 0 = off, ``PasstLoop(share=...)``); ``bias``: the
     residual GP may shift the forecast by a constant and rescale its anomaly where a leg's samples show it (fitted only from samples that
@@ -348,6 +351,7 @@ class GPConfig(_Strict):
     forgetting: float = Field(default=0.8, ge=0.0, le=1.0)
     prior_share: float = Field(default=PRIOR_SHARE_DEFAULT, ge=0.0, le=1.0)
     bias: bool = BIAS_DEFAULT
+    guard: Literal["on", "off"] = "on"
 
     @field_validator("background")
     @classmethod

@@ -70,6 +70,11 @@ _SOLVERS = ("sklearn", "cholesky")
 _NUGGETS = ("state", "noise")
 #: samples a hyper-parameter fit sees at most by default (``max_fit_points``; evenly spread along the track)
 MAX_FIT_POINTS = 60
+#: time length scales a space-time fit tries on its leg's own later samples besides the fitted one, in
+#: units of the samples' time span, when shorter than the fitted (:meth:`GPReconstructor._forward_validate_time_scale`)
+TIME_SCALE_SPANS = (4.0, 2.0, 1.0, 0.5, 0.25, 0.125)
+#: factors on the fitted spatial length scales tried with them (the fitted first)
+SPACE_SCALE_FACTORS = (1.0, 0.5, 0.25)
 
 
 class GPReconstructor:
@@ -341,9 +346,51 @@ class GPReconstructor:
         self.kernels_ = kernels
         self.cell_m_ = cell
         self.n_inputs_ = xy.shape[1]
+        self.time_scale_factor_ = [1.0, 1.0]
+        self.space_scale_factor_ = [1.0, 1.0]
+        if self.n_inputs_ == 3:
+            self._forward_validate_time_scale(xy, target)
         return self
 
     fit_hyperparameters = fit
+
+    def _forward_validate_time_scale(self, xyt: np.ndarray, target: np.ndarray) -> None:
+        """Shorten each space-time kernel's time length scale when the leg's own samples say that an
+        older residual does not carry forward: the samples of the leg's last third (in time) are
+        predicted from the earlier ones (the fitted kernel held fixed, its time length scale the
+        fitted one or each of :data:`TIME_SCALE_SPANS` times the samples' time span that is shorter)
+        and the length scale with the smallest squared error is kept (the longest on a tie). A residual seen early in a leg is applied at the leg's end through
+        this length scale; along a track, space and time are confounded and the likelihood often
+        takes the residual as steady (hours to months where a tide turns it in six hours), so the
+        hyper-parameter is chosen here by how well it forecasts the leg's own later samples (forward
+        validation, as for a time series). ``xyt``: (n, 3) east, north (m), time; ``target``: (n, 2)
+        residuals. Records ``time_scale_factor_`` per component (kept / fitted time length scale; 1 =
+        the likelihood's)."""
+        t = xyt[:, 2]
+        span = float(np.ptp(t))
+        if span <= 0:
+            return
+        late = t >= t.min() + span * (2.0 / 3.0)
+        if late.sum() < 3 or (~late).sum() < 3:
+            return
+        for k, kern in enumerate(self.kernels_):
+            ls = np.asarray(kern.k1.k2.length_scale, float)
+            if ls.size != 3:
+                continue
+            scales = [ls[2]] + [span * f for f in TIME_SCALE_SPANS if span * f < ls[2]]
+            cands = [np.array([ls[0] * g, ls[1] * g, lt]) for g in SPACE_SCALE_FACTORS for lt in scales]
+            errs = []
+            for c in cands:
+                kk = kern.clone_with_theta(kern.theta)
+                kk.set_params(k1__k2__length_scale=c)
+                K = kk(xyt[~late]) + self.alpha * np.eye(int((~late).sum()))
+                pred = kk(xyt[late], xyt[~late]) @ np.linalg.solve(K, target[~late, k])
+                errs.append(float(np.sum((target[late, k] - pred) ** 2)))
+            best = int(np.argmin(errs))  # the first (the fitted, then the longest) on a tie
+            if best:
+                kern.set_params(k1__k2__length_scale=cands[best])
+                self.time_scale_factor_[k] = float(cands[best][2] / ls[2])
+                self.space_scale_factor_[k] = float(cands[best][0] / ls[0])
 
     def innovation_loglik(self, samples_xy, residual_uv, *, samples_t=None, modes: bool = True) -> float:
         """Log density (nats, up to a constant shared by every residual at these positions) of

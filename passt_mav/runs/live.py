@@ -50,6 +50,7 @@ KINDS = {
     "boat_back": "ok",
     "mission_replaced": "warn",
     "warning": "warn",
+    "guard": "warn",
     "stopped": "alert",
 }
 

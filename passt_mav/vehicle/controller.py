@@ -752,6 +752,10 @@ class MissionController:
         self._write_summary()
         self.record.event("leg_end", f"{self._leg_label(i)} done: {rec['n_samples']} samples")
         self._say(f"{self._leg_label(i)}: {_progress_line(rec)}")
+        guard = rec.get("guard") or {}
+        if guard.get("message"):  # the guard (passt_mav.loop.guard): the forecast alone fitted the samples better
+            self.record.event("guard", guard["message"], level="warn" if guard.get("alarm") else "info")
+            self._say(("WARNING: " if guard.get("alarm") else "") + guard["message"])
         self.share.leg_done()
 
     def _leg_label(self, i: int) -> str:

@@ -131,6 +131,7 @@ class RunState:
                     "t_end": rec.get("t_end"),
                     "rmse_passt": rec.get("rmse_passt"),
                     "rmse_model": rec.get("rmse_model"),
+                    "guard": rec.get("guard"),
                     "n_samples": rec.get("n_samples"),
                     "has_reward": bool(rec.get("reward_map")),
                     "reward_range": _range(rec.get("reward_map")),
@@ -171,6 +172,7 @@ class RunState:
                 "n_events": len(self._events),
                 "estimate": self._estimate_info(grid, meta, legs),
                 "rmse": _rmse(legs),
+                "guard_warning": _guard_warning(legs),
                 "n_samples": len(self._samples),
             }
 
@@ -360,3 +362,11 @@ def _rmse(legs: list[dict]) -> dict:
         "model": [r.get("rmse_model") for r in done],
         "leg": [r["index"] for r in done],
     }
+
+
+def _guard_warning(legs: list[dict]) -> str | None:
+    """The banner: the guard's alarm (:mod:`passt_mav.loop.guard`: sampling is not helping) of the latest
+    leg the guard scored (field-time order); None once a later leg is fine."""
+    scored = sorted((r for r in legs if isinstance(r.get("guard"), dict)), key=lambda r: r.get("t_end") or 0.0)
+    last = scored[-1]["guard"] if scored else {}
+    return last.get("message") if last.get("alarm") else None

@@ -184,6 +184,8 @@
     }).join('');
     var w = s.meta && s.meta.skill_warning;
     $('skill').hidden = !w; $('skill').textContent = w || '';
+    var g = s.guard_warning;  // the guard: sampling is not helping (passt_mav.loop.guard)
+    $('guard').hidden = !g; $('guard').textContent = g || '';
   }
 
   function drawRmse(r) {
