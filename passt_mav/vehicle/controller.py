@@ -636,8 +636,8 @@ class MissionController:
         text = (
             f"{key} {list(wanted)} not honoured: leg {i} starts at cell {list(start)} "
             f"({latlon[0]:.5f},{latlon[1]:.5f}), where the boat is, {far:.0f} m from {list(wanted)}: a leg "
-            "starts at the boat's position (start the simulator there, e.g. vehicle-sim --start-cell, or "
-            "bring the boat to it before the run)"
+            f"starts at the boat's position (a simulator: vehicle-sim --start-cell {wanted[0]},{wanted[1]}; "
+            "a boat: bring it there before the run)"
         )
         self._say(f"WARNING: {text}")
         self._note("warning", text)
