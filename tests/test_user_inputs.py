@@ -344,3 +344,37 @@ def test_a_start_cell_the_boat_is_not_at_is_one_line(flown):
     assert e["kind"] == "warning"
     far = float(said[0].split(" m from ")[0].rsplit(" ", 1)[1])
     assert far == pytest.approx(3 * GRID.cell_size_m[0], rel=0.05)
+
+
+def test_a_fleets_samples_each_take_their_boats_clock(tmp_path):
+    """Three boats, each with its own recorded clock (t_boot0 = 100 b s, boat 2 rebooted: its boot 1 at
+    5000 s): every sample's time is the field's UTC of its own boat's clock; without the records the
+    vehicle's UTC stays the time axis."""
+    from test_export import T0_EPOCH, make_run
+
+    from passt_mav.analysis.export import load_run, sample_table
+    from passt_mav.runs.store import Sample, SampleStore
+
+    made = make_run(tmp_path / "run", boats=3, legs=2)
+    rd = made["rd"]
+    with SampleStore(rd.samples_db) as st:  # boat 2 after a reboot: time_boot_ms from 0 again, boot 1
+        st.append_many(
+            [Sample(500 * k, T0_EPOCH + 9000.0 + k, 40.1, -63.3, 0.1, 0.0, 1, "mav:3/1", boot=1) for k in range(4)]
+        )
+    no_clock = sample_table(load_run(rd.root))
+    assert str(no_clock["time_is"]) == "vehicle" and np.isnan(no_clock["field_time"]).all()
+    np.testing.assert_array_equal(no_clock["utc"], no_clock["vehicle_utc"])
+    summary = rd.read_summary()
+    summary["boats"] = [
+        {"boat": b, "clock": {"t_boot0": 100.0 * b, "time_scale": 1.0, **({"later_boots": [5000.0]} if b == 2 else {})}}
+        for b in range(3)
+    ]
+    rd.write_summary(summary)
+    c = sample_table(load_run(rd.root))
+    assert str(c["time_is"]) == "field" and int((c["boot"] == 1).sum()) == 4
+    anchor = np.where(c["boot"] == 1, 5000.0, 100.0 * c["boat"])
+    np.testing.assert_allclose(c["field_time"], anchor + c["time_boot_ms"] / 1000.0, atol=1e-9)
+    np.testing.assert_allclose(
+        c["utc"], dt.datetime(2018, 3, 1, tzinfo=dt.UTC).timestamp() + c["field_time"], atol=1e-6
+    )
+    assert sorted(c["vehicle_utc"]) == sorted(no_clock["vehicle_utc"])
