@@ -298,9 +298,11 @@ def test_csv_has_one_row_per_sample(run3, tmp_path, capsys):
     out = tmp_path / "samples.csv"
     assert export([str(run3["rd"].root), "--format", "csv", "--out", str(out)], capsys)[0] == 0
     rows = list(csv.DictReader(out.open()))
-    assert list(rows[0]) == ["time_utc", "lat", "lon", "u", "v", "boat", "leg"]
+    assert list(rows[0]) == ["time_utc", "lat", "lon", "u", "v", "boat", "leg", "vehicle_utc", "field_time"]
     assert len(rows) == len(run3["samples"])
     assert rows[0]["time_utc"] == "2018-03-01T00:00:00.000Z" and rows[0]["boat"] == "0"
+    # this run records no clock (summary.json without one): the vehicle's UTC, field time unknown
+    assert rows[0]["vehicle_utc"] == rows[0]["time_utc"] and rows[0]["field_time"] == ""
     assert [sum(r["boat"] == str(b) for r in rows) for b in range(3)] == run3["per_boat"]
     s = run3["samples"][1]
     assert float(rows[1]["u"]) == pytest.approx(s.u, abs=1e-6)

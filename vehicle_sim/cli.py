@@ -229,12 +229,15 @@ def build_parser() -> argparse.ArgumentParser:
 def _load_field(args):
     if args.field in (None, "none"):
         return None
-    from passt_mav.fields.datasets import resolve_field
+    from passt_mav.fields.datasets import resolve_field, speed_warning
 
     try:
         field = resolve_field(args.field, seed=args.seed)
     except ImportError as exc:
         raise _Bad(f"field {args.field!r} is not available in this installation ({exc})") from None
+    fast = speed_warning(field, args.field)
+    if fast:
+        print(f"vehicle-sim: warning: {fast}", file=sys.stderr)
     g = field.grid
     if any(v is not None for v in (args.anchor, args.scale, args.rotation)):
         if field.is_geographic:

@@ -23,10 +23,15 @@ group only. So:
   trajectory per boat (contiguous ragged array: ``rowSize`` per trajectory, ``trajectory``
   with ``cf_role = "trajectory_id"``), IOOS-style ``platform`` variable; ``u``/``v`` in m s-1.
 
-Times: the estimate's time is the field's time; for a field with a UTC origin (every
-geographic field) it is written as ``seconds since 1970-01-01T00:00:00Z``; a field without one
-(the cylinder: non-dimensional time) gets ``field_time`` (units ``1``, no time axis) and says
-so. Sample times are their UTC of reception, ``seconds since 1970-01-01T00:00:00Z``.
+Times: one clock for every file of a run, the field's (docs/clock.md). The estimate's time is
+the field's time; for a field with a UTC origin (every geographic field) it is written as
+``seconds since 1970-01-01T00:00:00Z``; a field without one (the cylinder: non-dimensional time)
+gets ``field_time`` (units ``1``, no time axis) and says so. A sample's time is the field time the
+loop gave it (the run's clock in summary.json, per boat for a fleet: ``t_boot0 + time_boot_ms /
+1000 / time_scale``), as the field's UTC where the field has a UTC origin; the vehicle's own UTC of
+the reading is kept beside it (``vehicle_utc``), never instead of it. A field without a UTC origin
+keeps the vehicle's UTC as the samples' time axis and their ``field_time`` beside it; a run that
+records no clock (no summary.json) has only the vehicle's UTC, and the files say so.
 
 Global attributes: ``Conventions = "CF-1.8, ACDD-1.3"``, title, summary, source, history,
 ``date_created``, the mission, model, planner and reward, ``passt_mav_version`` and
@@ -426,15 +431,58 @@ def _grid_coords(f) -> tuple[tuple, dict, dict]:
 
 
 # -- NetCDF: the samples as a DSG trajectory ---------------------------------------------------
+def _boat_clocks(run: RunData) -> dict[int, Any]:
+    """Boat index -> the :class:`~passt_mav.loop.legstep.FieldClock` its samples were placed in field
+    time with (summary.json ``clock``, a fleet's ``boats[k].clock``); boats without a record are absent."""
+    from passt_mav.loop.legstep import FieldClock
+
+    def of(rec) -> FieldClock | None:
+        if not isinstance(rec, dict) or "t_boot0" not in rec:
+            return None
+        later = tuple(float(x) for x in rec.get("later_boots") or ())
+        return FieldClock(float(rec["t_boot0"]), float(rec.get("time_scale", 1.0)), later_boots=later)
+
+    s = run.summary
+    found = {int(b.get("boat", k)): of(b.get("clock")) for k, b in enumerate(s.get("boats") or [])}
+    if not found:
+        found = {0: of(s.get("clock"))}
+    return {b: c for b, c in found.items() if c is not None}
+
+
+def sample_times(run: RunData) -> np.ndarray:
+    """The field time the loop gave each of the run's samples (arrival order; its boat's clock,
+    :func:`_boat_clocks`; s since the field's ``time_origin`` for a geographic field), NaN for a
+    sample whose boat has no recorded clock."""
+    from passt_mav.loop.measurement import sample_columns
+
+    c = sample_columns(run.samples)
+    boat = np.array([run.boat_of[x.source] for x in run.samples], np.int64)
+    t = np.full(len(run.samples), np.nan)
+    clocks = _boat_clocks(run)
+    for b, clock in clocks.items():
+        k = boat == b
+        t[k] = clock.field_time(c["time_boot_ms"][k], c["boot"][k])
+    return t
+
+
 def sample_table(run: RunData) -> dict[str, np.ndarray]:
-    """The run's samples as columns sorted by (boat, UTC): ``utc`` (UNIX s), ``lat``/``lon`` (deg),
-    ``u``/``v`` (m/s east/north), ``boat``, ``leg`` (-1 outside any leg), ``time_boot_ms``, ``boot``."""
+    """The run's samples as columns sorted by (boat, time): ``utc`` (UNIX s: the field's UTC of the
+    sample where the field has a UTC origin and the run its clock, else the vehicle's UTC; see
+    ``time_is``), ``vehicle_utc`` (UNIX s: the vehicle's UTC of the reading, SYSTEM_TIME, or the time
+    of reception where the vehicle sends none), ``field_time`` (field units, NaN where unknown),
+    ``lat``/``lon`` (deg), ``u``/``v`` (m/s east/north), ``boat``, ``leg`` (-1 outside any leg),
+    ``time_boot_ms``, ``boot``; and ``time_is``, a 0-d string array: ``"field"`` or ``"vehicle"``."""
     from passt_mav.loop.measurement import sample_columns
 
     s = run.samples
     c = sample_columns(s)  # time_boot_ms float64 (exact ms below 2**53): CF 1.8 has no int64
+    t_field = sample_times(run)
+    epoch = _epoch_of_field_times(run.summary.get("field_time_origin"), t_field)
+    on_field = epoch is not None and bool(np.isfinite(epoch).all())
     cols = {
-        "utc": c["utc"],
+        "utc": epoch if on_field else c["utc"],
+        "vehicle_utc": c["utc"],
+        "field_time": t_field,
         "lat": c["lat"],
         "lon": c["lon"],
         "u": c["u"],
@@ -445,7 +493,9 @@ def sample_table(run: RunData) -> dict[str, np.ndarray]:
         "boot": c["boot"].astype(np.int32),
     }
     order = np.lexsort((np.arange(len(s)), cols["utc"], cols["boat"]))
-    return {k: v[order] for k, v in cols.items()}
+    out = {k: v[order] for k, v in cols.items()}
+    out["time_is"] = np.array("field" if on_field else "vehicle")
+    return out
 
 
 def samples_dataset(run: RunData, command: str = "passt-mav export --samples"):
@@ -487,16 +537,52 @@ def samples_dataset(run: RunData, command: str = "passt-mav export --samples"):
         command,
     )
     attrs.update(featureType="trajectory", cdm_data_type="Trajectory", cdm_trajectory_variables="trajectory")
+    attrs["field_time_origin"] = str(run.summary.get("field_time_origin") or "none (non-dimensional field time)")
+    attrs["comment"] = _SAMPLE_TIME_NOTE[str(c["time_is"])]
     _geo_extent(attrs, c["lat"], c["lon"])
     _time_extent(attrs, c["utc"])
     return xr.Dataset(dv, coords=_sample_coords(c), attrs=attrs)
 
 
+#: how a samples file's ``time`` was made (``sample_table``'s ``time_is``)
+_SAMPLE_TIME_NOTE = {
+    "field": "time: the field's UTC of each sample (the run's clock, as estimate.nc); vehicle_utc: the "
+    "vehicle's own UTC of the reading, kept beside it",
+    "vehicle": "time: the vehicle's UTC of each reading (the field has no UTC origin, or the run records no "
+    "clock); field_time: the field time the loop gave it, where known",
+}
+
+
 def _sample_obs_vars(c: dict[str, np.ndarray]) -> dict[str, Any]:
     """The per-sample (``obs``) variables of the trajectory file: the measured current u/v (m/s,
-    east/north), the leg, and the autopilot's time since boot (ms) and boot counter."""
+    east/north), the leg, the vehicle's UTC of the reading, the field time (where the field has no
+    UTC origin), and the autopilot's time since boot (ms) and boot counter."""
     obs = {"coordinates": "time lat lon", "platform": "platform"}
+    times: dict[str, Any] = {
+        "vehicle_utc": (
+            "obs",
+            c["vehicle_utc"],
+            {
+                "units": _EPOCH_UNITS,
+                "calendar": "standard",
+                "coordinates": "time lat lon",
+                "long_name": "the vehicle's UTC of the reading (SYSTEM_TIME; time of reception where the "
+                "vehicle sends none): its own clock, not the field's",
+            },
+        )
+    }
+    if str(c["time_is"]) == "vehicle":
+        times["field_time"] = (
+            "obs",
+            c["field_time"],
+            {
+                "units": "1",
+                "coordinates": "time lat lon",
+                "long_name": "field time the loop gave the sample (the field's own time units; NaN: unknown)",
+            },
+        )
     return {
+        **times,
         "u": (
             "obs",
             c["u"],
@@ -555,7 +641,9 @@ def _sample_coords(c: dict[str, np.ndarray]) -> dict[str, Any]:
                 "units": _EPOCH_UNITS,
                 "calendar": "standard",
                 "axis": "T",
-                "long_name": "UTC time the sample was received",
+                "long_name": "the field's UTC of the sample (the run's clock)"
+                if str(c["time_is"]) == "field"
+                else "the vehicle's UTC of the reading (no field UTC: see the comment attribute)",
             },
         ),
         "lat": (

@@ -12,8 +12,12 @@ What a GIS or a spreadsheet shows of a mission:
 GeoJSON follows RFC 7946 (WGS84 ``[lon, lat]``, exterior ring counter-clockwise and closed); each
 feature's ``properties.kind`` is ``track``, ``planned_path``, ``waypoint`` or ``geofence``. KML 2.2
 has one Folder per kind with one Placemark per feature (coordinates ``lon,lat,0``), and a line
-style per boat. The CSV has one row per sample: ``time_utc`` (ISO-8601, ms, Z), ``lat``, ``lon``
-(deg WGS84), ``u``, ``v`` (m/s east/north), ``boat``, ``leg``, sorted by boat then time.
+style per boat. The CSV has one row per sample: ``time_utc`` (ISO-8601, ms, Z: the field's UTC of
+the sample where the field has a UTC origin, else the vehicle's; the same clock as ``samples.nc``,
+see :func:`passt_mav.analysis.export.sample_table`), ``lat``, ``lon`` (deg WGS84), ``u``, ``v`` (m/s
+east/north), ``boat``, ``leg``, ``vehicle_utc`` (the vehicle's own UTC of the reading) and
+``field_time`` (field units, s since the field's time origin for a geographic field; empty where
+unknown), sorted by boat then time.
 """
 
 from __future__ import annotations
@@ -164,20 +168,29 @@ def _placemark(ET, folder, f: dict) -> None:
         coords(ring, g["coordinates"][0])
 
 
+def _iso_ms(epoch_s: float) -> str:
+    """UNIX seconds -> ISO-8601 UTC with milliseconds and a ``Z``."""
+    return _dt.datetime.fromtimestamp(float(epoch_s), _dt.UTC).isoformat(timespec="milliseconds").replace("+00:00", "Z")
+
+
 def csv_text(run) -> tuple[str, dict]:
-    """(CSV of samples as text, row count): time_utc, lat, lon, u, v, boat, leg (module docstring)."""
+    """(CSV of samples as text, row count): time_utc, lat, lon, u, v, boat, leg, vehicle_utc, field_time
+    (module docstring)."""
     import csv
 
     from passt_mav.analysis.export import sample_table
 
     buf = io.StringIO()
     w = csv.writer(buf, lineterminator="\n")
-    w.writerow(["time_utc", "lat", "lon", "u", "v", "boat", "leg"])
+    w.writerow(["time_utc", "lat", "lon", "u", "v", "boat", "leg", "vehicle_utc", "field_time"])
     n = 0
     if run.samples:
         c = sample_table(run)
-        for t, la, lo, u, v, b, leg in zip(c["utc"], c["lat"], c["lon"], c["u"], c["v"], c["boat"], c["leg"]):
-            iso = _dt.datetime.fromtimestamp(float(t), _dt.UTC).isoformat(timespec="milliseconds")
-            w.writerow([iso.replace("+00:00", "Z"), f"{la:.7f}", f"{lo:.7f}", f"{u:.6f}", f"{v:.6f}", int(b), int(leg)])
+        rows = zip(c["utc"], c["lat"], c["lon"], c["u"], c["v"], c["boat"], c["leg"], c["vehicle_utc"], c["field_time"])
+        for t, la, lo, u, v, b, leg, tv, tf in rows:
+            ft = f"{tf:.3f}" if np.isfinite(tf) else ""
+            w.writerow(
+                [_iso_ms(t), f"{la:.7f}", f"{lo:.7f}", f"{u:.6f}", f"{v:.6f}", int(b), int(leg), _iso_ms(tv), ft]
+            )
             n += 1
     return buf.getvalue(), {"rows": n}

@@ -21,6 +21,7 @@ EXAMPLES = """examples:
   passt-mav data ocean --out ocean.nc --seed 0 --hours 504
   passt-mav data import RU_MARA_20180301.nc --region 38,-74,41,-69 --grid 30x30 --out radar.nc
   passt-mav data import hycom.nc --region north_atlantic --start 2018-03-01T00:00Z --hours 504 --out na.nc
+  passt-mav data import radar_cms.nc --units cm/s --region 38,-74,41,-69 --out radar.nc   # a file in cm/s
   passt-mav data info ocean.nc --json
   passt-mav data show ocean.nc --out ocean.png --time 100
   passt-mav data export-lua builtin:ocean --snapshots 0:48 --scripts-dir sitl_scripts
@@ -97,6 +98,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     i.add_argument("--hours", type=int, default=None, help="window length in hours (default: the rest of the file)")
     i.add_argument("--variables", default=None, help="U,V variable names (default: detected)")
     i.add_argument("--units", default=None, help="override the velocity units of the file (e.g. cm/s)")
+    i.add_argument(
+        "--allow-fast",
+        action="store_true",
+        help="import speeds no surface current has (median above 2.5 m/s or any above 10 m/s over the "
+        "valid cells), which are refused otherwise as a sign of wrong --units",
+    )
     i.add_argument("--out", required=True, help="output .nc file")
     i.add_argument("--json", action="store_true", help="print the coverage report as JSON")
     i.set_defaults(_data_run=_run_import)
@@ -234,8 +241,10 @@ def parse_region(text: str, grid_text: str):
 
 
 def _run_import(args) -> int:
+    import sys
+
     from passt_mav.errors import UserError
-    from passt_mav.fields.importers import coverage_report, import_currents
+    from passt_mav.fields.importers import coverage_check, coverage_report, import_currents, speed_check
 
     grid = parse_region(args.region, args.grid)
     variables = None
@@ -250,9 +259,19 @@ def _run_import(args) -> int:
         + (["--hours", str(args.hours)] if args.hours else [])
         + (["--variables", args.variables] if args.variables else [])
         + (["--units", args.units] if args.units else [])
+        + (["--allow-fast"] if args.allow_fast else [])
     )
+    fast = speed_check(f)
+    if fast is not None and not args.allow_fast:
+        problem, units = fast
+        hint = f"{units}? use --units {units}" if units else "check the file's values and units (--units)"
+        raise UserError(f"{args.file}: {problem}; {hint} (or --allow-fast to import them as they are)")
     path = f.to_netcdf(args.out)
     rep = coverage_report(f)
+    low = coverage_check(f)
+    rep["warnings"] = [low] if low else []
+    if low:
+        print(f"warning: {low}; check --region and --start against the file", file=sys.stderr)
     rep.update(
         out=str(path),
         time_origin=f.time_origin,

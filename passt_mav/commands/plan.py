@@ -105,13 +105,16 @@ def run(args: argparse.Namespace) -> int:
     import numpy as np
 
     from passt_mav.errors import FieldError, PlannerError
-    from passt_mav.fields.datasets import mission_field
+    from passt_mav.fields.datasets import mission_field, speed_warning
     from passt_mav.mission import WaypointMission
     from passt_mav.mission.config import load_mission
 
     cfg = load_mission(args.mission)
     grid = cfg.grid()
     field = mission_field(cfg, args.state)  # the same rule as run, replay and report
+    fast = speed_warning(field, args.state or cfg.field.source)
+    if fast:
+        print(f"warning: {fast}", file=sys.stderr)
     k = cfg.t0 if args.time is None else int(args.time)
     if not (0 <= k < field.n_times):
         raise FieldError(f"--time {k} is outside the state's snapshots 0..{field.n_times - 1}")

@@ -158,7 +158,7 @@ def execute(
     """
     import sys
 
-    from passt_mav.fields.datasets import mission_field
+    from passt_mav.fields.datasets import mission_field, speed_warning
     from passt_mav.vehicle.controller import build_predictor
 
     if speedup > 1.0:
@@ -166,6 +166,9 @@ def execute(
         # vehicle's 1 s re-request time, which a simulator at 150x compresses to ~7 ms of wall time
         sys.setswitchinterval(min(sys.getswitchinterval(), 0.001))
     field = mission_field(config)  # the same rule as plan, replay and report
+    fast = speed_warning(field, config.field.source)
+    if fast:
+        print(f"warning: {fast}", file=sys.stderr)
     predictor, pinfo = build_predictor(config.model, field, echo=echo)
     opts = _RunOptions(
         mission_text=mission_text,

@@ -20,7 +20,15 @@ from pathlib import Path
 
 from passt_mav.errors import FieldError
 
-__all__ = ["DATASETS", "ASSETS", "load_dataset", "resolve_field", "field_on_region", "mission_field"]
+__all__ = [
+    "DATASETS",
+    "ASSETS",
+    "load_dataset",
+    "resolve_field",
+    "field_on_region",
+    "mission_field",
+    "speed_warning",
+]
 
 ASSETS = Path(__file__).resolve().parent.parent / "assets"
 DATASETS = ("cylinder", "oscillating", "ocean", "rtofs")
@@ -131,3 +139,20 @@ def mission_field(config, spec: str | Path | None = None):
     ``seeds.field`` and ``grid()`` are read."""
     source = str(config.field.source if spec is None else spec)
     return field_on_region(resolve_field(source, seed=config.seeds.field), config.grid(), source=source)
+
+
+def speed_warning(field, source) -> str | None:
+    """One line when ``field`` (m/s) has speeds no surface current has
+    (:func:`passt_mav.fields.importers.speed_check`), naming ``source`` and the likely units; else None.
+    ``plan``, ``run`` and ``vehicle-sim`` print it: a field file made before ``data import`` refused
+    such speeds, or written by another tool."""
+    from passt_mav.fields.importers import speed_check
+
+    fast = speed_check(field)
+    if fast is None:
+        return None
+    problem, units = fast
+    hint = (
+        f"{units}? re-import it with passt-mav data import --units {units}" if units else "check its values and units"
+    )
+    return f"the field {source} has {problem}; {hint}"

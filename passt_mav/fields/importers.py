@@ -48,6 +48,13 @@ What :func:`import_currents` does, in order:
 
 The coverage of the result (fraction of cells with data) is in
 ``field.attrs["coverage"]`` and :func:`coverage_report`.
+
+Plausibility (:func:`speed_check`, :func:`coverage_check`): a surface current's median speed
+is well below 2.5 m/s and no surface current reaches 10 m/s, so a field in m/s beyond either
+(over its valid cells) was read in the wrong units (an HF-radar file in cm/s taken for m/s is
+100x too fast); ``passt-mav data import`` refuses it (``--allow-fast`` overrides) and ``plan``,
+``run`` and ``vehicle-sim`` warn. A region whose cell-times hold data less than half the time
+is imported with a warning.
 """
 
 from __future__ import annotations
@@ -64,7 +71,18 @@ import numpy as np
 from passt_mav.errors import FieldError
 from passt_mav.fields.field import FlowField, _parse_iso
 
-__all__ = ["import_currents", "coverage_report", "velocity_scale", "U_NAMES", "V_NAMES"]
+__all__ = [
+    "import_currents",
+    "coverage_report",
+    "velocity_scale",
+    "speed_check",
+    "coverage_check",
+    "MAX_MEDIAN_SPEED",
+    "MAX_SPEED",
+    "MIN_COVERAGE",
+    "U_NAMES",
+    "V_NAMES",
+]
 
 #: candidate variable names, tried in order after CF standard names
 U_NAMES = ("water_u", "uo", "u", "u_velocity", "ugos", "ucur", "U", "east_vel", "eastward_velocity")
@@ -87,6 +105,16 @@ _LAT_NAMES = ("lat", "latitude", "Latitude", "LATITUDE", "nav_lat", "lat_rho")
 _LON_NAMES = ("lon", "longitude", "Longitude", "LONGITUDE", "nav_lon", "lon_rho")
 _DEPTH_NAMES = ("depth", "z", "Depth", "lev", "level", "deptht", "depthu", "depthv", "s_rho", "altitude", "height")
 _TIME_NAMES = ("time", "MT", "t", "ocean_time", "Time", "TIME")
+
+#: m/s: a surface current's median speed over a region stays well below this (strong western boundary
+#: currents such as the Gulf Stream core reach ~2-2.5 m/s, tidal races ~5 m/s in places, never as a median)
+MAX_MEDIAN_SPEED = 2.5
+#: m/s: no surface current reaches this anywhere (the fastest tidal races are ~5-8 m/s)
+MAX_SPEED = 10.0
+#: fraction of (time, cell) pairs with data below which an imported region is warned about
+MIN_COVERAGE = 0.5
+#: unit factors to m/s a too-fast field is tried with for the hint, smallest first
+_HINT_UNITS = (("cm/s", 0.01), ("mm/s", 0.001))
 
 _KNOT = 1852.0 / 3600.0
 _MISSING_WEIGHT_TOL = 1e-3  # see module docstring, step 5
@@ -608,3 +636,44 @@ def coverage_report(field: FlowField) -> dict[str, Any]:
         "n_times": int(field.n_times),
         "shape": list(field.shape),
     }
+
+
+def speed_check(field: FlowField) -> tuple[str, str | None] | None:
+    """Speeds no surface current has, in a field whose units are m/s.
+
+    Over the valid cells of every snapshot, a median speed above :data:`MAX_MEDIAN_SPEED` or any
+    speed above :data:`MAX_SPEED` (m/s) is implausible. Returns None when the speeds are plausible
+    (or the field is not in m/s, e.g. the non-dimensional cylinder, or holds no data), else
+    ``(problem, units)``: ``problem`` one line naming the speeds (no hint), ``units`` the spelling
+    (``"cm/s"``, ``"mm/s"``) whose factor makes them plausible when the median is too fast, None when
+    neither does or only a few values are (bad values, not wrong units).
+    """
+    try:
+        if velocity_scale(field.units) != 1.0:
+            return None
+    except FieldError:
+        return None
+    sp = field.speed()
+    sp = sp[np.isfinite(sp)]
+    if sp.size == 0:
+        return None
+    med, top = float(np.median(sp)), float(sp.max())
+    if med <= MAX_MEDIAN_SPEED and top <= MAX_SPEED:
+        return None
+    problem = (
+        f"speeds no surface current has: median {med:.3g} m/s, max {top:.3g} m/s over the valid cells "
+        f"(a median above {MAX_MEDIAN_SPEED:g} m/s or any speed above {MAX_SPEED:g} m/s is implausible)"
+    )
+    units = None
+    if med > MAX_MEDIAN_SPEED:  # a plausible median with a few wild values is bad data, not wrong units
+        units = next((u for u, k in _HINT_UNITS if med * k <= MAX_MEDIAN_SPEED and top * k <= MAX_SPEED), None)
+    return problem, units
+
+
+def coverage_check(field: FlowField) -> str | None:
+    """One line when less than :data:`MIN_COVERAGE` of the field's (time, cell) pairs hold data
+    (the percentage), else None."""
+    cov = field.coverage
+    if cov >= MIN_COVERAGE:
+        return None
+    return f"only {100.0 * cov:.1f} % of the region's cell-times hold data (below {100.0 * MIN_COVERAGE:g} %)"

@@ -604,6 +604,8 @@ class MissionController:
         """
         lat, lon = self.session.position()
         start = self.step.start_cell(lat, lon)
+        if not self.leg_records:
+            check_start_cell(self, i, start, (lat, lon))
         tb, boot = self.run_clock.reading()
         t_now = float(self._clock_with_boots().field_time(tb, boot))
         return self.share.plan(
@@ -777,6 +779,32 @@ def _progress_line(rec: dict) -> str:
         f"loss {100 * link['loss']:.1f} %"
         + ("" if link.get("vehicle_bytes_per_s") is None else f", vehicle sends {link['vehicle_bytes_per_s']:.0f} B/s")
     )
+
+
+def check_start_cell(ctl, i: int, start: tuple[int, int], latlon: tuple[float, float]) -> None:
+    """One line (console and event) when controller ``ctl``'s first leg ``i`` cannot start at the mission's
+    ``start_cell`` (a fleet's boat: its ``vehicles[k].start_cell``) because the boat, at ``latlon`` (deg),
+    is in cell ``start`` (row, col): a leg starts where the boat is, and the controller does not drive it
+    to that cell first."""
+    import geo
+
+    cfg = ctl.config
+    wanted = cfg.vehicle.start_cell
+    if wanted is None and cfg.vehicles is None:
+        wanted = cfg.start_cell
+    if wanted is None or tuple(int(x) for x in wanted) == tuple(start):
+        return
+    key = "start_cell" if cfg.vehicles is None else "vehicles[].start_cell"
+    w_lat, w_lon = (float(x) for x in ctl.grid.cell_to_latlon(int(wanted[0]), int(wanted[1])))
+    far = float(geo.geodesic_distance_m(latlon[0], latlon[1], w_lat, w_lon))
+    text = (
+        f"{key} {list(wanted)} not honoured: leg {i} starts at cell {list(start)} "
+        f"({latlon[0]:.5f},{latlon[1]:.5f}), where the boat is, {far:.0f} m from {list(wanted)}: a leg "
+        f"starts at the boat's position (a simulator: vehicle-sim --start-cell {wanted[0]},{wanted[1]}; "
+        "a boat: bring it there before the run)"
+    )
+    ctl._say(f"WARNING: {text}")
+    ctl._note("warning", text)
 
 
 def run_summary(ctl) -> dict:
