@@ -68,6 +68,22 @@ def _mission(path_length: int, model: str, legs: int, t0: int, start_cell, regio
     return validate_mission(base, source="real_data_loop")
 
 
+def _track_readings():
+    """:func:`passt_mav.loop.readings.track_readings`, from this checkout's file when ``--repo``'s
+    package predates it (the same readings for both)."""
+    try:
+        from passt_mav.loop.readings import track_readings
+    except ModuleNotFoundError:
+        import importlib.util
+
+        path = Path(__file__).resolve().parent.parent / "passt_mav" / "loop" / "readings.py"
+        spec = importlib.util.spec_from_file_location("_readings", path)
+        mod = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(mod)
+        track_readings = mod.track_readings
+    return track_readings
+
+
 def _build_loop():
     """:func:`passt_mav.loop.legstep.build_loop` (a module attribute, so a study can swap it)."""
     from passt_mav.loop.legstep import build_loop
@@ -79,7 +95,7 @@ def fly_case(case: dict, planner: str, *, sample_s: float = 120.0, noise: float 
     """One case with ``planner`` (the mission's, or a baseline's): per leg, PASST's and the model
     alone's RMSE (m/s) and the guard's record."""
     from passt_mav.loop.legstep import FieldClock, LegStep
-    from passt_mav.loop.readings import track_readings
+    track_readings = _track_readings()
 
     build_loop = _build_loop()
     from passt_mav.models.base import make_predictor
@@ -112,7 +128,7 @@ def fly_case(case: dict, planner: str, *, sample_s: float = 120.0, noise: float 
         ab = step.absorb(planned, recs, clock, strict=False)
         if ab.rmse_passt is None or ab.rmse_model is None or ab.t_state > field.times[-1]:
             break
-        out.append({"leg": i, "passt": ab.rmse_passt, "model": ab.rmse_model, "guard": (ab.gp or {}).get("guard")})
+        out.append({"leg": i, "passt": ab.rmse_passt, "model": ab.rmse_model, "guard": getattr(ab, "guard", None)})
         state, t_state, start = ab.state, ab.t_state, tuple(int(x) for x in planned.plan.path[-1])
     return out
 
@@ -206,11 +222,14 @@ def main(argv=None) -> int:
     ap.add_argument("--sample-s", type=float, default=120.0, help="vehicle seconds between readings")
     ap.add_argument("--baselines", default="random,lawnmower", help="planners flown in the same loop ('' = none)")
     ap.add_argument("--json", default=None, help="write every (case, leg) figure here")
+    ap.add_argument("--only", default=None, help="fly only these case indices (comma-separated; same draws)")
     ap.add_argument("--repo", default=None, help="import passt_mav from this checkout instead (same cases)")
     a = ap.parse_args(argv)
     from tqdm import tqdm
 
     cases = make_cases(a.cases, a.seed)
+    if a.only:
+        cases = [cases[int(i)] for i in a.only.split(",")]
     rows = []
     for c in tqdm(cases, desc="cases", file=sys.stderr):
         row = {k: c[k] for k in ("file", "region", "t0", "start", "L", "legs", "model")}
