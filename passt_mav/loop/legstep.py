@@ -516,9 +516,11 @@ class LegStep:
         r_p, r_m = self.rmse_at(state, t_new)
         std = None if note is not None or self.loop.std is None else np.asarray(self.loop.std, np.float32)
         gp = self.loop.gp_summary()
-        guard = gp.pop("guard", None) if note is None else None
-        if guard is not None:
+        guard = gp.pop("guard", None)
+        if guard is not None and note is None:
             guard = self.guard_for_people(guard, planned.index)
+        else:
+            guard = None  # no samples reconstructed: nothing was scored for this leg
         return AbsorbedLeg(
             samples,
             state,
