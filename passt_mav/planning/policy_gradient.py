@@ -35,7 +35,7 @@ from pathlib import Path
 import numpy as np
 
 from passt_mav.errors import PlannerError
-from passt_mav.planning.grid import MOVES4, MOVES8, check_many, top_l_bound
+from passt_mav.planning.grid import MOVES4, MOVES8, best_with_ties, check_many, top_l_bound
 
 __all__ = [
     "SCALES",
@@ -198,7 +198,7 @@ def rollout(
         f = _features_eff(eff, pos, 1.0 - t / L, moves, buf)
         allowed, tgt = _allowed(trav, visited, pos, moves)
         s, p = _move_probabilities(weights, f, allowed, temperature)
-        a = _sample_moves(p, s, allowed, rngs, ng, greedy_first)
+        a = _sample_moves(p, s, allowed, rngs, ng, greedy_first, tgt[..., 0] * C + tgt[..., 1])
         new = tgt[b, a]
         gain = _gain(q, visited, new)
         rets += gain
@@ -258,13 +258,21 @@ def _move_probabilities(
 
 
 def _sample_moves(
-    p: np.ndarray, s: np.ndarray, allowed: np.ndarray, rngs: list, ng: int, greedy_first: bool
+    p: np.ndarray,
+    s: np.ndarray,
+    allowed: np.ndarray,
+    rngs: list,
+    ng: int,
+    greedy_first: bool,
+    cells: np.ndarray | None = None,
 ) -> np.ndarray:
     """One move index per roll-out (n,), drawn from ``p`` (n, M) by inverse CDF.
 
     Group g (``ng`` consecutive rows) draws its uniforms from ``rngs[g]``; a draw that lands on a
     disallowed move by round-off at the top end takes the most likely move instead. With
-    ``greedy_first`` each group's first roll-out takes the argmax of its scores ``s``.
+    ``greedy_first`` each group's first roll-out takes the argmax of its scores ``s``, scores within
+    :data:`~passt_mav.planning.grid.TIE_RTOL` (relative) a tie taken by the smaller target cell
+    ``cells`` (n, M) flat index (default: the move order).
     """
     n, M = p.shape
     b = np.arange(n)
@@ -273,7 +281,7 @@ def _sample_moves(
     a = np.where(allowed[b, a], a, np.argmax(p, axis=1))  # guard against round-off at the top end
     if greedy_first:
         firsts = np.arange(0, n, ng)
-        a[firsts] = np.argmax(s[firsts], axis=1)
+        a[firsts] = best_with_ties(s[firsts], None if cells is None else cells[firsts])
     return a
 
 
@@ -535,4 +543,5 @@ class PolicyGradientPlanner:
             moves=moves,
             temperature=self.temperature,
         )
-        return [paths[g * n + int(np.argmax(rets[g * n : (g + 1) * n]))] for g in range(G)]
+        # the best roll-out's path; returns within TIE_RTOL (float noise) go to the first roll-out
+        return [paths[g * n + int(best_with_ties(rets[g * n : (g + 1) * n]))] for g in range(G)]
