@@ -12,28 +12,50 @@ from __future__ import annotations
 import contextlib
 import functools
 import sys
+import threading
 from collections.abc import Iterator
 
 __all__ = ["one_thread", "single_threaded"]
 
 
+_lock = threading.Lock()
+_depth = 0  # blocks inside one_thread, all threads together
+_local = threading.local()  # this thread's depth, and its settings before its outermost block
+
+
 @contextlib.contextmanager
 def one_thread() -> Iterator[None]:
-    """Within the block: one BLAS thread (threadpoolctl: OpenBLAS, MKL, OpenMP) and, when torch is
-    loaded, one torch intra-op thread; the previous settings come back on exit. Torch is not imported
-    here (a run on DMD or persistence never loads it)."""
+    """Within the block: one BLAS thread (threadpoolctl: OpenBLAS, MKL), one OpenMP thread and one torch
+    intra-op thread (when torch is loaded; torch is not imported here: a run on DMD or persistence never
+    loads it). Some of these settings are the calling thread's own, some the process's, so each thread's
+    outermost block sets them all for itself, and the settings it found come back when it ends, unless
+    another thread is still inside a block (a fleet's boats plan and absorb from threads of their own):
+    then that thread keeps one thread, so that no block ever runs on more."""
     from threadpoolctl import threadpool_limits
 
-    torch = sys.modules.get("torch")
-    prev = torch.get_num_threads() if torch is not None else None
+    global _depth
+    with _lock:
+        mine = getattr(_local, "depth", 0)
+        if mine == 0:
+            torch = sys.modules.get("torch")
+            prev = torch.get_num_threads() if torch is not None else None
+            limits = threadpool_limits(1)
+            if torch is not None and prev != 1:
+                torch.set_num_threads(1)
+            _local.saved = (limits, torch, prev)
+        _local.depth = mine + 1
+        _depth += 1
     try:
-        if torch is not None and prev != 1:
-            torch.set_num_threads(1)
-        with threadpool_limits(1):
-            yield
+        yield
     finally:
-        if torch is not None and prev != 1:
-            torch.set_num_threads(prev)
+        with _lock:
+            _depth -= 1
+            _local.depth -= 1
+            if _local.depth == 0 and _depth == 0:
+                limits, torch, prev = _local.saved
+                if torch is not None and prev not in (None, 1):
+                    torch.set_num_threads(prev)
+                limits.restore_original_limits()
 
 
 def single_threaded(fn):
