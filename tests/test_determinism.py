@@ -126,6 +126,56 @@ def test_one_thread_holds_until_the_outermost_block_ends():
     assert after == before and max(before) == 2
 
 
+def _lockstep_session(actions):
+    """Fly ``actions`` (link -> None) on a fresh in-process simulator served in lockstep over a link with
+    0.5 s steps; returns the simulator's clock after connecting and after each action."""
+    from mavlink_helpers import HOME, inprocess_factory, link_config
+
+    from passt_mav.mavlink import Link
+    from vehicle_sim import SimConfig, Simulator
+
+    sim = Simulator(None, home=HOME, config=SimConfig.fast())
+    sim.serve([], lockstep=True)
+    link = Link(link_config(lockstep_s=0.5, lockstep_pace=1000.0), connection_factory=inprocess_factory(sim))
+    try:
+        link.connect()
+        times = [sim.t]
+        for act in actions:
+            act(link)
+            times.append(sim.t)
+        return times
+    finally:
+        link.close()
+        sim.stop()
+
+
+def test_a_lockstep_link_runs_the_vehicle_clock_only_while_it_waits():
+    """The simulator's clock stands while nobody waits (a wall second without a step: the same time, and
+    the link is not lost though no heartbeat came), an idle wait runs exactly one 0.5 s step, a parameter
+    read (answered at the held time) none, a mode change until the heartbeat shows it; the same
+    sequence twice gives the same simulated times."""
+    import time
+
+    from passt_mav.mavlink import Vehicle
+
+    def pause(link):
+        time.sleep(1.0)
+        assert not link.lost
+
+    actions = [
+        pause,
+        lambda link: link.idle(0.0),
+        lambda link: Vehicle(link).get_param("WP_SPEED"),
+        lambda link: Vehicle(link).set_mode("HOLD"),
+        lambda link: link.idle(0.0),
+    ]
+    a = _lockstep_session(actions)
+    assert a[1] == a[0] and a[2] == pytest.approx(a[1] + 0.5) and a[3] == a[2]
+    assert a[4] > a[3] and (a[4] - a[3]) % 0.5 == pytest.approx(0.0, abs=1e-6)
+    assert a[5] == pytest.approx(a[4] + 0.5)
+    assert _lockstep_session(actions) == pytest.approx(a, abs=1e-9)
+
+
 def _demo(out, speedup: float, model: str):
     env = dict(os.environ, PYTHONUNBUFFERED="1")
     argv = ["demo", "--legs", "2", "--moves", "8", "--no-view", "--no-report", "--speedup", str(speedup)]
@@ -199,3 +249,27 @@ def test_a_demo_under_load_gives_the_numbers_of_another_and_replays(tmp_path, mo
     r = json.loads(p.stdout)
     assert r["reproduced"] is True and [leg["path_identical"] for leg in r["legs"]] == [True, True]
     assert all(leg["rmse_identical"] for leg in r["legs"])
+
+
+def test_a_bad_lockstep_is_one_line_exit_2_and_writes_nothing(capsys, tmp_path):
+    """``run --lockstep`` below 0, or with a fleet (its boats would each step the one clock): one line
+    naming the option, exit 2, no run directory."""
+    from pathlib import Path
+
+    import yaml
+
+    from passt_mav.cli import main
+
+    mission = Path(__file__).resolve().parents[1] / "missions" / "north_atlantic.yaml"
+    data = yaml.safe_load(mission.read_text())
+    data.pop("vehicle", None)
+    data["vehicles"] = [{"connect": "tcp:127.0.0.1:5760"}, {"connect": "tcp:127.0.0.1:5770"}]
+    fleet = tmp_path / "fleet.yaml"
+    fleet.write_text(yaml.safe_dump(data))
+    for m, value, needle in ((mission, "-1", ">= 0"), (fleet, "0.5", "fleet")):
+        out = tmp_path / "run"
+        rc = main(["run", str(m), "--lockstep", value, "--out", str(out)])
+        o, e = capsys.readouterr()
+        lines = e.strip().splitlines()
+        assert rc == 2 and len(lines) == 1 and "--lockstep" in lines[0] and needle in lines[0], (o, e)
+        assert "Traceback" not in o + e and not out.exists()

@@ -49,7 +49,7 @@ class Subscription:
                 return self._q.get(timeout=max(timeout, 0.0) if timeout is not None else None)
             except queue.Empty:
                 return None
-        budget, ran, h = step.budget(timeout), 0.0, 0.0
+        budget, ran, h = step.budget(timeout), 0.0, 0.0  # vehicle seconds: may run, have run, next step
         while True:
             try:
                 return self._q.get_nowait()
@@ -57,7 +57,8 @@ class Subscription:
                 pass
             if (h > 0 and ran >= budget) or not step.step(h):
                 return None
-            ran, h = (ran + h, step.step_s) if h > 0 else (ran, step.step_s)
+            ran += h
+            h = step.step_s
 
     def drain(self) -> list:
         out = []
