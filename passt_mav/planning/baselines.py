@@ -104,8 +104,8 @@ class GreedyPlanner:
 
     At each move every sequence of ``lookahead`` moves is scored by the reward of
     the distinct unvisited cells it enters; the first move of the best sequence is
-    taken (ties: totals within :data:`~passt_mav.planning.grid.TIE_RTOL`, relative, go to the
-    smaller first cell ``row * cols + col``, then the first in :data:`MOVES8` order). The first move is restricted to
+    taken (ties: totals within :data:`~passt_mav.planning.grid.TIE_RTOL`, relative, go to the first
+    sequence in :data:`MOVES8` order, so float noise cannot pick another). The first move is restricted to
     unvisited neighbours when one exists.
     """
 
@@ -163,9 +163,8 @@ class GreedyPlanner:
             # restrict to sequences that start on an unvisited cell where there is one
             score = np.where(first_fresh | ~first_fresh.any(axis=1, keepdims=True), score, -np.inf)
             # float noise in the reward map must not pick another move: totals within TIE_RTOL are a
-            # tie, taken by the smaller first cell (flat index), then the sequence order
-            n = seqs.shape[0]
-            best = best_with_ties(score, idx[..., 0] * n + np.arange(n))
+            # tie, taken by the first sequence in MOVES8 order (as exact ties always were)
+            best = best_with_ties(score)
             nxt = np.stack([rr[rows, best, 0], cc[rows, best, 0]], axis=1)
             for b in np.flatnonzero(
                 ~np.isfinite(score).any(axis=1)

@@ -198,7 +198,7 @@ def rollout(
         f = _features_eff(eff, pos, 1.0 - t / L, moves, buf)
         allowed, tgt = _allowed(trav, visited, pos, moves)
         s, p = _move_probabilities(weights, f, allowed, temperature)
-        a = _sample_moves(p, s, allowed, rngs, ng, greedy_first, tgt[..., 0] * C + tgt[..., 1])
+        a = _sample_moves(p, s, allowed, rngs, ng, greedy_first)
         new = tgt[b, a]
         gain = _gain(q, visited, new)
         rets += gain
@@ -258,21 +258,15 @@ def _move_probabilities(
 
 
 def _sample_moves(
-    p: np.ndarray,
-    s: np.ndarray,
-    allowed: np.ndarray,
-    rngs: list,
-    ng: int,
-    greedy_first: bool,
-    cells: np.ndarray | None = None,
+    p: np.ndarray, s: np.ndarray, allowed: np.ndarray, rngs: list, ng: int, greedy_first: bool
 ) -> np.ndarray:
     """One move index per roll-out (n,), drawn from ``p`` (n, M) by inverse CDF.
 
     Group g (``ng`` consecutive rows) draws its uniforms from ``rngs[g]``; a draw that lands on a
     disallowed move by round-off at the top end takes the most likely move instead. With
     ``greedy_first`` each group's first roll-out takes the argmax of its scores ``s``, scores within
-    :data:`~passt_mav.planning.grid.TIE_RTOL` (relative) a tie taken by the smaller target cell
-    ``cells`` (n, M) flat index (default: the move order).
+    :data:`~passt_mav.planning.grid.TIE_RTOL` (relative) a tie taken by the first move in order (as
+    exact ties always were), so float noise cannot pick another.
     """
     n, M = p.shape
     b = np.arange(n)
@@ -281,7 +275,7 @@ def _sample_moves(
     a = np.where(allowed[b, a], a, np.argmax(p, axis=1))  # guard against round-off at the top end
     if greedy_first:
         firsts = np.arange(0, n, ng)
-        a[firsts] = best_with_ties(s[firsts], None if cells is None else cells[firsts])
+        a[firsts] = best_with_ties(s[firsts])
     return a
 
 
