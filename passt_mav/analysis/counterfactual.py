@@ -20,9 +20,12 @@ from __future__ import annotations
 
 import numpy as np
 
+from passt_mav.loop.threads import single_threaded
+
 __all__ = ["fleet_rounds", "lawnmower_counterfactual", "same_loop_counterfactual", "same_loop_counterfactuals"]
 
 
+@single_threaded
 def lawnmower_counterfactual(
     field, legs: list[dict], *, path_length: int, start_cell, noise_std: float = 0.02, seed: int = 0, gp_seed: int = 0
 ) -> list[float | None]:
@@ -159,6 +162,7 @@ def same_loop_counterfactual(
     )[0]
 
 
+@single_threaded
 def same_loop_counterfactuals(
     config, field, predictor, legs: list[dict], *, seeds, planner: str = "random", start_cell=None, start_cells=None
 ) -> list[list[float | None]]:

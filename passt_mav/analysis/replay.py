@@ -551,6 +551,10 @@ class _LogReplay:
         self.store_legs = _stored_samples(self.inp.rd)
         notes = _log_notes(log)
         state, t_state = self.setup.step.initial_state()
+        # what the controller computes from the initial state before its first leg (the model background's
+        # roll-out, the information reward's prior), from the same state: planning the first leg from a
+        # forecast state instead would roll the background out from that one
+        self.setup.step.prepare(state)
         if self.inp.rd is None:
             self.chosen = self._search_clocks(log, state, t_state, notes)
         legs, first_div = self._replay_legs(log, state, t_state, progress)
@@ -793,6 +797,7 @@ def _replay_fleet(rd, summary: dict, cfg, step, rmse_tol: float, say):
     logged = {int(lg.planned_index): lg for log in logs for lg in log.legs if lg.planned_index is not None}
     clocks = {int(b["boat"]): _field_clock(b.get("clock") or {}, 0.0, 1.0) for b in summary["boats"]}
     notes: list[str] = []
+    step.prepare(step.initial_state()[0])  # as the fleet controller does before its boats fly
     fs, planned, out, first_div = FleetStep(step), {}, {}, None
     for _, kind, i in _fleet_events(records):
         rec = records[i]

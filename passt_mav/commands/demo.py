@@ -17,6 +17,14 @@ sampling rightly leaves it alone), ``--field builtin:rtofs`` real NOAA currents.
 The boat speed (``WP_SPEED``) and the sensor rate are set on the simulator to
 match the mission (CUR_U/CUR_V every 5 simulated seconds, far more than the GP is
 given after thinning).
+
+One boat flies on the simulated clock: the simulator is served in lockstep (``vehicle-sim
+--lockstep``) and its time runs only while the controller waits for the boat, :data:`STEP_S`
+simulated seconds at a time (:class:`passt_mav.mavlink.link.Lockstep`), at most ``--speedup`` x wall
+time. Planning and reconstruction take no simulated time, and what the boat samples where and when
+depends on the mission alone, not on the machine's load; the speed-up paces only what a watcher
+sees. A fleet (``--boats N``) and ``--inject-link-drop`` run the simulator on the wall clock
+(``--speedup``; its boats step one shared clock, and a dropped link cannot answer a step).
 """
 
 from __future__ import annotations
@@ -44,6 +52,8 @@ SHORT_LEGS = {"legs": 3, "planner.path_length": 5}
 #: the default base mission (missions/NAME.yaml)
 DEFAULT_MISSION = "oscillating_cylinder"
 SENSOR_RATE_HZ = 0.2
+#: simulated seconds per lockstep step of a one-boat demo (the controller sees the boat at this resolution)
+STEP_S = 0.5
 
 #: missions/oscillating_cylinder.yaml (used when the repository's missions/ folder is not beside the package;
 #: tests/test_demo.py checks that the two agree)
@@ -99,10 +109,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         type=float,
         help="simulator speed-up (simulated s per wall s; default 150, or less where the field's "
         "snapshots are short: at most 0.625 snapshot of field time per wall second, 50x on the "
-        "oscillating wake's 80 s snapshots, so that a second of planning on a busy machine does not "
-        "let the field run on). The simulated vehicle's mission-transfer timeouts (8 s) run in "
-        "simulated time: at 250x and more on two cores uploads are cancelled before the controller "
-        "can answer",
+        "oscillating wake's 80 s snapshots). One boat flies in lockstep: the speed-up only paces what "
+        "you see, the figures are the same at any speed-up and load. A fleet and --inject-link-drop "
+        "run the simulator on the wall clock, where a second of planning on a busy machine lets the "
+        "field run on, and the simulated vehicle's mission-transfer timeouts (8 s) run in simulated "
+        "time: at 250x and more on two cores uploads are cancelled before the controller can answer",
     )
     p.add_argument("--model", help="predictor instead of the shipped KNODE (dmd, persistence, a .pt)")
     p.add_argument("--mission", help="base mission file instead of missions/oscillating_cylinder.yaml")
@@ -282,7 +293,8 @@ SNAPSHOTS_PER_WALL_S = 0.625
 def default_speedup(snapshot_s: float) -> float:
     """The demo's default speed-up for a field whose snapshots are ``snapshot_s`` seconds apart:
     :data:`MAX_SPEEDUP`, or less so that one wall second is at most :data:`SNAPSHOTS_PER_WALL_S` of a
-    snapshot. The controller plans and reconstructs in wall time while the simulated field runs on:
+    snapshot. In lockstep (one boat) it only paces the display. On the wall clock (a fleet, injected
+    link drops) the controller plans and reconstructs in wall time while the simulated field runs on:
     on the oscillating wake (80 s snapshots) at 150x, with a busy second core, its legs started
     5-7 time units late and PASST ended above the model alone (0.183 vs 0.158, wake units); at 50x it ended
     below both the model alone and the random walks (0.104 vs 0.147 and 0.147). The ocean's hourly
@@ -313,15 +325,19 @@ def run(args: argparse.Namespace) -> int:
     fleet_args: list[str] = []
     if args.boats > 1:
         data, config, fleet_args = _as_fleet(data, config, field, (r0, c0), args.boats, port, origin)
+    lockstep = STEP_S if args.boats == 1 and not drops else 0.0
     sim_cmd = _sim_command(args, config, port, fleet_args or ["--home", f"{hlat:.7f},{hlon:.7f}"], t_boot0, drops)
+    if lockstep:
+        sim_cmd.append("--lockstep")
     print(
         f"demo: mission {config.name} ({origin} + {over}); {config.legs} legs of {config.planner.path_length} moves "
         f"at {config.fleet[0].speed_mps} m/s",
         flush=True,
     )
-    print(f"demo: starting vehicle-sim on tcp:127.0.0.1:{port} at {args.speedup:g}x", flush=True)
+    clock = f"in lockstep ({lockstep:g} s steps, paced at {args.speedup:g}x)" if lockstep else f"at {args.speedup:g}x"
+    print(f"demo: starting vehicle-sim on tcp:127.0.0.1:{port} {clock}", flush=True)
     view = _start_view(args, rd)  # (it exits with this process too, whatever happens)
-    summary = _fly_with_simulator(args, config, data, rd, sim_cmd, port, t_boot0, over, origin, view)
+    summary = _fly_with_simulator(args, config, data, rd, sim_cmd, port, t_boot0, over, origin, view, lockstep)
     _print_outcome(args, config, field, summary, rd, view is not None, time.monotonic() - t_start0)
     return 0 if summary["status"] == "complete" else 1
 
@@ -360,10 +376,13 @@ def _sim_command(args: argparse.Namespace, config, port: int, placement: list[st
     ]
 
 
-def _fly_with_simulator(args, config, data, rd, sim_cmd, port: int, t_boot0: float, over, origin, view) -> dict:
+def _fly_with_simulator(
+    args, config, data, rd, sim_cmd, port: int, t_boot0: float, over, origin, view, lockstep: float = 0.0
+) -> dict:
     """Start vehicle-sim (its output in the run directory's ``vehicle_sim.log``), fly the mission
-    against it through :func:`passt_mav.commands.run.execute`, and stop the simulator (and the
-    live view) whatever happens; returns the run's summary."""
+    against it through :func:`passt_mav.commands.run.execute` (``lockstep`` > 0: the simulator is in
+    lockstep, stepped that many simulated seconds at a time), and stop the simulator (and the live
+    view) whatever happens; returns the run's summary."""
     import subprocess
 
     import yaml
@@ -381,6 +400,7 @@ def _fly_with_simulator(args, config, data, rd, sim_cmd, port: int, t_boot0: flo
                 "base_mission": origin,
                 "sensor_rate_hz": SENSOR_RATE_HZ,
                 "speedup": args.speedup,
+                "lockstep_s": lockstep or None,
             }
         }
         summary = execute(
@@ -393,6 +413,7 @@ def _fly_with_simulator(args, config, data, rd, sim_cmd, port: int, t_boot0: flo
             echo=lambda s: print(s, flush=True),
             extra_summary=extra,
             report=not args.no_report,
+            lockstep_s=lockstep,
         )
     finally:
         if view is not None:

@@ -17,6 +17,10 @@ EXAMPLES = """examples:
     passt-mav run missions/cylinder.yaml --connect udpin:127.0.0.1:14551 --source-system 245 --source-component 195
     passt-mav run missions/cylinder.yaml --legs 1 --set planner.path_length=8 --set gp.background=0
 
+    # the same numbers whatever the machine's load: the simulator's clock runs only while the controller waits
+    vehicle-sim --field builtin:ocean --listen tcp:127.0.0.1:5760 --lockstep &
+    passt-mav run missions/north_atlantic.yaml --connect tcp:127.0.0.1:5760 --lockstep 0.5 --speedup-hint 150
+
     # the cylinder missions place a CFD crop on the sea: give vehicle-sim the same placement
     vehicle-sim --field builtin:cylinder --anchor 40.2,-63.1 --scale 100 --velocity-scale 0.5 --time-scale 200 \
         --start-time 240 --listen tcp:127.0.0.1:5760 --speedup 50 &
@@ -39,6 +43,15 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         type=float,
         default=1.0,
         help="simulated seconds per wall second of a simulator (scales wall-clock timeouts; default 1)",
+    )
+    p.add_argument(
+        "--lockstep",
+        type=float,
+        default=0.0,
+        metavar="STEP_S",
+        help="the vehicle is a simulator served with vehicle-sim --lockstep: its clock runs only while the "
+        "controller waits for it, STEP_S vehicle seconds at a time (e.g. 0.5), at most --speedup-hint x wall "
+        "time, so the run does not depend on the machine's load; default 0: the vehicle keeps its own clock",
     )
     p.add_argument(
         "--field-time-at-boot",
@@ -90,10 +103,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     add_view_options(p)
 
 
-def link_config_for(connect: str, *, speedup: float = 1.0, tlog=None, signing_key=None, identity=(None, None)):
+def link_config_for(
+    connect: str, *, speedup: float = 1.0, tlog=None, signing_key=None, identity=(None, None), lockstep_s: float = 0.0
+):
     """LinkConfig for a vehicle running ``speedup`` x real time (the vehicle's 1 Hz telemetry then comes
     ``speedup`` times a second; our timeouts stay wall-clock). ``identity``: our (system, component) ids,
-    None = the link's defaults (``passt_mav.mavlink.link.DEFAULT_SOURCE_SYSTEM``/``_COMPONENT``)."""
+    None = the link's defaults (``passt_mav.mavlink.link.DEFAULT_SOURCE_SYSTEM``/``_COMPONENT``).
+    ``lockstep_s`` > 0: a simulator in lockstep, stepped that many vehicle seconds at a time while we
+    wait for it, paced at ``speedup`` (:class:`passt_mav.mavlink.link.Lockstep`)."""
     from passt_mav.mavlink import LinkConfig
 
     kw = {k: v for k, v in zip(("source_system", "source_component"), identity) if v is not None}
@@ -108,6 +125,8 @@ def link_config_for(connect: str, *, speedup: float = 1.0, tlog=None, signing_ke
         signing_key=signing_key,
         connect_timeout_s=30.0,
         link_lost_s=5.0 if speedup <= 1.0 else 2.0,
+        lockstep_s=float(lockstep_s),
+        lockstep_pace=max(float(speedup), 1.0),
         **kw,
     )
 
@@ -149,10 +168,13 @@ def execute(
     link_factory=None,
     identity=(None, None),
     progress=True,
+    lockstep_s=0.0,
 ) -> dict:
     """Everything ``run`` does after parsing: field, predictor, link, controller, report. Returns the summary.
 
     ``progress``: show the wait for a vehicle that is not ready yet (EKF/GPS; :mod:`passt_mav.progress`).
+    ``lockstep_s`` > 0: the vehicle is a simulator in lockstep (``vehicle-sim --lockstep``), stepped that many
+    vehicle seconds at a time while the controller waits for it (:func:`link_config_for`).
     ``identity``: our (system, component) ids from the command line; None = the mission's
     ``vehicle.source_system/source_component``, else the link's defaults.
     """
@@ -183,6 +205,7 @@ def execute(
         link_factory=link_factory,
         identity=identity,
         progress=progress,
+        lockstep_s=lockstep_s,
     )
     if config.vehicles is not None:
         if resume:
@@ -210,6 +233,7 @@ class _RunOptions:
     link_factory: Any
     identity: tuple
     progress: bool
+    lockstep_s: float = 0.0
 
 
 def _link(connect: str, tlog, vc, factory, opts: _RunOptions):
@@ -224,6 +248,7 @@ def _link(connect: str, tlog, vc, factory, opts: _RunOptions):
             tlog=tlog,
             signing_key=opts.signing_key,
             identity=_identity(opts.identity, vc),
+            lockstep_s=opts.lockstep_s,
         ),
         connection_factory=factory,
     )
@@ -368,6 +393,10 @@ def run(args: argparse.Namespace) -> int:
         config, mission_text = _with_overrides(args.mission, mission_text, args.set)
     if args.legs is not None and args.legs < 1:
         raise _user("--legs must be >= 1")
+    if not args.lockstep >= 0:
+        raise _user(f"--lockstep must be >= 0 vehicle seconds, got {args.lockstep}")
+    if args.lockstep and config.vehicles is not None:
+        raise _user("--lockstep flies one boat: a fleet's boats would step one shared simulator clock each")
     if args.resume:
         if not args.out:
             raise _user("--resume needs --out RUN_DIR (the run to continue)")
@@ -401,6 +430,7 @@ def run(args: argparse.Namespace) -> int:
             report=not args.no_report,
             identity=(args.source_system, args.source_component),
             progress=not args.quiet,
+            lockstep_s=args.lockstep,
         )
     finally:
         if view is not None:

@@ -63,18 +63,10 @@ def _task(field, predictor, cfg: dict, L: int, trials) -> list[dict]:
     same seeds would give different numbers in the main process, a joblib worker
     and a Dask worker.
     """
-    from threadpoolctl import threadpool_limits
+    from passt_mav.loop.threads import one_thread
 
-    torch = sys.modules.get("torch")  # a torch predictor: its reductions too
-    prev = torch.get_num_threads() if torch is not None else None
-    try:
-        if torch is not None:
-            torch.set_num_threads(1)
-        with threadpool_limits(1), _fast_path(predictor, cfg.get("fast_predict", False)), _heap_reuse():
-            return ENGINES[cfg.get("engine", "serial")](field, predictor, cfg, L, list(trials))
-    finally:
-        if torch is not None:
-            torch.set_num_threads(prev)
+    with one_thread(), _fast_path(predictor, cfg.get("fast_predict", False)), _heap_reuse():
+        return ENGINES[cfg.get("engine", "serial")](field, predictor, cfg, L, list(trials))
 
 
 @contextlib.contextmanager

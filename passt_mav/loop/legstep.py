@@ -41,6 +41,7 @@ import numpy as np
 from passt_mav.errors import ReconstructionError, UserError
 from passt_mav.loop.measurement import rmse, truth_at  # noqa: F401 - the measurement rules, re-exported
 from passt_mav.loop.measurement import sample_columns as _columns
+from passt_mav.loop.threads import single_threaded
 
 __all__ = [
     "THINNING",
@@ -402,6 +403,7 @@ class LegStep:
             raise UserError(f"the vehicle is in cell {start}, which is land in the mission's field")
         return start
 
+    @single_threaded
     def prepare(self, state) -> None:
         """Work that needs only the initial ``state`` ((2, R, C), field units), done before the
         vehicle is waited for (:meth:`PasstLoop.prepare`: the model background's roll-out, the
@@ -414,6 +416,7 @@ class LegStep:
         """Snapshots to bring a state at ``t_state`` forward to ``t_now`` (field time, never negative)."""
         return max(0, int(round((t_now - t_state) / self.dt)))
 
+    @single_threaded
     def plan(
         self,
         index: int,
@@ -469,6 +472,7 @@ class LegStep:
             clock_reading,
         )
 
+    @single_threaded
     def forecast_leg(self, planned: PlannedLeg) -> np.ndarray:
         """The model's forecast over the whole planned leg, (steps+1, 2, R, C) from the leg's start state
         (:meth:`plan` predicts one step only); computed once, timed as ``timings["forecast"]``. The
@@ -481,6 +485,7 @@ class LegStep:
             plan.timings["forecast"] = time.perf_counter() - t0
         return plan.forecast
 
+    @single_threaded
     def absorb(self, planned: PlannedLeg, recs, clock: FieldClock, *, strict: bool = True) -> AbsorbedLeg:
         """The leg's samples into the state: field units, field time, thinning, stretch, GP update, RMSE.
 
@@ -548,6 +553,7 @@ class LegStep:
         out["message"] = guard_message(guard, leg_label=f"leg {index + 1}", scale=scale)
         return out
 
+    @single_threaded
     def rmse_at(self, state, t: float) -> tuple[float | None, float | None]:
         """RMSE (field units) of ``state`` and of the model alone (from the truth at t0, never
         re-initialised) vs the truth at field time ``t``; (None, None) when the truth is unknown."""

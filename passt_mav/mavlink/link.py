@@ -186,6 +186,13 @@ class LinkConfig:
         timesync_period_s: wall seconds between TIMESYNC requests (``tc1 = 0``) that keep the RTT
             estimate current (0 = only at connect).
         baud: serial baud when ``connect`` names a device without one.
+        lockstep_s: the vehicle's clock in lockstep (a simulator served with ``vehicle-sim --lockstep``:
+            its time stands still until a ground station sends COMMAND_LONG 31010 with param1 = seconds
+            to run): vehicle seconds per step, taken only while we wait for the vehicle
+            (:class:`Lockstep`); 0 (default) = the vehicle keeps its own clock (a real boat, SITL).
+        lockstep_pace: in lockstep, at most this many vehicle seconds per wall second (the display's pace,
+            not the science's: what the vehicle does depends on the steps alone); wall timeouts become
+            that many vehicle seconds.
     """
 
     connect: str = "tcp:127.0.0.1:5760"
@@ -205,6 +212,8 @@ class LinkConfig:
     baud: int = 57600
     timesync_period_s: float = 10.0
     quiet_other_streams: bool = True
+    lockstep_s: float = 0.0
+    lockstep_pace: float = 50.0
 
     def __post_init__(self) -> None:
         c = self.connect.strip()
@@ -230,6 +239,8 @@ class LinkConfig:
             raise UserError("heartbeat_period_s, link_lost_s and timeout_s must be positive")
         if self.retries < 0:
             raise UserError("retries must be >= 0")
+        if self.lockstep_s < 0 or self.lockstep_pace <= 0:
+            raise UserError("lockstep_s must be >= 0 and lockstep_pace positive")
 
     def open(self):
         """A new pymavlink connection for :attr:`connect` (MAVLink 2, ardupilotmega).
@@ -291,6 +302,89 @@ def _is_vehicle_heartbeat(msg) -> bool:
     )
 
 
+#: COMMAND_LONG that advances a lockstep simulator's clock by param1 seconds (MAV_CMD_USER_1; vehicle_sim's
+#: ``--lockstep``), acknowledged once that time has run
+LOCKSTEP_COMMAND = 31010
+
+
+class Lockstep:
+    """The vehicle's clock in lockstep: it runs only while we wait for the vehicle, one step at a time.
+
+    A simulator served with ``vehicle-sim --lockstep`` holds its time until a ground station sends
+    COMMAND_LONG :data:`LOCKSTEP_COMMAND` with param1 = seconds; it answers the messages it gets at the
+    held time and acknowledges the command once those seconds have run. Every wait of the link's users
+    for a message goes through :meth:`Subscription.get <passt_mav.mavlink.routing.Subscription.get>`,
+    which asks the vehicle first for a step of 0 s (its answers to what we sent, no time passing) and
+    then for steps of ``step_s`` until the message comes; waits on the vehicle's state call
+    :meth:`Link.idle`. The acknowledgement comes on the same link after everything the vehicle sent
+    during the step, and the reader thread routes messages in order, so when :meth:`step` returns the
+    waiter has seen all of it: what the vehicle does, and what we see of it, depends on the sequence of
+    our messages and steps alone, not on the machine's load or the time our own computing takes (the
+    vehicle's clock stands still meanwhile). The wall clock only paces the steps (``pace`` vehicle
+    seconds per wall second at most, for whoever watches) and bounds the wait for one acknowledgement
+    (:attr:`ACK_WALL_S`).
+    """
+
+    #: wall seconds to wait for the acknowledgement of one step before the link counts as closed
+    ACK_WALL_S = 30.0
+
+    def __init__(self, link: Link, step_s: float, pace: float):
+        self.link, self.step_s, self.pace = link, float(step_s), float(pace)
+        #: vehicle seconds stepped so far
+        self.t = 0.0
+        self._lock = threading.Lock()
+        self._ref: tuple[float, float] | None = None  # (wall, self.t) the pace counts from
+
+    def budget(self, timeout: float | None) -> float:
+        """Vehicle seconds a wait of ``timeout`` wall seconds may step (None: no bound)."""
+        return float("inf") if timeout is None else max(float(timeout), 0.0) * self.pace
+
+    def step(self, seconds: float | None = None) -> bool:
+        """Run the vehicle's clock ``seconds`` (default ``step_s``; 0: only its answers to what we sent) and
+        wait until it says it has; False when the link is closed or the vehicle does not answer."""
+        h = self.step_s if seconds is None else max(float(seconds), 0.0)
+        link = self.link
+        with self._lock:
+            if link.closed_reason is not None or link.conn is None:
+                return False
+            if h > 0:
+                self._pace(h)
+            sub = link._router.subscribe("COMMAND_ACK", raw=True)
+            try:
+                msg = mavlink2.MAVLink_command_long_message(
+                    link.target_system or 0, 0, LOCKSTEP_COMMAND, 0, h, 0, 0, 0, 0, 0, 0
+                )
+                try:
+                    link.send(msg)
+                except MavlinkError:
+                    return False
+                end = time.monotonic() + self.ACK_WALL_S
+                while True:
+                    m = sub.get(end - time.monotonic())
+                    if m is None:
+                        if link.closed_reason is None:
+                            link.closed_reason = f"no answer to a lockstep step within {self.ACK_WALL_S:g} s"
+                            link._router.wake_subscribers()
+                        return False
+                    if m.command == LOCKSTEP_COMMAND:
+                        self.t += h
+                        return True
+            finally:
+                sub.close()
+
+    def _pace(self, h: float) -> None:
+        """Sleep so that the steps run at most :attr:`pace` x wall time; a pace fallen behind (our own
+        computing held the clock, or a busy machine) starts again from now instead of catching up in a burst."""
+        now = time.monotonic()
+        if self._ref is None:
+            self._ref = (now, self.t)
+        due = self._ref[0] + (self.t + h - self._ref[1]) / self.pace
+        if due > now:
+            time.sleep(due - now)
+        elif now - due > 0.25:
+            self._ref = (now, self.t)
+
+
 class Link:
     """A MAVLink 2 link to one vehicle (see the module docstring).
 
@@ -311,6 +405,11 @@ class Link:
         self.autopilot: int | None = None
         self._acct = LinkAccounting()
         self._router = MessageRouter()
+        #: the vehicle's clock when it runs in lockstep (``config.lockstep_s``), else None
+        self.lockstep: Lockstep | None = (
+            Lockstep(self, self.config.lockstep_s, self.config.lockstep_pace) if self.config.lockstep_s > 0 else None
+        )
+        self._router.stepper = self.lockstep
         self._send_lock = threading.Lock()
         self._last_hb: float | None = None
         self._stop = threading.Event()
@@ -593,7 +692,11 @@ class Link:
 
     @property
     def lost(self) -> bool:
-        """No vehicle heartbeat for ``config.link_lost_s``, or the transport closed (EOF/reset: at once)."""
+        """No vehicle heartbeat for ``config.link_lost_s``, or the transport closed (EOF/reset: at once). In
+        lockstep only the latter (and a step the vehicle never answers): its heartbeats stop whenever we hold
+        its clock."""
+        if self.lockstep is not None:
+            return self.closed_reason is not None
         return self.closed_reason is not None or self.seconds_since_heartbeat > self.config.link_lost_s
 
     def _what_arrived(self) -> str:
@@ -675,6 +778,14 @@ class Link:
     def statustext(self, text: str, severity: int = mavlink2.MAV_SEVERITY_INFO) -> None:
         """Send a STATUSTEXT (a note for the telemetry log and the vehicle's DataFlash log; at most 50 chars)."""
         self.send(mavlink2.MAVLink_statustext_message(int(severity), text.encode()))
+
+    def idle(self, wall_s: float) -> None:
+        """Wait for news from the vehicle: in lockstep let one step of its clock pass (:class:`Lockstep`;
+        nothing changes on a vehicle whose clock stands still), else sleep ``wall_s`` wall seconds."""
+        if self.lockstep is not None:
+            self.lockstep.step()
+        else:
+            time.sleep(wall_s)
 
     def clear_error(self) -> None:
         """Forget the reader's or sender's last error (:attr:`error`) before a reconnect."""

@@ -25,9 +25,11 @@ class Subscription:
     next message or None.
     """
 
-    def __init__(self, router: MessageRouter, types: frozenset[str] | None, maxsize: int = 10000):
+    def __init__(self, router: MessageRouter, types: frozenset[str] | None, maxsize: int = 10000, raw: bool = False):
         self._router, self.types = router, types
         self._q: queue.Queue = queue.Queue(maxsize)
+        #: a lockstep vehicle's clock does not run while this one waits (the lockstep's own acknowledgement)
+        self._raw = raw
 
     def _offer(self, msg) -> None:
         try:
@@ -36,11 +38,27 @@ class Subscription:
             pass
 
     def get(self, timeout: float | None) -> object | None:
-        """The next message, or None after ``timeout`` s (or at once when the link's transport dies)."""
-        try:
-            return self._q.get(timeout=max(timeout, 0.0) if timeout is not None else None)
-        except queue.Empty:
-            return None
+        """The next message, or None after ``timeout`` s (or at once when the link's transport dies).
+
+        A vehicle in lockstep (the router's ``stepper``, :class:`passt_mav.mavlink.link.Lockstep`): when
+        nothing is queued, a step of 0 s (the vehicle's answers to what we sent), then steps of its clock
+        until a message comes or ``timeout`` x the pace in vehicle seconds has run."""
+        step = None if self._raw else self._router.stepper
+        if step is None:
+            try:
+                return self._q.get(timeout=max(timeout, 0.0) if timeout is not None else None)
+            except queue.Empty:
+                return None
+        budget, ran, h = step.budget(timeout), 0.0, 0.0  # vehicle seconds: may run, have run, next step
+        while True:
+            try:
+                return self._q.get_nowait()
+            except queue.Empty:
+                pass
+            if (h > 0 and ran >= budget) or not step.step(h):
+                return None
+            ran += h
+            h = step.step_s
 
     def drain(self) -> list:
         out = []
@@ -79,10 +97,13 @@ class MessageRouter:
         self._subs: list[Subscription] = []
         self._listeners: list[tuple[Callable, frozenset[str] | None]] = []
         self._latest: dict[str, object] = {}
+        #: the vehicle's clock in lockstep (:class:`passt_mav.mavlink.link.Lockstep`), None when it keeps its own
+        self.stepper = None
 
-    def subscribe(self, types: str | Iterable[str] | None = None) -> Subscription:
-        """A queue of every message of ``types`` (None = all) routed from now on."""
-        sub = Subscription(self, _type_set(types))
+    def subscribe(self, types: str | Iterable[str] | None = None, *, raw: bool = False) -> Subscription:
+        """A queue of every message of ``types`` (None = all) routed from now on (``raw``: its waits never
+        step a lockstep vehicle's clock)."""
+        sub = Subscription(self, _type_set(types), raw=raw)
         with self._lock:
             self._subs.append(sub)
         return sub

@@ -190,12 +190,17 @@ class SampleCollector:
             return sum(1 for x in self._held.values() if leg is None or x[3] == leg)
 
     def wait_placed(self, leg: int | None, timeout: float) -> bool:
-        """Wait up to ``timeout`` wall seconds until no reading of ``leg`` waits for a fix; True if none does."""
+        """Wait up to ``timeout`` wall seconds until no reading of ``leg`` waits for a fix; True if none does.
+        On a lockstep link (:class:`~passt_mav.mavlink.link.Lockstep`) the vehicle's clock steps meanwhile."""
         end = time.monotonic() + timeout
+        link = self._link
         while self.held(leg):
             if time.monotonic() >= end:
                 return False
-            time.sleep(0.02)
+            if link is not None:
+                link.idle(0.02)
+            else:
+                time.sleep(0.02)
         return True
 
     def leg_counts(self, leg: int | None) -> dict[str, int]:

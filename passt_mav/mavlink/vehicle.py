@@ -416,7 +416,14 @@ class Vehicle:
                         f"mission not complete after {timeout:.0f} s (item {p.current}/{p.total}, "
                         f"reached {p.reached[-5:]})" + (" (link lost)" if self.link.lost else "")
                     )
-                p.changed.wait(min(left, 0.5))
+                if self.link.lockstep is not None:  # the vehicle's clock runs only while we wait: one step
+                    p.changed.release()
+                    try:
+                        self.link.idle(0.0)
+                    finally:
+                        p.changed.acquire()
+                else:
+                    p.changed.wait(min(left, 0.5))
                 if on_progress is not None:
                     on_progress(p)
         if hold:

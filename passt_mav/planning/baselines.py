@@ -14,7 +14,7 @@ import itertools
 import numpy as np
 
 from passt_mav.errors import PlannerError
-from passt_mav.planning.grid import MOVES8, MOVES8_TUPLES, cheapest_path, check_inputs, check_many
+from passt_mav.planning.grid import MOVES8, MOVES8_TUPLES, best_with_ties, cheapest_path, check_inputs, check_many
 
 __all__ = ["LawnmowerPlanner", "GreedyPlanner", "RandomPlanner"]
 
@@ -104,7 +104,8 @@ class GreedyPlanner:
 
     At each move every sequence of ``lookahead`` moves is scored by the reward of
     the distinct unvisited cells it enters; the first move of the best sequence is
-    taken (ties: first in :data:`MOVES8` order). The first move is restricted to
+    taken (ties: totals within :data:`~passt_mav.planning.grid.TIE_RTOL`, relative, go to the first
+    sequence in :data:`MOVES8` order, so float noise cannot pick another). The first move is restricted to
     unvisited neighbours when one exists.
     """
 
@@ -161,7 +162,9 @@ class GreedyPlanner:
             first_fresh = feasible[..., 0] & ~seen[..., 0]
             # restrict to sequences that start on an unvisited cell where there is one
             score = np.where(first_fresh | ~first_fresh.any(axis=1, keepdims=True), score, -np.inf)
-            best = np.argmax(score, axis=1)
+            # float noise in the reward map must not pick another move: totals within TIE_RTOL are a
+            # tie, taken by the first sequence in MOVES8 order (as exact ties always were)
+            best = best_with_ties(score)
             nxt = np.stack([rr[rows, best, 0], cc[rows, best, 0]], axis=1)
             for b in np.flatnonzero(
                 ~np.isfinite(score).any(axis=1)

@@ -22,6 +22,10 @@ __all__ = [
     "check_path",
     "bfs_path",
     "cheapest_path",
+    "TIE_RTOL",
+    "tie_tolerance",
+    "best_with_ties",
+    "rank_with_ties",
 ]
 
 #: The 8 king moves (drow, dcol), counter-clockwise from east. Index = action id.
@@ -30,6 +34,56 @@ MOVES8 = np.array([(0, 1), (1, 1), (1, 0), (1, -1), (0, -1), (-1, -1), (-1, 0), 
 MOVES4 = MOVES8[::2].copy()
 #: MOVES8 as plain-Python (drow, dcol) tuples, for loops over single cells.
 MOVES8_TUPLES = tuple((int(a), int(b)) for a, b in MOVES8)
+
+
+#: relative tolerance under which two planning totals are one tie: float noise (another BLAS thread
+#: count, another summation order) moves a total by ~1e-15..1e-12 of its size, far below this, and a
+#: planner must not take another path because of it
+TIE_RTOL = 1e-9
+
+
+def tie_tolerance(totals, rtol: float = TIE_RTOL) -> float:
+    """Absolute tolerance of a tie among ``totals`` (any shape): ``rtol`` times the largest finite
+    magnitude (0 when none is finite; exact ties are then still ties)."""
+    a = np.abs(np.asarray(totals, dtype=np.float64))
+    return float(rtol) * float(a[np.isfinite(a)].max(initial=0.0))
+
+
+def best_with_ties(scores, keys=None, rtol: float = TIE_RTOL) -> np.ndarray:
+    """Index of the best score along the last axis of ``scores`` (..., n), ties within
+    :func:`tie_tolerance` of the row's best broken by the smallest ``keys`` (same shape; default the
+    index itself), so float noise cannot pick another entry. Rows with no finite score give 0."""
+    s = np.asarray(scores, dtype=np.float64)
+    k = np.broadcast_to(np.arange(s.shape[-1]), s.shape) if keys is None else np.asarray(keys)
+    fin = np.isfinite(s)
+    top = np.where(fin, s, -np.inf).max(axis=-1, keepdims=True)
+    tol = float(rtol) * np.where(fin, np.abs(s), 0.0).max(axis=-1, keepdims=True)
+    tied = fin & (s >= top - tol)
+    big = np.iinfo(np.int64).max
+    return np.argmin(np.where(tied, k.astype(np.int64), big), axis=-1)
+
+
+def rank_with_ties(totals, keys, rtol: float = TIE_RTOL) -> np.ndarray:
+    """Flat indices of the finite ``totals`` (any shape), best first, in groups of ties: each group is
+    its best remaining total and every total within :func:`tie_tolerance` of it, ordered by ascending
+    ``keys`` (a (..., k) int array of sort keys per entry, the first most significant; e.g. the
+    cell's flat index, then the beam). Float noise reorders only totals that straddle a group's
+    edge, not near-equal ones."""
+    t = np.asarray(totals, dtype=np.float64).reshape(-1)
+    kk = np.asarray(keys).reshape(t.size, -1)
+    tol = tie_tolerance(t, rtol)
+    order = [int(i) for i in np.argsort(-t, kind="stable") if np.isfinite(t[i])]
+    out: list[int] = []
+    j = 0
+    while j < len(order):
+        lead = t[order[j]]
+        g = j
+        while g < len(order) and t[order[g]] >= lead - tol:
+            g += 1
+        group = order[j:g]
+        out += sorted(group, key=lambda i: tuple(int(x) for x in kk[i]))
+        j = g
+    return np.asarray(out, dtype=np.int64)
 
 
 def check_inputs(reward, start, budget, mask=None) -> tuple[np.ndarray, tuple[int, int], int, np.ndarray]:

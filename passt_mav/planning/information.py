@@ -60,7 +60,7 @@ from __future__ import annotations
 import numpy as np
 
 from passt_mav.errors import PlannerError
-from passt_mav.planning.grid import MOVES8, check_inputs
+from passt_mav.planning.grid import MOVES8, best_with_ties, check_inputs, rank_with_ties, tie_tolerance
 
 __all__ = ["InformationModel", "InformationPlanner", "brute_force_reduction"]
 
@@ -243,8 +243,10 @@ class InformationPlanner:
     with a better optimiser). At each move every beam is extended by each allowed
     8-neighbour (unvisited water; a visited one only when no unvisited neighbour is left,
     scoring nothing) and the ``beam_width`` best partial paths by total score are kept
-    (duplicates of one cell with one score merged). ``beam_width=1`` is greedy. Ties are
-    broken by a seeded jitter far below any score difference (1e-12 relative).
+    (duplicates of one cell with one score merged). ``beam_width=1`` is greedy. Totals within
+    :data:`~passt_mav.planning.grid.TIE_RTOL` (relative) of each other are a tie, broken by the
+    cell's flat index ``row * cols + col`` (then the beam, then the move), so float noise
+    (BLAS threads, summation order) cannot flip a path; ``seed`` is not used.
 
     Options (keyword-only): ``beam_width`` (default 8).
     """
@@ -262,7 +264,6 @@ class InformationPlanner:
         R, C = q.shape
         if info is not None and info.shape != (R, C):
             raise PlannerError(f"information model grid {info.shape} does not match the reward map {(R, C)}")
-        rng = np.random.default_rng(seed)
         start_flat = r0 * C + c0
         if info is not None:
             base = info if info.observed[start_flat] else info.conditioned([start_flat])
@@ -284,10 +285,7 @@ class InformationPlanner:
             fresh = ok & ~np.take_along_axis(visited, flat, axis=1)
             allow = np.where(fresh.any(axis=1, keepdims=True), fresh, ok)
             total = np.where(allow, st.totals(flat, fresh & allow), -np.inf)
-            jitter = (
-                rng.random(total.shape) * 1e-12 * max(1.0, float(np.abs(total[np.isfinite(total)]).max(initial=0.0)))
-            )
-            chosen = _best_distinct(total, jitter, flat, K)
+            chosen = _best_distinct(total, flat, K)
             bi = np.array([b for b, _ in chosen])
             ai = np.array([a for _, a in chosen])
             new_flat = flat[bi, ai]
@@ -299,24 +297,29 @@ class InformationPlanner:
             score = total[bi, ai]
             paths = paths[bi].copy()
             paths[:, i] = pos
-        return paths[int(np.argmax(score))]
+        # the beams are in rank order: beam 0 is the best (ties: the smaller cells)
+        return paths[int(best_with_ties(score))]
 
 
-def _best_distinct(total, jitter, flat, K: int) -> list[tuple[int, int]]:
-    """The (beam, move) pairs of the ``K`` best finite candidate scores ``total`` (B, 8) (ties
-    broken by ``jitter``), one per (cell ``flat`` (B, 8), score): two paths that reach the same
-    cell with the same score (to 10 significant digits, relative, so scores of any size stay
-    apart) are the same cells visited, and keeping both would waste a beam slot."""
-    order = np.argsort(-(total + jitter), axis=None, kind="stable")
-    chosen, seen = [], set()
-    for o in order:
+def _best_distinct(total, flat, K: int) -> list[tuple[int, int]]:
+    """The (beam, move) pairs of the ``K`` best finite candidate scores ``total`` (B, 8), ranked by
+    :func:`~passt_mav.planning.grid.rank_with_ties` (totals within ``TIE_RTOL`` of each other are one
+    tie, broken by the candidate's flat cell index ``flat`` (B, 8), then its beam and move), one per
+    (cell, score): two paths that reach the same cell with tied scores are the same cells visited,
+    and keeping both would waste a beam slot."""
+    B = total.shape[0]
+    keys = np.stack(
+        [flat, np.broadcast_to(np.arange(B)[:, None], flat.shape), np.broadcast_to(np.arange(8), flat.shape)], -1
+    )
+    tol = tie_tolerance(total)
+    chosen: list[tuple[int, int]] = []
+    seen: dict[int, list[float]] = {}
+    for o in rank_with_ties(total, keys):
         b, a = divmod(int(o), 8)
-        if not np.isfinite(total[b, a]):
-            break
-        key = (int(flat[b, a]), float(f"{float(total[b, a]):.10g}"))
-        if key in seen:
+        cell, t = int(flat[b, a]), float(total[b, a])
+        if any(abs(t - u) <= tol for u in seen.get(cell, ())):
             continue
-        seen.add(key)
+        seen.setdefault(cell, []).append(t)
         chosen.append((b, a))
         if len(chosen) == K:
             break

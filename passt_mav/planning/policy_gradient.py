@@ -35,7 +35,7 @@ from pathlib import Path
 import numpy as np
 
 from passt_mav.errors import PlannerError
-from passt_mav.planning.grid import MOVES4, MOVES8, check_many, top_l_bound
+from passt_mav.planning.grid import MOVES4, MOVES8, best_with_ties, check_many, top_l_bound
 
 __all__ = [
     "SCALES",
@@ -264,7 +264,9 @@ def _sample_moves(
 
     Group g (``ng`` consecutive rows) draws its uniforms from ``rngs[g]``; a draw that lands on a
     disallowed move by round-off at the top end takes the most likely move instead. With
-    ``greedy_first`` each group's first roll-out takes the argmax of its scores ``s``.
+    ``greedy_first`` each group's first roll-out takes the argmax of its scores ``s``, scores within
+    :data:`~passt_mav.planning.grid.TIE_RTOL` (relative) a tie taken by the first move in order (as
+    exact ties always were), so float noise cannot pick another.
     """
     n, M = p.shape
     b = np.arange(n)
@@ -273,7 +275,7 @@ def _sample_moves(
     a = np.where(allowed[b, a], a, np.argmax(p, axis=1))  # guard against round-off at the top end
     if greedy_first:
         firsts = np.arange(0, n, ng)
-        a[firsts] = np.argmax(s[firsts], axis=1)
+        a[firsts] = best_with_ties(s[firsts])
     return a
 
 
@@ -535,4 +537,5 @@ class PolicyGradientPlanner:
             moves=moves,
             temperature=self.temperature,
         )
-        return [paths[g * n + int(np.argmax(rets[g * n : (g + 1) * n]))] for g in range(G)]
+        # the best roll-out's path; returns within TIE_RTOL (float noise) go to the first roll-out
+        return [paths[g * n + int(best_with_ties(rets[g * n : (g + 1) * n]))] for g in range(G)]

@@ -100,7 +100,7 @@ class RunClock:
                 return st.time_unix_usec / 1e6 - st.time_boot_ms / 1e3
             if time.monotonic() >= end:
                 return None
-            time.sleep(0.02)
+            self.link.idle(0.02)
 
     def say(self) -> None:
         c = self.clock

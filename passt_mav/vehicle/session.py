@@ -180,7 +180,7 @@ class VehicleSession:
         while (p := self.vehicle.position()) is None:
             if time.monotonic() > end:
                 raise MavlinkError("no GPS position from the vehicle")
-            time.sleep(0.02)
+            self.link.idle(0.02)
         return p
 
     def hold_if_auto(self) -> None:
@@ -437,6 +437,13 @@ class VehicleSession:
         def done() -> bool:
             return (p.state == M.MISSION_STATE_COMPLETE and p.total == n_items) or n_items in p.reached
 
+        if self.link.lockstep is not None:  # the vehicle's clock runs only here: one step, then look again
+            with p.changed:
+                if done():
+                    return True
+            self.link.idle(0.1)
+            with p.changed:
+                return done()
         with p.changed:
             if done():
                 return True
@@ -563,7 +570,7 @@ class VehicleSession:
                 raise Rebooted()  # not the pilot after all (or the pilot rebooted it): fly() resumes
             if self.link.lost:
                 self.link.reconnect()
-            time.sleep(0.05)
+            self.link.idle(0.05)
         raise Paused(f"leg {i}: the vehicle stayed in {name} for {self.pause_timeout_s:.0f} s; stopping in HOLD")
 
     # -- link figures ----------------------------------------------------------------------------------
