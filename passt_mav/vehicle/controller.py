@@ -118,11 +118,13 @@ from passt_mav.vehicle.clock import RunClock
 from passt_mav.vehicle.live_record import live_meta, live_status
 from passt_mav.vehicle.session import Deadline as _Deadline  # noqa: F401 - tests import it from here
 from passt_mav.vehicle.session import Journal, Paused, VehicleSession, expected_vehicle_s, utc_now
+from passt_mav.vehicle.signals import NO_SIGNALS, Stopped
 
 __all__ = [
     "FieldClock",
     "MissionController",
     "OwnState",
+    "preflight",
     "StoreWriter",
     "thin_samples",
     "build_predictor",
@@ -273,6 +275,28 @@ def _check_field(config, field) -> None:
         raise UserError(f"t0={config.t0} lies outside the field's {field.n_times} snapshots")
 
 
+def preflight(config, field, predictor) -> None:
+    """What can be checked of a mission before the vehicle is touched (``passt-mav run`` calls it before
+    connecting): the field carries a run (two snapshots, ``t0`` inside), it has water, and the predictor
+    forecasts the start state (:meth:`~passt_mav.fields.FlowField.state_at`, land masked as the loop masks
+    it) one snapshot ahead to finite values. Raises :class:`UserError` naming the problem."""
+    from passt_mav.errors import FieldError, ModelError
+
+    _check_field(config, field)
+    land = field.land_mask
+    if land.all():
+        raise FieldError("the mission's field has no water cell in its region (all NaN)")
+    state = field.state_at(config.t0)
+    if predictor is None:
+        return
+    try:
+        pred = np.asarray(predictor.predict(np.where(land, np.float32(0), state), 1))
+    except (ModelError, ValueError) as exc:
+        raise ModelError(f"the mission's model cannot forecast the field's state at t0: {exc}") from None
+    if not np.isfinite(pred[..., ~land]).all():
+        raise ModelError("the mission's model forecasts NaN/inf from the field's state at t0; check the model")
+
+
 class MissionController:
     """Runs a mission config on a connected vehicle, writing a run directory.
 
@@ -294,6 +318,8 @@ class MissionController:
         mission_text: text of the mission file as run (written to the run directory).
         extra_summary: merged into summary.json (e.g. the demo's simulator settings).
         parts: a fleet's boat's shared parts (:class:`BoatParts`); default: this controller's own.
+        signals: the command's :class:`~passt_mav.vehicle.signals.StopSignals` (run files are written inside
+            its ``critical()``; a stop signal ends the run with status ``stopped``); default: none.
     """
 
     def __init__(
@@ -317,6 +343,7 @@ class MissionController:
         mission_text: str | None = None,
         extra_summary: dict | None = None,
         parts: BoatParts | None = None,
+        signals=None,
     ):
         from passt_mav.mavlink import Vehicle
 
@@ -329,6 +356,8 @@ class MissionController:
         self.dt = float(field.dt)
         self.speedup = max(float(speedup_hint), 1e-6)
         self.resume, self.truth_known, self.mission_text = resume, truth_known, mission_text
+        self.signals = signals or NO_SIGNALS
+        self.stopped_by: str | None = None  # the signal's name after a stop by signal
         self.extra_summary = dict(extra_summary or {})
         self.land = field.land_mask
         parts = parts or BoatParts()
@@ -374,6 +403,9 @@ class MissionController:
             speedup=self.speedup,
             ready_timeout_s=ready_timeout_s,
             pause_timeout_s=pause_timeout_s,
+            link_loss_window_s=self.config.vehicle.link_loss_window_s,
+            overrun_factor=self.config.vehicle.overrun_factor,
+            on_overrun=self.config.vehicle.on_overrun,
         )
 
     # -- helpers --------------------------------------------------------------------------
@@ -402,10 +434,19 @@ class MissionController:
         """The clock with a ``t_boot0`` for every boot (:meth:`RunClock.with_boots`)."""
         return self.run_clock.with_boots()
 
-    def _readings_record(self, i: int) -> dict:
-        """Sensor readings of leg ``i``: received (u/v pairs), used (placed on the track), dropped (gap)."""
+    def _readings_record(self, i: int, outages=()) -> dict:
+        """Sensor readings of leg ``i``: received (u/v pairs), used (placed on the track), dropped (gap);
+        ``missing``: readings the sensor sent in the leg's span that are not in the store
+        (:func:`missing_readings`: lost on the link, in an outage or to a position gap); and the vehicle
+        seconds without a link (``outages``: :attr:`VehicleSession.outages` of the leg)."""
         c = self.collector.leg_counts(i)
+        recs = self.store.for_leg(i)
+        by_boot: dict[int, list[int]] = {}
+        for r in recs:
+            by_boot.setdefault(int(r.boot), []).append(int(r.time_boot_ms))
         return {
+            "missing": int(sum(missing_readings(np.asarray(v)) for v in by_boot.values())),
+            "lost_in_outages_vehicle_s": round(sum(float(o.get("vehicle_s") or 0.0) for o in outages), 3),
             "received": c["readings"],
             "used": c["emitted"],
             "dropped_gap": c["gap"],
@@ -497,6 +538,15 @@ class MissionController:
             for i in range(first, self.n_legs):
                 state, t_state = self._leg(i, state, t_state)
             self.status = "complete"
+        except Stopped as exc:
+            self.signals.disarm()
+            self.status, self.stopped_by = "stopped", exc.name
+            leave = self.config.vehicle.on_signal == "auto"
+            what = "the vehicle left flying its leg in AUTO (vehicle.on_signal: auto)" if leave else "HOLD"
+            self._note("stopped", f"stopped by {exc.name} at {utc_now()}: {what}; continue with --resume")
+            self._say(f"stopped by {exc.name}: {what}; store flushed, summary written; continue with --resume")
+            if not leave:
+                self._safe_hold()
         except Paused as exc:
             self.status = "paused"
             self._note("stopped", str(exc))
@@ -514,6 +564,7 @@ class MissionController:
             self._safe_hold()
             raise exc  # noqa: TRY201 - exc may be the reworded LinkTimeout above
         finally:
+            self.signals.disarm()  # the clean-up below must finish: later signals are only acknowledged
             self._detach()
             self.writer.close()
             self._write_summary()
@@ -566,18 +617,30 @@ class MissionController:
     # -- one leg: plan -> check -> upload (transactional) -> fly -> absorb ---------------------------
     def _leg(self, i: int, state: np.ndarray, t_state: float) -> tuple[np.ndarray, float]:
         planned = self._plan(i, state, t_state)
-        with self.lock:
+        with self.lock, self.signals.critical():
             wm = self._checked_mission(i, planned)
             rec = self._write_plan(i, planned, wm)
         link0, store0 = self.session.link_snapshot(), self.store.count(i)
         items = wm.items()
         upload_tries, upload_s, t_fly, tb_fly = self._swap(i, items, time.perf_counter())
-        with self.lock:
+        with self.lock, self.signals.critical():
             self._write_prediction(i, planned)  # (the boat is underway meanwhile)
-        duration_s, tb_end = self._fly_leg(i, wm, items, t_fly)
+        duration_s, tb_end, cut = self._fly_leg(i, wm, items, t_fly)
+        with self.signals.critical():  # estimate.nc, leg.json, summary.json: written whole or not begun
+            times = (upload_tries, upload_s, duration_s, tb_fly, tb_end)
+            absorbed = self._complete_leg(i, rec, planned, link0, store0, times, cut)
+        return absorbed.state, absorbed.t_state
+
+    def _complete_leg(self, i: int, rec: dict, planned, link0, store0, times: tuple, cut: dict | None):
+        """Absorb leg ``i``'s samples and write its records (``times``: upload tries, upload s, wall s, vehicle
+        uptime s at AUTO and at the end; ``cut``: the overrun record of a leg cut short, else None). Returns
+        the absorbed state (:meth:`OwnState.absorb`)."""
+        upload_tries, upload_s, duration_s, tb_fly, tb_end = times
         with self.lock:
             absorbed = self._absorb(i, planned)
         rec.update(absorbed.record())
+        flown = (tb_end - tb_fly) if (tb_end is not None and tb_fly is not None and tb_end >= tb_fly) else None
+        outages = [o for o in self.session.outages if o["leg"] == i]
         rec.update(
             {
                 "status": "complete",
@@ -585,16 +648,16 @@ class MissionController:
                 "upload_s": upload_s,
                 "upload_tries": upload_tries,
                 "duration_s": duration_s,
-                "duration_vehicle_s": (tb_end - tb_fly)
-                if (tb_end is not None and tb_fly is not None and tb_end >= tb_fly)
-                else None,
+                "duration_vehicle_s": flown,
                 "n_samples_new": self.store.count(i) - store0,
                 "link": self.session.link_record(link0),
-                "readings": self._readings_record(i),
+                "readings": self._readings_record(i, outages),
+                "outages": outages,
+                "overrun": cut,
             }
         )
         self._finish_leg(i, rec, planned)
-        return absorbed.state, absorbed.t_state
+        return absorbed
 
     def _plan(self, i: int, state: np.ndarray, t_state: float):
         """Position -> start cell; the vehicle's clock -> forecast the state to now; plan the leg.
@@ -690,29 +753,42 @@ class MissionController:
 
         return self.session.swap(i, items, t0w, on_armed=on_armed, on_start=on_start)
 
-    def _fly_leg(self, i: int, wm, items, t_fly: float) -> tuple[float, float | None]:
-        """Fly until the mission completes, then HOLD; returns (wall s, vehicle uptime s at the end)."""
-        self.live_leg = (i, (self.link.vehicle_uptime_s() or 0.0) + self._expected_vehicle_s(wm))
+    def _fly_leg(self, i: int, wm, items, t_fly: float) -> tuple[float, float | None, dict | None]:
+        """Fly until the mission completes (or the leg is cut for an overrun), then HOLD; returns (wall s,
+        vehicle uptime s at the end, the overrun record of a cut leg or None)."""
+        expected = self._expected_vehicle_s(wm)
+        tb0 = self.link.vehicle_uptime_s()
+        self.live_leg = (i, (tb0 or 0.0) + expected)
         self.record.event("leg_start", f"{self._leg_label(i)} started ({len(wm.waypoints)} waypoints)")
         try:
-            self._fly(i, wm, items, len(items) - 1)  # MISSION_CURRENT.total excludes home
+            how = self._fly(i, wm, items, len(items) - 1)  # MISSION_CURRENT.total excludes home
         finally:
             self.collector.leg = None
         self.vehicle.hold()
+        cut = None
+        if how == "cut":
+            p = self.vehicle.progress
+            cut = {
+                "expected_vehicle_s": round(expected, 3),
+                "factor": self.config.vehicle.overrun_factor,
+                "cut_at_item": int(p.current),
+                "items": len(items) - 1,
+            }
         duration_s = time.perf_counter() - t_fly
         tb_end = self.link.vehicle_uptime_s()
         # the leg's last readings wait for the fix after them (<= the gap bound of vehicle time)
         self.collector.wait_placed(i, self.collector.track.max_gap_ms / 1000.0 / max(self.speedup, 1.0) + 0.5)
         self.writer.flush()
-        return duration_s, tb_end
+        return duration_s, tb_end, cut
 
     def _expected_vehicle_s(self, wm) -> float:
         """Vehicle seconds the leg should take at the mission's speed (no current)."""
         return expected_vehicle_s(self.grid, wm, self.speed)
 
-    def _fly(self, i: int, wm, items, n_items: int) -> None:
-        """Wait for the leg to complete, its faults handled (:meth:`VehicleSession.fly`)."""
-        self.session.fly(i, items, n_items, self._expected_vehicle_s(wm))
+    def _fly(self, i: int, wm, items, n_items: int) -> str | None:
+        """Wait for the leg to complete, its faults handled (:meth:`VehicleSession.fly`: ``"cut"`` for a leg
+        cut short by an overrun)."""
+        return self.session.fly(i, items, n_items, self._expected_vehicle_s(wm))
 
     def _absorb(self, i: int, planned):
         """The leg's stored samples through the state keeper (:meth:`OwnState.absorb`); the estimate to estimate.nc."""
@@ -757,6 +833,21 @@ class MissionController:
     def _leg_label(self, i: int) -> str:
         """How leg ``i`` (0-based) is named in progress lines."""
         return self.share.label(i, self.n_legs)
+
+
+def missing_readings(tb_ms: np.ndarray) -> int:
+    """Readings a regular sensor sent within the span of ``tb_ms`` (one boot's ``time_boot_ms`` of the readings
+    kept, ms) that are not among them: the spacing is the median step, and each step longer than 1.5 x it
+    holds ``round(step / spacing) - 1`` readings that never arrived (or were not placed). 0 below 3 readings."""
+    t = np.unique(np.asarray(tb_ms, np.int64))
+    if t.size < 3:
+        return 0
+    d = np.diff(t)
+    period = float(np.median(d))
+    if period <= 0:
+        return 0
+    big = d[d > 1.5 * period]
+    return int(np.sum(np.round(big / period) - 1))
 
 
 def _progress_line(rec: dict) -> str:
@@ -805,6 +896,8 @@ def run_summary(ctl) -> dict:
         "legs": legs,
         "n_samples": ctl._n_samples(),
         "readings_used": [(x.get("readings") or {}).get("fraction_used") for x in legs],
+        "stopped_by": getattr(ctl, "stopped_by", None),
+        "outages": list(getattr(getattr(ctl, "session", None), "outages", None) or []),
         "link_vehicle_bytes_per_s": [(x.get("link") or {}).get("vehicle_bytes_per_s") for x in legs],
         "rmse": rm if ctl.truth_known else None,
         "rmse_note": "RMSE over water cells vs the mission's field at the state time; 'model' = the predictor "

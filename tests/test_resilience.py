@@ -1,0 +1,241 @@
+"""Nothing lost, nothing stopped (issue 46): link outages ridden out, stop signals, overruns, field gaps.
+
+Setting of tests/test_controller.py (8x8 grid of ~40 m cells, persistence, greedy legs of 3 moves, a
+5 m/s boat), but the simulator runs in lockstep (:func:`mavlink_helpers.lockstep_connection`): it
+advances only while the controller's reader finds nothing to read, so simulated time follows the
+controller whatever the machine's load. Outages are the simulator's radio (``LinkConfig.arm_drops``:
+seconds of simulated time after the vehicle's first arming, both ways, on every link to it, also the
+ones a reconnect opens). Every reading the vehicle sent is in the simulator's own tlog (written before
+the radio loses a frame): that is the known answer the store and the controller's accounting are
+checked against.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import signal
+import threading
+import time
+
+import numpy as np
+import pytest
+from mavlink_helpers import HOME, link_config, lockstep_connection
+from test_controller import controller, mission, sim_config, wave_field
+
+from passt_mav.commands.run import LEAN_STREAMS
+from passt_mav.mavlink import Link
+from passt_mav.runs.live import read_events
+from passt_mav.runs.rundir import RunDir
+from passt_mav.runs.store import SampleStore
+from passt_mav.vehicle.signals import Stopped, StopSignals, exit_code
+from vehicle_sim import LinkConfig as SimLinkConfig
+from vehicle_sim import SimConfig, Simulator
+from vehicle_sim.boat import BoatParams
+
+AUTO, HOLD = 10, 4
+AUTOSTEP_S = 0.05  # simulated seconds per idle poll of the controller's reader
+
+
+@contextlib.contextmanager
+def lockstep(field, *, sim_cfg: SimConfig | None = None, radio: SimLinkConfig | None = None, sim_field="same"):
+    """(sim, link, radio) with the simulator in lockstep behind the link; ``radio["cfg"]`` is the impairment of
+    every link the controller opens from now on (a test may swap the radio between runs)."""
+    sim = Simulator(field if sim_field == "same" else sim_field, home=HOME, config=sim_cfg or sim_config())
+    box = {"cfg": radio}
+    link = Link(
+        link_config(stream_rates_hz=LEAN_STREAMS),
+        connection_factory=lambda: lockstep_connection(sim.connect_inprocess(box["cfg"]), AUTOSTEP_S),
+    )
+    link.connect()
+    try:
+        yield sim, link, box
+    finally:
+        link.close()
+        sim.stop()
+
+
+def sent_readings(tlog) -> list[int]:
+    """``time_boot_ms`` of every CUR_U reading the simulator sent (its tlog: before the radio's losses)."""
+    from pymavlink import mavutil
+
+    out = []
+    mlog = mavutil.mavlink_connection(str(tlog), dialect="ardupilotmega")
+    while (m := mlog.recv_match(type="NAMED_VALUE_FLOAT")) is not None:
+        if m.get_srcSystem() == 1 and str(m.name).rstrip("\x00") == "CUR_U":
+            out.append(int(m.time_boot_ms))
+    return out
+
+
+def stored(rd) -> list:
+    with SampleStore(rd.samples_db, readonly=True) as st:
+        return st.all()
+
+
+# -- 1. outages -----------------------------------------------------------------------------------
+def test_outage_of_two_minutes_is_ridden_out_and_the_lost_readings_accounted(tmp_path):
+    field = wave_field()
+    cfg = mission(tmp_path, field, legs=1, vehicle={"speed_mps": 5.0, "wp_radius_m": 3.0})
+    rd = RunDir(tmp_path / "run").create()
+    tlog = tmp_path / "sim.tlog"
+    # 120 s of vehicle time without a frame either way, from 12 s after arming: mid-leg 0 (~30 s)
+    radio = SimLinkConfig(arm_drops=((12.0, 120.0),))
+    with lockstep(field, sim_cfg=sim_config(tlog=str(tlog)), radio=radio) as (sim, link, _):
+        ctl = controller(cfg, field, link, rd, echo=None)
+        summary = ctl.run()
+        assert ctl.vehicle.mode == HOLD
+        armed = sim.autopilot.first_armed_clock
+    assert summary["status"] == "complete" and len(summary["legs"]) == 1
+    leg = summary["legs"][0]
+    (out,) = leg["outages"]
+    assert out["back_utc"] is not None and not out["rebooted"]
+    # the vehicle's clock over the outage: the drop's 120 s plus the time to notice it and reconnect
+    assert 120.0 <= out["vehicle_s"] < 400.0, out
+    assert out["tb_from_s"] <= armed + 12.0 + 1.0 and out["tb_to_s"] >= armed + 132.0
+    assert summary["outages"] == [out]
+    # every reading the vehicle sent is in the store, or was sent during the outage (and counted lost)
+    sent = sent_readings(tlog)
+    have = {s.time_boot_ms for s in stored(rd)}
+    lost = [t for t in sent if t not in have]
+    lo, hi = out["tb_from_s"] * 1000, out["tb_to_s"] * 1000
+    flown = [t for t in lost if min(have) <= t <= max(have)]  # (before the leg: the EKF wait, not stored)
+    assert all(lo <= t <= hi for t in flown), [t for t in flown if not lo <= t <= hi][:5]
+    in_window = [t for t in lost if armed * 1000 + 12000 <= t < armed * 1000 + 132000]
+    assert len(in_window) >= 110  # ~1 Hz sensor over the 120 s drop
+    rdg = leg["readings"]
+    assert rdg["lost_in_outages_vehicle_s"] == pytest.approx(out["vehicle_s"])
+    # the controller's count of readings missing from the leg (its gaps at the sensor's spacing): exact
+    assert rdg["missing"] == len(flown) >= 110
+    kinds = [e["kind"] for e in read_events(rd.root)[0]]
+    assert kinds.index("leg_start") < kinds.index("link_lost") < kinds.index("link_back") < kinds.index("leg_end")
+
+
+def test_outage_past_the_window_stops_cleanly_and_resume_finishes(tmp_path):
+    field = wave_field()
+    cfg = mission(tmp_path, field, legs=2, vehicle={"speed_mps": 5.0, "wp_radius_m": 3.0, "link_loss_window_s": 120})
+    rd = RunDir(tmp_path / "run").create()
+    lines: list[str] = []
+    # the radio dies for good 12 s after arming: no reconnect can succeed (whatever the machine's speed)
+    radio = SimLinkConfig(arm_drops=((12.0, 1e9),))
+    with lockstep(field, radio=radio) as (sim, link, box):
+        ctl = controller(cfg, field, link, rd, echo=lines.append)
+        summary = ctl.run()
+        assert summary["status"] == "paused" and summary["legs"] == []
+        assert "link-loss window" in summary["events"][-1] and "--resume" in summary["events"][-1]
+        attempts = [s for s in lines if "reconnect attempt" in s]
+        assert len(attempts) >= 2 and all("giving up in" in s for s in attempts[:-1])
+        (out,) = summary["outages"]
+        assert out["back_utc"] is None and out["wall_s"] >= 120 / 50  # the window: 120 vehicle s at hint 50
+        assert rd.read_leg(0)["status"] == "flying"  # the leg in flight stays for --resume to re-plan
+        # the radio comes back (a new one): --resume continues the run on the same vehicle
+        box["cfg"] = None
+        link.reconnect(attempts=3)
+        ctl2 = controller(cfg, field, link, rd, echo=None, resume=True)
+        s2 = ctl2.run()
+    assert s2["status"] == "complete" and [x["index"] for x in s2["legs"]] == [0, 1]
+    assert any("link-loss window" in e for e in s2["events"])  # the first attempt's events are kept
+
+
+# -- 2. stop signals --------------------------------------------------------------------------------
+def test_stop_signals_raise_once_outside_a_file_write_and_after_it_inside():
+    said: list[str] = []
+    with StopSignals(echo=said.append) as stop:
+        with pytest.raises(Stopped) as ei:
+            os.kill(os.getpid(), signal.SIGINT)
+            time.sleep(1.0)  # the handler runs at once in the main thread
+        assert ei.value.name == "SIGINT" and exit_code(ei.value.signum) == 130
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # put back
+    with StopSignals(echo=said.append) as stop:
+        done = []
+        with pytest.raises(Stopped) as ei:
+            with stop.critical():
+                os.kill(os.getpid(), signal.SIGTERM)
+                time.sleep(0.05)
+                done.append("file written")  # the write is not cut short
+        assert done == ["file written"] and ei.value.name == "SIGTERM" and exit_code(ei.value.signum) == 143
+        os.kill(os.getpid(), signal.SIGHUP)  # a second signal while stopping: acknowledged only
+        time.sleep(0.05)
+    assert said[-1].startswith("SIGHUP received: stopping already")
+
+
+def _signal_when_flying(ctl, signum, *, after_reached: int = 1):
+    """From a thread: ``signum`` to this process once leg 0 flies in AUTO and has reached an item."""
+
+    def run():
+        end = time.monotonic() + 60
+        while time.monotonic() < end:
+            p = ctl.vehicle.progress
+            if ctl.collector is not None and ctl.collector.leg == 0 and len(p.reached) >= after_reached:
+                os.kill(os.getpid(), signum)
+                return
+            time.sleep(0.005)
+
+    th = threading.Thread(target=run, daemon=True)
+    th.start()
+    return th
+
+
+@pytest.mark.parametrize("signum, on_signal, mode", [(signal.SIGTERM, "hold", HOLD), (signal.SIGHUP, "auto", AUTO)])
+def test_signal_mid_leg_stops_cleanly(tmp_path, signum, on_signal, mode):
+    field = wave_field()
+    vehicle_cfg = {"speed_mps": 5.0, "wp_radius_m": 3.0, "on_signal": on_signal}
+    cfg = mission(tmp_path, field, legs=2, vehicle=vehicle_cfg)
+    rd = RunDir(tmp_path / "run").create()
+    with lockstep(field) as (sim, link, _):
+        with StopSignals(echo=lambda s: None) as stop:
+            ctl = controller(cfg, field, link, rd, echo=None, signals=stop)
+            th = _signal_when_flying(ctl, signum)
+            summary = ctl.run()
+            th.join(5)
+        assert stop.received == signum
+        time.sleep(0.05)
+        assert sim.autopilot.mode == mode  # HOLD, or left flying its leg with on_signal: auto
+    name = signal.Signals(signum).name
+    s = rd.read_summary()  # written, with the status a supervisor can read
+    assert s["status"] == summary["status"] == "stopped" and s["stopped_by"] == name
+    assert s["n_samples"] == len(stored(rd)) > 0  # the store flushed: every sample counted is in it
+    assert rd.read_leg(0)["status"] == "flying"  # the leg in flight, left for --resume
+    ev = read_events(rd.root)[0]
+    assert [e["kind"] for e in ev][-2:] == ["stopped", "run_end"] and name in ev[-2]["text"]
+
+
+# -- 6. overruns ----------------------------------------------------------------------------------------
+def test_overrun_leg_is_cut_and_the_next_leg_planned(tmp_path):
+    field = wave_field()
+    cfg = mission(tmp_path, field, legs=2)
+    rd = RunDir(tmp_path / "run").create()
+    # a hull that makes 0.5 m/s in still water against the mission's 5 m/s: a leg takes ~10x its plan
+    slow = sim_config(boat=BoatParams(max_speed=0.5))
+    lines: list[str] = []
+    with lockstep(field, sim_cfg=slow, sim_field=None) as (sim, link, _):
+        ctl = controller(cfg, field, link, rd, echo=lines.append)
+        summary = ctl.run()
+    assert summary["status"] == "complete" and len(summary["legs"]) == 2
+    for leg in summary["legs"]:
+        o = leg["overrun"]
+        assert o is not None and o["factor"] == 2.0 and 1 <= o["cut_at_item"] <= o["items"]
+        planned = 2.0 * o["expected_vehicle_s"] + 30.0
+        # cut where the rule says: past the planned time, not much later (the 0.1 s wait of the loop)
+        assert planned <= leg["duration_vehicle_s"] < planned + 15.0, (planned, leg["duration_vehicle_s"])
+        assert leg["n_samples"] > 0
+    assert sum("overrun" in s for s in lines) == 2
+    assert sum("overrun" in e for e in summary["events"]) == 2
+
+
+# -- 5. field gaps that come and go ---------------------------------------------------------------------
+def test_state_at_fills_a_gap_from_the_nearest_time_never_zero():
+    import geo
+    from passt_mav.fields import FlowField
+
+    grid = geo.RegionGrid(40.0, -63.0, 40.01, -62.99, 2, 3)
+    data = np.arange(5 * 2 * 2 * 3, dtype=np.float32).reshape(5, 2, 2, 3) + 1.0
+    data[:, :, 0, 0] = np.nan  # land: missing at every time
+    data[2, :, 0, 1] = np.nan  # missing at t=2 only: neighbours 1 and 3 tie, the earlier wins
+    data[0:3, :, 1, 2] = np.nan  # missing at t=0..2: nearest with data is t=3
+    f = FlowField(data, grid, np.arange(5.0) * 3600, time_origin="2020-01-01T00:00:00Z")
+    s = f.state_at(2)
+    assert np.isnan(s[:, 0, 0]).all()
+    np.testing.assert_array_equal(s[:, 0, 1], data[1, :, 0, 1])
+    np.testing.assert_array_equal(s[:, 1, 2], data[3, :, 1, 2])
+    np.testing.assert_array_equal(s[:, 1, 0], data[2, :, 1, 0])  # a cell with data keeps its own
+    assert np.isfinite(s[:, ~f.land_mask]).all()
