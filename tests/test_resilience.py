@@ -117,7 +117,7 @@ def test_outage_past_the_window_stops_cleanly_and_resume_finishes(tmp_path):
     lines: list[str] = []
     # the radio dies for good 12 s after arming: no reconnect can succeed (whatever the machine's speed)
     radio = SimLinkConfig(arm_drops=((12.0, 1e9),))
-    with lockstep(field, radio=radio) as (sim, link, box):
+    with lockstep(field, radio=radio) as (_sim, link, box):
         ctl = controller(cfg, field, link, rd, echo=lines.append)
         summary = ctl.run()
         assert summary["status"] == "paused" and summary["legs"] == []
@@ -147,11 +147,10 @@ def test_stop_signals_raise_once_outside_a_file_write_and_after_it_inside():
     assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # put back
     with StopSignals(echo=said.append) as stop:
         done = []
-        with pytest.raises(Stopped) as ei:
-            with stop.critical():
-                os.kill(os.getpid(), signal.SIGTERM)
-                time.sleep(0.05)
-                done.append("file written")  # the write is not cut short
+        with pytest.raises(Stopped) as ei, stop.critical():
+            os.kill(os.getpid(), signal.SIGTERM)
+            time.sleep(0.05)
+            done.append("file written")  # the write is not cut short
         assert done == ["file written"] and ei.value.name == "SIGTERM" and exit_code(ei.value.signum) == 143
         os.kill(os.getpid(), signal.SIGHUP)  # a second signal while stopping: acknowledged only
         time.sleep(0.05)
@@ -207,7 +206,7 @@ def test_overrun_leg_is_cut_and_the_next_leg_planned(tmp_path):
     # a hull that makes 0.5 m/s in still water against the mission's 5 m/s: a leg takes ~10x its plan
     slow = sim_config(boat=BoatParams(max_speed=0.5))
     lines: list[str] = []
-    with lockstep(field, sim_cfg=slow, sim_field=None) as (sim, link, _):
+    with lockstep(field, sim_cfg=slow, sim_field=None) as (_sim, link, _):
         ctl = controller(cfg, field, link, rd, echo=lines.append)
         summary = ctl.run()
     assert summary["status"] == "complete" and len(summary["legs"]) == 2
@@ -239,3 +238,123 @@ def test_state_at_fills_a_gap_from_the_nearest_time_never_zero():
     np.testing.assert_array_equal(s[:, 1, 2], data[3, :, 1, 2])
     np.testing.assert_array_equal(s[:, 1, 0], data[2, :, 1, 0])  # a cell with data keeps its own
     assert np.isfinite(s[:, ~f.land_mask]).all()
+
+
+# -- the command line: exit codes, nothing half-written, nothing touched -------------------------------
+def _cli_run(monkeypatch, sim, mission_path, out, *extra: str, opened: list | None = None) -> int:
+    """``passt-mav run MISSION --out OUT ...`` with the transport replaced by a lockstep in-process link to ``sim``
+    (``opened`` collects one entry per transport the command opens)."""
+    from passt_mav.cli import main
+    from passt_mav.mavlink import link as link_mod
+
+    def open_(self):
+        if opened is not None:
+            opened.append(self.connect)
+        return lockstep_connection(sim.connect_inprocess(), AUTOSTEP_S)
+
+    monkeypatch.setattr(link_mod.LinkConfig, "open", open_)
+    args = ["run", str(mission_path), "--connect", "tcp:127.0.0.1:5760", "--out", str(out)]
+    return main([*args, "--speedup-hint", "20", "--no-report", "--quiet", *extra])
+
+
+def _mission_file(tmp_path, field, **over):
+    """The test mission (tests/test_controller.mission) as a YAML file, its field beside it."""
+    import yaml
+
+    cfg = mission(tmp_path, field, **over)
+    path = tmp_path / "mission.yaml"
+    path.write_text(yaml.safe_dump(cfg.model_dump(mode="json", exclude_none=True), sort_keys=False))
+    return path
+
+
+def test_cli_sigterm_mid_leg_exits_143_in_hold_with_summary(tmp_path, monkeypatch):
+    field = wave_field()
+    path = _mission_file(tmp_path, field, legs=2)
+    sim = Simulator(field, home=HOME, config=sim_config())
+    out = tmp_path / "run"
+
+    def killer():  # SIGTERM, as systemd sends it, once leg 0 is planned and the boat flies it
+        end = time.monotonic() + 60
+        while time.monotonic() < end:
+            if sim.autopilot.mode == AUTO and (out / "legs" / "000" / "prediction.nc").exists():
+                os.kill(os.getpid(), signal.SIGTERM)
+                return
+            time.sleep(0.005)
+
+    th = threading.Thread(target=killer, daemon=True)
+    th.start()
+    try:
+        rc = _cli_run(monkeypatch, sim, path, out)
+    finally:
+        th.join(5)
+        sim.stop()
+    rd = RunDir(out)
+    s = rd.read_summary()
+    assert rc == 143 and s["status"] == "stopped" and s["stopped_by"] == "SIGTERM"
+    assert sim.autopilot.mode == HOLD
+    assert s["n_samples"] == len(stored(rd))
+    assert rd.read_leg(0)["status"] == "flying"
+
+
+def test_cli_field_that_cannot_fly_never_touches_the_vehicle(tmp_path, monkeypatch, capsys):
+    field = wave_field()
+    # t0 past the field's last snapshot: refused before any transport is opened, and nothing left behind
+    path = _mission_file(tmp_path, field, t0=field.n_times - 1)
+    sim = Simulator(field, home=HOME, config=sim_config())
+    opened: list[str] = []
+    try:
+        rc = _cli_run(monkeypatch, sim, path, tmp_path / "run", opened=opened)
+    finally:
+        sim.stop()
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 2 and len(err) == 1 and "outside the field's" in err[0]
+    assert opened == [] and sim.autopilot.store.count(0) <= 1 and not sim.autopilot.armed
+    assert not (tmp_path / "run").exists()
+
+
+def test_hf_radar_region_with_gaps_that_come_and_go_plans_and_flies(tmp_path, monkeypatch, hf_radar_path):
+    """The MARACOOS HF-radar file where the radar's coverage comes and goes: at t0 (02:00 UTC) two columns of the
+    region hold data, the rest only from 04:00. ``plan`` and ``run`` refused it (NaN in the state); the state's
+    gaps are now filled from the nearest snapshot with data (FlowField.state_at) and a leg flies."""
+    import yaml
+
+    import geo
+    from passt_mav.cli import main
+    from passt_mav.fields.importers import import_currents
+
+    grid = geo.RegionGrid(37.70, -74.50, 37.76, -74.44, 6, 6)  # ~1.1 km cells: a leg of minutes
+    field = import_currents(hf_radar_path, grid)
+    t0 = 2
+    miss = field.mask
+    gaps = miss[t0] & ~miss.all(axis=0)
+    assert 0 < gaps.sum() < gaps.size and not miss.all(axis=0).any()  # gaps at t0 in cells with data later
+    assert np.isfinite(field.state_at(t0)).all()
+    field.to_netcdf(tmp_path / "radar.nc")
+    g = grid
+    data = {
+        "name": "radar",
+        "region": {"south": g.south, "west": g.west, "north": g.north, "east": g.east, "rows": 6, "cols": 6},
+        "field": {"source": "radar.nc"},
+        "model": "persistence",
+        "planner": {"name": "greedy", "path_length": 2},
+        "legs": 1,
+        "t0": t0,
+        "vehicle": {"speed_mps": 8.0, "wp_radius_m": 20.0},
+        "geofence_margin_m": 500.0,
+    }
+    path = tmp_path / "radar.yaml"
+    path.write_text(yaml.safe_dump(data))
+    assert main(["plan", str(path), "--out", str(tmp_path / "plan")]) == 0
+    home = tuple(float(x) for x in grid.cell_to_latlon(3, 0))  # a cell with data at t0
+    sim = Simulator(
+        field,
+        home=home,
+        config=SimConfig.fast(params=(("WP_SPEED", 8.0),), current_rate_hz=1.0, seed=1),
+        start_time=float(field.times[t0]),
+    )
+    try:
+        rc = _cli_run(monkeypatch, sim, path, tmp_path / "run")
+    finally:
+        sim.stop()
+    s = RunDir(tmp_path / "run").read_summary()
+    assert rc == 0 and s["status"] == "complete" and s["legs"][0]["n_samples"] > 0, s.get("events")
