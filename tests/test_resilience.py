@@ -37,15 +37,43 @@ AUTO, HOLD = 10, 4
 AUTOSTEP_S = 0.05  # simulated seconds per idle poll of the controller's reader
 
 
+def paced(ep, max_rate: float | None):
+    """:func:`lockstep_connection` on ``ep`` whose simulator runs at most ``max_rate`` x the wall clock (an idle
+    poll waits ``AUTOSTEP_S / max_rate`` s): the controller notices a lost link after ``link_lost_s`` of wall
+    time, so a radio drop of D simulated seconds certainly outlasts that when D > link_lost_s x max_rate.
+    A loaded machine only slows the simulator further (the drop lasts longer in wall time)."""
+    conn = lockstep_connection(ep, AUTOSTEP_S)
+    if max_rate:
+        recv = conn.recv
+
+        def recv_paced(n=None):
+            data = recv(n)
+            if not data:
+                time.sleep(AUTOSTEP_S / max_rate)
+            return data
+
+        conn.recv = recv_paced
+    return conn
+
+
 @contextlib.contextmanager
-def lockstep(field, *, sim_cfg: SimConfig | None = None, radio: SimLinkConfig | None = None, sim_field="same"):
-    """(sim, link, radio) with the simulator in lockstep behind the link; ``radio["cfg"]`` is the impairment of
-    every link the controller opens from now on (a test may swap the radio between runs)."""
+def lockstep(
+    field,
+    *,
+    sim_cfg: SimConfig | None = None,
+    radio: SimLinkConfig | None = None,
+    sim_field="same",
+    tlog=None,
+    max_rate: float | None = None,
+):
+    """(sim, link, radio) with the simulator in lockstep behind the link (writing the telemetry log ``tlog``;
+    ``max_rate``: :func:`paced`); ``radio["cfg"]`` is the impairment of every link the controller opens from
+    now on (a test may swap it)."""
     sim = Simulator(field if sim_field == "same" else sim_field, home=HOME, config=sim_cfg or sim_config())
     box = {"cfg": radio}
     link = Link(
-        link_config(stream_rates_hz=LEAN_STREAMS),
-        connection_factory=lambda: lockstep_connection(sim.connect_inprocess(box["cfg"]), AUTOSTEP_S),
+        link_config(stream_rates_hz=LEAN_STREAMS, tlog=None if tlog is None else str(tlog)),
+        connection_factory=lambda: paced(sim.connect_inprocess(box["cfg"]), max_rate),
     )
     link.connect()
     try:
@@ -80,7 +108,8 @@ def test_outage_of_two_minutes_is_ridden_out_and_the_lost_readings_accounted(tmp
     tlog = tmp_path / "sim.tlog"
     # 120 s of vehicle time without a frame either way, from 12 s after arming: mid-leg 0 (~30 s)
     radio = SimLinkConfig(arm_drops=((12.0, 120.0),))
-    with lockstep(field, sim_cfg=sim_config(tlog=str(tlog)), radio=radio) as (sim, link, _):
+    # (at most 100x: the 120 s drop outlasts the 0.5 s wall of link_lost_s however fast the machine)
+    with lockstep(field, sim_cfg=sim_config(tlog=str(tlog)), radio=radio, max_rate=100) as (sim, link, _):
         ctl = controller(cfg, field, link, rd, echo=None)
         summary = ctl.run()
         assert ctl.vehicle.mode == HOLD
@@ -88,7 +117,7 @@ def test_outage_of_two_minutes_is_ridden_out_and_the_lost_readings_accounted(tmp
     assert summary["status"] == "complete" and len(summary["legs"]) == 1
     leg = summary["legs"][0]
     (out,) = leg["outages"]
-    assert out["back_utc"] is not None and not out["rebooted"]
+    assert out["back_utc"] is not None and out["during"] == "leg"
     # the vehicle's clock over the outage: the drop's 120 s plus the time to notice it and reconnect
     assert 120.0 <= out["vehicle_s"] < 400.0, out
     assert out["tb_from_s"] <= armed + 12.0 + 1.0 and out["tb_to_s"] >= armed + 132.0
@@ -358,3 +387,128 @@ def test_hf_radar_region_with_gaps_that_come_and_go_plans_and_flies(tmp_path, mo
         sim.stop()
     s = RunDir(tmp_path / "run").read_summary()
     assert rc == 0 and s["status"] == "complete" and s["legs"][0]["n_samples"] > 0, s.get("events")
+
+
+# -- the chaos run (acceptance) ------------------------------------------------------------------------
+class _Killed(BaseException):  # noqa: N818 - the process dying (as the kill/resume tests of test_controller_faults3)
+    pass
+
+
+def _when(cond, timeout: float = 60.0) -> bool:
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        if cond():
+            return True
+        time.sleep(0.005)
+    return False
+
+
+def _flying(ctl, leg: int, reached: int = 1):
+    return lambda: (
+        ctl.collector is not None
+        and ctl.collector.leg == leg
+        and ctl.vehicle.mode == AUTO
+        and len(ctl.vehicle.progress.reached) >= reached
+    )
+
+
+def _sim_boots(tlog) -> list[list[int]]:
+    """The simulator's readings (tlog) split by boot: ``time_boot_ms`` going back starts a new one."""
+    boots: list[list[int]] = [[]]
+    for t in sent_readings(tlog):
+        if boots[-1] and t < boots[-1][-1]:
+            boots.append([])
+        boots[-1].append(t)
+    return boots
+
+
+def test_chaos_six_legs_drops_restart_kill_resume_and_sigterm(tmp_path):
+    """One 6-leg mission on the lockstep simulator: radio drops of 10, 45 and 300 s, the simulator restarting
+    mid-leg, the controller dying mid-leg 3 (resumed), a SIGTERM mid-leg 5 (resumed to the end). Every reading
+    the vehicle sent within a leg's span is in the store or counted missing by that leg's record, and the
+    replay of the run reproduces every leg's path and RMSE."""
+    from passt_mav.analysis.replay import replay
+
+    field = wave_field()
+    cfg = mission(tmp_path, field, legs=6)
+    rd = RunDir(tmp_path / "run").create()
+    tlog = tmp_path / "sim.tlog"
+    radio = SimLinkConfig(arm_drops=((20.0, 10.0), (70.0, 45.0), (150.0, 300.0)))
+    runs = []
+    cfgs = {"sim_cfg": sim_config(tlog=str(tlog)), "radio": radio, "tlog": rd.tlog, "max_rate": 60}
+    with lockstep(field, **cfgs) as (sim, link, _):
+        # 1. drops, a simulator restart in leg 2, the controller killed in leg 3 (index 2)
+        ctl = controller(cfg, field, link, rd, echo=None)
+        # (not while the radio is down: a reboot nobody hears is another test)
+        quiet = _flying(ctl, 1, 2)
+        th = threading.Thread(
+            target=lambda: (
+                _when(lambda: quiet() and not link.lost and not sim.links[-1].is_down(sim.t))
+                and sim.reboot(downtime_s=2.0)
+            ),
+            daemon=True,
+        )
+        th.start()
+        fly = ctl._fly
+
+        def dying_fly(i, *a):
+            if i == 2:
+                _when(lambda: ctl.store.count(2) >= 3)
+                raise _Killed()
+            return fly(i, *a)
+
+        ctl._fly = dying_fly
+        with pytest.raises(_Killed):
+            ctl.run()
+        th.join(5)
+        runs.append(rd.read_summary())
+        assert [x["index"] for x in runs[0]["legs"]] == [0, 1] and rd.read_leg(2)["status"] == "flying"
+        # 2. resumed; SIGTERM in leg 5 (index 4)
+        if link.lost:
+            link.reconnect(wait_s=30)
+        with StopSignals(echo=lambda s: None) as stop:
+            ctl = controller(cfg, field, link, rd, echo=None, resume=True, signals=stop)
+            th = threading.Thread(
+                target=lambda: _when(_flying(ctl, 4)) and os.kill(os.getpid(), signal.SIGTERM), daemon=True
+            )
+            th.start()
+            runs.append(ctl.run())
+            th.join(5)
+        assert runs[1]["status"] == "stopped" and runs[1]["stopped_by"] == "SIGTERM"
+        assert [x["index"] for x in runs[1]["legs"]] == [0, 1, 2, 3]
+        # 3. resumed to the end
+        if link.lost:
+            link.reconnect(wait_s=30)
+        ctl = controller(cfg, field, link, rd, echo=None, resume=True)
+        runs.append(ctl.run())
+    final = runs[-1]
+    assert final["status"] == "complete" and [x["index"] for x in final["legs"]] == list(range(6))
+    ev = " | ".join(final["events"])
+    assert "rebooted" in ev and "resumed after leg 1" in ev and "stopped by SIGTERM" in ev
+    outages = [o for r in runs for o in r["outages"]]
+    # the 300 s drop (at most 60x: 5 s of wall time) is noticed and ridden out
+    assert any(o.get("back_utc") and (o.get("vehicle_s") or 0) >= 250 for o in outages), outages
+    # every reading within a leg's span (per boot) is stored or counted missing by the leg. The sensor reads
+    # at 1 Hz of vehicle time (SimConfig current_rate_hz): a reading every 1000 ms, sent on every link the
+    # vehicle has heard from (none while the controller reconnects or is dead: those are lost too)
+    boots = _sim_boots(tlog)
+    recs = stored(rd)
+    for leg in final["legs"]:
+        i = int(leg["index"])
+        sensor_ticks = unseen_sent = 0
+        for b in {r.boot for r in recs if r.leg == i}:
+            have = sorted(r.time_boot_ms for r in recs if r.leg == i and r.boot == b)
+            sim_boot = max(boots, key=lambda ts, h=set(have): len(h.intersection(ts)))
+            assert set(have) <= set(sim_boot)  # nothing stored that the vehicle did not send
+            span = [t for t in sim_boot if have[0] <= t <= have[-1]]
+            assert all((t - have[0]) % 1000 == 0 for t in span)  # one sensor clock
+            unseen_sent += len(set(span) - set(have))
+            sensor_ticks += (have[-1] - have[0]) // 1000 + 1 - len(have)
+        rdg = leg["readings"]
+        assert rdg["missing"] == sensor_ticks >= unseen_sent, (i, rdg, sensor_ticks, unseen_sent)
+    # the drops cost readings, and they were counted
+    assert sum(x["readings"]["missing"] for x in final["legs"]) >= 10
+    res = replay(rd.root, out=False)
+    # every attempt: the 6 legs and the 2 interrupted attempts (legs 3 and 5), each path as recorded
+    assert res.reproduced is True and [x.index for x in res.legs] == [0, 1, 2, 2, 3, 4, 4, 5]
+    assert all(x.path_identical for x in res.legs) and all(x.rmse_identical for x in res.legs if x.n_gp_points)

@@ -382,6 +382,10 @@ class MissionController:
         self._write_summary = parts.write_summary or self._write_own_summary
         self._n_stored: int | None = None  # the store's count when last read
         self._last_clock: tuple[int, int, int, int] | None = None  # (leg, time_boot_ms, boot, k) last sent
+        self._attempts: dict[int, list[dict]] = {}  # leg -> its interrupted attempts (resume)
+        #: one record per controller session of this run (a resume adds one): UTC start, first leg, the legs
+        #: it planned in order (their clock STATUSTEXTs in the log): where a replay restarts as the run did
+        self.sessions: list[dict] = []
         self.live_leg: tuple[int | None, float | None] = (None, None)  # (leg in flight, uptime s it should end)
 
     def _make_clock(self, field_time_at_boot: float | None) -> RunClock:
@@ -479,6 +483,7 @@ class MissionController:
         """(state, t_state, first leg index)."""
         state, t_state = self.step.initial_state()
         if not self.resume:
+            self.sessions = [{"started_utc": self.started_utc, "first_leg": 0, "planned": []}]
             return state, t_state, 0
         from passt_mav.fields.field import load_field
 
@@ -492,6 +497,11 @@ class MissionController:
             self.started_utc = old.get("started_utc") or self.started_utc
             self.events[:0] = list(old.get("events") or [])  # (before what resume_boots found)
         self.leg_records = done
+        self.sessions = [
+            *((old or {}).get("sessions") or []),
+            {"started_utc": utc_now(), "first_leg": len(done), "planned": []},
+        ]
+        self._archive_attempt(len(done))
         if not done:
             # killed during leg 0: still say so (the store keeps that leg's samples; it is re-planned)
             self._say(f"resuming {self.rd.root}: no leg completed yet; leg 0 is re-planned from here")
@@ -506,6 +516,36 @@ class MissionController:
         self._say(f"resuming {self.rd.root}: {len(done)} leg(s) done, state at field time {last['t_state']:.1f}")
         self.events.append(f"resumed after leg {len(done) - 1} at {utc_now()}")
         return np.array(fld.data[0], dtype=np.float32), float(last["t_state"]), len(done)
+
+    def _archive_attempt(self, i: int) -> None:
+        """Leg ``i`` was in flight when the controller stopped: keep that attempt's record. Its files move to
+        ``legs/NNN/attempt_K/`` (K = 1, 2, ...) and a summary of it (path, start cell, clock, samples stored)
+        goes to :attr:`_attempts`, which the re-planned leg's record lists under ``attempts``. Its samples stay
+        in the store under leg ``i``: measurements like any other, the re-flown leg absorbs them too."""
+        if not self.rd.leg_file(i).exists():
+            return
+        old = self.rd.read_leg(i)
+        if old.get("status") == "complete":
+            return
+        d = self.rd.leg_dir(i)
+        k = 1 + sum(1 for x in d.glob("attempt_*") if x.is_dir())
+        dest = d / f"attempt_{k}"
+        dest.mkdir()
+        for f in d.iterdir():
+            if f.is_file():
+                f.rename(dest / f.name)
+        keep = ("path", "start_cell", "t_now", "t_start", "forecast_steps_before", "clock_reading")
+        self._attempts[i] = [
+            *old.get("attempts", []),
+            {
+                "attempt": k,
+                "status": "interrupted",
+                "dir": f"attempt_{k}",
+                "n_samples_stored": self.store.count(i),
+                **{key: old[key] for key in keep if key in old},
+            },
+        ]
+        self._say(f"leg {i + 1}: its interrupted attempt {k} kept in {dest} ({self.store.count(i)} samples stored)")
 
     def _on_reboot(self, boot: int, last_tb: int, first_tb: int) -> None:
         """From the reader thread (SampleCollector): the vehicle's time since boot went back."""
@@ -547,6 +587,7 @@ class MissionController:
             self._say(f"stopped by {exc.name}: {what}; store flushed, summary written; continue with --resume")
             if not leave:
                 self._safe_hold()
+            self._place_held()
         except Paused as exc:
             self.status = "paused"
             self._note("stopped", str(exc))
@@ -611,6 +652,12 @@ class MissionController:
         self.collector.detach()
         self.record.stop_status(lambda: live_status(self))
 
+    def _place_held(self) -> None:
+        """The leg in flight's last readings wait for the fix after them (as at a leg's end, :meth:`_fly_leg`)."""
+        leg = self.live_leg[0]
+        if leg is not None and self.collector is not None and not self.link.lost:
+            self.collector.wait_placed(leg, self.collector.track.max_gap_ms / 1000.0 / max(self.speedup, 1.0) + 0.5)
+
     def _safe_hold(self) -> None:
         self.session.hold_if_auto()
 
@@ -667,6 +714,8 @@ class MissionController:
         """
         lat, lon = self.session.position()
         start = self.step.start_cell(lat, lon)
+        if self.sessions:
+            self.sessions[-1]["planned"].append(i)
         tb, boot = self.run_clock.reading()
         t_now = float(self._clock_with_boots().field_time(tb, boot))
         return self.share.plan(
@@ -726,6 +775,8 @@ class MissionController:
             "waypoint_seqs": wm.waypoint_seqs(),
             "t_now": planned.t_now,
         }
+        if self._attempts.get(i):
+            rec["attempts"] = self._attempts[i]
         rd.write_leg(i, rec)
         rec.update(self.share.plan_fields())
         self.leg_rec = rec
@@ -897,6 +948,7 @@ def run_summary(ctl) -> dict:
         "n_samples": ctl._n_samples(),
         "readings_used": [(x.get("readings") or {}).get("fraction_used") for x in legs],
         "stopped_by": getattr(ctl, "stopped_by", None),
+        "sessions": list(getattr(ctl, "sessions", None) or []),
         "outages": list(getattr(getattr(ctl, "session", None), "outages", None) or []),
         "link_vehicle_bytes_per_s": [(x.get("link") or {}).get("vehicle_bytes_per_s") for x in legs],
         "rmse": rm if ctl.truth_known else None,

@@ -266,7 +266,7 @@ class VehicleSession:
                     f"again from HOLD (attempt {attempt + 1}/{attempts})"
                 )
                 self.journal.note("link_lost", f"leg {i}: link lost during the swap at {utc_now()}: {exc}")
-                self.reconnect_within_window(i, time.monotonic() - self._silent_s())
+                self.reconnect_within_window(i, time.monotonic() - self._silent_s(), "swap")
         raise AssertionError("unreachable")
 
     def _swap_once(self, i: int, items, t0w: float, attempt: int, on_armed, on_start):
@@ -540,7 +540,7 @@ class VehicleSession:
         )
         self.journal.note("reboot", f"leg {i}: vehicle rebooted at {utc_now()} (boot {boot}, was at item {seq})")
         if self.link.lost:
-            self.reconnect_within_window(i, time.monotonic() - self._silent_s())
+            self.reconnect_within_window(i, time.monotonic() - self._silent_s(), "reboot")
         self.link.request_streams()  # a reboot forgets the rates set by SET_MESSAGE_INTERVAL
         self.wait_ready()
         if self.on_reboot == "hold":
@@ -577,62 +577,66 @@ class VehicleSession:
         """The link-loss window in wall seconds (``link_loss_window_s / speedup``)."""
         return self.link_loss_window_s / self.speedup
 
-    def reconnect_within_window(self, i: int, t_lost: float) -> None:
+    def reconnect_within_window(self, i: int, t_lost: float, during: str = "leg") -> dict:
         """Reconnect until the link-loss window, counted from ``t_lost`` (monotonic s), ends: back-off capped,
-        one line per failed attempt. Raises :class:`LinkWindowOver` when the window ends first."""
+        one line per failed attempt. The outage goes to :attr:`outages` (``leg``, ``during`` what, UTC lost
+        and back, wall seconds, the vehicle's uptime s last heard and in its first position after, and the
+        vehicle seconds between them: readings it sent meanwhile never reached us); returns that record.
+        Raises :class:`LinkWindowOver` when the window ends first."""
+        link = self.link
+        out = {"leg": i, "during": during, "lost_utc": utc_now(), "tb_from_s": link.vehicle_uptime_s()}
+        self.outages.append(out)
         left = self.window_wall_s - (time.monotonic() - t_lost)
-        self.link.clear_error()
+        link.clear_error()
         try:
-            self.link.reconnect(wait_s=max(left, 0.0), say=lambda s: self._say(f"leg {i + 1}: {s}"))
+            link.reconnect(wait_s=max(left, 0.0), say=lambda s: self._say(f"leg {i + 1}: {s}"))
         except LinkTimeout as exc:
+            out.update(wall_s=round(time.monotonic() - t_lost, 3), back_utc=None)
             raise LinkWindowOver(
                 f"leg {i}: no link for {time.monotonic() - t_lost:.0f} s wall, the link-loss window "
                 f"(vehicle.link_loss_window_s = {self.link_loss_window_s:g} s of vehicle time): {exc}; the vehicle "
                 f"flies its uploaded leg on and then holds its last waypoint (Rover MIS_DONE_BEHAVE); continue "
                 f"with --resume once it can be reached"
             ) from None
+        try:  # the vehicle's clock in its first position after the outage
+            gp = link.wait("GLOBAL_POSITION_INT", timeout=max(1.0, 3.0 / self.speedup) + link.reply_timeout)
+            tb_to = gp.time_boot_ms / 1000.0
+        except LinkTimeout:
+            tb_to = None
+        tb_from = out["tb_from_s"]
+        out.update(
+            back_utc=utc_now(),
+            wall_s=round(time.monotonic() - t_lost, 3),
+            tb_to_s=tb_to,
+            vehicle_s=None if tb_from is None or tb_to is None or tb_to < tb_from else round(tb_to - tb_from, 3),
+        )
+        return out
 
     def recover_link(self, i: int, items) -> None:
         """The link died mid-leg: reconnect within the link-loss window (:meth:`reconnect_within_window`),
         then resync (unless the autopilot rebooted: :meth:`fly` handles that): position, mode, the stored
-        mission (re-uploaded at the current item if it is not ours), the current item. The outage is
-        recorded in :attr:`outages` (wall seconds, and the vehicle's clock before and after: readings it
-        sent in between never reached us). Raises :class:`LinkWindowOver` when the window ends first."""
+        mission (re-uploaded at the current item if it is not ours), the current item. Raises
+        :class:`LinkWindowOver` when the window ends first."""
         link = self.link
         why = link.closed_reason or f"{link.seconds_since_heartbeat:.1f} s without heartbeat"
         t_lost = time.monotonic() - self._silent_s()
-        tb_from = link.vehicle_uptime_s()
-        out = {"leg": i, "lost_utc": utc_now(), "why": why, "tb_from_s": tb_from}
-        self.outages.append(out)
         self._say(
             f"leg {i + 1}: link lost ({why}); the vehicle flies its leg on; reconnecting for up to "
             f"{self.link_loss_window_s:g} s (vehicle.link_loss_window_s)"
         )
         self.journal.note("link_lost", f"leg {i}: link lost at {utc_now()} ({why})")
         while True:
+            out = self.reconnect_within_window(i, t_lost)
             try:
-                self.reconnect_within_window(i, t_lost)
-            except LinkWindowOver:
-                out.update(wall_s=round(time.monotonic() - t_lost, 3), back_utc=None)
-                raise
-            try:
-                cur, tb_to = self._resync(i, items)
+                cur = self._resync(i, items)
                 break
             except MavlinkError:
                 if not (link.lost or link.error is not None):
                     raise
                 self._say(f"leg {i + 1}: link lost again during the resync; reconnecting")
-        out.update(
-            back_utc=utc_now(),
-            wall_s=round(time.monotonic() - t_lost, 3),
-            tb_to_s=tb_to,
-            rebooted=self.rebooted.is_set(),
-            vehicle_s=None
-            if tb_from is None or tb_to is None or tb_to < tb_from or self.rebooted.is_set()
-            else round(tb_to - tb_from, 3),
-        )
         self.journal.record.event("link_back", f"leg {i}: link back at {utc_now()}")
         if cur is None:
+            out["vehicle_s"] = None  # the autopilot rebooted meanwhile: its clock started again
             return  # fly() handles the reboot (it verifies the mission itself)
         v = self.vehicle
         pos = v.position()
@@ -647,19 +651,13 @@ class VehicleSession:
             f"{cur.seq}/{getattr(cur, 'total', '?')}, mode {mode}{where}"
         )
 
-    def _resync(self, i: int, items) -> tuple:
-        """After a reconnect: the vehicle's position and clock, a reboot check, the stored mission (re-uploaded
-        at the current item if not ours). Returns (MISSION_CURRENT or None when the autopilot rebooted, the
-        vehicle's uptime s in its first position after the reconnect or None)."""
+    def _resync(self, i: int, items):
+        """After a reconnect: a reboot check, the stored mission (re-uploaded at the current item if not ours).
+        Returns MISSION_CURRENT, or None when the autopilot rebooted."""
         link = self.link
-        # a rebooted autopilot also drops its links: look at its time before treating this as a link fault
-        try:
-            gp = link.wait("GLOBAL_POSITION_INT", timeout=max(1.0, 3.0 / self.speedup) + link.reply_timeout)
-            tb_back = gp.time_boot_ms / 1000.0
-        except LinkTimeout:
-            tb_back = None
+        # a rebooted autopilot also drops its links (its first time stamps were awaited by the reconnect)
         if self.rebooted.wait(0.1):
-            return None, tb_back
+            return None
         v = self.vehicle
         diff = differences(list(items), v.mission.download(), 0)
         cur = link.wait("MISSION_CURRENT", timeout=max(2.0, link.reply_timeout))
@@ -672,7 +670,7 @@ class VehicleSession:
             v.mission.set_current(max(1, min(int(cur.seq), len(items) - 1)))
             if was_auto:
                 v.set_mode("AUTO")
-        return cur, tb_back
+        return cur
 
     def pause(self, i: int, mode: int) -> float:
         """A pilot took the vehicle out of AUTO: wait up to ``pause_timeout_s`` for AUTO to come back.
@@ -692,7 +690,7 @@ class VehicleSession:
             if self.rebooted.is_set():
                 raise Rebooted()  # not the pilot after all (or the pilot rebooted it): fly() resumes
             if self.link.lost:
-                self.reconnect_within_window(i, time.monotonic() - self._silent_s())
+                self.reconnect_within_window(i, time.monotonic() - self._silent_s(), "pause")
             time.sleep(0.05)
         raise Paused(f"leg {i}: the vehicle stayed in {name} for {self.pause_timeout_s:.0f} s; stopping in HOLD")
 
