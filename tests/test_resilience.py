@@ -65,6 +65,7 @@ def lockstep(
     sim_field="same",
     tlog=None,
     max_rate: float | None = None,
+    link_kw: dict | None = None,
 ):
     """(sim, link, radio) with the simulator in lockstep behind the link (writing the telemetry log ``tlog``;
     ``max_rate``: :func:`paced`); ``radio["cfg"]`` is the impairment of every link the controller opens from
@@ -72,7 +73,7 @@ def lockstep(
     sim = Simulator(field if sim_field == "same" else sim_field, home=HOME, config=sim_cfg or sim_config())
     box = {"cfg": radio}
     link = Link(
-        link_config(stream_rates_hz=LEAN_STREAMS, tlog=None if tlog is None else str(tlog)),
+        link_config(stream_rates_hz=LEAN_STREAMS, tlog=None if tlog is None else str(tlog), **(link_kw or {})),
         connection_factory=lambda: paced(sim.connect_inprocess(box["cfg"]), max_rate),
     )
     link.connect()
@@ -430,12 +431,17 @@ def test_chaos_six_legs_drops_restart_kill_resume_and_sigterm(tmp_path):
     from passt_mav.analysis.replay import replay
 
     field = wave_field()
-    cfg = mission(tmp_path, field, legs=6)
+    # the window is not under test here: a paced simulator on a loaded machine may take minutes of wall time
+    # for the 300 s drop (it runs only while the reader polls, not during the reconnects' back-off)
+    vehicle_cfg = {"speed_mps": 5.0, "wp_radius_m": 3.0, "link_loss_window_s": 36000}
+    cfg = mission(tmp_path, field, legs=6, vehicle=vehicle_cfg)
     rd = RunDir(tmp_path / "run").create()
     tlog = tmp_path / "sim.tlog"
     radio = SimLinkConfig(arm_drops=((20.0, 10.0), (70.0, 45.0), (150.0, 300.0)))
     runs = []
+    # (reply timeouts of 1 s wall: the simulator runs at most 60x, less on a loaded machine)
     cfgs = {"sim_cfg": sim_config(tlog=str(tlog)), "radio": radio, "tlog": rd.tlog, "max_rate": 60}
+    cfgs["link_kw"] = {"timeout_s": 1.0}
     with lockstep(field, **cfgs) as (sim, link, _):
         # 1. drops, a simulator restart in leg 2, the controller killed in leg 3 (index 2)
         ctl = controller(cfg, field, link, rd, echo=None)
@@ -512,3 +518,64 @@ def test_chaos_six_legs_drops_restart_kill_resume_and_sigterm(tmp_path):
     # every attempt: the 6 legs and the 2 interrupted attempts (legs 3 and 5), each path as recorded
     assert res.reproduced is True and [x.index for x in res.legs] == [0, 1, 2, 2, 3, 4, 4, 5]
     assert all(x.path_identical for x in res.legs) and all(x.rmse_identical for x in res.legs if x.n_gp_points)
+
+
+# -- 4. damaged runs ------------------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def flown_run(tmp_path_factory):
+    """A complete 2-leg run (lockstep), its run directory with summary, store and telemetry log."""
+    tmp = tmp_path_factory.mktemp("damaged")
+    field = wave_field()
+    cfg = mission(tmp, field, legs=2)
+    rd = RunDir(tmp / "run").create()
+    rd.mission_file.write_text(_mission_file(tmp, field, legs=2).read_text())
+    with lockstep(field, tlog=rd.tlog) as (_sim, link, _):
+        summary = controller(cfg, field, link, rd, echo=None).run()
+    assert summary["status"] == "complete"
+    return rd.root
+
+
+def _damaged_copy(src, dst, *, store: bool, tlog: bool):
+    """A copy of run ``src`` with its store truncated to half and/or 30 % cut from the end of its log."""
+    import shutil
+
+    shutil.copytree(src, dst)
+    for name, cut, on in (("samples.sqlite", 0.5, store), ("flight.tlog", 0.7, tlog)):
+        if on:
+            p = dst / name
+            with open(p, "r+b") as f:
+                f.truncate(int(p.stat().st_size * cut))
+    return dst
+
+
+def test_damaged_run_report_says_what_is_missing_and_never_complete(flown_run, tmp_path, capsys):
+    from passt_mav.cli import main
+
+    run = _damaged_copy(flown_run, tmp_path / "run", store=True, tlog=True)
+    assert main(["report", str(run)]) == 0
+    out = capsys.readouterr().out.strip().splitlines()
+    dmg = [x for x in out if x.startswith("damaged run:")]
+    assert len(dmg) == 1 and "samples.sqlite unreadable" in dmg[0] and "flight.tlog" in dmg[0]
+    page = (run / "report" / "report.html").read_text()
+    assert "Status: damaged (recorded complete)" in page and "Status: complete" not in page
+    # the intact run is complete, and says nothing of damage
+    assert main(["report", str(flown_run)]) == 0
+    assert "damaged run:" not in capsys.readouterr().out
+    assert "Status: complete" in (flown_run / "report" / "report.html").read_text()
+
+
+def test_damaged_store_replay_and_export_use_the_log(flown_run, tmp_path, capsys):
+    import json as _json
+
+    from passt_mav.cli import main
+
+    run = _damaged_copy(flown_run, tmp_path / "run", store=True, tlog=False)
+    rc = main(["replay", str(run), "--json"])
+    text = capsys.readouterr().out
+    res = _json.loads(text[text.index("{") :])
+    assert rc == 0 and res["reproduced"] is True  # the log alone holds every leg
+    assert any("damaged run: samples.sqlite unreadable" in n for n in res["notes"])
+    assert main(["export", str(run), "--format", "csv", "--out", str(tmp_path / "s.csv")]) == 0
+    lines = capsys.readouterr().out.strip().splitlines()
+    assert lines[0].startswith("damaged run: samples.sqlite unreadable") and "telemetry log" in lines[0]
+    assert len((tmp_path / "s.csv").read_text().splitlines()) > 10

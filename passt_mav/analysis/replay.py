@@ -446,18 +446,28 @@ def _recorded_legs(rd) -> dict[int, dict]:
         raise ReplayError(str(exc)) from None
 
 
-def _stored_samples(rd) -> dict[int, set]:
-    """The run's sample store by leg: sets of (time_boot_ms, lat, lon, u, v); empty without a store."""
+def _stored_samples(rd, notes: list[str] | None = None) -> dict[int, set]:
+    """The run's sample store by leg: sets of (time_boot_ms, lat, lon, u, v); empty without a store, or with a
+    damaged one (said in ``notes``: the replay then rests on the log alone, which is what it rebuilds from)."""
+    import sqlite3
+
+    from passt_mav.runs.store import SampleStoreError
+
     store_legs: dict[int, set] = {}
     if rd is not None and rd.samples_db.is_file():
         from passt_mav.runs.store import SampleStore
 
-        st = SampleStore(rd.samples_db, readonly=True)
         try:
-            for x in st.all():
-                store_legs.setdefault(int(x.leg), set()).add((int(x.time_boot_ms), x.lat, x.lon, x.u, x.v))
-        finally:
-            st.close()
+            st = SampleStore(rd.samples_db, readonly=True)
+            try:
+                for x in st.all():
+                    store_legs.setdefault(int(x.leg), set()).add((int(x.time_boot_ms), x.lat, x.lon, x.u, x.v))
+            finally:
+                st.close()
+        except (SampleStoreError, sqlite3.DatabaseError) as exc:
+            if notes is not None:
+                notes.append(f"damaged run: {rd.SAMPLES} unreadable ({exc}); replayed from the telemetry log alone")
+            return {}
     return store_legs
 
 
@@ -550,8 +560,8 @@ class _LogReplay:
         """Read the log, replay its legs, compare them with the run's records."""
         log = _read_log(self.inp, self.setup.cfg)
         self.recorded = _recorded_legs(self.inp.rd)
-        self.store_legs = _stored_samples(self.inp.rd)
         notes = _log_notes(log)
+        self.store_legs = _stored_samples(self.inp.rd, notes)
         state, t_state = self.setup.step.initial_state()
         if self.inp.rd is None:
             self.chosen = self._search_clocks(log, state, t_state, notes)

@@ -585,6 +585,7 @@ class MissionController:
             what = "the vehicle left flying its leg in AUTO (vehicle.on_signal: auto)" if leave else "HOLD"
             self._note("stopped", f"stopped by {exc.name} at {utc_now()}: {what}; continue with --resume")
             self._say(f"stopped by {exc.name}: {what}; store flushed, summary written; continue with --resume")
+            self._close_leg()
             if not leave:
                 self._safe_hold()
             self._place_held()
@@ -592,6 +593,7 @@ class MissionController:
             self.status = "paused"
             self._note("stopped", str(exc))
             self._say(f"stopped: {exc}")
+            self._close_leg()
             try:  # the pilot's RC still overrides HOLD; a vehicle left in an unknown mode would not stop
                 self.vehicle.hold()
             except MavlinkError as e2:
@@ -659,7 +661,16 @@ class MissionController:
             self.collector.wait_placed(leg, self.collector.track.max_gap_ms / 1000.0 / max(self.speedup, 1.0) + 0.5)
 
     def _safe_hold(self) -> None:
+        """HOLD if in AUTO (never raises), the leg closed first (:meth:`_close_leg`)."""
+        self._close_leg()
         self.session.hold_if_auto()
+
+    def _close_leg(self) -> None:
+        """No reading arriving from now on belongs to a leg: the run stops with the leg in flight (a stop can come
+        between the swap and :meth:`_fly_leg`), and its telemetry log ends the leg at the HOLD sent next, so a
+        replay assigns the readings as the store does."""
+        if self.collector is not None:
+            self.collector.leg = None
 
     # -- one leg: plan -> check -> upload (transactional) -> fly -> absorb ---------------------------
     def _leg(self, i: int, state: np.ndarray, t_state: float) -> tuple[np.ndarray, float]:
