@@ -856,13 +856,22 @@ class MissionController:
         """The leg's stored samples through the state keeper (:meth:`OwnState.absorb`); the estimate to estimate.nc."""
         from passt_mav.fields.field import FlowField
 
+        recs, clock = self.store.for_leg(i), self._clock_with_boots()
         try:
-            absorbed = self._update(planned, self.store.for_leg(i), self._clock_with_boots())
+            absorbed = self._update(planned, recs, clock)
         except ReconstructionError as exc:
-            raise MavlinkError(
-                f"leg {i}: no current samples arrived (is the sensor sending "
-                f"{self.config.sensors.u}/{self.config.sensors.v}?): {exc}"
-            ) from None
+            heard = self.collector.leg_counts(i)["readings"] > 0 or any(o["leg"] == i for o in self.session.outages)
+            if isinstance(self.share, OwnState) and heard:
+                # the sensor works but the link lost most of the leg's readings: the few left cannot update the
+                # state, the forecast carries it on (as a replay of the log does) and the mission goes on
+                absorbed = self.step.absorb(planned, recs, clock, strict=False)
+                self._note("warning", f"leg {i}: only {len(recs)} samples (link outage or loss): {absorbed.note}")
+                self._say(f"{self._leg_label(i)}: only {len(recs)} samples (link outage or loss); {absorbed.note}")
+            else:
+                raise MavlinkError(
+                    f"leg {i}: no current samples arrived (is the sensor sending "
+                    f"{self.config.sensors.u}/{self.config.sensors.v}?): {exc}"
+                ) from None
         std = None if absorbed.std is None else absorbed.std[None]
         FlowField(
             absorbed.state[None], self.grid, np.array([absorbed.t_state]), self.field.time_origin, self.field.units
