@@ -22,6 +22,7 @@ import numpy as np
 import pytest
 from mavlink_helpers import HOME, link_config, lockstep_connection
 from test_controller import controller, mission, sim_config, wave_field
+from test_controller_faults3 import _in_leg, _when
 
 from passt_mav.commands.run import LEAN_STREAMS
 from passt_mav.mavlink import Link
@@ -187,7 +188,7 @@ def test_stop_signals_raise_once_outside_a_file_write_and_after_it_inside():
     assert said[-1].startswith("SIGHUP received: stopping already")
 
 
-def _signal_when_flying(ctl, signum, *, after_reached: int = 1):
+def _signal_when_in_leg(ctl, signum, *, after_reached: int = 1):
     """From a thread: ``signum`` to this process once leg 0 flies in AUTO and has reached an item."""
 
     def run():
@@ -213,7 +214,7 @@ def test_signal_mid_leg_stops_cleanly(tmp_path, signum, on_signal, mode):
     with lockstep(field) as (sim, link, _):
         with StopSignals(echo=lambda s: None) as stop:
             ctl = controller(cfg, field, link, rd, echo=None, signals=stop)
-            th = _signal_when_flying(ctl, signum)
+            th = _signal_when_in_leg(ctl, signum)
             summary = ctl.run()
             th.join(5)
         assert stop.received == signum
@@ -395,24 +396,6 @@ class _Killed(BaseException):  # noqa: N818 - the process dying (as the kill/res
     pass
 
 
-def _when(cond, timeout: float = 60.0) -> bool:
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        if cond():
-            return True
-        time.sleep(0.005)
-    return False
-
-
-def _flying(ctl, leg: int, reached: int = 1):
-    return lambda: (
-        ctl.collector is not None
-        and ctl.collector.leg == leg
-        and ctl.vehicle.mode == AUTO
-        and len(ctl.vehicle.progress.reached) >= reached
-    )
-
-
 def _sim_boots(tlog) -> list[list[int]]:
     """The simulator's readings (tlog) split by boot: ``time_boot_ms`` going back starts a new one."""
     boots: list[list[int]] = [[]]
@@ -424,8 +407,8 @@ def _sim_boots(tlog) -> list[list[int]]:
 
 
 def test_chaos_six_legs_drops_restart_kill_resume_and_sigterm(tmp_path):
-    """One 6-leg mission on the lockstep simulator: radio drops of 10, 45 and 300 s, the simulator restarting
-    mid-leg, the controller dying mid-leg 3 (resumed), a SIGTERM mid-leg 5 (resumed to the end). Every reading
+    """One 6-leg mission on the lockstep simulator: radio drops of 10, 45 and 300 s, the controller dying mid-leg 3
+    (resumed), a SIGTERM mid-leg 5 (resumed), the simulator restarting mid-leg 6. Every reading
     the vehicle sent within a leg's span is in the store or counted missing by that leg's record, and the
     replay of the run reproduces every leg's path and RMSE."""
     from passt_mav.analysis.replay import replay
@@ -437,36 +420,27 @@ def test_chaos_six_legs_drops_restart_kill_resume_and_sigterm(tmp_path):
     cfg = mission(tmp_path, field, legs=6, vehicle=vehicle_cfg)
     rd = RunDir(tmp_path / "run").create()
     tlog = tmp_path / "sim.tlog"
-    radio = SimLinkConfig(arm_drops=((20.0, 10.0), (70.0, 45.0), (150.0, 300.0)))
+    # (drops counted from the first arming on the simulator's clock, which a reboot restarts: all of them
+    # early in the mission, the restart in its last leg)
+    radio = SimLinkConfig(arm_drops=((20.0, 10.0), (60.0, 45.0), (110.0, 300.0)))
     runs = []
     # (reply timeouts of 1 s wall: the simulator runs at most 60x, less on a loaded machine)
     cfgs = {"sim_cfg": sim_config(tlog=str(tlog)), "radio": radio, "tlog": rd.tlog, "max_rate": 60}
     cfgs["link_kw"] = {"timeout_s": 1.0}
     with lockstep(field, **cfgs) as (sim, link, _):
-        # 1. drops, a simulator restart in leg 2, the controller killed in leg 3 (index 2)
+        # 1. drops, the controller killed in leg 3 (index 2)
         ctl = controller(cfg, field, link, rd, echo=None)
-        # (not while the radio is down: a reboot nobody hears is another test)
-        quiet = _flying(ctl, 1, 2)
-        th = threading.Thread(
-            target=lambda: (
-                _when(lambda: quiet() and not link.lost and not sim.links[-1].is_down(sim.t))
-                and sim.reboot(downtime_s=2.0)
-            ),
-            daemon=True,
-        )
-        th.start()
         fly = ctl._fly
 
         def dying_fly(i, *a):
             if i == 2:
-                _when(lambda: ctl.store.count(2) >= 3)
+                _when(ctl, lambda: ctl.store.count(2) >= 3, 60)
                 raise _Killed()
             return fly(i, *a)
 
         ctl._fly = dying_fly
         with pytest.raises(_Killed):
             ctl.run()
-        th.join(5)
         runs.append(rd.read_summary())
         assert [x["index"] for x in runs[0]["legs"]] == [0, 1] and rd.read_leg(2)["status"] == "flying"
         # 2. resumed; SIGTERM in leg 5 (index 4)
@@ -475,22 +449,32 @@ def test_chaos_six_legs_drops_restart_kill_resume_and_sigterm(tmp_path):
         with StopSignals(echo=lambda s: None) as stop:
             ctl = controller(cfg, field, link, rd, echo=None, resume=True, signals=stop)
             th = threading.Thread(
-                target=lambda: _when(_flying(ctl, 4)) and os.kill(os.getpid(), signal.SIGTERM), daemon=True
+                target=lambda: _when(ctl, _in_leg(ctl, 4), 60) and os.kill(os.getpid(), signal.SIGTERM), daemon=True
             )
             th.start()
             runs.append(ctl.run())
             th.join(5)
         assert runs[1]["status"] == "stopped" and runs[1]["stopped_by"] == "SIGTERM"
         assert [x["index"] for x in runs[1]["legs"]] == [0, 1, 2, 3]
-        # 3. resumed to the end
+        # 3. resumed to the end; the simulator restarts in the last leg (not while the radio is down)
         if link.lost:
             link.reconnect(wait_s=30)
         ctl = controller(cfg, field, link, rd, echo=None, resume=True)
+        quiet = _in_leg(ctl, 5, 2)
+        th = threading.Thread(
+            target=lambda: (
+                _when(ctl, lambda: quiet() and not link.lost and not sim.links[-1].is_down(sim.t), 60)
+                and sim.reboot(downtime_s=2.0)
+            ),
+            daemon=True,
+        )
+        th.start()
         runs.append(ctl.run())
+        th.join(5)
     final = runs[-1]
     assert final["status"] == "complete" and [x["index"] for x in final["legs"]] == list(range(6))
     ev = " | ".join(final["events"])
-    assert "rebooted" in ev and "resumed after leg 1" in ev and "stopped by SIGTERM" in ev
+    assert "leg 5: vehicle rebooted" in ev and "resumed after leg 1" in ev and "stopped by SIGTERM" in ev
     outages = [o for r in runs for o in r["outages"]]
     # the 300 s drop (at most 60x: 5 s of wall time) is noticed and ridden out
     assert any(o.get("back_utc") and (o.get("vehicle_s") or 0) >= 250 for o in outages), outages

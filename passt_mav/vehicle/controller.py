@@ -116,6 +116,7 @@ from passt_mav.runs.legs import clock_statustext
 from passt_mav.runs.live import RecordWriter
 from passt_mav.vehicle.clock import RunClock
 from passt_mav.vehicle.live_record import live_meta, live_status
+from passt_mav.vehicle.resume import ResumeRecord
 from passt_mav.vehicle.session import Deadline as _Deadline  # noqa: F401 - tests import it from here
 from passt_mav.vehicle.session import Journal, Paused, VehicleSession, expected_vehicle_s, utc_now
 from passt_mav.vehicle.signals import NO_SIGNALS, Stopped
@@ -297,7 +298,7 @@ def preflight(config, field, predictor) -> None:
         raise ModelError("the mission's model forecasts NaN/inf from the field's state at t0; check the model")
 
 
-class MissionController:
+class MissionController(ResumeRecord):
     """Runs a mission config on a connected vehicle, writing a run directory.
 
     Args:
@@ -356,8 +357,7 @@ class MissionController:
         self.dt = float(field.dt)
         self.speedup = max(float(speedup_hint), 1e-6)
         self.resume, self.truth_known, self.mission_text = resume, truth_known, mission_text
-        self.signals = signals or NO_SIGNALS
-        self.stopped_by: str | None = None  # the signal's name after a stop by signal
+        self.signals, self.stopped_by = signals or NO_SIGNALS, None  # (stopped_by: the signal's name)
         self.extra_summary = dict(extra_summary or {})
         self.land = field.land_mask
         parts = parts or BoatParts()
@@ -371,8 +371,7 @@ class MissionController:
         self.lock = parts.lock or threading.RLock()
         self.leg_records: list[dict] = []
         self.leg_rec: dict | None = None  # the record of the leg in flight
-        self.status = "running"
-        self.started_utc = utc_now()
+        self.status, self.started_utc = "running", utc_now()
         self.store = self.collector = self.writer = None  # set by run()
         self.record = parts.record or RecordWriter(run_dir.root)  # the live view's files (passt_mav.runs.live)
         self.journal = Journal(echo or (lambda s: None), self.record)
@@ -382,10 +381,7 @@ class MissionController:
         self._write_summary = parts.write_summary or self._write_own_summary
         self._n_stored: int | None = None  # the store's count when last read
         self._last_clock: tuple[int, int, int, int] | None = None  # (leg, time_boot_ms, boot, k) last sent
-        self._attempts: dict[int, list[dict]] = {}  # leg -> its interrupted attempts (resume)
-        #: one record per controller session of this run (a resume adds one): UTC start, first leg, the legs
-        #: it planned in order (their clock STATUSTEXTs in the log): where a replay restarts as the run did
-        self.sessions: list[dict] = []
+        self._init_resume_record()
         self.live_leg: tuple[int | None, float | None] = (None, None)  # (leg in flight, uptime s it should end)
 
     def _make_clock(self, field_time_at_boot: float | None) -> RunClock:
@@ -438,26 +434,6 @@ class MissionController:
         """The clock with a ``t_boot0`` for every boot (:meth:`RunClock.with_boots`)."""
         return self.run_clock.with_boots()
 
-    def _readings_record(self, i: int, outages=()) -> dict:
-        """Sensor readings of leg ``i``: received (u/v pairs), used (placed on the track), dropped (gap);
-        ``missing``: readings the sensor sent in the leg's span that are not in the store
-        (:func:`missing_readings`: lost on the link, in an outage or to a position gap); and the vehicle
-        seconds without a link (``outages``: :attr:`VehicleSession.outages` of the leg)."""
-        c = self.collector.leg_counts(i)
-        recs = self.store.for_leg(i)
-        by_boot: dict[int, list[int]] = {}
-        for r in recs:
-            by_boot.setdefault(int(r.boot), []).append(int(r.time_boot_ms))
-        return {
-            "missing": int(sum(missing_readings(np.asarray(v)) for v in by_boot.values())),
-            "lost_in_outages_vehicle_s": round(sum(float(o.get("vehicle_s") or 0.0) for o in outages), 3),
-            "received": c["readings"],
-            "used": c["emitted"],
-            "dropped_gap": c["gap"],
-            "fraction_used": (c["emitted"] / c["readings"]) if c["readings"] else None,
-            "max_gap_ms": self.collector.track.max_gap_ms,
-        }
-
     # -- summary ------------------------------------------------------------------------------
     def summary(self) -> dict:
         """summary.json's content now (see :mod:`passt_mav.runs.rundir`)."""
@@ -474,78 +450,6 @@ class MissionController:
 
     def _write_own_summary(self) -> None:
         self.rd.write_summary(self.summary())
-
-    # -- resume ------------------------------------------------------------------------------------
-    def _old_summary(self) -> dict | None:
-        return self.rd.read_summary() if self.rd.summary_file.exists() else None
-
-    def _initial_state(self) -> tuple[np.ndarray, float, int]:
-        """(state, t_state, first leg index)."""
-        state, t_state = self.step.initial_state()
-        if not self.resume:
-            self.sessions = [{"started_utc": self.started_utc, "first_leg": 0, "planned": []}]
-            return state, t_state, 0
-        from passt_mav.fields.field import load_field
-
-        done = [r for r in self.rd.read_legs() if r.get("status") == "complete"]
-        done.sort(key=lambda r: int(r["index"]))
-        # legs must be contiguous from 0: a gap means the directory is not one run
-        done = [r for k, r in enumerate(done) if int(r["index"]) == k]
-        old = self._old_summary()
-        if old is not None:
-            self.run_clock.restore(old.get("clock") or {})
-            self.started_utc = old.get("started_utc") or self.started_utc
-            self.events[:0] = list(old.get("events") or [])  # (before what resume_boots found)
-        self.leg_records = done
-        self.sessions = [
-            *((old or {}).get("sessions") or []),
-            {"started_utc": utc_now(), "first_leg": len(done), "planned": []},
-        ]
-        self._archive_attempt(len(done))
-        if not done:
-            # killed during leg 0: still say so (the store keeps that leg's samples; it is re-planned)
-            self._say(f"resuming {self.rd.root}: no leg completed yet; leg 0 is re-planned from here")
-            self.events.append(f"resumed before leg 0 completed at {utc_now()}")
-            return state, t_state, 0
-        last = done[-1]
-        est = self.rd.estimate_file(int(last["index"]))
-        if not est.exists():
-            raise UserError(f"cannot resume: {est} is missing")
-        fld = load_field(est)
-        self.loop.leg_index = len(done)
-        self._say(f"resuming {self.rd.root}: {len(done)} leg(s) done, state at field time {last['t_state']:.1f}")
-        self.events.append(f"resumed after leg {len(done) - 1} at {utc_now()}")
-        return np.array(fld.data[0], dtype=np.float32), float(last["t_state"]), len(done)
-
-    def _archive_attempt(self, i: int) -> None:
-        """Leg ``i`` was in flight when the controller stopped: keep that attempt's record. Its files move to
-        ``legs/NNN/attempt_K/`` (K = 1, 2, ...) and a summary of it (path, start cell, clock, samples stored)
-        goes to :attr:`_attempts`, which the re-planned leg's record lists under ``attempts``. Its samples stay
-        in the store under leg ``i``: measurements like any other, the re-flown leg absorbs them too."""
-        if not self.rd.leg_file(i).exists():
-            return
-        old = self.rd.read_leg(i)
-        if old.get("status") == "complete":
-            return
-        d = self.rd.leg_dir(i)
-        k = 1 + sum(1 for x in d.glob("attempt_*") if x.is_dir())
-        dest = d / f"attempt_{k}"
-        dest.mkdir()
-        for f in d.iterdir():
-            if f.is_file():
-                f.rename(dest / f.name)
-        keep = ("path", "start_cell", "t_now", "t_start", "forecast_steps_before", "clock_reading")
-        self._attempts[i] = [
-            *old.get("attempts", []),
-            {
-                "attempt": k,
-                "status": "interrupted",
-                "dir": f"attempt_{k}",
-                "n_samples_stored": self.store.count(i),
-                **{key: old[key] for key in keep if key in old},
-            },
-        ]
-        self._say(f"leg {i + 1}: its interrupted attempt {k} kept in {dest} ({self.store.count(i)} samples stored)")
 
     def _on_reboot(self, boot: int, last_tb: int, first_tb: int) -> None:
         """From the reader thread (SampleCollector): the vehicle's time since boot went back."""
@@ -585,15 +489,15 @@ class MissionController:
             what = "the vehicle left flying its leg in AUTO (vehicle.on_signal: auto)" if leave else "HOLD"
             self._note("stopped", f"stopped by {exc.name} at {utc_now()}: {what}; continue with --resume")
             self._say(f"stopped by {exc.name}: {what}; store flushed, summary written; continue with --resume")
-            self._close_leg()
+            close_leg(self.collector)
             if not leave:
                 self._safe_hold()
-            self._place_held()
+            place_held(self.collector, None if self.link.lost else self.live_leg[0], self.speedup)
         except Paused as exc:
             self.status = "paused"
             self._note("stopped", str(exc))
             self._say(f"stopped: {exc}")
-            self._close_leg()
+            close_leg(self.collector)
             try:  # the pilot's RC still overrides HOLD; a vehicle left in an unknown mode would not stop
                 self.vehicle.hold()
             except MavlinkError as e2:
@@ -654,23 +558,10 @@ class MissionController:
         self.collector.detach()
         self.record.stop_status(lambda: live_status(self))
 
-    def _place_held(self) -> None:
-        """The leg in flight's last readings wait for the fix after them (as at a leg's end, :meth:`_fly_leg`)."""
-        leg = self.live_leg[0]
-        if leg is not None and self.collector is not None and not self.link.lost:
-            self.collector.wait_placed(leg, self.collector.track.max_gap_ms / 1000.0 / max(self.speedup, 1.0) + 0.5)
-
     def _safe_hold(self) -> None:
-        """HOLD if in AUTO (never raises), the leg closed first (:meth:`_close_leg`)."""
-        self._close_leg()
+        """HOLD if in AUTO (never raises), the leg closed first (:func:`close_leg`)."""
+        close_leg(self.collector)
         self.session.hold_if_auto()
-
-    def _close_leg(self) -> None:
-        """No reading arriving from now on belongs to a leg: the run stops with the leg in flight (a stop can come
-        between the swap and :meth:`_fly_leg`), and its telemetry log ends the leg at the HOLD sent next, so a
-        replay assigns the readings as the store does."""
-        if self.collector is not None:
-            self.collector.leg = None
 
     # -- one leg: plan -> check -> upload (transactional) -> fly -> absorb ---------------------------
     def _leg(self, i: int, state: np.ndarray, t_state: float) -> tuple[np.ndarray, float]:
@@ -709,7 +600,7 @@ class MissionController:
                 "duration_vehicle_s": flown,
                 "n_samples_new": self.store.count(i) - store0,
                 "link": self.session.link_record(link0),
-                "readings": self._readings_record(i, outages),
+                "readings": readings_record(self.collector, self.store.for_leg(i), i, outages),
                 "outages": outages,
                 "overrun": cut,
             }
@@ -827,15 +718,7 @@ class MissionController:
         finally:
             self.collector.leg = None
         self.vehicle.hold()
-        cut = None
-        if how == "cut":
-            p = self.vehicle.progress
-            cut = {
-                "expected_vehicle_s": round(expected, 3),
-                "factor": self.config.vehicle.overrun_factor,
-                "cut_at_item": int(p.current),
-                "items": len(items) - 1,
-            }
+        cut = None if how != "cut" else overrun_record(expected, self.config.vehicle, self.vehicle.progress, items)
         duration_s = time.perf_counter() - t_fly
         tb_end = self.link.vehicle_uptime_s()
         # the leg's last readings wait for the fix after them (<= the gap bound of vehicle time)
@@ -904,6 +787,52 @@ class MissionController:
     def _leg_label(self, i: int) -> str:
         """How leg ``i`` (0-based) is named in progress lines."""
         return self.share.label(i, self.n_legs)
+
+
+def readings_record(collector, recs, i: int, outages=()) -> dict:
+    """Sensor readings of leg ``i`` (``recs``: its stored samples): received (u/v pairs), used (placed on the
+    track), dropped (gap); ``missing``: readings the sensor sent in the leg's span that are not in the store
+    (:func:`missing_readings`, per boot: lost on the link, in an outage or to a position gap); and the vehicle
+    seconds without a link (``outages``: :attr:`VehicleSession.outages` of the leg)."""
+    c = collector.leg_counts(i)
+    by_boot: dict[int, list[int]] = {}
+    for r in recs:
+        by_boot.setdefault(int(r.boot), []).append(int(r.time_boot_ms))
+    return {
+        "missing": int(sum(missing_readings(np.asarray(v)) for v in by_boot.values())),
+        "lost_in_outages_vehicle_s": round(sum(float(o.get("vehicle_s") or 0.0) for o in outages), 3),
+        "received": c["readings"],
+        "used": c["emitted"],
+        "dropped_gap": c["gap"],
+        "fraction_used": (c["emitted"] / c["readings"]) if c["readings"] else None,
+        "max_gap_ms": collector.track.max_gap_ms,
+    }
+
+
+def overrun_record(expected_s: float, vehicle_cfg, progress, items) -> dict:
+    """The record of a leg cut for an overrun: its expected vehicle seconds, the mission's factor, the item it
+    was cut at and the leg's items (home excluded)."""
+    return {
+        "expected_vehicle_s": round(expected_s, 3),
+        "factor": vehicle_cfg.overrun_factor,
+        "cut_at_item": int(progress.current),
+        "items": len(items) - 1,
+    }
+
+
+def close_leg(collector) -> None:
+    """No reading arriving from now on belongs to a leg (a run that stops with a leg in flight; a stop can come
+    between the swap and the flight): its telemetry log ends the leg at the HOLD sent next, so a replay
+    assigns the readings as the store does."""
+    if collector is not None:
+        collector.leg = None
+
+
+def place_held(collector, leg: int | None, speedup: float) -> None:
+    """Leg ``leg``'s last readings wait for the fix after them (as at a leg's end), up to the gap bound of
+    vehicle time in wall seconds at ``speedup``."""
+    if leg is not None and collector is not None:
+        collector.wait_placed(leg, collector.track.max_gap_ms / 1000.0 / max(speedup, 1.0) + 0.5)
 
 
 def missing_readings(tb_ms: np.ndarray) -> int:
