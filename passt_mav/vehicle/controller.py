@@ -490,8 +490,8 @@ class MissionController(ResumeRecord):
             self._note("stopped", f"stopped by {exc.name} at {utc_now()}: {what}; continue with --resume")
             self._say(f"stopped by {exc.name}: {what}; store flushed, summary written; continue with --resume")
             close_leg(self.collector)
-            if not leave:
-                self._safe_hold()
+            if not leave:  # HOLD whatever the mode seen last: a stop during the swap may precede AUTO's heartbeat
+                self.session.hold_if_auto(always=True)
             place_held(self.collector, None if self.link.lost else self.live_leg[0], self.speedup)
         except Paused as exc:
             self.status = "paused"

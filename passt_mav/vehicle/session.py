@@ -213,10 +213,11 @@ class VehicleSession(LinkOutages):
             time.sleep(0.02)
         return p
 
-    def hold_if_auto(self) -> None:
-        """HOLD if the vehicle flies our mission (AUTO); a failure is logged, never raised."""
+    def hold_if_auto(self, *, always: bool = False) -> None:
+        """HOLD if the vehicle flies our mission (AUTO; ``always``: whatever its mode); a failure is logged,
+        never raised."""
         try:
-            if self.vehicle.mode == AUTO:
+            if always or self.vehicle.mode == AUTO:
                 self.vehicle.hold()
         except MavlinkError as exc:
             log.warning("could not switch to HOLD: %s", exc)
