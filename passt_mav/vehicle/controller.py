@@ -60,11 +60,14 @@ of which all but a few per cell and snapshot are redundant (the GP's cost is
 cubic in their number). Velocities are converted from m/s east/north to field
 units (divided by ``field.velocity_scale``, rotated into a metric grid's frame).
 
-Faults. Link loss during a leg: the link is reconnected with back-off
-(:meth:`Link.reconnect`), the mission is downloaded and compared with the one
+Faults (docs/resilience.md). Link loss during a leg: the link is reconnected with capped back-off
+within the link-loss window (``vehicle.link_loss_window_s``, :mod:`passt_mav.vehicle.outages`; past it
+the run stops, status ``paused``), the mission is downloaded and compared with the one
 uploaded (re-uploaded if it differs) and the leg goes on from MISSION_CURRENT;
 samples keep flowing into the store (the collector listens on the same link
-object). Link loss during the leg swap (HOLD, upload, set-current, arm, AUTO): the
+object); the outage is recorded. A stop signal (:mod:`passt_mav.vehicle.signals`): HOLD (or AUTO left
+with ``vehicle.on_signal: auto``), store flushed, status ``stopped``. A leg past ``vehicle.overrun_factor``
+x its expected vehicle time is cut (``vehicle.on_overrun``). Link loss during the leg swap (HOLD, upload, set-current, arm, AUTO): the
 link is reconnected and the swap is done again from HOLD (the upload is verified by
 reading back, the other steps are idempotent), up to 3 times. A reboot of the
 autopilot (``time_boot_ms`` going back; the vehicle comes back disarmed in
@@ -81,7 +84,8 @@ HOLD (``paused``); an upload DENIED while the other station transfers is waited 
 ``resume=True`` continues a run directory
 after the controller was killed: completed legs come from their leg records,
 samples from the store, the state from the last leg's ``estimate.nc``; the leg
-that was in flight is re-planned from the current position.
+that was in flight is re-planned from the current position, its interrupted attempt kept
+(:mod:`passt_mav.vehicle.resume`).
 """
 
 from __future__ import annotations

@@ -152,7 +152,7 @@ class VehicleSession(LinkOutages):
     FOREIGN_REPLACEMENTS = 2
     #: vehicle seconds to wait for another ground station's mission transfer (our upload DENIED meanwhile)
     FOREIGN_WAIT_S = 60.0
-    #: read-backs in AUTO that may time out in a row (a radio drop within one) before the leg fails
+    #: read-backs in AUTO that may fail in a row (a radio drop within one, a broken-off transfer) before the leg fails
     VERIFY_TIMEOUTS = 5
 
     def __init__(
@@ -489,8 +489,10 @@ class VehicleSession(LinkOutages):
         except MavlinkError as exc:
             # DENIED: another station's upload is in progress (the vehicle serves no download
             # meanwhile): read back once it is over. A lost link: recovered by fly(), then read back.
-            # A timeout: a radio drop that began and ended within the read-back; read back again (a few times).
-            if isinstance(exc, LinkTimeout):
+            # A timeout (a radio drop that began and ended within the read-back) or a transfer the vehicle
+            # broke off (a late duplicate answer at a high speed-up): read back again (a few times in a row).
+            retry = isinstance(exc, MissionRejected) and exc.result in (*_RETRIED, M.MAV_MISSION_INVALID_SEQUENCE)
+            if isinstance(exc, LinkTimeout) or retry:
                 self._verify_timeouts += 1
                 if self._verify_timeouts <= self.VERIFY_TIMEOUTS:
                     return
