@@ -95,6 +95,7 @@ def fly_case(case: dict, planner: str, *, sample_s: float = 120.0, noise: float 
     """One case with ``planner`` (the mission's, or a baseline's): per leg, PASST's and the model
     alone's RMSE (m/s) and the guard's record."""
     from passt_mav.loop.legstep import FieldClock, LegStep
+
     track_readings = _track_readings()
 
     build_loop = _build_loop()

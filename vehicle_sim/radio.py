@@ -170,6 +170,7 @@ class RadioProxy:
         self._socks: list[socket.socket] = []
         self.channels: list[tuple[RadioChannel, RadioChannel]] = []
         self.t0 = time.monotonic()
+        self._down_until = 0.0  # monotonic s: every frame offered before then is lost (:meth:`outage`)
 
     @property
     def connect(self) -> str:
@@ -195,6 +196,11 @@ class RadioProxy:
                 pass
         for th in self._threads:
             th.join(timeout=2.0)
+
+    def outage(self, seconds: float) -> None:
+        """The radio goes out of range for ``seconds`` of wall time from now: every frame, both ways, is lost
+        (the TCP connections on either side stay open, as a telemetry radio's serial port does)."""
+        self._down_until = time.monotonic() + float(seconds)
 
     def stats(self) -> dict[str, collections.Counter]:
         """Counters summed over the clients: ``{"up": ..., "down": ...}``."""
@@ -229,12 +235,13 @@ class RadioProxy:
             n = len(self.channels)
             up, down = RadioChannel(self.config, seed_offset=2 * n), RadioChannel(self.config, seed_offset=2 * n + 1)
             self.channels.append((up, down))
-            self._spawn(self._pump_in, f"radio-up{n}", cli, up)
-            self._spawn(self._pump_in, f"radio-down{n}", up_sock, down)
+            self._spawn(self._pump_in, f"radio-up{n}", cli, up, up_sock)
+            self._spawn(self._pump_in, f"radio-down{n}", up_sock, down, cli)
             self._spawn(self._pump_out, f"radio-out{n}", [(up, up_sock), (down, cli)])
 
-    def _pump_in(self, src: socket.socket, ch: RadioChannel) -> None:
-        """Read a socket, offer each whole frame to the radio at the time it arrived."""
+    def _pump_in(self, src: socket.socket, ch: RadioChannel, other: socket.socket) -> None:
+        """Read a socket, offer each whole frame to the radio at the time it arrived. When ``src`` closes, the
+        other side is closed too (a client that hangs up frees the server's port for the next one)."""
         framer = _Framer()
         while not self._stop.is_set():
             try:
@@ -242,11 +249,18 @@ class RadioProxy:
             except TimeoutError:
                 continue
             except OSError:
-                return
+                data = b""
             if not data:
+                try:
+                    other.shutdown(socket.SHUT_RDWR)
+                except OSError:
+                    pass
                 return
             now = time.monotonic()
             for f in framer.frames(data):
+                if now < self._down_until:
+                    ch.stats["outage"] += 1
+                    continue
                 ch.offer(f, now)
 
     def _pump_out(self, pairs: list[tuple[RadioChannel, socket.socket]]) -> None:

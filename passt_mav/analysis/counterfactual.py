@@ -200,7 +200,7 @@ def same_loop_counterfactuals(
             steps_per_leg=1,
             sample_at="spread",
         )
-        state = np.array(field.data[config.t0], dtype=np.float32)
+        state = field.state_at(config.t0)  # gaps that come and go: FlowField.state_at
         state[:, land] = np.nan
         out.append(_fly_rounds(loop, sampler, field, spans, state, t_state, starts))
     return out

@@ -52,6 +52,7 @@ from __future__ import annotations
 
 import datetime as _dt
 import os
+import sqlite3
 import subprocess
 import tempfile
 from collections.abc import Callable
@@ -108,6 +109,7 @@ class RunData:
     legs: list[dict]
     samples: list
     boat_of: dict[str, int] = field(default_factory=dict)
+    damage: list[str] = field(default_factory=list)
 
     @property
     def name(self) -> str:
@@ -127,7 +129,7 @@ def load_run(run_dir: str | Path) -> RunData:
     import yaml
 
     import geo
-    from passt_mav.runs.store import SampleStore
+    from passt_mav.runs.store import SampleStore, SampleStoreError
 
     rd = RunDir(run_dir)
     if not rd.root.is_dir():
@@ -149,12 +151,29 @@ def load_run(run_dir: str | Path) -> RunData:
         grid = validate_mission(mission, source=str(rd.mission_file), base_dir=rd.root).grid()
     if grid is None:
         raise RunDirError(f"{rd.root} records no grid (neither summary.json nor mission.yaml)")
-    samples = []
+    samples, damage = [], []
     if rd.samples_db.exists():
-        with SampleStore(rd.samples_db, readonly=True) as st:
-            samples = st.all()
+        try:
+            with SampleStore(rd.samples_db, readonly=True) as st:
+                samples = st.all()
+        except (SampleStoreError, sqlite3.DatabaseError) as exc:
+            samples, damage = _log_samples(rd, exc)
     legs = sorted(rd.read_legs(), key=lambda r: int(r.get("index", 0)))
-    return RunData(rd, summary, mission, grid, legs, samples, _boats_of(samples, mission))
+    return RunData(rd, summary, mission, grid, legs, samples, _boats_of(samples, mission), damage)
+
+
+def _log_samples(rd: RunDir, exc: BaseException) -> tuple[list, list[str]]:
+    """A damaged store (``exc``): the samples of the run's telemetry log instead (legs as the log's windows
+    place them), and what was lost, one phrase each."""
+    from passt_mav.runs.tlog import read_tlog
+
+    why = f"{rd.SAMPLES} unreadable ({str(exc).rsplit(': ', 1)[-1]})"
+    if not rd.tlog.exists():
+        return [], [why, f"no {rd.TLOG} to take the samples from"]
+    try:
+        return list(read_tlog(rd.tlog).samples), [f"{why}: the samples are the telemetry log's"]
+    except UserError as exc2:
+        return [], [why, f"{rd.TLOG} unreadable ({exc2})"]
 
 
 def _boats_of(samples, mission: dict) -> dict[str, int]:
@@ -749,4 +768,7 @@ def export_run(
             run
         )
         write_atomic(out, lambda p: p.write_text(text, encoding="utf-8"))
-    return out, {"out": str(out), "format": fmt, "samples": samples, **info}
+    info = {"out": str(out), "format": fmt, "samples": samples, **info}
+    if run.damage:
+        info["damaged"] = "; ".join(run.damage)
+    return out, info

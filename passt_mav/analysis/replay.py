@@ -40,9 +40,11 @@ changes, the clock STATUSTEXT as a MSG, NVF readings with POS/GPS positions).
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
+from types import SimpleNamespace
 from typing import Any
 
 import numpy as np
@@ -444,18 +446,28 @@ def _recorded_legs(rd) -> dict[int, dict]:
         raise ReplayError(str(exc)) from None
 
 
-def _stored_samples(rd) -> dict[int, set]:
-    """The run's sample store by leg: sets of (time_boot_ms, lat, lon, u, v); empty without a store."""
+def _stored_samples(rd, notes: list[str] | None = None) -> dict[int, set]:
+    """The run's sample store by leg: sets of (time_boot_ms, lat, lon, u, v); empty without a store, or with a
+    damaged one (said in ``notes``: the replay then rests on the log alone, which is what it rebuilds from)."""
+    import sqlite3
+
+    from passt_mav.runs.store import SampleStoreError
+
     store_legs: dict[int, set] = {}
     if rd is not None and rd.samples_db.is_file():
         from passt_mav.runs.store import SampleStore
 
-        st = SampleStore(rd.samples_db, readonly=True)
         try:
-            for x in st.all():
-                store_legs.setdefault(int(x.leg), set()).add((int(x.time_boot_ms), x.lat, x.lon, x.u, x.v))
-        finally:
-            st.close()
+            st = SampleStore(rd.samples_db, readonly=True)
+            try:
+                for x in st.all():
+                    store_legs.setdefault(int(x.leg), set()).add((int(x.time_boot_ms), x.lat, x.lon, x.u, x.v))
+            finally:
+                st.close()
+        except (SampleStoreError, sqlite3.DatabaseError) as exc:
+            if notes is not None:
+                notes.append(f"damaged run: {rd.SAMPLES} unreadable ({exc}); replayed from the telemetry log alone")
+            return {}
     return store_legs
 
 
@@ -548,8 +560,8 @@ class _LogReplay:
         """Read the log, replay its legs, compare them with the run's records."""
         log = _read_log(self.inp, self.setup.cfg)
         self.recorded = _recorded_legs(self.inp.rd)
-        self.store_legs = _stored_samples(self.inp.rd)
         notes = _log_notes(log)
+        self.store_legs = _stored_samples(self.inp.rd, notes)
         state, t_state = self.setup.step.initial_state()
         # what the controller computes from the initial state before its first leg (the model background's
         # roll-out, the information reward's prior), from the same state: planning the first leg from a
@@ -594,21 +606,40 @@ class _LogReplay:
 
     def _replay_legs(self, log, state, t_state, progress: bool) -> tuple[list[ReplayLeg], int | None]:
         """Every leg in order until one the log cannot place (the state after it is unknown); the first that
-        differs from its record."""
+        differs from its record.
+
+        A leg the controller planned more than once (it was stopped in flight and the run resumed: the log
+        holds the leg's clock STATUSTEXT once per attempt) is replayed per attempt: an interrupted attempt is
+        planned from the same state and compared with its record (``leg.json``'s ``attempts``), and absorbs
+        nothing; the last attempt absorbs the samples of every attempt, as the resumed controller did (its
+        store keeps them all under the leg)."""
         from passt_mav.progress import progress as _progress
 
+        logged = [(lg.index if lg.planned_index is None else int(lg.planned_index), lg) for lg in log.legs]
+        last = {key: n for n, (key, _) in enumerate(logged)}
+        restarts = self._session_starts([key for key, _ in logged])
+        earlier: dict[int, list] = {}
         legs: list[ReplayLeg] = []
         first_div = None
-        for lg in _progress(log.legs, "replay", "leg", quiet=not progress, every_pct=1):
+        for n, (key, lg) in enumerate(_progress(logged, "replay", "leg", quiet=not progress, every_pct=1)):
             if lg.start_latlon is None or lg.t_now_ms is None:
                 legs.append(_skipped_leg(lg))
                 if not self.cf and first_div is None:
-                    first_div = lg.index
+                    first_div = key
                 break  # the state after it is unknown
-            leg, state, t_state = self._replay_leg(lg, state, t_state)
+            if n in restarts:  # the run was resumed here: the controller started again from the leg's records
+                state, t_state = self._restart(restarts[n])
+            tries = len(earlier.get(key, []))
+            if n != last[key]:  # an interrupted attempt: planned, never absorbed
+                leg, _, _ = self._replay_leg(lg, state, t_state, key=key, attempt=tries)
+                earlier.setdefault(key, []).append(lg)
+            else:
+                if tries:
+                    lg = dataclasses.replace(lg, samples=[x for a in earlier[key] for x in a.samples] + lg.samples)
+                leg, state, t_state = self._replay_leg(lg, state, t_state, key=key)
             legs.append(leg)
             if first_div is None and (leg.path_identical is False or leg.rmse_identical is False):
-                first_div = lg.index
+                first_div = key
         return legs, first_div
 
     def _verdict(
@@ -628,11 +659,58 @@ class _LogReplay:
                 first_div = len(legs)
         return reproduced, first_div
 
-    def _replay_leg(self, lg, state, t_state):
-        """Plan and absorb one leg from ``state`` (field time ``t_state`` s); (its replay, the state after it)."""
+    def _session_starts(self, keys: list[int]) -> dict[int, int]:
+        """Where in the log's legs (``keys``: the controller's leg numbers in log order) a resumed controller
+        session began, and at which leg: from summary.json's ``sessions`` (the legs each planned), when they
+        account for the log's legs exactly; else none (the replay runs through, as one session)."""
+        sessions = (self.inp.summary or {}).get("sessions") or []
+        if len(sessions) < 2 or [k for s in sessions for k in s.get("planned", [])] != keys:
+            return {}
+        out, n = {}, 0
+        for s in sessions[:-1]:
+            n += len(s.get("planned", []))
+            out[n] = None
+        for pos, s in zip(sorted(out), sessions[1:]):
+            out[pos] = int(s["first_leg"])
+        return out
+
+    def _restart(self, first: int):
+        """A controller resumed at leg ``first``: a new between-leg step (its loop as a new controller builds
+        it), the state of leg ``first - 1``'s ``estimate.nc`` (or the mission's start), prepared from it.
+        Returns (state, t_state)."""
+        from passt_mav.fields.field import load_field
+        from passt_mav.loop.legstep import LegStep, build_loop
+
+        old, field = self.setup.step, self.setup.field
+        loop = build_loop(self.setup.cfg, old.loop.predictor, field.grid, land=field.land_mask)
+        step = self.setup.step = LegStep(self.setup.cfg, field, loop, truth_known=old.truth_known)
+        if first == 0:
+            state, t_state = step.initial_state()
+        else:
+            est = self.inp.rd.estimate_file(first - 1)
+            if not est.exists():
+                raise ReplayError(f"{est} is missing: the run resumed from it")
+            state = np.array(load_field(est).data[0], dtype=np.float32)
+            t_state = float(self.recorded[first - 1]["t_state"])
+            loop.leg_index = first
+        step.prepare(state)
+        return state, t_state
+
+    def _replay_leg(self, lg, state, t_state, *, key: int | None = None, attempt: int | None = None):
+        """Plan and absorb one leg from ``state`` (field time ``t_state`` s); (its replay, the state after it).
+
+        ``key``: the controller's leg number (default the log's order); ``attempt``: replay the leg's
+        interrupted attempt of that number (0-based) against its record instead."""
         step, clock = self.setup.step, self.setup.clock
         lnotes: list[str] = []
-        rec = self.recorded.get(lg.index)
+        key = lg.index if key is None else key
+        rec = self.recorded.get(key)
+        if attempt is not None:
+            tries = (rec or {}).get("attempts") or []
+            rec = {**tries[attempt], "rmse_passt": None, "rmse_model": None} if attempt < len(tries) else None
+            lnotes.append(
+                f"interrupted attempt {attempt + 1} of leg {key} (the run was resumed): planned, not absorbed"
+            )
         pos_cell = _cell_of(self.grid, lg.start_latlon)
         if not lg.closed:
             lnotes.append("the log ends inside this leg (no HOLD after it): its samples may be incomplete")
@@ -643,10 +721,13 @@ class _LogReplay:
             rec_path, start, ks = self._recorded_target(lg, rec, pos_cell, k_lo, k_hi, lnotes)
         else:
             rec_path, start, ks = self._uploaded_target(lg, k_lo, k_hi, lnotes)
-        planned, k = self._plan(lg, state, t_state, start, ks, rec_path)
+        planned, k = self._plan(lg, state, t_state, start, ks, rec_path, key)
         if rec is None and lg.clock is None and k_hi > k_lo:
             lnotes.append(f"the log brackets the controller's clock reading by {k_lo}..{k_hi} forecast steps; used {k}")
-        ab = step.absorb(planned, _absorbed(lg.samples, rec), clock, strict=False)
+        if attempt is None:
+            ab = step.absorb(planned, _absorbed(lg.samples, rec), clock, strict=False)
+        else:  # never absorbed: the state goes on unchanged to the next attempt
+            ab = SimpleNamespace(samples=[], rmse_passt=None, rmse_model=None, note=None)
         if ab.note:
             lnotes.append(ab.note + " (the controller would have stopped)")
         plan = planned.plan
@@ -657,9 +738,10 @@ class _LogReplay:
         r_same = None
         if rp_rec is not None or rm_rec is not None:
             r_same = _rmse_match(((rp_rec, ab.rmse_passt), (rm_rec, ab.rmse_model)), self.rmse_tol)
-        lnotes.extend(self._sample_notes(lg, rec))
+        if attempt is None:  # (an attempt's samples are in the store with the last attempt's)
+            lnotes.extend(self._sample_notes(lg, rec, key))
         leg = ReplayLeg(
-            index=lg.index,
+            index=key,
             n_samples=len(lg.samples),
             n_gp_points=len(ab.samples),
             start_cell=list(start),
@@ -678,8 +760,8 @@ class _LogReplay:
             rmse_identical=r_same,
             notes=lnotes,
         )
-        self.say(_progress_line(f"leg {lg.index}", len(lg.samples), same, ab.rmse_passt))
-        return leg, ab.state, ab.t_state
+        self.say(_progress_line(f"leg {key}", len(lg.samples), same, ab.rmse_passt))
+        return (leg, None, None) if attempt is not None else (leg, ab.state, ab.t_state)
 
     def _recorded_target(self, lg, rec: dict, pos_cell, k_lo: int, k_hi: int, lnotes: list[str]):
         """(recorded path, start cell, forecast steps to try) from the run's leg record, checked against the log."""
@@ -713,11 +795,12 @@ class _LogReplay:
             ks = [self.chosen[lg.index]]
         return rec_path, start, ks
 
-    def _plan(self, lg, state, t_state, start, ks: list[int], rec_path):
-        """(plan, forecast steps): the first candidate whose plan is the recorded path, else the first's."""
+    def _plan(self, lg, state, t_state, start, ks: list[int], rec_path, key: int):
+        """(plan, forecast steps): the first candidate whose plan is the recorded path, else the first's
+        (``key``: the controller's leg number)."""
         planned, k = None, ks[0]
         for cand in ks:  # the clock reading whose plan is the uploaded one
-            pl = self.setup.step.plan(lg.index, state, t_state, start, k=cand)
+            pl = self.setup.step.plan(key, state, t_state, start, k=cand)
             if planned is None:
                 planned, k = pl, cand
             if rec_path is not None and pl.plan.path.tolist() == rec_path:
@@ -725,11 +808,12 @@ class _LogReplay:
                 break
         return planned, k
 
-    def _sample_notes(self, lg, rec: dict | None) -> list[str]:
-        """Where the log's samples disagree with the run's store or with the recorded count."""
+    def _sample_notes(self, lg, rec: dict | None, key: int) -> list[str]:
+        """Where the log's samples disagree with the run's store or with the recorded count (``key``: the
+        controller's leg number)."""
         notes = []
-        if lg.index in self.store_legs:  # the controller's own store: the log must give the same measurements
-            a = self.store_legs[lg.index]
+        if key in self.store_legs:  # the controller's own store: the log must give the same measurements
+            a = self.store_legs[key]
             b = {(int(x["time_boot_ms"]), x["lat"], x["lon"], x["u"], x["v"]) for x in lg.samples}
             if a != b:
                 notes.append(

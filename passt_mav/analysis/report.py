@@ -34,6 +34,7 @@ import html
 import io
 import json
 import math
+import sqlite3
 from dataclasses import dataclass
 from dataclasses import field as _dcfield
 from pathlib import Path
@@ -60,7 +61,8 @@ class Run:
     ``v`` m/s east/north, ``leg``, ``boot``: :func:`passt_mav.loop.measurement.sample_columns`);
     ``track``: ``(n, 2)`` lat/lon; ``leg_tracks``:
     leg index -> ``(n, 2)`` lat/lon executed positions; ``estimates``: leg index
-    -> reconstruction FlowField; ``notes``: part -> why it is missing.
+    -> reconstruction FlowField; ``notes``: part -> why it is missing; ``damage``: what a damaged run
+    lost (the store or the telemetry log unreadable or cut short), one phrase each (:func:`_damage`).
     """
 
     rundir: RunDir
@@ -78,6 +80,7 @@ class Run:
     boat_tracks: dict[int, np.ndarray] = _dcfield(default_factory=dict)  # a fleet run: boat -> (n, 2) lat/lon
     estimates: dict[int, Any] = _dcfield(default_factory=dict)
     notes: dict[str, str] = _dcfield(default_factory=dict)
+    damage: list[str] = _dcfield(default_factory=list)
 
     @property
     def root(self) -> Path:
@@ -195,14 +198,38 @@ def _load_samples(run: Run) -> None:
                 recs = store.all()
             finally:
                 store.close()
-        except UserError as exc:
+        except (UserError, sqlite3.DatabaseError) as exc:
             run.notes["samples_db"] = f"sample store unreadable: {exc}"
+            run.damage.append(f"{rd.SAMPLES} unreadable ({_short(exc)})")
             recs = []
         if recs:
             run.samples, run.samples_source = sample_columns(recs), rd.SAMPLES
+            _damage(run, rd.SAMPLES, len(recs))
             return
     if run.tlog is not None and run.tlog.samples:
         run.samples, run.samples_source = sample_columns(run.tlog.samples), rd.TLOG
+        _damage(run, rd.TLOG, len(run.tlog.samples))
+
+
+def _short(exc: BaseException) -> str:
+    """The last clause of an error's first line (e.g. ``database disk image is malformed``)."""
+    text = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+    return text.rsplit(": ", 1)[-1]
+
+
+def _damage(run: Run, source: str, n: int) -> None:
+    """Add to ``run.damage`` what the samples' ``source`` (``n`` of them) and the telemetry log lack against the
+    run's own count (summary.json ``n_samples``) and legs: a store or a log cut short says so, with figures."""
+    s = run.summary or {}
+    want = s.get("n_samples")
+    if isinstance(want, int) and n < want:
+        run.damage.append(f"{source} holds {n} of the {want} samples the run recorded")
+    tl = run.tlog
+    done = [x for x in s.get("legs") or [] if x.get("status") == "complete"]
+    if tl is not None and done:
+        logged = sum(1 for x in tl.legs if x.complete)
+        if logged < len(done):
+            run.damage.append(f"{run.rundir.TLOG} ends early: {logged} of the {len(done)} complete legs in it")
 
 
 #: one boot of the autopilot spans less than this many ms: (boot, time_boot_ms) -> one sortable key
@@ -701,13 +728,16 @@ class _Page:
         self.add(f"<table>{body}</table>")
 
 
-def write_report(run_dir: str | Path, out: str | Path | None = None) -> Path:
-    """Write ``report.html`` and the figure PNGs for ``run_dir``; returns the HTML path.
+def write_report(run_dir: str | Path, out: str | Path | None = None, *, damage: list | None = None) -> Path:
+    """Write ``report.html`` and the figure PNGs for ``run_dir``; returns the HTML path. ``damage``: a list
+    that receives what a damaged run lost (the report's header says it too).
 
     ``out`` defaults to ``RUN_DIR/report``. Raises :class:`RunDirError` (a
     UserError) if ``run_dir`` is not a run directory.
     """
     run = load_run(run_dir)
+    if damage is not None:
+        damage.extend(run.damage)
     out_dir = Path(out) if out is not None else run.rundir.report_dir
     out_dir.mkdir(parents=True, exist_ok=True)
     for name in (
@@ -729,6 +759,11 @@ def write_report(run_dir: str | Path, out: str | Path | None = None) -> Path:
         page.add(
             '<p class="status">No summary.json yet: the run is still in progress (or stopped before writing it). '
             "Shown: what the legs and logs recorded so far.</p>"
+        )
+    elif run.damage:  # never called complete: what is missing, in the header
+        page.add(
+            f'<p class="status">Status: damaged (recorded {html.escape(str(s.get("status", "unknown")))}): '
+            f"{html.escape('; '.join(run.damage))}. Shown: what is still readable.</p>"
         )
     else:
         page.add(f'<p class="status">Status: {html.escape(str(s.get("status", "unknown")))}</p>')

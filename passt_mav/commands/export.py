@@ -42,6 +42,8 @@ def run(args: argparse.Namespace) -> int:
     if args.json:
         print(json.dumps(info, indent=2))
     else:
-        extra = ", ".join(f"{k} {v}" for k, v in info.items() if k not in ("out", "format", "samples"))
+        extra = ", ".join(f"{k} {v}" for k, v in info.items() if k not in ("out", "format", "samples", "damaged"))
+        if info.get("damaged"):  # one line: what the run lost; the export holds what is still readable
+            print(f"damaged run: {info['damaged']}")
         print(f"exported {args.format}{' samples' if args.samples else ''} ({extra}); wrote {path}")
     return 0

@@ -102,8 +102,6 @@ def run(args: argparse.Namespace) -> int:
     import json
     from pathlib import Path
 
-    import numpy as np
-
     from passt_mav.errors import FieldError, PlannerError
     from passt_mav.fields.datasets import mission_field, speed_warning
     from passt_mav.mission import WaypointMission
@@ -125,7 +123,7 @@ def run(args: argparse.Namespace) -> int:
     predictor, note = _predictor(args.model if args.model is not None else cfg.model, field)
     print(f"note: {note}", file=sys.stderr)
     loop = _mission_loop(args, cfg, predictor, grid, field.land_mask, L)
-    state = np.array(field.data[k], dtype=np.float32)
+    state = field.state_at(k)  # gaps that come and go: FlowField.state_at
     leg = loop.plan_leg(state, start, float(field.times[k]), 1.0, steps=1)
     mission = WaypointMission.from_path(
         grid,

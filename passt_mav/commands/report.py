@@ -23,6 +23,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from passt_mav.analysis.report import write_report
 
-    path = write_report(args.run_dir, out=args.out)
+    damage: list[str] = []
+    path = write_report(args.run_dir, out=args.out, damage=damage)
+    if damage:  # one line: what the run lost (the report's header says it too)
+        print(f"damaged run: {'; '.join(damage)}; the report shows what is still readable")
     print(path)
     return 0

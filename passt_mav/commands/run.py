@@ -16,6 +16,11 @@ EXAMPLES = """examples:
     passt-mav run missions/cylinder.yaml --connect /dev/ttyUSB0,57600 --out runs/cyl1 --resume
     passt-mav run missions/cylinder.yaml --connect udpin:127.0.0.1:14551 --source-system 245 --source-component 195
     passt-mav run missions/cylinder.yaml --legs 1 --set planner.path_length=8 --set gp.background=0
+    passt-mav run missions/rtofs.yaml --connect /dev/ttyUSB0,57600 --link-loss-window 900
+
+exit codes: 0 complete; 1 paused or aborted (summary.json says why; continue with --resume);
+2 bad input or no vehicle (nothing flown); 128 + N stopped by signal N (SIGINT 130, SIGTERM 143,
+SIGHUP 129): the vehicle to HOLD (vehicle.on_signal), the store flushed, status "stopped".
 
     # the same numbers whatever the machine's load: the simulator's clock runs only while the controller waits
     vehicle-sim --field builtin:ocean --listen tcp:127.0.0.1:5760 --lockstep &
@@ -61,6 +66,15 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "when it lies inside the field's snapshots, else snapshot t0)",
     )
     p.add_argument("--signing-key", help="MAVLink 2 signing passphrase or 64 hex digits")
+    p.add_argument(
+        "--link-loss-window",
+        type=float,
+        default=None,
+        metavar="S",
+        help="seconds of vehicle time a lost link is tried again (back-off capped, one line per attempt) while "
+        "the vehicle flies its uploaded leg on, before the run stops for --resume (default: the mission's "
+        "vehicle.link_loss_window_s, 600)",
+    )
     p.add_argument(
         "--pause-timeout",
         type=float,
@@ -169,8 +183,13 @@ def execute(
     identity=(None, None),
     progress=True,
     lockstep_s=0.0,
+    signals=None,
 ) -> dict:
     """Everything ``run`` does after parsing: field, predictor, link, controller, report. Returns the summary.
+
+    The mission is checked before any link is opened (:func:`~passt_mav.vehicle.controller.preflight`): a
+    mission that cannot fly never touches the vehicle. ``signals``: the command's
+    :class:`~passt_mav.vehicle.signals.StopSignals` (None: signals keep their default action).
 
     ``progress``: show the wait for a vehicle that is not ready yet (EKF/GPS; :mod:`passt_mav.progress`).
     ``lockstep_s`` > 0: the vehicle is a simulator in lockstep (``vehicle-sim --lockstep``), stepped that many
@@ -181,7 +200,7 @@ def execute(
     import sys
 
     from passt_mav.fields.datasets import mission_field, speed_warning
-    from passt_mav.vehicle.controller import build_predictor
+    from passt_mav.vehicle.controller import build_predictor, preflight
 
     if speedup > 1.0:
         # hand the GIL over faster (default 5 ms): a mission request must be answered within the
@@ -192,6 +211,7 @@ def execute(
     if fast:
         print(f"warning: {fast}", file=sys.stderr)
     predictor, pinfo = build_predictor(config.model, field, echo=echo)
+    preflight(config, field, predictor)
     opts = _RunOptions(
         mission_text=mission_text,
         legs=legs,
@@ -206,6 +226,7 @@ def execute(
         identity=identity,
         progress=progress,
         lockstep_s=lockstep_s,
+        signals=signals,
     )
     if config.vehicles is not None:
         if resume:
@@ -234,6 +255,7 @@ class _RunOptions:
     identity: tuple
     progress: bool
     lockstep_s: float = 0.0
+    signals: Any = None
 
 
 def _link(connect: str, tlog, vc, factory, opts: _RunOptions):
@@ -281,6 +303,7 @@ def _execute_boat(config, connect: str, run_dir, field, predictor, pinfo, opts: 
             echo=echo,
             mission_text=opts.mission_text,
             extra_summary=opts.extra_summary,
+            signals=opts.signals,
         )
         return ctl.run()
     finally:
@@ -397,6 +420,11 @@ def run(args: argparse.Namespace) -> int:
         raise _user(f"--lockstep must be >= 0 vehicle seconds, got {args.lockstep}")
     if args.lockstep and config.vehicles is not None:
         raise _user("--lockstep flies one boat: a fleet's boats would step one shared simulator clock each")
+    if args.link_loss_window is not None:
+        if not args.link_loss_window > 0:
+            raise _user(f"--link-loss-window must be > 0 seconds, got {args.link_loss_window:g}")
+        vehicle = config.vehicle.model_copy(update={"link_loss_window_s": float(args.link_loss_window)})
+        config = config.model_copy(update={"vehicle": vehicle})
     if args.resume:
         if not args.out:
             raise _user("--resume needs --out RUN_DIR (the run to continue)")
@@ -412,26 +440,41 @@ def run(args: argparse.Namespace) -> int:
         v = getattr(args, name)
         if v is not None and not 1 <= v <= 255:
             raise _user(f"--{name.replace('_', '-')} must be 1..255, got {v}")
+    from passt_mav.errors import UserError
+    from passt_mav.vehicle.signals import Stopped, StopSignals, exit_code
+
     view = _live_view(args, rd)
+    stop = StopSignals(echo=lambda s: print(s, flush=True))
     try:
-        summary = execute(
-            config,
-            connect=args.connect or config.vehicle.connect,
-            run_dir=rd,
-            mission_text=mission_text,
-            legs=args.legs,
-            resume=args.resume,
-            speedup=args.speedup_hint,
-            field_time_at_boot=args.field_time_at_boot,
-            signing_key=args.signing_key,
-            pause_timeout=args.pause_timeout,
-            ready_timeout=args.ready_timeout,
-            echo=echo,
-            report=not args.no_report,
-            identity=(args.source_system, args.source_component),
-            progress=not args.quiet,
-            lockstep_s=args.lockstep,
-        )
+        with stop:
+            summary = execute(
+                config,
+                connect=args.connect or config.vehicle.connect,
+                run_dir=rd,
+                mission_text=mission_text,
+                legs=args.legs,
+                resume=args.resume,
+                speedup=args.speedup_hint,
+                field_time_at_boot=args.field_time_at_boot,
+                signing_key=args.signing_key,
+                pause_timeout=args.pause_timeout,
+                ready_timeout=args.ready_timeout,
+                echo=echo,
+                report=not args.no_report,
+                identity=(args.source_system, args.source_component),
+                progress=not args.quiet,
+                lockstep_s=args.lockstep,
+                signals=stop,
+            )
+    except Stopped as exc:  # before the mission began (connecting, loading the model): nothing flown
+        print(f"passt-mav: stopped by {exc.name} before the mission began; nothing flown", flush=True)
+        if not args.resume:
+            _remove_if_empty(rd.root)
+        return exit_code(exc.signum)
+    except UserError:  # (the mission's field or model refused before connecting: leave nothing behind)
+        if not args.resume:
+            _remove_if_empty(rd.root)
+        raise
     finally:
         if view is not None:
             view.stop(grace_s=1.5)
@@ -442,4 +485,16 @@ def run(args: argparse.Namespace) -> int:
         print(f"readings used per leg: {', '.join(used) or '-'}; the vehicle sent {', '.join(bps) or '-'} B/s per leg")
     if summary.get("report"):
         print(f"report: {summary['report']}")
+    if summary["status"] == "stopped" and stop.received is not None:
+        return exit_code(stop.received)
     return 0 if summary["status"] == "complete" else 1
+
+
+def _remove_if_empty(root) -> None:
+    """Remove the run directory ``root`` made by this command if nothing was written into it (only folders)."""
+    import shutil
+    from pathlib import Path
+
+    root = Path(root)
+    if root.is_dir() and all(p.is_dir() for p in root.rglob("*")):
+        shutil.rmtree(root, ignore_errors=True)

@@ -122,6 +122,26 @@ class FlowField:
         """``(time, rows, cols)`` speed magnitude (NaN where missing)."""
         return np.hypot(self.data[:, 0], self.data[:, 1])
 
+    def state_at(self, k: int) -> np.ndarray:
+        """Snapshot ``k`` as a state to start from: ``(2, rows, cols)`` float32, field units.
+
+        The one rule for gaps that come and go (HF radar, a model's wetting and drying): a cell missing
+        at snapshot ``k`` that holds data at some other snapshot takes its value at the nearest
+        snapshot in time with data (the earlier on a tie), never zero; a cell missing at every
+        snapshot (``land_mask``) stays NaN. Every state taken from a field goes through here: the
+        mission's start (``t0``), ``plan``'s state, the offline engines and the counterfactual.
+        """
+        miss = self.mask
+        out = np.array(self.data[k], dtype=np.float32)
+        gap = miss[k] & ~miss.all(axis=0)
+        for j in sorted(range(self.n_times), key=lambda j: (abs(j - k), j))[1:]:
+            if not gap.any():
+                break
+            take = gap & ~miss[j]
+            out[:, take] = self.data[j][:, take]
+            gap &= ~take
+        return out
+
     def filled(self, value: float = 0.0) -> np.ndarray:
         """Copy of ``data`` with NaN replaced by ``value`` (explicit, never implicit)."""
         return np.where(np.isfinite(self.data), self.data, np.float32(value)).astype(np.float32)

@@ -232,7 +232,7 @@ class OfflineStep:
             )
             for sd in seeds
         ]
-        state0 = np.array(field.data[t0] if initial_state is None else initial_state, dtype=np.float32)
+        state0 = np.array(field.state_at(t0) if initial_state is None else initial_state, dtype=np.float32)
         state0[:, self.land] = np.nan
         self.state0 = state0
         self.states = np.repeat(state0[None], len(self.loops), axis=0)

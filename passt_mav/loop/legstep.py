@@ -192,7 +192,7 @@ def pure_model_at(loop, field, t0_index: int, dt: float, t: float, cache: dict) 
     need = int(math.ceil(x)) + 1
     pure = cache.get("pure")
     if pure is None or len(pure) <= need:
-        s = np.array(field.data[t0_index], dtype=np.float32)
+        s = field.state_at(t0_index)  # gaps that come and go: FlowField.state_at
         pure = cache["pure"] = loop.forecast(s, max(need, 2 * (need // 2 + 1)))
     k = int(math.floor(x))
     w = x - k
@@ -384,7 +384,7 @@ class LegStep:
     def initial_state(self) -> tuple[np.ndarray, float]:
         """The truth at snapshot ``config.t0`` (land NaN) and its field time."""
         t0 = self.config.t0
-        state = np.array(self.field.data[t0], dtype=np.float32)
+        state = self.field.state_at(t0)  # gaps that come and go: FlowField.state_at
         state[:, self.field.land_mask] = np.nan
         return state, float(self.field.times[t0])
 

@@ -847,7 +847,7 @@ def run_pure_model(field, predictor, *, t0: int = 0, n_steps: int) -> np.ndarray
     """The model alone from the true state at ``t0``: (T+1, 2, R, C), index 0 = truth."""
     n_steps = int(min(n_steps, field.n_times - 1 - t0))
     land = field.land_mask
-    s = np.array(field.data[t0], dtype=np.float32)
+    s = field.state_at(t0)  # gaps that come and go: FlowField.state_at
     pred = np.asarray(predictor.predict(np.where(land, np.float32(0), s), n_steps), dtype=np.float32)
     out = np.concatenate([s[None], pred], axis=0)
     out[:, :, land] = np.nan

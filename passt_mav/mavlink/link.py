@@ -555,41 +555,55 @@ class Link:
                 pass
             self.conn = None
 
-    def reconnect(self, attempts: int | None = None) -> Link:
-        """Close and reopen, with doubling back-off between attempts; re-finds the vehicle
-        and re-requests the streams. Subscriptions and listeners carry over.
+    def reconnect(
+        self, attempts: int | None = None, *, wait_s: float | None = None, say: Callable[[str], None] | None = None
+    ) -> Link:
+        """Close and reopen, with doubling back-off between attempts (capped at
+        ``config.reconnect_backoff_s[1]``); re-finds the vehicle and re-requests the streams.
+        Subscriptions and listeners carry over.
 
+        ``wait_s``: keep trying for this many wall seconds (a link-loss window) instead of
+        ``attempts`` times. ``say``: where the one line per failed attempt goes (default: a log warning).
         Raises :class:`LinkTimeout` when every attempt failed.
         """
-        attempts = self.config.reconnect_attempts if attempts is None else attempts
+        say = say or log.warning
+        attempts = self.config.reconnect_attempts if attempts is None else max(int(attempts), 1)
+        end = None if wait_s is None else time.monotonic() + max(float(wait_s), 0.0)
+        t0 = time.monotonic()
         delay, max_delay = self.config.reconnect_backoff_s
         last: BaseException | None = None
-        for i in range(max(attempts, 1)):
+        i = 0
+        while True:
+            i += 1
             self._shutdown()
             try:
                 self._open()
                 self._find_vehicle(max(self.config.link_lost_s, self.reply_timeout))
                 self.request_streams()
                 self.error = None
-                if i:
-                    log.warning("reconnected to %s at attempt %d/%d", self.config.connect, i + 1, attempts)
+                if i > 1:
+                    log.warning("reconnected to %s at attempt %d", self.config.connect, i)
                 return self
             except (OSError, MavlinkError) as exc:
                 last = exc
+                left = (attempts - i) if end is None else end - time.monotonic()
+                more = left > 0
                 # one line per attempt (never per frame): the console stays readable during an outage
-                log.warning(
-                    "reconnect attempt %d/%d to %s failed: %s%s",
-                    i + 1,
-                    attempts,
-                    self.config.connect,
-                    exc,
-                    f"; next in {delay:.2g} s" if i + 1 < attempts else "",
+                of = f"{i}/{attempts}" if end is None else f"{i}"
+                nxt = ""
+                if more:
+                    pause = delay if end is None else min(delay, left)
+                    nxt = f"; next in {pause:.2g} s" + ("" if end is None else f", giving up in {left:.0f} s")
+                say(
+                    f"reconnect attempt {of} to {self.config.connect} failed: {_strip_address(exc, self.config.connect)}{nxt}"
                 )
-                if i + 1 < attempts:
-                    time.sleep(delay)
-                    delay = min(delay * 2.0, max_delay)
+                if not more:
+                    break
+                time.sleep(pause)
+                delay = min(delay * 2.0, max_delay)
         self._shutdown()
-        raise LinkTimeout(f"could not reconnect to {self.config.connect} after {attempts} attempts: {last}")
+        span = f"{i} attempts" if end is None else f"{i} attempts over {time.monotonic() - t0:.0f} s"
+        raise LinkTimeout(f"could not reconnect to {self.config.connect} after {span}: {last}")
 
     def __enter__(self) -> Self:
         return self

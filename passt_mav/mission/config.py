@@ -275,12 +275,25 @@ class VehicleConfig(_Strict):
     ``resume`` (default) waits for the EKF, verifies the stored mission (re-uploads it if
     lost), re-arms and continues AUTO at the interrupted item; ``hold`` waits for the vehicle,
     switches it to HOLD and stops the run (status ``paused``) for a person to look first.
+
+    link_loss_window_s: how long (vehicle seconds; wall seconds ``/ --speedup-hint`` while nothing is
+    heard) the controller keeps trying to reach a vehicle whose link died mid-mission, back-off capped,
+    one line per attempt; the vehicle flies its uploaded leg meanwhile. Past it the run stops cleanly
+    (status ``paused``, continue with ``--resume``). on_signal: what SIGTERM/SIGINT/SIGHUP do to the
+    vehicle: ``hold`` (default) switches it to HOLD, ``auto`` leaves it flying its leg. overrun_factor /
+    on_overrun: a leg still flying after ``overrun_factor`` x its planned vehicle time (+30 s for the
+    start) is reported; ``cut`` (default) ends it there (HOLD, its samples absorbed, the next leg
+    planned from where the boat is), ``warn`` only reports it.
     """
 
     connect: str = "tcp:127.0.0.1:5760"
     speed_mps: float = Field(default=2.0, gt=0)
     wp_radius_m: float = Field(default=2.0, ge=0)
     on_reboot: Literal["resume", "hold"] = "resume"
+    link_loss_window_s: float = Field(default=600.0, gt=0)
+    on_signal: Literal["hold", "auto"] = "hold"
+    overrun_factor: float = Field(default=2.0, gt=1.0)
+    on_overrun: Literal["cut", "warn"] = "cut"
     start_cell: tuple[int, int] | None = None  # where a simulator starts this boat (a fleet's demo); else unused
     #: our MAVLink identity on this boat's link (None = passt_mav.mavlink.link.DEFAULT_SOURCE_SYSTEM /
     #: DEFAULT_SOURCE_COMPONENT, 245/195; README "Identity on a shared link")

@@ -185,7 +185,10 @@ class Predictor:
                 f"state must be (2, {self.grid_shape_[0]}, {self.grid_shape_[1]}) or a batch of those, got {np.shape(state)}"
             )
         if not np.isfinite(s).all():
-            raise ModelError("state holds NaN/inf; fill land or missing cells (e.g. with 0) before predicting")
+            raise ModelError(
+                "state holds NaN/inf: land is masked by the loop, and a field's gaps that come and go are filled "
+                "by FlowField.state_at (never with 0)"
+            )
         out = np.asarray(self._predict_batch(s, int(steps)), dtype=np.float32)
         return out[0] if single else out
 

@@ -60,11 +60,14 @@ of which all but a few per cell and snapshot are redundant (the GP's cost is
 cubic in their number). Velocities are converted from m/s east/north to field
 units (divided by ``field.velocity_scale``, rotated into a metric grid's frame).
 
-Faults. Link loss during a leg: the link is reconnected with back-off
-(:meth:`Link.reconnect`), the mission is downloaded and compared with the one
+Faults (docs/resilience.md). Link loss during a leg: the link is reconnected with capped back-off
+within the link-loss window (``vehicle.link_loss_window_s``, :mod:`passt_mav.vehicle.outages`; past it
+the run stops, status ``paused``), the mission is downloaded and compared with the one
 uploaded (re-uploaded if it differs) and the leg goes on from MISSION_CURRENT;
 samples keep flowing into the store (the collector listens on the same link
-object). Link loss during the leg swap (HOLD, upload, set-current, arm, AUTO): the
+object); the outage is recorded. A stop signal (:mod:`passt_mav.vehicle.signals`): HOLD (or AUTO left
+with ``vehicle.on_signal: auto``), store flushed, status ``stopped``. A leg past ``vehicle.overrun_factor``
+x its expected vehicle time is cut (``vehicle.on_overrun``). Link loss during the leg swap (HOLD, upload, set-current, arm, AUTO): the
 link is reconnected and the swap is done again from HOLD (the upload is verified by
 reading back, the other steps are idempotent), up to 3 times. A reboot of the
 autopilot (``time_boot_ms`` going back; the vehicle comes back disarmed in
@@ -81,7 +84,8 @@ HOLD (``paused``); an upload DENIED while the other station transfers is waited 
 ``resume=True`` continues a run directory
 after the controller was killed: completed legs come from their leg records,
 samples from the store, the state from the last leg's ``estimate.nc``; the leg
-that was in flight is re-planned from the current position.
+that was in flight is re-planned from the current position, its interrupted attempt kept
+(:mod:`passt_mav.vehicle.resume`).
 """
 
 from __future__ import annotations
@@ -116,13 +120,16 @@ from passt_mav.runs.legs import clock_statustext
 from passt_mav.runs.live import RecordWriter
 from passt_mav.vehicle.clock import RunClock
 from passt_mav.vehicle.live_record import live_meta, live_status
+from passt_mav.vehicle.resume import ResumeRecord
 from passt_mav.vehicle.session import Deadline as _Deadline  # noqa: F401 - tests import it from here
 from passt_mav.vehicle.session import Journal, Paused, VehicleSession, expected_vehicle_s, utc_now
+from passt_mav.vehicle.signals import NO_SIGNALS, Stopped
 
 __all__ = [
     "FieldClock",
     "MissionController",
     "OwnState",
+    "preflight",
     "StoreWriter",
     "thin_samples",
     "build_predictor",
@@ -273,7 +280,29 @@ def _check_field(config, field) -> None:
         raise UserError(f"t0={config.t0} lies outside the field's {field.n_times} snapshots")
 
 
-class MissionController:
+def preflight(config, field, predictor) -> None:
+    """What can be checked of a mission before the vehicle is touched (``passt-mav run`` calls it before
+    connecting): the field carries a run (two snapshots, ``t0`` inside), it has water, and the predictor
+    forecasts the start state (:meth:`~passt_mav.fields.FlowField.state_at`, land masked as the loop masks
+    it) one snapshot ahead to finite values. Raises :class:`UserError` naming the problem."""
+    from passt_mav.errors import FieldError, ModelError
+
+    _check_field(config, field)
+    land = field.land_mask
+    if land.all():
+        raise FieldError("the mission's field has no water cell in its region (all NaN)")
+    state = field.state_at(config.t0)
+    if predictor is None:
+        return
+    try:
+        pred = np.asarray(predictor.predict(np.where(land, np.float32(0), state), 1))
+    except (ModelError, ValueError) as exc:
+        raise ModelError(f"the mission's model cannot forecast the field's state at t0: {exc}") from None
+    if not np.isfinite(pred[..., ~land]).all():
+        raise ModelError("the mission's model forecasts NaN/inf from the field's state at t0; check the model")
+
+
+class MissionController(ResumeRecord):
     """Runs a mission config on a connected vehicle, writing a run directory.
 
     Args:
@@ -294,6 +323,8 @@ class MissionController:
         mission_text: text of the mission file as run (written to the run directory).
         extra_summary: merged into summary.json (e.g. the demo's simulator settings).
         parts: a fleet's boat's shared parts (:class:`BoatParts`); default: this controller's own.
+        signals: the command's :class:`~passt_mav.vehicle.signals.StopSignals` (run files are written inside
+            its ``critical()``; a stop signal ends the run with status ``stopped``); default: none.
     """
 
     def __init__(
@@ -317,6 +348,7 @@ class MissionController:
         mission_text: str | None = None,
         extra_summary: dict | None = None,
         parts: BoatParts | None = None,
+        signals=None,
     ):
         from passt_mav.mavlink import Vehicle
 
@@ -329,6 +361,7 @@ class MissionController:
         self.dt = float(field.dt)
         self.speedup = max(float(speedup_hint), 1e-6)
         self.resume, self.truth_known, self.mission_text = resume, truth_known, mission_text
+        self.signals, self.stopped_by = signals or NO_SIGNALS, None  # (stopped_by: the signal's name)
         self.extra_summary = dict(extra_summary or {})
         self.land = field.land_mask
         parts = parts or BoatParts()
@@ -342,8 +375,7 @@ class MissionController:
         self.lock = parts.lock or threading.RLock()
         self.leg_records: list[dict] = []
         self.leg_rec: dict | None = None  # the record of the leg in flight
-        self.status = "running"
-        self.started_utc = utc_now()
+        self.status, self.started_utc = "running", utc_now()
         self.store = self.collector = self.writer = None  # set by run()
         self.record = parts.record or RecordWriter(run_dir.root)  # the live view's files (passt_mav.runs.live)
         self.journal = Journal(echo or (lambda s: None), self.record)
@@ -353,6 +385,7 @@ class MissionController:
         self._write_summary = parts.write_summary or self._write_own_summary
         self._n_stored: int | None = None  # the store's count when last read
         self._last_clock: tuple[int, int, int, int] | None = None  # (leg, time_boot_ms, boot, k) last sent
+        self._init_resume_record()
         self.live_leg: tuple[int | None, float | None] = (None, None)  # (leg in flight, uptime s it should end)
 
     def _make_clock(self, field_time_at_boot: float | None) -> RunClock:
@@ -374,6 +407,9 @@ class MissionController:
             speedup=self.speedup,
             ready_timeout_s=ready_timeout_s,
             pause_timeout_s=pause_timeout_s,
+            link_loss_window_s=self.config.vehicle.link_loss_window_s,
+            overrun_factor=self.config.vehicle.overrun_factor,
+            on_overrun=self.config.vehicle.on_overrun,
         )
 
     # -- helpers --------------------------------------------------------------------------
@@ -402,17 +438,6 @@ class MissionController:
         """The clock with a ``t_boot0`` for every boot (:meth:`RunClock.with_boots`)."""
         return self.run_clock.with_boots()
 
-    def _readings_record(self, i: int) -> dict:
-        """Sensor readings of leg ``i``: received (u/v pairs), used (placed on the track), dropped (gap)."""
-        c = self.collector.leg_counts(i)
-        return {
-            "received": c["readings"],
-            "used": c["emitted"],
-            "dropped_gap": c["gap"],
-            "fraction_used": (c["emitted"] / c["readings"]) if c["readings"] else None,
-            "max_gap_ms": self.collector.track.max_gap_ms,
-        }
-
     # -- summary ------------------------------------------------------------------------------
     def summary(self) -> dict:
         """summary.json's content now (see :mod:`passt_mav.runs.rundir`)."""
@@ -429,42 +454,6 @@ class MissionController:
 
     def _write_own_summary(self) -> None:
         self.rd.write_summary(self.summary())
-
-    # -- resume ------------------------------------------------------------------------------------
-    def _old_summary(self) -> dict | None:
-        return self.rd.read_summary() if self.rd.summary_file.exists() else None
-
-    def _initial_state(self) -> tuple[np.ndarray, float, int]:
-        """(state, t_state, first leg index)."""
-        state, t_state = self.step.initial_state()
-        if not self.resume:
-            return state, t_state, 0
-        from passt_mav.fields.field import load_field
-
-        done = [r for r in self.rd.read_legs() if r.get("status") == "complete"]
-        done.sort(key=lambda r: int(r["index"]))
-        # legs must be contiguous from 0: a gap means the directory is not one run
-        done = [r for k, r in enumerate(done) if int(r["index"]) == k]
-        old = self._old_summary()
-        if old is not None:
-            self.run_clock.restore(old.get("clock") or {})
-            self.started_utc = old.get("started_utc") or self.started_utc
-            self.events[:0] = list(old.get("events") or [])  # (before what resume_boots found)
-        self.leg_records = done
-        if not done:
-            # killed during leg 0: still say so (the store keeps that leg's samples; it is re-planned)
-            self._say(f"resuming {self.rd.root}: no leg completed yet; leg 0 is re-planned from here")
-            self.events.append(f"resumed before leg 0 completed at {utc_now()}")
-            return state, t_state, 0
-        last = done[-1]
-        est = self.rd.estimate_file(int(last["index"]))
-        if not est.exists():
-            raise UserError(f"cannot resume: {est} is missing")
-        fld = load_field(est)
-        self.loop.leg_index = len(done)
-        self._say(f"resuming {self.rd.root}: {len(done)} leg(s) done, state at field time {last['t_state']:.1f}")
-        self.events.append(f"resumed after leg {len(done) - 1} at {utc_now()}")
-        return np.array(fld.data[0], dtype=np.float32), float(last["t_state"]), len(done)
 
     def _on_reboot(self, boot: int, last_tb: int, first_tb: int) -> None:
         """From the reader thread (SampleCollector): the vehicle's time since boot went back."""
@@ -497,10 +486,22 @@ class MissionController:
             for i in range(first, self.n_legs):
                 state, t_state = self._leg(i, state, t_state)
             self.status = "complete"
+        except Stopped as exc:
+            self.signals.disarm()
+            self.status, self.stopped_by = "stopped", exc.name
+            leave = self.config.vehicle.on_signal == "auto"
+            what = "the vehicle left flying its leg in AUTO (vehicle.on_signal: auto)" if leave else "HOLD"
+            self._note("stopped", f"stopped by {exc.name} at {utc_now()}: {what}; continue with --resume")
+            self._say(f"stopped by {exc.name}: {what}; store flushed, summary written; continue with --resume")
+            close_leg(self.collector)
+            if not leave:  # HOLD whatever the mode seen last: a stop during the swap may precede AUTO's heartbeat
+                self.session.hold_if_auto(always=True)
+            place_held(self.collector, None if self.link.lost else self.live_leg[0], self.speedup)
         except Paused as exc:
             self.status = "paused"
             self._note("stopped", str(exc))
             self._say(f"stopped: {exc}")
+            close_leg(self.collector)
             try:  # the pilot's RC still overrides HOLD; a vehicle left in an unknown mode would not stop
                 self.vehicle.hold()
             except MavlinkError as e2:
@@ -514,6 +515,7 @@ class MissionController:
             self._safe_hold()
             raise exc  # noqa: TRY201 - exc may be the reworded LinkTimeout above
         finally:
+            self.signals.disarm()  # the clean-up below must finish: later signals are only acknowledged
             self._detach()
             self.writer.close()
             self._write_summary()
@@ -561,23 +563,37 @@ class MissionController:
         self.record.stop_status(lambda: live_status(self))
 
     def _safe_hold(self) -> None:
+        """HOLD if in AUTO (never raises), the leg closed first (:func:`close_leg`)."""
+        close_leg(self.collector)
         self.session.hold_if_auto()
 
     # -- one leg: plan -> check -> upload (transactional) -> fly -> absorb ---------------------------
     def _leg(self, i: int, state: np.ndarray, t_state: float) -> tuple[np.ndarray, float]:
         planned = self._plan(i, state, t_state)
-        with self.lock:
+        with self.lock, self.signals.critical():
             wm = self._checked_mission(i, planned)
             rec = self._write_plan(i, planned, wm)
         link0, store0 = self.session.link_snapshot(), self.store.count(i)
         items = wm.items()
         upload_tries, upload_s, t_fly, tb_fly = self._swap(i, items, time.perf_counter())
-        with self.lock:
+        with self.lock, self.signals.critical():
             self._write_prediction(i, planned)  # (the boat is underway meanwhile)
-        duration_s, tb_end = self._fly_leg(i, wm, items, t_fly)
+        duration_s, tb_end, cut = self._fly_leg(i, wm, items, t_fly)
+        with self.signals.critical():  # estimate.nc, leg.json, summary.json: written whole or not begun
+            times = (upload_tries, upload_s, duration_s, tb_fly, tb_end)
+            absorbed = self._complete_leg(i, rec, planned, link0, store0, times, cut)
+        return absorbed.state, absorbed.t_state
+
+    def _complete_leg(self, i: int, rec: dict, planned, link0, store0, times: tuple, cut: dict | None):
+        """Absorb leg ``i``'s samples and write its records (``times``: upload tries, upload s, wall s, vehicle
+        uptime s at AUTO and at the end; ``cut``: the overrun record of a leg cut short, else None). Returns
+        the absorbed state (:meth:`OwnState.absorb`)."""
+        upload_tries, upload_s, duration_s, tb_fly, tb_end = times
         with self.lock:
             absorbed = self._absorb(i, planned)
         rec.update(absorbed.record())
+        flown = (tb_end - tb_fly) if (tb_end is not None and tb_fly is not None and tb_end >= tb_fly) else None
+        outages = [o for o in self.session.outages if o["leg"] == i]
         rec.update(
             {
                 "status": "complete",
@@ -585,16 +601,16 @@ class MissionController:
                 "upload_s": upload_s,
                 "upload_tries": upload_tries,
                 "duration_s": duration_s,
-                "duration_vehicle_s": (tb_end - tb_fly)
-                if (tb_end is not None and tb_fly is not None and tb_end >= tb_fly)
-                else None,
+                "duration_vehicle_s": flown,
                 "n_samples_new": self.store.count(i) - store0,
                 "link": self.session.link_record(link0),
-                "readings": self._readings_record(i),
+                "readings": readings_record(self.collector, self.store.for_leg(i), i, outages),
+                "outages": outages,
+                "overrun": cut,
             }
         )
         self._finish_leg(i, rec, planned)
-        return absorbed.state, absorbed.t_state
+        return absorbed
 
     def _plan(self, i: int, state: np.ndarray, t_state: float):
         """Position -> start cell; the vehicle's clock -> forecast the state to now; plan the leg.
@@ -606,6 +622,8 @@ class MissionController:
         start = self.step.start_cell(lat, lon)
         if not self.leg_records:
             check_start_cell(self, i, start, (lat, lon))
+        if self.sessions:
+            self.sessions[-1]["planned"].append(i)
         tb, boot = self.run_clock.reading()
         t_now = float(self._clock_with_boots().field_time(tb, boot))
         return self.share.plan(
@@ -665,6 +683,8 @@ class MissionController:
             "waypoint_seqs": wm.waypoint_seqs(),
             "t_now": planned.t_now,
         }
+        if self._attempts.get(i):
+            rec["attempts"] = self._attempts[i]
         rd.write_leg(i, rec)
         rec.update(self.share.plan_fields())
         self.leg_rec = rec
@@ -692,41 +712,55 @@ class MissionController:
 
         return self.session.swap(i, items, t0w, on_armed=on_armed, on_start=on_start)
 
-    def _fly_leg(self, i: int, wm, items, t_fly: float) -> tuple[float, float | None]:
-        """Fly until the mission completes, then HOLD; returns (wall s, vehicle uptime s at the end)."""
-        self.live_leg = (i, (self.link.vehicle_uptime_s() or 0.0) + self._expected_vehicle_s(wm))
+    def _fly_leg(self, i: int, wm, items, t_fly: float) -> tuple[float, float | None, dict | None]:
+        """Fly until the mission completes (or the leg is cut for an overrun), then HOLD; returns (wall s,
+        vehicle uptime s at the end, the overrun record of a cut leg or None)."""
+        expected = self._expected_vehicle_s(wm)
+        tb0 = self.link.vehicle_uptime_s()
+        self.live_leg = (i, (tb0 or 0.0) + expected)
         self.record.event("leg_start", f"{self._leg_label(i)} started ({len(wm.waypoints)} waypoints)")
         try:
-            self._fly(i, wm, items, len(items) - 1)  # MISSION_CURRENT.total excludes home
+            how = self._fly(i, wm, items, len(items) - 1)  # MISSION_CURRENT.total excludes home
         finally:
             self.collector.leg = None
         self.vehicle.hold()
+        cut = None if how != "cut" else overrun_record(expected, self.config.vehicle, self.vehicle.progress, items)
         duration_s = time.perf_counter() - t_fly
         tb_end = self.link.vehicle_uptime_s()
         # the leg's last readings wait for the fix after them (<= the gap bound of vehicle time)
         self.collector.wait_placed(i, self.collector.track.max_gap_ms / 1000.0 / max(self.speedup, 1.0) + 0.5)
         self.writer.flush()
-        return duration_s, tb_end
+        return duration_s, tb_end, cut
 
     def _expected_vehicle_s(self, wm) -> float:
         """Vehicle seconds the leg should take at the mission's speed (no current)."""
         return expected_vehicle_s(self.grid, wm, self.speed)
 
-    def _fly(self, i: int, wm, items, n_items: int) -> None:
-        """Wait for the leg to complete, its faults handled (:meth:`VehicleSession.fly`)."""
-        self.session.fly(i, items, n_items, self._expected_vehicle_s(wm))
+    def _fly(self, i: int, wm, items, n_items: int) -> str | None:
+        """Wait for the leg to complete, its faults handled (:meth:`VehicleSession.fly`: ``"cut"`` for a leg
+        cut short by an overrun)."""
+        return self.session.fly(i, items, n_items, self._expected_vehicle_s(wm))
 
     def _absorb(self, i: int, planned):
         """The leg's stored samples through the state keeper (:meth:`OwnState.absorb`); the estimate to estimate.nc."""
         from passt_mav.fields.field import FlowField
 
+        recs, clock = self.store.for_leg(i), self._clock_with_boots()
         try:
-            absorbed = self._update(planned, self.store.for_leg(i), self._clock_with_boots())
+            absorbed = self._update(planned, recs, clock)
         except ReconstructionError as exc:
-            raise MavlinkError(
-                f"leg {i}: no current samples arrived (is the sensor sending "
-                f"{self.config.sensors.u}/{self.config.sensors.v}?): {exc}"
-            ) from None
+            heard = self.collector.leg_counts(i)["readings"] > 0 or any(o["leg"] == i for o in self.session.outages)
+            if isinstance(self.share, OwnState) and heard:
+                # the sensor works but the link lost most of the leg's readings: the few left cannot update the
+                # state, the forecast carries it on (as a replay of the log does) and the mission goes on
+                absorbed = self.step.absorb(planned, recs, clock, strict=False)
+                self._note("warning", f"leg {i}: only {len(recs)} samples (link outage or loss): {absorbed.note}")
+                self._say(f"{self._leg_label(i)}: only {len(recs)} samples (link outage or loss); {absorbed.note}")
+            else:
+                raise MavlinkError(
+                    f"leg {i}: no current samples arrived (is the sensor sending "
+                    f"{self.config.sensors.u}/{self.config.sensors.v}?): {exc}"
+                ) from None
         std = None if absorbed.std is None else absorbed.std[None]
         FlowField(
             absorbed.state[None], self.grid, np.array([absorbed.t_state]), self.field.time_origin, self.field.units
@@ -763,6 +797,67 @@ class MissionController:
     def _leg_label(self, i: int) -> str:
         """How leg ``i`` (0-based) is named in progress lines."""
         return self.share.label(i, self.n_legs)
+
+
+def readings_record(collector, recs, i: int, outages=()) -> dict:
+    """Sensor readings of leg ``i`` (``recs``: its stored samples): received (u/v pairs), used (placed on the
+    track), dropped (gap); ``missing``: readings the sensor sent in the leg's span that are not in the store
+    (:func:`missing_readings`, per boot: lost on the link, in an outage or to a position gap); and the vehicle
+    seconds without a link (``outages``: :attr:`VehicleSession.outages` of the leg)."""
+    c = collector.leg_counts(i)
+    by_boot: dict[int, list[int]] = {}
+    for r in recs:
+        by_boot.setdefault(int(r.boot), []).append(int(r.time_boot_ms))
+    return {
+        "missing": int(sum(missing_readings(np.asarray(v)) for v in by_boot.values())),
+        "lost_in_outages_vehicle_s": round(sum(float(o.get("vehicle_s") or 0.0) for o in outages), 3),
+        "received": c["readings"],
+        "used": c["emitted"],
+        "dropped_gap": c["gap"],
+        "fraction_used": (c["emitted"] / c["readings"]) if c["readings"] else None,
+        "max_gap_ms": collector.track.max_gap_ms,
+    }
+
+
+def overrun_record(expected_s: float, vehicle_cfg, progress, items) -> dict:
+    """The record of a leg cut for an overrun: its expected vehicle seconds, the mission's factor, the item it
+    was cut at and the leg's items (home excluded)."""
+    return {
+        "expected_vehicle_s": round(expected_s, 3),
+        "factor": vehicle_cfg.overrun_factor,
+        "cut_at_item": int(progress.current),
+        "items": len(items) - 1,
+    }
+
+
+def close_leg(collector) -> None:
+    """No reading arriving from now on belongs to a leg (a run that stops with a leg in flight; a stop can come
+    between the swap and the flight): its telemetry log ends the leg at the HOLD sent next, so a replay
+    assigns the readings as the store does."""
+    if collector is not None:
+        collector.leg = None
+
+
+def place_held(collector, leg: int | None, speedup: float) -> None:
+    """Leg ``leg``'s last readings wait for the fix after them (as at a leg's end), up to the gap bound of
+    vehicle time in wall seconds at ``speedup``."""
+    if leg is not None and collector is not None:
+        collector.wait_placed(leg, collector.track.max_gap_ms / 1000.0 / max(speedup, 1.0) + 0.5)
+
+
+def missing_readings(tb_ms: np.ndarray) -> int:
+    """Readings a regular sensor sent within the span of ``tb_ms`` (one boot's ``time_boot_ms`` of the readings
+    kept, ms) that are not among them: the spacing is the median step, and each step longer than 1.5 x it
+    holds ``round(step / spacing) - 1`` readings that never arrived (or were not placed). 0 below 3 readings."""
+    t = np.unique(np.asarray(tb_ms, np.int64))
+    if t.size < 3:
+        return 0
+    d = np.diff(t)
+    period = float(np.median(d))
+    if period <= 0:
+        return 0
+    big = d[d > 1.5 * period]
+    return int(np.sum(np.round(big / period) - 1))
 
 
 def _progress_line(rec: dict) -> str:
@@ -837,6 +932,9 @@ def run_summary(ctl) -> dict:
         "legs": legs,
         "n_samples": ctl._n_samples(),
         "readings_used": [(x.get("readings") or {}).get("fraction_used") for x in legs],
+        "stopped_by": getattr(ctl, "stopped_by", None),
+        "sessions": list(getattr(ctl, "sessions", None) or []),
+        "outages": list(getattr(getattr(ctl, "session", None), "outages", None) or []),
         "link_vehicle_bytes_per_s": [(x.get("link") or {}).get("vehicle_bytes_per_s") for x in legs],
         "rmse": rm if ctl.truth_known else None,
         "rmse_note": "RMSE over water cells vs the mission's field at the state time; 'model' = the predictor "

@@ -48,7 +48,7 @@ from passt_mav.loop.legstep import FleetStep, LegStep, build_loop
 from passt_mav.runs.live import RecordWriter
 from passt_mav.vehicle.controller import BoatParts, MissionController, StoreWriter
 from passt_mav.vehicle.live_record import live_meta
-from passt_mav.vehicle.session import Paused, utc_now
+from passt_mav.vehicle.session import LinkWindowOver, Paused, utc_now
 
 __all__ = ["FleetController", "BoatController", "SharedState"]
 
@@ -152,10 +152,11 @@ class BoatController(MissionController):
                         ready = True
                     self.status = "flying"
                     self._leg(self.fleet.claim_leg(), None, None)
-                except Paused as exc:
-                    self._stop("paused", exc)
-                    return
-                except (MavlinkError, PlannerError) as exc:
+                except (MavlinkError, PlannerError, Paused) as exc:
+                    if isinstance(exc, Paused) and not isinstance(exc, LinkWindowOver):
+                        self._stop("paused", exc)
+                        return
+                    # (the link-loss window over: a drop-out, the others fly on)
                     self._drop(exc)
                     ready = False
                     if not self._rejoin():

@@ -30,8 +30,9 @@ from passt_mav.errors import CommandRejected, LinkTimeout, MavlinkError, Mission
 from passt_mav.mavlink.link import mavlink2 as M
 from passt_mav.mavlink.mission_client import MissionWatch, differences, rover_stored
 from passt_mav.mavlink.vehicle import ROVER_MODE_NAMES, ROVER_MODES
+from passt_mav.vehicle.outages import LinkOutages
 
-__all__ = ["VehicleSession", "Journal", "Deadline", "Paused", "Rebooted", "utc_now"]
+__all__ = ["VehicleSession", "Journal", "Deadline", "Paused", "LinkWindowOver", "Rebooted", "utc_now"]
 
 log = logging.getLogger(__name__)
 
@@ -48,6 +49,10 @@ def utc_now() -> str:
 
 class Paused(Exception):
     """The vehicle left AUTO and did not come back in time (or rebooted with on_reboot: hold)."""
+
+
+class LinkWindowOver(Paused):
+    """The link stayed lost for the whole link-loss window (``vehicle.link_loss_window_s``)."""
 
 
 class Rebooted(Exception):
@@ -101,10 +106,19 @@ class Deadline:
             self.vehicle += wall_s * self.speedup
 
     def passed(self) -> bool:
+        """The budget is spent: in vehicle time (:meth:`vehicle_passed`) or on the wall backstop."""
+        return self.vehicle_passed() or self.wall_passed()
+
+    def vehicle_passed(self) -> bool:
+        """The vehicle's clock has run past the budget."""
         up = self.link.vehicle_uptime_s()
         if up is not None and (self.last_up is None or up >= self.last_up):  # (a reboot's restart: see extend)
             self.last_up = up
-        return time.monotonic() > self.wall or (self.vehicle is not None and up is not None and up > self.vehicle)
+        return self.vehicle is not None and up is not None and up > self.vehicle
+
+    def wall_passed(self) -> bool:
+        """The wall backstop (ten times the budget at the nominal speed-up, + 60 s) has passed."""
+        return time.monotonic() > self.wall
 
 
 def replaced_what(sent, got) -> str:
@@ -115,7 +129,7 @@ def replaced_what(sent, got) -> str:
     return f"{len(bad)} of our {len(sent) - 1} items differ, the first at seq {bad[0]}" if bad else "home differs"
 
 
-class VehicleSession:
+class VehicleSession(LinkOutages):
     """One boat's vehicle side (module docstring): swap, fly, and the faults on the way.
 
     Args:
@@ -126,12 +140,20 @@ class VehicleSession:
         speedup: simulated / wall seconds of the vehicle (1 for a real boat); scales wall timeouts.
         ready_timeout_s: wall seconds to wait for EKF/GPS readiness.
         pause_timeout_s: wall seconds to wait for AUTO to come back after a pilot took over.
+        link_loss_window_s: vehicle seconds a lost link is tried again before the run stops
+            (:class:`LinkWindowOver`); nothing is heard from the vehicle meanwhile, so the wait is kept
+            on the wall clock as ``link_loss_window_s / speedup``.
+        overrun_factor / on_overrun: a leg still flying after ``overrun_factor`` x its expected vehicle
+            time + 30 s is reported; ``"cut"`` ends it there (:meth:`fly` returns ``"cut"``), ``"warn"``
+            only reports it.
     """
 
     #: replacements of our mission by another ground station in one leg before the controller stops in HOLD
     FOREIGN_REPLACEMENTS = 2
     #: vehicle seconds to wait for another ground station's mission transfer (our upload DENIED meanwhile)
     FOREIGN_WAIT_S = 60.0
+    #: read-backs in AUTO that may fail in a row (a radio drop within one, a broken-off transfer) before the leg fails
+    VERIFY_TIMEOUTS = 5
 
     def __init__(
         self,
@@ -144,6 +166,9 @@ class VehicleSession:
         speedup: float = 1.0,
         ready_timeout_s: float = 120.0,
         pause_timeout_s: float = 300.0,
+        link_loss_window_s: float = 600.0,
+        overrun_factor: float = 2.0,
+        on_overrun: str = "cut",
     ):
         self.link, self.vehicle, self.journal = link, vehicle, journal
         self.speed = float(speed_mps)
@@ -151,6 +176,10 @@ class VehicleSession:
         self.speedup = max(float(speedup), 1e-6)
         self.ready_timeout_s = float(ready_timeout_s)
         self.pause_timeout_s = float(pause_timeout_s)
+        self.link_loss_window_s = float(link_loss_window_s)
+        self.overrun_factor, self.on_overrun = float(overrun_factor), on_overrun
+        #: one record per outage ridden out (or not), oldest first (see :meth:`recover_link`)
+        self.outages: list[dict] = []
         #: set by :meth:`rebooted_signal` (the collector's reader thread), cleared by whoever handles it
         self.rebooted = threading.Event()
         self.reboot_info: tuple[int, int, int] | None = None
@@ -161,6 +190,7 @@ class VehicleSession:
         self._mission_watch: MissionWatch | None = None
         self._mission_mark: tuple[int, int] = (0, 0)
         self._replaced: dict[int, int] = {}  # leg -> replacements by another station seen
+        self._verify_timeouts = 0  # read-backs in AUTO timed out in a row
 
     # -- small things ---------------------------------------------------------------------------
     def _say(self, text: str) -> None:
@@ -183,10 +213,11 @@ class VehicleSession:
             self.link.idle(0.02)
         return p
 
-    def hold_if_auto(self) -> None:
-        """HOLD if the vehicle flies our mission (AUTO); a failure is logged, never raised."""
+    def hold_if_auto(self, *, always: bool = False) -> None:
+        """HOLD if the vehicle flies our mission (AUTO; ``always``: whatever its mode); a failure is logged,
+        never raised."""
         try:
-            if self.vehicle.mode == AUTO:
+            if always or self.vehicle.mode == AUTO:
                 self.vehicle.hold()
         except MavlinkError as exc:
             log.warning("could not switch to HOLD: %s", exc)
@@ -240,7 +271,7 @@ class VehicleSession:
                     f"again from HOLD (attempt {attempt + 1}/{attempts})"
                 )
                 self.journal.note("link_lost", f"leg {i}: link lost during the swap at {utc_now()}: {exc}")
-                self.link.reconnect()
+                self.reconnect_within_window(i, time.monotonic() - self._silent_s(), "swap")
         raise AssertionError("unreachable")
 
     def _swap_once(self, i: int, items, t0w: float, attempt: int, on_armed, on_start):
@@ -395,27 +426,58 @@ class VehicleSession:
             self.journal.events.append(f"leg {i}: speed not set again after {why}: {exc}")
 
     # -- flying one leg, with its faults ------------------------------------------------------------
-    def fly(self, i: int, items, n_items: int, expected_s: float) -> None:
+    def fly(self, i: int, items, n_items: int, expected_s: float) -> str | None:
         """Wait for the leg to complete (``n_items`` excludes home; ``expected_s``: vehicle seconds it should
-        take): reconnect on link loss, resume after a reboot, pause when a pilot takes the vehicle out of AUTO."""
-        deadline = Deadline(self.link, 4.0 * expected_s + 30.0, self.speedup)
+        take): ride out a lost link (:meth:`recover_link`), resume after a reboot, pause when a pilot takes
+        the vehicle out of AUTO. Past ``overrun_factor`` x ``expected_s`` + 30 s of vehicle time the overrun
+        is reported (:meth:`overrun`); returns ``"cut"`` when ``on_overrun`` is ``cut`` (the caller holds the
+        vehicle and ends the leg), else None when the mission completed. A vehicle whose clock stops (a
+        frozen simulator) still ends on the wall backstop (:class:`Deadline`): LinkTimeout."""
+        planned_s = self.overrun_factor * expected_s + 30.0
+        deadline = Deadline(self.link, planned_s, self.speedup)
         p = self.vehicle.progress
+        reported = False
         while True:
             self._verify_if_pending(i, items)
             if self._wait_complete(n_items):
-                return
-            if deadline.passed():
+                return None
+            if deadline.wall_passed():
                 raise LinkTimeout(f"leg {i} not complete in time (item {p.current}/{p.total})")
+            if not reported and deadline.vehicle_passed():
+                reported = True
+                if self.overrun(i, expected_s, planned_s, n_items):
+                    return "cut"
             if self.rebooted.is_set():
                 deadline.extend(self.after_reboot(i, items, n_items), rebooted=True)
                 continue
             if self.link.lost or self.link.error is not None:
+                t0 = time.monotonic()
                 self.recover_link(i, items)
-                deadline.extend(30.0)
+                # the vehicle flew on meanwhile (its clock counts that); only the wall backstop waits longer
+                deadline.wall += time.monotonic() - t0
                 continue
             waited = self._watch_mode(i, n_items)
             if waited:
                 deadline.extend(waited)
+
+    def overrun(self, i: int, expected_s: float, planned_s: float, n_items: int) -> bool:
+        """Leg ``i`` has flown past ``planned_s`` vehicle seconds (``overrun_factor`` x ``expected_s`` + 30 s):
+        one line and an event; True when the mission's rule (``on_overrun: cut``) ends the leg here."""
+        p = self.vehicle.progress
+        cut = self.on_overrun == "cut"
+        what = (
+            "cutting the leg: HOLD, its samples absorbed, the next leg planned from here"
+            if cut
+            else "flying on (vehicle.on_overrun: warn)"
+        )
+        self._say(
+            f"leg {i + 1}: WARNING: overrun: still flying after {planned_s:.0f} s of vehicle time "
+            f"({self.overrun_factor:g} x the expected {expected_s:.0f} s + 30 s), at item {p.current}/{n_items}; {what}"
+        )
+        self.journal.note(
+            "warning", f"leg {i}: overrun at {utc_now()}: past {planned_s:.0f} vehicle s at item {p.current}/{n_items}"
+        )
+        return cut
 
     def _verify_if_pending(self, i: int, items) -> None:
         if not (self.verify_pending and self.vehicle.mode == AUTO and not self.link.lost):
@@ -423,9 +485,17 @@ class VehicleSession:
         try:
             self.verify_flying(i, items, resume_seq=self.resume_seq)
             self.verify_pending = False
+            self._verify_timeouts = 0
         except MavlinkError as exc:
             # DENIED: another station's upload is in progress (the vehicle serves no download
             # meanwhile): read back once it is over. A lost link: recovered by fly(), then read back.
+            # A timeout (a radio drop that began and ended within the read-back) or a transfer the vehicle
+            # broke off (a late duplicate answer at a high speed-up): read back again (a few times in a row).
+            retry = isinstance(exc, MissionRejected) and exc.result in (*_RETRIED, M.MAV_MISSION_INVALID_SEQUENCE)
+            if isinstance(exc, LinkTimeout) or retry:
+                self._verify_timeouts += 1
+                if self._verify_timeouts <= self.VERIFY_TIMEOUTS:
+                    return
             if getattr(exc, "result", None) != M.MAV_MISSION_DENIED and not self.link.lost and self.link.error is None:
                 raise
 
@@ -490,7 +560,7 @@ class VehicleSession:
         )
         self.journal.note("reboot", f"leg {i}: vehicle rebooted at {utc_now()} (boot {boot}, was at item {seq})")
         if self.link.lost:
-            self.link.reconnect()
+            self.reconnect_within_window(i, time.monotonic() - self._silent_s(), "reboot")
         self.link.request_streams()  # a reboot forgets the rates set by SET_MESSAGE_INTERVAL
         self.wait_ready()
         if self.on_reboot == "hold":
@@ -517,40 +587,6 @@ class VehicleSession:
         )
         return time.monotonic() - t0
 
-    def recover_link(self, i: int, items) -> None:
-        """The link died mid-leg: reconnect, then (unless the autopilot rebooted: :meth:`fly` handles that)
-        check the vehicle still holds our mission, re-uploading it at the current item if not."""
-        link = self.link
-        why = link.closed_reason or f"{link.seconds_since_heartbeat:.1f} s without heartbeat"
-        self._say(f"leg {i + 1}: link lost ({why}); reconnecting")
-        self.journal.note("link_lost", f"leg {i}: link lost at {utc_now()} ({why})")
-        link.clear_error()
-        link.reconnect()
-        # a rebooted autopilot also drops its links: look at its time before treating this as a link fault
-        try:
-            link.wait("GLOBAL_POSITION_INT", timeout=max(1.0, 3.0 / self.speedup) + link.reply_timeout)
-        except LinkTimeout:
-            pass
-        self.journal.record.event("link_back", f"leg {i}: link back at {utc_now()}")
-        if self.rebooted.wait(0.1):
-            return  # fly() handles the reboot (it verifies the mission itself)
-        v = self.vehicle
-        diff = differences(list(items), v.mission.download(), 0)
-        cur = link.wait("MISSION_CURRENT", timeout=max(2.0, link.reply_timeout))
-        if diff:
-            self._say(f"leg {i + 1}: the vehicle's mission differs after the reconnect ({diff}); re-uploading")
-            was_auto = v.mode == AUTO
-            if was_auto:
-                v.hold()
-            v.mission.upload_verified(items)
-            v.mission.set_current(max(1, min(int(cur.seq), len(items) - 1)))
-            if was_auto:
-                v.set_mode("AUTO")
-        self.journal.events.append(f"leg {i}: reconnected, mission verified, item {cur.seq}/{cur.total}")
-        self._say(
-            f"leg {i + 1}: reconnected; mission on the vehicle verified, at item {cur.seq}/{getattr(cur, 'total', '?')}"
-        )
-
     def pause(self, i: int, mode: int) -> float:
         """A pilot took the vehicle out of AUTO: wait up to ``pause_timeout_s`` for AUTO to come back.
         Returns the wall seconds waited; :class:`Paused` when it did not, :class:`Rebooted` if it rebooted."""
@@ -569,7 +605,7 @@ class VehicleSession:
             if self.rebooted.is_set():
                 raise Rebooted()  # not the pilot after all (or the pilot rebooted it): fly() resumes
             if self.link.lost:
-                self.link.reconnect()
+                self.reconnect_within_window(i, time.monotonic() - self._silent_s(), "pause")
             self.link.idle(0.05)
         raise Paused(f"leg {i}: the vehicle stayed in {name} for {self.pause_timeout_s:.0f} s; stopping in HOLD")
 

@@ -1,0 +1,99 @@
+"""What a run keeps across controller sessions: ``--resume`` (docs/resilience.md, "Resume keeps the record").
+
+A mixin of :class:`~passt_mav.vehicle.controller.MissionController`: the state to continue from (the last
+complete leg's ``estimate.nc``), the interrupted attempt of the leg that was in flight (its files to
+``legs/NNN/attempt_K/``, a summary of it in the re-planned leg's record) and the run's ``sessions`` (each
+controller session's first leg and the legs it planned: where a replay restarts as the run did). It uses
+the controller's ``rd``, ``store``, ``step``, ``loop``, ``run_clock``, ``resume``, ``events``, ``leg_records``
+and ``_say``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from passt_mav.errors import UserError
+
+__all__ = ["ResumeRecord"]
+
+
+class ResumeRecord:
+    """The resume part of the mission controller (module docstring)."""
+
+    def _init_resume_record(self) -> None:
+        self._attempts: dict[int, list[dict]] = {}  # leg -> its interrupted attempts
+        #: one record per controller session of this run (a resume adds one): UTC start, first leg, the legs
+        #: it planned in order (their clock STATUSTEXTs in the log)
+        self.sessions: list[dict] = []
+
+    def _old_summary(self) -> dict | None:
+        return self.rd.read_summary() if self.rd.summary_file.exists() else None
+
+    def _initial_state(self) -> tuple[np.ndarray, float, int]:
+        """(state, t_state, first leg index)."""
+        state, t_state = self.step.initial_state()
+        if not self.resume:
+            self.sessions = [{"started_utc": self.started_utc, "first_leg": 0, "planned": []}]
+            return state, t_state, 0
+        from passt_mav.fields.field import load_field
+        from passt_mav.vehicle.session import utc_now
+
+        done = [r for r in self.rd.read_legs() if r.get("status") == "complete"]
+        done.sort(key=lambda r: int(r["index"]))
+        # legs must be contiguous from 0: a gap means the directory is not one run
+        done = [r for k, r in enumerate(done) if int(r["index"]) == k]
+        old = self._old_summary()
+        if old is not None:
+            self.run_clock.restore(old.get("clock") or {})
+            self.started_utc = old.get("started_utc") or self.started_utc
+            self.events[:0] = list(old.get("events") or [])  # (before what resume_boots found)
+        self.leg_records = done
+        self.sessions = [
+            *((old or {}).get("sessions") or []),
+            {"started_utc": utc_now(), "first_leg": len(done), "planned": []},
+        ]
+        self._archive_attempt(len(done))
+        if not done:
+            # killed during leg 0: still say so (the store keeps that leg's samples; it is re-planned)
+            self._say(f"resuming {self.rd.root}: no leg completed yet; leg 0 is re-planned from here")
+            self.events.append(f"resumed before leg 0 completed at {utc_now()}")
+            return state, t_state, 0
+        last = done[-1]
+        est = self.rd.estimate_file(int(last["index"]))
+        if not est.exists():
+            raise UserError(f"cannot resume: {est} is missing")
+        fld = load_field(est)
+        self.loop.leg_index = len(done)
+        self._say(f"resuming {self.rd.root}: {len(done)} leg(s) done, state at field time {last['t_state']:.1f}")
+        self.events.append(f"resumed after leg {len(done) - 1} at {utc_now()}")
+        return np.array(fld.data[0], dtype=np.float32), float(last["t_state"]), len(done)
+
+    def _archive_attempt(self, i: int) -> None:
+        """Leg ``i`` was in flight when the controller stopped: keep that attempt's record. Its files move to
+        ``legs/NNN/attempt_K/`` (K = 1, 2, ...) and a summary of it (path, start cell, clock, samples stored)
+        goes to :attr:`_attempts`, which the re-planned leg's record lists under ``attempts``. Its samples stay
+        in the store under leg ``i``: measurements like any other, the re-flown leg absorbs them too."""
+        if not self.rd.leg_file(i).exists():
+            return
+        old = self.rd.read_leg(i)
+        if old.get("status") == "complete":
+            return
+        d = self.rd.leg_dir(i)
+        k = 1 + sum(1 for x in d.glob("attempt_*") if x.is_dir())
+        dest = d / f"attempt_{k}"
+        dest.mkdir()
+        for f in d.iterdir():
+            if f.is_file():
+                f.rename(dest / f.name)
+        keep = ("path", "start_cell", "t_now", "t_start", "forecast_steps_before", "clock_reading")
+        self._attempts[i] = [
+            *old.get("attempts", []),
+            {
+                "attempt": k,
+                "status": "interrupted",
+                "dir": f"attempt_{k}",
+                "n_samples_stored": self.store.count(i),
+                **{key: old[key] for key in keep if key in old},
+            },
+        ]
+        self._say(f"leg {i + 1}: its interrupted attempt {k} kept in {dest} ({self.store.count(i)} samples stored)")
