@@ -93,6 +93,9 @@ class GPReconstructor:
             (anisotropic Matern/RBF over east, north, time) and the snapshot is
             predicted at the query time, so a residual seen early in a leg counts
             less than a fresh one when the flow moves on within the leg.
+        forward_validation: with a space-time kernel, choose its length scales among the fitted ones and
+            shorter ones by how well the leg's earlier samples predict its last third
+            (:meth:`_forward_validate_time_scale`; default True).
         noise_std: initial sensor-noise std (velocity units) of the WhiteKernel.
         alpha: jitter added to the kernel diagonal (raise it if Cholesky fails).
         prior: "forecast" (GP on residuals vs the forecast) or "none".
@@ -152,6 +155,7 @@ class GPReconstructor:
         max_length_cells: float = 6.0,
         max_fit_points: int = MAX_FIT_POINTS,
         space_time: bool = True,
+        forward_validation: bool = True,
         n_restarts: int = 0,
         seed: int = 0,
         solver: str = "sklearn",
@@ -167,6 +171,7 @@ class GPReconstructor:
         self.background_scale = background_scale
         self.solver = solver
         self.space_time = space_time
+        self.forward_validation = forward_validation
         self.max_fit_points = max_fit_points
         self.max_length_cells = max_length_cells
         self.kernel = kernel
@@ -348,7 +353,7 @@ class GPReconstructor:
         self.n_inputs_ = xy.shape[1]
         self.time_scale_factor_ = [1.0, 1.0]
         self.space_scale_factor_ = [1.0, 1.0]
-        if self.n_inputs_ == 3:
+        if self.n_inputs_ == 3 and self.forward_validation:
             self._forward_validate_time_scale(xy, target)
         return self
 
