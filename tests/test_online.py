@@ -25,9 +25,10 @@ def persistence_knode(wave):
     return make_predictor("knode", epochs=0, zero_init=True, lr=3e-3, **SMALL).fit(wave, start=0, stop=24)
 
 
-def neg_mse_next(truth_now, truth_next):
-    """A score: minus the one-step forecast's MSE from ``truth_now`` against ``truth_next`` (higher is better)."""
-    return lambda p: -float(np.mean((p.predict(truth_now, 1)[0] - truth_next) ** 2))
+def neg_mse_next(truth_now, truth_next, steps=1):
+    """A score: minus the MSE of the forecast ``steps`` snapshots on from ``truth_now`` against
+    ``truth_next`` (higher is better)."""
+    return lambda p: -float(np.mean((p.predict(truth_now, steps)[-1] - truth_next) ** 2))
 
 
 def test_an_update_that_explains_the_next_leg_worse_is_discarded(wave, persistence_knode):
@@ -77,6 +78,22 @@ def test_the_budget_bounds_the_steps_and_is_recorded():
     assert rec["reason"] == "no gradient step fitted in the budget"
 
 
+def test_states_a_leg_apart_are_compared_after_interval_steps(wave, persistence_knode):
+    """One state every 3 snapshots (``interval=3``): the learned motion explains the state 3 snapshots
+    on better than persistence: kept."""
+    out, rec = update_online(
+        persistence_knode,
+        wave.data[12:31:3],
+        budget_s=1e9,
+        score=neg_mse_next(wave.data[30], wave.data[33], steps=3),
+        lr=3e-3,
+        interval=3,
+        max_steps=30,
+    )
+    assert rec["kept"] and out is not persistence_knode
+    assert rec["scores"]["updated"] > rec["scores"]["original"] and rec["loss"][1] < rec["loss"][0]
+
+
 def test_bad_input_and_untrainable_predictors(wave, persistence_knode):
     with pytest.raises(ModelError, match=r"states must be \(time >= 2, 2, 16, 16\)"):
         update_online(persistence_knode, wave.data[20:21], budget_s=1, score=lambda q: 0.0)
@@ -84,6 +101,8 @@ def test_bad_input_and_untrainable_predictors(wave, persistence_knode):
     bad[0, 0, 0, 0] = np.nan
     with pytest.raises(ModelError, match="NaN"):
         update_online(persistence_knode, bad, budget_s=1, score=lambda q: 0.0)
+    with pytest.raises(ModelError, match="interval must be a positive integer"):
+        update_online(persistence_knode, wave.data[20:24], budget_s=1, score=lambda q: 0.0, interval=0)
     dmd = make_predictor("dmd").fit(wave, start=0, stop=24)
     out, rec = update_online(dmd, wave.data[20:24], budget_s=1, score=lambda q: 0.0)
     assert out is dmd and not rec["kept"] and "no trainable weights" in rec["reason"]

@@ -8,8 +8,10 @@ original. The copy is returned only when its score is strictly higher; otherwise
 predictor comes back unchanged (the same object). Nothing here knows about legs or samples: the
 loop decides what the states and the score are.
 
-Loss: the KNODE's roll-out loss in its own scaled units (``z = (u - mean) / std`` per pixel, water
-cells only), from every state but the last over ``min(horizon, T - 1)`` snapshot intervals, Adam.
+Loss: the KNODE's roll-out error in its own scaled units (``z = (u - mean) / std`` per pixel, water
+cells only): from every state that has ``horizon`` successors, the model is rolled out ``interval``
+snapshot steps per successor and compared with each of the next ``min(horizon, T - 1)`` states
+(mean squared error averaged over them); Adam, gradient-norm clip 1.
 """
 
 from __future__ import annotations
@@ -33,13 +35,15 @@ def update_online(
     score: Callable[[object], float],
     lr: float = 1e-4,
     horizon: int = 1,
+    interval: int = 1,
     max_steps: int | None = None,
     clock: Callable[[], float] = time.perf_counter,
 ) -> tuple[object, dict]:
     """``(predictor_out, record)``: ``predictor`` fine-tuned on ``states`` if that raises ``score``, else itself.
 
-    ``states``: ``(T, 2, rows, cols)`` field units (u east, v north; row 0 south), consecutive
-    snapshots one interval apart, ``T >= 2``, finite (land filled, as the loop does before
+    ``states``: ``(T, 2, rows, cols)`` field units (u east, v north; row 0 south), ``T >= 2``,
+    consecutive states ``interval`` snapshot intervals apart (e.g. one reconstruction per leg
+    of 10 snapshots: ``interval=10``), finite (land filled, as the loop does before
     predicting). ``budget_s``: seconds (by ``clock``) for the gradient steps; a step starts only
     while the budget lasts, so the update overruns it by at most one step. ``max_steps``: a cap
     on the steps (``None``: the budget alone). ``score(p)``: higher is better; called on the
@@ -64,10 +68,11 @@ def update_online(
         raise ModelError("states hold NaN/inf; fill land or missing cells (e.g. with 0) before updating")
     if not budget_s >= 0:
         raise ModelError(f"budget_s must be >= 0 seconds, got {budget_s!r}")
-    if int(horizon) != horizon or horizon < 1:
-        raise ModelError(f"horizon must be a positive integer, got {horizon!r}")
+    for name, v in (("horizon", horizon), ("interval", interval)):
+        if isinstance(v, bool) or int(v) != v or v < 1:
+            raise ModelError(f"{name} must be a positive integer, got {v!r}")
     record["scores"]["original"] = float(score(predictor))
-    cand, losses = _fine_tune(predictor, s, budget_s, lr, int(horizon), max_steps, clock, t0)
+    cand, losses = _fine_tune(predictor, s, budget_s, lr, (int(horizon), int(interval)), max_steps, clock, t0)
     record["steps"], record["loss"] = len(losses), [losses[0], losses[-1]] if losses else []
     if not losses:
         record["reason"] = "no gradient step fitted in the budget"
@@ -80,9 +85,10 @@ def update_online(
     return (cand if record["kept"] else predictor), record
 
 
-def _fine_tune(predictor, states: np.ndarray, budget_s, lr, horizon, max_steps, clock, t0) -> tuple[object, list]:
+def _fine_tune(predictor, states: np.ndarray, budget_s, lr, roll, max_steps, clock, t0) -> tuple[object, list]:
     """A deep copy of ``predictor`` after Adam steps on ``states`` while ``clock() - t0 < budget_s``
-    (and fewer than ``max_steps``); returns it and the loss of each step (scaled units)."""
+    (and fewer than ``max_steps``); ``roll``: ``(horizon, interval)``. Returns the copy and the loss
+    before each step (scaled units)."""
     import torch
 
     cand = copy.deepcopy(predictor)
@@ -92,19 +98,26 @@ def _fine_tune(predictor, states: np.ndarray, budget_s, lr, horizon, max_steps, 
     z = torch.from_numpy(((states - cand.mean_) / cand.std_ * cand.water_).astype(np.float32)).to(dev)
     w = torch.from_numpy(cand.water_.astype(np.float32)).to(dev)
     n_w = float(cand.water_.sum()) * 2
-    H = min(horizon, len(z) - 1)
+    H, interval = min(roll[0], len(z) - 1), roll[1]
     z0, target = z[: len(z) - H], torch.stack([z[k : len(z) - H + k] for k in range(1, H + 1)], dim=1)
     opt = torch.optim.Adam(net.parameters(), lr=float(lr))
-    cand._step = lambda x: cand._advance(net, x)
+
+    def rollout_loss():
+        zc, tot = z0, 0.0
+        for j in range(H):
+            for _ in range(interval):
+                zc = cand._advance(net, zc)
+            tot = tot + (((zc - target[:, j]) ** 2) * w).sum() / (n_w * len(z0))
+        return tot / H
+
     losses: list[float] = []
     net.train()
     while clock() - t0 < budget_s and (max_steps is None or len(losses) < max_steps):
-        loss = cand._rollout_loss(net, z0, target, w, n_w)
+        loss = rollout_loss()
         opt.zero_grad()
         loss.backward()
         torch.nn.utils.clip_grad_norm_(net.parameters(), 1.0)
         opt.step()
         losses.append(float(loss.detach()))
     net.eval()
-    cand._step = None
     return cand, losses
