@@ -99,15 +99,19 @@ def test_linear_term_in_continuous_time_matches_dmd_within_the_euler_error(field
     assert errs[-1] < 5e-3 * y  # 64 Euler steps: within 0.5 % of DMD
 
 
-def test_untrained_keep_model_is_dmd_inside_the_subspace_and_persistence_outside(field):
-    """Correction zeroed, ``complement="keep"``: x -> x + U (A - I) U^T (x - m)."""
-    m = _untrained(field, "keep")
+@pytest.mark.parametrize("complement,kappa", [("keep", 0.0), (0.3, 0.3), ("0.3", 0.3)])
+def test_untrained_model_is_dmd_inside_the_subspace_and_decays_outside(field, complement, kappa):
+    """Correction zeroed: y = x - m -> U A U^T y + exp(-kappa) (y - U U^T y); ``"keep"`` is kappa 0
+    (persistence outside the subspace); a rate given as text (the command line's) is the same rate."""
+    m = _untrained(field, complement)
+    assert m.knowledge_complement in ("keep", 0.3)
     dmd = make_predictor("dmd").fit(field, start=0, stop=24)
     rng = np.random.default_rng(2)
     x = field.data[50] + rng.normal(0, 0.05, field.data[50].shape).astype(np.float32)
-    y = (x - dmd.mean_.reshape(x.shape)).ravel().astype(np.float64)
+    mean = dmd.mean_.reshape(x.shape).ravel()
+    y = x.ravel().astype(np.float64) - mean
     a = dmd.modes_.T @ y
-    want = x.ravel() + dmd.modes_ @ (dmd.A_ @ a - a)
+    want = mean + dmd.modes_ @ (dmd.A_ @ a) + np.exp(-kappa) * (y - dmd.modes_ @ a)
     np.testing.assert_allclose(m.predict(x, 1)[0].ravel(), want, atol=2e-6 * np.max(np.abs(want)))
 
 
@@ -138,6 +142,7 @@ def test_plain_knode_is_unchanged_by_the_option(field):
     [
         (["--knowledge", "dmd", "--method", "rk4"], "method 'rk4' is not available"),
         (["--knowledge", "dmd", "--knowledge-energy", "1.5"], "energy must be in (0, 1]"),
+        (["--knowledge", "dmd", "--knowledge-complement", "fast"], "must be keep, drop or a decay rate"),
     ],
 )
 def test_bad_knowledge_options_are_one_line_errors(field, tmp_path, capsys, args, needle):
@@ -157,5 +162,6 @@ def test_unknown_knowledge_and_complement_name_the_choices(field):
 
     with pytest.raises(ModelError, match="unknown knowledge 'koopman'; choose one of none, dmd"):
         make_predictor("knode", knowledge="koopman", **SMALL).fit(field, start=0, stop=24)
-    with pytest.raises(ModelError, match="choose one of keep, drop"):
-        make_predictor("knode", knowledge="dmd", knowledge_complement="half", **SMALL).fit(field, start=0, stop=24)
+    for bad in ("half", -0.1):
+        with pytest.raises(ModelError, match="must be keep, drop or a decay rate >= 0 per snapshot interval"):
+            make_predictor("knode", knowledge="dmd", knowledge_complement=bad, **SMALL).fit(field, start=0, stop=24)

@@ -142,8 +142,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     t.add_argument(
         "--knowledge-complement",
         default=None,
-        choices=("keep", "drop"),
-        help="with --knowledge dmd: the state outside DMD's subspace persists (keep, default) or is dropped as DMD does (drop)",
+        metavar="{keep,drop,RATE}",
+        help="with --knowledge dmd: the state outside DMD's subspace persists (keep, default), is dropped as DMD does (drop) or decays at RATE per snapshot interval (e.g. 0.2)",
     )
     t.add_argument(
         "--compile", action="store_true", help="train through torch.compile where it works (falls back to eager)"

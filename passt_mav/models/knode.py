@@ -266,7 +266,7 @@ class KnodePredictor(Predictor):
         knowledge_rank, knowledge_energy: DMD's truncation (rank, or the smallest rank reaching
             that share of the snapshots' energy).
         knowledge_complement: the linear term outside DMD's subspace: ``"keep"`` (persists,
-            default) or ``"drop"`` (DMD's projection).
+            default), ``"drop"`` (DMD's projection) or a decay rate >= 0 per snapshot interval.
     """
 
     name = "knode"
@@ -309,7 +309,7 @@ class KnodePredictor(Predictor):
     knowledge: str = "none"
     knowledge_rank: int | None = None
     knowledge_energy: float = 0.999
-    knowledge_complement: str = "keep"
+    knowledge_complement: str | float = "keep"
 
     def __post_init__(self) -> None:
         """Normalise the hyper-parameters' types (the model starts unfitted)."""
@@ -317,6 +317,11 @@ class KnodePredictor(Predictor):
         self.init = None if self.init is None else str(self.init)
         self.fast_predict = bool(self.fast_predict)
         self.shift_fraction = None if self.shift_fraction is None else float(self.shift_fraction)
+        if isinstance(self.knowledge_complement, str) and self.knowledge_complement not in ("keep", "drop"):
+            try:  # a rate given as text (the command line) is stored as a number
+                self.knowledge_complement = float(self.knowledge_complement)
+            except ValueError:
+                pass  # refused with its message by _check_params
         self.grid_shape_ = None
 
     def __getstate__(self) -> dict:
@@ -393,14 +398,11 @@ class KnodePredictor(Predictor):
             raise ModelError(f"channels must list {len(CONV_SPEC)} widths, got {self.channels}")
 
     def _check_knowledge(self) -> None:
-        from passt_mav.models.knowledge import COMPLEMENTS
+        from passt_mav.models.knowledge import complement_rate
 
         if self.knowledge not in KNOWLEDGE:
             raise ModelError(f"unknown knowledge {self.knowledge!r}; choose one of {', '.join(KNOWLEDGE)}")
-        if self.knowledge_complement not in COMPLEMENTS:
-            raise ModelError(
-                f"unknown knowledge complement {self.knowledge_complement!r}; choose one of {', '.join(COMPLEMENTS)}"
-            )
+        complement_rate(self.knowledge_complement)
         if self.knowledge == "dmd" and self.method != "euler":
             raise ModelError(
                 f"knowledge 'dmd' integrates its linear term exactly and the correction with Euler sub-steps; method {self.method!r} is not available with it (use euler)"

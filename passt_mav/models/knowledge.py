@@ -18,9 +18,11 @@ offset is kept general), the linear dynamics are
 
     dy/dt = U A_c U^T y - kappa (I - U U^T) y
 
-``complement`` says what happens to the part of the state outside DMD's r-dimensional subspace:
-``"keep"`` (kappa = 0, it persists; the correction may move it) or ``"drop"`` (kappa -> infinity,
-DMD's own projection; the correction's out-of-subspace part is then dropped too).
+``complement`` says what happens to the part of the state outside DMD's r-dimensional subspace
+(:func:`complement_rate`): ``"keep"`` (kappa = 0, it persists; the correction may move it),
+``"drop"`` (kappa -> infinity, DMD's own projection; the correction's out-of-subspace part is then
+dropped too) or a rate kappa >= 0 per snapshot interval (it decays as ``exp(-kappa t)``: a state
+DMD's subspace cannot hold, such as a displaced wake, is trusted for about ``1 / kappa`` snapshots).
 
 Integration: the linear part is integrated exactly (integrating-factor or "Lawson" Euler): one
 sub-step of length ``h`` is ``z <- E_h (z + h K N(z))`` with ``E_h = exp(h L)``, so with the
@@ -36,10 +38,26 @@ import numpy as np
 
 from passt_mav.errors import ModelError
 
-__all__ = ["COMPLEMENTS", "continuous_operator", "fit_dmd_knowledge", "LinearKnowledge"]
+__all__ = ["COMPLEMENTS", "complement_rate", "continuous_operator", "fit_dmd_knowledge", "LinearKnowledge"]
 
-#: what the linear term does outside DMD's subspace
-COMPLEMENTS = ("keep", "drop")
+#: what the linear term does outside DMD's subspace, by name (or a decay rate, see complement_rate)
+COMPLEMENTS = {"keep": 0.0, "drop": float("inf")}
+
+
+def complement_rate(complement) -> float:
+    """The decay rate kappa (per snapshot interval) of ``complement``: ``"keep"`` 0, ``"drop"`` infinity,
+    or a number >= 0 (also as a string, as the command line gives it)."""
+    if isinstance(complement, str) and complement in COMPLEMENTS:
+        return COMPLEMENTS[complement]
+    try:
+        rate = float(complement)
+    except (TypeError, ValueError):
+        rate = float("nan")
+    if isinstance(complement, bool) or not rate >= 0:
+        raise ModelError(
+            f"knowledge complement must be keep, drop or a decay rate >= 0 per snapshot interval, got {complement!r}"
+        )
+    return rate
 
 
 def continuous_operator(A: np.ndarray) -> tuple[np.ndarray, dict]:
@@ -62,7 +80,7 @@ def continuous_operator(A: np.ndarray) -> tuple[np.ndarray, dict]:
 
 
 def fit_dmd_knowledge(
-    train: np.ndarray, water: np.ndarray, mean: np.ndarray, std: np.ndarray, *, rank, energy, complement: str = "keep"
+    train: np.ndarray, water: np.ndarray, mean: np.ndarray, std: np.ndarray, *, rank, energy, complement="keep"
 ):
     """``(module, info)``: a :class:`LinearKnowledge` from DMD fitted on ``train``, and what the fit found.
 
@@ -91,30 +109,26 @@ def _build_class():
     class _LinearKnowledge(torch.nn.Module):
         """``L`` on ``(B, 2, R, C)`` scaled states (see module docstring); buffers: ``U`` (n, r) DMD modes
         (zero rows on land), ``Ac`` (r, r) per snapshot interval, ``scale`` (n,) the scaler's std (1 on
-        land), ``offset`` (n,) scaler mean minus DMD mean (field units), ``drop`` (1 = complement dropped)."""
+        land), ``offset`` (n,) scaler mean minus DMD mean (field units), ``decay`` the complement's decay
+        rate kappa per snapshot interval (``inf``: dropped)."""
 
-        def __init__(self, U, Ac, scale, offset, complement: str = "keep"):
+        def __init__(self, U, Ac, scale, offset, complement="keep"):
             super().__init__()
-            if complement not in COMPLEMENTS:
-                raise ModelError(f"unknown knowledge complement {complement!r}; choose one of {', '.join(COMPLEMENTS)}")
+            rate = complement_rate(complement)
             f = lambda a: torch.as_tensor(np.asarray(a), dtype=torch.float32)  # noqa: E731
             self.register_buffer("U", f(U))
             self.register_buffer("Ac", f(Ac))
             self.register_buffer("scale", f(scale))
             self.register_buffer("offset", f(offset))
-            self.register_buffer("drop", torch.tensor(float(complement == "drop")))
+            self.register_buffer("decay", torch.tensor(rate, dtype=torch.float64))
             self._prop: dict = {}
-
-        @property
-        def complement(self) -> str:
-            return "drop" if float(self.drop) else "keep"
 
         def _propagator(self, h: float):
             """``(M, d)``: ``exp(h L) y = d y + U M U^T y`` in DMD coordinates, ``M = expm(h Ac) - d I``."""
-            key = (float(h), self.U.device, float(self.drop))
+            key = (float(h), self.U.device, float(self.decay))
             if key not in self._prop:
                 r = self.Ac.shape[0]
-                d = 0.0 if float(self.drop) else 1.0
+                d = float(torch.exp(-self.decay * float(h)))
                 E = torch.linalg.matrix_exp(self.Ac.double() * float(h))
                 self._prop = {key: ((E - d * torch.eye(r, dtype=E.dtype, device=E.device)).float(), d)}
             return self._prop[key]
@@ -132,11 +146,13 @@ def _build_class():
             return self._to_z(d * y + (y @ self.U) @ M.T @ self.U.T, z)
 
         def rhs(self, z):
-            """``L z`` for ``complement="keep"`` (finite; ``"drop"`` has an infinite rate off the subspace)."""
-            if float(self.drop):
-                raise ModelError("the dropped complement has no finite rate; use complement='keep' for L z")
+            """``L z`` (finite decay rates only; ``"drop"`` has an infinite rate off the subspace)."""
+            kappa = float(self.decay)
+            if kappa == float("inf"):
+                raise ModelError("the dropped complement has no finite rate; use a finite complement for L z")
             y = self._to_y(z)
-            return (((y @ self.U) @ self.Ac.T @ self.U.T) / self.scale).view_as(z)
+            a = y @ self.U
+            return ((a @ self.Ac.T @ self.U.T - kappa * (y - a @ self.U.T)) / self.scale).view_as(z)
 
         def step(self, net, z, substeps: int):
             """One snapshot interval of ``dz/dt = L z + net(z)``: ``substeps`` integrating-factor Euler steps."""
@@ -151,7 +167,7 @@ def _build_class():
 _CLASS = None
 
 
-def LinearKnowledge(U, Ac, scale, offset, complement: str = "keep"):
+def LinearKnowledge(U, Ac, scale, offset, complement="keep"):
     """Build the linear knowledge module (a ``torch.nn.Module``); see module docstring for the arguments."""
     global _CLASS
     if _CLASS is None:
