@@ -165,3 +165,30 @@ def test_unknown_knowledge_and_complement_name_the_choices(field):
     for bad in ("half", -0.1):
         with pytest.raises(ModelError, match="must be keep, drop or a decay rate >= 0 per snapshot interval"):
             make_predictor("knode", knowledge="dmd", knowledge_complement=bad, **SMALL).fit(field, start=0, stop=24)
+
+
+def test_shipped_alternative_carries_dmd_of_its_window():
+    """``builtin:cylinder-dmd``: a KNODE with DMD knowledge whose operator is the DMD of its recorded
+    training window (the same rank, exp(A_c) = A to float32 rounding); the command is recorded."""
+    from scipy.linalg import expm
+
+    from passt_mav.fields.datasets import load_dataset
+    from passt_mav.models import shipped_model
+
+    try:
+        path = shipped_model("cylinder-dmd")
+    except Exception as exc:  # noqa: BLE001 - a checkout without the asset skips, naming it
+        pytest.skip(str(exc))
+    m = load_predictor("builtin:cylinder-dmd")
+    meta = json.loads(path.with_suffix(".json").read_text())
+    f = load_dataset("cylinder")
+    assert m.knowledge == "dmd" and meta["command"].startswith("passt-mav model train")
+    assert meta["data_hash"] == f.data_hash() and "--knowledge dmd" in meta["command"]
+    a, b = meta["train_window"]
+    dmd = make_predictor("dmd").fit(f, start=a, stop=b)
+    kn = m.net_.knowledge
+    assert kn.Ac.shape == (dmd.rank_, dmd.rank_) == (meta["knowledge_info"]["rank"],) * 2
+    U = kn.U.double().numpy()[np.broadcast_to(dmd.water_, (2, 30, 30)).ravel()]
+    # the same subspace and the same operator in it (modes are unique up to sign)
+    A_back = U.T @ dmd.modes_ @ dmd.A_ @ dmd.modes_.T @ U
+    np.testing.assert_allclose(expm(kn.Ac.double().numpy()), A_back, atol=1e-4)
