@@ -126,15 +126,8 @@ def fit_knowledge(p, window: np.ndarray, water: np.ndarray, mean: np.ndarray, st
         return copy.deepcopy(start_from.net_.knowledge)
     from passt_mav.models.knowledge import fit_dmd_knowledge
 
-    kn, p.knowledge_info_ = fit_dmd_knowledge(
-        window,
-        water,
-        mean,
-        std,
-        rank=p.knowledge_rank,
-        energy=p.knowledge_energy,
-        complement=p.knowledge_complement,
-    )
+    opts = {"rank": p.knowledge_rank, "energy": p.knowledge_energy, "complement": p.knowledge_complement}
+    kn, p.knowledge_info_ = fit_dmd_knowledge(window, water, mean, std, **opts)
     return kn
 
 
