@@ -16,6 +16,7 @@ HELP = "Train or evaluate predictors (KNODE, DMD, persistence)"
 EXAMPLES = """examples:
   passt-mav model train --data builtin:cylinder --start 200 --stop 300 --epochs 200 --seed 0 --out runs/knode_cyl
   passt-mav model train --data builtin:ocean --stop 400 --epochs 40 --n-batches 3 --out runs/knode_ocean
+  passt-mav model train --data builtin:cylinder --start 200 --stop 300 --knowledge dmd --out runs/knode_dmd_cyl
   passt-mav model train --model dmd --data builtin:cylinder --start 200 --stop 300 --out runs/dmd_cyl
   passt-mav model evaluate --model builtin:cylinder --data builtin:cylinder --oscillating builtin:oscillating --out runs/eval_knode
   passt-mav model evaluate --model runs/knode_cyl.pt --data builtin:cylinder --json --out runs/eval
@@ -119,6 +120,30 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         type=float,
         default=None,
         help="with --shift-rows: share of training initial conditions shifted (the rest unshifted) and the shifted copies' weight in validation (default: uniform over all shifts, 0 included)",
+    )
+    t.add_argument(
+        "--knowledge",
+        default=None,
+        choices=("none", "dmd"),
+        help="known linear term of the KNODE's right-hand side: none (default, the paper: smoothing K only) | dmd (DMD's operator fitted on the training part, in continuous time, plus the learned correction)",
+    )
+    t.add_argument(
+        "--knowledge-rank",
+        type=int,
+        default=None,
+        help="with --knowledge dmd: DMD rank (default: by --knowledge-energy)",
+    )
+    t.add_argument(
+        "--knowledge-energy",
+        type=float,
+        default=None,
+        help="with --knowledge dmd: smallest rank reaching this share of the snapshots' energy (default 0.999)",
+    )
+    t.add_argument(
+        "--knowledge-complement",
+        default=None,
+        metavar="{keep,drop,RATE}",
+        help="with --knowledge dmd: the state outside DMD's subspace persists (keep, default), is dropped as DMD does (drop) or decays at RATE per snapshot interval (e.g. 0.2)",
     )
     t.add_argument(
         "--compile", action="store_true", help="train through torch.compile where it works (falls back to eager)"
@@ -280,6 +305,10 @@ def _recipe_overrides(args) -> dict:
             "select",
             "shift_rows",
             "shift_fraction",
+            "knowledge",
+            "knowledge_rank",
+            "knowledge_energy",
+            "knowledge_complement",
         )
         if getattr(args, k) is not None
     } | ({"compile": True} if args.compile else {})

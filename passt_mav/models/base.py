@@ -50,17 +50,19 @@ MODELS_DIR = Path(__file__).resolve().parent.parent / "assets" / "models"
 SHIPPED: dict[str, Path] = {
     "cylinder": MODELS_DIR / "knode_cylinder",
     "ocean": MODELS_DIR / "knode_ocean",
+    # an alternative for the cylinder wakes: the KNODE with DMD's operator as knowledge (docs/knode-dmd.md)
+    "cylinder-dmd": MODELS_DIR / "knode_cylinder_dmd",
 }
 
 
 def shipped_model(name: str) -> Path:
-    """Path (``.pt``; metadata beside it as ``.json``) of a shipped KNODE: ``"cylinder"`` or ``"ocean"``."""
+    """Path (``.pt``; metadata beside it as ``.json``) of a shipped KNODE: a key of :data:`SHIPPED`."""
     if name not in SHIPPED:
         raise ModelError(f"no shipped model {name!r}; choose one of {', '.join(SHIPPED)}")
     p = SHIPPED[name].with_suffix(".pt")
     if not p.exists():
         raise ModelError(
-            f"shipped model {p} is missing; train it with 'passt-mav model train --data builtin:{name} --out {SHIPPED[name]}' (see passt_mav/assets/README.md)"
+            f"shipped model {p} is missing; train it with the command recorded in passt_mav/assets/README.md (--out {SHIPPED[name]})"
         )
     return p
 
@@ -103,7 +105,8 @@ def read_metadata(path: str | Path) -> dict:
 def load_predictor(spec: str | Path) -> Predictor:
     """A fitted predictor from a checkpoint path or ``builtin:NAME``.
 
-    ``NAME`` is ``cylinder`` or ``ocean`` (the shipped KNODE checkpoints). ``shipped:NAME``
+    ``NAME`` is a key of :data:`SHIPPED` (the shipped KNODE checkpoints: ``cylinder``, ``ocean``,
+    ``cylinder-dmd``). ``shipped:NAME``
     is the old spelling, still accepted (deprecated; one spelling everywhere: ``builtin:``,
     as in mission files and ``passt-mav evaluate``).
     """

@@ -19,6 +19,11 @@ model). Its time derivative is
   almost the identity. It is kept as in the paper by default and configurable
   (``kernel_variance=1.0`` smooths over about one cell).
 
+With ``knowledge="dmd"`` the right-hand side gains a known linear term,
+``dz/dt = L z + K N(z; phi)``: DMD's operator fitted on the training part of the window,
+in continuous time (:mod:`passt_mav.models.knowledge`), integrated exactly while the
+correction ``K N`` takes Euler sub-steps.
+
 Time is counted in snapshot intervals: one ``predict`` step advances the ODE by 1,
 integrated with ``substeps`` (default 6) explicit Euler steps (or RK4). Training
 minimises the mean squared one-step-ahead error over all snapshot pairs of the
@@ -47,6 +52,8 @@ __all__ = [
 ]
 
 CHANNELS = (32, 64, 128, 128, 128)
+#: the known part of the right-hand side besides the smoothing K: none (the paper) or DMD's linear operator
+KNOWLEDGE = ("none", "dmd")
 # (kernel, stride, padding) of the five convolutions, as in the authors' code
 CONV_SPEC = ((3, 1, 0), (3, 1, 0), (3, 2, 1), (3, 2, 1), (3, 2, 0))
 
@@ -251,6 +258,15 @@ class KnodePredictor(Predictor):
             unshifted window weighs ``1 - shift_fraction``). ``None`` (default) keeps the
             original draw: uniform over all ``2 * shift_rows + 1`` shifts, 0 included, every
             shift weighing the same in validation.
+        knowledge: the known linear term of the right-hand side: ``"none"`` (the paper:
+            ``dz/dt = K N(z)``) or ``"dmd"`` (``dz/dt = L z + K N(z)``, ``L`` DMD's operator
+            fitted on the training part, in continuous time; see :mod:`passt_mav.models.knowledge`).
+            With ``zero_init`` the untrained model is then DMD (in the ``"drop"`` complement) or
+            DMD inside its subspace and persistence outside it (``"keep"``). Needs ``method="euler"``.
+        knowledge_rank, knowledge_energy: DMD's truncation (rank, or the smallest rank reaching
+            that share of the snapshots' energy).
+        knowledge_complement: the linear term outside DMD's subspace: ``"keep"`` (persists,
+            default), ``"drop"`` (DMD's projection) or a decay rate >= 0 per snapshot interval.
     """
 
     name = "knode"
@@ -290,6 +306,10 @@ class KnodePredictor(Predictor):
     fast_predict: bool = False
     shift_rows: int = 0
     shift_fraction: float | None = None
+    knowledge: str = "none"
+    knowledge_rank: int | None = None
+    knowledge_energy: float = 0.999
+    knowledge_complement: str | float = "keep"
 
     def __post_init__(self) -> None:
         """Normalise the hyper-parameters' types (the model starts unfitted)."""
@@ -297,6 +317,11 @@ class KnodePredictor(Predictor):
         self.init = None if self.init is None else str(self.init)
         self.fast_predict = bool(self.fast_predict)
         self.shift_fraction = None if self.shift_fraction is None else float(self.shift_fraction)
+        if isinstance(self.knowledge_complement, str) and self.knowledge_complement not in ("keep", "drop"):
+            try:  # a rate given as text (the command line) is stored as a number
+                self.knowledge_complement = float(self.knowledge_complement)
+            except ValueError:
+                pass  # refused with its message by _check_params
         self.grid_shape_ = None
 
     def __getstate__(self) -> dict:
@@ -314,6 +339,10 @@ class KnodePredictor(Predictor):
             "kernel_variance": self.kernel_variance,
             "substeps": self.substeps,
             "method": self.method,
+            "knowledge": self.knowledge,
+            "knowledge_rank": self.knowledge_rank,
+            "knowledge_energy": self.knowledge_energy,
+            "knowledge_complement": self.knowledge_complement,
         }
 
     def _train_params(self) -> dict:
@@ -364,13 +393,28 @@ class KnodePredictor(Predictor):
             raise ModelError(
                 f"shift_fraction must be in [0, 1] and needs shift_rows > 0, got {frac!r} with shift_rows {self.shift_rows}"
             )
+        self._check_knowledge()
         if len(self.channels) != len(CONV_SPEC):
             raise ModelError(f"channels must list {len(CONV_SPEC)} widths, got {self.channels}")
+
+    def _check_knowledge(self) -> None:
+        from passt_mav.models.knowledge import complement_rate
+
+        if self.knowledge not in KNOWLEDGE:
+            raise ModelError(f"unknown knowledge {self.knowledge!r}; choose one of {', '.join(KNOWLEDGE)}")
+        complement_rate(self.knowledge_complement)
+        if self.knowledge == "dmd" and self.method != "euler":
+            raise ModelError(
+                f"knowledge 'dmd' integrates its linear term exactly and the correction with Euler sub-steps; method {self.method!r} is not available with it (use euler)"
+            )
 
     def _vf(self, net):
         return lambda z: net(z)
 
     def _advance(self, net, z):
+        kn = getattr(net, "knowledge", None)
+        if kn is not None:  # dz/dt = L z + K N(z): the linear part exactly, see models/knowledge.py
+            return kn.step(net, z, int(self.substeps))
         return ode_step(net, z, 1.0, int(self.substeps), self.method)
 
     # -- fit ------------------------------------------------------------------------
@@ -543,6 +587,7 @@ class KnodePredictor(Predictor):
             "best_epoch": getattr(self, "best_epoch_", None),
             "val_curve": [float(f"{x:.6g}") for x in getattr(self, "val_curve_", [])],
             "noise_info": getattr(self, "noise_info_", None),
+            "knowledge_info": getattr(self, "knowledge_info_", None),
             "final_epoch_loss": self.loss_curve_[-1] if self.loss_curve_ else None,
             "loss_curve": [float(f"{x:.6g}") for x in self.loss_curve_],
             "train_seconds": round(self.train_seconds_, 2),
@@ -573,6 +618,13 @@ class KnodePredictor(Predictor):
             kernel_variance=self.kernel_variance,
         )
         try:
+            if self.knowledge == "dmd":
+                from passt_mav.models.knowledge import LinearKnowledge
+
+                net.knowledge = LinearKnowledge(
+                    *(sd[f"net.knowledge.{k}"].numpy() for k in ("U", "Ac", "scale", "offset")),
+                    self.knowledge_complement,
+                )
             net.load_state_dict({k[4:]: v for k, v in sd.items() if k.startswith("net.")})
             self.mean_ = sd["scaler.mean"].numpy().astype(np.float32)
             self.std_ = sd["scaler.std"].numpy().astype(np.float32)
@@ -592,5 +644,6 @@ class KnodePredictor(Predictor):
         self.best_epoch_ = meta.get("best_epoch")
         self.val_curve_ = meta.get("val_curve", [])
         self.noise_info_ = meta.get("noise_info")
+        self.knowledge_info_ = meta.get("knowledge_info")
         self.metadata_ = meta
         return self

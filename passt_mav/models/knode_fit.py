@@ -81,10 +81,10 @@ def fit_scaler(p, train: np.ndarray, water: np.ndarray) -> tuple[np.ndarray, np.
     return mean, std
 
 
-def build_network(p, grid_shape: tuple[int, int], start_from, dev):
+def build_network(p, grid_shape: tuple[int, int], start_from, dev, knowledge=None):
     """The network at its starting weights on ``dev``: seeded initialisation (the global torch RNG
-    is left as it was), then the start model's weights (``start_from``) or, with ``zero_init``,
-    a zero last layer."""
+    is left as it was), the linear ``knowledge`` module attached (``None``: none), then the start
+    model's weights (``start_from``) or, with ``zero_init``, a zero last layer."""
     torch = _torch()
     R, C = grid_shape
     with torch.random.fork_rng(devices=[]):
@@ -96,7 +96,10 @@ def build_network(p, grid_shape: tuple[int, int], start_from, dev):
             hidden=p.hidden,
             kernel_size=p.kernel_size,
             kernel_variance=p.kernel_variance,
-        ).to(dev)
+        )
+        if knowledge is not None:
+            net.knowledge = knowledge
+        net = net.to(dev)
         if start_from is not None:
             net.load_state_dict(start_from.net_.state_dict())
         elif p.zero_init:
@@ -105,6 +108,27 @@ def build_network(p, grid_shape: tuple[int, int], start_from, dev):
             torch.nn.init.zeros_(net.fc2.weight)
             torch.nn.init.zeros_(net.fc2.bias)
     return net
+
+
+def fit_knowledge(p, window: np.ndarray, water: np.ndarray, mean: np.ndarray, std: np.ndarray, start_from):
+    """The linear knowledge module of ``p`` (``None`` for ``knowledge="none"``): DMD fitted on the whole
+    ``window`` (field units; the snapshots ``model train --model dmd`` would fit on the same window, so the
+    untrained model is that DMD) in the scaling ``mean``/``std``, or a copy of the start model's when
+    fine-tuning; sets ``p.knowledge_info_``. The validation part then scores corrections that all share
+    this linear term."""
+    import copy
+
+    p.knowledge_info_ = None
+    if p.knowledge == "none":
+        return None
+    if start_from is not None:
+        p.knowledge_info_ = getattr(start_from, "knowledge_info_", None)
+        return copy.deepcopy(start_from.net_.knowledge)
+    from passt_mav.models.knowledge import fit_dmd_knowledge
+
+    opts = {"rank": p.knowledge_rank, "energy": p.knowledge_energy, "complement": p.knowledge_complement}
+    kn, p.knowledge_info_ = fit_dmd_knowledge(window, water, mean, std, **opts)
+    return kn
 
 
 def make_noise(p, field, data: np.ndarray, s0: int, n_tr: int, dev):
@@ -318,7 +342,7 @@ def fit_knode(p, field, start: int | None, stop: int | None, epochs: int | None,
         mean, std = start_from.mean_, start_from.std_
         p.init_metadata_ = getattr(start_from, "metadata_", None)
     dev = torch.device(p.device)
-    net = build_network(p, water.shape, start_from, dev)
+    net = build_network(p, water.shape, start_from, dev, fit_knowledge(p, data, water, mean, std, start_from))
     trainer = KnodeTrainer(p, net, field, data, s0, n_tr, Scaler(mean, std, water), dev)
     curve, vcurve, best = trainer.run(n_ep, callback)
     keep_best = best.state is not None and p.select == "best"

@@ -166,6 +166,8 @@ def _train_knode(p, field, job: _TrainJob, opts: dict, *, log, skill: bool) -> d
         "final_epoch_loss": p.loss_curve_[-1] if p.loss_curve_ else None,
         "first_epoch_loss": p.loss_curve_[0] if p.loss_curve_ else None,
         "n_params": p.n_params(),
+        "knowledge": p.knowledge,
+        **({"knowledge_info": p.knowledge_info_} if p.knowledge_info_ else {}),
         "wall_s": round(wall, 2),
         "s_per_epoch": round(wall / max(1, p.epochs_trained_), 3),
     }
