@@ -73,7 +73,7 @@ __all__ = [
 
 BUILTIN_FIELDS = ("ocean", "cylinder", "oscillating", "rtofs")
 #: shipped predictor checkpoints (resolved by passt_mav.models)
-SHIPPED_MODELS = ("cylinder", "ocean")
+SHIPPED_MODELS = ("cylinder", "cylinder-dmd", "ocean")
 #: the default model of each built-in field: the oscillating cylinder uses the static one (paper)
 DEFAULT_MODEL = {
     "ocean": "builtin:ocean",

@@ -507,17 +507,14 @@ class VehicleSession(LinkOutages):
         def done() -> bool:
             return (p.state == M.MISSION_STATE_COMPLETE and p.total == n_items) or n_items in p.reached
 
-        if self.link.lockstep is not None:  # the vehicle's clock runs only here: one step, then look again
-            with p.changed:
-                if done():
-                    return True
-            self.link.idle(0.1)
-            with p.changed:
-                return done()
         with p.changed:
             if done():
                 return True
-            p.changed.wait(0.1)
+            if self.link.lockstep is None:
+                p.changed.wait(0.1)
+                return done()
+        self.link.idle(0.1)  # in lockstep the vehicle's clock runs only here: one step, then look again
+        with p.changed:
             return done()
 
     def _watch_mode(self, i: int, n_items: int) -> float:
