@@ -23,6 +23,20 @@ def hf_radar_path() -> Path:
 
 #: test modules (besides the ``sitl`` tests) that run a simulator in wall time: one at a time under xdist
 WALL_CLOCK_MODULES = {"test_view_browser"}
+#: test modules holding tests of half a minute or more (training, a tutorial flight, reports): started first
+LONG_TEST_MODULES = {"test_training", "test_getting_started", "test_counterfactual", "test_report", "test_run_missions"}
+#: test modules whose module-scoped fixtures take seconds to build (a flight, a campaign, a log, a fitted model)
+COSTLY_FIXTURE_MODULES = {
+    "test_dataflash_legs",
+    "test_evaluate",
+    "test_export",
+    "test_fleet_offline",
+    "test_ocean",
+    "test_paper",
+    "test_plan_cmd",
+    "test_replay",
+    "test_tlog",
+}
 
 
 @pytest.hookimpl(tryfirst=True)  # before pytest-xdist reads the xdist_group marks (--dist loadgroup)
@@ -35,22 +49,29 @@ def pytest_collection_modifyitems(config, items):
       one at a time. SITL instances and ports are already safe across processes (tests/sitl.py claims
       an instance by a lock file), but these tests run the firmware or ``passt-mav demo`` in wall time
       at a speed-up, and two at once on a 2-core machine starve each other.
-    * the test module's name, for a module that defines a module- or class-scoped fixture: such a
-      fixture (a SITL flight, a campaign, a trained model) is built once per worker that runs a test
-      of the module, so its tests stay on one worker instead of building it on every worker.
+    * the test module's name, for the tests of a module in ``COSTLY_FIXTURE_MODULES`` that use its
+      module-scoped fixture: such a fixture (a flown run, a campaign, a recorded log) is built once
+      per worker that runs one of its tests, so they stay on one worker instead of building it on
+      each. Modules whose module fixtures are cheap (a small synthetic field) are not grouped: their
+      tests spread over the workers, which matters for long modules such as test_training.
 
-    Every other test goes to whichever worker is free.
+    Every other test goes to whichever worker is free; the modules in ``LONG_TEST_MODULES`` are
+    collected first, so that their minute-long tests start early instead of ending the run alone on
+    one worker while the other waits.
     """
     import sitl as sitl_mod  # tests/sitl.py (tests/ is on sys.path)
 
     reason = sitl_mod.unavailable_reason()
+    items.sort(key=lambda it: getattr(getattr(it, "module", None), "__name__", "") not in LONG_TEST_MODULES)
     for item in items:
         module = getattr(item, "module", None)
         if "sitl" in item.keywords and reason:
             item.add_marker(pytest.mark.skip(reason=reason))
         if "sitl" in item.keywords or (module is not None and module.__name__ in WALL_CLOCK_MODULES):
             item.add_marker(pytest.mark.xdist_group("wall_clock"))
-        elif module is not None and _uses_own_shared_fixture(item, module):
+        elif (
+            module is not None and module.__name__ in COSTLY_FIXTURE_MODULES and _uses_own_shared_fixture(item, module)
+        ):
             item.add_marker(pytest.mark.xdist_group(module.__name__))
 
 
