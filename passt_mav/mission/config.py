@@ -316,7 +316,7 @@ class VehicleConfig(_Strict):
     start_cell: tuple[int, int] | None = None
     """[row, col] where a simulator starts this boat (a fleet's demo; row 0 south, col 0 west); else unused."""
     #: our MAVLink identity on this boat's link (None = passt_mav.mavlink.link.DEFAULT_SOURCE_SYSTEM /
-    #: DEFAULT_SOURCE_COMPONENT, 245/195; README "Identity on a shared link")
+    #: DEFAULT_SOURCE_COMPONENT, 245/195; docs/real-boat.md, "Identity on a shared link")
     source_system: int | None = Field(default=None, ge=1, le=255)
     """Our MAVLink system id on this link (unset: 245; never QGroundControl's 255)."""
     source_component: int | None = Field(default=None, ge=1, le=255)
@@ -336,7 +336,7 @@ class SensorConfig(_Strict):
 
 #: the mission default of ``gp.bias`` (see GPConfig): on. In the same loop it helps the missions' planner
 #: (information) on the three scenarios, and its coverage gate keeps the modes from samples bunched in a
-#: corner, which they made worse (README "A forecast that is off as a whole")
+#: corner, which they made worse (docs/research/2026-11-27-prior-blend-and-bias.md)
 BIAS_DEFAULT = True
 #: the mission default of ``gp.prior_blend``: ``select`` (the model's forecast, persistence or none -- the
 #: samples' GP alone -- whichever the legs' samples make more probable). Where the model is the better prior it is
@@ -349,7 +349,7 @@ BIAS_DEFAULT = True
 #: scored without the GP's background modes (scored with them, select switched the oscillating wake's demo
 #: legs to persistence: 0.34 against 0.12 in the wake's units); re-measured then: the three scenarios unchanged, held-out
 #: gridded_current 0.1496 with the DMD's background (persistence-prior PASST 0.1343), RTOFS 0.1415 against
-#: 0.1346 without a blend (README "A prior that knows when it is wrong")
+#: 0.1346 without a blend (docs/research/2026-11-27-prior-blend-and-bias.md)
 PRIOR_BLEND_DEFAULT = "select"
 #: the mission default of ``gp.prior_share``: 0.05 (the blend's fixed share, Herbster & Warmuth 1998: no candidate
 #: falls more than ln(3 / 0.05) = 4.1 nats behind, so one leg where the model misses is won back, and the model starts
@@ -359,8 +359,8 @@ PRIOR_BLEND_DEFAULT = "select"
 #: RTOFS with persistence as the model 0.1465 (persistence-prior PASST 0.1922); gridded_current DMD 0.1429
 #: (persistence-prior PASST 0.1698); the three scenarios equal to no blend (6 trials, L = 50: 0.0581 / 0.0964 /
 #: 0.0405). ``bma`` with the share did as well on the real series but mixed 3.6 % persistence into the right model
-#: on the North Atlantic demo's first short leg (PASST 0.0078 against the model alone's 0.0071); README "The share
-#: as the missions' default"
+#: on the North Atlantic demo's first short leg (PASST 0.0078 against the model alone's 0.0071);
+#: docs/research/2026-11-27-prior-blend-and-bias.md, "The share as the missions' default"
 PRIOR_SHARE_DEFAULT = 0.05
 
 
