@@ -25,7 +25,7 @@ Printed (JSON): the final-window RMSE (field units, mean of the last ``--window`
 over trials) of the information planner, the random walk and the oracle, their ratios, and how
 often the oracle took the information planner's own path.
 
-Measured (2026-11-27, ocean, L = 100, ``--score next``; README "What the truth would buy"):
+Measured (2026-11-27, ocean, L = 100, ``--score next``; docs/research/2026-11-27-information-reward.md, "What the truth would buy"):
 with 64 candidates, trials 0-5, information 0.0307, random walk 0.0354, oracle 0.0273 m/s
 (oracle / random 0.77; it kept the information path on 7 % of legs); with 16 candidates,
 trials 0-1, 0.87. ``--oracle error``, trials 0-1: 0.0802 against the random walk's 0.0330.

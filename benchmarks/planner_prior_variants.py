@@ -29,7 +29,7 @@ an experiment, not a planner for a boat.
 Printed (JSON): the final-window RMSE (field units, mean of the last ``--window`` snapshots, mean
 over trials) of the three methods and the ratios to the random walk.
 
-Measured (2026-11-27, ocean default, L = 100; README "Two more planner priors"):
+Measured (2026-11-27, ocean default, L = 100; docs/research/2026-11-27-information-reward.md, "Two more planner priors"):
 ``--variant ml``: trials 0-5, 0.0310 against 0.0319 shipped; 30 trials 0.0319 against 0.0313
 (random walk 0.0370); L = 50, 30 trials, 0.0415 against 0.0403; static wake, 30 trials, 0.0589 /
 0.0497 against 0.0592 / 0.0495 (L = 50 / 100). ``--variant forecast``, trials 0-1: 0.0347

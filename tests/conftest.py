@@ -21,15 +21,71 @@ def hf_radar_path() -> Path:
     return p
 
 
+#: test modules (besides the ``sitl`` tests) that run a simulator in wall time: one at a time under xdist
+WALL_CLOCK_MODULES = {"test_view_browser"}
+#: test modules holding tests of half a minute or more (training, a tutorial flight, reports): started first
+LONG_TEST_MODULES = {"test_training", "test_getting_started", "test_counterfactual", "test_report", "test_run_missions"}
+#: test modules whose module-scoped fixtures take seconds to build (a flight, a campaign, a log, a fitted model)
+COSTLY_FIXTURE_MODULES = {
+    "test_dataflash_legs",
+    "test_evaluate",
+    "test_export",
+    "test_fleet_offline",
+    "test_ocean",
+    "test_paper",
+    "test_plan_cmd",
+    "test_replay",
+    "test_tlog",
+}
+
+
+@pytest.hookimpl(tryfirst=True)  # before pytest-xdist reads the xdist_group marks (--dist loadgroup)
 def pytest_collection_modifyitems(config, items):
-    """Tests marked ``sitl`` run when the ArduPilot SITL build is beside the checkout, else skip saying why."""
+    """Tests marked ``sitl`` run when the ArduPilot SITL build is beside the checkout, else skip saying why.
+
+    Groups for pytest-xdist (pyproject: ``-n auto --dist loadgroup``), one per test at most:
+
+    * ``wall_clock``: every SITL test, and the headless-browser test of the live view, on one worker,
+      one at a time. SITL instances and ports are already safe across processes (tests/sitl.py claims
+      an instance by a lock file), but these tests run the firmware or ``passt-mav demo`` in wall time
+      at a speed-up, and two at once on a 2-core machine starve each other.
+    * the test module's name, for the tests of a module in ``COSTLY_FIXTURE_MODULES`` that use its
+      module-scoped fixture: such a fixture (a flown run, a campaign, a recorded log) is built once
+      per worker that runs one of its tests, so they stay on one worker instead of building it on
+      each. Modules whose module fixtures are cheap (a small synthetic field) are not grouped: their
+      tests spread over the workers, which matters for long modules such as test_training.
+
+    Every other test goes to whichever worker is free; the modules in ``LONG_TEST_MODULES`` are
+    collected first, so that their minute-long tests start early instead of ending the run alone on
+    one worker while the other waits.
+    """
     import sitl as sitl_mod  # tests/sitl.py (tests/ is on sys.path)
 
     reason = sitl_mod.unavailable_reason()
-    if reason:
-        for item in items:
-            if "sitl" in item.keywords:
-                item.add_marker(pytest.mark.skip(reason=reason))
+    items.sort(key=lambda it: getattr(getattr(it, "module", None), "__name__", "") not in LONG_TEST_MODULES)
+    for item in items:
+        module = getattr(item, "module", None)
+        if "sitl" in item.keywords and reason:
+            item.add_marker(pytest.mark.skip(reason=reason))
+        if "sitl" in item.keywords or (module is not None and module.__name__ in WALL_CLOCK_MODULES):
+            item.add_marker(pytest.mark.xdist_group("wall_clock"))
+        elif (
+            module is not None and module.__name__ in COSTLY_FIXTURE_MODULES and _uses_own_shared_fixture(item, module)
+        ):
+            item.add_marker(pytest.mark.xdist_group(module.__name__))
+
+
+def _uses_own_shared_fixture(item, module) -> bool:
+    """True when the item uses a module- or class-scoped fixture defined in its own test module."""
+    info = getattr(item, "_fixtureinfo", None)  # pytest's per-item fixture closure (no public accessor)
+    if info is None:
+        return False
+    for defs in info.name2fixturedefs.values():
+        for d in defs:
+            code = getattr(d.func, "__code__", None)
+            if d.scope in ("module", "class") and code is not None and code.co_filename == module.__file__:
+                return True
+    return False
 
 
 @pytest.fixture
@@ -73,11 +129,13 @@ def na_grid():
 
 @pytest.fixture(autouse=True, scope="session")
 def _few_threads():
-    """Two cores are shared by everything on CI: keep torch from oversubscribing."""
+    """Two cores are shared by everything on CI: keep torch from oversubscribing (with pytest-xdist,
+    the cores are split between the workers)."""
     try:
         import torch
 
-        torch.set_num_threads(max(1, min(2, os.cpu_count() or 1)))
+        workers = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1"))
+        torch.set_num_threads(max(1, min(2, (os.cpu_count() or 1) // workers)))
     except ImportError:  # pragma: no cover
         pass
     yield

@@ -440,7 +440,7 @@ def test_lua_serial_sensor_on_ardurover_sitl(tmp_path, sitl_factory):
     assert src.count('local SOURCE = "grid"') == 1
     (scripts / SCRIPT.name).write_text(
         src.replace('local SOURCE = "grid"', 'local SOURCE = "serial"')
-    )  # the README's edit
+    )  # the edit docs/real-boat.md describes
     parm = tmp_path / "serial.parm"
     parm.write_text("SERIAL1_PROTOCOL 28\n")
     s = sitl_factory(scripts=scripts, params=parm, speedup=10)

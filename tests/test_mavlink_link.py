@@ -45,7 +45,7 @@ def test_bad_connection_strings_are_user_errors(bad):
 
 def test_defaults_are_our_own_identity():
     c = LinkConfig()
-    # not QGroundControl's 255/190 (README "Identity on a shared link"; tests/test_mavlink_identity.py)
+    # not QGroundControl's 255/190 (docs/real-boat.md, "Identity on a shared link"; tests/test_mavlink_identity.py)
     assert (c.source_system, c.source_component, c.heartbeat_period_s) == (245, 195, 1.0)
     with pytest.raises(AttributeError):  # dataclasses.FrozenInstanceError
         c.timeout_s = 3  # frozen

@@ -8,7 +8,7 @@ while the controller's link stays alive and keeps sending heartbeats:
 * as 245 (our default) the failsafe fires and the boat holds: it still means "the operator's ground
   station is gone";
 * as 255 (QGC's id, the old default) the controller's heartbeats keep it fed: the boat goes on in
-  MANUAL with nobody watching (the masking README "Identity on a shared link" warns of).
+  MANUAL with nobody watching (the masking docs/real-boat.md, "Identity on a shared link", warns of).
 
 Measured on this build: the failsafe's STATUSTEXT reads "Radio Failsafe" (Rover prints the type of
 the check that happens to run when the timeout passes), so the test asserts the mode and a

@@ -202,12 +202,8 @@ def test_compiled_step_equals_eager_to_fp32_tolerance():
         torch.testing.assert_close(f(x), eager(x), rtol=1e-5, atol=1e-5)
 
 
-def test_fast_predict_equals_eager_and_follows_the_network(wave):
-    """``fast_predict``: the compiled (inductor freezing) prediction path gives the eager
-    roll-out to fp32 rounding, is really compiled here (gcc is there), is not pickled to
-    workers, and a refitted network gets its own compiled step (frozen weights would be stale)."""
-    import cloudpickle
-
+def _fast_and_eager(wave):
+    """(a small fitted KNODE with ``fast_predict`` on and its compiled step built, a state, the eager roll-out)."""
     m = make_predictor("knode", epochs=2, substeps=2, seed=0, **SMALL).fit(wave, start=0, stop=20)
     x = wave.data[20:23]
     eager = m.predict(x, 4)
@@ -215,6 +211,15 @@ def test_fast_predict_equals_eager_and_follows_the_network(wave):
     fast = m.predict(x, 4)
     assert m._fast_step.is_compiled()
     np.testing.assert_allclose(fast, eager, rtol=1e-5, atol=1e-5)
+    return m, x, eager
+
+
+def test_fast_predict_equals_eager_and_is_not_pickled(wave):
+    """``fast_predict``: the compiled (inductor freezing) prediction path gives the eager
+    roll-out to fp32 rounding, is really compiled here (gcc is there) and is not pickled to workers."""
+    import cloudpickle
+
+    m, x, _ = _fast_and_eager(wave)
     if torch.backends.mkldnn.is_available():  # freezing really on: pre-packed oneDNN convolutions, not aten's
         with torch.profiler.profile() as prof:
             m.predict(x, 1)
@@ -224,6 +229,16 @@ def test_fast_predict_equals_eager_and_follows_the_network(wave):
         )
     w = cloudpickle.loads(cloudpickle.dumps(m))
     assert w.fast_predict and "_fast_step" not in vars(w)
+
+
+@pytest.mark.slow  # two more inductor compilations (a worker's copy, a refitted network): ~1 min on two cores
+def test_fast_predict_in_a_worker_and_after_a_refit_follows_the_network(wave):
+    """An unpickled copy compiles its own step and predicts the eager roll-out; a refitted network gets
+    its own compiled step (frozen weights would be stale)."""
+    import cloudpickle
+
+    m, x, eager = _fast_and_eager(wave)
+    w = cloudpickle.loads(cloudpickle.dumps(m))
     np.testing.assert_allclose(w.predict(x, 4), eager, rtol=1e-5, atol=1e-5)
     m.fit(wave, start=0, stop=20, epochs=3)  # new weights: the old frozen step must not be reused
     m.fast_predict = False

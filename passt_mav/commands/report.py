@@ -7,7 +7,7 @@ import argparse
 HELP = "Write the HTML report (plots and summary) of a run directory"
 EXAMPLES = """examples:
   passt-mav report runs/2026-05-01_ocean            # writes runs/2026-05-01_ocean/report/report.html
-  passt-mav report runs/2026-05-01_ocean --out /tmp/rep
+  passt-mav report runs/2026-05-01_ocean --out review/ocean
 
 The page is self-contained (figures embedded): open it from disk in any browser.
 The figures are also written as PNG files next to it. Parts a run did not record

@@ -93,7 +93,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         type=int,
         default=None,
         help="our MAVLink system id (default: the mission's vehicle.source_system, else 245; not 255, "
-        "QGroundControl's: see README 'Identity on a shared link')",
+        "QGroundControl's: see the manual, docs/real-boat.md)",
     )
     p.add_argument(
         "--source-component",

@@ -55,7 +55,7 @@ __all__ = [
 
 log = logging.getLogger(__name__)
 
-#: Our MAVLink identity by default (README "Identity on a shared link"): system 245, component 195.
+#: Our MAVLink identity by default (docs/real-boat.md, "Identity on a shared link"): system 245, component 195.
 #: Not 255: QGroundControl, Mission Planner and MAVProxy speak as system 255 and ArduPilot's GCS failsafe
 #: (FS_GCS_ENABLE) counts only heartbeats from MAV_GCS_SYSID (255 by default): a controller with 255 would
 #: keep that failsafe fed after the real ground station is gone, and take the vehicle's replies meant for

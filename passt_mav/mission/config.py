@@ -87,7 +87,8 @@ _NAMED_VALUE_MAX = 10  # NAMED_VALUE_FLOAT.name is char[10]
 
 
 class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    # a field's docstring is its description (the mission-key reference, docs/missions.md, is generated from it)
+    model_config = ConfigDict(extra="forbid", frozen=True, use_attribute_docstrings=True)
 
 
 def _base_dir(info: ValidationInfo) -> Path:
@@ -99,12 +100,19 @@ class GeographicRegion(_Strict):
     """Lat/lon of the corner cell centres (degrees) and the grid shape."""
 
     kind: Literal["geographic"] = "geographic"
+    """Which kind of region; optional, the other keys say it."""
     south: float
+    """Latitude of the southern row's cell centres (degrees north)."""
     west: float
+    """Longitude of the western column's cell centres (degrees east)."""
     north: float
+    """Latitude of the northern row's cell centres (degrees north)."""
     east: float
+    """Longitude of the eastern column's cell centres (degrees east)."""
     rows: int = Field(ge=2)
+    """Grid rows, south to north (row 0 is the southern edge)."""
     cols: int = Field(ge=2)
+    """Grid columns, west to east (column 0 is the western edge)."""
 
     @model_validator(mode="after")
     def _check(self):
@@ -122,16 +130,27 @@ class MetricRegion(_Strict):
     """A metric data grid (cylinder crop) placed on Earth, see :class:`geo.MetricRegionGrid`."""
 
     kind: Literal["metric"] = "metric"
+    """Which kind of region; optional, the other keys say it."""
     x0: float
+    """Data-frame x of the first column's cell centres (data metres)."""
     x1: float
+    """Data-frame x of the last column's cell centres (data metres)."""
     y0: float
+    """Data-frame y of the first row's cell centres (data metres)."""
     y1: float
+    """Data-frame y of the last row's cell centres (data metres)."""
     rows: int = Field(ge=2)
+    """Grid rows along y (row 0 at y0)."""
     cols: int = Field(ge=2)
+    """Grid columns along x (column 0 at x0)."""
     anchor_lat: float
+    """Latitude where the data frame's centre lies (degrees north)."""
     anchor_lon: float
+    """Longitude where the data frame's centre lies (degrees east)."""
     rotation_deg: float = 0.0
+    """Counter-clockwise rotation of the data frame on the map (degrees)."""
     scale: float = Field(default=1.0, gt=0)
+    """Earth metres per data metre."""
 
     @model_validator(mode="after")
     def _check(self):
@@ -198,9 +217,13 @@ class FieldConfig(_Strict):
     """
 
     source: str
+    """`builtin:ocean`, `builtin:cylinder`, `builtin:oscillating`, `builtin:rtofs` or a `.nc` file made by `passt-mav data import` (relative to the mission file); a plain string is the same as `{source: ...}`."""
     velocity_scale: float = Field(default=1.0, gt=0)
+    """m/s per field velocity unit: 1 for geographic fields (already m/s); the cylinder is non-dimensional (inflow = 1)."""
     time_scale: float = Field(default=1.0, gt=0)
+    """Seconds per field time unit: 1 for geographic fields (seconds); for a scaled cylinder `region.scale / velocity_scale`."""
     clock: Literal["auto", "utc", "boot"] = "auto"
+    """How vehicle time maps to field time: `utc` (the vehicle's UTC against the field's time origin), `boot` (field time at boot = snapshot `t0`), `auto` (`utc` when possible, else `boot`, saying why)."""
 
     @field_validator("source")
     @classmethod
@@ -237,10 +260,15 @@ class PlannerConfig(_Strict):
     every leg."""
 
     name: str = "policy_gradient"
+    """Planner (`passt_mav.planning.PLANNERS`: `policy_gradient`, `lawnmower`, `greedy`, `random`, `information`; `pg` = `policy_gradient`)."""
     path_length: int = Field(default=50, ge=1)
+    """Moves per leg L (grid cells; a move is one cell, diagonals included)."""
     reward: str = "speed"
+    """Reward map the planner maximises (`passt_mav.planning.REWARDS`: `speed`, `vorticity`, `std`, `speed_std`, `change`, `variance_reduction`; `speed` is the predicted current speed, `variance_reduction` the error variance a sample removes from the next reconstruction)."""
     options: dict[str, Any] = Field(default_factory=dict)
+    """Planner-specific keyword options, passed on unchanged."""
     memory: Literal["off", "fitted"] = "off"
+    """`fitted`: the information reward's prior remembers per cell the error past legs' samples removed; `off`: the same stationary prior every leg."""
 
     @field_validator("name")
     @classmethod
@@ -287,34 +315,49 @@ class VehicleConfig(_Strict):
     """
 
     connect: str = "tcp:127.0.0.1:5760"
+    """MAVLink connection: `tcp:HOST:PORT`, `udpin:HOST:PORT`, `udpout:HOST:PORT` or `DEVICE,BAUD` (a radio); `--connect` overrides it."""
     speed_mps: float = Field(default=2.0, gt=0)
+    """Cruise speed (m/s), sent as DO_CHANGE_SPEED; legs are sized in time from it (set it to the boat's `WP_SPEED`)."""
     wp_radius_m: float = Field(default=2.0, ge=0)
+    """Waypoint acceptance radius (m)."""
     on_reboot: Literal["resume", "hold"] = "resume"
+    """After an autopilot reboot mid-leg: `resume` (wait for the EKF, verify or re-upload the mission, re-arm, continue AUTO) or `hold` (HOLD and stop the run, status `paused`)."""
     link_loss_window_s: float = Field(default=600.0, gt=0)
+    """How long (vehicle s; wall s = this / `--speedup-hint` while nothing is heard) the controller keeps reconnecting to a vehicle whose link died mid-mission; past it the run stops cleanly (status `paused`, continue with `--resume`)."""
     on_signal: Literal["hold", "auto"] = "hold"
+    """What SIGTERM/SIGINT/SIGHUP do to the vehicle: `hold` switches it to HOLD, `auto` leaves it flying its leg."""
     overrun_factor: float = Field(default=2.0, gt=1.0)
+    """A leg still flying after this many times its planned vehicle time (+30 s for the start) is an overrun."""
     on_overrun: Literal["cut", "warn"] = "cut"
-    start_cell: tuple[int, int] | None = None  # where a simulator starts this boat (a fleet's demo); else unused
+    """What an overrun does: `cut` ends the leg (HOLD, its samples absorbed, the next leg planned from where the boat is); `warn` only reports it."""
+    start_cell: tuple[int, int] | None = None
+    """[row, col] where a simulator starts this boat (a fleet's demo; row 0 south, col 0 west); else unused."""
     #: our MAVLink identity on this boat's link (None = passt_mav.mavlink.link.DEFAULT_SOURCE_SYSTEM /
-    #: DEFAULT_SOURCE_COMPONENT, 245/195; README "Identity on a shared link")
+    #: DEFAULT_SOURCE_COMPONENT, 245/195; docs/real-boat.md, "Identity on a shared link")
     source_system: int | None = Field(default=None, ge=1, le=255)
+    """Our MAVLink system id on this link (unset: 245; never QGroundControl's 255)."""
     source_component: int | None = Field(default=None, ge=1, le=255)
+    """Our MAVLink component id on this link (unset: 195, MAV_COMP_ID_PATHPLANNER)."""
 
 
 class SensorConfig(_Strict):
     """NAMED_VALUE_FLOAT names of the current sensor's east/north components, and its noise std (m/s)."""
 
     u: str = Field(default="CUR_U", min_length=1, max_length=_NAMED_VALUE_MAX)
+    """NAMED_VALUE_FLOAT name of the current's east component (m/s; at most 10 characters)."""
     v: str = Field(default="CUR_V", min_length=1, max_length=_NAMED_VALUE_MAX)
+    """NAMED_VALUE_FLOAT name of the current's north component (m/s; at most 10 characters)."""
     noise_std: float = Field(default=0.0, ge=0)
+    """The sensor's noise standard deviation (m/s); the GP never assumes less."""
 
 
 #: the mission default of ``gp.bias`` (see GPConfig): on. In the same loop it helps the missions' planner
 #: (information) on the three scenarios, and its coverage gate keeps the modes from samples bunched in a
-#: corner, which they made worse (README "A forecast that is off as a whole")
+#: corner, which they made worse (docs/research/2026-11-27-prior-blend-and-bias.md)
 BIAS_DEFAULT = True
-#: the mission default of ``gp.prior_blend``: ``select`` (the model's forecast, persistence or none -- the
-#: samples' GP alone -- whichever the legs' samples make more probable). Where the model is the better prior it is
+#: the mission default of ``gp.prior_blend``: ``select`` (the forecast restarted from the last estimate, the model
+#: alone from the mission's first state, or persistence, whichever the legs' samples make more probable; until
+#: 2026-11-28 the third candidate was none, the samples' GP alone, and the figures below are from then). Where the model is the better prior it is
 #: the model-only loop to the bit
 #: (same loop, 6 trials, L = 50, bias on: static 0.0614, oscillating 0.0957, ocean 0.0541); where it is not,
 #: it switches: a DMD fitted on the first half of a real series (gridded_current) and flown on the second ends
@@ -324,7 +367,7 @@ BIAS_DEFAULT = True
 #: scored without the GP's background modes (scored with them, select switched the oscillating wake's demo
 #: legs to persistence: 0.34 against 0.12 in the wake's units); re-measured then: the three scenarios unchanged, held-out
 #: gridded_current 0.1496 with the DMD's background (persistence-prior PASST 0.1343), RTOFS 0.1415 against
-#: 0.1346 without a blend (README "A prior that knows when it is wrong")
+#: 0.1346 without a blend (docs/research/2026-11-27-prior-blend-and-bias.md)
 PRIOR_BLEND_DEFAULT = "select"
 #: the mission default of ``gp.prior_share``: 0.05 (the blend's fixed share, Herbster & Warmuth 1998: no candidate
 #: falls more than ln(3 / 0.05) = 4.1 nats behind, so one leg where the model misses is won back, and the model starts
@@ -334,8 +377,8 @@ PRIOR_BLEND_DEFAULT = "select"
 #: RTOFS with persistence as the model 0.1465 (persistence-prior PASST 0.1922); gridded_current DMD 0.1429
 #: (persistence-prior PASST 0.1698); the three scenarios equal to no blend (6 trials, L = 50: 0.0581 / 0.0964 /
 #: 0.0405). ``bma`` with the share did as well on the real series but mixed 3.6 % persistence into the right model
-#: on the North Atlantic demo's first short leg (PASST 0.0078 against the model alone's 0.0071); README "The share
-#: as the missions' default"
+#: on the North Atlantic demo's first short leg (PASST 0.0078 against the model alone's 0.0071);
+#: docs/research/2026-11-27-prior-blend-and-bias.md, "The share as the missions' default"
 PRIOR_SHARE_DEFAULT = 0.05
 
 
@@ -358,13 +401,21 @@ class GPConfig(_Strict):
     GPReconstructor options."""
 
     prior: Literal["forecast", "constant"] = "forecast"
+    """`forecast`: the GP corrects the model's forecast (residuals); `constant`: the paper's GP on the samples alone."""
     hyper: Literal["first_leg", "state", "every_leg"] = "every_leg"
+    """When the GP's kernel hyper-parameters are fitted: on every leg's samples (`every_leg`), on the first leg's only (`first_leg`), or once on the initial state (`state`)."""
     background: int = Field(default=DEFAULT_BACKGROUND, ge=0)
+    """Snapshots of the model's roll-out whose anomaly covariance the GP adds to its kernels (0 = stationary kernels only)."""
     prior_blend: Literal["off", "bma", "select"] = PRIOR_BLEND_DEFAULT
+    """`off`: the forecast restarted from the last estimate is the prior; `bma`: that forecast, the model alone from the mission's first state and persistence weighed leg by leg by their samples' likelihood; `select`: the most probable of them alone."""
     forgetting: float = Field(default=0.8, ge=0.0, le=1.0)
+    """The blend's forgetting factor: past legs' evidence is multiplied by it once per leg (0 = only the last leg counts, 1 = all legs alike)."""
     prior_share: float = Field(default=PRIOR_SHARE_DEFAULT, ge=0.0, le=1.0)
+    """The blend's fixed share: every candidate keeps `prior_share / 3` of the weight, so one bad leg of a good model is won back (0 = off)."""
     bias: bool = BIAS_DEFAULT
+    """The GP may shift the forecast by a constant and rescale its anomaly where a leg's samples see half of the region and pay for it."""
     guard: Literal["on", "off"] = "on"
+    """`on`: before a leg's samples enter the estimate, the forecast restarted from the last estimate and the model alone are compared at them; the leg falls back to the model alone when it fits better, and 'sampling is not helping' is raised after two such legs running or one by more than 10 %."""
 
     @field_validator("background")
     @classmethod
@@ -375,6 +426,7 @@ class GPConfig(_Strict):
         return v
 
     options: dict[str, Any] = Field(default_factory=dict)
+    """Keyword options of `GPReconstructor` (e.g. `nugget: noise`), passed on unchanged."""
 
     @property
     def loop_prior(self) -> str:
@@ -386,29 +438,48 @@ class SeedConfig(_Strict):
     """Seeds of everything random (recorded with the run)."""
 
     planner: int = 0
+    """Seed of the planner's randomness."""
     gp: int = 0
+    """Seed of the GP's hyper-parameter fit restarts."""
     sensor: int = 0
+    """Seed of simulated sensor noise (`demo`'s simulator, the counterfactuals)."""
     field: int = 0
+    """Seed of a generated field (`builtin:ocean`'s realisation)."""
 
 
 class MissionConfig(_Strict):
     """A validated mission file (see the module docstring for the keys)."""
 
     name: str = Field(min_length=1)
+    """The mission's name (run directories are named after it)."""
     region: Region
+    """The mission's grid: geographic (`south/west/north/east/rows/cols`) or metric (`x0/x1/y0/y1/rows/cols/anchor_lat/anchor_lon`); must equal the field's grid."""
     field: FieldConfig
+    """Where the current field comes from (the truth a simulator replays and the RMSE is computed on, and the model's initial state)."""
     model: str | None = None
+    """`builtin:cylinder`, `builtin:ocean` (shipped KNODEs), a `.pt` checkpoint, or `knode`, `dmd`, `persistence`; unset: the built-in field's model, else `dmd`."""
     planner: PlannerConfig = Field(default_factory=PlannerConfig)
+    """How each leg's path is chosen."""
     legs: int = Field(default=1, ge=1)
+    """Number of legs (plan, fly, reconstruct); `--legs` overrides it."""
     start_cell: tuple[int, int] | None = None
+    """[row, col] where `plan`, `demo` and the offline counterfactuals start the first leg (row 0 is the southern edge and grows north, col 0 the western edge and grows east); unset: the grid's centre. A live `run` starts every leg at the boat's own cell."""
     t0: int = Field(default=0, ge=0)
+    """Snapshot index of the field at the mission's start (the model's initial state)."""
     steps_per_leg: int | None = Field(default=None, ge=1)
+    """Field snapshots per leg given to the loop (unset: 1)."""
     vehicle: VehicleConfig = Field(default_factory=VehicleConfig)
+    """The boat (one boat)."""
     vehicles: list[VehicleConfig] | None = None
+    """A fleet sharing one field estimate: one entry per boat, each with the keys of `vehicle`; give either `vehicle` or `vehicles`."""
     sensors: SensorConfig = Field(default_factory=SensorConfig)
+    """The current sensor's messages and noise."""
     geofence_margin_m: float = Field(default=0.0, ge=0)
+    """Geofence margin around the region's outer cell edges (m): a leg with a waypoint outside region + margin is not uploaded, and a boat outside it is not planned for."""
     gp: GPConfig = Field(default_factory=GPConfig)
+    """The GP reconstruction."""
     seeds: SeedConfig = Field(default_factory=SeedConfig)
+    """Seeds of everything random (recorded with the run)."""
 
     @field_validator("field", mode="before")
     @classmethod

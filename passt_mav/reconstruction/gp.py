@@ -47,7 +47,7 @@ sensor noise alone (the information criterion's ``0.5 ln n``, one parameter), wh
 kernel was kept or not. Between samples in distinct cells the two readings give the same covariance; they
 differ at the sampled cells' own estimate (and in the planner's prior: a fresh cell is worth its
 nugget). Measured on the ocean default (12 trials, L = 50, bias on, information planner): final
-RMSE 0.0534 -> 0.0404 m/s (README); ``nugget="noise"`` is the reading before (everything above the
+RMSE 0.0534 -> 0.0404 m/s (docs/research/2026-11-27-information-reward.md); ``nugget="noise"`` is the reading before (everything above the
 sensor's variance is noise). (Cressie 1993, Statistics for Spatial Data, sec. 3.2.1: the nugget
 effect as micro-scale variation plus measurement error.)
 
