@@ -75,6 +75,9 @@ MAX_FIT_POINTS = 60
 TIME_SCALE_SPANS = (4.0, 2.0, 1.0, 0.5, 0.25, 0.125)
 #: factors on the fitted spatial length scales tried with them (the fitted first)
 SPACE_SCALE_FACTORS = (1.0, 0.5, 0.25)
+#: forward validation keeps other length scales only when they cut the later samples' squared error to
+#: below this share of the fitted ones' (a marginal gain on a handful of samples is noise)
+FORWARD_GAIN = 0.8
 
 
 class GPReconstructor:
@@ -364,7 +367,8 @@ class GPReconstructor:
         older residual does not carry forward: the samples of the leg's last third (in time) are
         predicted from the earlier ones (the fitted kernel held fixed, its time length scale the
         fitted one or each of :data:`TIME_SCALE_SPANS` times the samples' time span that is shorter)
-        and the length scale with the smallest squared error is kept (the longest on a tie). A residual seen early in a leg is applied at the leg's end through
+        and the length scales with the smallest squared error are kept (the longest on a tie) when they
+        cut it below :data:`FORWARD_GAIN` of the fitted ones'. A residual seen early in a leg is applied at the leg's end through
         this length scale; along a track, space and time are confounded and the likelihood often
         takes the residual as steady (hours to months where a tide turns it in six hours), so the
         hyper-parameter is chosen here by how well it forecasts the leg's own later samples (forward
@@ -392,7 +396,7 @@ class GPReconstructor:
                 pred = kk(xyt[late], xyt[~late]) @ np.linalg.solve(K, target[~late, k])
                 errs.append(float(np.sum((target[late, k] - pred) ** 2)))
             best = int(np.argmin(errs))  # the first (the fitted, then the longest) on a tie
-            if best:
+            if best and errs[best] < FORWARD_GAIN * errs[0]:  # only a clear gain moves off the likelihood's
                 kern.set_params(k1__k2__length_scale=cands[best])
                 self.time_scale_factor_[k] = float(cands[best][2] / ls[2])
                 self.space_scale_factor_[k] = float(cands[best][0] / ls[0])
