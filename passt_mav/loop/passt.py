@@ -710,12 +710,10 @@ class PasstLoop:
 
         return loglik
 
-    def _candidates(self, fc: np.ndarray, t_start: float, dt: float, open_fc=None) -> list[np.ndarray]:
-        """The candidate prior trajectories of :data:`PRIOR_CANDIDATES` for the loop's forecast ``fc``
-        ((S+1, 2, R, C) from field time ``t_start``, ``dt`` apart); ``open_fc``: the model alone over
-        the same times, if at hand."""
-        if open_fc is None:
-            open_fc = self.open_loop_forecast(t_start, dt, fc.shape[0])
+    def _candidates(self, fc: np.ndarray, open_fc: np.ndarray) -> list[np.ndarray]:
+        """The candidate prior trajectories of :data:`PRIOR_CANDIDATES`: the loop's forecast ``fc``
+        ((S+1, 2, R, C)), the model alone over the same times ``open_fc`` (:meth:`open_loop_forecast`)
+        and persistence of ``fc``'s first snapshot."""
         return [fc, np.asarray(open_fc, np.float64), np.repeat(fc[:1], fc.shape[0], axis=0)]
 
     def weights(self) -> np.ndarray:
@@ -743,7 +741,7 @@ class PasstLoop:
         w = self.mixing_weights()
         if np.count_nonzero(w) == 1 and w[0] == 1.0:
             return fc
-        cands = self._candidates(np.asarray(fc, np.float64), t_start, dt)
+        cands = self._candidates(np.asarray(fc, np.float64), self.open_loop_forecast(t_start, dt, fc.shape[0]))
         return sum(float(wk) * ck for wk, ck in zip(w, cands) if wk).astype(np.float32)
 
     def _weigh_priors(self, fc, traj, ts, samples, xy, st, open_fc, open_at):
@@ -751,7 +749,7 @@ class PasstLoop:
         mixture trajectory and its values at the samples (see ``prior_blend``)."""
         from passt_mav.fields.field import FlowField
 
-        cands = self._candidates(np.asarray(fc, np.float64), traj.times[0], 0.0, open_fc)
+        cands = self._candidates(np.asarray(fc, np.float64), open_fc)
         ats = [traj.interp(ts, samples.r, samples.c), open_at]
         for c in cands[2:]:
             ats.append(FlowField(c, self.grid, traj.times).interp(ts, samples.r, samples.c))
