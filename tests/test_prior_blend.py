@@ -305,3 +305,29 @@ def test_forgetting_returns_to_the_start_weights_not_to_the_uniform(field, monke
     steady = [-6.0, -400.0, -5.0] * 4
     loop = run(steady, 4)
     assert [h["weights"]["model"] for h in loop.blend_history_] == [1.0, 1.0, 0.0, 0.0]
+
+
+def test_a_restarted_correction_fades_to_the_model_alone_as_the_gp_s_time_kernel_says():
+    """``relax_to_open_loop``: the restarted forecast's departure from the model alone is weighted by the
+    GP's Matern-5/2 correlation in time since the reconstruction: 1 at lag 0, (1 + sqrt5 + 5/3)
+    exp(-sqrt5) = 0.524 at one time length scale, below 1e-3 at five; u and v by their own kernels;
+    a space-only kernel leaves the forecast unchanged."""
+    from sklearn.gaussian_process.kernels import ConstantKernel, Matern, WhiteKernel
+
+    from passt_mav.loop.guard import relax_to_open_loop
+
+    def kern(lt, ndim=3):
+        ls = [1000.0, 1000.0, lt][:ndim]
+        return ConstantKernel(0.04) * Matern(length_scale=ls, nu=2.5) + WhiteKernel(1e-4)
+
+    lt_u, lt_v = 3600.0, 7200.0
+    times = 1e5 + np.array([0.0, 3600.0, 5 * 3600.0])
+    fc = np.ones((3, 2, 4, 5))
+    open_fc = np.zeros_like(fc)
+    out = relax_to_open_loop(fc, open_fc, times, times[0], [kern(lt_u), kern(lt_v)])
+    m52 = (1 + np.sqrt(5) + 5 / 3) * np.exp(-np.sqrt(5))
+    assert out[0] == pytest.approx(fc[0])
+    assert out[1, 0] == pytest.approx(np.full((4, 5), m52), rel=1e-9)
+    assert out[2, 0].max() < 1e-3 and out[2, 1].min() > out[2, 0].max()  # v's longer time scale fades later
+    same = relax_to_open_loop(fc, open_fc, times, times[0], [kern(0, 2), kern(0, 2)])
+    assert same is fc

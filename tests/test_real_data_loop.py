@@ -83,3 +83,23 @@ def test_every_leg_at_most_the_model_alone_or_the_guard_says_so(wa_field):
     speeds = [float(np.sqrt(np.nanmean(ab.state.astype(float) ** 2))) for ab in legs]
     truth = float(np.sqrt(np.nanmean(wa_field.data[0].astype(float) ** 2)))
     assert min(speeds) > 0.5 * truth, (speeds, truth)
+
+
+def test_the_gp_carries_a_residual_no_longer_than_the_field_stays_correlated(wa_field):
+    """LegStep gives the GP the mission field's decorrelation time as its longest time length scale
+    (RTOFS off Washington, 3-hourly and tidal: between 3 and 6 h, where the autocorrelation falls from
+    0.6 to about 0); a mission's ``gp.options: {max_time_scale: null}`` switches the cap off."""
+    from passt_mav.loop.legstep import LegStep, build_loop
+    from passt_mav.mission.config import validate_mission
+    from passt_mav.models.base import make_predictor
+
+    data = yaml.safe_load((MISSIONS / "rtofs.yaml").read_text())
+    data["region"].update(REGION)
+    cap = wa_field.decorrelation_time()
+    assert 3 * 3600.0 < cap < 6 * 3600.0
+    for options, want in (({}, cap), ({"max_time_scale": None}, None)):
+        data["gp"]["options"] = options
+        cfg = validate_mission(data, source="test")
+        loop = build_loop(cfg, make_predictor("persistence").fit(wa_field), wa_field.grid, land=wa_field.land_mask)
+        LegStep(cfg, wa_field, loop)
+        assert loop.gp.max_time_scale == want

@@ -418,3 +418,51 @@ def test_forward_validation_shortens_the_time_scale_of_a_turning_residual(grid):
     gp2 = GPReconstructor(grid_xy=grid.centres_xy(), noise_std=NOISE, seed=0)
     gp2.fit(xy, steady, forecast_at_samples=fc_at, samples_t=t)
     assert gp2.time_scale_factor_[0] == 1.0
+
+
+def test_decorrelation_time_of_a_tide_and_of_a_steady_current(grid):
+    """A current turning with the 12.4 h tide, u = 0.5 cos(2 pi t / 12.4 h + phase(x)), sampled every
+    15 min for 10 days: its autocorrelation is cos(2 pi tau / 12.4 h), which is 0.5 at a sixth of the
+    period (2.07 h). A steady current has no variance in time: no decorrelation time (None)."""
+    from passt_mav.fields.field import FlowField
+
+    T = 12.4 * 3600.0
+    times = np.arange(0.0, 10 * 86400.0, 900.0)
+    x, _ = grid.centres_xy()
+    phase = 2 * np.pi * x / 40e3
+    u = 0.5 * np.cos(2 * np.pi * times[:, None, None] / T + phase[None])
+    data = np.stack([u, 0.3 * u], axis=1).astype(np.float32)
+    tide = FlowField(data, grid, times)
+    assert tide.decorrelation_time() == pytest.approx(T / 6, rel=0.03)
+    steady = FlowField(np.ones_like(data), grid, times)
+    assert steady.decorrelation_time() is None
+
+
+def test_time_scale_cap_holds_a_steady_looking_residual_to_the_current_s_own_memory(grid):
+    """Along one track a residual that rises and falls within the leg is fitted as steady (a time
+    length scale of days). With ``max_time_scale`` the kernel keeps at most that scale (before forward
+    validation, which may only shorten it further), and the correction carried to 2 h after the last
+    sample, where the true residual has gone, is smaller than without the cap."""
+    rng = np.random.default_rng(5)
+    cells = path_cells()[:60]
+    x, y = grid.cell_to_xy(cells[:, 0], cells[:, 1])
+    xy = np.column_stack([x, y])
+    t = np.linspace(0.0, 10 * 3600.0, len(cells))
+    fc_at = np.zeros((len(cells), 2))
+    bump = 0.3 * np.exp(-0.5 * ((t - 5 * 3600.0) / (1.5 * 3600.0)) ** 2)  # gone by the leg's end
+    res = np.column_stack([bump, np.zeros_like(t)]) + rng.normal(0, NOISE, (len(t), 2))
+    cap = 2 * 3600.0
+    out = {}
+    for name, mts in (("capped", cap), ("free", None)):
+        gp = GPReconstructor(grid_xy=grid.centres_xy(), noise_std=NOISE, seed=0, forward_validation=False)
+        gp.max_time_scale = mts
+        gp.fit(xy, res, forecast_at_samples=fc_at, samples_t=t)
+        out[name] = gp
+    lt = [float(np.asarray(k.k1.k2.length_scale)[2]) for k in out["capped"].kernels_]
+    assert max(lt) <= cap * (1 + 1e-9) and out["capped"].time_scale_capped_[0]
+    assert float(np.asarray(out["free"].kernels_[0].k1.k2.length_scale)[2]) > cap
+    corr = {}
+    for name, gp in out.items():
+        mean, _ = gp.reconstruct(xy, res, np.zeros((2, R, C)), forecast_at_samples=fc_at, samples_t=t, t=12 * 3600.0)
+        corr[name] = float(np.sqrt(np.nanmean(mean[0] ** 2)))
+    assert corr["capped"] < 0.5 * corr["free"], corr

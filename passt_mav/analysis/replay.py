@@ -693,6 +693,9 @@ class _LogReplay:
             state = np.array(load_field(est).data[0], dtype=np.float32)
             t_state = float(self.recorded[first - 1]["t_state"])
             loop.leg_index = first
+            s0, t0 = step.initial_state()  # as the resumed controller: the model alone from the first state
+            loop.anchor_open_loop(s0, t0, step.dt)
+            loop.t_recon_ = t_state
         step.prepare(state)
         return state, t_state
 

@@ -127,3 +127,33 @@ def guard_message(rec: dict, *, leg_label: str, scale: float = 1.0, unit: str = 
         f"{b:.4f} {unit} for the forecast alone; {leg_label} falls back to the forecast alone as its background"
     )
     return f"sampling is not helping: {fit}" if rec.get("alarm") else fit
+
+
+def time_correlation(kernels, lags) -> np.ndarray:
+    """The correlation in time of each space-time kernel at ``lags`` (field time units): (2, n) for the u
+    and v kernels (their stationary part evaluated between one place at two times; 1 at lag 0). None
+    where a kernel spans space only (no time axis: nothing decays)."""
+    lags = np.atleast_1d(np.asarray(lags, np.float64))
+    out = []
+    for kern in kernels:
+        corr = kern.k1.k2  # constant * correlation + white: the correlation part
+        if np.size(corr.length_scale) != 3:
+            return None
+        pts = np.column_stack([np.zeros((lags.size, 2)), np.abs(lags)])
+        out.append(corr(np.zeros((1, 3)), pts)[0])
+    return np.asarray(out)
+
+
+def relax_to_open_loop(fc, open_fc, times, t_recon: float, kernels):
+    """The restarted forecast ``fc`` ((S+1, 2, R, C) at field ``times``) with its departure from the
+    model alone ``open_fc`` (same shape) decayed by the GP's own correlation in time since the
+    reconstruction it restarted from (field time ``t_recon``): ``open + rho(t - t_recon) (fc - open)``,
+    per component. A correction the samples made is carried no longer than the GP believes a residual
+    lasts; where the kernels span space only, ``fc`` is returned unchanged."""
+    rho = time_correlation(kernels, np.asarray(times, np.float64) - float(t_recon))
+    if rho is None:
+        return fc
+    fc = np.asarray(fc, np.float64)
+    open_fc = np.asarray(open_fc, np.float64)
+    w = rho.T[:, :, None, None]  # (S+1, 2, 1, 1)
+    return open_fc + w * (fc - open_fc)

@@ -368,6 +368,14 @@ class LegStep:
     truth_known: bool = True
     _pure: dict = _dcfield(default_factory=dict, repr=False)
 
+    def __post_init__(self) -> None:
+        # The GP carries a residual no longer than the mission's field stays correlated in time
+        # (GPReconstructor.max_time_scale), unless the mission's gp.options set max_time_scale itself
+        # (a number in field time units, or null for no cap).
+        gp = getattr(self.loop, "gp", None)
+        if gp is not None and "max_time_scale" not in self.config.gp.options:
+            gp.max_time_scale = self.field.decorrelation_time()
+
     @property
     def grid(self):
         return self.field.grid

@@ -40,7 +40,7 @@ from typing import Any, Protocol, runtime_checkable
 import numpy as np
 
 from passt_mav.errors import PlannerError, ReconstructionError
-from passt_mav.loop.guard import GUARDS, OpenLoop, guard_record
+from passt_mav.loop.guard import GUARDS, OpenLoop, guard_record, relax_to_open_loop
 
 __all__ = [
     "Samples",
@@ -419,6 +419,10 @@ class PasstLoop:
         self.open_loop_: OpenLoop | None = None
         #: one :func:`passt_mav.loop.guard.guard_record` per leg (``guard="on"``)
         self.guard_history_: list[dict] = []
+        #: field time of the last reconstruction (None before the first): where a restarted forecast's
+        #: correction starts to fade (:func:`passt_mav.loop.guard.relax_to_open_loop`)
+        self.t_recon_: float | None = None
+        self.relaxed_ = False  # whether the last leg's background had that correction faded
 
     def forecast(self, state: np.ndarray, steps: int) -> np.ndarray:
         """(steps+1, 2, R, C) float32: ``state`` then the model's ``steps`` predictions."""
@@ -602,6 +606,17 @@ class PasstLoop:
         if self.guard == "on" or self.prior_blend != "off":
             open_fc = self.open_loop_forecast(leg.t_start, leg.dt, fc.shape[0])
             open_at = FlowField(open_fc, self.grid, traj.times).interp(ts, samples.r, samples.c)
+            self.relaxed_ = False  # (gp_summary's correction_faded)
+            if self.t_recon_ is not None and getattr(self.gp, "n_inputs_", 2) == 3:
+                # the last reconstruction's correction, carried by the model since, faded as the GP's own time
+                # kernel says a residual fades (guard.relax_to_open_loop): taken when this leg's samples find it
+                # more probable than the correction as the model carried it
+                rfc = relax_to_open_loop(fc, open_fc, traj.times, self.t_recon_, self.gp.kernels_).astype(np.float32)
+                rtraj = FlowField(np.where(np.isfinite(rfc), rfc, np.nan), self.grid, traj.times)
+                r_at = rtraj.interp(ts, samples.r, samples.c)
+                score = self._loglik_at(samples, xy, st)
+                if score(samples.uv - r_at) > score(samples.uv - f_at):
+                    fc, traj, f_at, self.relaxed_ = rfc, rtraj, r_at, True
         if self.guard == "on":
             guard = guard_record(
                 self.leg_index, samples.uv, f_at, open_at, self._loglik_at(samples, xy, st), self.guard_history_
@@ -633,6 +648,7 @@ class PasstLoop:
         if self.memory is not None:
             self._remember(samples, f_at)
         self.leg_index += 1
+        self.t_recon_ = float(t_end)
         return mean
 
     def _remember(self, samples: Samples, f_at: np.ndarray) -> None:
@@ -676,6 +692,12 @@ class PasstLoop:
         if tsf is not None and getattr(gp, "n_inputs_", 2) == 3:
             # the kept / fitted time length scale per component (forward validation; 1 = the likelihood's)
             out["time_scale_factor"] = [float(f) for f in tsf]
+        if gp.max_time_scale is not None and getattr(gp, "n_inputs_", 2) == 3:
+            # the longest time length scale allowed (field time units: the field's decorrelation time)
+            out["max_time_scale"] = float(gp.max_time_scale)
+        if self.t_recon_ is not None:
+            # whether this leg's background was the last estimate's correction faded towards the model alone
+            out["correction_faded"] = bool(getattr(self, "relaxed_", False))
         ev = getattr(gp, "evidence_", None)
         if ev is not None:
             out["signal_kept"] = [None if e is None else bool(e[0] >= e[1]) for e in ev]

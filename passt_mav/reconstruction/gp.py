@@ -99,6 +99,11 @@ class GPReconstructor:
         forward_validation: with a space-time kernel, choose its length scales among the fitted ones and
             shorter ones by how well the leg's earlier samples predict its last third
             (:meth:`_forward_validate_time_scale`; default True).
+        max_time_scale: with a space-time kernel, the longest time length scale the GP may keep (field
+            time units; None = no cap): a residual is not carried longer than the current itself stays
+            correlated (:meth:`~passt_mav.fields.field.FlowField.decorrelation_time`, which
+            :class:`~passt_mav.loop.legstep.LegStep` passes by default). Applied after the
+            likelihood's fit, before forward validation.
         noise_std: initial sensor-noise std (velocity units) of the WhiteKernel.
         alpha: jitter added to the kernel diagonal (raise it if Cholesky fails).
         prior: "forecast" (GP on residuals vs the forecast) or "none".
@@ -159,6 +164,7 @@ class GPReconstructor:
         max_fit_points: int = MAX_FIT_POINTS,
         space_time: bool = True,
         forward_validation: bool = True,
+        max_time_scale: float | None = None,
         n_restarts: int = 0,
         seed: int = 0,
         solver: str = "sklearn",
@@ -175,6 +181,7 @@ class GPReconstructor:
         self.solver = solver
         self.space_time = space_time
         self.forward_validation = forward_validation
+        self.max_time_scale = max_time_scale
         self.max_fit_points = max_fit_points
         self.max_length_cells = max_length_cells
         self.kernel = kernel
@@ -356,11 +363,30 @@ class GPReconstructor:
         self.n_inputs_ = xy.shape[1]
         self.time_scale_factor_ = [1.0, 1.0]
         self.space_scale_factor_ = [1.0, 1.0]
+        if self.n_inputs_ == 3:
+            self._cap_time_scale()
         if self.n_inputs_ == 3 and self.forward_validation:
             self._forward_validate_time_scale(xy, target)
         return self
 
     fit_hyperparameters = fit
+
+    def _cap_time_scale(self) -> None:
+        """Shorten each space-time kernel's time length scale to :attr:`max_time_scale` (field time
+        units) where it is longer. Along one track the likelihood cannot tell a residual that changes in
+        time from one that changes in space, and often takes it as steady for days; the cap is the prior
+        that a forecast's error does not stay correlated longer than the current itself does.
+        Records ``time_scale_capped_`` per component (True where the cap acted)."""
+        self.time_scale_capped_ = [False, False]
+        cap = self.max_time_scale
+        if cap is None or not np.isfinite(cap) or cap <= 0:
+            return
+        for k, kern in enumerate(self.kernels_):
+            ls = np.array(kern.k1.k2.length_scale, float)
+            if ls.size == 3 and ls[2] > cap:
+                ls[2] = float(cap)
+                kern.set_params(k1__k2__length_scale=ls)
+                self.time_scale_capped_[k] = True
 
     def _forward_validate_time_scale(self, xyt: np.ndarray, target: np.ndarray) -> None:
         """Shorten each space-time kernel's time length scale when the leg's own samples say that an
