@@ -88,6 +88,7 @@ def test_two_legs_through_radio_and_mavproxy_beside_a_qgc_like_client(tmp_path, 
     )
     qgc = None
     link = None
+    rd = RunDir(tmp_path / "run").create()
     try:
         link = Link(
             LinkConfig(
@@ -98,11 +99,11 @@ def test_two_legs_through_radio_and_mavproxy_beside_a_qgc_like_client(tmp_path, 
                 timeout_s=1.5,
                 retries=8,
                 link_lost_s=10.0,
+                tlog=str(rd.root / "flight.tlog"),  # what `run` writes, and replay reads
             )
         ).connect(timeout=120.0)
         qgc = QgcLike(f"udpin:127.0.0.1:{qgc_port}", period_s=40.0 / SPEEDUP).start()
         lines: list[str] = []
-        rd = RunDir(tmp_path / "run").create()
         ctl = _controller(cfg, field, link, rd, lines)
         uploaded: list[list[tuple[float, float]]] = []
         orig = ctl.vehicle.mission.upload
@@ -155,3 +156,17 @@ def test_two_legs_through_radio_and_mavproxy_beside_a_qgc_like_client(tmp_path, 
     # and it never got the controller's mission traffic: the two speak with different ids
     assert not qgc.foreign, qgc.foreign[:10]
     assert rstats["down"]["lost"] > 0  # the radio did lose frames
+    # a replay of this fresh SITL run (its logs only) plans every leg again along the same path
+    p = subprocess.run(
+        [sys.executable, "-m", "passt_mav.cli", "replay", str(rd.root), "--json"],
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    import json
+
+    assert p.returncode == 0, p.stdout[-3000:] + p.stderr[-2000:]
+    r = json.loads(p.stdout)
+    assert r["reproduced"] is True and [leg["path_identical"] for leg in r["legs"]] == [True, True], r.get(
+        "first_divergence"
+    )
