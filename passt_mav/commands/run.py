@@ -395,13 +395,28 @@ def _user(msg):
     return UserError(msg)
 
 
+def _check_view_port(args) -> None:
+    """``--view PORT`` (not optional) on a port already taken: one line, before anything is written or connected."""
+    if args.view is None or getattr(args, "view_optional", False):
+        return
+    from passt_mav.view import check_port
+
+    try:
+        check_port(args.view_host, args.view)
+    except OSError as exc:
+        raise _user(
+            f"--view: {exc}; choose another port (or --view {args.view},optional to fly without the view)"
+        ) from None
+
+
 def _live_view(args, rd):
-    """``--view [PORT]``: the live view in a subprocess (passt_mav.view), None without it."""
+    """``--view [PORT][,optional]``: the live view in a subprocess (passt_mav.view), None without it (or, when
+    optional, when it cannot start)."""
     if args.view is None:
         return None
     from passt_mav.commands.view import start_live_view
 
-    return start_live_view(rd, args.view, args.view_host)
+    return start_live_view(rd, args.view, args.view_host, required=not getattr(args, "view_optional", False))
 
 
 def run(args: argparse.Namespace) -> int:
@@ -425,6 +440,7 @@ def run(args: argparse.Namespace) -> int:
             raise _user(f"--link-loss-window must be > 0 seconds, got {args.link_loss_window:g}")
         vehicle = config.vehicle.model_copy(update={"link_loss_window_s": float(args.link_loss_window)})
         config = config.model_copy(update={"vehicle": vehicle})
+    _check_view_port(args)
     if args.resume:
         if not args.out:
             raise _user("--resume needs --out RUN_DIR (the run to continue)")
@@ -443,7 +459,13 @@ def run(args: argparse.Namespace) -> int:
     from passt_mav.errors import UserError
     from passt_mav.vehicle.signals import Stopped, StopSignals, exit_code
 
-    view = _live_view(args, rd)
+    try:
+        view = _live_view(args, rd)
+    except UserError:
+        if not args.resume:
+            (rd.root / "view.log").unlink(missing_ok=True)
+            _remove_if_empty(rd.root)
+        raise
     stop = StopSignals(echo=lambda s: print(s, flush=True))
     try:
         with stop:

@@ -52,6 +52,7 @@ KINDS = {
     "warning": "warn",
     "guard": "warn",
     "stopped": "alert",
+    "command": "info",
 }
 
 
@@ -90,8 +91,11 @@ class RecordWriter:
 
         self._guard("live/meta.json", lambda: write_json_atomic(self.root / LIVE / "meta.json", info))
 
-    def event(self, kind: str, text: str, *, level: str | None = None, boat: int | None = None) -> None:
-        """One line of ``events.jsonl`` (appended and flushed under a lock shared by the fleet)."""
+    def event(
+        self, kind: str, text: str, *, level: str | None = None, boat: int | None = None, command_id: str | None = None
+    ) -> None:
+        """One line of ``events.jsonl`` (appended and flushed under a lock shared by the fleet); ``command_id``:
+        the operator's command this event answers (:mod:`passt_mav.runs.commands`)."""
 
         def write():
             try:
@@ -106,6 +110,8 @@ class RecordWriter:
                 "level": level or KINDS.get(kind, "info"),
                 "text": text,
             }
+            if command_id is not None:
+                rec["command_id"] = command_id
             line = json.dumps(rec, default=float) + "\n"
             with self._shared["lock"]:
                 self.root.mkdir(parents=True, exist_ok=True)

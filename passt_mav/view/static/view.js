@@ -3,8 +3,9 @@
 (function () {
   'use strict';
   var COLORS = ['#e4572e', '#0c8f8c', '#b8860b', '#5a8f29', '#8e44ad', '#2e86de', '#d35400', '#16a085', '#c0392b'];
-  var token = new URLSearchParams(location.search).get('token');
-  function q(p) { return token ? p + (p.indexOf('?') < 0 ? '?' : '&') + 'token=' + encodeURIComponent(token) : p; }
+  // the address's ?token= was answered with the token's httponly cookie (passt_mav/view/gate.py): every request
+  // of this page carries that cookie, so the token leaves the address bar (history, screenshots, shoulders)
+  if (new URLSearchParams(location.search).has('token')) history.replaceState(null, '', location.pathname);
   function $(id) { return document.getElementById(id); }
   function esc(s) { return String(s == null ? '' : s).replace(/[&<>"]/g, function (c) {
     return {'&': '&amp;', '<': '&lt;', '>': '&gt;', '"': '&quot;'}[c]; }); }
@@ -42,7 +43,7 @@
     if (overlays[kind] === url) return;
     overlays[kind] = url;
     G[kind].clearLayers();
-    if (url) L.imageOverlay(q(url), bounds, {opacity: kind === 'reward' ? 0.75 : 0.9}).addTo(G[kind]);
+    if (url) L.imageOverlay(url, bounds, {opacity: kind === 'reward' ? 0.75 : 0.9}).addTo(G[kind]);
   }
 
   function drawRegion(s) {
@@ -54,7 +55,7 @@
     }
     if (r.has_land && !landShown) {
       landShown = true;
-      L.imageOverlay(q('api/raster/land.png'), r.bounds, {opacity: 1}).addTo(G.land);
+      L.imageOverlay('api/raster/land.png', r.bounds, {opacity: 1}).addTo(G.land);
     }
     var e = s.estimate;
     if (e && e.leg != null) {
@@ -223,9 +224,13 @@
   }
 
   function connect() {
-    var es = new EventSource(q('api/stream'));
+    var es = new EventSource('api/stream');
     es.onopen = function () { var c = $('conn'); c.textContent = 'connected'; c.className = 'pill ok'; };
-    es.onmessage = function (ev) { try { render(JSON.parse(ev.data)); } catch (err) { console.error(err); } };
+    es.onmessage = function (ev) {
+      try { render(JSON.parse(ev.data)); } catch (err) { console.error(err); }
+      // a finished run's page is a record: nothing is connected to a boat any more
+      if (window.passtView.last && window.passtView.last.finished) { $('conn').textContent = 'finished'; }
+    };
     es.onerror = function () {
       var c = $('conn'); c.className = 'pill bad';
       c.textContent = window.passtView.last && window.passtView.last.finished ? 'server gone (run finished)' :
