@@ -116,9 +116,11 @@ from passt_mav.loop.legstep import (  # noqa: F401 - the between-leg step's buil
     truth_at,
     utc_epoch,
 )
+from passt_mav.runs.commands import CommandReader
 from passt_mav.runs.legs import clock_statustext
 from passt_mav.runs.live import RecordWriter
 from passt_mav.vehicle.clock import RunClock
+from passt_mav.vehicle.console import Ended
 from passt_mav.vehicle.live_record import live_meta, live_status
 from passt_mav.vehicle.resume import ResumeRecord
 from passt_mav.vehicle.session import Deadline as _Deadline  # noqa: F401 - tests import it from here
@@ -139,6 +141,10 @@ __all__ = [
 ]
 
 log = logging.getLogger(__name__)
+
+
+class _Replan(Exception):  # noqa: N818 - a request, not an error
+    """The operator asked to plan the leg in flight again from where the boat is (:meth:`MissionController._leg`)."""
 
 
 class StoreWriter:
@@ -497,6 +503,11 @@ class MissionController(ResumeRecord):
             if not leave:  # HOLD whatever the mode seen last: a stop during the swap may precede AUTO's heartbeat
                 self.session.hold_if_auto(always=True)
             place_held(self.collector, None if self.link.lost else self.live_leg[0], self.speedup)
+        except Ended as exc:  # the operator's End: the vehicle is in HOLD or RTL already
+            self.status = "ended"
+            self._note("stopped", f"ended by the operator at {utc_now()}: {exc}")
+            close_leg(self.collector)
+            place_held(self.collector, None if self.link.lost else self.live_leg[0], self.speedup)
         except Paused as exc:
             self.status = "paused"
             self._note("stopped", str(exc))
@@ -539,6 +550,8 @@ class MissionController(ResumeRecord):
         )
         self.collector.attach(self.link)
         self.run_clock.collector = self.collector
+        # the operator's commands from the live page (passt_mav.runs.commands), read while a leg flies
+        self.session.commands = CommandReader(self.rd.root, getattr(self, "boat", 0))
         self.record.start_status(lambda: live_status(self))
 
     def _prepare_vehicle(self) -> None:
@@ -569,6 +582,16 @@ class MissionController(ResumeRecord):
 
     # -- one leg: plan -> check -> upload (transactional) -> fly -> absorb ---------------------------
     def _leg(self, i: int, state: np.ndarray, t_state: float) -> tuple[np.ndarray, float]:
+        """Leg ``i`` from ``state`` (at field time ``t_state``); planned again from where the boat is, the state
+        unchanged, as often as the operator asks (``replan``: the attempt kept as an interrupted one)."""
+        while True:
+            try:
+                return self._leg_once(i, state, t_state)
+            except _Replan:
+                with self.signals.critical():
+                    self._archive_attempt(i, status="replanned by the operator")
+
+    def _leg_once(self, i: int, state: np.ndarray, t_state: float) -> tuple[np.ndarray, float]:
         planned = self._plan(i, state, t_state)
         with self.lock, self.signals.critical():
             wm = self._checked_mission(i, planned)
@@ -725,11 +748,15 @@ class MissionController(ResumeRecord):
             self.collector.leg = None
         self.vehicle.hold()
         cut = None if how != "cut" else overrun_record(expected, self.config.vehicle, self.vehicle.progress, items)
+        if how in ("skip", "replan") and self.leg_rec is not None:  # the operator's (passt_mav.vehicle.console)
+            self.leg_rec["operator"] = {"action": how, "at_item": int(self.vehicle.progress.current)}
         duration_s = time.perf_counter() - t_fly
         tb_end = self.link.vehicle_uptime_s()
         # the leg's last readings wait for the fix after them (<= the gap bound of vehicle time)
         self.collector.wait_placed(i, self.collector.track.max_gap_ms / 1000.0 / max(self.speedup, 1.0) + 0.5)
         self.writer.flush()
+        if how == "replan":
+            raise _Replan()
         return duration_s, tb_end, cut
 
     def _expected_vehicle_s(self, wm) -> float:

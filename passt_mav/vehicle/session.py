@@ -30,6 +30,7 @@ from passt_mav.errors import CommandRejected, LinkTimeout, MavlinkError, Mission
 from passt_mav.mavlink.link import mavlink2 as M
 from passt_mav.mavlink.mission_client import MissionWatch, differences, rover_stored
 from passt_mav.mavlink.vehicle import ROVER_MODE_NAMES, ROVER_MODES
+from passt_mav.vehicle.console import OperatorCommands
 from passt_mav.vehicle.outages import LinkOutages
 
 __all__ = ["VehicleSession", "Journal", "Deadline", "Paused", "LinkWindowOver", "Rebooted", "utc_now"]
@@ -129,7 +130,7 @@ def replaced_what(sent, got) -> str:
     return f"{len(bad)} of our {len(sent) - 1} items differ, the first at seq {bad[0]}" if bad else "home differs"
 
 
-class VehicleSession(LinkOutages):
+class VehicleSession(LinkOutages, OperatorCommands):
     """One boat's vehicle side (module docstring): swap, fly, and the faults on the way.
 
     Args:
@@ -432,13 +433,19 @@ class VehicleSession(LinkOutages):
         the vehicle out of AUTO. Past ``overrun_factor`` x ``expected_s`` + 30 s of vehicle time the overrun
         is reported (:meth:`overrun`); returns ``"cut"`` when ``on_overrun`` is ``cut`` (the caller holds the
         vehicle and ends the leg), else None when the mission completed. A vehicle whose clock stops (a
-        frozen simulator) still ends on the wall backstop (:class:`Deadline`): LinkTimeout."""
+        frozen simulator) still ends on the wall backstop (:class:`Deadline`): LinkTimeout. The operator's
+        commands are carried out between turns (:meth:`operator_step`): ``"skip"`` or ``"replan"`` end the leg."""
         planned_s = self.overrun_factor * expected_s + 30.0
         deadline = Deadline(self.link, planned_s, self.speedup)
         p = self.vehicle.progress
         reported = False
         while True:
             self._verify_if_pending(i, items)
+            how = self.operator_step(i, n_items)  # the operator's commands (passt_mav.vehicle.console)
+            if isinstance(how, str):
+                return how
+            if how:
+                deadline.extend(how)
             if self._wait_complete(n_items):
                 return None
             if deadline.wall_passed():

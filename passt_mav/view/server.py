@@ -170,7 +170,10 @@ def serve(root: str | Path, *, host: str = "127.0.0.1", port: int = 0, token: st
     sock.listen(64)
     bound = sock.getsockname()[1]
     app = make_app(root, token=token, host=host, port=bound)
-    config = uvicorn.Config(app, log_level="warning", access_log=False, lifespan="off", server_header=False)
+    # an open event stream never ends by itself: a stop (SIGTERM, Ctrl-C) closes it after 2 s rather than wait
+    config = uvicorn.Config(
+        app, log_level="warning", access_log=False, lifespan="off", server_header=False, timeout_graceful_shutdown=2
+    )
     server = uvicorn.Server(config)
     if on_ready is not None:
         on_ready(bound)

@@ -168,9 +168,51 @@
         row('position', '<span class="pos" data-lat="' + (st.lat == null ? '' : st.lat) + '" data-lon="' +
           (st.lon == null ? '' : st.lon) + '">' + fmt(st.lat, 5) + ', ' + fmt(st.lon, 5) + '</span> hdg ' +
           fmt(st.heading_deg, 0) + '&deg;') +
-        '</table></div>';
+        '</table>' + controls(s, b) + '</div>';
     });
+    if (s.boats.length > 1) html = '<div class="boat fleet" id="boat-all"><h3>whole fleet</h3>' + controls(s, 'all') +
+      '</div>' + html;
     $('boats').innerHTML = html;
+  }
+
+  // -- the operator's console: commands by POST to api/command (the token's cookie; passt_mav/view/gate.py) ----
+  var ACTIONS = [['pause', 'Pause'], ['resume', 'Resume'], ['skip', 'Skip leg'], ['replan', 'Re-plan now'],
+                 ['end:HOLD', 'End (HOLD)'], ['end:RTL', 'End (RTL)']];
+  function controls(s, b) {
+    var c = s.control || {}, off = !c.token || c.finished;
+    var last = (s.commands || []).filter(function (x) { return x.boat === b; }).slice(-1)[0];
+    var res = last ? '<div class="cmd-result ' + (last.ok === null ? 'pending' : (last.ok ? 'done' : 'refused')) +
+      '" data-action="' + esc(last.action) + '">' + esc(last.action) + (last.end_mode ? ' ' + esc(last.end_mode) : '') +
+      ': ' + esc(last.result === null ? 'sent, waiting for the controller' : last.result) + '</div>' : '';
+    return '<div class="controls" data-boat="' + b + '">' + ACTIONS.map(function (a) {
+      return '<button type="button" data-act="' + a[0] + '"' + (off ? ' disabled' : '') + '>' + a[1] + '</button>';
+    }).join('') + '</div>' + res;
+  }
+
+  function post(boat, act) {
+    var parts = act.split(':'), body = {boat: boat === 'all' ? 'all' : +boat, action: parts[0]};
+    if (parts[1]) body.end_mode = parts[1];
+    if (parts[0] === 'end' && !window.confirm('End the mission of ' + (boat === 'all' ? 'every boat' : 'boat ' + boat) +
+      ' (' + parts[1] + ')?')) return;
+    var msg = $('console-msg');
+    msg.textContent = 'sending ' + act + ' to boat ' + boat + ' ...'; msg.className = 'small';
+    fetch('api/command', {method: 'POST', credentials: 'same-origin', headers: {'Content-Type': 'application/json'},
+                          body: JSON.stringify(body)}).then(function (r) {
+      return r.text().then(function (t) {
+        msg.textContent = r.status === 202 ? act + ' sent to boat ' + boat + '; the controller answers below' : t;
+        msg.className = r.status === 202 ? 'small ok' : 'small bad';
+      });
+    }).catch(function (e) { msg.textContent = 'not sent: ' + e; msg.className = 'small bad'; });
+  }
+  $('boats').addEventListener('click', function (ev) {
+    var btn = ev.target.closest('button[data-act]'); if (!btn || btn.disabled) return;
+    post(btn.parentNode.dataset.boat, btn.dataset.act);
+  });
+
+  function drawConsoleNote(s) {
+    var c = s.control || {};
+    $('console-note').textContent = c.finished ? 'the run has finished: this page is a record' :
+      (c.token ? '' : 'read-only: open the address the run printed (with its token) to command the boats');
   }
 
   function drawAlerts(s) {
@@ -220,7 +262,8 @@
       ' &middot; ' + s.n_samples + ' samples &middot; ' + s.boats.length + ' boat(s)';
     var ft = s.boats.map(function (b) { return (b.status || {}).field_time; }).filter(function (x) { return x != null; });
     $('clock').textContent = ft.length ? 'field time ' + fmt(Math.max.apply(null, ft), 0) : '';
-    drawRegion(s); drawArrows(s.estimate); drawBoats(s); drawPanels(s); drawAlerts(s); drawRmse(s.rmse);
+    drawRegion(s); drawArrows(s.estimate); drawBoats(s); drawPanels(s); drawConsoleNote(s); drawAlerts(s);
+    drawRmse(s.rmse);
   }
 
   function connect() {

@@ -1,0 +1,209 @@
+"""Issue 44, "act from the page": the operator's commands carried out by the controller on vehicle-sim.
+
+The simulator is served in lockstep (its clock runs only while the controller waits for it), so what the
+vehicle does between two commands depends on the controller's steps, not on the machine's load. The
+operator is a thread that appends to the run's command channel (as the view server does) when the run
+reaches a state, and waits for the controller's answer (an event of kind ``command`` with the id).
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+
+import pytest
+from mavlink_helpers import HOME, inprocess_factory, link_config, vehicle
+from test_controller import mission, sim_config, wave_field
+
+from passt_mav.commands.run import LEAN_STREAMS
+from passt_mav.mavlink import Link
+from passt_mav.mavlink.vehicle import ROVER_MODES
+from passt_mav.runs.commands import append_command
+from passt_mav.runs.live import read_events
+from passt_mav.runs.rundir import RunDir
+from passt_mav.vehicle.controller import MissionController, build_predictor
+from vehicle_sim import Simulator
+
+HOLD, AUTO, RTL = ROVER_MODES["HOLD"], ROVER_MODES["AUTO"], ROVER_MODES["RTL"]
+WALL_S = 60.0  # a generous bound on each wait of the operator thread (the run takes a few seconds)
+
+
+def _answer(root, cid: str) -> dict | None:
+    return next((e for e in read_events(root)[0] if e.get("command_id") == cid), None)
+
+
+class Operator(threading.Thread):
+    """Sends ``script`` [(condition(ctl) -> bool, command dict, after(answer))] one by one: each command once
+    its condition holds, the next once the controller answered."""
+
+    def __init__(self, ctl, root, script):
+        super().__init__(daemon=True)
+        self.ctl, self.root, self.script = ctl, root, script
+        self.answers: list[dict] = []
+        self.error: str | None = None
+
+    def _wait(self, cond, what: str) -> bool:
+        end = time.monotonic() + WALL_S
+        while time.monotonic() < end:
+            if cond():
+                return True
+            time.sleep(0.002)
+        self.error = f"timed out waiting for {what}"
+        return False
+
+    def run(self):
+        for cond, cmd, after in self.script:
+            if not self._wait(lambda c=cond: c(self.ctl), f"the moment for {cmd}"):
+                return
+            rec = append_command(self.root, cmd, source="test")
+            if not self._wait(lambda r=rec: _answer(self.root, r["id"]) is not None, f"the answer to {cmd}"):
+                return
+            ans = _answer(self.root, rec["id"])
+            self.answers.append(ans)
+            if after is not None:
+                after(ans)
+
+
+def _flying(ctl, leg: int = 0) -> bool:
+    """Leg ``leg`` flies in AUTO with its first waypoint behind it."""
+    return (
+        ctl.collector is not None
+        and ctl.collector.leg == leg
+        and ctl.vehicle.mode == AUTO
+        and len(ctl.vehicle.progress.reached) >= 2
+    )
+
+
+@pytest.fixture()
+def lockstep_run(tmp_path):
+    """(sim, controller factory, run dir): the simulator in lockstep, the controller's link stepping it."""
+    field = wave_field()
+    sim = Simulator(field, home=HOME, config=sim_config())
+    sim.serve([], lockstep=True)
+    link = Link(
+        link_config(lockstep_s=0.5, lockstep_pace=40.0, stream_rates_hz=LEAN_STREAMS),
+        connection_factory=inprocess_factory(sim),
+    )
+    rd = RunDir(tmp_path / "run").create()
+
+    def make(legs: int = 2, **kw):
+        cfg = mission(tmp_path, field, legs=legs, planner={"name": "greedy", "path_length": 5})
+        pred, info = build_predictor(cfg.model, field, echo=lambda s: None)
+        return MissionController(
+            cfg,
+            link,
+            rd,
+            field=field,
+            predictor=pred,
+            predictor_info=info,
+            vehicle=vehicle(link),
+            speedup_hint=40.0,
+            ready_timeout_s=30.0,
+            field_time_at_boot=0.0,
+            echo=None,
+            **kw,
+        )
+
+    link.connect()
+    try:
+        yield sim, make, rd
+    finally:
+        link.close()
+        sim.stop()
+
+
+def test_pause_holds_resume_goes_on_at_the_same_item_end_returns(lockstep_run):
+    sim, make, rd = lockstep_run
+    ctl = make(legs=2, pause_timeout_s=WALL_S)
+    ap = sim.autopilot
+    seen: dict = {}
+
+    def paused(_ans):
+        seen["paused"] = (ap.mode, ap.mission_index, sim.t, ap.boat.x, ap.boat.y)
+
+    def resumed(_ans):
+        seen["resumed"] = (ap.mode, ap.mission_index)
+
+    def held_a_while(c):  # the vehicle's clock ran 20 s in HOLD (the controller steps it while it waits)
+        return "paused" in seen and sim.t > seen["paused"][2] + 20.0
+
+    def held(_ans=None):
+        return held_a_while(ctl)
+
+    script = [
+        (_flying, {"boat": 0, "action": "pause"}, paused),
+        (held, {"boat": 0, "action": "resume"}, resumed),
+        (
+            lambda c: _flying(c) and ap.mission_index > seen["resumed"][1],
+            {"boat": 0, "action": "end", "end_mode": "RTL"},
+            None,
+        ),
+    ]
+    op = Operator(ctl, rd.root, script)
+    op.start()
+    summary = ctl.run()
+    op.join(10)
+    assert op.error is None, op.error
+    # Pause: the vehicle reports HOLD; it stayed at its item while its clock ran on
+    mode, seq, _t, x, y = seen["paused"]
+    assert mode == HOLD and seq >= 2
+    # Resume: AUTO at the same item it was paused at
+    assert seen["resumed"] == (AUTO, seq)
+    # End with RTL: the vehicle returns, the run ends cleanly (state saved for --resume)
+    assert ap.mode == RTL and summary["status"] == "ended"
+    assert [a["level"] for a in op.answers] == ["ok", "ok", "ok"]
+    texts = [a["text"] for a in op.answers]
+    assert "HOLD at item" in texts[0] and f"AUTO at item {seq}/" in texts[1] and "RTL" in texts[2]
+    assert all("operator (test)" in t for t in texts)  # its source
+    assert any("operator (test): end RTL" in e for e in summary["events"])
+    legs = rd.read_legs()
+    assert [lg["status"] for lg in legs] == ["flying"]  # the leg in flight is re-planned by --resume
+
+
+def test_skip_ends_the_leg_and_plans_the_next(lockstep_run):
+    sim, make, rd = lockstep_run
+    ctl = make(legs=2)
+    script = [(_flying, {"boat": 0, "action": "skip"}, None)]
+    op = Operator(ctl, rd.root, script)
+    op.start()
+    summary = ctl.run()
+    op.join(10)
+    assert op.error is None, op.error
+    assert summary["status"] == "complete" and len(summary["legs"]) == 2
+    first = summary["legs"][0]
+    n_items = len(first["waypoints"]) + 1  # + DO_CHANGE_SPEED
+    assert first["operator"]["action"] == "skip" and first["operator"]["at_item"] < n_items
+    assert "the leg ends here" in op.answers[0]["text"] and first["n_samples"] > 0
+
+
+def test_replan_plans_the_leg_again_keeping_the_attempt(lockstep_run):
+    sim, make, rd = lockstep_run
+    ctl = make(legs=1)
+    script = [(_flying, {"boat": 0, "action": "replan"}, None)]
+    op = Operator(ctl, rd.root, script)
+    op.start()
+    summary = ctl.run()
+    op.join(10)
+    assert op.error is None, op.error
+    assert summary["status"] == "complete" and len(summary["legs"]) == 1
+    (leg,) = summary["legs"]
+    (att,) = leg["attempts"]
+    assert att["status"] == "replanned by the operator" and att["n_samples_stored"] > 0
+    assert (rd.leg_dir(0) / "attempt_1" / "leg.json").exists()
+    assert leg["n_samples"] >= att["n_samples_stored"]  # the attempt's samples are the leg's too
+
+
+def test_commands_that_do_not_apply_are_answered_with_the_reason(lockstep_run):
+    sim, make, rd = lockstep_run
+    ctl = make(legs=1)
+    script = [
+        (_flying, {"boat": 0, "action": "resume"}, None),
+        (_flying, {"boat": 0, "action": "end", "end_mode": "HOLD"}, None),
+    ]
+    op = Operator(ctl, rd.root, script)
+    op.start()
+    summary = ctl.run()
+    op.join(10)
+    assert op.error is None, op.error
+    assert op.answers[0]["level"] == "warn" and "not paused" in op.answers[0]["text"]
+    assert summary["status"] == "ended" and sim.autopilot.mode == HOLD
