@@ -123,6 +123,7 @@ def test_pause_holds_resume_goes_on_at_the_same_item_end_returns(lockstep_run):
 
     def resumed(_ans):
         seen["resumed"] = (ap.mode, ap.mission_index)
+        seen["held_at"] = (sim.t, ap.boat.x, ap.boat.y)
 
     def held_a_while(c):  # the vehicle's clock ran 20 s in HOLD (the controller steps it while it waits)
         return "paused" in seen and sim.t > seen["paused"][2] + 20.0
@@ -145,8 +146,11 @@ def test_pause_holds_resume_goes_on_at_the_same_item_end_returns(lockstep_run):
     op.join(10)
     assert op.error is None, op.error
     # Pause: the vehicle reports HOLD; it stayed at its item while its clock ran on
-    mode, seq, _t, x, y = seen["paused"]
+    mode, seq, t_p, x, y = seen["paused"]
     assert mode == HOLD and seq >= 2
+    t_r, x_r, y_r = seen["held_at"]
+    held_m = ((x_r - x) ** 2 + (y_r - y) ** 2) ** 0.5
+    assert t_r - t_p >= 20.0 and held_m < 15.0, (t_r - t_p, held_m)  # 5 m/s boat: 100 m in 20 s had it gone on
     # Resume: AUTO at the same item it was paused at
     assert seen["resumed"] == (AUTO, seq)
     # End with RTL: the vehicle returns, the run ends cleanly (state saved for --resume)
@@ -161,7 +165,7 @@ def test_pause_holds_resume_goes_on_at_the_same_item_end_returns(lockstep_run):
 
 
 def test_skip_ends_the_leg_and_plans_the_next(lockstep_run):
-    sim, make, rd = lockstep_run
+    _sim, make, rd = lockstep_run
     ctl = make(legs=2)
     script = [(_flying, {"boat": 0, "action": "skip"}, None)]
     op = Operator(ctl, rd.root, script)
@@ -177,7 +181,7 @@ def test_skip_ends_the_leg_and_plans_the_next(lockstep_run):
 
 
 def test_replan_plans_the_leg_again_keeping_the_attempt(lockstep_run):
-    sim, make, rd = lockstep_run
+    _sim, make, rd = lockstep_run
     ctl = make(legs=1)
     script = [(_flying, {"boat": 0, "action": "replan"}, None)]
     op = Operator(ctl, rd.root, script)
