@@ -162,6 +162,10 @@ def test_pause_holds_resume_goes_on_at_the_same_item_end_returns(lockstep_run):
     assert any("operator (test): end RTL" in e for e in summary["events"])
     legs = rd.read_legs()
     assert [lg["status"] for lg in legs] == ["flying"]  # the leg in flight is re-planned by --resume
+    # --resume continues the ended run: the interrupted leg flown again from where the boat is, then the next
+    again = make(legs=2, resume=True).run()
+    assert again["status"] == "complete" and [lg["index"] for lg in again["legs"]] == [0, 1]
+    assert again["legs"][0]["attempts"][0]["status"] == "interrupted"
 
 
 def test_skip_ends_the_leg_and_plans_the_next(lockstep_run):

@@ -18,7 +18,7 @@ EXAMPLES = """examples:
     passt-mav run missions/cylinder.yaml --legs 1 --set planner.path_length=8 --set gp.background=0
     passt-mav run missions/rtofs.yaml --connect /dev/ttyUSB0,57600 --link-loss-window 900
 
-exit codes: 0 complete; 1 paused or aborted (summary.json says why; continue with --resume);
+exit codes: 0 complete; 1 paused, ended from the live page, or aborted (summary.json says why; continue with --resume);
 2 bad input or no vehicle (nothing flown); 128 + N stopped by signal N (SIGINT 130, SIGTERM 143,
 SIGHUP 129): the vehicle to HOLD (vehicle.on_signal), the store flushed, status "stopped".
 
