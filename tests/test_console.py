@@ -215,3 +215,96 @@ def test_commands_that_do_not_apply_are_answered_with_the_reason(lockstep_run):
     assert op.error is None, op.error
     assert op.answers[0]["level"] == "warn" and "not paused" in op.answers[0]["text"]
     assert summary["status"] == "ended" and sim.autopilot.mode == HOLD
+
+
+# -- the safety budget (mission key budget; passt_mav.vehicle.budget) ------------------------------------------
+@pytest.fixture()
+def drained_run(tmp_path):
+    """As :func:`lockstep_run`, with a small simulated battery (6 Wh: ~255 W at 5 m/s drains 70 % in ~60 s, a leg
+    of 5 moves takes ~40 s)."""
+    field = wave_field()
+    sim = Simulator(field, home=HOME, config=sim_config(battery_wh=6.0))
+    sim.serve([], lockstep=True)
+    link = Link(
+        link_config(lockstep_s=0.5, lockstep_pace=40.0, stream_rates_hz=LEAN_STREAMS),
+        connection_factory=inprocess_factory(sim),
+    )
+    rd = RunDir(tmp_path / "run").create()
+
+    def make(budget: dict, legs: int = 4, **kw):
+        cfg = mission(tmp_path, field, legs=legs, planner={"name": "greedy", "path_length": 5}, budget=budget)
+        pred, info = build_predictor(cfg.model, field, echo=lambda s: None)
+        return MissionController(
+            cfg,
+            link,
+            rd,
+            field=field,
+            predictor=pred,
+            predictor_info=info,
+            vehicle=vehicle(link),
+            speedup_hint=40.0,
+            ready_timeout_s=30.0,
+            field_time_at_boot=0.0,
+            echo=None,
+            **kw,
+        )
+
+    link.connect()
+    try:
+        yield sim, make, rd
+    finally:
+        link.close()
+        sim.stop()
+
+
+def test_battery_reserve_returns_the_boat_ends_cleanly_and_resume_continues(drained_run):
+    sim, make, rd = drained_run
+    ap = sim.autopilot
+    summary = make({"battery_reserve_pct": 30}, legs=3).run()
+    # the boat returns (RTL) once the battery reached the reserve; the run ends cleanly with the leg cut there
+    assert summary["status"] == "ended" and ap.mode == RTL
+    pct = ap._battery()[2]
+    assert 20 <= pct <= 30, pct  # at the reserve, not long past it (1 Hz BATTERY_STATUS, 0.5 s steps)
+    legs = summary["legs"]
+    assert legs and all(lg["status"] == "complete" for lg in legs) and len(legs) < 3
+    cut = legs[-1]["budget_cut"]
+    assert "battery" in cut["reason"] and "<= budget.battery_reserve_pct 30" in cut["reason"]
+    assert summary["budget"]["spent"] == cut["reason"] and summary["budget"]["battery_pct"] <= 30
+    kinds = [e["kind"] for e in read_events(rd.root)[0]]
+    assert kinds.count("budget") == 2 and kinds[-1] == "run_end"  # the cut, then the return
+    # a fresh battery (a swap at the dock): --resume continues from the next leg to the end
+    ap._energy_wh = 0.0
+    again = make({"battery_reserve_pct": 30}, legs=3, resume=True).run()
+    print(f"battery: ended after {len(legs)} leg(s) at {pct} %; resumed: {again['status']}, {again['budget']}")
+    assert again["status"] == "complete" and len(again["legs"]) == 3
+    assert again["budget"]["spent"] is None and again["budget"]["battery_pct"] > 30
+
+
+def test_a_distance_budget_cuts_the_leg_and_holds(drained_run):
+    sim, make, _rd = drained_run  # (the battery is not watched here: no reserve set)
+    summary = make({"max_distance_m": 150, "on_spent": "hold"}, legs=3).run()
+    assert summary["status"] == "ended" and sim.autopilot.mode == HOLD
+    b = summary["budget"]
+    # cut within a fix or two of the limit (1 Hz fixes of a 5 m/s boat: ~5 m apart)
+    assert 150 <= b["distance_m"] < 170 and "distance" in b["spent"], b
+    assert "budget_cut" in summary["legs"][-1]
+
+
+def test_battery_remaining_takes_the_lower_known_value():
+    from types import SimpleNamespace
+
+    from passt_mav.vehicle.budget import battery_remaining
+
+    class FakeLink:
+        def __init__(self, **msgs):
+            self.msgs = msgs
+
+        def latest(self, typ):
+            return self.msgs.get(typ)
+
+    assert battery_remaining(FakeLink()) is None
+    assert battery_remaining(FakeLink(SYS_STATUS=SimpleNamespace(battery_remaining=-1))) is None
+    link = FakeLink(
+        SYS_STATUS=SimpleNamespace(battery_remaining=55), BATTERY_STATUS=SimpleNamespace(battery_remaining=48)
+    )
+    assert battery_remaining(link) == 48.0

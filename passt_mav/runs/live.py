@@ -53,6 +53,7 @@ KINDS = {
     "guard": "warn",
     "stopped": "alert",
     "command": "info",
+    "budget": "alert",
 }
 
 

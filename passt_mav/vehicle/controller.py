@@ -119,6 +119,7 @@ from passt_mav.loop.legstep import (  # noqa: F401 - the between-leg step's buil
 from passt_mav.runs.commands import CommandReader
 from passt_mav.runs.legs import clock_statustext
 from passt_mav.runs.live import RecordWriter
+from passt_mav.vehicle.budget import SafetyBudget
 from passt_mav.vehicle.clock import RunClock
 from passt_mav.vehicle.console import Ended
 from passt_mav.vehicle.live_record import live_meta, live_status
@@ -491,6 +492,7 @@ class MissionController(ResumeRecord):
             self._prepare_vehicle()
             for i in range(first, self.n_legs):
                 state, t_state = self._leg(i, state, t_state)
+                self._end_if_budget_spent()
             self.status = "complete"
         except Stopped as exc:
             self.signals.disarm()
@@ -552,6 +554,7 @@ class MissionController(ResumeRecord):
         self.run_clock.collector = self.collector
         # the operator's commands from the live page (passt_mav.runs.commands), read while a leg flies
         self.session.commands = CommandReader(self.rd.root, getattr(self, "boat", 0))
+        self.session.budget = SafetyBudget(self.link, self.config.budget)
         self.record.start_status(lambda: live_status(self))
 
     def _prepare_vehicle(self) -> None:
@@ -561,6 +564,8 @@ class MissionController(ResumeRecord):
         if self.config.vehicle.wp_radius_m > 0:
             # a Rover's acceptance radius is WP_RADIUS (it drops a waypoint's param2); put back at the end
             self.vehicle.set_wp_radius(self.config.vehicle.wp_radius_m)
+        if self.session.budget is not None:
+            self.session.budget.request_battery()
 
     def _detach(self) -> None:
         """Put back the parameters we changed; stop collecting."""
@@ -573,7 +578,27 @@ class MissionController(ResumeRecord):
             if restored:
                 self._say("restored " + ", ".join(f"{k} = {v:g}" for k, v in restored.items()))
         self.collector.detach()
+        if self.session.budget is not None:
+            self.session.budget.close()
         self.record.stop_status(lambda: live_status(self))
+
+    def _end_if_budget_spent(self) -> None:
+        """After a leg: if the safety budget is spent (:mod:`passt_mav.vehicle.budget`), the boat to
+        ``budget.on_spent`` (RTL, or HOLD; HOLD when the vehicle refuses) and :class:`Ended`."""
+        budget = self.session.budget
+        if budget is None or budget.reason is None:
+            return
+        mode = self.config.budget.on_spent.upper()
+        try:
+            self.vehicle.set_mode(mode)
+        except MavlinkError as exc:
+            self._say(f"WARNING: the vehicle refused {mode} ({exc}); HOLD")
+            self.session.hold_if_auto(always=True)
+            mode = "HOLD"
+        text = f"safety budget spent ({budget.reason}): {mode}; state saved (continue with --resume)"
+        self._note("budget", text)
+        self._say(text)
+        raise Ended(text, mode)
 
     def _safe_hold(self) -> None:
         """HOLD if in AUTO (never raises), the leg closed first (:func:`close_leg`)."""
@@ -750,6 +775,11 @@ class MissionController(ResumeRecord):
         cut = None if how != "cut" else overrun_record(expected, self.config.vehicle, self.vehicle.progress, items)
         if how in ("skip", "replan") and self.leg_rec is not None:  # the operator's (passt_mav.vehicle.console)
             self.leg_rec["operator"] = {"action": how, "at_item": int(self.vehicle.progress.current)}
+        if how == "budget" and self.leg_rec is not None:  # the safety budget (passt_mav.vehicle.budget)
+            self.leg_rec["budget_cut"] = {
+                "reason": self.session.budget.reason,
+                "at_item": int(self.vehicle.progress.current),
+            }
         duration_s = time.perf_counter() - t_fly
         tb_end = self.link.vehicle_uptime_s()
         # the leg's last readings wait for the fix after them (<= the gap bound of vehicle time)
@@ -929,6 +959,12 @@ def check_start_cell(ctl, i: int, start: tuple[int, int], latlon: tuple[float, f
     ctl._note("warning", text)
 
 
+def _budget_record(ctl) -> dict | None:
+    """The safety budget's figures (:meth:`SafetyBudget.record`), None when no limit is set."""
+    b = getattr(getattr(ctl, "session", None), "budget", None)
+    return b.record() if b is not None and b.watched else None
+
+
 def run_summary(ctl) -> dict:
     """summary.json of controller ``ctl`` now: the mission, its settings, every leg record, RMSE over time
     (field units) where the truth is known, the clock, the events (keys: :mod:`passt_mav.runs.rundir`)."""
@@ -962,6 +998,7 @@ def run_summary(ctl) -> dict:
         "stopped_by": getattr(ctl, "stopped_by", None),
         "sessions": list(getattr(ctl, "sessions", None) or []),
         "outages": list(getattr(getattr(ctl, "session", None), "outages", None) or []),
+        "budget": _budget_record(ctl),
         "link_vehicle_bytes_per_s": [(x.get("link") or {}).get("vehicle_bytes_per_s") for x in legs],
         "rmse": rm if ctl.truth_known else None,
         "rmse_note": "RMSE over water cells vs the mission's field at the state time; 'model' = the predictor "

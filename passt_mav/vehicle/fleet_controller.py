@@ -156,6 +156,7 @@ class BoatController(MissionController):
                         ready = True
                     self.status = "flying"
                     self._leg(self.fleet.claim_leg(), None, None)
+                    self._end_if_budget_spent()
                 except Ended as exc:  # the operator ended this boat's mission (HOLD or RTL set): the others go on
                     self.status = "ended"
                     self.fleet.event(f"boat {self.boat}: ended by the operator: {exc}", "stopped", self.boat)

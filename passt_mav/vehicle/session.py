@@ -190,6 +190,8 @@ class VehicleSession(LinkOutages, OperatorCommands):
         self.verify_pending = False
         self._mission_watch: MissionWatch | None = None
         self._mission_mark: tuple[int, int] = (0, 0)
+        #: the mission's safety budget (:class:`~passt_mav.vehicle.budget.SafetyBudget`), None = not watched
+        self.budget = None
         self._replaced: dict[int, int] = {}  # leg -> replacements by another station seen
         self._verify_timeouts = 0  # read-backs in AUTO timed out in a row
 
@@ -434,7 +436,17 @@ class VehicleSession(LinkOutages, OperatorCommands):
         is reported (:meth:`overrun`); returns ``"cut"`` when ``on_overrun`` is ``cut`` (the caller holds the
         vehicle and ends the leg), else None when the mission completed. A vehicle whose clock stops (a
         frozen simulator) still ends on the wall backstop (:class:`Deadline`): LinkTimeout. The operator's
-        commands are carried out between turns (:meth:`operator_step`): ``"skip"`` or ``"replan"`` end the leg."""
+        commands are carried out between turns (:meth:`operator_step`): ``"skip"`` or ``"replan"`` end the leg; so
+        does the safety budget once spent (:attr:`budget`): ``"budget"``."""
+        if self.budget is not None:
+            self.budget.start_leg()
+        try:
+            return self._fly_turns(i, items, n_items, expected_s)
+        finally:
+            if self.budget is not None:
+                self.budget.end_leg()
+
+    def _fly_turns(self, i: int, items, n_items: int, expected_s: float) -> str | None:
         planned_s = self.overrun_factor * expected_s + 30.0
         deadline = Deadline(self.link, planned_s, self.speedup)
         p = self.vehicle.progress
@@ -446,6 +458,13 @@ class VehicleSession(LinkOutages, OperatorCommands):
                 return how
             if how:
                 deadline.extend(how)
+            if self.budget is not None and self.budget.spent():
+                self.journal.note(
+                    "budget",
+                    f"leg {i}: safety budget spent at item {p.current}/{n_items}: "
+                    f"{self.budget.reason}; the leg is cut here",
+                )
+                return "budget"
             if self._wait_complete(n_items):
                 return None
             if deadline.wall_passed():
