@@ -308,3 +308,45 @@ def test_battery_remaining_takes_the_lower_known_value():
         SYS_STATUS=SimpleNamespace(battery_remaining=55), BATTERY_STATUS=SimpleNamespace(battery_remaining=48)
     )
     assert battery_remaining(link) == 48.0
+
+
+def test_a_fleet_takes_a_command_for_all_and_refuses_replan_with_the_reason(tmp_path):
+    """Two boats on the wall clock (a fleet cannot share one lockstep clock): Re-plan for boat 1 is refused with the
+    reason (a fleet's leg numbers are the fleet's), End (HOLD) for "all" ends both boats; the fleet ends."""
+    from test_fleet_controller import fleet_mission, fleet_served, run_fleet
+
+    field = wave_field()
+    starts = [(1, 1), (6, 6)]
+    cfg = fleet_mission(
+        tmp_path,
+        field,
+        legs=2,
+        vehicles=[
+            {"connect": f"tcp:127.0.0.1:{5760 + 10 * k}", "speed_mps": 5.0, "wp_radius_m": 3.0, "start_cell": list(s)}
+            for k, s in enumerate(starts)
+        ],
+    )
+    with fleet_served(field, starts=starts) as (sims, links):
+        fleet, rd = run_fleet(tmp_path, field, cfg, links)
+
+        def both_flying(_f):
+            return all(
+                b.collector is not None and b.collector.leg is not None and b.vehicle.mode == AUTO for b in fleet.boats
+            )
+
+        script = [
+            (both_flying, {"boat": 1, "action": "replan"}, None),
+            (both_flying, {"boat": "all", "action": "end", "end_mode": "HOLD"}, None),
+        ]
+        op = Operator(fleet, rd.root, script)
+        op.start()
+        summary = fleet.run()
+        op.join(10)
+        modes = [s.autopilot.mode for s in sims]
+    assert op.error is None, op.error
+    assert op.answers[0]["level"] == "warn" and "does not re-plan" in op.answers[0]["text"]
+    assert op.answers[0]["boat"] == 1
+    ended = [e for e in read_events(rd.root)[0] if e.get("command_id") and "mission ended" in e["text"]]
+    assert sorted(e["boat"] for e in ended) == [0, 1]  # one answer per boat to the one command
+    assert summary["status"] == "ended" and [b["status"] for b in summary["boats"]] == ["ended", "ended"]
+    assert modes == [HOLD, HOLD]
