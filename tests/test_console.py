@@ -8,12 +8,13 @@ reaches a state, and waits for the controller's answer (an event of kind ``comma
 
 from __future__ import annotations
 
+import contextlib
 import threading
 import time
 
 import pytest
-from mavlink_helpers import HOME, inprocess_factory, link_config, vehicle
-from test_controller import mission, sim_config, wave_field
+from mavlink_helpers import HOME, inprocess_factory, link_config
+from test_controller import SPEEDUP, controller, mission, sim_config, wave_field
 
 from passt_mav.commands.run import LEAN_STREAMS
 from passt_mav.mavlink import Link
@@ -21,7 +22,6 @@ from passt_mav.mavlink.vehicle import ROVER_MODES
 from passt_mav.runs.commands import append_command
 from passt_mav.runs.live import read_events
 from passt_mav.runs.rundir import RunDir
-from passt_mav.vehicle.controller import MissionController, build_predictor
 from vehicle_sim import Simulator
 
 HOLD, AUTO, RTL = ROVER_MODES["HOLD"], ROVER_MODES["AUTO"], ROVER_MODES["RTL"]
@@ -64,6 +64,16 @@ class Operator(threading.Thread):
                 after(ans)
 
 
+def fly_with(ctl, root, script) -> tuple[dict, Operator]:
+    """Run ``ctl`` with an :class:`Operator` sending ``script``; (the run's summary, the operator)."""
+    op = Operator(ctl, root, script)
+    op.start()
+    summary = ctl.run()
+    op.join(10)
+    assert op.error is None, op.error
+    return summary, op
+
+
 def _flying(ctl, leg: int = 0) -> bool:
     """Leg ``leg`` flies in AUTO with its first waypoint behind it."""
     return (
@@ -74,35 +84,23 @@ def _flying(ctl, leg: int = 0) -> bool:
     )
 
 
-@pytest.fixture()
-def lockstep_run(tmp_path):
-    """(sim, controller factory, run dir): the simulator in lockstep, the controller's link stepping it."""
+@contextlib.contextmanager
+def lockstep_session(tmp_path, **sim_kw):
+    """(sim, controller factory, run dir): the simulator in lockstep (``sim_kw`` to its config), the controller's
+    link stepping it; ``make(legs, budget=None, **controller_kw)`` makes a controller for a mission of 5-move legs."""
     field = wave_field()
-    sim = Simulator(field, home=HOME, config=sim_config())
+    sim = Simulator(field, home=HOME, config=sim_config(**sim_kw))
     sim.serve([], lockstep=True)
     link = Link(
-        link_config(lockstep_s=0.5, lockstep_pace=40.0, stream_rates_hz=LEAN_STREAMS),
+        link_config(lockstep_s=0.5, lockstep_pace=SPEEDUP, stream_rates_hz=LEAN_STREAMS),
         connection_factory=inprocess_factory(sim),
     )
     rd = RunDir(tmp_path / "run").create()
 
-    def make(legs: int = 2, **kw):
-        cfg = mission(tmp_path, field, legs=legs, planner={"name": "greedy", "path_length": 5})
-        pred, info = build_predictor(cfg.model, field, echo=lambda s: None)
-        return MissionController(
-            cfg,
-            link,
-            rd,
-            field=field,
-            predictor=pred,
-            predictor_info=info,
-            vehicle=vehicle(link),
-            speedup_hint=40.0,
-            ready_timeout_s=30.0,
-            field_time_at_boot=0.0,
-            echo=None,
-            **kw,
-        )
+    def make(legs: int = 2, budget: dict | None = None, **kw):
+        over = {"budget": budget} if budget else {}
+        cfg = mission(tmp_path, field, legs=legs, planner={"name": "greedy", "path_length": 5}, **over)
+        return controller(cfg, field, link, rd, echo=None, **kw)
 
     link.connect()
     try:
@@ -110,6 +108,12 @@ def lockstep_run(tmp_path):
     finally:
         link.close()
         sim.stop()
+
+
+@pytest.fixture()
+def lockstep_run(tmp_path):
+    with lockstep_session(tmp_path) as parts:
+        yield parts
 
 
 def test_pause_holds_resume_goes_on_at_the_same_item_end_returns(lockstep_run):
@@ -170,13 +174,7 @@ def test_pause_holds_resume_goes_on_at_the_same_item_end_returns(lockstep_run):
 
 def test_skip_ends_the_leg_and_plans_the_next(lockstep_run):
     _sim, make, rd = lockstep_run
-    ctl = make(legs=2)
-    script = [(_flying, {"boat": 0, "action": "skip"}, None)]
-    op = Operator(ctl, rd.root, script)
-    op.start()
-    summary = ctl.run()
-    op.join(10)
-    assert op.error is None, op.error
+    summary, op = fly_with(make(legs=2), rd.root, [(_flying, {"boat": 0, "action": "skip"}, None)])
     assert summary["status"] == "complete" and len(summary["legs"]) == 2
     first = summary["legs"][0]
     n_items = len(first["waypoints"]) + 1  # + DO_CHANGE_SPEED
@@ -186,19 +184,14 @@ def test_skip_ends_the_leg_and_plans_the_next(lockstep_run):
 
 def test_replan_plans_the_leg_again_keeping_the_attempt(lockstep_run):
     _sim, make, rd = lockstep_run
-    ctl = make(legs=1)
-    script = [(_flying, {"boat": 0, "action": "replan"}, None)]
-    op = Operator(ctl, rd.root, script)
-    op.start()
-    summary = ctl.run()
-    op.join(10)
-    assert op.error is None, op.error
+    summary, op = fly_with(make(legs=1), rd.root, [(_flying, {"boat": 0, "action": "replan"}, None)])
     assert summary["status"] == "complete" and len(summary["legs"]) == 1
     (leg,) = summary["legs"]
     (att,) = leg["attempts"]
     assert att["status"] == "replanned by the operator" and att["n_samples_stored"] > 0
     assert (rd.leg_dir(0) / "attempt_1" / "leg.json").exists()
     assert leg["n_samples"] >= att["n_samples_stored"]  # the attempt's samples are the leg's too
+    assert "planned again from here" in op.answers[0]["text"]
 
 
 def test_commands_that_do_not_apply_are_answered_with_the_reason(lockstep_run):
@@ -208,11 +201,7 @@ def test_commands_that_do_not_apply_are_answered_with_the_reason(lockstep_run):
         (_flying, {"boat": 0, "action": "resume"}, None),
         (_flying, {"boat": 0, "action": "end", "end_mode": "HOLD"}, None),
     ]
-    op = Operator(ctl, rd.root, script)
-    op.start()
-    summary = ctl.run()
-    op.join(10)
-    assert op.error is None, op.error
+    summary, op = fly_with(ctl, rd.root, script)
     assert op.answers[0]["level"] == "warn" and "not paused" in op.answers[0]["text"]
     assert summary["status"] == "ended" and sim.autopilot.mode == HOLD
 
@@ -222,45 +211,14 @@ def test_commands_that_do_not_apply_are_answered_with_the_reason(lockstep_run):
 def drained_run(tmp_path):
     """As :func:`lockstep_run`, with a small simulated battery (6 Wh: ~255 W at 5 m/s drains 70 % in ~60 s, a leg
     of 5 moves takes ~40 s)."""
-    field = wave_field()
-    sim = Simulator(field, home=HOME, config=sim_config(battery_wh=6.0))
-    sim.serve([], lockstep=True)
-    link = Link(
-        link_config(lockstep_s=0.5, lockstep_pace=40.0, stream_rates_hz=LEAN_STREAMS),
-        connection_factory=inprocess_factory(sim),
-    )
-    rd = RunDir(tmp_path / "run").create()
-
-    def make(budget: dict, legs: int = 4, **kw):
-        cfg = mission(tmp_path, field, legs=legs, planner={"name": "greedy", "path_length": 5}, budget=budget)
-        pred, info = build_predictor(cfg.model, field, echo=lambda s: None)
-        return MissionController(
-            cfg,
-            link,
-            rd,
-            field=field,
-            predictor=pred,
-            predictor_info=info,
-            vehicle=vehicle(link),
-            speedup_hint=40.0,
-            ready_timeout_s=30.0,
-            field_time_at_boot=0.0,
-            echo=None,
-            **kw,
-        )
-
-    link.connect()
-    try:
-        yield sim, make, rd
-    finally:
-        link.close()
-        sim.stop()
+    with lockstep_session(tmp_path, battery_wh=6.0) as parts:
+        yield parts
 
 
 def test_battery_reserve_returns_the_boat_ends_cleanly_and_resume_continues(drained_run):
     sim, make, rd = drained_run
     ap = sim.autopilot
-    summary = make({"battery_reserve_pct": 30}, legs=3).run()
+    summary = make(3, {"battery_reserve_pct": 30}).run()
     # the boat returns (RTL) once the battery reached the reserve; the run ends cleanly with the leg cut there
     assert summary["status"] == "ended" and ap.mode == RTL
     pct = ap._battery()[2]
@@ -274,7 +232,7 @@ def test_battery_reserve_returns_the_boat_ends_cleanly_and_resume_continues(drai
     assert kinds.count("budget") == 2 and kinds[-1] == "run_end"  # the cut, then the return
     # a fresh battery (a swap at the dock): --resume continues from the next leg to the end
     ap._energy_wh = 0.0
-    again = make({"battery_reserve_pct": 30}, legs=3, resume=True).run()
+    again = make(3, {"battery_reserve_pct": 30}, resume=True).run()
     print(f"battery: ended after {len(legs)} leg(s) at {pct} %; resumed: {again['status']}, {again['budget']}")
     assert again["status"] == "complete" and len(again["legs"]) == 3
     assert again["budget"]["spent"] is None and again["budget"]["battery_pct"] > 30
@@ -282,7 +240,7 @@ def test_battery_reserve_returns_the_boat_ends_cleanly_and_resume_continues(drai
 
 def test_a_distance_budget_cuts_the_leg_and_holds(drained_run):
     sim, make, _rd = drained_run  # (the battery is not watched here: no reserve set)
-    summary = make({"max_distance_m": 150, "on_spent": "hold"}, legs=3).run()
+    summary = make(3, {"max_distance_m": 150, "on_spent": "hold"}).run()
     assert summary["status"] == "ended" and sim.autopilot.mode == HOLD
     b = summary["budget"]
     # cut within a fix or two of the limit (1 Hz fixes of a 5 m/s boat: ~5 m apart)

@@ -10,46 +10,22 @@ from __future__ import annotations
 
 import time
 
-import numpy as np
 import pytest
 from test_console import Operator, _flying
-
-import geo
+from test_sitl import still_mission
 
 pytestmark = pytest.mark.sitl
 
-HOME = (40.0, -63.0)
 HOLD, AUTO = 4, 10
 
 
 def test_pause_and_resume_on_ardurover_sitl(tmp_path, sitl):
     from passt_mav.errors import MavlinkError
-    from passt_mav.fields import FlowField
     from passt_mav.mavlink import Link, LinkConfig, Vehicle
-    from passt_mav.mission.config import validate_mission
     from passt_mav.runs.rundir import RunDir
     from passt_mav.vehicle.controller import MissionController
 
-    n, d = 8, 0.0004  # ~40 m cells
-    grid = geo.RegionGrid(HOME[0] - d * 3.5, HOME[1] - d * 3.5, HOME[0] + d * 3.5, HOME[1] + d * 3.5, n, n)
-    field = FlowField(
-        np.zeros((3, 2, n, n), np.float32) + 0.1, grid, np.array([0.0, 60.0, 120.0]), time_origin="2020-01-01T00:00:00Z"
-    )
-    fpath = tmp_path / "still.nc"
-    field.to_netcdf(fpath)
-    cfg = validate_mission(
-        {
-            "name": "sitl",
-            "region": grid.describe(),
-            "field": {"source": str(fpath)},
-            "model": "persistence",
-            "planner": {"name": "lawnmower", "path_length": 6},
-            "legs": 1,
-            "vehicle": {"speed_mps": 2.0, "wp_radius_m": 3.0},
-            "geofence_margin_m": 20.0,
-        },
-        source="sitl test",
-    )
+    field, cfg = still_mission(tmp_path, 8, {"name": "lawnmower", "path_length": 6})
     link = Link(LinkConfig(sitl.connect, connect_timeout_s=60)).connect()
     seen: dict = {}
     try:

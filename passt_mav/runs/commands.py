@@ -89,26 +89,14 @@ def append_command(root: str | Path, command: dict, *, source: str) -> dict:
 
 def read_commands(root: str | Path, offset: int = 0) -> tuple[list[dict], int]:
     """(commands after byte ``offset`` of ``commands.jsonl``, the new offset); a half-written last line waits,
-    a line that is not a JSON object is skipped (logged)."""
-    path = Path(root) / COMMANDS
-    try:
-        with open(path, "rb") as f:
-            f.seek(offset)
-            data = f.read()
-    except FileNotFoundError:
-        return [], offset
-    end = data.rfind(b"\n") + 1
-    out = []
-    for line in data[:end].splitlines():
-        try:
-            rec = json.loads(line)
-        except ValueError:
-            rec = None
-        if isinstance(rec, dict) and rec.get("action") in ACTIONS:
-            out.append(rec)
-        else:
-            log.warning("commands: skipped a bad line of %s", path)
-    return out, offset + end
+    a line that is not a command is skipped (logged)."""
+    from passt_mav.runs.live import read_jsonl
+
+    recs, end = read_jsonl(Path(root) / COMMANDS, offset)
+    out = [r for r in recs if isinstance(r, dict) and r.get("action") in ACTIONS]
+    if len(out) < len(recs):
+        log.warning("commands: skipped %d bad line(s) of %s", len(recs) - len(out), Path(root) / COMMANDS)
+    return out, end
 
 
 class CommandReader:

@@ -26,7 +26,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-__all__ = ["RecordWriter", "KINDS", "EVENTS", "read_events", "read_statuses"]
+__all__ = ["RecordWriter", "KINDS", "EVENTS", "read_events", "read_jsonl", "read_statuses"]
 
 log = logging.getLogger(__name__)
 
@@ -164,9 +164,10 @@ class RecordWriter:
 
 
 # -- readers (the view) ----------------------------------------------------------------------------
-def read_events(root: str | Path, offset: int = 0) -> tuple[list[dict], int]:
-    """(events after byte ``offset`` of ``events.jsonl``, the new offset); a half-written last line waits."""
-    path = Path(root) / EVENTS
+def read_jsonl(path: str | Path, offset: int = 0) -> tuple[list, int]:
+    """(the JSON values of the lines after byte ``offset`` of ``path``, the new offset); a half-written last
+    line waits for its newline, a line that is not JSON is skipped (logged), a missing file is empty."""
+    path = Path(path)
     try:
         with open(path, "rb") as f:
             f.seek(offset)
@@ -181,6 +182,11 @@ def read_events(root: str | Path, offset: int = 0) -> tuple[list[dict], int]:
         except ValueError:
             log.warning("live view: skipped a bad line of %s", path)
     return out, offset + end
+
+
+def read_events(root: str | Path, offset: int = 0) -> tuple[list[dict], int]:
+    """(events after byte ``offset`` of ``events.jsonl``, the new offset); a half-written last line waits."""
+    return read_jsonl(Path(root) / EVENTS, offset)
 
 
 def read_statuses(root: str | Path) -> dict[int, dict]:
