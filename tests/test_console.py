@@ -13,7 +13,7 @@ import threading
 import time
 
 import pytest
-from mavlink_helpers import HOME, inprocess_factory, link_config
+from mavlink_helpers import HOME, inprocess_factory, link_config, served
 from test_controller import SPEEDUP, controller, mission, sim_config, wave_field
 
 from passt_mav.commands.run import LEAN_STREAMS
@@ -308,3 +308,66 @@ def test_a_fleet_takes_a_command_for_all_and_refuses_replan_with_the_reason(tmp_
     assert sorted(e["boat"] for e in ended) == [0, 1]  # one answer per boat to the one command
     assert summary["status"] == "ended" and [b["status"] for b in summary["boats"]] == ["ended", "ended"]
     assert modes == [HOLD, HOLD]
+
+
+# -- the vehicle's own alarms (passt_mav.vehicle.alerts) ---------------------------------------------------------
+class _Journal:
+    def __init__(self):
+        self.notes: list[tuple[str, str]] = []
+
+    def note(self, kind, text):
+        self.notes.append((kind, text))
+
+
+def _from_vehicle(name: str, *args, sysid: int = 1):
+    """A MAVLink message ``name`` as the reader gets it from system ``sysid`` (packed, then parsed)."""
+    from pymavlink.dialects.v20 import ardupilotmega as M
+
+    enc = M.MAVLink(None, srcSystem=sysid, srcComponent=1)
+    return M.MAVLink(None).parse_char(getattr(enc, f"{name}_encode")(*args).pack(enc))
+
+
+def test_a_fence_breach_is_one_alert_until_it_clears():
+    from types import SimpleNamespace
+
+    from passt_mav.vehicle.alerts import VehicleAlerts
+
+    j = _Journal()
+    va = VehicleAlerts(SimpleNamespace(target_system=1), j)
+    for breach in (1, 1, 1, 0, 0, 1):
+        va.on_message(_from_vehicle("fence_status", breach, 2, 3, 0))
+    va.on_message(_from_vehicle("fence_status", 0, 0, 0, 0, sysid=7))  # not our vehicle's
+    assert [k for k, _ in j.notes] == ["fence_breach", "fence_clear", "fence_breach"]
+    assert "boundary" in j.notes[0][1] and "breach 2" in j.notes[0][1]
+
+
+def test_a_failsafe_statustext_from_the_vehicle_becomes_an_alert_once():
+    from pymavlink.dialects.v20 import ardupilotmega as M
+
+    from passt_mav.vehicle.alerts import VehicleAlerts
+
+    with served(sim_config()) as (sim, link):
+        j = _Journal()
+        clock = [0.0]
+        va = VehicleAlerts(link, j, clock=lambda: clock[0])
+        va.attach()
+        ap = sim.autopilot
+        ap.text(None, M.MAV_SEVERITY_WARNING, "GCS Failsafe")
+        ap.text(None, M.MAV_SEVERITY_WARNING, "GCS Failsafe")  # again at once: not repeated
+        ap.text(None, M.MAV_SEVERITY_CRITICAL, "Arm: System not initialised")  # a pre-arm refusal: not an alert
+        ap.text(None, M.MAV_SEVERITY_INFO, "Fence breach cleared?")  # INFO: not an alert
+        ap.text(None, M.MAV_SEVERITY_ALERT, "Potential thrust loss")
+        end = time.monotonic() + WALL_S
+        while len(j.notes) < 2 and time.monotonic() < end:
+            time.sleep(0.01)
+        time.sleep(0.3)  # (anything more would have come by now)
+        clock[0] += 31.0
+        ap.text(None, M.MAV_SEVERITY_WARNING, "GCS Failsafe")  # 31 s later: said again
+        while len(j.notes) < 3 and time.monotonic() < end:
+            time.sleep(0.01)
+        va.detach()
+    assert j.notes == [
+        ("vehicle_alert", "the vehicle says: GCS Failsafe (severity 4)"),
+        ("vehicle_alert", "the vehicle says: Potential thrust loss (severity 1)"),
+        ("vehicle_alert", "the vehicle says: GCS Failsafe (severity 4)"),
+    ]

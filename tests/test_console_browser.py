@@ -71,6 +71,7 @@ def test_pause_resume_end_from_the_page(tmp_path):
 
             page.goto(url)
             assert "token" not in page.url  # the cookie holds it now
+            page.check("#alarm")  # the operator's consent to beep
             _wait(lambda: js(MODE) == "AUTO", 120, "the boat in AUTO", demo, out)
             page.click("#boat-0 button[data-act=pause]")
             _wait(lambda: "HOLD at item" in js(RESULT), 60, "the answer to Pause", demo, out)
@@ -85,6 +86,7 @@ def test_pause_resume_end_from_the_page(tmp_path):
             _wait(lambda: js(MODE) == "RTL", 30, "the vehicle to report RTL", demo, out)
             _wait(lambda: demo.poll() is not None, 120, "the demo to end")
             _wait(lambda: js("window.passtView.last.status") == "ended", 20, "the ended run on the page")
+            assert js("window.passtView.beeps") >= 1  # the run's end ("stopped", an alert) beeped
             _wait(
                 lambda: js("document.getElementById('conn').textContent") in ("finished", "server gone (run finished)"),
                 20,

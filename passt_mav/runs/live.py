@@ -54,6 +54,9 @@ KINDS = {
     "stopped": "alert",
     "command": "info",
     "budget": "alert",
+    "fence_breach": "alert",
+    "fence_clear": "ok",
+    "vehicle_alert": "alert",
 }
 
 

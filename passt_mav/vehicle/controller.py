@@ -119,6 +119,7 @@ from passt_mav.loop.legstep import (  # noqa: F401 - the between-leg step's buil
 from passt_mav.runs.commands import CommandReader
 from passt_mav.runs.legs import clock_statustext
 from passt_mav.runs.live import RecordWriter
+from passt_mav.vehicle.alerts import VehicleAlerts
 from passt_mav.vehicle.budget import SafetyBudget
 from passt_mav.vehicle.clock import RunClock
 from passt_mav.vehicle.console import Ended
@@ -555,6 +556,8 @@ class MissionController(ResumeRecord):
         # the operator's commands from the live page (passt_mav.runs.commands), read while a leg flies
         self.session.commands = CommandReader(self.rd.root, getattr(self, "boat", 0))
         self.session.budget = SafetyBudget(self.link, self.config.budget)
+        self.alerts = VehicleAlerts(self.link, self.journal)  # its fence breaches and failsafes to the view
+        self.alerts.attach()
         self.record.start_status(lambda: live_status(self))
 
     def _prepare_vehicle(self) -> None:
@@ -578,6 +581,7 @@ class MissionController(ResumeRecord):
             if restored:
                 self._say("restored " + ", ".join(f"{k} = {v:g}" for k, v in restored.items()))
         self.collector.detach()
+        self.alerts.detach()
         if self.session.budget is not None:
             self.session.budget.close()
         self.record.stop_status(lambda: live_status(self))

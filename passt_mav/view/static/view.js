@@ -215,6 +215,34 @@
       (c.token ? '' : 'read-only: open the address the run printed (with its token) to command the boats');
   }
 
+  // -- alarms: a beep (Web Audio) for each new alert, and a notification while the page is in the background;
+  // both need the operator's consent (a click on the checkbox: browsers start audio only after a gesture)
+  var audio = null, seenEvents = null;
+  window.passtView.beeps = 0;
+  $('alarm').addEventListener('change', function () {
+    if (!this.checked) return;
+    try { audio = audio || new (window.AudioContext || window.webkitAudioContext)(); audio.resume(); } catch (e) {}
+    if (window.Notification && Notification.permission === 'default') Notification.requestPermission();
+  });
+  function beep() {
+    window.passtView.beeps += 1;
+    if (!audio) return;
+    var o = audio.createOscillator(), g = audio.createGain();
+    o.frequency.value = 880; g.gain.value = 0.2; o.connect(g); g.connect(audio.destination);
+    o.start(); o.stop(audio.currentTime + 0.25);
+  }
+  function alarm(s) {
+    var n = s.n_events, fresh = seenEvents === null ? [] : s.events.slice(Math.max(0, s.events.length - (n - seenEvents)));
+    seenEvents = n;
+    if (!$('alarm').checked) return;
+    fresh.filter(function (e) { return e.level === 'alert'; }).forEach(function (e) {
+      beep();
+      if (document.hidden && window.Notification && Notification.permission === 'granted') {
+        new Notification('passt-mav: boat ' + e.boat, {body: e.text, tag: 'passt-' + e.kind});
+      }
+    });
+  }
+
   function drawAlerts(s) {
     var notable = s.events.filter(function (e) { return e.level !== 'info'; }).slice(-6).reverse();
     $('alerts').innerHTML = notable.map(function (e) {
@@ -262,7 +290,7 @@
       ' &middot; ' + s.n_samples + ' samples &middot; ' + s.boats.length + ' boat(s)';
     var ft = s.boats.map(function (b) { return (b.status || {}).field_time; }).filter(function (x) { return x != null; });
     $('clock').textContent = ft.length ? 'field time ' + fmt(Math.max.apply(null, ft), 0) : '';
-    drawRegion(s); drawArrows(s.estimate); drawBoats(s); drawPanels(s); drawConsoleNote(s); drawAlerts(s);
+    drawRegion(s); drawArrows(s.estimate); drawBoats(s); drawPanels(s); drawConsoleNote(s); drawAlerts(s); alarm(s);
     drawRmse(s.rmse);
   }
 
