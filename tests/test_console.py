@@ -87,7 +87,8 @@ def _flying(ctl, leg: int = 0) -> bool:
 @contextlib.contextmanager
 def lockstep_session(tmp_path, **sim_kw):
     """(sim, controller factory, run dir): the simulator in lockstep (``sim_kw`` to its config), the controller's
-    link stepping it; ``make(legs, budget=None, **controller_kw)`` makes a controller for a mission of 5-move legs."""
+    link stepping it; ``make(legs, budget=None, approve=None, **controller_kw)`` makes a controller for a mission of
+    5-move legs."""
     field = wave_field()
     sim = Simulator(field, home=HOME, config=sim_config(**sim_kw))
     sim.serve([], lockstep=True)
@@ -97,8 +98,8 @@ def lockstep_session(tmp_path, **sim_kw):
     )
     rd = RunDir(tmp_path / "run").create()
 
-    def make(legs: int = 2, budget: dict | None = None, **kw):
-        over = {"budget": budget} if budget else {}
+    def make(legs: int = 2, budget: dict | None = None, approve: dict | None = None, **kw):
+        over = {k: v for k, v in (("budget", budget), ("approve", approve)) if v}
         cfg = mission(tmp_path, field, legs=legs, planner={"name": "greedy", "path_length": 5}, **over)
         return controller(cfg, field, link, rd, echo=None, **kw)
 
@@ -370,4 +371,70 @@ def test_a_failsafe_statustext_from_the_vehicle_becomes_an_alert_once():
         ("vehicle_alert", "the vehicle says: GCS Failsafe (severity 4)"),
         ("vehicle_alert", "the vehicle says: Potential thrust loss (severity 1)"),
         ("vehicle_alert", "the vehicle says: GCS Failsafe (severity 4)"),
+    ]
+
+
+# -- approve mode (mission key approve; run --approve) -------------------------------------------------------------
+def _awaiting(rd, leg: int, attempts: int = 0):
+    """A condition: leg ``leg`` awaits approval (after ``attempts`` earlier attempts)."""
+
+    def cond(_ctl) -> bool:
+        try:
+            rec = rd.read_leg(leg)
+        except Exception:  # noqa: BLE001 - not written yet, or being written
+            return False
+        return rec.get("status") == "awaiting_approval" and len(rec.get("attempts") or []) == attempts
+
+    return cond
+
+
+def test_approve_mode_approved_leg_flies_rejected_leg_is_planned_again(lockstep_run):
+    sim, make, rd = lockstep_run
+    stored: list[int] = []
+
+    def note_store(_ans):
+        stored.append(sim.autopilot.store.count(0))
+
+    script = [
+        (_awaiting(rd, 0), {"boat": 0, "action": "approve", "leg": 0}, None),
+        (_awaiting(rd, 1), {"boat": 0, "action": "approve", "leg": 0}, None),  # a stale approval: not this leg
+        (_awaiting(rd, 1), {"boat": 0, "action": "reject", "leg": 1}, note_store),
+        (_awaiting(rd, 1, attempts=1), {"boat": 0, "action": "approve"}, None),
+    ]
+    summary, op = fly_with(make(legs=2, approve={"enabled": True, "timeout_s": WALL_S}), rd.root, script)
+    assert summary["status"] == "complete" and [lg["index"] for lg in summary["legs"]] == [0, 1]
+    assert [a["level"] for a in op.answers] == ["ok", "warn", "ok", "ok"]
+    assert "leg 1 does not await approval" in op.answers[1]["text"]
+    assert "rejected: planned again" in op.answers[2]["text"]
+    leg0, leg1 = summary["legs"]
+    assert leg0["approval"]["answer"] == "approve" and leg0["approval"]["distance_m"] > 0
+    assert leg0["approval"]["expected_s"] > 0
+    (att,) = leg1["attempts"]
+    assert att["status"] == "rejected by the operator" and att["n_samples_stored"] == 0
+    # the rejected leg was never uploaded: the vehicle held leg 0's mission (home, speed, its waypoints)
+    assert stored == [len(leg0["waypoints"]) + 2]
+
+
+def test_approve_mode_timeout_approves_or_holds(tmp_path):
+    with lockstep_session(tmp_path / "a") as (_sim, make, rd):
+        s = make(legs=1, approve={"enabled": True, "timeout_s": 0.3, "on_timeout": "approve"}).run()
+        assert s["status"] == "complete" and s["legs"][0]["approval"]["answer"] == "approve"
+        assert any("approved by the timeout" in e["text"] for e in read_events(rd.root)[0])
+    with lockstep_session(tmp_path / "h") as (sim, make, rd):
+        s = make(legs=1, approve={"enabled": True, "timeout_s": 0.3, "on_timeout": "hold"}).run()
+        assert s["status"] == "paused" and "no approval within" in s["events"][-1]
+        assert sim.autopilot.store.count(0) <= 1 and sim.autopilot.mode == HOLD  # nothing uploaded, held
+
+
+def test_console_keys_send_approve_and_reject(tmp_path):
+    import io
+
+    from passt_mav.runs.commands import console_keys, read_commands
+
+    assert console_keys(tmp_path, io.StringIO("x\na\n R \napprove\n\n")) == 3
+    cmds = read_commands(tmp_path)[0]
+    assert [(c["action"], c["boat"], c["source"]) for c in cmds] == [
+        ("approve", "all", "console"),
+        ("reject", "all", "console"),
+        ("approve", "all", "console"),
     ]

@@ -127,6 +127,8 @@ def test_bad_commands_are_4xx_with_the_reason(loop, tmp_path):
         ({"action": "end", "end_mode": "LAND"}, 400, b"end_mode must be"),
         ({"action": "pause", "end_mode": "RTL"}, 400, b"only for action 'end'"),
         ({"action": "pause", "x": 1}, 400, b"unknown field"),
+        ({"action": "pause", "leg": 1}, 400, b"only for actions 'approve' and 'reject'"),
+        ({"action": "approve", "leg": -1}, 400, b"leg must be"),
         ([1, 2], 400, b"JSON object"),
         (b"{not json", 400, b"not valid JSON"),
         (b"\xff\xfe", 400, b"not valid JSON"),
@@ -219,8 +221,12 @@ def _value(schema: dict):
 def _json_body():
     """Command bodies: well-formed ones, near misses and junk."""
     good = st.fixed_dictionaries(
-        {"action": st.sampled_from(["pause", "resume", "skip", "replan", "end"])},
-        optional={"boat": st.one_of(st.integers(-2, 3), st.just("all")), "end_mode": st.sampled_from(["HOLD", "RTL"])},
+        {"action": st.sampled_from(["pause", "resume", "skip", "replan", "end", "approve", "reject"])},
+        optional={
+            "boat": st.one_of(st.integers(-2, 3), st.just("all")),
+            "end_mode": st.sampled_from(["HOLD", "RTL"]),
+            "leg": st.integers(-1, 3),
+        },
     ).map(lambda d: json.dumps(d).encode())
     anyjson = st.recursive(
         st.none() | st.booleans() | st.integers() | st.floats(allow_nan=False) | st.text(max_size=10),

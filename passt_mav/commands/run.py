@@ -110,6 +110,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="override a mission key (dotted, YAML value), e.g. --set planner.path_length=8; repeatable; "
         "the run directory keeps the mission as flown",
     )
+    p.add_argument(
+        "--approve",
+        action="store_true",
+        help="approve each leg before its upload (mission key approve.enabled): on the live page (--view), or "
+        "type a (approve) or r (reject) + Enter on this console; approve.timeout_s / on_timeout decide unanswered",
+    )
     p.add_argument("--no-report", action="store_true", help="do not write report/report.html at the end")
     p.add_argument("--quiet", action="store_true", help="no per-leg status lines")
     from passt_mav.commands.view import add_view_options  # live view (issue 29): --view [PORT], --view-host
@@ -420,6 +426,7 @@ def _live_view(args, rd):
 
 
 def run(args: argparse.Namespace) -> int:
+    import sys
     from pathlib import Path
 
     from passt_mav.mission.config import load_mission
@@ -441,6 +448,8 @@ def run(args: argparse.Namespace) -> int:
         vehicle = config.vehicle.model_copy(update={"link_loss_window_s": float(args.link_loss_window)})
         config = config.model_copy(update={"vehicle": vehicle})
     _check_view_port(args)
+    if args.approve:
+        config = config.model_copy(update={"approve": config.approve.model_copy(update={"enabled": True})})
     if args.resume:
         if not args.out:
             raise _user("--resume needs --out RUN_DIR (the run to continue)")
@@ -466,6 +475,10 @@ def run(args: argparse.Namespace) -> int:
             (rd.root / "view.log").unlink(missing_ok=True)
             _remove_if_empty(rd.root)
         raise
+    if config.approve.enabled and sys.stdin is not None and sys.stdin.isatty():
+        from passt_mav.runs.commands import start_console_keys
+
+        start_console_keys(rd.root, sys.stdin)  # a / r + Enter: approve or reject the leg awaiting approval
     stop = StopSignals(echo=lambda s: print(s, flush=True))
     try:
         with stop:

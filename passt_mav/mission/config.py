@@ -18,6 +18,7 @@ Example (``missions/north_atlantic.yaml``)::
     gp: {prior: forecast, hyper: every_leg, background: 200, prior_blend: select, forgetting: 0.8, prior_share: 0.05, options: {}}
     seeds: {planner: 0, gp: 0, sensor: 0, field: 0}
     budget: {max_time_s: 14400, max_distance_m: 30000, battery_reserve_pct: 30, on_spent: rtl}   # unset: no limit
+    approve: {enabled: false, timeout_s: 300, on_timeout: hold}   # run --approve: the operator approves each leg
 
 ``region`` is geographic (south/west/north/east/rows/cols: the lat/lon of the
 corner cell *centres*, :class:`geo.RegionGrid`) or metric (x0/x1/y0/y1/rows/cols
@@ -359,6 +360,21 @@ class BudgetConfig(_Strict):
     """Where the boat goes once a limit is reached: `rtl` (return to launch) or `hold`."""
 
 
+class ApproveConfig(_Strict):
+    """Approve each leg before it is uploaded (``run --approve`` sets ``enabled``; docs/console.md): the live page
+    shows the planned leg (path, waypoints, reward map, distance, expected duration) and the operator approves
+    it, or rejects it (it is planned again from the boat's position and the time then); the console takes
+    ``a`` / ``r`` + Enter when no browser is open. Past ``timeout_s`` (wall seconds) ``on_timeout`` decides:
+    ``hold`` stops the run in HOLD (status ``paused``, ``--resume`` plans the leg again), ``approve`` flies it."""
+
+    enabled: bool = False
+    """Wait for the operator's approval before each leg's upload."""
+    timeout_s: float = Field(default=300.0, gt=0)
+    """Wall seconds to wait for the operator's answer."""
+    on_timeout: Literal["hold", "approve"] = "hold"
+    """What an unanswered leg does: `hold` (stop in HOLD, status paused) or `approve` (fly it)."""
+
+
 class SensorConfig(_Strict):
     """NAMED_VALUE_FLOAT names of the current sensor's east/north components, and its noise std (m/s)."""
 
@@ -501,6 +517,8 @@ class MissionConfig(_Strict):
     """Seeds of everything random (recorded with the run)."""
     budget: BudgetConfig = Field(default_factory=BudgetConfig)
     """The safety budget: time, distance and battery reserve (unset: no limit)."""
+    approve: ApproveConfig = Field(default_factory=ApproveConfig)
+    """The operator approves each leg before its upload (off unless enabled, or `run --approve`)."""
 
     @field_validator("field", mode="before")
     @classmethod

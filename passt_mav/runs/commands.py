@@ -8,7 +8,8 @@ HTTP: this file is the one channel between them::
 
     ROOT/live/commands.jsonl   append-only, one JSON object a line: id, utc (ISO-8601, the server's clock),
                                boat (int, or "all" for a fleet), action (ACTIONS), end_mode (END_MODES,
-                               for "end"), source (who asked: "view <client address>")
+                               for "end"), leg (for "approve"/"reject": the leg meant; unset: the one
+                               awaiting approval), source (who asked: "view <client address>", "console")
 
 Appended under an exclusive ``flock`` and flushed per line, so a reader never sees half a line it keeps
 (a half-written last line waits for its newline, as :func:`~passt_mav.runs.live.read_events` does).
@@ -22,14 +23,25 @@ import logging
 import secrets
 from pathlib import Path
 
-__all__ = ["ACTIONS", "END_MODES", "COMMANDS", "CommandError", "append_command", "CommandReader", "read_commands"]
+__all__ = [
+    "ACTIONS",
+    "END_MODES",
+    "COMMANDS",
+    "CommandError",
+    "append_command",
+    "CommandReader",
+    "read_commands",
+    "console_keys",
+    "start_console_keys",
+]
 
 log = logging.getLogger(__name__)
 
 COMMANDS = "live/commands.jsonl"
 #: what the page can ask of a boat (docs/console.md): HOLD keeping the loop's state, AUTO at the same
-#: item, end the leg and plan the next, re-plan this leg from here, end the mission (HOLD or RTL)
-ACTIONS = ("pause", "resume", "skip", "replan", "end")
+#: item, end the leg and plan the next, re-plan this leg from here, end the mission (HOLD or RTL); approve
+#: or reject the leg awaiting approval (approve mode)
+ACTIONS = ("pause", "resume", "skip", "replan", "end", "approve", "reject")
 END_MODES = ("HOLD", "RTL")
 
 
@@ -43,9 +55,9 @@ def validate(body, n_boats: int) -> dict:
     Raises :class:`CommandError` naming what is wrong."""
     if not isinstance(body, dict):
         raise CommandError("the body must be a JSON object with 'boat' and 'action'")
-    extra = set(body) - {"boat", "action", "end_mode"}
+    extra = set(body) - {"boat", "action", "end_mode", "leg"}
     if extra:
-        raise CommandError(f"unknown field(s) {sorted(extra)}; expected boat, action, end_mode")
+        raise CommandError(f"unknown field(s) {sorted(extra)}; expected boat, action, end_mode, leg")
     action = body.get("action")
     if action not in ACTIONS:
         raise CommandError(f"action must be one of {', '.join(ACTIONS)}; got {action!r}")
@@ -61,6 +73,13 @@ def validate(body, n_boats: int) -> dict:
         out["end_mode"] = mode
     elif mode is not None:
         raise CommandError("end_mode is only for action 'end'")
+    leg = body.get("leg")
+    if leg is not None:
+        if action not in ("approve", "reject"):
+            raise CommandError("leg is only for actions 'approve' and 'reject'")
+        if isinstance(leg, bool) or not isinstance(leg, int) or leg < 0:
+            raise CommandError(f"leg must be a leg index >= 0; got {leg!r}")
+        out["leg"] = leg
     return out
 
 
@@ -118,3 +137,29 @@ class CommandReader:
         """The commands for this boat that arrived since the last call, oldest first."""
         new, self.offset = read_commands(self.root, self.offset)
         return [c for c in new if c.get("boat") in (self.boat, "all")]
+
+
+#: console keys (approve mode) -> the command they send
+KEYS = {"a": "approve", "approve": "approve", "r": "reject", "reject": "reject"}
+
+
+def console_keys(root: str | Path, stream) -> int:
+    """Read lines from ``stream`` (the console) until it ends: ``a`` / ``r`` (or ``approve`` / ``reject``) + Enter
+    append that command for every boat's leg awaiting approval (``boat: "all"``, no leg: the one awaiting), source
+    ``console``; other lines are ignored. Returns the number of commands sent."""
+    n = 0
+    for line in stream:
+        action = KEYS.get(line.strip().lower())
+        if action is not None:
+            append_command(root, {"boat": "all", "action": action}, source="console")
+            n += 1
+    return n
+
+
+def start_console_keys(root: str | Path, stream):
+    """:func:`console_keys` in a daemon thread (it blocks on the console); returns the thread."""
+    import threading
+
+    th = threading.Thread(target=console_keys, args=(root, stream), name="console-keys", daemon=True)
+    th.start()
+    return th

@@ -57,6 +57,7 @@ KINDS = {
     "fence_breach": "alert",
     "fence_clear": "ok",
     "vehicle_alert": "alert",
+    "approval": "warn",
 }
 
 

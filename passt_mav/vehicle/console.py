@@ -17,6 +17,8 @@ link loss already use:
   an interrupted one (as after ``--resume``), its samples stay in the store for the re-flown leg.
 * ``end``: HOLD or RTL (the operator's choice), then :class:`Ended`: the run ends cleanly, status
   ``ended``, state saved for ``--resume``.
+* ``approve`` / ``reject`` (approve mode, :meth:`OperatorCommands.await_approval`): before a leg's upload the
+  controller waits for one of them (or ``end``); a rejected leg is planned again.
 
 Each command is answered by an event of kind ``command`` carrying its id (level ``ok`` when carried out,
 ``warn`` when not, with the reason), also in summary.json's events and on the console.
@@ -78,6 +80,9 @@ class OperatorCommands:
             return self._operator_pause(cmd, i, n_items)
         if act in ("pause", "resume"):
             self._answer(cmd, "already paused" if paused else "not paused: nothing to resume", ok=False)
+            return None
+        if act in ("approve", "reject"):
+            self._answer(cmd, f"no leg awaits approval (leg {i + 1} is flying)", ok=False)
             return None
         if act == "replan" and self.replan_refused:
             self._answer(cmd, self.replan_refused, ok=False)
@@ -158,3 +163,40 @@ class OperatorCommands:
         mode = ROVER_MODE_NAMES.get(v.mode, str(v.mode))
         self._answer(cmd, f"leg {i + 1} resumed: {mode} at item {v.progress.current}/{n_items}")
         return time.monotonic() - t0
+
+    def await_approval(self, i: int, what: str, timeout_s: float, on_timeout: str) -> str:
+        """Approve mode: leg ``i`` (``what``: its figures, one line) waits for the operator before its upload.
+        Returns ``"approve"`` or ``"reject"`` (an ``approve``/``reject`` command for this leg, or for no leg in
+        particular); ``end`` ends the mission (:class:`Ended`). Past ``timeout_s`` wall seconds ``on_timeout``
+        decides: ``approve``, or ``hold``: :class:`~passt_mav.vehicle.session.Paused` (the vehicle is held)."""
+        from passt_mav.vehicle.session import Paused
+
+        self.journal.note("approval", f"leg {i}: awaits approval ({what}); timeout {timeout_s:.0f} s: {on_timeout}")
+        self.journal.say(
+            f"leg {i + 1} awaits approval ({what}): approve or reject on the live page, or type a (approve) or "
+            f"r (reject) + Enter here; in {timeout_s:.0f} s: {on_timeout}"
+        )
+        t0 = time.monotonic()
+        while True:
+            for c in self.commands.poll() if self.commands is not None else ():
+                act = c["action"]
+                if act in ("approve", "reject") and c.get("leg") in (None, i):
+                    self._answer(c, f"leg {i + 1} " + ("approved" if act == "approve" else "rejected: planned again"))
+                    return act
+                if act == "end":
+                    self._operator_end(c, i)
+                why = f"leg {c.get('leg', 0) + 1} does not await approval" if act in ("approve", "reject") else ""
+                self._answer(c, why or f"no leg is flying: leg {i + 1} awaits approval", ok=False)
+            if time.monotonic() - t0 > timeout_s:
+                if on_timeout == "approve":
+                    self.journal.note(
+                        "approval", f"leg {i}: no answer within {timeout_s:.0f} s: approved by the timeout"
+                    )
+                    return "approve"
+                raise Paused(
+                    f"leg {i}: no approval within {timeout_s:.0f} s (approve.on_timeout: hold): stopped in HOLD; "
+                    "continue with --resume"
+                )
+            if self.link.lost:
+                self.reconnect_within_window(i, time.monotonic() - self._silent_s(), "approval")
+            self.link.idle(0.05)

@@ -146,7 +146,12 @@ log = logging.getLogger(__name__)
 
 
 class _Replan(Exception):  # noqa: N818 - a request, not an error
-    """The operator asked to plan the leg in flight again from where the boat is (:meth:`MissionController._leg`)."""
+    """The operator asked to plan the leg again from where the boat is (:meth:`MissionController._leg`); ``status``:
+    what the archived attempt is called."""
+
+    def __init__(self, status: str = "replanned by the operator"):
+        super().__init__(status)
+        self.status = status
 
 
 class StoreWriter:
@@ -616,15 +621,17 @@ class MissionController(ResumeRecord):
         while True:
             try:
                 return self._leg_once(i, state, t_state)
-            except _Replan:
+            except _Replan as exc:
                 with self.signals.critical():
-                    self._archive_attempt(i, status="replanned by the operator")
+                    self._archive_attempt(i, status=exc.status)
 
     def _leg_once(self, i: int, state: np.ndarray, t_state: float) -> tuple[np.ndarray, float]:
         planned = self._plan(i, state, t_state)
         with self.lock, self.signals.critical():
             wm = self._checked_mission(i, planned)
             rec = self._write_plan(i, planned, wm)
+        if self.config.approve.enabled:
+            self._approve(i, rec, wm)
         link0, store0 = self.session.link_snapshot(), self.store.count(i)
         items = wm.items()
         upload_tries, upload_s, t_fly, tb_fly = self._swap(i, items, time.perf_counter())
@@ -741,6 +748,30 @@ class MissionController(ResumeRecord):
         rec.update(self.share.plan_fields())
         self.leg_rec = rec
         return rec
+
+    def _approve(self, i: int, rec: dict, wm) -> None:
+        """Approve mode (mission key ``approve``): leg ``i``'s record says ``awaiting_approval`` with its distance
+        (m, along the waypoints from the boat's cell) and expected duration (vehicle s) for the page, and the
+        controller waits for the operator (:meth:`~passt_mav.vehicle.console.OperatorCommands.await_approval`);
+        a rejected leg is planned again (:class:`_Replan`)."""
+        import geo
+
+        wp = wm.waypoints
+        dist = (
+            float(np.sum(geo.geodesic_distance_m(wp[:-1, 0], wp[:-1, 1], wp[1:, 0], wp[1:, 1]))) if len(wp) > 1 else 0.0
+        )
+        exp_s = self._expected_vehicle_s(wm)
+        ap = self.config.approve
+        rec.update(status="awaiting_approval", approval={"distance_m": round(dist, 1), "expected_s": round(exp_s, 1)})
+        with self.signals.critical():
+            self.rd.write_leg(i, rec)
+        what = f"{len(wp)} waypoints, {dist:.0f} m, ~{exp_s / 60:.1f} min at {self.speed:g} m/s"
+        how = self.session.await_approval(i, what, ap.timeout_s, ap.on_timeout)
+        rec["status"], rec["approval"]["answer"] = ("flying", how) if how == "approve" else ("rejected", how)
+        with self.signals.critical():
+            self.rd.write_leg(i, rec)
+        if how == "reject":
+            raise _Replan("rejected by the operator")
 
     def _write_prediction(self, i: int, planned) -> None:
         """The model's forecast over the leg (:meth:`LegStep.forecast_leg`) to prediction.nc."""

@@ -38,6 +38,11 @@ def openapi(version: str) -> dict:
             },
             "action": {"enum": list(ACTIONS)},
             "end_mode": {"enum": list(END_MODES), "description": "for action 'end' only (default HOLD)"},
+            "leg": {
+                "type": "integer",
+                "minimum": 0,
+                "description": "for 'approve'/'reject' only: the leg meant (unset: the one awaiting approval)",
+            },
         },
     }
     return {

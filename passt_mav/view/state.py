@@ -166,6 +166,7 @@ class RunState:
                     "rmse_model": rec.get("rmse_model"),
                     "guard": rec.get("guard"),
                     "n_samples": rec.get("n_samples"),
+                    "approval": rec.get("approval"),
                     "has_reward": bool(rec.get("reward_map")),
                     "reward_range": _range(rec.get("reward_map")),
                 }

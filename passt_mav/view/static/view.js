@@ -184,14 +184,27 @@
     var res = last ? '<div class="cmd-result ' + (last.ok === null ? 'pending' : (last.ok ? 'done' : 'refused')) +
       '" data-action="' + esc(last.action) + '">' + esc(last.action) + (last.end_mode ? ' ' + esc(last.end_mode) : '') +
       ': ' + esc(last.result === null ? 'sent, waiting for the controller' : last.result) + '</div>' : '';
-    return '<div class="controls" data-boat="' + b + '">' + ACTIONS.map(function (a) {
+    return approval(s, b, off) + '<div class="controls" data-boat="' + b + '">' + ACTIONS.map(function (a) {
       return '<button type="button" data-act="' + a[0] + '"' + (off ? ' disabled' : '') + '>' + a[1] + '</button>';
     }).join('') + '</div>' + res;
   }
 
-  function post(boat, act) {
+  function approval(s, b, off) {  // approve mode: the leg waiting for the operator (drawn dashed on the map)
+    var lg = s.legs.filter(function (x) { return x.boat === b && x.status === 'awaiting_approval'; }).slice(-1)[0];
+    if (!lg) return '';
+    var a = lg.approval || {};
+    return '<div class="approval" data-leg="' + lg.index + '"><b>leg ' + (lg.index + 1) + ' awaits approval</b>: ' +
+      lg.waypoints.length + ' waypoints, ' + fmt(a.distance_m, 0) + ' m, ~' + dur(a.expected_s) +
+      ' (path dashed on the map, its reward map under "reward map of the newest plan")<div class="controls" ' +
+      'data-boat="' + b + '" data-leg="' + lg.index + '"><button type="button" data-act="approve"' +
+      (off ? ' disabled' : '') + '>Approve</button><button type="button" data-act="reject"' + (off ? ' disabled' : '') +
+      '>Reject (re-plan)</button></div></div>';
+  }
+
+  function post(boat, act, leg) {
     var parts = act.split(':'), body = {boat: boat === 'all' ? 'all' : +boat, action: parts[0]};
     if (parts[1]) body.end_mode = parts[1];
+    if (leg !== undefined) body.leg = +leg;
     if (parts[0] === 'end' && !window.confirm('End the mission of ' + (boat === 'all' ? 'every boat' : 'boat ' + boat) +
       ' (' + parts[1] + ')?')) return;
     var msg = $('console-msg');
@@ -206,7 +219,7 @@
   }
   $('boats').addEventListener('click', function (ev) {
     var btn = ev.target.closest('button[data-act]'); if (!btn || btn.disabled) return;
-    post(btn.parentNode.dataset.boat, btn.dataset.act);
+    post(btn.parentNode.dataset.boat, btn.dataset.act, btn.parentNode.dataset.leg);
   });
 
   function drawConsoleNote(s) {
