@@ -418,7 +418,7 @@ def test_approve_mode_approved_leg_flies_rejected_leg_is_planned_again(lockstep_
 def test_approve_mode_timeout_approves_or_holds(tmp_path):
     with lockstep_session(tmp_path / "a") as (_sim, make, rd):
         s = make(legs=1, approve={"enabled": True, "timeout_s": 0.3, "on_timeout": "approve"}).run()
-        assert s["status"] == "complete" and s["legs"][0]["approval"]["answer"] == "approve"
+        assert s["status"] == "complete" and s["legs"][0]["approval"]["answer"] == "timeout"
         assert any("approved by the timeout" in e["text"] for e in read_events(rd.root)[0])
     with lockstep_session(tmp_path / "h") as (sim, make, rd):
         s = make(legs=1, approve={"enabled": True, "timeout_s": 0.3, "on_timeout": "hold"}).run()

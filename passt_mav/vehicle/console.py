@@ -168,7 +168,8 @@ class OperatorCommands:
         """Approve mode: leg ``i`` (``what``: its figures, one line) waits for the operator before its upload.
         Returns ``"approve"`` or ``"reject"`` (an ``approve``/``reject`` command for this leg, or for no leg in
         particular); ``end`` ends the mission (:class:`Ended`). Past ``timeout_s`` wall seconds ``on_timeout``
-        decides: ``approve``, or ``hold``: :class:`~passt_mav.vehicle.session.Paused` (the vehicle is held)."""
+        decides: ``approve`` (returns ``"timeout"``), or ``hold``: :class:`~passt_mav.vehicle.session.Paused` (the
+        vehicle is held)."""
         from passt_mav.vehicle.session import Paused
 
         self.journal.note("approval", f"leg {i}: awaits approval ({what}); timeout {timeout_s:.0f} s: {on_timeout}")
@@ -192,7 +193,7 @@ class OperatorCommands:
                     self.journal.note(
                         "approval", f"leg {i}: no answer within {timeout_s:.0f} s: approved by the timeout"
                     )
-                    return "approve"
+                    return "timeout"
                 raise Paused(
                     f"leg {i}: no approval within {timeout_s:.0f} s (approve.on_timeout: hold): stopped in HOLD; "
                     "continue with --resume"

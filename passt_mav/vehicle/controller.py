@@ -511,9 +511,9 @@ class MissionController(ResumeRecord):
             if not leave:  # HOLD whatever the mode seen last: a stop during the swap may precede AUTO's heartbeat
                 self.session.hold_if_auto(always=True)
             place_held(self.collector, None if self.link.lost else self.live_leg[0], self.speedup)
-        except Ended as exc:  # the operator's End: the vehicle is in HOLD or RTL already
+        except Ended as exc:  # the operator's End, or the safety budget: the vehicle is in HOLD or RTL already
             self.status = "ended"
-            self._note("stopped", f"ended by the operator at {utc_now()}: {exc}")
+            self._note("stopped", f"run ended at {utc_now()}: {exc}")
             close_leg(self.collector)
             place_held(self.collector, None if self.link.lost else self.live_leg[0], self.speedup)
         except Paused as exc:
@@ -767,7 +767,7 @@ class MissionController(ResumeRecord):
             self.rd.write_leg(i, rec)
         what = f"{len(wp)} waypoints, {dist:.0f} m, ~{exp_s / 60:.1f} min at {self.speed:g} m/s"
         how = self.session.await_approval(i, what, ap.timeout_s, ap.on_timeout)
-        rec["status"], rec["approval"]["answer"] = ("flying", how) if how == "approve" else ("rejected", how)
+        rec["status"], rec["approval"]["answer"] = ("rejected" if how == "reject" else "flying"), how
         with self.signals.critical():
             self.rd.write_leg(i, rec)
         if how == "reject":

@@ -157,9 +157,11 @@ class BoatController(MissionController):
                     self.status = "flying"
                     self._leg(self.fleet.claim_leg(), None, None)
                     self._end_if_budget_spent()
-                except Ended as exc:  # the operator ended this boat's mission (HOLD or RTL set): the others go on
+                except (
+                    Ended
+                ) as exc:  # the operator or the budget ended this boat's mission (HOLD/RTL set): others go on
                     self.status = "ended"
-                    self.fleet.event(f"boat {self.boat}: ended by the operator: {exc}", "stopped", self.boat)
+                    self.fleet.event(f"boat {self.boat}: ended: {exc}", "stopped", self.boat)
                     return
                 except (MavlinkError, PlannerError, Paused) as exc:
                     if isinstance(exc, Paused) and not isinstance(exc, LinkWindowOver):
