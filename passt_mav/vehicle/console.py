@@ -61,6 +61,19 @@ class OperatorCommands:
         self.journal.record.event("command", line, level="ok" if ok else "warn", command_id=cmd.get("id"))
         self.journal.say(line)
 
+    def console_turn(self, i: int, n_items: int) -> str | float | None:
+        """One turn of :meth:`VehicleSession.fly`: the operator's commands (:meth:`operator_step`), then the safety
+        budget (the session's ``budget``): ``"budget"`` once it is spent (the leg is cut there)."""
+        how = self.operator_step(i, n_items)
+        if isinstance(how, str):
+            return how
+        budget = getattr(self, "budget", None)
+        if budget is not None and budget.spent():
+            cur = self.vehicle.progress.current
+            self.journal.note("budget", f"leg {i}: safety budget spent at item {cur}/{n_items}: {budget.reason}; cut")
+            return "budget"
+        return how
+
     def operator_step(self, i: int, n_items: int) -> str | float | None:
         """The boat's new commands, carried out in order. Returns ``"skip"`` or ``"replan"`` (the leg ends
         here), the wall seconds spent paused (the leg's deadline waits that much longer), or None."""

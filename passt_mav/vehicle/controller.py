@@ -116,14 +116,12 @@ from passt_mav.loop.legstep import (  # noqa: F401 - the between-leg step's buil
     truth_at,
     utc_epoch,
 )
-from passt_mav.runs.commands import CommandReader
 from passt_mav.runs.legs import clock_statustext
 from passt_mav.runs.live import RecordWriter
-from passt_mav.vehicle.alerts import VehicleAlerts
-from passt_mav.vehicle.budget import SafetyBudget
 from passt_mav.vehicle.clock import RunClock
 from passt_mav.vehicle.console import Ended
 from passt_mav.vehicle.live_record import live_meta, live_status
+from passt_mav.vehicle.operator import OperatorLegs, Replan
 from passt_mav.vehicle.resume import ResumeRecord
 from passt_mav.vehicle.session import Deadline as _Deadline  # noqa: F401 - tests import it from here
 from passt_mav.vehicle.session import Journal, Paused, VehicleSession, expected_vehicle_s, utc_now
@@ -143,15 +141,6 @@ __all__ = [
 ]
 
 log = logging.getLogger(__name__)
-
-
-class _Replan(Exception):  # noqa: N818 - a request, not an error
-    """The operator asked to plan the leg again from where the boat is (:meth:`MissionController._leg`); ``status``:
-    what the archived attempt is called."""
-
-    def __init__(self, status: str = "replanned by the operator"):
-        super().__init__(status)
-        self.status = status
 
 
 class StoreWriter:
@@ -315,7 +304,7 @@ def preflight(config, field, predictor) -> None:
         raise ModelError("the mission's model forecasts NaN/inf from the field's state at t0; check the model")
 
 
-class MissionController(ResumeRecord):
+class MissionController(ResumeRecord, OperatorLegs):
     """Runs a mission config on a connected vehicle, writing a run directory.
 
     Args:
@@ -498,7 +487,6 @@ class MissionController(ResumeRecord):
             self._prepare_vehicle()
             for i in range(first, self.n_legs):
                 state, t_state = self._leg(i, state, t_state)
-                self._end_if_budget_spent()
             self.status = "complete"
         except Stopped as exc:
             self.signals.disarm()
@@ -511,20 +499,8 @@ class MissionController(ResumeRecord):
             if not leave:  # HOLD whatever the mode seen last: a stop during the swap may precede AUTO's heartbeat
                 self.session.hold_if_auto(always=True)
             place_held(self.collector, None if self.link.lost else self.live_leg[0], self.speedup)
-        except Ended as exc:  # the operator's End, or the safety budget: the vehicle is in HOLD or RTL already
-            self.status = "ended"
-            self._note("stopped", f"run ended at {utc_now()}: {exc}")
-            close_leg(self.collector)
-            place_held(self.collector, None if self.link.lost else self.live_leg[0], self.speedup)
-        except Paused as exc:
-            self.status = "paused"
-            self._note("stopped", str(exc))
-            self._say(f"stopped: {exc}")
-            close_leg(self.collector)
-            try:  # the pilot's RC still overrides HOLD; a vehicle left in an unknown mode would not stop
-                self.vehicle.hold()
-            except MavlinkError as e2:
-                log.warning("could not switch to HOLD: %s", e2)
+        except (Ended, Paused) as exc:  # a clean stop short of the end (passt_mav.vehicle.operator)
+            self._stop_short(exc)
         except BaseException as exc:
             self.status = "aborted"
             if isinstance(exc, LinkTimeout) and "signing" not in str(exc) and "signing" in self.link.signing_hint():
@@ -558,11 +534,7 @@ class MissionController(ResumeRecord):
         )
         self.collector.attach(self.link)
         self.run_clock.collector = self.collector
-        # the operator's commands from the live page (passt_mav.runs.commands), read while a leg flies
-        self.session.commands = CommandReader(self.rd.root, getattr(self, "boat", 0))
-        self.session.budget = SafetyBudget(self.link, self.config.budget)
-        self.alerts = VehicleAlerts(self.link, self.journal)  # its fence breaches and failsafes to the view
-        self.alerts.attach()
+        self._attach_operator()  # commands, budget, the vehicle's alarms (passt_mav.vehicle.operator)
         self.record.start_status(lambda: live_status(self))
 
     def _prepare_vehicle(self) -> None:
@@ -572,8 +544,7 @@ class MissionController(ResumeRecord):
         if self.config.vehicle.wp_radius_m > 0:
             # a Rover's acceptance radius is WP_RADIUS (it drops a waypoint's param2); put back at the end
             self.vehicle.set_wp_radius(self.config.vehicle.wp_radius_m)
-        if self.session.budget is not None:
-            self.session.budget.request_battery()
+        self.session.budget.request_battery()
 
     def _detach(self) -> None:
         """Put back the parameters we changed; stop collecting."""
@@ -586,28 +557,8 @@ class MissionController(ResumeRecord):
             if restored:
                 self._say("restored " + ", ".join(f"{k} = {v:g}" for k, v in restored.items()))
         self.collector.detach()
-        self.alerts.detach()
-        if self.session.budget is not None:
-            self.session.budget.close()
+        self._detach_operator()
         self.record.stop_status(lambda: live_status(self))
-
-    def _end_if_budget_spent(self) -> None:
-        """After a leg: if the safety budget is spent (:mod:`passt_mav.vehicle.budget`), the boat to
-        ``budget.on_spent`` (RTL, or HOLD; HOLD when the vehicle refuses) and :class:`Ended`."""
-        budget = self.session.budget
-        if budget is None or budget.reason is None:
-            return
-        mode = self.config.budget.on_spent.upper()
-        try:
-            self.vehicle.set_mode(mode)
-        except MavlinkError as exc:
-            self._say(f"WARNING: the vehicle refused {mode} ({exc}); HOLD")
-            self.session.hold_if_auto(always=True)
-            mode = "HOLD"
-        text = f"safety budget spent ({budget.reason}): {mode}; state saved (continue with --resume)"
-        self._note("budget", text)
-        self._say(text)
-        raise Ended(text, mode)
 
     def _safe_hold(self) -> None:
         """HOLD if in AUTO (never raises), the leg closed first (:func:`close_leg`)."""
@@ -615,16 +566,6 @@ class MissionController(ResumeRecord):
         self.session.hold_if_auto()
 
     # -- one leg: plan -> check -> upload (transactional) -> fly -> absorb ---------------------------
-    def _leg(self, i: int, state: np.ndarray, t_state: float) -> tuple[np.ndarray, float]:
-        """Leg ``i`` from ``state`` (at field time ``t_state``); planned again from where the boat is, the state
-        unchanged, as often as the operator asks (``replan``: the attempt kept as an interrupted one)."""
-        while True:
-            try:
-                return self._leg_once(i, state, t_state)
-            except _Replan as exc:
-                with self.signals.critical():
-                    self._archive_attempt(i, status=exc.status)
-
     def _leg_once(self, i: int, state: np.ndarray, t_state: float) -> tuple[np.ndarray, float]:
         planned = self._plan(i, state, t_state)
         with self.lock, self.signals.critical():
@@ -749,30 +690,6 @@ class MissionController(ResumeRecord):
         self.leg_rec = rec
         return rec
 
-    def _approve(self, i: int, rec: dict, wm) -> None:
-        """Approve mode (mission key ``approve``): leg ``i``'s record says ``awaiting_approval`` with its distance
-        (m, along the waypoints from the boat's cell) and expected duration (vehicle s) for the page, and the
-        controller waits for the operator (:meth:`~passt_mav.vehicle.console.OperatorCommands.await_approval`);
-        a rejected leg is planned again (:class:`_Replan`)."""
-        import geo
-
-        wp = wm.waypoints
-        dist = (
-            float(np.sum(geo.geodesic_distance_m(wp[:-1, 0], wp[:-1, 1], wp[1:, 0], wp[1:, 1]))) if len(wp) > 1 else 0.0
-        )
-        exp_s = self._expected_vehicle_s(wm)
-        ap = self.config.approve
-        rec.update(status="awaiting_approval", approval={"distance_m": round(dist, 1), "expected_s": round(exp_s, 1)})
-        with self.signals.critical():
-            self.rd.write_leg(i, rec)
-        what = f"{len(wp)} waypoints, {dist:.0f} m, ~{exp_s / 60:.1f} min at {self.speed:g} m/s"
-        how = self.session.await_approval(i, what, ap.timeout_s, ap.on_timeout)
-        rec["status"], rec["approval"]["answer"] = ("rejected" if how == "reject" else "flying"), how
-        with self.signals.critical():
-            self.rd.write_leg(i, rec)
-        if how == "reject":
-            raise _Replan("rejected by the operator")
-
     def _write_prediction(self, i: int, planned) -> None:
         """The model's forecast over the leg (:meth:`LegStep.forecast_leg`) to prediction.nc."""
         from passt_mav.fields.field import FlowField
@@ -808,20 +725,14 @@ class MissionController(ResumeRecord):
             self.collector.leg = None
         self.vehicle.hold()
         cut = None if how != "cut" else overrun_record(expected, self.config.vehicle, self.vehicle.progress, items)
-        if how in ("skip", "replan") and self.leg_rec is not None:  # the operator's (passt_mav.vehicle.console)
-            self.leg_rec["operator"] = {"action": how, "at_item": int(self.vehicle.progress.current)}
-        if how == "budget" and self.leg_rec is not None:  # the safety budget (passt_mav.vehicle.budget)
-            self.leg_rec["budget_cut"] = {
-                "reason": self.session.budget.reason,
-                "at_item": int(self.vehicle.progress.current),
-            }
+        self._mark_cut(how)  # the operator's skip/replan, the budget's cut: in the leg record
         duration_s = time.perf_counter() - t_fly
         tb_end = self.link.vehicle_uptime_s()
         # the leg's last readings wait for the fix after them (<= the gap bound of vehicle time)
         self.collector.wait_placed(i, self.collector.track.max_gap_ms / 1000.0 / max(self.speedup, 1.0) + 0.5)
         self.writer.flush()
         if how == "replan":
-            raise _Replan()
+            raise Replan()
         return duration_s, tb_end, cut
 
     def _expected_vehicle_s(self, wm) -> float:

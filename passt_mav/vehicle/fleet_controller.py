@@ -156,7 +156,6 @@ class BoatController(MissionController):
                         ready = True
                     self.status = "flying"
                     self._leg(self.fleet.claim_leg(), None, None)
-                    self._end_if_budget_spent()
                 except (
                     Ended
                 ) as exc:  # the operator or the budget ended this boat's mission (HOLD/RTL set): others go on
