@@ -113,7 +113,7 @@ def serve_view(argv: list[str]) -> dict:
     try:
         line = p.stdout.readline()
         assert "http://127.0.0.1:" in line, line
-        url = next(w for w in line.split() if w.startswith("http://"))
+        url = next(w for w in line.split() if w.startswith("http://")).split("?token=")[0]  # (reading needs no token)
         end = time.monotonic() + 60
         while True:
             try:

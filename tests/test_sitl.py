@@ -126,16 +126,14 @@ def test_wp_radius_parameter_on_the_firmware(sitl):
         link.close()
 
 
-def test_one_leg_on_ardurover_sitl(tmp_path, sitl):
-    from passt_mav.errors import MavlinkError
+def still_mission(tmp_path, n: int = 6, planner: dict | None = None):
+    """(field, mission): an ``n`` x ``n`` grid of ~40 m cells around HOME with a still 0.1 m/s current, one leg
+    of ``planner`` (default greedy, 2 moves) at 2 m/s."""
     from passt_mav.fields import FlowField
-    from passt_mav.mavlink import Link, LinkConfig, Vehicle
     from passt_mav.mission.config import validate_mission
-    from passt_mav.runs.rundir import RunDir
-    from passt_mav.vehicle.controller import MissionController
 
-    n, d = 6, 0.0004  # ~40 m cells
-    grid = geo.RegionGrid(HOME[0] - d * 2.5, HOME[1] - d * 2.5, HOME[0] + d * 2.5, HOME[1] + d * 2.5, n, n)
+    d, h = 0.0004, (n - 1) / 2
+    grid = geo.RegionGrid(HOME[0] - d * h, HOME[1] - d * h, HOME[0] + d * h, HOME[1] + d * h, n, n)
     field = FlowField(
         np.zeros((3, 2, n, n), np.float32) + 0.1, grid, np.array([0.0, 60.0, 120.0]), time_origin="2020-01-01T00:00:00Z"
     )
@@ -147,13 +145,23 @@ def test_one_leg_on_ardurover_sitl(tmp_path, sitl):
             "region": grid.describe(),
             "field": {"source": str(fpath)},
             "model": "persistence",
-            "planner": {"name": "greedy", "path_length": 2},
+            "planner": planner or {"name": "greedy", "path_length": 2},
             "legs": 1,
             "vehicle": {"speed_mps": 2.0, "wp_radius_m": 3.0},
             "geofence_margin_m": 20.0,
         },
         source="sitl test",
     )
+    return field, cfg
+
+
+def test_one_leg_on_ardurover_sitl(tmp_path, sitl):
+    from passt_mav.errors import MavlinkError
+    from passt_mav.mavlink import Link, LinkConfig, Vehicle
+    from passt_mav.runs.rundir import RunDir
+    from passt_mav.vehicle.controller import MissionController
+
+    field, cfg = still_mission(tmp_path)
     link = Link(LinkConfig(sitl.connect, connect_timeout_s=60)).connect()
     try:
         rd = RunDir(tmp_path / "run").create()

@@ -233,22 +233,22 @@ def test_server_serves_page_state_stream_and_rasters_on_loopback(tmp_path):
     rd = make_live_run(tmp_path / "run")
     vp = start_view(rd.root, log_file=tmp_path / "view.log")
     try:
-        assert vp.url.startswith("http://127.0.0.1:") and "token" not in vp.url
+        assert vp.url.startswith("http://127.0.0.1:") and vp.url == f"{vp.base}?token={vp.token}"
         code, ctype, body = _get(vp.url)
         assert (
             code == 200
             and b"static/vendor/leaflet/leaflet.js" in body
             and b"http" not in body.lower().replace(b"http-equiv", b"")
         )  # nothing from outside
-        assert _get(vp.url + "static/vendor/leaflet/leaflet.js")[0] == 200
-        assert _get(vp.url + "static/vendor/leaflet/LICENSE")[0] == 200
-        code, ctype, body = _get(vp.url + "api/state")
+        assert _get(vp.base + "static/vendor/leaflet/leaflet.js")[0] == 200
+        assert _get(vp.base + "static/vendor/leaflet/LICENSE")[0] == 200
+        code, ctype, body = _get(vp.base + "api/state")
         assert code == 200 and json.loads(body)["boats"][0]["status"]["mode"] == "AUTO"
-        code, ctype, body = _get(vp.url + "api/raster/speed.png?leg=0")
+        code, ctype, body = _get(vp.base + "api/raster/speed.png?leg=0")
         assert code == 200 and ctype == "image/png"
-        assert _get(vp.url + "api/raster/speed.png?leg=x")[0] == 400
+        assert _get(vp.base + "api/raster/speed.png?leg=x")[0] == 400
         # server-sent events: the first snapshot at once, a new one when a file changes
-        with urllib.request.urlopen(vp.url + "api/stream", timeout=30) as r:
+        with urllib.request.urlopen(vp.base + "api/stream", timeout=30) as r:
             assert r.headers["Content-Type"].startswith("text/event-stream")
             first = json.loads(r.readline().decode().removeprefix("data: "))
             RecordWriter(rd.root).event("reboot", "leg 1: vehicle rebooted")
@@ -334,7 +334,8 @@ def test_run_view_option_serves_the_run_dir(tmp_path):
     rd = make_live_run(tmp_path / "run")
     vp = _live_view(args, rd)
     try:
-        assert _get(vp.url + "api/state")[0] == 200
+        code, _, body = _get(vp.base + "api/state")
+        assert code == 200 and json.loads(body)["status"] == "running"
     finally:
         vp.stop()
 
@@ -361,7 +362,7 @@ def test_view_command_reopens_a_finished_run(tmp_path):
     try:
         line = p.stdout.readline()
         assert "http://127.0.0.1:" in line, line
-        url = next(w for w in line.split() if w.startswith("http://"))
+        url = next(w for w in line.split() if w.startswith("http://")).split("?token=")[0]
         end = time.monotonic() + 60
         while time.monotonic() < end:
             code, _, body = _get(url + "api/state", timeout=20.0)  # the first snapshot imports xarray

@@ -144,6 +144,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument("--no-view", action="store_true", help="do not serve the live view")
     p.add_argument(
+        "--approve",
+        action="store_true",
+        help="approve each leg on the live page before its upload (mission key approve; docs/console.md)",
+    )
+    p.add_argument(
         "--view-host",
         default="127.0.0.1",
         metavar="HOST",
@@ -451,6 +456,8 @@ def _demo_mission(args: argparse.Namespace):
         over["planner.path_length"] = args.moves
     if args.model:
         over["model"] = args.model
+    if getattr(args, "approve", False):
+        over["approve.enabled"] = True
     data = mission_overrides(base, over)
     config = validate_mission(
         data, source="demo mission", base_dir=Path(origin).parent if origin.endswith(".yaml") else "."

@@ -18,7 +18,7 @@ EXAMPLES = """examples:
     passt-mav run missions/cylinder.yaml --legs 1 --set planner.path_length=8 --set gp.background=0
     passt-mav run missions/rtofs.yaml --connect /dev/ttyUSB0,57600 --link-loss-window 900
 
-exit codes: 0 complete; 1 paused or aborted (summary.json says why; continue with --resume);
+exit codes: 0 complete; 1 paused, ended from the live page, or aborted (summary.json says why; continue with --resume);
 2 bad input or no vehicle (nothing flown); 128 + N stopped by signal N (SIGINT 130, SIGTERM 143,
 SIGHUP 129): the vehicle to HOLD (vehicle.on_signal), the store flushed, status "stopped".
 
@@ -109,6 +109,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         metavar="KEY=VALUE",
         help="override a mission key (dotted, YAML value), e.g. --set planner.path_length=8; repeatable; "
         "the run directory keeps the mission as flown",
+    )
+    p.add_argument(
+        "--approve",
+        action="store_true",
+        help="approve each leg before its upload (mission key approve.enabled): on the live page (--view), or "
+        "type a (approve) or r (reject) + Enter on this console; approve.timeout_s / on_timeout decide unanswered",
     )
     p.add_argument("--no-report", action="store_true", help="do not write report/report.html at the end")
     p.add_argument("--quiet", action="store_true", help="no per-leg status lines")
@@ -395,16 +401,32 @@ def _user(msg):
     return UserError(msg)
 
 
+def _check_view_port(args) -> None:
+    """``--view PORT`` (not optional) on a port already taken: one line, before anything is written or connected."""
+    if args.view is None or getattr(args, "view_optional", False):
+        return
+    from passt_mav.view import check_port
+
+    try:
+        check_port(args.view_host, args.view)
+    except OSError as exc:
+        raise _user(
+            f"--view: {exc}; choose another port (or --view {args.view},optional to fly without the view)"
+        ) from None
+
+
 def _live_view(args, rd):
-    """``--view [PORT]``: the live view in a subprocess (passt_mav.view), None without it."""
+    """``--view [PORT][,optional]``: the live view in a subprocess (passt_mav.view), None without it (or, when
+    optional, when it cannot start)."""
     if args.view is None:
         return None
     from passt_mav.commands.view import start_live_view
 
-    return start_live_view(rd, args.view, args.view_host)
+    return start_live_view(rd, args.view, args.view_host, required=not getattr(args, "view_optional", False))
 
 
 def run(args: argparse.Namespace) -> int:
+    import sys
     from pathlib import Path
 
     from passt_mav.mission.config import load_mission
@@ -425,6 +447,9 @@ def run(args: argparse.Namespace) -> int:
             raise _user(f"--link-loss-window must be > 0 seconds, got {args.link_loss_window:g}")
         vehicle = config.vehicle.model_copy(update={"link_loss_window_s": float(args.link_loss_window)})
         config = config.model_copy(update={"vehicle": vehicle})
+    _check_view_port(args)
+    if args.approve:
+        config = config.model_copy(update={"approve": config.approve.model_copy(update={"enabled": True})})
     if args.resume:
         if not args.out:
             raise _user("--resume needs --out RUN_DIR (the run to continue)")
@@ -443,7 +468,17 @@ def run(args: argparse.Namespace) -> int:
     from passt_mav.errors import UserError
     from passt_mav.vehicle.signals import Stopped, StopSignals, exit_code
 
-    view = _live_view(args, rd)
+    try:
+        view = _live_view(args, rd)
+    except UserError:
+        if not args.resume:
+            (rd.root / "view.log").unlink(missing_ok=True)
+            _remove_if_empty(rd.root)
+        raise
+    if config.approve.enabled and sys.stdin is not None and sys.stdin.isatty():
+        from passt_mav.runs.commands import start_console_keys
+
+        start_console_keys(rd.root, sys.stdin)  # a / r + Enter: approve or reject the leg awaiting approval
     stop = StopSignals(echo=lambda s: print(s, flush=True))
     try:
         with stop:

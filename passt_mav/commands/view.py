@@ -31,18 +31,39 @@ def port(text: str) -> int:
     return n
 
 
+class _ViewAction(argparse.Action):
+    """``--view [PORT][,optional]``: sets ``view`` (the port, 0 = a free one) and ``view_optional`` (a view that
+    cannot start does not stop the run)."""
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        parts = [x.strip() for x in (values or "").split(",") if x.strip()]
+        optional = "optional" in parts
+        nums = [x for x in parts if x != "optional"]
+        if len(nums) > 1 or parts.count("optional") > 1:
+            parser.error(f"--view takes PORT, optional or PORT,optional; got {values!r}")
+        try:
+            n = port(nums[0]) if nums else 0
+        except argparse.ArgumentTypeError as exc:
+            parser.error(f"--view: {exc}")
+        setattr(namespace, self.dest, n)
+        namespace.view_optional = optional
+
+
 def add_view_options(p: argparse.ArgumentParser, *, port_flag: str = "--view") -> None:
-    """``--view [PORT]`` and ``--view-host HOST`` (used by run and demo too)."""
+    """``--view [PORT][,optional]`` and ``--view-host HOST`` (used by run; demo has its own --view)."""
     if port_flag == "--view":
         p.add_argument(
             "--view",
             nargs="?",
-            type=port,
-            const=0,
+            action=_ViewAction,
+            const="",
             default=None,
             metavar="PORT",
-            help="serve the live view on 127.0.0.1:PORT (no PORT: a free one); the address is printed",
+            help="serve the live view (the operator's console) on 127.0.0.1:PORT (no PORT: a free one); the "
+            "address, with the run's token, is printed. A view that cannot start (the port is busy) stops the "
+            "run before it connects (exit 2) unless 'optional' is given: --view optional, --view 8765,optional",
         )
+        p.set_defaults(view_optional=False)
     p.add_argument(
         "--view-host",
         default="127.0.0.1",
@@ -57,14 +78,21 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     add_view_options(p, port_flag="--port")
 
 
-def start_live_view(run_dir, port: int, host: str, echo=print):
+def start_live_view(run_dir, port: int, host: str, echo=print, *, required: bool = False):
     """The view of ``run_dir`` in a subprocess (:func:`passt_mav.view.start_view`), its address printed;
-    None (said in one line) when it cannot start: the mission goes on without it."""
+    None (said in one line) when it cannot start: the mission goes on without it. ``required``: raise
+    :class:`~passt_mav.errors.UserError` instead (``run --view`` without ``optional``)."""
     from passt_mav.view import start_view
 
     try:
         vp = start_view(run_dir.root, port=port, host=host, log_file=run_dir.root / "view.log")
     except OSError as exc:
+        if required:
+            from passt_mav.errors import UserError
+
+            raise UserError(
+                f"the live view did not start ({exc}); nothing flown (--view {port or ''},optional goes on without it)"
+            ) from None
         echo(f"live view: not started ({exc}); the mission goes on without it")
         return None
     echo(f"live view: {vp.url}  (a local page; open it in a browser)")
@@ -83,7 +111,13 @@ def run(args: argparse.Namespace) -> int:
         raise UserError(f"{args.run_dir} is not a run directory (no summary.json, samples, legs or events)")
     from passt_mav.view.server import serve
 
-    token = new_token(args.view_host)
+    token = new_token()
+    from passt_mav.view import check_port
+
+    try:
+        check_port(args.view_host, args.port)
+    except OSError as exc:
+        raise UserError(f"--port: {exc}; choose another port") from None
 
     def ready(port: int) -> None:
         print(f"live view of {rd.root}: {view_address(args.view_host, port, token)}  (Ctrl-C stops it)", flush=True)

@@ -17,6 +17,8 @@ Example (``missions/north_atlantic.yaml``)::
     geofence_margin_m: 500
     gp: {prior: forecast, hyper: every_leg, background: 200, prior_blend: select, forgetting: 0.8, prior_share: 0.05, options: {}}
     seeds: {planner: 0, gp: 0, sensor: 0, field: 0}
+    budget: {max_time_s: 14400, max_distance_m: 30000, battery_reserve_pct: 30, on_spent: rtl}   # unset: no limit
+    approve: {enabled: false, timeout_s: 300, on_timeout: hold}   # run --approve: the operator approves each leg
 
 ``region`` is geographic (south/west/north/east/rows/cols: the lat/lon of the
 corner cell *centres*, :class:`geo.RegionGrid`) or metric (x0/x1/y0/y1/rows/cols
@@ -340,6 +342,39 @@ class VehicleConfig(_Strict):
     """Our MAVLink component id on this link (unset: 195, MAV_COMP_ID_PATHPLANNER)."""
 
 
+class BudgetConfig(_Strict):
+    """The mission's safety budget (docs/console.md): each limit unset is no limit. Checked while a leg flies
+    (:mod:`passt_mav.vehicle.budget`): past ``max_time_s`` (vehicle seconds in AUTO since this controller session's
+    first leg started) or ``max_distance_m`` (metres the boat moved meanwhile, from its GPS fixes) the leg is cut
+    there (its samples absorbed); at ``battery_reserve_pct`` (SYS_STATUS / BATTERY_STATUS remaining %) as well.
+    Then the boat goes to ``on_spent`` (RTL or HOLD) and the run ends cleanly (status ``ended``); ``--resume``
+    continues it with the budget counted afresh."""
+
+    max_time_s: float | None = Field(default=None, gt=0)
+    """Vehicle seconds of legs flown per controller session; unset: no limit."""
+    max_distance_m: float | None = Field(default=None, gt=0)
+    """Metres moved during legs per controller session (from GLOBAL_POSITION_INT); unset: no limit."""
+    battery_reserve_pct: float | None = Field(default=None, gt=0, lt=100)
+    """Battery remaining (%, SYS_STATUS / BATTERY_STATUS) at which the boat returns; unset: not watched."""
+    on_spent: Literal["rtl", "hold"] = "rtl"
+    """Where the boat goes once a limit is reached: `rtl` (return to launch) or `hold`."""
+
+
+class ApproveConfig(_Strict):
+    """Approve each leg before it is uploaded (``run --approve`` sets ``enabled``; docs/console.md): the live page
+    shows the planned leg (path, waypoints, reward map, distance, expected duration) and the operator approves
+    it, or rejects it (it is planned again from the boat's position and the time then); the console takes
+    ``a`` / ``r`` + Enter when no browser is open. Past ``timeout_s`` (wall seconds) ``on_timeout`` decides:
+    ``hold`` stops the run in HOLD (status ``paused``, ``--resume`` plans the leg again), ``approve`` flies it."""
+
+    enabled: bool = False
+    """Wait for the operator's approval before each leg's upload."""
+    timeout_s: float = Field(default=300.0, gt=0)
+    """Wall seconds to wait for the operator's answer."""
+    on_timeout: Literal["hold", "approve"] = "hold"
+    """What an unanswered leg does: `hold` (stop in HOLD, status paused) or `approve` (fly it)."""
+
+
 class SensorConfig(_Strict):
     """NAMED_VALUE_FLOAT names of the current sensor's east/north components, and its noise std (m/s)."""
 
@@ -480,6 +515,10 @@ class MissionConfig(_Strict):
     """The GP reconstruction."""
     seeds: SeedConfig = Field(default_factory=SeedConfig)
     """Seeds of everything random (recorded with the run)."""
+    budget: BudgetConfig = Field(default_factory=BudgetConfig)
+    """The safety budget: time, distance and battery reserve (unset: no limit)."""
+    approve: ApproveConfig = Field(default_factory=ApproveConfig)
+    """The operator approves each leg before its upload (off unless enabled, or `run --approve`)."""
 
     @field_validator("field", mode="before")
     @classmethod

@@ -26,7 +26,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-__all__ = ["RecordWriter", "KINDS", "EVENTS", "read_events", "read_statuses"]
+__all__ = ["RecordWriter", "KINDS", "EVENTS", "read_events", "read_jsonl", "read_statuses"]
 
 log = logging.getLogger(__name__)
 
@@ -52,6 +52,12 @@ KINDS = {
     "warning": "warn",
     "guard": "warn",
     "stopped": "alert",
+    "command": "info",
+    "budget": "alert",
+    "fence_breach": "alert",
+    "fence_clear": "ok",
+    "vehicle_alert": "alert",
+    "approval": "warn",
 }
 
 
@@ -90,8 +96,11 @@ class RecordWriter:
 
         self._guard("live/meta.json", lambda: write_json_atomic(self.root / LIVE / "meta.json", info))
 
-    def event(self, kind: str, text: str, *, level: str | None = None, boat: int | None = None) -> None:
-        """One line of ``events.jsonl`` (appended and flushed under a lock shared by the fleet)."""
+    def event(
+        self, kind: str, text: str, *, level: str | None = None, boat: int | None = None, command_id: str | None = None
+    ) -> None:
+        """One line of ``events.jsonl`` (appended and flushed under a lock shared by the fleet); ``command_id``:
+        the operator's command this event answers (:mod:`passt_mav.runs.commands`)."""
 
         def write():
             try:
@@ -106,6 +115,8 @@ class RecordWriter:
                 "level": level or KINDS.get(kind, "info"),
                 "text": text,
             }
+            if command_id is not None:
+                rec["command_id"] = command_id
             line = json.dumps(rec, default=float) + "\n"
             with self._shared["lock"]:
                 self.root.mkdir(parents=True, exist_ok=True)
@@ -157,9 +168,10 @@ class RecordWriter:
 
 
 # -- readers (the view) ----------------------------------------------------------------------------
-def read_events(root: str | Path, offset: int = 0) -> tuple[list[dict], int]:
-    """(events after byte ``offset`` of ``events.jsonl``, the new offset); a half-written last line waits."""
-    path = Path(root) / EVENTS
+def read_jsonl(path: str | Path, offset: int = 0) -> tuple[list, int]:
+    """(the JSON values of the lines after byte ``offset`` of ``path``, the new offset); a half-written last
+    line waits for its newline, a line that is not JSON is skipped (logged), a missing file is empty."""
+    path = Path(path)
     try:
         with open(path, "rb") as f:
             f.seek(offset)
@@ -174,6 +186,11 @@ def read_events(root: str | Path, offset: int = 0) -> tuple[list[dict], int]:
         except ValueError:
             log.warning("live view: skipped a bad line of %s", path)
     return out, offset + end
+
+
+def read_events(root: str | Path, offset: int = 0) -> tuple[list[dict], int]:
+    """(events after byte ``offset`` of ``events.jsonl``, the new offset); a half-written last line waits."""
+    return read_jsonl(Path(root) / EVENTS, offset)
 
 
 def read_statuses(root: str | Path) -> dict[int, dict]:

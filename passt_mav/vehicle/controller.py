@@ -119,7 +119,9 @@ from passt_mav.loop.legstep import (  # noqa: F401 - the between-leg step's buil
 from passt_mav.runs.legs import clock_statustext
 from passt_mav.runs.live import RecordWriter
 from passt_mav.vehicle.clock import RunClock
+from passt_mav.vehicle.console import Ended
 from passt_mav.vehicle.live_record import live_meta, live_status
+from passt_mav.vehicle.operator import OperatorLegs, Replan
 from passt_mav.vehicle.resume import ResumeRecord
 from passt_mav.vehicle.session import Deadline as _Deadline  # noqa: F401 - tests import it from here
 from passt_mav.vehicle.session import Journal, Paused, VehicleSession, expected_vehicle_s, utc_now
@@ -302,7 +304,7 @@ def preflight(config, field, predictor) -> None:
         raise ModelError("the mission's model forecasts NaN/inf from the field's state at t0; check the model")
 
 
-class MissionController(ResumeRecord):
+class MissionController(ResumeRecord, OperatorLegs):
     """Runs a mission config on a connected vehicle, writing a run directory.
 
     Args:
@@ -497,15 +499,8 @@ class MissionController(ResumeRecord):
             if not leave:  # HOLD whatever the mode seen last: a stop during the swap may precede AUTO's heartbeat
                 self.session.hold_if_auto(always=True)
             place_held(self.collector, None if self.link.lost else self.live_leg[0], self.speedup)
-        except Paused as exc:
-            self.status = "paused"
-            self._note("stopped", str(exc))
-            self._say(f"stopped: {exc}")
-            close_leg(self.collector)
-            try:  # the pilot's RC still overrides HOLD; a vehicle left in an unknown mode would not stop
-                self.vehicle.hold()
-            except MavlinkError as e2:
-                log.warning("could not switch to HOLD: %s", e2)
+        except (Ended, Paused) as exc:  # a clean stop short of the end (passt_mav.vehicle.operator)
+            self._stop_short(exc)
         except BaseException as exc:
             self.status = "aborted"
             if isinstance(exc, LinkTimeout) and "signing" not in str(exc) and "signing" in self.link.signing_hint():
@@ -539,6 +534,7 @@ class MissionController(ResumeRecord):
         )
         self.collector.attach(self.link)
         self.run_clock.collector = self.collector
+        self._attach_operator()  # commands, budget, the vehicle's alarms (passt_mav.vehicle.operator)
         self.record.start_status(lambda: live_status(self))
 
     def _prepare_vehicle(self) -> None:
@@ -548,6 +544,7 @@ class MissionController(ResumeRecord):
         if self.config.vehicle.wp_radius_m > 0:
             # a Rover's acceptance radius is WP_RADIUS (it drops a waypoint's param2); put back at the end
             self.vehicle.set_wp_radius(self.config.vehicle.wp_radius_m)
+        self.session.budget.request_battery()
 
     def _detach(self) -> None:
         """Put back the parameters we changed; stop collecting."""
@@ -560,6 +557,7 @@ class MissionController(ResumeRecord):
             if restored:
                 self._say("restored " + ", ".join(f"{k} = {v:g}" for k, v in restored.items()))
         self.collector.detach()
+        self._detach_operator()
         self.record.stop_status(lambda: live_status(self))
 
     def _safe_hold(self) -> None:
@@ -568,11 +566,13 @@ class MissionController(ResumeRecord):
         self.session.hold_if_auto()
 
     # -- one leg: plan -> check -> upload (transactional) -> fly -> absorb ---------------------------
-    def _leg(self, i: int, state: np.ndarray, t_state: float) -> tuple[np.ndarray, float]:
+    def _leg_once(self, i: int, state: np.ndarray, t_state: float) -> tuple[np.ndarray, float]:
         planned = self._plan(i, state, t_state)
         with self.lock, self.signals.critical():
             wm = self._checked_mission(i, planned)
             rec = self._write_plan(i, planned, wm)
+        if self.config.approve.enabled:
+            self._approve(i, rec, wm)
         link0, store0 = self.session.link_snapshot(), self.store.count(i)
         items = wm.items()
         upload_tries, upload_s, t_fly, tb_fly = self._swap(i, items, time.perf_counter())
@@ -725,11 +725,14 @@ class MissionController(ResumeRecord):
             self.collector.leg = None
         self.vehicle.hold()
         cut = None if how != "cut" else overrun_record(expected, self.config.vehicle, self.vehicle.progress, items)
+        self._mark_cut(how)  # the operator's skip/replan, the budget's cut: in the leg record
         duration_s = time.perf_counter() - t_fly
         tb_end = self.link.vehicle_uptime_s()
         # the leg's last readings wait for the fix after them (<= the gap bound of vehicle time)
         self.collector.wait_placed(i, self.collector.track.max_gap_ms / 1000.0 / max(self.speedup, 1.0) + 0.5)
         self.writer.flush()
+        if how == "replan":
+            raise Replan()
         return duration_s, tb_end, cut
 
     def _expected_vehicle_s(self, wm) -> float:
@@ -902,6 +905,12 @@ def check_start_cell(ctl, i: int, start: tuple[int, int], latlon: tuple[float, f
     ctl._note("warning", text)
 
 
+def _budget_record(ctl) -> dict | None:
+    """The safety budget's figures (:meth:`SafetyBudget.record`), None when no limit is set."""
+    b = getattr(getattr(ctl, "session", None), "budget", None)
+    return b.record() if b is not None and b.watched else None
+
+
 def run_summary(ctl) -> dict:
     """summary.json of controller ``ctl`` now: the mission, its settings, every leg record, RMSE over time
     (field units) where the truth is known, the clock, the events (keys: :mod:`passt_mav.runs.rundir`)."""
@@ -935,6 +944,7 @@ def run_summary(ctl) -> dict:
         "stopped_by": getattr(ctl, "stopped_by", None),
         "sessions": list(getattr(ctl, "sessions", None) or []),
         "outages": list(getattr(getattr(ctl, "session", None), "outages", None) or []),
+        "budget": _budget_record(ctl),
         "link_vehicle_bytes_per_s": [(x.get("link") or {}).get("vehicle_bytes_per_s") for x in legs],
         "rmse": rm if ctl.truth_known else None,
         "rmse_note": "RMSE over water cells vs the mission's field at the state time; 'model' = the predictor "

@@ -46,6 +46,7 @@ from collections.abc import Callable
 from passt_mav.errors import MavlinkError, PlannerError, ReconstructionError
 from passt_mav.loop.legstep import FleetStep, LegStep, build_loop
 from passt_mav.runs.live import RecordWriter
+from passt_mav.vehicle.console import Ended
 from passt_mav.vehicle.controller import BoatParts, MissionController, StoreWriter
 from passt_mav.vehicle.live_record import live_meta
 from passt_mav.vehicle.session import LinkWindowOver, Paused, utc_now
@@ -131,6 +132,9 @@ class BoatController(MissionController):
         self.fleet, self.boat = fleet, int(boat)
         self.store = fleet.store
         self.status = "waiting"
+        self.session.replan_refused = (
+            "a fleet's boat does not re-plan its leg in place (leg numbers are the fleet's); use skip"
+        )
 
     @property
     def legs_done(self) -> int:
@@ -152,6 +156,12 @@ class BoatController(MissionController):
                         ready = True
                     self.status = "flying"
                     self._leg(self.fleet.claim_leg(), None, None)
+                except (
+                    Ended
+                ) as exc:  # the operator or the budget ended this boat's mission (HOLD/RTL set): others go on
+                    self.status = "ended"
+                    self.fleet.event(f"boat {self.boat}: ended: {exc}", "stopped", self.boat)
+                    return
                 except (MavlinkError, PlannerError, Paused) as exc:
                     if isinstance(exc, Paused) and not isinstance(exc, LinkWindowOver):
                         self._stop("paused", exc)
@@ -330,6 +340,8 @@ class FleetController:
         finally:
             done = [b.status == "complete" for b in self.boats]
             self.status = "complete" if all(done) else ("partial" if any(done) else "aborted")
+            if all(b.status == "ended" for b in self.boats):  # the operator ended every boat's mission
+                self.status = "ended"
             self.writer.close()
 
             self.write_summary()

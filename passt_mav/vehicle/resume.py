@@ -72,8 +72,9 @@ class ResumeRecord:
         self.events.append(f"resumed after leg {len(done) - 1} at {utc_now()}")
         return np.array(fld.data[0], dtype=np.float32), float(last["t_state"]), len(done)
 
-    def _archive_attempt(self, i: int) -> None:
-        """Leg ``i`` was in flight when the controller stopped: keep that attempt's record. Its files move to
+    def _archive_attempt(self, i: int, status: str = "interrupted") -> None:
+        """Leg ``i`` was in flight when the controller stopped (or the operator asked to re-plan it: ``status``):
+        keep that attempt's record. Its files move to
         ``legs/NNN/attempt_K/`` (K = 1, 2, ...) and a summary of it (path, start cell, clock, samples stored)
         goes to :attr:`_attempts`, which the re-planned leg's record lists under ``attempts``. Its samples stay
         in the store under leg ``i``: measurements like any other, the re-flown leg absorbs them too."""
@@ -94,10 +95,10 @@ class ResumeRecord:
             *old.get("attempts", []),
             {
                 "attempt": k,
-                "status": "interrupted",
+                "status": status,
                 "dir": f"attempt_{k}",
                 "n_samples_stored": self.store.count(i),
                 **{key: old[key] for key in keep if key in old},
             },
         ]
-        self._say(f"leg {i + 1}: its interrupted attempt {k} kept in {dest} ({self.store.count(i)} samples stored)")
+        self._say(f"leg {i + 1}: its attempt {k} ({status}) kept in {dest} ({self.store.count(i)} samples stored)")

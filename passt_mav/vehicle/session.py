@@ -30,6 +30,8 @@ from passt_mav.errors import CommandRejected, LinkTimeout, MavlinkError, Mission
 from passt_mav.mavlink.link import mavlink2 as M
 from passt_mav.mavlink.mission_client import MissionWatch, differences, rover_stored
 from passt_mav.mavlink.vehicle import ROVER_MODE_NAMES, ROVER_MODES
+from passt_mav.vehicle.console import OperatorCommands
+from passt_mav.vehicle.link_figures import LinkFigures
 from passt_mav.vehicle.outages import LinkOutages
 
 __all__ = ["VehicleSession", "Journal", "Deadline", "Paused", "LinkWindowOver", "Rebooted", "utc_now"]
@@ -129,7 +131,7 @@ def replaced_what(sent, got) -> str:
     return f"{len(bad)} of our {len(sent) - 1} items differ, the first at seq {bad[0]}" if bad else "home differs"
 
 
-class VehicleSession(LinkOutages):
+class VehicleSession(LinkOutages, OperatorCommands, LinkFigures):
     """One boat's vehicle side (module docstring): swap, fly, and the faults on the way.
 
     Args:
@@ -189,6 +191,8 @@ class VehicleSession(LinkOutages):
         self.verify_pending = False
         self._mission_watch: MissionWatch | None = None
         self._mission_mark: tuple[int, int] = (0, 0)
+        #: the mission's safety budget (:class:`~passt_mav.vehicle.budget.SafetyBudget`), None = not watched
+        self.budget = None
         self._replaced: dict[int, int] = {}  # leg -> replacements by another station seen
         self._verify_timeouts = 0  # read-backs in AUTO timed out in a row
 
@@ -432,13 +436,29 @@ class VehicleSession(LinkOutages):
         the vehicle out of AUTO. Past ``overrun_factor`` x ``expected_s`` + 30 s of vehicle time the overrun
         is reported (:meth:`overrun`); returns ``"cut"`` when ``on_overrun`` is ``cut`` (the caller holds the
         vehicle and ends the leg), else None when the mission completed. A vehicle whose clock stops (a
-        frozen simulator) still ends on the wall backstop (:class:`Deadline`): LinkTimeout."""
+        frozen simulator) still ends on the wall backstop (:class:`Deadline`): LinkTimeout. The operator's
+        commands are carried out between turns (:meth:`console_turn`): ``"skip"`` or ``"replan"`` end the leg; so
+        does the safety budget once spent (:attr:`budget`): ``"budget"``."""
+        if self.budget is not None:
+            self.budget.start_leg()
+        try:
+            return self._fly_turns(i, items, n_items, expected_s)
+        finally:
+            if self.budget is not None:
+                self.budget.end_leg()
+
+    def _fly_turns(self, i: int, items, n_items: int, expected_s: float) -> str | None:
         planned_s = self.overrun_factor * expected_s + 30.0
         deadline = Deadline(self.link, planned_s, self.speedup)
         p = self.vehicle.progress
         reported = False
         while True:
             self._verify_if_pending(i, items)
+            how = self.console_turn(i, n_items)  # the operator's commands, the budget (passt_mav.vehicle.console)
+            if isinstance(how, str):
+                return how
+            if how:
+                deadline.extend(how)
             if self._wait_complete(n_items):
                 return None
             if deadline.wall_passed():
@@ -605,29 +625,6 @@ class VehicleSession(LinkOutages):
                 self.reconnect_within_window(i, time.monotonic() - self._silent_s(), "pause")
             self.link.idle(0.05)
         raise Paused(f"leg {i}: the vehicle stayed in {name} for {self.pause_timeout_s:.0f} s; stopping in HOLD")
-
-    # -- link figures ----------------------------------------------------------------------------------
-    def link_snapshot(self) -> tuple:
-        """Counters to measure a leg's link figures from (:meth:`link_record`)."""
-        st = self.link.stats
-        return st.received, st.drops, st.vehicle_bytes, self.link.vehicle_uptime_s()
-
-    def link_record(self, before: tuple) -> dict:
-        """Link figures since ``before``; ``vehicle_bytes_per_s``: bytes the vehicle sent us per second of its
-        own clock (the telemetry radio's budget: baud / 10 bytes/s each way), None without a vehicle clock."""
-        st = self.link.stats
-        rec, drops = st.received - before[0], st.drops - before[1]
-        nbytes, t1 = st.vehicle_bytes - before[2], self.link.vehicle_uptime_s()
-        rtt = self.link.rtt
-        bps = nbytes / (t1 - before[3]) if t1 is not None and before[3] is not None and t1 - before[3] > 1.0 else None
-        return {
-            "rtt_ms": None if rtt is None else round(rtt * 1000.0, 3),
-            "loss": (drops / (rec + drops)) if rec + drops else 0.0,
-            "messages": int(rec),
-            "drops": int(drops),
-            "vehicle_bytes": int(nbytes),
-            "vehicle_bytes_per_s": None if bps is None else round(bps, 1),
-        }
 
 
 def expected_vehicle_s(grid, wm, speed_mps: float) -> float:

@@ -7,7 +7,8 @@ stops, nor steals time from, the mission. ``passt-mav view RUN_DIR`` serves a fi
 Built on Starlette + uvicorn (maintained ASGI library and server; no hand-written HTTP) with
 server-sent events, and Leaflet 1.9.4 (npm, BSD-2-Clause) vendored under ``static/vendor/leaflet``
 with no tile layer: the page loads nothing from outside 127.0.0.1 (or the ``--view-host``).
-Binding to anything but loopback needs a token, made at start and printed in the address.
+Every server has a token, made at start and printed in the address: the page's commands need it, and
+binding to anything but loopback needs it for reading too (:mod:`passt_mav.view.gate`, docs/console.md).
 """
 
 from __future__ import annotations
@@ -21,24 +22,23 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-__all__ = ["ViewProcess", "start_view", "view_address", "new_token"]
+__all__ = ["ViewProcess", "start_view", "view_address", "new_token", "check_port"]
 
 TOKEN_ENV = "PASST_VIEW_TOKEN"
 
 
-def new_token(host: str) -> str | None:
-    """A random token for a non-loopback host (None for loopback: nothing else can reach it)."""
-    from passt_mav.view.server import is_loopback
-
-    return None if is_loopback(host) else secrets.token_urlsafe(18)
+def new_token() -> str:
+    """A random token for one server (144 bits, URL-safe)."""
+    return secrets.token_urlsafe(18)
 
 
 def view_address(host: str, port: int, token: str | None) -> str:
+    """The page's address on ``host``:``port`` with the token (the one to open: it may command)."""
     shown = f"[{host}]" if ":" in host else host
     return f"http://{shown}:{port}/" + (f"?token={token}" if token else "")
 
 
-def _free_port(host: str, port: int = 0) -> int:
+def check_port(host: str, port: int = 0) -> int:
     """``port`` if it is free on ``host`` (0: any free one); OSError naming it when it is taken."""
     with socket.socket(socket.AF_INET6 if ":" in host else socket.AF_INET) as s:
         try:
@@ -55,6 +55,12 @@ class ViewProcess:
     proc: subprocess.Popen
     url: str
     port: int
+    token: str | None = None
+
+    @property
+    def base(self) -> str:
+        """The server's address without the token (``http://HOST:PORT/``)."""
+        return self.url.split("?", 1)[0]
 
     def stop(self, grace_s: float = 0.0) -> None:
         """Let the page get the last changes for ``grace_s``, then stop the server."""
@@ -81,11 +87,10 @@ def start_view(
 
     Raises ``OSError`` when it does not listen within ``wait_s`` (the mission goes on without it).
     """
-    token = new_token(host)
-    port = _free_port(host, int(port))
+    token = new_token()
+    port = check_port(host, int(port))
     env = {k: v for k, v in os.environ.items() if k != TOKEN_ENV}
-    if token:
-        env[TOKEN_ENV] = token  # not on the command line, where ps shows it
+    env[TOKEN_ENV] = token  # not on the command line, where ps shows it
     out = open(log_file, "ab") if log_file else subprocess.DEVNULL  # noqa: SIM115 - handed to the server process
     cmd = [sys.executable, "-m", "passt_mav.view", str(root), "--host", host, "--port", str(port), "--exit-with-parent"]
     proc = subprocess.Popen(cmd, stdout=out, stderr=subprocess.STDOUT, env=env)
@@ -97,7 +102,7 @@ def start_view(
         with socket.socket(socket.AF_INET6 if ":" in probe else socket.AF_INET) as s:
             s.settimeout(0.3)
             if s.connect_ex((probe, port)) == 0:
-                return ViewProcess(proc, view_address(host, port, token), port)
+                return ViewProcess(proc, view_address(host, port, token), port, token)
         time.sleep(0.1)
     proc.terminate()
     raise OSError(f"the live view did not listen on {host}:{port} within {wait_s:.0f} s")

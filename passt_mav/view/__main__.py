@@ -20,10 +20,10 @@ def main(argv: list[str] | None = None) -> int:
     a = p.parse_args(argv)
     if a.exit_with_parent:
         _watch_parent(os.getppid())
-    from passt_mav.view import TOKEN_ENV
+    from passt_mav.view import TOKEN_ENV, new_token
     from passt_mav.view.server import serve
 
-    serve(a.root, host=a.host, port=a.port, token=os.environ.get(TOKEN_ENV) or None)
+    serve(a.root, host=a.host, port=a.port, token=os.environ.get(TOKEN_ENV) or new_token())
     return 0
 
 

@@ -1,65 +1,79 @@
 """The live view's web server: Starlette (ASGI) under uvicorn, pushing snapshots by server-sent events.
 
-Routes: ``/`` the page; ``/static/...`` its files (Leaflet vendored, no CDN); ``/api/state`` one
-snapshot (JSON); ``/api/stream`` server-sent events, one ``data:`` line with a snapshot whenever a
-file of the run changes (polled every :data:`POLL_S`); ``/api/raster/{what}.png?leg=N`` the
-rasters (:meth:`RunState.raster`). With a token (any host but loopback) every request must carry
-it: ``?token=...`` once (the page's address), then the cookie set by that answer.
+Routes (described for clients in :mod:`passt_mav.view.openapi`, served at ``/api/openapi.json``): ``/`` the
+page; ``/static/...`` its files (Leaflet vendored, no CDN); ``/api/state`` one snapshot (JSON);
+``/api/stream`` server-sent events, one ``data:`` line with a snapshot whenever a file of the run changes
+(polled every :data:`POLL_S`); ``/api/raster/{what}.png?leg=N`` the rasters (:meth:`RunState.raster`);
+``POST /api/command`` the operator's command to the controller, appended to the run's command channel
+(:mod:`passt_mav.runs.commands`). Every request passes :class:`~passt_mav.view.gate.Gate` first (Host, Origin,
+token, rate; docs/console.md). A bad parameter is a 4xx with one line naming it, never a 500.
 """
 
 from __future__ import annotations
 
 import asyncio
 import json
-import secrets
 from pathlib import Path
 
+from passt_mav.view.gate import Addresses, Gate, RateLimit, is_loopback
 from passt_mav.view.state import RunState, signature
 
-__all__ = ["make_app", "serve", "POLL_S"]
+__all__ = ["make_app", "serve", "POLL_S", "MAX_BODY", "is_loopback"]
 
 STATIC = Path(__file__).resolve().parent / "static"
 POLL_S = 0.4
-COOKIE = "passt_view_token"
+#: bytes a command's body may have
+MAX_BODY = 4096
+#: the largest leg index a raster request may name (a run has far fewer legs)
+MAX_LEG = 100_000
 
 
-class _TokenGate:
-    """ASGI middleware: 403 for any request without the token (query ``token`` or the cookie)."""
-
-    def __init__(self, app, token: str):
-        self.app, self.token = app, token
-
-    async def __call__(self, scope, receive, send):
-        if scope["type"] == "http":
-            from starlette.requests import Request
-            from starlette.responses import PlainTextResponse
-
-            req = Request(scope)
-            got = req.query_params.get("token") or req.cookies.get(COOKIE) or ""
-            if not secrets.compare_digest(got.encode(), self.token.encode()):
-                await PlainTextResponse("passt-mav view: token required", status_code=403)(scope, receive, send)
-                return
-        await self.app(scope, receive, send)
+def _control(request, state: RunState, snap: dict | None = None) -> dict:
+    """What the page may do for this request: ``token`` (it holds the run's token: it may command) and
+    ``finished`` (the run is over: nothing to command)."""
+    auth = request.scope.get("passt_auth") or {}
+    finished = bool(snap["finished"]) if snap is not None else state.finished()
+    return {"token": bool(auth.get("token")), "finished": finished}
 
 
-def make_app(root: str | Path, *, token: str | None = None):
-    """The ASGI app serving the run in ``root``."""
+def make_app(
+    root: str | Path,
+    *,
+    token: str,
+    host: str = "127.0.0.1",
+    port: int = 0,
+    rate: RateLimit | None = None,
+):
+    """The ASGI app serving the run in ``root``, bound to ``host``:``port`` (the names it answers to), with
+    this run's ``token`` (reading without it only on loopback; commanding never)."""
     from starlette.applications import Starlette
     from starlette.concurrency import run_in_threadpool
-    from starlette.responses import FileResponse, JSONResponse, Response, StreamingResponse
+    from starlette.responses import FileResponse, JSONResponse, PlainTextResponse, Response, StreamingResponse
     from starlette.routing import Mount, Route
     from starlette.staticfiles import StaticFiles
 
+    from passt_mav import __version__
+    from passt_mav.runs.commands import CommandError, append_command, validate
+    from passt_mav.runs.rundir import RunDirError
+    from passt_mav.view.openapi import RASTERS, openapi
+
     state = RunState(root)
+    spec = openapi(__version__)
+
+    def bad(code: int, text: str) -> Response:
+        return PlainTextResponse(f"passt-mav view: {text}", status_code=code)
 
     async def index(request):
         resp = FileResponse(STATIC / "index.html", headers={"Cache-Control": "no-store"})
-        if token:
-            resp.set_cookie(COOKIE, token, httponly=True, samesite="strict")
+        auth = request.scope.get("passt_auth") or {}
+        if auth.get("via") == "query":
+            resp.set_cookie(auth["cookie"], token, httponly=True, samesite="strict", path="/")
         return resp
 
     async def api_state(request):
-        return JSONResponse(await run_in_threadpool(state.snapshot))
+        snap = await run_in_threadpool(state.snapshot)
+        snap["control"] = _control(request, state, snap)
+        return JSONResponse(snap, headers={"Cache-Control": "no-store"})
 
     async def stream(request):
         async def events():
@@ -68,6 +82,7 @@ def make_app(root: str | Path, *, token: str | None = None):
                 sig = await run_in_threadpool(signature, state.root)
                 if sig != last:
                     snap = await run_in_threadpool(state.snapshot)
+                    snap["control"] = _control(request, state, snap)
                     last, quiet = sig, 0.0
                     yield f"data: {json.dumps(snap, allow_nan=False, default=str)}\n\n"
                 elif quiet > 10.0:
@@ -82,15 +97,51 @@ def make_app(root: str | Path, *, token: str | None = None):
 
     async def raster(request):
         what = request.path_params["what"]
+        if what not in RASTERS:
+            return bad(404, f"no raster {what[:40]!r}; one of {', '.join(RASTERS)}")
         leg = request.query_params.get("leg")
         try:
             leg_i = None if leg in (None, "", "null") else int(leg)
         except ValueError:
-            return Response("leg must be an integer", status_code=400)
-        png = await run_in_threadpool(state.raster, what, leg_i)
+            return bad(400, f"leg must be an integer, got {leg[:40]!r}")
+        if leg_i is not None and not 0 <= leg_i <= MAX_LEG:
+            return bad(400, f"leg must be 0..{MAX_LEG}, got {leg_i}")
+        try:
+            png = await run_in_threadpool(state.raster, what, leg_i)
+        except RunDirError as exc:
+            return bad(404, str(exc))
         if png is None:
-            return Response(status_code=404)
+            return bad(404, f"no {what} raster for leg {leg_i} (yet)")
         return Response(png, media_type="image/png", headers={"Cache-Control": "max-age=3600"})
+
+    async def command(request):
+        ctype = request.headers.get("content-type", "").split(";")[0].strip().lower()
+        if ctype != "application/json":
+            return bad(415, "a command is a JSON body (Content-Type: application/json)")
+        size = request.headers.get("content-length", "")
+        if size and (not size.isdigit() or int(size) > MAX_BODY):
+            return bad(413, f"a command's body is at most {MAX_BODY} bytes")
+        body = b""
+        async for chunk in request.stream():
+            body += chunk
+            if len(body) > MAX_BODY:
+                return bad(413, f"a command's body is at most {MAX_BODY} bytes")
+        try:
+            data = json.loads(body.decode("utf-8"))
+        except (UnicodeDecodeError, ValueError):
+            return bad(400, "the body is not valid JSON")
+        try:
+            cmd = validate(data, state.n_boats())
+        except CommandError as exc:
+            return bad(400, str(exc))
+        if state.finished():
+            return bad(409, "the run has finished: there is nothing to command")
+        client = request.client.host if request.client else "?"
+        rec = await run_in_threadpool(append_command, state.root, cmd, source=f"view {client}")
+        return JSONResponse(rec, status_code=202)
+
+    async def api_openapi(request):
+        return JSONResponse(spec)
 
     app = Starlette(
         routes=[
@@ -98,24 +149,15 @@ def make_app(root: str | Path, *, token: str | None = None):
             Route("/api/state", api_state),
             Route("/api/stream", stream),
             Route("/api/raster/{what}.png", raster),
+            Route("/api/command", command, methods=["POST"]),
+            Route("/api/openapi.json", api_openapi),
             Mount("/static", StaticFiles(directory=STATIC), name="static"),
         ]
     )
-    return _TokenGate(app, token) if token else app
+    return Gate(app, token=token, addresses=Addresses(host, port), read_open=is_loopback(host), rate=rate)
 
 
-def is_loopback(host: str) -> bool:
-    import ipaddress
-
-    if host == "localhost":
-        return True
-    try:
-        return ipaddress.ip_address(host).is_loopback
-    except ValueError:
-        return False
-
-
-def serve(root: str | Path, *, host: str = "127.0.0.1", port: int = 0, token: str | None = None, on_ready=None) -> None:
+def serve(root: str | Path, *, host: str = "127.0.0.1", port: int = 0, token: str, on_ready=None) -> None:
     """Serve the run in ``root`` until interrupted (blocking). ``port`` 0 picks a free one;
     ``on_ready(port)`` is called once it listens."""
     import socket
@@ -126,8 +168,13 @@ def serve(root: str | Path, *, host: str = "127.0.0.1", port: int = 0, token: st
     sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
     sock.bind((host, int(port)))
     sock.listen(64)
-    config = uvicorn.Config(make_app(root, token=token), log_level="warning", access_log=False, lifespan="off")
+    bound = sock.getsockname()[1]
+    app = make_app(root, token=token, host=host, port=bound)
+    # an open event stream never ends by itself: a stop (SIGTERM, Ctrl-C) closes it after 2 s rather than wait
+    config = uvicorn.Config(
+        app, log_level="warning", access_log=False, lifespan="off", server_header=False, timeout_graceful_shutdown=2
+    )
     server = uvicorn.Server(config)
     if on_ready is not None:
-        on_ready(sock.getsockname()[1])
+        on_ready(bound)
     server.run(sockets=[sock])

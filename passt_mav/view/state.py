@@ -17,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
+from passt_mav.runs.commands import read_commands
 from passt_mav.runs.live import read_events, read_statuses
 from passt_mav.runs.rundir import RunDir
 from passt_mav.runs.store import SampleStore, SampleStoreError
@@ -33,6 +34,7 @@ MAX_ARROWS_SIDE = 24
 def signature(root: Path) -> tuple:
     """(path, mtime_ns, size) of every file the view reads: a change means a new snapshot."""
     files = [root / "events.jsonl", root / "summary.json", root / "samples.sqlite", root / "samples.sqlite-wal"]
+    files.append(root / "live" / "commands.jsonl")
     files += sorted((root / "live").glob("*.json")) + sorted((root / "legs").glob("*/leg.json"))
     files += sorted((root / "legs").glob("*/estimate.nc"))
     out = []
@@ -65,6 +67,37 @@ class RunState:
         self._last_id = 0
         self._fields: dict = {}  # (kind, leg) -> (mtime, data)
         self._grid = None
+        self._commands: list[dict] = []
+        self._cmd_offset = 0
+
+    def n_boats(self) -> int:
+        """Boats of the run (its metadata; 1 before the controller wrote it)."""
+        try:
+            return max(1, int(self.meta().get("boats") or 1))
+        except (TypeError, ValueError):
+            return 1
+
+    def finished(self) -> bool:
+        """The run is over (summary.json has its end time)."""
+        return bool((_read_json(self.rd.summary_file) or {}).get("finished_utc"))
+
+    def _command_rows(self) -> list[dict]:
+        """The operator's commands (newest 50) with the controller's answer: ``result`` the answering event's
+        text, ``ok`` whether it was carried out (its level), None while pending."""
+        new, self._cmd_offset = read_commands(self.root, self._cmd_offset)
+        self._commands += new
+        answers = {e["command_id"]: e for e in self._events if e.get("command_id")}
+        out = []
+        for c in self._commands[-50:]:
+            a = answers.get(c.get("id"))
+            out.append(
+                {
+                    **{k: c.get(k) for k in ("id", "utc", "boat", "action", "end_mode", "source")},
+                    "result": None if a is None else a.get("text"),
+                    "ok": None if a is None else a.get("level") != "warn",
+                }
+            )
+        return out
 
     # -- pieces ------------------------------------------------------------------------------------
     def meta(self) -> dict:
@@ -133,6 +166,7 @@ class RunState:
                     "rmse_model": rec.get("rmse_model"),
                     "guard": rec.get("guard"),
                     "n_samples": rec.get("n_samples"),
+                    "approval": rec.get("approval"),
                     "has_reward": bool(rec.get("reward_map")),
                     "reward_range": _range(rec.get("reward_map")),
                 }
@@ -174,6 +208,7 @@ class RunState:
                 "rmse": _rmse(legs),
                 "guard_warning": _guard_warning(legs),
                 "n_samples": len(self._samples),
+                "commands": self._command_rows(),
             }
 
     def _region(self, grid, meta: dict) -> dict | None:

@@ -3,8 +3,9 @@
 (function () {
   'use strict';
   var COLORS = ['#e4572e', '#0c8f8c', '#b8860b', '#5a8f29', '#8e44ad', '#2e86de', '#d35400', '#16a085', '#c0392b'];
-  var token = new URLSearchParams(location.search).get('token');
-  function q(p) { return token ? p + (p.indexOf('?') < 0 ? '?' : '&') + 'token=' + encodeURIComponent(token) : p; }
+  // the address's ?token= was answered with the token's httponly cookie (passt_mav/view/gate.py): every request
+  // of this page carries that cookie, so the token leaves the address bar (history, screenshots, shoulders)
+  if (new URLSearchParams(location.search).has('token')) history.replaceState(null, '', location.pathname);
   function $(id) { return document.getElementById(id); }
   function esc(s) { return String(s == null ? '' : s).replace(/[&<>"]/g, function (c) {
     return {'&': '&amp;', '<': '&lt;', '>': '&gt;', '"': '&quot;'}[c]; }); }
@@ -42,7 +43,7 @@
     if (overlays[kind] === url) return;
     overlays[kind] = url;
     G[kind].clearLayers();
-    if (url) L.imageOverlay(q(url), bounds, {opacity: kind === 'reward' ? 0.75 : 0.9}).addTo(G[kind]);
+    if (url) L.imageOverlay(url, bounds, {opacity: kind === 'reward' ? 0.75 : 0.9}).addTo(G[kind]);
   }
 
   function drawRegion(s) {
@@ -54,7 +55,7 @@
     }
     if (r.has_land && !landShown) {
       landShown = true;
-      L.imageOverlay(q('api/raster/land.png'), r.bounds, {opacity: 1}).addTo(G.land);
+      L.imageOverlay('api/raster/land.png', r.bounds, {opacity: 1}).addTo(G.land);
     }
     var e = s.estimate;
     if (e && e.leg != null) {
@@ -167,9 +168,92 @@
         row('position', '<span class="pos" data-lat="' + (st.lat == null ? '' : st.lat) + '" data-lon="' +
           (st.lon == null ? '' : st.lon) + '">' + fmt(st.lat, 5) + ', ' + fmt(st.lon, 5) + '</span> hdg ' +
           fmt(st.heading_deg, 0) + '&deg;') +
-        '</table></div>';
+        '</table>' + controls(s, b) + '</div>';
     });
+    if (s.boats.length > 1) html = '<div class="boat fleet" id="boat-all"><h3>whole fleet</h3>' + controls(s, 'all') +
+      '</div>' + html;
     $('boats').innerHTML = html;
+  }
+
+  // -- the operator's console: commands by POST to api/command (the token's cookie; passt_mav/view/gate.py) ----
+  var ACTIONS = [['pause', 'Pause'], ['resume', 'Resume'], ['skip', 'Skip leg'], ['replan', 'Re-plan now'],
+                 ['end:HOLD', 'End (HOLD)'], ['end:RTL', 'End (RTL)']];
+  function controls(s, b) {
+    var c = s.control || {}, off = !c.token || c.finished;
+    var last = (s.commands || []).filter(function (x) { return x.boat === b; }).slice(-1)[0];
+    var res = last ? '<div class="cmd-result ' + (last.ok === null ? 'pending' : (last.ok ? 'done' : 'refused')) +
+      '" data-action="' + esc(last.action) + '">' + esc(last.action) + (last.end_mode ? ' ' + esc(last.end_mode) : '') +
+      ': ' + esc(last.result === null ? 'sent, waiting for the controller' : last.result) + '</div>' : '';
+    return approval(s, b, off) + '<div class="controls" data-boat="' + b + '">' + ACTIONS.map(function (a) {
+      return '<button type="button" data-act="' + a[0] + '"' + (off ? ' disabled' : '') + '>' + a[1] + '</button>';
+    }).join('') + '</div>' + res;
+  }
+
+  function approval(s, b, off) {  // approve mode: the leg waiting for the operator (drawn dashed on the map)
+    var lg = s.legs.filter(function (x) { return x.boat === b && x.status === 'awaiting_approval'; }).slice(-1)[0];
+    if (!lg) return '';
+    var a = lg.approval || {};
+    return '<div class="approval" data-leg="' + lg.index + '"><b>leg ' + (lg.index + 1) + ' awaits approval</b>: ' +
+      lg.waypoints.length + ' waypoints, ' + fmt(a.distance_m, 0) + ' m, ~' + dur(a.expected_s) +
+      ' (path dashed on the map, its reward map under "reward map of the newest plan")<div class="controls" ' +
+      'data-boat="' + b + '" data-leg="' + lg.index + '"><button type="button" data-act="approve"' +
+      (off ? ' disabled' : '') + '>Approve</button><button type="button" data-act="reject"' + (off ? ' disabled' : '') +
+      '>Reject (re-plan)</button></div></div>';
+  }
+
+  function post(boat, act, leg) {
+    var parts = act.split(':'), body = {boat: boat === 'all' ? 'all' : +boat, action: parts[0]};
+    if (parts[1]) body.end_mode = parts[1];
+    if (leg !== undefined) body.leg = +leg;
+    if (parts[0] === 'end' && !window.confirm('End the mission of ' + (boat === 'all' ? 'every boat' : 'boat ' + boat) +
+      ' (' + parts[1] + ')?')) return;
+    var msg = $('console-msg');
+    msg.textContent = 'sending ' + act + ' to boat ' + boat + ' ...'; msg.className = 'small';
+    fetch('api/command', {method: 'POST', credentials: 'same-origin', headers: {'Content-Type': 'application/json'},
+                          body: JSON.stringify(body)}).then(function (r) {
+      return r.text().then(function (t) {
+        msg.textContent = r.status === 202 ? act + ' sent to boat ' + boat + '; the controller answers below' : t;
+        msg.className = r.status === 202 ? 'small ok' : 'small bad';
+      });
+    }).catch(function (e) { msg.textContent = 'not sent: ' + e; msg.className = 'small bad'; });
+  }
+  $('boats').addEventListener('click', function (ev) {
+    var btn = ev.target.closest('button[data-act]'); if (!btn || btn.disabled) return;
+    post(btn.parentNode.dataset.boat, btn.dataset.act, btn.parentNode.dataset.leg);
+  });
+
+  function drawConsoleNote(s) {
+    var c = s.control || {};
+    $('console-note').textContent = c.finished ? 'the run has finished: this page is a record' :
+      (c.token ? '' : 'read-only: open the address the run printed (with its token) to command the boats');
+  }
+
+  // -- alarms: a beep (Web Audio) for each new alert, and a notification while the page is in the background;
+  // both need the operator's consent (a click on the checkbox: browsers start audio only after a gesture)
+  var audio = null, seenEvents = null;
+  window.passtView.beeps = 0;
+  $('alarm').addEventListener('change', function () {
+    if (!this.checked) return;
+    try { audio = audio || new (window.AudioContext || window.webkitAudioContext)(); audio.resume(); } catch (e) {}
+    if (window.Notification && Notification.permission === 'default') Notification.requestPermission();
+  });
+  function beep() {
+    window.passtView.beeps += 1;
+    if (!audio) return;
+    var o = audio.createOscillator(), g = audio.createGain();
+    o.frequency.value = 880; g.gain.value = 0.2; o.connect(g); g.connect(audio.destination);
+    o.start(); o.stop(audio.currentTime + 0.25);
+  }
+  function alarm(s) {
+    var n = s.n_events, fresh = seenEvents === null ? [] : s.events.slice(Math.max(0, s.events.length - (n - seenEvents)));
+    seenEvents = n;
+    if (!$('alarm').checked) return;
+    fresh.filter(function (e) { return e.level === 'alert'; }).forEach(function (e) {
+      beep();
+      if (document.hidden && window.Notification && Notification.permission === 'granted') {
+        new Notification('passt-mav: boat ' + e.boat, {body: e.text, tag: 'passt-' + e.kind});
+      }
+    });
   }
 
   function drawAlerts(s) {
@@ -219,13 +303,18 @@
       ' &middot; ' + s.n_samples + ' samples &middot; ' + s.boats.length + ' boat(s)';
     var ft = s.boats.map(function (b) { return (b.status || {}).field_time; }).filter(function (x) { return x != null; });
     $('clock').textContent = ft.length ? 'field time ' + fmt(Math.max.apply(null, ft), 0) : '';
-    drawRegion(s); drawArrows(s.estimate); drawBoats(s); drawPanels(s); drawAlerts(s); drawRmse(s.rmse);
+    drawRegion(s); drawArrows(s.estimate); drawBoats(s); drawPanels(s); drawConsoleNote(s); drawAlerts(s); alarm(s);
+    drawRmse(s.rmse);
   }
 
   function connect() {
-    var es = new EventSource(q('api/stream'));
+    var es = new EventSource('api/stream');
     es.onopen = function () { var c = $('conn'); c.textContent = 'connected'; c.className = 'pill ok'; };
-    es.onmessage = function (ev) { try { render(JSON.parse(ev.data)); } catch (err) { console.error(err); } };
+    es.onmessage = function (ev) {
+      try { render(JSON.parse(ev.data)); } catch (err) { console.error(err); }
+      // a finished run's page is a record: nothing is connected to a boat any more
+      if (window.passtView.last && window.passtView.last.finished) { $('conn').textContent = 'finished'; }
+    };
     es.onerror = function () {
       var c = $('conn'); c.className = 'pill bad';
       c.textContent = window.passtView.last && window.passtView.last.finished ? 'server gone (run finished)' :

@@ -1,0 +1,139 @@
+"""The mission's safety budget (mission key ``budget``; :class:`~passt_mav.mission.config.BudgetConfig`).
+
+:class:`SafetyBudget` watches one boat while its legs fly: the vehicle seconds spent flying legs and the metres
+moved meanwhile (both counted per controller session), and the battery's remaining charge (SYS_STATUS and
+BATTERY_STATUS ``battery_remaining``, %; the lower of the two when both are known, -1 = unknown is ignored).
+:meth:`VehicleSession.fly <passt_mav.vehicle.session.VehicleSession.fly>` asks it once a turn
+(:meth:`SafetyBudget.spent`); once a limit is reached the leg is cut there (``"budget"``: HOLD, its samples
+absorbed, the leg complete), and the controller sends the boat to ``on_spent`` (RTL or HOLD) and ends the run
+cleanly (status ``ended``; ``--resume`` continues, its budget counted afresh).
+
+The distance is the sum of geodesic steps between successive GLOBAL_POSITION_INT fixes (deg -> m, WGS84)
+while a leg flies; the time is the vehicle's uptime (``time_boot_ms``) over the same spans, so a reboot's
+restart of that clock does not count backwards.
+"""
+
+from __future__ import annotations
+
+import threading
+
+__all__ = ["SafetyBudget", "battery_remaining"]
+
+
+def battery_remaining(link) -> float | None:
+    """The battery's remaining charge (%) the vehicle reports last (SYS_STATUS, BATTERY_STATUS: the lower of
+    those known), None when neither is known."""
+    vals = []
+    for typ in ("SYS_STATUS", "BATTERY_STATUS"):
+        m = link.latest(typ)
+        pct = None if m is None else getattr(m, "battery_remaining", -1)
+        if pct is not None and 0 <= pct <= 100:
+            vals.append(float(pct))
+    return min(vals) if vals else None
+
+
+class SafetyBudget:
+    """One boat's budget on ``link`` from ``config`` (:class:`~passt_mav.mission.config.BudgetConfig`).
+
+    :meth:`start_leg` / :meth:`end_leg` bracket each leg's flight; :meth:`spent` says why the budget is spent
+    (one line), or None. ``reason`` keeps the first such line.
+    """
+
+    def __init__(self, link, config):
+        self.link, self.config = link, config
+        self.flown_s = 0.0  # vehicle seconds of legs ended in this session
+        self.distance_m = 0.0
+        self.reason: str | None = None
+        self._lock = threading.Lock()
+        self._leg_t0: float | None = None  # vehicle uptime at the start of the leg in flight
+        self._last_fix: tuple[float, float] | None = None
+        self._listening = False
+
+    @property
+    def watched(self) -> bool:
+        """Any limit is set."""
+        c = self.config
+        return any(x is not None for x in (c.max_time_s, c.max_distance_m, c.battery_reserve_pct))
+
+    def request_battery(self) -> None:
+        """Ask the vehicle for BATTERY_STATUS at 1 Hz of its time (a fast simulator's lean streams leave it off),
+        the other streams left as they are; a refusal is logged (SYS_STATUS may still carry the charge). The
+        charge last reported before is forgotten."""
+        if self.config.battery_reserve_pct is None:
+            return
+        from passt_mav.mavlink.streams import request_streams
+
+        # a charge reported before this session (a battery swapped meanwhile) must not end its first leg
+        self.link.forget("SYS_STATUS", "BATTERY_STATUS")
+        request_streams(self.link, [("BATTERY_STATUS", 1.0)], quiet_others=False)
+
+    def _on_fix(self, m) -> None:
+        """From the reader thread: one GLOBAL_POSITION_INT; the step from the last fix is added while a leg flies."""
+        import geo
+
+        if m.lat == 0 and m.lon == 0:
+            return  # no GPS fix yet
+        p = (m.lat / 1e7, m.lon / 1e7)
+        with self._lock:
+            if self._leg_t0 is not None and self._last_fix is not None:
+                self.distance_m += float(geo.geodesic_distance_m(self._last_fix[0], self._last_fix[1], p[0], p[1]))
+            self._last_fix = p
+
+    def start_leg(self) -> None:
+        """A leg starts flying (AUTO): count its time and distance from now."""
+        if not self.watched:
+            return
+        if not self._listening and self.config.max_distance_m is not None:
+            self.link.add_listener(self._on_fix, "GLOBAL_POSITION_INT")
+            self._listening = True
+        with self._lock:
+            self._leg_t0 = self.link.vehicle_uptime_s()
+            self._last_fix = None
+
+    def end_leg(self) -> None:
+        """The leg in flight ended (complete, cut, or stopped): its time is added."""
+        with self._lock:
+            self.flown_s = self._time_s()
+            self._leg_t0 = None
+
+    def close(self) -> None:
+        """Stop listening to the link."""
+        if self._listening:
+            self.link.remove_listener(self._on_fix)
+            self._listening = False
+
+    def _time_s(self) -> float:
+        up = self.link.vehicle_uptime_s()
+        if self._leg_t0 is None or up is None or up < self._leg_t0:  # (a reboot restarted the clock)
+            return self.flown_s
+        return self.flown_s + (up - self._leg_t0)
+
+    def spent(self) -> str | None:
+        """Why the budget is spent now (time, distance, battery; one line), or None. Remembered in ``reason``."""
+        if self.reason is not None or not self.watched:
+            return self.reason
+        c = self.config
+        with self._lock:
+            t, d = self._time_s(), self.distance_m
+        why = None
+        if c.max_time_s is not None and t >= c.max_time_s:
+            why = f"time: {t:.0f} s of legs flown >= budget.max_time_s {c.max_time_s:g} s"
+        elif c.max_distance_m is not None and d >= c.max_distance_m:
+            why = f"distance: {d:.0f} m moved >= budget.max_distance_m {c.max_distance_m:g} m"
+        elif c.battery_reserve_pct is not None:
+            pct = battery_remaining(self.link)
+            if pct is not None and pct <= c.battery_reserve_pct:
+                why = f"battery: {pct:.0f} % remaining <= budget.battery_reserve_pct {c.battery_reserve_pct:g} %"
+        self.reason = why
+        return why
+
+    def record(self) -> dict:
+        """The budget's figures now (summary.json ``budget``)."""
+        with self._lock:
+            t = self._time_s()
+        return {
+            "flown_s": round(t, 1),
+            "distance_m": round(self.distance_m, 1),
+            "battery_pct": battery_remaining(self.link),
+            "spent": self.reason,
+        }

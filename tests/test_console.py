@@ -1,0 +1,440 @@
+"""Issue 44, "act from the page": the operator's commands carried out by the controller on vehicle-sim.
+
+The simulator is served in lockstep (its clock runs only while the controller waits for it), so what the
+vehicle does between two commands depends on the controller's steps, not on the machine's load. The
+operator is a thread that appends to the run's command channel (as the view server does) when the run
+reaches a state, and waits for the controller's answer (an event of kind ``command`` with the id).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import threading
+import time
+
+import pytest
+from mavlink_helpers import HOME, inprocess_factory, link_config, served
+from test_controller import SPEEDUP, controller, mission, sim_config, wave_field
+
+from passt_mav.commands.run import LEAN_STREAMS
+from passt_mav.mavlink import Link
+from passt_mav.mavlink.vehicle import ROVER_MODES
+from passt_mav.runs.commands import append_command
+from passt_mav.runs.live import read_events
+from passt_mav.runs.rundir import RunDir
+from vehicle_sim import Simulator
+
+HOLD, AUTO, RTL = ROVER_MODES["HOLD"], ROVER_MODES["AUTO"], ROVER_MODES["RTL"]
+WALL_S = 60.0  # a generous bound on each wait of the operator thread (the run takes a few seconds)
+
+
+def _answer(root, cid: str) -> dict | None:
+    return next((e for e in read_events(root)[0] if e.get("command_id") == cid), None)
+
+
+class Operator(threading.Thread):
+    """Sends ``script`` [(condition(ctl) -> bool, command dict, after(answer))] one by one: each command once
+    its condition holds, the next once the controller answered."""
+
+    def __init__(self, ctl, root, script):
+        super().__init__(daemon=True)
+        self.ctl, self.root, self.script = ctl, root, script
+        self.answers: list[dict] = []
+        self.error: str | None = None
+
+    def _wait(self, cond, what: str) -> bool:
+        end = time.monotonic() + WALL_S
+        while time.monotonic() < end:
+            if cond():
+                return True
+            time.sleep(0.002)
+        self.error = f"timed out waiting for {what}"
+        return False
+
+    def run(self):
+        for cond, cmd, after in self.script:
+            if not self._wait(lambda c=cond: c(self.ctl), f"the moment for {cmd}"):
+                return
+            rec = append_command(self.root, cmd, source="test")
+            if not self._wait(lambda r=rec: _answer(self.root, r["id"]) is not None, f"the answer to {cmd}"):
+                return
+            ans = _answer(self.root, rec["id"])
+            self.answers.append(ans)
+            if after is not None:
+                after(ans)
+
+
+def fly_with(ctl, root, script) -> tuple[dict, Operator]:
+    """Run ``ctl`` with an :class:`Operator` sending ``script``; (the run's summary, the operator)."""
+    op = Operator(ctl, root, script)
+    op.start()
+    summary = ctl.run()
+    op.join(10)
+    assert op.error is None, op.error
+    return summary, op
+
+
+def _flying(ctl, leg: int = 0) -> bool:
+    """Leg ``leg`` flies in AUTO with its first waypoint behind it."""
+    return (
+        ctl.collector is not None
+        and ctl.collector.leg == leg
+        and ctl.vehicle.mode == AUTO
+        and len(ctl.vehicle.progress.reached) >= 2
+    )
+
+
+@contextlib.contextmanager
+def lockstep_session(tmp_path, **sim_kw):
+    """(sim, controller factory, run dir): the simulator in lockstep (``sim_kw`` to its config), the controller's
+    link stepping it; ``make(legs, budget=None, approve=None, **controller_kw)`` makes a controller for a mission of
+    5-move legs."""
+    field = wave_field()
+    sim = Simulator(field, home=HOME, config=sim_config(**sim_kw))
+    sim.serve([], lockstep=True)
+    link = Link(
+        link_config(lockstep_s=0.5, lockstep_pace=SPEEDUP, stream_rates_hz=LEAN_STREAMS),
+        connection_factory=inprocess_factory(sim),
+    )
+    rd = RunDir(tmp_path / "run").create()
+
+    def make(legs: int = 2, budget: dict | None = None, approve: dict | None = None, **kw):
+        over = {k: v for k, v in (("budget", budget), ("approve", approve)) if v}
+        cfg = mission(tmp_path, field, legs=legs, planner={"name": "greedy", "path_length": 5}, **over)
+        return controller(cfg, field, link, rd, echo=None, **kw)
+
+    link.connect()
+    try:
+        yield sim, make, rd
+    finally:
+        link.close()
+        sim.stop()
+
+
+@pytest.fixture()
+def lockstep_run(tmp_path):
+    with lockstep_session(tmp_path) as parts:
+        yield parts
+
+
+def test_pause_holds_resume_goes_on_at_the_same_item_end_returns(lockstep_run):
+    sim, make, rd = lockstep_run
+    ctl = make(legs=2, pause_timeout_s=WALL_S)
+    ap = sim.autopilot
+    seen: dict = {}
+
+    def paused(_ans):
+        seen["paused"] = (ap.mode, ap.mission_index, sim.t, ap.boat.x, ap.boat.y)
+
+    def resumed(_ans):
+        seen["resumed"] = (ap.mode, ap.mission_index)
+        seen["held_at"] = (sim.t, ap.boat.x, ap.boat.y)
+
+    def held_a_while(c):  # the vehicle's clock ran 20 s in HOLD (the controller steps it while it waits)
+        return "paused" in seen and sim.t > seen["paused"][2] + 20.0
+
+    def held(_ans=None):
+        return held_a_while(ctl)
+
+    script = [
+        (_flying, {"boat": 0, "action": "pause"}, paused),
+        (held, {"boat": 0, "action": "resume"}, resumed),
+        (
+            lambda c: _flying(c) and ap.mission_index > seen["resumed"][1],
+            {"boat": 0, "action": "end", "end_mode": "RTL"},
+            None,
+        ),
+    ]
+    op = Operator(ctl, rd.root, script)
+    op.start()
+    summary = ctl.run()
+    op.join(10)
+    assert op.error is None, op.error
+    # Pause: the vehicle reports HOLD; it stayed at its item while its clock ran on
+    mode, seq, t_p, x, y = seen["paused"]
+    assert mode == HOLD and seq >= 2
+    t_r, x_r, y_r = seen["held_at"]
+    held_m = ((x_r - x) ** 2 + (y_r - y) ** 2) ** 0.5
+    assert t_r - t_p >= 20.0 and held_m < 15.0, (t_r - t_p, held_m)  # 5 m/s boat: 100 m in 20 s had it gone on
+    # Resume: AUTO at the same item it was paused at
+    assert seen["resumed"] == (AUTO, seq)
+    # End with RTL: the vehicle returns, the run ends cleanly (state saved for --resume)
+    assert ap.mode == RTL and summary["status"] == "ended"
+    assert [a["level"] for a in op.answers] == ["ok", "ok", "ok"]
+    texts = [a["text"] for a in op.answers]
+    assert "HOLD at item" in texts[0] and f"AUTO at item {seq}/" in texts[1] and "RTL" in texts[2]
+    assert all("operator (test)" in t for t in texts)  # its source
+    assert any("operator (test): end RTL" in e for e in summary["events"])
+    legs = rd.read_legs()
+    assert [lg["status"] for lg in legs] == ["flying"]  # the leg in flight is re-planned by --resume
+    # --resume continues the ended run: the interrupted leg flown again from where the boat is, then the next
+    again = make(legs=2, resume=True).run()
+    assert again["status"] == "complete" and [lg["index"] for lg in again["legs"]] == [0, 1]
+    assert again["legs"][0]["attempts"][0]["status"] == "interrupted"
+
+
+def test_skip_ends_the_leg_and_plans_the_next(lockstep_run):
+    _sim, make, rd = lockstep_run
+    summary, op = fly_with(make(legs=2), rd.root, [(_flying, {"boat": 0, "action": "skip"}, None)])
+    assert summary["status"] == "complete" and len(summary["legs"]) == 2
+    first = summary["legs"][0]
+    n_items = len(first["waypoints"]) + 1  # + DO_CHANGE_SPEED
+    assert first["operator"]["action"] == "skip" and first["operator"]["at_item"] < n_items
+    assert "the leg ends here" in op.answers[0]["text"] and first["n_samples"] > 0
+
+
+def test_replan_plans_the_leg_again_keeping_the_attempt(lockstep_run):
+    _sim, make, rd = lockstep_run
+    summary, op = fly_with(make(legs=1), rd.root, [(_flying, {"boat": 0, "action": "replan"}, None)])
+    assert summary["status"] == "complete" and len(summary["legs"]) == 1
+    (leg,) = summary["legs"]
+    (att,) = leg["attempts"]
+    assert att["status"] == "replanned by the operator" and att["n_samples_stored"] > 0
+    assert (rd.leg_dir(0) / "attempt_1" / "leg.json").exists()
+    assert leg["n_samples"] >= att["n_samples_stored"]  # the attempt's samples are the leg's too
+    assert "planned again from here" in op.answers[0]["text"]
+
+
+def test_commands_that_do_not_apply_are_answered_with_the_reason(lockstep_run):
+    sim, make, rd = lockstep_run
+    ctl = make(legs=1)
+    script = [
+        (_flying, {"boat": 0, "action": "resume"}, None),
+        (_flying, {"boat": 0, "action": "end", "end_mode": "HOLD"}, None),
+    ]
+    summary, op = fly_with(ctl, rd.root, script)
+    assert op.answers[0]["level"] == "warn" and "not paused" in op.answers[0]["text"]
+    assert summary["status"] == "ended" and sim.autopilot.mode == HOLD
+
+
+# -- the safety budget (mission key budget; passt_mav.vehicle.budget) ------------------------------------------
+@pytest.fixture()
+def drained_run(tmp_path):
+    """As :func:`lockstep_run`, with a small simulated battery (6 Wh: ~255 W at 5 m/s drains 70 % in ~60 s, a leg
+    of 5 moves takes ~40 s)."""
+    with lockstep_session(tmp_path, battery_wh=6.0) as parts:
+        yield parts
+
+
+def test_battery_reserve_returns_the_boat_ends_cleanly_and_resume_continues(drained_run):
+    sim, make, rd = drained_run
+    ap = sim.autopilot
+    summary = make(3, {"battery_reserve_pct": 30}).run()
+    # the boat returns (RTL) once the battery reached the reserve; the run ends cleanly with the leg cut there
+    assert summary["status"] == "ended" and ap.mode == RTL
+    pct = ap._battery()[2]
+    assert 20 <= pct <= 30, pct  # at the reserve, not long past it (1 Hz BATTERY_STATUS, 0.5 s steps)
+    legs = summary["legs"]
+    assert legs and all(lg["status"] == "complete" for lg in legs) and len(legs) < 3
+    cut = legs[-1]["budget_cut"]
+    assert "battery" in cut["reason"] and "<= budget.battery_reserve_pct 30" in cut["reason"]
+    assert summary["budget"]["spent"] == cut["reason"] and summary["budget"]["battery_pct"] <= 30
+    kinds = [e["kind"] for e in read_events(rd.root)[0]]
+    assert kinds.count("budget") == 2 and kinds[-1] == "run_end"  # the cut, then the return
+    # a fresh battery (a swap at the dock): --resume continues from the next leg to the end
+    ap._energy_wh = 0.0
+    again = make(3, {"battery_reserve_pct": 30}, resume=True).run()
+    print(f"battery: ended after {len(legs)} leg(s) at {pct} %; resumed: {again['status']}, {again['budget']}")
+    assert again["status"] == "complete" and len(again["legs"]) == 3
+    assert again["budget"]["spent"] is None and again["budget"]["battery_pct"] > 30
+
+
+def test_a_distance_budget_cuts_the_leg_and_holds(drained_run):
+    sim, make, _rd = drained_run  # (the battery is not watched here: no reserve set)
+    summary = make(3, {"max_distance_m": 150, "on_spent": "hold"}).run()
+    assert summary["status"] == "ended" and sim.autopilot.mode == HOLD
+    b = summary["budget"]
+    # cut within a fix or two of the limit (1 Hz fixes of a 5 m/s boat: ~5 m apart)
+    assert 150 <= b["distance_m"] < 170 and "distance" in b["spent"], b
+    assert "budget_cut" in summary["legs"][-1]
+
+
+def test_battery_remaining_takes_the_lower_known_value():
+    from types import SimpleNamespace
+
+    from passt_mav.vehicle.budget import battery_remaining
+
+    class FakeLink:
+        def __init__(self, **msgs):
+            self.msgs = msgs
+
+        def latest(self, typ):
+            return self.msgs.get(typ)
+
+    assert battery_remaining(FakeLink()) is None
+    assert battery_remaining(FakeLink(SYS_STATUS=SimpleNamespace(battery_remaining=-1))) is None
+    link = FakeLink(
+        SYS_STATUS=SimpleNamespace(battery_remaining=55), BATTERY_STATUS=SimpleNamespace(battery_remaining=48)
+    )
+    assert battery_remaining(link) == 48.0
+
+
+def test_a_fleet_takes_a_command_for_all_and_refuses_replan_with_the_reason(tmp_path):
+    """Two boats on the wall clock (a fleet cannot share one lockstep clock): Re-plan for boat 1 is refused with the
+    reason (a fleet's leg numbers are the fleet's), End (HOLD) for "all" ends both boats; the fleet ends."""
+    from test_fleet_controller import fleet_mission, fleet_served, run_fleet
+
+    field = wave_field()
+    starts = [(1, 1), (6, 6)]
+    cfg = fleet_mission(
+        tmp_path,
+        field,
+        legs=2,
+        vehicles=[
+            {"connect": f"tcp:127.0.0.1:{5760 + 10 * k}", "speed_mps": 5.0, "wp_radius_m": 3.0, "start_cell": list(s)}
+            for k, s in enumerate(starts)
+        ],
+    )
+    with fleet_served(field, starts=starts) as (sims, links):
+        fleet, rd = run_fleet(tmp_path, field, cfg, links)
+
+        def both_flying(_f):
+            return all(
+                b.collector is not None and b.collector.leg is not None and b.vehicle.mode == AUTO for b in fleet.boats
+            )
+
+        script = [
+            (both_flying, {"boat": 1, "action": "replan"}, None),
+            (both_flying, {"boat": "all", "action": "end", "end_mode": "HOLD"}, None),
+        ]
+        op = Operator(fleet, rd.root, script)
+        op.start()
+        summary = fleet.run()
+        op.join(10)
+        modes = [s.autopilot.mode for s in sims]
+    assert op.error is None, op.error
+    assert op.answers[0]["level"] == "warn" and "does not re-plan" in op.answers[0]["text"]
+    assert op.answers[0]["boat"] == 1
+    ended = [e for e in read_events(rd.root)[0] if e.get("command_id") and "mission ended" in e["text"]]
+    assert sorted(e["boat"] for e in ended) == [0, 1]  # one answer per boat to the one command
+    assert summary["status"] == "ended" and [b["status"] for b in summary["boats"]] == ["ended", "ended"]
+    assert modes == [HOLD, HOLD]
+
+
+# -- the vehicle's own alarms (passt_mav.vehicle.alerts) ---------------------------------------------------------
+class _Journal:
+    def __init__(self):
+        self.notes: list[tuple[str, str]] = []
+
+    def note(self, kind, text):
+        self.notes.append((kind, text))
+
+
+def _from_vehicle(name: str, *args, sysid: int = 1):
+    """A MAVLink message ``name`` as the reader gets it from system ``sysid`` (packed, then parsed)."""
+    from pymavlink.dialects.v20 import ardupilotmega as M
+
+    enc = M.MAVLink(None, srcSystem=sysid, srcComponent=1)
+    return M.MAVLink(None).parse_char(getattr(enc, f"{name}_encode")(*args).pack(enc))
+
+
+def test_a_fence_breach_is_one_alert_until_it_clears():
+    from types import SimpleNamespace
+
+    from passt_mav.vehicle.alerts import VehicleAlerts
+
+    j = _Journal()
+    va = VehicleAlerts(SimpleNamespace(target_system=1), j)
+    for breach in (1, 1, 1, 0, 0, 1):
+        va.on_message(_from_vehicle("fence_status", breach, 2, 3, 0))
+    va.on_message(_from_vehicle("fence_status", 0, 0, 0, 0, sysid=7))  # not our vehicle's
+    assert [k for k, _ in j.notes] == ["fence_breach", "fence_clear", "fence_breach"]
+    assert "boundary" in j.notes[0][1] and "breach 2" in j.notes[0][1]
+
+
+def test_a_failsafe_statustext_from_the_vehicle_becomes_an_alert_once():
+    from pymavlink.dialects.v20 import ardupilotmega as M
+
+    from passt_mav.vehicle.alerts import VehicleAlerts
+
+    with served(sim_config()) as (sim, link):
+        j = _Journal()
+        clock = [0.0]
+        va = VehicleAlerts(link, j, clock=lambda: clock[0])
+        va.attach()
+        ap = sim.autopilot
+        ap.text(None, M.MAV_SEVERITY_WARNING, "GCS Failsafe")
+        ap.text(None, M.MAV_SEVERITY_WARNING, "GCS Failsafe")  # again at once: not repeated
+        ap.text(None, M.MAV_SEVERITY_CRITICAL, "Arm: System not initialised")  # a pre-arm refusal: not an alert
+        ap.text(None, M.MAV_SEVERITY_INFO, "Fence breach cleared?")  # INFO: not an alert
+        ap.text(None, M.MAV_SEVERITY_ALERT, "Potential thrust loss")
+        end = time.monotonic() + WALL_S
+        while len(j.notes) < 2 and time.monotonic() < end:
+            time.sleep(0.01)
+        time.sleep(0.3)  # (anything more would have come by now)
+        clock[0] += 31.0
+        ap.text(None, M.MAV_SEVERITY_WARNING, "GCS Failsafe")  # 31 s later: said again
+        while len(j.notes) < 3 and time.monotonic() < end:
+            time.sleep(0.01)
+        va.detach()
+    assert j.notes == [
+        ("vehicle_alert", "the vehicle says: GCS Failsafe (severity 4)"),
+        ("vehicle_alert", "the vehicle says: Potential thrust loss (severity 1)"),
+        ("vehicle_alert", "the vehicle says: GCS Failsafe (severity 4)"),
+    ]
+
+
+# -- approve mode (mission key approve; run --approve) -------------------------------------------------------------
+def _awaiting(rd, leg: int, attempts: int = 0):
+    """A condition: leg ``leg`` awaits approval (after ``attempts`` earlier attempts)."""
+
+    def cond(_ctl) -> bool:
+        try:
+            rec = rd.read_leg(leg)
+        except Exception:  # noqa: BLE001 - not written yet, or being written
+            return False
+        return rec.get("status") == "awaiting_approval" and len(rec.get("attempts") or []) == attempts
+
+    return cond
+
+
+def test_approve_mode_approved_leg_flies_rejected_leg_is_planned_again(lockstep_run):
+    sim, make, rd = lockstep_run
+    stored: list[int] = []
+
+    def note_store(_ans):
+        stored.append(sim.autopilot.store.count(0))
+
+    script = [
+        (_awaiting(rd, 0), {"boat": 0, "action": "approve", "leg": 0}, None),
+        (_awaiting(rd, 1), {"boat": 0, "action": "approve", "leg": 0}, None),  # a stale approval: not this leg
+        (_awaiting(rd, 1), {"boat": 0, "action": "reject", "leg": 1}, note_store),
+        (_awaiting(rd, 1, attempts=1), {"boat": 0, "action": "approve"}, None),
+    ]
+    summary, op = fly_with(make(legs=2, approve={"enabled": True, "timeout_s": WALL_S}), rd.root, script)
+    assert summary["status"] == "complete" and [lg["index"] for lg in summary["legs"]] == [0, 1]
+    assert [a["level"] for a in op.answers] == ["ok", "warn", "ok", "ok"]
+    assert "leg 1 does not await approval" in op.answers[1]["text"]
+    assert "rejected: planned again" in op.answers[2]["text"]
+    leg0, leg1 = summary["legs"]
+    assert leg0["approval"]["answer"] == "approve" and leg0["approval"]["distance_m"] > 0
+    assert leg0["approval"]["expected_s"] > 0
+    (att,) = leg1["attempts"]
+    assert att["status"] == "rejected by the operator" and att["n_samples_stored"] == 0
+    # the rejected leg was never uploaded: the vehicle held leg 0's mission (home, speed, its waypoints)
+    assert stored == [len(leg0["waypoints"]) + 2]
+
+
+def test_approve_mode_timeout_approves_or_holds(tmp_path):
+    with lockstep_session(tmp_path / "a") as (_sim, make, rd):
+        s = make(legs=1, approve={"enabled": True, "timeout_s": 0.3, "on_timeout": "approve"}).run()
+        assert s["status"] == "complete" and s["legs"][0]["approval"]["answer"] == "timeout"
+        assert any("approved by the timeout" in e["text"] for e in read_events(rd.root)[0])
+    with lockstep_session(tmp_path / "h") as (sim, make, rd):
+        s = make(legs=1, approve={"enabled": True, "timeout_s": 0.3, "on_timeout": "hold"}).run()
+        assert s["status"] == "paused" and "no approval within" in s["events"][-1]
+        assert sim.autopilot.store.count(0) <= 1 and sim.autopilot.mode == HOLD  # nothing uploaded, held
+
+
+def test_console_keys_send_approve_and_reject(tmp_path):
+    import io
+
+    from passt_mav.runs.commands import console_keys, read_commands
+
+    assert console_keys(tmp_path, io.StringIO("x\na\n R \napprove\n\n")) == 3
+    cmds = read_commands(tmp_path)[0]
+    assert [(c["action"], c["boat"], c["source"]) for c in cmds] == [
+        ("approve", "all", "console"),
+        ("reject", "all", "console"),
+        ("approve", "all", "console"),
+    ]
