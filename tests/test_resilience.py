@@ -77,6 +77,7 @@ class Faults:
     during them (the ``drops`` of :class:`vehicle_sim.LinkConfig`); during one the simulator runs at most
     ``duration / DROP_WALL_S`` x the wall clock, so even a 10 s drop outlasts the controller's ``link_lost_s``
     (0.5 s of wall time) however fast the machine: the controller notices every drop while it flies a leg.
+    ``max_rate`` 0: the simulator unpaced (a test without drops).
     """
 
     DROP_WALL_S = 1.5  # the least wall time a drop lasts (3 x link_lost_s of :func:`mavlink_helpers.link_config`)
@@ -514,6 +515,29 @@ def _chaos_controller(box: dict, *args, **kw):
     return ctl
 
 
+def _dies_in_leg(ctl, faults: Faults, leg: int) -> None:
+    """``ctl`` dies (raises :class:`_Killed`, as a killed process stops) in leg ``leg`` once the collector has
+    handed 3 of its readings to the store's writer (the interrupted attempt has samples): the fault is fired
+    from the stepping, the controller's thread raises, the simulator's clock held until it has."""
+    kill, killed = threading.Event(), threading.Event()
+
+    def kill_now():
+        kill.set()
+        faults.hold_until(killed.is_set, "the kill")
+
+    faults.at("kill", lambda: ctl.collector.leg_counts(leg)["emitted"] >= 3, kill_now)
+    fly = ctl._fly
+
+    def dying_fly(i, *a):
+        if i == leg:
+            assert kill.wait(Faults.HOLD_WALL_S), "the kill never came"
+            killed.set()
+            raise _Killed()
+        return fly(i, *a)
+
+    ctl._fly = dying_fly
+
+
 def test_chaos_six_legs_drops_restart_kill_resume_and_sigterm(tmp_path):
     """One 6-leg mission on the lockstep simulator, every fault at a mission event (:class:`Faults`): radio drops
     of 10 s (leg 1), 45 s (leg 3 re-flown) and 300 s (leg 4), the simulator restarting mid-leg 2, the controller
@@ -538,24 +562,7 @@ def test_chaos_six_legs_drops_restart_kill_resume_and_sigterm(tmp_path):
         ctl = _chaos_controller(box, cfg, field, link, rd, echo=None)
         faults.at("drop 10 s", _flying(box, 0), lambda: faults.drop(10.0))
         faults.at("restart", _flying(box, 1, 2), lambda: sim.reboot(downtime_s=2.0))
-        kill, killed = threading.Event(), threading.Event()
-
-        def kill_now():
-            kill.set()
-            faults.hold_until(killed.is_set, "the kill")
-
-        # (a reading counted on leg 3's collector has reached the store's writer: the attempt has samples)
-        faults.at("kill", lambda: ctl.collector.leg_counts(2)["emitted"] >= 3, kill_now)
-        fly = ctl._fly
-
-        def dying_fly(i, *a):
-            if i == 2:
-                assert kill.wait(Faults.HOLD_WALL_S), "the kill never came"
-                killed.set()
-                raise _Killed()
-            return fly(i, *a)
-
-        ctl._fly = dying_fly
+        _dies_in_leg(ctl, faults, 2)
         with pytest.raises(_Killed):
             ctl.run()
         runs.append(rd.read_summary())
@@ -625,6 +632,36 @@ def test_chaos_six_legs_drops_restart_kill_resume_and_sigterm(tmp_path):
     res = replay(rd.root, out=False)
     # every attempt: the 6 legs and the 2 interrupted attempts (legs 3 and 5), each path as recorded
     assert res.reproduced is True and [x.index for x in res.legs] == [0, 1, 2, 2, 3, 4, 4, 5]
+    assert all(x.path_identical for x in res.legs) and all(x.rmse_identical for x in res.legs if x.n_gp_points)
+
+
+def test_replay_of_a_run_resumed_then_rebooted_reproduces_every_leg(tmp_path):
+    """The controller dies mid-leg 2 and is resumed; the autopilot restarts mid-leg 3, after the resume. The
+    resumed controller numbers its boots after the stored ones (its first is boot 1, the restart boot 2) where
+    the log shows one reboot: the replay reads the controller's numbering from its clock STATUSTEXT and maps
+    leg 3's samples to the restart's clock anchor (it absorbed them at boot 1's, and differed in RMSE)."""
+    from passt_mav.analysis.replay import replay
+
+    field = wave_field()
+    cfg = mission(tmp_path, field, legs=3, vehicle={"speed_mps": 5.0, "wp_radius_m": 3.0})
+    rd = RunDir(tmp_path / "run").create()
+    with lockstep(field, tlog=rd.tlog, link_kw={"timeout_s": 1.0}) as (sim, link, box):
+        faults = Faults(sim, box, max_rate=0)
+        ctl = _chaos_controller(box, cfg, field, link, rd, echo=None)
+        _dies_in_leg(ctl, faults, 1)
+        with pytest.raises(_Killed):
+            ctl.run()
+        if link.lost:
+            link.reconnect(wait_s=30)
+        ctl = _chaos_controller(box, cfg, field, link, rd, echo=None, resume=True)
+        faults.at("restart", _flying(box, 2, 2), lambda: sim.reboot(downtime_s=2.0))
+        summary = ctl.run()
+    assert list(faults.fired) == ["kill", "restart"] and summary["status"] == "complete"
+    assert "leg 2: vehicle rebooted" in " | ".join(summary["events"])
+    assert sorted({r.boot for r in stored(rd) if r.leg == 2}) == [1, 2]  # the resumed session's boots
+    assert len(summary["clock"]["later_boots"]) == 2
+    res = replay(rd.root, out=False)
+    assert res.reproduced is True and [x.index for x in res.legs] == [0, 1, 1, 2]
     assert all(x.path_identical for x in res.legs) and all(x.rmse_identical for x in res.legs if x.n_gp_points)
 
 

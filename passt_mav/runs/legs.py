@@ -175,6 +175,11 @@ class _TlogLegs:
     def _statustext(self, m) -> None:
         """The controller's clock reading (:func:`clock_statustext`), sent before it plans a leg."""
         parsed = parse_clock_statustext(m.text if isinstance(m.text, str) else m.text.decode(errors="replace"))
+        if parsed is not None:
+            # the boot as the controller numbered it: a resumed controller numbers its first boot after the
+            # stored ones (RunClock.resume_boots), where this reader counts only the vehicle's reboots; the
+            # samples from here on carry the controller's number, so the run's clock maps them to their boot
+            self.collector.boot_base = int(parsed[2]) - self.collector.boot
         if parsed is not None and self.cur is None:
             self.clock, self.clock_leg = parsed[1:], parsed[0]
             if self.pending is not None:
