@@ -724,3 +724,84 @@ def test_damaged_store_replay_and_export_use_the_log(flown_run, tmp_path, capsys
     lines = capsys.readouterr().out.strip().splitlines()
     assert lines[0].startswith("damaged run: samples.sqlite unreadable") and "telemetry log" in lines[0]
     assert len((tmp_path / "s.csv").read_text().splitlines()) > 10
+
+
+# -- a real SIGKILL ---------------------------------------------------------------------------------------
+def _store_count(db, leg: int) -> int:
+    """Samples of ``leg`` in a run's store written by another process (0 before the store exists)."""
+    import sqlite3
+
+    if not db.exists():
+        return 0
+    with contextlib.closing(sqlite3.connect(f"file:{db}?mode=ro", uri=True, timeout=10)) as con:
+        try:
+            return int(con.execute("select count(*) from samples where leg = ?", (leg,)).fetchone()[0])
+        except sqlite3.OperationalError:  # the table not created yet
+            return 0
+
+
+@pytest.mark.slow  # three CLI processes (demo, run --resume, replay) and a demo paced at 10x: ~100 s on a loaded
+# 2-core machine
+def test_sigkill_mid_leg_then_resume_keeps_the_record_and_replays(tmp_path):
+    """``passt-mav demo`` (one boat, vehicle-sim in lockstep: its clock holds while no controller steps it) killed
+    with SIGKILL mid-leg 2, then ``passt-mav run --resume`` on the same simulator: nothing the store committed is
+    lost, the interrupted attempt is kept, the run completes, and its replay reproduces all 4 attempts. (The
+    killed controller neither holds the boat nor closes its leg in the log, nor writes its summary after leg 1:
+    the log's reader ends the leg at the next controller's clock reading, the resume completes the session's
+    record, and the telemetry log is written unbuffered.)"""
+    import json as _json
+    import re
+    import subprocess
+    import sys
+
+    out = tmp_path / "run"
+    env = dict(os.environ, PYTHONUNBUFFERED="1", OMP_NUM_THREADS="1")
+    cli = [sys.executable, "-m", "passt_mav.cli"]
+    # 10x: a leg of ~36 vehicle s lasts >= 3.6 s of wall time, the kill lands in it on a loaded machine too
+    argv = ["demo", "--legs", "3", "--moves", "4", "--model", "persistence", "--speedup", "10"]
+    demo = subprocess.Popen(
+        [*cli, *argv, "--no-view", "--no-report", "--out", str(out)],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+        env=env,
+        start_new_session=True,  # the simulator it starts shares its process group: cleaned up below
+    )
+    try:
+        port, said = None, []
+        for line in demo.stdout:
+            said.append(line)
+            if m := re.search(r"starting vehicle-sim on tcp:127\.0\.0\.1:(\d+) in lockstep", line):
+                port = int(m.group(1))
+            if line.startswith("leg 1/3:"):
+                break
+        assert port is not None, "".join(said)
+        end = time.monotonic() + 300
+        while _store_count(out / "samples.sqlite", 1) < 2:
+            assert time.monotonic() < end and demo.poll() is None, "".join(said)
+            time.sleep(0.01)
+        os.kill(demo.pid, signal.SIGKILL)
+        demo.wait(30)
+        assert RunDir(out).read_leg(1)["status"] == "flying"
+        before = _store_count(out / "samples.sqlite", 1)
+        resume = [*cli, "run", str(out / "mission.yaml"), "--out", str(out), "--resume", "--no-report"]
+        resume += ["--connect", f"tcp:127.0.0.1:{port}", "--lockstep", "0.5", "--speedup-hint", "50"]
+        r = subprocess.run(resume, capture_output=True, text=True, env=env, timeout=600)
+        assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-2000:]
+    finally:
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(demo.pid, signal.SIGKILL)  # the simulator (the demo itself is gone)
+    rd = RunDir(out)
+    s = rd.read_summary()
+    assert s["status"] == "complete" and [x["index"] for x in s["legs"]] == [0, 1, 2]
+    (attempt,) = rd.read_leg(1)["attempts"]
+    assert attempt["status"] == "interrupted" and attempt["n_samples_stored"] == before >= 2
+    assert (rd.leg_dir(1) / "attempt_1" / "leg.json").exists()
+    assert [x["planned"] for x in s["sessions"]] == [[0, 1], [1, 2]]
+    assert _store_count(rd.samples_db, 1) == s["legs"][1]["n_samples"] > before  # the attempt's kept, and more
+    p = subprocess.run([*cli, "replay", str(out), "--json"], capture_output=True, text=True, env=env, timeout=600)
+    assert p.returncode == 0, p.stdout[-3000:] + p.stderr[-2000:]
+    res = _json.loads(p.stdout)
+    assert res["reproduced"] is True and [x["index"] for x in res["legs"]] == [0, 1, 1, 2]
+    assert all(x["path_identical"] for x in res["legs"]) and not res["notes"]
+    assert all(x["rmse_identical"] for x in res["legs"] if x["n_gp_points"])

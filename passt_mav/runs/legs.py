@@ -180,6 +180,11 @@ class _TlogLegs:
             # stored ones (RunClock.resume_boots), where this reader counts only the vehicle's reboots; the
             # samples from here on carry the controller's number, so the run's clock maps them to their boot
             self.collector.boot_base = int(parsed[2]) - self.collector.boot
+            cur = self.cur
+            if cur is not None and (cur.planned_index, cur.clock) != (parsed[0], parsed[1:]):
+                # a new clock reading while a leg flies: the controller that flew it died without a mode
+                # command (kill -9, a power cut) and a resumed one plans now; its leg ends here
+                self._end_leg()
         if parsed is not None and self.cur is None:
             self.clock, self.clock_leg = parsed[1:], parsed[0]
             if self.pending is not None:
@@ -217,10 +222,14 @@ class _TlogLegs:
             self.cur, self.pending = leg, None
             self.collector.leg = leg.index
         elif mode != _AUTO and self.cur is not None:
-            self.cur.closed = True
-            self.cur = None
-            self.tb_lo = self.tb
-            self.collector.leg = None
+            self._end_leg()
+
+    def _end_leg(self) -> None:
+        """The flying leg ends (a mode command other than AUTO, or the next controller's clock reading)."""
+        self.cur.closed = True
+        self.cur = None
+        self.tb_lo = self.tb
+        self.collector.leg = None
 
     def finish(self) -> list[LoggedLeg]:
         """The legs, once the log ends (readings still waiting for a fix after them: the log has none)."""
