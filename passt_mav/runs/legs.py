@@ -128,6 +128,7 @@ class _TlogLegs:
         self.tb_lo: int | None = None  # time_boot_ms when the previous leg ended (the log's first)
         self.clock: tuple[int, int, int] | None = None  # the clock STATUSTEXT not yet given to a leg
         self.clock_leg: int | None = None  # the controller's leg number in it
+        self.readings_seen: set[tuple[int, int, int, int]] = set()  # clock STATUSTEXTs read so far
         self.outside = 0  # samples outside any leg
         self.collector = SampleCollector(self._on_sample, u_name=u_name, v_name=v_name)
 
@@ -175,13 +176,14 @@ class _TlogLegs:
     def _statustext(self, m) -> None:
         """The controller's clock reading (:func:`clock_statustext`), sent before it plans a leg."""
         parsed = parse_clock_statustext(m.text if isinstance(m.text, str) else m.text.decode(errors="replace"))
-        if parsed is not None:
-            # the boot as the controller numbered it: a resumed controller numbers its first boot after the
-            # stored ones (RunClock.resume_boots), where this reader counts only the vehicle's reboots; the
-            # samples from here on carry the controller's number, so the run's clock maps them to their boot
+        if parsed is not None and parsed not in self.readings_seen:  # (sent again at arming: the same one)
+            self.readings_seen.add(parsed)
+            # the boot as the controller numbered it when it read its clock, just now: a resumed controller
+            # numbers its first boot after the stored ones (RunClock.resume_boots), where this reader counts
+            # only the vehicle's reboots; the samples from here on carry the controller's number, so the run's
+            # clock maps them to their boot
             self.collector.boot_base = int(parsed[2]) - self.collector.boot
-            cur = self.cur
-            if cur is not None and (cur.planned_index, cur.clock) != (parsed[0], parsed[1:]):
+            if self.cur is not None:
                 # a new clock reading while a leg flies: the controller that flew it died without a mode
                 # command (kill -9, a power cut) and a resumed one plans now; its leg ends here
                 self._end_leg()
