@@ -271,6 +271,38 @@ def test_stop_signals_raise_once_outside_a_file_write_and_after_it_inside():
     assert said[-1].startswith("SIGHUP received: stopping already")
 
 
+def test_a_stop_signal_in_a_queue_wait_is_raised_after_the_wait_and_the_queue_stays_sound():
+    """SIGTERM while the main thread waits in ``queue.get`` (a ``Condition.wait``): Stopped comes once the wait
+    is over, out of the queue's code, never inside it (raised there, the ``with`` around the wait released the
+    queue's lock while the link's reader thread held it, and the reader died: ``release unlocked lock``)."""
+    import queue
+    import traceback
+
+    q: queue.Queue = queue.Queue()
+
+    def get():  # as passt_mav.mavlink.routing.Subscription.get waits for a message: None after the timeout
+        try:
+            return q.get(timeout=1.0)
+        except queue.Empty:
+            return None
+
+    said: list[str] = []
+    threading.Timer(0.1, os.kill, (os.getpid(), signal.SIGTERM)).start()
+    with StopSignals(echo=said.append):
+        t0 = time.monotonic()
+        with pytest.raises(Stopped) as ei:
+            get()
+        waited = time.monotonic() - t0
+    frames = traceback.extract_tb(ei.value.__traceback__)
+    assert not any(f.filename in (queue.__file__, threading.__file__) for f in frames), frames
+    assert 0.9 <= waited < 3.0 and said[0].startswith("SIGTERM received")  # the wait ran its course
+    assert not q.mutex.locked()
+    worker = threading.Thread(target=lambda: (q.put(1), q.put(2)))  # another thread uses the queue as before
+    worker.start()
+    worker.join(5)
+    assert q.get(timeout=1) == 1 and q.get(timeout=1) == 2
+
+
 def _signal_when_in_leg(ctl, signum, *, after_reached: int = 1):
     """From a thread: ``signum`` to this process once leg 0 flies in AUTO and has reached an item."""
 
