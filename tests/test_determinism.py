@@ -281,3 +281,22 @@ def test_a_bad_lockstep_is_one_line_exit_2_and_writes_nothing(capsys, tmp_path):
         lines = e.strip().splitlines()
         assert rc == 2 and len(lines) == 1 and "--lockstep" in lines[0] and needle in lines[0], (o, e)
         assert "Traceback" not in o + e and not out.exists()
+
+
+@pytest.mark.slow  # a 3-boat demo on the wall clock (legs of >= 2640 simulated s at 150x) and its replay: ~3 min
+def test_a_fresh_three_boat_demo_replays_every_path(tmp_path):
+    """Issue 42 item 4 for a fleet: ``demo --boats 3`` (its simulator on the wall clock: the boats share one clock
+    and cannot be stepped in lockstep yet), then ``replay``: exit 0, every boat's every leg with its recorded path
+    and RMSE. The replay follows the run's record of which boat planned and absorbed when (the wall clock decides
+    that order live), so the numerics alone must agree."""
+    out = str(tmp_path / "fleet")
+    env = dict(os.environ, OMP_NUM_THREADS="1")
+    cli = [sys.executable, "-m", "passt_mav.cli"]
+    argv = ["demo", "--field", "builtin:ocean", "--boats", "3", "--legs", "2", "--moves", "2", "--no-view"]
+    p = subprocess.run([*cli, *argv, "--no-report", "--out", out], capture_output=True, text=True, env=env)
+    assert p.returncode == 0, p.stdout[-3000:] + p.stderr[-2000:]
+    r = subprocess.run([*cli, "replay", out, "--json"], capture_output=True, text=True, env=env)
+    assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-2000:]
+    res = json.loads(r.stdout)
+    assert res["kind"] == "fleet" and res["reproduced"] is True and len(res["legs"]) == 6
+    assert all(x["path_identical"] for x in res["legs"]) and all(x["rmse_identical"] for x in res["legs"])

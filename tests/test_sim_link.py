@@ -92,6 +92,29 @@ def test_arm_relative_drop_counts_from_the_first_arming():
     assert sim.links[-1].armed_at == t_arm and sim.links[-1].is_down(t_arm + 3.0)
 
 
+def test_drop_that_breaks_the_link_holds_until_the_client_reconnects():
+    # LinkConfig.drops_break_link (vehicle-sim --drops-break-link, passt-mav demo --inject-link-drop): the link
+    # open when the drop began stays silent after its 3 s; a link opened during the drop hears the vehicle
+    # once the drop is over, one opened after it at once
+    sim = Simulator(None, home=HOME, config=SimConfig.fast())
+    cfg = LinkConfig(drops=((5.0, 3.0),), drops_break_link=True)
+    old = SimClient(sim, link_config=cfg)
+    old.collect(6.0)
+    during = SimClient(sim, link_config=cfg)  # opened at 6 s, inside the drop
+    assert during.sim.links[-1].opened_at == pytest.approx(6.0)
+    while sim.t < 12.0:
+        sim.step(0.05)
+        old.pump(), during.pump()
+    hb_old = [t for t, m in old.log if m.get_type() == "HEARTBEAT"]
+    hb_during = [t for t, m in during.log if m.get_type() == "HEARTBEAT"]
+    assert any(t < 5.0 for t in hb_old) and not any(t > 5.05 for t in hb_old)
+    assert not any(t < 8.0 for t in hb_during) and any(t >= 8.0 for t in hb_during)
+    after = SimClient(sim, link_config=cfg)
+    after.collect(2.0)
+    assert [m for t, m in after.log if m.get_type() == "HEARTBEAT"]
+    assert not sim.links[0].is_down(4.9) and sim.links[0].is_down(1e6)  # the interrupted link: for good
+
+
 def test_cli_parses_arm_relative_drops():
     from vehicle_sim.cli import _drop, _split_drops
 

@@ -1,7 +1,7 @@
 """Issue 29's acceptance test: ``passt-mav demo --boats 3 --view PORT`` driven by headless Chromium.
 
 The boat markers move between two screenshots, the leg counter advances, an injected link drop
-(``--inject-link-drop``: vehicle-sim's outage of boat 1) shows its alert, and every request the
+(``--inject-link-drop``: vehicle-sim's outage of boat 1, held until its controller reconnects) shows its alert, and every request the
 browser makes goes to 127.0.0.1 (the browser's proxy is a dead port, so a request to anywhere
 else would fail as on a machine with its network cut). A screenshot of the page at the end of
 the demo is kept (in ``$PASST_VIEW_SHOTS`` when set, else the test's tmp dir).
@@ -131,9 +131,11 @@ def test_demo_three_boats_live_view_in_headless_chromium(tmp_path):
     env = dict(os.environ, OMP_NUM_THREADS="1")
     # the North Atlantic mission (6.6 km cells: a 2-move leg lasts >= 2640 s of simulated time at 5 m/s; the
     # default demo's 30 m cells would end the leg before the drop): boat 1's link goes down 300 simulated s
-    # after it arms, for 900 s (6 s of wall time at 150x: well past the 2 s that make a link lost). Counted
-    # from the arming, not the simulator's clock start: on a loaded machine the boats took 3500 simulated s
-    # (23 s wall) to connect and an outage on the clock fell before the mission
+    # after it arms, for 900 s and until its controller has reconnected (the demo's drops break the connection
+    # they interrupt: vehicle-sim --drops-break-link), so the controller cannot miss it however loaded the
+    # machine (a 6 s drop on the wall clock once ended inside the mission read-back's retries, unseen).
+    # Counted from the arming, not the simulator's clock start: on a loaded machine the boats took 3500
+    # simulated s (23 s wall) to connect and an outage on the clock fell before the mission
     cmd = [
         sys.executable,
         "-m",

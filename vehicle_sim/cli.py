@@ -195,6 +195,12 @@ def build_parser() -> argparse.ArgumentParser:
         "(since the vehicle first armed: the same moment of the mission however long a client took to connect); "
         "repeatable",
     )
+    p.add_argument(
+        "--drops-break-link",
+        action="store_true",
+        help="a drop also ends the connections it interrupts: they stay silent after it until the ground station "
+        "reconnects (a modem that lost its session), so a drop is always noticed",
+    )
     p.add_argument("--seed", type=int, default=0, help="seed of link loss and sensor noise")
     p.add_argument("--current-noise", type=float, default=0.0, help="std of Gaussian noise on CUR_U/CUR_V, m/s")
     p.add_argument("--current-rate", type=float, default=1.0, help="CUR_U/CUR_V rate, Hz of simulated time (0 = off)")
@@ -456,6 +462,7 @@ def _run(args) -> int:
             baud=args.baud,
             buffer_bytes=args.radio_buffer,
             **_split_drops(drops + boat_drops[0]),
+            drops_break_link=args.drops_break_link,
             seed=args.seed,
         )
         server = Simulator(
@@ -483,6 +490,7 @@ def _run(args) -> int:
                 baud=args.baud,
                 buffer_bytes=args.radio_buffer,
                 **_split_drops(drops + boat_drops[i]),
+                drops_break_link=args.drops_break_link,
                 seed=args.seed + i,
             )
             for i in range(n)

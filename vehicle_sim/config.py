@@ -24,6 +24,11 @@ class LinkConfig:
             since it started): nothing passes either way during them.
         arm_drops: outages ``((start_s, duration_s), ...)`` counted from the vehicle's first arming
             (the start of its mission, whatever the wall time the clock ran before a client got there).
+        drops_break_link: a drop also ends the links it interrupts: a link open when a drop began stays
+            silent after it until it is closed (a modem that lost its session), so a ground station hears
+            the vehicle again only once it has noticed the loss and reconnected; a link opened later
+            passes frames once the drop is over. Injected drops are then seen by the ground station
+            however late it looks (``passt-mav demo --inject-link-drop``).
         seed: seed of the loss generator (each link adds its index).
         max_queue_s: radio buffer size, expressed as seconds of backlog.
         buffer_bytes: radio transmit buffer in bytes (0 = only ``max_queue_s``): a frame that does not
@@ -35,6 +40,7 @@ class LinkConfig:
     baud: int = 0
     drops: tuple[tuple[float, float], ...] = ()
     arm_drops: tuple[tuple[float, float], ...] = ()
+    drops_break_link: bool = False
     seed: int = 0
     max_queue_s: float = 2.0
     buffer_bytes: int = 0

@@ -120,6 +120,7 @@ class Link:
         self.index = int(index)
         self.config = config
         self.armed_at: float | None = None  # the vehicle's first arming, simulated s (set by its autopilot)
+        self.opened_at: float | None = None  # the simulator's clock when the link opened (set by the simulator)
         self.name = name or f"link{index}"
         self.tlog = tlog
         self.mav = mavlink2.MAVLink(_Writer(self), srcSystem=sysid, srcComponent=compid, use_native=False)
@@ -151,11 +152,15 @@ class Link:
 
     # -- impairment ------------------------------------------------------------
     def is_down(self, t: float) -> bool:
-        """True during a scheduled outage (``drops`` on the clock, ``arm_drops`` after ``armed_at``)."""
-        if any(start <= t < start + dur for start, dur in self.config.drops):
-            return True
-        a = self.armed_at
-        return a is not None and any(a + start <= t < a + start + dur for start, dur in self.config.arm_drops)
+        """True during a scheduled outage (``drops`` on the clock, ``arm_drops`` after ``armed_at``), and with
+        ``drops_break_link`` after any outage that began while this link was open (since ``opened_at``)."""
+        if not (self.config.drops or self.config.arm_drops):
+            return False
+        windows = list(self.config.drops)
+        if self.armed_at is not None:
+            windows += [(self.armed_at + start, dur) for start, dur in self.config.arm_drops]
+        broken = self.config.drops_break_link and self.opened_at is not None
+        return any(start <= t < start + dur or (broken and self.opened_at <= start <= t) for start, dur in windows)
 
     def _serialise(self, t: float, nbytes: int, free_at: float) -> float | None:
         """Delivery time of a frame given the serial budget, or None if the buffer overflows."""

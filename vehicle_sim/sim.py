@@ -309,6 +309,7 @@ class Simulator(Clocked):
                 name=name,
             )
             link.armed_at = self.autopilot.first_armed_clock  # a link opened after the first arming
+            link.opened_at = self.autopilot.clock
             self._next_index += 1
             self.links.append(link)
             return link

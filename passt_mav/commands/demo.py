@@ -41,7 +41,7 @@ EXAMPLES = """examples:
     passt-mav demo --mission missions/cylinder.yaml
     passt-mav demo --boats 3                      # a fleet: three boats, one shared estimate
     passt-mav demo --boats 3 --view 8765          # its live view on http://127.0.0.1:8765/
-    passt-mav demo --inject-link-drop 0:300:900  # boat 0's link down 300 simulated s after it arms, for 900 s
+    passt-mav demo --inject-link-drop 0:300:900  # boat 0's link down 300 simulated s after it arms, >= 900 s
 """
 
 #: the demo's changes to any base mission: a 5 m/s boat, 25 m waypoint radius
@@ -160,7 +160,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         default=[],
         metavar="BOAT:START:DURATION",
         help="a link outage of boat BOAT (0-based) START simulated seconds after the boat first arms, for "
-        "DURATION simulated seconds (vehicle-sim --boat-drop BOAT:arm+START:DURATION); repeatable",
+        "DURATION simulated seconds and until the controller has reconnected (vehicle-sim --boat-drop "
+        "BOAT:arm+START:DURATION --drops-break-link); repeatable",
     )
 
 
@@ -520,7 +521,10 @@ def _drop_args(specs: list[str], boats: int) -> list[str]:
         # machine's load) must not move the outage before the mission starts
         d = f"arm+{start:g}:{dur:g}"
         out += ["--boat-drop", f"{b}:{d}"] if boats > 1 else ["--drop", d]
-    return out
+    # a drop holds until the controller has noticed it and reconnected (the connection it interrupted stays
+    # silent): on the wall clock a drop that ended while the controller waited inside a command's retries (a
+    # loaded machine) went unnoticed, and a demo that injects one must show it
+    return [*out, "--drops-break-link"] if out else out
 
 
 def sim_placement(config) -> list[str]:

@@ -274,7 +274,8 @@ class _Tlog:
     """
 
     def __init__(self, path: str):
-        self._f = open(path, "ab")  # noqa: SIM115 - the telemetry log stays open for the link's life (close())
+        # unbuffered: every frame reaches the OS as it is logged, so a controller killed with SIGKILL loses none
+        self._f = open(path, "ab", buffering=0)  # noqa: SIM115 - the telemetry log stays open for the link's life
         self._lock = threading.Lock()
 
     def write(self, frame: bytes) -> None:

@@ -128,6 +128,7 @@ class _TlogLegs:
         self.tb_lo: int | None = None  # time_boot_ms when the previous leg ended (the log's first)
         self.clock: tuple[int, int, int] | None = None  # the clock STATUSTEXT not yet given to a leg
         self.clock_leg: int | None = None  # the controller's leg number in it
+        self.readings_seen: set[tuple[int, int, int, int]] = set()  # clock STATUSTEXTs read so far
         self.outside = 0  # samples outside any leg
         self.collector = SampleCollector(self._on_sample, u_name=u_name, v_name=v_name)
 
@@ -175,6 +176,17 @@ class _TlogLegs:
     def _statustext(self, m) -> None:
         """The controller's clock reading (:func:`clock_statustext`), sent before it plans a leg."""
         parsed = parse_clock_statustext(m.text if isinstance(m.text, str) else m.text.decode(errors="replace"))
+        if parsed is not None and parsed not in self.readings_seen:  # (sent again at arming: the same one)
+            self.readings_seen.add(parsed)
+            # the boot as the controller numbered it when it read its clock, just now: a resumed controller
+            # numbers its first boot after the stored ones (RunClock.resume_boots), where this reader counts
+            # only the vehicle's reboots; the samples from here on carry the controller's number, so the run's
+            # clock maps them to their boot
+            self.collector.boot_base = int(parsed[2]) - self.collector.boot
+            if self.cur is not None:
+                # a new clock reading while a leg flies: the controller that flew it died without a mode
+                # command (kill -9, a power cut) and a resumed one plans now; its leg ends here
+                self._end_leg()
         if parsed is not None and self.cur is None:
             self.clock, self.clock_leg = parsed[1:], parsed[0]
             if self.pending is not None:
@@ -212,10 +224,14 @@ class _TlogLegs:
             self.cur, self.pending = leg, None
             self.collector.leg = leg.index
         elif mode != _AUTO and self.cur is not None:
-            self.cur.closed = True
-            self.cur = None
-            self.tb_lo = self.tb
-            self.collector.leg = None
+            self._end_leg()
+
+    def _end_leg(self) -> None:
+        """The flying leg ends (a mode command other than AUTO, or the next controller's clock reading)."""
+        self.cur.closed = True
+        self.cur = None
+        self.tb_lo = self.tb
+        self.collector.leg = None
 
     def finish(self) -> list[LoggedLeg]:
         """The legs, once the log ends (readings still waiting for a fix after them: the log has none)."""

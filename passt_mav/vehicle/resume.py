@@ -52,7 +52,12 @@ class ResumeRecord:
             *((old or {}).get("sessions") or []),
             {"started_utc": utc_now(), "first_leg": len(done), "planned": []},
         ]
-        self._archive_attempt(len(done))
+        if self._archive_attempt(len(done)) and len(self.sessions) > 1:
+            # the attempt was planned by the session before: one killed (SIGKILL, a power cut) last wrote its
+            # summary when a leg completed, before it planned this one; the replay restarts by these lists
+            planned = self.sessions[-2].setdefault("planned", [])
+            if not planned or planned[-1] != len(done):
+                planned.append(len(done))
         if not done:
             # killed during leg 0: still say so (the store keeps that leg's samples; it is re-planned)
             self._say(f"resuming {self.rd.root}: no leg completed yet; leg 0 is re-planned from here")
@@ -72,17 +77,18 @@ class ResumeRecord:
         self.events.append(f"resumed after leg {len(done) - 1} at {utc_now()}")
         return np.array(fld.data[0], dtype=np.float32), float(last["t_state"]), len(done)
 
-    def _archive_attempt(self, i: int, status: str = "interrupted") -> None:
+    def _archive_attempt(self, i: int, status: str = "interrupted") -> bool:
         """Leg ``i`` was in flight when the controller stopped (or the operator asked to re-plan it: ``status``):
         keep that attempt's record. Its files move to
         ``legs/NNN/attempt_K/`` (K = 1, 2, ...) and a summary of it (path, start cell, clock, samples stored)
         goes to :attr:`_attempts`, which the re-planned leg's record lists under ``attempts``. Its samples stay
-        in the store under leg ``i``: measurements like any other, the re-flown leg absorbs them too."""
+        in the store under leg ``i``: measurements like any other, the re-flown leg absorbs them too. Returns
+        whether there was such an attempt."""
         if not self.rd.leg_file(i).exists():
-            return
+            return False
         old = self.rd.read_leg(i)
         if old.get("status") == "complete":
-            return
+            return False
         d = self.rd.leg_dir(i)
         k = 1 + sum(1 for x in d.glob("attempt_*") if x.is_dir())
         dest = d / f"attempt_{k}"
@@ -102,3 +108,4 @@ class ResumeRecord:
             },
         ]
         self._say(f"leg {i + 1}: its attempt {k} ({status}) kept in {dest} ({self.store.count(i)} samples stored)")
+        return True

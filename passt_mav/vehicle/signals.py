@@ -8,14 +8,21 @@ exits with ``128 + the signal's number`` (130 SIGINT, 143 SIGTERM, 129 SIGHUP), 
 gives a process killed by that signal, so supervisors read it the same way.
 
 A signal that arrives while the controller writes a run file (:meth:`StopSignals.critical`) is held
-until the write is over: a file is never left half-written by a stop. Later signals, once stopping,
+until the write is over: a file is never left half-written by a stop. One that arrives while the main
+thread waits inside :mod:`threading` or :mod:`queue` (a ``Condition.wait`` behind a queue's ``get``)
+is raised as soon as the thread is back in other code (a profile hook, :func:`sys.setprofile`), at the
+latest when that wait times out: raised inside the wait, it left the queue's lock released while the
+link's reader thread held it, and the reader died (``RuntimeError: release unlocked lock``), so the stop
+found no link for its HOLD. Later signals, once stopping,
 are only acknowledged (one line); the clean-up is short (HOLD, a flush, one JSON file).
 """
 
 from __future__ import annotations
 
 import contextlib
+import queue
 import signal
+import sys
 import threading
 from collections.abc import Callable, Iterator
 from typing import Self
@@ -24,6 +31,13 @@ __all__ = ["Stopped", "StopSignals", "NO_SIGNALS", "exit_code"]
 
 #: the signals that stop a mission cleanly
 SIGNALS = tuple(s for s in (getattr(signal, n, None) for n in ("SIGTERM", "SIGINT", "SIGHUP")) if s is not None)
+
+
+def _in_lock_wait(frame) -> bool:
+    """The main thread, interrupted in ``frame``, is inside :mod:`threading` or :mod:`queue`: an exception must
+    not be raised there (``Condition.wait`` re-acquires its lock in a ``finally``; interrupted there, the ``with``
+    around it releases a lock another thread holds)."""
+    return frame is not None and frame.f_code.co_filename in (threading.__file__, queue.__file__)
 
 
 class Stopped(BaseException):  # noqa: N818 - like KeyboardInterrupt: not caught by ``except Exception``
@@ -62,11 +76,13 @@ class StopSignals:
         return self
 
     def __exit__(self, *exc) -> None:
+        if sys.getprofile() == self._raise_when_out:
+            sys.setprofile(None)
         for s, h in self._old.items():
             signal.signal(s, h)
         self._old.clear()
 
-    def _handler(self, signum: int, _frame) -> None:
+    def _handler(self, signum: int, frame) -> None:
         name = signal.Signals(signum).name
         if self.received is not None or self._disarmed:
             self.echo(f"{name} received: stopping already (HOLD, store flush, summary)")
@@ -76,7 +92,23 @@ class StopSignals:
         if self._critical:
             self._pending = True  # raised when the file being written is complete
             return
+        if _in_lock_wait(frame):
+            sys.setprofile(self._raise_when_out)  # (the handler runs in the main thread: its profile only)
+            return
         raise Stopped(signum)
+
+    def _raise_when_out(self, frame, _event, _arg) -> None:
+        """Profile hook of the main thread while a stop waits for it to leave :mod:`threading`/:mod:`queue`
+        (this module's frames, the handler's return first, are not that code either)."""
+        if _in_lock_wait(frame) or frame.f_code.co_filename == __file__:
+            return
+        sys.setprofile(None)
+        if self._disarmed:
+            return
+        if self._critical:
+            self._pending = True
+            return
+        raise Stopped(self.received or signal.SIGTERM)
 
     @contextlib.contextmanager
     def critical(self) -> Iterator[None]:
