@@ -70,21 +70,39 @@ def test_an_update_that_explains_the_next_leg_better_is_kept(persistence_knode):
     assert second["kept"] is True and second["reason"] is None and second["steps"] == 30
     assert second["scores"]["updated"] > second["scores"]["original"]
     # the same decision when the loop is driven by hand, and what it changes
-    from passt_mav.loop.passt import FieldSampler
-
-    sampler = FieldSampler(field, steps_per_leg=S)
-    state = field.data[0]
-    for k in range(2):
-        plan = loop.plan_leg(state, (0, 0), field.times[k * S], field.dt)
-        forecast_before = plan.forecast
-        state = loop.update(plan, sampler.sample_path(plan.path, plan.t_start))
+    plan, state = _drive(loop, field)
     assert loop.online.kept_ == 1 and loop.predictor is not persistence_knode
-    assert loop.initial_predictor is persistence_knode and plan.forecast is not forecast_before
+    assert loop.initial_predictor is persistence_knode
+    # the leg's background is the update's forecast (it moves the wave), not persistence's
+    assert np.abs(plan.forecast[1] - plan.forecast[0]).max() > 1e-3
     assert loop.gp_summary()["model_update"]["kept"] is True
     np.testing.assert_allclose(loop.model_alone(field.data[0], 1)[1], field.data[0], atol=1e-5)  # still persistence
     # the estimate is better than the model alone's (persistence) at the end of the second leg
     truth = field.data[2 * S]
     assert np.sqrt(np.mean((state - truth) ** 2)) < np.sqrt(np.mean((field.data[0] - truth) ** 2))
+
+
+def _drive(loop, field, legs=2):
+    """``legs`` legs of the loop by hand on ``field`` (samples at each leg's end), from its snapshot 0."""
+    from passt_mav.loop.passt import FieldSampler
+
+    sampler, state = FieldSampler(field, steps_per_leg=S), field.data[0]
+    for k in range(legs):
+        plan = loop.plan_leg(state, (0, 0), field.times[k * S], field.dt)
+        state = loop.update(plan, sampler.sample_path(plan.path, plan.t_start))
+    return plan, state
+
+
+def test_a_replay_takes_the_recorded_steps_whatever_the_budget(persistence_knode):
+    """A budget no step fits in, but the replay's recorded 7 steps for leg 1: 7 steps are taken."""
+    field = _wave()
+    mu = ModelUpdate(online="on", budget_s=1e-9, lr=3e-3)
+    loop = LoopOptions(planner="lawnmower", path_length=60, steps_per_leg=S, model_update=mu).loop(
+        persistence_knode, field.grid
+    )
+    loop.online.replay_steps[1] = 7
+    _drive(loop, field)
+    assert [r["steps"] for r in loop.online.history_] == [0, 7] and not loop.online.replay_steps
 
 
 def test_off_by_default_and_untrainable_models_are_left_alone():

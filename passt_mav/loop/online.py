@@ -17,7 +17,8 @@ the run's ``rmse_model``) stays the predictor the loop was built with.
 Determinism: the gradient steps are deterministic on one CPU thread (no random draw); a budget in
 seconds is not (a slower machine takes fewer steps). ``max_steps`` caps the steps; with a budget
 large enough for them, the number of steps and so the decision do not depend on the machine's speed
-(what the offline campaign and the tests do, and what a mission that must replay bit for bit sets).
+(what the offline campaign and the tests do). A replay (:mod:`passt_mav.analysis.replay`) takes each
+leg's recorded number of steps (:attr:`OnlineUpdate.replay_steps`) whatever the budget.
 """
 
 from __future__ import annotations
@@ -100,6 +101,8 @@ class OnlineUpdate:
         self.history_: list[dict] = []
         self.kept_ = 0
         self._leg: int | None = None
+        #: leg index -> gradient steps to take there whatever the budget (a replay repeats a run's legs)
+        self.replay_steps: dict[int, int] = {}
 
     @classmethod
     def of(cls, options: ModelUpdate | None, predictor) -> OnlineUpdate | None:
@@ -159,6 +162,8 @@ class OnlineUpdate:
         from passt_mav.models.online import update_online
 
         fc, o = leg.forecast, self.options
+        steps = self.replay_steps.pop(loop.leg_index, None)
+        budget_s, max_steps = (math.inf, steps) if steps is not None else (o.budget_s, o.max_steps)
         times = leg.t_start + leg.dt * np.arange(fc.shape[0])
         ts = np.clip(samples.t, times[0], times[-1])
         st = samples.t if loop.hyper != "state" else None  # as PasstLoop.update scores the leg
@@ -174,12 +179,12 @@ class OnlineUpdate:
         cand, rec = update_online(
             loop.predictor,
             states,
-            budget_s=o.budget_s,
+            budget_s=budget_s,
             score=score,
             lr=o.lr,
             horizon=o.horizon,
             interval=interval,
-            max_steps=o.max_steps,
+            max_steps=max_steps,
         )
         rec.update(states=int(len(states)), interval=interval)
         if rec["kept"]:

@@ -688,7 +688,8 @@ class PasstLoop:
         (``signal_kept``; otherwise the forecast was left alone there), the background factor,
         with the GP's ``bias`` the offset and forecast-anomaly variances (``offset_var``,
         ``anomaly_var``; 0 = not kept) and the share of the region the samples saw (``bias_coverage``,
-        the modes' gate), and the prior weights (``prior_blend="bma"``)."""
+        the modes' gate), the prior weights (``prior_blend="bma"``) and the online model update's record of
+        the leg (``model_update``: :class:`passt_mav.loop.online.OnlineUpdate`)."""
         gp = self.gp
         out: dict = {"sensor_noise_std": float(gp.noise_std)}
         ks = getattr(gp, "kernels_", None)
