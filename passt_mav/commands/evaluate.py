@@ -24,6 +24,32 @@ EXAMPLES = """examples:
 
 DEFAULT_PATH_LENGTHS = "25,50,75,100,150,200"
 
+#: ``--model-update`` options: (``ModelUpdate`` field, option, type, default, metavar, help)
+_UPDATE_OPTIONS = (
+    ("budget_s", "--model-update-budget", float, 5.0, "SECONDS", "seconds of gradient steps per leg (default 5)"),
+    (
+        "max_steps",
+        "--model-update-steps",
+        int,
+        None,
+        "N",
+        (
+            "at most N gradient steps per leg, so that the numbers do not depend on the machine's speed (give a "
+            "budget large enough for them; default: the budget alone)"
+        ),
+    ),
+    ("lr", "--model-update-lr", float, 1e-4, "LR", "Adam's learning rate (default 1e-4)"),
+    (
+        "horizon",
+        "--model-update-horizon",
+        int,
+        1,
+        "H",
+        "later states each state's roll-out is compared with (default 1)",
+    ),
+    ("window", "--model-update-window", int, 10, "W", "the most recent reconstructed states trained on (default 10)"),
+)
+
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
@@ -168,41 +194,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         default="off",
         help="learning at sea (a KNODE's weights; DMD and persistence stay as they are): between legs a copy of the model is fine-tuned on the trial's reconstructed states so far and kept only when the next leg's samples find it more probable than the current model (innovation log likelihood); each trial learns its own model (serial engine only) (default off)",
     )
-    p.add_argument(
-        "--model-update-budget",
-        type=float,
-        default=5.0,
-        metavar="SECONDS",
-        help="with --model-update on: seconds of gradient steps per leg (default 5)",
-    )
-    p.add_argument(
-        "--model-update-steps",
-        type=int,
-        default=None,
-        metavar="N",
-        help="with --model-update on: at most N gradient steps per leg, so that the numbers do not depend on the machine's speed (give a budget large enough for them; default: the budget alone)",
-    )
-    p.add_argument(
-        "--model-update-lr",
-        type=float,
-        default=1e-4,
-        metavar="LR",
-        help="with --model-update on: Adam's learning rate (default 1e-4)",
-    )
-    p.add_argument(
-        "--model-update-horizon",
-        type=int,
-        default=1,
-        metavar="H",
-        help="with --model-update on: later states each state's roll-out is compared with (default 1)",
-    )
-    p.add_argument(
-        "--model-update-window",
-        type=int,
-        default=10,
-        metavar="W",
-        help="with --model-update on: the most recent reconstructed states trained on (default 10)",
-    )
+    for _, flag, typ, default, metavar, text in _UPDATE_OPTIONS:
+        p.add_argument(flag, type=typ, default=default, metavar=metavar, help=f"with --model-update on: {text}")
     p.add_argument(
         "--boats",
         type=int,
@@ -366,7 +359,7 @@ def run(args: argparse.Namespace) -> int:
     if not problem and args.model_update == "on" and args.engine != "serial":
         problem = "--model-update on gives each trial its own model: use --engine serial"
     if problem:  # before the field loads and the run directory is made
-        for key, opt in _UPDATE_FLAGS.items():  # the option's name as the command line spells it
+        for key, opt, *_ in _UPDATE_OPTIONS:  # the option's name as the command line spells it
             problem = problem.replace(f"model_update.{key} ", f"{opt} ")
         raise PlannerError(problem)
     field = resolve_field(args.data)
@@ -395,16 +388,6 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-#: ``ModelUpdate`` fields -> their ``passt-mav evaluate`` options
-_UPDATE_FLAGS = {
-    "budget_s": "--model-update-budget",
-    "max_steps": "--model-update-steps",
-    "lr": "--model-update-lr",
-    "horizon": "--model-update-horizon",
-    "window": "--model-update-window",
-}
-
-
 def _model_update(args: argparse.Namespace):
     """The :class:`passt_mav.loop.online.ModelUpdate` of ``--model-update*`` (``None`` when off)."""
     from passt_mav.loop.online import ModelUpdate
@@ -412,12 +395,7 @@ def _model_update(args: argparse.Namespace):
     if args.model_update == "off":
         return None
     return ModelUpdate(
-        online="on",
-        budget_s=args.model_update_budget,
-        lr=args.model_update_lr,
-        horizon=args.model_update_horizon,
-        max_steps=args.model_update_steps,
-        window=args.model_update_window,
+        online="on", **{key: getattr(args, opt[2:].replace("-", "_")) for key, opt, *_ in _UPDATE_OPTIONS}
     )
 
 
