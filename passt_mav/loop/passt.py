@@ -727,8 +727,9 @@ class PasstLoop:
             out["memory"] = self.memory.record()
         if self.guard_history_:
             out["guard"] = dict(self.guard_history_[-1])
-        if self.online is not None and self.online.record_ is not None:
-            out["model_update"] = dict(self.online.record_)  # kept / seconds / steps / scores (nats) of this leg
+        upd = None if self.online is None else self.online.record_
+        if upd is not None and upd["leg"] == self.leg_index - 1:  # (none for a leg that never reached update)
+            out["model_update"] = dict(upd)  # kept / seconds / steps / scores (nats) of the last leg
         return out
 
     def _loglik_at(self, samples: Samples, xy: np.ndarray, st):
