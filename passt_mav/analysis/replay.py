@@ -544,6 +544,15 @@ def _skipped_leg(lg) -> ReplayLeg:
     )
 
 
+def _replay_model_update(loop, rec: dict | None) -> None:
+    """A leg whose run updated the model online (``leg.json`` ``gp.model_update``) takes the recorded number of
+    gradient steps: a budget in seconds would take as many as this machine manages, and decide differently."""
+    mu = ((rec or {}).get("gp") or {}).get("model_update")
+    online = getattr(loop, "online", None)
+    if online is not None and mu is not None:
+        online.replay_steps[loop.leg_index] = int(mu["steps"])
+
+
 class _LogReplay:
     """Replay of one log (a run directory's, a bare tlog or DataFlash log): its legs in order through the
     setup's :class:`~passt_mav.loop.legstep.LegStep`, the GP state carried from leg to leg."""
@@ -682,7 +691,8 @@ class _LogReplay:
         from passt_mav.loop.legstep import LegStep, build_loop
 
         old, field = self.setup.step, self.setup.field
-        loop = build_loop(self.setup.cfg, old.loop.predictor, field.grid, land=field.land_mask)
+        # the model as loaded (a resumed controller loads it anew: an online update is not carried over)
+        loop = build_loop(self.setup.cfg, old.loop.initial_predictor, field.grid, land=field.land_mask)
         step = self.setup.step = LegStep(self.setup.cfg, field, loop, truth_known=old.truth_known)
         if first == 0:
             state, t_state = step.initial_state()
@@ -728,6 +738,7 @@ class _LogReplay:
         if rec is None and lg.clock is None and k_hi > k_lo:
             lnotes.append(f"the log brackets the controller's clock reading by {k_lo}..{k_hi} forecast steps; used {k}")
         if attempt is None:
+            _replay_model_update(step.loop, rec)
             ab = step.absorb(planned, _absorbed(lg.samples, rec), clock, strict=False)
         else:  # never absorbed: the state goes on unchanged to the next attempt
             ab = SimpleNamespace(samples=[], rmse_passt=None, rmse_model=None, note=None)

@@ -24,6 +24,32 @@ EXAMPLES = """examples:
 
 DEFAULT_PATH_LENGTHS = "25,50,75,100,150,200"
 
+#: ``--model-update`` options: (``ModelUpdate`` field, option, type, default, metavar, help)
+_UPDATE_OPTIONS = (
+    ("budget_s", "--model-update-budget", float, 5.0, "SECONDS", "seconds of gradient steps per leg (default 5)"),
+    (
+        "max_steps",
+        "--model-update-steps",
+        int,
+        None,
+        "N",
+        (
+            "at most N gradient steps per leg, so that the numbers do not depend on the machine's speed (give a "
+            "budget large enough for them; default: the budget alone)"
+        ),
+    ),
+    ("lr", "--model-update-lr", float, 1e-4, "LR", "Adam's learning rate (default 1e-4)"),
+    (
+        "horizon",
+        "--model-update-horizon",
+        int,
+        1,
+        "H",
+        "later states each state's roll-out is compared with (default 1)",
+    ),
+    ("window", "--model-update-window", int, 10, "W", "the most recent reconstructed states trained on (default 10)"),
+)
+
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
@@ -162,6 +188,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         default="off",
         help="the information reward's prior remembers, cell by cell, the local error past legs' samples removed, with a persistence per leg fitted by the innovations' likelihood (fitted), or starts every leg from the stationary prior (off, default)",
     )
+    p.add_argument(
+        "--model-update",
+        choices=("off", "on"),
+        default="off",
+        help="learning at sea (a KNODE's weights; DMD and persistence stay as they are): between legs a copy of the model is fine-tuned on the trial's reconstructed states so far and kept only when the next leg's samples find it more probable than the current model (innovation log likelihood); each trial learns its own model (serial engine only) (default off)",
+    )
+    for _, flag, typ, default, metavar, text in _UPDATE_OPTIONS:
+        p.add_argument(flag, type=typ, default=default, metavar=metavar, help=f"with --model-update on: {text}")
     p.add_argument(
         "--boats",
         type=int,
@@ -312,6 +346,7 @@ def run(args: argparse.Namespace) -> int:
     from passt_mav.errors import PlannerError
     from passt_mav.fields.datasets import resolve_field
     from passt_mav.loop.campaign import blend_options_problem, fit_points_problem, load_predictor
+    from passt_mav.loop.online import model_update_problem
 
     lengths = _parse_lengths(args.path_lengths)
     if args.workers < 1:
@@ -319,7 +354,13 @@ def run(args: argparse.Namespace) -> int:
     if args.steps < 1 or args.steps_per_leg < 1:
         raise PlannerError("--steps and --steps-per-leg must be >= 1")
     problem = blend_options_problem(args.prior_share, args.prior_forgetting) or fit_points_problem(args.gp_fit_points)
+    args.model_update_options = _model_update(args)
+    problem = problem or model_update_problem(args.model_update_options)
+    if not problem and args.model_update == "on" and args.engine != "serial":
+        problem = "--model-update on gives each trial its own model: use --engine serial"
     if problem:  # before the field loads and the run directory is made
+        for key, opt, *_ in _UPDATE_OPTIONS:  # the option's name as the command line spells it
+            problem = problem.replace(f"model_update.{key} ", f"{opt} ")
         raise PlannerError(problem)
     field = resolve_field(args.data)
     predictor = load_predictor(args.model, field)
@@ -345,6 +386,17 @@ def run(args: argparse.Namespace) -> int:
         print(f"figures: {', '.join(f.name for f in files)}")
     print(f"results written to {out_dir}", file=sys.stderr if args.json else sys.stdout)
     return 0
+
+
+def _model_update(args: argparse.Namespace):
+    """The :class:`passt_mav.loop.online.ModelUpdate` of ``--model-update*`` (``None`` when off)."""
+    from passt_mav.loop.online import ModelUpdate
+
+    if args.model_update == "off":
+        return None
+    return ModelUpdate(
+        online="on", **{key: getattr(args, opt[2:].replace("-", "_")) for key, opt, *_ in _UPDATE_OPTIONS}
+    )
 
 
 def _campaign(args: argparse.Namespace, field, predictor, lengths: list[int]) -> dict:
@@ -384,6 +436,7 @@ def _campaign(args: argparse.Namespace, field, predictor, lengths: list[int]) ->
         gp_fit_points=args.gp_fit_points,
         prior_share=args.prior_share,
         prior_forgetting=args.prior_forgetting,
+        model_update=args.model_update_options,
     )
     summary["config"].update(
         data=args.data,

@@ -214,16 +214,32 @@ def _summarise_trial(out: dict, m: str, r, truth, cfg: dict, trial: int) -> None
     }
     if cfg.get("keep_paths"):
         out.setdefault("paths", {})[m] = [leg["path"] for leg in r.legs]
+    recs = [leg["model_update"] for leg in r.legs if leg.get("model_update") is not None]
+    if recs:  # learning at sea: legs tried (at least one gradient step), kept, steps and seconds in all
+        out.setdefault("model_update", {})[m] = _update_counts(recs)
     if trial == 0:
         k = min(cfg["snapshot_step"], cfg["steps"])
         out["snap"][m] = r.estimate[k].tolist()
 
 
+def _update_counts(recs: list[dict]) -> dict:
+    """The online model update's per-leg records summed: ``tried`` (legs with a gradient step), ``kept``,
+    ``steps``, ``seconds``."""
+    return {
+        "tried": sum(1 for x in recs if x["steps"] > 0),
+        "kept": sum(1 for x in recs if x["kept"]),
+        "steps": int(sum(x["steps"] for x in recs)),
+        "seconds": float(sum(x["seconds"] for x in recs)),
+    }
+
+
 def _loop_options(cfg: dict, m: str, predictor, L: int) -> tuple:
     """(predictor, :class:`~passt_mav.loop.passt.LoopOptions`) of loop method ``m`` at path length ``L``."""
+    from passt_mav.loop.online import ModelUpdate
     from passt_mav.loop.passt import LoopOptions
 
     pred, kw = _method_kw(cfg, m, predictor)
+    mu = cfg.get("model_update")
     return pred, LoopOptions(
         path_length=L,
         steps_per_leg=cfg["steps_per_leg"],
@@ -233,6 +249,7 @@ def _loop_options(cfg: dict, m: str, predictor, L: int) -> tuple:
         share=cfg.get("prior_share", 0.0),
         forgetting=cfg.get("prior_forgetting", 0.8),
         memory=cfg.get("memory", "off"),
+        model_update=None if mu is None else ModelUpdate(**mu),
         **kw,
     )
 
@@ -322,7 +339,8 @@ class CampaignOptions:
     (``PasstLoop(share=...)``); prior_forgetting its forgetting factor (``PasstLoop(forgetting=...)``). memory: "off" or "fitted", the information
     prior's per-cell memory of past samples (:class:`passt_mav.loop.memory.CellMemory`; loops with a
     reward that uses the prior). gp_fit_points: the residual GPs' ``max_fit_points`` (samples a leg's
-    hyper-parameter fit sees at most, >= 3). ``methods`` is kept as a list.
+    hyper-parameter fit sees at most, >= 3). model_update: :class:`passt_mav.loop.online.ModelUpdate`
+    (learning at sea in every loop with the model; ``None`` = off; serial engine only). ``methods`` is kept as a list.
     """
 
     path_lengths: tuple = (25, 50, 75, 100, 150, 200)
@@ -357,6 +375,7 @@ class CampaignOptions:
     gp_fit_points: int = MAX_FIT_POINTS
     prior_share: float = 0.0
     prior_forgetting: float = 0.8
+    model_update: object = None
 
     def __post_init__(self) -> None:
         self.methods = list(self.methods)
@@ -428,6 +447,7 @@ def _campaign_cfg(o: CampaignOptions, steps: int) -> dict:
         memory=o.memory,
         prior_share=float(o.prior_share),
         prior_forgetting=float(o.prior_forgetting),
+        model_update=None if o.model_update is None else o.model_update.record(),
     )
     return cfg
 
@@ -453,6 +473,7 @@ def blend_options_problem(share, forgetting) -> str | None:
 def _check_campaign(field, predictor, o: CampaignOptions) -> None:
     """Every option of :func:`run_campaign` checked once, before any work; raises the error naming it."""
     from passt_mav.errors import ModelError, PlannerError
+    from passt_mav.loop.online import model_update_problem
     from passt_mav.loop.passt import MEMORIES, PRIOR_BLENDS
     from passt_mav.planning import PLANNERS, REWARDS
 
@@ -492,6 +513,11 @@ def _check_campaign(field, predictor, o: CampaignOptions) -> None:
     problem = fit_points_problem(o.gp_fit_points)
     if problem:
         raise PlannerError(problem)
+    problem = model_update_problem(o.model_update)
+    if problem:
+        raise PlannerError(problem)
+    if o.model_update is not None and o.model_update.online == "on" and o.engine != "serial":
+        raise PlannerError("--model-update on gives each trial its own model: use --engine serial")
 
 
 def _summarise(
@@ -550,6 +576,9 @@ def _per_length(rs: list[dict], methods, pure_rmse, pod_model, w: int) -> dict:
         fin = a[:, -w:].mean(1)
         per["final_rmse"][m] = float(fin.mean())
         per["final_rmse_std"][m] = float(fin.std())
+        counts = [r["model_update"][m] for r in rs if m in r.get("model_update", {})]
+        if counts:  # learning at sea, summed over the trials
+            per.setdefault("model_update", {})[m] = {k: sum(c[k] for c in counts) for k in counts[0]}
     if "passt" in methods:
         per["ratio_to_passt"] = {m: per["final_rmse"][m] / per["final_rmse"]["passt"] for m in methods}
     per["starts"] = [r["start"] for r in rs]

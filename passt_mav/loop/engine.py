@@ -222,6 +222,8 @@ class OfflineStep:
             if len(set(cells)) != len(cells):  # two boats on one cell from the start
                 raise PlannerError(f"fleet start cells must differ, got {cells}")
         self.loops = [options.loop(predictor, field.grid, land=self.land, seed=int(sd)) for sd in seeds]
+        if batched and self.loops[0].online is not None:  # one batched predictor call needs one predictor
+            raise PlannerError("an online model update gives each trial its own model: use the serial engine")
         self.samplers = [
             FieldSampler(
                 field,
@@ -260,7 +262,7 @@ class OfflineStep:
         if self.predictor is not None and (loops[0].guard == "on" or loops[0].prior_blend != "off"):
             okey = ("open_loop", id(self.predictor), state0.tobytes())
             if okey not in cache or cache[okey][0] is not self.predictor or len(cache[okey][1]) <= n_steps:
-                cache[okey] = (self.predictor, loops[0].forecast(state0, max(int(n_steps), 1)))
+                cache[okey] = (self.predictor, loops[0].model_alone(state0, max(int(n_steps), 1)))
             t0 = float(self.field.times[self.t0])
             for lp in loops:
                 lp.set_open_loop(cache[okey][1], t0, float(self.field.dt))
@@ -307,6 +309,8 @@ class OfflineStep:
                     raise PlannerError(f"leg at step {k}: {exc}") from None
             parts = [self.samplers[b].sample_path(p.path, p.t_start) for p in plans]
             samples = Samples.concat(parts)
+            if lp.online is not None:  # before the estimate between legs is taken from the leg's forecast
+                lp.online.consider(lp, plans[0], samples)
             # before the update moves the blend's weights
             est = np.array(lp.blend(plans[0].forecast, plans[0].t_start, plans[0].dt)[1 : S + 1])
             self.states[b] = lp.update(plans[0], samples) if S == self.options.steps_per_leg else est[S - 1]
@@ -323,6 +327,7 @@ class OfflineStep:
                         },
                         "reward_collected": float(sum(path_reward(p.reward, p.path) for p in plans)),
                         "n_samples": len(samples),
+                        **({} if lp.online is None else {"model_update": lp.online.record_}),
                     },
                     est,
                 )

@@ -193,7 +193,7 @@ def pure_model_at(loop, field, t0_index: int, dt: float, t: float, cache: dict) 
     pure = cache.get("pure")
     if pure is None or len(pure) <= need:
         s = field.state_at(t0_index)  # gaps that come and go: FlowField.state_at
-        pure = cache["pure"] = loop.forecast(s, max(need, 2 * (need // 2 + 1)))
+        pure = cache["pure"] = loop.model_alone(s, max(need, 2 * (need // 2 + 1)))
     k = int(math.floor(x))
     w = x - k
     return (1 - w) * pure[k].astype(float) + w * pure[min(k + 1, len(pure) - 1)].astype(float)
@@ -231,6 +231,7 @@ def build_predictor(spec: str, field, *, echo: Callable[[str], None] = print) ->
 
 def build_loop(config, predictor, grid, land=None):
     """:class:`PasstLoop` from a mission config (planner, reward, L, GP prior/options, seeds)."""
+    from passt_mav.loop.online import ModelUpdate
     from passt_mav.loop.passt import LoopOptions
 
     gp_kw = {"seed": config.seeds.gp}
@@ -254,6 +255,7 @@ def build_loop(config, predictor, grid, land=None):
         share=config.gp.prior_share,
         memory=config.planner.memory,
         guard=config.gp.guard,
+        model_update=ModelUpdate(**config.model_update.model_dump()),
     )
     loop = options.loop(predictor, grid, land=land, seed=config.seeds.planner)
     # a mission's estimate is written with its posterior std (estimate.nc u_std/v_std; exports read it):

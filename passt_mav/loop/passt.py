@@ -41,6 +41,7 @@ import numpy as np
 
 from passt_mav.errors import PlannerError, ReconstructionError
 from passt_mav.loop.guard import GUARDS, OpenLoop, guard_record, relax_to_open_loop
+from passt_mav.loop.online import ModelUpdate, OnlineUpdate
 
 __all__ = [
     "Samples",
@@ -51,6 +52,7 @@ __all__ = [
     "PasstLoop",
     "OfflineResult",
     "run_pure_model",
+    "model_forecast",
     "steps_for_leg",
     "HYPER",
     "SAMPLE_AT",
@@ -220,7 +222,8 @@ class LoopOptions:
     in ``passt_mav.planning.REWARDS``; path_length: moves per leg ``L``; steps_per_leg: snapshots
     a leg spans ``S``; prior: "forecast" | "none"; gp_kw: :class:`GPReconstructor` options;
     hyper: :data:`HYPER`; background: roll-out snapshots of the model background (0 = none);
-    prior_blend / forgetting / share / memory / guard: see :class:`PasstLoop`. Validated by the loop that takes them.
+    prior_blend / forgetting / share / memory / guard / model_update: see :class:`PasstLoop`. Validated by the loop
+    that takes them.
     """
 
     planner: str = "policy_gradient"
@@ -237,6 +240,7 @@ class LoopOptions:
     share: float = 0.0
     memory: str = "off"
     guard: str = "on"
+    model_update: ModelUpdate | None = None
 
     @classmethod
     def of(cls, options: LoopOptions | None = None, **changes) -> LoopOptions:
@@ -341,6 +345,9 @@ class PasstLoop:
             local error variance that past legs' samples removed, with a persistence per leg
             fitted by the innovations' likelihood (:class:`passt_mav.loop.memory.CellMemory`;
             0 = off until cells sampled twice show it). Only with a reward that uses the prior.
+        model_update: :class:`passt_mav.loop.online.ModelUpdate` (``None`` or ``online="off"``: off): learning
+            at sea, each leg's update of the predictor kept only when the leg's samples find it more probable
+            (:mod:`passt_mav.loop.online`; ``online`` holds the updater, ``initial_predictor`` the model alone).
     """
 
     def __init__(
@@ -364,6 +371,7 @@ class PasstLoop:
         share: float = 0.0,
         memory: str = "off",
         guard: str = "on",
+        model_update: ModelUpdate | None = None,
     ):
         from passt_mav.planning import make_planner
         from passt_mav.planning.rewards import REWARDS_USING_PRIOR, REWARDS_USING_STD
@@ -373,7 +381,8 @@ class PasstLoop:
             reward, hyper, path_length, steps_per_leg, background, prior_blend, forgetting, memory, share, guard
         )
         self.hyper = hyper
-        self.predictor = predictor
+        self.predictor = self.initial_predictor = predictor  # an online update replaces the first alone
+        self.online = OnlineUpdate.of(model_update, predictor)
         self.grid = grid
         self.planner_name = planner
         self.planner = make_planner(planner, **(planner_kw or {}))
@@ -426,28 +435,25 @@ class PasstLoop:
 
     def forecast(self, state: np.ndarray, steps: int) -> np.ndarray:
         """(steps+1, 2, R, C) float32: ``state`` then the model's ``steps`` predictions."""
-        s = np.asarray(state, dtype=np.float32)
-        if self.predictor is None:
-            pred = np.repeat(s[None], steps, axis=0)
-        else:
-            pred = np.asarray(self.predictor.predict(np.where(self.land, np.float32(0), s), steps), dtype=np.float32)
-        out = np.concatenate([s[None], pred], axis=0)
-        out[:, :, self.land] = np.nan
-        return out
+        return model_forecast(self.predictor, state, steps, self.land)
 
     def anchor_open_loop(self, state, t_start: float, dt: float) -> None:
         """Start the model alone (:class:`passt_mav.loop.guard.OpenLoop`) from ``state`` ((2, R, C),
         field units) at field time ``t_start``, ``dt`` field time per snapshot, unless started
         already: the first leg's initial state, which :meth:`plan_leg` and :meth:`update` pass."""
         if self.open_loop_ is None and self.predictor is not None:
-            self.open_loop_ = OpenLoop(self.forecast, state, t_start, dt)
+            self.open_loop_ = OpenLoop(self.model_alone, state, t_start, dt)
 
     def set_open_loop(self, trajectory, t0: float, dt: float) -> None:
         """Use ``trajectory`` ((n, 2, R, C): the model alone from the first state at field time
         ``t0``, one snapshot every ``dt``) instead of rolling it out again (the lockstep engine
         computes it once for all trials)."""
         if self.predictor is not None:
-            self.open_loop_ = OpenLoop(self.forecast, trajectory[0], t0, dt, trajectory=trajectory)
+            self.open_loop_ = OpenLoop(self.model_alone, trajectory[0], t0, dt, trajectory=trajectory)
+
+    def model_alone(self, state, steps: int) -> np.ndarray:
+        """:meth:`forecast` by the predictor the loop was built with (an online update changes the loop's own)."""
+        return model_forecast(self.initial_predictor, state, steps, self.land)
 
     def open_loop_forecast(self, t_start: float, dt: float, n: int) -> np.ndarray:
         """(n, 2, R, C) float64: the model alone at field times ``t_start + i * dt`` (NaN on land)."""
@@ -590,6 +596,8 @@ class PasstLoop:
         from passt_mav.fields.field import FlowField
 
         t0 = time.perf_counter()
+        if self.online is not None:  # learning at sea, decided before the samples enter (may replace the forecast)
+            self.online.consider(self, leg, samples)
         fc = leg.forecast
         traj = FlowField(
             np.where(np.isfinite(fc), fc, np.nan), self.grid, leg.t_start + leg.dt * np.arange(fc.shape[0])
@@ -647,6 +655,8 @@ class PasstLoop:
         self.std = std
         if self.memory is not None:
             self._remember(samples, f_at)
+        if self.online is not None:
+            self.online.remember(mean, t_end)
         self.leg_index += 1
         self.t_recon_ = float(t_end)
         return mean
@@ -678,7 +688,8 @@ class PasstLoop:
         (``signal_kept``; otherwise the forecast was left alone there), the background factor,
         with the GP's ``bias`` the offset and forecast-anomaly variances (``offset_var``,
         ``anomaly_var``; 0 = not kept) and the share of the region the samples saw (``bias_coverage``,
-        the modes' gate), and the prior weights (``prior_blend="bma"``)."""
+        the modes' gate), the prior weights (``prior_blend="bma"``) and the online model update's record of
+        the leg (``model_update``: :class:`passt_mav.loop.online.OnlineUpdate`)."""
         gp = self.gp
         out: dict = {"sensor_noise_std": float(gp.noise_std)}
         ks = getattr(gp, "kernels_", None)
@@ -716,6 +727,9 @@ class PasstLoop:
             out["memory"] = self.memory.record()
         if self.guard_history_:
             out["guard"] = dict(self.guard_history_[-1])
+        upd = None if self.online is None else self.online.record_
+        if upd is not None and upd["leg"] == self.leg_index - 1:  # (none for a leg that never reached update)
+            out["model_update"] = dict(upd)  # kept / seconds / steps / scores (nats) of the last leg
         return out
 
     def _loglik_at(self, samples: Samples, xy: np.ndarray, st):
@@ -861,6 +875,19 @@ class OfflineResult:
 
     estimate: np.ndarray
     legs: list[dict[str, Any]]
+
+
+def model_forecast(predictor, state, steps: int, land) -> np.ndarray:
+    """(steps+1, 2, R, C) float32: ``state`` ((2, R, C) field units) then ``predictor``'s ``steps``
+    predictions (``None``: the state held), land (``(R, C)`` bool) filled with 0 at the input, NaN in the output."""
+    s = np.asarray(state, dtype=np.float32)
+    if predictor is None:
+        pred = np.repeat(s[None], steps, axis=0)
+    else:
+        pred = np.asarray(predictor.predict(np.where(land, np.float32(0), s), steps), dtype=np.float32)
+    out = np.concatenate([s[None], pred], axis=0)
+    out[:, :, land] = np.nan
+    return out
 
 
 def run_pure_model(field, predictor, *, t0: int = 0, n_steps: int) -> np.ndarray:

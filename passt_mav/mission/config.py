@@ -16,6 +16,7 @@ Example (``missions/north_atlantic.yaml``)::
     sensors: {u: CUR_U, v: CUR_V, noise_std: 0.02}
     geofence_margin_m: 500
     gp: {prior: forecast, hyper: every_leg, background: 200, prior_blend: select, forgetting: 0.8, prior_share: 0.05, options: {}}
+    model_update: {online: off, budget_s: 5, lr: 1.0e-4, horizon: 1, max_steps: null, window: 10}  # learning at sea
     seeds: {planner: 0, gp: 0, sensor: 0, field: 0}
     budget: {max_time_s: 14400, max_distance_m: 30000, battery_reserve_pct: 30, on_spent: rtl}   # unset: no limit
     approve: {enabled: false, timeout_s: 300, on_timeout: hold}   # run --approve: the operator approves each leg
@@ -66,6 +67,7 @@ __all__ = [
     "VehicleConfig",
     "SensorConfig",
     "GPConfig",
+    "ModelUpdateConfig",
     "SeedConfig",
     "load_mission",
     "BUILTIN_FIELDS",
@@ -469,6 +471,32 @@ class GPConfig(_Strict):
         return "forecast" if self.prior == "forecast" else "none"
 
 
+class ModelUpdateConfig(_Strict):
+    """Learning at sea (:mod:`passt_mav.loop.online`): between legs, a copy of the model is fine-tuned on
+    the mission's reconstructed states so far and kept only when it explains the next leg's samples
+    better than the current model (innovation log likelihood); off by default. Only a KNODE has weights
+    to update (DMD and persistence are left as they are)."""
+
+    online: Literal["off", "on"] = "off"
+    """`on`: update the model between legs, keeping an update only when the next leg's samples find it more probable; `off` (default): the model stays as loaded."""
+    budget_s: float = Field(default=5.0, gt=0, allow_inf_nan=False)
+    """Seconds of gradient steps per leg (wall clock; overrun by at most one step)."""
+    lr: float = Field(default=1e-4, gt=0, allow_inf_nan=False)
+    """Adam's learning rate of the update."""
+    horizon: int = Field(default=1, ge=1)
+    """Later states each state's roll-out is compared with (1 = the next leg's)."""
+    max_steps: int | None = Field(default=None, ge=1)
+    """A cap on the gradient steps per leg (unset: the budget alone); set it, with a budget large enough for it, for a run that replays bit for bit whatever the machine's speed."""
+    window: int = Field(default=10, ge=2)
+    """The most recent reconstructed states (one per leg) the update trains on."""
+
+    @field_validator("online", mode="before")
+    @classmethod
+    def _yaml_bool(cls, v: Any) -> Any:
+        # YAML 1.1 reads a bare on / off as a boolean
+        return {True: "on", False: "off"}.get(v, v) if isinstance(v, bool) else v
+
+
 class SeedConfig(_Strict):
     """Seeds of everything random (recorded with the run)."""
 
@@ -513,6 +541,8 @@ class MissionConfig(_Strict):
     """Geofence margin around the region's outer cell edges (m): a leg with a waypoint outside region + margin is not uploaded, and a boat outside it is not planned for."""
     gp: GPConfig = Field(default_factory=GPConfig)
     """The GP reconstruction."""
+    model_update: ModelUpdateConfig = Field(default_factory=ModelUpdateConfig)
+    """Learning at sea: the model's update between legs, kept only when it explains the next leg's samples better (off by default)."""
     seeds: SeedConfig = Field(default_factory=SeedConfig)
     """Seeds of everything random (recorded with the run)."""
     budget: BudgetConfig = Field(default_factory=BudgetConfig)
