@@ -8,7 +8,7 @@ moves, simulator served in-process at 50x). The wave field's time origin is 2020
 
 from __future__ import annotations
 
-import threading
+import contextlib
 import time
 
 import numpy as np
@@ -123,14 +123,21 @@ def test_link_lost_during_the_swap_reconnects_and_redoes_the_swap(tmp_path):
 
 
 # -- the autopilot reboots mid-leg ------------------------------------------------------------------
-def _reboot_mid_leg(sim, ctl, downtime_s: float = 2.0):
-    def run():
-        if _when(ctl, _in_leg(ctl, 0, reached=2)):
-            sim.reboot(downtime_s=downtime_s)
+@contextlib.contextmanager
+def _reboot_mid_leg(field, cfg, rd, action=None, **ctl_kw):
+    """(sim, link, ctl, faults): a controller on the simulator in lockstep (:func:`test_resilience.lockstep`)
+    whose autopilot reboots (``action(sim)``; default a 2 s restart) once leg 0 flies in AUTO past its second
+    item on a verified mission: the fault is fired from the simulator's stepping at that mission event
+    (:class:`test_resilience.Faults`), never from a wall-clock thread, so a loaded machine cannot let the leg
+    end before it."""
+    from test_resilience import Faults, _chaos_controller, _flying, lockstep
 
-    th = threading.Thread(target=run, daemon=True)
-    th.start()
-    return th
+    act = action or (lambda sim: sim.reboot(downtime_s=2.0))
+    with lockstep(field, link_kw={"timeout_s": 1.0}) as (sim, link, box):
+        faults = Faults(sim, box, max_rate=0)
+        ctl = _chaos_controller(box, cfg, field, link, rd, **ctl_kw)
+        faults.at("reboot", _flying(box, 0, 2), lambda: act(sim))
+        yield sim, link, ctl, faults
 
 
 def test_reboot_mid_leg_is_not_a_pilot_resumes_at_the_interrupted_item(tmp_path):
@@ -138,13 +145,11 @@ def test_reboot_mid_leg_is_not_a_pilot_resumes_at_the_interrupted_item(tmp_path)
     cfg = mission(tmp_path, field, legs=2)
     rd = RunDir(tmp_path / "run").create()
     lines: list[str] = []
-    with served(sim_config(), field=field, link_kw=LEAN) as (sim, link):
-        modes = _modes(link)
-        ctl = controller(cfg, field, link, rd, echo=lines.append, pause_timeout_s=5.0)  # a miss fails fast
-        th = _reboot_mid_leg(sim, ctl)
+    with _reboot_mid_leg(field, cfg, rd, echo=lines.append, pause_timeout_s=5.0) as (sim, link, ctl, faults):
+        modes = _modes(link)  # (a miss of the reboot fails fast: 5 s paused)
         summary = ctl.run()
-        th.join(5)
         boots = sim.autopilot.boot_count
+    assert list(faults.fired) == ["reboot"]
     assert boots == 1 and summary["status"] == "complete" and len(summary["legs"]) == 2
     ev = " | ".join(summary["events"])
     assert "vehicle rebooted" in ev and "resumed after the reboot at item" in ev and "stored mission verified" in ev
@@ -169,20 +174,15 @@ def test_reboot_that_lost_the_mission_re_uploads_it_then_resumes(tmp_path):
     field = wave_field()
     cfg = mission(tmp_path, field, legs=1)
     rd = RunDir(tmp_path / "run").create()
-    with served(sim_config(), field=field, link_kw=LEAN) as (sim, link):
-        ctl = controller(cfg, field, link, rd, echo=None, pause_timeout_s=5.0)
 
-        def run():
-            if _when(ctl, _in_leg(ctl, 0, reached=2)):
-                sim.reboot(downtime_s=1.0)
-                sim.autopilot.store.clear(0)  # the eeprom lost the mission (home stays)
+    def lost(sim):
+        sim.reboot(downtime_s=1.0)
+        sim.autopilot.store.clear(0)  # the eeprom lost the mission (home stays)
 
-        th = threading.Thread(target=run, daemon=True)
-        th.start()
+    with _reboot_mid_leg(field, cfg, rd, lost, echo=None, pause_timeout_s=5.0) as (sim, _link, ctl, faults):
         summary = ctl.run()
-        th.join(5)
         stored = sim.autopilot.store.count(0)
-    assert summary["status"] == "complete"
+    assert list(faults.fired) == ["reboot"] and summary["status"] == "complete"
     ev = " | ".join(summary["events"])
     assert "resumed after the reboot at item" in ev and "(mission re-uploaded)" in ev
     assert stored == len(summary["legs"][0]["waypoints"]) + 2
@@ -192,12 +192,9 @@ def test_reboot_mid_leg_with_on_reboot_hold_stops_in_hold(tmp_path):
     field = wave_field()
     cfg = mission(tmp_path, field, legs=2, vehicle={"speed_mps": 5.0, "wp_radius_m": 3.0, "on_reboot": "hold"})
     rd = RunDir(tmp_path / "run").create()
-    with served(sim_config(), field=field, link_kw=LEAN) as (sim, link):
-        ctl = controller(cfg, field, link, rd, echo=None, pause_timeout_s=5.0)
-        th = _reboot_mid_leg(sim, ctl)
+    with _reboot_mid_leg(field, cfg, rd, echo=None, pause_timeout_s=5.0) as (sim, _link, ctl, faults):
         summary = ctl.run()
-        th.join(5)
-        time.sleep(0.1)
+        assert list(faults.fired) == ["reboot"]
         assert sim.autopilot.mode == HOLD and not sim.autopilot.armed
     assert summary["status"] == "paused" and summary["legs"] == []
     assert "on_reboot is 'hold': stopped in HOLD" in summary["events"][-1]
