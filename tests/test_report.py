@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 
 import geo
+from passt_mav.analysis.html_page import pyplot
 from passt_mav.analysis.report import load_run, recon_rmse, write_report
 from passt_mav.cli import main
 from passt_mav.errors import UserError
@@ -399,7 +400,7 @@ def _figure(name: str, run, *extra):
     """Draw one report figure (``_fig_legs`` etc.) of ``run`` and return (figure, pyplot) for inspection."""
     from passt_mav.analysis import report
 
-    plt = report._plt()
+    plt = pyplot()
     return getattr(report, name)(run, plt, *extra), plt
 
 

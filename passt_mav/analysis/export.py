@@ -263,9 +263,9 @@ def _epoch_of_field_times(origin: str | None, t: np.ndarray) -> np.ndarray | Non
     """Field times (s since ``origin``, ISO-8601 UTC) as UNIX epoch seconds; None without an origin."""
     if origin is None:
         return None
-    from passt_mav.fields.field import _parse_iso
+    from passt_mav.fields.field import parse_iso
 
-    return _parse_iso(origin).timestamp() + np.asarray(t, float)
+    return parse_iso(origin).timestamp() + np.asarray(t, float)
 
 
 # -- NetCDF: the gridded estimate ------------------------------------------------------------

@@ -28,10 +28,8 @@ hours) for geographic fields, non-dimensional time for the cylinder.
 
 from __future__ import annotations
 
-import base64
 import datetime as _dt
 import html
-import io
 import json
 import math
 import sqlite3
@@ -42,6 +40,7 @@ from typing import Any
 
 import numpy as np
 
+from passt_mav.analysis.html_page import Page, pyplot
 from passt_mav.errors import UserError
 from passt_mav.loop.measurement import rmse as recon_rmse  # (the name tests and users know) the one RMSE rule
 from passt_mav.loop.measurement import sample_columns, truth_at
@@ -332,15 +331,6 @@ def _load_estimates(run: Run) -> None:
                 run.estimates[i] = load_field(p)
             except UserError as exc:
                 run.notes[f"estimate{i}"] = f"leg {i} reconstruction unreadable: {exc}"
-
-
-def _plt():
-    import matplotlib
-
-    matplotlib.use("Agg", force=True)
-    import matplotlib.pyplot as plt
-
-    return plt
 
 
 def _aspect(lat: np.ndarray) -> float:
@@ -658,15 +648,6 @@ def _fig_pod(run: Run, plt, pod: dict):
 
 
 # -- HTML -----------------------------------------------------------------------------------------
-_CSS = """
-body{font-family:system-ui,-apple-system,'Segoe UI',sans-serif;margin:2em auto;max-width:1100px;color:#222;padding:0 1em}
-h1{font-size:1.6em;margin-bottom:.2em}h2{font-size:1.2em;border-bottom:1px solid #ccc;margin-top:1.8em}
-table{border-collapse:collapse;margin:.6em 0}th,td{border:1px solid #ccc;padding:.25em .6em;text-align:left}
-th{background:#f3f3f3;font-weight:600}td.num{text-align:right}img{max-width:100%;border:1px solid #ddd}
-.missing{color:#a33;font-style:italic}.note{color:#555}.status{font-weight:600}.warn{color:#a33}
-"""
-
-
 def _fmt(x: Any) -> str:
     if x is None:
         return "&ndash;"
@@ -687,45 +668,6 @@ def _iso(s: Any) -> _dt.datetime | None:
     except ValueError:
         return None
     return d if d.tzinfo else d.replace(tzinfo=_dt.UTC)
-
-
-class _Page:
-    def __init__(self, out: Path):
-        self.out = out
-        self.parts: list[str] = []
-        self.figures: list[Path] = []
-
-    def add(self, s: str) -> None:
-        self.parts.append(s)
-
-    def h2(self, s: str) -> None:
-        self.add(f"<h2>{html.escape(s)}</h2>")
-
-    def missing(self, s: str) -> None:
-        self.add(f'<p class="missing">{html.escape(s)}</p>')
-
-    def note(self, s: str) -> None:
-        self.add(f'<p class="note">{html.escape(s)}</p>')
-
-    def figure(self, fig, name: str, alt: str, plt) -> None:
-        buf = io.BytesIO()
-        try:
-            fig.savefig(buf, format="png", dpi=100)
-        finally:
-            plt.close(fig)
-        data = buf.getvalue()
-        path = self.out / name
-        path.write_bytes(data)  # the same bytes on disk and in the page
-        self.figures.append(path)
-        b64 = base64.b64encode(data).decode("ascii")
-        self.add(
-            f'<figure><img alt="{html.escape(alt)}" src="data:image/png;base64,{b64}">'
-            f"<figcaption>{html.escape(alt)} ({html.escape(name)})</figcaption></figure>"
-        )
-
-    def table(self, rows: list[tuple[str, str]]) -> None:
-        body = "".join(f"<tr><th>{html.escape(k)}</th><td>{v}</td></tr>" for k, v in rows)
-        self.add(f"<table>{body}</table>")
 
 
 def write_report(run_dir: str | Path, out: str | Path | None = None, *, damage: list | None = None) -> Path:
@@ -750,8 +692,8 @@ def write_report(run_dir: str | Path, out: str | Path | None = None, *, damage: 
         "pod.png",
     ):
         (out_dir / name).unlink(missing_ok=True)  # a figure from an earlier report must not outlive its data
-    plt = _plt()
-    page = _Page(out_dir)
+    plt = pyplot()
+    page = Page(out_dir)
     s = run.summary or {}
     title = str(s.get("mission") or run.root.name)
     page.add(f"<h1>Run report: {html.escape(title)}</h1>")
@@ -785,18 +727,10 @@ def write_report(run_dir: str | Path, out: str | Path | None = None, *, damage: 
     _section_tlog(page, run)
     gen = _dt.datetime.now(_dt.UTC).strftime("%Y-%m-%d %H:%M UTC")
     page.add(f'<p class="note">Written by passt-mav report from {html.escape(str(run.root))} at {gen}.</p>')
-    doc = (
-        '<!DOCTYPE html>\n<html lang="en"><head><meta charset="utf-8">'
-        f"<title>{html.escape(title)} - passt-mav report</title><style>{_CSS}</style></head><body>\n"
-        + "\n".join(page.parts)
-        + "\n</body></html>\n"
-    )
-    path = out_dir / "report.html"
-    path.write_text(doc, encoding="utf-8")
-    return path
+    return page.write(out_dir / "report.html", f"{title} - passt-mav report")
 
 
-def _section_summary(page: _Page, run: Run) -> None:
+def _section_summary(page: Page, run: Run) -> None:
     s = run.summary or {}
     rows: list[tuple[str, str]] = []
     for key, label in (
@@ -841,7 +775,7 @@ def _section_summary(page: _Page, run: Run) -> None:
     page.table(rows)
 
 
-def _section_track(page: _Page, run: Run, plt) -> None:
+def _section_track(page: Page, run: Run, plt) -> None:
     page.h2("Track over the current field")
     if run.field is None:
         page.missing("Track over the current field: " + run.notes.get("field", "truth field " + NOT_RECORDED))
@@ -853,7 +787,7 @@ def _section_track(page: _Page, run: Run, plt) -> None:
         page.note("Planned waypoints only: no positions were logged.")
 
 
-def _section_legs(page: _Page, run: Run, plt) -> None:
+def _section_legs(page: Page, run: Run, plt) -> None:
     page.h2("Legs: planned vs executed")
     if not any(leg.get("waypoints") for leg in run.legs):
         page.missing("Planned legs " + NOT_RECORDED)
@@ -888,7 +822,7 @@ def _fig_reward(run: Run, plt, legs: list[dict]):
     return fig
 
 
-def _section_reward(page: _Page, run: Run, plt) -> None:
+def _section_reward(page: Page, run: Run, plt) -> None:
     page.h2("Why the boat went there: each leg's reward map under its path")
     legs = [leg for leg in run.legs if isinstance(leg.get("reward_map"), list) and leg["reward_map"]]
     if not legs:
@@ -904,7 +838,7 @@ def _section_reward(page: _Page, run: Run, plt) -> None:
     )
 
 
-def _section_samples(page: _Page, run: Run, plt) -> None:
+def _section_samples(page: Page, run: Run, plt) -> None:
     page.h2("Samples")
     if run.samples is None or len(run.samples["u"]) == 0:
         page.missing("Samples coloured by speed: samples " + NOT_RECORDED)
@@ -913,7 +847,7 @@ def _section_samples(page: _Page, run: Run, plt) -> None:
     page.note(f"Source: {run.samples_source} ({len(run.samples['u'])} samples).")
 
 
-def _section_recon(page: _Page, run: Run, plt) -> None:
+def _section_recon(page: Page, run: Run, plt) -> None:
     page.h2("Reconstruction vs truth")
     if not run.estimates:
         page.missing("Reconstruction vs truth: reconstruction (estimate.nc) " + NOT_RECORDED)
@@ -960,7 +894,7 @@ def _per_leg_rmse(run: Run) -> dict[str, Any]:
     return out if any(np.isfinite(out[k]).any() for k, _, _ in _RMSE_CURVES) else {}
 
 
-def _section_rmse(page: _Page, run: Run, plt) -> None:
+def _section_rmse(page: Page, run: Run, plt) -> None:
     page.h2("RMSE: PASST, model alone, random-walk and lawnmower counterfactuals")
     s = run.summary or {}
     over = s.get("rmse") if isinstance(s.get("rmse"), dict) and s["rmse"].get("t") else None
@@ -982,7 +916,7 @@ def _section_rmse(page: _Page, run: Run, plt) -> None:
         page.note("No lawnmower+GP counterfactual for this run (passt-mav demo adds one to summary.json).")
 
 
-def _section_prior(page: _Page, run: Run) -> None:
+def _section_prior(page: Page, run: Run) -> None:
     """The prior blend per leg: the weight of each candidate prior (the forecast restarted from the
     estimate, the model alone, persistence) the leg's estimate used, and the leg's evidence for each
     (its samples' innovation log likelihood, nats), from summary.json ``legs[i].gp``."""
@@ -1016,7 +950,7 @@ def _section_prior(page: _Page, run: Run) -> None:
     )
 
 
-def _section_guard(page: _Page, run: Run) -> None:
+def _section_guard(page: Page, run: Run) -> None:
     """The guard per leg (:mod:`passt_mav.loop.guard`): how far off, at the leg's own samples, the
     forecast restarted from the estimate and the model alone were (RMSE, m/s), and whether the leg fell
     back to the model alone, from summary.json ``legs[i].guard``. No truth is used."""
@@ -1048,7 +982,7 @@ def _section_guard(page: _Page, run: Run) -> None:
     )
 
 
-def _section_pod(page: _Page, run: Run, plt) -> None:
+def _section_pod(page: Page, run: Run, plt) -> None:
     page.h2("POD energy")
     pod = (run.summary or {}).get("pod")
     if not isinstance(pod, dict) or not any(pod.get(k) for k in ("truth", "passt", "model")):
@@ -1057,7 +991,7 @@ def _section_pod(page: _Page, run: Run, plt) -> None:
     page.figure(_fig_pod(run, plt, pod), "pod.png", "POD energy", plt)
 
 
-def _section_timings(page: _Page, run: Run) -> None:
+def _section_timings(page: Page, run: Run) -> None:
     page.h2("Timings and link quality")
     keys = ("planning_s", "upload_s", "duration_s")
     if not any(k in leg for leg in run.legs for k in keys):
@@ -1114,7 +1048,7 @@ def _readings_used(r: Any) -> str:
     return f"{int(r['used'])} / {int(r['received'])} ({100.0 * r['used'] / r['received']:.0f} %)"
 
 
-def _section_tlog(page: _Page, run: Run) -> None:
+def _section_tlog(page: Page, run: Run) -> None:
     page.h2("Telemetry log")
     tl = run.tlog
     if tl is None:
