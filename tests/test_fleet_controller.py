@@ -225,7 +225,9 @@ def test_a_boat_whose_link_drops_mid_leg_reconnects_and_the_fleet_completes(tmp_
     assert summary["status"] == "complete", summary["events"]
     assert [b["status"] for b in summary["boats"]] == ["complete"] * 3
     assert len(summary["legs"]) == 6
-    assert any(e.startswith(f"boat 2: leg {dropped['leg']}: link lost") for e in summary["events"]), summary["events"]
+    assert any(e.startswith(f"boat 2: leg {dropped['leg'] + 1}: link lost") for e in summary["events"]), summary[
+        "events"
+    ]
 
 
 def test_replay_of_a_fleet_run_reproduces_every_boats_paths_and_rmse(tmp_path):

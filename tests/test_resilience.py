@@ -483,7 +483,7 @@ def test_chaos_six_legs_drops_restart_kill_resume_and_sigterm(tmp_path):
     final = runs[-1]
     assert final["status"] == "complete" and [x["index"] for x in final["legs"]] == list(range(6))
     ev = " | ".join(final["events"])
-    assert "leg 1: vehicle rebooted" in ev and "resumed after leg 1" in ev and "stopped by SIGTERM" in ev
+    assert "leg 2: vehicle rebooted" in ev and "resumed after leg 2" in ev and "stopped by SIGTERM" in ev
     outages = [o for r in runs for o in r["outages"]]
     assert all(o.get("back_utc") for o in outages), outages  # every outage noticed was ridden out
     # every reading within a leg's span (per boot) is stored or counted missing by the leg. The sensor reads

@@ -42,8 +42,8 @@ import numpy as np
 
 from passt_mav.analysis.html_page import Page, pyplot
 from passt_mav.errors import UserError
+from passt_mav.loop.measurement import leg_number, sample_columns, truth_at
 from passt_mav.loop.measurement import rmse as recon_rmse  # (the name tests and users know) the one RMSE rule
-from passt_mav.loop.measurement import sample_columns, truth_at
 from passt_mav.runs.rundir import RunDir, RunDirError
 
 __all__ = ["MAX_ARROWS", "Run", "binned_arrows", "load_run", "recon_rmse", "write_report"]
@@ -330,7 +330,7 @@ def _load_estimates(run: Run) -> None:
             try:
                 run.estimates[i] = load_field(p)
             except UserError as exc:
-                run.notes[f"estimate{i}"] = f"leg {i} reconstruction unreadable: {exc}"
+                run.notes[f"estimate{i}"] = f"leg {i + 1} reconstruction unreadable: {exc}"
 
 
 def _aspect(lat: np.ndarray) -> float:
@@ -428,12 +428,12 @@ def _fig_legs(run: Run, plt):
         c = colours(n % 10)
         wp = np.asarray(leg.get("waypoints") or [], float).reshape(-1, 2)
         if len(wp):
-            ax.plot(wp[:, 1], wp[:, 0], "--", color=c, marker="o", ms=4, lw=1.2, label=f"leg {i} planned")
+            ax.plot(wp[:, 1], wp[:, 0], "--", color=c, marker="o", ms=4, lw=1.2, label=f"leg {i + 1} planned")
             ax.plot(wp[0, 1], wp[0, 0], "s", color=c, mec="k", ms=7)
             lats.append(wp[:, 0])
         ex = run.leg_tracks.get(i)
         if ex is not None and len(ex):
-            ax.plot(ex[:, 1], ex[:, 0], "-", color=c, lw=2.2, alpha=0.7, label=f"leg {i} executed")
+            ax.plot(ex[:, 1], ex[:, 0], "-", color=c, lw=2.2, alpha=0.7, label=f"leg {i + 1} executed")
             lats.append(ex[:, 0])
     if lats:
         ax.set_aspect(_aspect(np.concatenate(lats)))
@@ -555,13 +555,13 @@ def _fig_recon(run: Run, plt, i: int, est, truth: np.ndarray | None):
         _speed_map(axes[0, 0], fig, est.grid, truth, run.units, vmax)
         axes[0, 0].set_title("truth", fontsize=10)
         _speed_map(axes[0, 1], fig, est.grid, e, run.units, vmax)
-        axes[0, 1].set_title(f"reconstruction after leg {i}", fontsize=10)
+        axes[0, 1].set_title(f"reconstruction after leg {i + 1}", fontsize=10)
         err = e - truth
         _speed_map(axes[0, 2], fig, est.grid, err, run.units, label="|error|")
         axes[0, 2].set_title(f"error, RMSE {_fmt_rmse(recon_rmse(e, truth), '.3g')} {run.units}", fontsize=10)
     else:
         _speed_map(axes[0, 0], fig, est.grid, e, run.units, vmax)
-        axes[0, 0].set_title(f"reconstruction after leg {i} (no truth)", fontsize=10)
+        axes[0, 0].set_title(f"reconstruction after leg {i + 1} (no truth)", fontsize=10)
     return fig
 
 
@@ -617,7 +617,7 @@ def _fig_rmse(run: Run, plt, over_time: dict | None, per_leg: dict[str, list]):
             y = per_leg[key]
             bars = ax.bar(idx + (j - (len(keys) - 1) / 2) * w, np.nan_to_num(y, nan=0.0), w, label=name)
             ax.bar_label(bars, labels=["" if not np.isfinite(x) else f"{x:.2g}" for x in y], fontsize=7, padding=1)
-        ax.set_xticks(idx, [f"leg {i}" for i in per_leg["index"]])
+        ax.set_xticks(idx, [f"leg {leg_number(i)}" for i in per_leg["index"]])
         ax.set_ylabel(f"RMSE ({run.units})")
         _log_if_spread(ax, np.concatenate([per_leg[c] for c, _, _ in keys]))
         ax.set_title("RMSE after each leg", fontsize=10)
@@ -793,6 +793,10 @@ def _section_legs(page: Page, run: Run, plt) -> None:
         page.missing("Planned legs " + NOT_RECORDED)
         return
     page.figure(_fig_legs(run, plt), "legs.png", "planned vs executed path per leg", plt)
+    page.note(
+        "Legs are numbered from 1 here and on the console; the run directory's folders count from 0 "
+        "(leg 1 is legs/000)."
+    )
     if run.leg_tracks:
         page.note(f"Executed: {run.leg_tracks_source}.")
     else:
@@ -814,7 +818,7 @@ def _fig_reward(run: Run, plt, legs: list[dict]):
         if len(p):
             ax.plot(p[:, 1], p[:, 0], "-", color="c", lw=1.8)
             ax.plot(p[0, 1], p[0, 0], "s", color="c", mec="k", ms=7)
-        title = f"leg {leg.get('index', '?')}" + (f", boat {leg['boat']}" if leg.get("boat") is not None else "")
+        title = f"leg {leg_number(leg.get('index'))}" + (f", boat {leg['boat']}" if leg.get("boat") is not None else "")
         ax.set_title(title, fontsize=10)
         ax.set_xlabel("column (east)")
         ax.set_ylabel("row (north)")
@@ -859,7 +863,7 @@ def _section_recon(page: Page, run: Run, plt) -> None:
             truth = truth_at(run.field, float(est.times[-1]))
         if truth is not None:
             rmse = _fmt_rmse(recon_rmse(est.data[-1], truth), ".4g")
-            rows.append((f"reconstruction RMSE vs truth, leg {i}", f"{rmse} {html.escape(run.units)}"))
+            rows.append((f"reconstruction RMSE vs truth, leg {i + 1}", f"{rmse} {html.escape(run.units)}"))
         last = (i, est.isel(time=est.n_times - 1), truth)
     i, est, truth = last
     page.figure(_fig_recon(run, plt, i, est, truth), "reconstruction.png", "reconstruction vs truth", plt)
@@ -940,7 +944,7 @@ def _section_prior(page: Page, run: Run) -> None:
         w, ll = gp["prior_weights"], gp.get("prior_loglik") or {}
         cells = [f"{float(w[k]):.3f}" if isinstance(w.get(k), (int, float)) else "&ndash;" for k in names]
         cells += [f"{float(ll[k]):.1f}" if isinstance(ll.get(k), (int, float)) else "&ndash;" for k in names]
-        body.append(f"<tr><td>{_fmt(i)}</td>" + "".join(f'<td class="num">{c}</td>' for c in cells) + "</tr>")
+        body.append(f"<tr><td>{leg_number(i)}</td>" + "".join(f'<td class="num">{c}</td>' for c in cells) + "</tr>")
     page.add(f"<table>{head}{''.join(body)}</table>")
     page.note(
         "The prior mean of each leg's GP: the forecast restarted from the last estimate (model), the model alone "
@@ -971,8 +975,7 @@ def _section_guard(page: Page, run: Run) -> None:
             "model alone" if g.get("fallback") else "restarted forecast",
             "yes" if g.get("alarm") else "",
         ]
-        n = _fmt(i + 1) if isinstance(i, int) else _fmt(i)
-        body.append(f"<tr><td>{n}</td>" + "".join(f'<td class="num">{c}</td>' for c in cells) + "</tr>")
+        body.append(f"<tr><td>{leg_number(i)}</td>" + "".join(f'<td class="num">{c}</td>' for c in cells) + "</tr>")
     page.add(f"<table>{head}{''.join(body)}</table>")
     page.note(
         "Before a leg's samples enter the estimate, the forecast restarted from the last estimate and the model "
@@ -1011,7 +1014,7 @@ def _section_timings(page: Page, run: Run) -> None:
             tot[3] += int(ns) if isinstance(ns, int) else 0
             body.append(
                 "<tr><td>"
-                + _fmt(leg.get("index", n))
+                + leg_number(leg.get("index", n))
                 + "</td>"
                 + "".join(f'<td class="num">{_fmt(v)}</td>' for v in vals + [ns])
                 + f'<td class="num">{_readings_used(leg.get("readings"))}</td></tr>'
@@ -1027,7 +1030,7 @@ def _section_timings(page: Page, run: Run) -> None:
             loss = ln.get("loss")
             loss_s = f"{100 * float(loss):.1f} %" if isinstance(loss, (int, float)) else "&ndash;"
             body.append(
-                f'<tr><td>{_fmt(i)}</td><td class="num">{_fmt(ln.get("rtt_ms"))}</td>'
+                f'<tr><td>{leg_number(i)}</td><td class="num">{_fmt(ln.get("rtt_ms"))}</td>'
                 f'<td class="num">{loss_s}</td><td class="num">{_fmt(ln.get("messages"))}</td>'
                 f'<td class="num">{_fmt(ln.get("vehicle_bytes_per_s"))}</td></tr>'
             )

@@ -236,8 +236,7 @@ def build_loop(config, predictor, grid, land=None):
     gp_kw = {"seed": config.seeds.gp}
     if config.sensors.noise_std > 0:
         gp_kw["noise_std"] = config.sensors.noise_std
-    if config.gp.bias:
-        gp_kw["bias"] = True
+    gp_kw.update(bias=config.gp.bias, nugget=config.gp.nugget)
     gp_kw.update(config.gp.options)
     options = LoopOptions(
         planner=config.planner.name,
@@ -502,7 +501,7 @@ class LegStep:
         t_s = clock.field_time(col["time_boot_ms"], col["boot"])
         samples = thin_samples(grid, t_s, col["lat"], col["lon"], u, v, t_start=plan.t_start, dt=dt)
         if strict and len(samples) == 0:
-            raise ReconstructionError(f"leg {planned.index}: no usable current samples")
+            raise ReconstructionError(f"leg {planned.index + 1}: no usable current samples")
         planned.steps = extend_leg_to_end(self.loop, plan, t_s, dt)
         t_new = plan.t_start + planned.steps * dt
         note, t0 = None, time.perf_counter()
@@ -683,7 +682,7 @@ class FleetStep:
             lambda taken, avoid: self.step.plan(i, self.state, self.t_state, start, taken=taken, avoid=avoid, **kw),
             taken,
             lambda p: self._conflicts(boat, p.plan.path, p.t_start),
-            f"leg {i}: boat {boat}",
+            f"leg {i + 1}: boat {boat}",
         )
         self._reserved[boat] = {
             "path": np.asarray(planned.plan.path, int),
@@ -702,7 +701,7 @@ class FleetStep:
         own = in_field_time(recs, clock)
         if not own:
             self._plan_version.pop(planned.index, None)
-            raise ReconstructionError(f"leg {planned.index}: no usable current samples")
+            raise ReconstructionError(f"leg {planned.index + 1}: no usable current samples")
         since = self._plan_version.pop(planned.index, self._version)
         # another leg's samples taken before this leg's forecast begins cannot be compared with
         # that forecast at their own time (it starts at this leg's planning state): clipped to
