@@ -502,9 +502,8 @@ class GPReconstructor:
         sensor noise; ``cells``: each sample's flat cell index, ``Bg``: (m, 2, R*C) modes.
         The modes are weighed against the sensor noise alone: how much of the residual do they
         explain? (with the stationary kernels included, a fitted stationary kernel has already
-        taken a smooth drift's variance and the likelihood then under-weights the modes: measured
-        on the ocean default, 6 trials, L=50, final RMSE 0.0678 that way, 0.0627 this way, 0.0564
-        with the factor fixed at 1, which however spoils a leg where the model is right)."""
+        taken a smooth drift's variance and the likelihood then under-weights the modes; a factor
+        fixed at 1 spoils a leg where the model is right)."""
         return lowrank.gp_mode_variance(self, target, cells, np.zeros((0,) + Bg.shape[1:]), Bg, self.BACKGROUND_SCALES)
 
     def background_factor(self) -> float:

@@ -292,9 +292,7 @@ def gp_mode_variance(gp, target, cells, Bg, modes, candidates, xy=None) -> float
     ``GPReconstructor.fit_background_scale``); with them (the ``bias`` fits) the prior is the one
     the posterior uses, kernels included, so that a mode spread over the whole region must explain
     what a local correction cannot: samples bunched in one corner show a local error, which
-    against noise alone looks like an offset of the whole field (measured, 30 trials, random
-    walk, L = 50, offset fitted against noise alone: 0.1107 m/s on the ocean default against
-    0.0609 without the offset)."""
+    against noise alone looks like an offset of the whole field."""
     n = len(target)
     if xy is None:
         base = np.diag(np.concatenate([np.full(n, float(gp.kernels_[k].k2.noise_level)) for k in range(2)]))
@@ -320,11 +318,7 @@ def sample_coverage(gp, cells, shape, fc=None) -> float:
     and samples bunched in one corner, as a random walk leaves them, cannot tell a local error
     from a global one (a local correction explains their residual as well as a global mode does;
     no likelihood can decide what happens where nothing was sampled). Fitted anyway, the global
-    mode carried a corner's error over the region: 30 trials, L = 50, random walk through the
-    model + GP loop, ocean default: 0.0609 m/s without the modes, 0.1107 with them; three seeds
-    of the static wake 0.0923 -> 0.1254, all of it the anomaly mode's. A 50-move random walk on
-    30 x 30 sees at most 0.37 of the region (40 seeds), the information planner's 50-move legs
-    0.61-0.73."""
+    mode carries a corner's error over the region."""
     X, Y = gp.grid_coords()
     water = np.ones(int(np.prod(shape)), bool) if fc is None else np.isfinite(np.asarray(fc).reshape(2, -1)).all(0)
     if not water.any():
