@@ -132,7 +132,9 @@ def test_samples_from_latlon_roundtrip(field):
 
 def test_step_by_step_api(field):
     loop = PasstLoop(
-        ShiftPredictor(WRONG_VEL), field.grid, **PAPER.kwargs(planner="greedy", path_length=20, steps_per_leg=5, seed=4)
+        ShiftPredictor(WRONG_VEL),
+        field.grid,
+        **PAPER.kwargs(planner="greedy", path_length=20, steps_per_leg=5, seed=4, background=0),
     )
     sampler = FieldSampler(field, noise_std=0.002, seed=1, steps_per_leg=5)
     state = field.data[0]

@@ -25,25 +25,8 @@ def _mission():
     )
 
 
-def _mission_settings(cfg) -> dict:
-    """The mission's settings by the preset's names."""
-    return dict(
-        planner=cfg.planner.name,
-        reward=cfg.planner.reward,
-        memory=cfg.planner.memory,
-        prior=cfg.gp.prior,
-        background=cfg.gp.background,
-        prior_blend=cfg.gp.prior_blend,
-        forgetting=cfg.gp.forgetting,
-        prior_share=cfg.gp.prior_share,
-        bias=cfg.gp.bias,
-        nugget=cfg.gp.nugget,
-        guard=cfg.gp.guard,
-    )
-
-
 def test_the_mission_schema_defaults_are_the_default_preset():
-    assert _mission_settings(_mission()) == DEFAULT.as_dict()
+    assert _mission().loop_preset() == DEFAULT
 
 
 def test_the_api_defaults_are_the_default_preset():
@@ -141,5 +124,5 @@ def test_a_mission_builds_its_loop_with_its_own_gp_settings():
     grid = geo.RegionGrid(40.0, -70.0, 40.2, -69.8, 6, 6)
     loop = build_loop(cfg, None, grid)
     assert (loop.gp.bias, loop.gp.nugget) == (False, "noise")
-    assert isinstance(Preset(**_mission_settings(cfg)), Preset)
+    assert cfg.loop_preset() == Preset(**{**DEFAULT.as_dict(), "bias": False, "nugget": "noise"})
     assert np.isclose(loop.share, cfg.gp.prior_share)

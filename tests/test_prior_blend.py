@@ -58,7 +58,9 @@ def _legs(field, predictor, blend: str, n: int = 3, *, seed: int = 0, **kw) -> t
     loop = PasstLoop(
         predictor,
         field.grid,
-        **PAPER.kwargs(planner="random", path_length=25, steps_per_leg=5, prior_blend=blend, seed=seed, **kw),
+        **PAPER.kwargs(
+            planner="random", path_length=25, steps_per_leg=5, prior_blend=blend, seed=seed, **{"background": 0, **kw}
+        ),
     )
     state, samples = field.data[0], None
     for k in range(n):
@@ -145,7 +147,9 @@ def test_far_from_the_samples_the_analysis_is_a_forecast_never_zero():
     tide = _tidal_field(40)
     pers = Persistence()
     loop = PasstLoop(
-        pers, tide.grid, **PAPER.kwargs(planner="random", path_length=6, steps_per_leg=5, prior_blend="select")
+        pers,
+        tide.grid,
+        **PAPER.kwargs(planner="random", path_length=6, steps_per_leg=5, prior_blend="select", background=0),
     )
     from passt_mav.loop.passt import PRIOR_CANDIDATES, FieldSampler
 
@@ -182,7 +186,9 @@ def test_the_guard_falls_back_when_the_restart_state_is_poor(field):
 
     def fly(guard):
         loop = PasstLoop(
-            good, field.grid, **PAPER.kwargs(planner="random", path_length=25, steps_per_leg=5, guard=guard)
+            good,
+            field.grid,
+            **PAPER.kwargs(planner="random", path_length=25, steps_per_leg=5, guard=guard, background=0),
         )
         state = field.data[0]
         for k in range(2):

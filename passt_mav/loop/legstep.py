@@ -233,26 +233,19 @@ def build_loop(config, predictor, grid, land=None):
     """:class:`PasstLoop` from a mission config (planner, reward, L, GP prior/options, seeds)."""
     from passt_mav.loop.passt import LoopOptions
 
+    preset = config.loop_preset()
     gp_kw = {"seed": config.seeds.gp}
     if config.sensors.noise_std > 0:
         gp_kw["noise_std"] = config.sensors.noise_std
-    gp_kw.update(bias=config.gp.bias, nugget=config.gp.nugget)
+    gp_kw.update(preset.gp_kwargs())  # the mission's bias and nugget, explicitly: the API's defaults may differ
     gp_kw.update(config.gp.options)
     options = LoopOptions(
-        planner=config.planner.name,
+        **preset.loop_kwargs(),
         planner_kw=dict(config.planner.options),
-        reward=config.planner.reward,
         path_length=config.planner.path_length,
         steps_per_leg=config.steps_per_leg or 1,
-        prior=config.gp.loop_prior,
         gp_kw=gp_kw,
         hyper=config.gp.hyper,
-        background=config.gp.background,
-        prior_blend=config.gp.prior_blend,
-        forgetting=config.gp.forgetting,
-        share=config.gp.prior_share,
-        memory=config.planner.memory,
-        guard=config.gp.guard,
     )
     loop = options.loop(predictor, grid, land=land, seed=config.seeds.planner)
     # a mission's estimate is written with its posterior std (estimate.nc u_std/v_std; exports read it):

@@ -52,7 +52,7 @@ from pydantic import (
 )
 
 from passt_mav.errors import MissionConfigError
-from passt_mav.loop.presets import DEFAULT
+from passt_mav.loop.presets import DEFAULT, Preset
 from passt_mav.reconstruction.background import background_steps_problem
 
 __all__ = [
@@ -530,6 +530,12 @@ class MissionConfig(_Strict):
     def grid(self):
         """The region's :mod:`geo` grid object."""
         return self.region.grid()
+
+    def loop_preset(self) -> Preset:
+        """The mission's loop settings as a :class:`passt_mav.loop.presets.Preset` (the same names)."""
+        planner = {"planner": self.planner.name, "reward": self.planner.reward, "memory": self.planner.memory}
+        gp = {k: getattr(self.gp, k) for k in Preset.__dataclass_fields__ if k not in planner}  # gp.* by its names
+        return Preset(**planner, **gp)
 
 
 def _predictor_names() -> tuple[str, ...]:
