@@ -267,7 +267,7 @@ def test_run_killed_mid_leg_then_resume_finishes_and_keeps_samples(tmp_path):
         rec = rd.read_leg(i)
         assert rec["status"] == "complete" and rec["n_samples"] > 3 and rec["rmse_passt"] is not None
         assert rd.estimate_file(i).exists() and rd.waypoints_file(i).exists()
-    assert any(e.startswith("resumed before leg 0") for e in summary["events"]) and "resuming" in res.stdout
+    assert any(e.startswith("resumed before leg 1") for e in summary["events"]) and "resuming" in res.stdout
     assert rd.read_leg(0)["n_samples"] >= before  # the interrupted flight's samples count for the re-flown leg
     with SampleStore(rd.samples_db, readonly=True) as st:
         after = {(s.time_boot_ms, s.lat, s.lon) for s in st.all()}

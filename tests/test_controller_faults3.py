@@ -239,7 +239,7 @@ def test_resume_after_a_kill_in_leg_2_reloads_the_estimate_and_keeps_samples(tmp
         summary = ctl2.run()
     assert summary["status"] == "complete" and [x["index"] for x in summary["legs"]] == [0, 1, 2]
     assert any("resuming" in s and "1 leg(s) done" in s for s in lines)
-    assert any(e.startswith("resumed after leg 0") for e in summary["events"])
+    assert any(e.startswith("resumed after leg 1") for e in summary["events"])
     # planned from leg 0's estimate (persistence: the forecast to now is the estimate itself)
     np.testing.assert_allclose(seen["state"], est0, rtol=0, atol=1e-6, equal_nan=True)
     with SampleStore(rd.samples_db, readonly=True) as st:

@@ -111,7 +111,7 @@ def make_run(root: Path, boats: int = 3, legs: int = 4, metric: bool = False) ->
                         float(lon),
                         float(rng.normal()),
                         float(rng.normal()),
-                        k // 20,
+                        -1 if k == 0 else k // 20,  # each boat's first reading outside any leg
                         f"mav:{b + 1}/1",
                     )
                 )
@@ -204,10 +204,11 @@ def test_estimate_netcdf_is_cf_and_round_trips_through_data_import(run3, tmp_pat
         )
         assert ds.u_std.attrs["standard_name"] == "eastward_sea_water_velocity standard_error"
         assert ds.u.attrs["units"] == "m s-1" and ds.u.attrs["grid_mapping"] == "crs"
-        assert list(ds.leg.values) == kept and list(ds.boat.values) == [0, 2, 0]
+        # legs numbered from 1 (legs/000 is leg 1), as the console and the report count them
+        assert list(ds.leg.values) == [i + 1 for i in kept] and list(ds.boat.values) == [0, 2, 0]
         assert ds.attrs["Conventions"] == "CF-1.8, ACDD-1.3" and ds.attrs["passt_mav_version"]
         assert len(ds.attrs["source_commit"]) in (40, len("unknown"))
-        assert "leg 1's estimate" in ds.attrs["comment"]
+        assert "leg 2's estimate" in ds.attrs["comment"]
 
 
 def test_a_metric_field_keeps_its_data_frame_with_lat_lon_and_field_time(tmp_path, capsys):
@@ -246,7 +247,9 @@ def test_samples_netcdf_is_a_cf_trajectory_per_boat(run3, tmp_path, capsys):
             np.testing.assert_allclose(ds.time.values[sl], [s.utc for s in mine], atol=1e-6)
             np.testing.assert_allclose(ds.u.values[sl], [s.u for s in mine], atol=1e-12)
             np.testing.assert_allclose(ds.lat.values[sl], [s.lat for s in mine], atol=1e-12)
-            assert list(ds.leg.values[sl]) == [s.leg for s in mine]
+            # legs from 1; a reading outside any leg (store index -1) is the fill value: missing once decoded
+            want = [s.leg + 1 if s.leg >= 0 else np.nan for s in mine]
+            np.testing.assert_array_equal(ds.leg.values[sl], want)
             start += n
 
 
@@ -304,6 +307,10 @@ def test_csv_has_one_row_per_sample(run3, tmp_path, capsys):
     # this run records no clock (summary.json without one): the vehicle's UTC, field time unknown
     assert rows[0]["vehicle_utc"] == rows[0]["time_utc"] and rows[0]["field_time"] == ""
     assert [sum(r["boat"] == str(b) for r in rows) for b in range(3)] == run3["per_boat"]
+    # legs numbered from 1 as the console counts them; a reading outside any leg says so
+    assert {r["leg"] for r in rows} <= {"outside"} | {str(i + 1) for i in range(run3["legs"])}
+    by_time = sorted(run3["samples"], key=lambda x: (x.source, x.utc))
+    assert [r["leg"] for r in rows] == [str(x.leg + 1) if x.leg >= 0 else "outside" for x in by_time]
     s = run3["samples"][1]
     assert float(rows[1]["u"]) == pytest.approx(s.u, abs=1e-6)
     assert float(rows[1]["lat"]) == pytest.approx(s.lat, abs=1e-7)
@@ -437,7 +444,7 @@ def test_demo_run_exports(tmp_path, boats):
     import xarray as xr
 
     with xr.open_dataset(exp / "estimate.nc") as ds:
-        kept = [int(x) for x in ds.leg.values]
+        kept = [int(x) - 1 for x in ds.leg.values]  # leg numbers from 1 -> legs/NNN
         assert "u_std" in ds and np.nanmax(ds.u_std.values) > 0
     want = np.concatenate([load_field(rd.estimate_file(i)).data for i in kept])
     np.testing.assert_allclose(back.data, want, atol=1e-6, equal_nan=True)

@@ -15,6 +15,7 @@ import pytest
 from mavlink_helpers import inprocess_factory, link_config, vehicle
 from test_controller import mission, sim_config, wave_field
 
+from passt_mav.analysis.html_page import pyplot
 from passt_mav.commands.run import LEAN_STREAMS
 from passt_mav.mavlink import Link
 from passt_mav.runs.rundir import RunDir
@@ -224,7 +225,9 @@ def test_a_boat_whose_link_drops_mid_leg_reconnects_and_the_fleet_completes(tmp_
     assert summary["status"] == "complete", summary["events"]
     assert [b["status"] for b in summary["boats"]] == ["complete"] * 3
     assert len(summary["legs"]) == 6
-    assert any(e.startswith(f"boat 2: leg {dropped['leg']}: link lost") for e in summary["events"]), summary["events"]
+    assert any(e.startswith(f"boat 2: leg {dropped['leg'] + 1}: link lost") for e in summary["events"]), summary[
+        "events"
+    ]
 
 
 def test_replay_of_a_fleet_run_reproduces_every_boats_paths_and_rmse(tmp_path):
@@ -262,7 +265,7 @@ def test_report_of_a_fleet_run_draws_every_boats_track(tmp_path):
     for k, (r, c) in enumerate(STARTS):  # each boat's track starts in its own start cell
         lat, lon = run.boat_tracks[k][0]
         assert tuple(int(x) for x in field.grid.latlon_to_cell(lat, lon, clip=True)) == (r, c)
-    plt = report._plt()
+    plt = pyplot()
     fig = report._fig_track(run, plt)
     labels = [ln.get_label() for ln in fig.axes[0].get_lines()]
     assert [x for x in labels if x.startswith("boat")] == ["boat 0, sysid 1", "boat 1, sysid 2", "boat 2, sysid 3"]

@@ -59,7 +59,7 @@ def _fitted_gp(grid, background, seed=0):
     gp = GPReconstructor(
         grid_xy=(X, Y), noise_std=0.05, space_time=False, solver="cholesky", background=background, background_scale=0.7
     )
-    gp.kernels_ = [gp._base_kernel()[0].set_params(k1__k1__constant_value=0.04 + 0.01 * k) for k in range(2)]
+    gp.kernels_ = [gp.start_kernel()[0].set_params(k1__k1__constant_value=0.04 + 0.01 * k) for k in range(2)]
     gp.cell_m_, gp.n_inputs_ = 100.0, 2
     return gp, xy, uv
 

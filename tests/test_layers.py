@@ -237,3 +237,117 @@ def test_controller_methods_fit_on_one_screen(module):
         if isinstance(n, ast.ClassDef) and n.end_lineno - n.lineno + 1 > 500
     ]
     assert not long, long
+
+
+# -- private names stay in their module ------------------------------------------------------------
+#: (module, modules whose private names it may read, why): one concern split over two files
+FRIENDS = (
+    (
+        "passt_mav.models.knode_fit",
+        ("passt_mav.models.knode", "passt_mav.models.base"),
+        "the KNODE's training, split out of the predictor's module, steps the network it trains",
+    ),
+    ("passt_mav.models.online", ("passt_mav.models.knode",), "online fine-tuning advances the KNODE's network"),
+)
+#: (module, private name): accesses left as they are while their owner's file is being restructured in
+#: another branch (loop/passt.py: the prior blend; vehicle/: resilience); each one is a debt, not a rule
+KNOWN = {
+    ("passt_mav.loop.engine", "_reward_map"),
+    ("passt_mav.loop.engine", "_plan_seed"),
+    ("passt_mav.loop.engine", "_background_or_none"),
+    ("passt_mav.analysis.counterfactual", "_background_pending"),
+    ("passt_mav.vehicle.fleet_controller", "_clock_with_boots"),
+}
+
+
+def _private(name: str) -> bool:
+    return name.startswith("_") and not name.startswith("__")
+
+
+def _private_definitions(tree: ast.AST) -> set[str]:
+    """The private names a module defines: functions, classes, methods, assigned names and attributes."""
+    out = set()
+    for n in ast.walk(tree):
+        if isinstance(n, (ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef)):
+            out.add(n.name)
+        elif isinstance(n, ast.Attribute) and isinstance(n.ctx, ast.Store):
+            out.add(n.attr)
+        elif isinstance(n, ast.Name) and isinstance(n.ctx, ast.Store):
+            out.add(n.id)
+    return {x for x in out if _private(x)}
+
+
+def private_access(root: Path = ROOT) -> list[str]:
+    """Every use in ``passt_mav/`` of a private name (``_name``, not dunder) that another module of
+    ``passt_mav/`` defines and this one does not: ``obj._name`` (``self``/``cls``/``super()`` excepted: a
+    class's own) or ``from module import _name``; as 'file:line: module uses _name (defined in ...)'."""
+    trees = {src: ast.parse(src.read_text(), str(src)) for src in sorted((root / "passt_mav").rglob("*.py"))}
+    owners: dict[str, set[str]] = {}
+    defined = {}
+    for src, tree in trees.items():
+        me = _module_name(src, root)
+        defined[me] = _private_definitions(tree)
+        for x in defined[me]:
+            owners.setdefault(x, set()).add(me)
+    bad = []
+    for src, tree in trees.items():
+        me = _module_name(src, root)
+        friends = {m for who, mods, _why in FRIENDS if who == me for m in mods}
+        for n in ast.walk(tree):
+            if isinstance(n, ast.Attribute) and _private(n.attr):
+                v = n.value
+                if isinstance(v, ast.Name) and v.id in ("self", "cls"):
+                    continue
+                if isinstance(v, ast.Call) and isinstance(v.func, ast.Name) and v.func.id == "super":
+                    continue
+                used = [(n.lineno, n.attr)]
+            elif isinstance(n, ast.ImportFrom) and (n.module or "").startswith("passt_mav"):
+                used = [(n.lineno, a.name) for a in n.names if _private(a.name)]
+            else:
+                continue
+            for line, name in used:
+                others = owners.get(name, set()) - {me}
+                if name in defined[me] or not others or others <= friends or (me, name) in KNOWN:
+                    continue
+                bad.append(f"{src.relative_to(root)}:{line}: {me} uses {name} (defined in {', '.join(sorted(others))})")
+    return sorted(set(bad))
+
+
+def test_no_private_name_crosses_a_module():
+    """A module's private names (the GP's helpers, the report's HTML kit) are used by that module alone:
+    what another module needs is public API (issue 43)."""
+    bad = private_access()
+    assert not bad, "private names used outside their module:\n" + "\n".join(bad)
+
+
+def test_every_known_private_access_is_still_there():
+    """KNOWN lists debts: one paid off leaves the list, so the list never hides a new access of the same name."""
+    trees = {_module_name(s): s.read_text() for s in (ROOT / "passt_mav").rglob("*.py")}
+    gone = sorted(f"{m}: {name}" for m, name in KNOWN if name not in trees.get(m, ""))
+    assert not gone, gone
+
+
+@pytest.mark.parametrize(
+    "line, name",
+    [
+        ("    return gp._nugget_vars()", "_nugget_vars"),
+        ("    from passt_mav.pkg.a import _helper", "_helper"),
+        ("    return x.y._helper(1)", "_helper"),
+    ],
+)
+def test_the_private_check_catches_a_crossing(tmp_path, line, name):
+    """A module reading another module's private helper fails the check, naming the file and the name;
+    the module's own private names and ``self._x`` pass."""
+    pkg = tmp_path / "passt_mav" / "pkg"
+    pkg.mkdir(parents=True)
+    (tmp_path / "passt_mav" / "__init__.py").write_text("")
+    (pkg / "__init__.py").write_text("")
+    (pkg / "a.py").write_text(
+        "class GP:\n    def _nugget_vars(self):\n        return self._own()\n\n    def _own(self):\n        return 1\n\n\n"
+        "def _helper(x):\n    return x\n"
+    )
+    (pkg / "b.py").write_text("def _mine():\n    return 2\n\n\ndef ok(gp):\n    return gp._mine()\n")
+    assert private_access(tmp_path) == []
+    (pkg / "b.py").write_text((pkg / "b.py").read_text() + f"\n\ndef sneaky(gp, x):\n{line}\n")
+    bad = private_access(tmp_path)
+    assert len(bad) == 1 and bad[0].startswith(f"passt_mav/pkg/b.py:10: passt_mav.pkg.b uses {name} "), bad

@@ -240,7 +240,7 @@ def test_a_gcs_upload_during_the_swap_is_caught_by_the_read_back_and_ours_flown(
     assert all(rover_stored(a).same_as(rover_stored(_item(m))) for a, m in zip(leg0[1:], before[1:]))
     assert ack is not None and ack.type == M.MAV_MISSION_ACCEPTED
     replaced = [e for e in summary["events"] if "mission replaced" in e]
-    assert len(replaced) == 1 and replaced[0].startswith("leg 0:")
+    assert len(replaced) == 1 and replaced[0].startswith("leg 1:")
     if shared:  # through a router the vehicle's ACK to QGC reached us too: the message names it
         assert "system 255 component 190" in replaced[0]
     # the vehicle ends holding the last leg's mission, ours; every frame we sent carried our identity

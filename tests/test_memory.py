@@ -84,7 +84,7 @@ def test_the_loop_plans_on_the_remembered_prior():
     gp = loop.gp
     gp.background = np.random.default_rng(3).normal(0, 0.2, (3, 2, R, C))
     gp.background_scale = 0.7
-    gp.kernels_ = [gp._base_kernel()[0].set_params(k1__k1__constant_value=0.04 + 0.01 * k) for k in range(2)]
+    gp.kernels_ = [gp.start_kernel()[0].set_params(k1__k1__constant_value=0.04 + 0.01 * k) for k in range(2)]
     gp.cell_m_, gp.n_inputs_ = 100.0, 2
     F0, d0, _, m = gp.prior_factors(loop.land, with_mode_count=True)
     assert m == 3

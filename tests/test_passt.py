@@ -15,6 +15,7 @@ from passt_mav.errors import PlannerError
 from passt_mav.fields.field import FlowField
 from passt_mav.loop.engine import run_offline
 from passt_mav.loop.passt import FieldSampler, PasstLoop, Sampler, Samples, run_pure_model, steps_for_leg
+from passt_mav.loop.presets import PAPER
 from passt_mav.planning import check_path
 
 # -- stand-ins -------------------------------------------------------------------
@@ -130,7 +131,11 @@ def test_samples_from_latlon_roundtrip(field):
 
 
 def test_step_by_step_api(field):
-    loop = PasstLoop(ShiftPredictor(WRONG_VEL), field.grid, planner="greedy", path_length=20, steps_per_leg=5, seed=4)
+    loop = PasstLoop(
+        ShiftPredictor(WRONG_VEL),
+        field.grid,
+        **PAPER.kwargs(planner="greedy", path_length=20, steps_per_leg=5, seed=4, background=0),
+    )
     sampler = FieldSampler(field, noise_std=0.002, seed=1, steps_per_leg=5)
     state = field.data[0]
     leg = loop.plan_leg(state, (10, 10), t_start=0.0, dt=1.0)
@@ -251,9 +256,11 @@ def test_background_covariance_corrects_the_drift_far_from_the_track(field):
         steps_per_leg=10,
         noise_std=0.01,
         seed=1,
-        gp_kw={"solver": "cholesky"},
+        gp_kw={"solver": "cholesky", **PAPER.gp_kwargs()},
+        prior_blend=PAPER.prior_blend,
+        share=PAPER.prior_share,
     )
-    plain = rm(run_offline(field, pred, **kw).estimate)
+    plain = rm(run_offline(field, pred, background=0, **kw).estimate)
     with_b = rm(run_offline(field, pred, background=100, **kw).estimate)
     assert with_b[-20:].mean() < 0.3 * pure[-20:].mean()
     assert with_b[-20:].mean() < 0.5 * plain[-20:].mean()

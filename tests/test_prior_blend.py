@@ -17,6 +17,7 @@ from test_passt import ShiftPredictor, make_field
 from passt_mav.errors import ReconstructionError
 from passt_mav.loop.engine import run_offline
 from passt_mav.loop.passt import PasstLoop
+from passt_mav.loop.presets import PAPER
 
 TRUE_VEL = (0.05, 0.12)
 
@@ -38,14 +39,11 @@ def _final(field, predictor, blend, seeds=range(3), **loop_kw):
             predictor,
             start_cell=(15, 15),
             n_steps=60,
-            planner="random",
-            path_length=25,
-            steps_per_leg=5,
             noise_std=0.02,
             seed=s,
-            prior_blend=blend,
-            background=0,
-            **loop_kw,
+            **PAPER.kwargs(
+                planner="random", path_length=25, steps_per_leg=5, prior_blend=blend, background=0, **loop_kw
+            ),
         )
         d = r.estimate[-20:].astype(np.float64) - field.data[41:61]
         out.append(np.sqrt(np.mean(d**2)))
@@ -58,7 +56,11 @@ def _legs(field, predictor, blend: str, n: int = 3, *, seed: int = 0, **kw) -> t
     from passt_mav.loop.passt import FieldSampler
 
     loop = PasstLoop(
-        predictor, field.grid, planner="random", path_length=25, steps_per_leg=5, prior_blend=blend, seed=seed, **kw
+        predictor,
+        field.grid,
+        **PAPER.kwargs(
+            planner="random", path_length=25, steps_per_leg=5, prior_blend=blend, seed=seed, **{"background": 0, **kw}
+        ),
     )
     state, samples = field.data[0], None
     for k in range(n):
@@ -144,7 +146,11 @@ def test_far_from_the_samples_the_analysis_is_a_forecast_never_zero():
     estimate at the leg's end stays within 5 % (RMS) of the background the blend chose, never near 0."""
     tide = _tidal_field(40)
     pers = Persistence()
-    loop = PasstLoop(pers, tide.grid, planner="random", path_length=6, steps_per_leg=5, prior_blend="select")
+    loop = PasstLoop(
+        pers,
+        tide.grid,
+        **PAPER.kwargs(planner="random", path_length=6, steps_per_leg=5, prior_blend="select", background=0),
+    )
     from passt_mav.loop.passt import PRIOR_CANDIDATES, FieldSampler
 
     assert "none" not in PRIOR_CANDIDATES
@@ -179,7 +185,11 @@ def test_the_guard_falls_back_when_the_restart_state_is_poor(field):
     good = ShiftPredictor(TRUE_VEL)
 
     def fly(guard):
-        loop = PasstLoop(good, field.grid, planner="random", path_length=25, steps_per_leg=5, guard=guard)
+        loop = PasstLoop(
+            good,
+            field.grid,
+            **PAPER.kwargs(planner="random", path_length=25, steps_per_leg=5, guard=guard, background=0),
+        )
         state = field.data[0]
         for k in range(2):
             leg = loop.plan_leg(state, (10, 10), float(5 * k), 1.0, steps=5)

@@ -179,7 +179,7 @@ def test_cholesky_column_cache_is_exact_and_std_can_be_skipped(grid):
     legs = [cells[:40], cells[20:70], np.concatenate([cells[60:], cells[60:65]])]
     for i, part in enumerate(legs):
         pxy = np.column_stack([*grid.cell_to_xy(part[:, 0], part[:, 1]), np.full(len(part), -1.0 * (i % 2))])
-        got = gp._cross_cov(0, kern, pxy, grid_pts)
+        got = gp.cross_cov(0, kern, pxy, grid_pts)
         np.testing.assert_array_equal(got, kern(grid_pts, pxy))
     n_cached = len(gp._col_cache[0][2])
     # offset 0: cells[:40] and cells[60:] (the duplicates cached once); offset -1: cells[20:70]

@@ -27,7 +27,7 @@ from passt_mav.commands.run import LEAN_STREAMS
 from passt_mav.mission.config import validate_mission
 from passt_mav.runs.rundir import RunDir
 from passt_mav.runs.store import SampleStore
-from passt_mav.runs.tlog import _TlogScanner
+from passt_mav.runs.tlog import TlogScanner
 
 
 @pytest.fixture(scope="module")
@@ -193,7 +193,7 @@ def test_bare_tlog_of_an_older_controller_searches_the_clock_bracket(flown, tmp_
     rd, mfile, summary = flown
     data = rd.tlog.read_bytes()
     keep, n_cut, pos = bytearray(), 0, 0
-    for _, m in _TlogScanner(data):
+    for _, m in TlogScanner(data):
         buf = m.get_msgbuf()
         at = data.index(buf, pos)
         rec = data[at - 8 : at + len(buf)]  # 8-byte timestamp + frame
@@ -214,7 +214,7 @@ def test_bare_tlog_of_an_older_controller_searches_the_clock_bracket(flown, tmp_
 def test_pymavlink_logger_tlog_replays_into_the_same_samples(flown, tmp_path):
     """Re-record the flight through pymavlink's own tlog writer (as MAVProxy logs)."""
     rd, mfile, summary = flown
-    frames = [m.get_msgbuf() for _, m in _TlogScanner(rd.tlog.read_bytes())]
+    frames = [m.get_msgbuf() for _, m in TlogScanner(rd.tlog.read_bytes())]
     from test_tlog import _record_tlog  # pymavlink's own tlog writer, as MAVProxy records
 
     out = _record_tlog([bytes(f) for f in frames], tmp_path, name="mavproxy.tlog")
@@ -234,7 +234,7 @@ def test_pymavlink_logger_tlog_replays_into_the_same_samples(flown, tmp_path):
 
 def _record_ends(data: bytes) -> list[int]:
     ends, p = [], 0
-    for _, m in _TlogScanner(data):
+    for _, m in TlogScanner(data):
         p += 8 + len(m.get_msgbuf())
         ends.append(p)
     return ends
@@ -247,7 +247,7 @@ def test_truncated_tlog_replays_what_is_readable(flown, tmp_path):
     # cut in the middle of the record of a CUR_U sent half-way through the second leg
     mid_tb = sorted(r["time_boot_ms"] for r in log0.legs[1].samples)[len(log0.legs[1].samples) // 2]
     p, cut = 0, None
-    for _, m in _TlogScanner(data):
+    for _, m in TlogScanner(data):
         p += 8 + len(m.get_msgbuf())
         if m.get_type() == "NAMED_VALUE_FLOAT" and m.time_boot_ms == mid_tb:
             cut = p - 5

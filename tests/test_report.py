@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 
 import geo
+from passt_mav.analysis.html_page import pyplot
 from passt_mav.analysis.report import load_run, recon_rmse, write_report
 from passt_mav.cli import main
 from passt_mav.errors import UserError
@@ -390,7 +391,7 @@ def test_metric_grid_run(tmp_path):
     assert len(_embedded_pngs(text)) == 4  # all but samples and POD (not recorded)
     assert "non-dimensional" in text
     # +0.05 on both components everywhere the cylinder is not
-    assert "reconstruction RMSE vs truth, leg 0</th><td>0.05 non-dimensional" in text
+    assert "reconstruction RMSE vs truth, leg 1</th><td>0.05 non-dimensional" in text
     assert "non-dimensional field time" in text
 
 
@@ -399,17 +400,18 @@ def _figure(name: str, run, *extra):
     """Draw one report figure (``_fig_legs`` etc.) of ``run`` and return (figure, pyplot) for inspection."""
     from passt_mav.analysis import report
 
-    plt = report._plt()
+    plt = pyplot()
     return getattr(report, name)(run, plt, *extra), plt
 
 
 def _executed_lines(fig) -> dict[int, np.ndarray]:
-    """Leg number -> (n, 2) lon/lat of the line labelled 'leg N executed' in the legs figure."""
+    """Leg index (0-based, as leg.json) -> (n, 2) lon/lat of the line labelled 'leg N executed' in the legs
+    figure (N numbered from 1)."""
     out = {}
     for line in fig.axes[0].get_lines():
         m = re.fullmatch(r"leg (\d+) executed", line.get_label())
         if m:
-            out[int(m.group(1))] = line.get_xydata()
+            out[int(m.group(1)) - 1] = line.get_xydata()
     return out
 
 
@@ -564,7 +566,7 @@ def test_rmse_figure_with_the_lawnmower_counterfactual(tmp_path):
         np.testing.assert_allclose(h["PASST"], [0.05, 0.04, 0.02])
         np.testing.assert_allclose(h["model alone (from the true initial state)"], [0.08] * 3)
         np.testing.assert_allclose(h["lawnmower+GP (counterfactual, offline)"], [0.48, 0.49, 0.5])
-        assert [t.get_text() for t in legs_ax.get_xticklabels()] == ["leg 0", "leg 1", "leg 2"]
+        assert [t.get_text() for t in legs_ax.get_xticklabels()] == ["leg 1", "leg 2", "leg 3"]
     finally:
         plt.close(fig)
     text = write_report(rd.root).read_text()

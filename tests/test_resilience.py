@@ -634,7 +634,7 @@ def test_chaos_six_legs_drops_restart_kill_resume_and_sigterm(tmp_path):
     final = runs[-1]
     assert final["status"] == "complete" and [x["index"] for x in final["legs"]] == list(range(6))
     ev = " | ".join(final["events"])
-    assert "leg 1: vehicle rebooted" in ev and "resumed after leg 1" in ev and "stopped by SIGTERM" in ev
+    assert "leg 2: vehicle rebooted" in ev and "resumed after leg 2" in ev and "stopped by SIGTERM" in ev
     # every drop was noticed where it fell, mid-leg, and ridden out
     outages = [o for r in runs for o in r["outages"]]
     assert [(o["leg"], o["during"]) for o in outages] == [(0, "leg"), (2, "leg"), (3, "leg")], outages

@@ -339,7 +339,7 @@ def test_a_start_cell_the_boat_is_not_at_is_one_line(flown):
         return
     assert leg0["start_cell"] == [4, 4]
     assert len(said) == 1 and len(console) == 1
-    assert said[0].startswith("start_cell [1, 4] not honoured: leg 0 starts at cell [4, 4]")
+    assert said[0].startswith("start_cell [1, 4] not honoured: leg 1 starts at cell [4, 4]")
     e = next(e for e in events if "not honoured" in e["text"])
     assert e["kind"] == "warning"
     far = float(said[0].split(" m from ")[0].rsplit(" ", 1)[1])

@@ -47,37 +47,15 @@ from dataclasses import dataclass
 
 from pymavlink.dialects.v20 import ardupilotmega as mavlink2
 
+from vehicle_sim import telemetry
 from vehicle_sim.boat import BoatState, CurrentModel, LocalFrame, guidance, step_boat
 from vehicle_sim.config import SimConfig
 from vehicle_sim.mission_server import GLOBAL_FRAMES, MissionServer, MissionStore
+from vehicle_sim.modes import MANUAL_INPUT, MODE_NAMES, MODES, NEEDS_POSITION, SETTABLE
 
 __all__ = ["Autopilot", "MODES", "MODE_NAMES", "DEFAULT_PARAMS"]
 
 M = mavlink2
-
-MODES = {
-    "MANUAL": 0,
-    "ACRO": 1,
-    "STEERING": 3,
-    "HOLD": 4,
-    "LOITER": 5,
-    "FOLLOW": 6,
-    "SIMPLE": 7,
-    "DOCK": 8,
-    "CIRCLE": 9,
-    "AUTO": 10,
-    "RTL": 11,
-    "SMART_RTL": 12,
-    "GUIDED": 15,
-    "INITIALISING": 16,
-}
-MODE_NAMES = {v: k for k, v in MODES.items()}
-SETTABLE = frozenset(v for k, v in MODES.items() if k != "INITIALISING")
-NEEDS_POSITION = frozenset(
-    MODES[k] for k in ("AUTO", "GUIDED", "LOITER", "RTL", "SMART_RTL", "CIRCLE", "FOLLOW", "DOCK")
-)
-STATION_KEEPING = frozenset(MODES[k] for k in ("HOLD", "LOITER", "CIRCLE", "FOLLOW", "DOCK"))
-MANUAL_INPUT = frozenset(MODES[k] for k in ("MANUAL", "ACRO", "STEERING"))
 
 _I8, _I16, _I32, _F = M.MAV_PARAM_TYPE_INT8, M.MAV_PARAM_TYPE_INT16, M.MAV_PARAM_TYPE_INT32, M.MAV_PARAM_TYPE_REAL32
 
@@ -235,7 +213,7 @@ class Autopilot:
         )
         self._next_sample = 0.0
         self.samples_sent = 0
-        self._energy_wh = 0.0
+        self.energy_wh = 0.0  # energy the boat used since boot (Wh): the battery telemetry's
         self.streams: dict[int, LinkStreams] = {}
         self.texts: list[tuple[float, str]] = []  # every STATUSTEXT sent (tests, console)
         self._boot_events_done: set[str] = set()
@@ -442,12 +420,12 @@ class Autopilot:
                 return
         elif cmd == R.MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES:
             self._ack(link, msg, cmd, R.MAV_RESULT_ACCEPTED)
-            self.send(link, self._autopilot_version())
+            self.send(link, telemetry.autopilot_version(self))
             return
         elif cmd == R.MAV_CMD_GET_HOME_POSITION:
             result = R.MAV_RESULT_ACCEPTED if self.home_set else R.MAV_RESULT_FAILED
             if self.home_set:
-                self.send(link, self._home_position())
+                self.send(link, telemetry.home_position(self))
         elif cmd == R.MAV_CMD_DO_SET_HOME:
             if int(p[0]) == 1:
                 lat, lon = self.position()
@@ -459,7 +437,7 @@ class Autopilot:
                 self.home_latlon = (float(lat), float(lon))
                 self.home_set = True
                 self.store.set_home(lat, lon, self.home_alt)
-                self.send(None, self._home_position())
+                self.send(None, telemetry.home_position(self))
                 result = R.MAV_RESULT_ACCEPTED
         elif cmd == R.MAV_CMD_DO_SET_MISSION_CURRENT:
             result = (
@@ -501,7 +479,7 @@ class Autopilot:
 
     def _on_mission_set_current(self, link, msg):
         if self.set_mission_current(int(msg.seq)):
-            self.send(None, self._mission_current())
+            self.send(None, telemetry.mission_current(self))
 
     def _on_param_request_list(self, link, msg):
         for i, name in enumerate(self._param_names):
@@ -652,15 +630,17 @@ class Autopilot:
             ):
                 break
             idx += 1  # other DO_/CONDITION_ items: nothing to simulate
-        prev_target = self._item_xy(self.active_item) if self.active_item is not None else None
+        prev_target = self.item_xy(self.active_item) if self.active_item is not None else None
         self.mission_index = idx
         self.active_item = it
         self.leg_origin = prev_target if prev_target is not None else (self.boat.x, self.boat.y)
         self.loiter_until = None
         self.reached_current = False
-        self.send(None, self._mission_current())
+        self.send(None, telemetry.mission_current(self))
 
-    def _item_xy(self, it) -> tuple[float, float]:
+    def item_xy(self, it) -> tuple[float, float]:
+        """Local (x east, y north) metres of mission item ``it``: home for RTL, the boat's position for an item
+        without a global position."""
         if it.command == M.MAV_CMD_NAV_RETURN_TO_LAUNCH:
             return self.frame.to_xy(*self.home_latlon)
         if (it.x == 0 and it.y == 0) or it.frame not in GLOBAL_FRAMES:
@@ -674,7 +654,7 @@ class Autopilot:
             self.active_item = None
             self.station = (self.boat.x, self.boat.y)
             self.text(None, M.MAV_SEVERITY_INFO, "Mission Complete")
-            self.send(None, self._mission_current())
+            self.send(None, telemetry.mission_current(self))
             behave = int(self.p("MIS_DONE_BEHAVE"))
             if behave == 2:
                 self._enter_mode(MODES["ACRO"])
@@ -713,7 +693,7 @@ class Autopilot:
         if self.gps_ok and not self.home_set:
             self.home_set = True
             self.store.set_home(self.home_latlon[0], self.home_latlon[1], self.home_alt)
-            self.send(None, self._home_position())
+            self.send(None, telemetry.home_position(self))
         if self.ekf_abs and "ekf" not in self._boot_events_done:
             self._boot_events_done.add("ekf")
             self.text(None, M.MAV_SEVERITY_INFO, "EKF3 IMU0 is using GPS")
@@ -758,7 +738,7 @@ class Autopilot:
             it = self.active_item
             if it is None or self.mission_state != "running":
                 return self._station_keep(current)
-            tgt = self._item_xy(it)
+            tgt = self.item_xy(it)
             if self.reached_current:
                 self.station = tgt
                 return self._station_keep(current)
@@ -821,7 +801,7 @@ class Autopilot:
         step_boat(self.boat, heading, speed, current, dt, self.cfg.boat)
         self._gps_noise_step(dt)
         power_w = 5.0 + 40.0 * (self.boat.speed / 2.0) ** 2
-        self._energy_wh += power_w * dt / 3600.0
+        self.energy_wh += power_w * dt / 3600.0
         self.t += dt
         self.clock += dt
         self._boot_events()
@@ -939,7 +919,7 @@ class Autopilot:
         if sd > 0:
             u, v = u + self._rng.gauss(0.0, sd), v + self._rng.gauss(0.0, sd)
         # one instant: the position fix and both readings carry the same time_boot_ms
-        gpi = self._global_position_int()
+        gpi = telemetry.global_position_int(self)
         self.send(None, gpi)
         self.send(None, M.MAVLink_named_value_float_message(gpi.time_boot_ms, b"CUR_U", float(u)))
         self.send(None, M.MAVLink_named_value_float_message(gpi.time_boot_ms, b"CUR_V", float(v)))
@@ -977,204 +957,8 @@ class Autopilot:
         return True
 
     def _make(self, name: str):
-        """Build one telemetry message by name (None if we do not produce it)."""
-        fn = getattr(self, "_" + name.lower(), None)
-        return fn() if fn is not None else None
-
-    # message builders ---------------------------------------------------------------------
-    def _heartbeat(self):
-        base = M.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED
-        if self.armed:
-            base |= M.MAV_MODE_FLAG_SAFETY_ARMED
-        if self.mode in MANUAL_INPUT:
-            base |= M.MAV_MODE_FLAG_MANUAL_INPUT_ENABLED
-        if self.mode in NEEDS_POSITION:
-            base |= M.MAV_MODE_FLAG_GUIDED_ENABLED
-        if self.mode != MODES["MANUAL"]:
-            base |= M.MAV_MODE_FLAG_STABILIZE_ENABLED
-        if self.mode == MODES["INITIALISING"]:
-            status = M.MAV_STATE_BOOT
-        elif self.failsafe:
-            status = M.MAV_STATE_CRITICAL
-        else:
-            status = M.MAV_STATE_ACTIVE if self.armed else M.MAV_STATE_STANDBY
-        return M.MAVLink_heartbeat_message(
-            M.MAV_TYPE_SURFACE_BOAT, M.MAV_AUTOPILOT_ARDUPILOTMEGA, base, self.mode, status, 3
-        )
-
-    def _sys_status(self):
-        sensors = (
-            M.MAV_SYS_STATUS_SENSOR_3D_GYRO
-            | M.MAV_SYS_STATUS_SENSOR_3D_ACCEL
-            | M.MAV_SYS_STATUS_SENSOR_3D_MAG
-            | M.MAV_SYS_STATUS_SENSOR_GPS
-            | M.MAV_SYS_STATUS_SENSOR_MOTOR_OUTPUTS
-            | M.MAV_SYS_STATUS_AHRS
-            | M.MAV_SYS_STATUS_SENSOR_BATTERY
-        )
-        health = sensors if self.gps_ok else sensors & ~M.MAV_SYS_STATUS_SENSOR_GPS
-        volt, amps, pct = self._battery()
-        return M.MAVLink_sys_status_message(
-            sensors, sensors, health, 100, int(volt * 1000), int(amps * 100), pct, 0, 0, 0, 0, 0, 0
-        )
-
-    def _battery(self) -> tuple[float, float, int]:
-        frac = max(0.0, 1.0 - self._energy_wh / self.cfg.battery_wh)
-        amps = (5.0 + 40.0 * (self.boat.speed / 2.0) ** 2) / 12.0
-        return 11.1 + 1.5 * frac, amps, int(round(100 * frac))
-
-    def _battery_status(self):
-        volt, amps, pct = self._battery()
-        cells = [int(volt * 1000)] + [65535] * 9
-        mah = int(self._energy_wh / 12.0 * 1000)
-        return M.MAVLink_battery_status_message(
-            0,
-            M.MAV_BATTERY_FUNCTION_ALL,
-            M.MAV_BATTERY_TYPE_LIPO,
-            32767,
-            cells,
-            int(amps * 100),
-            mah,
-            int(self._energy_wh * 36),
-            pct,
-        )
-
-    def _gps_raw_int(self):
-        if not self.gps_ok:
-            return M.MAVLink_gps_raw_int_message(
-                int(self.t * 1e6), M.GPS_FIX_TYPE_NO_GPS, 0, 0, 0, 65535, 65535, 0, 65535, 0
-            )
-        lat, lon = self.reported_position()
-        b = self.boat
-        gs = math.hypot(b.ground_ve, b.ground_vn)
-        cog = (math.degrees(math.atan2(b.ground_ve, b.ground_vn)) % 360.0) if gs > 0.05 else 0.0
-        return M.MAVLink_gps_raw_int_message(
-            int(self.t * 1e6),
-            M.GPS_FIX_TYPE_3D_FIX,
-            int(round(lat * 1e7)),
-            int(round(lon * 1e7)),
-            int(self.home_alt * 1000),
-            121,
-            200,
-            int(gs * 100),
-            int(cog * 100) % 36000,
-            10,
-        )
-
-    def _global_position_int(self):
-        b = self.boat
-        hdg = int(round(math.degrees(b.heading) % 360.0 * 100)) % 36000
-        if not self.gps_ok:
-            return M.MAVLink_global_position_int_message(self.time_boot_ms, 0, 0, 0, 0, 0, 0, 0, hdg)
-        lat, lon = self.reported_position()
-        return M.MAVLink_global_position_int_message(
-            self.time_boot_ms,
-            int(round(lat * 1e7)),
-            int(round(lon * 1e7)),
-            int(self.home_alt * 1000),
-            0,
-            int(round(b.ground_vn * 100)),
-            int(round(b.ground_ve * 100)),
-            0,
-            hdg,
-        )
-
-    def _attitude(self):
-        b = self.boat
-        return M.MAVLink_attitude_message(self.time_boot_ms, 0.0, 0.0, b.heading, 0.0, 0.0, b.turn_rate)
-
-    def _vfr_hud(self):
-        b = self.boat
-        gs = math.hypot(b.ground_ve, b.ground_vn)
-        thr = int(min(100, round(100 * b.speed / max(self.cfg.boat.max_speed, 1e-6))))
-        return M.MAVLink_vfr_hud_message(
-            b.speed, gs, int(round(math.degrees(b.heading))) % 360, thr, self.home_alt, 0.0
-        )
-
-    def _system_time(self):
-        # UTC comes from the GPS (0 before a fix, as on Rover) and runs on through reboots
-        unix = int((self.epoch0 + self.clock) * 1e6) if self.gps_ok and self.cfg.utc_clock else 0
-        return M.MAVLink_system_time_message(unix, self.time_boot_ms)
-
-    def _timesync(self):
-        return M.MAVLink_timesync_message(0, int(self.t * 1e9))
-
-    def _mission_current(self):
-        total = self.mission_total()
-        seq = self.mission_index if self.store.count(0) > 1 else 0
-        if self.mission_state == "complete":
-            seq = total
-        return M.MAVLink_mission_current_message(
-            seq, total, self.mission_state_code(), 1 if self.mode == MODES["AUTO"] else 0
-        )
-
-    def _ekf_status_report(self):
-        if self.mode == MODES["INITIALISING"]:
-            flags = 0
-        elif self.ekf_abs:
-            flags = 831
-        else:
-            flags = 167
-        return M.MAVLink_ekf_status_report_message(flags, 0.02, 0.02, 0.02, 0.02, 0.0, 0.0)
-
-    def _nav_controller_output(self):
-        b = self.boat
-        if self.mode == MODES["AUTO"] and self.active_item is not None:
-            tx, ty = self._item_xy(self.active_item)
-            brg = int(round(math.degrees(math.atan2(tx - b.x, ty - b.y)))) % 360
-            dist = int(min(65535, math.hypot(tx - b.x, ty - b.y)))
-        else:
-            brg, dist = int(round(math.degrees(b.heading))) % 360, 0
-        return M.MAVLink_nav_controller_output_message(
-            0.0, 0.0, int(round(math.degrees(b.heading))), brg, dist, 0.0, 0.0, 0.0
-        )
-
-    def _local_position_ned(self):
-        if not self.ekf_abs:
-            return None  # no EKF origin yet
-        b = self.boat
-        hx, hy = self.frame.to_xy(*self.home_latlon)
-        return M.MAVLink_local_position_ned_message(
-            self.time_boot_ms, b.y - hy, b.x - hx, 0.0, b.ground_vn, b.ground_ve, 0.0
-        )
-
-    def _power_status(self):
-        return M.MAVLink_power_status_message(5000, 0, M.MAV_POWER_STATUS_BRICK_VALID)
-
-    def _meminfo(self):
-        return M.MAVLink_meminfo_message(0, 65535, 131072)
-
-    def _home_position(self):
-        lat, lon, alt = self.home()
-        return M.MAVLink_home_position_message(
-            int(round(lat * 1e7)),
-            int(round(lon * 1e7)),
-            int(alt * 1000),
-            0.0,
-            0.0,
-            0.0,
-            [1.0, 0.0, 0.0, 0.0],
-            0.0,
-            0.0,
-            0.0,
-            int(self.t * 1e6),
-        )
-
-    def _autopilot_version(self):
-        caps = (
-            M.MAV_PROTOCOL_CAPABILITY_MISSION_FLOAT
-            | M.MAV_PROTOCOL_CAPABILITY_PARAM_FLOAT
-            | M.MAV_PROTOCOL_CAPABILITY_MISSION_INT
-            | M.MAV_PROTOCOL_CAPABILITY_COMMAND_INT
-            | M.MAV_PROTOCOL_CAPABILITY_SET_POSITION_TARGET_GLOBAL_INT
-            | M.MAV_PROTOCOL_CAPABILITY_MAVLINK2
-            | M.MAV_PROTOCOL_CAPABILITY_MISSION_FENCE
-            | M.MAV_PROTOCOL_CAPABILITY_MISSION_RALLY
-        )
-        # 4.7.0-dev: major<<24 | minor<<16 | patch<<8 | type (0 = dev)
-        return M.MAVLink_autopilot_version_message(
-            caps, (4 << 24) | (7 << 16), 0, 0, 0, [0] * 8, [0] * 8, [0] * 8, 0, 0, self.sysid, [0] * 18
-        )
+        """Build one telemetry message by name (None if we do not produce it): :func:`vehicle_sim.telemetry.build`."""
+        return telemetry.build(self, name)
 
     def _param_value(self, name: str, index: int | None = None):
         idx = self._param_names.index(name) if index is None else index

@@ -168,9 +168,8 @@ def same_loop_counterfactuals(
 ) -> list[list[float | None]]:
     """:func:`same_loop_counterfactual` once per planner seed in ``seeds`` (the mission's
     ``seeds.planner`` replaced; sensor noise and GP seeds stay the run's): one random walk is one
-    draw from a wide distribution (the oscillating wake's 3-leg demo: final RMSE 0.075-0.38 in the
-    wake's units, inflow = 1, over 10 seeds), so a run is set beside several. The model background (a roll-out from the
-    same initial state, the same for every seed) is computed once and shared."""
+    draw from a wide distribution, so a run is set beside several. The model background (a roll-out
+    from the same initial state, the same for every seed) is computed once and shared."""
     from passt_mav.loop.legstep import build_loop
     from passt_mav.loop.passt import FieldSampler
 

@@ -263,9 +263,9 @@ def _epoch_of_field_times(origin: str | None, t: np.ndarray) -> np.ndarray | Non
     """Field times (s since ``origin``, ISO-8601 UTC) as UNIX epoch seconds; None without an origin."""
     if origin is None:
         return None
-    from passt_mav.fields.field import _parse_iso
+    from passt_mav.fields.field import parse_iso
 
-    return _parse_iso(origin).timestamp() + np.asarray(t, float)
+    return parse_iso(origin).timestamp() + np.asarray(t, float)
 
 
 # -- NetCDF: the gridded estimate ------------------------------------------------------------
@@ -292,8 +292,8 @@ def _estimates(run: RunData) -> tuple[list, list[dict], list[str]]:
     for item in found:
         if kept and item[0] == kept[-1][0]:
             notes.append(
-                f"leg {int(kept[-1][4].get('index', -1))}'s estimate at the same time as leg "
-                f"{int(item[4].get('index', -1))}'s is left out (the later is the fleet's newest "
+                f"leg {int(kept[-1][4].get('index', -1)) + 1}'s estimate at the same time as leg "
+                f"{int(item[4].get('index', -1)) + 1}'s is left out (the later is the fleet's newest "
                 "estimate at that time)"
             )
             kept[-1] = item
@@ -391,12 +391,16 @@ def _estimate_velocity_vars(f0, dims: tuple, data: np.ndarray, std: np.ndarray |
 
 
 def _estimate_leg_vars(recs: list[dict]) -> dict[str, Any]:
-    """Per estimate (time step) the leg (0-based) whose samples made it and the boat that flew it."""
+    """Per estimate (time step) the leg (numbered from 1) whose samples made it and the boat that flew it."""
     return {
         "leg": (
             "time",
-            np.array([int(r.get("index", -1)) for r in recs], np.int32),
-            {"long_name": "index of the leg (0-based) whose samples made this estimate", "units": "1"},
+            np.array([int(r.get("index", -1)) + 1 for r in recs], np.int32),
+            {
+                "long_name": "leg (numbered from 1, as the console and the report count) whose samples made this "
+                "estimate; the run directory's legs/NNN folder is NNN = leg - 1",
+                "units": "1",
+            },
         ),
         "boat": (
             "time",
@@ -489,7 +493,8 @@ def sample_table(run: RunData) -> dict[str, np.ndarray]:
     sample where the field has a UTC origin and the run its clock, else the vehicle's UTC; see
     ``time_is``), ``vehicle_utc`` (UNIX s: the vehicle's UTC of the reading, SYSTEM_TIME, or the time
     of reception where the vehicle sends none), ``field_time`` (field units, NaN where unknown),
-    ``lat``/``lon`` (deg), ``u``/``v`` (m/s east/north), ``boat``, ``leg`` (-1 outside any leg),
+    ``lat``/``lon`` (deg), ``u``/``v`` (m/s east/north), ``boat``, ``leg`` (the run's 0-based leg index, -1
+    outside any leg: the writers show it numbered from 1, :func:`passt_mav.loop.measurement.leg_number`),
     ``time_boot_ms``, ``boot``; and ``time_is``, a 0-d string array: ``"field"`` or ``"vehicle"``."""
     from passt_mav.loop.measurement import sample_columns
 
@@ -572,6 +577,10 @@ _SAMPLE_TIME_NOTE = {
 }
 
 
+#: ``leg`` in the NetCDF exports counts from 1; this, its fill value, marks a reading outside any leg
+LEG_FILL = 0
+
+
 def _sample_obs_vars(c: dict[str, np.ndarray]) -> dict[str, Any]:
     """The per-sample (``obs``) variables of the trajectory file: the measured current u/v (m/s,
     east/north), the leg, the vehicle's UTC of the reading, the field time (where the field has no
@@ -624,11 +633,13 @@ def _sample_obs_vars(c: dict[str, np.ndarray]) -> dict[str, Any]:
         ),
         "leg": (
             "obs",
-            c["leg"],
+            np.where(c["leg"] >= 0, c["leg"] + 1, LEG_FILL).astype(np.int32),
             {
                 "coordinates": "time lat lon",
                 "units": "1",
-                "long_name": "leg index (0-based) the sample was taken in; -1: outside any leg",
+                "long_name": "leg (numbered from 1, as the console and the report count) the sample was taken in",
+                "comment": f"the fill value {LEG_FILL}: a reading outside any leg (on the way to the first leg, "
+                "holding between legs, after the last)",
             },
         ),
         "time_boot_ms": (
@@ -717,7 +728,7 @@ def _write_netcdf(ds, path: Path) -> None:
         if ds[k].dtype.kind == "f":
             enc[k]["_FillValue"] = np.asarray(np.nan, ds[k].dtype)[()]
         elif k in enc:
-            enc[k]["_FillValue"] = None
+            enc[k]["_FillValue"] = np.int32(LEG_FILL) if k == "leg" else None
     for k in ds.coords:
         enc[k] = {"_FillValue": None, "dtype": "float64"}
     ds.to_netcdf(path, format="NETCDF4", engine="netcdf4", encoding=enc)

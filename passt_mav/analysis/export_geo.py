@@ -4,7 +4,7 @@ What a GIS or a spreadsheet shows of a mission:
 
 * **tracks**: one line per boat through its samples' positions, in time order;
 * **planned paths**: one line per leg through the centres of the planned grid cells
-  (``legs/NNN/path.json``), from the leg's start cell;
+  (``legs/NNN/path.json``), from the leg's start cell; the ``leg`` property counts from 1 (``legs/000`` is leg 1);
 * **waypoints**: one point per uploaded waypoint (``leg.json`` ``waypoints``, MAVLink seq);
 * **geofence**: the mission region grown by ``geofence_margin_m`` (:meth:`geo.RegionGrid.geofence`),
   one polygon.
@@ -15,7 +15,8 @@ has one Folder per kind with one Placemark per feature (coordinates ``lon,lat,0`
 style per boat. The CSV has one row per sample: ``time_utc`` (ISO-8601, ms, Z: the field's UTC of
 the sample where the field has a UTC origin, else the vehicle's; the same clock as ``samples.nc``,
 see :func:`passt_mav.analysis.export.sample_table`), ``lat``, ``lon`` (deg WGS84), ``u``, ``v`` (m/s
-east/north), ``boat``, ``leg``, ``vehicle_utc`` (the vehicle's own UTC of the reading) and
+east/north), ``boat`` (from 0), ``leg`` (numbered from 1 as the console and the report count them:
+``legs/000`` is leg 1; ``outside`` for a reading outside any leg), ``vehicle_utc`` (the vehicle's own UTC of the reading) and
 ``field_time`` (field units, s since the field's time origin for a geographic field; empty where
 unknown), sorted by boat then time.
 """
@@ -72,7 +73,7 @@ def features(run) -> list[dict[str, Any]]:
                 _feature(
                     {"type": "LineString", "coordinates": _pos(lat, lon)},
                     kind="planned_path",
-                    leg=i,
+                    leg=i + 1,
                     boat=boat,
                     cells=path.tolist(),
                     status=str(rec.get("status", "")),
@@ -84,7 +85,7 @@ def features(run) -> list[dict[str, Any]]:
                 _feature(
                     {"type": "Point", "coordinates": _pos(wp[0], wp[1])[0]},
                     kind="waypoint",
-                    leg=i,
+                    leg=i + 1,
                     boat=boat,
                     seq=int(seqs[j]) if j < len(seqs) else j + 1,
                 )
@@ -179,6 +180,7 @@ def csv_text(run) -> tuple[str, dict]:
     import csv
 
     from passt_mav.analysis.export import sample_table
+    from passt_mav.loop.measurement import leg_number
 
     buf = io.StringIO()
     w = csv.writer(buf, lineterminator="\n")
@@ -190,7 +192,17 @@ def csv_text(run) -> tuple[str, dict]:
         for t, la, lo, u, v, b, leg, tv, tf in rows:
             ft = f"{tf:.3f}" if np.isfinite(tf) else ""
             w.writerow(
-                [_iso_ms(t), f"{la:.7f}", f"{lo:.7f}", f"{u:.6f}", f"{v:.6f}", int(b), int(leg), _iso_ms(tv), ft]
+                [
+                    _iso_ms(t),
+                    f"{la:.7f}",
+                    f"{lo:.7f}",
+                    f"{u:.6f}",
+                    f"{v:.6f}",
+                    int(b),
+                    leg_number(int(leg)),
+                    _iso_ms(tv),
+                    ft,
+                ]
             )
             n += 1
     return buf.getvalue(), {"rows": n}

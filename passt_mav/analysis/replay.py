@@ -774,7 +774,7 @@ class _LogReplay:
             rmse_identical=r_same,
             notes=lnotes,
         )
-        self.say(_progress_line(f"leg {key}", len(lg.samples), same, ab.rmse_passt))
+        self.say(_progress_line(f"leg {key + 1}", len(lg.samples), same, ab.rmse_passt))
         return (leg, None, None) if attempt is not None else (leg, ab.state, ab.t_state)
 
     def _recorded_target(self, lg, rec: dict, pos_cell, k_lo: int, k_hi: int, lnotes: list[str]):
@@ -907,13 +907,13 @@ def _replay_fleet(rd, summary: dict, cfg, step, rmse_tol: float, say):
             continue
         lg = logged.get(i)
         if lg is None:
-            notes.append(f"leg {i} (boat {boat}): not found in flight_boat{boat}.tlog; the replay stops there")
+            notes.append(f"leg {i + 1} (boat {boat}): not found in flight_boat{boat}.tlog; the replay stops there")
             first_div = i if first_div is None else first_div
             break
         out[i] = leg = _fleet_leg(fs, i, rec, lg, planned[i], clocks[boat], rmse_tol)
         if (leg.differing_cells or not leg.rmse_identical) and first_div is None:
             first_div = i
-        say(_progress_line(f"leg {i} (boat {boat})", len(lg.samples), leg.path_identical, leg.rmse_passt))
+        say(_progress_line(f"leg {i + 1} (boat {boat})", len(lg.samples), leg.path_identical, leg.rmse_passt))
     return [out[i] for i in sorted(out)], info, notes, first_div
 
 

@@ -28,10 +28,8 @@ hours) for geographic fields, non-dimensional time for the cylinder.
 
 from __future__ import annotations
 
-import base64
 import datetime as _dt
 import html
-import io
 import json
 import math
 import sqlite3
@@ -42,9 +40,10 @@ from typing import Any
 
 import numpy as np
 
+from passt_mav.analysis.html_page import Page, pyplot
 from passt_mav.errors import UserError
+from passt_mav.loop.measurement import leg_number, sample_columns, truth_at
 from passt_mav.loop.measurement import rmse as recon_rmse  # (the name tests and users know) the one RMSE rule
-from passt_mav.loop.measurement import sample_columns, truth_at
 from passt_mav.runs.rundir import RunDir, RunDirError
 
 __all__ = ["MAX_ARROWS", "Run", "binned_arrows", "load_run", "recon_rmse", "write_report"]
@@ -331,16 +330,7 @@ def _load_estimates(run: Run) -> None:
             try:
                 run.estimates[i] = load_field(p)
             except UserError as exc:
-                run.notes[f"estimate{i}"] = f"leg {i} reconstruction unreadable: {exc}"
-
-
-def _plt():
-    import matplotlib
-
-    matplotlib.use("Agg", force=True)
-    import matplotlib.pyplot as plt
-
-    return plt
+                run.notes[f"estimate{i}"] = f"leg {i + 1} reconstruction unreadable: {exc}"
 
 
 def _aspect(lat: np.ndarray) -> float:
@@ -438,12 +428,12 @@ def _fig_legs(run: Run, plt):
         c = colours(n % 10)
         wp = np.asarray(leg.get("waypoints") or [], float).reshape(-1, 2)
         if len(wp):
-            ax.plot(wp[:, 1], wp[:, 0], "--", color=c, marker="o", ms=4, lw=1.2, label=f"leg {i} planned")
+            ax.plot(wp[:, 1], wp[:, 0], "--", color=c, marker="o", ms=4, lw=1.2, label=f"leg {i + 1} planned")
             ax.plot(wp[0, 1], wp[0, 0], "s", color=c, mec="k", ms=7)
             lats.append(wp[:, 0])
         ex = run.leg_tracks.get(i)
         if ex is not None and len(ex):
-            ax.plot(ex[:, 1], ex[:, 0], "-", color=c, lw=2.2, alpha=0.7, label=f"leg {i} executed")
+            ax.plot(ex[:, 1], ex[:, 0], "-", color=c, lw=2.2, alpha=0.7, label=f"leg {i + 1} executed")
             lats.append(ex[:, 0])
     if lats:
         ax.set_aspect(_aspect(np.concatenate(lats)))
@@ -565,13 +555,13 @@ def _fig_recon(run: Run, plt, i: int, est, truth: np.ndarray | None):
         _speed_map(axes[0, 0], fig, est.grid, truth, run.units, vmax)
         axes[0, 0].set_title("truth", fontsize=10)
         _speed_map(axes[0, 1], fig, est.grid, e, run.units, vmax)
-        axes[0, 1].set_title(f"reconstruction after leg {i}", fontsize=10)
+        axes[0, 1].set_title(f"reconstruction after leg {i + 1}", fontsize=10)
         err = e - truth
         _speed_map(axes[0, 2], fig, est.grid, err, run.units, label="|error|")
         axes[0, 2].set_title(f"error, RMSE {_fmt_rmse(recon_rmse(e, truth), '.3g')} {run.units}", fontsize=10)
     else:
         _speed_map(axes[0, 0], fig, est.grid, e, run.units, vmax)
-        axes[0, 0].set_title(f"reconstruction after leg {i} (no truth)", fontsize=10)
+        axes[0, 0].set_title(f"reconstruction after leg {i + 1} (no truth)", fontsize=10)
     return fig
 
 
@@ -627,7 +617,7 @@ def _fig_rmse(run: Run, plt, over_time: dict | None, per_leg: dict[str, list]):
             y = per_leg[key]
             bars = ax.bar(idx + (j - (len(keys) - 1) / 2) * w, np.nan_to_num(y, nan=0.0), w, label=name)
             ax.bar_label(bars, labels=["" if not np.isfinite(x) else f"{x:.2g}" for x in y], fontsize=7, padding=1)
-        ax.set_xticks(idx, [f"leg {i}" for i in per_leg["index"]])
+        ax.set_xticks(idx, [f"leg {leg_number(i)}" for i in per_leg["index"]])
         ax.set_ylabel(f"RMSE ({run.units})")
         _log_if_spread(ax, np.concatenate([per_leg[c] for c, _, _ in keys]))
         ax.set_title("RMSE after each leg", fontsize=10)
@@ -658,15 +648,6 @@ def _fig_pod(run: Run, plt, pod: dict):
 
 
 # -- HTML -----------------------------------------------------------------------------------------
-_CSS = """
-body{font-family:system-ui,-apple-system,'Segoe UI',sans-serif;margin:2em auto;max-width:1100px;color:#222;padding:0 1em}
-h1{font-size:1.6em;margin-bottom:.2em}h2{font-size:1.2em;border-bottom:1px solid #ccc;margin-top:1.8em}
-table{border-collapse:collapse;margin:.6em 0}th,td{border:1px solid #ccc;padding:.25em .6em;text-align:left}
-th{background:#f3f3f3;font-weight:600}td.num{text-align:right}img{max-width:100%;border:1px solid #ddd}
-.missing{color:#a33;font-style:italic}.note{color:#555}.status{font-weight:600}.warn{color:#a33}
-"""
-
-
 def _fmt(x: Any) -> str:
     if x is None:
         return "&ndash;"
@@ -687,45 +668,6 @@ def _iso(s: Any) -> _dt.datetime | None:
     except ValueError:
         return None
     return d if d.tzinfo else d.replace(tzinfo=_dt.UTC)
-
-
-class _Page:
-    def __init__(self, out: Path):
-        self.out = out
-        self.parts: list[str] = []
-        self.figures: list[Path] = []
-
-    def add(self, s: str) -> None:
-        self.parts.append(s)
-
-    def h2(self, s: str) -> None:
-        self.add(f"<h2>{html.escape(s)}</h2>")
-
-    def missing(self, s: str) -> None:
-        self.add(f'<p class="missing">{html.escape(s)}</p>')
-
-    def note(self, s: str) -> None:
-        self.add(f'<p class="note">{html.escape(s)}</p>')
-
-    def figure(self, fig, name: str, alt: str, plt) -> None:
-        buf = io.BytesIO()
-        try:
-            fig.savefig(buf, format="png", dpi=100)
-        finally:
-            plt.close(fig)
-        data = buf.getvalue()
-        path = self.out / name
-        path.write_bytes(data)  # the same bytes on disk and in the page
-        self.figures.append(path)
-        b64 = base64.b64encode(data).decode("ascii")
-        self.add(
-            f'<figure><img alt="{html.escape(alt)}" src="data:image/png;base64,{b64}">'
-            f"<figcaption>{html.escape(alt)} ({html.escape(name)})</figcaption></figure>"
-        )
-
-    def table(self, rows: list[tuple[str, str]]) -> None:
-        body = "".join(f"<tr><th>{html.escape(k)}</th><td>{v}</td></tr>" for k, v in rows)
-        self.add(f"<table>{body}</table>")
 
 
 def write_report(run_dir: str | Path, out: str | Path | None = None, *, damage: list | None = None) -> Path:
@@ -750,8 +692,8 @@ def write_report(run_dir: str | Path, out: str | Path | None = None, *, damage: 
         "pod.png",
     ):
         (out_dir / name).unlink(missing_ok=True)  # a figure from an earlier report must not outlive its data
-    plt = _plt()
-    page = _Page(out_dir)
+    plt = pyplot()
+    page = Page(out_dir)
     s = run.summary or {}
     title = str(s.get("mission") or run.root.name)
     page.add(f"<h1>Run report: {html.escape(title)}</h1>")
@@ -785,18 +727,10 @@ def write_report(run_dir: str | Path, out: str | Path | None = None, *, damage: 
     _section_tlog(page, run)
     gen = _dt.datetime.now(_dt.UTC).strftime("%Y-%m-%d %H:%M UTC")
     page.add(f'<p class="note">Written by passt-mav report from {html.escape(str(run.root))} at {gen}.</p>')
-    doc = (
-        '<!DOCTYPE html>\n<html lang="en"><head><meta charset="utf-8">'
-        f"<title>{html.escape(title)} - passt-mav report</title><style>{_CSS}</style></head><body>\n"
-        + "\n".join(page.parts)
-        + "\n</body></html>\n"
-    )
-    path = out_dir / "report.html"
-    path.write_text(doc, encoding="utf-8")
-    return path
+    return page.write(out_dir / "report.html", f"{title} - passt-mav report")
 
 
-def _section_summary(page: _Page, run: Run) -> None:
+def _section_summary(page: Page, run: Run) -> None:
     s = run.summary or {}
     rows: list[tuple[str, str]] = []
     for key, label in (
@@ -841,7 +775,7 @@ def _section_summary(page: _Page, run: Run) -> None:
     page.table(rows)
 
 
-def _section_track(page: _Page, run: Run, plt) -> None:
+def _section_track(page: Page, run: Run, plt) -> None:
     page.h2("Track over the current field")
     if run.field is None:
         page.missing("Track over the current field: " + run.notes.get("field", "truth field " + NOT_RECORDED))
@@ -853,12 +787,16 @@ def _section_track(page: _Page, run: Run, plt) -> None:
         page.note("Planned waypoints only: no positions were logged.")
 
 
-def _section_legs(page: _Page, run: Run, plt) -> None:
+def _section_legs(page: Page, run: Run, plt) -> None:
     page.h2("Legs: planned vs executed")
     if not any(leg.get("waypoints") for leg in run.legs):
         page.missing("Planned legs " + NOT_RECORDED)
         return
     page.figure(_fig_legs(run, plt), "legs.png", "planned vs executed path per leg", plt)
+    page.note(
+        "Legs are numbered from 1 here and on the console; the run directory's folders count from 0 "
+        "(leg 1 is legs/000)."
+    )
     if run.leg_tracks:
         page.note(f"Executed: {run.leg_tracks_source}.")
     else:
@@ -880,7 +818,7 @@ def _fig_reward(run: Run, plt, legs: list[dict]):
         if len(p):
             ax.plot(p[:, 1], p[:, 0], "-", color="c", lw=1.8)
             ax.plot(p[0, 1], p[0, 0], "s", color="c", mec="k", ms=7)
-        title = f"leg {leg.get('index', '?')}" + (f", boat {leg['boat']}" if leg.get("boat") is not None else "")
+        title = f"leg {leg_number(leg.get('index'))}" + (f", boat {leg['boat']}" if leg.get("boat") is not None else "")
         ax.set_title(title, fontsize=10)
         ax.set_xlabel("column (east)")
         ax.set_ylabel("row (north)")
@@ -888,7 +826,7 @@ def _fig_reward(run: Run, plt, legs: list[dict]):
     return fig
 
 
-def _section_reward(page: _Page, run: Run, plt) -> None:
+def _section_reward(page: Page, run: Run, plt) -> None:
     page.h2("Why the boat went there: each leg's reward map under its path")
     legs = [leg for leg in run.legs if isinstance(leg.get("reward_map"), list) and leg["reward_map"]]
     if not legs:
@@ -904,7 +842,7 @@ def _section_reward(page: _Page, run: Run, plt) -> None:
     )
 
 
-def _section_samples(page: _Page, run: Run, plt) -> None:
+def _section_samples(page: Page, run: Run, plt) -> None:
     page.h2("Samples")
     if run.samples is None or len(run.samples["u"]) == 0:
         page.missing("Samples coloured by speed: samples " + NOT_RECORDED)
@@ -913,7 +851,7 @@ def _section_samples(page: _Page, run: Run, plt) -> None:
     page.note(f"Source: {run.samples_source} ({len(run.samples['u'])} samples).")
 
 
-def _section_recon(page: _Page, run: Run, plt) -> None:
+def _section_recon(page: Page, run: Run, plt) -> None:
     page.h2("Reconstruction vs truth")
     if not run.estimates:
         page.missing("Reconstruction vs truth: reconstruction (estimate.nc) " + NOT_RECORDED)
@@ -925,7 +863,7 @@ def _section_recon(page: _Page, run: Run, plt) -> None:
             truth = truth_at(run.field, float(est.times[-1]))
         if truth is not None:
             rmse = _fmt_rmse(recon_rmse(est.data[-1], truth), ".4g")
-            rows.append((f"reconstruction RMSE vs truth, leg {i}", f"{rmse} {html.escape(run.units)}"))
+            rows.append((f"reconstruction RMSE vs truth, leg {i + 1}", f"{rmse} {html.escape(run.units)}"))
         last = (i, est.isel(time=est.n_times - 1), truth)
     i, est, truth = last
     page.figure(_fig_recon(run, plt, i, est, truth), "reconstruction.png", "reconstruction vs truth", plt)
@@ -960,7 +898,7 @@ def _per_leg_rmse(run: Run) -> dict[str, Any]:
     return out if any(np.isfinite(out[k]).any() for k, _, _ in _RMSE_CURVES) else {}
 
 
-def _section_rmse(page: _Page, run: Run, plt) -> None:
+def _section_rmse(page: Page, run: Run, plt) -> None:
     page.h2("RMSE: PASST, model alone, random-walk and lawnmower counterfactuals")
     s = run.summary or {}
     over = s.get("rmse") if isinstance(s.get("rmse"), dict) and s["rmse"].get("t") else None
@@ -982,7 +920,7 @@ def _section_rmse(page: _Page, run: Run, plt) -> None:
         page.note("No lawnmower+GP counterfactual for this run (passt-mav demo adds one to summary.json).")
 
 
-def _section_prior(page: _Page, run: Run) -> None:
+def _section_prior(page: Page, run: Run) -> None:
     """The prior blend per leg: the weight of each candidate prior (the forecast restarted from the
     estimate, the model alone, persistence) the leg's estimate used, and the leg's evidence for each
     (its samples' innovation log likelihood, nats), from summary.json ``legs[i].gp``."""
@@ -1006,7 +944,7 @@ def _section_prior(page: _Page, run: Run) -> None:
         w, ll = gp["prior_weights"], gp.get("prior_loglik") or {}
         cells = [f"{float(w[k]):.3f}" if isinstance(w.get(k), (int, float)) else "&ndash;" for k in names]
         cells += [f"{float(ll[k]):.1f}" if isinstance(ll.get(k), (int, float)) else "&ndash;" for k in names]
-        body.append(f"<tr><td>{_fmt(i)}</td>" + "".join(f'<td class="num">{c}</td>' for c in cells) + "</tr>")
+        body.append(f"<tr><td>{leg_number(i)}</td>" + "".join(f'<td class="num">{c}</td>' for c in cells) + "</tr>")
     page.add(f"<table>{head}{''.join(body)}</table>")
     page.note(
         "The prior mean of each leg's GP: the forecast restarted from the last estimate (model), the model alone "
@@ -1016,7 +954,7 @@ def _section_prior(page: _Page, run: Run) -> None:
     )
 
 
-def _section_guard(page: _Page, run: Run) -> None:
+def _section_guard(page: Page, run: Run) -> None:
     """The guard per leg (:mod:`passt_mav.loop.guard`): how far off, at the leg's own samples, the
     forecast restarted from the estimate and the model alone were (RMSE, m/s), and whether the leg fell
     back to the model alone, from summary.json ``legs[i].guard``. No truth is used."""
@@ -1037,8 +975,7 @@ def _section_guard(page: _Page, run: Run) -> None:
             "model alone" if g.get("fallback") else "restarted forecast",
             "yes" if g.get("alarm") else "",
         ]
-        n = _fmt(i + 1) if isinstance(i, int) else _fmt(i)
-        body.append(f"<tr><td>{n}</td>" + "".join(f'<td class="num">{c}</td>' for c in cells) + "</tr>")
+        body.append(f"<tr><td>{leg_number(i)}</td>" + "".join(f'<td class="num">{c}</td>' for c in cells) + "</tr>")
     page.add(f"<table>{head}{''.join(body)}</table>")
     page.note(
         "Before a leg's samples enter the estimate, the forecast restarted from the last estimate and the model "
@@ -1048,7 +985,7 @@ def _section_guard(page: _Page, run: Run) -> None:
     )
 
 
-def _section_pod(page: _Page, run: Run, plt) -> None:
+def _section_pod(page: Page, run: Run, plt) -> None:
     page.h2("POD energy")
     pod = (run.summary or {}).get("pod")
     if not isinstance(pod, dict) or not any(pod.get(k) for k in ("truth", "passt", "model")):
@@ -1057,7 +994,7 @@ def _section_pod(page: _Page, run: Run, plt) -> None:
     page.figure(_fig_pod(run, plt, pod), "pod.png", "POD energy", plt)
 
 
-def _section_timings(page: _Page, run: Run) -> None:
+def _section_timings(page: Page, run: Run) -> None:
     page.h2("Timings and link quality")
     keys = ("planning_s", "upload_s", "duration_s")
     if not any(k in leg for leg in run.legs for k in keys):
@@ -1077,7 +1014,7 @@ def _section_timings(page: _Page, run: Run) -> None:
             tot[3] += int(ns) if isinstance(ns, int) else 0
             body.append(
                 "<tr><td>"
-                + _fmt(leg.get("index", n))
+                + leg_number(leg.get("index", n))
                 + "</td>"
                 + "".join(f'<td class="num">{_fmt(v)}</td>' for v in vals + [ns])
                 + f'<td class="num">{_readings_used(leg.get("readings"))}</td></tr>'
@@ -1093,7 +1030,7 @@ def _section_timings(page: _Page, run: Run) -> None:
             loss = ln.get("loss")
             loss_s = f"{100 * float(loss):.1f} %" if isinstance(loss, (int, float)) else "&ndash;"
             body.append(
-                f'<tr><td>{_fmt(i)}</td><td class="num">{_fmt(ln.get("rtt_ms"))}</td>'
+                f'<tr><td>{leg_number(i)}</td><td class="num">{_fmt(ln.get("rtt_ms"))}</td>'
                 f'<td class="num">{loss_s}</td><td class="num">{_fmt(ln.get("messages"))}</td>'
                 f'<td class="num">{_fmt(ln.get("vehicle_bytes_per_s"))}</td></tr>'
             )
@@ -1114,7 +1051,7 @@ def _readings_used(r: Any) -> str:
     return f"{int(r['used'])} / {int(r['received'])} ({100.0 * r['used'] / r['received']:.0f} %)"
 
 
-def _section_tlog(page: _Page, run: Run) -> None:
+def _section_tlog(page: Page, run: Run) -> None:
     page.h2("Telemetry log")
     tl = run.tlog
     if tl is None:

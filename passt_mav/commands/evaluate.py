@@ -11,7 +11,7 @@ import argparse
 import sys
 
 from passt_mav.loop.campaign import ENGINES, METHODS
-from passt_mav.reconstruction.background import DEFAULT_BACKGROUND
+from passt_mav.loop.presets import DEFAULT, PRESETS
 from passt_mav.reconstruction.gp import MAX_FIT_POINTS
 
 HELP = "Offline PASST campaign: trials x path lengths, RMSE over time and POD energy"
@@ -66,11 +66,19 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         default=DEFAULT_PATH_LENGTHS,
         help=f"comma-separated moves per leg (default {DEFAULT_PATH_LENGTHS})",
     )
-    p.add_argument("--planner", default="policy_gradient", help="PASST's planner (default policy_gradient)")
+    p.add_argument(
+        "--preset",
+        choices=tuple(PRESETS),
+        default="default",
+        help="the loop's configuration the options below start from: default (what a mission flies unless its file "
+        "says otherwise: the mission schema's defaults) or paper (the paper's: no prior blend, share or GP bias); "
+        "an option given explicitly replaces the preset's (default: default)",
+    )
+    p.add_argument("--planner", default=None, help=f"PASST's planner (default: the preset's, {DEFAULT.planner})")
     p.add_argument(
         "--reward",
-        default="speed",
-        help="reward map: speed | vorticity | std | speed_std | change (the predicted change over the leg) (default speed)",
+        default=None,
+        help=f"reward map: speed | vorticity | std | speed_std | change (the predicted change over the leg) (default: the preset's, {DEFAULT.reward})",
     )
     p.add_argument(
         "--steps", type=int, default=300, help="snapshots estimated after the start (default 300, clipped to the data)"
@@ -118,7 +126,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "--engine",
         choices=tuple(ENGINES),
         default="serial",
-        help="serial (default: one trial at a time) or lockstep (a path length's trials advance together, one batched predictor call per leg and one batched policy-gradient planning call; 2.4x the serial engine's trial-legs/s with the same GP options, benchmarks/bench_passt.py, 15 trials). Same numbers for predictors whose batched and single predictions agree bit for bit (DMD, persistence); with the KNODE, batched convolutions round differently and paths can diverge (shipped ocean model, L=50, 2 trials: PASST 0.2445 lockstep vs 0.2550 serial)",
+        help="serial (default: one trial at a time) or lockstep (a path length's trials advance together, one batched predictor call per leg and one batched policy-gradient planning call: faster per trial-leg, benchmarks/bench_passt.py). Same numbers for predictors whose batched and single predictions agree bit for bit (DMD, persistence); with the KNODE, batched convolutions round differently and paths can diverge",
     )
     p.add_argument(
         "--batch",
@@ -140,40 +148,41 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--background",
         type=int,
-        default=DEFAULT_BACKGROUND,
+        default=None,
         metavar="STEPS",
-        help=f"residual GPs (PASST's; the baselines' with --baseline-prior forecast) add a model-based background covariance: the anomalies of STEPS snapshots of the model's roll-out from the initial state (ensemble optimal interpolation) (default {DEFAULT_BACKGROUND}; 0 = stationary kernels only)",
+        help=f"residual GPs (PASST's; the baselines' with --baseline-prior forecast) add a model-based background covariance: the anomalies of STEPS snapshots of the model's roll-out from the initial state (ensemble optimal interpolation) (default: the preset's, {DEFAULT.background}; 0 = stationary kernels only)",
     )
     p.add_argument(
         "--prior-blend",
         choices=("off", "bma", "select"),
-        default="off",
-        help="residual GPs' prior mean: the model's forecast (off, default) or bma: the model's forecast, persistence and none (a zero mean: the samples' GP alone) weighed leg by leg by how well each explains the leg's samples (Bayesian model averaging with a forgetting factor), or select: the most probable of the three alone, leg by leg",
+        default=None,
+        help=f"residual GPs' prior mean: off (the model's forecast restarted from the last estimate), bma (that forecast, the model alone from the first state and persistence weighed leg by leg by how well each explains the leg's samples: Bayesian model averaging with a forgetting factor) or select (the most probable of the three alone, leg by leg) (default: the preset's, {DEFAULT.prior_blend}; paper: off)",
     )
     p.add_argument(
         "--prior-share",
         type=float,
-        default=0.0,
+        default=None,
         metavar="BETA",
-        help="with --prior-blend: fixed share of the prior weights (each candidate keeps at least BETA/3 before every leg's update, so one leg where a good model misses is won back in a few nats; default 0 = off)",
+        help=f"with --prior-blend: fixed share of the prior weights (each candidate keeps at least BETA/3 before every leg's update, so one leg where a good model misses is won back in a few nats; 0 = off) (default: the preset's, {DEFAULT.prior_share:g}; paper: 0)",
     )
     p.add_argument(
         "--prior-forgetting",
         type=float,
-        default=0.8,
+        default=None,
         metavar="F",
-        help="with --prior-blend: forgetting factor of the prior weights per leg (log weights <- F x log weights + the leg's log likelihood, which flattens the weights towards the uniform; select forgets towards the start weights; 1 = none; default 0.8, the missions' gp.forgetting)",
+        help=f"with --prior-blend: forgetting factor of the prior weights per leg (log weights <- F x log weights + the leg's log likelihood, which flattens the weights towards the uniform; select forgets towards the start weights; 1 = none) (default: the preset's, {DEFAULT.forgetting:g})",
     )
     p.add_argument(
         "--gp-bias",
-        action="store_true",
-        help="the residual GP may add a constant offset over the region (u, v), kept only where the samples' likelihood pays for it (GPReconstructor bias)",
+        action=argparse.BooleanOptionalAction,
+        default=None,
+        help="the residual GP may shift the forecast by a constant offset over the region (u, v) and rescale its anomaly, kept only where the samples' likelihood pays for it (GPReconstructor bias) (default: the preset's, on; paper: off)",
     )
     p.add_argument(
         "--gp-nugget",
         choices=("state", "noise"),
-        default="state",
-        help="the white variance the residual GP fits above the sensor's: the field's grid-scale error, which a sample corrects in its own cell (state, default), or measurement noise (noise, the reading before 2026-11-27)",
+        default=None,
+        help=f"the white variance the residual GP fits above the sensor's: the field's grid-scale error, which a sample corrects in its own cell (state), or measurement noise (noise) (default: the preset's, {DEFAULT.nugget})",
     )
     p.add_argument(
         "--gp-fit-points",
@@ -185,8 +194,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--memory",
         choices=("off", "fitted"),
-        default="off",
-        help="the information reward's prior remembers, cell by cell, the local error past legs' samples removed, with a persistence per leg fitted by the innovations' likelihood (fitted), or starts every leg from the stationary prior (off, default)",
+        default=None,
+        help=f"the information reward's prior remembers, cell by cell, the local error past legs' samples removed, with a persistence per leg fitted by the innovations' likelihood (fitted), or starts every leg from the stationary prior (off) (default: the preset's, {DEFAULT.memory})",
     )
     p.add_argument(
         "--model-update",
@@ -327,7 +336,8 @@ def write_figures(summary: dict, out_dir) -> list:
 # -- CLI -----------------------------------------------------------------------
 
 
-def _parse_lengths(s: str) -> list[int]:
+def parse_lengths(s: str) -> list[int]:
+    """``--path-lengths`` (comma-separated moves per leg) as positive integers; :class:`PlannerError` otherwise."""
     from passt_mav.errors import PlannerError
 
     try:
@@ -339,6 +349,29 @@ def _parse_lengths(s: str) -> list[int]:
     return out
 
 
+#: (argument, preset setting) of the options a preset fills (an argument given explicitly wins)
+PRESET_ARGS = (
+    ("planner", "planner"),
+    ("reward", "reward"),
+    ("memory", "memory"),
+    ("background", "background"),
+    ("prior_blend", "prior_blend"),
+    ("prior_forgetting", "forgetting"),
+    ("prior_share", "prior_share"),
+    ("gp_bias", "bias"),
+    ("gp_nugget", "nugget"),
+)
+
+
+def resolve_preset(args: argparse.Namespace) -> None:
+    """Fill each of :data:`PRESET_ARGS` left unset (None) on the command line from ``args.preset``
+    (:data:`passt_mav.loop.presets.PRESETS`)."""
+    preset = PRESETS[args.preset]
+    for arg, key in PRESET_ARGS:
+        if getattr(args, arg, None) is None:
+            setattr(args, arg, getattr(preset, key))
+
+
 def run(args: argparse.Namespace) -> int:
     import json
     from pathlib import Path
@@ -348,7 +381,8 @@ def run(args: argparse.Namespace) -> int:
     from passt_mav.loop.campaign import blend_options_problem, fit_points_problem, load_predictor
     from passt_mav.loop.online import model_update_problem
 
-    lengths = _parse_lengths(args.path_lengths)
+    lengths = parse_lengths(args.path_lengths)
+    resolve_preset(args)
     if args.workers < 1:
         raise PlannerError("--workers must be >= 1")
     if args.steps < 1 or args.steps_per_leg < 1:
@@ -439,6 +473,7 @@ def _campaign(args: argparse.Namespace, field, predictor, lengths: list[int]) ->
         model_update=args.model_update_options,
     )
     summary["config"].update(
+        preset=args.preset,
         data=args.data,
         model=args.model,
         command="passt-mav evaluate " + " ".join(sys.argv[2:]) if sys.argv[1:2] == ["evaluate"] else None,
@@ -481,8 +516,9 @@ def _run_fleet(args, field, predictor, L: int, out_dir) -> int:
         window=args.window,
         seed=args.seed,
         background=args.background,
+        preset=PRESETS[args.preset],
     )
-    res["config"].update(data=args.data, model=args.model)
+    res["config"].update(preset=args.preset, data=args.data, model=args.model)
     fig = write_fleet_figure(res, out_dir)
     (out_dir / "fleet.json").write_text(json.dumps(res) + "\n")
     if args.json:

@@ -30,8 +30,10 @@ from __future__ import annotations
 
 import argparse
 import sys
+from dataclasses import replace
 
-from passt_mav.reconstruction.background import DEFAULT_BACKGROUND, background_steps_problem
+from passt_mav.loop.presets import PAPER, PRESETS
+from passt_mav.reconstruction.background import background_steps_problem
 
 HELP = "The paper's offline evaluation (3 scenarios x path lengths x 30 trials, 7 methods) -> one HTML page with its claims checked"
 EXAMPLES = """examples:
@@ -48,8 +50,6 @@ SCENARIOS = (
     ("ocean", "builtin:ocean", "builtin:ocean"),
 )
 PATH_LENGTHS = (25, 50, 75, 100, 150, 200)
-#: PASST's planner and reward on the page (``--planner`` / ``--reward``)
-DEFAULT_PLANNER, DEFAULT_REWARD = "policy_gradient", "speed"
 #: the paper's POD figure: cumulative energy of the first 4 modes, predicted vs true (snapshots 300-350)
 PAPER_POD4 = (0.898, 0.918)
 POD_TOL = 0.05  # |predicted - true| of the first-4-mode energy counted as "close" (the paper's gap: 0.02)
@@ -81,11 +81,19 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="GP hyper-parameters: auto (default: each GP fitted on what it models - PASST's residual GP on every leg's residuals, the GP-only baselines once on the initial state) | state | first_leg | every_leg",
     )
     p.add_argument(
+        "--preset",
+        choices=tuple(PRESETS),
+        default="paper",
+        help="the loop's configuration: paper (default: the paper's planner, reward and GP prior, no blend, share "
+        "or GP bias) or default (what a mission flies unless its file says otherwise); --planner, --reward, "
+        "--prior-blend and --background replace the preset's own",
+    )
+    p.add_argument(
         "--background",
         type=int,
-        default=DEFAULT_BACKGROUND,
+        default=None,
         metavar="STEPS",
-        help=f"PASST's residual GP adds the anomaly covariance of STEPS snapshots of the model's roll-out (default {DEFAULT_BACKGROUND}; 0 = stationary kernels only)",
+        help=f"PASST's residual GP adds the anomaly covariance of STEPS snapshots of the model's roll-out (default: the preset's, {PAPER.background}; 0 = stationary kernels only)",
     )
     p.add_argument(
         "--gp-solver",
@@ -94,18 +102,16 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="GP posterior with the fixed kernel: a direct Cholesky solve with cached covariance columns (default; the mean only, unless the reward needs the std) or sklearn's regressor per leg (~10x slower per leg; equal to 1e-6 per reconstruction)",
     )
     p.add_argument(
-        "--planner",
-        default=DEFAULT_PLANNER,
-        help=f"PASST's planner (default {DEFAULT_PLANNER}; the paper's: policy_gradient)",
+        "--planner", default=None, help=f"PASST's planner (default: the preset's; the paper's: {PAPER.planner})"
     )
     p.add_argument(
-        "--reward", default=DEFAULT_REWARD, help=f"PASST's reward (default {DEFAULT_REWARD}; the paper's: speed)"
+        "--reward", default=None, help=f"PASST's reward (default: the preset's; the paper's: {PAPER.reward})"
     )
     p.add_argument(
         "--prior-blend",
         choices=("off", "bma", "select"),
-        default="off",
-        help="PASST's GP prior: the model's forecast (off, default), the model and persistence weighed leg by leg (bma), or the more probable of the two alone (select)",
+        default=None,
+        help="PASST's GP prior: the model's forecast restarted from the last estimate (off, the paper's), that forecast, the model alone and persistence weighed leg by leg (bma), or the most probable of them alone (select) (default: the preset's)",
     )
     p.add_argument(
         "--scheduler", default=None, help="address of a Dask distributed scheduler: the campaign's batches run there"
@@ -128,14 +134,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def _protocol(args) -> dict:
-    from passt_mav.commands.evaluate import _parse_lengths
+    from passt_mav.commands.evaluate import parse_lengths
     from passt_mav.errors import PlannerError
 
     q = args.quick
     trials = args.trials if args.trials is not None else (QUICK["trials"] if q else 30)
     steps = args.steps if args.steps is not None else (QUICK["steps"] if q else 300)
     lengths = (
-        _parse_lengths(args.path_lengths) if args.path_lengths else list(QUICK["path_lengths"] if q else PATH_LENGTHS)
+        parse_lengths(args.path_lengths) if args.path_lengths else list(QUICK["path_lengths"] if q else PATH_LENGTHS)
     )
     names = [s.strip() for s in args.scenarios.split(",") if s.strip()]
     known = {s[0]: s for s in SCENARIOS}
@@ -148,20 +154,25 @@ def _protocol(args) -> dict:
         raise PlannerError("--batch must be >= 1")
     if args.workers < 1:
         raise PlannerError("--workers must be >= 1")
-    problem = background_steps_problem(args.background)
+    preset = PRESETS[getattr(args, "preset", "paper")]
+    given = {k: getattr(args, k, None) for k in ("planner", "reward", "prior_blend", "background")}
+    preset = replace(preset, **{k: v for k, v in given.items() if v is not None})
+    problem = background_steps_problem(preset.background)
     if problem:
         raise PlannerError(f"--background: {problem}")
     from passt_mav.planning import PLANNERS, REWARDS
 
-    if args.planner not in PLANNERS or args.reward not in REWARDS:
+    if preset.planner not in PLANNERS or preset.reward not in REWARDS:
         raise PlannerError(
-            f"--planner {args.planner!r} / --reward {args.reward!r}: choose a planner of {', '.join(PLANNERS)} and a reward of {', '.join(REWARDS)}"
+            f"--planner {preset.planner!r} / --reward {preset.reward!r}: choose a planner of {', '.join(PLANNERS)} and a reward of {', '.join(REWARDS)}"
         )
     return dict(
-        planner=args.planner,
-        reward=args.reward,
-        prior_blend=getattr(args, "prior_blend", "off"),
-        background=args.background,
+        preset=getattr(args, "preset", "paper"),
+        planner=preset.planner,
+        reward=preset.reward,
+        prior_blend=preset.prior_blend,
+        background=preset.background,
+        loop=preset.as_dict(),
         trials=trials,
         steps=steps,
         path_lengths=lengths,
@@ -207,7 +218,12 @@ def _campaign(
     progress=True,
 ) -> dict:
     from passt_mav.loop.campaign import run_campaign
+    from passt_mav.loop.presets import Preset
 
+    old = {k: proto[k] for k in ("planner", "reward", "prior_blend") if k in proto}  # a protocol without "loop"
+    preset = (
+        Preset(**proto["loop"]) if "loop" in proto else replace(PAPER, background=proto.get("background", 0), **old)
+    )
     return run_campaign(
         field,
         predictor,
@@ -228,11 +244,8 @@ def _campaign(
         progress=progress,
         fast_predict=True,
         gp_solver=proto.get("gp_solver", "cholesky"),
-        background=proto.get("background", 0),
         methods=PAPER_METHODS,
-        planner=proto.get("planner", "policy_gradient"),
-        reward=proto.get("reward", "speed"),
-        prior_blend=proto.get("prior_blend", "off"),
+        **preset.campaign_kwargs(),
     )
 
 
@@ -536,12 +549,12 @@ def write_page(res: dict, out_dir) -> Path:  # noqa: F821 - pathlib imported ins
     import html
     from pathlib import Path
 
-    from passt_mav.analysis.report import _CSS, _Page, _plt
+    from passt_mav.analysis.html_page import Page, pyplot
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    plt = _plt()
-    page = _Page(out)
+    plt = pyplot()
+    page = Page(out)
     proto = res["protocol"]
     page.add("<h1>PASST: the paper's offline evaluation</h1>")
     page.add(_status_line(res))
@@ -559,14 +572,8 @@ def write_page(res: dict, out_dir) -> Path:  # noqa: F821 - pathlib imported ins
         page.table([(k, html.escape(str(v))) for k, v in res["timings"].items()])
     gen = _dt.datetime.now(_dt.UTC).strftime("%Y-%m-%d %H:%M UTC")
     page.add(f'<p class="note">Written by {html.escape(res.get("command") or "passt-mav paper")} at {gen}.</p>')
-    css = _CSS + "td.held{color:#1a7f37;font-weight:600}td.notheld{color:#b42318;font-weight:600}td.missing{color:#888}"
-    doc = (
-        '<!DOCTYPE html>\n<html lang="en"><head><meta charset="utf-8"><title>PASST paper evaluation - passt-mav</title>'
-        f"<style>{css}</style></head><body>\n" + "\n".join(page.parts) + "\n</body></html>\n"
-    )
-    path = out / "paper.html"
-    path.write_text(doc, encoding="utf-8")
-    return path
+    css = "td.held{color:#1a7f37;font-weight:600}td.notheld{color:#b42318;font-weight:600}td.missing{color:#888}"
+    return page.write(out / "paper.html", "PASST paper evaluation - passt-mav", css=css)
 
 
 def _status_line(res: dict) -> str:

@@ -73,7 +73,7 @@ def run(args: argparse.Namespace) -> int:
     for leg in res.legs:
         same = {True: "identical", False: "differs", None: "?"}[leg.path_identical]
         print(
-            f"{leg.index:>3}  {leg.n_samples:>7}  {same:<9}  {_f(leg.rmse_passt_recorded):>9}  "
+            f"{leg.index + 1:>3}  {leg.n_samples:>7}  {same:<9}  {_f(leg.rmse_passt_recorded):>9}  "
             f"{_f(leg.rmse_passt):>11}  {leg.reward_collected:>8.4f}"
         )
         if leg.path_identical is False:
@@ -88,7 +88,7 @@ def run(args: argparse.Namespace) -> int:
     elif res.reproduced:
         print(f"reproduced: every path identical, every RMSE within {res.rmse_tol:g}")
     else:
-        print(f"DIVERGED: first at leg {res.first_divergence}")
+        print(f"DIVERGED: first at leg {res.first_divergence + 1}")
     if res.out_dir:
         print(f"written: {res.out_dir}/replay.json")
     return res.exit_code

@@ -28,7 +28,7 @@ import numpy as np
 from geo import MetricRegionGrid, RegionGrid, grid_from_dict
 from passt_mav.errors import FieldError
 
-__all__ = ["FieldError", "FlowField", "load_field", "load_std"]
+__all__ = ["FieldError", "FlowField", "load_field", "load_std", "parse_iso"]
 
 #: CF standard names for geographic current components.
 CF_U = "eastward_sea_water_velocity"
@@ -177,7 +177,7 @@ class FlowField:
         """Snapshot times as ``datetime64[ms]`` UTC (geographic fields only)."""
         if self.time_origin is None:
             raise FieldError("this field has non-dimensional time (no time origin)")
-        t0 = np.datetime64(_parse_iso(self.time_origin).replace(tzinfo=None), "ms")
+        t0 = np.datetime64(parse_iso(self.time_origin).replace(tzinfo=None), "ms")
         return t0 + (self.times * 1000.0).round().astype("timedelta64[ms]")
 
     # -- slicing ------------------------------------------------------------
@@ -325,7 +325,7 @@ class FlowField:
     def _cf_time_attrs(self) -> dict[str, str]:
         """Attributes of the time coordinate: seconds since ``time_origin``, or non-dimensional time."""
         if self.time_origin is not None:
-            origin = _parse_iso(self.time_origin).strftime("%Y-%m-%d %H:%M:%S")
+            origin = parse_iso(self.time_origin).strftime("%Y-%m-%d %H:%M:%S")
             return {"standard_name": "time", "units": f"seconds since {origin}", "calendar": "standard"}
         return {"units": "1", "long_name": "non-dimensional time (lengths in m, inflow speed 1)"}
 
@@ -385,7 +385,7 @@ class FlowField:
             tunits = ds["time"].attrs.get("units", "1")
             origin = None
             if tunits.startswith("seconds since"):
-                origin = _parse_iso(tunits[len("seconds since ") :].strip()).strftime("%Y-%m-%dT%H:%M:%SZ")
+                origin = parse_iso(tunits[len("seconds since ") :].strip()).strftime("%Y-%m-%dT%H:%M:%SZ")
             attrs = json.loads(ds.attrs.get("passt_provenance", "{}"))
             units = ds["u"].attrs.get("units", "m s-1")
         return cls(np.stack([u, v], axis=1), grid, times, origin, units, attrs)
@@ -442,7 +442,8 @@ def _subgrid(grid, rs: range, cs: range):
     return RegionGrid(lats[rs.start], lons[cs.start], lats[rs.stop - 1], lons[cs.stop - 1], len(rs), len(cs))
 
 
-def _parse_iso(s: str) -> _dt.datetime:
+def parse_iso(s: str) -> _dt.datetime:
+    """An ISO 8601 date-time (``Z``, an offset or none = UTC; a space may stand for ``T``) as an aware UTC datetime."""
     s = s.strip().replace("Z", "+00:00")
     if " " in s and "T" not in s:
         s = s.replace(" ", "T", 1)

@@ -69,7 +69,7 @@ from typing import Any
 import numpy as np
 
 from passt_mav.errors import FieldError
-from passt_mav.fields.field import FlowField, _parse_iso
+from passt_mav.fields.field import FlowField, parse_iso
 
 __all__ = [
     "import_currents",
@@ -278,7 +278,7 @@ def _select_times(t64: np.ndarray, start, hours) -> tuple[np.ndarray, str]:
         t0 = first
     else:
         try:
-            t0 = np.datetime64(_parse_iso(str(start)).replace(tzinfo=None), "ns")
+            t0 = np.datetime64(parse_iso(str(start)).replace(tzinfo=None), "ns")
         except ValueError:
             raise FieldError(f"--start must be an ISO-8601 time like 2018-03-01T00:00Z, got {start!r}") from None
     if hours is not None and (int(hours) != hours or hours < 1):

@@ -28,6 +28,7 @@ import dataclasses
 import sys
 from collections.abc import Sequence
 
+from passt_mav.loop.presets import DEFAULT, Preset
 from passt_mav.reconstruction.background import background_steps_problem
 from passt_mav.reconstruction.gp import MAX_FIT_POINTS
 
@@ -77,11 +78,8 @@ def _heap_reuse():
     A campaign allocates and frees arrays of 0.1-2 MB thousands of times per leg (roll-out
     tables, GP cross-covariances, model activations). Dask's nanny starts workers with
     ``MALLOC_TRIM_THRESHOLD_=65536``, which also freezes glibc's mmap threshold at 128 KiB:
-    every such array is then a fresh mmap, page-faulted in and unmapped again. Measured on
-    one lockstep batch (cylinder, L=200, 15 trials, PASST and random+GP): that environment
-    made the model's predictions 25 % and the GP 80 % slower (7x the system time); in a
-    Dask worker the batch took 61 s without this and 49 s with it, as in a plain process.
-    Without such a variable glibc's dynamic threshold already reuses the heap, so nothing
+    every such array is then a fresh mmap, page-faulted in and unmapped again, which slows
+    the model's predictions and the GP several-fold in system time. Without such a variable glibc's dynamic threshold already reuses the heap, so nothing
     is changed. Here the mmap threshold goes to 64 MiB and the trim threshold to 256 MiB
     for the task; afterwards both go back to what the environment asked for (mmap 128 KiB
     unless ``MALLOC_MMAP_THRESHOLD_`` says otherwise) and ``malloc_trim`` returns the freed
@@ -151,11 +149,7 @@ def _start_cell(field, cfg: dict, L: int, trial: int) -> tuple[int, int]:
 #: ("every_leg": the model's error grows and changes shape over a campaign), a GP on the
 #: samples alone once on the initial state ("state"). A residual GP whose kernel was fitted on
 #: the whole field (variance and length scale of the flow, not of the model's error) spreads
-#: every leg's noisy residuals far and wide: measured with the shipped KNODEs, 2 trials, PASST
-#: final-window RMSE ocean L=100 0.52 with "state" vs 0.062 with "first_leg" (0.053
-#: every_leg); cylinder L=50 0.44 vs 0.16 (0.10). With the background covariance (200
-#: snapshots, factor fixed at 1), 6 trials, L=50: ocean 0.0832 first_leg vs 0.0564 every_leg;
-#: without it 0.0810 vs 0.0693 (the model alone: 0.0756).
+#: every leg's noisy residuals far and wide.
 CAMPAIGN_HYPER = ("every_leg", "first_leg", "state", "auto")
 
 
@@ -244,11 +238,12 @@ def _loop_options(cfg: dict, m: str, predictor, L: int) -> tuple:
         path_length=L,
         steps_per_leg=cfg["steps_per_leg"],
         gp_kw=cfg.get("gp_kw"),
-        background=cfg.get("background", 0),
-        prior_blend=cfg.get("prior_blend", "off"),
-        share=cfg.get("prior_share", 0.0),
-        forgetting=cfg.get("prior_forgetting", 0.8),
-        memory=cfg.get("memory", "off"),
+        background=cfg.get("background", DEFAULT.background),
+        prior_blend=cfg.get("prior_blend", DEFAULT.prior_blend),
+        share=cfg.get("prior_share", DEFAULT.prior_share),
+        forgetting=cfg.get("prior_forgetting", DEFAULT.forgetting),
+        memory=cfg.get("memory", DEFAULT.memory),
+        guard=cfg.get("guard", DEFAULT.guard),
         model_update=None if mu is None else ModelUpdate(**mu),
         **kw,
     )
@@ -345,8 +340,8 @@ class CampaignOptions:
 
     path_lengths: tuple = (25, 50, 75, 100, 150, 200)
     trials: int = 30
-    planner: str = "policy_gradient"
-    reward: str = "speed"
+    planner: str = DEFAULT.planner
+    reward: str = DEFAULT.reward
     steps: int = 300
     t0: int = 0
     steps_per_leg: int = 10
@@ -367,14 +362,15 @@ class CampaignOptions:
     gp_solver: str = "sklearn"
     keep_trials: bool = False
     fast_predict: bool = False
-    background: int = 0
-    prior_blend: str = "off"
-    gp_bias: bool = False
-    gp_nugget: str = "state"
-    memory: str = "off"
+    background: int = DEFAULT.background
+    prior_blend: str = DEFAULT.prior_blend
+    gp_bias: bool = DEFAULT.bias
+    gp_nugget: str = DEFAULT.nugget
+    memory: str = DEFAULT.memory
     gp_fit_points: int = MAX_FIT_POINTS
-    prior_share: float = 0.0
-    prior_forgetting: float = 0.8
+    prior_share: float = DEFAULT.prior_share
+    prior_forgetting: float = DEFAULT.forgetting
+    guard: str = DEFAULT.guard
     model_update: object = None
 
     def __post_init__(self) -> None:
@@ -436,8 +432,8 @@ def _campaign_cfg(o: CampaignOptions, steps: int) -> dict:
         steps=steps,
         gp_kw={
             "solver": o.gp_solver,
-            **({"bias": True} if o.gp_bias else {}),
-            **({"nugget": o.gp_nugget} if o.gp_nugget != "state" else {}),
+            "bias": bool(o.gp_bias),
+            "nugget": o.gp_nugget,
             **({"max_fit_points": int(o.gp_fit_points)} if int(o.gp_fit_points) != MAX_FIT_POINTS else {}),
         },
         keep_paths=bool(o.keep_trials),
@@ -447,6 +443,7 @@ def _campaign_cfg(o: CampaignOptions, steps: int) -> dict:
         memory=o.memory,
         prior_share=float(o.prior_share),
         prior_forgetting=float(o.prior_forgetting),
+        guard=o.guard,
         model_update=None if o.model_update is None else o.model_update.record(),
     )
     return cfg
@@ -603,8 +600,8 @@ def fleet_comparison(
     boats: int,
     path_length: int,
     trials: int = 10,
-    planner: str = "policy_gradient",
-    reward: str = "speed",
+    planner: str | None = None,
+    reward: str | None = None,
     steps: int = 300,
     t0: int = 0,
     steps_per_leg: int = 10,
@@ -614,13 +611,15 @@ def fleet_comparison(
     window: int = 50,
     seed: int = 0,
     progress: bool = True,
-    background: int = 0,
+    background: int | None = None,
+    preset: Preset = DEFAULT,
 ) -> dict:
     """PASST with 1..``boats`` boats of ``path_length`` moves each, and one boat of ``boats`` x
     ``path_length`` moves (the fleet's budget in one path), over ``trials`` seeded trials
     (:func:`passt_mav.loop.engine.run_trials`, one trial of N boats per run). Returns per configuration
     the mean RMSE over time, the final-window mean and each trial's final-window value (field units).
-    ``background``: as in :func:`run_campaign`."""
+    ``preset``: the loop's configuration (:mod:`passt_mav.loop.presets`); ``planner``, ``reward`` and
+    ``background`` (as in :func:`run_campaign`) replace its own where given."""
     configs = [(f"{n} boat{'s' if n > 1 else ''} x {path_length}", n, path_length) for n in range(1, boats + 1)]
     configs.append((f"1 boat x {boats * path_length}", 1, boats * path_length))
     T = int(min(steps, field.n_times - 1 - t0))
@@ -634,11 +633,10 @@ def fleet_comparison(
         "noise": noise,
         "window": window,
         "seed": seed,
-        "planner": planner,
-        "reward": reward,
         "hyper": hyper,
         "sampling": sampling,
-        "background": background,
+        **preset.as_dict(),
+        **{k: v for k, v in dict(planner=planner, reward=reward, background=background).items() if v is not None},
     }
     series = _fleet_series(field, predictor, configs, config, progress=progress)
     return {"config": config, "runs": _fleet_runs(configs, series, window)}
@@ -655,12 +653,12 @@ def _fleet_series(field, predictor, configs: list[tuple], config: dict, *, progr
 
     t0, T, seed = config["t0"], config["steps"], config["seed"]
     truth = field.data[t0 : t0 + T + 1].astype("float64")
+    preset = Preset(**{k: config[k] for k in Preset.__dataclass_fields__})
     base = LoopOptions(
-        planner=config["planner"],
-        reward=config["reward"],
+        **preset.loop_kwargs(),
+        gp_kw=preset.gp_kwargs(),
         steps_per_leg=config["steps_per_leg"],
         hyper=_hyper_for(config["hyper"], residual=True),
-        background=config["background"],
     )
     it = _progress(
         [(name, n, L, i) for name, n, L in configs for i in range(config["trials"])],

@@ -234,27 +234,19 @@ def build_loop(config, predictor, grid, land=None):
     from passt_mav.loop.online import ModelUpdate
     from passt_mav.loop.passt import LoopOptions
 
+    preset = config.loop_preset()
     gp_kw = {"seed": config.seeds.gp}
     if config.sensors.noise_std > 0:
         gp_kw["noise_std"] = config.sensors.noise_std
-    if config.gp.bias:
-        gp_kw["bias"] = True
+    gp_kw.update(preset.gp_kwargs())  # the mission's bias and nugget, explicitly: the API's defaults may differ
     gp_kw.update(config.gp.options)
     options = LoopOptions(
-        planner=config.planner.name,
+        **preset.loop_kwargs(),
         planner_kw=dict(config.planner.options),
-        reward=config.planner.reward,
         path_length=config.planner.path_length,
         steps_per_leg=config.steps_per_leg or 1,
-        prior=config.gp.loop_prior,
         gp_kw=gp_kw,
         hyper=config.gp.hyper,
-        background=config.gp.background,
-        prior_blend=config.gp.prior_blend,
-        forgetting=config.gp.forgetting,
-        share=config.gp.prior_share,
-        memory=config.planner.memory,
-        guard=config.gp.guard,
         model_update=ModelUpdate(**config.model_update.model_dump()),
     )
     loop = options.loop(predictor, grid, land=land, seed=config.seeds.planner)
@@ -512,7 +504,7 @@ class LegStep:
         t_s = clock.field_time(col["time_boot_ms"], col["boot"])
         samples = thin_samples(grid, t_s, col["lat"], col["lon"], u, v, t_start=plan.t_start, dt=dt)
         if strict and len(samples) == 0:
-            raise ReconstructionError(f"leg {planned.index}: no usable current samples")
+            raise ReconstructionError(f"leg {planned.index + 1}: no usable current samples")
         planned.steps = extend_leg_to_end(self.loop, plan, t_s, dt)
         t_new = plan.t_start + planned.steps * dt
         note, t0 = None, time.perf_counter()
@@ -693,7 +685,7 @@ class FleetStep:
             lambda taken, avoid: self.step.plan(i, self.state, self.t_state, start, taken=taken, avoid=avoid, **kw),
             taken,
             lambda p: self._conflicts(boat, p.plan.path, p.t_start),
-            f"leg {i}: boat {boat}",
+            f"leg {i + 1}: boat {boat}",
         )
         self._reserved[boat] = {
             "path": np.asarray(planned.plan.path, int),
@@ -712,7 +704,7 @@ class FleetStep:
         own = in_field_time(recs, clock)
         if not own:
             self._plan_version.pop(planned.index, None)
-            raise ReconstructionError(f"leg {planned.index}: no usable current samples")
+            raise ReconstructionError(f"leg {planned.index + 1}: no usable current samples")
         since = self._plan_version.pop(planned.index, self._version)
         # another leg's samples taken before this leg's forecast begins cannot be compared with
         # that forecast at their own time (it starts at this leg's planning state): clipped to

@@ -36,7 +36,18 @@ from typing import Any, NamedTuple
 from geo.track import DEFAULT_MAX_GAP_MS
 from passt_mav.errors import UserError
 
-__all__ = ["Rules", "RULES", "HalfPairer", "Reading", "BootCounter", "truth_at", "rmse", "sample_columns"]
+__all__ = [
+    "Rules",
+    "RULES",
+    "HalfPairer",
+    "Reading",
+    "BootCounter",
+    "truth_at",
+    "rmse",
+    "sample_columns",
+    "leg_number",
+    "OUTSIDE_LEG",
+]
 
 
 @dataclass(frozen=True)
@@ -274,3 +285,19 @@ def sample_columns(recs) -> dict:
     for k, none in (("leg", -1), ("boot", 0)):
         out[k] = np.array([none if get(r, k) is None else int(get(r, k)) for r in recs], np.int64)
     return out
+
+
+#: what a person reads for a reading taken outside any leg (on the way to the first leg's start, holding
+#: between legs, after the last): the run's records store leg index -1 there
+OUTSIDE_LEG = "outside"
+
+
+def leg_number(index) -> str:
+    """A leg as a person reads it: numbered from 1 (the console's "leg 1/5"), from the run's 0-based leg
+    ``index`` (``leg.json`` ``index``, the sample store's ``leg``, the ``legs/NNN`` folders); a negative
+    index (a reading outside any leg) is :data:`OUTSIDE_LEG`; "?" where the index is not an integer."""
+    import numbers
+
+    if isinstance(index, bool) or not isinstance(index, numbers.Integral):
+        return "?"
+    return OUTSIDE_LEG if index < 0 else str(int(index) + 1)

@@ -2,12 +2,8 @@
 
 Without it the planner's prior (:meth:`passt_mav.reconstruction.GPReconstructor.prior_factors`) is the
 same stationary one at every leg: a cell sampled on the last leg is worth as much as one never
-sampled. On the ocean default it is not: measured over the information planner's legs (2 trials,
-L = 100, the true field beside the loop), the forecast's squared error at a leg's end in cells
-sampled 1 / 2 / 3 / 5 legs before was 0.42 / 0.56 / 0.65 / 0.77 of that in cells unsampled for more
-than 8 legs, and 17 % of the cells a leg sampled had been sampled on the leg before (one trial). On the
-oscillating wake (random walk, 2 trials) the same ratios were 1.11 / 1.27 / 1.24 / 1.09: the flow
-carries the corrected water away and nothing is left where it was sampled. So the memory's
+sampled. Where the flow holds still (the ocean default), a correction lasts several legs; where it
+carries the water away (the oscillating wake), nothing is left where it was sampled. So the memory's
 persistence is fitted, loop by loop, from the samples' own innovations; it is never set by hand.
 
 Model. The prior variance of the estimate's error in cell ``c`` (component ``k``: 0 u east, 1 v

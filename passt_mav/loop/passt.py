@@ -42,6 +42,7 @@ import numpy as np
 from passt_mav.errors import PlannerError, ReconstructionError
 from passt_mav.loop.guard import GUARDS, OpenLoop, guard_record, relax_to_open_loop
 from passt_mav.loop.online import ModelUpdate, OnlineUpdate
+from passt_mav.loop.presets import DEFAULT
 
 __all__ = [
     "Samples",
@@ -226,20 +227,20 @@ class LoopOptions:
     that takes them.
     """
 
-    planner: str = "policy_gradient"
+    planner: str = DEFAULT.planner
     planner_kw: dict | None = None
-    reward: str = "speed"
+    reward: str = DEFAULT.reward
     path_length: int = 50
     steps_per_leg: int = 10
-    prior: str = "forecast"
+    prior: str = DEFAULT.prior
     gp_kw: dict | None = None
     hyper: str = "every_leg"
-    background: int = 0
-    prior_blend: str = "off"
-    forgetting: float = 0.8
-    share: float = 0.0
-    memory: str = "off"
-    guard: str = "on"
+    background: int = DEFAULT.background
+    prior_blend: str = DEFAULT.prior_blend
+    forgetting: float = DEFAULT.forgetting
+    share: float = DEFAULT.prior_share
+    memory: str = DEFAULT.memory
+    guard: str = DEFAULT.guard
     model_update: ModelUpdate | None = None
 
     @classmethod
@@ -289,6 +290,9 @@ def _check_loop_options(
 class PasstLoop:
     """The PASST algorithm, leg by leg.
 
+    Defaults: :data:`passt_mav.loop.presets.DEFAULT` (the mission schema's; the paper's configuration is
+    :data:`~passt_mav.loop.presets.PAPER`: ``PasstLoop(..., **PAPER.loop_kwargs(), gp_kw=PAPER.gp_kwargs())``).
+
     Args:
         predictor: object with ``predict(state (2,R,C), steps) -> (steps,2,R,C)``, or
             ``None`` for "hold" (the estimate stays the last reconstruction: the
@@ -304,7 +308,7 @@ class PasstLoop:
         seed: planner seeds are ``seed + leg index``.
         background: snapshots of the predictor's roll-out, from the first leg's initial
             state, whose anomaly covariance the residual GP adds to its stationary kernels
-            (:func:`passt_mav.reconstruction.model_background`); 0 = none (default). Only
+            (:func:`passt_mav.reconstruction.model_background`); 0 = none. Only
             with a predictor and ``prior="forecast"``. A caller may set ``gp.background``
             itself beforehand (the lockstep engine computes it once for all trials).
         prior_blend: "off" (the forecast restarted from the last estimate is the GP's prior mean),
@@ -355,22 +359,22 @@ class PasstLoop:
         predictor,
         grid,
         *,
-        planner: str = "policy_gradient",
+        planner: str = DEFAULT.planner,
         planner_kw: dict | None = None,
-        reward: str = "speed",
+        reward: str = DEFAULT.reward,
         path_length: int = 50,
         steps_per_leg: int = 10,
-        prior: str = "forecast",
+        prior: str = DEFAULT.prior,
         gp_kw: dict | None = None,
         hyper: str = "every_leg",
         land=None,
         seed: int = 0,
-        background: int = 0,
-        prior_blend: str = "off",
-        forgetting: float = 0.8,
-        share: float = 0.0,
-        memory: str = "off",
-        guard: str = "on",
+        background: int = DEFAULT.background,
+        prior_blend: str = DEFAULT.prior_blend,
+        forgetting: float = DEFAULT.forgetting,
+        share: float = DEFAULT.prior_share,
+        memory: str = DEFAULT.memory,
+        guard: str = DEFAULT.guard,
         model_update: ModelUpdate | None = None,
     ):
         from passt_mav.planning import make_planner
@@ -391,7 +395,7 @@ class PasstLoop:
         self.steps_per_leg = int(steps_per_leg)
         self.land = np.zeros(grid.shape, bool) if land is None else np.asarray(land, bool)
         self.seed = int(seed)
-        self.gp = GPReconstructor(grid_xy=grid.centres_xy(), prior=prior, **(gp_kw or {}))
+        self.gp = GPReconstructor(grid_xy=grid.centres_xy(), prior=prior, **{**DEFAULT.gp_kwargs(), **(gp_kw or {})})
         self.background_steps = int(background) if predictor is not None and prior == "forecast" else 0
         self._background_pending = bool(self.background_steps)
         # GP posterior std of the last reconstruction; computed only for a reward that
@@ -539,7 +543,7 @@ class PasstLoop:
         key = (
             self.leg_index,
             id(getattr(self.gp, "kernels_", None)),
-            self.gp._background_factor() if self.gp.background is not None else None,
+            self.gp.background_factor() if self.gp.background is not None else None,
         )
         if getattr(self, "_info_key", None) != key:
             if self.memory is None:
@@ -694,7 +698,7 @@ class PasstLoop:
         out: dict = {"sensor_noise_std": float(gp.noise_std)}
         ks = getattr(gp, "kernels_", None)
         if ks is not None:
-            nug = gp._nugget_vars()
+            nug = gp.nugget_vars()
             # the white std the GP fitted, and its part that is the field's grid-scale error (the
             # state nugget: a sample corrects its own cell by it), m/s per component u, v
             out["noise_std"] = [float(np.sqrt(max(k.k2.noise_level - v, 0.0))) for k, v in zip(ks, nug)]
@@ -713,7 +717,7 @@ class PasstLoop:
         if ev is not None:
             out["signal_kept"] = [None if e is None else bool(e[0] >= e[1]) for e in ev]
         if gp.background is not None:
-            out["background_factor"] = gp._background_factor()
+            out["background_factor"] = gp.background_factor()
         if getattr(gp, "bias", False):
             out["offset_var"] = float(getattr(gp, "bias_var_", 0.0))  # (field units)^2, 0 = no offset kept
             out["anomaly_var"] = float(getattr(gp, "scale_var_", 0.0))  # factor variance on the forecast anomaly

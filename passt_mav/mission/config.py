@@ -55,7 +55,8 @@ from pydantic import (
 )
 
 from passt_mav.errors import MissionConfigError
-from passt_mav.reconstruction.background import DEFAULT_BACKGROUND, background_steps_problem
+from passt_mav.loop.presets import DEFAULT, Preset
+from passt_mav.reconstruction.background import background_steps_problem
 
 __all__ = [
     "mission_overrides",
@@ -263,15 +264,15 @@ class PlannerConfig(_Strict):
     legs' samples removed (:class:`passt_mav.loop.memory.CellMemory`), ``off`` = the stationary prior
     every leg."""
 
-    name: str = "policy_gradient"
+    name: str = DEFAULT.planner
     """Planner (`passt_mav.planning.PLANNERS`: `policy_gradient`, `lawnmower`, `greedy`, `random`, `information`; `pg` = `policy_gradient`)."""
     path_length: int = Field(default=50, ge=1)
     """Moves per leg L (grid cells; a move is one cell, diagonals included)."""
-    reward: str = "speed"
+    reward: str = DEFAULT.reward
     """Reward map the planner maximises (`passt_mav.planning.REWARDS`: `speed`, `vorticity`, `std`, `speed_std`, `change`, `variance_reduction`; `speed` is the predicted current speed, `variance_reduction` the error variance a sample removes from the next reconstruction)."""
     options: dict[str, Any] = Field(default_factory=dict)
     """Planner-specific keyword options, passed on unchanged."""
-    memory: Literal["off", "fitted"] = "off"
+    memory: Literal["off", "fitted"] = DEFAULT.memory
     """`fitted`: the information reward's prior remembers per cell the error past legs' samples removed; `off`: the same stationary prior every leg."""
 
     @field_validator("name")
@@ -388,40 +389,18 @@ class SensorConfig(_Strict):
     """The sensor's noise standard deviation (m/s); the GP never assumes less."""
 
 
-#: the mission default of ``gp.bias`` (see GPConfig): on. In the same loop it helps the missions' planner
-#: (information) on the three scenarios, and its coverage gate keeps the modes from samples bunched in a
-#: corner, which they made worse (docs/research/2026-11-27-prior-blend-and-bias.md)
-BIAS_DEFAULT = True
-#: the mission default of ``gp.prior_blend``: ``select`` (the forecast restarted from the last estimate, the model
-#: alone from the mission's first state, or persistence, whichever the legs' samples make more probable; until
-#: 2026-11-28 the third candidate was none, the samples' GP alone, and the figures below are from then). Where the model is the better prior it is
-#: the model-only loop to the bit
-#: (same loop, 6 trials, L = 50, bias on: static 0.0614, oscillating 0.0957, ocean 0.0541); where it is not,
-#: it switches: a DMD fitted on the first half of a real series (gridded_current) and flown on the second ends
-#: at 0.41 m/s without it, worse than the DMD alone (0.22), and at persistence-prior PASST's 0.136 with it.
-#: ``bma`` (the mixture) did as well there, but mixed 14 % persistence into the right model after the North
-#: Atlantic demo's first leg and ended it at 0.0089 m/s against the model alone's 0.0071. The candidates are
-#: scored without the GP's background modes (scored with them, select switched the oscillating wake's demo
-#: legs to persistence: 0.34 against 0.12 in the wake's units); re-measured then: the three scenarios unchanged, held-out
-#: gridded_current 0.1496 with the DMD's background (persistence-prior PASST 0.1343), RTOFS 0.1415 against
-#: 0.1346 without a blend (docs/research/2026-11-27-prior-blend-and-bias.md)
-PRIOR_BLEND_DEFAULT = "select"
-#: the mission default of ``gp.prior_share``: 0.05 (the blend's fixed share, Herbster & Warmuth 1998: no candidate
-#: falls more than ln(3 / 0.05) = 4.1 nats behind, so one leg where the model misses is won back, and the model starts
-#: alone with a margin of 4.1 nats). With ``select``, held-out real series (``benchmarks/heldout_prior_blend.py``,
-#: 24 / 8 seeds): RTOFS with a DMD prior 0.1388 m/s against 0.1408 without a blend (without the share, 8 seeds: 0.1480
-#: against 0.1380);
-#: RTOFS with persistence as the model 0.1465 (persistence-prior PASST 0.1922); gridded_current DMD 0.1429
-#: (persistence-prior PASST 0.1698); the three scenarios equal to no blend (6 trials, L = 50: 0.0581 / 0.0964 /
-#: 0.0405). ``bma`` with the share did as well on the real series but mixed 3.6 % persistence into the right model
-#: on the North Atlantic demo's first short leg (PASST 0.0078 against the model alone's 0.0071);
-#: docs/research/2026-11-27-prior-blend-and-bias.md, "The share as the missions' default"
-PRIOR_SHARE_DEFAULT = 0.05
+#: the mission defaults of ``gp.bias``, ``gp.prior_blend`` and ``gp.prior_share``
+#: (:data:`passt_mav.loop.presets.DEFAULT`, where every default of the loop is set; why these:
+#: docs/research/2026-11-27-prior-blend-and-bias.md)
+BIAS_DEFAULT = DEFAULT.bias
+PRIOR_BLEND_DEFAULT = DEFAULT.prior_blend
+PRIOR_SHARE_DEFAULT = DEFAULT.prior_share
 
 
 class GPConfig(_Strict):
-    """GP reconstruction: prior ``forecast`` (residual vs the model forecast) or ``constant``
-    (the paper's GP on samples alone); hyper-parameter schedule; ``background``: snapshots of
+    """GP reconstruction (defaults: :data:`passt_mav.loop.presets.DEFAULT`): prior ``forecast`` (residual vs
+    the model forecast) or ``none`` (the paper's GP on samples alone, a constant mean; ``constant``, the
+    spelling before, is read as ``none``); hyper-parameter schedule; ``background``: snapshots of
     the model's roll-out whose anomaly covariance the residual GP adds to its stationary
     kernels (0 = none; see :func:`passt_mav.reconstruction.model_background`); ``prior_blend``:
     ``off`` (the forecast restarted from the last estimate is the prior), ``bma`` (that forecast, the
@@ -431,28 +410,35 @@ class GPConfig(_Strict):
     against the model alone at each leg's samples before they enter the estimate, says so when the
     loop's fits worse and falls back to the model alone (:mod:`passt_mav.loop.guard`); ``prior_share``: the blend's
     fixed share (every candidate keeps ``prior_share / 3`` of the weight, so one bad leg of a good
-    model is won back; default :data:`PRIOR_SHARE_DEFAULT` 0.05, 0 = off, ``PasstLoop(share=...)``); ``bias``: the
+    model is won back; 0 = off, ``PasstLoop(share=...)``); ``bias``: the
     residual GP may shift the forecast by a constant and rescale its anomaly where a leg's samples show it (fitted only from samples that
     see half of the region, kept only when their likelihood pays for it;
-    :class:`passt_mav.reconstruction.gp.GPReconstructor` ``bias``);
-    GPReconstructor options."""
+    :class:`passt_mav.reconstruction.gp.GPReconstructor` ``bias``); ``nugget``: what the white variance the
+    GP fits above the sensor's is (``GPReconstructor`` ``nugget``); ``options``: further GPReconstructor options."""
 
-    prior: Literal["forecast", "constant"] = "forecast"
-    """`forecast`: the GP corrects the model's forecast (residuals); `constant`: the paper's GP on the samples alone."""
+    prior: Literal["forecast", "none"] = DEFAULT.prior
+    """`forecast`: the GP corrects the model's forecast (residuals); `none`: the paper's GP on the samples alone, a constant mean (`constant` is read as `none`)."""
     hyper: Literal["first_leg", "state", "every_leg"] = "every_leg"
     """When the GP's kernel hyper-parameters are fitted: on every leg's samples (`every_leg`), on the first leg's only (`first_leg`), or once on the initial state (`state`)."""
-    background: int = Field(default=DEFAULT_BACKGROUND, ge=0)
+    background: int = Field(default=DEFAULT.background, ge=0)
     """Snapshots of the model's roll-out whose anomaly covariance the GP adds to its kernels (0 = stationary kernels only)."""
     prior_blend: Literal["off", "bma", "select"] = PRIOR_BLEND_DEFAULT
     """`off`: the forecast restarted from the last estimate is the prior; `bma`: that forecast, the model alone from the mission's first state and persistence weighed leg by leg by their samples' likelihood; `select`: the most probable of them alone."""
-    forgetting: float = Field(default=0.8, ge=0.0, le=1.0)
+    forgetting: float = Field(default=DEFAULT.forgetting, ge=0.0, le=1.0)
     """The blend's forgetting factor: past legs' evidence is multiplied by it once per leg (0 = only the last leg counts, 1 = all legs alike)."""
     prior_share: float = Field(default=PRIOR_SHARE_DEFAULT, ge=0.0, le=1.0)
     """The blend's fixed share: every candidate keeps `prior_share / 3` of the weight, so one bad leg of a good model is won back (0 = off)."""
     bias: bool = BIAS_DEFAULT
     """The GP may shift the forecast by a constant and rescale its anomaly where a leg's samples see half of the region and pay for it."""
-    guard: Literal["on", "off"] = "on"
+    nugget: Literal["state", "noise"] = DEFAULT.nugget
+    """What the white variance the GP fits above the sensor's noise is: `state`, the field's grid-scale error (a sample corrects its own cell by it), or `noise`, measurement noise."""
+    guard: Literal["on", "off"] = DEFAULT.guard
     """`on`: before a leg's samples enter the estimate, the forecast restarted from the last estimate and the model alone are compared at them; the leg falls back to the model alone when it fits better, and 'sampling is not helping' is raised after two such legs running or one by more than 10 %."""
+
+    @field_validator("prior", mode="before")
+    @classmethod
+    def _prior(cls, v: Any) -> Any:
+        return "none" if v == "constant" else v
 
     @field_validator("background")
     @classmethod
@@ -467,8 +453,8 @@ class GPConfig(_Strict):
 
     @property
     def loop_prior(self) -> str:
-        """The name :class:`passt_mav.loop.passt.PasstLoop` uses ("forecast" or "none")."""
-        return "forecast" if self.prior == "forecast" else "none"
+        """The GP prior as :class:`passt_mav.loop.passt.PasstLoop` takes it: ``prior`` (the same names)."""
+        return self.prior
 
 
 class ModelUpdateConfig(_Strict):
@@ -613,6 +599,12 @@ class MissionConfig(_Strict):
     def grid(self):
         """The region's :mod:`geo` grid object."""
         return self.region.grid()
+
+    def loop_preset(self) -> Preset:
+        """The mission's loop settings as a :class:`passt_mav.loop.presets.Preset` (the same names)."""
+        planner = {"planner": self.planner.name, "reward": self.planner.reward, "memory": self.planner.memory}
+        gp = {k: getattr(self.gp, k) for k in Preset.__dataclass_fields__ if k not in planner}  # gp.* by its names
+        return Preset(**planner, **gp)
 
 
 def _predictor_names() -> tuple[str, ...]:

@@ -1,22 +1,17 @@
 """The fast path for KNODE training and batched prediction: ``torch.compile`` with a clean fallback.
 
-Measured on this project's 2-core CPU machines (``benchmarks/bench_models.py``, the
-same network and batch, side by side): compiling the whole snapshot step (6 Euler
-sub-steps of the network plus the smoothing K) with inductor gains little in training
-because the step is dominated by convolutions that eager mode already runs through
-oneDNN; the benchmark prints the ratio and the fraction of the CPU's fp32 matmul rate
-each path reaches (1 thread: eager 0.72, compiled 0.83; no fp32-exact path can train
-much faster here). The compiled step is exact to fp32 rounding
-(checked against eager in ``tests/test_models.py``).
+Compiling the whole snapshot step (6 Euler sub-steps of the network plus the smoothing K)
+with inductor gains little in training, because the step is dominated by convolutions that
+eager mode already runs through oneDNN (``benchmarks/bench_models.py`` prints the ratio and
+the fraction of the CPU's fp32 matmul rate each path reaches). The compiled step is exact to
+fp32 rounding (checked against eager in ``tests/test_models.py``).
 
 Compilation needs a C++ compiler and may fail on an unusual machine: any exception at
 the first call falls back to the eager function, once, with a one-line warning.
 
 Prediction (no gradients) compiles with inductor's ``freezing``: the weights become
-constants and oneDNN convolutions get pre-packed weights. Measured on the shipped
-cylinder KNODE, 1 thread, one snapshot (6 Euler sub-steps): batch 1 10.2 -> 6.3 ms,
-batch 30 219 -> 134 ms (1.6x), max deviation from eager 5e-7 (fp32 rounding);
-a first call per batch shape compiles for 3-5 s, so only long roll-out work (the
+constants and oneDNN convolutions get pre-packed weights; it deviates from eager by fp32
+rounding. A first call per batch shape compiles for seconds, so only long roll-out work (the
 campaign engine) turns it on (``KnodePredictor.fast_predict``).
 """
 

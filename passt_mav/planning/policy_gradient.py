@@ -48,6 +48,7 @@ __all__ = [
     "train_policy",
     "save_policy",
     "load_policy",
+    "cache_policy",
     "DEFAULT_CHECKPOINT",
 ]
 
@@ -474,6 +475,12 @@ def load_policy(path: str | Path | None = None) -> PolicyWeights:
 
 
 _CACHE: dict[str, PolicyWeights] = {}
+
+
+def cache_policy(checkpoint: str | Path, weights: PolicyWeights) -> None:
+    """Serve ``weights`` for ``checkpoint`` (a path) to every :class:`PolicyGradientPlanner` of this
+    process, without reading the file (a policy just trained, before or instead of its file)."""
+    _CACHE[str(checkpoint)] = weights
 
 
 class PolicyGradientPlanner:

@@ -102,11 +102,10 @@ def change(prediction, *, cell_size_m=None, std=None, state=None, info=None) -> 
     the leg's initial state and its forecast at the leg's end). Why it is a reward: a
     model whose structures drift in phase or position errs by about
     ``|du/dt| x (its timing error)``, so the cells predicted to change most are where
-    the forecast - and the reconstruction's prior - is least reliable. Measured in the
-    campaign (shipped cylinder KNODE, 30 trials, 300 steps, L=50 / 100, final-window
-    RMSE): static wake 0.214 / 0.106, oscillating 0.328 / 0.333 - worse than ``speed``
-    (0.132 / 0.095, 0.273 / 0.264): sampling only where the wake moves leaves the rest
-    of the field uncorrected. Kept as an option for other fields.
+    the forecast - and the reconstruction's prior - is least reliable. On the cylinder
+    wakes it does worse than ``speed`` (sampling only where the wake moves leaves the rest
+    of the field uncorrected: docs/research/2026-11-28-docstring-history.md); an option for
+    other fields.
     """
     p = _check(prediction)
     if state is None:

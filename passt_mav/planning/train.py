@@ -30,9 +30,9 @@ def main(argv: list[str] | None = None) -> int:
     from passt_mav.planning.baselines import GreedyPlanner, RandomPlanner
     from passt_mav.planning.grid import path_reward, top_l_bound
     from passt_mav.planning.policy_gradient import (
-        _CACHE,
         DEFAULT_CHECKPOINT,
         PolicyGradientPlanner,
+        cache_policy,
         random_reward_map,
         save_policy,
         train_policy,
@@ -44,7 +44,7 @@ def main(argv: list[str] | None = None) -> int:
     out = args.out or DEFAULT_CHECKPOINT
     # held-out evaluation (seed 10_000 + seed): fraction of the top-L bound collected
     rng = np.random.default_rng(10_000 + args.seed)
-    _CACHE[str(out)] = w
+    cache_policy(out, w)
     pg = PolicyGradientPlanner(checkpoint=out)
     fr = {"policy_gradient": [], "greedy": [], "random": []}
     for i in range(40):

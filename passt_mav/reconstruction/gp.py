@@ -4,11 +4,11 @@ Frames and units: sample and grid positions are local east/north metres
 (``grid.centres_xy()``, ``grid.latlon_to_xy``); velocities in the field's units
 (m/s). One scikit-learn ``GaussianProcessRegressor`` per velocity component.
 
-Kernel: ``ConstantKernel * Matern(nu) + WhiteKernel`` (or RBF). Hyper-parameters
-are fitted once per campaign (:meth:`GPReconstructor.fit`, normally on the first
-leg's samples) and then held fixed (``optimizer=None``), so every later leg's fit
-is one Cholesky of an n x n matrix - milliseconds for the few hundred samples of
-a leg.
+Kernel: ``ConstantKernel * Matern(nu) + WhiteKernel`` (or RBF). :meth:`GPReconstructor.fit` fits the
+hyper-parameters on a leg's samples; the caller decides how often (the loop's ``hyper``: on every
+leg by default, on the first leg only, or once on the initial state). Between fits they are held
+fixed (``optimizer=None``), so a reconstruction is one Cholesky of an n x n matrix: milliseconds
+for the few hundred samples of a leg.
 
 Prior mean:
 
@@ -46,8 +46,7 @@ independent between samples. It is kept only when the samples' likelihood pays f
 sensor noise alone (the information criterion's ``0.5 ln n``, one parameter), whether the signal
 kernel was kept or not. Between samples in distinct cells the two readings give the same covariance; they
 differ at the sampled cells' own estimate (and in the planner's prior: a fresh cell is worth its
-nugget). Measured on the ocean default (12 trials, L = 50, bias on, information planner): final
-RMSE 0.0534 -> 0.0404 m/s (docs/research/2026-11-27-information-reward.md); ``nugget="noise"`` is the reading before (everything above the
+nugget). ``nugget="noise"`` is the reading before (everything above the
 sensor's variance is noise). (Cressie 1993, Statistics for Spatial Data, sec. 3.2.1: the nugget
 effect as micro-scale variation plus measurement error.)
 
@@ -193,7 +192,8 @@ class GPReconstructor:
         self.seed = seed
 
     # -- validation -------------------------------------------------------------
-    def _grid(self) -> tuple[np.ndarray, np.ndarray]:
+    def grid_coords(self) -> tuple[np.ndarray, np.ndarray]:
+        """(X, Y): the grid's cell-centre east and north coordinates, each (rows, cols) float64 (local metres)."""
         X, Y = (np.asarray(a, dtype=np.float64) for a in self.grid_xy)
         if X.shape != Y.shape or X.ndim != 2:
             raise ReconstructionError(f"grid_xy must be two (rows, cols) arrays, got {X.shape} and {Y.shape}")
@@ -238,10 +238,10 @@ class GPReconstructor:
         d2 = (xy[:, 0, None] - X.ravel()[None]) ** 2 + (xy[:, 1, None] - Y.ravel()[None]) ** 2
         return np.argmin(d2, axis=1)
 
-    def _base_kernel(self, t_span: float | None = None):
+    def start_kernel(self, t_span: float | None = None):
         """The kernel a fit starts from and the cell size (metres): see
         :func:`~passt_mav.reconstruction.kernels.base_kernel`."""
-        X, Y = self._grid()
+        X, Y = self.grid_coords()
         return base_kernel(X, Y, self.kernel, self.length_scale, self.max_length_cells, self.noise_std, t_span)
 
     def _regressor(self, kernel, optimize: bool):
@@ -257,7 +257,7 @@ class GPReconstructor:
             random_state=int(self.seed),
         )
 
-    def _fit_gp(self, kernel, xy, y, optimize: bool):
+    def fit_regressor(self, kernel, xy, y, optimize: bool):
         from threadpoolctl import threadpool_limits
 
         try:
@@ -286,7 +286,7 @@ class GPReconstructor:
         ``K = k(X) + alpha I`` (k's WhiteKernel adds the noise on the diagonal),
         ``L = chol(K)``, mean ``k(X*, X) K^-1 y``, variance ``k.diag(X*) - |L^-1 k(X, X*)|^2``
         clipped at 0 (sklearn clips negative variances the same way). ``k(X*, X)``
-        comes from the column cache of component ``comp`` (:meth:`_cross_cov`, the
+        comes from the column cache of component ``comp`` (:meth:`cross_cov`, the
         same numbers). ``with_std=False`` skips the variance (returns ``(mean, None)``).
         """
         from scipy.linalg import cho_solve, solve_triangular
@@ -295,7 +295,7 @@ class GPReconstructor:
         K[np.diag_indices_from(K)] += float(self.alpha)
         Lc = lowrank.cholesky_or_error(K, self.alpha)
         a = cho_solve((Lc, True), y, check_finite=False)
-        Ks = self._cross_cov(comp, kernel, xy, grid_pts)
+        Ks = self.cross_cov(comp, kernel, xy, grid_pts)
         mean = Ks @ a
         if not with_std:
             return mean, None
@@ -303,7 +303,7 @@ class GPReconstructor:
         var = kernel.diag(grid_pts) - np.einsum("ij,ij->j", V, V)
         return mean, np.sqrt(np.maximum(var, 0.0))
 
-    def _cross_cov(self, comp: int, kernel, xy: np.ndarray, grid_pts: np.ndarray) -> np.ndarray:
+    def cross_cov(self, comp: int, kernel, xy: np.ndarray, grid_pts: np.ndarray) -> np.ndarray:
         """``kernel(grid_pts, xy)`` ((n_cells, n) float64), its columns cached by sample position
         (:class:`~passt_mav.reconstruction.kernels.CrossCovCache`, one per reconstructor)."""
         if getattr(self, "_col_cache", None) is None:
@@ -339,7 +339,7 @@ class GPReconstructor:
             # pin three hyper-parameters well; the reconstruction still uses every sample
             keep = np.unique(np.linspace(0, len(xy) - 1, int(self.max_fit_points)).round().astype(int))
             xy, target = xy[keep], target[keep]
-        base, cell = self._base_kernel(t_span)
+        base, cell = self.start_kernel(t_span)
         kernels = []
         with warnings.catch_warnings():
             # a length scale at its bound is a legitimate answer for a smooth residual
@@ -356,7 +356,7 @@ class GPReconstructor:
                 init.set_params(k1__k1__constant_value=float(np.clip(np.var(target[:, k]), 1e-6, 1e2)))
                 if prev is not None and np.size(prev[k].k1.k2.length_scale) == np.size(init.k1.k2.length_scale):
                     init.set_params(k1__k2__length_scale=prev[k].k1.k2.length_scale)
-                gp = self._fit_gp(init, xy, target[:, k], optimize=True)
+                gp = self.fit_regressor(init, xy, target[:, k], optimize=True)
                 kernels.append(self._evidence_gate(gp, target[:, k], k))
         self.kernels_ = kernels
         self.cell_m_ = cell
@@ -440,17 +440,13 @@ class GPReconstructor:
         space-time kernel (only their differences matter). ``modes=False``: the stationary kernels
         and the noise alone, without the background and offset modes (how the loop scores its
         candidate priors, see ``PasstLoop(prior_blend=...)``)."""
-        X, Y = self._grid()
+        X, Y = self.grid_coords()
         xy = np.asarray(samples_xy, dtype=np.float64).reshape(-1, 2)
         r = np.asarray(residual_uv, dtype=np.float64).reshape(-1, 2)
         n = len(xy)
-        Bg = (
-            self._background_modes(X.shape) * np.sqrt(self._background_factor())
-            if self.background is not None
-            else None
-        )
-        kernels, fitted = self._prior_kernels(Bg)
-        Bg = self._with_offset_modes(Bg, X.size) if modes else None
+        Bg = self.background_modes(X.shape) * np.sqrt(self.background_factor()) if self.background is not None else None
+        kernels, fitted = self.prior_kernels(Bg)
+        Bg = self.with_offset_modes(Bg, X.size) if modes else None
         if not fitted:
             inputs = xy
         else:
@@ -458,10 +454,10 @@ class GPReconstructor:
             inputs = np.column_stack([xy, np.asarray(samples_t, dtype=np.float64).reshape(-1)]) if use_t else xy
             if getattr(self, "n_inputs_", 2) == 3 and not use_t:
                 inputs = np.column_stack([xy, np.zeros(n)])
-        nug = self._nugget_vars() if fitted else np.zeros(2)
+        nug = self.nugget_vars() if fitted else np.zeros(2)
         cells = self._nearest_cells(xy, X, Y) if Bg is not None or nug.any() else None
         if nug.any():
-            kernels, Bg = self._with_cell_nugget(kernels, Bg, cells, nug, X.size)
+            kernels, Bg = self.with_cell_nugget(kernels, Bg, cells, nug, X.size)
         return lowrank.innovation_quadratic(kernels, inputs, Bg, cells, r, self.alpha)
 
     def _evidence_gate(self, gp, y, comp: int):
@@ -500,7 +496,7 @@ class GPReconstructor:
             gain = -0.5 * n * (np.log(v / s2) + ms / v - ms / s2)
         return excess if gain >= 0.5 * np.log(max(n, 2)) else 0.0
 
-    def _nugget_vars(self) -> np.ndarray:
+    def nugget_vars(self) -> np.ndarray:
         """(2,) the state nugget of u and v in use (field units^2; zeros before a fit or with
         ``nugget="noise"``)."""
         nug = getattr(self, "nugget_var_", None)
@@ -509,7 +505,7 @@ class GPReconstructor:
         return np.asarray(nug, dtype=np.float64)
 
     @staticmethod
-    def _with_cell_nugget(kernels, Bg, cells, nug, N: int):
+    def with_cell_nugget(kernels, Bg, cells, nug, N: int):
         """The prior with the state nugget ``nug`` (2,) in place: ``kernels`` with it taken out of their
         white variance (the sensor's part stays), and ``Bg`` (m, 2, N) or None with one mode per
         sampled cell appended (:func:`~passt_mav.reconstruction.lowrank.cell_modes`: samples in one
@@ -526,18 +522,17 @@ class GPReconstructor:
     #: candidate factors on the background covariance for ``background_scale="ml"``
     BACKGROUND_SCALES = (0.0,) + tuple(float(x) for x in np.logspace(-4, 1, 11))
 
-    def _fit_background_scale(self, target, cells, Bg) -> float:
+    def fit_background_scale(self, target, cells, Bg) -> float:
         """The factor in :data:`BACKGROUND_SCALES` that maximises the joint log marginal likelihood
         of the samples' targets (n, 2) (u and v; zero-mean) under factor x ``B`` + the fitted
         sensor noise; ``cells``: each sample's flat cell index, ``Bg``: (m, 2, R*C) modes.
         The modes are weighed against the sensor noise alone: how much of the residual do they
         explain? (with the stationary kernels included, a fitted stationary kernel has already
-        taken a smooth drift's variance and the likelihood then under-weights the modes: measured
-        on the ocean default, 6 trials, L=50, final RMSE 0.0678 that way, 0.0627 this way, 0.0564
-        with the factor fixed at 1, which however spoils a leg where the model is right)."""
+        taken a smooth drift's variance and the likelihood then under-weights the modes; a factor
+        fixed at 1 spoils a leg where the model is right)."""
         return lowrank.gp_mode_variance(self, target, cells, np.zeros((0,) + Bg.shape[1:]), Bg, self.BACKGROUND_SCALES)
 
-    def _background_factor(self) -> float:
+    def background_factor(self) -> float:
         """The factor on the background covariance now in use (see ``background_scale``)."""
         if self.background_scale == "ml":
             return float(getattr(self, "background_scale_", 1.0))
@@ -558,7 +553,7 @@ class GPReconstructor:
     PRIOR_KERNEL_RANK = 48
     PRIOR_KERNEL_ENERGY = 0.95
 
-    def _prior_kernels(self, Bg) -> tuple[list, bool]:
+    def prior_kernels(self, Bg) -> tuple[list, bool]:
         """(the fitted kernels of u and v, True), or before any fit (the initial kernel: length scale
         3 cells, noise ``noise_std``, signal variance = the background's mean variance in ``Bg``
         (m, 2, N), or ``noise_std**2`` without one; False)."""
@@ -567,7 +562,7 @@ class GPReconstructor:
         kernels = getattr(self, "kernels_", None)
         if kernels is not None:
             return kernels, True
-        base, _ = self._base_kernel()
+        base, _ = self.start_kernel()
         amp = float(np.mean(np.sum(Bg**2, axis=0))) if Bg is not None and Bg.size else 0.0
         amp = amp if amp > 0 else max(float(self.noise_std) ** 2, 1e-10)
         k = ConstantKernel(amp, "fixed") * base.k1.k2 + WhiteKernel(max(float(self.noise_std) ** 2, 1e-10), "fixed")
@@ -621,7 +616,7 @@ class GPReconstructor:
         only) the std is not computed and ``None`` is returned in its place (its triangular
         solve against every grid cell is most of a leg's GP time; only a std reward reads it).
         """
-        X, Y = self._grid()
+        X, Y = self.grid_coords()
         fc, land, forecast_at_samples = self._prior_mean(samples_xy, forecast, forecast_at_samples, mask)
         if not hasattr(self, "kernels_"):
             self.fit(samples_xy, samples_uv, forecast_at_samples, samples_t=samples_t)
@@ -640,8 +635,8 @@ class GPReconstructor:
         grid_pts = np.column_stack([X.ravel(), Y.ravel()] + ([np.zeros(X.size)] if use_t else []))
         if self.solver not in _SOLVERS:
             raise ReconstructionError(f"unknown GP solver {self.solver!r}; choose one of {', '.join(_SOLVERS)}")
-        modes, nug = None, self._nugget_vars()
-        with_modes = self.background is not None or self._bias_on()
+        modes, nug = None, self.nugget_vars()
+        with_modes = self.background is not None or self.bias_on()
         if with_modes or nug.any():
             cells = self._nearest_cells(np.asarray(samples_xy, dtype=np.float64).reshape(-1, 2)[ok], X, Y)
             modes = lowrank.fit_prior_modes(self, target, cells, X.shape, fc, xy) if with_modes else None
@@ -664,7 +659,7 @@ class GPReconstructor:
         """The forecast (2, R, C) float64 or None, the land mask (R, C; ``mask`` False or a NaN
         forecast) and the forecast at the samples (n, 2; from the nearest cell centre when not
         given) of a :meth:`reconstruct` call."""
-        X, Y = self._grid()
+        X, Y = self.grid_coords()
         land = np.zeros(X.shape, bool)
         if mask is not None:
             land |= ~np.asarray(mask, bool)
@@ -691,7 +686,7 @@ class GPReconstructor:
             if self.solver == "cholesky":
                 m, s = self._posterior_fixed(self.kernels_[k], xy, target[:, k], grid_pts, with_std=with_std, comp=k)
             else:
-                gp = self._fit_gp(self.kernels_[k], xy, target[:, k], optimize=False)
+                gp = self.fit_regressor(self.kernels_[k], xy, target[:, k], optimize=False)
                 from threadpoolctl import threadpool_limits
 
                 with threadpool_limits(1):
@@ -701,27 +696,28 @@ class GPReconstructor:
                 std[k] = s.reshape(shape)
         return mean, std
 
-    def _bias_on(self) -> bool:
+    def bias_on(self) -> bool:
+        """Whether the ``bias`` fits run: ``bias`` set and the prior is the forecast (residual GP)."""
         return bool(getattr(self, "bias", False)) and self.prior == "forecast"
 
     #: variances tried by the ``bias`` fits, as multiples of a reference variance (the offset:
     #: the residuals' mean square; the forecast-anomaly factor: 1)
     BIAS_FRACTIONS = tuple(float(x) for x in np.logspace(-2, 1, 10))
 
-    def _bias_candidates(self, v0: float) -> tuple[float, ...]:
+    def bias_candidates(self, v0: float) -> tuple[float, ...]:
         """The variances a ``bias`` fit tries: 0, then ``v0`` x :data:`BIAS_FRACTIONS`."""
         return (0.0,) + tuple(v0 * f for f in self.BIAS_FRACTIONS)
 
-    def _with_offset_modes(self, Bg, N: int, water=None):
+    def with_offset_modes(self, Bg, N: int, water=None):
         """``Bg`` (m, 2, N) or None, with the offset modes of the last ``bias`` fit appended (when one
         was kept after a fit): the prior as the next reconstruction will start it."""
-        var = float(getattr(self, "bias_var_", 0.0)) if self._bias_on() and hasattr(self, "kernels_") else 0.0
+        var = float(getattr(self, "bias_var_", 0.0)) if self.bias_on() and hasattr(self, "kernels_") else 0.0
         if var <= 0:
             return Bg
         Bb = lowrank.offset_modes(N, water) * np.sqrt(var)
         return Bb if Bg is None else np.concatenate([Bg, Bb])
 
-    def _background_modes(self, shape) -> np.ndarray:
+    def background_modes(self, shape) -> np.ndarray:
         """The background modes as (m, 2, R*C) float64, land (NaN) as 0."""
         b = np.asarray(self.background, dtype=np.float64)
         if b.ndim != 4 or b.shape[1:] != (2,) + tuple(shape):

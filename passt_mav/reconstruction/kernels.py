@@ -157,7 +157,7 @@ def fit_on_field(gp, snapshot, max_points: int = 150):
     from sklearn.exceptions import ConvergenceWarning
     from sklearn.gaussian_process.kernels import WhiteKernel
 
-    X, Y = gp._grid()
+    X, Y = gp.grid_coords()
     a = np.asarray(snapshot, dtype=np.float64)
     if a.shape != (2,) + X.shape:
         raise ReconstructionError(f"snapshot must have shape {(2,) + X.shape}, got {a.shape}")
@@ -169,13 +169,13 @@ def fit_on_field(gp, snapshot, max_points: int = 150):
     if idx.size > max_points:
         idx = np.sort(rng.choice(idx, max_points, replace=False))
     xy = np.column_stack([X.ravel()[idx], Y.ravel()[idx]])
-    base, cell = gp._base_kernel()
+    base, cell = gp.start_kernel()
     base = base.k1 + WhiteKernel(max(float(gp.noise_std) ** 2, 1e-10), "fixed")
     kernels = []
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", category=ConvergenceWarning)
         for k in range(2):
             y = a[k].ravel()[idx]
-            reg = gp._fit_gp(base, xy, y - y.mean(), optimize=True)
+            reg = gp.fit_regressor(base, xy, y - y.mean(), optimize=True)
             kernels.append(reg.kernel_)
     return kernels, cell

@@ -155,11 +155,11 @@ def joint_posterior(
     """
     from scipy.linalg import cho_solve, solve_triangular
 
-    shape = gp._grid()[0].shape
+    shape = gp.grid_coords()[0].shape
     n = len(xy)  # Bg: (m, 2, N) modes with the factor applied
     kernels, m0 = gp.kernels_, Bg.shape[0]
     if nugget is not None and np.any(nugget):
-        kernels, Bg = gp._with_cell_nugget(kernels, Bg, cells, nugget, Bg.shape[2])
+        kernels, Bg = gp.with_cell_nugget(kernels, Bg, cells, nugget, Bg.shape[2])
     Hb = sample_rows(Bg, cells)  # (m, 2n)
     K = Hb.T @ Hb + kernel_blocks(kernels, xy)
     K[np.diag_indices_from(K)] += float(gp.alpha)
@@ -170,7 +170,7 @@ def joint_posterior(
     mean = np.empty((2,) + shape)
     std = np.empty((2,) + shape) if with_std else None
     for k in range(2):
-        Ks = gp._cross_cov(k, gp.kernels_[k], xy, grid_pts)  # (N, n)
+        Ks = gp.cross_cov(k, gp.kernels_[k], xy, grid_pts)  # (N, n)
         mean[k] = (Bg[:, k, :].T @ w + Ks @ a[k * n : (k + 1) * n]).reshape(shape)
         if with_std:
             C = Bg[:, k, :].T @ Hb  # (N, 2n)
@@ -245,7 +245,7 @@ def prior_factors(
     Returns ``(F (2N, r), d (2N,), noise (2N,))`` with ``Sigma = F F^T + diag(d)``: rows
     ``k * N + cell`` (k = 0 u east, 1 v north; flat cell = row * C + col), in (field
     velocity units)^2. F holds the background modes times the square root of the factor
-    in use (:meth:`GPReconstructor._background_factor`: the last one fitted), then each component's
+    in use (:meth:`GPReconstructor.background_factor`: the last one fitted), then each component's
     stationary signal kernel (the fitted ``k1``, at zero time lag for a space-time
     kernel) on the water cells by its leading eigenpairs; ``d`` is what the dropped
     eigenpairs leave on the diagonal (exactly the kernel's variance minus the kept
@@ -256,24 +256,24 @@ def prior_factors(
     background's mean variance (or ``noise_std**2`` without one): the leg is planned on
     the structure of the prior, whose scale no sample has fixed yet.
     """
-    X, Y = gp._grid()
+    X, Y = gp.grid_coords()
     R, C = X.shape
     N = R * C
     water = np.ones(N, bool) if land is None else ~np.asarray(land, bool).reshape(-1)
     wi = np.flatnonzero(water)
     Bg = None
     if gp.background is not None:
-        Bg = gp._background_modes(X.shape) * np.sqrt(gp._background_factor())  # (m, 2, N)
+        Bg = gp.background_modes(X.shape) * np.sqrt(gp.background_factor())  # (m, 2, N)
         Bg[:, :, ~water] = 0.0
-    kernels, fitted = gp._prior_kernels(Bg)
-    Bg = gp._with_offset_modes(Bg, N, water)
+    kernels, fitted = gp.prior_kernels(Bg)
+    Bg = gp.with_offset_modes(Bg, N, water)
     n_in = getattr(gp, "n_inputs_", 2) if fitted else 2
     pts = np.column_stack([X.ravel()[wi], Y.ravel()[wi]] + ([np.zeros(wi.size)] if n_in == 3 else []))
     rank_cap = int(gp.PRIOR_KERNEL_RANK if kernel_rank is None else kernel_rank)
     energy = float(gp.PRIOR_KERNEL_ENERGY if kernel_energy is None else kernel_energy)
     cols = [] if Bg is None else [Bg.reshape(Bg.shape[0], 2 * N).T]
     kcols, d, noise = kernel_factors(kernels, pts, wi, N, rank_cap, energy, gp.alpha)
-    nug = gp._nugget_vars() if fitted else np.zeros(2)
+    nug = gp.nugget_vars() if fitted else np.zeros(2)
     for k in range(2):  # the state nugget: the cell's own error, not the sensor's noise
         d[k * N + wi] += nug[k]
         noise[k * N : (k + 1) * N] -= nug[k]
@@ -289,12 +289,10 @@ def gp_mode_variance(gp, target, cells, Bg, modes, candidates, xy=None) -> float
     the fitted sensor noise, 0 unless the information criterion's 0.5 ln(2n) is paid (a factor
     fitted to noise drags a right forecast off). Without the samples' inputs ``xy`` the
     stationary kernels are left out (the background factor: see
-    ``GPReconstructor._fit_background_scale``); with them (the ``bias`` fits) the prior is the one
+    ``GPReconstructor.fit_background_scale``); with them (the ``bias`` fits) the prior is the one
     the posterior uses, kernels included, so that a mode spread over the whole region must explain
     what a local correction cannot: samples bunched in one corner show a local error, which
-    against noise alone looks like an offset of the whole field (measured, 30 trials, random
-    walk, L = 50, offset fitted against noise alone: 0.1107 m/s on the ocean default against
-    0.0609 without the offset)."""
+    against noise alone looks like an offset of the whole field."""
     n = len(target)
     if xy is None:
         base = np.diag(np.concatenate([np.full(n, float(gp.kernels_[k].k2.noise_level)) for k in range(2)]))
@@ -320,12 +318,8 @@ def sample_coverage(gp, cells, shape, fc=None) -> float:
     and samples bunched in one corner, as a random walk leaves them, cannot tell a local error
     from a global one (a local correction explains their residual as well as a global mode does;
     no likelihood can decide what happens where nothing was sampled). Fitted anyway, the global
-    mode carried a corner's error over the region: 30 trials, L = 50, random walk through the
-    model + GP loop, ocean default: 0.0609 m/s without the modes, 0.1107 with them; three seeds
-    of the static wake 0.0923 -> 0.1254, all of it the anomaly mode's. A 50-move random walk on
-    30 x 30 sees at most 0.37 of the region (40 seeds), the information planner's 50-move legs
-    0.61-0.73."""
-    X, Y = gp._grid()
+    mode carries a corner's error over the region."""
+    X, Y = gp.grid_coords()
     water = np.ones(int(np.prod(shape)), bool) if fc is None else np.isfinite(np.asarray(fc).reshape(2, -1)).all(0)
     if not water.any():
         return 0.0
@@ -343,12 +337,12 @@ def _fit_bias_modes(gp, target, cells, Bg, N: int, fc, xy) -> np.ndarray:
     """``Bg`` with the ``bias`` modes the samples keep appended: the offsets (``bias_var_``), then
     the forecast's anomaly (``scale_var_``), each fitted by :func:`gp_mode_variance`."""
     v0 = max(float(np.mean(target**2)), float(gp.noise_std) ** 2, 1e-12)
-    gp.bias_var_ = gp_mode_variance(gp, target, cells, Bg, offset_modes(N), gp._bias_candidates(v0), xy)
+    gp.bias_var_ = gp_mode_variance(gp, target, cells, Bg, offset_modes(N), gp.bias_candidates(v0), xy)
     if gp.bias_var_ > 0:
         Bg = np.concatenate([Bg, offset_modes(N) * np.sqrt(gp.bias_var_)])
     anom = anomaly_mode(fc)
     if anom is not None:
-        gp.scale_var_ = gp_mode_variance(gp, target, cells, Bg, anom, gp._bias_candidates(1.0), xy)
+        gp.scale_var_ = gp_mode_variance(gp, target, cells, Bg, anom, gp.bias_candidates(1.0), xy)
         if gp.scale_var_ > 0:
             Bg = np.concatenate([Bg, anom * np.sqrt(gp.scale_var_)])
     return Bg
@@ -364,11 +358,11 @@ def fit_prior_modes(gp, target, cells, shape, fc=None, xy=None) -> np.ndarray | 
     N = int(np.prod(shape))
     Bg = np.zeros((0, 2, N))
     if gp.background is not None:
-        Bg = gp._background_modes(shape)
+        Bg = gp.background_modes(shape)
         if gp.background_scale == "ml":
-            gp.background_scale_ = gp._fit_background_scale(target, cells, Bg)
-        Bg = Bg * np.sqrt(gp._background_factor())
-    if gp._bias_on():
+            gp.background_scale_ = gp.fit_background_scale(target, cells, Bg)
+        Bg = Bg * np.sqrt(gp.background_factor())
+    if gp.bias_on():
         gp.bias_coverage_ = sample_coverage(gp, cells, shape, fc)
         gp.bias_var_ = gp.scale_var_ = 0.0
         if gp.bias_coverage_ >= BIAS_MIN_COVERAGE:

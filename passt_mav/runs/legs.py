@@ -95,15 +95,15 @@ def rebuild_from_tlog(path: str | Path, *, u_name: str = "CUR_U", v_name: str = 
     Damaged logs are read as far as they are readable (the scanner of
     :mod:`passt_mav.runs.tlog`: CRC-checked records, resynchronisation after junk).
     """
-    from passt_mav.runs.tlog import _check_file, _TlogScanner, read_tlog
+    from passt_mav.runs.tlog import TlogScanner, read_log_file, read_tlog
 
     path = Path(path)
-    data = _check_file(path, "telemetry log")
+    data = read_log_file(path, "telemetry log")
     veh = read_tlog(path, u_name=u_name, v_name=v_name).vehicle_sysid  # the vehicle's system id
     if veh is None:
         raise LogReadError(f"{path}: no vehicle messages (HEARTBEAT or GLOBAL_POSITION_INT) in the log")
     legs = _TlogLegs(veh, u_name, v_name)
-    scan = _TlogScanner(data)
+    scan = TlogScanner(data)
     n = 0
     for ts, m in scan:
         n += 1

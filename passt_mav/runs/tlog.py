@@ -249,7 +249,8 @@ _INTERESTING = frozenset(
 )
 
 
-def _check_file(path: str | Path, what: str) -> bytes:
+def read_log_file(path: str | Path, what: str) -> bytes:
+    """The bytes of the log file ``path``; :class:`LogReadError` naming ``what`` when it is missing or unreadable."""
     p = Path(path)
     if not p.exists():
         raise LogReadError(f"{what} not found: {p}")
@@ -281,7 +282,7 @@ def _frame_len(data: bytes, p: int) -> int | None:
     return None
 
 
-class _TlogScanner:
+class TlogScanner:
     """Walks the records of a tlog, validating each, resynchronising after damage."""
 
     def __init__(self, data: bytes):
@@ -382,8 +383,8 @@ def read_tlog(
         LogReadError: the file is missing or unreadable (a damaged file is read as far as possible).
     """
     path = Path(path)
-    data = _check_file(path, "telemetry log")
-    scan = _TlogScanner(data)
+    data = read_log_file(path, "telemetry log")
+    scan = TlogScanner(data)
     out = TelemetryLog(path=path, kind="tlog", n_bytes=len(data))
     tally = _TlogTally(out)
     for ts, msg in scan:
@@ -646,7 +647,7 @@ def read_dataflash(
         LogReadError: the file is missing or unreadable.
     """
     path = Path(path)
-    data = _check_file(path, "DataFlash log")
+    data = read_log_file(path, "DataFlash log")
     out = TelemetryLog(path=path, kind="dataflash", n_bytes=len(data))
     records = _DataflashScanner(data, out).scan()
     _df_interpret(out, records, u_name, v_name, cur_message, int(pair_tolerance_ms), int(max_gap_ms))

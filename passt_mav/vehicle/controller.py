@@ -665,7 +665,7 @@ class MissionController(ResumeRecord, OperatorLegs):
             bad = int(np.flatnonzero(~inside)[0])
             self.record.event("fence_refused", f"leg {i + 1}: waypoint {bad} outside the geofence; not uploaded")
             raise PlannerError(
-                f"leg {i}: waypoint {bad} at {wm.waypoints[bad, 0]:.6f},{wm.waypoints[bad, 1]:.6f} "
+                f"leg {i + 1}: waypoint {bad} at {wm.waypoints[bad, 0]:.6f},{wm.waypoints[bad, 1]:.6f} "
                 f"lies outside the geofence (region + {margin:g} m); nothing uploaded"
             )
         return wm
@@ -757,11 +757,11 @@ class MissionController(ResumeRecord, OperatorLegs):
                 # the sensor works but the link lost most of the leg's readings: the few left cannot update the
                 # state, the forecast carries it on (as a replay of the log does) and the mission goes on
                 absorbed = self.step.absorb(planned, recs, clock, strict=False)
-                self._note("warning", f"leg {i}: only {len(recs)} samples (link outage or loss): {absorbed.note}")
+                self._note("warning", f"leg {i + 1}: only {len(recs)} samples (link outage or loss): {absorbed.note}")
                 self._say(f"{self._leg_label(i)}: only {len(recs)} samples (link outage or loss); {absorbed.note}")
             else:
                 raise MavlinkError(
-                    f"leg {i}: no current samples arrived (is the sensor sending "
+                    f"leg {i + 1}: no current samples arrived (is the sensor sending "
                     f"{self.config.sensors.u}/{self.config.sensors.v}?): {exc}"
                 ) from None
         std = None if absorbed.std is None else absorbed.std[None]
@@ -896,7 +896,7 @@ def check_start_cell(ctl, i: int, start: tuple[int, int], latlon: tuple[float, f
     w_lat, w_lon = (float(x) for x in ctl.grid.cell_to_latlon(int(wanted[0]), int(wanted[1])))
     far = float(geo.geodesic_distance_m(latlon[0], latlon[1], w_lat, w_lon))
     text = (
-        f"{key} {list(wanted)} not honoured: leg {i} starts at cell {list(start)} "
+        f"{key} {list(wanted)} not honoured: leg {i + 1} starts at cell {list(start)} "
         f"({latlon[0]:.5f},{latlon[1]:.5f}), where the boat is, {far:.0f} m from {list(wanted)}: a leg "
         f"starts at the boat's position (a simulator: vehicle-sim --start-cell {wanted[0]},{wanted[1]}; "
         "a boat: bring it there before the run)"

@@ -49,7 +49,7 @@ class LinkOutages:
         except LinkTimeout as exc:
             out.update(wall_s=round(time.monotonic() - t_lost, 3), back_utc=None)
             raise LinkWindowOver(
-                f"leg {i}: no link for {time.monotonic() - t_lost:.0f} s wall, the link-loss window "
+                f"leg {i + 1}: no link for {time.monotonic() - t_lost:.0f} s wall, the link-loss window "
                 f"(vehicle.link_loss_window_s = {self.link_loss_window_s:g} s of vehicle time): {exc}; the vehicle "
                 f"flies its uploaded leg on and then holds its last waypoint (Rover MIS_DONE_BEHAVE); continue "
                 f"with --resume once it can be reached"
@@ -82,7 +82,7 @@ class LinkOutages:
             f"leg {i + 1}: link lost ({why}); the vehicle flies its leg on; reconnecting for up to "
             f"{self.link_loss_window_s:g} s (vehicle.link_loss_window_s)"
         )
-        self.journal.note("link_lost", f"leg {i}: link lost at {utc_now()} ({why})")
+        self.journal.note("link_lost", f"leg {i + 1}: link lost at {utc_now()} ({why})")
         while True:
             out = self.reconnect_within_window(i, t_lost)
             try:
@@ -92,7 +92,7 @@ class LinkOutages:
                 if not (link.lost or link.error is not None):
                     raise
                 self._say(f"leg {i + 1}: link lost again during the resync; reconnecting")
-        self.journal.record.event("link_back", f"leg {i}: link back at {utc_now()}")
+        self.journal.record.event("link_back", f"leg {i + 1}: link back at {utc_now()}")
         if cur is None:
             out["vehicle_s"] = None  # the autopilot rebooted meanwhile: its clock started again
             return  # fly() handles the reboot (it verifies the mission itself)
@@ -102,7 +102,7 @@ class LinkOutages:
         mode = ROVER_MODE_NAMES.get(v.mode, str(v.mode))
         gone = "" if out["vehicle_s"] is None else f" after {out['vehicle_s']:.0f} s of vehicle time"
         self.journal.events.append(
-            f"leg {i}: reconnected{gone}, mission verified, item {cur.seq}/{getattr(cur, 'total', '?')}, mode {mode}"
+            f"leg {i + 1}: reconnected{gone}, mission verified, item {cur.seq}/{getattr(cur, 'total', '?')}, mode {mode}"
         )
         self._say(
             f"leg {i + 1}: reconnected{gone}; mission on the vehicle verified, at item "

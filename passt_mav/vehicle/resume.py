@@ -60,8 +60,8 @@ class ResumeRecord:
                 planned.append(len(done))
         if not done:
             # killed during leg 0: still say so (the store keeps that leg's samples; it is re-planned)
-            self._say(f"resuming {self.rd.root}: no leg completed yet; leg 0 is re-planned from here")
-            self.events.append(f"resumed before leg 0 completed at {utc_now()}")
+            self._say(f"resuming {self.rd.root}: no leg completed yet; leg 1 is re-planned from here")
+            self.events.append(f"resumed before leg 1 completed at {utc_now()}")
             return state, t_state, 0
         last = done[-1]
         est = self.rd.estimate_file(int(last["index"]))
@@ -74,7 +74,7 @@ class ResumeRecord:
         self.loop.anchor_open_loop(state, t_state, self.step.dt)
         self.loop.t_recon_ = float(last["t_state"])
         self._say(f"resuming {self.rd.root}: {len(done)} leg(s) done, state at field time {last['t_state']:.1f}")
-        self.events.append(f"resumed after leg {len(done) - 1} at {utc_now()}")
+        self.events.append(f"resumed after leg {len(done)} at {utc_now()}")
         return np.array(fld.data[0], dtype=np.float32), float(last["t_state"]), len(done)
 
     def _archive_attempt(self, i: int, status: str = "interrupted") -> bool:

@@ -274,7 +274,7 @@ class VehicleSession(LinkOutages, OperatorCommands, LinkFigures):
                     f"leg {i + 1}: link lost during the leg swap ({exc}); reconnecting and starting the swap "
                     f"again from HOLD (attempt {attempt + 1}/{attempts})"
                 )
-                self.journal.note("link_lost", f"leg {i}: link lost during the swap at {utc_now()}: {exc}")
+                self.journal.note("link_lost", f"leg {i + 1}: link lost during the swap at {utc_now()}: {exc}")
                 self.reconnect_within_window(i, time.monotonic() - self._silent_s(), "swap")
         raise AssertionError("unreachable")
 
@@ -342,7 +342,7 @@ class VehicleSession(LinkOutages, OperatorCommands, LinkFigures):
                 if k < tries
                 else f"leg {i + 1}: upload failed {tries} times ({last})"
             )
-            self.journal.events.append(f"leg {i}: upload try {k} failed: {last}")
+            self.journal.events.append(f"leg {i + 1}: upload try {k} failed: {last}")
             time.sleep(0.05)
         assert last is not None
         raise last
@@ -372,7 +372,7 @@ class VehicleSession(LinkOutages, OperatorCommands, LinkFigures):
             f"leg {i + 1}: the vehicle denied our upload: another ground station is transferring a mission "
             f"({who}); waiting up to {self.FOREIGN_WAIT_S:g} s (vehicle time) for it to finish"
         )
-        self.journal.events.append(f"leg {i}: upload denied at {utc_now()}: another station's transfer ({who})")
+        self.journal.events.append(f"leg {i + 1}: upload denied at {utc_now()}: another station's transfer ({who})")
         return time.monotonic()
 
     def verify_flying(self, i: int, items, resume_seq: int = 1) -> None:
@@ -396,14 +396,14 @@ class VehicleSession(LinkOutages, OperatorCommands, LinkFigures):
             who = self.watch.changed(self._mission_mark) or "seen by the read-back"
             what = replaced_what(items, got)
             n = self._replaced[i] = self._replaced.get(i, 0) + 1
-            log.info("leg %d: mission on the vehicle differs: %s", i, diff)
+            log.info("leg %d: mission on the vehicle differs: %s", i + 1, diff)
             self.journal.note(
-                "mission_replaced", f"leg {i}: mission replaced on the vehicle at {utc_now()} ({who}): {what}"
+                "mission_replaced", f"leg {i + 1}: mission replaced on the vehicle at {utc_now()} ({who}): {what}"
             )
             if n > self.FOREIGN_REPLACEMENTS:
                 v.hold()
                 raise Paused(
-                    f"leg {i}: another ground station replaced our mission {n} times ({who}); stopped in "
+                    f"leg {i + 1}: another ground station replaced our mission {n} times ({who}); stopped in "
                     f"HOLD; stop its uploads, then continue with --resume"
                 )
             self._say(
@@ -427,7 +427,7 @@ class VehicleSession(LinkOutages, OperatorCommands, LinkFigures):
                 f"leg {i + 1}: WARNING: the leg's speed {self.speed:g} m/s was not set again after {why} "
                 f"({exc}); the vehicle goes on at its WP_SPEED"
             )
-            self.journal.events.append(f"leg {i}: speed not set again after {why}: {exc}")
+            self.journal.events.append(f"leg {i + 1}: speed not set again after {why}: {exc}")
 
     # -- flying one leg, with its faults ------------------------------------------------------------
     def fly(self, i: int, items, n_items: int, expected_s: float) -> str | None:
@@ -462,7 +462,7 @@ class VehicleSession(LinkOutages, OperatorCommands, LinkFigures):
             if self._wait_complete(n_items):
                 return None
             if deadline.wall_passed():
-                raise LinkTimeout(f"leg {i} not complete in time (item {p.current}/{p.total})")
+                raise LinkTimeout(f"leg {i + 1} not complete in time (item {p.current}/{p.total})")
             if not reported and deadline.vehicle_passed():
                 reported = True
                 if self.overrun(i, expected_s, planned_s, n_items):
@@ -495,7 +495,8 @@ class VehicleSession(LinkOutages, OperatorCommands, LinkFigures):
             f"({self.overrun_factor:g} x the expected {expected_s:.0f} s + 30 s), at item {p.current}/{n_items}; {what}"
         )
         self.journal.note(
-            "warning", f"leg {i}: overrun at {utc_now()}: past {planned_s:.0f} vehicle s at item {p.current}/{n_items}"
+            "warning",
+            f"leg {i + 1}: overrun at {utc_now()}: past {planned_s:.0f} vehicle s at item {p.current}/{n_items}",
         )
         return cut
 
@@ -575,7 +576,7 @@ class VehicleSession(LinkOutages, OperatorCommands, LinkFigures):
             f"leg {i + 1}: the autopilot rebooted (its time since boot went from {last_tb / 1000:.1f} s back to "
             f"{first_tb / 1000:.1f} s): not a pilot; waiting for it to be ready (EKF)"
         )
-        self.journal.note("reboot", f"leg {i}: vehicle rebooted at {utc_now()} (boot {boot}, was at item {seq})")
+        self.journal.note("reboot", f"leg {i + 1}: vehicle rebooted at {utc_now()} (boot {boot}, was at item {seq})")
         if self.link.lost:
             self.reconnect_within_window(i, time.monotonic() - self._silent_s(), "reboot")
         self.link.request_streams()  # a reboot forgets the rates set by SET_MESSAGE_INTERVAL
@@ -583,7 +584,7 @@ class VehicleSession(LinkOutages, OperatorCommands, LinkFigures):
         if self.on_reboot == "hold":
             v.hold()
             raise Paused(
-                f"leg {i}: the autopilot rebooted mid-leg; vehicle.on_reboot is 'hold': stopped in HOLD "
+                f"leg {i + 1}: the autopilot rebooted mid-leg; vehicle.on_reboot is 'hold': stopped in HOLD "
                 f"(the leg was at item {seq}/{n_items}; continue with --resume)"
             )
         diff = differences(list(items), v.mission.download(), 0)
@@ -599,7 +600,7 @@ class VehicleSession(LinkOutages, OperatorCommands, LinkFigures):
         self._say(f"leg {i + 1}: mission verified after the reboot; re-armed, AUTO again at item {seq}/{n_items}")
         self.journal.note(
             "reboot_recovered",
-            f"leg {i}: resumed after the reboot at item {seq}/{n_items}"
+            f"leg {i + 1}: resumed after the reboot at item {seq}/{n_items}"
             + (" (mission re-uploaded)" if diff else " (stored mission verified)"),
         )
         return time.monotonic() - t0
@@ -612,19 +613,19 @@ class VehicleSession(LinkOutages, OperatorCommands, LinkFigures):
             f"leg {i + 1}: the vehicle left AUTO (mode {name}): a pilot has control; pausing "
             f"(waiting up to {self.pause_timeout_s:.0f} s for AUTO)"
         )
-        self.journal.note("pilot_takeover", f"leg {i}: vehicle left AUTO (mode {name}) at {utc_now()}")
+        self.journal.note("pilot_takeover", f"leg {i + 1}: vehicle left AUTO (mode {name}) at {utc_now()}")
         t0 = time.monotonic()
         while time.monotonic() - t0 < self.pause_timeout_s:
             if self.vehicle.mode == AUTO:
                 self._say(f"leg {i + 1}: back in AUTO; continuing")
-                self.journal.note("pilot_released", f"leg {i}: back in AUTO")
+                self.journal.note("pilot_released", f"leg {i + 1}: back in AUTO")
                 return time.monotonic() - t0
             if self.rebooted.is_set():
                 raise Rebooted()  # not the pilot after all (or the pilot rebooted it): fly() resumes
             if self.link.lost:
                 self.reconnect_within_window(i, time.monotonic() - self._silent_s(), "pause")
             self.link.idle(0.05)
-        raise Paused(f"leg {i}: the vehicle stayed in {name} for {self.pause_timeout_s:.0f} s; stopping in HOLD")
+        raise Paused(f"leg {i + 1}: the vehicle stayed in {name} for {self.pause_timeout_s:.0f} s; stopping in HOLD")
 
 
 def expected_vehicle_s(grid, wm, speed_mps: float) -> float:
