@@ -23,6 +23,7 @@ from passt_mav.runs.commands import append_command
 from passt_mav.runs.live import read_events
 from passt_mav.runs.rundir import RunDir
 from vehicle_sim import Simulator
+from vehicle_sim.telemetry import battery
 
 HOLD, AUTO, RTL = ROVER_MODES["HOLD"], ROVER_MODES["AUTO"], ROVER_MODES["RTL"]
 WALL_S = 60.0  # a generous bound on each wait of the operator thread (the run takes a few seconds)
@@ -222,7 +223,7 @@ def test_battery_reserve_returns_the_boat_ends_cleanly_and_resume_continues(drai
     summary = make(3, {"battery_reserve_pct": 30}).run()
     # the boat returns (RTL) once the battery reached the reserve; the run ends cleanly with the leg cut there
     assert summary["status"] == "ended" and ap.mode == RTL
-    pct = ap._battery()[2]
+    pct = battery(ap)[2]
     assert 20 <= pct <= 30, pct  # at the reserve, not long past it (1 Hz BATTERY_STATUS, 0.5 s steps)
     legs = summary["legs"]
     assert legs and all(lg["status"] == "complete" for lg in legs) and len(legs) < 3
@@ -232,7 +233,7 @@ def test_battery_reserve_returns_the_boat_ends_cleanly_and_resume_continues(drai
     kinds = [e["kind"] for e in read_events(rd.root)[0]]
     assert kinds.count("budget") == 2 and kinds[-1] == "run_end"  # the cut, then the return
     # a fresh battery (a swap at the dock): --resume continues from the next leg to the end
-    ap._energy_wh = 0.0
+    ap.energy_wh = 0.0
     again = make(3, {"battery_reserve_pct": 30}, resume=True).run()
     print(f"battery: ended after {len(legs)} leg(s) at {pct} %; resumed: {again['status']}, {again['budget']}")
     assert again["status"] == "complete" and len(again["legs"]) == 3

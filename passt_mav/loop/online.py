@@ -7,8 +7,8 @@ before they enter the estimate, :meth:`OnlineUpdate.consider` fine-tunes a copy 
 predictor on the last ``window`` of those states (:func:`passt_mav.models.online.update_online`:
 roll-out loss, consecutive states ``interval`` snapshots apart) and scores the current model and the
 copy by the innovation log likelihood (nats) of leg ``n``'s samples under each one's forecast of the
-leg from the leg's initial state (:meth:`PasstLoop._loglik_at
-<passt_mav.loop.passt.PasstLoop._loglik_at>`: the GP's stationary kernels and noise as they stand
+leg from the leg's initial state (:meth:`PasstLoop.loglik_at
+<passt_mav.loop.passt.PasstLoop.loglik_at>`: the GP's stationary kernels and noise as they stand
 before the leg's fit, the score the prior blend and the guard use). The copy replaces the loop's
 predictor, and its forecast the leg's, only when its score is strictly higher; otherwise nothing
 changes. The model alone (the guard's and the blend's open loop, the campaign's ``model`` method,
@@ -167,7 +167,7 @@ class OnlineUpdate:
         times = leg.t_start + leg.dt * np.arange(fc.shape[0])
         ts = np.clip(samples.t, times[0], times[-1])
         st = samples.t if loop.hyper != "state" else None  # as PasstLoop.update scores the leg
-        loglik = loop._loglik_at(samples, samples.xy(loop.grid), st)
+        loglik = loop.loglik_at(samples, samples.xy(loop.grid), st)
         forecasts: dict[int, np.ndarray] = {}
 
         def score(p) -> float:

@@ -626,12 +626,12 @@ class PasstLoop:
                 rfc = relax_to_open_loop(fc, open_fc, traj.times, self.t_recon_, self.gp.kernels_).astype(np.float32)
                 rtraj = FlowField(np.where(np.isfinite(rfc), rfc, np.nan), self.grid, traj.times)
                 r_at = rtraj.interp(ts, samples.r, samples.c)
-                score = self._loglik_at(samples, xy, st)
+                score = self.loglik_at(samples, xy, st)
                 if score(samples.uv - r_at) > score(samples.uv - f_at):
                     fc, traj, f_at, self.relaxed_ = rfc, rtraj, r_at, True
         if self.guard == "on":
             guard = guard_record(
-                self.leg_index, samples.uv, f_at, open_at, self._loglik_at(samples, xy, st), self.guard_history_
+                self.leg_index, samples.uv, f_at, open_at, self.loglik_at(samples, xy, st), self.guard_history_
             )
             self.guard_history_.append(guard)
         if self.prior_blend != "off":
@@ -736,7 +736,7 @@ class PasstLoop:
             out["model_update"] = dict(upd)  # kept / seconds / steps / scores (nats) of the last leg
         return out
 
-    def _loglik_at(self, samples: Samples, xy: np.ndarray, st):
+    def loglik_at(self, samples: Samples, xy: np.ndarray, st):
         """``residual (n, 2) -> nats``: the innovation log likelihood at ``samples`` under the GP's
         stationary kernels and noise as they stand (0 with fewer than 2 finite rows)."""
 
