@@ -667,7 +667,8 @@ def test_chaos_six_legs_drops_restart_kill_resume_and_sigterm(tmp_path):
         assert by_leg[o["leg"]]["readings"]["lost_in_outages_vehicle_s"] == pytest.approx(o["vehicle_s"])
     res = replay(rd.root, out=False)
     # every attempt: the 6 legs and the 2 interrupted attempts (legs 3 and 5), each path as recorded
-    assert res.reproduced is True and [x.index for x in res.legs] == [0, 1, 2, 2, 3, 4, 4, 5]
+    why = (res.first_divergence, res.notes, [(x.index, x.path_identical, x.rmse_identical) for x in res.legs])
+    assert res.reproduced is True and [x.index for x in res.legs] == [0, 1, 2, 2, 3, 4, 4, 5], why
     assert all(x.path_identical for x in res.legs) and all(x.rmse_identical for x in res.legs if x.n_gp_points)
 
 
