@@ -412,6 +412,9 @@ class Link:
         )
         self._router.stepper = self.lockstep
         self._send_lock = threading.Lock()
+        #: held by the reader while it logs and routes one message: a caller holding it knows no message is
+        #: half-handled (logged to the tlog but not yet seen by the listeners) and none starts meanwhile
+        self.dispatch_lock = threading.RLock()
         self._last_hb: float | None = None
         self._stop = threading.Event()
         self._threads: list[threading.Thread] = []
@@ -637,6 +640,10 @@ class Link:
             self._dispatch(msg)
 
     def _dispatch(self, msg) -> None:
+        with self.dispatch_lock:
+            self._dispatch_one(msg)
+
+    def _dispatch_one(self, msg) -> None:
         typ = msg.get_type()
         if typ == "BAD_DATA":
             self.stats.bad += 1

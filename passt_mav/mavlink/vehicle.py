@@ -225,6 +225,27 @@ class Vehicle:
     def hold(self) -> None:
         self.set_mode("HOLD")
 
+    def request_mode(self, mode: str | int) -> None:
+        """Send MAV_CMD_DO_SET_MODE once, without waiting for its ACK or the HEARTBEAT (:meth:`set_mode`
+        confirms it): a mark in the telemetry log at the moment it is sent."""
+        num = mode_number(mode)
+        link = self.link
+        link.send(
+            M.MAVLink_command_long_message(
+                link.target_system,
+                link.target_component,
+                M.MAV_CMD_DO_SET_MODE,
+                0,
+                M.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED,
+                num,
+                0,
+                0,
+                0,
+                0,
+                0,
+            )
+        )
+
     # -- arming --------------------------------------------------------------------------------
     def arm(self, *, timeout: float = 60.0, force: bool = False, attempts: int = 3) -> None:
         """Arm; while the vehicle refuses because it is still initialising ("Arm: System not

@@ -90,6 +90,7 @@ that was in flight is re-planned from the current position, its interrupted atte
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import queue
 import threading
@@ -721,8 +722,10 @@ class MissionController(ResumeRecord, OperatorLegs):
         self.record.event("leg_start", f"{self._leg_label(i)} started ({len(wm.waypoints)} waypoints)")
         try:
             how = self._fly(i, wm, items, len(items) - 1)  # MISSION_CURRENT.total excludes home
-        finally:
-            self.collector.leg = None
+        except BaseException:
+            self.collector.leg = None  # (a stop, an end, a pause: their own paths command the vehicle)
+            raise
+        end_leg_at_hold(self.link, self.vehicle, self.collector)
         self.vehicle.hold()
         cut = None if how != "cut" else overrun_record(expected, self.config.vehicle, self.vehicle.progress, items)
         self._mark_cut(how)  # the operator's skip/replan, the budget's cut: in the leg record
@@ -831,6 +834,19 @@ def overrun_record(expected_s: float, vehicle_cfg, progress, items) -> dict:
         "cut_at_item": int(progress.current),
         "items": len(items) - 1,
     }
+
+
+def end_leg_at_hold(link, vehicle, collector) -> None:
+    """The leg's readings end where the telemetry log shows it: no reading is logged and routed between the
+    collector's leg closing and the first HOLD command sent (the reader's dispatch lock held over both), so a
+    replay, which ends the leg at that command, assigns every reading as the store did. :meth:`Vehicle.hold`
+    confirms the HOLD afterwards. A failed send (the link down) leaves the HOLD to that call."""
+    with getattr(link, "dispatch_lock", contextlib.nullcontext()):
+        collector.leg = None
+        try:
+            vehicle.request_mode("HOLD")
+        except Exception as exc:  # noqa: BLE001 - the confirming hold() reports and handles it
+            log.debug("HOLD request at the leg's end not sent: %s", exc)
 
 
 def close_leg(collector) -> None:
