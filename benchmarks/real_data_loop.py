@@ -68,20 +68,21 @@ def _mission(path_length: int, model: str, legs: int, t0: int, start_cell, regio
     return validate_mission(base, source="real_data_loop")
 
 
-def _track_readings():
-    """:func:`passt_mav.loop.readings.track_readings`, from this checkout's file when ``--repo``'s
-    package predates it (the same readings for both)."""
+def _readings():
+    """:mod:`passt_mav.loop.readings`, from this checkout's file when ``--repo``'s package predates it (the
+    same readings and legs for both)."""
     try:
-        from passt_mav.loop.readings import track_readings
-    except ModuleNotFoundError:
+        from passt_mav.loop import readings
+
+        readings.fly_legs  # noqa: B018 - an older package has the module without it
+    except (ModuleNotFoundError, ImportError, AttributeError):
         import importlib.util
 
         path = Path(__file__).resolve().parent.parent / "passt_mav" / "loop" / "readings.py"
         spec = importlib.util.spec_from_file_location("_readings", path)
-        mod = importlib.util.module_from_spec(spec)
-        spec.loader.exec_module(mod)
-        track_readings = mod.track_readings
-    return track_readings
+        readings = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(readings)
+    return readings
 
 
 def _build_loop():
@@ -94,9 +95,7 @@ def _build_loop():
 def fly_case(case: dict, planner: str, *, sample_s: float = 120.0, noise: float = 0.02) -> list[dict]:
     """One case with ``planner`` (the mission's, or a baseline's): per leg, PASST's and the model
     alone's RMSE (m/s) and the guard's record."""
-    from passt_mav.loop.legstep import FieldClock, LegStep
-
-    track_readings = _track_readings()
+    from passt_mav.loop.legstep import LegStep
 
     build_loop = _build_loop()
     from passt_mav.models.base import make_predictor
@@ -109,28 +108,15 @@ def fly_case(case: dict, planner: str, *, sample_s: float = 120.0, noise: float 
     predictor = make_predictor(case["model"]).fit(field, stop=max(t0 + 1, 2))
     loop = build_loop(cfg, predictor, field.grid, land=field.land_mask)
     step = LegStep(cfg, field, loop)
-    state, t_state = step.initial_state()
-    clock = FieldClock(t_boot0=float(field.times[0]))
     rng = np.random.default_rng(case["seed"])
-    start, out = tuple(case["start"]), []
-    for i in range(case["legs"]):
-        planned = step.plan(i, state, t_state, start, k=0)
-        step.forecast_leg(planned)
-        recs = track_readings(
-            field,
-            planned.plan.path,
-            planned.t_start,
-            speed_mps=cfg.vehicle.speed_mps,
-            every_s=sample_s,
-            noise_std=noise,
-            rng=rng,
-            t_boot0=clock.t_boot0,
-        )
-        ab = step.absorb(planned, recs, clock, strict=False)
+    out = []
+    legs = _readings().fly_legs(
+        step, case["start"], case["legs"], every_s=sample_s, noise_std=noise, rng=rng, strict=False
+    )
+    for i, (_planned, ab) in enumerate(legs):
         if ab.rmse_passt is None or ab.rmse_model is None or ab.t_state > field.times[-1]:
             break
         out.append({"leg": i, "passt": ab.rmse_passt, "model": ab.rmse_model, "guard": getattr(ab, "guard", None)})
-        state, t_state, start = ab.state, ab.t_state, tuple(int(x) for x in planned.plan.path[-1])
     return out
 
 

@@ -37,8 +37,8 @@ def wa_field():
 
 
 def _fly(field, *, legs: int = 4, seed: int = 0):
-    from passt_mav.loop.legstep import FieldClock, LegStep, build_loop, build_predictor
-    from passt_mav.loop.readings import track_readings
+    from passt_mav.loop.legstep import LegStep, build_loop, build_predictor
+    from passt_mav.loop.readings import fly_legs
     from passt_mav.mission.config import validate_mission
 
     data = yaml.safe_load((MISSIONS / "rtofs.yaml").read_text())
@@ -47,27 +47,8 @@ def _fly(field, *, legs: int = 4, seed: int = 0):
     cfg = validate_mission(data, source="test")
     predictor, _ = build_predictor(cfg.model, field, echo=lambda s: None)
     step = LegStep(cfg, field, build_loop(cfg, predictor, field.grid, land=field.land_mask))
-    state, t_state = step.initial_state()
-    clock = FieldClock(t_boot0=float(field.times[0]))
     rng = np.random.default_rng(seed)
-    start, out = (12, 14), []
-    for i in range(legs):
-        planned = step.plan(i, state, t_state, start, k=0)
-        step.forecast_leg(planned)
-        recs = track_readings(
-            field,
-            planned.plan.path,
-            planned.t_start,
-            speed_mps=2.0,
-            every_s=60.0,
-            noise_std=0.02,
-            rng=rng,
-            t_boot0=clock.t_boot0,
-        )
-        ab = step.absorb(planned, recs, clock)
-        out.append(ab)
-        state, t_state, start = ab.state, ab.t_state, tuple(int(x) for x in planned.plan.path[-1])
-    return out
+    return [ab for _planned, ab in fly_legs(step, (12, 14), legs, every_s=60.0, noise_std=0.02, rng=rng)]
 
 
 def test_every_leg_at_most_the_model_alone_or_the_guard_says_so(wa_field):

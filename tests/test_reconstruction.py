@@ -381,6 +381,14 @@ def test_background_scale_by_marginal_likelihood(grid):
         ).reconstruct(xy, uv, forecast=forecast, forecast_at_samples=fa)
 
 
+def ten_hour_track(grid):
+    """The first 60 cells of :func:`path_cells` flown over 10 h: (cells, xy metres, t s, a zero forecast at them)."""
+    cells = path_cells()[:60]
+    x, y = grid.cell_to_xy(cells[:, 0], cells[:, 1])
+    t = np.linspace(0.0, 10 * 3600.0, len(cells))
+    return cells, np.column_stack([x, y]), t, np.zeros((len(cells), 2))
+
+
 def test_forward_validation_shortens_the_time_scale_of_a_turning_residual(grid):
     """A space-time fit along a track cannot tell space from time: a residual that turns with a tide
     (u-residual 0.3 cos(2 pi t / 12.4 h), the same everywhere, over a 10 h leg) is fitted as steady (a
@@ -391,11 +399,7 @@ def test_forward_validation_shortens_the_time_scale_of_a_turning_residual(grid):
     import copy
 
     rng = np.random.default_rng(3)
-    cells = path_cells()[:60]
-    x, y = grid.cell_to_xy(cells[:, 0], cells[:, 1])
-    xy = np.column_stack([x, y])
-    t = np.linspace(0.0, 10 * 3600.0, len(cells))
-    fc_at = np.zeros((len(cells), 2))
+    cells, xy, t, fc_at = ten_hour_track(grid)
     tide = 0.3 * np.cos(2 * np.pi * t / (12.4 * 3600.0))
     turning = np.column_stack([tide, np.zeros_like(t)]) + rng.normal(0, NOISE, (len(t), 2))
     gp = GPReconstructor(grid_xy=grid.centres_xy(), noise_std=NOISE, seed=0)
@@ -444,11 +448,7 @@ def test_time_scale_cap_holds_a_steady_looking_residual_to_the_current_s_own_mem
     validation, which may only shorten it further), and the correction carried to 2 h after the last
     sample, where the true residual has gone, is smaller than without the cap."""
     rng = np.random.default_rng(5)
-    cells = path_cells()[:60]
-    x, y = grid.cell_to_xy(cells[:, 0], cells[:, 1])
-    xy = np.column_stack([x, y])
-    t = np.linspace(0.0, 10 * 3600.0, len(cells))
-    fc_at = np.zeros((len(cells), 2))
+    _cells, xy, t, fc_at = ten_hour_track(grid)
     bump = 0.3 * np.exp(-0.5 * ((t - 5 * 3600.0) / (1.5 * 3600.0)) ** 2)  # gone by the leg's end
     res = np.column_stack([bump, np.zeros_like(t)]) + rng.normal(0, NOISE, (len(t), 2))
     cap = 2 * 3600.0

@@ -17,6 +17,7 @@ time); the mission is the small one of tests/test_sitl_faults.py (legs of 3 move
 from __future__ import annotations
 
 import itertools
+import json
 import shutil
 import socket
 import subprocess
@@ -163,8 +164,6 @@ def test_two_legs_through_radio_and_mavproxy_beside_a_qgc_like_client(tmp_path, 
         text=True,
         timeout=600,
     )
-    import json
-
     assert p.returncode == 0, p.stdout[-3000:] + p.stderr[-2000:]
     r = json.loads(p.stdout)
     assert r["reproduced"] is True and [leg["path_identical"] for leg in r["legs"]] == [True, True], r.get(

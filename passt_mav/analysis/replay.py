@@ -702,10 +702,7 @@ class _LogReplay:
                 raise ReplayError(f"{est} is missing: the run resumed from it")
             state = np.array(load_field(est).data[0], dtype=np.float32)
             t_state = float(self.recorded[first - 1]["t_state"])
-            loop.leg_index = first
-            s0, t0 = step.initial_state()  # as the resumed controller: the model alone from the first state
-            loop.anchor_open_loop(s0, t0, step.dt)
-            loop.t_recon_ = t_state
+            step.resume_after(first, t_state)  # as the resumed controller
         step.prepare(state)
         return state, t_state
 

@@ -405,6 +405,16 @@ class LegStep:
             raise UserError(f"the vehicle is in cell {start}, which is land in the mission's field")
         return start
 
+    def resume_after(self, n_done: int, t_state: float) -> None:
+        """The loop of a controller resumed after ``n_done`` legs, the last estimate at field time ``t_state``:
+        its planner seeds follow the global leg number, the model alone runs from the mission's first state as
+        it did before the stop (not from the resumed estimate), and that estimate's correction fades from
+        ``t_state`` (:func:`passt_mav.loop.guard.relax_to_open_loop`). Shared by the controller and replay."""
+        state0, t0 = self.initial_state()
+        self.loop.leg_index = int(n_done)
+        self.loop.anchor_open_loop(state0, t0, self.dt)
+        self.loop.t_recon_ = float(t_state)
+
     @single_threaded
     def prepare(self, state) -> None:
         """Work that needs only the initial ``state`` ((2, R, C), field units), done before the

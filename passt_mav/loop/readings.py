@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["track_readings"]
+__all__ = ["fly_legs", "track_readings"]
 
 
 def track_readings(
@@ -56,3 +56,37 @@ def track_readings(
         {"time_boot_ms": int(a), "boot": 0, "lat": float(b), "lon": float(d), "u": float(e), "v": float(f)}
         for a, b, d, e, f in zip(tb[ok], plat[ok], plon[ok], uv[ok, 0], uv[ok, 1])
     ]
+
+
+def fly_legs(step, start, legs: int, *, every_s: float, noise_std: float, rng, strict: bool = True):
+    """Fly ``legs`` legs of ``step`` (a :class:`~passt_mav.loop.legstep.LegStep`) offline, from the mission's
+    initial state and cell ``start`` (row, col): each leg planned at once (no snapshots waited), its
+    readings taken along the planned track by :func:`track_readings` at the mission's speed
+    (``vehicle.speed_mps``) and time scale, every ``every_s`` vehicle seconds with ``noise_std`` (m/s) noise
+    from ``rng``, and absorbed as ``passt-mav run`` absorbs a live leg (``strict``: see
+    :meth:`LegStep.absorb`). Yields ``(planned, absorbed)`` per leg; the next leg starts where the path
+    ended, from the absorbed state (a caller may stop early)."""
+    from passt_mav.loop.legstep import FieldClock
+
+    field, cfg = step.field, step.config
+    state, t_state = step.initial_state()
+    clock = FieldClock(t_boot0=float(field.times[0]), time_scale=float(cfg.field.time_scale))
+    start = tuple(int(x) for x in start)
+    for i in range(int(legs)):
+        planned = step.plan(i, state, t_state, start, k=0)
+        step.forecast_leg(planned)
+        recs = track_readings(
+            field,
+            planned.plan.path,
+            planned.t_start,
+            speed_mps=float(cfg.vehicle.speed_mps),
+            every_s=every_s,
+            noise_std=noise_std,
+            rng=rng,
+            t_boot0=clock.t_boot0,
+            time_scale=float(cfg.field.time_scale),
+            velocity_scale=float(cfg.field.velocity_scale),
+        )
+        ab = step.absorb(planned, recs, clock, strict=strict)
+        yield planned, ab
+        state, t_state, start = ab.state, ab.t_state, tuple(int(x) for x in planned.plan.path[-1])

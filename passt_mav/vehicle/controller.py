@@ -90,7 +90,6 @@ that was in flight is re-planned from the current position, its interrupted atte
 
 from __future__ import annotations
 
-import contextlib
 import logging
 import queue
 import threading
@@ -723,7 +722,7 @@ class MissionController(ResumeRecord, OperatorLegs):
         try:
             how = self._fly(i, wm, items, len(items) - 1)  # MISSION_CURRENT.total excludes home
         except BaseException:
-            self.collector.leg = None  # (a stop, an end, a pause: their own paths command the vehicle)
+            close_leg(self.collector)  # (a stop, an end, a pause: their own paths command the vehicle)
             raise
         end_leg_at_hold(self.link, self.vehicle, self.collector)
         self.vehicle.hold()
@@ -841,8 +840,8 @@ def end_leg_at_hold(link, vehicle, collector) -> None:
     collector's leg closing and the first HOLD command sent (the reader's dispatch lock held over both), so a
     replay, which ends the leg at that command, assigns every reading as the store did. :meth:`Vehicle.hold`
     confirms the HOLD afterwards. A failed send (the link down) leaves the HOLD to that call."""
-    with getattr(link, "dispatch_lock", contextlib.nullcontext()):
-        collector.leg = None
+    with link.dispatch_lock:
+        close_leg(collector)
         try:
             vehicle.request_mode("HOLD")
         except Exception as exc:  # noqa: BLE001 - the confirming hold() reports and handles it

@@ -68,11 +68,7 @@ class ResumeRecord:
         if not est.exists():
             raise UserError(f"cannot resume: {est} is missing")
         fld = load_field(est)
-        self.loop.leg_index = len(done)
-        # the model alone runs from the mission's first state, as it did before the stop (not from the
-        # resumed estimate), and the last estimate's correction fades from the time it was made
-        self.loop.anchor_open_loop(state, t_state, self.step.dt)
-        self.loop.t_recon_ = float(last["t_state"])
+        self.step.resume_after(len(done), float(last["t_state"]))
         self._say(f"resuming {self.rd.root}: {len(done)} leg(s) done, state at field time {last['t_state']:.1f}")
         self.events.append(f"resumed after leg {len(done)} at {utc_now()}")
         return np.array(fld.data[0], dtype=np.float32), float(last["t_state"]), len(done)
