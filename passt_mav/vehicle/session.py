@@ -571,7 +571,10 @@ class VehicleSession(LinkOutages, OperatorCommands, LinkFigures):
         v = self.vehicle
         self.rebooted.clear()
         boot, last_tb, first_tb = self.reboot_info or (0, 0, 0)
-        seq = int(self.resume_seq)
+        # the item after the last one reached before the reboot (the reader thread records MISSION_ITEM_REACHED
+        # at once; resume_seq is noted by the flying loop, which the reboot may have overtaken)
+        reached = v.progress.reached[-1:]
+        seq = int(min(max([int(self.resume_seq)] + [r + 1 for r in reached]), max(n_items, 1)))
         self._say(
             f"leg {i + 1}: the autopilot rebooted (its time since boot went from {last_tb / 1000:.1f} s back to "
             f"{first_tb / 1000:.1f} s): not a pilot; waiting for it to be ready (EKF)"
