@@ -34,6 +34,7 @@ COSTLY_FIXTURE_MODULES = {
     "test_ocean",
     "test_paper",
     "test_plan_cmd",
+    "test_prior_blend",
     "test_replay",
     "test_tlog",
 }

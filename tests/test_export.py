@@ -301,7 +301,17 @@ def test_csv_has_one_row_per_sample(run3, tmp_path, capsys):
     out = tmp_path / "samples.csv"
     assert export([str(run3["rd"].root), "--format", "csv", "--out", str(out)], capsys)[0] == 0
     rows = list(csv.DictReader(out.open()))
-    assert list(rows[0]) == ["time_utc", "lat", "lon", "u", "v", "boat", "leg", "vehicle_utc", "field_time"]
+    assert list(rows[0]) == [
+        "time_utc",
+        "lat_deg",
+        "lon_deg",
+        "u_m_s",
+        "v_m_s",
+        "boat",
+        "leg",
+        "vehicle_utc",
+        "field_time",
+    ]
     assert len(rows) == len(run3["samples"])
     assert rows[0]["time_utc"] == "2018-03-01T00:00:00.000Z" and rows[0]["boat"] == "0"
     # this run records no clock (summary.json without one): the vehicle's UTC, field time unknown
@@ -312,8 +322,8 @@ def test_csv_has_one_row_per_sample(run3, tmp_path, capsys):
     by_time = sorted(run3["samples"], key=lambda x: (x.source, x.utc))
     assert [r["leg"] for r in rows] == [str(x.leg + 1) if x.leg >= 0 else "outside" for x in by_time]
     s = run3["samples"][1]
-    assert float(rows[1]["u"]) == pytest.approx(s.u, abs=1e-6)
-    assert float(rows[1]["lat"]) == pytest.approx(s.lat, abs=1e-7)
+    assert float(rows[1]["u_m_s"]) == pytest.approx(s.u, abs=1e-6)
+    assert float(rows[1]["lat_deg"]) == pytest.approx(s.lat, abs=1e-7)
 
 
 def test_default_out_is_under_the_run_and_named(run3, capsys):

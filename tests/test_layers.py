@@ -32,6 +32,7 @@ are math like the rest of ``loop/``: no MAVLink, no run storage, nothing above.
 from __future__ import annotations
 
 import ast
+import functools
 from pathlib import Path
 
 import pytest
@@ -123,10 +124,16 @@ def _module_name(path: Path, root: Path = ROOT) -> str:
 
 def _imports(path: Path, root: Path = ROOT) -> list[tuple[int, str]]:
     """(line, absolute module name) of every import in ``path``; relative imports resolved."""
-    me = _module_name(path, root)
-    pkg = me if path.name == "__init__.py" else me.rpartition(".")[0]
+    return _imports_of(_module_name(path, root), path.name == "__init__.py", path.read_text())
+
+
+@functools.cache
+def _imports_of(me: str, is_init: bool, text: str) -> list[tuple[int, str]]:
+    """:func:`_imports` of module ``me``'s source ``text`` (cached: the copies of the tree the tests below
+    make differ from it in one file)."""
+    pkg = me if is_init else me.rpartition(".")[0]
     out = []
-    for node in ast.walk(ast.parse(path.read_text(), str(path))):
+    for node in ast.walk(ast.parse(text, me)):
         if isinstance(node, ast.Import):
             out += [(node.lineno, a.name) for a in node.names]
         elif isinstance(node, ast.ImportFrom):
@@ -153,10 +160,12 @@ def layer_violations(root: Path = ROOT) -> list[str]:
         + list((root / "geo").rglob("*.py"))
     ):
         me = _module_name(src, root)
+        imports = None  # parsed once per file, and only when a rule applies to it
         for who, banned, why, *allowed in RULES:
             if not _under(me, who):
                 continue
-            for line, name in _imports(src, root):
+            imports = _imports(src, root) if imports is None else imports
+            for line, name in imports:
                 if _under(name, banned) and not (allowed and _under(name, allowed[0])):
                     bad.append(f"{src.relative_to(root)}:{line}: {me} imports {name} ({why})")
     return sorted(set(bad))

@@ -359,7 +359,8 @@ def test_renders_in_headless_chromium(tmp_path, fake_store):
 
 
 def test_metric_grid_run(tmp_path):
-    """A cylinder-like run: metric grid placed on Earth (rotated), non-dimensional time and units."""
+    """A cylinder-like run: metric grid placed on Earth (rotated), non-dimensional time and units; in m/s
+    once the run records its mission's velocity scale."""
     grid = geo.MetricRegionGrid(
         0.0, 9.0, -4.0, 4.0, 9, 10, anchor_lat=40.0, anchor_lon=-63.0, rotation_deg=30.0, scale=500.0
     )
@@ -389,10 +390,15 @@ def test_metric_grid_run(tmp_path):
     )
     text = write_report(rd.root).read_text()
     assert len(_embedded_pngs(text)) == 4  # all but samples and POD (not recorded)
-    assert "non-dimensional" in text
+    # no mission recorded: the figures stay in the field's units, and say so (passt_mav.units)
     # +0.05 on both components everywhere the cylinder is not
-    assert "reconstruction RMSE vs truth, leg 1</th><td>0.05 non-dimensional" in text
+    assert "reconstruction RMSE vs truth, leg 1</th><td>0.05 field units" in text
     assert "non-dimensional field time" in text
+    # the mission it flew gives the velocity scale (m/s per field unit): the same run in m/s
+    s = rd.read_summary()
+    rd.write_summary({**s, "config": {"field": {"source": str(fpath), "velocity_scale": 0.5}}})
+    text = write_report(rd.root).read_text()
+    assert "reconstruction RMSE vs truth, leg 1</th><td>0.025 m/s" in text and "field units" not in text
 
 
 # -- figures, inspected as matplotlib objects ---------------------------------------------------

@@ -17,8 +17,12 @@ group only. So:
   one time step per leg (the estimate's field time, ``leg`` and ``boat`` per step),
   ``lat``/``lon`` cell centres and a WGS84 ``crs`` grid mapping. ``passt-mav data import``
   reads it back (tested to 1e-6). A metric field (the cylinder CFD placed on the sea) keeps its
-  data-frame ``x``/``y`` (m) with 2-D ``lat``/``lon`` auxiliary coordinates instead, in the
-  field's own units (no standard name: they are not sea water velocities in m s-1).
+  data-frame ``x``/``y`` (m) with 2-D ``lat``/``lon`` auxiliary coordinates instead, with no standard
+  name (they are data-frame components, not east/north). Speeds are in m s-1 wherever the run had a
+  velocity scale (a mission always has one: the field times ``field.velocity_scale``,
+  :mod:`passt_mav.units`); only a run that records none keeps the field's own units. ``rmse`` and
+  ``rmse_model`` (per time step, m s-1) give the leg's RMSE against the true field, NaN where no truth
+  was known.
 * ``--format netcdf --samples`` (default ``samples.nc``): every stored sample as a CF DSG
   trajectory per boat (contiguous ragged array: ``rowSize`` per trajectory, ``trajectory``
   with ``cf_role = "trajectory_id"``), IOOS-style ``platform`` variable; ``u``/``v`` in m s-1.
@@ -64,6 +68,7 @@ import numpy as np
 
 from passt_mav.errors import UserError
 from passt_mav.runs.rundir import RunDir, RunDirError
+from passt_mav.units import MPS, SpeedUnit, speed_unit
 
 __all__ = [
     "FORMATS",
@@ -317,9 +322,12 @@ def estimate_dataset(run: RunData, command: str = "passt-mav export"):
     dims, coords, crs = _grid_coords(f0)
     epoch = _epoch_of_field_times(f0.time_origin, t_field)
     coords["time"] = _estimate_time_coord(t_field, epoch)
-    dvars = _estimate_velocity_vars(f0, dims, data, std)
+    unit = _unit(run, f0)
+    k = np.float32(unit.per_field_unit)
+    dvars = _estimate_velocity_vars(f0, dims, data * k, None if std is None else std * k, unit)
     dvars["crs"] = ((), np.int32(0), crs)
     dvars.update(_estimate_leg_vars(recs))
+    dvars.update(_estimate_rmse_vars(recs, unit, _cf_units(unit, f0)))
     attrs = _global_attrs(
         run,
         f"PASST field estimate of run {run.name}",
@@ -363,16 +371,59 @@ def _estimate_time_coord(t_field: np.ndarray, epoch: np.ndarray | None) -> tuple
     )
 
 
-def _estimate_velocity_vars(f0, dims: tuple, data: np.ndarray, std: np.ndarray | None) -> dict[str, Any]:
-    """The estimate's u and v (each after its ``_std`` if the posterior std was recorded), in the field's
-    units: east/north on a lat/lon field, x/y of the data frame on a metric one."""
-    geographic = f0.is_geographic and f0.units == "m s-1"
+def _unit(run: RunData, f0) -> SpeedUnit:
+    """How the run's field-derived speeds are exported: m/s times the velocity scale the run flew with
+    (summary.json's mission ``config``, else an explicit ``field.velocity_scale`` in its mission.yaml); a
+    run that records neither keeps the field's own units (``f0.units``)."""
+    vs = (((run.summary or {}).get("config") or {}).get("field") or {}).get("velocity_scale")
+    if vs is None:
+        vs = ((run.mission or {}).get("field") or {}).get("velocity_scale")
+    return speed_unit(None if vs is None else float(vs), f0.units)
+
+
+def _cf_units(unit: SpeedUnit, f0) -> str:
+    """The CF ``units`` of a speed in ``unit``: ``m s-1``, else the field's own."""
+    return "m s-1" if unit.label == MPS else f0.units
+
+
+def _estimate_rmse_vars(recs: list[dict], unit: SpeedUnit, cf_units: str) -> dict[str, Any]:
+    """Per estimate the leg's RMSE against the truth (the estimate's and the model alone's), in ``unit``
+    (CF ``cf_units``); NaN where the run knew no truth (a real boat)."""
+
+    def col(key):
+        return np.array([np.nan if r.get(key) is None else unit(r[key]) for r in recs], np.float64)
+
+    what = {"rmse": "the estimate after the leg", "rmse_model": "the model alone (never re-initialised)"}
+    return {
+        key: (
+            "time",
+            col(f"rmse_{'passt' if key == 'rmse' else 'model'}"),
+            {
+                "units": cf_units,
+                "long_name": f"RMSE of {w} against the true field over water cells (u and v pooled)",
+                "coverage_content_type": "qualityInformation",
+            },
+        )
+        for key, w in what.items()
+    }
+
+
+def _estimate_velocity_vars(
+    f0, dims: tuple, data: np.ndarray, std: np.ndarray | None, unit: SpeedUnit
+) -> dict[str, Any]:
+    """The estimate's u and v (each after its ``_std`` if the posterior std was recorded), already in ``unit``
+    (m/s for a run with a velocity scale): east/north on a lat/lon field, x/y of the data frame on a metric one."""
+    geographic = f0.is_geographic and _cf_units(unit, f0) == "m s-1"
     dvars: dict[str, Any] = {}
     for k, name, std_name, word in (
         (0, "u", "eastward_sea_water_velocity", "eastward"),
         (1, "v", "northward_sea_water_velocity", "northward"),
     ):
-        a = {"units": f0.units, "long_name": f"{word} current, GP estimate after the leg", "grid_mapping": "crs"}
+        a = {
+            "units": _cf_units(unit, f0),
+            "long_name": f"{word} current, GP estimate after the leg",
+            "grid_mapping": "crs",
+        }
         if geographic:
             a["standard_name"] = std_name
         if not f0.is_geographic:

@@ -14,8 +14,8 @@ feature's ``properties.kind`` is ``track``, ``planned_path``, ``waypoint`` or ``
 has one Folder per kind with one Placemark per feature (coordinates ``lon,lat,0``), and a line
 style per boat. The CSV has one row per sample: ``time_utc`` (ISO-8601, ms, Z: the field's UTC of
 the sample where the field has a UTC origin, else the vehicle's; the same clock as ``samples.nc``,
-see :func:`passt_mav.analysis.export.sample_table`), ``lat``, ``lon`` (deg WGS84), ``u``, ``v`` (m/s
-east/north), ``boat`` (from 0), ``leg`` (numbered from 1 as the console and the report count them:
+see :func:`passt_mav.analysis.export.sample_table`), ``lat_deg``, ``lon_deg`` (WGS84), ``u_m_s``, ``v_m_s``
+(m/s east/north), ``boat`` (from 0), ``leg`` (numbered from 1 as the console and the report count them:
 ``legs/000`` is leg 1; ``outside`` for a reading outside any leg), ``vehicle_utc`` (the vehicle's own UTC of the reading) and
 ``field_time`` (field units, s since the field's time origin for a geographic field; empty where
 unknown), sorted by boat then time.
@@ -175,7 +175,7 @@ def _iso_ms(epoch_s: float) -> str:
 
 
 def csv_text(run) -> tuple[str, dict]:
-    """(CSV of samples as text, row count): time_utc, lat, lon, u, v, boat, leg, vehicle_utc, field_time
+    """(CSV of samples as text, row count): time_utc, lat_deg, lon_deg, u_m_s, v_m_s, boat, leg, vehicle_utc, field_time
     (module docstring)."""
     import csv
 
@@ -184,7 +184,8 @@ def csv_text(run) -> tuple[str, dict]:
 
     buf = io.StringIO()
     w = csv.writer(buf, lineterminator="\n")
-    w.writerow(["time_utc", "lat", "lon", "u", "v", "boat", "leg", "vehicle_utc", "field_time"])
+    # units in the column names: a spreadsheet shows no attributes
+    w.writerow(["time_utc", "lat_deg", "lon_deg", "u_m_s", "v_m_s", "boat", "leg", "vehicle_utc", "field_time"])
     n = 0
     if run.samples:
         c = sample_table(run)

@@ -51,6 +51,7 @@ import numpy as np
 
 from passt_mav.errors import UserError
 from passt_mav.runs.legs import LoggedLeg, LogRebuild, rebuild_from_tlog  # noqa: F401 - re-exported
+from passt_mav.units import SpeedUnit, speed_unit
 
 __all__ = ["ReplayError", "ReplayLeg", "ReplayResult", "waypoints_to_path", "replay"]
 
@@ -376,7 +377,13 @@ class _Setup:
             "planner": self.cfg.planner.name,
             "reward": self.cfg.planner.reward,
             "path_length": self.cfg.planner.path_length,
+            # the legs' RMSEs here are in field units; times this is m/s (passt_mav.units)
+            "velocity_scale": float(self.cfg.field.velocity_scale),
         }
+
+    def unit(self) -> SpeedUnit:
+        """How the replay shows RMSEs: m/s (the mission's ``field.velocity_scale``)."""
+        return speed_unit(self.cfg.field.velocity_scale)
 
 
 def _build_setup(cfg, mission_src: str, inp: _Source, cf: dict, say) -> _Setup:
@@ -517,10 +524,13 @@ def _rmse_match(pairs, tol: float) -> bool:
     return all(a is None or (b is not None and abs(a - b) <= tol) for a, b in pairs)
 
 
-def _progress_line(label: str, n_samples: int, same: bool | None, rmse: float | None) -> str:
-    """The one line a replay prints per leg: samples, path verdict, replayed RMSE."""
+def _progress_line(label: str, n_samples: int, same: bool | None, rmse: float | None, unit: SpeedUnit) -> str:
+    """The one line a replay prints per leg: samples, path verdict, replayed RMSE (field units, shown in
+    ``unit``: m/s for a mission)."""
     verdict = "identical" if same else "differs" if same is False else "?"
-    return f"{label}: {n_samples} samples, path {verdict}" + ("" if rmse is None else f", RMSE {rmse:.6f}")
+    return f"{label}: {n_samples} samples, path {verdict}" + (
+        "" if rmse is None else f", RMSE {unit.text(rmse, '.6f')}"
+    )
 
 
 def _skipped_leg(lg) -> ReplayLeg:
@@ -771,7 +781,7 @@ class _LogReplay:
             rmse_identical=r_same,
             notes=lnotes,
         )
-        self.say(_progress_line(f"leg {key + 1}", len(lg.samples), same, ab.rmse_passt))
+        self.say(_progress_line(f"leg {key + 1}", len(lg.samples), same, ab.rmse_passt, self.setup.unit()))
         return (leg, None, None) if attempt is not None else (leg, ab.state, ab.t_state)
 
     def _recorded_target(self, lg, rec: dict, pos_cell, k_lo: int, k_hi: int, lnotes: list[str]):
@@ -910,7 +920,15 @@ def _replay_fleet(rd, summary: dict, cfg, step, rmse_tol: float, say):
         out[i] = leg = _fleet_leg(fs, i, rec, lg, planned[i], clocks[boat], rmse_tol)
         if (leg.differing_cells or not leg.rmse_identical) and first_div is None:
             first_div = i
-        say(_progress_line(f"leg {i + 1} (boat {boat})", len(lg.samples), leg.path_identical, leg.rmse_passt))
+        say(
+            _progress_line(
+                f"leg {i + 1} (boat {boat})",
+                len(lg.samples),
+                leg.path_identical,
+                leg.rmse_passt,
+                speed_unit(cfg.field.velocity_scale),
+            )
+        )
     return [out[i] for i in sorted(out)], info, notes, first_div
 
 

@@ -45,6 +45,7 @@ from passt_mav.errors import UserError
 from passt_mav.loop.measurement import leg_number, sample_columns, truth_at
 from passt_mav.loop.measurement import rmse as recon_rmse  # (the name tests and users know) the one RMSE rule
 from passt_mav.runs.rundir import RunDir, RunDirError
+from passt_mav.units import MPS, SpeedUnit, run_speed_unit
 
 __all__ = ["MAX_ARROWS", "Run", "binned_arrows", "load_run", "recon_rmse", "write_report"]
 
@@ -90,9 +91,16 @@ class Run:
         return self.summary is None
 
     @property
+    def unit(self) -> SpeedUnit:
+        """How the report shows field-derived speeds and RMSEs: m/s times the mission's velocity scale
+        (:mod:`passt_mav.units`); the samples are in m/s already and are never scaled."""
+        meta = None if self.summary is not None else _read_live_meta(self.rundir)
+        return run_speed_unit(self.summary, meta, self.field.units if self.field is not None else "m s-1")
+
+    @property
     def units(self) -> str:
-        u = self.field.units if self.field is not None else "m s-1"
-        return "m/s" if u in ("m s-1", "m/s") else ("non-dimensional" if u == "1" else u)
+        """The label of the field-derived speeds and RMSEs (``m/s``, or ``field units`` without a scale)."""
+        return self.unit.label
 
     @property
     def time_origin(self) -> str | None:
@@ -386,7 +394,7 @@ def _fig_track(run: Run, plt):
     t = t_end[-1] if t_end else float(fld.times[0])
     k = int(np.argmin(np.abs(fld.times - t)))
     fig, ax = plt.subplots(figsize=(7.5, 6.0), constrained_layout=True)
-    _speed_map(ax, fig, fld.grid, fld.data[k].astype(float), run.units)
+    _speed_map(ax, fig, fld.grid, fld.data[k].astype(float) * run.unit.per_field_unit, run.units)
     for leg in run.legs:
         wp = np.asarray(leg.get("waypoints") or [], float).reshape(-1, 2)
         if len(wp):
@@ -503,7 +511,7 @@ def _fig_samples(run: Run, plt):
         ax.plot(centres[1].ravel(), centres[0].ravel(), "+", color="0.65", ms=4, mew=0.6, zorder=0)
     # small markers without edges: 10^4 of them still show their colours
     sc = ax.scatter(s["lon"], s["lat"], c=sp, cmap="plasma", s=5, linewidths=0, zorder=2, rasterized=True)
-    fig.colorbar(sc, ax=ax, label=f"measured speed ({run.units})", shrink=0.85)
+    fig.colorbar(sc, ax=ax, label=f"measured speed ({MPS})", shrink=0.85)
     blat, blon, bu, bv, _ = binned_arrows(s["lat"], s["lon"], s["u"], s["v"])
     bsp = np.hypot(bu, bv)
     vmax = float(bsp.max()) if bsp.size and bsp.max() > 0 else 1.0
@@ -522,7 +530,7 @@ def _fig_samples(run: Run, plt):
         zorder=3,
     )
     ax.quiverkey(
-        q, 0.86, 1.015, vmax, f"{vmax:.2g} {run.units}", labelpos="W", coordinates="axes", fontproperties={"size": 8}
+        q, 0.86, 1.015, vmax, f"{vmax:.2g} {MPS}", labelpos="W", coordinates="axes", fontproperties={"size": 8}
     )
     if la.size:
         ax.set_xlim(float(lo.min()) - pad_lon, float(lo.max()) + pad_lon)
@@ -539,12 +547,29 @@ def _fig_samples(run: Run, plt):
     return fig
 
 
+def _fmt_num(x: float, unit: str) -> str:
+    """An RMSE after a leg (already in the report's unit) to 6 decimals with its unit, or "n/a"."""
+    return f"{x:.6f} {unit}" if np.isfinite(x) else "n/a"
+
+
+def _read_live_meta(rd: RunDir) -> dict | None:
+    """``live/meta.json`` of a run still in progress (its velocity scale), or None."""
+    try:
+        m = json.loads((rd.root / "live" / "meta.json").read_text())
+    except (OSError, ValueError):
+        return None
+    return m if isinstance(m, dict) else None
+
+
 def _fmt_rmse(r: float | None, spec: str) -> str:
     return "n/a (no cell known in both)" if r is None else format(r, spec)
 
 
 def _fig_recon(run: Run, plt, i: int, est, truth: np.ndarray | None):
-    e = est.data[0].astype(float)
+    """The reconstruction after leg ``i`` beside the truth and the error (field states scaled to ``run.unit``)."""
+    k = run.unit.per_field_unit
+    e = est.data[0].astype(float) * k
+    truth = None if truth is None else np.asarray(truth, float) * k
     panels = 3 if truth is not None else 1
     fig, axes = plt.subplots(1, panels, figsize=(5.2 * panels, 4.6), constrained_layout=True, squeeze=False)
     sp_e = np.hypot(e[0], e[1])
@@ -596,7 +621,7 @@ def _fig_rmse(run: Run, plt, over_time: dict | None, per_leg: dict[str, list]):
         div, lab = _time_label(run)
         for key, style, name in _RMSE_CURVES:
             if key in over_time:
-                y = _series(over_time[key])
+                y = _series(over_time[key]) * run.unit.per_field_unit
                 # a curve on times of its own (``t_KEY``: a fleet's counterfactual, one value per round)
                 t = _series(over_time.get(f"t_{key}", over_time["t"])) / div
                 if t.shape != y.shape:
@@ -605,7 +630,11 @@ def _fig_rmse(run: Run, plt, over_time: dict | None, per_leg: dict[str, list]):
                 ax.plot(t[ok], y[ok], style, label=name)
         ax.set_xlabel(lab)
         ax.set_ylabel(f"RMSE ({run.units})")
-        _log_if_spread(ax, np.concatenate([_series(over_time[c]) for c, _, _ in _RMSE_CURVES if c in over_time]))
+        _log_if_spread(
+            ax,
+            np.concatenate([_series(over_time[c]) for c, _, _ in _RMSE_CURVES if c in over_time])
+            * run.unit.per_field_unit,
+        )
         ax.set_title("RMSE over time", fontsize=10)
         ax.grid(alpha=0.3)
     if per_leg:
@@ -862,7 +891,7 @@ def _section_recon(page: Page, run: Run, plt) -> None:
         if run.field is not None and est.grid == run.field.grid:
             truth = truth_at(run.field, float(est.times[-1]))
         if truth is not None:
-            rmse = _fmt_rmse(recon_rmse(est.data[-1], truth), ".4g")
+            rmse = _fmt_rmse(run.unit(recon_rmse(est.data[-1], truth)), ".4g")
             rows.append((f"reconstruction RMSE vs truth, leg {i + 1}", f"{rmse} {html.escape(run.units)}"))
         last = (i, est.isel(time=est.n_times - 1), truth)
     i, est, truth = last
@@ -895,6 +924,9 @@ def _per_leg_rmse(run: Run) -> dict[str, Any]:
         if not isinstance(vals, list) or len(vals) != len(run.legs):
             vals = [None] * len(run.legs)
         out[key] = np.array([num(x) for x in vals], float)
+    scale = run.unit.per_field_unit  # recorded in field units: shown in run.unit
+    for key in ("passt", "model", "random", "lawnmower"):
+        out[key] = out[key] * scale
     return out if any(np.isfinite(out[k]).any() for k, _, _ in _RMSE_CURVES) else {}
 
 
@@ -907,6 +939,14 @@ def _section_rmse(page: Page, run: Run, plt) -> None:
         page.missing("RMSE over time " + NOT_RECORDED + "; RMSE per leg " + NOT_RECORDED)
         return
     page.figure(_fig_rmse(run, plt, over, per_leg), "rmse.png", "RMSE over time and per leg", plt)
+    if per_leg:
+        u = html.escape(run.units)
+        page.table(
+            [
+                (f"leg {leg_number(i)}", f"PASST {_fmt_num(p, u)}, model alone {_fmt_num(m, u)}")
+                for i, p, m in zip(per_leg["index"], per_leg["passt"], per_leg["model"])
+            ]
+        )
     if over is None:
         page.missing("RMSE over time " + NOT_RECORDED)
     if isinstance(s.get("rmse_note"), str):

@@ -467,6 +467,8 @@ def _demo_mission(args: argparse.Namespace):
 
 def _print_outcome(args, config, field, summary: dict, rd, viewed: bool, wall: float) -> None:
     """The demo's last lines: status, final RMSE (against the counterfactual paths for one boat), report, view."""
+    from passt_mav.units import speed_unit
+
     print(
         f"demo {summary['status']} in {wall:.0f} s: {len(summary['legs'])} legs, {summary['n_samples']} samples; "
         f"run directory {rd.root}",
@@ -475,13 +477,8 @@ def _print_outcome(args, config, field, summary: dict, rd, viewed: bool, wall: f
     legs = summary["legs"]
     if legs and legs[-1].get("rmse_passt") is not None:
         lawn, walks = _counterfactual(config, field, summary, rd, report=not args.no_report, boats=args.boats)
-        # the run's RMSEs are in the field's velocity units (the wake's: inflow = 1); velocity_scale is
-        # m/s per unit (the wake 0.5, the ocean and RTOFS 1)
-        vs = float(config.field.velocity_scale)
-
-        def ms(x):
-            return None if x is None else float(x) * vs
-
+        # the run's RMSEs are in the field's velocity units (the wake's: inflow = 1): shown in m/s
+        ms = speed_unit(config.field.velocity_scale)
         line = final_line(
             ms(legs[-1]["rmse_passt"]), ms(legs[-1]["rmse_model"]), [ms(w) for w in walks], ms(lawn), boats=args.boats
         )

@@ -13,6 +13,7 @@ import sys
 from passt_mav.loop.campaign import ENGINES, METHODS
 from passt_mav.loop.presets import DEFAULT, PRESETS
 from passt_mav.reconstruction.gp import MAX_FIT_POINTS
+from passt_mav.units import speed_unit
 
 HELP = "Offline PASST campaign: trials x path lengths, RMSE over time and POD energy"
 EXAMPLES = """examples:
@@ -235,7 +236,7 @@ def write_fleet_figure(result: dict, out_dir):
         )
     c = result["config"]
     ax.set_xlabel(f"steps after the start (snapshots; legs of {c['steps_per_leg']})")
-    ax.set_ylabel("RMSE (field units)")
+    ax.set_ylabel(f"RMSE ({c.get('rmse_unit', 'field units')})")
     ax.set_title(f"PASST with a fleet: mean over {c['trials']} trials", fontsize=10)
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8)
@@ -275,7 +276,7 @@ def write_figures(summary: dict, out_dir) -> list:
             ax.fill_between(t, mu - sd, mu + sd, alpha=0.15)
         ax.set_title(f"L = {L} moves per leg")
         ax.set_xlabel("steps after start")
-        ax.set_ylabel("RMSE")
+        ax.set_ylabel(f"RMSE ({summary['config'].get('rmse_unit', 'field units')})")
         ax.grid(alpha=0.3)
     for ax in axes.ravel()[n:]:
         ax.axis("off")
@@ -405,6 +406,8 @@ def run(args: argparse.Namespace) -> int:
     if args.boats > 1:
         return _run_fleet(args, field, predictor, lengths[0], out_dir)
     summary = _campaign(args, field, predictor, lengths)
+    # the RMSEs are in the field's units: m/s for a field in m/s, else said (passt_mav.units)
+    summary["config"]["rmse_unit"] = speed_unit(None, field.units).label
     files = write_figures(summary, out_dir)
     snaps = summary.pop("_snapshots")
     (out_dir / "results.json").write_text(json.dumps(summary) + "\n")
@@ -416,7 +419,7 @@ def run(args: argparse.Namespace) -> int:
     if args.json:
         print(json.dumps({"out": str(out_dir), "window": summary["config"]["window"], "per_L": table}))
     else:
-        _print_table(table, window=summary["config"]["window"], trials=args.trials)
+        _print_table(table, window=summary["config"]["window"], trials=args.trials, unit=summary["config"]["rmse_unit"])
         print(f"figures: {', '.join(f.name for f in files)}")
     print(f"results written to {out_dir}", file=sys.stderr if args.json else sys.stdout)
     return 0
@@ -481,10 +484,10 @@ def _campaign(args: argparse.Namespace, field, predictor, lengths: list[int]) ->
     return summary
 
 
-def _print_table(table: dict, *, window: int, trials: int) -> None:
-    """Print per path length each method's final-window RMSE (field units) and its ratio to PASST's."""
+def _print_table(table: dict, *, window: int, trials: int, unit: str) -> None:
+    """Print per path length each method's final-window RMSE (in ``unit``: the field's) and its ratio to PASST's."""
     ms = list(next(iter(table.values()))["final_rmse"])
-    print(f"final-window RMSE (last {window} steps), mean over {trials} trials; ratio = method / passt")
+    print(f"final-window RMSE ({unit}, last {window} steps), mean over {trials} trials; ratio = method / passt")
     print("L".rjust(6) + "".join(m.rjust(16) for m in ms))
     for L, row in table.items():
         cells = []
@@ -518,13 +521,18 @@ def _run_fleet(args, field, predictor, L: int, out_dir) -> int:
         background=args.background,
         preset=PRESETS[args.preset],
     )
-    res["config"].update(preset=args.preset, data=args.data, model=args.model)
+    res["config"].update(
+        preset=args.preset, data=args.data, model=args.model, rmse_unit=speed_unit(None, field.units).label
+    )
     fig = write_fleet_figure(res, out_dir)
     (out_dir / "fleet.json").write_text(json.dumps(res) + "\n")
     if args.json:
         print(json.dumps({"out": str(out_dir), "final_rmse": {k: v["final_rmse"] for k, v in res["runs"].items()}}))
     else:
-        print(f"final-window RMSE (last {args.window} steps), mean over {args.trials} trials")
+        print(
+            f"final-window RMSE ({res['config']['rmse_unit']}, last {args.window} steps), "
+            f"mean over {args.trials} trials"
+        )
         for name, run in res["runs"].items():
             print(f"  {name:>18}: {run['final_rmse']:.4f}")
         print(f"figure: {fig.name}")

@@ -154,7 +154,8 @@ def run(args: argparse.Namespace) -> int:
     else:
         print(
             f"planned {L} moves from {start} with {cfg.planner.name} on the {cfg.planner.reward} reward: "
-            f"{len(mission.waypoints)} waypoints, reward collected {summary['reward_collected']:.3f}"
+            f"{len(mission.waypoints)} waypoints, reward collected {summary['reward_collected']:.3f} "
+            "(dimensionless: the sum over the path's cells of the reward map, at most 1 per cell)"
         )
         print(f"wrote {f_plan}, {f_wpl}, {f_json}")
         print(f"results written to {out}")

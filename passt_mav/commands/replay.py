@@ -42,14 +42,16 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--json", action="store_true", help="print the result as JSON instead of a table")
 
 
-def _f(x) -> str:
-    return "-" if x is None else f"{x:.6f}"
+def _f(x, unit) -> str:
+    """An RMSE (field units) in ``unit``'s numbers (m/s for a mission), or "-"."""
+    return "-" if x is None else f"{unit(x):.6f}"
 
 
 def run(args: argparse.Namespace) -> int:
     import json
 
     from passt_mav.analysis.replay import replay
+    from passt_mav.units import speed_unit
 
     res = replay(
         args.source,
@@ -69,12 +71,14 @@ def run(args: argparse.Namespace) -> int:
         + (f"; counterfactual {cf}" if cf else "")
         + ")"
     )
+    unit = speed_unit(res.settings.get("velocity_scale"))
+    print(f"RMSE in {unit.label}")
     print(f"{'leg':>3}  {'samples':>7}  {'path':<9}  {'rmse rec':>9}  {'rmse replay':>11}  {'reward':>8}")
     for leg in res.legs:
         same = {True: "identical", False: "differs", None: "?"}[leg.path_identical]
         print(
-            f"{leg.index + 1:>3}  {leg.n_samples:>7}  {same:<9}  {_f(leg.rmse_passt_recorded):>9}  "
-            f"{_f(leg.rmse_passt):>11}  {leg.reward_collected:>8.4f}"
+            f"{leg.index + 1:>3}  {leg.n_samples:>7}  {same:<9}  {_f(leg.rmse_passt_recorded, unit):>9}  "
+            f"{_f(leg.rmse_passt, unit):>11}  {leg.reward_collected:>8.4f}"
         )
         if leg.path_identical is False:
             print(f"     recorded {leg.recorded_path}")
@@ -86,7 +90,7 @@ def run(args: argparse.Namespace) -> int:
     if res.reproduced is None:
         print("counterfactual: paths above are what that choice would have planned on the same data")
     elif res.reproduced:
-        print(f"reproduced: every path identical, every RMSE within {res.rmse_tol:g}")
+        print(f"reproduced: every path identical, every RMSE within {unit(res.rmse_tol):g} {unit.label}")
     else:
         print(f"DIVERGED: first at leg {res.first_divergence + 1}")
     if res.out_dir:

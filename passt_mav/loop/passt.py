@@ -40,6 +40,7 @@ from typing import Any, Protocol, runtime_checkable
 import numpy as np
 
 from passt_mav.errors import PlannerError, ReconstructionError
+from passt_mav.loop.blend import PRIOR_BLENDS, PRIOR_CANDIDATES, PRIOR_START_WEIGHTS, PriorBlend  # noqa: F401 - re-exported
 from passt_mav.loop.guard import GUARDS, OpenLoop, guard_record, relax_to_open_loop
 from passt_mav.loop.online import ModelUpdate, OnlineUpdate
 from passt_mav.loop.presets import DEFAULT
@@ -312,33 +313,18 @@ class PasstLoop:
             with a predictor and ``prior="forecast"``. A caller may set ``gp.background``
             itself beforehand (the lockstep engine computes it once for all trials).
         prior_blend: "off" (the forecast restarted from the last estimate is the GP's prior mean),
-            "bma" or "select": a prior that knows when it is wrong. Each leg's samples are
-            evidence about the full-field forecasts that could have been the leg's background
-            (:data:`PRIOR_CANDIDATES`): the model restarted from the last estimate ("model"), the
-            model alone from the first leg's initial state ("open_loop", never re-initialised, so
-            what no leg could see is never lost) and persistence (the leg's initial state held).
-            Each is scored by the innovation likelihood of its residual at the samples under the
-            GP's stationary kernels and sensor noise as they stand before this leg's fit
-            (:meth:`GPReconstructor.innovation_loglik` with ``modes=False``: one covariance for
-            all, so the smaller and smoother residual wins; the background and offset modes are
-            left out because they describe the flow's own variability, under which a larger
-            residual can score better). Every candidate is a whole-field forecast: far from the
-            samples the analysis is a forecast, never a zero mean. Log weights add up leg by leg
-            with a ``forgetting`` factor: "bma" forgets towards the uniform
-            (``lw <- forgetting * lw + ll``; Bayesian model averaging, Hoeting et al. 1999,
-            Statist. Sci. 14; forgetting as in Raftery, Karny & Ettler 2010, Technometrics 52)
-            and mixes the candidates by their weights; "select" forgets towards the start weights
-            (``lw <- forgetting * lw + (1 - forgetting) * log p0 + ll``) and takes the most
-            probable candidate alone (the model on a tie), so a right model is never mixed with a
-            share of a worse one. The weights are updated with the leg's own samples before its
-            reconstruction, the same mixture carries the estimate between legs (:meth:`blend`),
-            and each leg's record is in ``blend_history_``.
+            "bma" or "select": a prior that knows when it is wrong (:mod:`passt_mav.loop.blend`). Each
+            leg's samples score the whole-field forecasts that could have been its background (the model
+            restarted, the model alone from the first leg's initial state, persistence) by the innovation
+            likelihood of their residuals under the GP's stationary kernels and sensor noise as they stand
+            before this leg's fit (:meth:`GPReconstructor.innovation_loglik` with ``modes=False``: one
+            covariance for all, so the smaller and smoother residual wins); "bma" mixes them by their
+            weights, "select" takes the most probable alone. The weights are updated with the leg's own
+            samples before its reconstruction, the same mixture carries the estimate between legs
+            (:meth:`blend`), and each leg's record is in ``blend_history_``.
         forgetting: the blend's forgetting factor in [0, 1] (memory of about 1 / (1 - forgetting) legs).
-        share: "fixed share" of the prior weights in [0, 1] (Herbster & Warmuth 1998, Machine
-            Learning 32): before each leg's update the weights are mixed with ``share`` of the
-            uniform, so no candidate falls below ``share / K`` and one leg where a good model
-            misses costs at most about ln(K / share) nats to win back (0 = off). With a share the
-            blend starts on the model alone.
+        share: the blend's "fixed share" of the prior weights in [0, 1] (0 = off; with a share the blend
+            starts on the model alone).
         guard: "on" (default) or "off": before a leg's samples enter the estimate, the loop's
             forecast (restarted from the last estimate) and the model alone are scored at them
             (RMSE and innovation likelihood, :func:`passt_mav.loop.guard.guard_record`; no truth
@@ -409,17 +395,10 @@ class PasstLoop:
         self.keep_std = False
         self.leg_index = 0
         self._cell = grid.cell_size_m
-        self.prior_blend = prior_blend if predictor is not None and prior == "forecast" else "off"
-        self.forgetting = float(forgetting)
-        self.share = float(share)
-        #: log weights of the candidate priors (:data:`PRIOR_CANDIDATES`), and one record per leg
-        #: what the forgetting factor returns the weights to without evidence (:func:`_prior_weights`)
-        self._log_prior = np.log(_prior_weights(self.share))
-        # the start: those weights, but with a share the model alone (the share's first mixing gives the
-        # others share / K: the share is the only doubt a trusted model starts with); log 0 = -inf, mixed before use
-        with np.errstate(divide="ignore"):
-            self.log_weights_ = np.log(np.eye(len(PRIOR_CANDIDATES))[0]) if self.share > 0 else self._log_prior.copy()
-        self.blend_history_: list[dict] = []
+        #: the candidate priors' weights (:class:`passt_mav.loop.blend.PriorBlend`)
+        self.blend_ = PriorBlend(
+            prior_blend if predictor is not None and prior == "forecast" else "off", forgetting, share
+        )
         #: per-cell memory of the local error past samples removed (``memory="fitted"``), else None
         self.memory = None
         if memory == "fitted" and reward in REWARDS_USING_PRIOR:
@@ -750,46 +729,54 @@ class PasstLoop:
 
         return loglik
 
-    def _candidates(self, fc: np.ndarray, open_fc: np.ndarray) -> list[np.ndarray]:
-        """The candidate prior trajectories of :data:`PRIOR_CANDIDATES`: the loop's forecast ``fc``
-        ((S+1, 2, R, C)), the model alone over the same times ``open_fc`` (:meth:`open_loop_forecast`)
-        and persistence of ``fc``'s first snapshot."""
-        return [fc, np.asarray(open_fc, np.float64), np.repeat(fc[:1], fc.shape[0], axis=0)]
+    # -- the prior blend (passt_mav.loop.blend), as the loop's own attributes ------------------------------
+    @property
+    def prior_blend(self) -> str:
+        """``"off"``, ``"bma"`` or ``"select"`` (:class:`~passt_mav.loop.blend.PriorBlend`)."""
+        return self.blend_.mode
+
+    @property
+    def forgetting(self) -> float:
+        return self.blend_.forgetting
+
+    @property
+    def share(self) -> float:
+        return self.blend_.share
+
+    @property
+    def log_weights_(self) -> np.ndarray:
+        """Log weights of :data:`~passt_mav.loop.blend.PRIOR_CANDIDATES`."""
+        return self.blend_.log_weights
+
+    @property
+    def blend_history_(self) -> list[dict]:
+        """One record per leg the blend weighed (:meth:`PriorBlend.observe`)."""
+        return self.blend_.history
 
     def weights(self) -> np.ndarray:
-        """Current weights of :data:`PRIOR_CANDIDATES` (sum 1)."""
-        lw = self.log_weights_ - self.log_weights_.max()
-        w = np.exp(lw)
-        return w / w.sum()
+        """Current weights of :data:`~passt_mav.loop.blend.PRIOR_CANDIDATES` (sum 1)."""
+        return self.blend_.weights()
 
     def mixing_weights(self) -> np.ndarray:
-        """The weights the prior mixes :data:`PRIOR_CANDIDATES` with: :meth:`weights` (``"bma"``), or
-        all on the most probable one (``"select"``; the model on a tie)."""
-        w = self.weights()
-        if self.prior_blend != "select":
-            return w
-        one = np.zeros_like(w)
-        one[int(np.argmax(w))] = 1.0
-        return one
+        """The weights the prior mixes the candidates with (:meth:`PriorBlend.mixing_weights`)."""
+        return self.blend_.mixing_weights()
+
+    def _candidates(self, fc: np.ndarray, open_fc: np.ndarray) -> list[np.ndarray]:
+        return PriorBlend.candidates(fc, open_fc)
 
     def blend(self, fc: np.ndarray, t_start: float = 0.0, dt: float = 1.0) -> np.ndarray:
         """The estimate a model forecast ``fc`` ((S+1, 2, R, C) from field time ``t_start``, ``dt``
         apart) stands for: ``fc`` itself, or with ``prior_blend`` "bma" / "select" the candidates'
         mixture under :meth:`mixing_weights` (float32)."""
-        if self.prior_blend == "off":
-            return fc
-        w = self.mixing_weights()
-        if np.count_nonzero(w) == 1 and w[0] == 1.0:
-            return fc
-        cands = self._candidates(np.asarray(fc, np.float64), self.open_loop_forecast(t_start, dt, fc.shape[0]))
-        return sum(float(wk) * ck for wk, ck in zip(w, cands) if wk).astype(np.float32)
+        return self.blend_.mix(fc, lambda: self.open_loop_forecast(t_start, dt, fc.shape[0]))
 
     def _weigh_priors(self, fc, traj, ts, samples, xy, st, open_fc, open_at):
-        """Score the candidate priors on this leg's samples, update the weights, return the
-        mixture trajectory and its values at the samples (see ``prior_blend``)."""
+        """Score the candidate priors on this leg's samples (innovation log likelihood under the GP's
+        stationary kernels, nats), update the weights, return the mixture trajectory and its values at the
+        samples (see ``prior_blend``)."""
         from passt_mav.fields.field import FlowField
 
-        cands = self._candidates(np.asarray(fc, np.float64), open_fc)
+        cands = PriorBlend.candidates(np.asarray(fc, np.float64), open_fc)
         ats = [traj.interp(ts, samples.r, samples.c), open_at]
         for c in cands[2:]:
             ats.append(FlowField(c, self.grid, traj.times).interp(ts, samples.r, samples.c))
@@ -803,50 +790,12 @@ class PasstLoop:
                 for a in ats
             ]
         )
-        if self.share > 0:  # fixed share: every candidate keeps share / K of the weight
-            w0 = self.weights()
-            self.log_weights_ = np.log((1.0 - self.share) * w0 + self.share / w0.size)
-        # forgetting: "select" discounts old evidence towards the start weights (a decision whose null is the
-        # trusted model, which noise must not erode), "bma" towards the uniform (Raftery et al.'s averaging)
-        back = self._log_prior if self.prior_blend == "select" else 0.0
-        self.log_weights_ = self.forgetting * self.log_weights_ + (1.0 - self.forgetting) * back + ll
-        w = self.mixing_weights()
-        self.blend_history_.append(
-            {
-                "leg": self.leg_index,
-                "log_likelihood": {k: float(v) for k, v in zip(PRIOR_CANDIDATES, ll)},
-                "weights": {k: float(v) for k, v in zip(PRIOR_CANDIDATES, w)},
-                **(
-                    {"posterior": dict(zip(PRIOR_CANDIDATES, map(float, self.weights())))}
-                    if self.prior_blend == "select"
-                    else {}
-                ),
-            }
-        )
+        w = self.blend_.observe(self.leg_index, ll)
         mix = sum(float(wk) * c for wk, c in zip(w, cands) if wk).astype(np.float32)
         f_at = sum(float(wk) * a for wk, a in zip(w, ats) if wk)
         return mix, f_at
 
 
-#: the priors a ``prior_blend="bma"`` / ``"select"`` loop weighs, each a whole-field forecast: the model
-#: restarted from the last estimate, the model alone from the first leg's initial state, persistence
-#: (the leg's initial state held)
-PRIOR_CANDIDATES = ("model", "open_loop", "persistence")
-#: their weights before any leg: the model trusted (its own validation said it beats persistence)
-PRIOR_START_WEIGHTS = (0.9, 0.1, 0.1)
-
-
-def _prior_weights(share: float) -> np.ndarray:
-    """The weights ``prior_blend="select"``'s forgetting factor pulls :data:`PRIOR_CANDIDATES` back to
-    where legs bring no evidence: :data:`PRIOR_START_WEIGHTS`, or with a ``share`` the model alone mixed with the share
-    (``1 - share + share / K`` against ``share / K``; finite, unlike the start)."""
-    if share <= 0:
-        return np.array(PRIOR_START_WEIGHTS, np.float64)
-    return (1.0 - share) * np.eye(len(PRIOR_CANDIDATES))[0] + share / len(PRIOR_CANDIDATES)
-
-
-#: values of ``PasstLoop(prior_blend=...)``
-PRIOR_BLENDS = ("off", "bma", "select")
 #: the information prior's per-cell memory of past samples (:class:`passt_mav.loop.memory.CellMemory`)
 MEMORIES = ("off", "fitted")
 

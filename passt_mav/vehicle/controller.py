@@ -118,6 +118,7 @@ from passt_mav.loop.legstep import (  # noqa: F401 - the between-leg step's buil
 )
 from passt_mav.runs.legs import clock_statustext
 from passt_mav.runs.live import RecordWriter
+from passt_mav.units import SpeedUnit, speed_unit
 from passt_mav.vehicle.clock import RunClock
 from passt_mav.vehicle.console import Ended
 from passt_mav.vehicle.live_record import live_meta, live_status
@@ -792,7 +793,7 @@ class MissionController(ResumeRecord, OperatorLegs):
         self.leg_records = [x for x in self.leg_records if int(x["index"]) != i] + [rec]
         self._write_summary()
         self.record.event("leg_end", f"{self._leg_label(i)} done: {rec['n_samples']} samples")
-        self._say(f"{self._leg_label(i)}: {_progress_line(rec)}")
+        self._say(f"{self._leg_label(i)}: {_progress_line(rec, speed_unit(self.config.field.velocity_scale))}")
         guard = rec.get("guard") or {}
         if guard.get("message"):  # the guard (passt_mav.loop.guard): the forecast alone fitted the samples better
             self.record.event("guard", guard["message"], level="warn" if guard.get("alarm") else "info")
@@ -878,10 +879,11 @@ def missing_readings(tb_ms: np.ndarray) -> int:
     return int(np.sum(np.round(big / period) - 1))
 
 
-def _progress_line(rec: dict) -> str:
-    """A completed leg's figures in one line of progress (after its label)."""
+def _progress_line(rec: dict, unit: SpeedUnit) -> str:
+    """A completed leg's figures in one line of progress (after its label); RMSEs (recorded in field units)
+    in ``unit`` (m/s for a mission: :mod:`passt_mav.units`)."""
     r_p, r_m, link = rec["rmse_passt"], rec["rmse_model"], rec["link"]
-    rm = "" if r_p is None else f", RMSE passt {r_p:.4f} model {r_m if r_m is None else round(r_m, 4)}"
+    rm = "" if r_p is None else f", RMSE passt {unit.text(r_p)} model {unit.text(r_m)}"
     rtt = "-" if link["rtt_ms"] is None else f"{link['rtt_ms']:.1f} ms"
     rd = rec.get("readings") or {}
     used = "" if not rd.get("received") else f" of {rd['received']} readings ({100 * rd['fraction_used']:.0f} % used)"
@@ -964,6 +966,10 @@ def run_summary(ctl) -> dict:
         "rmse": rm if ctl.truth_known else None,
         "rmse_note": "RMSE over water cells vs the mission's field at the state time; 'model' = the predictor "
         "alone from the true state at t0, never re-initialised"
+        if ctl.truth_known
+        else None,
+        # what programs read stays in the loop's units; people read m/s (passt_mav.units)
+        "rmse_units": "field units (times config.field.velocity_scale = m/s), as leg.json's rmse_passt/rmse_model"
         if ctl.truth_known
         else None,
         "clock": ctl._clock_with_boots().describe(),

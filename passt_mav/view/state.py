@@ -21,6 +21,7 @@ from passt_mav.runs.commands import read_commands
 from passt_mav.runs.live import read_events, read_statuses
 from passt_mav.runs.rundir import RunDir
 from passt_mav.runs.store import SampleStore, SampleStoreError
+from passt_mav.units import SpeedUnit, run_speed_unit
 
 __all__ = ["RunState", "signature"]
 
@@ -143,7 +144,8 @@ class RunState:
         out.update({int(r["sysid"]): int(r["boat"]) for r in legs if r.get("sysid") is not None and "boat" in r})
         return out
 
-    def _leg_rows(self, grid) -> list[dict]:
+    def _leg_rows(self, grid, unit: SpeedUnit) -> list[dict]:
+        """The legs for the page; their RMSEs (recorded in field units) in ``unit``."""
         out = []
         for rec in self._legs():
             path = rec.get("path") or []
@@ -162,8 +164,8 @@ class RunState:
                     "waypoints": rec.get("waypoints") or [],
                     "t_start": rec.get("t_start"),
                     "t_end": rec.get("t_end"),
-                    "rmse_passt": rec.get("rmse_passt"),
-                    "rmse_model": rec.get("rmse_model"),
+                    "rmse_passt": unit(rec.get("rmse_passt")),
+                    "rmse_model": unit(rec.get("rmse_model")),
                     "guard": rec.get("guard"),
                     "n_samples": rec.get("n_samples"),
                     "approval": rec.get("approval"),
@@ -192,8 +194,9 @@ class RunState:
             self._events += new
             self._new_samples()
             statuses = read_statuses(self.root)
-            legs = self._leg_rows(grid)
             summary = _read_json(self.rd.summary_file) or {}
+            unit = run_speed_unit(summary, meta)
+            legs = self._leg_rows(grid, unit)
             return {
                 "meta": {k: v for k, v in meta.items() if k != "land"},
                 "root": str(self.root),
@@ -204,7 +207,9 @@ class RunState:
                 "legs": legs,
                 "events": self._events[-300:],
                 "n_events": len(self._events),
-                "estimate": self._estimate_info(grid, meta, legs),
+                "estimate": self._estimate_info(grid, meta, legs, unit),
+                # every speed and RMSE above is in this unit (m/s for a mission); samples are m/s as measured
+                "units": unit.as_dict(),
                 "rmse": _rmse(legs),
                 "guard_warning": _guard_warning(legs),
                 "n_samples": len(self._samples),
@@ -272,8 +277,9 @@ class RunState:
             return None
         return None if std is None else std[-1]
 
-    def _estimate_info(self, grid, meta: dict, legs: list[dict]) -> dict | None:
-        """The newest estimate (else the newest forecast) as arrows, and which rasters exist."""
+    def _estimate_info(self, grid, meta: dict, legs: list[dict], unit: SpeedUnit) -> dict | None:
+        """The newest estimate (else the newest forecast) as arrows, and which rasters exist; speeds (the
+        arrows' u/v, ``vmax``, ``std_range``) in ``unit``."""
         if grid is None:
             return None
         est = [r["index"] for r in legs if self.rd.estimate_file(r["index"]).exists()]
@@ -287,13 +293,14 @@ class RunState:
             "reward_leg": reward[-1] if reward else None,
             "reward_range": next((r["reward_range"] for r in legs if reward and r["index"] == reward[-1]), None),
             "std": std is not None,
-            "std_range": None if std is None else _range(np.hypot(std[0], std[1])),
+            "std_range": None if std is None else _range(np.hypot(std[0], std[1]) * unit.per_field_unit),
         }
         if kind is None:
             return info
         uv = self.field_uv(kind, leg)
         if uv is None:
             return info
+        uv = uv * np.float32(unit.per_field_unit)
         step = max(1, int(np.ceil(max(grid.shape) / MAX_ARROWS_SIDE)))
         rows, cols = np.mgrid[0 : grid.shape[0] : step, 0 : grid.shape[1] : step]
         lat, lon = grid.cell_to_latlon(rows.ravel(), cols.ravel())

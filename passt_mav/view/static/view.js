@@ -78,13 +78,19 @@
       ')"></span>' + fmt(hi, 3) + '</div>';
   }
 
+  // the unit of every speed and RMSE the server sends (m/s for a mission: passt_mav.units)
+  function unitLabel() {
+    var s = window.passtView.last;
+    return (s && s.units && s.units.label) || 'm/s';
+  }
+
   function drawLegend(e) {
     e = e || (window.passtView.last && window.passtView.last.estimate);
     if (!e || !e.kind) { $('legend').textContent = 'no estimate yet'; return; }
     var when = e.kind === 'estimate' ? 'estimate after leg ' + (e.leg + 1) : 'model forecast of leg ' + (e.leg + 1);
     var html = base === 'std' ? (e.std_range ? ramp('std', e.std_range[0], e.std_range[1],
-      'GP posterior std |(std u, std v)|, ' + when + ' (field units)') : 'no posterior std yet') :
-      ramp('speed', 0, e.vmax, 'speed of the ' + when + ' (field units)');
+      'GP posterior std |(std u, std v)|, ' + when + ' (' + unitLabel() + ')') : 'no posterior std yet') :
+      ramp('speed', 0, e.vmax, 'speed of the ' + when + ' (' + unitLabel() + ')');
     if (map.hasLayer(G.reward) && e.reward_range) {
       html += ramp('reward', e.reward_range[0], e.reward_range[1], 'reward map that chose leg ' + (e.reward_leg + 1));
     }
@@ -304,6 +310,7 @@
     var ft = s.boats.map(function (b) { return (b.status || {}).field_time; }).filter(function (x) { return x != null; });
     $('clock').textContent = ft.length ? 'field time ' + fmt(Math.max.apply(null, ft), 0) : '';
     drawRegion(s); drawArrows(s.estimate); drawBoats(s); drawPanels(s); drawConsoleNote(s); drawAlerts(s); alarm(s);
+    $('rmse-unit').textContent = unitLabel();
     drawRmse(s.rmse);
   }
 
