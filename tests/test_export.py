@@ -301,17 +301,23 @@ def test_csv_has_one_row_per_sample(run3, tmp_path, capsys):
     out = tmp_path / "samples.csv"
     assert export([str(run3["rd"].root), "--format", "csv", "--out", str(out)], capsys)[0] == 0
     rows = list(csv.DictReader(out.open()))
-    assert list(rows[0]) == [
-        "time_utc",
-        "lat_deg",
-        "lon_deg",
-        "u_m_s",
-        "v_m_s",
-        "boat",
-        "leg",
-        "vehicle_utc",
-        "field_time",
-    ]
+    from passt_mav.analysis.export_geo import CSV_COLUMNS
+
+    assert (
+        list(rows[0])
+        == CSV_COLUMNS
+        == [
+            "time_utc",
+            "lat_deg",
+            "lon_deg",
+            "u_m_s",
+            "v_m_s",
+            "boat",
+            "leg",
+            "vehicle_utc",
+            "field_time",
+        ]
+    )
     assert len(rows) == len(run3["samples"])
     assert rows[0]["time_utc"] == "2018-03-01T00:00:00.000Z" and rows[0]["boat"] == "0"
     # this run records no clock (summary.json without one): the vehicle's UTC, field time unknown

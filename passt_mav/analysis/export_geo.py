@@ -30,7 +30,10 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["features", "geojson_text", "kml_text", "csv_text"]
+__all__ = ["CSV_COLUMNS", "features", "geojson_text", "kml_text", "csv_text"]
+
+#: the CSV's columns, units in their names (a spreadsheet shows no attributes)
+CSV_COLUMNS = ["time_utc", "lat_deg", "lon_deg", "u_m_s", "v_m_s", "boat", "leg", "vehicle_utc", "field_time"]
 
 _KML_NS = "http://www.opengis.net/kml/2.2"
 #: KML line colours per boat (aabbggrr)
@@ -184,8 +187,7 @@ def csv_text(run) -> tuple[str, dict]:
 
     buf = io.StringIO()
     w = csv.writer(buf, lineterminator="\n")
-    # units in the column names: a spreadsheet shows no attributes
-    w.writerow(["time_utc", "lat_deg", "lon_deg", "u_m_s", "v_m_s", "boat", "leg", "vehicle_utc", "field_time"])
+    w.writerow(CSV_COLUMNS)
     n = 0
     if run.samples:
         c = sample_table(run)
