@@ -24,7 +24,18 @@ def hf_radar_path() -> Path:
 #: test modules (besides the ``sitl`` tests) that run a simulator in wall time: one at a time under xdist
 WALL_CLOCK_MODULES = {"test_view_browser"}
 #: test modules holding tests of half a minute or more (training, a tutorial flight, reports): started first
-LONG_TEST_MODULES = {"test_training", "test_getting_started", "test_counterfactual", "test_report", "test_run_missions"}
+LONG_TEST_MODULES = {
+    "test_training",
+    "test_getting_started",
+    "test_counterfactual",
+    "test_report",
+    "test_run_missions",
+    "test_console_browser",
+    "test_determinism",
+    "test_resilience",
+    "test_fleet_controller",
+    "test_cylinder",
+}
 #: test modules whose module-scoped fixtures take seconds to build (a flight, a campaign, a log, a fitted model)
 COSTLY_FIXTURE_MODULES = {
     "test_dataflash_legs",
@@ -56,14 +67,21 @@ def pytest_collection_modifyitems(config, items):
       each. Modules whose module fixtures are cheap (a small synthetic field) are not grouped: their
       tests spread over the workers, which matters for long modules such as test_training.
 
-    Every other test goes to whichever worker is free; the modules in ``LONG_TEST_MODULES`` are
-    collected first, so that their minute-long tests start early instead of ending the run alone on
-    one worker while the other waits.
+    Every other test goes to whichever worker is free; the ``wall_clock`` group and the modules in
+    ``LONG_TEST_MODULES`` are collected first, so that their minute-long tests start early instead of
+    ending the run alone on one worker while the other waits.
     """
     import sitl as sitl_mod  # tests/sitl.py (tests/ is on sys.path)
 
     reason = sitl_mod.unavailable_reason()
-    items.sort(key=lambda it: getattr(getattr(it, "module", None), "__name__", "") not in LONG_TEST_MODULES)
+
+    def late(it) -> bool:
+        """Collected after the long ones: the wall-clock group (minutes on one worker) and the long modules
+        start first, so that neither ends the run alone on one worker while the other waits."""
+        name = getattr(getattr(it, "module", None), "__name__", "")
+        return not ("sitl" in it.keywords or name in WALL_CLOCK_MODULES or name in LONG_TEST_MODULES)
+
+    items.sort(key=late)
     for item in items:
         module = getattr(item, "module", None)
         if "sitl" in item.keywords and reason:
