@@ -51,6 +51,7 @@ COSTLY_FIXTURE_MODULES = {
 }
 
 
+@pytest.hookimpl(optionalhook=True)  # pytest-xdist's hook: unknown under -p no:xdist
 def pytest_xdist_auto_num_workers(config):
     """``-n auto``: one worker per core, and one more. The ``wall_clock`` group's tests (the firmware, a demo
     paced at a speed-up) spend most of their time waiting (the SITL tests use about a quarter of a core),
