@@ -439,3 +439,50 @@ def test_console_keys_send_approve_and_reject(tmp_path):
         ("reject", "all", "console"),
         ("approve", "all", "console"),
     ]
+
+
+def test_a_leg_that_would_overrun_the_budget_is_shortened_before_upload(lockstep_run):
+    """A 250 m distance budget (RTL when spent) against 5-move legs of ~40 m cells: leg 1 is uploaded with only the
+    waypoints that fit with the way home kept in reserve, and the vehicle holds that shorter mission; a later leg
+    does not fit at all and the run ends cleanly (RTL); ``--resume`` with a larger budget flies to the end."""
+    import geo
+
+    sim, make, rd = lockstep_run
+    ap = sim.autopilot
+    ctl = make(3, {"max_distance_m": 250})
+    summary = ctl.run()
+    assert summary["status"] == "ended" and ap.mode == RTL
+    legs = summary["legs"]
+    short = legs[0]["budget_shortened"]
+    k, n = short["kept"], short["of"]
+    assert 1 <= k < n and len(legs[0]["waypoints"]) == k and short["budget_left_m"] == 250
+    # the way home (to the vehicle's HOME_POSITION) from the last waypoint kept is in reserve
+    last = legs[0]["waypoints"][-1]
+    home_m = float(geo.geodesic_distance_m(last[0], last[1], *ap.home_latlon))
+    assert short["return_m"] == pytest.approx(home_m, abs=0.1)
+    assert short["distance_m"] + short["return_m"] <= 250 < short["planned_distance_m"] + short["return_m"]
+    # the mission read back from the vehicle (the last one uploaded): home, DO_CHANGE_SPEED and the waypoints kept
+    items = ctl.vehicle.mission.download()
+    assert len(items) == len(legs[-1]["waypoints"]) + 2 == legs[-1]["budget_shortened"]["kept"] + 2
+    got = [x for it in items[2:] for x in (it.lat, it.lon)]
+    assert got == pytest.approx([x for w in legs[-1]["waypoints"] for x in w], abs=1e-7)
+    texts = [e["text"] for e in read_events(rd.root)[0] if e["kind"] == "budget"]
+    assert texts[0].startswith(f"leg 1 shortened: {k} of {n} waypoints") and "budget left 250 m" in texts[0]
+    assert f"leg {len(legs) + 1} does not fit" in summary["budget"]["spent"] and "RTL" in texts[-1]
+    assert len(legs) < 3 and rd.read_legs()[-1]["index"] == len(legs) - 1  # the leg that did not fit: not written
+    # --resume (a larger budget) plans the leg that did not fit and flies on to the end
+    again = make(3, {"max_distance_m": 5000}, resume=True).run()
+    assert again["status"] == "complete" and [lg["index"] for lg in again["legs"]] == [0, 1, 2]
+    assert "budget_shortened" not in again["legs"][-1]
+
+
+def test_waypoints_that_fit_the_budget():
+    from passt_mav.vehicle.budget import waypoints_that_fit
+
+    to_wp, back = [10.0, 60.0, 110.0, 160.0], [50.0, 20.0, 30.0, 80.0]
+    assert waypoints_that_fit(to_wp, [0.0] * 4, None, None, 2.0) == 4
+    assert waypoints_that_fit(to_wp, [0.0] * 4, 110.0, None, 2.0) == 3  # 110 m fits exactly
+    assert waypoints_that_fit(to_wp, back, 110.0, None, 2.0) == 2  # 60 + 20 m home; 110 + 30 does not
+    assert waypoints_that_fit(to_wp, back, None, 40.0, 2.0) == 2  # 80 m = 40 s at 2 m/s
+    assert waypoints_that_fit(to_wp, back, 500.0, 39.0, 2.0) == 1
+    assert waypoints_that_fit(to_wp, back, 59.0, None, 2.0) == 0

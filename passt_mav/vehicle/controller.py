@@ -570,7 +570,9 @@ class MissionController(ResumeRecord, OperatorLegs):
         planned = self._plan(i, state, t_state)
         with self.lock, self.signals.critical():
             wm = self._checked_mission(i, planned)
-            rec = self._write_plan(i, planned, wm)
+        wm, shortened = self._fit_budget(i, planned, wm)  # (passt_mav.vehicle.operator; may end the run)
+        with self.lock, self.signals.critical():
+            rec = self._write_plan(i, planned, wm, shortened)
         if self.config.approve.enabled:
             self._approve(i, rec, wm)
         link0, store0 = self.session.link_snapshot(), self.store.count(i)
@@ -645,17 +647,18 @@ class MissionController(ResumeRecord, OperatorLegs):
         except MavlinkError as exc:  # a log record, not a command: a dead link shows up at the upload
             log.warning("clock STATUSTEXT not sent: %s", exc)
 
-    def _checked_mission(self, i: int, planned):
-        """The leg's :class:`WaypointMission`; raises before anything is uploaded when the path or a
-        waypoint leaves the grid or the geofence (region + ``geofence_margin_m``)."""
+    def _checked_mission(self, i: int, planned, path=None):
+        """The leg's :class:`WaypointMission` (of ``path``, default the planned path); raises before anything is
+        uploaded when the path or a waypoint leaves the grid or the geofence (region + ``geofence_margin_m``)."""
         import geo
         from passt_mav.mission.waypoints import WaypointMission
 
         grid, margin = self.grid, float(self.config.geofence_margin_m)
-        geo.validate_path(grid, planned.plan.path)
+        path = planned.plan.path if path is None else path
+        geo.validate_path(grid, path)
         wm = WaypointMission.from_path(
             grid,
-            planned.plan.path,
+            path,
             speed=self.speed,
             wp_radius_m=self.config.vehicle.wp_radius_m,
             fence_margin_m=margin,
@@ -670,8 +673,9 @@ class MissionController(ResumeRecord, OperatorLegs):
             )
         return wm
 
-    def _write_plan(self, i: int, planned, wm) -> dict:
-        """Waypoints (.waypoints, .plan) and leg.json (status flying)."""
+    def _write_plan(self, i: int, planned, wm, shortened: dict | None = None) -> dict:
+        """Waypoints (.waypoints, .plan) and leg.json (status flying; ``shortened``: the budget's shortening,
+        :meth:`~passt_mav.vehicle.operator.OperatorLegs._fit_budget`)."""
         rd = self.rd
         rd.leg_dir(i)
         wm.to_wpl(rd.waypoints_file(i))
@@ -683,6 +687,8 @@ class MissionController(ResumeRecord, OperatorLegs):
             "waypoint_seqs": wm.waypoint_seqs(),
             "t_now": planned.t_now,
         }
+        if shortened is not None:
+            rec["budget_shortened"] = shortened
         if self._attempts.get(i):
             rec["attempts"] = self._attempts[i]
         rd.write_leg(i, rec)

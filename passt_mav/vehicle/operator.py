@@ -80,6 +80,64 @@ class OperatorLegs:
         elif how == "budget":
             self.leg_rec["budget_cut"] = {"reason": self.session.budget.reason, "at_item": at}
 
+    def _fit_budget(self, i: int, planned, wm) -> tuple:
+        """Leg ``i``'s mission ``wm`` fitted to what is left of the safety budget before its upload
+        (:mod:`passt_mav.vehicle.budget`): ``(wm, None)`` when it fits or no distance/time limit is set; else
+        ``(the mission of its first waypoints that fit, the record of the shortening)``, said as an event of kind
+        ``budget``. When not even its first waypoint fits, the run ends as at a spent budget (:class:`Ended`)."""
+        import geo
+
+        budget = self.session.budget
+        left_m, left_s = (None, None) if budget is None else budget.left()
+        if left_m is None and left_s is None:
+            return wm, None
+        wp = wm.waypoints
+        here = planned.start_latlon if planned.start_latlon is not None else tuple(wp[0])
+        pts = np.vstack([np.asarray(here, float)[None], wp])
+        to_wp = np.cumsum(geo.geodesic_distance_m(pts[:-1, 0], pts[:-1, 1], pts[1:, 0], pts[1:, 1]))
+        back, home = np.zeros(len(wp)), None
+        if self.config.budget.on_spent == "rtl" and (home := budget.home()) is not None:
+            back = np.asarray(geo.geodesic_distance_m(wp[:, 0], wp[:, 1], home[0], home[1]), float)
+        from passt_mav.vehicle.budget import waypoints_that_fit
+
+        k, n = waypoints_that_fit(to_wp, back, left_m, left_s, self.speed), len(wp)
+        if k == n:
+            return wm, None
+        left = ", ".join(
+            x
+            for x in (
+                None if left_m is None else f"{left_m:.0f} m",
+                None if left_s is None else f"{left_s:.0f} s",
+            )
+            if x
+        )
+        ret = "" if home is None else " (the way home from each waypoint kept in reserve: on_spent rtl)"
+        if k == 0:
+            budget.reason = (
+                f"leg {i + 1} does not fit: its first waypoint needs {to_wp[0] + back[0]:.0f} m{ret}, "
+                f"budget left {left}"
+            )
+            self._end_if_budget_spent()
+        p, idx = geo.waypoint_indices(self.grid, planned.plan.path)
+        short = self._checked_mission(i, planned, p[: idx[k - 1] + 1])
+        rec = {
+            "kept": k,
+            "of": n,
+            "distance_m": round(float(to_wp[k - 1]), 1),
+            "return_m": round(float(back[k - 1]), 1) if home is not None else None,
+            "planned_distance_m": round(float(to_wp[-1]), 1),
+            "budget_left_m": None if left_m is None else round(left_m, 1),
+            "budget_left_s": None if left_s is None else round(left_s, 1),
+            "path": p[: idx[k - 1] + 1].tolist(),
+        }
+        text = (
+            f"leg {i + 1} shortened: {k} of {n} waypoints ({to_wp[k - 1]:.0f} of {to_wp[-1]:.0f} m), "
+            f"budget left {left}{ret}"
+        )
+        self._note("budget", text)
+        self._say(text)
+        return short, rec
+
     def _approve(self, i: int, rec: dict, wm) -> None:
         """Approve mode (mission key ``approve``): leg ``i``'s record says ``awaiting_approval`` with its distance
         (m, along its waypoints) and expected duration (vehicle s) for the page, and the controller waits for the
