@@ -240,6 +240,35 @@ def test_battery_reserve_returns_the_boat_ends_cleanly_and_resume_continues(drai
     assert again["budget"]["spent"] is None and again["budget"]["battery_pct"] > 30
 
 
+def test_battery_status_is_asked_for_again_after_an_autopilot_reboot(tmp_path):
+    """The autopilot reboots early in leg 1 (lockstep, :class:`test_resilience.Faults`): a reboot forgets the rates
+    set by SET_MESSAGE_INTERVAL, and the controller's lean streams turn BATTERY_STATUS (and SYS_STATUS) off; the
+    controller asks for BATTERY_STATUS again, so the drained battery still reaches the reserve: RTL, ``ended``."""
+    from test_resilience import Faults, _chaos_controller, _flying, lockstep
+
+    field = wave_field()
+    budget = {"battery_reserve_pct": 30}
+    cfg = mission(tmp_path, field, legs=3, planner={"name": "greedy", "path_length": 5}, budget=budget)
+    rd = RunDir(tmp_path / "run").create()
+    with lockstep(field, sim_cfg=sim_config(battery_wh=6.0), link_kw={"timeout_s": 1.0}) as (sim, link, box):
+        faults = Faults(sim, box, max_rate=0)
+        ctl = _chaos_controller(box, cfg, field, link, rd, echo=None)
+        heard: list[float] = []  # the simulator's clock at each BATTERY_STATUS the controller got
+        link.add_listener(lambda m: heard.append(sim.t), "BATTERY_STATUS")
+        faults.at("reboot", _flying(box, 0, 1), lambda: sim.reboot(downtime_s=2.0))
+        summary = ctl.run()
+        ap = sim.autopilot
+        pct = battery(ap)[2]
+    assert "reboot" in faults.fired
+    t_reboot = faults.fired["reboot"]
+    assert any("vehicle rebooted" in e for e in summary["events"])
+    assert sum(t > t_reboot + 5.0 for t in heard) >= 10  # ~1 Hz after the reboot (and the EKF wait)
+    b = summary["budget"]
+    assert summary["status"] == "ended" and ap.mode == RTL and "battery" in b["spent"]
+    at_cut = float(b["spent"].split("battery: ")[1].split(" %")[0])  # the charge the cut was made at
+    assert 25 <= at_cut <= 30 and pct <= 30, (b, pct)
+
+
 def test_a_distance_budget_cuts_the_leg_and_holds(drained_run):
     sim, make, _rd = drained_run  # (the battery is not watched here: no reserve set)
     summary = make(3, {"max_distance_m": 150, "on_spent": "hold"}).run()

@@ -110,15 +110,14 @@ class SafetyBudget:
 
     def request_battery(self) -> None:
         """Ask the vehicle for BATTERY_STATUS at 1 Hz of its time (a fast simulator's lean streams leave it off),
-        the other streams left as they are; a refusal is logged (SYS_STATUS may still carry the charge). The
-        charge last reported before is forgotten."""
+        the other streams left as they are, and again whenever the link's streams are requested again (after an
+        autopilot reboot, a reconnect: :meth:`~passt_mav.mavlink.Link.keep_stream`); a refusal is logged (SYS_STATUS
+        may still carry the charge). The charge last reported before is forgotten."""
         if self.config.battery_reserve_pct is None:
             return
-        from passt_mav.mavlink.streams import request_streams
-
         # a charge reported before this session (a battery swapped meanwhile) must not end its first leg
         self.link.forget("SYS_STATUS", "BATTERY_STATUS")
-        request_streams(self.link, [("BATTERY_STATUS", 1.0)], quiet_others=False)
+        self.link.keep_stream("BATTERY_STATUS", 1.0)
 
     def _on_fix(self, m) -> None:
         """From the reader thread: one GLOBAL_POSITION_INT; the step from the last fix is added while a leg flies."""

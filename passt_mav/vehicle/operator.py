@@ -134,7 +134,8 @@ class OperatorLegs:
             f"leg {i + 1} shortened: {k} of {n} waypoints ({to_wp[k - 1]:.0f} of {to_wp[-1]:.0f} m), "
             f"budget left {left}{ret}"
         )
-        self._note("budget", text)
+        self.journal.events.append(text)
+        self.record.event("budget", text, level="warn")  # (a notice on the page, not an alarm: nothing is wrong yet)
         self._say(text)
         return short, rec
 
