@@ -372,6 +372,64 @@ def test_a_fence_breach_is_one_alert_until_it_clears():
     assert "boundary" in j.notes[0][1] and "breach 2" in j.notes[0][1]
 
 
+def test_vehicle_sim_reports_its_fence_as_rover_does():
+    """vehicle-sim's fence (vehicle_sim.fence): no FENCE_STATUS while FENCE_ENABLE is 0; enabled, FENCE_STATUS at the
+    extended status stream's 1 Hz; leaving the uploaded inclusion polygon is a boundary breach (count 1, its time
+    since boot), sent at once, and FENCE_ACTION 2 holds the armed boat; back inside, the breach clears."""
+    from pymavlink.dialects.v20 import ardupilotmega as M
+
+    from vehicle_sim.mission_server import Item
+
+    sim = Simulator(wave_field(), home=HOME, config=sim_config())
+    ap = sim.autopilot
+    got: list[tuple[float, object]] = []
+    sim.connect_inprocess()  # one link to the vehicle: what it sends there is kept here (FENCE_STATUS)
+    ap._send_raw = lambda _link, m: got.append((ap.t, m)) if m.get_type() == "FENCE_STATUS" else None
+    sim.step(50.0)  # booted, GPS, home set
+    assert ap.home_set and got == []  # the fence disabled: no FENCE_STATUS
+    # a 40 m square about the boat (fence list, mission type 1), the circle off; the boat armed in MANUAL
+    x0, y0 = ap.boat.x, ap.boat.y
+    corners = [ap.frame.to_latlon(x0 + dx, y0 + dy) for dx, dy in ((-20, -20), (20, -20), (20, 20), (-20, 20))]
+    ap.store.items[1] = [
+        Item(k, 0, M.MAV_CMD_NAV_FENCE_POLYGON_VERTEX_INCLUSION, 0, 1, 4, 0, 0, 0, round(a * 1e7), round(b * 1e7), 0, 1)
+        for k, (a, b) in enumerate(corners)
+    ]
+    ap.params.update(FENCE_ENABLE=1, FENCE_TYPE=4, FENCE_ACTION=2)
+    assert ap.arm(force=True) == M.MAV_RESULT_ACCEPTED
+    t0 = ap.t
+    sim.step(5.0)
+    inside = [m for _, m in got]
+    assert 4 <= len(inside) <= 6 and all(m.breach_status == 0 and m.breach_count == 0 for m in inside)
+    # outside the square (30 m east): a boundary breach, sent at once, and the boat held
+    ap.boat.x = x0 + 30.0
+    n = len(got)
+    sim.step(ap.cfg.physics_dt)
+    (t_b, m) = got[n]
+    assert (m.breach_status, m.breach_count, m.breach_type) == (1, 1, M.FENCE_BREACH_BOUNDARY)
+    assert m.breach_time == ap.time_boot_ms and t_b > t0 + 5.0
+    assert ap.mode == ROVER_MODES["HOLD"]
+    ap.boat.x = x0  # back inside: cleared, the count kept
+    sim.step(2.0)
+    last = got[-1][1]
+    assert (last.breach_status, last.breach_count, last.breach_type) == (0, 1, M.FENCE_BREACH_NONE)
+
+
+def test_a_fence_breach_on_vehicle_sim_becomes_the_pages_alert(lockstep_run):
+    """End to end: vehicle-sim's circular fence (60 m about home, report only) is left by the first leg; the
+    controller's alert reaches events.jsonl and the live page's state as an alert, once, with its type and count."""
+    from passt_mav.view.state import RunState
+
+    sim, make, rd = lockstep_run
+    sim.autopilot.params.update(FENCE_ENABLE=1, FENCE_TYPE=2, FENCE_RADIUS=60.0, FENCE_ACTION=0)
+    summary = make(legs=1).run()
+    assert summary["status"] == "complete"
+    events = RunState(rd.root).snapshot()["events"]
+    fence = [e for e in events if e["kind"] in ("fence_breach", "fence_clear")]
+    assert fence and fence[0]["kind"] == "fence_breach" and fence[0]["level"] == "alert"
+    assert "fence breach (boundary, breach 1)" in fence[0]["text"]
+    assert sum(e["kind"] == "fence_breach" for e in fence) == sim.autopilot.fence.breach_count
+
+
 def test_a_failsafe_statustext_from_the_vehicle_becomes_an_alert_once():
     from pymavlink.dialects.v20 import ardupilotmega as M
 
