@@ -9,6 +9,7 @@ reaches a state, and waits for the controller's answer (an event of kind ``comma
 from __future__ import annotations
 
 import contextlib
+import json
 import threading
 import time
 
@@ -86,18 +87,20 @@ def _flying(ctl, leg: int = 0) -> bool:
 
 
 @contextlib.contextmanager
-def lockstep_session(tmp_path, **sim_kw):
+def lockstep_session(tmp_path, tlog: bool = False, **sim_kw):
     """(sim, controller factory, run dir): the simulator in lockstep (``sim_kw`` to its config), the controller's
-    link stepping it; ``make(legs, budget=None, approve=None, **controller_kw)`` makes a controller for a mission of
-    5-move legs."""
+    link stepping it (``tlog``: writing the run's telemetry log); ``make(legs, budget=None, approve=None,
+    **controller_kw)`` makes a controller for a mission of 5-move legs."""
     field = wave_field()
     sim = Simulator(field, home=HOME, config=sim_config(**sim_kw))
     sim.serve([], lockstep=True)
+    rd = RunDir(tmp_path / "run").create()
     link = Link(
-        link_config(lockstep_s=0.5, lockstep_pace=SPEEDUP, stream_rates_hz=LEAN_STREAMS),
+        link_config(
+            lockstep_s=0.5, lockstep_pace=SPEEDUP, stream_rates_hz=LEAN_STREAMS, tlog=str(rd.tlog) if tlog else None
+        ),
         connection_factory=inprocess_factory(sim),
     )
-    rd = RunDir(tmp_path / "run").create()
 
     def make(legs: int = 2, budget: dict | None = None, approve: dict | None = None, **kw):
         over = {k: v for k, v in (("budget", budget), ("approve", approve)) if v}
@@ -194,6 +197,30 @@ def test_replan_plans_the_leg_again_keeping_the_attempt(lockstep_run):
     assert (rd.leg_dir(0) / "attempt_1" / "leg.json").exists()
     assert leg["n_samples"] >= att["n_samples_stored"]  # the attempt's samples are the leg's too
     assert "planned again from here" in op.answers[0]["text"]
+
+
+def test_replay_reproduces_a_run_with_the_operators_skip_and_replan(tmp_path, capsys):
+    """A run whose first leg the operator skipped and whose second he re-planned in flight: ``passt-mav replay RUN
+    --json`` reproduces it (every leg's path identical, the re-planned attempt's path too, the RMSE the same)."""
+    from passt_mav.cli import main
+
+    with lockstep_session(tmp_path, tlog=True) as (_sim, make, rd):
+        script = [
+            (_flying, {"boat": 0, "action": "skip"}, None),
+            (lambda c: _flying(c, leg=1), {"boat": 0, "action": "replan"}, None),
+        ]
+        summary, _op = fly_with(make(legs=3), rd.root, script)
+    assert summary["status"] == "complete"
+    legs = summary["legs"]
+    assert legs[0]["operator"]["action"] == "skip" and legs[1]["attempts"][0]["status"] == "replanned by the operator"
+    rc = main(["replay", str(rd.root), "--json"])
+    res = json.loads(capsys.readouterr().out)
+    assert rc == 0 and res["reproduced"] is True and res["first_divergence"] is None, res["notes"]
+    replayed = [x for x in res["legs"] if not any("interrupted attempt" in n for n in x["notes"])]
+    attempts = [x for x in res["legs"] if any("interrupted attempt" in n for n in x["notes"])]
+    assert [x["path"] for x in replayed] == [lg["path"] for lg in legs]
+    assert [x["path"] for x in attempts] == [legs[1]["attempts"][0]["path"]]
+    assert all(x["path_identical"] and x["rmse_identical"] is not False for x in res["legs"])
 
 
 def test_commands_that_do_not_apply_are_answered_with_the_reason(lockstep_run):
