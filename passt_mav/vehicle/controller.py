@@ -545,6 +545,7 @@ class MissionController(ResumeRecord, OperatorLegs):
             # a Rover's acceptance radius is WP_RADIUS (it drops a waypoint's param2); put back at the end
             self.vehicle.set_wp_radius(self.config.vehicle.wp_radius_m)
         self.session.budget.request_battery()
+        self.alerts.request_fence_status()
 
     def _detach(self) -> None:
         """Put back the parameters we changed; stop collecting."""
