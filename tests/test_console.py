@@ -327,6 +327,20 @@ def test_battery_remaining_takes_the_lower_known_value():
     assert battery_remaining(link) == 48.0
 
 
+FLEET_STARTS = [(1, 1), (6, 6)]  # two boats' start cells
+
+
+def two_boat_mission(tmp_path, field, **over):
+    """A mission of two boats (5 m/s, starting at :data:`FLEET_STARTS`), 2 legs each; ``over``: more keys."""
+    from test_fleet_controller import fleet_mission
+
+    vehicles = [
+        {"connect": f"tcp:127.0.0.1:{5760 + 10 * k}", "speed_mps": 5.0, "wp_radius_m": 3.0, "start_cell": list(s)}
+        for k, s in enumerate(FLEET_STARTS)
+    ]
+    return fleet_mission(tmp_path, field, legs=2, vehicles=vehicles, **over)
+
+
 @contextlib.contextmanager
 def fleet_lockstep(field, starts, tlogs=None):
     """(fleet, links): boats of one :class:`vehicle_sim.fleet.Fleet` served in lockstep (one clock, advanced by
@@ -407,22 +421,14 @@ def test_a_fleet_replans_a_boats_leg_and_approves_each_leg_and_the_replay_reprod
     boat 1's first, whichever planned first) is rejected once and planned again, and boat 1 is re-planned in flight.
     The fleet completes; the rejected and the re-planned attempts are kept with the fleet step they were planned at;
     ``passt-mav replay`` reproduces every leg's path."""
-    from test_fleet_controller import fleet_mission, run_fleet
+    from test_fleet_controller import run_fleet
 
     from passt_mav.analysis.replay import replay
 
     field = wave_field()
-    starts = [(1, 1), (6, 6)]
-    cfg = fleet_mission(
-        tmp_path,
-        field,
-        legs=2,
-        planner={"name": "greedy", "path_length": 5},
-        approve={"enabled": True, "timeout_s": WALL_S},
-        vehicles=[
-            {"connect": f"tcp:127.0.0.1:{5760 + 10 * k}", "speed_mps": 5.0, "wp_radius_m": 3.0, "start_cell": list(s)}
-            for k, s in enumerate(starts)
-        ],
+    starts = FLEET_STARTS
+    cfg = two_boat_mission(
+        tmp_path, field, planner={"name": "greedy", "path_length": 5}, approve={"enabled": True, "timeout_s": WALL_S}
     )
     tlogs = [RunDir(tmp_path / "run").create().boat_tlog(k) for k in range(len(starts))]
     with fleet_lockstep(field, starts, tlogs) as (_sims, links):
@@ -454,19 +460,11 @@ def test_a_fleet_replans_a_boats_leg_and_approves_each_leg_and_the_replay_reprod
 
 def test_a_fleet_takes_a_command_for_all(tmp_path):
     """Two boats of one lockstep fleet: End (HOLD) for "all" ends both boats; the fleet ends."""
-    from test_fleet_controller import fleet_mission, run_fleet
+    from test_fleet_controller import run_fleet
 
     field = wave_field()
-    starts = [(1, 1), (6, 6)]
-    cfg = fleet_mission(
-        tmp_path,
-        field,
-        legs=2,
-        vehicles=[
-            {"connect": f"tcp:127.0.0.1:{5760 + 10 * k}", "speed_mps": 5.0, "wp_radius_m": 3.0, "start_cell": list(s)}
-            for k, s in enumerate(starts)
-        ],
-    )
+    starts = FLEET_STARTS
+    cfg = two_boat_mission(tmp_path, field)
     with fleet_lockstep(field, starts) as (sims, links):
         fleet, rd = run_fleet(tmp_path, field, cfg, links)
 
