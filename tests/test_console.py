@@ -679,13 +679,23 @@ def test_console_keys_send_approve_and_reject(tmp_path):
     ]
 
 
-def test_a_leg_that_would_overrun_the_budget_is_shortened_before_upload(lockstep_run):
+def test_a_leg_that_would_overrun_the_budget_is_shortened_before_upload(tmp_path):
     """A 250 m distance budget (RTL when spent) against 5-move legs of ~40 m cells: leg 1 is uploaded with only the
     waypoints that fit with the way home kept in reserve, and the vehicle holds that shorter mission; a later leg
-    does not fit at all and the run ends cleanly (RTL); ``--resume`` with a larger budget flies to the end."""
+    does not fit at all and the run ends cleanly (RTL); ``--resume`` with a larger budget flies to the end, and the
+    replay of the two sessions reproduces every leg."""
+    from passt_mav.analysis.replay import replay
+
+    with lockstep_session(tmp_path, tlog=True) as parts:
+        _budget_shortens_and_resumes(*parts)
+    res = replay(RunDir(tmp_path / "run").root, out=False)
+    assert res.reproduced and all(x.path_identical and x.rmse_identical is not False for x in res.legs), res.notes
+
+
+def _budget_shortens_and_resumes(sim, make, rd) -> None:
+    """The run and its resumption of :func:`test_a_leg_that_would_overrun_the_budget_is_shortened_before_upload`."""
     import geo
 
-    sim, make, rd = lockstep_run
     ap = sim.autopilot
     ctl = make(3, {"max_distance_m": 250})
     summary = ctl.run()

@@ -113,6 +113,10 @@ class OperatorLegs:
         )
         ret = "" if home is None else " (the way home from each waypoint kept in reserve: on_spent rtl)"
         if k == 0:
+            if getattr(self, "sessions", None) and self.sessions[-1]["planned"][-1:] == [i]:
+                # never uploaded, so not a leg of the telemetry log: a replay maps the log's legs to the
+                # controller's sessions by these lists (--resume plans this leg again in the next one)
+                self.sessions[-1]["planned"].pop()
             budget.reason = (
                 f"leg {i + 1} does not fit: its first waypoint needs {to_wp[0] + back[0]:.0f} m{ret}, "
                 f"budget left {left}"
