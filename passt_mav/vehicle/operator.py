@@ -41,6 +41,9 @@ class Replan(Exception):  # noqa: N818 - a request, not an error
 class OperatorLegs:
     """The controller's side of the console and the budget (module docstring)."""
 
+    #: the record of the safety budget's shortening of the leg being planned (:meth:`_fit_budget`), None = none
+    shortened: dict | None = None
+
     def _attach_operator(self) -> None:
         """The boat's command channel, budget and alarms on this run's link (with the sample collector)."""
         from passt_mav.runs.commands import CommandReader
@@ -51,6 +54,12 @@ class OperatorLegs:
         self.session.budget = SafetyBudget(self.link, self.config.budget)
         self.alerts = VehicleAlerts(self.link, self.journal)
         self.alerts.attach()
+
+    def _keep_operator_streams(self) -> None:
+        """The streams the budget and the alarms need, asked for now and after every reboot or reconnect:
+        BATTERY_STATUS (with a battery reserve) and FENCE_STATUS."""
+        self.session.budget.request_battery()
+        self.alerts.request_fence_status()
 
     def _detach_operator(self) -> None:
         self.alerts.detach()
@@ -80,18 +89,20 @@ class OperatorLegs:
         elif how == "budget":
             self.leg_rec["budget_cut"] = {"reason": self.session.budget.reason, "at_item": at}
 
-    def _fit_budget(self, i: int, planned, wm) -> tuple:
-        """Leg ``i``'s mission ``wm`` fitted to what is left of the safety budget before its upload
-        (:mod:`passt_mav.vehicle.budget`): ``(wm, None)`` when it fits or no distance/time limit is set; else
-        ``(the mission of its first waypoints that fit, the record of the shortening)``, said as an event of kind
-        ``budget``. When not even its first waypoint fits, the run ends as at a spent budget (:class:`Ended`)."""
+    def _fit_budget(self, i: int, planned) -> np.ndarray:
+        """Leg ``i``'s planned grid path fitted to what is left of the safety budget before its upload
+        (:mod:`passt_mav.vehicle.budget`): the path itself when it fits or no distance/time limit is set; else the
+        start of it through its first waypoints that fit, the shortening recorded in :attr:`shortened` (the leg
+        record's ``budget_shortened``) and said as an event of kind ``budget``. When not even its first waypoint
+        fits, the run ends as at a spent budget (:class:`Ended`)."""
         import geo
 
-        budget = self.session.budget
+        self.shortened, budget = None, self.session.budget
         left_m, left_s = (None, None) if budget is None else budget.left()
         if left_m is None and left_s is None:
-            return wm, None
-        wp = wm.waypoints
+            return planned.plan.path
+        p, idx = geo.waypoint_indices(self.grid, planned.plan.path)
+        wp = geo.path_to_waypoints(self.grid, p)
         here = planned.start_latlon if planned.start_latlon is not None else tuple(wp[0])
         pts = np.vstack([np.asarray(here, float)[None], wp])
         to_wp = np.cumsum(geo.geodesic_distance_m(pts[:-1, 0], pts[:-1, 1], pts[1:, 0], pts[1:, 1]))
@@ -102,7 +113,7 @@ class OperatorLegs:
 
         k, n = waypoints_that_fit(to_wp, back, left_m, left_s, self.speed), len(wp)
         if k == n:
-            return wm, None
+            return planned.plan.path
         left = ", ".join(
             x
             for x in (
@@ -122,9 +133,7 @@ class OperatorLegs:
                 f"budget left {left}"
             )
             self._end_if_budget_spent()
-        p, idx = geo.waypoint_indices(self.grid, planned.plan.path)
-        short = self._checked_mission(i, planned, p[: idx[k - 1] + 1])
-        rec = {
+        self.shortened = {
             "kept": k,
             "of": n,
             "distance_m": round(float(to_wp[k - 1]), 1),
@@ -141,7 +150,7 @@ class OperatorLegs:
         self.journal.events.append(text)
         self.record.event("budget", text, level="warn")  # (a notice on the page, not an alarm: nothing is wrong yet)
         self._say(text)
-        return short, rec
+        return p[: idx[k - 1] + 1]
 
     def _approve(self, i: int, rec: dict, wm) -> None:
         """Approve mode (mission key ``approve``): leg ``i``'s record says ``awaiting_approval`` with its distance
