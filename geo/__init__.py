@@ -3,7 +3,7 @@
 Imports numpy and (lazily) pyproj only.
 """
 
-from geo.path import path_to_waypoints, validate_path, waypoint_cells
+from geo.path import path_to_waypoints, validate_path, waypoint_cells, waypoint_indices
 from geo.region import GeoError, MetricRegionGrid, RegionGrid, geodesic_distance_m, grid_from_dict
 
 __all__ = [
@@ -14,6 +14,7 @@ __all__ = [
     "grid_from_dict",
     "validate_path",
     "waypoint_cells",
+    "waypoint_indices",
     "path_to_waypoints",
     "NORTH_ATLANTIC",
     "north_atlantic_grid",

@@ -26,7 +26,7 @@ import numpy as np
 
 from geo.region import GeoError
 
-__all__ = ["validate_path", "waypoint_cells", "path_to_waypoints"]
+__all__ = ["validate_path", "waypoint_cells", "waypoint_indices", "path_to_waypoints"]
 
 
 def validate_path(grid, path) -> np.ndarray:
@@ -71,18 +71,25 @@ def validate_path(grid, path) -> np.ndarray:
     return p
 
 
-def waypoint_cells(grid, path) -> np.ndarray:
-    """The cells of ``path`` kept as waypoints: first, each turn point, last; int64 ``(n, 2)``.
+def waypoint_indices(grid, path) -> tuple[np.ndarray, np.ndarray]:
+    """``(p, idx)``: the validated path ``p`` (:func:`validate_path`, ``(L+1, 2)`` int64) and the indices into it
+    of the cells kept as waypoints (first, each turn point, last; ``(n,)`` int64). ``p[: idx[k] + 1]`` is the
+    path whose waypoints are the first ``k + 1``.
 
     A cell is a turn point when the step into it differs from the step out of it.
     """
     p = validate_path(grid, path)
     if len(p) <= 2:
-        return p
+        return p, np.arange(len(p), dtype=np.int64)
     step = np.diff(p, axis=0)
     turn = np.any(step[1:] != step[:-1], axis=1)  # at interior cells 1..L-1
-    keep = np.concatenate([[True], turn, [True]])
-    return p[keep]
+    return p, np.flatnonzero(np.concatenate([[True], turn, [True]])).astype(np.int64)
+
+
+def waypoint_cells(grid, path) -> np.ndarray:
+    """The cells of ``path`` kept as waypoints (:func:`waypoint_indices`): int64 ``(n, 2)``."""
+    p, idx = waypoint_indices(grid, path)
+    return p[idx]
 
 
 def path_to_waypoints(grid, path) -> np.ndarray:

@@ -9,6 +9,8 @@ reaches a state, and waits for the controller's answer (an event of kind ``comma
 from __future__ import annotations
 
 import contextlib
+import itertools
+import json
 import threading
 import time
 
@@ -86,18 +88,20 @@ def _flying(ctl, leg: int = 0) -> bool:
 
 
 @contextlib.contextmanager
-def lockstep_session(tmp_path, **sim_kw):
+def lockstep_session(tmp_path, tlog: bool = False, **sim_kw):
     """(sim, controller factory, run dir): the simulator in lockstep (``sim_kw`` to its config), the controller's
-    link stepping it; ``make(legs, budget=None, approve=None, **controller_kw)`` makes a controller for a mission of
-    5-move legs."""
+    link stepping it (``tlog``: writing the run's telemetry log); ``make(legs, budget=None, approve=None,
+    **controller_kw)`` makes a controller for a mission of 5-move legs."""
     field = wave_field()
     sim = Simulator(field, home=HOME, config=sim_config(**sim_kw))
     sim.serve([], lockstep=True)
+    rd = RunDir(tmp_path / "run").create()
     link = Link(
-        link_config(lockstep_s=0.5, lockstep_pace=SPEEDUP, stream_rates_hz=LEAN_STREAMS),
+        link_config(
+            lockstep_s=0.5, lockstep_pace=SPEEDUP, stream_rates_hz=LEAN_STREAMS, tlog=str(rd.tlog) if tlog else None
+        ),
         connection_factory=inprocess_factory(sim),
     )
-    rd = RunDir(tmp_path / "run").create()
 
     def make(legs: int = 2, budget: dict | None = None, approve: dict | None = None, **kw):
         over = {k: v for k, v in (("budget", budget), ("approve", approve)) if v}
@@ -196,6 +200,30 @@ def test_replan_plans_the_leg_again_keeping_the_attempt(lockstep_run):
     assert "planned again from here" in op.answers[0]["text"]
 
 
+def test_replay_reproduces_a_run_with_the_operators_skip_and_replan(tmp_path, capsys):
+    """A run whose first leg the operator skipped and whose second he re-planned in flight: ``passt-mav replay RUN
+    --json`` reproduces it (every leg's path identical, the re-planned attempt's path too, the RMSE the same)."""
+    from passt_mav.cli import main
+
+    with lockstep_session(tmp_path, tlog=True) as (_sim, make, rd):
+        script = [
+            (_flying, {"boat": 0, "action": "skip"}, None),
+            (lambda c: _flying(c, leg=1), {"boat": 0, "action": "replan"}, None),
+        ]
+        summary, _op = fly_with(make(legs=3), rd.root, script)
+    assert summary["status"] == "complete"
+    legs = summary["legs"]
+    assert legs[0]["operator"]["action"] == "skip" and legs[1]["attempts"][0]["status"] == "replanned by the operator"
+    rc = main(["replay", str(rd.root), "--json"])
+    res = json.loads(capsys.readouterr().out)
+    assert rc == 0 and res["reproduced"] is True and res["first_divergence"] is None, res["notes"]
+    replayed = [x for x in res["legs"] if not any("interrupted attempt" in n for n in x["notes"])]
+    attempts = [x for x in res["legs"] if any("interrupted attempt" in n for n in x["notes"])]
+    assert [x["path"] for x in replayed] == [lg["path"] for lg in legs]
+    assert [x["path"] for x in attempts] == [legs[1]["attempts"][0]["path"]]
+    assert all(x["path_identical"] and x["rmse_identical"] is not False for x in res["legs"])
+
+
 def test_commands_that_do_not_apply_are_answered_with_the_reason(lockstep_run):
     sim, make, rd = lockstep_run
     ctl = make(legs=1)
@@ -240,6 +268,35 @@ def test_battery_reserve_returns_the_boat_ends_cleanly_and_resume_continues(drai
     assert again["budget"]["spent"] is None and again["budget"]["battery_pct"] > 30
 
 
+def test_battery_status_is_asked_for_again_after_an_autopilot_reboot(tmp_path):
+    """The autopilot reboots early in leg 1 (lockstep, :class:`test_resilience.Faults`): a reboot forgets the rates
+    set by SET_MESSAGE_INTERVAL, and the controller's lean streams turn BATTERY_STATUS (and SYS_STATUS) off; the
+    controller asks for BATTERY_STATUS again, so the drained battery still reaches the reserve: RTL, ``ended``."""
+    from test_resilience import Faults, _chaos_controller, _flying, lockstep
+
+    field = wave_field()
+    budget = {"battery_reserve_pct": 30}
+    cfg = mission(tmp_path, field, legs=3, planner={"name": "greedy", "path_length": 5}, budget=budget)
+    rd = RunDir(tmp_path / "run").create()
+    with lockstep(field, sim_cfg=sim_config(battery_wh=6.0), link_kw={"timeout_s": 1.0}) as (sim, link, box):
+        faults = Faults(sim, box, max_rate=0)
+        ctl = _chaos_controller(box, cfg, field, link, rd, echo=None)
+        heard: list[float] = []  # the simulator's clock at each BATTERY_STATUS the controller got
+        link.add_listener(lambda m: heard.append(sim.t), "BATTERY_STATUS")
+        faults.at("reboot", _flying(box, 0, 1), lambda: sim.reboot(downtime_s=2.0))
+        summary = ctl.run()
+        ap = sim.autopilot
+        pct = battery(ap)[2]
+    assert "reboot" in faults.fired
+    t_reboot = faults.fired["reboot"]
+    assert any("vehicle rebooted" in e for e in summary["events"])
+    assert sum(t > t_reboot + 5.0 for t in heard) >= 10  # ~1 Hz after the reboot (and the EKF wait)
+    b = summary["budget"]
+    assert summary["status"] == "ended" and ap.mode == RTL and "battery" in b["spent"]
+    at_cut = float(b["spent"].split("battery: ")[1].split(" %")[0])  # the charge the cut was made at
+    assert 25 <= at_cut <= 30 and pct <= 30, (b, pct)
+
+
 def test_a_distance_budget_cuts_the_leg_and_holds(drained_run):
     sim, make, _rd = drained_run  # (the battery is not watched here: no reserve set)
     summary = make(3, {"max_distance_m": 150, "on_spent": "hold"}).run()
@@ -270,23 +327,145 @@ def test_battery_remaining_takes_the_lower_known_value():
     assert battery_remaining(link) == 48.0
 
 
-def test_a_fleet_takes_a_command_for_all_and_refuses_replan_with_the_reason(tmp_path):
-    """Two boats on the wall clock (a fleet cannot share one lockstep clock): Re-plan for boat 1 is refused with the
-    reason (a fleet's leg numbers are the fleet's), End (HOLD) for "all" ends both boats; the fleet ends."""
-    from test_fleet_controller import fleet_mission, fleet_served, run_fleet
+FLEET_STARTS = [(1, 1), (6, 6)]  # two boats' start cells
+
+
+def two_boat_mission(tmp_path, field, **over):
+    """A mission of two boats (5 m/s, starting at :data:`FLEET_STARTS`), 2 legs each; ``over``: more keys."""
+    from test_fleet_controller import fleet_mission
+
+    vehicles = [
+        {"connect": f"tcp:127.0.0.1:{5760 + 10 * k}", "speed_mps": 5.0, "wp_radius_m": 3.0, "start_cell": list(s)}
+        for k, s in enumerate(FLEET_STARTS)
+    ]
+    return fleet_mission(tmp_path, field, legs=2, vehicles=vehicles, **over)
+
+
+@contextlib.contextmanager
+def fleet_lockstep(field, starts, tlogs=None):
+    """(fleet, links): boats of one :class:`vehicle_sim.fleet.Fleet` served in lockstep (one clock, advanced by
+    whichever controller waits), one in-process link per boat stepping it (writing ``tlogs[k]``)."""
+    from vehicle_sim.fleet import Fleet
+
+    homes = [tuple(float(x) for x in field.grid.cell_to_latlon(r, c)) for r, c in starts]
+    fleet = Fleet(field, starts=homes, config=sim_config())
+    fleet.serve([], lockstep=True)
+    links = [
+        Link(
+            link_config(
+                lockstep_s=0.5,
+                lockstep_pace=SPEEDUP,
+                stream_rates_hz=LEAN_STREAMS,
+                tlog=None if tlogs is None else str(tlogs[k]),
+            ),
+            connection_factory=inprocess_factory(fleet[k]),
+        )
+        for k in range(len(starts))
+    ]
+    try:
+        for link in links:
+            link.connect()
+        yield fleet, links
+    finally:
+        for link in links:
+            link.close()
+        fleet.stop()
+
+
+class FleetOperator(threading.Thread):
+    """Approves every leg awaiting approval (``leg`` named), rejecting each leg in ``reject`` once; sends ``replan``
+    to boat ``replan_boat`` once ``when(fleet)`` holds. Waits for each answer."""
+
+    def __init__(self, fleet, root, reject=(), replan_boat=None, when=None):
+        super().__init__(daemon=True)
+        self.fleet, self.root, self.reject, self.replan_boat, self.when = fleet, root, set(reject), replan_boat, when
+        self.answers: list[dict] = []
+        self.error: str | None = None
+        self.done = threading.Event()
+
+    def _send(self, cmd: dict) -> None:
+        rec = append_command(self.root, cmd, source="test")
+        end = time.monotonic() + WALL_S
+        while (ans := _answer(self.root, rec["id"])) is None:
+            if time.monotonic() > end:
+                self.error = f"no answer to {cmd}"
+                raise TimeoutError(self.error)
+            time.sleep(0.005)
+        self.answers.append(ans)
+
+    def run(self):
+        rd, answered = RunDir(self.root), set()
+        try:
+            while not self.done.is_set():
+                if self.replan_boat is not None and self.when(self.fleet):
+                    self._send({"boat": self.replan_boat, "action": "replan"})
+                    self.replan_boat = None
+                for i in rd.leg_indices():
+                    try:
+                        rec = rd.read_leg(i)
+                    except Exception:  # noqa: BLE001, S112 - being written: read again next turn
+                        continue
+                    key = (i, len(rec.get("attempts") or []))
+                    if rec.get("status") != "awaiting_approval" or key in answered:
+                        continue
+                    act = "reject" if i in self.reject and key[1] == 0 else "approve"
+                    self._send({"boat": int(rec["boat"]), "action": act, "leg": i})
+                    answered.add(key)
+                time.sleep(0.005)
+        except TimeoutError:
+            return
+
+
+def test_a_fleet_replans_a_boats_leg_and_approves_each_leg_and_the_replay_reproduces_it(tmp_path):
+    """Two boats of one lockstep fleet in approve mode: every leg is approved on the page, fleet leg 1 (boat 0's or
+    boat 1's first, whichever planned first) is rejected once and planned again, and boat 1 is re-planned in flight.
+    The fleet completes; the rejected and the re-planned attempts are kept with the fleet step they were planned at;
+    ``passt-mav replay`` reproduces every leg's path."""
+    from test_fleet_controller import run_fleet
+
+    from passt_mav.analysis.replay import replay
 
     field = wave_field()
-    starts = [(1, 1), (6, 6)]
-    cfg = fleet_mission(
-        tmp_path,
-        field,
-        legs=2,
-        vehicles=[
-            {"connect": f"tcp:127.0.0.1:{5760 + 10 * k}", "speed_mps": 5.0, "wp_radius_m": 3.0, "start_cell": list(s)}
-            for k, s in enumerate(starts)
-        ],
+    starts = FLEET_STARTS
+    cfg = two_boat_mission(
+        tmp_path, field, planner={"name": "greedy", "path_length": 5}, approve={"enabled": True, "timeout_s": WALL_S}
     )
-    with fleet_served(field, starts=starts) as (sims, links):
+    tlogs = [RunDir(tmp_path / "run").create().boat_tlog(k) for k in range(len(starts))]
+    with fleet_lockstep(field, starts, tlogs) as (_sims, links):
+        fleet, rd = run_fleet(tmp_path, field, cfg, links)
+
+        def boat1_flying(f):
+            b = f.boats[1]
+            return b.collector is not None and b.collector.leg is not None and len(b.vehicle.progress.reached) >= 2
+
+        op = FleetOperator(fleet, rd.root, reject={0}, replan_boat=1, when=boat1_flying)
+        op.start()
+        summary = fleet.run()
+        op.done.set()
+        op.join(10)
+    assert op.error is None, op.error
+    assert summary["status"] == "complete", summary["events"]
+    legs = {lg["index"]: lg for lg in summary["legs"]}
+    assert sorted(legs) == [0, 1, 2, 3] and all(lg["approval"]["answer"] == "approve" for lg in legs.values())
+    rejected = legs[0]["attempts"][0]
+    assert rejected["status"] == "rejected by the operator" and rejected["n_samples_stored"] == 0
+    replanned = [a for lg in legs.values() for a in lg.get("attempts") or [] if a["status"].startswith("replanned")]
+    (att,) = replanned
+    assert att["n_samples_stored"] > 0 and att["fleet_seq"]["plan"] > 0
+    assert any("planned again from here" in a["text"] and a["boat"] == 1 for a in op.answers)
+    result = replay(rd.root, out=False)
+    assert result.reproduced, [(x.index, x.differing_cells, x.notes) for x in result.legs]
+    assert [x.path for x in result.legs] == [legs[i]["path"] for i in sorted(legs)]
+
+
+def test_a_fleet_takes_a_command_for_all(tmp_path):
+    """Two boats of one lockstep fleet: End (HOLD) for "all" ends both boats; the fleet ends."""
+    from test_fleet_controller import run_fleet
+
+    field = wave_field()
+    starts = FLEET_STARTS
+    cfg = two_boat_mission(tmp_path, field)
+    with fleet_lockstep(field, starts) as (sims, links):
         fleet, rd = run_fleet(tmp_path, field, cfg, links)
 
         def both_flying(_f):
@@ -294,18 +473,13 @@ def test_a_fleet_takes_a_command_for_all_and_refuses_replan_with_the_reason(tmp_
                 b.collector is not None and b.collector.leg is not None and b.vehicle.mode == AUTO for b in fleet.boats
             )
 
-        script = [
-            (both_flying, {"boat": 1, "action": "replan"}, None),
-            (both_flying, {"boat": "all", "action": "end", "end_mode": "HOLD"}, None),
-        ]
+        script = [(both_flying, {"boat": "all", "action": "end", "end_mode": "HOLD"}, None)]
         op = Operator(fleet, rd.root, script)
         op.start()
         summary = fleet.run()
         op.join(10)
-        modes = [s.autopilot.mode for s in sims]
+        modes = [sims[k].autopilot.mode for k in range(len(starts))]
     assert op.error is None, op.error
-    assert op.answers[0]["level"] == "warn" and "does not re-plan" in op.answers[0]["text"]
-    assert op.answers[0]["boat"] == 1
     ended = [e for e in read_events(rd.root)[0] if e.get("command_id") and "mission ended" in e["text"]]
     assert sorted(e["boat"] for e in ended) == [0, 1]  # one answer per boat to the one command
     assert summary["status"] == "ended" and [b["status"] for b in summary["boats"]] == ["ended", "ended"]
@@ -336,11 +510,75 @@ def test_a_fence_breach_is_one_alert_until_it_clears():
 
     j = _Journal()
     va = VehicleAlerts(SimpleNamespace(target_system=1), j)
-    for breach in (1, 1, 1, 0, 0, 1):
-        va.on_message(_from_vehicle("fence_status", breach, 2, 3, 0))
+    for breach, count in ((1, 2), (1, 2), (1, 2), (0, 2), (0, 2), (1, 3), (1, 4)):  # (the last: its clear missed)
+        va.on_message(_from_vehicle("fence_status", breach, count, 3, 0))
     va.on_message(_from_vehicle("fence_status", 0, 0, 0, 0, sysid=7))  # not our vehicle's
-    assert [k for k, _ in j.notes] == ["fence_breach", "fence_clear", "fence_breach"]
+    assert [k for k, _ in j.notes] == ["fence_breach", "fence_clear", "fence_breach", "fence_breach"]
     assert "boundary" in j.notes[0][1] and "breach 2" in j.notes[0][1]
+
+
+def test_vehicle_sim_reports_its_fence_as_rover_does():
+    """vehicle-sim's fence (vehicle_sim.fence): no FENCE_STATUS while FENCE_ENABLE is 0; enabled, FENCE_STATUS at the
+    extended status stream's 1 Hz; leaving the uploaded inclusion polygon is a boundary breach (count 1, its time
+    since boot), sent at once, and FENCE_ACTION 2 holds the armed boat; back inside, the breach clears."""
+    from pymavlink.dialects.v20 import ardupilotmega as M
+
+    from vehicle_sim.mission_server import Item
+
+    sim = Simulator(wave_field(), home=HOME, config=sim_config())
+    ap = sim.autopilot
+    got: list[tuple[float, object]] = []
+    sim.connect_inprocess()  # one link to the vehicle: what it sends there is kept here (FENCE_STATUS)
+    ap._send_raw = lambda _link, m: got.append((ap.t, m)) if m.get_type() == "FENCE_STATUS" else None
+    sim.step(50.0)  # booted, GPS, home set
+    assert ap.home_set and got == []  # the fence disabled: no FENCE_STATUS
+    # a 40 m square about the boat (fence list, mission type 1), the circle off; the boat armed in MANUAL
+    x0, y0 = ap.boat.x, ap.boat.y
+    corners = [ap.frame.to_latlon(x0 + dx, y0 + dy) for dx, dy in ((-20, -20), (20, -20), (20, 20), (-20, 20))]
+    ap.store.items[1] = [
+        Item(k, 0, M.MAV_CMD_NAV_FENCE_POLYGON_VERTEX_INCLUSION, 0, 1, 4, 0, 0, 0, round(a * 1e7), round(b * 1e7), 0, 1)
+        for k, (a, b) in enumerate(corners)
+    ]
+    ap.params.update(FENCE_ENABLE=1, FENCE_TYPE=4, FENCE_ACTION=2)
+    assert ap.arm(force=True) == M.MAV_RESULT_ACCEPTED
+    t0 = ap.t
+    sim.step(5.0)
+    inside = [m for _, m in got]
+    assert 4 <= len(inside) <= 6 and all(m.breach_status == 0 and m.breach_count == 0 for m in inside)
+    # outside the square (30 m east): a boundary breach, sent at once, and the boat held
+    ap.boat.x = x0 + 30.0
+    n = len(got)
+    sim.step(ap.cfg.physics_dt)
+    (t_b, m) = got[n]
+    assert (m.breach_status, m.breach_count, m.breach_type) == (1, 1, M.FENCE_BREACH_BOUNDARY)
+    assert m.breach_time == ap.time_boot_ms and t_b > t0 + 5.0
+    assert ap.mode == ROVER_MODES["HOLD"]
+    ap.boat.x = x0  # back inside: cleared, the count kept
+    sim.step(2.0)
+    last = got[-1][1]
+    assert (last.breach_status, last.breach_count, last.breach_type) == (0, 1, M.FENCE_BREACH_NONE)
+
+
+def test_a_fence_breach_on_vehicle_sim_becomes_the_pages_alert(lockstep_run):
+    """End to end: vehicle-sim's circular fence (60 m about home, report only) is left by the first leg; the
+    controller's alert reaches events.jsonl and the live page's state as an alert, once, with its type and count."""
+    from passt_mav.view.state import RunState
+
+    sim, make, rd = lockstep_run
+    sim.autopilot.params.update(FENCE_ENABLE=1, FENCE_TYPE=2, FENCE_RADIUS=60.0, FENCE_ACTION=0)
+    ctl = make(legs=1)
+    heard: list[float] = []  # the simulator's clock at each FENCE_STATUS the controller got
+    ctl.link.add_listener(lambda m: heard.append(sim.t), "FENCE_STATUS")
+    summary = ctl.run()
+    assert summary["status"] == "complete"
+    # kept at ~1 Hz although the controller's lean streams stop the others (FENCE_STATUS is asked for)
+    span = summary["legs"][0]["duration_vehicle_s"]
+    assert len(heard) >= 0.8 * span and max(b - a for a, b in itertools.pairwise(heard)) < 3.0, (len(heard), span)
+    events = RunState(rd.root).snapshot()["events"]
+    fence = [e for e in events if e["kind"] in ("fence_breach", "fence_clear")]
+    assert fence and fence[0]["kind"] == "fence_breach" and fence[0]["level"] == "alert"
+    assert "fence breach (boundary, breach 1)" in fence[0]["text"]
+    assert sum(e["kind"] == "fence_breach" for e in fence) == sim.autopilot.fence.breach_count
 
 
 def test_a_failsafe_statustext_from_the_vehicle_becomes_an_alert_once():
@@ -439,3 +677,60 @@ def test_console_keys_send_approve_and_reject(tmp_path):
         ("reject", "all", "console"),
         ("approve", "all", "console"),
     ]
+
+
+def test_a_leg_that_would_overrun_the_budget_is_shortened_before_upload(tmp_path):
+    """A 250 m distance budget (RTL when spent) against 5-move legs of ~40 m cells: leg 1 is uploaded with only the
+    waypoints that fit with the way home kept in reserve, and the vehicle holds that shorter mission; a later leg
+    does not fit at all and the run ends cleanly (RTL); ``--resume`` with a larger budget flies to the end, and the
+    replay of the two sessions reproduces every leg."""
+    from passt_mav.analysis.replay import replay
+
+    with lockstep_session(tmp_path, tlog=True) as parts:
+        _budget_shortens_and_resumes(*parts)
+    res = replay(RunDir(tmp_path / "run").root, out=False)
+    assert res.reproduced and all(x.path_identical and x.rmse_identical is not False for x in res.legs), res.notes
+
+
+def _budget_shortens_and_resumes(sim, make, rd) -> None:
+    """The run and its resumption of :func:`test_a_leg_that_would_overrun_the_budget_is_shortened_before_upload`."""
+    import geo
+
+    ap = sim.autopilot
+    ctl = make(3, {"max_distance_m": 250})
+    summary = ctl.run()
+    assert summary["status"] == "ended" and ap.mode == RTL
+    legs = summary["legs"]
+    short = legs[0]["budget_shortened"]
+    k, n = short["kept"], short["of"]
+    assert 1 <= k < n and len(legs[0]["waypoints"]) == k and short["budget_left_m"] == 250
+    # the way home (to the vehicle's HOME_POSITION) from the last waypoint kept is in reserve
+    last = legs[0]["waypoints"][-1]
+    home_m = float(geo.geodesic_distance_m(last[0], last[1], *ap.home_latlon))
+    assert short["return_m"] == pytest.approx(home_m, abs=0.1)
+    assert short["distance_m"] + short["return_m"] <= 250 < short["planned_distance_m"] + short["return_m"]
+    # the mission read back from the vehicle (the last one uploaded): home, DO_CHANGE_SPEED and the waypoints kept
+    items = ctl.vehicle.mission.download()
+    assert len(items) == len(legs[-1]["waypoints"]) + 2 == legs[-1]["budget_shortened"]["kept"] + 2
+    got = [x for it in items[2:] for x in (it.lat, it.lon)]
+    assert got == pytest.approx([x for w in legs[-1]["waypoints"] for x in w], abs=1e-7)
+    texts = [e["text"] for e in read_events(rd.root)[0] if e["kind"] == "budget"]
+    assert texts[0].startswith(f"leg 1 shortened: {k} of {n} waypoints") and "budget left 250 m" in texts[0]
+    assert f"leg {len(legs) + 1} does not fit" in summary["budget"]["spent"] and "RTL" in texts[-1]
+    assert len(legs) < 3 and rd.read_legs()[-1]["index"] == len(legs) - 1  # the leg that did not fit: not written
+    # --resume (a larger budget) plans the leg that did not fit and flies on to the end
+    again = make(3, {"max_distance_m": 5000}, resume=True).run()
+    assert again["status"] == "complete" and [lg["index"] for lg in again["legs"]] == [0, 1, 2]
+    assert "budget_shortened" not in again["legs"][-1]
+
+
+def test_waypoints_that_fit_the_budget():
+    from passt_mav.vehicle.budget import waypoints_that_fit
+
+    to_wp, back = [10.0, 60.0, 110.0, 160.0], [50.0, 20.0, 30.0, 80.0]
+    assert waypoints_that_fit(to_wp, [0.0] * 4, None, None, 2.0) == 4
+    assert waypoints_that_fit(to_wp, [0.0] * 4, 110.0, None, 2.0) == 3  # 110 m fits exactly
+    assert waypoints_that_fit(to_wp, back, 110.0, None, 2.0) == 2  # 60 + 20 m home; 110 + 30 does not
+    assert waypoints_that_fit(to_wp, back, None, 40.0, 2.0) == 2  # 80 m = 40 s at 2 m/s
+    assert waypoints_that_fit(to_wp, back, 500.0, 39.0, 2.0) == 1
+    assert waypoints_that_fit(to_wp, back, 59.0, None, 2.0) == 0

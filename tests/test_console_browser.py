@@ -142,3 +142,89 @@ def test_approve_one_leg_and_reject_one_from_the_page(tmp_path):
     summary = json.loads((tmp_path / "demo" / "summary.json").read_text())
     assert summary["status"] == "complete" and [lg["approval"]["answer"] for lg in summary["legs"]] == ["approve"] * 2
     assert summary["legs"][1]["attempts"][0]["status"] == "rejected by the operator"
+
+
+#: before the page's own script: ``document.hidden`` under the test's control (``window.__hidden``: the page in the
+#: background), and ``window.Notification`` recording each notification the page creates (after Chromium made it)
+NOTIFY_INIT = """
+(() => {
+  window.__hidden = false;
+  Object.defineProperty(document, 'hidden', {configurable: true, get: () => window.__hidden});
+  Object.defineProperty(document, 'visibilityState', {configurable: true,
+    get: () => (window.__hidden ? 'hidden' : 'visible')});
+  window.__notes = [];
+  const Real = window.Notification;
+  if (!Real) return;
+  class Recorded extends Real {
+    constructor(title, options) {
+      super(title, options);
+      window.__notes.push({title: title, body: (options || {}).body, tag: (options || {}).tag});
+    }
+  }
+  Object.defineProperty(Recorded, 'permission', {get: () => Real.permission});
+  Recorded.requestPermission = (...a) => Real.requestPermission(...a);
+  window.Notification = Recorded;
+})();
+"""
+
+
+def test_an_alert_while_the_page_is_in_the_background_is_a_browser_notification(tmp_path):
+    """``passt-mav view`` of a run still flying (a one-leg run on lockstep vehicle-sim, its summary marked running),
+    Chromium with the notifications permission granted and alarms ticked: an alert while the page is hidden creates
+    one notification (its title names the boat, its body the alert) and beeps; an alert while it is visible only
+    beeps."""
+    import json
+
+    from test_console import lockstep_session
+
+    from passt_mav.runs.live import RecordWriter
+
+    sync_playwright, exe = _need_browser()
+    with lockstep_session(tmp_path) as (_sim, make, rd):
+        make(legs=1).run()
+    summary = json.loads(rd.summary_file.read_text())
+    rd.summary_file.write_text(json.dumps({**summary, "status": "running", "finished_utc": None}))
+    view = subprocess.Popen(
+        [sys.executable, "-m", "passt_mav.cli", "view", str(rd.root), "--port", str(_free_port())],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+    )
+    try:
+        url = re.search(r"http://\S+", view.stdout.readline()).group(0)
+        origin = re.match(r"http://[^/]+", url).group(0)
+        with sync_playwright() as pw:
+            browser = pw.chromium.launch(executable_path=exe, headless=True, args=FLAGS)
+            ctx = browser.new_context(viewport={"width": 1200, "height": 800})
+            ctx.grant_permissions(["notifications"], origin=origin)
+            ctx.add_init_script(NOTIFY_INIT)
+            page = ctx.new_page()
+            errors: list[str] = []
+            page.on("pageerror", lambda e: errors.append(str(e)))
+            js = page.evaluate
+            page.goto(url)
+            _wait(lambda: js("Notification.permission") == "granted", 30, "the permission")
+            _wait(lambda: js("window.passtView.last") is not None, 60, "the first snapshot", view)
+            page.check("#alarm")
+            record = RecordWriter(rd.root)
+            js("window.__hidden = true")
+            record.event("fence_breach", "the vehicle reports a fence breach (boundary, breach 1)")
+            _wait(lambda: js("window.__notes.length") >= 1, 60, "a notification", view)
+            assert js("window.__notes") == [
+                {
+                    "title": "passt-mav: boat 0",
+                    "body": "the vehicle reports a fence breach (boundary, breach 1)",
+                    "tag": "passt-fence_breach",
+                }
+            ]
+            beeps = js("window.passtView.beeps")
+            assert beeps >= 1
+            js("window.__hidden = false")
+            record.event("vehicle_alert", "the vehicle says: GCS Failsafe (severity 4)")
+            _wait(lambda: js("window.passtView.beeps") > beeps, 60, "the second alert's beep", view)
+            assert js("window.__notes.length") == 1  # the page in front: no notification
+            assert not errors, errors
+            browser.close()
+    finally:
+        view.terminate()
+        view.wait(10)

@@ -154,7 +154,7 @@ def test_a_waypoint_outside_the_geofence_is_an_alert(tmp_path):
     ctl.config = SimpleNamespace(geofence_margin_m=-20000.0, vehicle=SimpleNamespace(speed_mps=2.0, wp_radius_m=5.0))
     planned = SimpleNamespace(plan=SimpleNamespace(path=np.array([[0, 0], [1, 1], [2, 2]])))
     with pytest.raises(PlannerError, match="outside the geofence"):
-        ctl._checked_mission(0, planned)
+        ctl._checked_mission(0, planned.plan.path)
     (ev,) = read_events(tmp_path)[0]
     assert ev["kind"] == "fence_refused" and ev["level"] == "alert" and "not uploaded" in ev["text"]
 

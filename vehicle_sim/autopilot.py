@@ -50,6 +50,8 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink2
 from vehicle_sim import telemetry
 from vehicle_sim.boat import BoatState, CurrentModel, LocalFrame, guidance, step_boat
 from vehicle_sim.config import SimConfig
+from vehicle_sim.fence import PARAMS as FENCE_PARAMS
+from vehicle_sim.fence import Fence
 from vehicle_sim.mission_server import GLOBAL_FRAMES, MissionServer, MissionStore
 from vehicle_sim.modes import MANUAL_INPUT, MODE_NAMES, MODES, NEEDS_POSITION, SETTABLE
 
@@ -96,10 +98,19 @@ for _n in range(1, 5):
     for _s in _STREAM_PARAMS:
         DEFAULT_PARAMS[f"MAV{_n}_{_s}"] = (1 if _s not in ("RC_CHAN", "RAW_CTRL", "RAW_SENS", "ADSB") else 0, _I16)
     DEFAULT_PARAMS[f"MAV{_n}_OPTIONS"] = (0, _I16)
+DEFAULT_PARAMS.update(FENCE_PARAMS)
 
 #: stream group -> messages (ArduPilot's ap_message groups, reduced to what we send)
 STREAM_GROUPS = {
-    "EXT_STAT": ("SYS_STATUS", "GPS_RAW_INT", "MISSION_CURRENT", "NAV_CONTROLLER_OUTPUT", "POWER_STATUS", "MEMINFO"),
+    "EXT_STAT": (
+        "SYS_STATUS",
+        "GPS_RAW_INT",
+        "MISSION_CURRENT",
+        "NAV_CONTROLLER_OUTPUT",
+        "POWER_STATUS",
+        "MEMINFO",
+        "FENCE_STATUS",  # (none while the fence is disabled)
+    ),
     "POSITION": ("GLOBAL_POSITION_INT", "LOCAL_POSITION_NED"),
     "EXTRA1": ("ATTITUDE",),
     "EXTRA2": ("VFR_HUD",),
@@ -201,6 +212,7 @@ class Autopilot:
         # failsafe
         self.last_gcs_hb: float | None = None
         self.failsafe = False
+        self.fence = Fence()  # (vehicle_sim.fence: FENCE_* parameters, the stored fence list)
         # sensors
         self._rng = random.Random(config.seed)
         self._gps_rng = random.Random(
@@ -316,6 +328,7 @@ class Autopilot:
         self.guided_target = None
         self.last_gcs_hb = None
         self.failsafe = False
+        self.fence.reset()
         self._next_sample = 0.0
         self.streams.clear()
         self._boot_events_done.clear()
@@ -805,7 +818,20 @@ class Autopilot:
         self.t += dt
         self.clock += dt
         self._boot_events()
+        self._fence_check()
         self._telemetry()
+
+    def _fence_check(self) -> None:
+        """Rover's ``fence_check``: a new breach sends FENCE_STATUS at once and, while armed, takes ``FENCE_ACTION``
+        (1: RTL, HOLD if refused; 2: HOLD; 0: report only)."""
+        if not self.fence.check(self):
+            return
+        self.send(None, self.fence.status(self))
+        action = int(self.p("FENCE_ACTION"))
+        if not self.armed or action == 0:
+            return
+        if action != 1 or self.set_mode(MODES["RTL"]) != M.MAV_RESULT_ACCEPTED:
+            self._enter_mode(MODES["HOLD"])
 
     def _failsafe_check(self) -> None:
         enable = int(self.p("FS_GCS_ENABLE"))
@@ -880,6 +906,7 @@ class Autopilot:
         "LOCAL_POSITION_NED",
         "POWER_STATUS",
         "MEMINFO",
+        "FENCE_STATUS",
     )
 
     def _telemetry(self) -> None:

@@ -232,6 +232,11 @@ def autopilot_version(ap):
     )
 
 
+def fence_status(ap):
+    """FENCE_STATUS (:meth:`vehicle_sim.fence.Fence.status`), None while the fence is disabled."""
+    return ap.fence.status(ap)
+
+
 #: MAVLink message name -> its builder
 BUILDERS = {
     "HEARTBEAT": heartbeat,
@@ -251,4 +256,5 @@ BUILDERS = {
     "MEMINFO": meminfo,
     "HOME_POSITION": home_position,
     "AUTOPILOT_VERSION": autopilot_version,
+    "FENCE_STATUS": fence_status,
 }

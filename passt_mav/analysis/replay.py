@@ -893,23 +893,31 @@ def _fleet_result(inp: _Source, setup: _Setup, rmse_tol: float, say) -> ReplayRe
 def _replay_fleet(rd, summary: dict, cfg, step, rmse_tol: float, say):
     """A fleet run (:mod:`passt_mav.vehicle.fleet_controller`): each boat's legs and samples from its own tlog,
     the fleet's plans and updates repeated in the order they were made (``fleet_seq`` of the leg
-    records) through :class:`~passt_mav.loop.legstep.FleetStep`. Returns (legs, log info, notes, first divergence)."""
+    records) through :class:`~passt_mav.loop.legstep.FleetStep`. A leg planned again (the operator's re-plan, a
+    rejected leg: its record's ``attempts`` with their ``fleet_seq``) is planned at each of its steps, and absorbs
+    the samples of all its attempts, as the boat did. Returns (legs, log info, notes, first divergence)."""
     from passt_mav.loop.legstep import FleetStep
 
     records = _fleet_records(rd)
     logs = [rebuild_from_tlog(p, u_name=cfg.sensors.u, v_name=cfg.sensors.v) for p in rd.boat_tlogs()]
     info = _log_info([str(p) for p in rd.boat_tlogs()], logs)
-    logged = {int(lg.planned_index): lg for log in logs for lg in log.legs if lg.planned_index is not None}
+    logged: dict[int, Any] = {}
+    for lg in (lg for log in logs for lg in log.legs if lg.planned_index is not None):
+        key = int(lg.planned_index)  # (a leg planned again: its attempts' samples first, in the order logged)
+        old = logged.get(key)
+        again = old is not None and (records.get(key) or {}).get("attempts")
+        logged[key] = dataclasses.replace(lg, samples=old.samples + lg.samples) if again else lg
     clocks = {int(b["boat"]): _field_clock(b.get("clock") or {}, 0.0, 1.0) for b in summary["boats"]}
     notes: list[str] = []
     step.prepare(step.initial_state()[0])  # as the fleet controller does before its boats fly
     fs, planned, out, first_div = FleetStep(step), {}, {}, None
-    for _, kind, i in _fleet_events(records):
+    for _, kind, i, attempt in _fleet_events(records):
         rec = records[i]
         boat = int(rec["boat"])
         if kind == 0:
+            plan = rec if attempt is None else rec["attempts"][attempt]
             planned[i] = fs.plan_for(
-                boat, i, tuple(int(x) for x in rec["start_cell"]), k=int(rec["forecast_steps_before"])
+                boat, i, tuple(int(x) for x in plan["start_cell"]), k=int(plan["forecast_steps_before"])
             )
             continue
         lg = logged.get(i)
@@ -942,11 +950,20 @@ def _fleet_records(rd) -> dict[int, dict]:
         raise ReplayError(str(exc)) from None
 
 
-def _fleet_events(records: dict[int, dict]) -> list[tuple[int, int, int]]:
-    """The fleet's plans (kind 0) and updates (kind 1) as (sequence number, kind, leg) in the order made."""
+def _fleet_events(records: dict[int, dict]) -> list[tuple[int, int, int, int | None]]:
+    """The fleet's plans (kind 0) and updates (kind 1) as (sequence number, kind, leg, attempt) in the order made;
+    ``attempt``: the index in the record's ``attempts`` of an earlier plan of the leg, else None."""
+    earlier = [
+        (int(a["fleet_seq"]["plan"]), 0, i, k)
+        for i, r in records.items()
+        for k, a in enumerate(r.get("attempts") or [])
+        if (a.get("fleet_seq") or {}).get("plan") is not None
+    ]
     return sorted(
-        [(int(r["fleet_seq"]["plan"]), 0, i) for i, r in records.items()]
-        + [(int(r["fleet_seq"]["absorb"]), 1, i) for i, r in records.items()]
+        earlier
+        + [(int(r["fleet_seq"]["plan"]), 0, i, None) for i, r in records.items()]
+        + [(int(r["fleet_seq"]["absorb"]), 1, i, None) for i, r in records.items()],
+        key=lambda e: e[:2],
     )
 
 

@@ -423,6 +423,8 @@ class Link:
         self.error: BaseException | None = None
         #: why the transport is dead (EOF, reset, read error), None while it is open and alive
         self.closed_reason: str | None = None
+        #: streams asked for besides ``config.stream_rates_hz`` (:meth:`keep_stream`): name -> Hz
+        self._kept_streams: dict[str, float] = {}
 
     # -- lifecycle -------------------------------------------------------------------
     def connect(
@@ -902,8 +904,16 @@ class Link:
         """SET_MESSAGE_INTERVAL for each ``(MESSAGE_NAME, hz)`` (default ``config.stream_rates_hz``); returns
         name -> accepted. See :func:`passt_mav.mavlink.streams.request_streams` (with ``quiet_other_streams``
         every data stream is stopped first; a refused message is requested by its stream group)."""
-        rates = self.config.stream_rates_hz if rates is None else rates
+        if rates is None:  # (the streams kept by keep_stream too: a reboot or a reconnect forgot them)
+            rates = list({**dict(self.config.stream_rates_hz), **self._kept_streams}.items())
         return request_streams(self, rates, quiet_others=self.config.quiet_other_streams)
+
+    def keep_stream(self, name: str, hz: float) -> bool:
+        """SET_MESSAGE_INTERVAL for ``name`` at ``hz`` (Hz of the vehicle's time) now, the other streams left as they
+        are, and again with the others whenever :meth:`request_streams` asks for them (a reconnect; the controller
+        after an autopilot reboot, which forgets the rates set). Returns whether the vehicle accepted it now."""
+        self._kept_streams[name] = float(hz)
+        return request_streams(self, [(name, hz)], quiet_others=False).get(name, False)
 
     def measure_rtt(self, samples: int = 3) -> float | None:
         """Round trip by TIMESYNC (``tc1 = 0`` request, the vehicle echoes ``ts1``); falls back to

@@ -350,7 +350,8 @@ class BudgetConfig(_Strict):
     (:mod:`passt_mav.vehicle.budget`): past ``max_time_s`` (vehicle seconds in AUTO since this controller session's
     first leg started) or ``max_distance_m`` (metres the boat moved meanwhile, from its GPS fixes) the leg is cut
     there (its samples absorbed); at ``battery_reserve_pct`` (SYS_STATUS / BATTERY_STATUS remaining %) as well.
-    Then the boat goes to ``on_spent`` (RTL or HOLD) and the run ends cleanly (status ``ended``); ``--resume``
+    Before its upload a leg that would overrun the distance or time left is shortened to its first waypoints that
+    fit (with ``on_spent: rtl`` the way home from the last one too); when none fits the run ends. Then the boat goes to ``on_spent`` (RTL or HOLD) and the run ends cleanly (status ``ended``); ``--resume``
     continues it with the budget counted afresh."""
 
     max_time_s: float | None = Field(default=None, gt=0)

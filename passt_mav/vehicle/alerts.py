@@ -3,7 +3,9 @@
 :class:`VehicleAlerts` listens on a boat's link (the reader thread) for what the autopilot says about itself:
 
 * FENCE_STATUS with ``breach_status`` set: one ``fence_breach`` alert per breach (the breach's type and
-  count), one ``fence_clear`` when it clears;
+  count; a breach counted while the last is not cleared is a new one too), one ``fence_clear`` when it clears.
+  :meth:`VehicleAlerts.request_fence_status` asks for FENCE_STATUS at 1 Hz: the controller's quieted streams
+  (``LinkConfig.quiet_other_streams``) would leave only the one a vehicle sends at the moment of a breach;
 * STATUSTEXT from the vehicle (its system id) of severity ALERT or worse (<= 1), or WARNING or worse (<= 4)
   whose text names a failsafe, a fence or a breach (ArduPilot's "GCS Failsafe", "Failsafe - Continuing Auto
   Mode", "Fence breach", ...): a ``vehicle_alert``. (CRITICAL alone is not enough: ArduPilot says its
@@ -32,10 +34,16 @@ class VehicleAlerts:
     def __init__(self, link, journal, clock=time.monotonic):
         self.link, self.journal, self.clock = link, journal, clock
         self._breach = 0  # the last FENCE_STATUS breach_status
+        self._count = 0  # and its breach_count
         self._said: dict[str, float] = {}
 
     def attach(self) -> None:
         self.link.add_listener(self.on_message, ("STATUSTEXT", "FENCE_STATUS"))
+
+    def request_fence_status(self) -> None:
+        """FENCE_STATUS at 1 Hz of the vehicle's time, asked for again after a reboot or a reconnect
+        (:meth:`~passt_mav.mavlink.Link.keep_stream`); a vehicle whose fence is disabled sends none."""
+        self.link.keep_stream("FENCE_STATUS", 1.0)
 
     def detach(self) -> None:
         self.link.remove_listener(self.on_message)
@@ -51,8 +59,8 @@ class VehicleAlerts:
             self._statustext(m)
 
     def _fence(self, m) -> None:
-        breach = int(m.breach_status)
-        if breach and not self._breach:
+        breach, count = int(m.breach_status), int(m.breach_count)
+        if breach and (not self._breach or count > self._count):
             kinds = {0: "none", 1: "minimum", 2: "maximum", 3: "boundary"}
             what = kinds.get(int(m.breach_type), f"type {int(m.breach_type)}")
             self.journal.note(
@@ -61,7 +69,7 @@ class VehicleAlerts:
             )
         elif not breach and self._breach:
             self.journal.note("fence_clear", "the vehicle is back inside its fence")
-        self._breach = breach
+        self._breach, self._count = breach, count
 
     def _statustext(self, m) -> None:
         text = m.text if isinstance(m.text, str) else bytes(m.text).decode("ascii", "replace")

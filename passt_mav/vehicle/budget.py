@@ -8,6 +8,13 @@ BATTERY_STATUS ``battery_remaining``, %; the lower of the two when both are know
 absorbed, the leg complete), and the controller sends the boat to ``on_spent`` (RTL or HOLD) and ends the run
 cleanly (status ``ended``; ``--resume`` continues, its budget counted afresh).
 
+Before a leg is uploaded the controller fits it to what is left (:meth:`SafetyBudget.left`, :func:`waypoints_that_fit`):
+its distance is estimated along its waypoints from the boat's position (geodesic, WGS84) and its duration at the
+mission's speed (no current); a leg that would overrun ``max_distance_m`` or ``max_time_s`` keeps only the waypoints
+that fit. With ``on_spent: rtl`` the way home (straight, from the last waypoint kept to the vehicle's home, at the
+same speed) must fit too, so the last leg leaves the range to come back. The battery is not forecast (there is no
+consumption model): the reserve is only watched in flight.
+
 The distance is the sum of geodesic steps between successive GLOBAL_POSITION_INT fixes (deg -> m, WGS84)
 while a leg flies; the time is the vehicle's uptime (``time_boot_ms``) over the same spans, so a reboot's
 restart of that clock does not count backwards.
@@ -17,7 +24,9 @@ from __future__ import annotations
 
 import threading
 
-__all__ = ["SafetyBudget", "battery_remaining"]
+import numpy as np
+
+__all__ = ["SafetyBudget", "battery_remaining", "waypoints_that_fit"]
 
 
 def battery_remaining(link) -> float | None:
@@ -30,6 +39,23 @@ def battery_remaining(link) -> float | None:
         if pct is not None and 0 <= pct <= 100:
             vals.append(float(pct))
     return min(vals) if vals else None
+
+
+def waypoints_that_fit(
+    to_wp_m: np.ndarray, back_m: np.ndarray, left_m: float | None, left_s: float | None, speed_mps: float
+) -> int:
+    """How many of a leg's first waypoints fit the budget left: the largest ``k`` such that flying to waypoint
+    ``k`` (``to_wp_m[k - 1]``: metres from the boat along the waypoints) and then ``back_m[k - 1]`` metres home
+    (0 without a return) is at most ``left_m`` metres and, at ``speed_mps`` (m/s), ``left_s`` seconds (each None:
+    no limit). 0 when not even the first fits."""
+    need = np.asarray(to_wp_m, float) + np.asarray(back_m, float)
+    fits = np.ones(need.shape, bool)
+    if left_m is not None:
+        fits &= need <= left_m
+    if left_s is not None:
+        fits &= need / float(speed_mps) <= left_s
+    ok = np.flatnonzero(fits)
+    return int(ok[-1]) + 1 if ok.size else 0
 
 
 class SafetyBudget:
@@ -55,17 +81,43 @@ class SafetyBudget:
         c = self.config
         return any(x is not None for x in (c.max_time_s, c.max_distance_m, c.battery_reserve_pct))
 
+    def left(self) -> tuple[float | None, float | None]:
+        """What is left of ``max_distance_m`` (m) and ``max_time_s`` (vehicle s) in this session, each None when
+        unset (never below 0)."""
+        c = self.config
+        with self._lock:
+            t, d = self._time_s(), self.distance_m
+        return (
+            None if c.max_distance_m is None else max(0.0, c.max_distance_m - d),
+            None if c.max_time_s is None else max(0.0, c.max_time_s - t),
+        )
+
+    def home(self) -> tuple[float, float] | None:
+        """The vehicle's home (lat, lon deg): its last HOME_POSITION, else asked for once (MAV_CMD_REQUEST_MESSAGE);
+        None when it has none (a vehicle without a home, or no answer)."""
+        from passt_mav.errors import CommandRejected, LinkTimeout
+        from passt_mav.mavlink.link import mavlink2 as M
+
+        m = self.link.latest("HOME_POSITION")
+        if m is None:
+            with self.link.subscribe("HOME_POSITION") as sub:
+                try:  # (ArduPilot acknowledges first, then sends the message)
+                    self.link.command_long(M.MAV_CMD_REQUEST_MESSAGE, M.MAVLINK_MSG_ID_HOME_POSITION, retries=1)
+                    m = sub.get(self.link.reply_timeout)
+                except (CommandRejected, LinkTimeout):
+                    m = None
+        return None if m is None else (m.latitude / 1e7, m.longitude / 1e7)
+
     def request_battery(self) -> None:
         """Ask the vehicle for BATTERY_STATUS at 1 Hz of its time (a fast simulator's lean streams leave it off),
-        the other streams left as they are; a refusal is logged (SYS_STATUS may still carry the charge). The
-        charge last reported before is forgotten."""
+        the other streams left as they are, and again whenever the link's streams are requested again (after an
+        autopilot reboot, a reconnect: :meth:`~passt_mav.mavlink.Link.keep_stream`); a refusal is logged (SYS_STATUS
+        may still carry the charge). The charge last reported before is forgotten."""
         if self.config.battery_reserve_pct is None:
             return
-        from passt_mav.mavlink.streams import request_streams
-
         # a charge reported before this session (a battery swapped meanwhile) must not end its first leg
         self.link.forget("SYS_STATUS", "BATTERY_STATUS")
-        request_streams(self.link, [("BATTERY_STATUS", 1.0)], quiet_others=False)
+        self.link.keep_stream("BATTERY_STATUS", 1.0)
 
     def _on_fix(self, m) -> None:
         """From the reader thread: one GLOBAL_POSITION_INT; the step from the last fix is added while a leg flies."""

@@ -49,8 +49,6 @@ class OperatorCommands:
     :class:`~passt_mav.runs.commands.CommandReader`, None = no channel (nothing is read)."""
 
     commands = None
-    #: a fleet's boat cannot re-plan its leg in place (leg numbers are the fleet's): refused with the reason
-    replan_refused: str | None = None
 
     def _answer(self, cmd: dict, text: str, *, ok: bool = True) -> None:
         """The command's answer: an event of kind ``command`` with its id, summary.json's events, a line."""
@@ -96,9 +94,6 @@ class OperatorCommands:
             return None
         if act in ("approve", "reject"):
             self._answer(cmd, f"no leg awaits approval (leg {i + 1} is flying)", ok=False)
-            return None
-        if act == "replan" and self.replan_refused:
-            self._answer(cmd, self.replan_refused, ok=False)
             return None
         if act in ("skip", "replan"):
             what = (

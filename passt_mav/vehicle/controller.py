@@ -545,7 +545,7 @@ class MissionController(ResumeRecord, OperatorLegs):
         if self.config.vehicle.wp_radius_m > 0:
             # a Rover's acceptance radius is WP_RADIUS (it drops a waypoint's param2); put back at the end
             self.vehicle.set_wp_radius(self.config.vehicle.wp_radius_m)
-        self.session.budget.request_battery()
+        self._keep_operator_streams()  # BATTERY_STATUS, FENCE_STATUS (passt_mav.vehicle.operator)
 
     def _detach(self) -> None:
         """Put back the parameters we changed; stop collecting."""
@@ -569,8 +569,9 @@ class MissionController(ResumeRecord, OperatorLegs):
     # -- one leg: plan -> check -> upload (transactional) -> fly -> absorb ---------------------------
     def _leg_once(self, i: int, state: np.ndarray, t_state: float) -> tuple[np.ndarray, float]:
         planned = self._plan(i, state, t_state)
+        path = self._fit_budget(i, planned)  # the path, or its start that fits the safety budget (may end the run)
         with self.lock, self.signals.critical():
-            wm = self._checked_mission(i, planned)
+            wm = self._checked_mission(i, path)
             rec = self._write_plan(i, planned, wm)
         if self.config.approve.enabled:
             self._approve(i, rec, wm)
@@ -646,17 +647,17 @@ class MissionController(ResumeRecord, OperatorLegs):
         except MavlinkError as exc:  # a log record, not a command: a dead link shows up at the upload
             log.warning("clock STATUSTEXT not sent: %s", exc)
 
-    def _checked_mission(self, i: int, planned):
-        """The leg's :class:`WaypointMission`; raises before anything is uploaded when the path or a
-        waypoint leaves the grid or the geofence (region + ``geofence_margin_m``)."""
+    def _checked_mission(self, i: int, path):
+        """The :class:`WaypointMission` of leg ``i``'s grid ``path``; raises before anything is uploaded when the
+        path or a waypoint leaves the grid or the geofence (region + ``geofence_margin_m``)."""
         import geo
         from passt_mav.mission.waypoints import WaypointMission
 
         grid, margin = self.grid, float(self.config.geofence_margin_m)
-        geo.validate_path(grid, planned.plan.path)
+        geo.validate_path(grid, path)
         wm = WaypointMission.from_path(
             grid,
-            planned.plan.path,
+            path,
             speed=self.speed,
             wp_radius_m=self.config.vehicle.wp_radius_m,
             fence_margin_m=margin,
@@ -672,7 +673,7 @@ class MissionController(ResumeRecord, OperatorLegs):
         return wm
 
     def _write_plan(self, i: int, planned, wm) -> dict:
-        """Waypoints (.waypoints, .plan) and leg.json (status flying)."""
+        """Waypoints (.waypoints, .plan) and leg.json (status flying; the budget's shortening, if any)."""
         rd = self.rd
         rd.leg_dir(i)
         wm.to_wpl(rd.waypoints_file(i))
@@ -683,6 +684,7 @@ class MissionController(ResumeRecord, OperatorLegs):
             "waypoints": wm.waypoints.tolist(),
             "waypoint_seqs": wm.waypoint_seqs(),
             "t_now": planned.t_now,
+            **({"budget_shortened": self.shortened} if self.shortened else {}),
         }
         if self._attempts.get(i):
             rec["attempts"] = self._attempts[i]

@@ -132,9 +132,15 @@ class BoatController(MissionController):
         self.fleet, self.boat = fleet, int(boat)
         self.store = fleet.store
         self.status = "waiting"
-        self.session.replan_refused = (
-            "a fleet's boat does not re-plan its leg in place (leg numbers are the fleet's); use skip"
-        )
+
+    def _archive_attempt(self, i: int, status: str = "interrupted") -> bool:
+        """As one boat's (the operator's re-plan, a rejected leg), the attempt's record also naming the fleet step
+        it was planned at (``fleet_seq.plan``): its path was in flight for the other boats' plans until the leg
+        was planned again, and a replay plans it at that step too."""
+        kept = super()._archive_attempt(i, status)
+        if kept and self.share.seq_plan is not None:
+            self._attempts[i][-1]["fleet_seq"] = {"plan": int(self.share.seq_plan)}
+        return kept
 
     @property
     def legs_done(self) -> int:

@@ -41,6 +41,9 @@ class Replan(Exception):  # noqa: N818 - a request, not an error
 class OperatorLegs:
     """The controller's side of the console and the budget (module docstring)."""
 
+    #: the record of the safety budget's shortening of the leg being planned (:meth:`_fit_budget`), None = none
+    shortened: dict | None = None
+
     def _attach_operator(self) -> None:
         """The boat's command channel, budget and alarms on this run's link (with the sample collector)."""
         from passt_mav.runs.commands import CommandReader
@@ -51,6 +54,12 @@ class OperatorLegs:
         self.session.budget = SafetyBudget(self.link, self.config.budget)
         self.alerts = VehicleAlerts(self.link, self.journal)
         self.alerts.attach()
+
+    def _keep_operator_streams(self) -> None:
+        """The streams the budget and the alarms need, asked for now and after every reboot or reconnect:
+        BATTERY_STATUS (with a battery reserve) and FENCE_STATUS."""
+        self.session.budget.request_battery()
+        self.alerts.request_fence_status()
 
     def _detach_operator(self) -> None:
         self.alerts.detach()
@@ -79,6 +88,69 @@ class OperatorLegs:
             self.leg_rec["operator"] = {"action": how, "at_item": at}
         elif how == "budget":
             self.leg_rec["budget_cut"] = {"reason": self.session.budget.reason, "at_item": at}
+
+    def _fit_budget(self, i: int, planned) -> np.ndarray:
+        """Leg ``i``'s planned grid path fitted to what is left of the safety budget before its upload
+        (:mod:`passt_mav.vehicle.budget`): the path itself when it fits or no distance/time limit is set; else the
+        start of it through its first waypoints that fit, the shortening recorded in :attr:`shortened` (the leg
+        record's ``budget_shortened``) and said as an event of kind ``budget``. When not even its first waypoint
+        fits, the run ends as at a spent budget (:class:`Ended`)."""
+        import geo
+
+        self.shortened, budget = None, self.session.budget
+        left_m, left_s = (None, None) if budget is None else budget.left()
+        if left_m is None and left_s is None:
+            return planned.plan.path
+        p, idx = geo.waypoint_indices(self.grid, planned.plan.path)
+        wp = geo.path_to_waypoints(self.grid, p)
+        here = planned.start_latlon if planned.start_latlon is not None else tuple(wp[0])
+        pts = np.vstack([np.asarray(here, float)[None], wp])
+        to_wp = np.cumsum(geo.geodesic_distance_m(pts[:-1, 0], pts[:-1, 1], pts[1:, 0], pts[1:, 1]))
+        back, home = np.zeros(len(wp)), None
+        if self.config.budget.on_spent == "rtl" and (home := budget.home()) is not None:
+            back = np.asarray(geo.geodesic_distance_m(wp[:, 0], wp[:, 1], home[0], home[1]), float)
+        from passt_mav.vehicle.budget import waypoints_that_fit
+
+        k, n = waypoints_that_fit(to_wp, back, left_m, left_s, self.speed), len(wp)
+        if k == n:
+            return planned.plan.path
+        left = ", ".join(
+            x
+            for x in (
+                None if left_m is None else f"{left_m:.0f} m",
+                None if left_s is None else f"{left_s:.0f} s",
+            )
+            if x
+        )
+        ret = "" if home is None else " (the way home from each waypoint kept in reserve: on_spent rtl)"
+        if k == 0:
+            if getattr(self, "sessions", None) and self.sessions[-1]["planned"][-1:] == [i]:
+                # never uploaded, so not a leg of the telemetry log: a replay maps the log's legs to the
+                # controller's sessions by these lists (--resume plans this leg again in the next one)
+                self.sessions[-1]["planned"].pop()
+            budget.reason = (
+                f"leg {i + 1} does not fit: its first waypoint needs {to_wp[0] + back[0]:.0f} m{ret}, "
+                f"budget left {left}"
+            )
+            self._end_if_budget_spent()
+        self.shortened = {
+            "kept": k,
+            "of": n,
+            "distance_m": round(float(to_wp[k - 1]), 1),
+            "return_m": round(float(back[k - 1]), 1) if home is not None else None,
+            "planned_distance_m": round(float(to_wp[-1]), 1),
+            "budget_left_m": None if left_m is None else round(left_m, 1),
+            "budget_left_s": None if left_s is None else round(left_s, 1),
+            "path": p[: idx[k - 1] + 1].tolist(),
+        }
+        text = (
+            f"leg {i + 1} shortened: {k} of {n} waypoints ({to_wp[k - 1]:.0f} of {to_wp[-1]:.0f} m), "
+            f"budget left {left}{ret}"
+        )
+        self.journal.events.append(text)
+        self.record.event("budget", text, level="warn")  # (a notice on the page, not an alarm: nothing is wrong yet)
+        self._say(text)
+        return p[: idx[k - 1] + 1]
 
     def _approve(self, i: int, rec: dict, wm) -> None:
         """Approve mode (mission key ``approve``): leg ``i``'s record says ``awaiting_approval`` with its distance

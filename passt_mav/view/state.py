@@ -148,7 +148,8 @@ class RunState:
         """The legs for the page; their RMSEs (recorded in field units) in ``unit``."""
         out = []
         for rec in self._legs():
-            path = rec.get("path") or []
+            # a leg the safety budget shortened before its upload flies only the start of its planned path
+            path = (rec.get("budget_shortened") or {}).get("path") or rec.get("path") or []
             lat, lon = (
                 grid.cell_to_latlon(np.array([p[0] for p in path]), np.array([p[1] for p in path]))
                 if path and grid is not None
