@@ -2,6 +2,7 @@
 
     .venv/bin/python benchmarks/model_real_files.py --seed 0 --trials 10 --epochs 30   # prints the tables
     .venv/bin/python benchmarks/model_real_files.py --files hfradar --trials 1 --epochs 1  # smallest run
+    .venv/bin/python benchmarks/model_real_files.py --tables out.json      # a --json file's tables again
 
 Real files from ``../shared/data`` (read there, never copied): NOAA Global RTOFS off Washington, the
 HYCOM-like file over the same coast and the MARACOOS HF-radar totals. One region per file is drawn
@@ -180,7 +181,8 @@ def print_tables(records: list[dict], say=print) -> None:
     """The two tables of the module docstring, one block per file."""
     for rec in records:
         ms = rec["models"]
-        hs = sorted(ms["persistence"]["lookahead"])
+        la = {k: {int(h): v for h, v in m["lookahead"].items()} for k, m in ms.items()}  # JSON keys are strings
+        hs = sorted(la["persistence"])
         say(
             f"\n{rec['file']}: {rec['n_times']} snapshots every {rec['dt_h']:g} h; fit 0..{rec['n_fit'] - 1}, "
             f"held out {rec['n_fit']}..{rec['n_times'] - 1}"
@@ -188,18 +190,25 @@ def print_tables(records: list[dict], say=print) -> None:
         say("  lookahead MSE (m/s)^2 [ratio to persistence], h in snapshots (" + ", ".join(
             f"h={h}: {h * rec['dt_h']:g} h" for h in hs) + ")")  # fmt: skip
         for name, m in ms.items():
-            cells = [
-                f"{m['lookahead'][h]:.3e} [{m['lookahead'][h] / ms['persistence']['lookahead'][h]:.2f}]" for h in hs
-            ]
+            cells = [f"{la[name][h]:.3e} [{la[name][h] / la['persistence'][h]:.2f}]" for h in hs]
             say(f"    {name:<12} " + "  ".join(cells))
         loop = ms["persistence"]["loop"]
         say(
             f"  PASST mean RMSE (m/s) over the held-out snapshots, {len(loop['passt'])} trials, "
             f"legs of {loop['steps_per_leg']} snapshot(s): mean +- std [model alone]"
         )
+        ref = {k: np.asarray(ms[k]["loop"]["passt"]) for k in ("persistence", "dmd")}
+        say(
+            "    (paired over the trials: PASST's RMSE minus the one with persistence / DMD, mean +- std, lower in k/n)"
+        )
         for name, m in ms.items():
             p = np.asarray(m["loop"]["passt"])
-            say(f"    {name:<12} {p.mean():.4f} +- {p.std():.4f}  [{m['loop']['model']:.4f}]")
+            paired = "  ".join(
+                f"vs {k} {(p - q).mean():+.4f} +- {(p - q).std():.4f} lower {(p < q).sum()}/{len(p)}"
+                for k, q in ref.items()
+                if k != name
+            )
+            say(f"    {name:<12} {p.mean():.4f} +- {p.std():.4f}  [{m['loop']['model']:.4f}]  {paired}")
         for name, m in ms.items():
             if m["info"].get("command"):
                 i = m["info"]
@@ -217,7 +226,11 @@ def main(argv=None) -> int:
     ap.add_argument("--path-length", type=int, default=20, help="moves per leg")
     ap.add_argument("--out", default="runs/model_real_files", help="folder for the regions and checkpoints")
     ap.add_argument("--json", default=None, help="write the records here")
+    ap.add_argument("--tables", nargs="+", default=None, help="only print the tables of these --json files")
     a = ap.parse_args(argv)
+    if a.tables:
+        print_tables([r for f in a.tables for r in json.loads(Path(f).read_text())])
+        return 0
     import real_data_loop as rdl
 
     files = [f for f in a.files.split(",") if f]

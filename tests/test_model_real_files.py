@@ -70,3 +70,12 @@ def test_bad_file_key_is_one_line_and_exit_2(capsys, tmp_path):
     err = capsys.readouterr().err.strip()
     assert err.count("\n") == 0 and "nope" in err
     assert not (tmp_path / "o").exists()
+
+
+def test_tables_reprinted_from_the_json(small, capsys):
+    bench, out, (rec,) = small
+    assert bench.main(["--tables", str(out / "r.json")]) == 0
+    text = capsys.readouterr().out
+    p = np.asarray(rec["models"]["dmd"]["loop"]["passt"])
+    assert f"dmd          {p.mean():.4f} +- {p.std():.4f}" in text
+    assert "h=1: 1 h, h=5: 5 h" in text
