@@ -490,16 +490,7 @@ class MissionController(ResumeRecord, OperatorLegs):
                 state, t_state = self._leg(i, state, t_state)
             self.status = "complete"
         except Stopped as exc:
-            self.signals.disarm()
-            self.status, self.stopped_by = "stopped", exc.name
-            leave = self.config.vehicle.on_signal == "auto"
-            what = "the vehicle left flying its leg in AUTO (vehicle.on_signal: auto)" if leave else "HOLD"
-            self._note("stopped", f"stopped by {exc.name} at {utc_now()}: {what}; continue with --resume")
-            self._say(f"stopped by {exc.name}: {what}; store flushed, summary written; continue with --resume")
-            close_leg(self.collector)
-            if not leave:  # HOLD whatever the mode seen last: a stop during the swap may precede AUTO's heartbeat
-                self.session.hold_if_auto(always=True)
-            place_held(self.collector, None if self.link.lost else self.live_leg[0], self.speedup)
+            stop_by_signal(self, exc.name)
         except (Ended, Paused) as exc:  # a clean stop short of the end (passt_mav.vehicle.operator)
             self._stop_short(exc)
         except BaseException as exc:
@@ -836,6 +827,25 @@ def overrun_record(expected_s: float, vehicle_cfg, progress, items) -> dict:
         "cut_at_item": int(progress.current),
         "items": len(items) - 1,
     }
+
+
+def stop_by_signal(ctl, name: str) -> None:
+    """Controller ``ctl`` stopped by signal ``name`` (SIGINT, SIGTERM): status ``stopped``, the vehicle held (or
+    left in AUTO with ``vehicle.on_signal: auto``), the leg's last readings placed; ``--resume`` continues."""
+    ctl.signals.disarm()
+    ctl.status, ctl.stopped_by = "stopped", name
+    leave = ctl.config.vehicle.on_signal == "auto"
+    what = "the vehicle left flying its leg in AUTO (vehicle.on_signal: auto)" if leave else "HOLD"
+    ctl._note("stopped", f"stopped by {name} at {utc_now()}: {what}; continue with --resume")
+    ctl._say(f"stopped by {name}: {what}; store flushed, summary written; continue with --resume")
+    if leave:
+        close_leg(ctl.collector)
+    else:  # HOLD whatever the mode seen last: a stop during the swap may precede AUTO's heartbeat
+        # the leg closes and the first HOLD is sent under the reader's dispatch lock, as at a leg's end, so no
+        # reading is logged before that HOLD but kept out of the leg (a replay ends the leg there)
+        end_leg_at_hold(ctl.link, ctl.vehicle, ctl.collector)
+        ctl.session.hold_if_auto(always=True)
+    place_held(ctl.collector, None if ctl.link.lost else ctl.live_leg[0], ctl.speedup)
 
 
 def end_leg_at_hold(link, vehicle, collector) -> None:
