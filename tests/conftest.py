@@ -46,6 +46,7 @@ COSTLY_FIXTURE_MODULES = {
     "test_paper",
     "test_plan_cmd",
     "test_prior_blend",
+    "test_model_real_files",
     "test_replay",
     "test_tlog",
 }
