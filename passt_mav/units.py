@@ -60,8 +60,8 @@ def speed_unit(velocity_scale: float | None = None, field_units: str | None = No
 
 def run_speed_unit(summary: dict | None = None, meta: dict | None = None, field_units: str | None = None) -> SpeedUnit:
     """The unit of a run directory's figures: its mission's ``field.velocity_scale`` (from ``summary.json``'s
-    ``config``, else ``live/meta.json``'s ``velocity_scale``); a run that records neither falls back to
-    ``field_units`` (:func:`speed_unit`)."""
+    ``config``, else ``meta``'s ``velocity_scale``: ``live/meta.json``, or a mission file's ``field`` section);
+    a run that records neither falls back to ``field_units`` (:func:`speed_unit`)."""
     vs = None
     cfg = (summary or {}).get("config")
     if isinstance(cfg, dict) and isinstance(cfg.get("field"), dict):

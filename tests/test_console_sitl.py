@@ -12,7 +12,7 @@ import time
 
 import pytest
 from test_console import Operator, _flying
-from test_sitl import still_mission
+from test_sitl import sitl_controller, still_mission
 
 pytestmark = pytest.mark.sitl
 
@@ -21,27 +21,12 @@ HOLD, AUTO = 4, 10
 
 def test_pause_and_resume_on_ardurover_sitl(tmp_path, sitl):
     from passt_mav.errors import MavlinkError
-    from passt_mav.mavlink import Link, LinkConfig, Vehicle
-    from passt_mav.runs.rundir import RunDir
-    from passt_mav.vehicle.controller import MissionController
 
     field, cfg = still_mission(tmp_path, 8, {"name": "lawnmower", "path_length": 6})
-    link = Link(LinkConfig(sitl.connect, connect_timeout_s=60)).connect()
+    rd, ctl = sitl_controller(tmp_path, sitl, field, cfg, pause_timeout_s=120.0)
+    link = ctl.link
     seen: dict = {}
     try:
-        rd = RunDir(tmp_path / "run").create()
-        ctl = MissionController(
-            cfg,
-            link,
-            rd,
-            field=field,
-            predictor=None,
-            vehicle=Vehicle(link),
-            speedup_hint=sitl.speedup,
-            ready_timeout_s=120.0,
-            pause_timeout_s=120.0,
-            echo=print,
-        )
 
         def settle(mode):  # the firmware's HEARTBEAT says ``mode``, then its MISSION_CURRENT after that
             end = time.monotonic() + 30

@@ -15,6 +15,7 @@ import pytest
 from test_passt import ShiftPredictor, make_field
 
 from passt_mav.errors import ReconstructionError
+from passt_mav.loop.blend import PriorBlend
 from passt_mav.loop.engine import run_offline
 from passt_mav.loop.passt import PasstLoop
 from passt_mav.loop.presets import PAPER
@@ -178,7 +179,7 @@ def test_far_from_the_samples_the_analysis_is_a_forecast_never_zero():
         leg = loop.plan_leg(state, (2, 2), float(5 * k), 1.0, steps=5)
         samples = FieldSampler(tide, noise_std=0.02, steps_per_leg=5, seed=k).sample_path(leg.path, leg.t_start)
         fc = np.asarray(leg.forecast, float)
-        cands = loop._candidates(fc, loop.open_loop_forecast(leg.t_start, leg.dt, fc.shape[0]))
+        cands = PriorBlend.candidates(fc, loop.open_loop_forecast(leg.t_start, leg.dt, fc.shape[0]))
         state = loop.update(leg, samples)
         chosen = cands[int(np.argmax(loop.mixing_weights()))][-1]
         # where no sample reaches: beyond 3 of the kernel's longest length scale (6 cells)

@@ -155,13 +155,13 @@ def still_mission(tmp_path, n: int = 6, planner: dict | None = None):
     return field, cfg
 
 
-def test_one_leg_on_ardurover_sitl(tmp_path, sitl):
-    from passt_mav.errors import MavlinkError
+def sitl_controller(tmp_path, sitl, field, cfg, **kw):
+    """(run directory, controller) flying ``cfg`` over ``field`` on the SITL instance ``sitl``, over a fresh link
+    and with no predictor (``kw``: more MissionController options). The caller closes ``ctl.link``."""
     from passt_mav.mavlink import Link, LinkConfig, Vehicle
     from passt_mav.runs.rundir import RunDir
     from passt_mav.vehicle.controller import MissionController
 
-    field, cfg = still_mission(tmp_path)
     link = Link(LinkConfig(sitl.connect, connect_timeout_s=60)).connect()
     try:
         rd = RunDir(tmp_path / "run").create()
@@ -175,7 +175,21 @@ def test_one_leg_on_ardurover_sitl(tmp_path, sitl):
             speedup_hint=sitl.speedup,
             ready_timeout_s=120.0,
             echo=print,
+            **kw,
         )
+    except BaseException:
+        link.close()
+        raise
+    return rd, ctl
+
+
+def test_one_leg_on_ardurover_sitl(tmp_path, sitl):
+    from passt_mav.errors import MavlinkError
+
+    field, cfg = still_mission(tmp_path)
+    rd, ctl = sitl_controller(tmp_path, sitl, field, cfg)
+    link = ctl.link
+    try:
         with pytest.raises(MavlinkError, match="no current samples"):
             ctl.run()
         leg = rd.read_leg(0)

@@ -68,7 +68,7 @@ import numpy as np
 
 from passt_mav.errors import UserError
 from passt_mav.runs.rundir import RunDir, RunDirError
-from passt_mav.units import MPS, SpeedUnit, speed_unit
+from passt_mav.units import MPS, SpeedUnit, run_speed_unit
 
 __all__ = [
     "FORMATS",
@@ -375,10 +375,7 @@ def _unit(run: RunData, f0) -> SpeedUnit:
     """How the run's field-derived speeds are exported: m/s times the velocity scale the run flew with
     (summary.json's mission ``config``, else an explicit ``field.velocity_scale`` in its mission.yaml); a
     run that records neither keeps the field's own units (``f0.units``)."""
-    vs = (((run.summary or {}).get("config") or {}).get("field") or {}).get("velocity_scale")
-    if vs is None:
-        vs = ((run.mission or {}).get("field") or {}).get("velocity_scale")
-    return speed_unit(None if vs is None else float(vs), f0.units)
+    return run_speed_unit(run.summary, (run.mission or {}).get("field"), f0.units)
 
 
 def _cf_units(unit: SpeedUnit, f0) -> str:

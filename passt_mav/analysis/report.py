@@ -35,6 +35,7 @@ import math
 import sqlite3
 from dataclasses import dataclass
 from dataclasses import field as _dcfield
+from functools import cached_property
 from pathlib import Path
 from typing import Any
 
@@ -44,6 +45,7 @@ from passt_mav.analysis.html_page import Page, pyplot
 from passt_mav.errors import UserError
 from passt_mav.loop.measurement import leg_number, sample_columns, truth_at
 from passt_mav.loop.measurement import rmse as recon_rmse  # (the name tests and users know) the one RMSE rule
+from passt_mav.runs.live import read_meta
 from passt_mav.runs.rundir import RunDir, RunDirError
 from passt_mav.units import MPS, SpeedUnit, run_speed_unit
 
@@ -90,11 +92,12 @@ class Run:
     def in_progress(self) -> bool:
         return self.summary is None
 
-    @property
+    @cached_property
     def unit(self) -> SpeedUnit:
         """How the report shows field-derived speeds and RMSEs: m/s times the mission's velocity scale
-        (:mod:`passt_mav.units`); the samples are in m/s already and are never scaled."""
-        meta = None if self.summary is not None else _read_live_meta(self.rundir)
+        (:mod:`passt_mav.units`); the samples are in m/s already and are never scaled. Read once (the
+        figures ask for it many times)."""
+        meta = None if self.summary is not None else read_meta(self.rundir.root)
         return run_speed_unit(self.summary, meta, self.field.units if self.field is not None else "m s-1")
 
     @property
@@ -550,15 +553,6 @@ def _fig_samples(run: Run, plt):
 def _fmt_num(x: float, unit: str) -> str:
     """An RMSE after a leg (already in the report's unit) to 6 decimals with its unit, or "n/a"."""
     return f"{x:.6f} {unit}" if np.isfinite(x) else "n/a"
-
-
-def _read_live_meta(rd: RunDir) -> dict | None:
-    """``live/meta.json`` of a run still in progress (its velocity scale), or None."""
-    try:
-        m = json.loads((rd.root / "live" / "meta.json").read_text())
-    except (OSError, ValueError):
-        return None
-    return m if isinstance(m, dict) else None
 
 
 def _fmt_rmse(r: float | None, spec: str) -> str:

@@ -761,9 +761,6 @@ class PasstLoop:
         """The weights the prior mixes the candidates with (:meth:`PriorBlend.mixing_weights`)."""
         return self.blend_.mixing_weights()
 
-    def _candidates(self, fc: np.ndarray, open_fc: np.ndarray) -> list[np.ndarray]:
-        return PriorBlend.candidates(fc, open_fc)
-
     def blend(self, fc: np.ndarray, t_start: float = 0.0, dt: float = 1.0) -> np.ndarray:
         """The estimate a model forecast ``fc`` ((S+1, 2, R, C) from field time ``t_start``, ``dt``
         apart) stands for: ``fc`` itself, or with ``prior_blend`` "bma" / "select" the candidates'

@@ -193,6 +193,15 @@ def read_events(root: str | Path, offset: int = 0) -> tuple[list[dict], int]:
     return read_jsonl(Path(root) / EVENTS, offset)
 
 
+def read_meta(root: str | Path) -> dict | None:
+    """``live/meta.json`` (written once at the run's start), or None when it is missing or unreadable."""
+    try:
+        m = json.loads((Path(root) / LIVE / "meta.json").read_text())
+    except (OSError, ValueError):
+        return None
+    return m if isinstance(m, dict) else None
+
+
 def read_statuses(root: str | Path) -> dict[int, dict]:
     """``{boat: status}`` from ``live/boat_K.json`` (files that cannot be read are left out)."""
     out = {}

@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from passt_mav.runs.commands import read_commands
-from passt_mav.runs.live import read_events, read_statuses
+from passt_mav.runs.live import read_events, read_meta, read_statuses
 from passt_mav.runs.rundir import RunDir
 from passt_mav.runs.store import SampleStore, SampleStoreError
 from passt_mav.units import SpeedUnit, run_speed_unit
@@ -102,7 +102,7 @@ class RunState:
 
     # -- pieces ------------------------------------------------------------------------------------
     def meta(self) -> dict:
-        m = _read_json(self.root / "live" / "meta.json")
+        m = read_meta(self.root)
         if m is None:  # a run from before the live view: what the summary has
             s = _read_json(self.rd.summary_file) or {}
             m = {
