@@ -455,7 +455,15 @@ def test_cli_boats_listen_like_sitl_instances_with_their_own_system_ids():
         try:
             for i in range(n):
                 gcs.conns[i].mav.param_request_read_send(i + 1, 1, b"MAV_SYSID", -1)
+
+            def answered(i):
+                return any(m.get_type() == "PARAM_VALUE" and m.param_id == "MAV_SYSID" for m in gcs.msgs[i])
+
+            # the requests travel on each boat's own socket, the step on boat 0's: the simulator may read a request
+            # after the step it was sent before, and answer it in a later step; up to 10 s of simulated time
             gcs.step(1.0)
+            while not all(answered(i) for i in range(n)) and gcs.t < 10.0:
+                gcs.step(1.0)
             for i in range(n):
                 hb = [m for m in gcs.msgs[i] if m.get_type() == "HEARTBEAT"]
                 assert hb and {m.get_srcSystem() for m in hb} == {i + 1}
