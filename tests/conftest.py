@@ -52,15 +52,6 @@ COSTLY_FIXTURE_MODULES = {
 }
 
 
-@pytest.hookimpl(optionalhook=True)  # pytest-xdist's hook: unknown under -p no:xdist
-def pytest_xdist_auto_num_workers(config):
-    """``-n auto``: one worker per core, and one more. The ``wall_clock`` group's tests (the firmware, a demo
-    paced at a speed-up) spend most of their time waiting (the SITL tests use about a quarter of a core),
-    so on a 2-core machine two workers left most of a core idle while that group ran; the extra worker
-    computes in that time. The group itself still runs one test at a time on one worker."""
-    return (os.cpu_count() or 1) + 1
-
-
 @pytest.hookimpl(tryfirst=True)  # before pytest-xdist reads the xdist_group marks (--dist loadgroup)
 def pytest_collection_modifyitems(config, items):
     """Tests marked ``sitl`` run when the ArduPilot SITL build is beside the checkout, else skip saying why.

@@ -755,7 +755,13 @@ def test_damaged_store_replay_and_export_use_the_log(flown_run, tmp_path, capsys
     rc = main(["replay", str(run), "--json"])
     text = capsys.readouterr().out
     res = _json.loads(text[text.index("{") :])
-    assert rc == 0 and res["reproduced"] is True  # the log alone holds every leg
+    why = {k: res.get(k) for k in ("first_divergence", "notes")} | {
+        "legs": [
+            {k: lg.get(k) for k in ("index", "n_samples", "path_identical", "rmse_identical", "notes")}
+            for lg in res["legs"]
+        ]
+    }
+    assert rc == 0 and res["reproduced"] is True, why  # the log alone holds every leg
     assert any("damaged run: samples.sqlite unreadable" in n for n in res["notes"])
     assert main(["export", str(run), "--format", "csv", "--out", str(tmp_path / "s.csv")]) == 0
     lines = capsys.readouterr().out.strip().splitlines()
