@@ -229,6 +229,10 @@ def main(argv=None) -> int:
     ap.add_argument("--tables", nargs="+", default=None, help="only print the tables of these --json files")
     a = ap.parse_args(argv)
     if a.tables:
+        missing = [f for f in a.tables if not Path(f).is_file()]
+        if missing:
+            print(f"model_real_files: error: --tables: no such file: {', '.join(missing)}", file=sys.stderr)
+            return 2
         print_tables([r for f in a.tables for r in json.loads(Path(f).read_text())])
         return 0
     import real_data_loop as rdl

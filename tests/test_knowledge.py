@@ -115,6 +115,22 @@ def test_untrained_model_is_dmd_inside_the_subspace_and_decays_outside(field, co
     np.testing.assert_allclose(m.predict(x, 1)[0].ravel(), want, atol=2e-6 * np.max(np.abs(want)))
 
 
+def test_the_linear_term_never_sees_the_validation_part(field):
+    """With a validation split the knowledge is DMD of the training part alone (snapshots 0..31 of
+    0..47 here), so the best epoch and the skill report score the linear term out of sample: the
+    untrained model forecasts as that DMD, not as DMD of the whole window."""
+    m = _untrained(field, "drop", val_frac=1 / 3).fit(field, start=0, stop=48)
+    assert m.val_window_ == [32, 48] and m.n_train_ == 32
+    part = make_predictor("dmd").fit(field, start=0, stop=32)
+    whole = make_predictor("dmd").fit(field, start=0, stop=48)
+    x = field.data[50]
+    got = m.predict(x, 1)[0]
+    np.testing.assert_allclose(got, part.predict(x, 1)[0], atol=2e-5 * np.max(np.abs(got)))
+    assert m.knowledge_info_["n_snapshots"] == 32
+    # the two DMDs differ by more than the tolerance, so the check above can tell them apart
+    assert np.max(np.abs(part.predict(x, 1)[0] - whole.predict(x, 1)[0])) > 1e-3 * np.max(np.abs(got))
+
+
 def test_dmd_knowledge_checkpoint_round_trip_and_fine_tuning_keeps_the_operator(field, tmp_path):
     m = make_predictor("knode", epochs=2, seed=0, knowledge="dmd", **SMALL).fit(field, start=0, stop=24)
     m.save(tmp_path / "k")
@@ -169,7 +185,7 @@ def test_unknown_knowledge_and_complement_name_the_choices(field):
 
 def test_shipped_alternative_carries_dmd_of_its_window():
     """``builtin:cylinder-dmd``: a KNODE with DMD knowledge whose operator is the DMD of its recorded
-    training window (the same rank, exp(A_c) = A to float32 rounding); the command is recorded."""
+    training part (the training window less its validation part; the same rank, exp(A_c) = A to float32 rounding); the command is recorded."""
     from scipy.linalg import expm
 
     from passt_mav.fields.datasets import load_dataset
@@ -184,7 +200,8 @@ def test_shipped_alternative_carries_dmd_of_its_window():
     f = load_dataset("cylinder")
     assert m.knowledge == "dmd" and meta["command"].startswith("passt-mav model train")
     assert meta["data_hash"] == f.data_hash() and "--knowledge dmd" in meta["command"]
-    a, b = meta["train_window"]
+    # fitted on the training part only: the window less its validation part
+    a, b = meta["train_window"][0], (meta["val_window"] or meta["train_window"])[0]
     dmd = make_predictor("dmd").fit(f, start=a, stop=b)
     kn = m.net_.knowledge
     assert kn.Ac.shape == (dmd.rank_, dmd.rank_) == (meta["knowledge_info"]["rank"],) * 2

@@ -111,11 +111,11 @@ def build_network(p, grid_shape: tuple[int, int], start_from, dev, knowledge=Non
 
 
 def fit_knowledge(p, window: np.ndarray, water: np.ndarray, mean: np.ndarray, std: np.ndarray, start_from):
-    """The linear knowledge module of ``p`` (``None`` for ``knowledge="none"``): DMD fitted on the whole
-    ``window`` (field units; the snapshots ``model train --model dmd`` would fit on the same window, so the
-    untrained model is that DMD) in the scaling ``mean``/``std``, or a copy of the start model's when
-    fine-tuning; sets ``p.knowledge_info_``. The validation part then scores corrections that all share
-    this linear term."""
+    """The linear knowledge module of ``p`` (``None`` for ``knowledge="none"``): DMD fitted on ``window``,
+    the training part of the training window only (field units; the untrained model is the DMD that
+    ``model train --model dmd`` would fit on those snapshots), in the scaling ``mean``/``std``, or a copy
+    of the start model's when fine-tuning; sets ``p.knowledge_info_``. The validation part is never seen by
+    the linear term, so the best epoch and the skill report score it out of sample."""
     import copy
 
     p.knowledge_info_ = None
@@ -342,7 +342,7 @@ def fit_knode(p, field, start: int | None, stop: int | None, epochs: int | None,
         mean, std = start_from.mean_, start_from.std_
         p.init_metadata_ = getattr(start_from, "metadata_", None)
     dev = torch.device(p.device)
-    net = build_network(p, water.shape, start_from, dev, fit_knowledge(p, data, water, mean, std, start_from))
+    net = build_network(p, water.shape, start_from, dev, fit_knowledge(p, data[:n_tr], water, mean, std, start_from))
     trainer = KnodeTrainer(p, net, field, data, s0, n_tr, Scaler(mean, std, water), dev)
     curve, vcurve, best = trainer.run(n_ep, callback)
     keep_best = best.state is not None and p.select == "best"

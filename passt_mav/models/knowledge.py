@@ -86,8 +86,8 @@ def fit_dmd_knowledge(
 
     ``train``: ``(T, 2, R, C)`` field units (NaN = land); ``water`` ``(R, C)`` bool; ``mean``/``std``
     ``(2, R, C)``: the KNODE's scaler (field units; std 1 on land). ``rank``/``energy``: DMD's
-    truncation (:class:`~passt_mav.models.dmd.DMDPredictor`). ``info``: ``rank``, ``eig_abs_max`` and
-    :func:`continuous_operator`'s checks.
+    truncation (:class:`~passt_mav.models.dmd.DMDPredictor`). ``info``: ``rank``, ``eig_abs_max``,
+    ``n_snapshots`` (how many snapshots DMD was fitted on) and :func:`continuous_operator`'s checks.
     """
     from passt_mav.models.dmd import DMDPredictor
 
@@ -99,7 +99,7 @@ def fit_dmd_knowledge(
     U[idx] = dmd.modes_
     offset = np.zeros(2 * R * C)
     offset[idx] = np.asarray(mean, np.float64).ravel()[idx] - dmd.mean_
-    info.update(rank=int(dmd.rank_), eig_abs_max=float(np.max(np.abs(dmd.eigs_))))
+    info.update(rank=int(dmd.rank_), eig_abs_max=float(np.max(np.abs(dmd.eigs_))), n_snapshots=int(train.shape[0]))
     return LinearKnowledge(U, Ac, np.asarray(std, np.float64).ravel(), offset, complement), info
 
 
