@@ -74,6 +74,7 @@ def pytest_collection_modifyitems(config, items):
     """
     import sitl as sitl_mod  # tests/sitl.py (tests/ is on sys.path)
 
+    _check_left_out_tests_say_why(items)
     reason = sitl_mod.unavailable_reason()
 
     def late(it) -> bool:
@@ -93,6 +94,25 @@ def pytest_collection_modifyitems(config, items):
             module is not None and module.__name__ in COSTLY_FIXTURE_MODULES and _uses_own_shared_fixture(item, module)
         ):
             item.add_marker(pytest.mark.xdist_group(module.__name__))
+
+
+#: markers that leave a test out of the default run; each use must say why (``reason=``)
+LEFT_OUT_MARKERS = ("long", "slow")
+
+
+def _check_left_out_tests_say_why(items) -> None:
+    """A test marked ``long`` or ``slow`` without ``reason="..."`` stops the collection, naming it: the
+    default run is kept short by leaving such tests out, and each one must say what makes it long."""
+    bare = sorted(
+        {
+            f"{it.nodeid} (@pytest.mark.{m.name})"
+            for it in items
+            for m in it.iter_markers()
+            if m.name in LEFT_OUT_MARKERS and not str(m.kwargs.get("reason", "")).strip()
+        }
+    )
+    if bare:
+        raise pytest.UsageError(f"marked long/slow without reason=: {', '.join(bare)}")
 
 
 def _uses_own_shared_fixture(item, module) -> bool:

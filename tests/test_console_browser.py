@@ -18,6 +18,7 @@ import subprocess
 import sys
 import time
 
+import pytest
 from test_view_browser import FLAGS, _free_port, _need_browser, _wait
 
 MODE = "(() => { const t = document.querySelector('#boat-0 table'); if (!t) return null; "
@@ -69,6 +70,7 @@ def demo_page(tmp_path, *extra, moves: int = 3, speedup: float = 100):
             demo.wait(30)
 
 
+@pytest.mark.long(reason="a demo in wall time driven from headless Chromium: ~35 s")
 def test_pause_resume_end_from_the_page(tmp_path):
     t0 = time.monotonic()
     with demo_page(tmp_path) as (demo, out, url, ctx, page, js):
@@ -117,6 +119,7 @@ def test_pause_resume_end_from_the_page(tmp_path):
     print(f"console in Chromium: pause at item {item}, resumed there, RTL; {time.monotonic() - t0:.1f} s")
 
 
+@pytest.mark.long(reason="a demo in wall time driven from headless Chromium through two approvals: ~1 min")
 def test_approve_one_leg_and_reject_one_from_the_page(tmp_path):
     """``demo --approve``: leg 1 is approved and flies; leg 2 is rejected (planned again, the rejected attempt kept)
     and its new plan approved; the run completes. (Short legs: the approvals come between them.)"""
@@ -168,6 +171,7 @@ NOTIFY_INIT = """
 """
 
 
+@pytest.mark.long(reason="a run flown on the lockstep simulator while headless Chromium watches it: ~15-35 s")
 def test_an_alert_while_the_page_is_in_the_background_is_a_browser_notification(tmp_path):
     """``passt-mav view`` of a run still flying (a one-leg run on lockstep vehicle-sim, its summary marked running),
     Chromium with the notifications permission granted and alarms ticked: an alert while the page is hidden creates

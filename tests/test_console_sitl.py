@@ -19,6 +19,7 @@ pytestmark = pytest.mark.sitl
 HOLD, AUTO = 4, 10
 
 
+@pytest.mark.long(reason="ArduRover SITL in wall time through a pause and a resume: ~20 s")
 def test_pause_and_resume_on_ardurover_sitl(tmp_path, sitl):
     from passt_mav.errors import MavlinkError
 

@@ -174,7 +174,7 @@ def _leg_status(rd: RunDir, i: int) -> str | None:
         return None
 
 
-@pytest.mark.slow  # two processes importing torch, two legs at 20x: ~17 s on two loaded cores
+@pytest.mark.slow(reason="two processes importing torch, two legs at 20x: ~17 s on two loaded cores")
 def test_run_killed_mid_leg_then_resume_finishes_and_keeps_samples(tmp_path):
     import yaml
 

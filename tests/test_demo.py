@@ -16,7 +16,7 @@ import time
 import pytest
 
 
-@pytest.mark.slow
+@pytest.mark.slow(reason="the quick start's demo as a process with the shipped KNODE and its report: ~1 min")
 def test_demo_one_leg_writes_summary_and_report(tmp_path):
     out = tmp_path / "demo"
     env = dict(os.environ, OMP_NUM_THREADS="1")

@@ -216,7 +216,10 @@ LEG_KEYS = (
 @pytest.mark.parametrize(
     "model",
     [
-        "persistence",
+        pytest.param(
+            "persistence",
+            marks=pytest.mark.long(reason="two demos at once beside a busy loop, and a replay: ~25-40 s of CPU"),
+        ),
         pytest.param(
             "builtin:cylinder",
             marks=pytest.mark.slow(
@@ -283,7 +286,7 @@ def test_a_bad_lockstep_is_one_line_exit_2_and_writes_nothing(capsys, tmp_path):
         assert "Traceback" not in o + e and not out.exists()
 
 
-@pytest.mark.slow  # a 3-boat demo on the wall clock (legs of >= 2640 simulated s at 150x) and its replay: ~3 min
+@pytest.mark.slow(reason="a 3-boat demo on the wall clock (legs of >= 2640 simulated s at 150x) and its replay: ~3 min")
 def test_a_fresh_three_boat_demo_replays_every_path(tmp_path):
     """Issue 42 item 4 for a fleet: ``demo --boats 3`` (its simulator on the wall clock: the boats share one clock
     and cannot be stepped in lockstep yet), then ``replay``: exit 0, every boat's every leg with its recorded path

@@ -401,7 +401,7 @@ def test_export_help_imports_nothing_heavy():
 
 
 # -- the demo's runs (slow) ------------------------------------------------------------------------
-@pytest.mark.slow
+@pytest.mark.slow(reason="a demo process per fleet size (one boat, three boats) and every export of each: ~2 min")
 @pytest.mark.parametrize("boats", [1, 3])
 def test_demo_run_exports(tmp_path, boats):
     """`passt-mav demo` (--boats 1 and 3), then every export: CF clean, std present, round trip to 1e-6,

@@ -61,6 +61,7 @@ def test_boats_are_given_disjoint_cells_every_leg_and_runs_repeat(cylinder):
     np.testing.assert_array_equal(r.estimate, r2.estimate)
 
 
+@pytest.mark.long(reason="two campaigns of several trials each (three boats, one boat): ~17 s")
 def test_three_boats_beat_one_boat_of_the_same_path_length(cylinder):
     """Small version of the claim (3 trials, 60 steps) with persistence as the model, so the estimate
     rests on the samples (DMD is near exact on this wake: every configuration ends at 0.0092): two or
@@ -165,7 +166,7 @@ def test_policy_gradient_fleet_keeps_apart_and_off_land(seed):
     assert np.isnan(r.estimate[:, :, 10:20, 12:15]).all() and np.isfinite(r.estimate[:, :, :10]).all()
 
 
-@pytest.mark.slow
+@pytest.mark.slow(reason="the claim's own campaign, 10 trials x 4 fleets with the shipped KNODE: ~5 min on two cores")
 def test_fleet_beats_one_boat_with_the_shipped_model_over_ten_trials(tmp_path):
     """The issue's acceptance: 10 trials, 300 steps, the shipped cylinder KNODE, L = 50. Measured
     (same numbers as ``passt-mav evaluate --data builtin:cylinder --model builtin:cylinder --boats 3

@@ -128,6 +128,9 @@ def serve_view(argv: list[str]) -> dict:
         p.wait(10)
 
 
+@pytest.mark.long(
+    reason="the tutorial's commands as processes (import, train, plan, a flight, view, report, export): ~45-70 s"
+)
 def test_the_tutorial_runs_as_written(tmp_path, monkeypatch):
     import xarray as xr
 

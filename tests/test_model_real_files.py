@@ -35,6 +35,7 @@ def small(tmp_path_factory):
     return bench, out, json.loads((out / "r.json").read_text())
 
 
+@pytest.mark.long(reason="fits DMD and two KNODEs on a real file and flies PASST with each: ~16 s with its fixture")
 def test_fitted_on_the_earlier_half_scored_on_the_later(small):
     bench, out, (rec,) = small
     assert rec["file"] == "hfradar" and rec["n_times"] == 13 and rec["n_fit"] == 6
@@ -50,6 +51,7 @@ def test_fitted_on_the_earlier_half_scored_on_the_later(small):
         assert all(np.isfinite(loop["passt"])) and np.isfinite(loop["model"])
 
 
+@pytest.mark.long(reason="shares the fitted real-file fixture (~16 s) with the test above")
 def test_persistence_figures_by_hand(small):
     from passt_mav.fields.field import load_field
 
@@ -72,6 +74,7 @@ def test_bad_file_key_is_one_line_and_exit_2(capsys, tmp_path):
     assert not (tmp_path / "o").exists()
 
 
+@pytest.mark.long(reason="shares the fitted real-file fixture (~16 s) with the tests above")
 def test_tables_reprinted_from_the_json(small, capsys):
     bench, out, (rec,) = small
     assert bench.main(["--tables", str(out / "r.json")]) == 0

@@ -313,7 +313,7 @@ def test_shipped_models_load_and_record_provenance():
     assert load_predictor("builtin:cylinder").predict(np.zeros((2, 30, 30), np.float32), 1).shape == (1, 2, 30, 30)
 
 
-@pytest.mark.slow
+@pytest.mark.slow(reason="rolls the shipped cylinder KNODE out over 100 test snapshots to lookahead 20: ~1 min")
 def test_shipped_cylinder_beats_persistence_on_test_window():
     """Scored on snapshots 300-400 (never trained on): MSE below persistence at every lookahead <= 20."""
     from passt_mav.fields.datasets import load_dataset

@@ -159,7 +159,9 @@ def quick_page(tmp_path_factory):
 
 
 # --quick takes ~30 s on an idle 2-core machine and 67 s measured beside a training job: slow
-@pytest.mark.slow
+@pytest.mark.slow(
+    reason="passt-mav paper --quick: the three scenarios with the shipped models and seven methods: minutes"
+)
 def test_quick_runs_the_protocol(quick_page, capsys):
     """--quick: all three scenarios with the shipped models, the seven methods, the claims table, one page."""
     import json
@@ -186,20 +188,21 @@ def test_quick_runs_the_protocol(quick_page, capsys):
     assert "Quick version" in doc
 
 
-@pytest.mark.slow
+@pytest.mark.slow(reason="needs the --quick campaign of the test above (minutes), then renders its page")
 @pytest.mark.skipif(shutil.which("chromium") is None, reason="chromium not installed")
 def test_quick_page_renders_in_headless_chromium(quick_page, tmp_path):
     # a blank or broken page has a handful of colours; colour maps and text give thousands
     assert _shot(quick_page / "paper.html", tmp_path) > 500
 
 
+@pytest.mark.long(reason="renders the results page in headless Chromium: ~20 s")
 @pytest.mark.skipif(shutil.which("chromium") is None, reason="chromium not installed")
 def test_small_page_renders_in_headless_chromium(small_results, tmp_path):
     path = write_page(small_results, tmp_path / "page")
     assert _shot(path, tmp_path) > 500
 
 
-@pytest.mark.slow  # calibrates on the shipped cylinder KNODE: ~18 s beside a training job
+@pytest.mark.slow(reason="calibrates on the shipped cylinder KNODE: ~18 s beside a training job")
 def test_dry_run_counts_and_estimates(tmp_path, capsys):
     pytest.importorskip("passt_mav.models.knode", reason="predictors not available")
     assert (

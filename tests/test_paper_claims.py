@@ -19,7 +19,9 @@ import pytest
 from passt_mav.loop.campaign import run_campaign
 from passt_mav.reconstruction.background import DEFAULT_BACKGROUND
 
-pytestmark = pytest.mark.slow
+pytestmark = pytest.mark.slow(
+    reason="the paper's protocol at 6 trials per scenario and path length with the shipped KNODEs: tens of minutes"
+)
 
 TRIALS = 6
 

@@ -86,7 +86,7 @@ def test_the_gp_carries_a_residual_no_longer_than_the_field_stays_correlated(wa_
         assert loop.gp.max_time_scale == want
 
 
-@pytest.mark.slow  # four legs of ~7 h of vehicle time each on the simulator: ~4 min on two cores
+@pytest.mark.slow(reason="four legs of ~7 h of vehicle time each on the simulator: ~4 min on two cores")
 def test_the_case_on_vehicle_sim_ends_every_leg_below_the_model_alone_or_says_so(wa_field, tmp_path):
     """The issue's case flown as a user flies it: the same field, region, mission and start cell, four legs,
     on vehicle-sim (in process, in lockstep: simulated time follows the controller whatever the machine's

@@ -330,6 +330,7 @@ def _distinct_colours(png: Path) -> int:
     return len(np.unique(img, axis=0))
 
 
+@pytest.mark.long(reason="renders a report in headless Chromium: ~16-24 s")
 @pytest.mark.skipif(shutil.which("chromium") is None, reason="chromium not installed")
 def test_renders_in_headless_chromium(tmp_path, fake_store):
     rd = make_run(tmp_path / "run")

@@ -574,6 +574,7 @@ def _dies_in_leg(ctl, faults: Faults, leg: int) -> None:
     ctl._fly = dying_fly
 
 
+@pytest.mark.long(reason="six legs through link drops, a simulator restart, a kill, a resume and SIGTERM: ~20-30 s")
 def test_chaos_six_legs_drops_restart_kill_resume_and_sigterm(tmp_path):
     """One 6-leg mission on the lockstep simulator, every fault at a mission event (:class:`Faults`): radio drops
     of 10 s (leg 1), 45 s (leg 3 re-flown) and 300 s (leg 4), the simulator restarting mid-leg 2, the controller
@@ -783,8 +784,9 @@ def _store_count(db, leg: int) -> int:
             return 0
 
 
-@pytest.mark.slow  # three CLI processes (demo, run --resume, replay) and a demo paced at 10x: ~100 s on a loaded
-# 2-core machine
+@pytest.mark.slow(
+    reason="three CLI processes (demo, run --resume, replay) and a demo paced at 10x: ~100 s on a loaded 2-core machine"
+)
 def test_sigkill_mid_leg_then_resume_keeps_the_record_and_replays(tmp_path):
     """``passt-mav demo`` (one boat, vehicle-sim in lockstep: its clock holds while no controller steps it) killed
     with SIGKILL mid-leg 2, then ``passt-mav run --resume`` on the same simulator: nothing the store committed is

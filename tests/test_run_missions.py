@@ -145,7 +145,9 @@ def test_cylinder_mission_files_fly(name, tmp_path, monkeypatch):
     assert summary["legs"][0]["rmse_passt"] is not None
 
 
-@pytest.mark.slow
+@pytest.mark.slow(
+    reason="one move of a 6-9 km cell per shipped ocean mission file, ~15-20 min of vehicle time each: ~1-2 min"
+)
 @pytest.mark.parametrize("name, start", [("north_atlantic", (15, 15)), ("rtofs", (14, 18))])
 def test_ocean_mission_files_fly(name, start, tmp_path, monkeypatch):
     # one move of a 6-9 km cell at 8 m/s: ~15-20 min of vehicle time

@@ -249,7 +249,7 @@ def test_fuzz_inprocess_1e4_frames():
     _still_works(sim)
 
 
-@pytest.mark.slow
+@pytest.mark.slow(reason="10^5 fuzzed frames through the simulator's parser (the default run fuzzes fewer): ~1 min")
 def test_fuzz_inprocess_1e5_frames():
     sim = _fuzz(100_000, seed=2)
     _still_works(sim)

@@ -19,7 +19,7 @@ mavsdk = pytest.importorskip("mavsdk")
 HOME = (40.0, -63.0)
 
 
-@pytest.mark.slow
+@pytest.mark.slow(reason="MAVSDK's server binary against the simulator in wall time (a separate client stack): ~1 min")
 def test_mavsdk_mission_raw_upload_download_arm_start_and_progress():
     from mavsdk import ComponentType, Configuration, Mavsdk
     from mavsdk.plugins.action import Action

@@ -283,6 +283,7 @@ def test_link_cut_mid_leg_reconnects_and_completes(tmp_path, sitl_factory, capfd
 KEY = "passt sitl signing key"
 
 
+@pytest.mark.long(reason="ArduRover SITL in wall time, two runs (keyed and keyless): ~14 s")
 def test_signing_on_the_vehicle_keyed_run_completes_keyless_fails_naming_signing(tmp_path, sitl_factory):
     from pymavlink.dialects.v20 import ardupilotmega as M
 
@@ -327,6 +328,7 @@ def test_signing_on_the_vehicle_keyed_run_completes_keyless_fails_naming_signing
 
 
 # -- the controller process is killed mid-leg, then --resume --------------------------------------------------
+@pytest.mark.long(reason="ArduRover SITL in wall time, a killed controller process and a resume: ~12-19 s")
 def test_controller_killed_mid_leg_then_resume_completes(tmp_path, sitl_factory):
     import yaml
 
@@ -383,6 +385,7 @@ def test_controller_killed_mid_leg_then_resume_completes(tmp_path, sitl_factory)
 
 
 # -- a radio out of range for 90 s of vehicle time (issue 46) ------------------------------------------
+@pytest.mark.long(reason="ArduRover SITL in wall time through a 90 s outage at its speed-up: ~10 s")
 def test_radio_outage_of_90_s_mid_leg_is_ridden_out_and_the_mission_continues(tmp_path, sitl_factory):
     """Through the radio emulator (vehicle_sim.radio.RadioProxy), nothing passes either way for 90 s of the
     vehicle's time (4.5 s wall at 20x) from mid-leg 1: more than the six reconnect attempts that used to end

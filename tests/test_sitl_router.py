@@ -53,6 +53,7 @@ def _mavproxy() -> list[str]:
     return [sys.executable, exe]
 
 
+@pytest.mark.long(reason="ArduRover SITL, a radio emulator and MAVProxy in wall time for two legs: ~1 min")
 def test_two_legs_through_radio_and_mavproxy_beside_a_qgc_like_client(tmp_path, sitl_factory, monkeypatch):
     import test_sitl_faults
 

@@ -172,7 +172,7 @@ def test_compile_falls_back_to_eager_when_the_compiler_fails(monkeypatch):
     assert len(msgs) == 1 and "eager" in msgs[0]
 
 
-@pytest.mark.slow
+@pytest.mark.slow(reason="torch inductor compiles the snapshot step: ~1 min on two cores")
 def test_compiled_training_follows_the_eager_training(wave, tmp_path):
     """``compile=True`` (compiled snapshot step): the same training to fp32 rounding -
     loss curves of 3 roll-out epochs within 1e-3 relative, the same predictions to 1e-3 - and
@@ -188,7 +188,7 @@ def test_compiled_training_follows_the_eager_training(wave, tmp_path):
     np.testing.assert_array_equal(load_predictor(tmp_path / "c.pt").predict(x, 3), c.predict(x, 3))
 
 
-@pytest.mark.slow
+@pytest.mark.slow(reason="torch inductor compiles the snapshot step: ~1 min on two cores")
 def test_compiled_step_equals_eager_to_fp32_tolerance():
     from passt_mav.models import fast
     from passt_mav.models.knode import KnodeNet, ode_step
@@ -231,7 +231,7 @@ def test_fast_predict_equals_eager_and_is_not_pickled(wave):
     assert w.fast_predict and "_fast_step" not in vars(w)
 
 
-@pytest.mark.slow  # two more inductor compilations (a worker's copy, a refitted network): ~1 min on two cores
+@pytest.mark.slow(reason="two more inductor compilations (a worker's copy, a refitted network): ~1 min on two cores")
 def test_fast_predict_in_a_worker_and_after_a_refit_follows_the_network(wave):
     """An unpickled copy compiles its own step and predicts the eager roll-out; a refitted network gets
     its own compiled step (frozen weights would be stale)."""
@@ -326,6 +326,7 @@ def test_shift_field_rows_moves_rows_and_replicates_the_edge():
     np.testing.assert_array_equal(down[:, 4], a[:, 4])
 
 
+@pytest.mark.long(reason="trains two KNODEs (with and without the shift) long enough to tell them apart: ~16 s")
 def test_row_shift_augmentation_generalises_to_a_displaced_band(tmp_path):
     """A model trained on a band centred on row 6 is rolled out on the same band centred on row 9
     (never in its training data). Trained with ``shift_rows=3`` (the training roll-outs moved by

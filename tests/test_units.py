@@ -45,6 +45,7 @@ def demo_run(tmp_path_factory):
     return out, buf.getvalue()
 
 
+@pytest.mark.long(reason="a two-leg demo with its report, view and exports: ~25 s")
 def test_a_demo_reports_each_legs_rmse_in_m_s_everywhere(demo_run):
     import json
 

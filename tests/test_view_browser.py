@@ -123,6 +123,7 @@ def _watch_demo(page, demo, out: Path, shots: Path) -> Path:
     return final
 
 
+@pytest.mark.long(reason="a three-boat demo in wall time driven from headless Chromium: ~2.5 min on two cores")
 def test_demo_three_boats_live_view_in_headless_chromium(tmp_path):
     sync_playwright, exe = _need_browser()
     shots = Path(os.environ.get("PASST_VIEW_SHOTS") or tmp_path)
