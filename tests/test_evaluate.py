@@ -51,7 +51,6 @@ def _numbers(s):
     return {L: per["rmse_mean"] for L, per in s["per_L"].items()}
 
 
-@pytest.mark.long(reason="a campaign run twice, once in joblib worker processes that each import torch: ~18 s")
 def test_joblib_workers_give_same_numbers(field, serial):
     import cloudpickle
     import test_passt
@@ -64,7 +63,6 @@ def test_joblib_workers_give_same_numbers(field, serial):
     assert _numbers(par)["12"] == _numbers(serial)["12"]
 
 
-@pytest.mark.long(reason="a campaign run on a local dask cluster whose workers each import torch: ~15 s")
 def test_dask_local_cluster_gives_same_numbers(field, serial):
     distributed = pytest.importorskip("distributed")
     with distributed.LocalCluster(

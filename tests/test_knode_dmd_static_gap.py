@@ -31,7 +31,6 @@ def _numbers(row: str) -> list[float]:
     return [float(x) for cell in row.strip("|").split("|")[1:] for x in cell.split("/")]
 
 
-@pytest.mark.long(reason="trains the benchmark's KNODE variants on a small field: ~14 s")
 def test_rows_on_two_travelling_waves():
     bench = _bench()
     field = two_tone_field()
