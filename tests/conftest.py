@@ -169,13 +169,23 @@ def na_grid():
 
 @pytest.fixture(autouse=True, scope="session")
 def _few_threads():
-    """Two cores are shared by everything on CI: keep torch from oversubscribing (with pytest-xdist,
-    the cores are split between the workers)."""
+    """Two cores are shared by everything on CI: keep torch and the BLAS under numpy/scikit-learn from
+    oversubscribing (with pytest-xdist, the cores are split between the workers). Unbounded, each worker's
+    OpenBLAS ran a thread per core beside the other worker's and a joblib test's processes, and its threads
+    spun waiting for each other: a GP loop test took 60 s instead of 4."""
+    import numpy  # noqa: F401 - loaded first: threadpoolctl limits the pools of the libraries loaded so far
+    import scipy.linalg  # noqa: F401 - (scipy's own OpenBLAS)
+    import sklearn  # noqa: F401 - (its OpenMP runtime)
+    from threadpoolctl import threadpool_limits
+
+    workers = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1"))
+    n = max(1, min(2, (os.cpu_count() or 1) // workers))
+    limits = threadpool_limits(limits=n)
     try:
         import torch
 
-        workers = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1"))
-        torch.set_num_threads(max(1, min(2, (os.cpu_count() or 1) // workers)))
+        torch.set_num_threads(n)
     except ImportError:  # pragma: no cover
         pass
     yield
+    limits.restore_original_limits()

@@ -13,7 +13,9 @@ its distance is estimated along its waypoints from the boat's position (geodesic
 mission's speed (no current); a leg that would overrun ``max_distance_m`` or ``max_time_s`` keeps only the waypoints
 that fit. With ``on_spent: rtl`` the way home (straight, from the last waypoint kept to the vehicle's home, at the
 same speed) must fit too, so the last leg leaves the range to come back. The battery is not forecast (there is no
-consumption model): the reserve is only watched in flight.
+consumption model): the reserve is only watched in flight. The first report at or below the reserve is kept
+as it arrives (the link's reader thread), so the cut is judged at the charge that crossed it, not at a lower one
+reported by the time the controller's next turn comes.
 
 The distance is the sum of geodesic steps between successive GLOBAL_POSITION_INT fixes (deg -> m, WGS84)
 while a leg flies; the time is the vehicle's uptime (``time_boot_ms``) over the same spans, so a reboot's
@@ -74,6 +76,11 @@ class SafetyBudget:
         self._leg_t0: float | None = None  # vehicle uptime at the start of the leg in flight
         self._last_fix: tuple[float, float] | None = None
         self._listening = False
+        #: the first charge (%) reported at or below ``battery_reserve_pct`` since :meth:`request_battery` (set by
+        #: the reader thread, so the cut is judged at the report that crossed the reserve, in the vehicle's time,
+        #: however late the controller's next turn comes on a busy machine)
+        self._battery_low: float | None = None
+        self._battery_listening = False
 
     @property
     def watched(self) -> bool:
@@ -117,7 +124,21 @@ class SafetyBudget:
             return
         # a charge reported before this session (a battery swapped meanwhile) must not end its first leg
         self.link.forget("SYS_STATUS", "BATTERY_STATUS")
+        with self._lock:
+            self._battery_low = None
+        if not self._battery_listening:
+            self.link.add_listener(self._on_battery, ("SYS_STATUS", "BATTERY_STATUS"))
+            self._battery_listening = True
         self.link.keep_stream("BATTERY_STATUS", 1.0)
+
+    def _on_battery(self, m) -> None:
+        """From the reader thread: one SYS_STATUS or BATTERY_STATUS; the first charge (%) at or below the reserve
+        is kept (-1, unknown, is not a charge)."""
+        pct = getattr(m, "battery_remaining", -1)
+        if pct is not None and 0 <= pct <= self.config.battery_reserve_pct:
+            with self._lock:
+                if self._battery_low is None:
+                    self._battery_low = float(pct)
 
     def _on_fix(self, m) -> None:
         """From the reader thread: one GLOBAL_POSITION_INT; the step from the last fix is added while a leg flies."""
@@ -153,6 +174,9 @@ class SafetyBudget:
         if self._listening:
             self.link.remove_listener(self._on_fix)
             self._listening = False
+        if self._battery_listening:
+            self.link.remove_listener(self._on_battery)
+            self._battery_listening = False
 
     def _time_s(self) -> float:
         up = self.link.vehicle_uptime_s()
@@ -173,7 +197,9 @@ class SafetyBudget:
         elif c.max_distance_m is not None and d >= c.max_distance_m:
             why = f"distance: {d:.0f} m moved >= budget.max_distance_m {c.max_distance_m:g} m"
         elif c.battery_reserve_pct is not None:
-            pct = battery_remaining(self.link)
+            with self._lock:
+                low = self._battery_low
+            pct = low if low is not None else battery_remaining(self.link)
             if pct is not None and pct <= c.battery_reserve_pct:
                 why = f"battery: {pct:.0f} % remaining <= budget.battery_reserve_pct {c.battery_reserve_pct:g} %"
         self.reason = why
