@@ -171,8 +171,8 @@ def na_grid():
 def _few_threads():
     """Two cores are shared by everything on CI: keep torch and the BLAS under numpy/scikit-learn from
     oversubscribing (with pytest-xdist, the cores are split between the workers). Unbounded, each worker's
-    OpenBLAS ran a thread per core beside the other worker's and a joblib test's processes, and its threads
-    spun waiting for each other: a GP loop test took 60 s instead of 4."""
+    OpenBLAS ran a thread per core beside the other worker's and a joblib test's processes, and the threads
+    spun waiting for each other, slowing the GP tests many times over."""
     import numpy  # noqa: F401 - loaded first: threadpoolctl limits the pools of the libraries loaded so far
     import scipy.linalg  # noqa: F401 - (scipy's own OpenBLAS)
     import sklearn  # noqa: F401 - (its OpenMP runtime)

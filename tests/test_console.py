@@ -327,6 +327,59 @@ def test_battery_remaining_takes_the_lower_known_value():
     assert battery_remaining(link) == 48.0
 
 
+def test_the_cut_is_judged_at_the_first_report_below_the_reserve():
+    """Reports reach the budget as they arrive (the reader thread); the controller may ask only later, when the
+    charge has fallen further: the cut is said at the first charge at or below the reserve (29 %), not at the
+    latest (20 %). A new session (``request_battery``) forgets it, and -1 (unknown) is not a charge."""
+    from types import SimpleNamespace
+
+    from passt_mav.mission.config import BudgetConfig
+    from passt_mav.vehicle.budget import SafetyBudget
+
+    class FakeLink:
+        def __init__(self):
+            self.msgs, self.listeners = {}, []
+
+        def latest(self, typ):
+            return self.msgs.get(typ)
+
+        def forget(self, *types):
+            for t in types:
+                self.msgs.pop(t, None)
+
+        def add_listener(self, cb, types):
+            self.listeners.append((cb, tuple(types)))
+
+        def remove_listener(self, cb):
+            self.listeners = [(c, t) for c, t in self.listeners if c != cb]
+
+        def keep_stream(self, name, hz):
+            return True
+
+        def vehicle_uptime_s(self):
+            return 100.0
+
+        def report(self, typ, pct):
+            m = SimpleNamespace(battery_remaining=pct)
+            self.msgs[typ] = m
+            for cb, types in self.listeners:
+                if typ in types:
+                    cb(m)
+
+    link = FakeLink()
+    budget = SafetyBudget(link, BudgetConfig(battery_reserve_pct=30))
+    budget.request_battery()
+    for pct in (45, -1, 31, 29, 24, 20):
+        link.report("BATTERY_STATUS", pct)
+    assert budget.spent() == "battery: 29 % remaining <= budget.battery_reserve_pct 30 %"
+    budget.reason = None
+    budget.request_battery()  # a new session: a swapped battery
+    link.report("SYS_STATUS", 80)
+    assert budget.spent() is None
+    budget.close()
+    assert link.listeners == []
+
+
 FLEET_STARTS = [(1, 1), (6, 6)]  # two boats' start cells
 
 
