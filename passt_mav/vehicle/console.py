@@ -55,8 +55,7 @@ class OperatorCommands:
         who = cmd.get("source") or "the page"
         line = f"operator ({who}): {cmd['action']}" + (f" {cmd['end_mode']}" if cmd.get("end_mode") else "")
         line += f": {text}"
-        self.journal.events.append(line)
-        self.journal.record.event("command", line, level="ok" if ok else "warn", command_id=cmd.get("id"))
+        self.journal.note("command", line, level="ok" if ok else "warn", command_id=cmd.get("id"))
         self.journal.say(line)
 
     def console_turn(self, i: int, n_items: int) -> str | float | None:

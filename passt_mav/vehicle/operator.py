@@ -147,8 +147,7 @@ class OperatorLegs:
             f"leg {i + 1} shortened: {k} of {n} waypoints ({to_wp[k - 1]:.0f} of {to_wp[-1]:.0f} m), "
             f"budget left {left}{ret}"
         )
-        self.journal.events.append(text)
-        self.record.event("budget", text, level="warn")  # (a notice on the page, not an alarm: nothing is wrong yet)
+        self.journal.note("budget", text, level="warn")  # (a notice on the page, not an alarm: nothing is wrong yet)
         self._say(text)
         return p[: idx[k - 1] + 1]
 

@@ -75,10 +75,11 @@ class Journal:
         self.echo(text)
         log.info(text)
 
-    def note(self, kind: str, text: str) -> None:
-        """An event: the run's list and the live view's (``kind``: runs.live.KINDS)."""
+    def note(self, kind: str, text: str, *, level: str | None = None, command_id: str | None = None) -> None:
+        """An event: the run's list and the live view's (``kind``: runs.live.KINDS; ``level`` and
+        ``command_id``: :meth:`~passt_mav.runs.live.RecordWriter.event`'s)."""
         self.events.append(text)
-        self.record.event(kind, text)
+        self.record.event(kind, text, level=level, command_id=command_id)
 
 
 class Deadline:
