@@ -588,10 +588,24 @@ def test_vehicle_sim_reports_its_fence_as_rover_does():
     # a 40 m square about the boat (fence list, mission type 1), the circle off; the boat armed in MANUAL
     x0, y0 = ap.boat.x, ap.boat.y
     corners = [ap.frame.to_latlon(x0 + dx, y0 + dy) for dx, dy in ((-20, -20), (20, -20), (20, 20), (-20, 20))]
-    ap.store.items[1] = [
-        Item(k, 0, M.MAV_CMD_NAV_FENCE_POLYGON_VERTEX_INCLUSION, 0, 1, 4, 0, 0, 0, round(a * 1e7), round(b * 1e7), 0, 1)
-        for k, (a, b) in enumerate(corners)
-    ]
+    for k, (a, b) in enumerate(corners):  # (through the store, as an upload: its version marks the change)
+        ap.store.put(
+            Item(
+                k,
+                0,
+                M.MAV_CMD_NAV_FENCE_POLYGON_VERTEX_INCLUSION,
+                0,
+                1,
+                4,
+                0,
+                0,
+                0,
+                round(a * 1e7),
+                round(b * 1e7),
+                0,
+                1,
+            )
+        )
     ap.params.update(FENCE_ENABLE=1, FENCE_TYPE=4, FENCE_ACTION=2)
     assert ap.arm(force=True) == M.MAV_RESULT_ACCEPTED
     t0 = ap.t

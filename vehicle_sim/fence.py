@@ -43,6 +43,10 @@ class Fence:
     ``breach_count`` and ``breach_time_ms`` (since boot)."""
 
     def __init__(self):
+        #: (fence list version, its polygons in the autopilot's local frame, which is fixed at its construction):
+        #: :meth:`check` runs every step, and the vertices' projection (pyproj) need only be redone when the
+        #: stored list changes
+        self._polys: tuple[int, list[list[tuple[float, float]]]] | None = None
         self.reset()
 
     def reset(self) -> None:
@@ -56,7 +60,11 @@ class Fence:
         return int(ap.p("FENCE_ENABLE")) != 0
 
     def polygons(self, ap) -> list[list[tuple[float, float]]]:
-        """The stored inclusion polygons, vertices in the autopilot's local frame (x east, y north, m)."""
+        """The stored inclusion polygons, vertices in the autopilot's local frame (x east, y north, m); computed
+        again only when the fence list changed (``MissionStore.version``)."""
+        key = ap.store.version[1]
+        if self._polys is not None and self._polys[0] == key:
+            return self._polys[1]
         out, items, k = [], ap.store.items[1], 0
         while k < len(items):
             it = items[k]
@@ -66,6 +74,7 @@ class Fence:
                 continue
             out.append([ap.frame.to_xy(v.x / 1e7, v.y / 1e7) for v in items[k : k + n]])
             k += n
+        self._polys = (key, out)
         return out
 
     def outside(self, ap) -> int:
