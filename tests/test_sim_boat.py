@@ -51,34 +51,47 @@ def test_zero_current_1km_takes_1000_over_wp_speed():
     assert t == pytest.approx((1000.0 - 2.0) / 2.0, abs=2.0)  # tighter: minus WP_RADIUS, plus the 0.5 s speed lag
 
 
-def test_cross_current_uncompensated_follows_the_pursuit_curve():
-    """Bow on the waypoint, current w across the leg: the river-crossing curve.
+def _pursuit_offset(r, a, k):
+    """Offset (m) across the leg of a pursuit boat at distance ``r`` (m) from the waypoint (see below)."""
+    s = (a / r) ** (2 * k)
+    return r * (s - 1) / (s + 1)
 
-    With k = w/V: remaining distance x along the leg and offset y satisfy
-    y = a/2 [(x/a)^(1-k) - (x/a)^(1+k)], the largest offset is at
-    x/a = ((1-k)/(1+k))^(1/(2k)), and the leg takes a V / (V^2 - w^2).
+
+def test_cross_current_uncompensated_follows_the_pursuit_curve():
+    """Bow on the waypoint, current w across the leg, speed V held over ground along the bow (Rover's
+    speed controller: ground velocity projected on the heading; the hull makes up the rest).
+
+    The ground velocity is then V toward the waypoint plus the current's component across the bow,
+    so the distance r to the waypoint shrinks at exactly V (the leg takes (a - WP_RADIUS) / V) and the
+    bearing angle theta off the leg obeys r dtheta/dr = -k / cos(theta), k = w/V: sec + tan = (a/r)^k,
+    i.e. the offset is y = r tanh(k ln(a/r)) = r (s - 1)/(s + 1), s = (a/r)^(2k).
     """
     a, V, w = 500.0, 2.0, 0.5
     k = w / V
     sim, c = sim_with(uniform_field(w, 0.0))
     t, track = go(sim, c, a)
-    assert t == pytest.approx(a * V / (V * V - w * w), rel=0.02)
-    xr = ((1 - k) / (1 + k)) ** (1 / (2 * k))
-    y_max = a / 2 * (xr ** (1 - k) - xr ** (1 + k))
-    assert track[:, 1].max() == pytest.approx(y_max, rel=0.03)  # drift east, down-current
-    # the whole curve, at a few remaining distances
+    assert t == pytest.approx((a - 2.0) / V, abs=2.0)  # WP_RADIUS 2 m, plus the 0.5 s speed lag
+    rr = np.linspace(1.0, a, 20000)
+    assert track[:, 1].max() == pytest.approx(_pursuit_offset(rr, a, k).max(), rel=0.03)  # drift east, down-current
+    # the whole curve, at a few distances from the waypoint
     for frac in (0.8, 0.5, 0.2):
-        i = np.argmin(np.abs((a - track[:, 2]) / a - frac))
-        xa = (a - track[i, 2]) / a
-        assert track[i, 1] == pytest.approx(a / 2 * (xa ** (1 - k) - xa ** (1 + k)), abs=1.5)
+        r = np.hypot(track[:, 1], a - track[:, 2])
+        i = np.argmin(np.abs(r / a - frac))
+        assert track[i, 1] == pytest.approx(_pursuit_offset(r[i], a, k), abs=1.5)
 
 
 def test_cross_current_crosstrack_option_holds_the_line():
+    """Crabbing on the line with V held over ground along the bow: the steady heading phi off the line has
+    V sin(phi) + w cos(phi)^2 = 0 (no ground velocity across the line), and the speed along the line is
+    (V - w sin(phi)) cos(phi): 2.058 m/s for V = 2, w = 0.5 (the hull runs 2.12 m/s through the water)."""
     a, V, w = 500.0, 2.0, 0.5
     sim, c = sim_with(uniform_field(w, 0.0), nav="crosstrack")
     t, track = go(sim, c, a)
     assert np.abs(track[:, 1]).max() < 2.0
-    assert t == pytest.approx(a / math.sqrt(V * V - w * w), rel=0.02)
+    s = (V - math.sqrt(V * V + 4 * w * w)) / (2 * w)  # sin(phi): root of w s^2 - V s - w = 0 in [-1, 0]
+    along = (V - w * s) * math.sqrt(1 - s * s)
+    assert along == pytest.approx(2.058, abs=0.001)
+    assert t == pytest.approx(a / along, rel=0.02)
 
 
 def test_manual_drifts_with_the_current():
@@ -90,8 +103,47 @@ def test_manual_drifts_with_the_current():
     assert (b.x - x0, b.y - y0) == pytest.approx((30.0, -20.0), abs=0.3)
 
 
-@pytest.mark.parametrize("mode", ["HOLD", "LOITER"])
-def test_hold_and_loiter_keep_station_against_current(mode):
+@pytest.mark.parametrize(("before", "drift_m"), [("MANUAL", 60.0), ("LOITER", 50.0)])
+def test_hold_drifts_with_the_current(before, drift_m):
+    """HOLD stops the motor (Rover's mode_hold.cpp: throttle 0): in a uniform 0.5 m/s current flowing west
+    (SITL's SIM_TIDE_DIR 90: the water comes from the east) 120 s of HOLD carry a boat that was already
+    drifting (armed in MANUAL, no RC input) 60 m west; one that was keeping station in LOITER first has to
+    pick the current up against its hull's drag (BoatParams.coast_drag_per_m) and goes ~50 m. Rover 4.7
+    SITL: 60.0 m and 49.9 m (tests/test_sitl_current.py). Tolerance +- 5 m."""
+    sim, c = sim_with(uniform_field(-0.5, 0.0))
+    assert c.arm().result == 0
+    if before == "LOITER":
+        assert c.set_mode(MODES["LOITER"]).result == 0
+    sim.step(60.0)
+    assert c.set_mode(MODES["HOLD"]).result == 0
+    x0, y0 = sim.autopilot.boat.x, sim.autopilot.boat.y
+    sim.step(120.0)
+    b = sim.autopilot.boat
+    assert b.x - x0 == pytest.approx(-drift_m, abs=5.0)
+    assert abs(b.y - y0) < 1.0
+
+
+def test_motor_off_coasts_like_the_sitl_hull():
+    """With the motor off the hull slows by quadratic drag alone, dv/dt = -k v^2 (k = 0.25 /m): from 5 m/s
+    v(t) = 5 / (1 + 1.25 t); Rover 4.7 SITL's motorboat (HOLD after 5 m/s in still water) read 1.54, 0.83 and
+    0.37 m/s after 2, 4 and 10 s and had coasted 18.7 m after 60 s (here ln(1 + 75) / 0.25 = 17.3 m)."""
+    p = BoatParams()
+    s = BoatState(speed=5.0)
+    got = {}
+    for k in range(600):
+        step_boat(s, 0.0, 3.0, (0.0, 0.0), 0.1, p, motor_off=True)  # cmd_speed ignored with the motor off
+        got[round((k + 1) * 0.1, 1)] = (s.speed, s.y)
+    for t, sitl_v in ((2.0, 1.54), (4.0, 0.83), (10.0, 0.37)):
+        assert got[t][0] == pytest.approx(5.0 / (1 + 1.25 * t), rel=0.01)
+        assert got[t][0] == pytest.approx(sitl_v, abs=0.12)
+    assert got[60.0][1] == pytest.approx(math.log(1 + 0.25 * 5 * 60) / 0.25, rel=0.02)  # 0.1 s steps
+    assert got[60.0][1] == pytest.approx(18.7, abs=2.0)
+
+
+@pytest.mark.parametrize("mode", ["LOITER", "CIRCLE"])
+def test_loiter_keeps_station_against_current(mode):
+    """LOITER (and CIRCLE, as the simulator plays it) keep the boat within LOIT_RADIUS (2 m) plus one
+    overshoot; Rover 4.7 SITL in a 0.5 m/s current: 1.7 m after 120 s, 2.7 m at most."""
     sim, c = sim_with(uniform_field(0.6, 0.3))
     assert c.arm().result == 0
     assert c.set_mode(MODES[mode]).result == 0
@@ -103,6 +155,21 @@ def test_hold_and_loiter_keep_station_against_current(mode):
         dmax = max(dmax, math.hypot(b.x - x0, b.y - y0))
     assert dmax < 2.0 + 1.0  # LOIT_RADIUS 2 m plus what one overshoot at 0.67 m/s adds
     assert dmax > 1.0  # it does drift inside the circle (motor off there)
+
+
+def test_loiter_in_a_uniform_current_stays_within_twice_loit_radius():
+    """120 s of LOITER in a uniform 0.5 m/s current (SITL's SIM_TIDE_SPEED 0.5, SIM_TIDE_DIR 90): the boat
+    stays within 2 x LOIT_RADIUS (2 m) of where LOITER began."""
+    sim, c = sim_with(uniform_field(-0.5, 0.0))
+    assert c.arm().result == 0
+    assert c.set_mode(MODES["LOITER"]).result == 0
+    x0, y0 = sim.autopilot.boat.x, sim.autopilot.boat.y
+    dmax = 0.0
+    for _ in range(1200):
+        sim.step(0.1)
+        b = sim.autopilot.boat
+        dmax = max(dmax, math.hypot(b.x - x0, b.y - y0))
+    assert 1.0 < dmax < 2 * 2.0
 
 
 def test_disarmed_in_auto_drifts():

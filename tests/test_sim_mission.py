@@ -405,3 +405,95 @@ def test_acceptance_radius_is_the_wp_radius_parameter_not_param2():
         lat, _lon = sim.autopilot.position()
         dist = abs(lat - (HOME[0] + 4e-4)) * 111.2e3
         assert radius - 1.0 <= dist <= radius + 1e-6, (radius, dist)  # reached on crossing WP_RADIUS
+
+
+# -- speed and the end of a mission, as Rover's ModeAuto runs them on a boat ----------------------------------
+M_PER_DEG_LAT = 111_035.0  # near 40 N
+
+
+def _speed_item(seq: int, mps: float):
+    """DO_CHANGE_SPEED (178), frame 2 (MISSION), param1 1 = ground speed, param2 m/s, param3 -1 (throttle)."""
+    return M.MAVLink_mission_item_int_message(1, 1, seq, 2, 178, 0, 1, 1, mps, -1, 0, 0, 0, 0, 0)
+
+
+def _north(seq: int, metres: float):
+    return SimClient.waypoint(seq, HOME[0] + metres / M_PER_DEG_LAT, HOME[1])
+
+
+def _leg_speed(sim, c, y_from: float, y_to: float) -> float:
+    """Mean ground speed (m/s, north) while the boat goes from north y_from to y_to metres."""
+    ap = sim.autopilot
+    while ap.boat.y < y_from:
+        c.advance(0.1)
+    t0, y0 = sim.t, ap.boat.y
+    while ap.boat.y < y_to:
+        c.advance(0.1)
+    return (ap.boat.y - y0) / (sim.t - t0)
+
+
+def test_do_change_speed_before_the_first_waypoint_is_not_applied_on_a_boat():
+    """Rover 4.7 SITL (tests/test_sitl_current.py): ModeAuto::_enter starts a boat in its loiter submode, so a
+    DO_CHANGE_SPEED at seq 1 (before the first NAV_WAYPOINT) goes to loiter, which takes no speed: the legs fly
+    at WP_SPEED (2 m/s here), and no "speed: ..." STATUSTEXT. Still verified: MISSION_ITEM_REACHED 1."""
+    sim, c = make()
+    items = [_north(0, 0), _speed_item(1, 1.0), _north(2, 100), _north(3, 200)]
+    assert c.upload(items).type == 0
+    assert c.arm().result == 0
+    assert c.set_mode(MODES["AUTO"]).result == 0
+    assert _leg_speed(sim, c, 20, 80) == pytest.approx(2.0, abs=0.05)
+    assert _leg_speed(sim, c, 120, 180) == pytest.approx(2.0, abs=0.05)
+    c.pump()
+    assert not [t for t in c.texts() if t.startswith("speed:")]
+    assert 1 in [m.seq for _, m in c.log if m.get_type() == "MISSION_ITEM_REACHED"]
+
+
+def test_do_change_speed_after_the_first_waypoint_is_applied_from_there():
+    """After the first NAV_WAYPOINT the submode is wp: DO_CHANGE_SPEED 1 m/s sets the waypoint speed from the
+    second leg on ("speed: 1.0 m/s"), as SITL did with it at seq 2."""
+    sim, c = make()
+    items = [_north(0, 0), _north(1, 100), _speed_item(2, 1.0), _north(3, 200)]
+    assert c.upload(items).type == 0
+    assert c.arm().result == 0
+    assert c.set_mode(MODES["AUTO"]).result == 0
+    assert _leg_speed(sim, c, 20, 80) == pytest.approx(2.0, abs=0.05)
+    assert _leg_speed(sim, c, 120, 180) == pytest.approx(1.0, abs=0.05)
+    c.pump()
+    assert "speed: 1.0 m/s" in c.texts()
+
+
+def test_do_change_speed_command_in_auto_applies_and_auto_entry_resets_it():
+    """DO_CHANGE_SPEED as a COMMAND_LONG right after AUTO is ACCEPTED and flown; HOLD refuses it (FAILED,
+    Mode::set_desired_speed); entering AUTO again resets the speed to WP_SPEED (g2.wp_nav.init())."""
+    sim, c = make()
+    items = [_north(0, 0), _speed_item(1, 1.0), _north(2, 100), _north(3, 300)]
+    assert c.upload(items).type == 0
+    assert c.arm().result == 0
+    assert c.set_mode(MODES["AUTO"]).result == 0
+    assert c.command(M.MAV_CMD_DO_CHANGE_SPEED, 1, 1.0, -1).result == M.MAV_RESULT_ACCEPTED
+    assert _leg_speed(sim, c, 20, 80) == pytest.approx(1.0, abs=0.05)
+    assert c.set_mode(MODES["HOLD"]).result == 0
+    assert c.command(M.MAV_CMD_DO_CHANGE_SPEED, 1, 1.0, -1).result == M.MAV_RESULT_FAILED
+    assert c.set_mode(MODES["AUTO"]).result == 0  # resumes the current waypoint (MIS_RESTART 0)
+    assert _leg_speed(sim, c, 120, 280) == pytest.approx(2.0, abs=0.05)
+
+
+@pytest.mark.parametrize(("behave", "moves"), [(0, True), (1, False)])
+def test_mission_end_follows_mis_done_behave(behave, moves):
+    """ModeAuto::exit_mission on a boat: MIS_DONE_BEHAVE 1 loiters (keeps station in AUTO); 0 (HOLD) is
+    start_stop(): motor off, still AUTO, the boat drifts with the current (0.5 m/s east here: ~60 m in 120 s)."""
+    cfg = SimConfig.fast(params=(("MIS_DONE_BEHAVE", behave),))
+    sim = Simulator(None, home=HOME, config=cfg, uniform_current=(0.5, 0.0))
+    sim.run_until(2.0)
+    c = SimClient(sim)
+    assert c.upload([_north(0, 0), _north(1, 50)]).type == 0
+    assert c.arm().result == 0
+    assert c.set_mode(MODES["AUTO"]).result == 0
+    c.wait("STATUSTEXT", lambda m: m.text.startswith("Mission Complete"), timeout=120, dt=0.1)
+    b = sim.autopilot.boat
+    x0 = b.x
+    c.advance(120.0)
+    assert sim.autopilot.mode == MODES["AUTO"]
+    if moves:
+        assert b.x - x0 == pytest.approx(60.0, abs=5.0)
+    else:
+        assert abs(b.x - x0) < 2 * 2.0  # 2 x LOIT_RADIUS

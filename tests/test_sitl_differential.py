@@ -97,8 +97,12 @@ class Peer:
         tb = getattr(m, "time_boot_ms", None)
         if tb is not None:
             self.t = max(self.t, tb / 1000.0)
-        self.log.append(m)
+        self._seen(m)
         return m
+
+    def _seen(self, m) -> None:
+        """Each message from the vehicle, once (kept in :attr:`log`)."""
+        self.log.append(m)
 
     def wait(self, types, cond=None, timeout: float = 5.0, what: str = ""):
         """First message of ``types`` satisfying ``cond`` within ``timeout`` vehicle seconds."""

@@ -11,12 +11,33 @@ Behaviour follows shared/ARDUPILOT_ROVER.md; choices where it is silent:
 * Position-requiring modes (AUTO, GUIDED, LOITER, RTL, SMART_RTL, CIRCLE, FOLLOW,
   DOCK) are refused while armed without an absolute EKF position (ArduPilot's
   ``requires_position()``); HOLD/MANUAL/ACRO/STEERING/SIMPLE are always accepted.
-* HOLD, LOITER, CIRCLE, FOLLOW, DOCK, GUIDED without a target, and the end of an
-  AUTO mission (MIS_DONE_BEHAVE 0/1) keep station: the motor is off inside
-  ``LOIT_RADIUS`` (default = WP_RADIUS) and the boat drives back when the current
-  sets it outside.
-* MANUAL/ACRO/STEERING/SIMPLE (no RC input in a simulator) and any mode while
-  disarmed: the boat drifts with the current.
+* HOLD stops the motor and centres the steering (Rover's ``mode_hold.cpp``: throttle 0), so
+  an armed boat in HOLD **drifts with the current**, as do MANUAL/ACRO/STEERING/SIMPLE (no RC
+  input in a simulator) and any mode while disarmed. Rover 4.7 SITL (motorboat, ``SIM_TIDE_DIR``
+  90, ``SIM_TIDE_SPEED`` 0.5 m/s): 120 s in HOLD moved it 60 m west when it was already drifting,
+  49-50 m from a standstill in LOITER (the hull picks the current up against its drag:
+  ``BoatParams.coast_drag_per_m``; tests/test_sitl_current.py).
+* LOITER, CIRCLE, FOLLOW, DOCK, GUIDED without a target, RTL at home and AUTO's loiter
+  submode keep station (Rover's ``mode_loiter.cpp``): the motor is off inside ``LOIT_RADIUS``
+  (m) of the point where the mode began and the boat drives back (at most WP_SPEED) when the
+  current sets it outside. SITL: 120 s of LOITER in the same current stayed within 2.7 m.
+* AUTO's submodes as Rover's ``ModeAuto`` runs them on a boat: it enters in *loiter* (``_enter``:
+  ``start_loiter``) until the first navigation command starts (*wp*); the end of the mission
+  follows MIS_DONE_BEHAVE (``exit_mission``): 0 HOLD = *stop* (``start_stop``: ``stop_vehicle``
+  brakes, then the motor is off and the boat drifts, still in AUTO), 1 *loiter* (keeps station,
+  the boats' default), 2 ACRO, 3 MANUAL (mode changes: drift).
+* Speed (m/s): the navigation speed is a **ground speed** along the bow, as Rover's speed
+  controller holds it (``AR_AttitudeControl::get_forward_speed``: the EKF's ground velocity
+  projected on the heading); the water speed commanded to the hull is that minus the current's
+  component along the heading. SITL in a 0.5 m/s current flew 5.0 m/s over ground both with and
+  against it (WP_SPEED 5). Entering AUTO, GUIDED, RTL or SMART_RTL resets the speed to
+  WP_SPEED (``g2.wp_nav.init()``). DO_CHANGE_SPEED (mission item or COMMAND_LONG) sets the
+  speed of the submode that runs it (``ModeAuto::set_desired_speed``): in AUTO's *wp* submode
+  the waypoint speed; in the *loiter* submode (a DO_CHANGE_SPEED before the mission's first
+  navigation command on a boat, or after the mission ended) it is **not** applied and the legs
+  fly at WP_SPEED (Rover 4.7 SITL: "Mission: 1 ChangeSpeed", then 5.0 m/s); as a command it is
+  then FAILED, as in HOLD, LOITER and the manual modes (their ``set_desired_speed`` is Mode's,
+  which returns false).
 * Arming before ``arm_ready_s`` is refused even with ARMING_SKIPCHK (ArduPilot's
   "System not initialised" is not a skippable check); force-arm (param2 = 2989)
   bypasses it.
@@ -206,7 +227,10 @@ class Autopilot:
         self.loiter_until: float | None = None
         self.reached_current = False
         self.jump_counts: dict[int, int] = {}
-        self.speed_override: float | None = None
+        self.speed_override: float | None = None  # m/s from DO_CHANGE_SPEED; None: WP_SPEED
+        #: AUTO's submode (Rover's ModeAuto::_submode): "loiter" (on entry, and MIS_DONE_BEHAVE 1),
+        #: "wp" (a navigation command runs), "stop" (MIS_DONE_BEHAVE 0: brakes, then motor off)
+        self.auto_submode = "loiter"
         self.station: tuple[float, float] | None = None  # station-keeping point (x, y)
         self.guided_target: tuple[float, float] | None = None
         # failsafe
@@ -324,6 +348,7 @@ class Autopilot:
         self.reached_current = False
         self.jump_counts.clear()
         self.speed_override = None
+        self.auto_submode = "loiter"
         self.station = None
         self.guided_target = None
         self.last_gcs_hb = None
@@ -339,7 +364,23 @@ class Autopilot:
         return (self.home_latlon[0], self.home_latlon[1], self.home_alt)
 
     def wp_speed(self) -> float:
+        """The navigation speed (m/s over ground along the bow): DO_CHANGE_SPEED's, else WP_SPEED."""
         return self.speed_override if self.speed_override else self.p("WP_SPEED")
+
+    def _speed_settable(self) -> bool:
+        """Whether DO_CHANGE_SPEED has a taker in this mode (Rover: the mode overrides ``set_desired_speed``;
+        AUTO passes it to its submode, and its loiter submode has none)."""
+        if self.mode == MODES["AUTO"]:
+            return self.auto_submode != "loiter"
+        return self.mode not in (
+            MODES["HOLD"],
+            MODES["LOITER"],
+            MODES["MANUAL"],
+            MODES["ACRO"],
+            MODES["STEERING"],
+            MODES["SIMPLE"],
+            MODES["INITIALISING"],
+        )
 
     def mission_total(self) -> int:
         return max(self.store.count(0) - 1, 0)
@@ -459,7 +500,8 @@ class Autopilot:
                 else R.MAV_RESULT_DENIED
             )
         elif cmd == R.MAV_CMD_DO_CHANGE_SPEED:
-            if p[1] > 0:
+            # Rover: control_mode->set_desired_speed(param2); FAILED where the mode has none (see _speed_settable)
+            if p[1] > 0 and self._speed_settable():
                 self.speed_override = float(p[1])
                 result = R.MAV_RESULT_ACCEPTED
             else:
@@ -558,7 +600,10 @@ class Autopilot:
         self.mode = mode
         self.station = (self.boat.x, self.boat.y)
         self.guided_target = None if mode != MODES["GUIDED"] or prev != MODES["GUIDED"] else self.guided_target
+        if mode in (MODES["AUTO"], MODES["GUIDED"], MODES["RTL"], MODES["SMART_RTL"]):
+            self.speed_override = None  # their _enter calls g2.wp_nav.init(): the speed is WP_SPEED again
         if mode == MODES["AUTO"]:
+            self.auto_submode = "loiter"  # ModeAuto::_enter on a boat: start_loiter() until a nav command runs
             self._start_or_resume()
         elif prev == MODES["AUTO"] and self.mission_state == "running":
             self.mission_state = "stopped"
@@ -619,8 +664,11 @@ class Autopilot:
                 return
             it = self.store.items[0][idx]
             if it.command == M.MAV_CMD_DO_CHANGE_SPEED:
-                if it.param2 > 0:
+                # ModeAuto::do_change_speed -> set_desired_speed of the submode: before the first navigation
+                # command of this AUTO entry a boat is in its loiter submode, which takes no speed (no text)
+                if it.param2 > 0 and self.auto_submode != "loiter":
                     self.speed_override = float(it.param2)
+                    self.text(None, M.MAV_SEVERITY_INFO, f"speed: {float(it.param2):.1f} m/s")
                 # Rover verifies DO_CHANGE_SPEED itself and reports it reached (servo/relay items it does not)
                 self.send(None, M.MAVLink_mission_item_reached_message(idx))
                 idx += 1
@@ -646,6 +694,7 @@ class Autopilot:
         prev_target = self.item_xy(self.active_item) if self.active_item is not None else None
         self.mission_index = idx
         self.active_item = it
+        self.auto_submode = "wp"
         self.leg_origin = prev_target if prev_target is not None else (self.boat.x, self.boat.y)
         self.loiter_until = None
         self.reached_current = False
@@ -668,7 +717,10 @@ class Autopilot:
             self.station = (self.boat.x, self.boat.y)
             self.text(None, M.MAV_SEVERITY_INFO, "Mission Complete")
             self.send(None, telemetry.mission_current(self))
+            # ModeAuto::exit_mission: 1 loiter (keeps station), 2 ACRO, 3 MANUAL; 0 HOLD (and any failure):
+            # start_stop(), the Stop submode: brakes, then motor off in AUTO, the boat drifts
             behave = int(self.p("MIS_DONE_BEHAVE"))
+            self.auto_submode = "loiter" if behave == 1 else "stop"
             if behave == 2:
                 self._enter_mode(MODES["ACRO"])
             elif behave == 3:
@@ -711,26 +763,45 @@ class Autopilot:
             self._boot_events_done.add("ekf")
             self.text(None, M.MAV_SEVERITY_INFO, "EKF3 IMU0 is using GPS")
 
-    def _command_motion(self, current) -> tuple[float, float]:
-        """(commanded heading rad, water speed m/s) for the mode and mission."""
+    def _command_motion(self, current) -> tuple[float, float | None]:
+        """(commanded heading rad, water speed m/s) for the mode and mission; speed None: motor off (the hull
+        coasts, :func:`vehicle_sim.boat.step_boat`), the boat drifts with the current."""
         b = self.boat
         if not self.armed or self.mode in MANUAL_INPUT or self.mode in (MODES["SIMPLE"], MODES["INITIALISING"]):
-            return b.heading, 0.0
+            return b.heading, None
+        if self.mode == MODES["HOLD"]:
+            return b.heading, None  # mode_hold.cpp: throttle 0, steering centred: the boat drifts
         if self.mode == MODES["AUTO"] and self.mission_state == "running" and self.active_item is not None:
             return self._auto_motion(current)
+        if self.mode == MODES["AUTO"] and self.auto_submode == "stop":
+            # ModeAuto's Stop submode (MIS_DONE_BEHAVE 0): stop_vehicle() brakes to a stop, then throttle 0 (drifts)
+            return b.heading, 0.0
         if self.mode in (MODES["RTL"], MODES["SMART_RTL"]):
             home = self.frame.to_xy(*self.home_latlon)
             if math.hypot(home[0] - b.x, home[1] - b.y) > self.p("WP_RADIUS") and self.station != home:
-                return guidance(b, home, self.wp_speed(), current, self.cfg.boat, None)
+                return self._navigate(home, None, current)
             self.station = home
         if self.mode == MODES["GUIDED"] and self.guided_target is not None:
             tgt = self.guided_target
             if math.hypot(tgt[0] - b.x, tgt[1] - b.y) > self.p("WP_RADIUS"):
-                return guidance(b, tgt, self.wp_speed(), current, self.cfg.boat, None)
+                return self._navigate(tgt, None, current)
             self.station, self.guided_target = tgt, None
         return self._station_keep(current)
 
+    def _navigate(self, target, origin, current) -> tuple[float, float]:
+        """(heading rad, water speed m/s) toward ``target`` (east, north m) at :meth:`wp_speed` over ground.
+
+        Rover's speed controller holds the ground speed along the bow (the EKF's ground velocity projected on the
+        heading), so the hull is asked for that speed minus the current's component along its heading
+        (``current`` east, north m/s): with the current it slows down through the water, against it speeds up.
+        """
+        b = self.boat
+        heading, speed = guidance(b, target, self.wp_speed(), current, self.cfg.boat, origin)
+        along = current[0] * math.sin(b.heading) + current[1] * math.cos(b.heading)
+        return heading, max(0.0, speed - along)
+
     def _station_keep(self, current) -> tuple[float, float]:
+        """Rover's loiter (mode_loiter.cpp): motor off inside LOIT_RADIUS (m) of :attr:`station`, else drive back."""
         b = self.boat
         if self.station is None:
             self.station = (b.x, b.y)
@@ -740,7 +811,8 @@ class Autopilot:
         if d <= radius:
             return b.heading, 0.0  # motor off inside the circle: let it drift
         cur = math.hypot(*current)
-        speed = min(self.cfg.boat.max_speed, max(self.wp_speed(), 1.5 * cur))
+        # Rover's loiter drives back at most at WP_SPEED (wp_nav's default speed, not DO_CHANGE_SPEED's)
+        speed = min(self.cfg.boat.max_speed, max(self.p("WP_SPEED"), 1.5 * cur))
         speed = min(speed, max(0.5, d))  # slow down on approach so it does not overshoot
         return guidance(b, (sx, sy), speed, current, self.cfg.boat, None)
 
@@ -763,7 +835,7 @@ class Autopilot:
                 leg = math.hypot(lx, ly)
                 passed = leg > 1e-6 and ((b.x - ox) * lx + (b.y - oy) * ly) / leg >= leg
             if not (d <= self.p("WP_RADIUS") or passed):
-                return guidance(b, tgt, self.wp_speed(), current, self.cfg.boat, self.leg_origin)
+                return self._navigate(tgt, self.leg_origin, current)
             self._reached(it, d)
         return self._station_keep(current)
 
@@ -794,7 +866,8 @@ class Autopilot:
         if self.down:
             # powered off: the boat drifts with the motor off; the boot timeline starts when it is back
             lat, lon = self.position()
-            step_boat(self.boat, self.boat.heading, 0.0, self.current_model.at(self.clock, lat, lon), dt, self.cfg.boat)
+            cur = self.current_model.at(self.clock, lat, lon)
+            step_boat(self.boat, self.boat.heading, 0.0, cur, dt, self.cfg.boat, motor_off=True)
             self._gps_noise_step(dt)
             self.clock += dt
             return
@@ -811,7 +884,7 @@ class Autopilot:
         lat, lon = self.position()
         current = self.current_model.at(self.clock, lat, lon)
         heading, speed = self._command_motion(current)
-        step_boat(self.boat, heading, speed, current, dt, self.cfg.boat)
+        step_boat(self.boat, heading, speed or 0.0, current, dt, self.cfg.boat, motor_off=speed is None)
         self._gps_noise_step(dt)
         power_w = 5.0 + 40.0 * (self.boat.speed / 2.0) ** 2
         self.energy_wh += power_w * dt / 3600.0

@@ -13,8 +13,13 @@ Motion model (first order, one step :func:`step_boat`): the hull moves through t
 water at ``speed`` along ``heading``; the ground velocity is that plus the local
 current. The commanded heading is reached with a turn-rate limit and the
 commanded water speed through a first-order lag (``speed_tau_s``) and an
-acceleration limit. This is deliberately simple: it is enough to make the timing
-and the drift of a surveying boat realistic, not to model a hull.
+acceleration limit. With the motor off (``motor_off``: HOLD, disarmed, no RC input) only the
+hull's drag slows it through the water, quadratic in speed (``coast_drag_per_m``): fitted to
+Rover 4.7 SITL's motorboat, which coasted from 5 m/s to 1.54, 0.83 and 0.37 m/s after 2, 4 and
+10 s and 18.7 m in 60 s, and which, stopped in a 0.5 m/s current, took ~20 s to pick the
+current up (120 s of drift from a standstill: 49-50 m, not 60). The hull has no sideways
+water speed: across the bow it always moves with the current. This is deliberately simple: it
+is enough to make the timing and the drift of a surveying boat realistic, not to model a hull.
 
 Navigation (:func:`guidance`):
 
@@ -205,6 +210,8 @@ class BoatParams:
         max_speed: hull speed limit through the water, m/s.
         nav: ``"pursuit"`` (crab not compensated, default) or ``"crosstrack"``.
         l1_lookahead_m: look-ahead distance of the cross-track controller, metres.
+        coast_drag_per_m: with the motor off, dv/dt = -k v^2 through the water (k in 1/m; Rover
+            SITL's motorboat: 0.25); 0 stops the hull with the powered lag instead.
     """
 
     max_turn_rate_dps: float = 60.0
@@ -213,6 +220,7 @@ class BoatParams:
     max_speed: float = 10.0
     nav: str = "pursuit"
     l1_lookahead_m: float = 10.0
+    coast_drag_per_m: float = 0.25
 
 
 @dataclass
@@ -281,27 +289,38 @@ def guidance(
 
 
 def step_boat(
-    state: BoatState, cmd_heading: float, cmd_speed: float, current: tuple[float, float], dt: float, params: BoatParams
+    state: BoatState,
+    cmd_heading: float,
+    cmd_speed: float,
+    current: tuple[float, float],
+    dt: float,
+    params: BoatParams,
+    motor_off: bool = False,
 ) -> BoatState:
     """Advance ``state`` by ``dt`` seconds (in place; also returned).
 
     The heading turns toward ``cmd_heading`` at most ``max_turn_rate_dps``; the
     water speed follows ``cmd_speed`` with a first-order lag and the acceleration
-    limit; the position integrates water velocity plus ``current``.
+    limit; the position integrates water velocity plus ``current``. ``motor_off``: no thrust, the
+    water speed decays by the hull's quadratic drag alone (``coast_drag_per_m``; ``cmd_speed`` ignored).
     """
     max_turn = math.radians(params.max_turn_rate_dps) * dt
     err = wrap_pi(cmd_heading - state.heading)
     turn = max(-max_turn, min(max_turn, err))
     state.heading = wrap_pi(state.heading + turn)
     state.turn_rate = turn / dt if dt > 0 else 0.0
-    target = max(0.0, min(params.max_speed, cmd_speed))
-    dv = (
-        (target - state.speed) * (1.0 - math.exp(-dt / params.speed_tau_s))
-        if params.speed_tau_s > 0
-        else target - state.speed
-    )
-    dv = max(-params.max_accel * dt, min(params.max_accel * dt, dv))
-    state.speed += dv
+    if motor_off and params.coast_drag_per_m > 0:
+        # dv/dt = -k v^2, solved exactly over the step (speed >= 0)
+        state.speed = state.speed / (1.0 + params.coast_drag_per_m * state.speed * dt)
+    else:
+        target = 0.0 if motor_off else max(0.0, min(params.max_speed, cmd_speed))
+        dv = (
+            (target - state.speed) * (1.0 - math.exp(-dt / params.speed_tau_s))
+            if params.speed_tau_s > 0
+            else target - state.speed
+        )
+        dv = max(-params.max_accel * dt, min(params.max_accel * dt, dv))
+        state.speed += dv
     ve = state.speed * math.sin(state.heading) + current[0]
     vn = state.speed * math.cos(state.heading) + current[1]
     state.x += ve * dt

@@ -1,5 +1,9 @@
 """ArduPilot Rover's flight modes as the simulator plays them: the custom-mode numbers (Rover 4.x) and
-the sets of modes that need an absolute position, keep station or take RC input."""
+the sets of modes that need an absolute position, keep station or take RC input.
+
+HOLD is not a station-keeping mode: Rover's ``mode_hold.cpp`` sets throttle 0 and centres the steering,
+so a boat in HOLD drifts with the current (shared/ARDUPILOT_ROVER.md); LOITER keeps station inside
+``LOIT_RADIUS``. AUTO keeps station in its loiter submode (vehicle_sim.autopilot)."""
 
 from __future__ import annotations
 
@@ -27,5 +31,6 @@ SETTABLE = frozenset(v for k, v in MODES.items() if k != "INITIALISING")
 NEEDS_POSITION = frozenset(
     MODES[k] for k in ("AUTO", "GUIDED", "LOITER", "RTL", "SMART_RTL", "CIRCLE", "FOLLOW", "DOCK")
 )
-STATION_KEEPING = frozenset(MODES[k] for k in ("HOLD", "LOITER", "CIRCLE", "FOLLOW", "DOCK"))
+#: modes that keep the boat inside LOIT_RADIUS of where they began (HOLD drifts: motor off)
+STATION_KEEPING = frozenset(MODES[k] for k in ("LOITER", "CIRCLE", "FOLLOW", "DOCK"))
 MANUAL_INPUT = frozenset(MODES[k] for k in ("MANUAL", "ACRO", "STEERING"))
