@@ -28,6 +28,7 @@ from vehicle_sim import Simulator
 from vehicle_sim.telemetry import battery
 
 HOLD, AUTO, RTL = ROVER_MODES["HOLD"], ROVER_MODES["AUTO"], ROVER_MODES["RTL"]
+LOITER = ROVER_MODES["LOITER"]  # how the boat waits (vehicle.wait_mode: loiter, the default; HOLD drifts)
 WALL_S = 60.0  # a generous bound on each wait of the operator thread (the run takes a few seconds)
 
 
@@ -155,9 +156,9 @@ def test_pause_holds_resume_goes_on_at_the_same_item_end_returns(lockstep_run):
     summary = ctl.run()
     op.join(10)
     assert op.error is None, op.error
-    # Pause: the vehicle reports HOLD; it stayed at its item while its clock ran on
+    # Pause: the vehicle reports LOITER (its wait_mode); it stayed at its item while its clock ran on
     mode, seq, t_p, x, y = seen["paused"]
-    assert mode == HOLD and seq >= 2
+    assert mode == LOITER and seq >= 2
     t_r, x_r, y_r = seen["held_at"]
     held_m = ((x_r - x) ** 2 + (y_r - y) ** 2) ** 0.5
     assert t_r - t_p >= 20.0 and held_m < 15.0, (t_r - t_p, held_m)  # 5 m/s boat: 100 m in 20 s had it gone on
@@ -167,7 +168,7 @@ def test_pause_holds_resume_goes_on_at_the_same_item_end_returns(lockstep_run):
     assert ap.mode == RTL and summary["status"] == "ended"
     assert [a["level"] for a in op.answers] == ["ok", "ok", "ok"]
     texts = [a["text"] for a in op.answers]
-    assert "HOLD at item" in texts[0] and f"AUTO at item {seq}/" in texts[1] and "RTL" in texts[2]
+    assert "LOITER at item" in texts[0] and f"AUTO at item {seq}/" in texts[1] and "RTL" in texts[2]
     assert all("operator (test)" in t for t in texts)  # its source
     assert any("operator (test): end RTL" in e for e in summary["events"])
     legs = rd.read_legs()
@@ -300,7 +301,7 @@ def test_battery_status_is_asked_for_again_after_an_autopilot_reboot(tmp_path):
 def test_a_distance_budget_cuts_the_leg_and_holds(drained_run):
     sim, make, _rd = drained_run  # (the battery is not watched here: no reserve set)
     summary = make(3, {"max_distance_m": 150, "on_spent": "hold"}).run()
-    assert summary["status"] == "ended" and sim.autopilot.mode == HOLD
+    assert summary["status"] == "ended" and sim.autopilot.mode == LOITER  # "hold": stopped in its wait_mode
     b = summary["budget"]
     # cut within a fix or two of the limit (1 Hz fixes of a 5 m/s boat: ~5 m apart)
     assert 150 <= b["distance_m"] < 170 and "distance" in b["spent"], b
@@ -729,7 +730,7 @@ def test_approve_mode_timeout_approves_or_holds(tmp_path):
     with lockstep_session(tmp_path / "h") as (sim, make, rd):
         s = make(legs=1, approve={"enabled": True, "timeout_s": 0.3, "on_timeout": "hold"}).run()
         assert s["status"] == "paused" and "no approval within" in s["events"][-1]
-        assert sim.autopilot.store.count(0) <= 1 and sim.autopilot.mode == HOLD  # nothing uploaded, held
+        assert sim.autopilot.store.count(0) <= 1 and sim.autopilot.mode == LOITER  # nothing uploaded, waiting
 
 
 def test_console_keys_send_approve_and_reject(tmp_path):

@@ -1,7 +1,7 @@
 """Issue 44's Pause/Resume on ArduPilot Rover SITL (marker ``sitl``; skips without the build in ../shared/sitl).
 
 The operator (tests/test_console.py's :class:`Operator`) pauses the leg once two items are behind the boat
-and resumes it after the firmware has held for a while: the firmware reports HOLD, then AUTO at the item it
+and resumes it after the firmware has held for a while: the firmware reports LOITER (the wait_mode), then AUTO at the item it
 was paused at (MISSION_CURRENT), and the leg flies on to "Mission Complete". SITL has no current sensor here,
 so the run then stops with its "no current samples" error, as in tests/test_sitl.py.
 """
@@ -16,7 +16,7 @@ from test_sitl import sitl_controller, still_mission
 
 pytestmark = pytest.mark.sitl
 
-HOLD, AUTO = 4, 10
+HOLD, AUTO, LOITER = 4, 10, 5
 
 
 @pytest.mark.long(reason="ArduRover SITL in wall time through a pause and a resume: ~20 s")
@@ -54,7 +54,7 @@ def test_pause_and_resume_on_ardurover_sitl(tmp_path, sitl):
         op.join(10)
         assert op.error is None, op.error
         mode, seq = seen["paused"]
-        assert mode == HOLD and seq >= 2
+        assert mode == LOITER and seq >= 2  # the wait_mode: the firmware keeps station
         assert seen["resumed"] == (AUTO, seq)  # AUTO at the item it was paused at
         assert [a["level"] for a in op.answers] == ["ok", "ok"]
         assert any("Mission Complete" in t for _, _, t in link.texts)  # the leg flew on to its end

@@ -121,7 +121,16 @@ def test_three_leg_mission_samples_uploads_and_rmse(tmp_path):
         summary = ctl.run()
         mode_after = ctl.vehicle.mode
     assert summary["status"] == "complete" and len(summary["legs"]) == 3
-    assert mode_after == 4  # HOLD after the last leg (a boat would otherwise loiter in AUTO)
+    # LOITER after the last leg (vehicle.on_end: loiter; a boat in HOLD would drift with the current), armed
+    assert mode_after == 5
+    assert summary["end"]["on_end"] == "loiter" and summary["end"]["mode"] == "LOITER" and summary["end"]["armed"]
+    assert any("run complete: the boat LOITER" in e for e in summary["events"])
+    # each leg after the first records the wait before it (LOITER between legs: no drift beyond the radius)
+    for leg in summary["legs"][1:]:
+        (w,) = leg["waits"]
+        assert w["kind"] == "between legs" and w["mode"] == "LOITER" and w["vehicle_s"] > 0
+        # within 2 x WP_RADIUS, plus up to one 1 Hz fix of a 5 m/s boat still running down as the wait begins
+        assert w["drift_m"] <= 2 * 3.0 + 5.0
     # every uploaded mission, read back from the vehicle, equals the mission of the planned path
     assert len(readbacks) >= 3
     for leg in summary["legs"]:
@@ -256,5 +265,34 @@ def test_leg_deadline_counts_vehicle_time_not_wall_time(monkeypatch):
     link.up = 27.0
     assert d2.passed()
     d3 = _Deadline(link, budget_s=60.0, speedup=20.0)
-    now[0] += 10 * 60.0 / 20.0 + 60.0 + 1.0  # the vehicle's clock stopped: the wall back-up fires
+    assert not d3.wall_passed()
+    now[0] += 10 * 60.0 / 20.0 + 60.0 + 1.0  # past the old backstop, but a clock standing still for 91 s only
+    assert not d3.passed()
+    now[0] += _Deadline.STALL_WALL_S  # the vehicle's clock stopped: the wall back-up fires
     assert d3.passed()
+    assert d3.stalled_s > _Deadline.STALL_WALL_S
+
+
+def test_leg_deadline_backstop_ignores_a_vehicle_slower_than_its_hint(monkeypatch):
+    """A lockstep simulator on a loaded machine runs far slower than ``--speedup-hint`` (60x for a hint of
+    2000): its legs are timed by its own clock, and the wall backstop fires only for a clock that stopped."""
+    import time as _time
+
+    from passt_mav.vehicle.controller import _Deadline
+
+    class FakeLink:
+        up = 0.0
+
+        def vehicle_uptime_s(self):
+            return self.up
+
+    now = [0.0]
+    monkeypatch.setattr(_time, "monotonic", lambda: now[0])
+    link = FakeLink()
+    d = _Deadline(link, budget_s=600.0, speedup=2000.0)  # old backstop: 10 x 0.3 s + 60 s = 63 wall s
+    for _ in range(590):  # 590 wall s at 1 vehicle s per wall s: 3.3 % of the hint
+        now[0] += 1.0
+        link.up += 1.0
+        assert not d.passed()
+    link.up += 11.0  # 601 vehicle s: the leg's own limit
+    assert d.vehicle_passed() and not d.wall_passed()

@@ -21,7 +21,7 @@ from passt_mav.runs.live import read_events
 from passt_mav.runs.rundir import RunDir
 from vehicle_sim import LinkConfig as SimLinkConfig
 
-AUTO, HOLD, MANUAL = 10, 4, 0
+AUTO, HOLD, MANUAL, LOITER = 10, 4, 0, 5
 
 
 def _modes(link) -> list[int]:
@@ -130,7 +130,7 @@ def test_pilot_keeps_control_controller_stops_in_hold(tmp_path):
         summary = ctl.run()
         th.join(5)
         time.sleep(0.1)
-        assert ctl.vehicle.mode == HOLD  # stopped cleanly, planning no further leg
+        assert ctl.vehicle.mode == LOITER  # stopped cleanly in its wait_mode, planning no further leg
     assert summary["status"] == "paused" and summary["legs"] == []
     assert "stayed in MANUAL" in summary["events"][-1]
 

@@ -24,7 +24,7 @@ from passt_mav.runs.rundir import RunDir
 from passt_mav.runs.store import SampleStore
 from passt_mav.vehicle.controller import utc_epoch
 
-AUTO, HOLD = 10, 4
+AUTO, HOLD, LOITER = 10, 4, 5
 ORIGIN = utc_epoch("2020-01-01T00:00:00Z")
 LEAN = {"stream_rates_hz": LEAN_STREAMS}
 
@@ -195,9 +195,9 @@ def test_reboot_mid_leg_with_on_reboot_hold_stops_in_hold(tmp_path):
     with _reboot_mid_leg(field, cfg, rd, echo=None, pause_timeout_s=5.0) as (sim, _link, ctl, faults):
         summary = ctl.run()
         assert list(faults.fired) == ["reboot"]
-        assert sim.autopilot.mode == HOLD and not sim.autopilot.armed
+        assert sim.autopilot.mode == LOITER and not sim.autopilot.armed  # its wait_mode
     assert summary["status"] == "paused" and summary["legs"] == []
-    assert "on_reboot is 'hold': stopped in HOLD" in summary["events"][-1]
+    assert "on_reboot is 'hold': stopped in LOITER" in summary["events"][-1]
 
 
 # -- resume after the controller died in a later leg --------------------------------------------------

@@ -254,7 +254,7 @@ def test_a_gcs_upload_during_the_swap_is_caught_by_the_read_back_and_ours_flown(
     assert len(stored) == len(last) and all(
         rover_stored(a).same_as(rover_stored(_item(b))) for a, b in zip(last[1:], stored[1:])
     )
-    assert wire.ids == {OURS} and mode == 4
+    assert wire.ids == {OURS} and mode == 5  # LOITER at the end (vehicle.on_end: loiter)
 
 
 def test_a_gcs_upload_mid_leg_through_a_router_is_seen_and_ours_resumed(tmp_path):
@@ -304,7 +304,7 @@ def test_a_gcs_that_keeps_replacing_the_mission_stops_the_run_in_hold(tmp_path):
     assert summary["status"] == "paused"
     assert len(done) == 3 and all(a is not None and a.type == M.MAV_MISSION_ACCEPTED for _, a, _ in done)
     assert any("replaced our mission 3 times" in e for e in summary["events"]), summary["events"]
-    assert mode == 4  # HOLD: not flying someone else's mission
+    assert mode == 5  # LOITER (its wait_mode): not flying someone else's mission
 
 
 def test_an_upload_denied_while_qgc_holds_a_transfer_is_waited_out(tmp_path):

@@ -34,7 +34,7 @@ from vehicle_sim import LinkConfig as SimLinkConfig
 from vehicle_sim import SimConfig, Simulator
 from vehicle_sim.boat import BoatParams
 
-AUTO, HOLD = 10, 4
+AUTO, HOLD, LOITER = 10, 4, 5
 AUTOSTEP_S = 0.05  # simulated seconds per idle poll of the controller's reader
 
 
@@ -196,7 +196,7 @@ def test_outage_of_two_minutes_is_ridden_out_and_the_lost_readings_accounted(tmp
     with lockstep(field, sim_cfg=sim_config(tlog=str(tlog)), radio=radio, max_rate=100) as (sim, link, _):
         ctl = controller(cfg, field, link, rd, echo=None)
         summary = ctl.run()
-        assert ctl.vehicle.mode == HOLD
+        assert ctl.vehicle.mode == LOITER  # the end of the run: vehicle.on_end loiter
         armed = sim.autopilot.first_armed_clock
     assert summary["status"] == "complete" and len(summary["legs"]) == 1
     leg = summary["legs"][0]
@@ -320,7 +320,7 @@ def _signal_when_in_leg(ctl, signum, *, after_reached: int = 1):
     return th
 
 
-@pytest.mark.parametrize("signum, on_signal, mode", [(signal.SIGTERM, "hold", HOLD), (signal.SIGHUP, "auto", AUTO)])
+@pytest.mark.parametrize("signum, on_signal, mode", [(signal.SIGTERM, "hold", LOITER), (signal.SIGHUP, "auto", AUTO)])
 def test_signal_mid_leg_stops_cleanly(tmp_path, signum, on_signal, mode):
     field = wave_field()
     vehicle_cfg = {"speed_mps": 5.0, "wp_radius_m": 3.0, "on_signal": on_signal}
@@ -335,7 +335,7 @@ def test_signal_mid_leg_stops_cleanly(tmp_path, signum, on_signal, mode):
             th.join(5)
         assert stop.received == signum
         time.sleep(0.05)
-        assert sim.autopilot.mode == mode  # HOLD, or left flying its leg with on_signal: auto
+        assert sim.autopilot.mode == mode  # its wait_mode (LOITER), or left flying its leg with on_signal: auto
     name = signal.Signals(signum).name
     s = rd.read_summary()  # written, with the status a supervisor can read
     assert s["status"] == summary["status"] == "stopped" and s["stopped_by"] == name
@@ -438,7 +438,7 @@ def test_cli_sigterm_mid_leg_exits_143_in_hold_with_summary(tmp_path, monkeypatc
     rd = RunDir(out)
     s = rd.read_summary()
     assert rc == 143 and s["status"] == "stopped" and s["stopped_by"] == "SIGTERM"
-    assert sim.autopilot.mode == HOLD
+    assert sim.autopilot.mode == LOITER  # stopped in its wait_mode
     assert s["n_samples"] == len(stored(rd))
     assert rd.read_leg(0)["status"] == "flying"
 

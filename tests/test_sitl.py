@@ -194,7 +194,7 @@ def test_one_leg_on_ardurover_sitl(tmp_path, sitl):
             ctl.run()
         leg = rd.read_leg(0)
         assert leg["status"] == "flying" and Path(rd.waypoints_file(0)).exists()
-        assert ctl.vehicle.mode == 4  # HOLD after "Mission Complete"
+        assert ctl.vehicle.mode == 5  # LOITER (vehicle.wait_mode) after "Mission Complete": HOLD would drift
         assert any("Mission Complete" in t for _, _, t in link.texts)
     finally:
         link.close()

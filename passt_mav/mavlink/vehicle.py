@@ -18,7 +18,7 @@ import logging
 import threading
 import time
 
-from passt_mav.errors import CommandRejected, LinkTimeout, UserError, VehicleNotReady
+from passt_mav.errors import CommandRejected, LinkTimeout, MavlinkError, UserError, VehicleNotReady
 from passt_mav.mavlink.link import Link, mavlink2
 from passt_mav.mavlink.mission_client import MissionClient
 
@@ -112,6 +112,9 @@ class Vehicle:
             a bar on a terminal, a plain line every 5 s otherwise).
     """
 
+    #: DO_CHANGE_SPEED commands sent while the vehicle answers FAILED (:meth:`set_speed`)
+    SPEED_TRIES = 10
+
     def __init__(
         self,
         link: Link,
@@ -128,6 +131,10 @@ class Vehicle:
         self._listening = False
         #: name -> the vehicle's value before this object first changed it (see restore_params)
         self.changed_params: dict[str, float] = {}
+        #: the mode :meth:`keep_station` waits in: ``LOITER`` keeps a boat on its spot (inside LOIT_RADIUS);
+        #: ``HOLD`` stops the motor and centres the steering, so a boat in HOLD drifts with the current
+        #: (Rover's mode_hold.cpp; shared/ARDUPILOT_ROVER.md). Set from the mission's ``vehicle.wait_mode``.
+        self.wait_mode = "HOLD"
 
     # -- state ---------------------------------------------------------------------------------
     @property
@@ -223,7 +230,47 @@ class Vehicle:
         return num
 
     def hold(self) -> None:
+        """HOLD: on a boat the motor stops and the boat drifts with the current (see :meth:`keep_station`)."""
         self.set_mode("HOLD")
+
+    def keep_station(self) -> str:
+        """Wait where the boat is, in :attr:`wait_mode` (LOITER keeps station; HOLD drifts). A LOITER the vehicle
+        refuses (no absolute position yet, a mode the firmware lacks) falls back to HOLD, logged. Returns the
+        mode name the vehicle is in now."""
+        mode = self.wait_mode
+        if mode != "HOLD":
+            try:
+                self.set_mode(mode)
+                return mode
+            except CommandRejected as exc:
+                log.warning("the vehicle refused %s (%s); HOLD instead: the boat drifts with the current", mode, exc)
+        self.set_mode("HOLD")
+        return "HOLD"
+
+    def set_speed(self, speed_mps: float, *, speedup: float = 1.0) -> None:
+        """MAV_CMD_DO_CHANGE_SPEED: ``speed_mps`` m/s (Rover holds it over ground along the bow) for the mission
+        being flown. Rover resets its speed to WP_SPEED whenever AUTO is entered, and on a boat it runs a mission's
+        DO_CHANGE_SPEED placed before the first waypoint in AUTO's loiter submode, where it is lost (Rover 4.7
+        SITL: tests/test_sitl_current.py); right after AUTO is entered the command may meet that submode too and
+        be refused (FAILED): it is sent again every 0.2 s of vehicle time (``speedup``: vehicle s per wall s), up
+        to :attr:`SPEED_TRIES` times. Raises CommandRejected or LinkTimeout."""
+        for attempt in range(self.SPEED_TRIES):
+            try:
+                self.link.command_long(M.MAV_CMD_DO_CHANGE_SPEED, 1, float(speed_mps), -1)
+                return
+            except CommandRejected as exc:
+                if exc.result != M.MAV_RESULT_FAILED or attempt == self.SPEED_TRIES - 1:
+                    raise
+                self.link.idle(0.2 / max(float(speedup), 1e-6))
+
+    def keep_station_if_auto(self, *, always: bool = False) -> None:
+        """:meth:`keep_station` if the vehicle flies a mission (AUTO; ``always``: whatever its mode); a failure is
+        logged, never raised (the clean-up of a run that stops)."""
+        try:
+            if always or self.mode == ROVER_MODES["AUTO"]:
+                self.keep_station()
+        except MavlinkError as exc:
+            log.warning("could not stop the boat (%s): %s", self.wait_mode, exc)
 
     def request_mode(self, mode: str | int) -> None:
         """Send MAV_CMD_DO_SET_MODE once, without waiting for its ACK or the HEARTBEAT (:meth:`set_mode`
@@ -448,5 +495,5 @@ class Vehicle:
                 if on_progress is not None:
                     on_progress(p)
         if hold:
-            self.hold()
+            self.keep_station()
         return p

@@ -58,6 +58,7 @@ KINDS = {
     "fence_clear": "ok",
     "vehicle_alert": "alert",
     "approval": "warn",
+    "boat_end": "info",
 }
 
 

@@ -49,6 +49,8 @@ class OperatorCommands:
     :class:`~passt_mav.runs.commands.CommandReader`, None = no channel (nothing is read)."""
 
     commands = None
+    #: the boat's :class:`~passt_mav.vehicle.waits.WaitLog` (:class:`VehicleSession` makes it): a pause's drift is recorded
+    waits = None
 
     def _answer(self, cmd: dict, text: str, *, ok: bool = True) -> None:
         """The command's answer: an event of kind ``command`` with its id, summary.json's events, a line."""
@@ -111,30 +113,40 @@ class OperatorCommands:
         try:
             self.vehicle.set_mode(mode)
         except MavlinkError as exc:
-            self._answer(cmd, f"the vehicle refused {mode} ({exc}); HOLD instead", ok=False)
-            self.vehicle.hold()
-            mode = "HOLD"
+            self._answer(cmd, f"the vehicle refused {mode} ({exc}); {self.vehicle.wait_mode} instead", ok=False)
+            mode = self.vehicle.keep_station()
         text = f"mission ended in leg {i + 1}: {mode}; state saved (continue with --resume)"
         self._answer(cmd, text)
         raise Ended(text, mode)
 
     def _operator_pause(self, cmd: dict, i: int, n_items: int) -> str | float | None:
-        """HOLD, then wait for the next command (module docstring). Returns the wall seconds paused, or
-        ``"skip"``/``"replan"``."""
-        from passt_mav.vehicle.session import Paused
-
+        """The boat waits (:meth:`~passt_mav.mavlink.Vehicle.keep_station`: LOITER or HOLD), then the next command
+        (module docstring). Returns the wall seconds paused, or ``"skip"``/``"replan"``."""
         v = self.vehicle
         try:
-            v.hold()
+            mode = v.keep_station()
         except MavlinkError as exc:
-            self._answer(cmd, f"HOLD refused or not confirmed: {exc}", ok=False)
+            self._answer(cmd, f"{v.wait_mode} refused or not confirmed: {exc}", ok=False)
             return None
         seq = int(v.progress.current)
         self._answer(
             cmd,
-            f"leg {i + 1} paused: HOLD at item {seq}/{n_items} (resume within {self.pause_timeout_s:.0f} s, "
+            f"leg {i + 1} paused: {mode} at item {seq}/{n_items} (resume within {self.pause_timeout_s:.0f} s, "
             "--pause-timeout)",
         )
+        if self.waits is not None:
+            self.waits.begin("pause", i)
+        try:
+            return self._paused(i, n_items)
+        finally:
+            if self.waits is not None:
+                self.waits.end()
+
+    def _paused(self, i: int, n_items: int) -> str | float:
+        """The wait of a pause (:meth:`_operator_pause`) until a command or AUTO ends it."""
+        from passt_mav.vehicle.session import Paused
+
+        v = self.vehicle
         t0 = time.monotonic()
         while True:
             for c in self.commands.poll():
@@ -153,7 +165,7 @@ class OperatorCommands:
             if time.monotonic() - t0 > self.pause_timeout_s:
                 raise Paused(
                     f"leg {i}: paused by the operator for {self.pause_timeout_s:.0f} s (--pause-timeout) without "
-                    "a resume; stopping in HOLD (continue with --resume)"
+                    f"a resume; stopping in {self.vehicle.wait_mode} (continue with --resume)"
                 )
             self.link.idle(0.05)
 
@@ -163,10 +175,9 @@ class OperatorCommands:
         try:
             v.set_mode("AUTO")
         except MavlinkError as exc:
-            self._answer(cmd, f"AUTO refused or not confirmed ({exc}); still in HOLD", ok=False)
+            self._answer(cmd, f"AUTO refused or not confirmed ({exc}); still in {v.wait_mode}", ok=False)
             return time.monotonic() - t0
-        if self.resume_seq > 1:
-            self.set_speed_again(i, "the operator's pause")
+        self.set_speed_again(i, "the operator's pause")
         mode = ROVER_MODE_NAMES.get(v.mode, str(v.mode))
         self._answer(cmd, f"leg {i + 1} resumed: {mode} at item {v.progress.current}/{n_items}")
         return time.monotonic() - t0
@@ -202,7 +213,8 @@ class OperatorCommands:
                     )
                     return "timeout"
                 raise Paused(
-                    f"leg {i}: no approval within {timeout_s:.0f} s (approve.on_timeout: hold): stopped in HOLD; "
+                    f"leg {i}: no approval within {timeout_s:.0f} s (approve.on_timeout: hold): stopped in "
+                    f"{self.vehicle.wait_mode}; "
                     "continue with --resume"
                 )
             if self.link.lost:

@@ -20,8 +20,14 @@ Per leg ``i`` (:meth:`MissionController._leg`: plan -> check -> upload -> fly ->
     _plan:   position -> start cell; clock reading -> STATUSTEXT "PASST leg i tb T b B k K"
              (kept by the tlog and ArduPilot's DataFlash log) -> the state keeper's plan
     _checked_mission: WaypointMission, geofence check of every waypoint (abort before upload)
-    _swap:   VehicleSession.swap: HOLD, upload + read-back, set_current(1), arm if needed, AUTO
-    _fly_leg: VehicleSession.fly: collect samples until the mission completes (faults handled) -> HOLD
+    _swap:   VehicleSession.swap: wait mode, upload + read-back, set_current(1), arm if needed, AUTO,
+             the mission's speed as a command (Rover drops a boat's seq-1 DO_CHANGE_SPEED)
+    _fly_leg: VehicleSession.fly: collect samples until the mission completes (faults handled) -> wait mode
+
+"Wait mode" is ``vehicle.wait_mode`` (:meth:`~passt_mav.mavlink.Vehicle.keep_station`): LOITER keeps a boat on
+its spot; HOLD stops its motor and it drifts with the current. Every wait is measured
+(:class:`~passt_mav.vehicle.waits.WaitLog`: leg.json ``waits``); at the run's end the boat loiters or is
+disarmed (``vehicle.on_end``, summary.json ``end``). Below, "HOLD" means the wait mode.
     _absorb: the state keeper's absorb (thin, GP update, RMSE) -> estimate.nc; _finish_leg: records
 
 Clock (vehicle time -> field time). Every sample carries the autopilot's
@@ -46,8 +52,9 @@ before the reboot, the down time not counted); samples carry their boot (the sto
 
 Legs in time. The state is the estimate at field time ``t_state``. When a leg
 starts at a later ``t_now`` the state is first forecast ``round((t_now -
-t_state) / dt)`` snapshots forward. A leg spans ``steps_for_leg(L, cell_size,
-speed, dt * time_scale)`` snapshots (at least 1); after it the reconstruction is
+t_state) / dt)`` snapshots forward. A leg spans the snapshots of its path's time in the
+forecast current (``planner.current_aware``: :mod:`passt_mav.planning.transit`; else
+``steps_for_leg(L, cell_size, speed, dt * time_scale)``, at least 1); after it the reconstruction is
 the state at ``t_start + steps * dt`` (the planned end, as the loop defines it).
 
 Samples. Each sample is appended to the run's :class:`~passt_mav.runs.SampleStore`
@@ -400,7 +407,8 @@ class MissionController(ResumeRecord, OperatorLegs):
         )
 
     def _make_session(self, ready_timeout_s: float, pause_timeout_s: float) -> VehicleSession:
-        """The vehicle side of this controller's legs (timeouts in wall seconds)."""
+        """The vehicle side of this controller's legs (timeouts in wall seconds), with the boat's waits."""
+        self.vehicle.wait_mode = self.config.vehicle.wait_mode.upper()
         return VehicleSession(
             self.link,
             self.vehicle,
@@ -413,6 +421,7 @@ class MissionController(ResumeRecord, OperatorLegs):
             link_loss_window_s=self.config.vehicle.link_loss_window_s,
             overrun_factor=self.config.vehicle.overrun_factor,
             on_overrun=self.config.vehicle.on_overrun,
+            wp_radius_m=self.config.vehicle.wp_radius_m,
         )
 
     # -- helpers --------------------------------------------------------------------------
@@ -489,6 +498,7 @@ class MissionController(ResumeRecord, OperatorLegs):
             for i in range(first, self.n_legs):
                 state, t_state = self._leg(i, state, t_state)
             self.status = "complete"
+            self.session.waits.finish(self.config.vehicle.on_end, self._note)
         except Stopped as exc:
             stop_by_signal(self, exc.name)
         except (Ended, Paused) as exc:  # a clean stop short of the end (passt_mav.vehicle.operator)
@@ -555,7 +565,7 @@ class MissionController(ResumeRecord, OperatorLegs):
     def _safe_hold(self) -> None:
         """HOLD if in AUTO (never raises), the leg closed first (:func:`close_leg`)."""
         close_leg(self.collector)
-        self.session.hold_if_auto()
+        self.vehicle.keep_station_if_auto()
 
     # -- one leg: plan -> check -> upload (transactional) -> fly -> absorb ---------------------------
     def _leg_once(self, i: int, state: np.ndarray, t_state: float) -> tuple[np.ndarray, float]:
@@ -595,11 +605,13 @@ class MissionController(ResumeRecord, OperatorLegs):
                 "upload_tries": upload_tries,
                 "duration_s": duration_s,
                 "duration_vehicle_s": flown,
+                "planned_duration_vehicle_s": planned.planned_duration_vehicle_s,  # the overrun rule's expectation
                 "n_samples_new": self.store.count(i) - store0,
                 "link": self.session.link_record(link0),
                 "readings": readings_record(self.collector, self.store.for_leg(i), i, outages),
                 "outages": outages,
                 "overrun": cut,
+                "waits": self.session.waits.for_leg(i),
             }
         )
         self._finish_leg(i, rec, planned)
@@ -702,6 +714,7 @@ class MissionController(ResumeRecord, OperatorLegs):
                 self._send_clock(*self._last_clock)
 
         def on_start():
+            self.session.waits.end()  # (the wait since the last leg's end, or the approval's: its drift in leg.json)
             self.collector.leg = i
 
         return self.session.swap(i, items, t0w, on_armed=on_armed, on_start=on_start)
@@ -719,7 +732,8 @@ class MissionController(ResumeRecord, OperatorLegs):
             close_leg(self.collector)  # (a stop, an end, a pause: their own paths command the vehicle)
             raise
         end_leg_at_hold(self.link, self.vehicle, self.collector)
-        self.vehicle.hold()
+        self.vehicle.keep_station()
+        self.session.waits.begin("between legs", i + 1)
         cut = None if how != "cut" else overrun_record(expected, self.config.vehicle, self.vehicle.progress, items)
         self._mark_cut(how)  # the operator's skip/replan, the budget's cut: in the leg record
         duration_s = time.perf_counter() - t_fly
@@ -732,8 +746,12 @@ class MissionController(ResumeRecord, OperatorLegs):
         return duration_s, tb_end, cut
 
     def _expected_vehicle_s(self, wm) -> float:
-        """Vehicle seconds the leg should take at the mission's speed (no current)."""
-        return expected_vehicle_s(self.grid, wm, self.speed)
+        """Vehicle seconds the leg should take (:meth:`LegStep.expected_vehicle_s`: in the forecast current); the
+        still-water figure where that is not finite (a move the forecast makes impossible: the overrun rule needs a
+        bound)."""
+        still = expected_vehicle_s(self.grid, wm, self.speed)  # (no current: planner.current_aware false)
+        out = self.step.expected_vehicle_s((self.leg_rec or {}).get("index"), wm.meta.get("cells"), self.speed, still)
+        return out if np.isfinite(out) and out > 0 else still
 
     def _fly(self, i: int, wm, items, n_items: int) -> str | None:
         """Wait for the leg to complete, its faults handled (:meth:`VehicleSession.fly`: ``"cut"`` for a leg
@@ -787,10 +805,10 @@ class MissionController(ResumeRecord, OperatorLegs):
         self._write_summary()
         self.record.event("leg_end", f"{self._leg_label(i)} done: {rec['n_samples']} samples")
         self._say(f"{self._leg_label(i)}: {_progress_line(rec, speed_unit(self.config.field.velocity_scale))}")
-        guard = rec.get("guard") or {}
-        if guard.get("message"):  # the guard (passt_mav.loop.guard): the forecast alone fitted the samples better
-            self.record.event("guard", guard["message"], level="warn" if guard.get("alarm") else "info")
-            self._say(("WARNING: " if guard.get("alarm") else "") + guard["message"])
+        unit = speed_unit(self.config.field.velocity_scale)
+        for kind, level, text in leg_warnings(rec, self._leg_label(i), unit, self.speed):
+            self.record.event(kind, text, level=level)
+            self._say(("WARNING: " if level == "warn" else "") + text)
         self.share.leg_done()
 
     def _leg_label(self, i: int) -> str:
@@ -835,7 +853,7 @@ def stop_by_signal(ctl, name: str) -> None:
     ctl.signals.disarm()
     ctl.status, ctl.stopped_by = "stopped", name
     leave = ctl.config.vehicle.on_signal == "auto"
-    what = "the vehicle left flying its leg in AUTO (vehicle.on_signal: auto)" if leave else "HOLD"
+    what = "the vehicle left flying its leg in AUTO (vehicle.on_signal: auto)" if leave else ctl.vehicle.wait_mode
     ctl._note("stopped", f"stopped by {name} at {utc_now()}: {what}; continue with --resume")
     ctl._say(f"stopped by {name}: {what}; store flushed, summary written; continue with --resume")
     if leave:
@@ -844,21 +862,22 @@ def stop_by_signal(ctl, name: str) -> None:
         # the leg closes and the first HOLD is sent under the reader's dispatch lock, as at a leg's end, so no
         # reading is logged before that HOLD but kept out of the leg (a replay ends the leg there)
         end_leg_at_hold(ctl.link, ctl.vehicle, ctl.collector)
-        ctl.session.hold_if_auto(always=True)
+        ctl.vehicle.keep_station_if_auto(always=True)
     place_held(ctl.collector, None if ctl.link.lost else ctl.live_leg[0], ctl.speedup)
 
 
 def end_leg_at_hold(link, vehicle, collector) -> None:
     """The leg's readings end where the telemetry log shows it: no reading is logged and routed between the
-    collector's leg closing and the first HOLD command sent (the reader's dispatch lock held over both), so a
-    replay, which ends the leg at that command, assigns every reading as the store did. :meth:`Vehicle.hold`
-    confirms the HOLD afterwards. A failed send (the link down) leaves the HOLD to that call."""
+    collector's leg closing and the first mode command sent (the vehicle's :attr:`~Vehicle.wait_mode`: LOITER or
+    HOLD; the reader's dispatch lock held over both), so a replay, which ends the leg at that command, assigns
+    every reading as the store did. :meth:`Vehicle.keep_station` confirms the mode afterwards. A failed send (the
+    link down) leaves the mode change to that call."""
     with link.dispatch_lock:
         close_leg(collector)
         try:
-            vehicle.request_mode("HOLD")
-        except Exception as exc:  # noqa: BLE001 - the confirming hold() reports and handles it
-            log.debug("HOLD request at the leg's end not sent: %s", exc)
+            vehicle.request_mode(getattr(vehicle, "wait_mode", "HOLD"))
+        except Exception as exc:  # noqa: BLE001 - the confirming keep_station() reports and handles it
+            log.debug("%s request at the leg's end not sent: %s", getattr(vehicle, "wait_mode", "HOLD"), exc)
 
 
 def close_leg(collector) -> None:
@@ -891,17 +910,59 @@ def missing_readings(tb_ms: np.ndarray) -> int:
     return int(np.sum(np.round(big / period) - 1))
 
 
+def _planned_s(rec: dict) -> str:
+    """``", planned N s"``: the vehicle seconds the leg was expected to take (empty when not recorded)."""
+    p = rec.get("planned_duration_vehicle_s")
+    return "" if p is None else f", planned {p:.0f} s"
+
+
+#: a leg whose flown vehicle time is off its planned time by more than this factor (either way) is said
+TIMING_WARN_FACTOR = 1.25
+
+
+def leg_warnings(rec: dict, label: str, unit: SpeedUnit, speed_mps: float) -> list[tuple[str, str, str]]:
+    """What a completed leg's record ``rec`` gives to warn about, as (event kind, level, line): the guard (the
+    forecast alone fitted the samples better: :mod:`passt_mav.loop.guard`); a map that does not beat the trivial
+    maps (no current, the forecast's time mean: :func:`passt_mav.loop.scoring.beaten_message`; truth known); a
+    leg flown in a time off its planned one by more than :data:`TIMING_WARN_FACTOR` (the plan is timed in the
+    forecast current at ``speed_mps`` over ground, so the current explains the rest: the speed asked was not
+    flown, or the current was not the forecast's; a leg cut for an overrun, or whose end was seen late through a
+    link outage, is said elsewhere)."""
+    from passt_mav.loop.scoring import beaten_message
+
+    out = []
+    guard = rec.get("guard") or {}
+    if guard.get("message"):
+        out.append(("guard", "warn" if guard.get("alarm") else "info", guard["message"]))
+    beaten = beaten_message(rec.get("baselines"), label, unit.text)
+    if beaten:
+        out.append(("warning", "warn", beaten))
+    flown, planned = rec.get("duration_vehicle_s"), rec.get("planned_duration_vehicle_s")
+    off = bool(flown and planned) and not 1 / TIMING_WARN_FACTOR <= flown / planned <= TIMING_WARN_FACTOR
+    if off and not (rec.get("overrun") or rec.get("outages")):
+        text = (
+            f"{label}: flown in {flown:.0f} s of vehicle time, planned {planned:.0f} s in the forecast current "
+            f"(x {flown / planned:.2f}): the boat did not make the speed asked ({speed_mps:g} m/s "
+            "over ground; check WP_SPEED, vehicle.max_water_speed_mps) or the current was not the forecast's"
+        )
+        out.append(("warning", "warn", text))
+    return out
+
+
 def _progress_line(rec: dict, unit: SpeedUnit) -> str:
     """A completed leg's figures in one line of progress (after its label); RMSEs (recorded in field units)
     in ``unit`` (m/s for a mission: :mod:`passt_mav.units`)."""
     r_p, r_m, link = rec["rmse_passt"], rec["rmse_model"], rec["link"]
     rm = "" if r_p is None else f", RMSE passt {unit.text(r_p)} model {unit.text(r_m)}"
+    cal = rec.get("calibration") or {}
+    if cal.get("coverage95") is not None:  # the map's std against the truth (passt_mav.loop.scoring)
+        rm += f", 95 % interval holds {100 * cal['coverage95']:.0f} % (NLPD {cal['nlpd']:.2f})"
     rtt = "-" if link["rtt_ms"] is None else f"{link['rtt_ms']:.1f} ms"
     rd = rec.get("readings") or {}
     used = "" if not rd.get("received") else f" of {rd['received']} readings ({100 * rd['fraction_used']:.0f} % used)"
     return (
         f"{rec['n_samples']} samples{used} ({rec['n_gp_points']} to the GP), "
-        f"{rec['duration_s']:.1f} s wall ({rec['duration_vehicle_s'] or 0:.0f} s vehicle), planning "
+        f"{rec['duration_s']:.1f} s wall ({rec['duration_vehicle_s'] or 0:.0f} s vehicle{_planned_s(rec)}), planning "
         f"{rec['planning_s'] * 1000:.0f} ms, upload {rec['upload_s']:.2f} s{rm}, link RTT {rtt} "
         f"loss {100 * link['loss']:.1f} %"
         + ("" if link.get("vehicle_bytes_per_s") is None else f", vehicle sends {link['vehicle_bytes_per_s']:.0f} B/s")
@@ -974,6 +1035,7 @@ def run_summary(ctl) -> dict:
         "sessions": list(getattr(ctl, "sessions", None) or []),
         "outages": list(getattr(getattr(ctl, "session", None), "outages", None) or []),
         "budget": _budget_record(ctl),
+        "end": getattr(getattr(getattr(ctl, "session", None), "waits", None), "end_state", None),
         "link_vehicle_bytes_per_s": [(x.get("link") or {}).get("vehicle_bytes_per_s") for x in legs],
         "rmse": rm if ctl.truth_known else None,
         "rmse_note": "RMSE over water cells vs the mission's field at the state time; 'model' = the predictor "

@@ -178,6 +178,9 @@ class BoatController(MissionController):
                     if not self._rejoin():
                         return
             self.status = "complete" if self.legs_done >= self.n_legs else "stopped"
+            if self.status == "complete":
+                # the boat loiters or is disarmed (vehicle.on_end), never left armed and drifting
+                self.session.waits.finish(self.config.vehicle.on_end, self._note)
         except BaseException as exc:  # noqa: BLE001 - a boat's error must not take the fleet down
             self._stop("aborted", exc)
         finally:
@@ -190,9 +193,9 @@ class BoatController(MissionController):
         self._say(f"stopped ({status}): {exc}")
         if not self.link.lost:
             try:
-                self.vehicle.hold()
+                self.vehicle.keep_station()
             except MavlinkError as e2:
-                log.warning("boat %d: could not switch to HOLD: %s", self.boat, e2)
+                log.warning("boat %d: could not stop the boat (%s): %s", self.boat, self.vehicle.wait_mode, e2)
 
     def _drop(self, exc: Exception) -> None:
         """The boat dropped out mid-leg: report, release its path, keep what it sampled."""

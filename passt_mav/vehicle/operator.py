@@ -168,6 +168,8 @@ class OperatorLegs:
         with self.signals.critical():
             self.rd.write_leg(i, rec)
         what = f"{len(wp)} waypoints, {dist:.0f} m, ~{exp_s / 60:.1f} min at {self.speed:g} m/s"
+        # the boat waits in its wait_mode (a wait begun at the last leg's end goes on)
+        self.session.waits.begin("approval", i)
         how = self.session.await_approval(i, what, ap.timeout_s, ap.on_timeout)
         rec["status"], rec["approval"]["answer"] = ("rejected" if how == "reject" else "flying"), how
         with self.signals.critical():
@@ -183,11 +185,14 @@ class OperatorLegs:
             return
         mode = self.config.budget.on_spent.upper()
         try:
-            self.vehicle.set_mode(mode)
+            if mode == "HOLD":  # "hold": the boat stops where it is, in its wait_mode (LOITER keeps station)
+                mode = self.vehicle.keep_station()
+            else:
+                self.vehicle.set_mode(mode)
         except MavlinkError as exc:
-            self._say(f"WARNING: the vehicle refused {mode} ({exc}); HOLD")
-            self.session.hold_if_auto(always=True)
-            mode = "HOLD"
+            self._say(f"WARNING: the vehicle refused {mode} ({exc}); {self.vehicle.wait_mode}")
+            self.vehicle.keep_station_if_auto(always=True)
+            mode = self.vehicle.wait_mode
         text = f"safety budget spent ({budget.reason}): {mode}; state saved (continue with --resume)"
         self._note("budget", text)
         self._say(text)
@@ -210,6 +215,6 @@ class OperatorLegs:
         self._say(f"stopped: {exc}")
         close_leg(self.collector)
         try:  # the pilot's RC still overrides HOLD; a vehicle left in an unknown mode would not stop
-            self.vehicle.hold()
+            self.vehicle.keep_station()
         except MavlinkError as e2:
             log.warning("could not switch to HOLD: %s", e2)

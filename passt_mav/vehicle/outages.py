@@ -2,7 +2,7 @@
 within the link-loss window and resyncs with the vehicle afterwards (docs/resilience.md).
 
 A mixin: it uses the session's ``link``, ``vehicle``, ``journal``, ``speedup``, ``link_loss_window_s``,
-``outages``, ``rebooted`` and ``_say``.
+``outages``, ``rebooted``, ``set_speed_again`` and ``_say``.
 """
 
 from __future__ import annotations
@@ -123,9 +123,10 @@ class LinkOutages:
             self._say(f"leg {i + 1}: the vehicle's mission differs after the reconnect ({diff}); re-uploading")
             was_auto = v.mode == AUTO
             if was_auto:
-                v.hold()
+                v.keep_station()
             v.mission.upload_verified(items)
             v.mission.set_current(max(1, min(int(cur.seq), len(items) - 1)))
             if was_auto:
                 v.set_mode("AUTO")
+                self.set_speed_again(i, "the mission was uploaded again")
         return cur

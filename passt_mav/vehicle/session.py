@@ -33,6 +33,7 @@ from passt_mav.mavlink.vehicle import ROVER_MODE_NAMES, ROVER_MODES
 from passt_mav.vehicle.console import OperatorCommands
 from passt_mav.vehicle.link_figures import LinkFigures
 from passt_mav.vehicle.outages import LinkOutages
+from passt_mav.vehicle.waits import WaitLog
 
 __all__ = ["VehicleSession", "Journal", "Deadline", "Paused", "LinkWindowOver", "Rebooted", "utc_now"]
 
@@ -85,20 +86,30 @@ class Journal:
 class Deadline:
     """A leg's time limit, kept in the vehicle's time: ``budget_s`` vehicle seconds from now.
 
-    A sped-up simulator starved of CPU runs slower than its nominal speed-up; a wall-clock
-    limit would then fail legs that are fine. The wall clock only backs it up, ten times more
-    generous (a vehicle whose clock stops: a frozen simulator, a dead link)."""
+    A sped-up simulator starved of CPU runs slower than its nominal speed-up (a lockstep simulator
+    runs as fast as the machine lets it, whatever ``--speedup-hint`` says); a wall-clock limit would
+    then fail legs that are fine. So the wall clock only backs up a vehicle whose clock has **stopped**
+    (a frozen simulator, a dead link): :meth:`wall_passed` is true once the vehicle's time since boot
+    has not advanced for :attr:`STALL_WALL_S` wall seconds (plus any waiting added by :meth:`extend`).
+    Before the vehicle has reported any time, the old backstop stands: ten times the budget at the
+    nominal speed-up, + 60 s."""
+
+    #: wall seconds without any advance of the vehicle's clock before the backstop fires
+    STALL_WALL_S = 120.0
 
     def __init__(self, link, budget_s: float, speedup: float):
         self.link, self.speedup = link, max(float(speedup), 1e-6)
         self.last_up = link.vehicle_uptime_s()
         self.vehicle = None if self.last_up is None else self.last_up + budget_s
         self.wall = time.monotonic() + 10.0 * budget_s / self.speedup + 60.0
+        #: (wall monotonic s, vehicle uptime s) when the vehicle's clock was last seen advancing
+        self._progress = (time.monotonic(), self.last_up)
+        self.stalled_s = 0.0  # wall seconds the vehicle's clock had stood still when the backstop fired
 
     def extend(self, wall_s: float, *, rebooted: bool = False) -> None:
         """Add ``wall_s`` of waiting (reconnect, reboot, pilot). After a reboot the vehicle's clock
         started again: what was left of the budget counts from its new time."""
-        self.wall += wall_s
+        self.waited(wall_s)
         if self.vehicle is None:
             return
         if rebooted:
@@ -107,6 +118,11 @@ class Deadline:
             self.vehicle = None if up is None else up + left
         else:
             self.vehicle += wall_s * self.speedup
+
+    def waited(self, wall_s: float) -> None:
+        """``wall_s`` wall seconds went to a wait of our own (a reconnect): the backstop starts again from now."""
+        self.wall += wall_s
+        self._progress = (time.monotonic(), self._progress[1])
 
     def passed(self) -> bool:
         """The budget is spent: in vehicle time (:meth:`vehicle_passed`) or on the wall backstop."""
@@ -120,8 +136,18 @@ class Deadline:
         return self.vehicle is not None and up is not None and up > self.vehicle
 
     def wall_passed(self) -> bool:
-        """The wall backstop (ten times the budget at the nominal speed-up, + 60 s) has passed."""
-        return time.monotonic() > self.wall
+        """The vehicle's clock has stood still for :attr:`STALL_WALL_S` wall seconds (class docstring); before
+        it reported any time: ten times the budget at the nominal speed-up, + 60 s."""
+        now = time.monotonic()
+        up = self.link.vehicle_uptime_s()
+        t_ref, up_ref = self._progress
+        if up is not None and (up_ref is None or up != up_ref):  # any change (a reboot's restart too) is progress
+            self._progress = (now, up)
+            return False
+        if up_ref is None and up is None:
+            return now > self.wall
+        self.stalled_s = now - t_ref
+        return self.stalled_s > self.STALL_WALL_S
 
 
 def replaced_what(sent, got) -> str:
@@ -149,6 +175,7 @@ class VehicleSession(LinkOutages, OperatorCommands, LinkFigures):
         overrun_factor / on_overrun: a leg still flying after ``overrun_factor`` x its expected vehicle
             time + 30 s is reported; ``"cut"`` ends it there (:meth:`fly` returns ``"cut"``), ``"warn"``
             only reports it.
+        wp_radius_m: the mission's waypoint radius (m): a wait's drift beyond twice it is said (:attr:`waits`).
     """
 
     #: replacements of our mission by another ground station in one leg before the controller stops in HOLD
@@ -172,8 +199,12 @@ class VehicleSession(LinkOutages, OperatorCommands, LinkFigures):
         link_loss_window_s: float = 600.0,
         overrun_factor: float = 2.0,
         on_overrun: str = "cut",
+        wp_radius_m: float = 2.0,
     ):
         self.link, self.vehicle, self.journal = link, vehicle, journal
+        #: the boat's waits and their drift (:class:`~passt_mav.vehicle.waits.WaitLog`): leg.json ``waits``,
+        #: how the run left the boat (summary.json ``end``)
+        self.waits = WaitLog(vehicle, link, journal.say, wp_radius_m)
         self.speed = float(speed_mps)
         self.on_reboot = on_reboot
         self.speedup = max(float(speedup), 1e-6)
@@ -217,15 +248,6 @@ class VehicleSession(LinkOutages, OperatorCommands, LinkFigures):
                 raise MavlinkError("no GPS position from the vehicle")
             self.link.idle(0.02)
         return p
-
-    def hold_if_auto(self, *, always: bool = False) -> None:
-        """HOLD if the vehicle flies our mission (AUTO; ``always``: whatever its mode); a failure is logged,
-        never raised."""
-        try:
-            if always or self.vehicle.mode == AUTO:
-                self.vehicle.hold()
-        except MavlinkError as exc:
-            log.warning("could not switch to HOLD: %s", exc)
 
     def rebooted_signal(self, info: tuple[int, int, int]) -> None:
         """From the reader thread: the vehicle's time since boot went back ((boot, last_tb, first_tb))."""
@@ -287,7 +309,7 @@ class VehicleSession(LinkOutages, OperatorCommands, LinkFigures):
             self.rebooted.clear()
             self.wait_ready()
         if v.mode == AUTO:
-            v.hold()
+            v.keep_station()
         tries = self.upload(i, items)
         # seq 1 is the first mission item (DO_CHANGE_SPEED, then the waypoints): start there
         v.mission.set_current(1)
@@ -301,6 +323,7 @@ class VehicleSession(LinkOutages, OperatorCommands, LinkFigures):
         tb_fly = self.link.vehicle_uptime_s()
         v.start_mission()
         self.verify_pending = True  # fly() reads the mission back: another GCS may have uploaded meanwhile
+        self.set_speed_again(i, "AUTO was entered")  # a boat's Rover drops seq 1's (tests/test_sitl_current.py)
         return tries, upload_s, t_fly, tb_fly
 
     def upload(self, i: int, items, tries: int = 4) -> int:
@@ -402,7 +425,7 @@ class VehicleSession(LinkOutages, OperatorCommands, LinkFigures):
                 "mission_replaced", f"leg {i + 1}: mission replaced on the vehicle at {utc_now()} ({who}): {what}"
             )
             if n > self.FOREIGN_REPLACEMENTS:
-                v.hold()
+                v.keep_station()
                 raise Paused(
                     f"leg {i + 1}: another ground station replaced our mission {n} times ({who}); stopped in "
                     f"HOLD; stop its uploads, then continue with --resume"
@@ -411,18 +434,17 @@ class VehicleSession(LinkOutages, OperatorCommands, LinkFigures):
                 f"leg {i + 1}: another ground station replaced our mission on the vehicle ({who}; {what}); "
                 f"HOLD, uploading ours again, resuming at item {resume_seq}"
             )
-            v.hold()
+            v.keep_station()
             self.upload(i, items)
             v.mission.set_current(resume_seq)
             v.start_mission()
-            if resume_seq > 1:
-                self.set_speed_again(i, "the mission was uploaded again")
+            self.set_speed_again(i, "the mission was uploaded again")
 
     def set_speed_again(self, i: int, why: str) -> None:
-        """DO_CHANGE_SPEED to the mission's speed: resuming past seq 1 skips the mission's own (the vehicle would
-        go on at its WP_SPEED parameter)."""
+        """The mission's speed after every entry into AUTO (:meth:`~passt_mav.mavlink.Vehicle.set_speed`: Rover
+        resets it to WP_SPEED there, and a boat loses the mission's own seq-1 DO_CHANGE_SPEED); a refusal is said."""
         try:
-            self.link.command_long(M.MAV_CMD_DO_CHANGE_SPEED, 1, self.speed, -1)
+            self.vehicle.set_speed(self.speed, speedup=self.speedup)
         except (CommandRejected, LinkTimeout) as exc:
             self._say(
                 f"leg {i + 1}: WARNING: the leg's speed {self.speed:g} m/s was not set again after {why} "
@@ -463,7 +485,10 @@ class VehicleSession(LinkOutages, OperatorCommands, LinkFigures):
             if self._wait_complete(n_items):
                 return None
             if deadline.wall_passed():
-                raise LinkTimeout(f"leg {i + 1} not complete in time (item {p.current}/{p.total})")
+                raise LinkTimeout(
+                    f"leg {i + 1}: the vehicle's clock has not advanced for {deadline.stalled_s:.0f} wall s "
+                    f"(a frozen simulator or a dead link?) at item {p.current}/{p.total}"
+                )
             if not reported and deadline.vehicle_passed():
                 reported = True
                 if self.overrun(i, expected_s, planned_s, n_items):
@@ -475,7 +500,7 @@ class VehicleSession(LinkOutages, OperatorCommands, LinkFigures):
                 t0 = time.monotonic()
                 self.recover_link(i, items)
                 # the vehicle flew on meanwhile (its clock counts that); only the wall backstop waits longer
-                deadline.wall += time.monotonic() - t0
+                deadline.waited(time.monotonic() - t0)
                 continue
             waited = self._watch_mode(i, n_items)
             if waited:
@@ -586,9 +611,9 @@ class VehicleSession(LinkOutages, OperatorCommands, LinkFigures):
         self.link.request_streams()  # a reboot forgets the rates set by SET_MESSAGE_INTERVAL
         self.wait_ready()
         if self.on_reboot == "hold":
-            v.hold()
+            v.keep_station()
             raise Paused(
-                f"leg {i + 1}: the autopilot rebooted mid-leg; vehicle.on_reboot is 'hold': stopped in HOLD "
+                f"leg {i + 1}: the autopilot rebooted mid-leg; vehicle.on_reboot is 'hold': stopped in {v.wait_mode} "
                 f"(the leg was at item {seq}/{n_items}; continue with --resume)"
             )
         diff = differences(list(items), v.mission.download(), 0)
@@ -598,9 +623,7 @@ class VehicleSession(LinkOutages, OperatorCommands, LinkFigures):
         v.mission.set_current(seq)
         v.arm(timeout=self.arm_timeout_s)
         v.start_mission()
-        if seq > 1:
-            # the mission's DO_CHANGE_SPEED (seq 1) lies behind the resumed item and the reboot forgot it
-            self.set_speed_again(i, "the reboot")
+        self.set_speed_again(i, "the reboot")
         self._say(f"leg {i + 1}: mission verified after the reboot; re-armed, AUTO again at item {seq}/{n_items}")
         self.journal.note(
             "reboot_recovered",
@@ -621,6 +644,7 @@ class VehicleSession(LinkOutages, OperatorCommands, LinkFigures):
         t0 = time.monotonic()
         while time.monotonic() - t0 < self.pause_timeout_s:
             if self.vehicle.mode == AUTO:
+                self.set_speed_again(i, "the pilot's AUTO")
                 self._say(f"leg {i + 1}: back in AUTO; continuing")
                 self.journal.note("pilot_released", f"leg {i + 1}: back in AUTO")
                 return time.monotonic() - t0
@@ -629,7 +653,9 @@ class VehicleSession(LinkOutages, OperatorCommands, LinkFigures):
             if self.link.lost:
                 self.reconnect_within_window(i, time.monotonic() - self._silent_s(), "pause")
             self.link.idle(0.05)
-        raise Paused(f"leg {i + 1}: the vehicle stayed in {name} for {self.pause_timeout_s:.0f} s; stopping in HOLD")
+        raise Paused(
+            f"leg {i + 1}: the vehicle stayed in {name} for {self.pause_timeout_s:.0f} s; stopping in {self.vehicle.wait_mode}"
+        )
 
 
 def expected_vehicle_s(grid, wm, speed_mps: float) -> float:
