@@ -12,7 +12,8 @@ One leg::
     position (lat, lon deg) -> start cell (region + margin and land checked)
     clock reading (time_boot_ms, boot) -> field time t_now -> forecast the state
         k = round((t_now - t_state) / dt) snapshots forward        [LegStep.plan]
-    -> PasstLoop.plan_leg over leg_steps(...) snapshots -> PlannedLeg
+    -> PasstLoop.plan_leg (only the moves the boat can make in the forecast current)
+    -> the path timed in that current -> the snapshots it spans -> PlannedLeg
     ... the vehicle flies it ...
     samples (time_boot_ms, boot, lat, lon, u, v m/s east/north)
     -> field units and frame, field time, thinning per (cell, snapshot bin)
@@ -149,7 +150,8 @@ def thin_samples(grid, t, lat, lon, u, v, *, t_start: float, dt: float):
 
 
 def leg_steps(config, grid, speed: float, dt: float, time_scale: float) -> int:
-    """Snapshots a leg is planned to span: L moves x mean cell size / speed (see passt.steps_for_leg).
+    """Snapshots a leg is planned to span in still water: L moves x mean cell size / speed (see
+    passt.steps_for_leg; a current-aware mission times the planned path instead, :meth:`LegStep.timing`).
 
     speed in m/s, dt in field time units, time_scale in vehicle seconds per field time unit.
     """
@@ -248,12 +250,30 @@ def build_loop(config, predictor, grid, land=None):
         gp_kw=gp_kw,
         hyper=config.gp.hyper,
         model_update=ModelUpdate(**config.model_update.model_dump()),
+        # planner.current_aware: moves the boat cannot make in the forecast current are not offered (the speed
+        # in the field's velocity units; a fleet's boat plans at its own, LegStep.plan)
+        vehicle_speed=float(config.vehicle.speed_mps) / float(config.field.velocity_scale)
+        if getattr(config.planner, "current_aware", False)
+        else None,
+        transit_kw=_hold_kw(
+            config.vehicle.speed_mps,
+            config.vehicle.max_water_speed_mps,
+            1.0 / float(config.field.velocity_scale),
+        ),
     )
     loop = options.loop(predictor, grid, land=land, seed=config.seeds.planner)
     # a mission's estimate is written with its posterior std (estimate.nc u_std/v_std; exports read it):
     # one more triangular solve per leg, nothing next to a leg's minutes on the water
     loop.keep_std = True
     return loop
+
+
+def _hold_kw(speed: float, max_water_speed: float | None, scale: float = 1.0) -> dict:
+    """How an ArduPilot boat holds its speed (:func:`passt_mav.planning.transit.ground_speed`): over ground
+    along the bow, up to the hull's top speed through the water (``max_water_speed`` m/s; None: ``speed``),
+    both times ``scale`` (1 / ``field.velocity_scale``: the field's velocity units)."""
+    mws = float(speed) if max_water_speed is None else float(max_water_speed)
+    return {"hold": "ground", "max_water_speed": mws * float(scale)}
 
 
 # -- the step -------------------------------------------------------------------------------------
@@ -276,6 +296,14 @@ class PlannedLeg:
     steps: int
     planning_s: float
     clock_reading: tuple[int, int] | None = None  # (time_boot_ms, boot) the vehicle's clock said at t_now
+    #: the path timed in the forecast current (:class:`passt_mav.planning.transit.LegTiming`, vehicle s
+    #: from the leg's start; None when the mission's planner is not current-aware)
+    timing: Any = None
+    #: vehicle seconds the leg is expected to take (:meth:`LegStep.expected_vehicle_s`; None before)
+    planned_duration_vehicle_s: float | None = None
+    #: the boat's commanded speed the leg was planned for (m/s) and its hull's top speed through the water
+    speed_mps: float | None = None
+    max_water_speed_mps: float | None = None
 
     @property
     def t_start(self) -> float:
@@ -300,6 +328,14 @@ class PlannedLeg:
             "clock_reading": None
             if self.clock_reading is None
             else {"time_boot_ms": self.clock_reading[0], "boot": self.clock_reading[1]},
+            # vehicle s from the leg's start at which the boat should reach each path cell in the forecast
+            # current, and the ground speed of each move (m/s); None: timed in still water
+            "planned_arrival_vehicle_s": None
+            if self.timing is None
+            else [round(float(x), 1) for x in np.nan_to_num(self.timing.arrival, posinf=-1.0)],
+            "planned_ground_speed_m_s": None
+            if self.timing is None
+            else [round(float(x), 3) for x in np.nan_to_num(self.timing.ground_speed, nan=0.0)],
         }
 
 
@@ -329,6 +365,10 @@ class AbsorbedLeg:
     #: the guard's record (:func:`passt_mav.loop.guard.guard_record`) with its RMSE in m/s and its
     #: one-line ``message`` (None when the loop's forecast fitted the samples at least as well)
     guard: dict | None = None
+    #: the map's std against the truth (:func:`passt_mav.loop.scoring.leg_scores`; None when unknown)
+    calibration: dict | None = None
+    #: the trivial maps' RMSE beside the map's (``zero``, ``forecast_mean``, ``map``, ``beaten_by``)
+    baselines: dict | None = None
 
     def record(self) -> dict[str, Any]:
         return {
@@ -341,6 +381,8 @@ class AbsorbedLeg:
             "rmse_model": self.rmse_model,
             "gp": self.gp,
             "guard": self.guard,
+            "calibration": self.calibration,
+            "baselines": self.baselines,
         }
 
 
@@ -361,6 +403,8 @@ class LegStep:
     loop: Any
     truth_known: bool = True
     _pure: dict = _dcfield(default_factory=dict, repr=False)
+    _in_flight: dict = _dcfield(default_factory=dict, repr=False)  # leg index -> PlannedLeg, until absorbed
+    _cell_m: tuple | None = _dcfield(default=None, repr=False)  # the grid's (dy, dx) metres, once
 
     def __post_init__(self) -> None:
         # The GP carries a residual no longer than the mission's field stays correlated in time
@@ -382,6 +426,69 @@ class LegStep:
     def speed(self) -> float:
         """Vehicle speed in m/s (the mission's ``vehicle.speed_mps``)."""
         return float(self.config.vehicle.speed_mps)
+
+    @property
+    def current_aware(self) -> bool:
+        """Legs planned and timed in the forecast current (the mission's ``planner.current_aware``)."""
+        return bool(getattr(self.config.planner, "current_aware", False))
+
+    def timing(self, path, forecast, speed: float, *, start_s: float = 0.0, max_water_speed: float | None = None):
+        """The grid ``path`` timed in the current of ``forecast`` ((S+1, 2, R, C) field units, snapshot 0
+        at the leg's start, ``dt`` apart; held after the last) by an ArduPilot boat commanded ``speed`` m/s
+        (held over ground up to the hull's ``max_water_speed`` m/s through the water, default ``speed``):
+        :func:`passt_mav.planning.transit.leg_timing` in m/s and vehicle seconds."""
+        from passt_mav.planning.transit import leg_timing
+
+        cur = np.asarray(forecast, np.float64) * float(self.config.field.velocity_scale)
+        if self._cell_m is None:
+            self._cell_m = self.grid.cell_size_m
+        snap_s = self.dt * float(self.config.field.time_scale)
+        hold = _hold_kw(speed, max_water_speed)
+        return leg_timing(path, cur, self._cell_m, float(speed), snapshot_s=snap_s, start_s=start_s, **hold)
+
+    def expected_vehicle_s(self, index, cells, speed: float, still_s: float) -> float:
+        """Vehicle seconds leg ``index`` should take over the waypoint ``cells`` ((n, 2) corner cells of
+        the mission flown; None = the planned path) at ``speed`` m/s: a current-aware mission's figure
+        is the approach from the planned start position to the first cell's centre and the path's moves,
+        timed in the leg's forecast current from the clock reading it was planned at (as many snapshots
+        as are forecast, the last held), else
+        ``still_s`` (the caller's still-water figure). Kept as the planned leg's
+        ``planned_duration_vehicle_s``."""
+        planned = self._in_flight.get(index)
+        if planned is None:
+            return float(still_s)
+        out = float(still_s)
+        if self.current_aware:
+            from passt_mav.planning.transit import corners_to_path, segment_timing
+
+            path = planned.plan.path
+            if cells is not None:
+                try:
+                    path = corners_to_path(cells)
+                except ValueError:
+                    pass
+            path = np.asarray(path, np.int64)
+            start_s = 0.0
+            if planned.start_latlon is not None:  # the approach: from where the boat is to the start cell's centre
+                fr, fc = self.grid.latlon_to_fcell(*planned.start_latlon)
+                if self._cell_m is None:
+                    self._cell_m = self.grid.cell_size_m
+                dy, dx = self._cell_m
+                d = np.array([(path[0, 1] - float(fc)) * dx, (path[0, 0] - float(fr)) * dy])
+                c0 = np.asarray(planned.plan.forecast[0][:, path[0, 0], path[0, 1]], np.float64)
+                c0 = np.nan_to_num(c0 * float(self.config.field.velocity_scale))
+                dur, _, _ = segment_timing(d, c0, float(speed), **_hold_kw(speed, planned.max_water_speed_mps))
+                start_s = float(dur) if np.isfinite(dur) else float(np.hypot(*d)) / float(speed)
+            # the leg begins at the clock reading it was planned from, not at its forecast's first snapshot
+            lag = (
+                0.0
+                if planned.t_now is None
+                else (planned.t_now - planned.t_start) * float(self.config.field.time_scale)
+            )
+            fc, mws = planned.plan.forecast, planned.max_water_speed_mps
+            out = self.timing(path, fc, speed, start_s=lag + start_s, max_water_speed=mws).total_s - lag
+        planned.planned_duration_vehicle_s = round(out, 3)
+        return out
 
     def initial_state(self) -> tuple[np.ndarray, float]:
         """The truth at snapshot ``config.t0`` (land NaN) and its field time."""
@@ -443,6 +550,7 @@ class LegStep:
         taken=None,
         avoid=None,
         speed: float | None = None,
+        max_water_speed: float | None = None,
     ) -> PlannedLeg:
         """Forecast the state to now (``k`` snapshots, from ``t_now`` unless given) and plan leg ``index``.
 
@@ -458,21 +566,29 @@ class LegStep:
         if k:
             state = self.loop.forecast(state, k)[-1]
             t_state += k * self.dt
-        steps = leg_steps(
-            self.config,
-            self.grid,
-            self.speed if speed is None else float(speed),
-            self.dt,
-            float(self.config.field.time_scale),
-        )
+        spd = self.speed if speed is None else float(speed)
+        mws = self.config.vehicle.max_water_speed_mps if speed is None else max_water_speed
+        aware = self.current_aware
+        if aware:  # the planner is offered only the moves the boat can make in the forecast current
+            scale = 1.0 / float(self.config.field.velocity_scale)
+            self.loop.vehicle_speed = spd * scale
+            self.loop.transit_kw = _hold_kw(spd, mws, scale)
         t0 = time.perf_counter()
         # the path needs the one-step prediction only (the reward map); the forecast over the whole
         # leg (the GP prior, prediction.nc) follows in forecast_leg(), while the vehicle is underway
         plan = self.loop.plan_leg(
             state, tuple(int(x) for x in start_cell), t_state, self.dt, steps=1, taken=taken, avoid=avoid
         )
+        timing = None
+        if aware:  # the leg spans the snapshots of its path timed in the current (refined in forecast_leg)
+            from passt_mav.loop.passt import steps_for_duration
+
+            timing = self.timing(plan.path, plan.forecast, spd, max_water_speed=mws)
+            steps = steps_for_duration(timing.total_s, self.dt * float(self.config.field.time_scale))
+        else:
+            steps = leg_steps(self.config, self.grid, spd, self.dt, float(self.config.field.time_scale))
         plan.steps = int(steps)
-        return PlannedLeg(
+        planned = PlannedLeg(
             int(index),
             tuple(int(x) for x in start_cell),
             None if start_latlon is None else (float(start_latlon[0]), float(start_latlon[1])),
@@ -482,7 +598,12 @@ class LegStep:
             int(steps),
             time.perf_counter() - t0,
             clock_reading,
+            timing,
+            speed_mps=spd,
+            max_water_speed_mps=mws,
         )
+        self._in_flight[int(index)] = planned
+        return planned
 
     @single_threaded
     def forecast_leg(self, planned: PlannedLeg) -> np.ndarray:
@@ -494,6 +615,21 @@ class LegStep:
         if plan.forecast.shape[0] < plan.steps + 1:
             t0 = time.perf_counter()
             plan.forecast = self.loop.forecast(plan.forecast[0], plan.steps)
+            if planned.timing is not None:
+                # the path timed again in the forecast over the leg (the current changes under way): a
+                # longer leg spans more snapshots (never fewer: the leg's span only grows, as at its end)
+                from passt_mav.loop.passt import steps_for_duration
+
+                planned.timing = self.timing(
+                    plan.path,
+                    plan.forecast,
+                    planned.speed_mps or self.speed,
+                    max_water_speed=planned.max_water_speed_mps,
+                )
+                need = steps_for_duration(planned.timing.total_s, self.dt * float(self.config.field.time_scale))
+                if need > plan.steps:
+                    plan.forecast = self.loop.forecast(plan.forecast[0], need)
+                    plan.steps = planned.steps = need
             plan.timings["forecast"] = time.perf_counter() - t0
         return plan.forecast
 
@@ -509,6 +645,7 @@ class LegStep:
         """
         plan, dt, grid = planned.plan, self.dt, self.grid
         self.forecast_leg(planned)
+        self._in_flight.pop(planned.index, None)
         col = _columns(recs)
         u, v = to_field_units(grid, col["u"], col["v"], self.config.field.velocity_scale)
         t_s = clock.field_time(col["time_boot_ms"], col["boot"])
@@ -551,7 +688,24 @@ class LegStep:
             gp,
             std,
             guard,
+            *self.scores_at(state, std, t_new),
         )
+
+    @single_threaded
+    def scores_at(self, state, std, t: float) -> tuple[dict | None, dict | None]:
+        """The map's calibration and the trivial maps' RMSE vs the truth at field time ``t``
+        (:func:`passt_mav.loop.scoring.leg_scores`; the forecast's time mean: the model alone from the
+        mission's start up to ``t``, as :meth:`rmse_at` rolls it out); (None, None) when the truth is unknown."""
+        from passt_mav.loop.scoring import leg_scores
+
+        tr = truth_at(self.field, t) if self.truth_known else None
+        if tr is None:
+            return None, None
+        pure, fm = self._pure.get("pure"), None
+        if pure is not None:
+            k = int(np.clip(np.ceil((t - float(self.field.times[self.config.t0])) / self.dt), 0, len(pure) - 1))
+            fm = np.nanmean(np.asarray(pure[: k + 1], np.float64), axis=0)
+        return leg_scores(state, std, tr, fm)
 
     def guard_for_people(self, guard: dict, index: int) -> dict:
         """The guard's record of leg ``index`` (0-based) with its RMSE in m/s (``*_m_s``; the field's
@@ -615,7 +769,8 @@ class FleetStep:
     the same leg interval; its own start cell excepted). Boxed in by their paths, it plans
     with those cells' reward zeroed instead and keeps out of any cell another boat's path
     reaches at the same time (within one move's duration, from the paths, the boats' speeds
-    (``config.fleet[k].speed_mps``, m/s) and their legs' start times) or holds after its path
+    (``config.fleet[k].speed_mps``, m/s; with ``planner.current_aware`` each path's arrival times in the
+    forecast current) and their legs' start times) or holds after its path
     ended: the offline engine's rule (:func:`passt_mav.loop.engine.plan_keeping_out`).
 
     Absorbing (:meth:`absorb`): the GP prior is the leg's own forecast (from the state it was
@@ -643,17 +798,21 @@ class FleetStep:
         """The boat's path is no longer in flight (it dropped out)."""
         self._reserved.pop(boat, None)
 
-    def _timeline(self, path, t_start: float, speed: float) -> np.ndarray:
-        """Field time at which a boat at ``speed`` m/s reaches each cell of ``path`` from ``t_start``."""
-        grid = self.field.grid
-        steps = np.linalg.norm(np.diff(np.asarray(path, float), axis=0), axis=1) * grid.mean_cell_size_m
-        secs = np.concatenate([[0.0], np.cumsum(steps)]) / speed
+    def _timeline(self, path, t_start: float, speed: float, timing=None) -> np.ndarray:
+        """Field time at which a boat at ``speed`` m/s reaches each cell of ``path`` from ``t_start``: the
+        planned leg's ``timing`` in the current when given (:attr:`PlannedLeg.timing`), else in still water."""
+        if timing is not None and np.all(np.isfinite(timing.arrival)):
+            secs = np.asarray(timing.arrival, float)
+        else:
+            grid = self.field.grid
+            steps = np.linalg.norm(np.diff(np.asarray(path, float), axis=0), axis=1) * grid.mean_cell_size_m
+            secs = np.concatenate([[0.0], np.cumsum(steps)]) / speed
         return t_start + secs / float(self.config.field.time_scale)
 
     def _move_time(self, speed: float) -> float:
         return self.field.grid.mean_cell_size_m / speed / float(self.config.field.time_scale)
 
-    def _conflicts(self, boat: int, path, t_start: float) -> np.ndarray:
+    def _conflicts(self, boat: int, path, t_start: float, timing=None) -> np.ndarray:
         """(R, C) bool: cells of ``path`` (after its start) another boat is at when this one gets there
         (:func:`passt_mav.loop.engine.keep_out`, the offline engine's rule too: within one move of either boat,
         or on its last cell after its path ended)."""
@@ -663,13 +822,13 @@ class FleetStep:
         others = [
             (
                 res["path"],
-                self._timeline(res["path"], res["t_start"], res["speed"]),
+                self._timeline(res["path"], res["t_start"], res["speed"], res.get("timing")),
                 max(self._move_time(speed), self._move_time(res["speed"])),
             )
             for other, res in self._reserved.items()
             if other != boat
         ]
-        return keep_out(path, self._timeline(path, t_start, speed), others, self.field.grid.shape)
+        return keep_out(path, self._timeline(path, t_start, speed, timing), others, self.field.grid.shape)
 
     def plan_for(self, boat: int, i: int, start, **kw):
         """Plan leg ``i`` of ``boat`` from the shared state (class docstring, "joint planning");
@@ -689,18 +848,20 @@ class FleetStep:
         # starting hours after them (the 3-boat demo's last leg: 0.023 m/s against the model
         # alone's 0.010)
         kw.setdefault("speed", float(self.config.fleet[boat].speed_mps))
+        kw.setdefault("max_water_speed", self.config.fleet[boat].max_water_speed_mps)
         from passt_mav.loop.engine import plan_keeping_out
 
         planned = plan_keeping_out(
             lambda taken, avoid: self.step.plan(i, self.state, self.t_state, start, taken=taken, avoid=avoid, **kw),
             taken,
-            lambda p: self._conflicts(boat, p.plan.path, p.t_start),
+            lambda p: self._conflicts(boat, p.plan.path, p.t_start, p.timing),
             f"leg {i + 1}: boat {boat}",
         )
         self._reserved[boat] = {
             "path": np.asarray(planned.plan.path, int),
             "t_start": planned.t_start,
             "speed": float(self.config.fleet[boat].speed_mps),
+            "timing": planned.timing,  # its arrival times in the forecast current (None: still water)
         }
         self._plan_version[i] = self._version  # the state this leg was planned from
         self.seq += 1

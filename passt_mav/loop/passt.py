@@ -11,7 +11,9 @@ offline engine :mod:`passt_mav.loop.engine`) and on a vehicle by :class:`passt_m
 Time. The loop counts time in snapshot steps of the predictor (``dt`` field-time
 units apart). A leg of ``L`` moves spans ``steps_per_leg`` snapshots: for the
 offline evaluation this is given directly; for a vehicle it follows from the
-speed, ``L * cell_size / speed`` (see :func:`steps_for_leg`). Between
+speed, ``L * cell_size / speed`` (see :func:`steps_for_leg`), or, in a current, from the time
+the boat needs for the planned path with the crab angle held against it
+(:mod:`passt_mav.planning.transit`, :func:`steps_for_duration`). Between
 re-initialisations the estimate at each step is the model's prediction from the
 last reconstructed state; the leg's samples are compared with that forecast at
 their own position AND time (the GP fits the residual), and the reconstruction
@@ -56,6 +58,7 @@ __all__ = [
     "run_pure_model",
     "model_forecast",
     "steps_for_leg",
+    "steps_for_duration",
     "HYPER",
     "SAMPLE_AT",
 ]
@@ -124,10 +127,20 @@ class Sampler(Protocol):
 
 
 def steps_for_leg(n_moves: int, cell_size_m: float, speed_m_s: float, dt_s: float) -> int:
-    """Snapshots spanned by a leg: ``round(n_moves * cell_size / speed / dt)``, at least 1."""
+    """Snapshots spanned by a leg in still water: ``round(n_moves * cell_size / speed / dt)``, at least 1."""
     if speed_m_s <= 0 or dt_s <= 0:
         raise PlannerError("vehicle speed and snapshot interval must be positive")
-    return max(1, int(round(n_moves * cell_size_m / speed_m_s / dt_s)))
+    return steps_for_duration(n_moves * cell_size_m / speed_m_s, dt_s)
+
+
+def steps_for_duration(duration_s: float, dt_s: float) -> int:
+    """Snapshots spanned by a leg of ``duration_s`` seconds (e.g. a path's time in the current,
+    :func:`passt_mav.planning.transit.leg_timing`): ``round(duration / dt)``, at least 1 (a leg the
+    boat cannot finish, an infinite duration, spans as many as 10**6)."""
+    if dt_s <= 0:
+        raise PlannerError("snapshot interval must be positive")
+    x = float(duration_s) / float(dt_s)
+    return max(1, int(round(min(x, 1e6))) if np.isfinite(x) else 10**6)
 
 
 class FieldSampler:
@@ -148,7 +161,10 @@ class FieldSampler:
 
     Leg duration: ``steps_per_leg * field.dt`` if given, else
     ``n_moves * mean_cell_size / speed`` (speed in m/s; for the non-dimensional
-    cylinder, cell size in metres and speed in inflow units).
+    cylinder, cell size in metres and speed in inflow units). With ``speed`` (and no
+    ``steps_per_leg``) and ``current_aware`` (default), ``"spread"`` samples a cell at the time
+    the boat reaches it in the true current, its crab angle held against it
+    (:func:`passt_mav.planning.transit.leg_timing` on the field's snapshots from ``t_start``).
     """
 
     def __init__(
@@ -160,6 +176,7 @@ class FieldSampler:
         steps_per_leg: int | None = None,
         speed: float | None = None,
         sample_at: str = "end",
+        current_aware: bool = True,
     ):
         if steps_per_leg is None and speed is None:
             raise PlannerError("FieldSampler needs steps_per_leg or speed")
@@ -171,6 +188,7 @@ class FieldSampler:
         self.seed = seed
         self.steps_per_leg = steps_per_leg
         self.speed = speed
+        self.current_aware = bool(current_aware)
         self._rng = np.random.default_rng(seed)
 
     def leg_duration(self, n_moves: int) -> float:
@@ -178,11 +196,25 @@ class FieldSampler:
             return float(self.steps_per_leg) * self.field.dt
         return float(n_moves) * self.field.grid.mean_cell_size_m / float(self.speed)
 
+    def arrival_times(self, path, t_start: float) -> np.ndarray:
+        """(L+1,) field time from ``t_start`` at which a boat at ``speed`` (field velocity units, as
+        the cell size and the field's times) reaches each cell of ``path`` in the true current."""
+        from passt_mav.planning.transit import leg_timing
+
+        f = self.field
+        k0 = int(np.clip(np.searchsorted(f.times, t_start, side="right") - 1, 0, f.n_times - 1))
+        snaps = np.asarray(f.data[k0:], np.float64)
+        lag = float(t_start) - float(f.times[k0])  # the leg begins this long after snapshot k0
+        tm = leg_timing(path, snaps, f.grid.cell_size_m, float(self.speed), snapshot_s=float(f.dt), start_s=lag)
+        return np.minimum(tm.arrival - lag, 1e12)
+
     def sample_path(self, path_cells, t_start: float) -> Samples:
         p = np.asarray(path_cells, dtype=np.float64)
         L = max(len(p) - 1, 1)
         if self.sample_at == "end":  # the idealised leg: one snapshot, read along the whole path
             t = np.full(len(p), float(t_start) + self.leg_duration(L))
+        elif self.steps_per_leg is None and self.current_aware and len(p) > 1:
+            t = float(t_start) + self.arrival_times(np.asarray(path_cells, np.int64), float(t_start))
         else:
             t = float(t_start) + np.arange(len(p)) / L * self.leg_duration(L)
         t = np.minimum(t, self.field.times[-1])  # a leg running past the data samples its last snapshot
@@ -224,8 +256,8 @@ class LoopOptions:
     in ``passt_mav.planning.REWARDS``; path_length: moves per leg ``L``; steps_per_leg: snapshots
     a leg spans ``S``; prior: "forecast" | "none"; gp_kw: :class:`GPReconstructor` options;
     hyper: :data:`HYPER`; background: roll-out snapshots of the model background (0 = none);
-    prior_blend / forgetting / share / memory / guard / model_update: see :class:`PasstLoop`. Validated by the loop
-    that takes them.
+    prior_blend / forgetting / share / memory / guard / model_update / vehicle_speed: see :class:`PasstLoop`.
+    Validated by the loop that takes them.
     """
 
     planner: str = DEFAULT.planner
@@ -243,6 +275,8 @@ class LoopOptions:
     memory: str = DEFAULT.memory
     guard: str = DEFAULT.guard
     model_update: ModelUpdate | None = None
+    vehicle_speed: float | None = None
+    transit_kw: dict | None = None
 
     @classmethod
     def of(cls, options: LoopOptions | None = None, **changes) -> LoopOptions:
@@ -338,6 +372,13 @@ class PasstLoop:
         model_update: :class:`passt_mav.loop.online.ModelUpdate` (``None`` or ``online="off"``: off): learning
             at sea, each leg's update of the predictor kept only when the leg's samples find it more probable
             (:mod:`passt_mav.loop.online`; ``online`` holds the updater, ``initial_predictor`` the model alone).
+        vehicle_speed: the boat's speed through the water in the field's velocity units (m/s divided by
+            ``field.velocity_scale``), or None. Given, the planner is offered only the moves the boat can
+            make in the leg's forecast current, its crab angle held against it (ground speed at least
+            :data:`~passt_mav.planning.transit.FEASIBLE_MARGIN` x the speed in every snapshot of the
+            forecast; :func:`passt_mav.planning.transit.feasible_moves`).
+        transit_kw: how the boat holds ``vehicle_speed`` (:func:`passt_mav.planning.transit.ground_speed`'s
+            ``hold`` and ``max_water_speed``, the latter in the field's velocity units); None: through the water.
     """
 
     def __init__(
@@ -362,6 +403,8 @@ class PasstLoop:
         memory: str = DEFAULT.memory,
         guard: str = DEFAULT.guard,
         model_update: ModelUpdate | None = None,
+        vehicle_speed: float | None = None,
+        transit_kw: dict | None = None,
     ):
         from passt_mav.planning import make_planner
         from passt_mav.planning.rewards import REWARDS_USING_PRIOR, REWARDS_USING_STD
@@ -370,6 +413,10 @@ class PasstLoop:
         _check_loop_options(
             reward, hyper, path_length, steps_per_leg, background, prior_blend, forgetting, memory, share, guard
         )
+        if vehicle_speed is not None and not float(vehicle_speed) > 0:
+            raise PlannerError(f"vehicle speed must be positive, got {vehicle_speed!r}")
+        self.vehicle_speed = None if vehicle_speed is None else float(vehicle_speed)
+        self.transit_kw = dict(transit_kw or {})
         self.hyper = hyper
         self.predictor = self.initial_predictor = predictor  # an online update replaces the first alone
         self.online = OnlineUpdate.of(model_update, predictor)
@@ -508,6 +555,10 @@ class PasstLoop:
         if avoid is not None:
             mask = mask & ~np.asarray(avoid, bool)
             mask[tuple(start)] = True
+        if self.vehicle_speed is not None:  # the moves the boat can make in the forecast current: (R, C, 8)
+            from passt_mav.planning.transit import feasible_moves
+
+            mask = feasible_moves(fc, self._cell, self.vehicle_speed, traversable=mask, **self.transit_kw)
         return q, mask
 
     def information_model(self, state):
@@ -697,6 +748,10 @@ class PasstLoop:
             out["signal_kept"] = [None if e is None else bool(e[0] >= e[1]) for e in ev]
         if gp.background is not None:
             out["background_factor"] = gp.background_factor()
+        chk = getattr(gp, "std_check_", None)
+        if chk is not None:  # the std's own check (GPReconstructor.forward_std_factor): the factor it was widened by
+            out["std_inflation"] = float(gp.std_inflation_)
+            out["std_check"] = {k: v if isinstance(v, int) else round(float(v), 4) for k, v in chk.items()}
         if getattr(gp, "bias", False):
             out["offset_var"] = float(getattr(gp, "bias_var_", 0.0))  # (field units)^2, 0 = no offset kept
             out["anomaly_var"] = float(getattr(gp, "scale_var_", 0.0))  # factor variance on the forecast anomaly

@@ -4,7 +4,8 @@ Each planner is a class with keyword-only options and
 ``plan(reward, start, budget, seed=0, mask=None) -> (budget+1, 2) int path``.
 Inputs are validated once by :func:`passt_mav.planning.grid.check_inputs`.
 All obey the path contract: 8-connected, inside the grid, on traversable cells,
-exactly ``budget`` moves, revisits only when no unvisited neighbour exists.
+exactly ``budget`` moves, revisits only when no unvisited neighbour exists. A ``mask``
+of allowed moves ((R, C, 8), :mod:`passt_mav.planning.grid`) is obeyed move by move.
 """
 
 from __future__ import annotations
@@ -14,13 +15,29 @@ import itertools
 import numpy as np
 
 from passt_mav.errors import PlannerError
-from passt_mav.planning.grid import MOVES8, MOVES8_TUPLES, best_with_ties, cheapest_path, check_inputs, check_many
+from passt_mav.planning.grid import (
+    MOVES8,
+    MOVES8_TUPLES,
+    allowed_moves,
+    best_with_ties,
+    cheapest_path,
+    check_inputs,
+    check_many,
+)
 
 __all__ = ["LawnmowerPlanner", "GreedyPlanner", "RandomPlanner"]
 
 
-def _fallback_step(cell, visited: np.ndarray, trav: np.ndarray, rng: np.random.Generator) -> tuple[int, int]:
-    """An unvisited traversable neighbour if any (random), else any traversable one.
+def _move_mask(trav: np.ndarray, mask) -> np.ndarray | None:
+    """The (R, C, 8) allowed moves when ``mask`` is a move mask, else None (the cells decide alone)."""
+    return allowed_moves(trav, mask) if mask is not None and np.ndim(mask) == 3 else None
+
+
+def _fallback_step(
+    cell, visited: np.ndarray, trav: np.ndarray, rng: np.random.Generator, moves=None
+) -> tuple[int, int]:
+    """An unvisited traversable neighbour if any (random), else any traversable one
+    (among the moves ``moves`` allows, when given: (R, C, 8)).
 
     Candidates in :data:`MOVES8` order, as :func:`~passt_mav.planning.grid.neighbours`
     lists them; plain Python, because the random walk takes this step on every move
@@ -28,7 +45,12 @@ def _fallback_step(cell, visited: np.ndarray, trav: np.ndarray, rng: np.random.G
     """
     r, c = int(cell[0]), int(cell[1])
     R, C = trav.shape
-    nb = [(r + dr, c + dc) for dr, dc in MOVES8_TUPLES if 0 <= r + dr < R and 0 <= c + dc < C and trav[r + dr, c + dc]]
+    ok = [True] * 8 if moves is None else moves[r, c].tolist()
+    nb = [
+        (r + dr, c + dc)
+        for (dr, dc), a in zip(MOVES8_TUPLES, ok)
+        if a and 0 <= r + dr < R and 0 <= c + dc < C and trav[r + dr, c + dc]
+    ]
     pool = [n for n in nb if not visited[n]] or nb
     return pool[rng.integers(len(pool))]
 
@@ -61,6 +83,7 @@ class LawnmowerPlanner:
 
     def plan(self, reward, start, budget, seed=0, mask=None) -> np.ndarray:
         _, (r0, c0), L, trav = check_inputs(reward, start, budget, mask)
+        moves = _move_mask(trav, mask)
         R, C = trav.shape
         # at least one lane beyond the start row must fit on the farther side
         s = min(self._spacing(R, C, L), max(r0, R - 1 - r0, 1))
@@ -83,11 +106,11 @@ class LawnmowerPlanner:
             leg = None
             while queue and leg is None:
                 tgt = queue.pop(0)
-                leg = cheapest_path(path[-1], tgt, trav, visited) if trav[tgt] else None
+                leg = cheapest_path(path[-1], tgt, trav, visited, moves=moves) if trav[tgt] else None
                 if leg is not None and (len(leg) < 2 or visited[tgt]):
                     leg = None  # already there / already swept
             if leg is None:  # sweep done (or nothing reachable): keep moving, prefer new cells
-                nxt = _fallback_step(path[-1], visited, trav, rng)
+                nxt = _fallback_step(path[-1], visited, trav, rng, moves)
                 path.append(nxt)
                 visited[nxt] = True
                 continue
@@ -134,6 +157,9 @@ class GreedyPlanner:
         G = len(qs)
         Q, T = np.stack(qs), np.stack(travs)
         _, R, C = Q.shape
+        Mv = None  # (G, R, C, 8) allowed moves, when a request has a move mask
+        if masks is not None and any(m is not None and np.ndim(m) == 3 for m in masks):
+            Mv = np.stack([allowed_moves(t, m) for t, m in zip(travs, masks)])
         rngs = [np.random.default_rng(sd) for sd in seeds]
         visited = np.zeros((G, R, C), bool)
         cur = np.array(st, dtype=np.int64)  # (G, 2)
@@ -150,6 +176,10 @@ class GreedyPlanner:
             rr = np.clip(cells[..., 0], 0, R - 1)
             cc = np.clip(cells[..., 1], 0, C - 1)
             ok = inside & T[g, rr, cc]
+            if Mv is not None:  # each move allowed from the cell it leaves (the first: the current cell)
+                pr = np.concatenate([np.broadcast_to(cur[:, None, None, 0], rr[..., :1].shape), rr[..., :-1]], axis=2)
+                pc = np.concatenate([np.broadcast_to(cur[:, None, None, 1], cc[..., :1].shape), cc[..., :-1]], axis=2)
+                ok &= Mv[g, pr, pc, seqs[None]]
             feasible = np.cumprod(ok, axis=2).astype(bool)  # a sequence stops being valid at its first bad cell
             seen = visited[g, rr, cc]
             gain = np.where(feasible & ~seen, Q[g, rr, cc], 0.0)
@@ -169,7 +199,7 @@ class GreedyPlanner:
             for b in np.flatnonzero(
                 ~np.isfinite(score).any(axis=1)
             ):  # cannot happen after check_inputs, kept for safety
-                nxt[b] = _fallback_step(tuple(cur[b]), visited[b], T[b], rngs[b])
+                nxt[b] = _fallback_step(tuple(cur[b]), visited[b], T[b], rngs[b], None if Mv is None else Mv[b])
             cur = nxt
             visited[rows, cur[:, 0], cur[:, 1]] = True
             paths[:, i] = cur
@@ -182,12 +212,13 @@ class RandomPlanner:
 
     def plan(self, reward, start, budget, seed=0, mask=None) -> np.ndarray:
         _, (r0, c0), L, trav = check_inputs(reward, start, budget, mask)
+        moves = _move_mask(trav, mask)
         rng = np.random.default_rng(seed)
         visited = np.zeros(trav.shape, bool)
         visited[r0, c0] = True
         path = [(r0, c0)]
         for _ in range(L):
-            nxt = _fallback_step(path[-1], visited, trav, rng)
+            nxt = _fallback_step(path[-1], visited, trav, rng, moves)
             path.append(nxt)
             visited[nxt] = True
         return np.asarray(path, dtype=np.int64)

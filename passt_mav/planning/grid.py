@@ -3,7 +3,11 @@
 Conventions (DESIGN.md): a reward map is ``(rows, cols)`` float, row 0 = south;
 a path is an ``(L+1, 2)`` int array of ``(row, col)`` whose consecutive cells are
 8-neighbours. ``traversable`` is an ``(rows, cols)`` bool array, True where the
-robot may go (water). Pure numpy; no I/O.
+robot may go (water). A planner's ``mask`` is that array, or an ``(rows, cols, 8)`` bool
+array of allowed moves (``mask[r, c, k]``: the move :data:`MOVES8` ``[k]`` from ``(r, c)``
+may be taken; e.g. the moves a boat can make in the forecast current,
+:func:`passt_mav.planning.transit.feasible_moves`); every planner enumerates its moves
+through :func:`allowed_moves`. Pure numpy; no I/O.
 """
 
 from __future__ import annotations
@@ -20,6 +24,7 @@ __all__ = [
     "path_reward",
     "top_l_bound",
     "check_path",
+    "allowed_moves",
     "bfs_path",
     "cheapest_path",
     "TIE_RTOL",
@@ -91,7 +96,8 @@ def check_inputs(reward, start, budget, mask=None) -> tuple[np.ndarray, tuple[in
 
     Returns ``(reward float64 (R,C) with blocked cells = 0, start (r, c), budget int,
     traversable bool (R,C))``. Non-finite reward cells are blocked (land), as are
-    cells where ``mask`` (traversable, True = water) is False.
+    cells where ``mask`` (traversable, True = water) is False; an (R, C, 8) move ``mask``
+    blocks the cells it allows no move from (:func:`allowed_moves` gives the moves).
     Raises :class:`PlannerError` naming the problem.
     """
     q = np.asarray(reward, dtype=np.float64)
@@ -100,6 +106,8 @@ def check_inputs(reward, start, budget, mask=None) -> tuple[np.ndarray, tuple[in
     trav = np.isfinite(q)
     if mask is not None:
         m = np.asarray(mask, dtype=bool)
+        if m.shape == q.shape + (8,):
+            m = m.any(axis=2)
         if m.shape != q.shape:
             raise PlannerError(f"traversable mask shape {m.shape} does not match the reward map {q.shape}")
         trav &= m
@@ -119,11 +127,26 @@ def check_inputs(reward, start, budget, mask=None) -> tuple[np.ndarray, tuple[in
         raise PlannerError(f"start cell ({r}, {c}) is land / not traversable")
     if int(budget) != budget or int(budget) < 1:
         raise PlannerError(f"path budget must be a positive integer number of moves, got {budget!r}")
-    nb = np.array([r, c]) + MOVES8
-    ok = (nb[:, 0] >= 0) & (nb[:, 0] < R) & (nb[:, 1] >= 0) & (nb[:, 1] < C)
-    if not np.any(trav[nb[ok, 0], nb[ok, 1]]):
-        raise PlannerError(f"start cell ({r}, {c}) has no traversable neighbour")
+    if not allowed_moves(trav, mask)[r, c].any():
+        raise PlannerError(f"start cell ({r}, {c}) has no traversable neighbour it may move to")
     return q, (r, c), int(budget), trav
+
+
+def allowed_moves(trav: np.ndarray, mask=None) -> np.ndarray:
+    """(R, C, 8) bool: the move :data:`MOVES8` ``[k]`` from ``(r, c)`` stays in the grid, starts and
+    ends on ``trav`` cells ((R, C) bool, as :func:`check_inputs` gives it) and, when ``mask`` is an
+    (R, C, 8) move mask, is allowed by it. A 2-D or absent ``mask`` adds nothing."""
+    t = np.asarray(trav, bool)
+    R, C = t.shape
+    tr = np.arange(R)[:, None, None] + MOVES8[:, 0]
+    tc = np.arange(C)[None, :, None] + MOVES8[:, 1]
+    inside = (tr >= 0) & (tr < R) & (tc >= 0) & (tc < C)
+    ok = inside & t[..., None] & t[np.clip(tr, 0, R - 1), np.clip(tc, 0, C - 1)]
+    if mask is not None:
+        m = np.asarray(mask, bool)
+        if m.ndim == 3:
+            ok &= m
+    return ok
 
 
 def check_many(rewards, starts, budget, seeds, masks=None) -> tuple[list, list, int, list]:
@@ -179,7 +202,9 @@ def check_path(path, rows: int, cols: int, *, traversable=None, budget: int | No
     Valid: integer ``(L+1, 2)``; every cell inside the grid (and traversable when
     given); consecutive cells are distinct 8-neighbours; ``L == budget`` and
     ``path[0] == start`` when given; a cell is revisited only when every
-    traversable neighbour of the previous cell had already been visited.
+    traversable neighbour of the previous cell had already been visited. An (R, C, 8) move
+    mask as ``traversable`` (module docstring) also requires every move to be allowed, and
+    the neighbours of the revisit rule are those the mask allows moving to.
     """
     p = np.asarray(path)
     if p.ndim != 2 or p.shape[1] != 2 or not np.issubdtype(p.dtype, np.integer):
@@ -190,11 +215,17 @@ def check_path(path, rows: int, cols: int, *, traversable=None, budget: int | No
         raise PlannerError(f"path starts at {tuple(p[0])}, expected {tuple(start)}")
     if np.any(p[:, 0] < 0) or np.any(p[:, 0] >= rows) or np.any(p[:, 1] < 0) or np.any(p[:, 1] >= cols):
         raise PlannerError("path leaves the grid")
-    d = np.abs(np.diff(p, axis=0))
-    if np.any(d.max(axis=1) != 1):
+    d = np.diff(p, axis=0)
+    if np.any(np.abs(d).max(axis=1) != 1):
         raise PlannerError("consecutive path cells must be distinct 8-neighbours")
     trav = None if traversable is None else np.asarray(traversable, bool)
-    if trav is not None and not np.all(trav[p[:, 0], p[:, 1]]):
+    moves = None
+    if trav is not None and trav.ndim == 3:
+        moves, trav = trav, trav.any(axis=2)
+        k = [MOVES8_TUPLES.index((int(a), int(b))) for a, b in d]
+        if len(k) and not np.all(moves[p[:-1, 0], p[:-1, 1], k]):
+            raise PlannerError("path takes a move the move mask does not allow")
+    if moves is None and trav is not None and not np.all(trav[p[:, 0], p[:, 1]]):
         raise PlannerError("path crosses a non-traversable cell")
     seen = {tuple(p[0])}
     for i in range(1, len(p)):
@@ -203,8 +234,10 @@ def check_path(path, rows: int, cols: int, *, traversable=None, budget: int | No
             prev = p[i - 1]
             nb = prev + MOVES8
             ok = (nb[:, 0] >= 0) & (nb[:, 0] < rows) & (nb[:, 1] >= 0) & (nb[:, 1] < cols)
+            if moves is not None:
+                ok &= moves[prev[0], prev[1]]
             nb = nb[ok]
-            if trav is not None:
+            if trav is not None and moves is None:
                 nb = nb[trav[nb[:, 0], nb[:, 1]]]
             if any(tuple(n) not in seen for n in nb):
                 raise PlannerError(f"path revisits {cell} at move {i} although an unvisited neighbour existed")
@@ -248,7 +281,9 @@ def bfs_path(src, dst, traversable: np.ndarray) -> list[tuple[int, int]] | None:
     return None
 
 
-def _free_straight_line(src, dst, traversable: np.ndarray, visited: np.ndarray) -> list[tuple[int, int]] | None:
+def _free_straight_line(
+    src, dst, traversable: np.ndarray, visited: np.ndarray, moves=None
+) -> list[tuple[int, int]] | None:
     """The straight row or column run from ``src`` to ``dst`` when every cell after ``src``
     is traversable and unvisited, else None.
 
@@ -272,27 +307,38 @@ def _free_straight_line(src, dst, traversable: np.ndarray, visited: np.ndarray) 
     idx = tuple(np.array(cells).T)
     if not np.asarray(traversable, bool)[idx].all() or np.asarray(visited, bool)[idx].any():
         return None
+    if moves is not None:  # every move of the run allowed (the same move, from each cell but the last)
+        d = (int(np.sign(r1 - r0)), int(np.sign(c1 - c0)))
+        frm = np.array([src, *cells[:-1]])
+        if not np.asarray(moves, bool)[frm[:, 0], frm[:, 1], MOVES8_TUPLES.index(d)].all():
+            return None
     return [src, *cells]
 
 
 def cheapest_path(
-    src, dst, traversable: np.ndarray, visited: np.ndarray, *, revisit_cost: float = 8.0
+    src, dst, traversable: np.ndarray, visited: np.ndarray, *, revisit_cost: float = 8.0, moves=None
 ) -> list[tuple[int, int]] | None:
     """Dijkstra over traversable cells from ``src`` to ``dst`` (both included), where
     a move costs its length (1 or sqrt 2) times ``revisit_cost`` when it enters a visited
     cell, so a transfer between
-    lanes crosses new water rather than old track whenever a short detour exists."""
+    lanes crosses new water rather than old track whenever a short detour exists.
+    ``moves``: an (R, C, 8) mask of the allowed moves (:func:`allowed_moves`; None = all)."""
     src, dst = (int(src[0]), int(src[1])), (int(dst[0]), int(dst[1]))
     if src == dst:
         return [src]
     if not traversable[dst]:
         return None
-    line = _free_straight_line(src, dst, traversable, visited) if revisit_cost >= 1.0 else None
-    return line if line is not None else _dijkstra(src, dst, traversable, visited, revisit_cost)
+    line = _free_straight_line(src, dst, traversable, visited, moves) if revisit_cost >= 1.0 else None
+    return line if line is not None else _dijkstra(src, dst, traversable, visited, revisit_cost, moves)
 
 
 def _dijkstra(
-    src: tuple[int, int], dst: tuple[int, int], traversable: np.ndarray, visited: np.ndarray, revisit_cost: float
+    src: tuple[int, int],
+    dst: tuple[int, int],
+    traversable: np.ndarray,
+    visited: np.ndarray,
+    revisit_cost: float,
+    moves=None,
 ) -> list[tuple[int, int]] | None:
     """The search of :func:`cheapest_path` (int ``src``, ``dst``; ``dst`` traversable)."""
     import heapq
@@ -303,6 +349,7 @@ def _dijkstra(
     R, C = traversable.shape
     trav = np.asarray(traversable, bool).tolist()
     cost = np.where(np.asarray(visited, bool), float(revisit_cost), 1.0).tolist()
+    allow = None if moves is None else np.asarray(moves, bool).tolist()
     dist = {src: 0.0}
     prev: dict = {src: None}
     heap = [(0.0, src)]
@@ -316,9 +363,9 @@ def _dijkstra(
         if d > dist.get(cell, np.inf):
             continue
         r, c = cell
-        for dr, dc in MOVES8_TUPLES:
+        for k, (dr, dc) in enumerate(MOVES8_TUPLES):
             tr, tc = r + dr, c + dc
-            if not (0 <= tr < R and 0 <= tc < C and trav[tr][tc]):
+            if not (0 <= tr < R and 0 <= tc < C and trav[tr][tc]) or (allow is not None and not allow[r][c][k]):
                 continue
             t = (tr, tc)
             # Euclidean step length: among equally short 8-connected routes prefer the

@@ -60,7 +60,14 @@ from __future__ import annotations
 import numpy as np
 
 from passt_mav.errors import PlannerError
-from passt_mav.planning.grid import MOVES8, best_with_ties, check_inputs, rank_with_ties, tie_tolerance
+from passt_mav.planning.grid import (
+    MOVES8,
+    allowed_moves,
+    best_with_ties,
+    check_inputs,
+    rank_with_ties,
+    tie_tolerance,
+)
 
 __all__ = ["InformationModel", "InformationPlanner", "brute_force_reduction"]
 
@@ -258,6 +265,7 @@ class InformationPlanner:
 
     def plan(self, reward, start, budget, seed=0, mask=None, info: InformationModel | None = None) -> np.ndarray:
         q, (r0, c0), L, trav = check_inputs(reward, start, budget, mask)
+        moves = allowed_moves(trav, mask) if mask is not None and np.ndim(mask) == 3 else None
         K = int(self.beam_width)
         if K < 1:
             raise PlannerError(f"beam_width must be >= 1, got {self.beam_width!r}")
@@ -282,6 +290,8 @@ class InformationPlanner:
             rr, cc = np.clip(cells[..., 0], 0, R - 1), np.clip(cells[..., 1], 0, C - 1)
             flat = rr * C + cc
             ok = inside & trav[rr, cc]
+            if moves is not None:  # the moves the mask allows from each beam's cell
+                ok &= moves[pos[:, 0], pos[:, 1]]
             fresh = ok & ~np.take_along_axis(visited, flat, axis=1)
             allow = np.where(fresh.any(axis=1, keepdims=True), fresh, ok)
             total = np.where(allow, st.totals(flat, fresh & allow), -np.inf)

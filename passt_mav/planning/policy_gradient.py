@@ -35,7 +35,7 @@ from pathlib import Path
 import numpy as np
 
 from passt_mav.errors import PlannerError
-from passt_mav.planning.grid import MOVES4, MOVES8, best_with_ties, check_many, top_l_bound
+from passt_mav.planning.grid import MOVES4, MOVES8, allowed_moves, best_with_ties, check_many, top_l_bound
 
 __all__ = [
     "SCALES",
@@ -140,9 +140,10 @@ def _features_eff(
 
 
 def _allowed(
-    trav: np.ndarray, visited: np.ndarray, pos: np.ndarray, moves: np.ndarray
+    trav: np.ndarray, visited: np.ndarray, pos: np.ndarray, moves: np.ndarray, move_ok: np.ndarray | None = None
 ) -> tuple[np.ndarray, np.ndarray]:
-    """(B, M) allowed-move mask and the (B, M, 2) target cells (clipped)."""
+    """(B, M) allowed-move mask and the (B, M, 2) target cells (clipped). ``move_ok``: (B, R, C, M)
+    bool, the moves a move mask allows from each cell (None: all)."""
     R, C = visited.shape[1:]
     nb = pos[:, None, :] + moves[None]
     inside = (nb[..., 0] >= 0) & (nb[..., 0] < R) & (nb[..., 1] >= 0) & (nb[..., 1] < C)
@@ -151,6 +152,8 @@ def _allowed(
     b = np.arange(pos.shape[0])[:, None]
     tr = trav[rr, cc] if trav.ndim == 2 else trav[b, rr, cc]
     ok = inside & tr
+    if move_ok is not None:
+        ok &= move_ok[b[:, 0], pos[:, 0], pos[:, 1]]
     fresh = ok & ~visited[b, rr, cc]
     allowed = np.where(fresh.any(axis=1, keepdims=True), fresh, ok)
     return allowed, np.stack([rr, cc], axis=-1)
@@ -169,8 +172,12 @@ def rollout(
     moves: np.ndarray = MOVES8,
     record: bool = False,
     temperature: float = 1.0,
+    move_ok: np.ndarray | None = None,
 ):
     """Run ``n`` roll-outs of ``budget`` moves in parallel.
+
+    ``move_ok``: (n, R, C, M) bool, the moves (of ``moves``) allowed from each cell (a move mask,
+    :mod:`passt_mav.planning.grid`); None = every move onto a traversable cell.
 
     q, trav: (R, C) or (B=n, R, C); start: (2,) or (n, 2). With ``greedy_first`` the
     first roll-out takes the argmax move every step. Returns ``paths (n, L+1, 2)``,
@@ -197,7 +204,7 @@ def rollout(
     buf: dict = {}
     for t in range(L):
         f = _features_eff(eff, pos, 1.0 - t / L, moves, buf)
-        allowed, tgt = _allowed(trav, visited, pos, moves)
+        allowed, tgt = _allowed(trav, visited, pos, moves, move_ok)
         s, p = _move_probabilities(weights, f, allowed, temperature)
         a = _sample_moves(p, s, allowed, rngs, ng, greedy_first)
         new = tgt[b, a]
@@ -531,6 +538,10 @@ class PolicyGradientPlanner:
         Q = np.repeat(np.stack(qs), n, axis=0)
         T = np.repeat(np.stack(travs), n, axis=0)
         S0 = np.repeat(np.array(st, dtype=np.int64), n, axis=0)
+        move_ok = None  # a request's move mask, as the moves of this policy (MOVES4 = MOVES8[::2])
+        if masks is not None and any(m is not None and np.ndim(m) == 3 for m in masks):
+            mv = np.stack([allowed_moves(t, m) for t, m in zip(travs, masks)])
+            move_ok = np.repeat(mv if self.moves == 8 else mv[..., ::2], n, axis=0)
         rngs = [np.random.default_rng(sd) for sd in seeds]
         paths, rets = rollout(
             self._weights(),
@@ -543,6 +554,7 @@ class PolicyGradientPlanner:
             greedy_first=True,
             moves=moves,
             temperature=self.temperature,
+            move_ok=move_ok,
         )
         # the best roll-out's path; returns within TIE_RTOL (float noise) go to the first roll-out
         return [paths[g * n + int(best_with_ties(rets[g * n : (g + 1) * n]))] for g in range(G)]
