@@ -281,3 +281,43 @@ def test_campaign_tasks_reuse_the_heap_under_dask_malloc_settings():
     assert before > 100 * 200  # ~256 faults per 1 MiB array
     assert inside < before / 20
     assert after > 100 * 200
+
+
+def test_results_carry_calibration_and_the_trivial_maps(field, serial):
+    """Per method and leg-end step the estimate's coverage95 and NLPD (each trial's engine record scored by
+    passt_mav.models.calibration, averaged here), the trivial maps' RMSE over time, and beats_trivial."""
+    from passt_mav.models.calibration import calibration
+
+    per = serial["per_L"]["12"]
+    loops = [m for m in METHODS if m != "model"]
+    for m in loops:
+        assert per["calibration_steps"][m] == [10, 20]  # legs of 10 steps over 20
+        assert all(0.0 <= c <= 1.0 for c in per["coverage95_mean"][m])
+        assert all(np.isfinite(x) for x in per["nlpd_mean"][m])
+    t0 = [r for r in serial["_trials"] if r["L"] == 12]
+    assert per["coverage95_mean"]["passt"][0] == pytest.approx(
+        np.mean([r["calibration"]["passt"]["coverage95"][0] for r in t0])
+    )
+    assert "model" not in per["coverage95_mean"]  # the model alone has no std
+    base = serial["baselines"]
+    truth = field.data[: serial["config"]["steps"] + 1].astype(np.float64)
+    zero = np.sqrt(np.nanmean(truth.reshape(len(truth), -1) ** 2, axis=1))
+    np.testing.assert_allclose(base["rmse_zero"], zero, rtol=1e-9)
+    assert len(base["rmse_forecast_mean"]) == len(zero)
+    # model + GP on this field is far better than no current at all
+    assert per["beats_trivial"]["passt"] is True
+    assert serial["config"]["calibration"] is True
+    # the engine's record is the module's figure of that leg's state and std
+    from passt_mav.loop.engine import run_trials
+    from passt_mav.loop.passt import LoopOptions
+
+    opts = LoopOptions(path_length=12, steps_per_leg=10, prior="forecast")
+    (r,) = run_trials(
+        field, ShiftPredictor(WRONG_VEL), opts, starts=[[(5, 5)]], seeds=[0], n_steps=10, calibration=True
+    )
+    cal = r.legs[0]["calibration"]
+    assert cal["step"] == 10 and 0 < cal["n"] <= 2 * 30 * 30 and set(cal) >= {"coverage95", "nlpd", "reliability"}
+    assert calibration(r.estimate[10], np.ones_like(r.estimate[10]), field.data[10]) is not None
+    (r0,) = run_trials(field, ShiftPredictor(WRONG_VEL), opts, starts=[[(5, 5)]], seeds=[0], n_steps=10)
+    assert "calibration" not in r0.legs[0]
+    np.testing.assert_array_equal(r0.estimate, r.estimate)  # scoring never changes the estimate

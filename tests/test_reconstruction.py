@@ -234,7 +234,14 @@ def test_background_posterior_equals_the_dense_joint_gp(grid):
     xy, uv = samples(grid, cells, rng)
     fa = analytic(xy[:, 0], xy[:, 1]).T * 0.8
     ref = GPReconstructor(grid_xy=(X, Y), noise_std=NOISE, solver="cholesky").fit(xy, uv, fa)
-    gp = GPReconstructor(grid_xy=(X, Y), noise_std=NOISE, solver="cholesky", background=modes, background_scale=1.0)
+    gp = GPReconstructor(
+        grid_xy=(X, Y),
+        noise_std=NOISE,
+        solver="cholesky",
+        background=modes,
+        background_scale=1.0,
+        std_calibration="off",  # the GP posterior's own std (test_calibration.py: the map's)
+    )
     gp.kernels_, gp.cell_m_, gp.n_inputs_ = ref.kernels_, ref.cell_m_, ref.n_inputs_
     mean, std = gp.reconstruct(xy, uv, forecast=forecast, forecast_at_samples=fa)
     # dense reference
@@ -259,9 +266,15 @@ def test_background_posterior_equals_the_dense_joint_gp(grid):
     assert np.isnan(mean[:, ~water]).all() and np.isnan(std[:, ~water]).all()
     # zero modes: the joint posterior falls apart into the two component posteriors
     gp0 = GPReconstructor(
-        grid_xy=(X, Y), noise_std=NOISE, solver="cholesky", background=np.zeros_like(modes), background_scale=1.0
+        grid_xy=(X, Y),
+        noise_std=NOISE,
+        solver="cholesky",
+        background=np.zeros_like(modes),
+        background_scale=1.0,
+        std_calibration="off",
     )
     gp0.kernels_, gp0.cell_m_, gp0.n_inputs_ = ref.kernels_, ref.cell_m_, ref.n_inputs_
+    ref.std_calibration = "off"
     m0, s0 = gp0.reconstruct(xy, uv, forecast=forecast, forecast_at_samples=fa)
     m1, s1 = ref.reconstruct(xy, uv, forecast=forecast, forecast_at_samples=fa)
     np.testing.assert_allclose(m0, m1, atol=1e-6, rtol=0)

@@ -54,6 +54,8 @@ def _leg(i: int, cells: list[tuple[int, int]], t_start: float, t_end: float) -> 
         "planning_s": 1.5 + i,
         "upload_s": 0.25 * (i + 1),
         "duration_s": 600.0 + 10 * i,
+        "duration_vehicle_s": 1003.0 + i,  # flown, vehicle s
+        "planned_duration_vehicle_s": 987.5 + i,  # expected in the forecast current
         "n_samples": len(cells),
         "rmse_passt": 0.05 - 0.01 * i,
         "rmse_model": 0.08,
@@ -195,7 +197,10 @@ def test_full_report(tmp_path, fake_store):
         ">7 / 8 (88 %)<",
         ">7 / 9 (78 %)<",
         ">334.5<",
-    ):  # readings used per leg, the vehicle's bytes/s
+        ">1003<",
+        ">987.5<",
+        ">988.5<",
+    ):  # readings used per leg, the vehicle's bytes/s, each leg's flown and planned vehicle seconds
         assert s in text, s
 
 
@@ -643,3 +648,35 @@ def test_guard_table_and_alarm_note(tmp_path):
     rows = table.split("<tr>")[2:]
     assert [c.split("<")[0] for c in rows[1].split('class="num">')[1:]] == ["0.3100", "0.1200", "model alone", "yes"]
     assert rows[0].startswith("<td>1</td>") and "restarted forecast" in rows[0]
+
+
+def test_calibration_table_reliability_plot_and_trivial_maps(tmp_path):
+    """Where the truth is known (summary.json legs[i].calibration / .baselines): a per-leg table of the 95 %
+    interval's coverage, the NLPD (shown for m/s: + ln(velocity scale) of the field-unit figure), the RMS
+    standardised error and the RMSE of the map beside the trivial maps' (m/s), the reliability diagram, and a
+    warning line for a leg whose map does not beat a trivial map. A run without them gets none of it."""
+    from passt_mav.loop.scoring import leg_scores
+
+    rd = make_run(tmp_path / "run", n_legs=2)
+    s = rd.read_summary()
+    assert "Calibration:" not in write_report(rd.root).read_text()
+    rng = np.random.default_rng(0)
+    truth = rng.normal(0, 1, (2, 10, 10))
+    good = leg_scores(truth + rng.normal(0, 0.1, truth.shape), np.full(truth.shape, 0.1), truth, truth * 0.5)
+    bad = leg_scores(truth + 1.0, np.full(truth.shape, 0.1), truth, truth * 0.5)
+    for rec, (cal, base) in zip(s["legs"], (good, bad)):
+        rec["calibration"], rec["baselines"] = cal, base
+    rd.write_summary(s)
+    out = write_report(rd.root)
+    text = out.read_text()
+    scale = load_run(rd.root).unit.per_field_unit
+    assert '<p class="status warn">leg 2: the map does not beat zero current, the forecast&#x27;s time mean</p>' in text
+    assert "leg 1: the map does not beat" not in text
+    table = text.split("<h2>Calibration: does the map know how wrong it is?</h2>")[1].split("</table>")[0]
+    rows = table.split("<tr>")[2:]
+    cells = [c.split("<")[0] for c in rows[0].split('class="num">')[1:]]
+    assert cells[0] == f"{good[0]['coverage95']:.3f}" and cells[-1] == "yes"
+    assert cells[1] == f"{good[0]['nlpd'] + np.log(scale):.3f}"
+    assert cells[3] == f"{good[1]['map'] * scale:.4f}" and cells[4] == f"{good[1]['zero'] * scale:.4f}"
+    assert rows[1].split('class="num">')[-1].startswith("no")
+    assert (out.parent / "calibration.png").stat().st_size > 1000

@@ -712,6 +712,7 @@ def write_report(run_dir: str | Path, out: str | Path | None = None, *, damage: 
         "samples.png",
         "reconstruction.png",
         "rmse.png",
+        "calibration.png",
         "pod.png",
     ):
         (out_dir / name).unlink(missing_ok=True)  # a figure from an earlier report must not outlive its data
@@ -743,6 +744,7 @@ def write_report(run_dir: str | Path, out: str | Path | None = None, *, damage: 
     _section_samples(page, run, plt)
     _section_recon(page, run, plt)
     _section_rmse(page, run, plt)
+    _section_calibration(page, run, plt)
     _section_prior(page, run)
     _section_guard(page, run)
     _section_pod(page, run, plt)
@@ -954,6 +956,85 @@ def _section_rmse(page: Page, run: Run, plt) -> None:
         page.note("No lawnmower+GP counterfactual for this run (passt-mav demo adds one to summary.json).")
 
 
+def _fig_reliability(rows: list[tuple[int, dict]], plt):
+    """The reliability diagram: per leg, the share of (cell, component) pairs whose truth lies inside the
+    map's central p interval, against p (the diagonal: a map whose std is right)."""
+    from passt_mav.models.calibration import RELIABILITY_LEVELS
+
+    fig, ax = plt.subplots(figsize=(5.0, 4.6))
+    ax.plot([0, 1], [0, 1], color="0.6", lw=1, ls="--", label="calibrated")
+    for i, cal in rows:
+        rel = cal.get("reliability")
+        if isinstance(rel, list) and len(rel) == len(RELIABILITY_LEVELS):
+            ax.plot(RELIABILITY_LEVELS, rel, marker="o", ms=3, lw=1.2, label=f"leg {leg_number(i)}")
+    ax.set_xlim(0, 1)
+    ax.set_ylim(0, 1.02)
+    ax.set_xlabel("central interval probability p")
+    ax.set_ylabel("share of the truth inside it")
+    ax.legend(fontsize=7, loc="lower right")
+    fig.tight_layout()
+    return fig
+
+
+def _section_calibration(page: Page, run: Run, plt) -> None:
+    """Does the map know how wrong it is? Per leg (where the truth is known, leg records ``calibration`` and
+    ``baselines``, :mod:`passt_mav.loop.scoring`): the 95 % interval's coverage, the NLPD, the RMS of the
+    standardised error, the map's RMSE beside the trivial maps', and the reliability diagram."""
+    legs = [(int(leg.get("index", n)), leg) for n, leg in enumerate(run.legs)]
+    cal_rows = [(i, leg["calibration"]) for i, leg in legs if isinstance(leg.get("calibration"), dict)]
+    base_rows = {i: leg["baselines"] for i, leg in legs if isinstance(leg.get("baselines"), dict)}
+    if not cal_rows and not base_rows:
+        return  # the truth is unknown (a real vehicle), or a run recorded before these figures
+    page.h2("Calibration: does the map know how wrong it is?")
+    for i, b in sorted(base_rows.items()):
+        if b.get("beaten_by"):
+            names = ", ".join(
+                {"zero": "zero current", "forecast_mean": "the forecast's time mean"}.get(k, k) for k in b["beaten_by"]
+            )
+            page.add(f'<p class="status warn">leg {leg_number(i)}: the map does not beat {html.escape(names)}</p>')
+    scale = run.unit.per_field_unit
+    u = html.escape(run.units)
+
+    def num(x, f="{:.3f}", k=1.0):
+        return f.format(k * float(x)) if isinstance(x, (int, float)) and not isinstance(x, bool) else "&ndash;"
+
+    head = (
+        "<tr><th>leg</th><th>coverage of the 95 % interval</th><th>NLPD (nats)</th><th>RMS standardised error</th>"
+        f"<th>RMSE map ({u})</th><th>RMSE zero current ({u})</th><th>RMSE forecast time mean ({u})</th>"
+        "<th>beats the trivial maps</th></tr>"
+    )
+    cal_by = dict(cal_rows)
+    body = []
+    for i, _ in legs:
+        c, b = cal_by.get(i) or {}, base_rows.get(i) or {}
+        if not c and not b:
+            continue
+        nl = c.get("nlpd")
+        nl = None if not isinstance(nl, (int, float)) else float(nl) + float(np.log(scale))  # density in run.unit
+        cells = [
+            num(c.get("coverage95"), "{:.3f}"),
+            num(nl, "{:.3f}"),
+            num(c.get("z_rms"), "{:.2f}"),
+            num(b.get("map"), "{:.4f}", scale),
+            num(b.get("zero"), "{:.4f}", scale),
+            num(b.get("forecast_mean"), "{:.4f}", scale),
+            "&ndash;" if not b else ("no" if b.get("beaten_by") else "yes"),
+        ]
+        body.append(f"<tr><td>{leg_number(i)}</td>" + "".join(f'<td class="num">{x}</td>' for x in cells) + "</tr>")
+    page.add(f"<table>{head}{''.join(body)}</table>")
+    if cal_rows:
+        page.figure(_fig_reliability(cal_rows, plt), "calibration.png", "reliability of the map's std per leg", plt)
+    page.note(
+        "Each leg's estimate is read as a Gaussian per cell and component (its mean and its posterior std, "
+        "estimate.nc u_std/v_std) and scored against the truth at the estimate's time: coverage = share of "
+        "(cell, component) pairs inside mean +- 1.96 std (0.95 when the std is right, lower when the map is "
+        "overconfident); NLPD = mean negative log density of the truth (lower is better; it punishes overconfidence "
+        "and timidity); RMS standardised error = 1 when right. The reliability diagram repeats the coverage for "
+        "every central interval. The trivial maps: no current at all, and the time mean of the model's forecast "
+        "from the mission's start; a map that does not beat them is not worth its samples."
+    )
+
+
 def _section_prior(page: Page, run: Run) -> None:
     """The prior blend per leg: the weight of each candidate prior (the forecast restarted from the
     estimate, the model alone, persistence) the leg's estimate used, and the leg's evidence for each
@@ -1036,7 +1117,7 @@ def _section_timings(page: Page, run: Run) -> None:
     else:
         head = (
             "<tr><th>leg</th><th>planning (s)</th><th>upload (s)</th><th>leg duration (s)</th><th>samples</th>"
-            "<th>readings used</th></tr>"
+            "<th>readings used</th><th>flown (vehicle s)</th><th>planned (vehicle s)</th></tr>"
         )
         body, tot = [], [0.0, 0.0, 0.0, 0]
         for n, leg in enumerate(run.legs):
@@ -1051,10 +1132,24 @@ def _section_timings(page: Page, run: Run) -> None:
                 + leg_number(leg.get("index", n))
                 + "</td>"
                 + "".join(f'<td class="num">{_fmt(v)}</td>' for v in vals + [ns])
-                + f'<td class="num">{_readings_used(leg.get("readings"))}</td></tr>'
+                + f'<td class="num">{_readings_used(leg.get("readings"))}</td>'
+                + "".join(
+                    f'<td class="num">{_fmt(leg.get(k))}</td>'
+                    for k in ("duration_vehicle_s", "planned_duration_vehicle_s")
+                )
+                + "</tr>"
             )
-        body.append("<tr><th>total</th>" + "".join(f'<td class="num">{_fmt(v)}</td>' for v in tot) + "<td></td></tr>")
+        body.append(
+            "<tr><th>total</th>"
+            + "".join(f'<td class="num">{_fmt(v)}</td>' for v in tot)
+            + "<td></td><td></td><td></td></tr>"
+        )
         page.add(f"<table>{head}{''.join(body)}</table>")
+        page.note(
+            "Flown: the leg's vehicle seconds from AUTO to its end; planned: what the controller expected "
+            "(with planner.current_aware, the waypoints timed in the forecast current, the crab angle held "
+            "against it; else at the mission's speed in still water). The overrun rule works from the planned figure."
+        )
     links = [(leg.get("index", n), leg["link"]) for n, leg in enumerate(run.legs) if isinstance(leg.get("link"), dict)]
     tl = run.tlog
     if links:

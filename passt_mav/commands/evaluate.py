@@ -397,7 +397,7 @@ def run(args: argparse.Namespace) -> int:
         for key, opt, *_ in _UPDATE_OPTIONS:  # the option's name as the command line spells it
             problem = problem.replace(f"model_update.{key} ", f"{opt} ")
         raise PlannerError(problem)
-    field = resolve_field(args.data)
+    field = resolve_field(args.data, series=True)
     predictor = load_predictor(args.model, field)
     out_dir = Path(args.out)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -421,6 +421,8 @@ def run(args: argparse.Namespace) -> int:
     else:
         _print_table(table, window=summary["config"]["window"], trials=args.trials, unit=summary["config"]["rmse_unit"])
         print(f"figures: {', '.join(f.name for f in files)}")
+    for line in _trivial_lines(summary):  # the maps that do not beat no current / the forecast's time mean
+        print(line, file=sys.stderr if args.json else sys.stdout)
     print(f"results written to {out_dir}", file=sys.stderr if args.json else sys.stdout)
     return 0
 
@@ -482,6 +484,22 @@ def _campaign(args: argparse.Namespace, field, predictor, lengths: list[int]) ->
         command="passt-mav evaluate " + " ".join(sys.argv[2:]) if sys.argv[1:2] == ["evaluate"] else None,
     )
     return summary
+
+
+def _trivial_lines(summary: dict) -> list[str]:
+    """One line per path length naming the methods whose final-window RMSE does not beat the trivial maps
+    (results.json ``baselines``: no current, the time mean of the model alone; ``per_L.*.beats_trivial``)."""
+    base = summary.get("baselines") or {}
+    if not base:
+        return []
+    w = int(summary["config"]["window"])
+    fin = ", ".join(f"{k.removeprefix('rmse_')} {sum(v[-w:]) / len(v[-w:]):.4f}" for k, v in base.items() if v)
+    out = []
+    for L, per in summary["per_L"].items():
+        bad = [m for m, ok in (per.get("beats_trivial") or {}).items() if not ok]
+        if bad:
+            out.append(f"WARNING: L={L}: {', '.join(bad)} do(es) not beat the trivial maps (final-window RMSE {fin})")
+    return out
 
 
 def _print_table(table: dict, *, window: int, trials: int, unit: str) -> None:

@@ -208,6 +208,9 @@ def _summarise_trial(out: dict, m: str, r, truth, cfg: dict, trial: int) -> None
     }
     if cfg.get("keep_paths"):
         out.setdefault("paths", {})[m] = [leg["path"] for leg in r.legs]
+    cals = [leg["calibration"] for leg in r.legs if leg.get("calibration")]
+    if cals:  # the leg-end estimates' std against the truth (engine's calibration)
+        out.setdefault("calibration", {})[m] = {k: [c[k] for c in cals] for k in ("step", "coverage95", "nlpd")}
     recs = [leg["model_update"] for leg in r.legs if leg.get("model_update") is not None]
     if recs:  # learning at sea: legs tried (at least one gradient step), kept, steps and seconds in all
         out.setdefault("model_update", {})[m] = _update_counts(recs)
@@ -259,7 +262,13 @@ def _trial_setup(field, cfg: dict, L: int, trials) -> tuple:
         {"L": L, "trial": i, "start": list(st), "rmse": {}, "pod": {}, "snap": {}, "plan_ms": {}}
         for i, st in zip(trials, starts)
     ]
-    run = dict(t0=t0, n_steps=T, noise_std=cfg["noise"], sample_at=cfg.get("sampling", "end"))
+    run = dict(
+        t0=t0,
+        n_steps=T,
+        noise_std=cfg["noise"],
+        sample_at=cfg.get("sampling", "end"),
+        calibration=bool(cfg.get("calibration", False)),
+    )
     return truth, starts, seeds, outs, run
 
 
@@ -335,7 +344,10 @@ class CampaignOptions:
     prior's per-cell memory of past samples (:class:`passt_mav.loop.memory.CellMemory`; loops with a
     reward that uses the prior). gp_fit_points: the residual GPs' ``max_fit_points`` (samples a leg's
     hyper-parameter fit sees at most, >= 3). model_update: :class:`passt_mav.loop.online.ModelUpdate`
-    (learning at sea in every loop with the model; ``None`` = off; serial engine only). ``methods`` is kept as a list.
+    (learning at sea in every loop with the model; ``None`` = off; serial engine only). calibration: every
+    loop computes each leg's posterior std and the results carry, per method and leg-end step, the
+    estimate's ``coverage95`` and ``nlpd`` against the truth (:mod:`passt_mav.models.calibration`; the std's
+    solve costs GP time; off: no such keys). ``methods`` is kept as a list.
     """
 
     path_lengths: tuple = (25, 50, 75, 100, 150, 200)
@@ -372,6 +384,7 @@ class CampaignOptions:
     prior_forgetting: float = DEFAULT.forgetting
     guard: str = DEFAULT.guard
     model_update: object = None
+    calibration: bool = True
 
     def __post_init__(self) -> None:
         self.methods = list(self.methods)
@@ -445,6 +458,7 @@ def _campaign_cfg(o: CampaignOptions, steps: int) -> dict:
         prior_forgetting=float(o.prior_forgetting),
         guard=o.guard,
         model_update=None if o.model_update is None else o.model_update.record(),
+        calibration=bool(o.calibration),
     )
     return cfg
 
@@ -537,9 +551,11 @@ def _summarise(
         pure_rmse = _rmse_series(pure, truth)
         summary["pod_model"] = pod_energy(pure, pod_modes, cumulative=False).tolist()
         snaps["model"] = pure[min(cfg["snapshot_step"], steps)].tolist()
+    summary["baselines"] = _trivial_maps(truth, pure)
     for L in path_lengths:
         rs = [r for r in results if r["L"] == L]
         summary["per_L"][str(L)] = _per_length(rs, methods, pure_rmse, summary.get("pod_model"), w)
+        summary["per_L"][str(L)]["beats_trivial"] = _beats_trivial(summary["per_L"][str(L)], summary["baselines"], w)
         r0 = next(r for r in rs if r["trial"] == 0)
         snaps.update({f"{m}@L{L}": r0["snap"][m] for m in r0["snap"]})
     summary["_snapshots"] = snaps
@@ -573,6 +589,7 @@ def _per_length(rs: list[dict], methods, pure_rmse, pod_model, w: int) -> dict:
         fin = a[:, -w:].mean(1)
         per["final_rmse"][m] = float(fin.mean())
         per["final_rmse_std"][m] = float(fin.std())
+        _calibration_means(per, m, rs)
         counts = [r["model_update"][m] for r in rs if m in r.get("model_update", {})]
         if counts:  # learning at sea, summed over the trials
             per.setdefault("model_update", {})[m] = {k: sum(c[k] for c in counts) for k in counts[0]}
@@ -580,6 +597,45 @@ def _per_length(rs: list[dict], methods, pure_rmse, pod_model, w: int) -> dict:
         per["ratio_to_passt"] = {m: per["final_rmse"][m] / per["final_rmse"]["passt"] for m in methods}
     per["starts"] = [r["start"] for r in rs]
     return per
+
+
+def _calibration_means(per: dict, m: str, rs: list[dict]) -> None:
+    """Method ``m``'s calibration over its trials ``rs``, into ``per``: ``calibration_steps`` (leg-end steps),
+    ``coverage95_mean`` and ``nlpd_mean`` (mean over the trials that scored each step; None where none did)."""
+    import numpy as np
+
+    recs = [r["calibration"][m] for r in rs if m in r.get("calibration", {})]
+    if not recs:
+        return
+    steps = sorted({s for c in recs for s in c["step"]})
+    per.setdefault("calibration_steps", {})[m] = steps
+    for key in ("coverage95", "nlpd"):
+        cols = []
+        for st in steps:
+            vals = [c[key][c["step"].index(st)] for c in recs if st in c["step"]]
+            vals = [float(v) for v in vals if v is not None and np.isfinite(v)]
+            cols.append(float(np.mean(vals)) if vals else None)
+        per.setdefault(f"{key}_mean", {})[m] = cols
+
+
+def _trivial_maps(truth, pure) -> dict:
+    """RMSE over time (field units) of the trivial maps against ``truth`` (T+1, 2, R, C): ``rmse_zero`` (no
+    current) and, with the model alone ``pure``, ``rmse_forecast_mean`` (its time mean over the campaign)."""
+    import numpy as np
+
+    out = {"rmse_zero": _rmse_series(np.where(np.isfinite(truth), 0.0, np.nan), truth).tolist()}
+    if pure is not None:
+        fm = np.nanmean(np.asarray(pure, np.float64), axis=0)
+        out["rmse_forecast_mean"] = _rmse_series(np.broadcast_to(fm, truth.shape), truth).tolist()
+    return out
+
+
+def _beats_trivial(per: dict, baselines: dict, w: int) -> dict:
+    """Per method: whether its final-window RMSE is below every trivial map's over the same window."""
+    import numpy as np
+
+    fin = {k.removeprefix("rmse_"): float(np.mean(v[-w:])) for k, v in baselines.items()}
+    return {m: all(per["final_rmse"][m] < x for x in fin.values()) for m in per["final_rmse"]}
 
 
 def fleet_starts(field, seed: int, trial: int, L: int, n: int) -> list[tuple[int, int]]:

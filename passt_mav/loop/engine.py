@@ -199,6 +199,8 @@ class OfflineStep:
             :class:`~passt_mav.loop.passt.FieldSampler`; initial_state: (2, R, C), default the truth at t0.
         batched: the trials' forecasts in one predictor call and their boat-0 plans in one planning
             call per leg (lockstep), else one call per trial.
+        calibration: compute every leg's posterior std and record, in the leg's record, the estimate
+            scored against the truth (``calibration``: :meth:`_calibration`); the std's solve costs GP time.
     """
 
     def __init__(
@@ -214,14 +216,18 @@ class OfflineStep:
         sample_at: str = "end",
         initial_state=None,
         batched: bool = False,
+        calibration: bool = False,
     ):
         self.field, self.predictor, self.options, self.t0, self.batched = field, predictor, options, int(t0), batched
+        self.calibration = bool(calibration)
         self.land = field.land_mask
         self.starts = [[tuple(int(x) for x in c) for c in cells] for cells in starts]
         for cells in self.starts:
             if len(set(cells)) != len(cells):  # two boats on one cell from the start
                 raise PlannerError(f"fleet start cells must differ, got {cells}")
         self.loops = [options.loop(predictor, field.grid, land=self.land, seed=int(sd)) for sd in seeds]
+        for lp in self.loops:  # calibration: every leg's posterior std, scored against the truth
+            lp.keep_std = lp.keep_std or self.calibration
         if batched and self.loops[0].online is not None:  # one batched predictor call needs one predictor
             raise PlannerError("an online model update gives each trial its own model: use the serial engine")
         self.samplers = [
@@ -328,12 +334,28 @@ class OfflineStep:
                         "reward_collected": float(sum(path_reward(p.reward, p.path) for p in plans)),
                         "n_samples": len(samples),
                         **({} if lp.online is None else {"model_update": lp.online.record_}),
+                        **self._calibration(lp, k + S, S),
                     },
                     est,
                 )
             )
             self.starts[b] = [tuple(int(x) for x in p.path[-1]) for p in plans]
         return out
+
+    def _calibration(self, lp, step: int, S: int) -> dict:
+        """``{"calibration": ...}``: the leg's estimate (the state at ``step``) and its posterior std scored
+        against the truth there (:func:`passt_mav.models.calibration.calibration`: ``coverage95``, ``nlpd``,
+        ``z_rms``, ``n``, ``reliability``), with ``step``; empty without ``calibration`` or a std (a leg
+        cut short by the run's end keeps its forecast)."""
+        if not self.calibration or lp.std is None or S != self.options.steps_per_leg:
+            return {}
+        from passt_mav.models.calibration import calibration
+
+        idx = self.t0 + int(step)
+        if idx >= self.field.n_times:
+            return {}
+        cal = calibration(self.states[self.loops.index(lp)], lp.std, self.field.data[idx])
+        return {} if cal is None else {"calibration": {"step": int(step), **cal}}
 
 
 # -- the one entry point ----------------------------------------------------------------------------
@@ -351,6 +373,7 @@ def run_trials(
     initial_state=None,
     batched: bool = False,
     kernel_cache: dict | None = None,
+    calibration: bool = False,
 ) -> list[OfflineResult]:
     """PASST offline on ground truth ``field`` from snapshot ``t0`` for ``n_steps`` steps (clipped to the
     data): one :class:`~passt_mav.loop.passt.OfflineResult` per trial (``starts[b]``: its boats' start cells,
@@ -373,6 +396,7 @@ def run_trials(
         sample_at=sample_at,
         initial_state=initial_state,
         batched=batched,
+        calibration=calibration,
     )
     if batched:
         step.share_setup(n_steps, kernel_cache if kernel_cache is not None else {})

@@ -50,6 +50,13 @@ nugget). ``nugget="noise"`` is the reading before (everything above the
 sensor's variance is noise). (Cressie 1993, Statistics for Spatial Data, sec. 3.2.1: the nugget
 effect as micro-scale variation plus measurement error.)
 
+The map's std (``std_calibration="forward"``, the default): the posterior std of the residual is the
+GP correction's; the map's also carries the forecast's error that the samples cannot remove. With a
+background, :data:`BACKGROUND_UNRESOLVED` of its variance stays; and the std is widened when the leg's
+own later samples fall outside it more often than it says, or when the residuals grow over the leg
+(:meth:`GPReconstructor.forward_std_factor`, :func:`lead_growth`). Checked against the truth by
+:mod:`passt_mav.models.calibration` wherever the truth is known.
+
 Land / missing cells (NaN in the forecast, or ``mask`` False) stay NaN.
 """
 
@@ -67,6 +74,20 @@ _PRIORS = ("forecast", "none")
 _KERNELS = ("matern32", "matern52", "rbf")
 _SOLVERS = ("sklearn", "cholesky")
 _NUGGETS = ("state", "noise")
+_STD_CALIBRATIONS = ("forward", "off")
+#: ``std_calibration="forward"``: the latest share of a reconstruction's samples held out to check its std
+STD_HOLDOUT = 1.0 / 3.0
+#: ... done only with at least this many valid samples (a handful says nothing about a variance)
+STD_CHECK_MIN_SAMPLES = 12
+#: the most the std is widened by
+STD_INFLATION_MAX = 5.0
+#: the share of the background covariance's variance (factor x diag B, per cell) that stays in the map's
+#: std whatever the samples say: the modes are the model roll-out's variability, not the error's own
+#: structure, so samples that pin the modes' amplitudes leave an error off the modes' span (representation
+#: error) that the posterior would otherwise drop everywhere at once. Chosen on the default demo's legs
+#: (docs/trust-the-map.md, "A map that says how wrong it is"): without it two of five legs' 95 % intervals
+#: held 0.89 of the truth, with 0.25 0.93-0.96; 0.5 and above over-cover a leg whose factor is large
+BACKGROUND_UNRESOLVED = 0.25
 #: samples a hyper-parameter fit sees at most by default (``max_fit_points``; evenly spread along the track)
 MAX_FIT_POINTS = 60
 #: time length scales a space-time fit tries on its leg's own later samples besides the fitted one, in
@@ -77,6 +98,30 @@ SPACE_SCALE_FACTORS = (1.0, 0.5, 0.25)
 #: forward validation keeps other length scales only when they cut the later samples' squared error to
 #: below this share of the fitted ones' (a marginal gain on a handful of samples is noise)
 FORWARD_GAIN = 0.8
+
+
+def lead_growth(t, sq, t_map: float) -> float:
+    """How much larger the forecast's error variance is at the map's time ``t_map`` than on average over
+    the samples: ``sq`` (n,) the samples' squared residual against the forecast (mean over u, v) at times
+    ``t`` (n,); a line ``a + b (t - t_first)`` fitted to them by least squares (``b`` >= 0: a forecast's
+    error grows with its lead time, rarely shrinks), and the ratio of the line at ``t_map`` to its mean over
+    the samples (>= 1; 1 without a positive slope or a time spread). The residual GP's kernels are
+    stationary in time: they give the map the samples' average residual variance, too little when a stale
+    background drifts off over the leg (persistence, a model restarted from a poor state)."""
+    t = np.asarray(t, np.float64)
+    sq = np.asarray(sq, np.float64)
+    ok = np.isfinite(t) & np.isfinite(sq)
+    t, sq = t[ok], sq[ok]
+    if t.size < 3 or np.ptp(t) <= 0:
+        return 1.0
+    tau = t - t.min()
+    A = np.column_stack([np.ones_like(tau), tau])
+    (a, b), *_ = np.linalg.lstsq(A, sq, rcond=None)
+    mean_fit = float(np.mean(sq))  # = a + b mean(tau) for a least-squares line
+    if not (b > 0) or mean_fit <= 0:
+        return 1.0
+    at_map = a + b * (float(t_map) - float(t.min()))
+    return float(max(at_map / mean_fit, 1.0))
 
 
 class GPReconstructor:
@@ -142,10 +187,15 @@ class GPReconstructor:
 
         nugget: "state" (default) or "noise": what the fitted white variance above the sensor's
             ``noise_std**2`` is (see the module docstring).
+        std_calibration: "forward" (default) or "off": the std :meth:`reconstruct` returns is the map's
+            (with a background, :data:`BACKGROUND_UNRESOLVED` of its variance kept; widened when the leg's
+            later samples fall outside it more often than it says, or its residuals grow over the leg:
+            :meth:`forward_std_factor`), or "off" the GP posterior's alone.
 
     Learned state: ``kernels_`` (fitted kernel per component), ``nugget_var_`` (per component, the
     state part of the white variance: field units^2, 0 = none), ``cell_m_``,
-    ``n_inputs_`` (2 = space, 3 = space-time), ``background_scale_`` (the last factor chosen
+    ``n_inputs_`` (2 = space, 3 = space-time), ``std_inflation_`` (the factor the last std was
+    widened by, 1 = none; ``std_check_``: its record), ``background_scale_`` (the last factor chosen
     with a background and ``background_scale="ml"``), ``bias_var_`` (the last offset variance
     chosen with ``bias``; field units^2).
     """
@@ -171,9 +221,11 @@ class GPReconstructor:
         background_scale="ml",
         bias: bool = False,
         nugget: str = "state",
+        std_calibration: str = "forward",
     ):
         self.grid_xy = grid_xy
         self.nugget = nugget
+        self.std_calibration = std_calibration
         self.bias = bias
         self.background = background
         self.background_scale = background_scale
@@ -616,6 +668,109 @@ class GPReconstructor:
         only) the std is not computed and ``None`` is returned in its place (its triangular
         solve against every grid cell is most of a leg's GP time; only a std reward reads it).
         """
+        factor = 1.0
+        cal = getattr(self, "std_calibration", "off")
+        if cal not in _STD_CALIBRATIONS:
+            raise ReconstructionError(
+                f"unknown GP std_calibration {cal!r}; choose one of {', '.join(_STD_CALIBRATIONS)}"
+            )
+        if with_std and cal == "forward":
+            factor = self.forward_std_factor(
+                samples_xy,
+                samples_uv,
+                forecast,
+                forecast_at_samples=forecast_at_samples,
+                mask=mask,
+                samples_t=samples_t,
+                t=t,
+            )
+        mean, std = self._reconstruct(
+            samples_xy, samples_uv, forecast, forecast_at_samples, mask, samples_t, t, with_std
+        )
+        if std is not None and cal == "forward" and self.background is not None and BACKGROUND_UNRESOLVED > 0:
+            X, _ = self.grid_coords()
+            Bg = self.background_modes(X.shape)
+            bvar = self.background_factor() * np.sum(Bg**2, axis=0).reshape((2,) + X.shape)
+            std = np.sqrt(np.square(std, dtype=np.float64) + BACKGROUND_UNRESOLVED * bvar).astype(np.float32)
+        if std is not None and factor != 1.0:
+            std = (std * np.float32(factor)).astype(np.float32)
+        return mean, std
+
+    def forward_std_factor(
+        self, samples_xy, samples_uv, forecast=None, *, forecast_at_samples=None, mask=None, samples_t=None, t=None
+    ) -> float:
+        """The factor (>= 1) :meth:`reconstruct` widens its std by: the map's std checked against data it has.
+
+        The latest :data:`STD_HOLDOUT` of the samples (by time; by order without times) are held out; the
+        earlier ones reconstruct the field, at the held-out samples' median time, with the kernels as they
+        stand; each held-out residual (sample minus prior) is then compared with the predicted residual at
+        its cell, in units of the predicted std there (which carries the sensor noise and the state nugget:
+        the std of one sample). The RMS of those standardised errors ``z_rms`` is ~1 when the std is right;
+        above 1 the GP is overconfident where it extrapolates (a nugget or background that its
+        samples had collapsed, a time scale too long, a forecast error larger away from the samples) and the
+        factor is ``z_rms``; below 1 the std is left alone (a std the check finds too wide is not narrowed on
+        a few dozen samples). With a forecast prior and sample times, the factor is at least the square root
+        of :func:`lead_growth` (the residuals' variance growing over the leg, extrapolated to the map's time
+        ``t``). At most :data:`STD_INFLATION_MAX`. Never reads the truth. 1 with fewer than
+        :data:`STD_CHECK_MIN_SAMPLES` valid samples or when the check cannot be computed. Records
+        ``std_inflation_`` and ``std_check_`` (``z_rms``, ``n`` held-out samples, ``lead_growth``)."""
+        self.std_inflation_, self.std_check_ = 1.0, None
+        X, Y = self.grid_coords()
+        try:
+            fc, _, f_at = self._prior_mean(samples_xy, forecast, forecast_at_samples, mask)
+            if not hasattr(self, "kernels_"):
+                self.fit(samples_xy, samples_uv, f_at, samples_t=samples_t)
+            xy = np.asarray(samples_xy, np.float64).reshape(-1, 2)
+            uv = np.asarray(samples_uv, np.float64).reshape(-1, 2)
+            fa = None if f_at is None else np.asarray(f_at, np.float64).reshape(-1, 2)
+            use_t = getattr(self, "n_inputs_", 2) == 3 and samples_t is not None and t is not None
+            st = None if samples_t is None else np.asarray(samples_t, np.float64).reshape(-1)
+            ok = np.isfinite(xy).all(1) & np.isfinite(uv).all(1)
+            if fa is not None:
+                ok &= np.isfinite(fa).all(1)
+            if st is not None:
+                ok &= np.isfinite(st)
+            idx = np.flatnonzero(ok)
+            if idx.size < STD_CHECK_MIN_SAMPLES:
+                return 1.0
+            if st is not None:
+                idx = idx[np.argsort(st[idx], kind="stable")]
+            n_late = max(int(np.ceil(idx.size * STD_HOLDOUT)), 2)
+            early, late = idx[:-n_late], idx[-n_late:]
+            t_q = float(np.median(st[late])) if use_t else t
+            mean, std = self._reconstruct(
+                xy[early],
+                uv[early],
+                forecast,
+                None if fa is None else fa[early],
+                mask,
+                st[early] if use_t else None,
+                t_q,
+                True,
+            )
+        except (ReconstructionError, np.linalg.LinAlgError, ValueError):
+            return 1.0
+        cells = self._nearest_cells(xy[late], X, Y)
+        pred = mean.reshape(2, -1)[:, cells].T.astype(np.float64)
+        sd = std.reshape(2, -1)[:, cells].T.astype(np.float64)
+        obs = uv[late]
+        if self.prior == "forecast":  # residuals: the held-out samples against their own forecast
+            pred = pred - fc.reshape(2, -1)[:, cells].T
+            obs = obs - fa[late]
+        z = (obs - pred) / sd
+        z = z[np.isfinite(z) & (sd > 0)]
+        if z.size < 2:
+            return 1.0
+        zr = float(np.sqrt(np.mean(z**2)))
+        growth = 1.0
+        if self.prior == "forecast" and use_t:
+            growth = lead_growth(st[idx], np.sum((uv[idx] - fa[idx]) ** 2, axis=1) / 2.0, float(t))
+        self.std_check_ = {"z_rms": zr, "n": int(n_late), "lead_growth": growth}
+        self.std_inflation_ = float(min(max(zr, np.sqrt(growth), 1.0), STD_INFLATION_MAX))
+        return self.std_inflation_
+
+    def _reconstruct(self, samples_xy, samples_uv, forecast, forecast_at_samples, mask, samples_t, t, with_std):
+        """:meth:`reconstruct` without the std's forward check."""
         X, Y = self.grid_coords()
         fc, land, forecast_at_samples = self._prior_mean(samples_xy, forecast, forecast_at_samples, mask)
         if not hasattr(self, "kernels_"):
