@@ -81,9 +81,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
     i = sub.add_parser(
         "import",
-        help="regrid a real model/radar file (HYCOM, RTOFS, Copernicus, HF radar) to a region grid",
+        help="regrid a real model/radar file (HYCOM, RTOFS, Copernicus, ROMS, NEMO, HF radar) to a region grid",
         description="Read surface currents from an ocean-model or HF-radar NetCDF file, convert units "
         "to m/s, pick the surface, select the time window and regrid bilinearly to a region grid. "
+        "Projected (CF grid_mapping: polar stereographic, Lambert, rotated pole, Mercator, ...) and "
+        "curvilinear (2-D latitude/longitude, ROMS C grid) sources are read too: velocities along the "
+        "grid's x/y axes are rotated to east/north and regridded linearly on triangles of the source nodes. "
         "Cells without data stay NaN (masked).",
     )
     i.add_argument("file", help="source NetCDF file")
@@ -194,8 +197,12 @@ def run(args: argparse.Namespace) -> int:
 
 # -- handlers -------------------------------------------------------------------
 def _run_ocean(args) -> int:
+    import geo
+    from passt_mav.fields.checks import check_size
     from passt_mav.fields.ocean import make_ocean_default
 
+    if args.hours > 0:  # a time axis too large for memory: its size and the limit, before any work
+        check_size((args.hours, 2, geo.NORTH_ATLANTIC["rows"], geo.NORTH_ATLANTIC["cols"]), f"--hours {args.hours}")
     f = make_ocean_default(seed=args.seed, hours=args.hours)
     f.attrs["command"] = f"passt-mav data ocean --seed {args.seed} --hours {args.hours}"
     path = f.to_netcdf(args.out)
@@ -228,6 +235,9 @@ def parse_region(text: str, grid_text: str):
         rows, cols = (int(x) for x in grid_text.lower().split("x"))
     except ValueError:
         raise UserError(f"--grid must look like ROWSxCOLS (e.g. 30x30), got {grid_text!r}") from None
+    from passt_mav.fields.checks import check_grid_cells
+
+    check_grid_cells(rows, cols, f"--grid {grid_text}")  # before anything is read: say the size and the limit
     name = text.strip().lower()
     if name == "north_atlantic":
         d = dict(geo.NORTH_ATLANTIC)
@@ -244,9 +254,12 @@ def _run_import(args) -> int:
     import sys
 
     from passt_mav.errors import UserError
+    from passt_mav.fields.checks import check_field, check_size
     from passt_mav.fields.importers import coverage_check, coverage_report, import_currents, speed_check
 
     grid = parse_region(args.region, args.grid)
+    if args.hours is not None and args.hours > 0:  # the longest time axis the window can hold, before reading
+        check_size((args.hours, 2, grid.rows, grid.cols), f"--hours {args.hours}")
     variables = None
     if args.variables:
         variables = tuple(x.strip() for x in args.variables.split(","))
@@ -266,6 +279,7 @@ def _run_import(args) -> int:
         problem, units = fast
         hint = f"{units}? use --units {units}" if units else "check the file's values and units (--units)"
         raise UserError(f"{args.file}: {problem}; {hint} (or --allow-fast to import them as they are)")
+    check_field(f, str(args.file))  # what every door refuses (no data, infinite values, absurd speeds)
     path = f.to_netcdf(args.out)
     rep = coverage_report(f)
     low = coverage_check(f)
@@ -356,7 +370,7 @@ def field_info(f, n_modes: int = 5) -> dict:
         except ValueError as exc:  # no cell valid at every time
             pod = {"error": str(exc)}
     info["pod_energy"] = pod
-    for k in ("generator", "seed", "source_file", "title", "command"):
+    for k in ("generator", "seed", "source_file", "source_grid", "rotation", "title", "command"):
         if k in f.attrs:
             info[k] = f.attrs[k]
     return info
@@ -368,7 +382,7 @@ def _run_info(args) -> int:
 
     if args.modes < 1:
         raise UserError(f"--modes must be >= 1, got {args.modes}")
-    f = resolve_field(args.file)
+    f = resolve_field(args.file, check=False)  # look at any field file
     info = field_info(f, args.modes)
     info = {"file": str(args.file), **info}
     if args.json:
@@ -412,7 +426,7 @@ def _run_info(args) -> int:
         )
     elif pod:
         print(f"POD energy  n/a ({pod['error']})")
-    for k in ("generator", "seed", "source_file", "command"):
+    for k in ("generator", "seed", "source_file", "source_grid", "rotation", "command"):
         if k in info:
             print(f"{k:<11} {info[k]}")
     return 0
@@ -422,7 +436,7 @@ def _run_show(args) -> int:
     from passt_mav.fields.datasets import resolve_field
     from passt_mav.fields.plotting import plot_snapshot
 
-    f = resolve_field(args.file)
+    f = resolve_field(args.file, check=False)  # look at any field file
     path = plot_snapshot(f, args.time, args.out)
     print(f"wrote {path}")
     return 0

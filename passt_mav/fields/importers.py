@@ -9,9 +9,19 @@ coordinate attributes, not from the product name):
 * HF radar (e.g. MARACOOS totals): ``u``/``v`` in cm/s with NaN gaps and a
   length-1 ``z`` or ``depth`` dimension;
 * anything else whose velocity variables carry the CF standard names
-  ``(surface_)eastward_sea_water_velocity`` / ``northward_...`` as their
-  ``standard_name`` attribute or as their variable name, or whose names are
+  ``(surface_)eastward_sea_water_velocity`` / ``northward_...`` (or the grid-relative
+  ``sea_water_x_velocity`` / ``sea_water_y_velocity``) as their ``standard_name``
+  attribute or as their variable name (found with cf-xarray), or whose names are
   given explicitly with ``variables=(u_name, v_name)``.
+
+Source grids: rectilinear latitude/longitude (1-D axes, or 2-D ones that are separable);
+CF projected grids (a ``grid_mapping`` variable that pyproj reads: polar stereographic,
+Lambert conformal, rotated pole, Mercator, ...; 1-D projection x/y axes in m or km, or
+degrees for a rotated pole; positions from the file's 2-D latitude/longitude or else the
+projection); curvilinear 2-D latitude/longitude (NEMO ``nav_lat``/``nav_lon``, ...); and
+ROMS's C grid (``u`` on ``eta_u``/``xi_u`` and ``v`` on ``eta_v``/``xi_v``, averaged to the
+``lat_rho``/``lon_rho`` points; ``mask_rho``/``mask_u``/``mask_v`` = 0 is land, NaN,
+whatever value the file holds there). Unstructured meshes (FVCOM, SCHISM, ADCIRC) are refused.
 
 What :func:`import_currents` does, in order:
 
@@ -45,6 +55,22 @@ What :func:`import_currents` does, in order:
    ignored and the rest renormalised, so grids that coincide with the source
    nodes reproduce them exactly. Cells outside the file's extent are NaN too.
    NaN is never turned into a current.
+
+   **Projected and curvilinear sources** (:mod:`passt_mav.fields.curvilinear`): velocities along
+   the grid's x/y axes (CF ``sea_water_x/y_velocity``; ROMS ``u``/``v``) are first rotated to
+   east/north at each source node, ``u_east = ux cos(a) - uy sin(a)``, ``v_north = ux sin(a) +
+   uy cos(a)``, with ``a`` the angle of the grid's x axis counter-clockwise from east: ROMS's
+   ``angle`` variable; else, with a grid mapping, the direction of a short step along x
+   projected back to latitude/longitude with pyproj; else the direction between x neighbours of
+   the 2-D latitude/longitude. Grids whose axes are more than 1 deg from perpendicular on the
+   ground are refused (grid-relative components would be ambiguous), and so are velocities on
+   such grids whose direction the file does not give (no standard name, no ROMS layout). The
+   nodes of the window around the region and the target's cell centres are projected to the
+   target's local metric frame and triangulated (Delaunay); each cell takes the linear
+   (barycentric) value of its triangle with the same missing-node rule as the bilinear stencils,
+   and cells outside the nodes, or in a triangle longer than the source cells (across a gap or
+   a concave boundary), are NaN. ``attrs["source_grid"]`` and ``attrs["rotation"]`` say what
+   was read and how it was rotated.
 
 The coverage of the result (fraction of cells with data) is in
 ``field.attrs["coverage"]`` and :func:`coverage_report`.
@@ -90,16 +116,30 @@ V_NAMES = ("water_v", "vo", "v", "v_velocity", "vgos", "vcur", "V", "north_vel",
 _U_STD = (
     "eastward_sea_water_velocity",
     "surface_eastward_sea_water_velocity",
-    "sea_water_x_velocity",
     "baroclinic_eastward_sea_water_velocity",
     "eastward_sea_water_velocity_assuming_no_tide",
 )
 _V_STD = (
     "northward_sea_water_velocity",
     "surface_northward_sea_water_velocity",
-    "sea_water_y_velocity",
     "baroclinic_northward_sea_water_velocity",
     "northward_sea_water_velocity_assuming_no_tide",
+)
+#: grid-relative components (along the grid's x/y axes; ROMS writes the ``_at_u/v_location`` forms),
+#: rotated to east/north on projected and curvilinear grids (module docstring, step 5)
+_X_STD = (
+    "sea_water_x_velocity",
+    "x_sea_water_velocity",
+    "surface_sea_water_x_velocity",
+    "sea_water_x_velocity_at_u_location",
+    "barotropic_sea_water_x_velocity",
+)
+_Y_STD = (
+    "sea_water_y_velocity",
+    "y_sea_water_velocity",
+    "surface_sea_water_y_velocity",
+    "sea_water_y_velocity_at_v_location",
+    "barotropic_sea_water_y_velocity",
 )
 _LAT_NAMES = ("lat", "latitude", "Latitude", "LATITUDE", "nav_lat", "lat_rho")
 _LON_NAMES = ("lon", "longitude", "Longitude", "LONGITUDE", "nav_lon", "lon_rho")
@@ -176,12 +216,20 @@ def _find_velocity(ds, variables) -> tuple[str, str]:
             if name not in ds.variables:
                 raise FieldError(f"variable {name!r} not in file (has: {', '.join(map(str, ds.data_vars))})")
         return str(variables[0]), str(variables[1])
-    by_std = {str(ds[k].attrs.get("standard_name", "")): str(k) for k in ds.data_vars}
+    import cf_xarray  # noqa: F401 - registers the Dataset.cf accessor
+
+    by_std: dict[str, str] = {}
+    for std, names in ds.cf.standard_names.items():
+        data = [str(n) for n in names if n in ds.data_vars]
+        if data:
+            by_std[str(std)] = data[0]
     # a CF standard name used as the variable's name (no standard_name attribute) counts too;
     # an attribute wins when both exist
     for k in ds.data_vars:
         by_std.setdefault(str(k), str(k))
-    for su, sv in zip(_U_STD, _V_STD):
+    # east/north pairs first: a ROMS file holding both u/v (grid x/y) and u_eastward/v_northward
+    # gives the geographic pair, which needs no rotation
+    for su, sv in zip(_U_STD + _X_STD, _V_STD + _Y_STD):
         if su in by_std and sv in by_std:
             return by_std[su], by_std[sv]
     for nu, nv in zip(U_NAMES, V_NAMES):
@@ -211,8 +259,23 @@ def _is_lon(name: str, var) -> bool:
     )
 
 
-def _horizontal(ds, u) -> tuple[str, str, np.ndarray, np.ndarray]:
-    """(lat_dim, lon_dim, lat_1d, lon_1d) for the velocity variable ``u``."""
+def _velocity_frame(u, v) -> str | None:
+    """``"geographic"`` when ``u``/``v`` are eastward/northward by their CF standard name (attribute,
+    or the variable's name), ``"grid"`` when they are along the grid's x/y axes, None when the file
+    does not say (names such as ``u``/``v`` alone)."""
+    for std in (str(u.attrs.get("standard_name", "")), str(u.name)):
+        if std in _U_STD:
+            return "geographic"
+        if std in _X_STD:
+            return "grid"
+    return None
+
+
+def _horizontal(ds, u) -> tuple[str, str, np.ndarray, np.ndarray] | None:
+    """(lat_dim, lon_dim, lat_1d, lon_1d) for the velocity variable ``u`` on a rectilinear
+    latitude/longitude grid (1-D axes, or 2-D ones that are separable); None for a grid that is
+    not (2-D latitude/longitude that vary along both axes, or projection x/y coordinates with a
+    CF ``grid_mapping`` and no latitude/longitude), read by :func:`_read_curvilinear`."""
     lat_var = lon_var = None
     for name in list(u.coords) + list(ds.variables):
         var = ds[name]
@@ -221,8 +284,15 @@ def _horizontal(ds, u) -> tuple[str, str, np.ndarray, np.ndarray]:
         if lon_var is None and _is_lon(str(name), var) and set(var.dims) <= set(u.dims) and var.ndim in (1, 2):
             lon_var = var
     if lat_var is None or lon_var is None:
+        if "grid_mapping" in u.attrs or "grid_mapping" in u.encoding:
+            return None  # a CF projected grid: positions come from its grid mapping
         raise FieldError(f"cannot find latitude/longitude coordinates of {u.name!r} (dims {u.dims})")
     if lat_var.ndim == 1 and lon_var.ndim == 1:
+        if lat_var.dims == lon_var.dims:
+            raise FieldError(
+                f"{u.name!r} is on an unstructured mesh (latitude and longitude both along {lat_var.dims[0]!r}, "
+                "as FVCOM, SCHISM or ADCIRC write): only structured grids (rectilinear, projected, curvilinear) are read"
+            )
         return lat_var.dims[0], lon_var.dims[0], lat_var.values.astype(float), lon_var.values.astype(float)
     # 2-D lat/lon (RTOFS, NEMO): usable when separable, i.e. a rectilinear grid stored as 2-D
     if lat_var.dims != lon_var.dims or lat_var.ndim != 2:
@@ -233,7 +303,7 @@ def _horizontal(ds, u) -> tuple[str, str, np.ndarray, np.ndarray]:
         return ydim, xdim, la[:, 0], lo[0, :]
     if np.allclose(la, la[:1, :], atol=1e-6) and np.allclose(lo, lo[:, :1], atol=1e-6):
         return xdim, ydim, la[0, :], lo[:, 0]
-    raise FieldError("curvilinear source grids (2-D latitude/longitude that are not separable) are not supported")
+    return None  # curvilinear
 
 
 def _time_dim(ds, u) -> str | None:
@@ -331,7 +401,7 @@ def import_currents(path, grid, *, start=None, hours=None, variables=None, units
     path = Path(path)
     with _open_currents(path) as ds:
         src = _read_surface_currents(ds, path.name, grid, start, hours, variables, units)
-    data = _regrid_bilinear(src.values, src.window, grid)
+    data = src.window.regrid(src.values, grid)
     origin = str(src.times[0].astype("datetime64[s]")) + "Z"
     times = (src.times - src.times[0]).astype("timedelta64[ms]").astype(np.float64) / 1000.0
     attrs: dict[str, Any] = {
@@ -345,7 +415,9 @@ def import_currents(path, grid, *, start=None, hours=None, variables=None, units
         "time_selection": src.time_note,
         "start": None if start is None else str(start),
         "hours": None if hours is None else int(hours),
-        "regrid": "bilinear (scipy RegularGridInterpolator); stencils touching missing nodes stay NaN",
+        "source_grid": src.source_grid,
+        "rotation": src.rotation,
+        "regrid": src.window.method,
         "edges": src.window.edges_note(),
         "undeclared_fill_values": src.n_fill,
     }
@@ -370,6 +442,8 @@ class _SurfaceCurrents:
     time_note: str
     n_fill: int
     attrs: dict[str, str]
+    source_grid: str
+    rotation: str
 
 
 def _read_surface_currents(ds, name: str, grid, start, hours, variables, units) -> _SurfaceCurrents:
@@ -377,10 +451,11 @@ def _read_surface_currents(ds, name: str, grid, start, hours, variables, units) 
     region and the time window ``start``/``hours``; see :func:`import_currents` for the options."""
     u_name, v_name = _find_velocity(ds, variables)
     u, v = ds[u_name], ds[v_name]
-    if u.dims != v.dims:
-        raise FieldError(f"{u_name} and {v_name} have different dimensions {u.dims} vs {v.dims}")
     su, sv = _velocity_scales(u, v, units, f"{name} ({u_name}/{v_name})")
-    lat_dim, lon_dim, lat, lon = _horizontal(ds, u)
+    horizontal = _horizontal(ds, u) if u.dims == v.dims else None
+    if horizontal is None:  # projected, curvilinear or ROMS C grid (module docstring, step 5)
+        return _read_curvilinear(ds, name, grid, start, hours, u, v, (su, sv))
+    lat_dim, lon_dim, lat, lon = horizontal
     tdim = _time_dim(ds, u)
     isel, depth_used = _surface_selection(ds, u, u_name, (lat_dim, lon_dim, tdim))
     t64 = _source_times(ds, u, u_name, tdim)
@@ -402,8 +477,20 @@ def _read_surface_currents(ds, name: str, grid, start, hours, variables, units) 
         depth_m=depth_used,
         time_note=time_note,
         n_fill=fill_u + fill_v,
-        attrs={k: str(v_) for k, v_ in ds.attrs.items() if k in ("title", "institution", "source", "product_id")},
+        attrs=_descriptive_attrs(ds),
+        source_grid="rectilinear latitude/longitude",
+        rotation="none ("
+        + (
+            "x/y components of a latitude/longitude grid are east/north"
+            if _velocity_frame(u, v) == "grid"
+            else "eastward/northward components"
+        )
+        + ")",
     )
+
+
+def _descriptive_attrs(ds) -> dict[str, str]:
+    return {k: str(v_) for k, v_ in ds.attrs.items() if k in ("title", "institution", "source", "product_id")}
 
 
 def _open_currents(path: Path):
@@ -510,6 +597,12 @@ class _RegionWindow:
             )
         return cls(lat_order[i0:i1], lon_order[j0:j1], lat_s[i0:i1], lon_s[j0:j1], glat, glon, lat_note, lon_note)
 
+    method = "bilinear (scipy RegularGridInterpolator); stencils touching missing nodes stay NaN"
+
+    def regrid(self, values: np.ndarray, grid) -> np.ndarray:
+        """``values`` ``(T, nlat, nlon, 2)`` on the window's nodes -> ``(T, 2, rows, cols)`` on ``grid``."""
+        return _regrid_bilinear(values, self, grid)
+
     def edges_note(self) -> str:
         """The ``edges`` attribute: the adjustments of the target centres, or ``"no edge adjustment"``."""
         return "; ".join(f"{ax}: {x}" for ax, x in (("lat", self.lat_note), ("lon", self.lon_note)) if x) or (
@@ -600,6 +693,329 @@ def _align_to_nodes(x: np.ndarray, nodes: np.ndarray) -> tuple[np.ndarray, str]:
         return x, ""
     why = "the target matches the file's nodes within half a cell" if dev < 0.5 else "coordinate rounding"
     return x, f"edge centres up to {' and '.join(moved)} the file's outer nodes taken as on them ({why})"
+
+
+# -- projected and curvilinear source grids (module docstring, step 5) -------------------------
+#: ROMS Arakawa C grid: u on (eta_u, xi_u), v on (eta_v, xi_v), positions and ``angle`` on (eta_rho, xi_rho)
+_ROMS_U_DIMS = ("eta_u", "xi_u")
+_ROMS_V_DIMS = ("eta_v", "xi_v")
+_ROMS_RHO_DIMS = ("eta_rho", "xi_rho")
+#: metres per unit of CF projection coordinates
+_LENGTH_UNITS = {"m": 1.0, "meter": 1.0, "meters": 1.0, "metre": 1.0, "metres": 1.0, "km": 1000.0}
+_LENGTH_UNITS.update(kilometer=1000.0, kilometers=1000.0, kilometre=1000.0, kilometres=1000.0)
+
+
+@dataclass(frozen=True)
+class _NodeGrid:
+    """Where a non-rectilinear file's velocity nodes are: ``lat``/``lon`` ``(ny, nx)`` degrees on the
+    dimensions ``ydim``/``xdim`` (x along the last axis), and what gives their grid angle: ROMS's
+    ``angle`` (radians, XI axis from east) or a grid mapping's ``crs`` with the nodes' projection
+    coordinates ``px``/``py`` (the CRS's units), or neither (the angle comes from lat/lon)."""
+
+    ydim: str
+    xdim: str
+    lat: np.ndarray
+    lon: np.ndarray
+    description: str
+    angle: np.ndarray | None = None
+    crs: Any = None
+    crs_name: str = ""
+    px: np.ndarray | None = None
+    py: np.ndarray | None = None
+
+
+@dataclass(frozen=True)
+class _ScatteredWindow:
+    """The box ``rows`` x ``cols`` of a curvilinear file's nodes around the target region, with their
+    positions ``lat``/``lon`` (degrees); regridded by :func:`passt_mav.fields.curvilinear.regrid_scattered`."""
+
+    rows: np.ndarray
+    cols: np.ndarray
+    lat: np.ndarray
+    lon: np.ndarray
+
+    method = (
+        "linear on a Delaunay triangulation of the source nodes in the target's local metric frame "
+        "(scipy LinearNDInterpolator); triangles touching missing nodes or longer than the source cells stay NaN"
+    )
+
+    def regrid(self, values: np.ndarray, grid) -> np.ndarray:
+        """``values`` ``(T, ny, nx, 2)`` east/north m/s on the window's nodes -> ``(T, 2, rows, cols)``."""
+        from passt_mav.fields.curvilinear import regrid_scattered
+
+        data, _ = regrid_scattered(self.lat, self.lon, values, grid)
+        return data
+
+    def edges_note(self) -> str:
+        return "not applicable (curvilinear source: cells outside its nodes' triangles are NaN)"
+
+
+def _roms_cgrid(ds, u, v) -> bool:
+    """Whether ``u``/``v`` are ROMS C-grid velocities (u at xi_u/eta_u, v at xi_v/eta_v)."""
+    return set(_ROMS_U_DIMS) <= set(u.dims) and set(_ROMS_V_DIMS) <= set(v.dims) and set(_ROMS_RHO_DIMS) <= set(ds.dims)
+
+
+def _latlon_on(ds, dims: tuple) -> tuple[Any, Any] | tuple[None, None]:
+    """The file's latitude and longitude variables on exactly ``dims`` (2-D), or ``(None, None)``."""
+    lat = next((ds[k] for k in ds.variables if ds[k].dims == dims and _is_lat(str(k), ds[k])), None)
+    lon = next((ds[k] for k in ds.variables if ds[k].dims == dims and _is_lon(str(k), ds[k])), None)
+    return (lat, lon) if lat is not None and lon is not None else (None, None)
+
+
+def _node_grid(ds, u, cgrid: bool, where: str) -> _NodeGrid:
+    """The node positions and angle sources of a non-rectilinear file (see :class:`_NodeGrid`)."""
+    import cf_xarray  # noqa: F401 - registers the .cf accessors
+
+    if cgrid:
+        lat, lon = _latlon_on(ds, _ROMS_RHO_DIMS)
+        if lat is None:
+            raise FieldError(f"{where}: a ROMS C grid without lat_rho/lon_rho on {'/'.join(_ROMS_RHO_DIMS)}")
+        ydim, xdim = _ROMS_RHO_DIMS
+        desc = f"ROMS C grid: {u.name} at xi_u/eta_u and v at xi_v/eta_v averaged to rho points ({lat.name}/{lon.name})"
+    else:
+        lat = lon = None
+        for k in list(u.coords) + list(ds.variables):
+            var = ds[k]
+            if var.ndim == 2 and set(var.dims) <= set(u.dims) and _is_lat(str(k), var):
+                lat, lon = _latlon_on(ds, var.dims)
+                if lat is not None:
+                    break
+        ydim = xdim = None
+        desc = ""
+        if lat is not None:
+            ydim, xdim = (str(d) for d in lat.dims)
+            desc = f"curvilinear 2-D latitude/longitude ({lat.name}/{lon.name})"
+    gm = _grid_mapping(ds, u, where)
+    crs = px = py = None
+    crs_name = ""
+    if gm is not None:
+        crs, crs_name = gm.crs, str(gm.name)
+        px, py, pdims = _projection_xy(ds, u, crs, where)
+        if px is not None:
+            if ydim is None or {ydim, xdim} == set(pdims):
+                ydim, xdim = pdims
+            else:
+                px = py = None  # projection axes that are not the lat/lon's: angles from lat/lon
+        desc = (desc + "; " if desc else "") + f"CF grid_mapping {crs_name} ({gm.array.name})"
+    if ydim is None:
+        raise FieldError(
+            f"{where}: cannot find the positions of {u.name!r} (dims {u.dims}): no 1-D or 2-D latitude/longitude "
+            "and no CF grid_mapping with projection_x/y_coordinate axes"
+        )
+    if lat is None:
+        from pyproj import Transformer
+
+        lon_v, lat_v = Transformer.from_crs(crs, "EPSG:4326", always_xy=True).transform(px, py)
+        lat_a, lon_a = np.asarray(lat_v, float), np.asarray(lon_v, float)
+        desc += ": latitude/longitude computed from the projection"
+    else:
+        # the projection axes say which dimension is x; 2-D latitude/longitude alone are taken as
+        # (y, x), the order ROMS and NEMO write
+        lat_a = lat.transpose(ydim, xdim).values.astype(float)
+        lon_a = lon.transpose(ydim, xdim).values.astype(float)
+    angle = None
+    if "angle" in ds.variables and ds["angle"].dims == (ydim, xdim):
+        a = ds["angle"]
+        angle = a.values.astype(float)
+        if "deg" in str(a.attrs.get("units", "radians")).lower():
+            angle = np.deg2rad(angle)
+    return _NodeGrid(str(ydim), str(xdim), lat_a, lon_a, desc, angle, crs, crs_name, px, py)
+
+
+def _grid_mapping(ds, u, where: str):
+    """The cf-xarray ``GridMapping`` (``.crs`` a pyproj CRS, ``.name``, ``.array``) of ``u``, or None;
+    a grid mapping pyproj cannot read is a :class:`FieldError`."""
+    if "grid_mapping" not in u.attrs and "grid_mapping" not in u.encoding:
+        return None
+    try:
+        gms = ds.cf[str(u.name)].cf.grid_mappings
+    except Exception as exc:  # noqa: BLE001 - cf-xarray/pyproj reading the grid mapping: a bad mapping in the file
+        raise FieldError(f"{where}: cannot read the grid_mapping of {u.name!r}: {str(exc).splitlines()[0]}") from None
+    if not gms:
+        return None
+    if len(gms) > 1:
+        raise FieldError(f"{where}: {u.name!r} has {len(gms)} grid mappings; expected one")
+    if gms[0].crs is None:
+        raise FieldError(f"{where}: pyproj cannot read the grid_mapping {gms[0].name!r} of {u.name!r}")
+    return gms[0]
+
+
+def _projection_xy(ds, u, crs, where: str):
+    """``(px, py, (ydim, xdim))``: the 2-D projection coordinates of ``u``'s nodes in ``crs``'s units
+    (metres for a projected CRS, converted from the file's ``km``; degrees for a rotated pole), from
+    its 1-D CF X/Y axes; ``(None, None, None)`` when it has none."""
+    da = ds.cf[str(u.name)]
+    axes = da.cf.axes
+    xs = [k for k in axes.get("X", []) if ds[k].ndim == 1 and ds[k].dims[0] in u.dims]
+    ys = [k for k in axes.get("Y", []) if ds[k].ndim == 1 and ds[k].dims[0] in u.dims]
+    if not xs or not ys:
+        return None, None, None
+    x, y = ds[xs[0]], ds[ys[0]]
+    f = 1.0
+    if crs.is_projected:
+        unit = str(x.attrs.get("units", "m")).strip().lower()
+        if unit not in _LENGTH_UNITS:
+            raise FieldError(f"{where}: projection coordinate {x.name!r} has units {unit!r} (expected m or km)")
+        f = _LENGTH_UNITS[unit] / float(crs.axis_info[0].unit_conversion_factor or 1.0)
+    PX, PY = np.meshgrid(x.values.astype(float) * f, y.values.astype(float) * f)
+    return PX, PY, (str(y.dims[0]), str(x.dims[0]))
+
+
+def _node_window(lat: np.ndarray, lon: np.ndarray, grid, where: str) -> tuple[np.ndarray, np.ndarray]:
+    """``(rows, cols)``: the index box of the file's nodes that covers ``grid``'s cell centres with a
+    margin of two source cells (positions in the target's local metric frame); a region that no
+    node reaches is a :class:`FieldError`."""
+    X, Y = grid.latlon_to_xy(lat, lon)
+    X, Y = np.asarray(X, float), np.asarray(Y, float)
+    fin = np.isfinite(X) & np.isfinite(Y)
+    gx, gy = grid.centres_xy()
+    box = (float(np.min(gx)), float(np.max(gx)), float(np.min(gy)), float(np.max(gy)))
+
+    def near(margin: float) -> np.ndarray:
+        with np.errstate(invalid="ignore"):
+            return (
+                fin & (X >= box[0] - margin) & (X <= box[1] + margin) & (Y >= box[2] - margin) & (Y <= box[3] + margin)
+            )
+
+    steps = [np.hypot(np.diff(X, axis=a), np.diff(Y, axis=a)) for a in (0, 1)]
+    typical = max(float(np.nanmedian(s)) if np.isfinite(s).any() else 0.0 for s in steps)
+    cand = near(4.0 * typical)
+    # the margin: two of the largest source steps among the nodes near the region
+    local = [s[cand[1:] if a == 0 else cand[:, 1:]] for a, s in enumerate(steps)]
+    local_max = max((float(np.nanmax(s)) for s in local if s.size and np.isfinite(s).any()), default=typical)
+    sel = near(2.0 * local_max)
+    if not sel.any():
+        la, lo = lat[np.isfinite(lat)], ((lon[np.isfinite(lon)] + 180.0) % 360.0) - 180.0
+        raise FieldError(
+            f"{where}: region lat {grid.lats[0]:.3f}..{grid.lats[-1]:.3f}, lon {grid.lons[0]:.3f}..{grid.lons[-1]:.3f} "
+            f"does not overlap the file (lat {la.min():.3f}..{la.max():.3f}, lon {lo.min():.3f}..{lo.max():.3f})"
+        )
+    ii, jj = np.nonzero(sel)
+    ny, nx = lat.shape
+    rows = np.arange(max(ii.min() - 1, 0), min(ii.max() + 2, ny))
+    cols = np.arange(max(jj.min() - 1, 0), min(jj.max() + 2, nx))
+    if rows.size < 2 or cols.size < 2:
+        raise FieldError(f"{where}: the region covers fewer than 2x2 of the file's nodes")
+    return rows, cols
+
+
+def _read_box(var, isel: dict, tdim, ydim: str, xdim: str, rows, cols, scale: float) -> tuple[np.ndarray, int]:
+    """``(a, n_fill)``: ``var`` on the index box ``rows`` x ``cols`` of its ``ydim``/``xdim`` as
+    ``(T, len(rows), len(cols))`` m/s (see :func:`_read_velocity`); indices beyond the variable's
+    extent (the outer faces of a C grid) are NaN."""
+    ny, nx = var.sizes[ydim], var.sizes[xdim]
+    rows, cols = np.asarray(rows), np.asarray(cols)
+    ri, ci = np.clip(rows, 0, ny - 1), np.clip(cols, 0, nx - 1)
+    # the box is read as one hyperslab (index arrays make netCDF read point by point)
+    sel = dict(isel)
+    sel[ydim] = slice(int(ri.min()), int(ri.max()) + 1)
+    sel[xdim] = slice(int(ci.min()), int(ci.max()) + 1)
+    order = [tdim, ydim, xdim] if tdim is not None else [ydim, xdim]
+    a, n_fill = _read_velocity(var, sel, order, scale)
+    a = a[:, ri - ri.min()][:, :, ci - ci.min()]
+    a[:, (rows < 0) | (rows >= ny), :] = np.nan
+    a[:, :, (cols < 0) | (cols >= nx)] = np.nan
+    return a, n_fill
+
+
+def _land_mask(ds, dims: tuple, rows, cols) -> np.ndarray | None:
+    """True where the file's ``mask*`` variable on ``dims`` (ROMS mask_rho/mask_u/mask_v) is 0 (land),
+    over the index box (indices beyond its extent are not land); None without one."""
+    name = next((k for k in ds.variables if str(k).startswith("mask") and ds[k].dims == dims), None)
+    if name is None:
+        return None
+    m = ds[name].values
+    rows, cols = np.asarray(rows), np.asarray(cols)
+    r = np.clip(rows, 0, m.shape[0] - 1)
+    c = np.clip(cols, 0, m.shape[1] - 1)
+    land = m[np.ix_(r, c)] == 0
+    land[(rows < 0) | (rows >= m.shape[0]), :] = False
+    land[:, (cols < 0) | (cols >= m.shape[1])] = False
+    return land
+
+
+def _read_curvilinear(ds, name: str, grid, start, hours, u, v, scales) -> _SurfaceCurrents:
+    """:func:`_read_surface_currents` for a CF projected grid, a curvilinear 2-D latitude/longitude
+    grid or a ROMS C grid: the surface currents on the file's nodes around ``grid``'s region,
+    rotated to east/north (module docstring, step 5)."""
+    from passt_mav.fields import curvilinear as cv
+
+    where = f"{name} ({u.name}/{v.name})"
+    cgrid = _roms_cgrid(ds, u, v)
+    if u.dims != v.dims and not cgrid:
+        raise FieldError(
+            f"{u.name} and {v.name} have different dimensions {u.dims} vs {v.dims} (of staggered grids only "
+            "ROMS's C grid, u on eta_u/xi_u and v on eta_v/xi_v, is read)"
+        )
+    nodes = _node_grid(ds, u, cgrid, where)
+    frame = _velocity_frame(u, v)
+    if frame is None and (cgrid or nodes.angle is not None):
+        frame = "grid"  # ROMS's u/v are along its XI/ETA axes
+    if frame is None:
+        raise FieldError(
+            f"{where}: velocities on a {'projected' if nodes.crs is not None else 'curvilinear'} grid whose direction the file "
+            "does not give (no standard_name eastward_/northward_sea_water_velocity or sea_water_x/y_velocity, no ROMS "
+            "angle): cannot rotate them to east/north"
+        )
+    udims = _ROMS_U_DIMS if cgrid else (nodes.ydim, nodes.xdim)
+    vdims = _ROMS_V_DIMS if cgrid else (nodes.ydim, nodes.xdim)
+    tdim = _time_dim(ds, u)
+    isel_u, depth_used = _surface_selection(ds, u, str(u.name), (*udims, tdim))
+    isel_v, _ = _surface_selection(ds, v, str(v.name), (*vdims, tdim))
+    t64 = _source_times(ds, u, str(u.name), tdim)
+    tsel, time_note = _select_times(t64, start, hours)
+    if tdim is not None:
+        isel_u[tdim] = isel_v[tdim] = tsel
+    rows, cols = _node_window(nodes.lat, nodes.lon, grid, where)
+    su, sv = scales
+    if cgrid:
+        # rho column j lies between u faces j-1 and j, rho row i between v faces i-1 and i
+        ucols = np.arange(cols[0] - 1, cols[-1] + 1)
+        vrows = np.arange(rows[0] - 1, rows[-1] + 1)
+        a_u, fill_u = _read_box(u, isel_u, tdim, *udims, rows, ucols, su)
+        a_v, fill_v = _read_box(v, isel_v, tdim, *vdims, vrows, cols, sv)
+        for a, dims, r, c in ((a_u, udims, rows, ucols), (a_v, vdims, vrows, cols)):
+            land = _land_mask(ds, dims, r, c)
+            if land is not None:
+                a[:, land] = np.nan
+        a_u, a_v = cv.cgrid_to_rho(a_u, a_v)
+    else:
+        a_u, fill_u = _read_box(u, isel_u, tdim, *udims, rows, cols, su)
+        a_v, fill_v = _read_box(v, isel_v, tdim, *vdims, rows, cols, sv)
+    land = _land_mask(ds, (nodes.ydim, nodes.xdim), rows, cols)
+    if land is not None:
+        a_u[:, land] = np.nan
+        a_v[:, land] = np.nan
+    box = np.ix_(rows, cols)
+    lat, lon = nodes.lat[box], nodes.lon[box]
+    if frame == "geographic":
+        rotation = "none (eastward/northward components)"
+    else:
+        if nodes.angle is not None:
+            theta, how = nodes.angle[box], "the file's ROMS angle variable (XI axis from east)"
+        elif nodes.px is not None:
+            theta, worst = cv.angles_from_crs(nodes.crs, nodes.px[box], nodes.py[box], where=where)
+            how = f"the grid x axis's direction from the {nodes.crs_name} projection (pyproj; axes within {worst:.2g} deg of perpendicular)"
+        else:
+            theta, worst = cv.angles_from_latlon(lat, lon, where=where)
+            how = f"the grid x axis's direction from the 2-D latitude/longitude (axes within {worst:.2g} deg of perpendicular)"
+        a_u, a_v = cv.rotate_to_east_north(a_u, a_v, theta)
+        deg = np.rad2deg(theta[np.isfinite(theta)])
+        span = f"{deg.min():.4g}..{deg.max():.4g}" if deg.size else "?"
+        rotation = f"grid x/y components rotated to east/north by {how}: x axis {span} deg counter-clockwise from east"
+    return _SurfaceCurrents(
+        values=np.stack([a_u, a_v], axis=-1),
+        window=_ScatteredWindow(rows, cols, lat, lon),
+        times=t64[tsel],
+        variables=(str(u.name), str(v.name)),
+        scales=(su, sv),
+        depth_m=depth_used,
+        time_note=time_note,
+        n_fill=fill_u + fill_v,
+        attrs=_descriptive_attrs(ds),
+        source_grid=nodes.description,
+        rotation=rotation,
+    )
 
 
 def _valid_range(var) -> tuple[float, float]:
