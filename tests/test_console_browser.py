@@ -83,13 +83,14 @@ def test_pause_resume_end_from_the_page(tmp_path):
         ro.close()
 
         page.goto(url)
-        assert "token" not in page.url  # the cookie holds it now
+        assert "token" not in page.url  # sessionStorage holds it now (per port), never a cookie (issue 55)
+        assert js("sessionStorage.getItem('passt_view_token')") == url.split("?token=")[1] and not ctx.cookies()
         page.check("#alarm")  # the operator's consent to beep
         _wait(lambda: js(MODE) == "AUTO", 120, "the boat in AUTO", demo, out)
         page.click("#boat-0 button[data-act=pause]")
-        _wait(lambda: "HOLD at item" in js(RESULT), 60, "the answer to Pause", demo, out)
-        _wait(lambda: js(MODE) == "HOLD", 30, "the vehicle to report HOLD", demo, out)
-        item = re.search(r"HOLD at item (\d+)/", js(RESULT)).group(1)
+        _wait(lambda: "LOITER at item" in js(RESULT), 60, "the answer to Pause", demo, out)
+        _wait(lambda: js(MODE) == "LOITER", 30, "the vehicle to report LOITER", demo, out)
+        item = re.search(r"LOITER at item (\d+)/", js(RESULT)).group(1)
         page.click("#boat-0 button[data-act=resume]")
         _wait(lambda: "resumed" in js(RESULT), 60, "the answer to Resume", demo, out)
         assert f"AUTO at item {item}/" in js(RESULT), js(RESULT)

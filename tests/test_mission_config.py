@@ -83,6 +83,9 @@ def test_field_file_relative_to_mission_file(tmp_path):
 def _with(**changes):
     d = yaml.safe_load(yaml.safe_dump(GOOD))
     for key, val in changes.items():
+        if key == "region" and val is _METRIC:
+            d["region"] = dict(_METRIC)
+            continue
         *head, last = key.split("__")
         node = d
         for h in head:
@@ -95,6 +98,12 @@ def _with(**changes):
 
 
 _DROP = object()
+_INF, _NAN = float("inf"), float("nan")
+_METRIC = {"x0": 2.6, "x1": 11.4, "y0": -4.7, "y1": 4.7, "rows": 30, "cols": 30, "anchor_lat": 40, "anchor_lon": -63}
+#: a "billion laughs": 9 levels of 9 aliases (10**9 strings expanded) in 10 short lines
+_BOMB = "lol0: &l0 [lol, lol, lol, lol, lol, lol, lol, lol, lol]\n" + "".join(
+    f"lol{k}: &l{k} [" + ", ".join([f"*l{k - 1}"] * 9) + "]\n" for k in range(1, 10)
+)
 
 BROKEN = [
     # (id, YAML text, text the one-line message must contain)
@@ -156,6 +165,71 @@ BROKEN = [
     ("share_above_one", _with(gp__prior_share=1.5), "gp.prior_share: must be <= 1 (got 1.5)"),
     ("unknown_model", _with(model="transformer"), "model: unknown model 'transformer'"),
     ("missing_ckpt", _with(model="nope.pt"), "model: model checkpoint not found"),
+] + [
+    # issue 55: every number finite and within physical bounds, options known, keys once, aliases bounded
+    ("speed_inf", _with(vehicle__speed_mps=_INF), "vehicle.speed_mps: input should be a finite number (got inf)"),
+    ("speed_nan", _with(vehicle__speed_mps=_NAN), "vehicle.speed_mps: input should be a finite number (got nan)"),
+    ("speed_too_fast", _with(vehicle__speed_mps=25), "vehicle.speed_mps: must be <= 20 (got 25)"),
+    ("water_speed_too_fast", _with(vehicle__max_water_speed_mps=50.0), "vehicle.max_water_speed_mps: must be <= 20"),
+    ("wp_radius_inf", _with(vehicle__wp_radius_m=_INF), "vehicle.wp_radius_m: input should be a finite number"),
+    (
+        "link_window_nan",
+        _with(vehicle__link_loss_window_s=_NAN),
+        "vehicle.link_loss_window_s: input should be a finite",
+    ),
+    ("path_length_huge", _with(planner__path_length=10**6), "planner.path_length: must be <= 1000 (got 1000000)"),
+    ("legs_huge", _with(legs=10**9), "legs: must be <= 10000 (got 1000000000)"),
+    ("steps_per_leg_huge", _with(steps_per_leg=10**7), "steps_per_leg: must be <= 10000"),
+    ("t0_huge", _with(t0=10**12), "t0: must be <= 10000"),
+    ("rows_huge", _with(region__rows=100_000), "region.rows: must be <= 1000 (got 100000)"),
+    ("cols_huge", _with(region__cols=5000), "region.cols: must be <= 1000 (got 5000)"),
+    ("south_beyond_pole", _with(region__south=-100.0), "region.south: must be >= -90 (got -100.0)"),
+    ("east_inf", _with(region__east=_INF), "region.east: input should be a finite number (got inf)"),
+    ("time_scale_zero", _with(field__time_scale=0), "field.time_scale: must be > 0 (got 0)"),
+    ("time_scale_inf", _with(field__time_scale=_INF), "field.time_scale: input should be a finite number"),
+    ("time_scale_huge", _with(field__time_scale=1e30), "field.time_scale: must be <= 1000000 (got 1e+30)"),
+    ("velocity_scale_nan", _with(field__velocity_scale=_NAN), "field.velocity_scale: input should be a finite"),
+    ("velocity_scale_huge", _with(field__velocity_scale=1e6), "field.velocity_scale: must be <= 100"),
+    ("noise_inf", _with(sensors__noise_std=_INF), "sensors.noise_std: input should be a finite number"),
+    ("margin_nan", _with(geofence_margin_m=_NAN), "geofence_margin_m: input should be a finite number"),
+    ("budget_time_inf", _with(budget__max_time_s=_INF), "budget.max_time_s: input should be a finite number"),
+    ("budget_distance_huge", _with(budget__max_distance_m=1e300), "budget.max_distance_m: must be <= 100000000"),
+    ("approve_timeout_inf", _with(approve__timeout_s=_INF), "approve.timeout_s: input should be a finite number"),
+    ("forgetting_nan", _with(gp__forgetting=_NAN), "gp.forgetting: input should be a finite number"),
+    ("background_huge", _with(gp__background=10**8), "gp.background: must be <= 10000"),
+    ("lr_inf", _with(model_update__lr=_INF), "model_update.lr: input should be a finite number"),
+    ("window_huge", _with(model_update__window=10**9), "model_update.window: must be <= 10000"),
+    ("seed_negative", _with(seeds__planner=-1), "seeds.planner: must be >= 0 (got -1)"),
+    ("seed_huge", _with(seeds__gp=2**40), "seeds.gp: must be <= 4294967295"),
+    ("metric_scale_inf", _with(region=_METRIC, region__scale=_INF), "region.scale: input should be a finite number"),
+    ("metric_rotation_nan", _with(region=_METRIC, region__rotation_deg=_NAN), "region.rotation_deg: input should be"),
+    ("metric_x1_huge", _with(region=_METRIC, region__x1=1e12), "region.x1: must be <= 10000000"),
+    (
+        "fleet_too_large",
+        _with(vehicles=[{"connect": f"tcp:127.0.0.1:{5760 + 10 * k}"} for k in range(65)]),
+        "vehicles: list should have at most 64 items",
+    ),
+    (
+        "planner_option_unknown",
+        _with(planner__options={"lookahaed": 3}),
+        "planner: options: unknown option 'lookahaed' of planner 'greedy' (allowed: lookahead)",
+    ),
+    ("planner_option_inf", _with(planner__options={"lookahead": _INF}), "planner: options.lookahead: must be a finite"),
+    (
+        "gp_option_unknown",
+        _with(gp__options={"kernle": "rbf"}),
+        "gp: options: unknown option 'kernle' of GPReconstructor",
+    ),
+    ("gp_option_internal", _with(gp__options={"grid_xy": [1]}), "gp: options: unknown option 'grid_xy'"),
+    ("gp_option_nan", _with(gp__options={"alpha": _NAN}), "gp: options.alpha: must be a finite number (got nan)"),
+    ("duplicate_key", _with() + "legs: 2\nlegs: 3\n", "duplicate key 'legs' (first given at line"),
+    (
+        "duplicate_nested_key",
+        _with() + "vehicle: {speed_mps: 2.0, wp_radius_m: 3, speed_mps: 30}\n",
+        "duplicate key 'speed_mps' (first given at line",
+    ),
+    ("alias_bomb", _with() + _BOMB, "its aliases expand it past 100,000 values (an alias bomb?)"),
+    ("alias_loop", _with() + "x-loop: &a [1, *a]\n", "an alias refers to the value that holds it"),
 ]
 
 
@@ -182,6 +256,48 @@ def test_broken_mission_file_cli_exit_2_one_line(tmp_path, capsys, text, expect)
     assert len(lines) == 1 and lines[0].startswith("passt-mav: error: ") and expect in lines[0]
     assert "Traceback" not in err
     assert not (tmp_path / "out").exists()
+
+
+RUN_CASES = ("speed_inf", "path_length_huge", "rows_huge", "time_scale_zero", "duplicate_key", "alias_bomb")
+
+
+@pytest.mark.parametrize("text, expect", [b[1:] for b in BROKEN if b[0] in RUN_CASES], ids=RUN_CASES)
+def test_broken_mission_file_run_exit_2_one_line_before_connecting(tmp_path, capsys, text, expect):
+    """``passt-mav run`` refuses them before it connects (nothing listens on port 9: had it gone on, it would try)."""
+    p = tmp_path / "bad.yaml"
+    p.write_text(text)
+    rc = main(["run", str(p), "--connect", "tcp:127.0.0.1:9", "--out", str(tmp_path / "out")])
+    cap = capsys.readouterr()
+    lines = cap.err.strip().splitlines()
+    assert rc == 2 and len(lines) == 1 and lines[0].startswith("passt-mav: error: ") and expect in lines[0], cap.err
+    assert "connect" not in cap.out.lower() and not (tmp_path / "out").exists()
+
+
+def test_an_alias_bomb_is_refused_at_once_and_merge_keys_still_work(tmp_path):
+    import time
+
+    p = tmp_path / "bomb.yaml"
+    p.write_text(_with() + _BOMB)
+    t0 = time.perf_counter()
+    with pytest.raises(MissionConfigError, match="alias bomb"):
+        load_mission(p)
+    assert time.perf_counter() - t0 < 2.0
+    # a few aliases and a merge key (its keys overridden by the mapping's own) are fine: no duplicate
+    p.write_text(
+        _with(planner=_DROP)
+        + "x-boat: &boat {speed_mps: 2.0, wp_radius_m: 3.0}\n"
+        + "vehicle:\n  <<: *boat\n  speed_mps: 4.0\n"
+        + "planner: {name: greedy, path_length: 5, options: {lookahead: 3}}\n"
+    )
+    with pytest.raises(MissionConfigError, match="x-boat: unknown key"):  # (an unknown top-level key all the same)
+        load_mission(p)
+    from passt_mav.mission.config import read_mission_data
+
+    data = read_mission_data(p)
+    assert data["vehicle"] == {"speed_mps": 4.0, "wp_radius_m": 3.0}
+    del data["x-boat"]
+    cfg = validate_mission(data)
+    assert (cfg.vehicle.speed_mps, cfg.vehicle.wp_radius_m, cfg.planner.options) == (4.0, 3.0, {"lookahead": 3})
 
 
 def test_missing_mission_file(tmp_path, capsys):

@@ -274,7 +274,9 @@ def test_a_non_loopback_host_needs_the_token(tmp_path):
         assert "?token=" in vp.url
         token = vp.url.split("?token=")[1]
         base = f"http://127.0.0.1:{vp.port}/"
-        assert _get(base)[0] == 403 and _get(base + "api/state")[0] == 403
+        assert _get(base + "api/state")[0] == 403 and _get(base + "api/raster/speed.png?leg=0")[0] == 403
+        # the page's shell holds no run data: it loads, then reads with the token it keeps (sessionStorage)
+        assert _get(base)[0] == 200 and _get(base + "static/view.js")[0] == 200
         assert _get(base + "api/state?token=wrong")[0] == 403
         assert _get(base + f"?token={token}")[0] == 200 and _get(base + f"api/state?token={token}")[0] == 200
     finally:

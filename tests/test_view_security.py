@@ -16,13 +16,13 @@ import sys
 from pathlib import Path
 
 import pytest
-from asgi_call import call
+from asgi_call import call, hold
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from test_view import _get, make_live_run
 
 from passt_mav.runs.commands import COMMANDS, CommandReader, read_commands
-from passt_mav.view.gate import RateLimit, cookie_name
+from passt_mav.view.gate import AUTH_FAILURES, MAX_STREAMS, FailureLimit, OpenLimit, RateLimit
 from passt_mav.view.server import make_app
 
 REPO = Path(__file__).resolve().parents[1]
@@ -30,6 +30,8 @@ TOKEN = "tok-" + "x" * 20
 PORT = 8765
 HOST = f"127.0.0.1:{PORT}"
 ORIGIN = f"http://{HOST}"
+#: the cookie the view once kept the token in: browsers send it to every port of 127.0.0.1 (issue 55)
+OLD_COOKIE = f"passt_view_{PORT}"
 
 
 @pytest.fixture(scope="module")
@@ -44,29 +46,40 @@ def run_root(tmp_path_factory):
     return make_live_run(tmp_path_factory.mktemp("sec") / "run").root
 
 
-def _app(root, host="127.0.0.1", rate=None):
-    return make_app(root, token=TOKEN, host=host, port=PORT, rate=rate or RateLimit(10_000, 1.0))
+def _app(root, host="127.0.0.1", rate=None, failures=None, reads=None, streams=None):
+    return make_app(
+        root,
+        token=TOKEN,
+        host=host,
+        port=PORT,
+        rate=rate or RateLimit(10_000, 1.0),
+        failures=failures or FailureLimit(10_000, 1.0),
+        reads=reads or FailureLimit(100_000, 1.0),
+        streams=streams,
+    )
 
 
 def _headers(host: str, origin: str | None, token_via: str | None) -> list[tuple[str, str]]:
-    """Host, Origin (None: none) and the token by ``token_via``: cookie, header, wrong (a cookie with another
-    token), anything else: none."""
+    """Host, Origin (None: none) and the token by ``token_via``: cookie (the token in the cookie the view once
+    set: never a credential), header, wrong (the header with another token), anything else: none."""
     h = [("host", host)]
     if origin is not None:
         h.append(("origin", origin))
     if token_via == "cookie":
-        h.append(("cookie", f"{cookie_name(PORT)}={TOKEN}"))
+        h.append(("cookie", f"{OLD_COOKIE}={TOKEN}"))
     elif token_via == "header":
         h.append(("x-passt-token", TOKEN))
     elif token_via == "wrong":
-        h.append(("cookie", f"{cookie_name(PORT)}={TOKEN[:-1]}"))
+        h.append(("x-passt-token", TOKEN[:-1]))
     return h
 
 
-def _post(loop, app, body, *, host=HOST, origin=ORIGIN, token_via="cookie", ctype="application/json"):
+def _post(
+    loop, app, body, *, host=HOST, origin=ORIGIN, token_via="header", ctype="application/json", client=("127.0.0.1", 1)
+):
     h = [*_headers(host, origin, token_via), ("content-type", ctype)]
     data = body if isinstance(body, bytes) else json.dumps(body).encode()
-    return call(loop, app, "POST", "/api/command", headers=h, body=data)
+    return call(loop, app, "POST", "/api/command", headers=h, body=data, client=client)
 
 
 # -- the gate, case by case --------------------------------------------------------------------------------
@@ -91,19 +104,26 @@ def test_foreign_origin_is_refused_even_with_the_token(loop, run_root):
     assert call(loop, app, "GET", "/api/state", headers=[("host", HOST), ("origin", ORIGIN)]).status == 200
 
 
-def test_a_command_needs_the_token_by_cookie_with_origin_or_by_header(loop, tmp_path):
+def test_a_command_needs_the_token_in_the_header_never_a_cookie(loop, tmp_path):
+    """Issue 55: a server on another port of 127.0.0.1 received the cookie ``passt_view_PORT=<token>`` (browsers
+    send a host's cookies to all its ports) and a command carrying it was accepted. A cookie is no credential
+    now, whatever its name, Origin or value: only the X-Passt-Token header commands."""
     root = make_live_run(tmp_path / "run").root
     app = _app(root)
     assert _post(loop, app, {"action": "pause"}, token_via=None).status == 403
     assert _post(loop, app, {"action": "pause"}, token_via="wrong").status == 403
-    assert _post(loop, app, {"action": "pause"}, token_via="cookie", origin=None).status == 403
+    for origin in (ORIGIN, None):
+        r = _post(loop, app, {"action": "pause"}, token_via="cookie", origin=origin)
+        assert r.status == 403 and b"X-Passt-Token header" in r.body, (origin, r.status, r.body)
+    h = [("host", HOST), ("origin", ORIGIN), ("content-type", "application/json"), ("cookie", f"token={TOKEN}")]
+    assert call(loop, app, "POST", "/api/command", headers=h, body=b'{"action": "pause"}').status == 403
     # the query string never commands (it ends up in logs and histories)
     h = [("host", HOST), ("origin", ORIGIN), ("content-type", "application/json")]
     r = call(loop, app, "POST", "/api/command", query=f"token={TOKEN}", headers=h, body=b'{"action": "pause"}')
     assert r.status == 403
     assert read_commands(root) == ([], 0)  # nothing written by any refusal
     reader = CommandReader(root, 0)
-    ok = _post(loop, app, {"action": "pause"}, token_via="cookie")
+    ok = _post(loop, app, {"action": "pause"}, token_via="header")  # the page: its own Origin and the header
     assert ok.status == 202
     ok2 = _post(loop, app, {"boat": 0, "action": "end", "end_mode": "RTL"}, token_via="header", origin=None)
     assert ok2.status == 202
@@ -159,6 +179,51 @@ def test_commands_are_rate_limited(loop, tmp_path):
     assert _post(loop, app, {"action": "resume"}).status == 202
 
 
+def test_a_body_nested_deeper_than_the_parser_goes_is_400_never_500(loop, tmp_path):
+    root = make_live_run(tmp_path / "run").root
+    app = _app(root)
+    for body in (b"[" * 2048 + b"]" * 2048, b'{"a":' * 819 + b"1", b"[" * 4096):
+        assert len(body) <= 4096
+        r = _post(loop, app, body)
+        assert r.status == 400 and r.body.startswith(b"passt-mav view: the body is not valid JSON"), (r.status, r.body)
+    for body in (
+        b'{"a":' * 600 + b"1" + b"}" * 600,
+        b"1e999",
+        b"NaN",
+        b'{"action": "pause", "boat": 1e999}',
+        b"9" * 4096,
+        rb'"\ud800"',
+        b"\x00",
+    ):
+        r = _post(loop, app, body)
+        assert r.status == 400, (body[:40], r.status, r.body)
+    assert not (root / COMMANDS).exists()
+
+
+def test_failed_authentication_is_rate_limited_per_client(loop, tmp_path):
+    """3,000 wrong tokens from one client: the first AUTH_FAILURES are 403, the rest 429 with Retry-After, the right
+    token included while it lasts (a right guess cannot be told from a wrong one); another client is not held; after
+    the window the right token commands again. Reading a non-loopback server without the token counts too."""
+    clock = [100.0]
+    root = make_live_run(tmp_path / "run").root
+    app = _app(root, failures=FailureLimit(clock=lambda: clock[0]))
+    attacker, operator = ("127.0.0.1", 40000), ("127.0.0.2", 40001)
+    codes = [_post(loop, app, {"action": "pause"}, token_via="wrong", client=attacker).status for _ in range(3000)]
+    assert codes[:AUTH_FAILURES] == [403] * AUTH_FAILURES and set(codes[AUTH_FAILURES:]) == {429}
+    r = _post(loop, app, {"action": "pause"}, token_via="header", client=attacker)
+    assert r.status == 429 and r.headers["retry-after"] == "60" and b"without the right token" in r.body
+    assert _post(loop, app, {"action": "pause"}, token_via="header", client=operator).status == 202
+    clock[0] += 60.0
+    assert _post(loop, app, {"action": "resume"}, token_via="header", client=attacker).status == 202
+    assert len(read_commands(root)[0]) == 2
+    # a GET on a server bound to all addresses needs the token: failures count there too
+    app = _app(root, host="0.0.0.0", failures=FailureLimit(3, 10.0, clock=lambda: clock[0]))
+    h = [("host", HOST)]
+    codes = [call(loop, app, "GET", "/api/state", headers=h, client=attacker).status for _ in range(5)]
+    assert codes == [403, 403, 403, 429, 429]
+    assert call(loop, app, "GET", "/api/state", query=f"token={TOKEN}", headers=h, client=operator).status == 200
+
+
 def test_bad_raster_parameters_are_4xx_never_500(loop, run_root):
     app = _app(run_root)
     h = [("host", HOST)]
@@ -170,24 +235,44 @@ def test_bad_raster_parameters_are_4xx_never_500(loop, run_root):
     assert not (run_root / "legs" / "007").exists()  # a GET writes nothing
 
 
-def test_the_token_cookie_is_set_httponly_samesite_strict_by_the_address(loop, run_root):
+def test_the_page_sets_no_cookie_and_a_cookie_proves_nothing(loop, run_root):
+    """The address's ?token= is answered with the page and no cookie (the page keeps the token in sessionStorage,
+    per port); a read carrying the token in a cookie is not told it may command, one with the header or the
+    query is."""
     app = _app(run_root)
     r = call(loop, app, "GET", "/", query=f"token={TOKEN}", headers=[("host", HOST)])
-    assert r.status == 200
-    (c,) = r.set_cookies
-    assert c.startswith(f"{cookie_name(PORT)}={TOKEN};") and "HttpOnly" in c and "SameSite=strict" in c
-    assert not call(loop, app, "GET", "/", headers=[("host", HOST)]).set_cookies
-    assert not call(loop, app, "GET", "/", query="token=wrong", headers=[("host", HOST)]).set_cookies
-    # with the cookie, the page is told it may command
-    s = call(loop, app, "GET", "/api/state", headers=[("host", HOST), ("cookie", f"{cookie_name(PORT)}={TOKEN}")])
-    assert json.loads(s.body)["control"]["token"] is True
+    assert r.status == 200 and not r.set_cookies and r.headers["referrer-policy"] == "no-referrer"
+    for path in ("/", "/api/state", "/api/openapi.json", "/static/view.js"):
+        assert not call(loop, app, "GET", path, query=f"token={TOKEN}", headers=[("host", HOST)]).set_cookies, path
+
+    def may_command(headers, query=""):
+        s = call(loop, app, "GET", "/api/state", query=query, headers=[("host", HOST), *headers])
+        assert s.status == 200
+        return json.loads(s.body)["control"]["token"]
+
+    assert may_command([("cookie", f"{OLD_COOKIE}={TOKEN}")]) is False
+    assert may_command([("x-passt-token", TOKEN)]) is True
+    assert may_command([], query=f"token={TOKEN}") is True
+    # the page reads the token from the address, keeps it in sessionStorage and sends it in the header
+    js = (REPO / "passt_mav" / "view" / "static" / "view.js").read_text()
+    assert "sessionStorage.setItem" in js and "'X-Passt-Token': token" in js and "document.cookie" not in js
 
 
 def test_a_non_loopback_bind_needs_the_token_to_read(loop, run_root):
     app = _app(run_root, host="0.0.0.0")
     host = f"192.168.1.20:{PORT}"
     assert call(loop, app, "GET", "/api/state", headers=[("host", host)]).status == 403
+    assert (
+        call(loop, app, "GET", "/api/state", headers=[("host", host), ("cookie", f"{OLD_COOKIE}={TOKEN}")]).status
+        == 403
+    )
     assert call(loop, app, "GET", "/api/state", query=f"token={TOKEN}", headers=[("host", host)]).status == 200
+    assert call(loop, app, "GET", "/api/state", headers=[("host", host), ("x-passt-token", TOKEN)]).status == 200
+    r = call(loop, app, "GET", "/api/stream", headers=[("host", host)])
+    assert r.status == 403
+    # the page's shell (no run data) loads without it: the page then reads with the token from sessionStorage
+    for path in ("/", "/static/view.js", "/static/vendor/leaflet/leaflet.js"):
+        assert call(loop, app, "GET", path, headers=[("host", host)]).status == 200, path
     # a DNS name is what a rebinding attack uses: refused even with the token
     r = call(loop, app, "GET", "/api/state", query=f"token={TOKEN}", headers=[("host", f"evil.example:{PORT}")])
     assert r.status == 403
@@ -201,6 +286,54 @@ def test_openapi_describes_every_route(loop, run_root):
     routes = {getattr(x, "path", None) for x in app.app.routes}
     assert spec["openapi"].startswith("3.1") and set(spec["paths"]) == routes - {"/static"} | {"/static/{path}"}
     assert len(routes) == 7
+
+
+def test_event_streams_are_limited_per_client_and_another_client_is_served(loop, tmp_path):
+    """Issue 55: 100 open /api/stream connections (no token needed on loopback) starved the view. One client
+    holds at most MAX_STREAMS streams without the token: the 101st is 429 while another client, and the same
+    client with the token (the operator's page: counted apart), are served; closed streams free their places."""
+    root = make_live_run(tmp_path / "run").root
+    app = _app(root, streams=OpenLimit())
+    attacker, operator = ("127.0.0.1", 40000), ("127.0.0.2", 40001)
+    h = [("host", HOST)]
+
+    async def scenario():
+        release = asyncio.Event()
+        held = [await hold(app, "/api/stream", headers=h, client=attacker, release=release) for _ in range(100)]
+        codes = [s for s, _, _ in held]
+        assert codes == [200] * MAX_STREAMS + [429] * (100 - MAX_STREAMS)
+        assert all(b.startswith(b"data: {") for s, b, _ in held if s == 200)
+        s, body, _ = await hold(app, "/api/stream", headers=h, client=attacker, release=release)
+        assert s == 429 and b"too many open event streams" in body and body.count(b"\n") == 0
+        s, body, _ = await hold(app, "/api/stream", headers=h, client=operator, release=release)
+        assert s == 200 and body.startswith(b"data: {")
+        s, body, _ = await hold(app, "/api/stream", query=f"token={TOKEN}", headers=h, client=attacker, release=release)
+        assert s == 200 and json.loads(body[6:])["control"]["token"] is True
+        release.set()
+        await asyncio.wait_for(asyncio.gather(*(t for _, _, t in held)), 30)
+        again = asyncio.Event()
+        s, _, t = await hold(app, "/api/stream", headers=h, client=attacker, release=again)
+        again.set()
+        await asyncio.wait_for(t, 30)
+        return s
+
+    assert loop.run_until_complete(scenario()) == 200
+    assert app.streams.count(attacker[0]) == 0
+
+
+def test_reads_without_the_token_are_limited_per_client(loop, run_root):
+    clock = [100.0]
+    app = _app(run_root, reads=FailureLimit(5, 10.0, clock=lambda: clock[0]))
+    attacker, operator = ("127.0.0.1", 40000), ("127.0.0.2", 40001)
+    h = [("host", HOST)]
+    codes = [call(loop, app, "GET", "/api/state", headers=h, client=attacker).status for _ in range(7)]
+    assert codes == [200] * 5 + [429] * 2
+    r = call(loop, app, "GET", "/api/raster/speed.png", query="leg=0", headers=h, client=attacker)
+    assert r.status == 429 and r.headers["retry-after"] == "10" and b"too many reads without the token" in r.body
+    assert call(loop, app, "GET", "/api/state", headers=h, client=operator).status == 200
+    assert call(loop, app, "GET", "/api/state", headers=[*h, ("x-passt-token", TOKEN)], client=attacker).status == 200
+    clock[0] += 10.0
+    assert call(loop, app, "GET", "/api/state", headers=h, client=attacker).status == 200
 
 
 # -- the fuzz -----------------------------------------------------------------------------------------------
@@ -300,7 +433,7 @@ def _fuzz_operation(loop, app, op_path: str, method: str, op: dict, n: int) -> N
         assert r.status < 500, (path, query, headers, body, r.status, r.body[:200])
         own_host = hk in ("own", "localhost")
         if method == "post" and r.status < 300:
-            allowed = own_host and ok in ("own", "none") and (tk == "header" or (tk == "cookie" and ok == "own"))
+            allowed = own_host and ok in ("own", "none") and tk == "header"  # a cookie never commands
             if not allowed:
                 FUZZ["accepted_bad"] += 1
             assert allowed, (headers, r.status)
@@ -315,8 +448,8 @@ FUZZ = {"requests": 0, "operations": set(), "5xx": 0, "accepted_bad": 0, "codes"
 
 def test_fuzz_every_operation_no_5xx_no_command_without_token_origin_host(loop, tmp_path):
     """Hypothesis over every operation of /api/openapi.json: never a 5xx; a command accepted (202) only with
-    the token (cookie with the own Origin, or the header), the own Host and no foreign Origin; a GET with a
-    foreign Host or Origin never answered 200."""
+    the token in the header (never by cookie), the own Host and no foreign Origin; a GET with a foreign Host or
+    Origin never answered 200."""
     root = make_live_run(tmp_path / "run").root
     app = _app(root)
     spec = json.loads(call(loop, app, "GET", "/api/openapi.json", headers=[("host", HOST)]).body)
@@ -346,6 +479,14 @@ def test_real_server_refuses_a_rebinding_host(tmp_path):
     vp = start_view(rd.root, log_file=tmp_path / "view.log")
     try:
         assert f"?token={vp.token}" in vp.url
+        # the token in the cookie the view once set, replayed by whoever received it on another port: refused
+        c = http.client.HTTPConnection("127.0.0.1", vp.port, timeout=30)
+        h = {"Content-Type": "application/json", "Origin": f"http://127.0.0.1:{vp.port}"}
+        c.request("POST", "/api/command", body="{}", headers={**h, "Cookie": f"passt_view_{vp.port}={vp.token}"})
+        r = c.getresponse()
+        assert r.status == 403, r.read()
+        r.read()
+        c.close()
         c = http.client.HTTPConnection("127.0.0.1", vp.port, timeout=30)
         c.request("GET", "/api/state", headers={"Host": "evil.example"})
         r = c.getresponse()
@@ -404,3 +545,44 @@ def test_a_busy_view_port_stops_run_before_it_connects(tmp_path):
     assert (a.view, a.view_optional) == (port, True)
     a = build_parser().parse_args(["run", "m.yaml", "--view", "8765"])
     assert (a.view, a.view_optional) == (8765, False)
+
+
+def test_a_hundred_open_streams_do_not_starve_the_real_server(tmp_path):
+    """Issue 55: 100 open /api/stream connections from one local process (no token needed on loopback) once made
+    the health probe (GET /api/state) take 12.9 s (median). Now at most MAX_STREAMS of them are served, all from one
+    poll of the run directory, and the probe answers at once."""
+    import http.client
+    import socket
+    import statistics
+    import time
+
+    from passt_mav.view import start_view
+
+    rd = make_live_run(tmp_path / "run")
+    vp = start_view(rd.root, log_file=tmp_path / "view.log")
+    socks = []
+    try:
+        for _ in range(100):
+            s = socket.create_connection(("127.0.0.1", vp.port), timeout=30)
+            s.sendall(f"GET /api/stream HTTP/1.1\r\nHost: 127.0.0.1:{vp.port}\r\n\r\n".encode())
+            socks.append(s)
+        heads = []
+        for s in socks:
+            heads.append(s.recv(64).split(b"\r\n", 1)[0])
+        assert heads.count(b"HTTP/1.1 200 OK") == MAX_STREAMS, set(heads)
+        assert heads.count(b"HTTP/1.1 429 Too Many Requests") == 100 - MAX_STREAMS
+        times = []
+        for _ in range(5):
+            t0 = time.monotonic()
+            c = http.client.HTTPConnection("127.0.0.1", vp.port, timeout=30)
+            c.request("GET", "/api/state", headers={"Host": f"127.0.0.1:{vp.port}", "X-Passt-Token": vp.token})
+            r = c.getresponse()
+            assert r.status == 200 and json.loads(r.read())["control"]["token"] is True
+            c.close()
+            times.append(time.monotonic() - t0)
+        print(f"health probe with 100 streams open: median {statistics.median(times) * 1000:.0f} ms")
+        assert statistics.median(times) < 2.0, times
+    finally:
+        for s in socks:
+            s.close()
+        vp.stop()

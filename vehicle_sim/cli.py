@@ -238,7 +238,7 @@ def _load_field(args):
     from passt_mav.fields.datasets import resolve_field, speed_warning
 
     try:
-        field = resolve_field(args.field, seed=args.seed)
+        field = resolve_field(args.field, seed=args.seed, series=True)  # checked before anything listens
     except ImportError as exc:
         raise _Bad(f"field {args.field!r} is not available in this installation ({exc})") from None
     fast = speed_warning(field, args.field)

@@ -248,7 +248,11 @@ def mission_mapping(mission: str | None = None, field: str | None = None) -> tup
         f = Path(mission)
         if not f.exists():
             raise UserError(f"mission file not found: {f}")
-        data, origin = yaml.safe_load(f.read_text()), str(f)
+        from passt_mav.mission.config import read_mission_data
+
+        data, origin = read_mission_data(f), str(f)  # not YAML, nested too deep: one line naming it
+        if not isinstance(data, dict):
+            raise UserError(f"{f}: a mission file is a mapping of keys (name:, region:, field:, ...)")
     elif field is None and (missions / f"{DEFAULT_MISSION}.yaml").exists():
         f = missions / f"{DEFAULT_MISSION}.yaml"
         data, origin = yaml.safe_load(f.read_text()), str(f)

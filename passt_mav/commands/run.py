@@ -190,6 +190,7 @@ def execute(
     progress=True,
     lockstep_s=0.0,
     signals=None,
+    field=None,
 ) -> dict:
     """Everything ``run`` does after parsing: field, predictor, link, controller, report. Returns the summary.
 
@@ -202,6 +203,8 @@ def execute(
     vehicle seconds at a time while the controller waits for it (:func:`link_config_for`).
     ``identity``: our (system, component) ids from the command line; None = the mission's
     ``vehicle.source_system/source_component``, else the link's defaults.
+    ``field``: the mission's field when the caller loaded it already (``run`` does, before it makes the run
+    directory: :func:`~passt_mav.fields.datasets.mission_field`); None loads it here.
     """
     import sys
 
@@ -212,7 +215,8 @@ def execute(
         # hand the GIL over faster (default 5 ms): a mission request must be answered within the
         # vehicle's 1 s re-request time, which a simulator at 150x compresses to ~7 ms of wall time
         sys.setswitchinterval(min(sys.getswitchinterval(), 0.001))
-    field = mission_field(config)  # the same rule as plan, replay and report
+    if field is None:
+        field = mission_field(config, series=True)  # the same rule as plan, replay and report
     fast = speed_warning(field, config.field.source)
     if fast:
         print(f"warning: {fast}", file=sys.stderr)
@@ -388,10 +392,13 @@ def _with_overrides(path, text: str, pairs: list[str]):
             raise _user(f"--set needs KEY=VALUE (e.g. planner.path_length=8), got {kv!r}")
         try:
             over[key.strip()] = yaml.safe_load(val)
-        except yaml.YAMLError:
-            raise _user(f"--set {key}: the value {val!r} is not valid YAML") from None
+        except (yaml.YAMLError, RecursionError):
+            raise _user(f"--set {key}: the value {val[:60]!r} is not valid YAML") from None
     data = mission_overrides(yaml.safe_load(text), over)
-    config = validate_mission(data, source=f"{path} with --set", base_dir=Path(path).parent)
+    try:
+        config = validate_mission(data, source=f"{path} with --set", base_dir=Path(path).parent)
+    except RecursionError:
+        raise _user(f"--set: the mission {path} with --set is nested too deep") from None
     return config, yaml.safe_dump(data, sort_keys=False)
 
 
@@ -448,6 +455,9 @@ def run(args: argparse.Namespace) -> int:
         vehicle = config.vehicle.model_copy(update={"link_loss_window_s": float(args.link_loss_window)})
         config = config.model_copy(update={"vehicle": vehicle})
     _check_view_port(args)
+    from passt_mav.fields.datasets import mission_field
+
+    field = mission_field(config, series=True)  # checked before the run directory is made or a link opened
     if args.approve:
         config = config.model_copy(update={"approve": config.approve.model_copy(update={"enabled": True})})
     if args.resume:
@@ -500,6 +510,7 @@ def run(args: argparse.Namespace) -> int:
                 progress=not args.quiet,
                 lockstep_s=args.lockstep,
                 signals=stop,
+                field=field,
             )
     except Stopped as exc:  # before the mission began (connecting, loading the model): nothing flown
         print(f"passt-mav: stopped by {exc.name} before the mission began; nothing flown", flush=True)

@@ -59,14 +59,24 @@ def load_dataset(name: str, *, seed: int = 0):
     raise FieldError(f"unknown dataset {name!r}; choose one of {', '.join(DATASETS)}")
 
 
-def resolve_field(spec: str | Path, *, seed: int = 0):
-    """A field from ``builtin:NAME`` (see :func:`load_dataset`) or a path to a ``.nc`` file."""
+def resolve_field(spec: str | Path, *, seed: int = 0, check: bool = True, series: bool = False):
+    """A field from ``builtin:NAME`` (see :func:`load_dataset`) or a path to a ``.nc`` file.
+
+    ``check``: refuse an implausible field (:func:`passt_mav.fields.checks.check_field`: no data, infinite
+    values, absurd speeds, and with ``series`` a single snapshot) before the caller writes or connects
+    anything; ``data info`` and ``data show`` look at any field file (``check=False``)."""
     from passt_mav.fields.field import load_field
 
     s = str(spec)
     if s.startswith("builtin:"):
-        return load_dataset(s.split(":", 1)[1], seed=seed)
-    return load_field(Path(s))
+        field = load_dataset(s.split(":", 1)[1], seed=seed)
+    else:
+        field = load_field(Path(s))
+    if check:
+        from passt_mav.fields.checks import check_field
+
+        check_field(field, s, series=series)
+    return field
 
 
 #: how far a field's grid may lie from the mission's region and still be the same grid: a millionth of a cell
@@ -133,12 +143,14 @@ def field_on_region(field, grid, *, source: str):
     return field
 
 
-def mission_field(config, spec: str | Path | None = None):
+def mission_field(config, spec: str | Path | None = None, *, series: bool = False):
     """The field of mission ``config`` (or the field file ``spec`` instead of the mission's own) on the
-    mission's region, by :func:`field_on_region`. ``config`` is a ``MissionConfig``: ``field.source``,
+    mission's region, by :func:`field_on_region`, checked as every field is (:func:`resolve_field`; ``series``:
+    a time series is needed, as a mission flown is). ``config`` is a ``MissionConfig``: ``field.source``,
     ``seeds.field`` and ``grid()`` are read."""
     source = str(config.field.source if spec is None else spec)
-    return field_on_region(resolve_field(source, seed=config.seeds.field), config.grid(), source=source)
+    field = resolve_field(source, seed=config.seeds.field, series=series)
+    return field_on_region(field, config.grid(), source=source)
 
 
 def speed_warning(field, source) -> str | None:

@@ -25,7 +25,7 @@ from typing import Any
 
 import numpy as np
 
-from geo import MetricRegionGrid, RegionGrid, grid_from_dict
+from geo import MetricRegionGrid, RegionGrid
 from passt_mav.errors import FieldError
 
 __all__ = ["FieldError", "FlowField", "load_field", "load_std", "parse_iso"]
@@ -360,8 +360,14 @@ class FlowField:
 
     @classmethod
     def from_netcdf(cls, path: str | Path) -> FlowField:
-        """Read a file written by :meth:`to_netcdf` (for other files use the importers)."""
+        """Read a file written by :meth:`to_netcdf` (for other files use the importers).
+
+        The project's attributes (``passt_grid``, ``passt_provenance``, the time axis' ``units``), the variables'
+        shapes and the size are checked first (:mod:`passt_mav.fields.checks`): a damaged file is one
+        :class:`FieldError` naming the file and what is wrong, never another exception."""
         import xarray as xr
+
+        from passt_mav.fields import checks
 
         path = Path(path)
         if not path.exists():
@@ -369,7 +375,8 @@ class FlowField:
         try:
             ds = xr.open_dataset(path, decode_times=False, engine="netcdf4")
         except Exception as exc:  # noqa: BLE001 - any reader failure is a bad file for the user
-            raise FieldError(f"cannot read {path} as NetCDF: {exc}") from None
+            msg = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+            raise FieldError(f"cannot read {path} as NetCDF: {msg}") from None
         with ds:
             if "passt_grid" not in ds.attrs:
                 raise FieldError(
@@ -378,17 +385,42 @@ class FlowField:
             missing = [k for k in ("u", "v", "time") if k not in ds.variables]
             if missing:
                 raise FieldError(f"{path} lacks the variable(s) {', '.join(missing)} of a passt_mav field file")
-            grid = grid_from_dict(json.loads(ds.attrs["passt_grid"]))
-            u = ds["u"].values.astype(np.float32)
-            v = ds["v"].values.astype(np.float32)
-            times = ds["time"].values.astype(np.float64)
-            tunits = ds["time"].attrs.get("units", "1")
-            origin = None
-            if tunits.startswith("seconds since"):
-                origin = parse_iso(tunits[len("seconds since ") :].strip()).strftime("%Y-%m-%dT%H:%M:%SZ")
-            attrs = json.loads(ds.attrs.get("passt_provenance", "{}"))
+            grid = checks.grid_attr(ds.attrs["passt_grid"], path)
+            attrs = checks.provenance_attr(ds.attrs.get("passt_provenance"), path)
+            origin = checks.time_origin_attr(ds["time"].attrs.get("units"), path)
             units = ds["u"].attrs.get("units", "m s-1")
-        return cls(np.stack([u, v], axis=1), grid, times, origin, units, attrs)
+            if not isinstance(units, str):
+                raise FieldError(f"{path}: attribute u:units is damaged (a {type(units).__name__}, not text)")
+            u, v, t = ds["u"], ds["v"], ds["time"]
+            if u.ndim != 3 or u.shape != v.shape or t.ndim != 1 or t.shape[0] != u.shape[0]:
+                raise FieldError(
+                    f"{path}: u {u.shape}, v {v.shape} and time {t.shape} are not the (time, rows, cols) and (time,) "
+                    "of a passt_mav field file"
+                )
+            checks.check_size(u.shape, str(path))
+            u, v, times = _values(u, path), _values(v, path), _values(t, path, np.float64)
+        if not np.all(np.isfinite(times)):
+            raise FieldError(f"{path}: the time axis has missing (NaN) or infinite values")
+        try:
+            return cls(np.stack([u, v], axis=1), grid, times, origin, units, attrs)
+        except FieldError as exc:
+            raise FieldError(f"{path}: {exc}") from None
+
+
+def _values(var, path, dtype=np.float32) -> np.ndarray:
+    """The values of the file variable ``var`` as ``dtype`` (a truncated file, a text or a complex variable, values
+    beyond the dtype: a :class:`FieldError` naming the variable and ``path``)."""
+    try:
+        a = var.values
+        if not (np.issubdtype(a.dtype, np.integer) or np.issubdtype(a.dtype, np.floating)):
+            raise FieldError(f"{path}: variable {var.name} holds {a.dtype} values, not numbers")
+        with np.errstate(over="ignore", invalid="ignore"):
+            return a.astype(dtype)
+    except FieldError:
+        raise
+    except (OSError, RuntimeError, ValueError, TypeError, OverflowError) as exc:  # a damaged file's data
+        msg = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        raise FieldError(f"{path}: cannot read variable {var.name}: {msg}") from None
 
 
 def load_field(path: str | Path) -> FlowField:

@@ -33,7 +33,10 @@ command uses), a checkpoint path (``.pt``) or a predictor registry name (``knode
 not here.
 
 Every problem raises :class:`passt_mav.errors.MissionConfigError` with ONE line
-``FILE: key.path: problem (got VALUE)``. Relative paths in the file (field
+``FILE: key.path: problem (got VALUE)``. Every number must be finite (no ``.inf``/``.nan``) and within
+physical bounds (``vehicle.speed_mps <= 20``, grids of at most :data:`MAX_GRID` rows and columns, ...); a key
+given twice in one mapping, and aliases that expand the file past :data:`MAX_YAML_VALUES` values (an alias
+bomb), are refused as the YAML is read. Relative paths in the file (field
 source, model checkpoint) are relative to the YAML file's directory.
 """
 
@@ -89,11 +92,23 @@ DEFAULT_MODEL = {
 #: predictor registry names accepted when passt_mav.models cannot be imported (yet)
 _KNOWN_PREDICTORS = ("knode", "dmd", "persistence")
 _NAMED_VALUE_MAX = 10  # NAMED_VALUE_FLOAT.name is char[10]
+#: bounds of a mission's numbers (physical, or what a run can do in reasonable time and memory)
+MAX_GRID = 1000  # rows, cols
+MAX_SPEED_MPS = 20.0  # a survey boat's speed through the water (about 39 knots)
+MAX_PATH_LENGTH = 1000  # moves per leg
+MAX_LEGS = 10_000
+MAX_STEPS = 10_000  # snapshot indices and counts
+MAX_BOATS = 64  # a fleet's boats
+DAY_S = 86_400.0
+#: values (scalars, lists and mappings, aliases expanded) a mission file may hold: a file of aliases that
+#: expand past it (a "billion laughs" alias bomb) is refused before it is built
+MAX_YAML_VALUES = 100_000
 
 
 class _Strict(BaseModel):
     # a field's docstring is its description (the mission-key reference, docs/missions.md, is generated from it)
-    model_config = ConfigDict(extra="forbid", frozen=True, use_attribute_docstrings=True)
+    # (allow_inf_nan=False: every float is finite; .inf and .nan are refused by name)
+    model_config = ConfigDict(extra="forbid", frozen=True, use_attribute_docstrings=True, allow_inf_nan=False)
 
 
 def _base_dir(info: ValidationInfo) -> Path:
@@ -106,17 +121,17 @@ class GeographicRegion(_Strict):
 
     kind: Literal["geographic"] = "geographic"
     """Which kind of region; optional, the other keys say it."""
-    south: float
+    south: float = Field(ge=-90, le=90)
     """Latitude of the southern row's cell centres (degrees north)."""
-    west: float
+    west: float = Field(ge=-360, le=360)
     """Longitude of the western column's cell centres (degrees east)."""
-    north: float
+    north: float = Field(ge=-90, le=90)
     """Latitude of the northern row's cell centres (degrees north)."""
-    east: float
+    east: float = Field(ge=-360, le=360)
     """Longitude of the eastern column's cell centres (degrees east)."""
-    rows: int = Field(ge=2)
+    rows: int = Field(ge=2, le=MAX_GRID)
     """Grid rows, south to north (row 0 is the southern edge)."""
-    cols: int = Field(ge=2)
+    cols: int = Field(ge=2, le=MAX_GRID)
     """Grid columns, west to east (column 0 is the western edge)."""
 
     @model_validator(mode="after")
@@ -136,25 +151,25 @@ class MetricRegion(_Strict):
 
     kind: Literal["metric"] = "metric"
     """Which kind of region; optional, the other keys say it."""
-    x0: float
+    x0: float = Field(ge=-1e7, le=1e7)
     """Data-frame x of the first column's cell centres (data metres)."""
-    x1: float
+    x1: float = Field(ge=-1e7, le=1e7)
     """Data-frame x of the last column's cell centres (data metres)."""
-    y0: float
+    y0: float = Field(ge=-1e7, le=1e7)
     """Data-frame y of the first row's cell centres (data metres)."""
-    y1: float
+    y1: float = Field(ge=-1e7, le=1e7)
     """Data-frame y of the last row's cell centres (data metres)."""
-    rows: int = Field(ge=2)
+    rows: int = Field(ge=2, le=MAX_GRID)
     """Grid rows along y (row 0 at y0)."""
-    cols: int = Field(ge=2)
+    cols: int = Field(ge=2, le=MAX_GRID)
     """Grid columns along x (column 0 at x0)."""
-    anchor_lat: float
+    anchor_lat: float = Field(ge=-90, le=90)
     """Latitude where the data frame's centre lies (degrees north)."""
-    anchor_lon: float
+    anchor_lon: float = Field(ge=-360, le=360)
     """Longitude where the data frame's centre lies (degrees east)."""
-    rotation_deg: float = 0.0
+    rotation_deg: float = Field(default=0.0, ge=-360, le=360)
     """Counter-clockwise rotation of the data frame on the map (degrees)."""
-    scale: float = Field(default=1.0, gt=0)
+    scale: float = Field(default=1.0, gt=0, le=1e6)
     """Earth metres per data metre."""
 
     @model_validator(mode="after")
@@ -223,9 +238,9 @@ class FieldConfig(_Strict):
 
     source: str
     """`builtin:ocean`, `builtin:cylinder`, `builtin:oscillating`, `builtin:rtofs` or a `.nc` file made by `passt-mav data import` (relative to the mission file); a plain string is the same as `{source: ...}`."""
-    velocity_scale: float = Field(default=1.0, gt=0)
+    velocity_scale: float = Field(default=1.0, gt=0, le=100)
     """m/s per field velocity unit: 1 for geographic fields (already m/s); the cylinder is non-dimensional (inflow = 1)."""
-    time_scale: float = Field(default=1.0, gt=0)
+    time_scale: float = Field(default=1.0, gt=0, le=1e6)
     """Seconds per field time unit: 1 for geographic fields (seconds); for a scaled cylinder `region.scale / velocity_scale`."""
     clock: Literal["auto", "utc", "boot"] = "auto"
     """How vehicle time maps to field time: `utc` (the vehicle's UTC against the field's time origin), `boot` (field time at boot = snapshot `t0`), `auto` (`utc` when possible, else `boot`, saying why)."""
@@ -266,7 +281,7 @@ class PlannerConfig(_Strict):
 
     name: str = DEFAULT.planner
     """Planner (`passt_mav.planning.PLANNERS`: `policy_gradient`, `lawnmower`, `greedy`, `random`, `information`; `pg` = `policy_gradient`)."""
-    path_length: int = Field(default=50, ge=1)
+    path_length: int = Field(default=50, ge=1, le=MAX_PATH_LENGTH)
     """Moves per leg L (grid cells; a move is one cell, diagonals included)."""
     reward: str = DEFAULT.reward
     """Reward map the planner maximises (`passt_mav.planning.REWARDS`: `speed`, `vorticity`, `std`, `speed_std`, `change`, `variance_reduction`; `speed` is the predicted current speed, `variance_reduction` the error variance a sample removes from the next reconstruction)."""
@@ -274,6 +289,8 @@ class PlannerConfig(_Strict):
     """Planner-specific keyword options, passed on unchanged."""
     memory: Literal["off", "fitted"] = DEFAULT.memory
     """`fitted`: the information reward's prior remembers per cell the error past legs' samples removed; `off`: the same stationary prior every leg."""
+    current_aware: bool = False
+    """`true` (missions where the current is a sizeable part of the boat's speed, e.g. `missions/north_atlantic.yaml`): a leg is planned and timed in the forecast current: the planner is offered only the moves the boat can make with its crab angle held against it (ArduPilot's ground speed held up to `vehicle.max_water_speed_mps` through the water; at least 0.25 x `vehicle.speed_mps` over ground, `passt_mav.planning.transit.FEASIBLE_MARGIN`), the leg spans the snapshots of its path's time in that current, and the overrun rule expects that time (leg.json `planned_duration_vehicle_s`); `false`: every move at `vehicle.speed_mps` over ground, as in still water."""
 
     @field_validator("name")
     @classmethod
@@ -294,6 +311,14 @@ class PlannerConfig(_Strict):
         if v not in REWARDS:
             raise ValueError(f"unknown reward {v!r}; choose one of {', '.join(REWARDS)}")
         return v
+
+    @model_validator(mode="after")
+    def _options(self):
+        if self.options:
+            from passt_mav.planning import PLANNERS
+
+            _check_options(self.options, PLANNERS[self.name], f"of planner {self.name!r}")
+        return self
 
 
 class VehicleConfig(_Strict):
@@ -317,24 +342,37 @@ class VehicleConfig(_Strict):
     on_overrun: a leg still flying after ``overrun_factor`` x its planned vehicle time (+30 s for the
     start) is reported; ``cut`` (default) ends it there (HOLD, its samples absorbed, the next leg
     planned from where the boat is), ``warn`` only reports it.
+
+    wait_mode: whenever the controller makes the boat wait (between legs, paused, awaiting approval, at a
+    budget stop ``hold``, after a stop signal) it switches to LOITER (``loiter``, default: the boat keeps station
+    inside LOIT_RADIUS) or HOLD (``hold``: Rover's HOLD stops the motor and centres the steering, so a boat in
+    HOLD drifts with the current: 60 m in two minutes in a 0.5 m/s tide). A vehicle that refuses LOITER (no
+    position yet) is put in HOLD, said in the log. on_end: when the run completes the boat ``loiter`` s (armed,
+    keeping station) or is disarmed (``disarm``; the motor cannot start, so it drifts); the run says which.
     """
 
     connect: str = "tcp:127.0.0.1:5760"
     """MAVLink connection: `tcp:HOST:PORT`, `udpin:HOST:PORT`, `udpout:HOST:PORT` or `DEVICE,BAUD` (a radio); `--connect` overrides it."""
-    speed_mps: float = Field(default=2.0, gt=0)
+    speed_mps: float = Field(default=2.0, gt=0, le=MAX_SPEED_MPS)
     """Cruise speed (m/s), sent as DO_CHANGE_SPEED; legs are sized in time from it (set it to the boat's `WP_SPEED`)."""
-    wp_radius_m: float = Field(default=2.0, ge=0)
+    wp_radius_m: float = Field(default=2.0, ge=0, le=1000)
     """Waypoint acceptance radius (m)."""
+    max_water_speed_mps: float | None = Field(default=None, gt=0, le=MAX_SPEED_MPS)
+    """The hull's top speed through the water (m/s; null = `speed_mps`). ArduPilot Rover holds `speed_mps` over ground along the bow, asking the hull for more water speed against a current and less with it, up to this; beyond it the boat makes what full throttle gives. With `planner.current_aware` legs are planned and timed so (`passt_mav.planning.transit`, `hold="ground"`)."""
     on_reboot: Literal["resume", "hold"] = "resume"
-    """After an autopilot reboot mid-leg: `resume` (wait for the EKF, verify or re-upload the mission, re-arm, continue AUTO) or `hold` (HOLD and stop the run, status `paused`)."""
-    link_loss_window_s: float = Field(default=600.0, gt=0)
+    """After an autopilot reboot mid-leg: `resume` (wait for the EKF, verify or re-upload the mission, re-arm, continue AUTO) or `hold` (stop the boat in its `wait_mode` and stop the run, status `paused`)."""
+    link_loss_window_s: float = Field(default=600.0, gt=0, le=DAY_S)
     """How long (vehicle s; wall s = this / `--speedup-hint` while nothing is heard) the controller keeps reconnecting to a vehicle whose link died mid-mission; past it the run stops cleanly (status `paused`, continue with `--resume`)."""
     on_signal: Literal["hold", "auto"] = "hold"
-    """What SIGTERM/SIGINT/SIGHUP do to the vehicle: `hold` switches it to HOLD, `auto` leaves it flying its leg."""
-    overrun_factor: float = Field(default=2.0, gt=1.0)
+    """What SIGTERM/SIGINT/SIGHUP do to the vehicle: `hold` stops it where it is (in its `wait_mode`: LOITER by default), `auto` leaves it flying its leg."""
+    overrun_factor: float = Field(default=2.0, gt=1.0, le=100)
     """A leg still flying after this many times its planned vehicle time (+30 s for the start) is an overrun."""
     on_overrun: Literal["cut", "warn"] = "cut"
-    """What an overrun does: `cut` ends the leg (HOLD, its samples absorbed, the next leg planned from where the boat is); `warn` only reports it."""
+    """What an overrun does: `cut` ends the leg (the boat waits in its `wait_mode`, its samples absorbed, the next leg planned from where the boat is); `warn` only reports it."""
+    wait_mode: Literal["loiter", "hold"] = "loiter"
+    """How the boat waits whenever the controller makes it wait (between legs, paused, awaiting approval, at a budget stop or a stop signal): `loiter` keeps station (LOITER, inside `LOIT_RADIUS`); `hold` stops the motor, and a boat in HOLD drifts with the current."""
+    on_end: Literal["loiter", "disarm"] = "loiter"
+    """What the boat does when the run completes: `loiter` keeps station, armed, for the pilot to take over; `disarm` disarms it (the motor cannot start, and the boat drifts with the current)."""
     start_cell: tuple[int, int] | None = None
     """[row, col] where a simulator starts this boat (a fleet's demo; row 0 south, col 0 west); else unused."""
     #: our MAVLink identity on this boat's link (None = passt_mav.mavlink.link.DEFAULT_SOURCE_SYSTEM /
@@ -343,6 +381,15 @@ class VehicleConfig(_Strict):
     """Our MAVLink system id on this link (unset: 245; never QGroundControl's 255)."""
     source_component: int | None = Field(default=None, ge=1, le=255)
     """Our MAVLink component id on this link (unset: 195, MAV_COMP_ID_PATHPLANNER)."""
+
+    @model_validator(mode="after")
+    def _hull(self) -> VehicleConfig:
+        if self.max_water_speed_mps is not None and self.max_water_speed_mps < self.speed_mps:
+            raise ValueError(
+                f"max_water_speed_mps {self.max_water_speed_mps:g} is below speed_mps {self.speed_mps:g}: "
+                "the hull's top speed through the water is at least the cruise speed"
+            )
+        return self
 
 
 class BudgetConfig(_Strict):
@@ -354,14 +401,14 @@ class BudgetConfig(_Strict):
     fit (with ``on_spent: rtl`` the way home from the last one too); when none fits the run ends. Then the boat goes to ``on_spent`` (RTL or HOLD) and the run ends cleanly (status ``ended``); ``--resume``
     continues it with the budget counted afresh."""
 
-    max_time_s: float | None = Field(default=None, gt=0)
+    max_time_s: float | None = Field(default=None, gt=0, le=365 * DAY_S)
     """Vehicle seconds of legs flown per controller session; unset: no limit."""
-    max_distance_m: float | None = Field(default=None, gt=0)
+    max_distance_m: float | None = Field(default=None, gt=0, le=1e8)
     """Metres moved during legs per controller session (from GLOBAL_POSITION_INT); unset: no limit."""
     battery_reserve_pct: float | None = Field(default=None, gt=0, lt=100)
     """Battery remaining (%, SYS_STATUS / BATTERY_STATUS) at which the boat returns; unset: not watched."""
     on_spent: Literal["rtl", "hold"] = "rtl"
-    """Where the boat goes once a limit is reached: `rtl` (return to launch) or `hold`."""
+    """Where the boat goes once a limit is reached: `rtl` (return to launch) or `hold` (it stops where it is, in its `vehicle.wait_mode`)."""
 
 
 class ApproveConfig(_Strict):
@@ -373,10 +420,10 @@ class ApproveConfig(_Strict):
 
     enabled: bool = False
     """Wait for the operator's approval before each leg's upload."""
-    timeout_s: float = Field(default=300.0, gt=0)
+    timeout_s: float = Field(default=300.0, gt=0, le=DAY_S)
     """Wall seconds to wait for the operator's answer."""
     on_timeout: Literal["hold", "approve"] = "hold"
-    """What an unanswered leg does: `hold` (stop in HOLD, status paused) or `approve` (fly it)."""
+    """What an unanswered leg does: `hold` (stop the run, the boat waiting in its `wait_mode`, status paused) or `approve` (fly it)."""
 
 
 class SensorConfig(_Strict):
@@ -386,7 +433,7 @@ class SensorConfig(_Strict):
     """NAMED_VALUE_FLOAT name of the current's east component (m/s; at most 10 characters)."""
     v: str = Field(default="CUR_V", min_length=1, max_length=_NAMED_VALUE_MAX)
     """NAMED_VALUE_FLOAT name of the current's north component (m/s; at most 10 characters)."""
-    noise_std: float = Field(default=0.0, ge=0)
+    noise_std: float = Field(default=0.0, ge=0, le=10)
     """The sensor's noise standard deviation (m/s); the GP never assumes less."""
 
 
@@ -421,7 +468,7 @@ class GPConfig(_Strict):
     """`forecast`: the GP corrects the model's forecast (residuals); `none`: the paper's GP on the samples alone, a constant mean (`constant` is read as `none`)."""
     hyper: Literal["first_leg", "state", "every_leg"] = "every_leg"
     """When the GP's kernel hyper-parameters are fitted: on every leg's samples (`every_leg`), on the first leg's only (`first_leg`), or once on the initial state (`state`)."""
-    background: int = Field(default=DEFAULT.background, ge=0)
+    background: int = Field(default=DEFAULT.background, ge=0, le=MAX_STEPS)
     """Snapshots of the model's roll-out whose anomaly covariance the GP adds to its kernels (0 = stationary kernels only)."""
     prior_blend: Literal["off", "bma", "select"] = PRIOR_BLEND_DEFAULT
     """`off`: the forecast restarted from the last estimate is the prior; `bma`: that forecast, the model alone from the mission's first state and persistence weighed leg by leg by their samples' likelihood; `select`: the most probable of them alone."""
@@ -452,6 +499,14 @@ class GPConfig(_Strict):
     options: dict[str, Any] = Field(default_factory=dict)
     """Keyword options of `GPReconstructor` (e.g. `nugget: noise`), passed on unchanged."""
 
+    @model_validator(mode="after")
+    def _options(self):
+        if self.options:
+            from passt_mav.reconstruction.gp import GPReconstructor
+
+            _check_options(self.options, GPReconstructor, "of GPReconstructor", internal=("grid_xy",))
+        return self
+
     @property
     def loop_prior(self) -> str:
         """The GP prior as :class:`passt_mav.loop.passt.PasstLoop` takes it: ``prior`` (the same names)."""
@@ -466,15 +521,15 @@ class ModelUpdateConfig(_Strict):
 
     online: Literal["off", "on"] = "off"
     """`on`: update the model between legs, keeping an update only when the next leg's samples find it more probable; `off` (default): the model stays as loaded."""
-    budget_s: float = Field(default=5.0, gt=0, allow_inf_nan=False)
+    budget_s: float = Field(default=5.0, gt=0, le=DAY_S)
     """Seconds of gradient steps per leg (wall clock; overrun by at most one step)."""
-    lr: float = Field(default=1e-4, gt=0, allow_inf_nan=False)
+    lr: float = Field(default=1e-4, gt=0, le=1)
     """Adam's learning rate of the update."""
-    horizon: int = Field(default=1, ge=1)
+    horizon: int = Field(default=1, ge=1, le=MAX_LEGS)
     """Later states each state's roll-out is compared with (1 = the next leg's)."""
-    max_steps: int | None = Field(default=None, ge=1)
+    max_steps: int | None = Field(default=None, ge=1, le=10**9)
     """A cap on the gradient steps per leg (unset: the budget alone); set it, with a budget large enough for it, for a run that replays bit for bit whatever the machine's speed."""
-    window: int = Field(default=10, ge=2)
+    window: int = Field(default=10, ge=2, le=MAX_LEGS)
     """The most recent reconstructed states (one per leg) the update trains on."""
 
     @field_validator("online", mode="before")
@@ -487,13 +542,13 @@ class ModelUpdateConfig(_Strict):
 class SeedConfig(_Strict):
     """Seeds of everything random (recorded with the run)."""
 
-    planner: int = 0
+    planner: int = Field(default=0, ge=0, le=2**32 - 1)
     """Seed of the planner's randomness."""
-    gp: int = 0
+    gp: int = Field(default=0, ge=0, le=2**32 - 1)
     """Seed of the GP's hyper-parameter fit restarts."""
-    sensor: int = 0
+    sensor: int = Field(default=0, ge=0, le=2**32 - 1)
     """Seed of simulated sensor noise (`demo`'s simulator, the counterfactuals)."""
-    field: int = 0
+    field: int = Field(default=0, ge=0, le=2**32 - 1)
     """Seed of a generated field (`builtin:ocean`'s realisation)."""
 
 
@@ -510,21 +565,21 @@ class MissionConfig(_Strict):
     """`builtin:cylinder`, `builtin:ocean` (shipped KNODEs), a `.pt` checkpoint, or `knode`, `dmd`, `persistence`; unset: the built-in field's model, else `dmd`."""
     planner: PlannerConfig = Field(default_factory=PlannerConfig)
     """How each leg's path is chosen."""
-    legs: int = Field(default=1, ge=1)
+    legs: int = Field(default=1, ge=1, le=MAX_LEGS)
     """Number of legs (plan, fly, reconstruct); `--legs` overrides it."""
     start_cell: tuple[int, int] | None = None
     """[row, col] where `plan`, `demo` and the offline counterfactuals start the first leg (row 0 is the southern edge and grows north, col 0 the western edge and grows east); unset: the grid's centre. A live `run` starts every leg at the boat's own cell."""
-    t0: int = Field(default=0, ge=0)
+    t0: int = Field(default=0, ge=0, le=MAX_STEPS)
     """Snapshot index of the field at the mission's start (the model's initial state)."""
-    steps_per_leg: int | None = Field(default=None, ge=1)
+    steps_per_leg: int | None = Field(default=None, ge=1, le=MAX_STEPS)
     """Field snapshots per leg given to the loop (unset: 1)."""
     vehicle: VehicleConfig = Field(default_factory=VehicleConfig)
     """The boat (one boat)."""
-    vehicles: list[VehicleConfig] | None = None
+    vehicles: list[VehicleConfig] | None = Field(default=None, max_length=MAX_BOATS)
     """A fleet sharing one field estimate: one entry per boat, each with the keys of `vehicle`; give either `vehicle` or `vehicles`."""
     sensors: SensorConfig = Field(default_factory=SensorConfig)
     """The current sensor's messages and noise."""
-    geofence_margin_m: float = Field(default=0.0, ge=0)
+    geofence_margin_m: float = Field(default=0.0, ge=0, le=1e6)
     """Geofence margin around the region's outer cell edges (m): a leg with a waypoint outside region + margin is not uploaded, and a boat outside it is not planned for."""
     gp: GPConfig = Field(default_factory=GPConfig)
     """The GP reconstruction."""
@@ -606,6 +661,37 @@ class MissionConfig(_Strict):
         planner = {"planner": self.planner.name, "reward": self.planner.reward, "memory": self.planner.memory}
         gp = {k: getattr(self.gp, k) for k in Preset.__dataclass_fields__ if k not in planner}  # gp.* by its names
         return Preset(**planner, **gp)
+
+
+def _check_options(options: dict, cls: type, what: str, internal: tuple[str, ...] = ()) -> None:
+    """``options`` (a planner's or the GP's keyword options) name keyword parameters of ``cls`` (not ``internal``
+    ones, which the loop sets) and hold finite numbers only: else ValueError naming the first problem."""
+    import inspect
+    import math
+
+    params = inspect.signature(cls.__init__).parameters
+    if not any(p.kind is inspect.Parameter.VAR_KEYWORD for p in params.values()):
+        allowed = [
+            n
+            for n, p in params.items()
+            if n != "self" and n not in internal and p.kind in (p.KEYWORD_ONLY, p.POSITIONAL_OR_KEYWORD)
+        ]
+        for key in options:
+            if key not in allowed:
+                raise ValueError(f"options: unknown option {_short(key)} {what} (allowed: {', '.join(allowed)})")
+
+    def finite(v: Any, where: str) -> None:
+        if isinstance(v, float) and not math.isfinite(v):
+            raise ValueError(f"options.{where}: must be a finite number (got {v})")
+        if isinstance(v, dict):
+            for k, x in v.items():
+                finite(x, f"{where}.{k}")
+        elif isinstance(v, list):
+            for i, x in enumerate(v):
+                finite(x, f"{where}[{i}]")
+
+    for key, val in options.items():
+        finite(val, str(key))
 
 
 def _predictor_names() -> tuple[str, ...]:
@@ -694,8 +780,79 @@ def validate_mission(data: Any, *, source: str = "mission", base_dir: str | Path
         raise MissionConfigError(f"{source}: {_fmt_error(errs[0], MissionConfig)}{more}".replace("\n", " ")) from None
 
 
-def load_mission(path: str | Path) -> MissionConfig:
-    """Read and validate a mission YAML file (see module docstring)."""
+def _mission_loader():
+    """A ``yaml.SafeLoader`` that refuses a key given twice in one mapping (PyYAML keeps the last silently) and a
+    document whose aliases expand it past :data:`MAX_YAML_VALUES` values (counted on the node graph, each shared
+    node once per use, without building anything); both as ``yaml.YAMLError`` with the place in the file."""
+    import yaml
+    from yaml.constructor import ConstructorError
+    from yaml.nodes import MappingNode, SequenceNode
+
+    class MissionLoader(yaml.SafeLoader):
+        def construct_mapping(self, node, deep=False):
+            if isinstance(node, MappingNode):
+                seen: dict[Any, Any] = {}
+                for key_node, _ in node.value:
+                    if key_node.tag == "tag:yaml.org,2002:merge":
+                        continue  # '<<: *base' keys are overridden by the mapping's own, as YAML says
+                    key = self.construct_object(key_node, deep=True)
+                    try:
+                        first = seen.setdefault(key, key_node)
+                    except TypeError:
+                        continue  # an unhashable key: SafeLoader names it below
+                    if first is not key_node:
+                        raise ConstructorError(
+                            None,
+                            None,
+                            f"duplicate key {_short(key)} (first given at line {first.start_mark.line + 1}); "
+                            "YAML would keep only the last",
+                            key_node.start_mark,
+                        )
+            return super().construct_mapping(node, deep=deep)
+
+        def get_single_data(self):
+            node = self.get_single_node()
+            if node is None:
+                return None
+            size: dict[int, int] = {}
+
+            def count(n) -> int:  # values under n, aliases expanded (memoised: linear in the file)
+                k = id(n)
+                if k in size:
+                    if size[k] < 0:
+                        raise ConstructorError(None, None, "an alias refers to the value that holds it", n.start_mark)
+                    return size[k]
+                size[k] = -1
+                total = 1
+                if isinstance(n, SequenceNode):
+                    children = n.value
+                elif isinstance(n, MappingNode):
+                    children = [c for kv in n.value for c in kv]
+                else:
+                    children = ()
+                for c in children:
+                    total += count(c)
+                    if total > MAX_YAML_VALUES:
+                        raise ConstructorError(
+                            None,
+                            None,
+                            f"its aliases expand it past {MAX_YAML_VALUES:,} values (an alias bomb?); "
+                            "a mission file is far smaller",
+                            n.start_mark,
+                        )
+                size[k] = total
+                return total
+
+            count(node)
+            return self.construct_document(node)
+
+    return MissionLoader
+
+
+def read_mission_data(path: str | Path) -> Any:
+    """The parsed YAML of a mission file, not validated (None when empty): a file that cannot be read, is not
+    YAML, is nested too deep, gives a key twice in one mapping or holds an alias bomb (:func:`_mission_loader`)
+    is one :class:`MissionConfigError` naming it."""
     import yaml
 
     p = Path(path)
@@ -706,15 +863,26 @@ def load_mission(path: str | Path) -> MissionConfig:
     except (OSError, UnicodeDecodeError) as exc:
         raise MissionConfigError(f"{p}: cannot read the mission file ({exc})") from None
     try:
-        data = yaml.safe_load(text)
+        return yaml.load(text, Loader=_mission_loader())  # noqa: S506 - a SafeLoader (refusing more)
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
         where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark is not None else ""
         problem = getattr(exc, "problem", None) or str(exc).splitlines()[0]
         raise MissionConfigError(f"{p}: invalid YAML{where}: {problem}") from None
+    except RecursionError:
+        raise MissionConfigError(f"{p}: invalid YAML: nested too deep for a mission file") from None
+
+
+def load_mission(path: str | Path) -> MissionConfig:
+    """Read and validate a mission YAML file (see module docstring)."""
+    p = Path(path)
+    data = read_mission_data(p)
     if data is None:
         raise MissionConfigError(f"{p}: the mission file is empty")
-    return validate_mission(data, source=str(p), base_dir=p.parent)
+    try:
+        return validate_mission(data, source=str(p), base_dir=p.parent)
+    except RecursionError:
+        raise MissionConfigError(f"{p}: nested too deep for a mission file") from None
 
 
 def mission_overrides(data: dict, overrides: dict) -> dict:

@@ -398,6 +398,8 @@ class WaypointMission:
             d = json.loads(_read_text(p))
         except json.JSONDecodeError as exc:
             raise MissionFileError(f"{p}: not valid JSON (line {exc.lineno}, column {exc.colno}: {exc.msg})") from None
+        except RecursionError:
+            raise MissionFileError(f"{p}: not valid JSON (nested too deep)") from None
         return cls.from_plan_dict(d, source=str(p))
 
     @classmethod

@@ -98,8 +98,9 @@ def read_metadata(path: str | Path) -> dict:
         raise ModelError(f"checkpoint metadata {jp} not found (a checkpoint is PATH.pt + PATH.json)")
     try:
         return json.loads(jp.read_text())
-    except (OSError, ValueError) as exc:
-        raise ModelError(f"cannot read checkpoint metadata {jp}: {exc}") from None
+    except (OSError, ValueError, RecursionError) as exc:
+        why = "nested too deep" if isinstance(exc, RecursionError) else exc
+        raise ModelError(f"cannot read checkpoint metadata {jp}: {why}") from None
 
 
 def load_predictor(spec: str | Path) -> Predictor:

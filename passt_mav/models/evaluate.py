@@ -392,7 +392,7 @@ def evaluate_command(
 
     if threads is not None:
         _set_torch_threads(threads)
-    field = resolve_field(data)
+    field = resolve_field(data, series=True)
     m, predictors = _predictors(model, field, train, baselines)
     gp = dict(ic_stride=gp_ic_stride, path_length=gp_path_length, noise_std=gp_noise, seed=seed) if gp_starts else None
     windows = _evaluation_windows(field, train, test, oscillating, gp)

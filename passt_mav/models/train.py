@@ -62,7 +62,7 @@ def train(
     from passt_mav.models.base import make_predictor
 
     _seed_and_threads(seed, threads)
-    field = resolve_field(data)
+    field = resolve_field(data, series=True)
     job = _TrainJob(data=data, out=out, start=start, stop=stop, seed=seed, recipe=recipe, command=command)
     if model != "knode":
         return _train_other(model, field, job)

@@ -92,6 +92,8 @@ def _read_json(path: Path) -> Any:
         raise RunDirError(f"{path} not found") from None
     except (json.JSONDecodeError, UnicodeDecodeError) as exc:
         raise RunDirError(f"{path} is not valid JSON: {exc}") from None
+    except RecursionError:
+        raise RunDirError(f"{path} is not valid JSON: nested too deep") from None
     except OSError as exc:
         raise RunDirError(f"cannot read {path}: {exc.strerror or exc}") from None
 

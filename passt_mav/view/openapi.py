@@ -9,6 +9,7 @@ Origin or with a foreign Host).
 from __future__ import annotations
 
 from passt_mav.runs.commands import ACTIONS, END_MODES
+from passt_mav.view.gate import MAX_STREAMS
 
 __all__ = ["openapi", "RASTERS"]
 
@@ -17,6 +18,7 @@ RASTERS = ("speed", "std", "reward", "land")
 
 _REFUSED = {
     "403": {"description": "foreign Host or Origin, or the token is missing (one line of text)"},
+    "429": {"description": "too many requests from this client (Retry-After; one line of text)"},
 }
 
 
@@ -50,12 +52,12 @@ def openapi(version: str) -> dict:
         "info": {
             "title": "passt-mav live view",
             "version": version,
-            "description": "The operator's console of one run (docs/console.md). Reading is open on loopback; "
-            "commands need the run's token (cookie set by the page's address, or the X-Passt-Token header).",
+            "description": "The operator's console of one run (docs/console.md). Reading is open on loopback "
+            "(elsewhere it needs the token, in the header or the query); commands need the run's token in the "
+            "X-Passt-Token header. A cookie is never a credential.",
         },
         "components": {
             "securitySchemes": {
-                "cookie": {"type": "apiKey", "in": "cookie", "name": "passt_view_PORT"},
                 "header": {"type": "apiKey", "in": "header", "name": "X-Passt-Token"},
                 "query": {"type": "apiKey", "in": "query", "name": "token"},
             },
@@ -64,7 +66,7 @@ def openapi(version: str) -> dict:
         "paths": {
             "/": {
                 "get": {
-                    "summary": "the page (sets the token cookie when the address carries ?token=)",
+                    "summary": "the page (it keeps the address's ?token= in sessionStorage; no cookie)",
                     "parameters": [{"name": "token", "in": "query", "schema": {"type": "string"}}],
                     "responses": {"200": {"description": "index.html"}, **_REFUSED},
                 }
@@ -77,7 +79,8 @@ def openapi(version: str) -> dict:
             },
             "/api/stream": {
                 "get": {
-                    "summary": "server-sent events: a snapshot whenever a file of the run changes",
+                    "summary": "server-sent events: a snapshot whenever a file of the run changes (at most "
+                    f"{MAX_STREAMS} open at a time per client without the token, {MAX_STREAMS} with it)",
                     "responses": {"200": {"description": "text/event-stream"}, **_REFUSED},
                 }
             },
@@ -100,7 +103,7 @@ def openapi(version: str) -> dict:
                 "post": {
                     "summary": "ask the controller to act on a boat (picked up between its steps; the result "
                     "comes as an event of kind 'command' with this command's id)",
-                    "security": [{"cookie": []}, {"header": []}],
+                    "security": [{"header": []}],
                     "requestBody": {
                         "required": True,
                         "content": {"application/json": {"schema": {"$ref": "#/components/schemas/Command"}}},

@@ -3,7 +3,7 @@
 Routes (described for clients in :mod:`passt_mav.view.openapi`, served at ``/api/openapi.json``): ``/`` the
 page; ``/static/...`` its files (Leaflet vendored, no CDN); ``/api/state`` one snapshot (JSON);
 ``/api/stream`` server-sent events, one ``data:`` line with a snapshot whenever a file of the run changes
-(polled every :data:`POLL_S`); ``/api/raster/{what}.png?leg=N`` the rasters (:meth:`RunState.raster`);
+(polled every :data:`POLL_S` once for all the streams open); ``/api/raster/{what}.png?leg=N`` the rasters (:meth:`RunState.raster`);
 ``POST /api/command`` the operator's command to the controller, appended to the run's command channel
 (:mod:`passt_mav.runs.commands`). Every request passes :class:`~passt_mav.view.gate.Gate` first (Host, Origin,
 token, rate; docs/console.md). A bad parameter is a 4xx with one line naming it, never a 500.
@@ -15,7 +15,7 @@ import asyncio
 import json
 from pathlib import Path
 
-from passt_mav.view.gate import Addresses, Gate, RateLimit, is_loopback
+from passt_mav.view.gate import Addresses, FailureLimit, Gate, OpenLimit, RateLimit, is_loopback
 from passt_mav.view.state import RunState, signature
 
 __all__ = ["make_app", "serve", "POLL_S", "MAX_BODY", "is_loopback"]
@@ -43,9 +43,14 @@ def make_app(
     host: str = "127.0.0.1",
     port: int = 0,
     rate: RateLimit | None = None,
+    failures: FailureLimit | None = None,
+    reads: FailureLimit | None = None,
+    streams: OpenLimit | None = None,
 ):
     """The ASGI app serving the run in ``root``, bound to ``host``:``port`` (the names it answers to), with
-    this run's ``token`` (reading without it only on loopback; commanding never)."""
+    this run's ``token`` (reading without it only on loopback; commanding never). ``rate``/``failures``/
+    ``reads``/``streams``: the :class:`~passt_mav.view.gate.Gate`'s limits of commands, of failed
+    authentications per client, of reads without the token per client and of open event streams per client."""
     from starlette.applications import Starlette
     from starlette.concurrency import run_in_threadpool
     from starlette.responses import FileResponse, JSONResponse, PlainTextResponse, Response, StreamingResponse
@@ -64,24 +69,39 @@ def make_app(
         return PlainTextResponse(f"passt-mav view: {text}", status_code=code)
 
     async def index(request):
-        resp = FileResponse(STATIC / "index.html", headers={"Cache-Control": "no-store"})
-        auth = request.scope.get("passt_auth") or {}
-        if auth.get("via") == "query":
-            resp.set_cookie(auth["cookie"], token, httponly=True, samesite="strict", path="/")
-        return resp
+        # no cookie: the page keeps the address's token in sessionStorage (per port; passt_mav/view/gate.py)
+        return FileResponse(
+            STATIC / "index.html", headers={"Cache-Control": "no-store", "Referrer-Policy": "no-referrer"}
+        )
 
     async def api_state(request):
         snap = await run_in_threadpool(state.snapshot)
         snap["control"] = _control(request, state, snap)
         return JSONResponse(snap, headers={"Cache-Control": "no-store"})
 
+    # one poll of the run directory every POLL_S for all the open streams (not one each: a hundred open streams
+    # once kept the thread pool busy with signatures and starved every other request)
+    feed = {"t": -1e9, "sig": None, "snap": None}
+    feed_lock = asyncio.Lock()
+
+    async def latest():
+        async with feed_lock:
+            now = asyncio.get_running_loop().time()
+            if now - feed["t"] >= POLL_S * 0.9:
+                sig = await run_in_threadpool(signature, state.root)
+                if sig != feed["sig"] or feed["snap"] is None:
+                    feed["snap"] = await run_in_threadpool(state.snapshot)
+                    feed["sig"] = sig
+                feed["t"] = asyncio.get_running_loop().time()
+            return feed["sig"], feed["snap"]
+
     async def stream(request):
         async def events():
             last, quiet = None, 0.0
             while True:
-                sig = await run_in_threadpool(signature, state.root)
+                sig, shared = await latest()
                 if sig != last:
-                    snap = await run_in_threadpool(state.snapshot)
+                    snap = dict(shared)
                     snap["control"] = _control(request, state, snap)
                     last, quiet = sig, 0.0
                     yield f"data: {json.dumps(snap, allow_nan=False, default=str)}\n\n"
@@ -130,6 +150,8 @@ def make_app(
             data = json.loads(body.decode("utf-8"))
         except (UnicodeDecodeError, ValueError):
             return bad(400, "the body is not valid JSON")
+        except RecursionError:  # arrays or objects nested deeper than the parser goes (2,048 '[' fit in 4 KiB)
+            return bad(400, "the body is not valid JSON: nested too deep")
         try:
             cmd = validate(data, state.n_boats())
         except CommandError as exc:
@@ -154,7 +176,16 @@ def make_app(
             Mount("/static", StaticFiles(directory=STATIC), name="static"),
         ]
     )
-    return Gate(app, token=token, addresses=Addresses(host, port), read_open=is_loopback(host), rate=rate)
+    return Gate(
+        app,
+        token=token,
+        addresses=Addresses(host, port),
+        read_open=is_loopback(host),
+        rate=rate,
+        failures=failures,
+        reads=reads,
+        streams=streams,
+    )
 
 
 def serve(root: str | Path, *, host: str = "127.0.0.1", port: int = 0, token: str, on_ready=None) -> None:

@@ -3,9 +3,23 @@
 (function () {
   'use strict';
   var COLORS = ['#e4572e', '#0c8f8c', '#b8860b', '#5a8f29', '#8e44ad', '#2e86de', '#d35400', '#16a085', '#c0392b'];
-  // the address's ?token= was answered with the token's httponly cookie (passt_mav/view/gate.py): every request
-  // of this page carries that cookie, so the token leaves the address bar (history, screenshots, shoulders)
-  if (new URLSearchParams(location.search).has('token')) history.replaceState(null, '', location.pathname);
+  // the run's token comes once in the address (?token= or #token=); the page keeps it in sessionStorage, which
+  // is per origin (scheme, host and port: never a cookie, which every port of 127.0.0.1 receives), and sends it
+  // in the X-Passt-Token header on commands and in the query of its reads (passt_mav/view/gate.py). It leaves
+  // the address bar (history, screenshots, shoulders).
+  var TOKEN_KEY = 'passt_view_token', token = null;
+  (function () {
+    var q = new URLSearchParams(location.search), f = new URLSearchParams(location.hash.replace(/^#/, ''));
+    var t = f.get('token') || q.get('token');
+    try {
+      if (t) sessionStorage.setItem(TOKEN_KEY, t);
+      token = sessionStorage.getItem(TOKEN_KEY);
+    } catch (e) { token = t; }
+    if (q.has('token') || f.has('token')) history.replaceState(null, '', location.pathname);
+  })();
+  function withToken(url) {
+    return token ? url + (url.indexOf('?') < 0 ? '?' : '&') + 'token=' + encodeURIComponent(token) : url;
+  }
   function $(id) { return document.getElementById(id); }
   function esc(s) { return String(s == null ? '' : s).replace(/[&<>"]/g, function (c) {
     return {'&': '&amp;', '<': '&lt;', '>': '&gt;', '"': '&quot;'}[c]; }); }
@@ -43,7 +57,7 @@
     if (overlays[kind] === url) return;
     overlays[kind] = url;
     G[kind].clearLayers();
-    if (url) L.imageOverlay(url, bounds, {opacity: kind === 'reward' ? 0.75 : 0.9}).addTo(G[kind]);
+    if (url) L.imageOverlay(withToken(url), bounds, {opacity: kind === 'reward' ? 0.75 : 0.9}).addTo(G[kind]);
   }
 
   function drawRegion(s) {
@@ -55,7 +69,7 @@
     }
     if (r.has_land && !landShown) {
       landShown = true;
-      L.imageOverlay('api/raster/land.png', r.bounds, {opacity: 1}).addTo(G.land);
+      L.imageOverlay(withToken('api/raster/land.png'), r.bounds, {opacity: 1}).addTo(G.land);
     }
     var e = s.estimate;
     if (e && e.leg != null) {
@@ -181,7 +195,7 @@
     $('boats').innerHTML = html;
   }
 
-  // -- the operator's console: commands by POST to api/command (the token's cookie; passt_mav/view/gate.py) ----
+  // -- the operator's console: commands by POST to api/command (the token in X-Passt-Token; view/gate.py) ---
   var ACTIONS = [['pause', 'Pause'], ['resume', 'Resume'], ['skip', 'Skip leg'], ['replan', 'Re-plan now'],
                  ['end:HOLD', 'End (HOLD)'], ['end:RTL', 'End (RTL)']];
   function controls(s, b) {
@@ -215,8 +229,8 @@
       ' (' + parts[1] + ')?')) return;
     var msg = $('console-msg');
     msg.textContent = 'sending ' + act + ' to boat ' + boat + ' ...'; msg.className = 'small';
-    fetch('api/command', {method: 'POST', credentials: 'same-origin', headers: {'Content-Type': 'application/json'},
-                          body: JSON.stringify(body)}).then(function (r) {
+    fetch('api/command', {method: 'POST', credentials: 'omit', headers: {'Content-Type': 'application/json',
+                          'X-Passt-Token': token || ''}, body: JSON.stringify(body)}).then(function (r) {
       return r.text().then(function (t) {
         msg.textContent = r.status === 202 ? act + ' sent to boat ' + boat + '; the controller answers below' : t;
         msg.className = r.status === 202 ? 'small ok' : 'small bad';
@@ -315,7 +329,7 @@
   }
 
   function connect() {
-    var es = new EventSource('api/stream');
+    var es = new EventSource(withToken('api/stream'));
     es.onopen = function () { var c = $('conn'); c.textContent = 'connected'; c.className = 'pill ok'; };
     es.onmessage = function (ev) {
       try { render(JSON.parse(ev.data)); } catch (err) { console.error(err); }
