@@ -746,16 +746,14 @@ class MissionController(ResumeRecord, OperatorLegs):
         return duration_s, tb_end, cut
 
     def _expected_vehicle_s(self, wm) -> float:
-        """Vehicle seconds the leg should take (:meth:`LegStep.expected_vehicle_s`: in the forecast current); the
-        still-water figure where that is not finite (a move the forecast makes impossible: the overrun rule needs a
-        bound)."""
-        still = expected_vehicle_s(self.grid, wm, self.speed)  # (no current: planner.current_aware false)
+        """Vehicle seconds the leg should take (:meth:`LegStep.expected_vehicle_s`: in the forecast current); in
+        still water (``planner.current_aware`` false, or a move the forecast makes impossible: infinite) else."""
+        still = expected_vehicle_s(self.grid, wm, self.speed)
         out = self.step.expected_vehicle_s((self.leg_rec or {}).get("index"), wm.meta.get("cells"), self.speed, still)
         return out if np.isfinite(out) and out > 0 else still
 
     def _fly(self, i: int, wm, items, n_items: int) -> str | None:
-        """Wait for the leg to complete, its faults handled (:meth:`VehicleSession.fly`: ``"cut"`` for a leg
-        cut short by an overrun)."""
+        """Wait for the leg to complete, its faults handled (:meth:`VehicleSession.fly`; ``"cut"``: an overrun)."""
         return self.session.fly(i, items, n_items, self._expected_vehicle_s(wm))
 
     def _absorb(self, i: int, planned):
