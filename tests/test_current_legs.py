@@ -2,8 +2,8 @@
 
 ``passt-mav run missions/north_atlantic.yaml --legs 2 --set planner.path_length=6`` as shipped (2 m/s,
 ``builtin:ocean``: a Gulf-Stream-like jet up to ~1.7 m/s), against an in-process :class:`vehicle_sim.Simulator`
-in lockstep (its clock runs only while the controller's reader polls, 1 s of vehicle time a poll), as
-``tests/test_run_missions.py`` flies the shipped files. Before, a leg was timed at 2 m/s over ground: against
+in the controller-driven lockstep (``run --lockstep 1``: its clock runs only while the controller waits for
+it, 1 s of vehicle time a step). Before, a leg was timed at 2 m/s over ground: against
 the jet the boat makes ~0.75 m/s, the leg took far longer than planned and the overrun rule cut it.
 
 The simulator's boat holds its track like ArduPilot's L1 controller (``nav="crosstrack"``: it crabs against
@@ -24,7 +24,6 @@ from pathlib import Path
 
 import pytest
 import yaml
-from mavlink_helpers import lockstep_connection
 
 from passt_mav.cli import main
 from passt_mav.fields.datasets import resolve_field
@@ -34,10 +33,12 @@ from vehicle_sim import SimConfig, Simulator
 from vehicle_sim.boat import BoatParams
 
 MISSION = Path(__file__).resolve().parent.parent / "missions" / "north_atlantic.yaml"
-AUTOSTEP_S = 1.0  # simulated seconds per idle poll of the controller's reader (legs of ~7-8 h)
+STEP_S = 1.0  # vehicle seconds per lockstep step (legs of ~7-8 h)
 
 
-@pytest.mark.long(reason="two legs of six 6.8 km moves of the ocean mission (~15 h of vehicle time): ~3-5 min")
+@pytest.mark.long(
+    reason="two legs of six 6.8 km moves of the ocean mission (~18 h of vehicle time in 1 s lockstep steps): ~3-6 min"
+)
 def test_north_atlantic_legs_finish_in_the_time_planned_in_the_current(tmp_path, monkeypatch):
     data = yaml.safe_load(MISSION.read_text())
     assert data["vehicle"]["speed_mps"] == 2.0 and data["field"]["source"] == "builtin:ocean"  # as shipped
@@ -51,28 +52,34 @@ def test_north_atlantic_legs_finish_in_the_time_planned_in_the_current(tmp_path,
         ),
         start_time=float(field.times[data["t0"]]),
     )
-    monkeypatch.setattr(
-        link_mod.LinkConfig, "open", lambda self: lockstep_connection(sim.connect_inprocess(), AUTOSTEP_S)
-    )
+    # the controller-driven lockstep: the vehicle's clock runs only while the controller waits for it, 1 s a
+    # step, so a loaded machine cannot make the vehicle's mission-transfer timers outrun the controller
+    sim.serve([], lockstep=True)
+    monkeypatch.setattr(link_mod.LinkConfig, "open", lambda self: sim.connect_inprocess().mavlink_connection())
     out = tmp_path / "run"
-    rc = main(
-        [
-            "run",
-            str(MISSION),
-            "--connect",
-            "tcp:127.0.0.1:5760",
-            "--legs",
-            "2",
-            "--set",
-            "planner.path_length=6",
-            "--out",
-            str(out),
-            "--speedup-hint",
-            "200",
-            "--no-report",
-            "--quiet",
-        ]
-    )
+    try:
+        rc = main(
+            [
+                "run",
+                str(MISSION),
+                "--connect",
+                "tcp:127.0.0.1:5760",
+                "--legs",
+                "2",
+                "--set",
+                "planner.path_length=6",
+                "--out",
+                str(out),
+                "--lockstep",
+                str(STEP_S),
+                "--speedup-hint",
+                "1000000",
+                "--no-report",
+                "--quiet",
+            ]
+        )
+    finally:
+        sim.stop()
     summary = json.loads((out / "summary.json").read_text())
     assert rc == 0 and summary["status"] == "complete", summary.get("events")
     assert len(summary["legs"]) == 2
