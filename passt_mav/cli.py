@@ -35,7 +35,7 @@ COMMANDS: dict[str, str] = {
     "report": "report",
     "bench": "bench",
     "export": "export",
-    # live view (issue 29)
+    # live view: the run's page served while it flies
     "view": "view",
 }
 

@@ -1,4 +1,4 @@
-"""Progress of long work, one helper for every command (issue 29 item 3).
+"""Progress of long work, one helper for every command, so every long job shows its progress the same way.
 
 ``progress(iterable_or_total, desc, unit)`` shows a tqdm bar with rate and ETA when stderr is a
 terminal, and otherwise (a log file, CI, a pipe) writes plain lines to stderr: one when the work

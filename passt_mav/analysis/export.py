@@ -1,4 +1,4 @@
-"""Exports of a run directory for other tools: CF-1.8 NetCDF, GeoJSON, KML, CSV (issue 29).
+"""Exports of a run directory for other tools: CF-1.8 NetCDF, GeoJSON, KML, CSV.
 
 ``passt-mav export RUN_DIR --format netcdf|geojson|kml|csv [--samples] [--out FILE]``;
 in Python :func:`export_run`. The run is read, never changed; the file is written to a

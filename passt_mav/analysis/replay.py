@@ -197,10 +197,10 @@ def _load_config(mission, summary: dict | None, rd) -> tuple[Any, str]:
 
 def _as_recorded(cfg, summary: dict | None):
     """``cfg`` with ``gp.bias``, ``gp.prior_blend`` and ``gp.prior_share`` as the run resolved them (summary.json ``config``):
-    a default that changed since (both became mission defaults in issue 27) must not make an older run's
+    a default that changed since (both became mission defaults later) must not make an older run's
     replay diverge. A run whose recorded config lacks one ran before it was a mission default: ``bias``
-    off, ``prior_blend`` "off", ``prior_share`` 0 (the key came with issue 27's fixed share); one whose planner
-    lacks ``current_aware`` planned every move as in still water (issue 52): ``current_aware`` false."""
+    off, ``prior_blend`` "off", ``prior_share`` 0 (the key came with the fixed share); one whose planner
+    lacks ``current_aware`` planned every move as in still water: ``current_aware`` false."""
     from passt_mav.loop.passt import PRIOR_BLENDS
 
     recorded = (summary or {}).get("config")
@@ -217,7 +217,7 @@ def _as_recorded(cfg, summary: dict | None):
     cfg = cfg if not changed else cfg.model_copy(update={"gp": cfg.gp.model_copy(update=changed)})
     planner = recorded.get("planner")
     if isinstance(planner, dict) and "current_aware" not in planner and cfg.planner.current_aware:
-        # a run from before legs were planned in the current (issue 52) timed every move as in still water
+        # a run from before legs were planned in the current timed every move as in still water
         cfg = cfg.model_copy(update={"planner": cfg.planner.model_copy(update={"current_aware": False})})
     return cfg
 

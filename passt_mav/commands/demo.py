@@ -130,7 +130,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="a fleet of N boats sharing one estimate (vehicle-sim --boats N, mission vehicles:; default 1)",
     )
     p.add_argument("--no-report", action="store_true", help="skip the HTML report")
-    # live view (issue 29): served by default, the address printed (no browser is launched)
+    # live view: served by default, the address printed (no browser is launched)
     from passt_mav.commands.view import port
 
     p.add_argument(

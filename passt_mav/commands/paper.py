@@ -377,7 +377,7 @@ def _model_claims(me: dict | None) -> list[dict]:
 
 
 def _same_loop_claims(camp: dict) -> list[dict]:
-    """The two rows of issue 27: PASST's planner against a random walk and greedy in the same
+    """The two planner rows: PASST's planner against a random walk and greedy in the same
     model + GP loop, and sampling never worse than the model alone (at every step)."""
     import numpy as np
 

@@ -118,7 +118,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument("--no-report", action="store_true", help="do not write report/report.html at the end")
     p.add_argument("--quiet", action="store_true", help="no per-leg status lines")
-    from passt_mav.commands.view import add_view_options  # live view (issue 29): --view [PORT], --view-host
+    from passt_mav.commands.view import add_view_options  # live view: --view [PORT], --view-host
 
     add_view_options(p)
 

@@ -1,6 +1,6 @@
 """The measurement rules: how a current reading becomes a sample, and how an estimate is scored.
 
-One module (issue 30), so that the live controller, the replay of its logs and the report cannot
+One module, so that the live controller, the replay of its logs and the report cannot
 disagree on the same log. Its users:
 
 * the live collector :class:`passt_mav.mavlink.SampleCollector` (rules 1-3), which the tlog replay
