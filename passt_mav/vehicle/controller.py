@@ -731,7 +731,7 @@ class MissionController(ResumeRecord, OperatorLegs):
         except BaseException:
             close_leg(self.collector)  # (a stop, an end, a pause: their own paths command the vehicle)
             raise
-        end_leg_at_hold(self.link, self.vehicle, self.collector)
+        end_leg_at_wait(self.link, self.vehicle, self.collector)
         self.vehicle.keep_station()
         self.session.waits.begin("between legs", i + 1)
         cut = None if how != "cut" else overrun_record(expected, self.config.vehicle, self.vehicle.progress, items)
@@ -859,12 +859,12 @@ def stop_by_signal(ctl, name: str) -> None:
     else:  # HOLD whatever the mode seen last: a stop during the swap may precede AUTO's heartbeat
         # the leg closes and the first HOLD is sent under the reader's dispatch lock, as at a leg's end, so no
         # reading is logged before that HOLD but kept out of the leg (a replay ends the leg there)
-        end_leg_at_hold(ctl.link, ctl.vehicle, ctl.collector)
+        end_leg_at_wait(ctl.link, ctl.vehicle, ctl.collector)
         ctl.vehicle.keep_station_if_auto(always=True)
     place_held(ctl.collector, None if ctl.link.lost else ctl.live_leg[0], ctl.speedup)
 
 
-def end_leg_at_hold(link, vehicle, collector) -> None:
+def end_leg_at_wait(link, vehicle, collector) -> None:
     """The leg's readings end where the telemetry log shows it: no reading is logged and routed between the
     collector's leg closing and the first mode command sent (the vehicle's :attr:`~Vehicle.wait_mode`: LOITER or
     HOLD; the reader's dispatch lock held over both), so a replay, which ends the leg at that command, assigns
@@ -873,9 +873,9 @@ def end_leg_at_hold(link, vehicle, collector) -> None:
     with link.dispatch_lock:
         close_leg(collector)
         try:
-            vehicle.request_mode(getattr(vehicle, "wait_mode", "HOLD"))
+            vehicle.request_mode(vehicle.wait_mode)
         except Exception as exc:  # noqa: BLE001 - the confirming keep_station() reports and handles it
-            log.debug("%s request at the leg's end not sent: %s", getattr(vehicle, "wait_mode", "HOLD"), exc)
+            log.debug("%s request at the leg's end not sent: %s", vehicle.wait_mode, exc)
 
 
 def close_leg(collector) -> None:

@@ -57,7 +57,9 @@ class WaitLog:
         ``leg`` (0-based). A wait already open goes on (the first reason counts)."""
         if self._open is not None:
             return
-        self._open = _Open(kind, int(leg), str(self.vehicle.wait_mode), self._where(), self.link.vehicle_uptime_s())
+        # the mode the vehicle reports (a refused LOITER left it in HOLD), else the one it was asked for
+        mode = self.vehicle.mode_name or self.vehicle.wait_mode
+        self._open = _Open(kind, int(leg), str(mode), self._where(), self.link.vehicle_uptime_s())
 
     def end(self) -> dict | None:
         """The wait ends (the boat flies again, or the run ends): its record, or None when none was open."""
@@ -124,7 +126,5 @@ class WaitLog:
         return [r for r in self.records if r["leg"] == leg]
 
     def _where(self) -> tuple[float, float] | None:
-        try:
-            return self.vehicle.position()
-        except Exception:  # noqa: BLE001 - a position is a figure for the record, never a reason to fail
-            return None
+        """The vehicle's last GLOBAL_POSITION_INT (lat, lon) degrees, None before its first fix."""
+        return self.vehicle.position()
