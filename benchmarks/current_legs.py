@@ -1,8 +1,9 @@
-"""Issue 52, item 6: legs planned in the forecast current, flown on vehicle_sim in the same loop.
+"""Legs planned in the forecast current, flown on vehicle_sim in the same loop as with still-water timing.
 
 Flies ``passt-mav run`` (the PASST loop of a mission, through :func:`passt_mav.cli.main`) against an
-in-process :class:`vehicle_sim.Simulator` in lockstep (its clock runs only while the controller's reader
-polls, ``--autostep`` vehicle seconds a poll), as ``tests/test_current_legs.py`` does, on:
+in-process :class:`vehicle_sim.Simulator` in the controller-driven lockstep (``run --lockstep``: its clock
+runs only while the controller waits for it, ``--step-s`` vehicle seconds a step), as
+``tests/test_current_legs.py`` does, on:
 
 * ``ocean``: ``missions/north_atlantic.yaml`` as shipped (``builtin:ocean``, a Gulf-Stream-like jet);
 * ``wa``: NOAA RTOFS off Washington (``../shared/data/wa_RTOFS_global.nc``) imported with
@@ -64,23 +65,6 @@ TIMINGS = {"aware": True, "still": False}
 
 
 # ----------------------------------------------------------------------------------------------- one run
-def _lockstep(ep, autostep: float):
-    """A mavutil connection on an in-process endpoint whose idle polls step the simulator (lockstep)."""
-    from vehicle_sim.inprocess import InProcessMavfile
-
-    conn = InProcessMavfile(ep, autostep=autostep)
-    recv = conn.recv
-
-    def recv_yielding(n=None):
-        data = recv(n)
-        if not data:
-            time.sleep(0)
-        return data
-
-    conn.recv = recv_yielding
-    return conn
-
-
 def fly_one(cfg: dict) -> int:
     """Fly one run described by ``cfg`` (written by :func:`plan_runs`); the run directory is ``cfg['out']``."""
     import yaml
@@ -108,15 +92,21 @@ def fly_one(cfg: dict) -> int:
         ),
         start_time=float(field.times[data["t0"]]),
     )
-    link_mod.LinkConfig.open = lambda self: _lockstep(sim.connect_inprocess(), cfg["autostep"])
+    # the controller-driven lockstep (run --lockstep): the vehicle's clock runs only while the controller waits
+    sim.serve([], lockstep=True)
+    link_mod.LinkConfig.open = lambda self: sim.connect_inprocess().mavlink_connection()
     sets = [f"planner.path_length={cfg['L']}", f"vehicle.speed_mps={speed}"]
     sets.append(f"planner.current_aware={'true' if cfg['current_aware'] else 'false'}")
     argv = ["run", cfg["mission"], "--connect", "tcp:127.0.0.1:5760", "--legs", str(cfg["legs"])]
     for s in sets:
         argv += ["--set", s]
-    argv += ["--out", cfg["out"], "--speedup-hint", "200", "--no-report", "--quiet"]
+    argv += ["--out", cfg["out"], "--lockstep", str(cfg["step_s"]), "--speedup-hint", "1000000"]
+    argv += ["--no-report", "--quiet"]
     t = time.perf_counter()
-    rc = main(argv)
+    try:
+        rc = main(argv)
+    finally:
+        sim.stop()
     print(f"rc={rc} wall_s={time.perf_counter() - t:.0f}", flush=True)
     return int(rc or 0)
 
@@ -191,7 +181,7 @@ def plan_runs(args, missions: dict) -> list[dict]:
                                 "current_aware": aware,
                                 "legs": args.legs,
                                 "mission": missions[key],
-                                "autostep": args.autostep,
+                                "step_s": args.step_s,
                                 "physics_dt": args.physics_dt,
                                 "rate_hz": args.rate_hz,
                                 "hull_max": args.hull_max,
@@ -411,7 +401,7 @@ def main(argv=None) -> int:
     ap.add_argument("--navs", type=_csv(str), default=["pursuit"], help="vehicle_sim nav laws: pursuit,crosstrack")
     ap.add_argument("--legs", type=int, default=3)
     ap.add_argument("--jobs", type=int, default=2, help="runs at once (subprocesses)")
-    ap.add_argument("--autostep", type=float, default=1.0, help="vehicle seconds per idle poll (lockstep)")
+    ap.add_argument("--step-s", type=float, default=1.0, help="vehicle seconds per lockstep step (run --lockstep)")
     ap.add_argument("--physics-dt", type=float, default=0.2, help="the simulator's largest integration step, s")
     ap.add_argument("--rate-hz", type=float, default=1 / 30, help="current readings per vehicle second")
     ap.add_argument("--hull-max", type=float, default=None, help="simulator hull top speed (default: boat speed)")

@@ -32,6 +32,7 @@ import datetime as _dt
 import logging
 import math
 import time
+import warnings
 from collections.abc import Callable
 from dataclasses import dataclass
 from dataclasses import field as _dcfield
@@ -704,7 +705,9 @@ class LegStep:
         pure, fm = self._pure.get("pure"), None
         if pure is not None:
             k = int(np.clip(np.ceil((t - float(self.field.times[self.config.t0])) / self.dt), 0, len(pure) - 1))
-            fm = np.nanmean(np.asarray(pure[: k + 1], np.float64), axis=0)
+            with warnings.catch_warnings():  # land cells are NaN at every step: their mean stays NaN, said nowhere
+                warnings.simplefilter("ignore", RuntimeWarning)
+                fm = np.nanmean(np.asarray(pure[: k + 1], np.float64), axis=0)
         return leg_scores(state, std, tr, fm)
 
     def guard_for_people(self, guard: dict, index: int) -> dict:
