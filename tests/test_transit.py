@@ -82,16 +82,46 @@ def test_diagonal_move_and_arrivals():
     assert t.total_s == pytest.approx(t.arrival[-1])
 
 
-def test_time_varying_current_takes_the_snapshot_of_each_move():
-    # still water for the first snapshot, 1 m/s along the track from the second (600 s later) on
+def test_time_varying_current_is_integrated_along_the_leg():
+    # still water at the first snapshot, 1 m/s along the track from the second (600 s later) on,
+    # linear between: the boat at 2 m/s through the water makes x(t) = 2 t + t**2 / 1200 m until
+    # t = 600 s, then 3 m/s. Move 1 (1200 m) ends at t = 600 (sqrt(8) - 2) = 497.06 s; at 600 s the
+    # boat is at 1500 m, so move 2 ends at 600 + 900 / 3 = 900 s.
     cur = np.stack([uniform(0.0, 0.0), uniform(1.0, 0.0)])
     path = np.array([(0, 0), (0, 1), (0, 2)])
+    exact = [0.0, 600.0 * (math.sqrt(8.0) - 2.0), 900.0]
     t = leg_timing(path, cur, (DY, 1200.0), 2.0, snapshot_s=600.0)
-    # move 1 starts at t = 0 (still water: 600 s); move 2 at t = 600 s (1 m/s along: 1200 / 3 = 400 s)
-    np.testing.assert_allclose(t.arrival, [0.0, 600.0, 1000.0], rtol=1e-9)
-    # halfway between the snapshots the current is interpolated: 0.5 m/s -> 1200 / 2.5 s
+    np.testing.assert_allclose(t.arrival, exact, rtol=3e-3)
+    fine = leg_timing(path, cur, (DY, 1200.0), 2.0, snapshot_s=600.0, substeps=32)
+    np.testing.assert_allclose(fine.arrival, exact, rtol=2e-4)
+    # one current per move, taken at the moment it begins, misses the ramp: 480 s for move 1
+    one = leg_timing(path, cur, (DY, 1200.0), 2.0, snapshot_s=600.0, substeps=1)
+    assert one.arrival[1] < exact[1] - 10.0
+    # begun halfway between the snapshots: 2 t + ((300 + t)**2 - 300**2) / 1200 reaches 825 m at
+    # 300 s, the last 375 m at 3 m/s take 125 s: 425 s
     t = leg_timing(path[:2], cur, (DY, 1200.0), 2.0, snapshot_s=600.0, start_s=300.0)
-    np.testing.assert_allclose(t.duration, [1200.0 / 2.5], rtol=1e-9)
+    np.testing.assert_allclose(t.duration, [425.0], rtol=3e-3)
+
+
+def test_a_current_varying_along_a_move_is_integrated_along_it():
+    # along +col: no current at column 0, 1 m/s against the boat at column 1, linear between (the
+    # simulator's bilinear field). dx/dt = 2 - x / 1000 from 0 to 1000 m takes 1000 ln 2 = 693.1 s;
+    # the two cells' mean (0.5 m/s against) gives 1000 / 1.5 = 666.7 s.
+    cur = np.zeros((2, 3, 3))
+    cur[0, :, 1] = -1.0
+    t = leg_timing(np.array([(1, 0), (1, 1)]), cur, (DY, 1000.0), 2.0)
+    assert t.total_s == pytest.approx(1000.0 * math.log(2.0), rel=5e-3)
+    one = leg_timing(np.array([(1, 0), (1, 1)]), cur, (DY, 1000.0), 2.0, substeps=1)
+    assert one.total_s == pytest.approx(1000.0 / 1.5, rel=1e-9)
+    # a move is feasible only where each of its sub-steps is: 1.9 m/s against at column 1 leaves
+    # the midpoint's mean (0.95 m/s against) feasible for a 2 m/s boat, the last sub-step (1.66) not
+    cur[0, :, 1] = -1.9
+    ok, g = move_feasibility(cur, (DY, 1000.0), 2.0)
+    east = [tuple(m) for m in MOVES8.tolist()].index((0, 1))
+    assert not ok[1, 0, east]
+    assert g[0, 1, 0, east] == pytest.approx(2.0 - 1.9 * 0.875, rel=1e-6)
+    ok1, _ = move_feasibility(cur, (DY, 1000.0), 2.0, substeps=1)
+    assert ok1[1, 0, east]
 
 
 def test_infeasible_moves_are_refused():

@@ -31,8 +31,13 @@ field's units by ``field.velocity_scale``; a rotated grid's u/v are already in t
 as the moves are). Cell sizes are the grid's ``cell_size_m`` ``(dy, dx)``: metres between row
 centres and between column centres. A move ``(drow, dcol)`` is the displacement
 ``(dcol * dx, drow * dy)`` metres (x along +col, y along +row). Times are seconds from the leg's
-start. The current of a move is the mean of its two cells (one when the other is NaN); a move
-with no finite current is infeasible. Pure numpy; no I/O.
+start. A move is timed in :data:`SUBSTEPS` equal sub-steps: each takes the current bilinear in space
+at its midpoint (the corners that are NaN left out, their weight shared by the rest) and linear in
+time at the moment the boat begins it, and the move's duration is the sum of the sub-steps' length
+over ground speed. Because ``1 / g`` is convex and steep where ``g`` is small, one mean current for
+the whole move (its two cells' average) times a move through a varying current short; the
+sub-steps also make a move feasible only where every one of them is. A move with no finite current
+is infeasible. Pure numpy; no I/O.
 """
 
 from __future__ import annotations
@@ -46,6 +51,7 @@ from passt_mav.planning.grid import MOVES8
 
 __all__ = [
     "FEASIBLE_MARGIN",
+    "SUBSTEPS",
     "HOLDS",
     "ground_speed",
     "segment_timing",
@@ -59,6 +65,10 @@ __all__ = [
 #: a move is offered only when its ground speed is at least this fraction of the speed through the
 #: water (and the cross-track current is weaker than the boat): 0.25 x 2 m/s = 0.5 m/s
 FEASIBLE_MARGIN = 0.25
+
+#: equal sub-steps a move is timed and checked in (module docstring; 1 is one current per move, at
+#: its midpoint)
+SUBSTEPS = 4
 
 #: what the commanded speed is: the speed through the water, or over ground (ArduPilot Rover)
 HOLDS = ("water", "ground")
@@ -154,15 +164,36 @@ def segment_timing(displacement, current, speed: float, margin: float = FEASIBLE
     return dur, g, ok | zero
 
 
-def _move_current(cur, a_r, a_c, b_r, b_c) -> np.ndarray:
-    """(..., 2) mean current of two cells (one when the other is NaN) from ``cur`` (T, 2, R, C)."""
-    ca = np.moveaxis(cur[:, :, a_r, a_c], 1, -1).astype(np.float64)
-    cb = np.moveaxis(cur[:, :, b_r, b_c], 1, -1).astype(np.float64)
-    fa, fb = np.isfinite(ca), np.isfinite(cb)
-    s = np.where(fa, ca, 0.0) + np.where(fb, cb, 0.0)
-    k = fa.astype(np.float64) + fb
+def _bilinear(cur, fr, fc) -> np.ndarray:
+    """(T, ..., 2) current of ``cur`` (T, 2, R, C) at fractional cells ``fr``, ``fc`` (broadcastable, clipped to
+    the grid): bilinear, the NaN corners left out and their weight shared by the finite ones; NaN where
+    no corner with weight is finite."""
+    T, _, R, C = cur.shape
+    fr, fc = np.broadcast_arrays(
+        np.clip(np.asarray(fr, np.float64), 0, R - 1), np.clip(np.asarray(fc, np.float64), 0, C - 1)
+    )
+    r0 = np.minimum(np.floor(fr).astype(np.int64), max(R - 2, 0))
+    c0 = np.minimum(np.floor(fc).astype(np.int64), max(C - 2, 0))
+    wr, wc = fr - r0, fc - c0
+    acc = np.zeros((T, *fr.shape, 2))
+    wsum = np.zeros((T, *fr.shape, 2))
+    for dr, w_r in ((0, 1.0 - wr), (1, wr)):
+        for dc, w_c in ((0, 1.0 - wc), (1, wc)):
+            v = np.moveaxis(cur[:, :, np.minimum(r0 + dr, R - 1), np.minimum(c0 + dc, C - 1)], 1, -1)
+            w = (w_r * w_c)[None, ..., None]
+            f = np.isfinite(v) & (w > 0)
+            acc += np.where(f, v * w, 0.0)
+            wsum += np.where(f, w, 0.0)
     with np.errstate(invalid="ignore", divide="ignore"):
-        return np.where(k > 0, s / np.where(k > 0, k, 1.0), np.nan)
+        return np.where(wsum > 1e-12, acc / np.where(wsum > 0, wsum, 1.0), np.nan)
+
+
+def _substep_points(substeps: int) -> np.ndarray:
+    """Midpoints (K,) of ``substeps`` equal sub-steps of a move, as fractions of it."""
+    k = int(substeps)
+    if k < 1:
+        raise ValueError(f"substeps must be at least 1, got {substeps!r}")
+    return (np.arange(k) + 0.5) / k
 
 
 def _as_sequence(currents) -> np.ndarray:
@@ -174,27 +205,33 @@ def _as_sequence(currents) -> np.ndarray:
     return c
 
 
-def move_feasibility(currents, cell_size_m, speed: float, margin: float = FEASIBLE_MARGIN, **hold):
+def move_feasibility(
+    currents, cell_size_m, speed: float, margin: float = FEASIBLE_MARGIN, *, substeps: int = SUBSTEPS, **hold
+):
     """``(feasible (R, C, 8) bool, ground speed (T, R, C, 8) m/s)`` of every :data:`MOVES8` move from
     every cell, in each snapshot of ``currents`` ((2, R, C) or (T, 2, R, C), m/s).
 
-    A move is feasible when it is in every snapshot (the leg may make it at any of them: the
-    conservative rule); a move off the grid is not. ``cell_size_m``: ``(dy, dx)`` metres; ``hold``:
-    ``hold`` / ``max_water_speed`` of :func:`ground_speed`.
+    A move is feasible when each of its ``substeps`` is, in every snapshot (the leg may make it at any
+    of them: the conservative rule); a move off the grid is not. Its ground speed in a snapshot is
+    that of its slowest sub-step. ``cell_size_m``: ``(dy, dx)`` metres; ``hold``: ``hold`` /
+    ``max_water_speed`` of :func:`ground_speed`.
     """
     cur = _as_sequence(currents)
     R, C = cur.shape[2:]
     dy, dx = (float(x) for x in cell_size_m)
+    s = _substep_points(substeps)
     rr, cc = np.meshgrid(np.arange(R), np.arange(C), indexing="ij")
     tr = rr[..., None] + MOVES8[:, 0]
     tc = cc[..., None] + MOVES8[:, 1]
     inside = (tr >= 0) & (tr < R) & (tc >= 0) & (tc < C)
-    trc, tcc = np.clip(tr, 0, R - 1), np.clip(tc, 0, C - 1)
-    c = _move_current(cur, rr[..., None], cc[..., None], trc, tcc)  # (T, R, C, 8, 2)
-    d = np.stack([MOVES8[:, 1] * dx, MOVES8[:, 0] * dy], axis=-1).astype(np.float64)  # (8, 2)
+    fr = rr[..., None, None] + MOVES8[:, 0, None] * s  # (R, C, 8, K)
+    fc = cc[..., None, None] + MOVES8[:, 1, None] * s
+    c = _bilinear(cur, fr, fc)  # (T, R, C, 8, K, 2)
+    d = np.stack([MOVES8[:, 1] * dx, MOVES8[:, 0] * dy], axis=-1).astype(np.float64)[:, None, :]  # (8, 1, 2)
     _, cpar, cperp = _components(d, c)
     g, ok = ground_speed(cpar, cperp, speed, margin, **hold)
-    return inside & ok.all(axis=0), np.where(inside, g, np.nan)
+    g = np.where(np.isfinite(g).all(axis=-1), g.min(axis=-1), np.nan)
+    return inside & ok.all(axis=(0, -1)), np.where(inside, g, np.nan)
 
 
 def feasible_moves(
@@ -257,45 +294,75 @@ def leg_timing(
     snapshot_s: float | None = None,
     start_s: float = 0.0,
     margin: float = FEASIBLE_MARGIN,
+    substeps: int = SUBSTEPS,
     **hold,
 ) -> LegTiming:
     """Each move's ground speed and duration, and each cell's arrival time, of a grid ``path``.
 
     path: (L+1, 2) int (row, col), 8-neighbour moves; currents: (2, R, C) (one snapshot, held over
     the whole leg) or (T, 2, R, C) snapshots ``snapshot_s`` seconds apart, snapshot 0 at the
-    leg's start (m/s, module docstring). A move takes the current at the time the boat begins
-    it, linear between snapshots and held after the last. ``start_s``: seconds already spent
-    before the first move (e.g. reaching the start cell's centre). ``cell_size_m``: ``(dy, dx)``;
-    ``hold``: ``hold`` / ``max_water_speed`` of :func:`ground_speed`.
+    leg's start (m/s, module docstring). Each move is timed in ``substeps`` sub-steps, each with the
+    current at its midpoint when the boat begins it (linear between snapshots, held after the last);
+    a move's ground speed is its length over its duration, and it is feasible when every sub-step
+    is. ``start_s``: seconds already spent before the first move (e.g. reaching the start cell's
+    centre). ``cell_size_m``: ``(dy, dx)``; ``hold``: ``hold`` / ``max_water_speed`` of
+    :func:`ground_speed`.
     """
     p = np.asarray(path, np.int64)
     cur = _as_sequence(currents)
     T = cur.shape[0]
     dy, dx = (float(x) for x in cell_size_m)
     L = max(len(p) - 1, 0)
+    s = _substep_points(substeps)
+    K = len(s)
     d = np.diff(p, axis=0).astype(np.float64)
     disp = np.stack([d[:, 1] * dx, d[:, 0] * dy], axis=-1)  # (L, 2) x/y metres
-    c = _move_current(cur, p[:-1, 0], p[:-1, 1], p[1:, 0], p[1:, 1])  # (T, L, 2)
+    c = _bilinear(cur, p[:-1, 0, None] + d[:, 0, None] * s, p[:-1, 1, None] + d[:, 1, None] * s)  # (T, L, K, 2)
     arrival = np.empty(L + 1)
     arrival[0] = float(start_s)
     if T == 1 or L == 0:
-        dur, g, ok = segment_timing(disp, c[0], speed, margin, **hold)
-        arrival[1:] = arrival[0] + np.cumsum(dur)
-        return LegTiming(g, dur, arrival, ok)
+        dur, _, ok = segment_timing(disp[:, None, :] / K, c[0], speed, margin, **hold)
+        arrival[1:] = arrival[0] + np.cumsum(dur.sum(axis=1))
+        return _timing(disp, arrival, ok.all(axis=1))
     if not (snapshot_s and snapshot_s > 0):
         raise ValueError("several current snapshots need their spacing snapshot_s > 0")
-    # one pass along the path: a move's current depends on when the boat begins it
-    g = np.empty(L)
-    ok = np.empty(L, bool)
+    # one pass along the path: a sub-step's current depends on when the boat makes it (the midpoint
+    # in time too: timed first with the current as it begins, then again with the current half that
+    # time later; second order in the sub-step's duration, like the midpoint in space)
+    ok = np.ones(L, bool)
+    t = arrival[0]
     for i in range(L):
-        x = min(max(arrival[i] / snapshot_s, 0.0), T - 1.0)
-        k = min(int(np.floor(x)), T - 2)
-        w = x - k
-        ci = (1 - w) * c[k, i] + w * c[k + 1, i]
-        dur_i, g_i, ok_i = segment_timing(disp[i], ci, speed, margin, **hold)
-        g[i], ok[i] = g_i, ok_i
-        arrival[i + 1] = arrival[i] + float(dur_i)
-    return LegTiming(g, np.diff(arrival), arrival, ok)
+        for j in range(K):
+            dur_ij = 0.0
+            for _ in range(2):
+                ci = _at_time(c[:, i, j], (t + 0.5 * dur_ij) / snapshot_s)
+                dur_ij, _, ok_ij = segment_timing(disp[i] / K, ci, speed, margin, **hold)
+                dur_ij = float(dur_ij)
+                if not np.isfinite(dur_ij):
+                    break
+            ok[i] &= bool(ok_ij)
+            t += dur_ij
+        arrival[i + 1] = t
+    return _timing(disp, arrival, ok)
+
+
+def _at_time(c, x: float) -> np.ndarray:
+    """(2,) current of ``c`` (T, 2) snapshots at fractional snapshot ``x``: linear between, held outside."""
+    T = c.shape[0]
+    x = min(max(x, 0.0), T - 1.0)
+    k = min(int(np.floor(x)), T - 2)
+    w = x - k
+    return (1 - w) * c[k] + w * c[k + 1]
+
+
+def _timing(disp, arrival, ok) -> LegTiming:
+    """:class:`LegTiming` of moves ``disp`` (L, 2) m arriving at ``arrival`` (L+1,) s."""
+    with np.errstate(invalid="ignore"):  # (after a move the boat cannot make, every arrival is inf)
+        dur = np.diff(arrival)
+    n = np.hypot(disp[:, 0], disp[:, 1])
+    with np.errstate(invalid="ignore", divide="ignore"):
+        g = np.where(np.isfinite(dur) & (dur > 0), n / np.where(dur > 0, dur, 1.0), np.where(n > 0, np.nan, 0.0))
+    return LegTiming(g, dur, arrival, np.asarray(ok, bool))
 
 
 def corners_to_path(cells) -> np.ndarray:
