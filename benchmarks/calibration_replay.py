@@ -5,10 +5,11 @@ Replays a run directory whose truth is known (``passt-mav demo``; any simulator 
 the exported std, and prints each leg's 95 % interval coverage and NLPD
 (:mod:`passt_mav.models.calibration`) against the truth at the estimate's time:
 
-* ``raw``: the GP posterior's std (``std_calibration="off"``: before issue 54);
-* ``forward+growth``: widened by the forward check and lead growth only;
-* ``background share``: with :data:`~passt_mav.reconstruction.gp.BACKGROUND_UNRESOLVED` of the background kept only;
-* ``map`` (the default): both.
+* ``raw``: the GP posterior's std (no background share, no forward check);
+* ``forward+growth``: widened by the forward check and lead growth only (``unresolved_share=0``);
+* ``share 0.25 fixed``: a fixed quarter of the background's variance kept (the share once tuned on the
+  demo's truth), with the forward check;
+* ``map`` (the default): the share estimated from the leg's held-out samples, with the forward check.
 
 The estimates themselves are the same in every variant (only the std differs)::
 
@@ -44,7 +45,8 @@ def main(argv=None) -> int:
         rows.append((c["coverage95"], c["nlpd"], ab.rmse_passt) if c else (np.nan, np.nan, np.nan))
         return ab
 
-    share, check = gpm.BACKGROUND_UNRESOLVED, gpm.GPReconstructor.forward_std_factor
+    kw, check = gpm.GPReconstructor.__init__.__kwdefaults__, gpm.GPReconstructor.forward_std_factor
+    share = kw["unresolved_share"]
 
     def no_check(self, *a, **k):
         self.std_inflation_, self.std_check_ = 1.0, None
@@ -55,10 +57,10 @@ def main(argv=None) -> int:
         for name, bu, fwd in (
             ("raw", 0.0, False),
             ("forward+growth", 0.0, True),
-            ("background share", share, False),
+            ("share 0.25 fixed", 0.25, True),
             ("map", share, True),
         ):
-            gpm.BACKGROUND_UNRESOLVED = bu
+            kw["unresolved_share"] = bu
             gpm.GPReconstructor.forward_std_factor = check if fwd else no_check
             rows.clear()
             with tempfile.TemporaryDirectory() as tmp:
@@ -69,7 +71,7 @@ def main(argv=None) -> int:
         print("RMSE per leg (field units, every variant): " + " ".join(f"{r:.4f}" for _, _, r in rows))
     finally:
         legstep.LegStep.absorb = absorb
-        gpm.BACKGROUND_UNRESOLVED, gpm.GPReconstructor.forward_std_factor = share, check
+        kw["unresolved_share"], gpm.GPReconstructor.forward_std_factor = share, check
     return 0
 
 

@@ -76,6 +76,10 @@ def _is_user_error(exc: BaseException) -> bool:
 
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
+    for a in sys.argv[1:] if argv is None else argv:
+        # argparse (3.11) takes "--opt=--" for an option given no value at all (an empty list, not "--")
+        if a.startswith("--") and a.endswith("=--"):
+            parser.error(f"{a}: '--' is not a value for {a[:-3]}; give one, e.g. {a[:-3]}=VALUE")
     args = parser.parse_args(argv)
     if not getattr(args, "_run", None):
         parser.print_help()

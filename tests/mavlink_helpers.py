@@ -5,17 +5,16 @@ vehicle's timers use); the Link talks to it through an in-process endpoint (a
 ``mavutil.mavfile``), exactly as it would through a socket. Wall-clock timeouts of
 the controller are set small (``timeout_s``) to match the speed-up.
 
-Or in lockstep (:func:`lockstep_connection`): the simulator advances only while the controller's
-reader finds nothing to read, so simulated time follows the controller, whatever the machine's
-load. :class:`Router` shares one vehicle link between several clients (as MAVProxy or
-mavlink-router do), :class:`Wire` records the identities the controller sends with.
+Or in the controller-driven lockstep (:func:`open_in_lockstep`, or a Link with ``lockstep_s``): the
+simulator's clock runs only while the controller waits for the vehicle, so simulated time follows the
+controller, whatever the machine's load. :class:`Router` shares one vehicle link between several clients
+(as MAVProxy or mavlink-router do), :class:`Wire` records the identities the controller sends with.
 """
 
 from __future__ import annotations
 
 import contextlib
 import threading
-import time
 
 from pymavlink.dialects.v20 import ardupilotmega as mavlink2
 
@@ -81,24 +80,20 @@ def waypoints(offsets_deg, mission_type: int = 0) -> list[MissionItem]:
     ]
 
 
-def lockstep_connection(ep, autostep: float = 0.05):
-    """A ``mavutil`` connection on an in-process endpoint (or a :class:`Router` port) whose idle polls
-    step the simulator by ``autostep`` simulated seconds (:class:`vehicle_sim.inprocess.InProcessMavfile`):
-    simulated time follows the reader, not the wall clock. An idle poll also hands the GIL over
-    (``sleep(0)``), so a reader stepping the simulator does not starve the controller's own thread."""
+def open_in_lockstep(monkeypatch, sim: Simulator, wrap=None) -> None:
+    """Serve ``sim`` in the controller-driven lockstep (its clock runs only for the COMMAND_LONG 31010 steps a
+    ground station sends) and make ``LinkConfig.open`` open an in-process connection to it (``wrap(endpoint)``
+    first, e.g. :meth:`Wire.wrap`): ``passt-mav run ... --lockstep STEP_S`` then steps its clock while the
+    controller waits for the vehicle. The caller stops ``sim``."""
+    from passt_mav.mavlink import link as link_mod
     from vehicle_sim.inprocess import InProcessMavfile
 
-    conn = InProcessMavfile(ep, autostep=autostep)
-    recv = conn.recv
-
-    def recv_yielding(n=None):
-        data = recv(n)
-        if not data:
-            time.sleep(0)
-        return data
-
-    conn.recv = recv_yielding
-    return conn
+    sim.serve([], lockstep=True)
+    monkeypatch.setattr(
+        link_mod.LinkConfig,
+        "open",
+        lambda self: InProcessMavfile(sim.connect_inprocess() if wrap is None else wrap(sim.connect_inprocess())),
+    )
 
 
 class Router:
@@ -141,6 +136,10 @@ class _RouterPort:
             out = bytes(self.buf[:k])
             del self.buf[:k]
             return out
+
+    def wait_readable(self, timeout: float) -> bool:
+        """Wait at most ``timeout`` s for bytes for this port (the router's link, or what another port pumped)."""
+        return bool(self.buf) or self.router.ep.wait_readable(timeout) or bool(self.buf)
 
     def close(self) -> None:
         with self.router._lock:

@@ -1,5 +1,5 @@
 """Known answers for the calibration figures (passt_mav.models.calibration), the GP's std checks
-(passt_mav.reconstruction.gp: forward check, lead growth, background share) and the leg scores."""
+(passt_mav.reconstruction.gp: forward check, lead growth, the background share it estimates) and the leg scores."""
 
 from __future__ import annotations
 
@@ -160,12 +160,79 @@ def test_std_calibration_checked():
     gp.std_calibration = "sometimes"
     with pytest.raises(ReconstructionError, match="std_calibration"):
         gp.reconstruct(xy, uv, fc)
+    gp.std_calibration = "forward"
+    gp.unresolved_share = 1.5
+    with pytest.raises(ReconstructionError, match="unresolved_share"):
+        gp.reconstruct(xy, uv, fc)
+    gp.unresolved_share = "estimate"
     gp.std_calibration = "off"
     m0, s0 = gp.reconstruct(xy, uv, fc)
     gp.std_calibration = "forward"
     m1, s1 = gp.reconstruct(xy, uv, fc)
     assert np.array_equal(m0, m1)  # the check widens the std only, never moves the mean
     assert np.all(s1 >= s0 - 1e-7)
+
+
+def test_unresolved_share_moment_known_answer():
+    # errors drawn with variance post_var + s bvar: the moment estimate gives s back (1 % of 20000 pairs),
+    # clipped at 0 when the posterior is already wider than the errors and at 1 beyond the whole background
+    from passt_mav.reconstruction.gp import unresolved_share
+
+    rng = np.random.default_rng(0)
+    pv, bv = rng.uniform(1e-4, 4e-4, (10000, 2)), rng.uniform(1e-3, 4e-3, (10000, 2))
+    err = rng.normal(size=pv.shape) * np.sqrt(pv + 0.3 * bv)
+    assert unresolved_share(err, pv, bv) == pytest.approx(0.3, abs=0.01)
+    assert unresolved_share(0.5 * err, 4 * pv, bv) == 0.0
+    assert unresolved_share(4 * err, pv, bv) == 1.0
+    assert unresolved_share(err, pv, np.zeros_like(bv)) is None
+
+
+def _background_case(share, seed):
+    """A residual GP with a background of 3 smooth modes (factor held at 1) on a 12 x 12 grid of 100 m
+    cells: the truth is the modes times N(0, 1) amplitudes plus a white perturbation of variance
+    ``share`` x diag B per cell (what the modes cannot resolve), sampled at 120 cells with 0.005 m/s noise.
+    The stationary kernel is ~0: the background is the GP's whole prior."""
+    from sklearn.gaussian_process.kernels import ConstantKernel, Matern, WhiteKernel
+
+    from passt_mav.reconstruction import GPReconstructor
+
+    rng = np.random.default_rng(seed)
+    R = C = 12
+    X, Y = np.meshgrid(np.arange(C) * 100.0, np.arange(R) * 100.0)
+    x, y = X / 1100.0, Y / 1100.0
+    modes = 0.05 * np.stack(
+        [np.stack([np.sin(np.pi * x), np.cos(np.pi * y)]), np.stack([x * y, x - y]), np.stack([np.cos(2 * x), y])]
+    )
+    bvar = np.sum(modes**2, axis=0)
+    truth = np.tensordot(rng.normal(size=3), modes, axes=1) + rng.normal(size=bvar.shape) * np.sqrt(share * bvar)
+    flat = rng.choice(R * C, 120, replace=False)
+    rc = np.column_stack(np.unravel_index(flat, (R, C)))
+    xy = np.column_stack([X[rc[:, 0], rc[:, 1]], Y[rc[:, 0], rc[:, 1]]])
+    uv = truth[:, rc[:, 0], rc[:, 1]].T + rng.normal(0, 0.005, (len(rc), 2))
+    gp = GPReconstructor(
+        grid_xy=(X, Y), solver="cholesky", space_time=False, noise_std=0.005, background=modes, background_scale=1.0
+    )
+    kern = ConstantKernel(1e-8, "fixed") * Matern(300.0, "fixed", nu=2.5) + WhiteKernel(0.005**2, "fixed")
+    gp.kernels_, gp.cell_m_, gp.n_inputs_ = [kern, kern], 100.0, 2
+    return gp, xy, uv, np.zeros((2, R, C)), truth
+
+
+@pytest.mark.parametrize("share", [0.0, 0.4])
+def test_the_map_estimates_a_known_unresolved_share(share):
+    # the forward check's held-out samples find the perturbation the modes cannot carry: the estimated share
+    # is the one drawn (mean of 8 draws, within 0.05), and the map's std then covers the truth as it says
+    est, covs = [], []
+    for seed in range(8):
+        gp, xy, uv, fc, truth = _background_case(share, seed)
+        mean, std = gp.reconstruct(xy, uv, fc)
+        est.append(gp.unresolved_share_)
+        covs.append(calibration(mean, std, truth)["coverage95"])
+    assert np.mean(est) == pytest.approx(share, abs=0.05)
+    assert 0.9 <= np.mean(covs) <= 1.0
+    gp.unresolved_share = 0.0  # a fixed share is used as given
+    _, s0 = gp.reconstruct(xy, uv, fc)
+    assert gp.unresolved_share_ == est[-1] and gp.share_in_use() == 0.0
+    assert share == 0.0 or np.mean(s0) < np.mean(std)
 
 
 def test_leg_line_and_the_trivial_map_warning():

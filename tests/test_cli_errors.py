@@ -122,6 +122,7 @@ def test_run_retries_with_one_line_per_attempt_then_one_line_and_exit_2(case, ca
     attempts = [ln for ln in out.splitlines() if "retrying in" in ln]
     assert len(attempts) >= 1 and all(ln.startswith(f"{address}: ") and cause in ln for ln in attempts), out
     assert "attempts over" in err  # gave up after retrying, not at the first failure
+    assert not (tmp_path / "run").exists()  # nothing flown, nothing written: not even an empty run folder
 
 
 def test_run_refused_from_the_shell_prints_one_line_and_exits_2(tmp_path):
@@ -149,6 +150,22 @@ def test_run_refused_from_the_shell_prints_one_line_and_exits_2(tmp_path):
     assert p.returncode == 2, p.stderr
     assert p.stderr.strip().splitlines() == [p.stderr.strip()] and "Traceback" not in p.stdout + p.stderr
     assert p.stderr.startswith(f"passt-mav: error: no vehicle at tcp:127.0.0.1:{port}") and "refused" in p.stderr
+
+
+def test_a_failed_connection_writes_nothing(capsys, tmp_path, monkeypatch):
+    """No vehicle: the default run folder (runs/ in the working directory) is not made, a --out folder
+    made for the run is gone again, and a --out folder that was there before stays, as it was."""
+    monkeypatch.chdir(tmp_path)
+    address = f"tcp:127.0.0.1:{free_port()}"
+    argv = ["run", MISSION, "--connect", address, "--ready-timeout", "0.5", *FAST]
+    _one_line_exit_2(capsys, argv, f"no vehicle at {address}")
+    assert sorted(tmp_path.iterdir()) == []
+    _one_line_exit_2(capsys, [*argv, "--out", tmp_path / "a" / "b" / "run"], f"no vehicle at {address}")
+    assert sorted(tmp_path.iterdir()) == []
+    (tmp_path / "mine").mkdir()
+    (tmp_path / "mine" / "notes.txt").write_text("kept")
+    _one_line_exit_2(capsys, [*argv, "--out", tmp_path / "mine"], f"no vehicle at {address}")
+    assert sorted(p.name for p in (tmp_path / "mine").rglob("*")) == ["notes.txt"]
 
 
 def test_file_errors_of_every_command_are_one_line(capsys, tmp_path):

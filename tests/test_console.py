@@ -11,6 +11,7 @@ from __future__ import annotations
 import contextlib
 import itertools
 import json
+import shutil
 import threading
 import time
 
@@ -225,6 +226,71 @@ def test_replay_reproduces_a_run_with_the_operators_skip_and_replan(tmp_path, ca
     assert all(x["path_identical"] and x["rmse_identical"] is not False for x in res["legs"])
 
 
+def test_replay_reproduces_a_run_with_the_operators_pause_and_resume(tmp_path):
+    """A run whose first leg the operator paused (the boat waited 20 s of vehicle time in its wait mode) and resumed:
+    the pause's wait is not the leg's end, so ``replay`` rebuilds every leg's samples from the log exactly as the
+    store holds them (the readings of the wait and of the rest of the leg included) and reproduces every path."""
+    from passt_mav.analysis.replay import replay
+    from passt_mav.runs.legs import rebuild_from_tlog
+    from passt_mav.runs.store import SampleStore
+
+    with lockstep_session(tmp_path, tlog=True) as (sim, make, rd):
+        ctl = make(legs=3, pause_timeout_s=WALL_S)
+        seen: dict = {}
+        script = [
+            (_flying, {"boat": 0, "action": "pause"}, lambda _a: seen.setdefault("t", sim.t)),
+            (lambda c: "t" in seen and sim.t > seen["t"] + 20.0, {"boat": 0, "action": "resume"}, None),
+        ]
+        summary, op = fly_with(ctl, rd.root, script)
+    assert summary["status"] == "complete" and len(summary["legs"]) == 3, summary["events"]
+    assert [a["level"] for a in op.answers] == ["ok", "ok"]
+    (wait,) = [w for w in summary["legs"][0]["waits"] if w["kind"] == "pause"]
+    t0, t1 = wait["uptime_s"]  # the pause on the vehicle's clock (s since boot)
+    assert t1 - t0 >= 20.0 and wait["vehicle_s"] == pytest.approx(t1 - t0, abs=0.1)
+    # the log marks the pause, its resume and the leg's end, each once, in that order, at the vehicle's times
+    legs = rebuild_from_tlog(rd.tlog).legs
+    assert [[m for m, _ in lg.marks] for lg in legs] == [["pause", "resume", "end"], ["end"], ["end"]]
+    (_, tb_p), (_, tb_r), _ = legs[0].marks
+    assert tb_p <= 1000 * t0 + 500 and tb_r >= 1000 * t1 - 500
+    res = replay(rd.root, out=False)
+    assert not res.notes, res.notes  # the log holds every reading of the store, those outside the legs too
+    assert res.reproduced and res.first_divergence is None, [(x.index, x.notes) for x in res.legs] + res.notes
+    assert [x.path for x in res.legs] == [lg["path"] for lg in summary["legs"]]
+    assert all(x.path_identical and x.rmse_identical is not False for x in res.legs)
+    st = SampleStore(rd.samples_db, readonly=True)
+    try:
+        stored = [sum(1 for x in st.all() if int(x.leg) == i) for i in range(3)]
+    finally:
+        st.close()
+    assert [x.n_samples for x in res.legs] == stored == [lg["n_samples"] for lg in summary["legs"]]
+    assert not [n for x in res.legs for n in x.notes if "samples" in n]
+    assert any("paused by the operator 1 time(s)" in n for n in res.legs[0].notes), res.legs[0].notes
+    # the same run with a log without the marks (an older controller's): its leg ends at the pause, as it did, and
+    # the replay says why the leg's samples differ from the store's
+    old = RunDir(tmp_path / "old")
+    shutil.copytree(rd.root, old.root)
+    old.tlog.write_bytes(_without_leg_marks(rd.tlog.read_bytes()))
+    assert all(not lg.marks for lg in rebuild_from_tlog(old.tlog).legs)
+    res_old = replay(old.root, out=False)
+    assert res_old.legs[0].n_samples < stored[0]
+    assert any("1 operator pause(s) recorded, 0 marked in the log" in n for n in res_old.legs[0].notes)
+
+
+def _without_leg_marks(data: bytes) -> bytes:
+    """A telemetry log's bytes without the controller's leg marks (``PASST leg I end|pause|resume``)."""
+    from passt_mav.runs.legs import parse_leg_statustext
+    from passt_mav.runs.tlog import TlogScanner
+
+    keep, pos = bytearray(), 0
+    for _, m in TlogScanner(data):
+        buf = m.get_msgbuf()
+        at = data.index(buf, pos)
+        pos = at + len(buf)
+        if m.get_type() != "STATUSTEXT" or parse_leg_statustext(str(m.text)) is None:
+            keep += data[at - 8 : pos]  # 8-byte timestamp + frame
+    return bytes(keep)
+
+
 def test_commands_that_do_not_apply_are_answered_with_the_reason(lockstep_run):
     sim, make, rd = lockstep_run
     ctl = make(legs=1)
@@ -273,14 +339,14 @@ def test_battery_status_is_asked_for_again_after_an_autopilot_reboot(tmp_path):
     """The autopilot reboots early in leg 1 (lockstep, :class:`test_resilience.Faults`): a reboot forgets the rates
     set by SET_MESSAGE_INTERVAL, and the controller's lean streams turn BATTERY_STATUS (and SYS_STATUS) off; the
     controller asks for BATTERY_STATUS again, so the drained battery still reaches the reserve: RTL, ``ended``."""
-    from test_resilience import Faults, _chaos_controller, _flying, lockstep
+    from test_resilience import Faults, _chaos_controller, _flying, flight
 
     field = wave_field()
     budget = {"battery_reserve_pct": 30}
     cfg = mission(tmp_path, field, legs=3, planner={"name": "greedy", "path_length": 5}, budget=budget)
     rd = RunDir(tmp_path / "run").create()
-    with lockstep(field, sim_cfg=sim_config(battery_wh=6.0), link_kw={"timeout_s": 1.0}) as (sim, link, box):
-        faults = Faults(sim, box, max_rate=0)
+    with flight(field, sim_cfg=sim_config(battery_wh=6.0), link_kw={"timeout_s": 1.0}) as (sim, link, box):
+        faults = Faults(sim, box)
         ctl = _chaos_controller(box, cfg, field, link, rd, echo=None)
         heard: list[float] = []  # the simulator's clock at each BATTERY_STATUS the controller got
         link.add_listener(lambda m: heard.append(sim.t), "BATTERY_STATUS")

@@ -125,16 +125,16 @@ def test_link_lost_during_the_swap_reconnects_and_redoes_the_swap(tmp_path):
 # -- the autopilot reboots mid-leg ------------------------------------------------------------------
 @contextlib.contextmanager
 def _reboot_mid_leg(field, cfg, rd, action=None, **ctl_kw):
-    """(sim, link, ctl, faults): a controller on the simulator in lockstep (:func:`test_resilience.lockstep`)
+    """(sim, link, ctl, faults): a controller on the simulator in lockstep (:func:`test_resilience.flight`)
     whose autopilot reboots (``action(sim)``; default a 2 s restart) once leg 0 flies in AUTO past its second
     item on a verified mission: the fault is fired from the simulator's stepping at that mission event
     (:class:`test_resilience.Faults`), never from a wall-clock thread, so a loaded machine cannot let the leg
     end before it."""
-    from test_resilience import Faults, _chaos_controller, _flying, lockstep
+    from test_resilience import Faults, _chaos_controller, _flying, flight
 
     act = action or (lambda sim: sim.reboot(downtime_s=2.0))
-    with lockstep(field, link_kw={"timeout_s": 1.0}) as (sim, link, box):
-        faults = Faults(sim, box, max_rate=0)
+    with flight(field, link_kw={"timeout_s": 1.0}) as (sim, link, box):
+        faults = Faults(sim, box)
         ctl = _chaos_controller(box, cfg, field, link, rd, **ctl_kw)
         faults.at("reboot", _flying(box, 0, 2), lambda: act(sim))
         yield sim, link, ctl, faults

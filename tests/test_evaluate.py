@@ -321,3 +321,21 @@ def test_results_carry_calibration_and_the_trivial_maps(field, serial):
     (r0,) = run_trials(field, ShiftPredictor(WRONG_VEL), opts, starts=[[(5, 5)]], seeds=[0], n_steps=10)
     assert "calibration" not in r0.legs[0]
     np.testing.assert_array_equal(r0.estimate, r.estimate)  # scoring never changes the estimate
+
+
+def test_results_carry_the_drifter_separation(field, serial):
+    """Per path length the virtual drifters' mean separation after the horizon (km, km/day) per method, the
+    model alone and persistence (passt_mav.models.drifters; the first true snapshot held fixed)."""
+    from passt_mav.models.drifters import drifter_separation
+
+    per = serial["per_L"]["12"]
+    assert set(per["drifter_sep_km"]) == set(METHODS) | {"persistence"}
+    t0 = [r for r in serial["_trials"] if r["L"] == 12]
+    assert per["drifter_sep_km"]["passt"] == pytest.approx(np.mean([r["drifters"]["passt"]["sep_km"] for r in t0]))
+    truth = field.data[:21].astype(np.float64)
+    dt, cell = float(field.dt), field.grid.cell_size_m
+    held = drifter_separation(np.broadcast_to(truth[:1], truth.shape), truth, dt, cell)
+    assert per["drifter_sep_km"]["persistence"] == pytest.approx(held["sep_km"])
+    assert per["drifter_km_per_day"]["persistence"] == pytest.approx(held["km_per_day"])
+    assert per["drifter_horizon_h"] == pytest.approx(20 * dt / 3600.0) and per["drifter_n"] == held["n"]
+    assert all(v >= 0 for v in per["drifter_sep_km"].values())

@@ -128,6 +128,8 @@ def test_three_boats_fly_one_loop_with_disjoint_paths_and_one_store(tmp_path):
     assert summary["status"] == "complete", summary["events"]
     assert [b["status"] for b in summary["boats"]] == ["complete"] * 3
     assert sorted(b["sysid"] for b in summary["boats"]) == [1, 2, 3]
+    # each boat ends loitering, armed (vehicle.on_end: loiter), never armed and drifting in HOLD
+    assert [(b["end"]["mode"], b["end"]["armed"]) for b in summary["boats"]] == [("LOITER", True)] * 3
     legs = summary["legs"]
     assert len(legs) == 6 and sorted(x["index"] for x in legs) == list(range(6))
     assert sorted(x["boat"] for x in legs) == [0, 0, 1, 1, 2, 2]

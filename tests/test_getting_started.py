@@ -5,9 +5,10 @@ temporary folder, in order, on a synthetic forecast file laid out like HYCOM/RTO
 (``water_u``/``water_v``, m/s, hourly, a land patch): every ``passt-mav`` line through
 ``passt_mav.cli.main`` (the command a user types, in-process), ``passt-mav view`` as its own process
 (it serves until stopped), and the ``vehicle-sim`` line parsed by the simulator's own argument
-parser and built in-process in lockstep (the one seam, as in tests/test_run_missions.py:
-``LinkConfig.open`` hands the controller the simulator's endpoint, and simulated time advances
-only while the controller waits), so the flight does not depend on the machine's load.
+parser and built in-process, served in lockstep (``vehicle-sim --lockstep``; the one seam, as in
+tests/test_run_missions.py: ``LinkConfig.open`` hands the controller the simulator's endpoint, and the
+``run`` line gets ``--lockstep``, so simulated time advances only while the controller waits for the
+vehicle), so the flight does not depend on the machine's load.
 
 Known answers: the forecast is linear in latitude, longitude and time, so bilinear regridding is
 exact and the imported field equals it at the cell centres (1e-5 m/s); the plan and the flown leg
@@ -30,12 +31,12 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from mavlink_helpers import lockstep_connection
+from mavlink_helpers import open_in_lockstep
 
 from passt_mav.cli import main
 
 PAGE = Path(__file__).resolve().parent.parent / "docs" / "getting-started.md"
-AUTOSTEP_S = 1.0  # simulated seconds per idle poll of the controller's reader
+STEP_S = "1"  # vehicle seconds per lockstep step (run --lockstep, added to the page's run line)
 
 
 def page_blocks() -> tuple[list[str], str]:
@@ -83,8 +84,8 @@ def write_forecast(path: Path) -> None:
 
 
 def lockstep_simulator(argv: list[str], monkeypatch):
-    """The page's ``vehicle-sim`` line, parsed by vehicle-sim's parser, as an in-process lockstep simulator."""
-    from passt_mav.mavlink import link as link_mod
+    """The page's ``vehicle-sim`` line, parsed by vehicle-sim's parser, as an in-process simulator served in
+    lockstep (the caller stops it)."""
     from vehicle_sim import SimConfig, Simulator
     from vehicle_sim import cli as sim_cli
 
@@ -99,9 +100,7 @@ def lockstep_simulator(argv: list[str], monkeypatch):
         start_time=start,
         epoch0=sim_cli._utc_at_boot(args.utc_at_boot, field, start, 1.0),
     )
-    monkeypatch.setattr(
-        link_mod.LinkConfig, "open", lambda self: lockstep_connection(sim.connect_inprocess(), AUTOSTEP_S)
-    )
+    open_in_lockstep(monkeypatch, sim)
     return sim
 
 
@@ -145,17 +144,23 @@ def test_the_tutorial_runs_as_written(tmp_path, monkeypatch):
 
     region = yaml.safe_load(mission_yaml)["region"]
     start_cell = yaml.safe_load(mission_yaml)["start_cell"]
-    ran = []
-    for line in commands:
-        argv = shlex.split(line.removesuffix("&").strip())
-        if argv[0] == "vehicle-sim":
-            lockstep_simulator(argv[1:], monkeypatch)
-        elif argv[:2] == ["passt-mav", "view"]:
-            state = serve_view(argv[1:])
-        else:
-            assert argv[0] == "passt-mav", line
-            assert main(argv[1:]) == 0, line
-        ran.append(argv[1] if argv[0] == "passt-mav" else argv[0])
+    ran, sims = [], []
+    try:
+        for line in commands:
+            argv = shlex.split(line.removesuffix("&").strip())
+            if argv[0] == "vehicle-sim":
+                sims.append(lockstep_simulator(argv[1:], monkeypatch))
+            elif argv[:2] == ["passt-mav", "view"]:
+                state = serve_view(argv[1:])
+            else:
+                assert argv[0] == "passt-mav", line
+                # the simulator is served in lockstep; its steps unpaced (the page's hint paces them for a watcher)
+                extra = ["--lockstep", STEP_S, "--speedup-hint", "1000000"] if argv[1] == "run" else []
+                assert main(argv[1:] + extra) == 0, line
+            ran.append(argv[1] if argv[0] == "passt-mav" else argv[0])
+    finally:
+        for sim in sims:
+            sim.stop()
     assert ran == ["data", "data", "plan", "vehicle-sim", "run", "view", "report", "export", "export"]
 
     # 1. the import: the region's corner cells and the forecast's values at every water cell centre

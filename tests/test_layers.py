@@ -248,6 +248,72 @@ def test_controller_methods_fit_on_one_screen(module):
     assert not long, long
 
 
+# -- one clock for the vehicle side ------------------------------------------------------------------
+#: the packages whose waits, timeouts and deadlines ask a clock (``link.clock``), and the one module that
+#: may read the ``time`` module for them
+CLOCKED = ("passt_mav/mavlink", "passt_mav/vehicle")
+CLOCK_MODULE = "passt_mav/mavlink/clock.py"
+
+
+def _time_reads(text: str, name: str) -> list[tuple[int, str]]:
+    """(line, what) of every use of the ``time`` module in ``text``: ``from time import ...``, and any attribute
+    of a name bound by ``import time`` / ``import time as t`` (a call, or a function handed on: ``time.sleep``)."""
+    tree = ast.parse(text, name)
+    aliases, out = set(), []
+    for n in ast.walk(tree):
+        if isinstance(n, ast.Import):
+            aliases |= {(a.asname or a.name) for a in n.names if a.name == "time"}
+        elif isinstance(n, ast.ImportFrom) and n.module == "time" and not n.level:
+            out += [(n.lineno, f"from time import {a.name}") for a in n.names]
+    for n in ast.walk(tree):
+        if isinstance(n, ast.Attribute) and isinstance(n.value, ast.Name) and n.value.id in aliases:
+            out.append((n.lineno, f"{n.value.id}.{n.attr}"))
+    return sorted(out)
+
+
+def clock_bypasses(root: Path = ROOT) -> list[str]:
+    """Every read of the ``time`` module in :data:`CLOCKED` outside :data:`CLOCK_MODULE`, as 'file:line: what'."""
+    bad = []
+    for pkg in CLOCKED:
+        for src in sorted((root / pkg).rglob("*.py")):
+            rel = src.relative_to(root).as_posix()
+            if rel != CLOCK_MODULE:
+                bad += [f"{rel}:{line}: {what}" for line, what in _time_reads(src.read_text(), rel)]
+    return bad
+
+
+def test_the_vehicle_side_asks_one_clock():
+    """Every wait, timeout, deadline and backstop of the MAVLink client and the vehicle side asks the link's
+    clock (``passt_mav.mavlink.clock``), never ``time.time/sleep/monotonic/perf_counter`` directly: a test may
+    hand the link a clock of its own, and a lockstep vehicle's time is counted in one place."""
+    bad = clock_bypasses()
+    assert not bad, "the time module read outside passt_mav/mavlink/clock.py (ask link.clock):\n" + "\n".join(bad)
+
+
+@pytest.mark.parametrize(
+    "target, line",
+    [
+        ("passt_mav/vehicle/session.py", "    import time\n    time.sleep(0.1)"),
+        ("passt_mav/mavlink/link.py", "    import time\n    return time.monotonic()"),
+        ("passt_mav/vehicle/waits.py", "    import time as t\n    return t.perf_counter()"),
+        ("passt_mav/mavlink/samples.py", "    from time import time\n    return time()"),
+        ("passt_mav/vehicle/alerts.py", "    import time\n    return dict(clock=time.monotonic)"),
+    ],
+)
+def test_the_clock_check_catches_a_bypass(tmp_path, target, line):
+    """A copy of the clocked packages with one read of the ``time`` module added fails the check, naming the file;
+    the clock module itself may read it."""
+    import shutil
+
+    for pkg in CLOCKED:
+        shutil.copytree(ROOT / pkg, tmp_path / pkg, ignore=shutil.ignore_patterns("__pycache__"))
+    assert clock_bypasses(tmp_path) == []
+    f = tmp_path / target
+    f.write_text(f.read_text() + f"\n\ndef _sneaky():\n{line}\n")
+    bad = clock_bypasses(tmp_path)
+    assert len(bad) >= 1 and all(b.startswith(target) for b in bad), bad
+
+
 # -- private names stay in their module ------------------------------------------------------------
 #: (module, modules whose private names it may read, why): one concern split over two files
 FRIENDS = (
@@ -360,3 +426,140 @@ def test_the_private_check_catches_a_crossing(tmp_path, line, name):
     (pkg / "b.py").write_text((pkg / "b.py").read_text() + f"\n\ndef sneaky(gp, x):\n{line}\n")
     bad = private_access(tmp_path)
     assert len(bad) == 1 and bad[0].startswith(f"passt_mav/pkg/b.py:10: passt_mav.pkg.b uses {name} "), bad
+
+
+# -- no import circles ---------------------------------------------------------------------------
+#: the import circles among ``passt_mav``'s modules that remain, each as its set of modules (a strongly
+#: connected component of the import graph); each one is a debt: one paid off leaves the list
+KNOWN_CYCLES = {
+    frozenset({"passt_mav.models.knode", "passt_mav.models.knode_fit"}),
+    frozenset({"passt_mav.analysis.export", "passt_mav.analysis.export_geo"}),
+    frozenset({"passt_mav.fields.checks", "passt_mav.fields.field", "passt_mav.fields.importers"}),
+}
+
+
+def _type_checking_lines(tree: ast.AST) -> set[int]:
+    """The lines of the bodies of ``if TYPE_CHECKING:`` blocks: imports there never run."""
+    out = set()
+    for n in ast.walk(tree):
+        if isinstance(n, ast.If) and "TYPE_CHECKING" in ast.unparse(n.test):
+            for b in n.body:
+                out |= set(range(b.lineno, b.end_lineno + 1))
+    return out
+
+
+def _runtime_imports(me: str, is_init: bool, text: str, mods) -> dict[str, int]:
+    """{module of ``mods`` that module ``me`` (source ``text``) imports: the line of the first such import}, every
+    import counted (inside functions too: a lazy import that closes a circle still makes one) but those under
+    ``TYPE_CHECKING``. ``from pkg import sub`` of a submodule ``sub`` imports ``pkg.sub`` (a package's
+    ``__init__`` that an import runs on the way is not counted: it runs for every import of its modules)."""
+    tree = ast.parse(text, me)
+    skip = _type_checking_lines(tree)
+    pkg = me if is_init else me.rpartition(".")[0]
+    out: dict[str, int] = {}
+    for node in ast.walk(tree):
+        if not isinstance(node, (ast.Import, ast.ImportFrom)) or node.lineno in skip:
+            continue
+        if isinstance(node, ast.Import):
+            names = [a.name for a in node.names]
+        else:
+            base = node.module or ""
+            if node.level:
+                up = pkg.split(".")
+                up = up[: len(up) - (node.level - 1)]
+                base = ".".join(up + ([base] if base else []))
+            subs = [f"{base}.{a.name}" for a in node.names]
+            names = [n for n in subs if n in mods] + ([base] if any(n not in mods for n in subs) else [])
+        for name in names:
+            if name in mods and name != me:
+                out.setdefault(name, node.lineno)
+    return out
+
+
+def import_graph(root: Path = ROOT) -> tuple[dict[str, dict[str, int]], dict[str, str]]:
+    """(module -> {module of ``passt_mav`` it imports: the line of the first such import}
+    (:func:`_runtime_imports`), module -> its file relative to ``root``)."""
+    srcs = {_module_name(s, root): s for s in sorted((root / "passt_mav").rglob("*.py"))}
+    graph = {me: _runtime_imports(me, s.name == "__init__.py", s.read_text(), srcs) for me, s in srcs.items()}
+    return graph, {me: s.relative_to(root).as_posix() for me, s in srcs.items()}
+
+
+def import_cycles(root: Path = ROOT) -> list[tuple[frozenset[str], list[str]]]:
+    """Every import circle: (its modules, the imports between them as 'file:line: a imports b'), one per
+    strongly connected component of :func:`import_graph` with more than one module (Tarjan)."""
+    graph, files = import_graph(root)
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    out = []
+
+    def visit(v: str) -> None:
+        index[v] = low[v] = len(index)
+        stack.append(v)
+        for w in graph[v]:
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in stack:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            comp = {stack.pop()}
+            while v not in comp:
+                comp.add(stack.pop())
+            if len(comp) > 1:
+                lines = [
+                    f"{files[a]}:{graph[a][b]}: {a} imports {b}"
+                    for a in sorted(comp)
+                    for b in sorted(graph[a])
+                    if b in comp
+                ]
+                out.append((frozenset(comp), lines))
+
+    for v in sorted(graph):
+        if v not in index:
+            visit(v)
+    return sorted(out, key=lambda c: sorted(c[0]))
+
+
+def test_no_new_import_cycle():
+    """No import circle among ``passt_mav``'s modules beyond :data:`KNOWN_CYCLES`: what two modules share lives
+    in a module below both (the vehicle side's control-flow exceptions: ``passt_mav.vehicle.flow``)."""
+    new = [lines for comp, lines in import_cycles() if comp not in KNOWN_CYCLES]
+    assert not new, "import circles:\n" + "\n\n".join("\n".join(lines) for lines in new)
+
+
+def test_every_known_cycle_is_still_there():
+    """KNOWN_CYCLES lists debts: a circle broken leaves the list, so it cannot come back unnoticed."""
+    found = {comp for comp, _lines in import_cycles()}
+    gone = [sorted(c) for c in KNOWN_CYCLES if c not in found]
+    assert not gone, gone
+
+
+@pytest.mark.parametrize(
+    "target, line",
+    [
+        ("passt_mav/vehicle/flow.py", "from passt_mav.vehicle.session import Journal"),
+        ("passt_mav/mavlink/link.py", "from passt_mav.mavlink.vehicle import ROVER_MODES"),
+    ],
+)
+def test_the_cycle_check_catches_a_new_circle(tmp_path, target, line):
+    """A copy of ``passt_mav`` with one function-local import that closes a circle fails the check, naming it."""
+    import shutil
+
+    shutil.copytree(ROOT / "passt_mav", tmp_path / "passt_mav", ignore=shutil.ignore_patterns("__pycache__", "assets"))
+    f = tmp_path / target
+    f.write_text(f.read_text() + f"\n\ndef _sneaky():\n    {line}\n")
+    new = [lines for comp, lines in import_cycles(tmp_path) if comp not in KNOWN_CYCLES]
+    assert len(new) == 1 and any(x.startswith(target) for x in new[0]), new
+
+
+def test_an_import_for_the_type_checker_alone_makes_no_circle(tmp_path):
+    """An import under ``if TYPE_CHECKING:`` never runs (a mixin's annotations name its host's types so): no circle."""
+    import shutil
+
+    shutil.copytree(ROOT / "passt_mav", tmp_path / "passt_mav", ignore=shutil.ignore_patterns("__pycache__", "assets"))
+    f = tmp_path / "passt_mav/vehicle/flow.py"
+    f.write_text(
+        f.read_text() + "\n\nif TYPE_CHECKING:\n    from passt_mav.vehicle.session import Journal  # noqa: F401\n"
+    )
+    assert {comp for comp, _lines in import_cycles(tmp_path)} == {comp for comp, _lines in import_cycles()}

@@ -4,8 +4,9 @@ Known answers: the ids on the wire; which heartbeats the vehicle's GCS failsafe 
 models ArduPilot: only MAV_GCS_SYSID's); replies addressed to another system/component never
 answer our requests (a router hands us QGroundControl's replies too); and a ground station that
 uploads its own mission during our leg swap is caught by the read-back, our mission is flown (or,
-when it keeps replacing it, the controller stops in HOLD). Everything runs in lockstep
-(:func:`mavlink_helpers.lockstep_connection`): timeouts are the simulator's, not the machine's.
+when it keeps replacing it, the controller stops in HOLD). The simulator is served in the controller-driven
+lockstep (its clock runs only while our link waits for the vehicle, :class:`passt_mav.mavlink.link.Lockstep`),
+or a ground station on the controller's own thread steps it: timeouts are the simulator's, not the machine's.
 """
 
 from __future__ import annotations
@@ -16,7 +17,7 @@ import time
 
 import numpy as np
 import pytest
-from mavlink_helpers import HOME, Router, Wire, link_config, lockstep_connection, waypoints
+from mavlink_helpers import HOME, SPEEDUP, Router, Wire, link_config, waypoints
 from pymavlink.dialects.v20 import ardupilotmega as M
 from simclient import SimClient
 
@@ -25,8 +26,12 @@ from passt_mav.mavlink import link as link_mod
 from passt_mav.mavlink.mission_client import MissionWatch, rover_stored
 from passt_mav.runs.rundir import RunDir
 from vehicle_sim import SimConfig, Simulator
+from vehicle_sim.inprocess import InProcessMavfile
 
 QGC = (255, 190)
+STEP_S = 0.05  # vehicle seconds per lockstep step of our link
+BOOT_S = 2.0  # vehicle seconds run after connecting (the boot timeline of SimConfig.fast)
+_SERVED: list = []  # simulators served by _link, stopped after each test
 OURS = (link_mod.DEFAULT_SOURCE_SYSTEM, link_mod.DEFAULT_SOURCE_COMPONENT)
 
 
@@ -57,7 +62,7 @@ class QgcClient(SimClient):
             return super().advance(dt)
         if self._stop.is_set():
             raise _Stopped
-        time.sleep(0.001)  # our link's reader steps the simulator
+        time.sleep(0.001)  # our link steps the simulator
 
     def pump(self) -> None:
         super().pump()
@@ -67,11 +72,27 @@ class QgcClient(SimClient):
                 self.queue.remove(m)
 
 
-def _link(sim, ep=None, **kw) -> tuple[Link, Wire]:
+@pytest.fixture(autouse=True)
+def _stop_served():
+    yield
+    while _SERVED:
+        _SERVED.pop().stop()
+
+
+def _link(sim, ep=None, pace: float = SPEEDUP, **kw) -> tuple[Link, Wire]:
+    """Our link to ``sim`` (on ``ep``: a router port), which serves it in lockstep: our waits step its clock, at
+    most ``pace`` x the wall clock (a QGC thread following the clock needs wall time to answer in)."""
+    if not sim.running:
+        sim.serve([], lockstep=True)
+        _SERVED.append(sim)
     wire = Wire()
     ep = wire.wrap(ep if ep is not None else sim.connect_inprocess())
-    link = Link(link_config(heartbeat_period_s=0.02, **kw), connection_factory=lambda: lockstep_connection(ep, 0.02))
-    return link.connect(), wire
+    cfg = link_config(heartbeat_period_s=0.02, lockstep_s=STEP_S, lockstep_pace=pace, **kw)
+    link = Link(cfg, connection_factory=lambda: InProcessMavfile(ep)).connect()
+    # the clock held while nobody waited: let the vehicle finish booting (SimConfig.fast: ~2 s) as it does
+    # while a ground station connects to a running one (a mission sent sooner is refused with NO_SPACE)
+    assert link.lockstep is not None and link.lockstep.step(BOOT_S)
+    return link, wire
 
 
 def test_default_identity_is_ours_neither_qgcs_nor_the_vehicles():
@@ -89,8 +110,8 @@ def test_only_mav_gcs_sysid_heartbeats_feed_the_gcs_failsafe(source_system, coun
     link, wire = _link(sim, **kw)
     try:
         t0 = sim.t
-        while sim.t - t0 < 3.0:  # our heartbeat thread sends every 0.02 wall s; the reader steps the sim
-            time.sleep(0.02)
+        while sim.t - t0 < 3.0:  # our heartbeat thread sends every 0.02 wall s; our link steps the sim
+            link.idle(0.02)
         assert wire.ids == {OURS if source_system is None else (255, OURS[1])}
         assert (sim.autopilot.last_gcs_hb is not None) == counted
     finally:
@@ -108,14 +129,14 @@ def test_through_a_router_replies_to_qgc_are_not_ours_and_ours_not_qgcs():
     item QGC downloads is the item of that seq of one of our missions. (A download may mix two of them: the
     vehicle keeps no download state, so our upload can land between QGC's item requests, as on ArduPilot;
     and after the vehicle cancelled one of our uploads it may hold only the items stored before.)
-    One clock: our link's reader steps the simulator and QGC follows it (QGC stepping it too raced our
+    One clock: our link steps the simulator and QGC follows it (QGC stepping it too raced our
     thread: the vehicle's transfer timeout could run out in QGC's steps while ours had no CPU)."""
     sim = Simulator(None, home=HOME, config=SimConfig.fast())
     router = Router(sim)
     link, wire = _link(sim, router.port())
     qgc = QgcClient(sim, router.port())
     stop = threading.Event()
-    qgc.follow_clock(stop)  # one clock, driven by our link's reader only
+    qgc.follow_clock(stop)  # one clock, driven by our link only
     got: list = []
 
     def qgc_loop():
@@ -135,10 +156,10 @@ def test_through_a_router_replies_to_qgc_are_not_ours_and_ours_not_qgcs():
             assert [rover_stored(a).same_as(b) for a, b in zip(items[1:], back[1:])] == [True] * 3
             sent.append(items)
             # ArduPilot DENIES a download while an upload runs, and ours come back to back: leave QGC 2
-            # simulated seconds (our reader steps the clock) to read whole lists between them too
+            # simulated seconds (our link steps the clock) to read whole lists between them too
             t, wall = sim.t, time.monotonic() + 60
             while sim.t - t < 2.0 and time.monotonic() < wall:
-                time.sleep(0.005)
+                link.idle(0.005)
     finally:
         stop.set()
         th.join(timeout=30)
@@ -146,9 +167,9 @@ def test_through_a_router_replies_to_qgc_are_not_ours_and_ours_not_qgcs():
     assert wire.ids == {OURS}
     whole = [g for g in got if isinstance(g, list)]
     assert len(whole) >= 3, [type(g).__name__ if not isinstance(g, list) else len(g) for g in got]
-    # the vehicle cancelled one of our uploads half-way: its 8 s transfer timeout runs on the simulated
-    # clock, which our link's reader advances while the thread sending the items may have no CPU (CI, a
-    # loaded two-core machine); ArduPilot keeps the partial list, and our client restarts the transfer
+    # the vehicle cancelled one of our uploads half-way (its 8 s transfer timeout, on the simulated clock
+    # that our link steps while it waits for the next item request); ArduPilot keeps the partial list, and
+    # our client restarts the transfer
     cancelled = any("Mission upload timeout" in t for _, _, t in list(link.texts))
     for g in whole:
         # home only (before our first upload), or home + our 3 items; after a cancel, home + the items
@@ -210,10 +231,9 @@ def _flight(tmp_path, shared: bool, times: int, legs: int = 2):
     cfg = mission(tmp_path, field, legs=legs)
     sim = Simulator(field, home=HOME, config=sim_config(), start_time=0.0)
     router = Router(sim) if shared else None
-    # link loss is not what these flights test: a generous wall-clock bound, so that a loaded machine that
-    # leaves the reader unscheduled for half a second (QGC's transfer runs on the controller's thread) is not
-    # taken for a lost link (seen once at a load average of 10)
-    link, wire = _link(sim, router.port() if shared else None, stream_rates_hz=LEAN_STREAMS, link_lost_s=5.0)
+    # QGC's transfers run on the controller's thread and step the simulator there (SimClient.advance): our
+    # steps need not wait for it; in lockstep our link counts as lost only when its transport closes
+    link, wire = _link(sim, router.port() if shared else None, pace=1e4, stream_rates_hz=LEAN_STREAMS)
     qgc = QgcClient(sim, router.port() if shared else None)
     rd = RunDir(tmp_path / "run").create()
     ctl = controller(cfg, field, link, rd, echo=print)
@@ -271,6 +291,8 @@ def test_a_gcs_upload_mid_leg_through_a_router_is_seen_and_ours_resumed(tmp_path
     router = Router(sim)
     link, _wire = _link(sim, router.port(), stream_rates_hz=LEAN_STREAMS)
     qgc = QgcClient(sim, router.port())
+    stop = threading.Event()
+    qgc.follow_clock(stop)  # one clock: the controller's waits step it, QGC's thread only follows
     ctl = controller(cfg, field, link, RunDir(tmp_path / "run").create(), echo=print)
     acks = []
 
@@ -282,13 +304,15 @@ def test_a_gcs_upload_mid_leg_through_a_router_is_seen_and_ours_resumed(tmp_path
             time.sleep(0.005)  # AUTO, our read-back done, the first waypoint reached
         ours = sim.autopilot.store.items[0]
         theirs = [SimClient.waypoint(it.seq, it.x / 1e7 + 3e-4, it.y / 1e7) for it in ours]
-        acks.append(qgc.upload(theirs, timeout=20.0, item_timeout=0.5))
+        with contextlib.suppress(_Stopped):
+            acks.append(qgc.upload(theirs, timeout=20.0, item_timeout=0.5))
 
     th = threading.Thread(target=qgc_mid_leg, daemon=True)
     th.start()
     try:
         summary = ctl.run()
     finally:
+        stop.set()
         th.join(30)
         link.close()
     assert acks and acks[0] is not None and acks[0].type == M.MAV_MISSION_ACCEPTED
@@ -318,7 +342,7 @@ def test_an_upload_denied_while_qgc_holds_a_transfer_is_waited_out(tmp_path):
     field = wave_field()
     cfg = mission(tmp_path, field, legs=1)
     sim = Simulator(field, home=HOME, config=sim_config(), start_time=0.0)
-    link, wire = _link(sim, stream_rates_hz=LEAN_STREAMS)
+    link, wire = _link(sim, pace=1e4, stream_rates_hz=LEAN_STREAMS)  # QGC waits on the controller's thread
     qgc = QgcClient(sim)
     ctl = controller(cfg, field, link, RunDir(tmp_path / "run").create(), echo=print)
     orig = ctl.vehicle.mission.upload

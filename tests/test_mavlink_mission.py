@@ -115,6 +115,13 @@ def test_fence_type_round_trips_and_clear_and_set_current():
 def test_no_space_over_capacity_is_rejected_and_named():
     with served(SimConfig.fast(mission_capacity=(5, 84, 20))) as (_sim, link):
         mc = MissionClient(link, boot_grace_s=0.0)  # past boot: NO_SPACE is a real limit, raised at once
+        # past boot indeed: the vehicle has left INITIALISING and sent its time (until then a NO_SPACE counts as
+        # a vehicle still booting and is asked again, as test_no_space_right_after_boot_is_retried checks)
+        end = time.monotonic() + 30.0
+        while time.monotonic() < end and (
+            link.vehicle_uptime_s() is None or getattr(link.latest("HEARTBEAT"), "custom_mode", 16) == 16
+        ):
+            time.sleep(0.01)
         with pytest.raises(MissionRejected) as ei:
             mc.upload(with_home(waypoints(OFFSETS[:6])))
         assert ei.value.result == M.MAV_MISSION_NO_SPACE and ei.value.name == "MAV_MISSION_NO_SPACE"

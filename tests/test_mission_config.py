@@ -80,6 +80,28 @@ def test_field_file_relative_to_mission_file(tmp_path):
     assert load_mission(p).field.source == str(tmp_path / "data" / "f.nc")
 
 
+def test_relative_paths_resolve_from_the_mission_files_folder_not_the_working_directory(tmp_path, monkeypatch):
+    """``nj1/m.yaml`` read from the folder above: its ``f.nc`` and ``k.pt`` are nj1's, held absolute (not
+    ``nj1/f.nc``, which another working directory would not find), and the text a run directory keeps names
+    them absolute too (the rest of the mission unchanged); a mission without relative paths is kept as written."""
+    from passt_mav.mission.config import recorded_mission_text
+
+    nj1 = tmp_path / "nj1"
+    nj1.mkdir()
+    for name in ("f.nc", "k.pt"):
+        (nj1 / name).write_bytes(b"")
+    (nj1 / "m.yaml").write_text(yaml.safe_dump({**GOOD, "field": "f.nc", "model": "k.pt"}, sort_keys=False))
+    monkeypatch.chdir(tmp_path)
+    cfg = load_mission(Path("nj1") / "m.yaml")
+    assert cfg.field.source == str(nj1 / "f.nc") and cfg.model == str(nj1 / "k.pt")
+    kept = yaml.safe_load(recorded_mission_text((nj1 / "m.yaml").read_text(), cfg))
+    assert kept == {**GOOD, "field": str(nj1 / "f.nc"), "model": str(nj1 / "k.pt")}
+    monkeypatch.chdir(nj1)  # the kept text validates to the same config from anywhere (here: base_dir elsewhere)
+    assert validate_mission(kept, base_dir=tmp_path / "elsewhere") == cfg
+    text = "# a comment\n" + yaml.safe_dump(GOOD)
+    assert recorded_mission_text(text, validate_mission(GOOD)) == text
+
+
 def _with(**changes):
     d = yaml.safe_load(yaml.safe_dump(GOOD))
     for key, val in changes.items():

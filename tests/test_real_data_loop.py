@@ -89,11 +89,11 @@ def test_the_gp_carries_a_residual_no_longer_than_the_field_stays_correlated(wa_
 @pytest.mark.slow(reason="four legs of ~7 h of vehicle time each on the simulator: ~4 min on two cores")
 def test_the_case_on_vehicle_sim_ends_every_leg_below_the_model_alone_or_says_so(wa_field, tmp_path):
     """The issue's case flown as a user flies it: the same field, region, mission and start cell, four legs,
-    on vehicle-sim (in process, in lockstep: simulated time follows the controller whatever the machine's
-    load; a reading every 60 s of vehicle time, N(0, 0.02 m/s) noise) under ``MissionController``. Each
+    on vehicle-sim (in process, in the controller-driven lockstep: simulated time follows the controller
+    whatever the machine's load; a reading every 60 s of vehicle time, N(0, 0.02 m/s) noise) under ``MissionController``. Each
     leg's estimate ends at or below the model alone's RMSE, or that leg's guard message says so (the leg
     record and ``events.jsonl``)."""
-    from mavlink_helpers import link_config, lockstep_connection
+    from mavlink_helpers import link_config
     from test_controller import vehicle
 
     from passt_mav.commands.run import LEAN_STREAMS
@@ -104,6 +104,7 @@ def test_the_case_on_vehicle_sim_ends_every_leg_below_the_model_alone_or_says_so
     from passt_mav.runs.rundir import RunDir
     from passt_mav.vehicle.controller import MissionController
     from vehicle_sim import SimConfig, Simulator
+    from vehicle_sim.inprocess import InProcessMavfile
 
     fpath = tmp_path / "wa.nc"
     wa_field.to_netcdf(fpath)
@@ -117,11 +118,12 @@ def test_the_case_on_vehicle_sim_ends_every_leg_below_the_model_alone_or_says_so
         params=(("WP_SPEED", 2.0),), current_noise_std=0.02, current_rate_hz=1 / 60, seed=3, physics_dt=0.5
     )
     sim = Simulator(wa_field, home=(float(lat), float(lon)), config=sim_cfg)
-    # a heartbeat every simulated second, 0.5 s per idle poll: a link-lost verdict on the wall clock would
-    # only say the machine is busy, so it waits 30 s
+    # the controller-driven lockstep: the vehicle's clock runs 1 s a step while the controller waits for it
+    # (legs of ~7 h, as tests/test_current_legs.py), at most 10000 x the wall clock
+    sim.serve([], lockstep=True)
     link = Link(
-        link_config(stream_rates_hz=LEAN_STREAMS, link_lost_s=30.0, timeout_s=2.0),
-        connection_factory=lambda: lockstep_connection(sim.connect_inprocess(None), 0.5),
+        link_config(stream_rates_hz=LEAN_STREAMS, timeout_s=2.0, lockstep_s=1.0, lockstep_pace=1e4),
+        connection_factory=lambda: InProcessMavfile(sim.connect_inprocess(None)),
     )
     link.connect()
     try:

@@ -266,6 +266,26 @@ def test_truncated_tlog_replays_what_is_readable(flown, tmp_path):
     assert res.legs[1].path == summary["legs"][1]["path"]
 
 
+def test_readings_of_the_store_the_log_does_not_hold_are_counted_in_the_notes(flown, tmp_path):
+    """A run directory whose telemetry log ends before its second leg: the store's readings of that leg are not in
+    the log, and the replay says how many, by leg."""
+    rd, _, _ = flown
+    cut = RunDir(tmp_path / "run")
+    shutil.copytree(rd.root, cut.root, ignore=shutil.ignore_patterns("replay"))
+    data, p = rd.tlog.read_bytes(), 0
+    for _, m in TlogScanner(data):
+        if m.get_type() == "STATUSTEXT" and str(m.text).startswith("PASST leg 1 tb"):
+            break
+        p += 8 + len(m.get_msgbuf())
+    cut.tlog.write_bytes(data[:p])
+    res = replay(cut.root, out=False)
+    assert len(res.legs) == 1 and res.reproduced is False
+    n1 = len(_store_legs(rd)[1])
+    assert n1 > 0 and f"{n1} readings of the run's store not compared with the log: no leg replayed (leg 2: {n1})" in (
+        res.notes
+    ), res.notes
+
+
 @pytest.mark.parametrize("seed", [1, 2])
 def test_random_bytes_inserted(flown, tmp_path, seed):
     rd, mfile, _summary = flown

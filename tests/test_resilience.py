@@ -1,9 +1,14 @@
 """Nothing lost, nothing stopped (issue 46): link outages ridden out, stop signals, overruns, field gaps.
 
 Setting of tests/test_controller.py (8x8 grid of ~40 m cells, persistence, greedy legs of 3 moves, a
-5 m/s boat), but the simulator runs in lockstep (:func:`mavlink_helpers.lockstep_connection`): it
-advances only while the controller's reader finds nothing to read, so simulated time follows the
-controller whatever the machine's load. Outages are the simulator's radio (``LinkConfig.arm_drops``:
+5 m/s boat), but the simulator is served in the controller-driven lockstep (``LinkConfig.lockstep_s``: its
+clock runs only while the controller waits for the vehicle), so simulated time follows the controller
+whatever the machine's load. The tests of radio drops and of a kill or a signal fired at a mission event
+(:class:`Faults`) serve it on the wall clock at a speed-up instead (:func:`flight`; ``SPEEDUP``): a vehicle's
+clock runs on while the controller cannot reach it (in lockstep a drop would lose the controller's steps and
+stop it), and such a fault holds the clock from the simulator's own thread until the controller's thread has
+taken it (in lockstep the controller's step would wait for that thread). Outages are the simulator's radio
+(``LinkConfig.arm_drops``:
 seconds of simulated time after the vehicle's first arming, both ways, on every link to it, also the
 ones a reconnect opens). Every reading the vehicle sent is in the simulator's own tlog (written before
 the radio loses a frame): that is the known answer the store and the controller's accounting are
@@ -20,11 +25,12 @@ import time
 
 import numpy as np
 import pytest
-from mavlink_helpers import HOME, link_config, lockstep_connection
-from test_controller import controller, mission, sim_config, wave_field
+from mavlink_helpers import HOME, link_config
+from test_controller import SPEEDUP, controller, mission, sim_config, wave_field
 from test_controller_faults3 import _in_leg
 
 from passt_mav.commands.run import LEAN_STREAMS
+from passt_mav.errors import UserError
 from passt_mav.mavlink import Link
 from passt_mav.runs.live import read_events
 from passt_mav.runs.rundir import RunDir
@@ -33,58 +39,33 @@ from passt_mav.vehicle.signals import Stopped, StopSignals, exit_code
 from vehicle_sim import LinkConfig as SimLinkConfig
 from vehicle_sim import SimConfig, Simulator
 from vehicle_sim.boat import BoatParams
+from vehicle_sim.inprocess import InProcessMavfile
 
 AUTO, HOLD, LOITER = 10, 4, 5
-AUTOSTEP_S = 0.05  # simulated seconds per idle poll of the controller's reader
-
-
-def paced(ep, max_rate: float | None, box: dict | None = None):
-    """:func:`lockstep_connection` on ``ep`` whose simulator runs at most ``max_rate`` x the wall clock (an idle
-    poll waits ``AUTOSTEP_S / max_rate`` s): the controller notices a lost link after ``link_lost_s`` of wall
-    time, so a radio drop of D simulated seconds certainly outlasts that when D > link_lost_s x max_rate.
-    A loaded machine only slows the simulator further (the drop lasts longer in wall time). ``box["faults"]``
-    (a :class:`Faults`, when set) fires its faults before each step and may slow the pace further."""
-    conn = lockstep_connection(ep, AUTOSTEP_S)
-    if max_rate or box is not None:
-        box = {} if box is None else box
-        recv = conn.recv
-
-        def recv_paced(n=None):
-            faults = box.get("faults")
-            if faults is not None and not ep.pending():
-                faults.tick()  # the poll is about to step the simulator
-            data = recv(n)
-            rate = max_rate if faults is None else faults.rate()
-            if not data and rate:
-                time.sleep(AUTOSTEP_S / rate)
-            return data
-
-        conn.recv = recv_paced
-    return conn
+STEP_S = 0.5  # vehicle seconds per step of the controller-driven lockstep
+PACE = 1e4  # at most this many vehicle seconds per wall second in lockstep: the steps as fast as they come
 
 
 class Faults:
-    """Faults fired from the lockstep stepping, at mission events, never from a wall-clock thread.
+    """Faults fired from the simulator's stepping, at mission events, never from a wall-clock thread.
 
-    Before each step of the simulator (an idle poll of the controller's reader, or of a reconnect's new link)
-    every pending fault whose condition holds runs there, at that simulated instant, in the stepping thread:
-    the simulator cannot run past a mission event without its fault. A loaded machine changes how fast the
-    simulator runs, never where in the mission a fault falls. Faults that need the controller's own thread
-    (a signal, a death) hold the simulator's clock until that thread has taken them. The controller's main
-    thread never fires a fault (a reconnect steps from it; a fault waiting for it there would wait for itself).
+    Before each physics step of the simulator (in its serving thread: :func:`flight`) every pending fault
+    whose condition holds runs there, at that simulated instant: the simulator cannot run past a mission event
+    without its fault. A loaded machine changes how fast the simulator runs, never where in the mission a
+    fault falls. Faults that need the controller's own thread (a signal, a death) hold the simulator's clock
+    until that thread has taken them: on the wall clock only (in lockstep the controller waits for its step).
 
     Radio drops (:meth:`drop`) are windows of simulated time on every link to the vehicle, also those opened
-    during them (the ``drops`` of :class:`vehicle_sim.LinkConfig`); during one the simulator runs at most
-    ``duration / DROP_WALL_S`` x the wall clock, so even a 10 s drop outlasts the controller's ``link_lost_s``
+    during them (the ``drops`` of :class:`vehicle_sim.LinkConfig`); a drop's steps take at least
+    :attr:`DROP_WALL_S` of wall time in all, so even a 10 s drop outlasts the controller's ``link_lost_s``
     (0.5 s of wall time) however fast the machine: the controller notices every drop while it flies a leg.
-    ``max_rate`` 0: the simulator unpaced (a test without drops).
     """
 
     DROP_WALL_S = 1.5  # the least wall time a drop lasts (3 x link_lost_s of :func:`mavlink_helpers.link_config`)
     HOLD_WALL_S = 60.0  # the longest the clock is held for the controller's thread to take a fault
 
-    def __init__(self, sim, box: dict, max_rate: float):
-        self.sim, self.box, self.max_rate = sim, box, float(max_rate)
+    def __init__(self, sim, box: dict):
+        self.sim, self.box = sim, box
         self.pending: list[tuple[str, object, object]] = []
         self.fired: dict[str, float] = {}  # fault -> the simulator's clock (s) it fired at
         self._drop: tuple[float, float] | None = None  # (start, duration) of the last drop, simulated s
@@ -104,11 +85,11 @@ class Faults:
                 self.fired[name] = self.sim.t
                 action()
 
-    def rate(self) -> float:
-        """The pace now: ``max_rate``, or slower during a drop (:attr:`DROP_WALL_S`)."""
+    def before_step(self, dt: float) -> None:
+        """Fire what is due, then (in a drop) wait ``dt`` / the drop's length x :attr:`DROP_WALL_S`."""
+        self.tick()
         if self.dropping():
-            return min(self.max_rate, self._drop[1] / self.DROP_WALL_S)
-        return self.max_rate
+            time.sleep(dt * self.DROP_WALL_S / self._drop[1])
 
     def dropping(self) -> bool:
         return self._drop is not None and self.sim.t < self._drop[0] + self._drop[1]
@@ -136,25 +117,47 @@ class Faults:
 
 
 @contextlib.contextmanager
-def lockstep(
+def flight(
     field,
     *,
     sim_cfg: SimConfig | None = None,
     radio: SimLinkConfig | None = None,
     sim_field="same",
     tlog=None,
-    max_rate: float | None = None,
     link_kw: dict | None = None,
+    wall_clock: float | None = None,
 ):
-    """(sim, link, box) with the simulator in lockstep behind the link (writing the telemetry log ``tlog``;
-    ``max_rate``: :func:`paced`); ``box["cfg"]`` is the impairment of every link the controller opens from
-    now on (a test may swap it), ``box["faults"]`` a :class:`Faults` once one is made."""
+    """(sim, link, box): the simulator behind the link (writing the telemetry log ``tlog``), served in the
+    controller-driven lockstep, or at ``wall_clock`` x the wall clock (a speed-up); a :class:`Faults` in
+    ``box["faults"]`` fires before each of its physics steps (module docstring); ``box["cfg"]`` is the
+    impairment of every link the controller opens from now on (a test may swap it)."""
     sim = Simulator(field if sim_field == "same" else sim_field, home=HOME, config=sim_cfg or sim_config())
     box = {"cfg": radio}
-    link = Link(
-        link_config(stream_rates_hz=LEAN_STREAMS, tlog=None if tlog is None else str(tlog), **(link_kw or {})),
-        connection_factory=lambda: paced(sim.connect_inprocess(box["cfg"]), max_rate, box),
-    )
+    kw = dict(stream_rates_hz=LEAN_STREAMS, tlog=None if tlog is None else str(tlog), **(link_kw or {}))
+    tick = sim._tick
+
+    def tick_after_faults(h: float) -> None:
+        if (faults := box.get("faults")) is not None:
+            faults.before_step(h)
+        tick(h)
+
+    sim._tick = tick_after_faults
+    if wall_clock:
+        step, h, due = sim.step, sim.config.physics_dt, [0.0]
+
+        def whole_steps(dt=None):
+            # whole physics steps, as in lockstep: the sensor's 1 Hz readings stay 1000 ms apart on one clock
+            due[0] += h if dt is None else dt
+            while due[0] >= h - 1e-9:
+                step(h)
+                due[0] -= h
+
+        sim.step = whole_steps
+        sim.serve([], speedup=wall_clock)
+    else:
+        sim.serve([], lockstep=True)
+        kw.update(lockstep_s=STEP_S, lockstep_pace=PACE)
+    link = Link(link_config(**kw), connection_factory=lambda: InProcessMavfile(sim.connect_inprocess(box["cfg"])))
     link.connect()
     try:
         yield sim, link, box
@@ -192,8 +195,9 @@ def test_outage_of_two_minutes_is_ridden_out_and_the_lost_readings_accounted(tmp
     tlog = tmp_path / "sim.tlog"
     # 120 s of vehicle time without a frame either way, from 12 s after arming: mid-leg 0 (~30 s)
     radio = SimLinkConfig(arm_drops=((12.0, 120.0),))
-    # (at most 100x: the 120 s drop outlasts the 0.5 s wall of link_lost_s however fast the machine)
-    with lockstep(field, sim_cfg=sim_config(tlog=str(tlog)), radio=radio, max_rate=100) as (sim, link, _):
+    # on the wall clock (a drop: module docstring): at 100x the 120 s drop lasts 1.2 s of wall time, past the
+    # 0.5 s of link_lost_s (a loaded machine only makes it longer)
+    with flight(field, sim_cfg=sim_config(tlog=str(tlog)), radio=radio, wall_clock=100.0) as (sim, link, _):
         ctl = controller(cfg, field, link, rd, echo=None)
         summary = ctl.run()
         assert ctl.vehicle.mode == LOITER  # the end of the run: vehicle.on_end loiter
@@ -230,7 +234,7 @@ def test_outage_past_the_window_stops_cleanly_and_resume_finishes(tmp_path):
     lines: list[str] = []
     # the radio dies for good 12 s after arming: no reconnect can succeed (whatever the machine's speed)
     radio = SimLinkConfig(arm_drops=((12.0, 1e9),))
-    with lockstep(field, radio=radio) as (_sim, link, box):
+    with flight(field, radio=radio, wall_clock=SPEEDUP) as (_sim, link, box):  # a drop: module docstring
         ctl = controller(cfg, field, link, rd, echo=lines.append)
         summary = ctl.run()
         assert summary["status"] == "paused" and summary["legs"] == []
@@ -327,7 +331,7 @@ def test_signal_mid_leg_stops_cleanly(tmp_path, signum, on_signal, mode):
     cfg = mission(tmp_path, field, legs=2, vehicle=vehicle_cfg)
     rd = RunDir(tmp_path / "run").create()
     # (reply timeouts of 1 s wall: the HOLD must not time out on a loaded machine)
-    with lockstep(field, link_kw={"timeout_s": 1.0}) as (sim, link, _):
+    with flight(field, link_kw={"timeout_s": 1.0}) as (sim, link, _):
         with StopSignals(echo=lambda s: None) as stop:
             ctl = controller(cfg, field, link, rd, echo=None, signals=stop)
             th = _signal_when_in_leg(ctl, signum)
@@ -336,6 +340,16 @@ def test_signal_mid_leg_stops_cleanly(tmp_path, signum, on_signal, mode):
         assert stop.received == signum
         time.sleep(0.05)
         assert sim.autopilot.mode == mode  # its wait_mode (LOITER), or left flying its leg with on_signal: auto
+        if mode == AUTO:
+            # a second controller, started afresh while the boat flies that leg, refuses to take it over: one
+            # line, and the vehicle still flies the mission in AUTO (nothing was sent to it)
+            other = RunDir(tmp_path / "other").create()
+            # the boat flies on for 2 s first: the link's last heartbeat (the clock held since the stop) may
+            # predate AUTO, and a new controller's link would hear the heartbeats of a vehicle flying on
+            assert link.lockstep is not None and link.lockstep.step(2.0)
+            with pytest.raises(UserError, match="armed in AUTO, flying a mission"):
+                controller(cfg, field, link, other, echo=None).run()
+            assert sim.autopilot.mode == AUTO and sim.autopilot.armed
     name = signal.Signals(signum).name
     s = rd.read_summary()  # written, with the status a supervisor can read
     assert s["status"] == summary["status"] == "stopped" and s["stopped_by"] == name
@@ -353,7 +367,7 @@ def test_overrun_leg_is_cut_and_the_next_leg_planned(tmp_path):
     # a hull that makes 0.5 m/s in still water against the mission's 5 m/s: a leg takes ~10x its plan
     slow = sim_config(boat=BoatParams(max_speed=0.5))
     lines: list[str] = []
-    with lockstep(field, sim_cfg=slow, sim_field=None) as (_sim, link, _):
+    with flight(field, sim_cfg=slow, sim_field=None) as (_sim, link, _):
         ctl = controller(cfg, field, link, rd, echo=lines.append)
         summary = ctl.run()
     assert summary["status"] == "complete" and len(summary["legs"]) == 2
@@ -389,19 +403,20 @@ def test_state_at_fills_a_gap_from_the_nearest_time_never_zero():
 
 # -- the command line: exit codes, nothing half-written, nothing touched -------------------------------
 def _cli_run(monkeypatch, sim, mission_path, out, *extra: str, opened: list | None = None) -> int:
-    """``passt-mav run MISSION --out OUT ...`` with the transport replaced by a lockstep in-process link to ``sim``
-    (``opened`` collects one entry per transport the command opens)."""
+    """``passt-mav run MISSION --out OUT --lockstep ...`` with the transport replaced by an in-process link to
+    ``sim``, served here in lockstep (``opened`` collects one entry per transport the command opens)."""
     from passt_mav.cli import main
     from passt_mav.mavlink import link as link_mod
 
     def open_(self):
         if opened is not None:
             opened.append(self.connect)
-        return lockstep_connection(sim.connect_inprocess(), AUTOSTEP_S)
+        return InProcessMavfile(sim.connect_inprocess())
 
+    sim.serve([], lockstep=True)
     monkeypatch.setattr(link_mod.LinkConfig, "open", open_)
-    args = ["run", str(mission_path), "--connect", "tcp:127.0.0.1:5760", "--out", str(out)]
-    return main([*args, "--speedup-hint", "20", "--no-report", "--quiet", *extra])
+    args = ["run", str(mission_path), "--connect", "tcp:127.0.0.1:5760", "--out", str(out), "--lockstep", str(STEP_S)]
+    return main([*args, "--speedup-hint", "1000000", "--no-report", "--quiet", *extra])
 
 
 def _mission_file(tmp_path, field, **over):
@@ -561,7 +576,7 @@ def _dies_in_leg(ctl, faults: Faults, leg: int) -> None:
         kill.set()
         faults.hold_until(killed.is_set, "the kill")
 
-    faults.at("kill", lambda: ctl.collector.leg_counts(leg)["emitted"] >= 3, kill_now)
+    faults.at("kill", lambda: ctl.collector is not None and ctl.collector.leg_counts(leg)["emitted"] >= 3, kill_now)
     fly = ctl._fly
 
     def dying_fly(i, *a):
@@ -574,9 +589,11 @@ def _dies_in_leg(ctl, faults: Faults, leg: int) -> None:
     ctl._fly = dying_fly
 
 
-@pytest.mark.long(reason="six legs through link drops, a simulator restart, a kill, a resume and SIGTERM: ~20-30 s")
+@pytest.mark.long(
+    reason="six legs through link drops, a simulator restart, a kill, a resume and SIGTERM, at 10x the wall clock: ~1 min"
+)
 def test_chaos_six_legs_drops_restart_kill_resume_and_sigterm(tmp_path):
-    """One 6-leg mission on the lockstep simulator, every fault at a mission event (:class:`Faults`): radio drops
+    """One 6-leg mission on the simulator (wall clock), every fault at a mission event (:class:`Faults`): radio drops
     of 10 s (leg 1), 45 s (leg 3 re-flown) and 300 s (leg 4), the simulator restarting mid-leg 2, the controller
     dying mid-leg 3 (resumed), a SIGTERM mid-leg 5 (resumed to the end). Every reading the vehicle sent within a
     leg's span is in the store or counted missing by that leg's record, every drop was noticed and ridden out,
@@ -584,17 +601,19 @@ def test_chaos_six_legs_drops_restart_kill_resume_and_sigterm(tmp_path):
     from passt_mav.analysis.replay import replay
 
     field = wave_field()
-    # the window is not under test here: a paced simulator on a loaded machine may take minutes of wall time
-    # for the 300 s drop (it runs only while the reader polls, not during the reconnects' back-off)
+    # the window is not under test here: a loaded machine may take minutes of wall time for the 300 s drop
     vehicle_cfg = {"speed_mps": 5.0, "wp_radius_m": 3.0, "link_loss_window_s": 36000}
     cfg = mission(tmp_path, field, legs=6, vehicle=vehicle_cfg)
     rd = RunDir(tmp_path / "run").create()
     tlog = tmp_path / "sim.tlog"
     runs = []
-    # (reply timeouts of 1 s wall: the simulator runs at most 60x, less on a loaded machine)
-    cfgs = {"sim_cfg": sim_config(tlog=str(tlog)), "tlog": rd.tlog, "max_rate": 60, "link_kw": {"timeout_s": 1.0}}
-    with lockstep(field, **cfgs) as (sim, link, box):
-        faults = Faults(sim, box, max_rate=60)
+    # drops and Faults: on the wall clock (module docstring), at 10x: the controller's own work (the read-back
+    # before the drop's mission event) then costs the vehicle little time on a loaded machine, and the 10 s
+    # drop falls well inside leg 1, which flies on after it (at 20x and 50x it reached the leg's end at a load
+    # average of 5); reply timeouts of 1 s wall
+    cfgs = {"sim_cfg": sim_config(tlog=str(tlog)), "tlog": rd.tlog, "link_kw": {"timeout_s": 1.0}}
+    with flight(field, **cfgs, wall_clock=10.0) as (sim, link, box):
+        faults = Faults(sim, box)
         # 1. a 10 s drop in leg 1, a simulator restart in leg 2, the controller killed in leg 3
         ctl = _chaos_controller(box, cfg, field, link, rd, echo=None)
         faults.at("drop 10 s", _flying(box, 0), lambda: faults.drop(10.0))
@@ -683,8 +702,9 @@ def test_replay_of_a_run_resumed_then_rebooted_reproduces_every_leg(tmp_path):
     field = wave_field()
     cfg = mission(tmp_path, field, legs=3, vehicle={"speed_mps": 5.0, "wp_radius_m": 3.0})
     rd = RunDir(tmp_path / "run").create()
-    with lockstep(field, tlog=rd.tlog, link_kw={"timeout_s": 1.0}) as (sim, link, box):
-        faults = Faults(sim, box, max_rate=0)
+    # a kill: on the wall clock (module docstring)
+    with flight(field, tlog=rd.tlog, link_kw={"timeout_s": 1.0}, wall_clock=SPEEDUP) as (sim, link, box):
+        faults = Faults(sim, box)
         ctl = _chaos_controller(box, cfg, field, link, rd, echo=None)
         _dies_in_leg(ctl, faults, 1)
         with pytest.raises(_Killed):
@@ -712,7 +732,7 @@ def flown_run(tmp_path_factory):
     cfg = mission(tmp, field, legs=2)
     rd = RunDir(tmp / "run").create()
     rd.mission_file.write_text(_mission_file(tmp, field, legs=2).read_text())
-    with lockstep(field, tlog=rd.tlog) as (_sim, link, _):
+    with flight(field, tlog=rd.tlog) as (_sim, link, _):
         summary = controller(cfg, field, link, rd, echo=None).run()
     assert summary["status"] == "complete"
     return rd.root

@@ -3,9 +3,9 @@
 ``passt-mav run`` is called as a user calls it (``passt_mav.cli.main``: argument parsing, the mission
 file, ``--legs``/``--set`` shortening, the field-on-region rule shared with ``plan``, the link, the
 controller, summary.json), with one seam: the transport. ``LinkConfig.open`` is replaced by an
-in-process endpoint of a :class:`vehicle_sim.Simulator` in lockstep (``autostep``: the simulator
-advances only while the controller's reader finds nothing to read), so simulated time follows the
-controller and the run does not depend on the machine's load.
+in-process endpoint of a :class:`vehicle_sim.Simulator` served in the controller-driven lockstep (``run
+--lockstep``: the simulator's clock runs only while the controller waits for the vehicle, one step at a
+time), so simulated time follows the controller and the run does not depend on the machine's load.
 
 The simulator's field is placed from the mission file's own numbers (read here with yaml, not through
 ``passt_mav``'s rule), so a controller that put the cylinder somewhere else would fly outside its region.
@@ -18,12 +18,14 @@ the mission's region.
 from __future__ import annotations
 
 import json
+import threading
+import time
 from pathlib import Path
 
 import numpy as np
 import pytest
 import yaml
-from mavlink_helpers import Wire, lockstep_connection
+from mavlink_helpers import Wire, open_in_lockstep
 
 import geo
 from passt_mav.cli import main
@@ -33,7 +35,7 @@ from passt_mav.runs.store import SampleStore
 from vehicle_sim import SimConfig, Simulator
 
 MISSIONS = Path(__file__).resolve().parent.parent / "missions"
-AUTOSTEP_S = 0.05  # simulated seconds per idle poll of the controller's reader
+STEP_S = "0.5"  # vehicle seconds per lockstep step (run --lockstep)
 
 
 def placed_field(data: dict):
@@ -58,10 +60,20 @@ def placed_field(data: dict):
     return field
 
 
-def fly(name: str, tmp_path, monkeypatch, *, moves: int, speed: float, extra: tuple[str, ...] = ()):
-    """``passt-mav run missions/NAME.yaml --legs 1 --set planner.path_length=MOVES ...`` on a lockstep sim."""
-    path = MISSIONS / f"{name}.yaml"
-    data = yaml.safe_load(path.read_text())
+def fly(
+    name: str,
+    tmp_path,
+    monkeypatch,
+    *,
+    moves: int,
+    speed: float,
+    extra: tuple[str, ...] = (),
+    mission: Path | None = None,
+):
+    """``passt-mav run missions/NAME.yaml --legs 1 --set planner.path_length=MOVES ...`` on a lockstep sim
+    (``mission``: another mission file, whose field is missions/NAME.yaml's)."""
+    data = yaml.safe_load((MISSIONS / f"{name}.yaml").read_text())
+    path = MISSIONS / f"{name}.yaml" if mission is None else mission
     field = placed_field(data)
     t0 = int(data.get("t0", 0))
     r0, c0 = data["start_cell"]
@@ -76,31 +88,34 @@ def fly(name: str, tmp_path, monkeypatch, *, moves: int, speed: float, extra: tu
         start_time=float(field.times[t0]),
     )
     wire = Wire()
-    monkeypatch.setattr(
-        link_mod.LinkConfig, "open", lambda self: lockstep_connection(wire.wrap(sim.connect_inprocess()), AUTOSTEP_S)
-    )
+    open_in_lockstep(monkeypatch, sim, wire.wrap)
     out = tmp_path / name
-    rc = main(
-        [
-            "run",
-            str(path),
-            "--connect",
-            "tcp:127.0.0.1:5760",
-            "--legs",
-            "1",
-            "--out",
-            str(out),
-            "--set",
-            f"planner.path_length={moves}",
-            "--set",
-            f"vehicle.speed_mps={speed}",
-            "--speedup-hint",
-            "20",
-            "--no-report",
-            "--quiet",
-            *extra,
-        ]
-    )
+    try:
+        rc = main(
+            [
+                "run",
+                str(path),
+                "--connect",
+                "tcp:127.0.0.1:5760",
+                "--legs",
+                "1",
+                "--out",
+                str(out),
+                "--set",
+                f"planner.path_length={moves}",
+                "--set",
+                f"vehicle.speed_mps={speed}",
+                "--lockstep",
+                STEP_S,
+                "--speedup-hint",
+                "1000000",
+                "--no-report",
+                "--quiet",
+                *extra,
+            ]
+        )
+    finally:
+        sim.stop()
     f = out / "summary.json"
     summary = json.loads(f.read_text()) if f.exists() else {}
     return rc, summary, sim, wire, out, field
@@ -153,6 +168,44 @@ def test_ocean_mission_files_fly(name, start, tmp_path, monkeypatch):
     # one move of a 6-9 km cell at 8 m/s: ~15-20 min of vehicle time
     rc, summary, sim, wire, out, field = fly(name, tmp_path, monkeypatch, moves=1, speed=8.0)
     check_flight(rc, summary, sim, wire, out, field, moves=1, start=start)
+
+
+def test_a_field_file_beside_the_mission_is_found_and_recorded_so_that_it_resolves(tmp_path, monkeypatch):
+    """``field.source: cyl.nc`` beside the mission file, flown as ``passt-mav run nj1/m.yaml`` from the folder
+    above (the working directory is not the mission's): the field is the mission folder's file, and the run
+    directory records a path that resolves from anywhere, so that ``report`` finds the truth and ``replay
+    RUN_DIR`` works from another working directory."""
+    nj1 = tmp_path / "nj1"
+    nj1.mkdir()
+    resolve_field("builtin:cylinder").to_netcdf(nj1 / "cyl.nc")
+    data = yaml.safe_load((MISSIONS / "cylinder.yaml").read_text())
+    data["field"]["source"] = "cyl.nc"
+    (nj1 / "m.yaml").write_text(yaml.safe_dump(data, sort_keys=False))
+    monkeypatch.chdir(tmp_path)
+    rc, summary, _sim, _wire, out, _field = fly(
+        "cylinder",
+        tmp_path,
+        monkeypatch,
+        moves=2,
+        speed=3.0,
+        extra=("--set", "gp.background=0"),
+        mission=Path("nj1") / "m.yaml",
+    )
+    assert rc == 0 and summary["status"] == "complete"
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    monkeypatch.chdir(elsewhere)
+    for recorded in (
+        yaml.safe_load((out / "mission.yaml").read_text())["field"]["source"],
+        summary["config"]["field"]["source"],
+        summary["field"],
+    ):
+        assert Path(recorded).is_absolute() and Path(recorded).samefile(nj1 / "cyl.nc"), recorded
+    from passt_mav.analysis.report import load_run
+
+    run = load_run(out)
+    assert run.field is not None, run.notes.get("field")
+    assert main(["replay", str(out), "--json"]) == 0
 
 
 def test_our_ids_from_the_mission_file_and_the_command_line_reach_the_wire(tmp_path, monkeypatch):
@@ -270,3 +323,68 @@ def test_a_metric_field_takes_the_missions_placement_and_keeps_its_data():
 
     with pytest.raises(FieldError, match="geographic grid; the mission's region must be 'kind: geographic'"):
         field_on_region(ocean, cfg.grid(), source="builtin:ocean")
+
+
+def test_resume_goes_on_with_the_runs_own_approve_mode_and_leg_count(tmp_path, monkeypatch, capsys):
+    """``run --resume`` continues the run as it was: approve mode (given as ``--approve``), the leg count (``--legs``)
+    and the rest of the mission come from the run's records, not from the mission file named again; ``--set``
+    changes them and is said. Before, a resume without ``--approve`` flew its legs unapproved and took the leg
+    count from the mission file."""
+    data = yaml.safe_load((MISSIONS / "cylinder.yaml").read_text())
+    field = placed_field(data)
+    r0, c0 = data["start_cell"]
+    fs = data["field"]
+    sim = Simulator(
+        field,
+        home=tuple(float(x) for x in field.grid.cell_to_latlon(r0, c0)),
+        config=SimConfig.fast(params=(("WP_SPEED", 5.0),), current_rate_hz=1.0, seed=1),
+        velocity_scale=float(fs.get("velocity_scale", 1.0)),
+        time_scale=float(fs.get("time_scale", 1.0)),
+        start_time=float(field.times[int(data.get("t0", 0))]),
+    )
+    sim.serve([], lockstep=True)  # the controller-driven lockstep: the vehicle's clock runs while it waits
+    monkeypatch.setattr(link_mod.LinkConfig, "open", lambda self: sim.connect_inprocess().mavlink_connection())
+    out = tmp_path / "run"
+    common = ["--connect", "tcp:127.0.0.1:5760", "--out", str(out), "--lockstep", "1", "--speedup-hint", "1000000"]
+    common += ["--no-report"]
+
+    def summary():
+        return json.loads((out / "summary.json").read_text())
+
+    try:
+        first = ["--legs", "3", "--approve", "--set", "approve.timeout_s=0.5", "--set", "planner.path_length=3"]
+        assert main(["run", str(MISSIONS / "cylinder.yaml"), *common, *first]) == 1  # nobody approves: paused
+        assert summary()["status"] == "paused" and summary()["legs_planned"] == 3
+        capsys.readouterr()
+        # resumed without --approve or --legs: approve mode and the 3 legs go on (the mission file says 5, no approve)
+        live: list[dict] = []
+        stop = threading.Event()
+
+        def watch():  # the live view's test of a finished run: summary.json's finished_utc
+            while not stop.is_set():
+                s = summary()
+                if s.get("status") == "running" and s.get("finished_utc") is None:
+                    live.append(s)
+                    return
+                time.sleep(0.002)
+
+        th = threading.Thread(target=watch, daemon=True)
+        th.start()
+        try:
+            assert main(["run", str(MISSIONS / "cylinder.yaml"), *common, "--resume"]) == 1
+        finally:
+            stop.set()
+            th.join(5)
+        assert live, "the resumed session never said it was running: its live page stayed a record"
+        said = capsys.readouterr().out
+        assert "resume: the run's own mission" in said and "approve on" in said and "3 legs" in said, said
+        assert summary()["status"] == "paused" and summary()["config"]["approve"]["enabled"]
+        assert summary()["legs_planned"] == 3 and not summary()["legs"]
+        # --set changes it, and says so: the legs fly unapproved, 3 of them, with the first session's path length
+        again = ["--resume", "--set", "approve.enabled=false"]
+        assert main(["run", str(MISSIONS / "cylinder.yaml"), *common, *again]) == 0
+        assert "resume: changed by --set: approve.enabled=false" in capsys.readouterr().out
+    finally:
+        sim.stop()
+    s = summary()
+    assert s["status"] == "complete" and [len(leg["path"]) for leg in s["legs"]] == [4, 4, 4]

@@ -269,16 +269,44 @@ def test_tlog_readable_by_mavutil(tmp_path):
     assert stamps[0] == pytest.approx(1.7e9, abs=1.0) and stamps[-1] <= 1.7e9 + 3.5
 
 
-def test_inprocess_mavutil_connection_autostep():
+def test_inprocess_mavutil_connection_in_the_controller_driven_lockstep():
+    """Served in lockstep, the in-process connection's clock runs only for the steps it asks for (COMMAND_LONG
+    31010): each step is acknowledged after everything the vehicle sent during it, at exactly the time asked
+    for, and between steps the simulator answers at the held time."""
+    from vehicle_sim.sim import STEP_COMMAND
+
     sim = Simulator(None, home=HOME, config=SimConfig.fast())
-    conn = sim.connect_inprocess().mavlink_connection(autostep=0.05)
-    hb = conn.wait_heartbeat(timeout=5)
-    assert hb.type == M.MAV_TYPE_SURFACE_BOAT and conn.target_system == 1
-    conn.recv_match(type="GLOBAL_POSITION_INT", condition="GLOBAL_POSITION_INT.lat != 0", blocking=True, timeout=5)
-    conn.mav.command_long_send(1, 1, M.MAV_CMD_DO_SET_MODE, 0, 1, MODES["HOLD"], 0, 0, 0, 0, 0)
-    ack = conn.recv_match(type="COMMAND_ACK", blocking=True, timeout=5)
-    assert ack.result == 0
-    assert conn.flightmode == "HOLD" or conn.recv_match(type="HEARTBEAT", blocking=True, timeout=5).custom_mode == 4
+    sim.serve([], lockstep=True)
+    conn = sim.connect_inprocess().mavlink_connection()
+    seen: list = []
+
+    def step(seconds: float) -> None:
+        conn.mav.command_long_send(1, 1, STEP_COMMAND, 0, seconds, 0, 0, 0, 0, 0, 0)
+        while True:
+            m = conn.recv_match(blocking=True, timeout=5)
+            assert m is not None, "no acknowledgement of the step"
+            if m.get_type() == "COMMAND_ACK" and m.command == STEP_COMMAND:
+                return
+            seen.append(m)
+
+    try:
+        assert conn.recv_match(blocking=True, timeout=0.2) is None and sim.t == 0.0  # no step, no time
+        step(3.0)
+        assert sim.t == pytest.approx(3.0, abs=1e-9)
+        hb = next(m for m in seen if m.get_type() == "HEARTBEAT")
+        assert hb.type == M.MAV_TYPE_SURFACE_BOAT and conn.target_system == 1
+        assert any(m.get_type() == "GLOBAL_POSITION_INT" and m.lat != 0 for m in seen)
+        assert max(getattr(m, "time_boot_ms", 0) for m in seen) <= 3000  # all of it sent within the step
+        conn.mav.command_long_send(1, 1, M.MAV_CMD_DO_SET_MODE, 0, 1, MODES["HOLD"], 0, 0, 0, 0, 0)
+        ack = conn.recv_match(type="COMMAND_ACK", blocking=True, timeout=5)  # answered at the held time
+        assert ack.command == M.MAV_CMD_DO_SET_MODE and ack.result == 0 and sim.t == pytest.approx(3.0, abs=1e-9)
+        seen.clear()
+        step(1.5)
+        assert sim.t == pytest.approx(4.5, abs=1e-9)
+        assert [m.custom_mode for m in seen if m.get_type() == "HEARTBEAT"][-1] == MODES["HOLD"]
+    finally:
+        conn.close()
+        sim.stop()
 
 
 def test_guided_goto_and_rtl_return_home():

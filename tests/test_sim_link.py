@@ -411,7 +411,7 @@ def test_lockstep_over_tcp_advances_only_when_asked():
 
 def test_inprocess_mavutil_with_served_clock():
     sim = Simulator(None, home=HOME, config=SimConfig.fast())
-    conn = sim.connect_inprocess().mavlink_connection()  # no autostep: the serving thread drives time
+    conn = sim.connect_inprocess().mavlink_connection()  # the serving thread drives time
     sim.serve([], speedup=20)
     try:
         assert conn.recv_match(type="HEARTBEAT", condition="HEARTBEAT.custom_mode==0", blocking=True, timeout=5)

@@ -5,7 +5,9 @@ The current: 0.5 m/s flowing **west** (SITL's ``SIM_TIDE_DIR`` is where the wate
 90 = from the east; vehicle_sim ``uniform_current=(-0.5, 0.0)`` east/north m/s). Both boats have the motorboat's
 navigation parameters (WP_SPEED 5 m/s, WP_RADIUS 3 m; LOIT_RADIUS 2 m). Positions are local east/north metres
 from GLOBAL_POSITION_INT (equirectangular about the first fix; < 1 cm error over these few hundred metres);
-times are the vehicle's own (``time_boot_ms``), so machine load does not change them.
+times are the vehicle's own (``time_boot_ms``), so machine load does not change them (vehicle_sim is served in
+the controller-driven lockstep: its clock runs only for the steps the script asks for when it has nothing to
+read, :meth:`test_sitl_differential.Peer.step`).
 
 The flight, after the vehicle is ready and armed (both boats have drifted with the current since boot):
 
@@ -36,6 +38,7 @@ Tolerances (each vehicle against :data:`FIRMWARE`): HOLD drifts +- 5 m west, +- 
 
 from __future__ import annotations
 
+import contextlib
 import math
 import time
 
@@ -48,6 +51,7 @@ from vehicle_sim import SimConfig, Simulator
 HOME = (40.0, -63.0)
 TIDE_MPS = 0.5  # SIM_TIDE_SPEED; SIM_TIDE_DIR 90: from the east, the boat drifts west
 SPEEDUP = 50
+STEP_S = 0.2  # vehicle seconds per lockstep step of vehicle_sim (position reports come at 1 Hz)
 HOLD_S = LOITER_S = 120.0
 LEG_M = 200.0
 MISSION_SPEED = 2.0  # m/s, DO_CHANGE_SPEED param2
@@ -67,8 +71,8 @@ TOL = {"hold_east_m": 5.0, "hold_north_m": 4.0, "loiter_max_m": 2 * 2.0, "speed_
 class Boat(Peer):
     """A pymavlink connection, the vehicle's clock (s, from time_boot_ms) and its GLOBAL_POSITION_INT track."""
 
-    def __init__(self, conn, wall_limit_s: float, idle_sleep_s: float):
-        super().__init__(conn, wall_limit_s, idle_sleep_s)
+    def __init__(self, conn, wall_limit_s: float, idle_sleep_s: float, step_s: float = 0.0):
+        super().__init__(conn, wall_limit_s, idle_sleep_s, step_s)
         self.origin: tuple[float, float] | None = None
         self.track: list[tuple[float, float, float]] = []  # (t s, east m, north m)
         self.ekf_flags = 0
@@ -235,11 +239,18 @@ def check(got: dict) -> list[str]:
     return bad
 
 
-def _sim_boat() -> Boat:
+@contextlib.contextmanager
+def _sim_boat():
+    """A :class:`Boat` on vehicle_sim served in lockstep (stopped on exit)."""
     cfg = SimConfig.fast(params=(("WP_SPEED", WP_SPEED), ("WP_RADIUS", 3.0), ("CRUISE_SPEED", WP_SPEED)))
     sim = Simulator(None, home=HOME, config=cfg, uniform_current=(-TIDE_MPS, 0.0))
-    conn = sim.connect_inprocess().mavlink_connection(source_system=255, source_component=190, autostep=0.05)
-    return Boat(conn, wall_limit_s=120.0, idle_sleep_s=0.0)
+    sim.serve([], lockstep=True)
+    conn = sim.connect_inprocess().mavlink_connection(source_system=255, source_component=190)
+    try:
+        yield Boat(conn, wall_limit_s=120.0, idle_sleep_s=0.0, step_s=STEP_S)
+    finally:
+        conn.close()
+        sim.stop()
 
 
 @pytest.fixture(
@@ -258,7 +269,8 @@ def _sim_boat() -> Boat:
 )
 def boat(request, tmp_path):
     if request.param == "vehicle_sim":
-        yield _sim_boat()
+        with _sim_boat() as b:
+            yield b
         return
     parm = tmp_path / "tide.parm"
     parm.write_text(f"SIM_TIDE_DIR 90\nSIM_TIDE_SPEED {TIDE_MPS}\n")

@@ -14,11 +14,14 @@ where the build is present). A vehicle_sim whose mission normalisation is switch
 differently, and :func:`differences` says where (a test shows it).
 
 Timeouts are in the vehicle's own time (``time_boot_ms`` of its messages), not wall time, so the
-conversation does not depend on the machine's load; vehicle_sim runs in lockstep.
+conversation does not depend on the machine's load; vehicle_sim is served in the controller-driven lockstep
+(its clock runs only for the steps the script asks for when it has nothing to read: :meth:`Peer.recv`).
 """
 
 from __future__ import annotations
 
+import collections
+import contextlib
 import math
 import time
 
@@ -26,11 +29,13 @@ import pytest
 from pymavlink.dialects.v20 import ardupilotmega as M
 
 from vehicle_sim import SimConfig, Simulator
+from vehicle_sim.sim import STEP_COMMAND
 
 HOME = (40.0, -63.0)
 D = 1.5e-4  # degrees of latitude between waypoints (~17 m)
 LAT0, LON0 = int(HOME[0] * 1e7), int(HOME[1] * 1e7)
 SPEEDUP = 20
+STEP_S = 0.05  # vehicle seconds per lockstep step of vehicle_sim
 
 # (frame, command, autocontinue, p1, p2, p3, p4, x degE7, y degE7, z m) for seq 1..; seq 0 is home
 MISSION = [
@@ -74,22 +79,45 @@ FIRMWARE_ANSWERS = {
 
 
 class Peer:
-    """A pymavlink connection plus the vehicle's clock (seconds from its messages' time_boot_ms)."""
+    """A pymavlink connection plus the vehicle's clock (seconds from its messages' time_boot_ms).
 
-    def __init__(self, conn, wall_limit_s: float, idle_sleep_s: float):
+    ``step_s`` > 0: the vehicle is a simulator served in lockstep, and a read that finds nothing steps its
+    clock (:meth:`step`); else the vehicle keeps its own clock and an idle read sleeps ``idle_sleep_s``."""
+
+    def __init__(self, conn, wall_limit_s: float, idle_sleep_s: float, step_s: float = 0.0):
         self.conn = conn
         self.t = 0.0
         self.wall_limit_s = wall_limit_s
         self.idle_sleep_s = idle_sleep_s
+        self.step_s = step_s
         self.log: list = []
+        self._read: collections.deque = collections.deque()  # read during a step, not handed out yet
+        self._sent = False  # something sent since the last step
 
     def send(self, msg) -> None:
         self.conn.mav.send(msg)
+        self._sent = True
+
+    def step(self) -> None:
+        """Run the vehicle's clock one step (0 s after we sent something: only its answers, at the held time)
+        and read until it acknowledges the step, which comes after everything it sent during the step."""
+        h, self._sent = (0.0 if self._sent else self.step_s), False
+        self.conn.mav.send(M.MAVLink_command_long_message(1, 1, STEP_COMMAND, 0, h, 0, 0, 0, 0, 0, 0))
+        wall_end = time.monotonic() + 30.0
+        while time.monotonic() < wall_end:
+            m = self.conn.recv_match(blocking=True, timeout=1.0)
+            if m is not None and m.get_type() == "COMMAND_ACK" and m.command == STEP_COMMAND:
+                return
+            if m is not None:
+                self._read.append(m)
+        raise AssertionError("the simulator did not acknowledge a lockstep step")
 
     def recv(self):
-        m = self.conn.recv_match(blocking=False)
+        m = self._read.popleft() if self._read else self.conn.recv_match(blocking=False)
         if m is None:
-            if self.idle_sleep_s:
+            if self.step_s:
+                self.step()
+            elif self.idle_sleep_s:
                 time.sleep(self.idle_sleep_s)
             return None
         if m.get_type() == "BAD_DATA" or m.get_srcSystem() != 1 or m.get_srcComponent() != 1:
@@ -221,17 +249,25 @@ def differences(got: dict, want: dict = FIRMWARE_ANSWERS) -> list[str]:
     return bad
 
 
-def _sim_peer(normalise: bool = True) -> Peer:
+@contextlib.contextmanager
+def _sim_peer(normalise: bool = True):
+    """A :class:`Peer` on vehicle_sim served in lockstep (stopped on exit)."""
     sim = Simulator(None, home=HOME, config=SimConfig.fast())
     sim.autopilot.missions.normalise = normalise
-    conn = sim.connect_inprocess().mavlink_connection(source_system=255, source_component=190, autostep=0.02)
-    return Peer(conn, wall_limit_s=120.0, idle_sleep_s=0.0)
+    sim.serve([], lockstep=True)
+    conn = sim.connect_inprocess().mavlink_connection(source_system=255, source_component=190)
+    try:
+        yield Peer(conn, wall_limit_s=120.0, idle_sleep_s=0.0, step_s=STEP_S)
+    finally:
+        conn.close()
+        sim.stop()
 
 
 @pytest.fixture(params=["vehicle_sim", pytest.param("sitl", marks=pytest.mark.sitl)])
 def peer(request):
     if request.param == "vehicle_sim":
-        yield _sim_peer()
+        with _sim_peer() as p:
+            yield p
         return
     sitl = request.getfixturevalue("sitl_factory")(speedup=SPEEDUP)
     conn = sitl.mavlink()
@@ -249,7 +285,8 @@ def test_same_answers_as_the_firmware(peer):
 def test_the_comparison_catches_a_sim_that_stores_items_verbatim():
     """With its normalisation off vehicle_sim answers the read-back differently from the firmware
     (the acceptance radius kept, DO_CHANGE_SPEED's frame 2 kept, ...), and the comparison says so."""
-    bad = differences(conversation(_sim_peer(normalise=False)))
+    with _sim_peer(normalise=False) as p:
+        bad = differences(conversation(p))
     assert "readback seq 1 frame: 2, firmware 0" in bad
     assert "readback seq 2 param2: 25.0, firmware 0.0" in bad
     assert "readback seq 4 param3: 10.0, firmware 1.0" in bad

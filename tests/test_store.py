@@ -159,9 +159,9 @@ def test_rundir_layout(tmp_path):
     rd.write_leg(12, {"path": [[0, 0], [1, 1]], "planning_s": 1.5})
     assert rd.leg_indices() == [3, 12]
     assert json.loads(rd.path_file(12).read_text()) == [[0, 0], [1, 1]]
-    assert rd.read_legs() == [{"path": [[0, 0], [1, 1]], "planning_s": 1.5, "index": 12}]
+    assert rd.read_legs() == [{"schema_version": 1, "path": [[0, 0], [1, 1]], "planning_s": 1.5, "index": 12}]
     rd.write_summary({"status": "complete", "x": 1.25})
-    assert rd.read_summary() == {"status": "complete", "x": 1.25}
+    assert rd.read_summary() == {"schema_version": 1, "status": "complete", "x": 1.25}
     assert [p.name for p in rd.root.iterdir() if p.name.endswith(".tmp")] == []
     with pytest.raises(UserError, match="not valid JSON"):
         rd.summary_file.write_text("{oops")

@@ -4,7 +4,9 @@ data, a run's two clocks, a mission's start cell the boat is not at.
 * ``passt-mav data import`` refuses speeds no surface current has (median above 2.5 m/s or any above
   10 m/s over the valid cells) in one line with the likely units, exit 2, nothing written;
   ``--allow-fast`` imports them; a region with less than half of its cell-times holding data is
-  imported with a one-line warning. ``plan`` and ``vehicle-sim`` warn about such a field file.
+  imported with a one-line warning, one with less than a fifth (a region or window that misses the file) is
+  refused unless ``--min-coverage`` lowers the floor; ``--units`` other than the file's own units attribute
+  are taken with a one-line warning naming both. ``plan`` and ``vehicle-sim`` warn about a too-fast field file.
 * One clock for a run's exports: a mission on a field file with a UTC origin (2024-10-28), flown on a
   simulator started the README's way (``vehicle-sim --field FILE.nc``: the vehicle's UTC is *now*) and
   with ``--utc-at-boot field``, in lockstep (simulated time follows the controller): ``samples.csv``,
@@ -26,12 +28,18 @@ import numpy as np
 import pytest
 import xarray as xr
 import yaml
-from mavlink_helpers import lockstep_connection
+from mavlink_helpers import open_in_lockstep
 
 import geo
 from passt_mav.cli import main
 from passt_mav.fields.field import FlowField
-from passt_mav.fields.importers import MAX_MEDIAN_SPEED, MAX_SPEED, coverage_check, speed_check
+from passt_mav.fields.importers import (
+    MAX_MEDIAN_SPEED,
+    MAX_SPEED,
+    MIN_IMPORT_COVERAGE,
+    coverage_check,
+    speed_check,
+)
 
 ORIGIN = "2024-10-28T03:00:00Z"
 ORIGIN_EPOCH = dt.datetime(2024, 10, 28, 3, tzinfo=dt.UTC).timestamp()
@@ -151,6 +159,64 @@ def test_low_coverage_warns_in_one_line_and_still_imports(tmp_path, capsys):
     assert capsys.readouterr().err == ""
 
 
+def test_an_import_with_little_data_is_refused_unless_asked_for(tmp_path, capsys):
+    """Below MIN_IMPORT_COVERAGE of the region's cell-times holding data (a region or window that misses the
+    file): one line naming the share and --min-coverage, exit 2, nothing written; --min-coverage PERCENT sets
+    the floor (0: any share), and the import then warns as any thin region does."""
+    src = _radar_file(tmp_path / "r.nc", gap=0.9)  # 10 of 11 lon nodes empty: 1/11 of the cell-times hold data
+    out = tmp_path / "out.nc"
+    assert MIN_IMPORT_COVERAGE == 0.2
+    assert _import(src, out) == 2
+    line = _one_error_line(capsys)
+    assert "only 9.1 % of the region's cell-times hold data" in line and "below 20 %" in line, line
+    assert "--min-coverage 0" in line and str(src) in line
+    assert not out.exists() and sorted(p.name for p in tmp_path.iterdir()) == ["r.nc"]
+    assert _import(src, out, "--min-coverage", "10") == 2 and "below 10 %" in _one_error_line(capsys)
+    assert _import(src, out, "--min-coverage", "0") == 0
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("warning: only 9.1 % of the region's cell-times hold data"), err
+    f = FlowField.from_netcdf(out)
+    assert f.coverage == pytest.approx(1 / 11) and "--min-coverage 0" in f.attrs["command"]
+    for bad in ("-1", "101", "nan"):
+        assert _import(src, tmp_path / "o2.nc", "--min-coverage", bad) == 2
+        assert "--min-coverage" in _one_error_line(capsys)
+    assert not (tmp_path / "o2.nc").exists()
+
+
+def test_the_real_radar_file_on_a_region_it_barely_covers_is_refused(tmp_path, capsys):
+    from conftest import SHARED_DATA
+
+    found = sorted(SHARED_DATA.glob("RU_MARA_*.nc"))
+    if not found:
+        pytest.skip(f"no RU_MARA_*.nc in {SHARED_DATA} (../shared/data is not beside the checkout)")
+    out = tmp_path / "radar.nc"
+    # the Gulf of Maine's edge of the radar's footprint: 3.7 % of the cell-times hold data
+    args = ["data", "import", str(found[0]), "--region=42,-69,43.5,-67", "--grid", "30x30", "--out", str(out)]
+    assert main(args) == 2
+    line = _one_error_line(capsys)
+    assert "only 3.7 % of the region's cell-times hold data" in line and "--min-coverage 0" in line, line
+    assert not out.exists()
+    assert main([*args, "--min-coverage", "0"]) == 0 and out.exists()
+
+
+def test_units_that_contradict_the_files_own_are_said(tmp_path, capsys):
+    """--units mm/s on a file whose u/v say m/s: the import goes on (--units is there to override a wrong
+    attribute) with one warning line naming both and the factor; --units agreeing with the file, in another
+    spelling, says nothing."""
+    src = _radar_file(tmp_path / "r.nc", units="m/s", speed_cm_s=0.3)
+    out = tmp_path / "out.nc"
+    assert _import(src, out, "--units", "mm/s") == 0
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("warning: --units mm/s"), err
+    assert "'m/s'" in err[0] and "1000 times slower" in err[0], err[0]
+    np.testing.assert_allclose(FlowField.from_netcdf(out).u, 0.0003, atol=1e-7)
+    assert _import(src, tmp_path / "o2.nc", "--units", "mm/s", "--json") == 0
+    cap = capsys.readouterr()
+    assert json.loads(cap.out)["warnings"] == [err[0].removeprefix("warning: ")]
+    assert _import(src, tmp_path / "o3.nc", "--units", "m s-1") == 0
+    assert capsys.readouterr().err == ""
+
+
 def test_the_real_cm_s_radar_file_read_as_m_s_is_refused(tmp_path, capsys):
     from conftest import SHARED_DATA
 
@@ -231,8 +297,8 @@ def _clock_mission(tmp_path: Path, start_cell) -> Path:
 
 
 def _fly(tmp_path: Path, monkeypatch, capsys, *, utc_at_boot: str, sim_cell, start_cell):
-    """``vehicle-sim --field wa.nc [--utc-at-boot field]`` (in process, lockstep) then ``passt-mav run``."""
-    from passt_mav.mavlink import link as link_mod
+    """``vehicle-sim --field wa.nc [--utc-at-boot field]`` (in process, lockstep) then ``passt-mav run
+    --lockstep``."""
     from vehicle_sim import SimConfig, Simulator
 
     mission = _clock_mission(tmp_path, start_cell)
@@ -241,9 +307,14 @@ def _fly(tmp_path: Path, monkeypatch, capsys, *, utc_at_boot: str, sim_cell, sta
     # vehicle-sim's --utc-at-boot: default now; 'field': the field's UTC at its start time (the first snapshot)
     epoch0 = None if utc_at_boot == "now" else ORIGIN_EPOCH
     sim = Simulator(field, home=home, config=SimConfig.fast(params=(("WP_SPEED", 3.0),), seed=1), epoch0=epoch0)
-    monkeypatch.setattr(link_mod.LinkConfig, "open", lambda self: lockstep_connection(sim.connect_inprocess(), 0.05))
+    open_in_lockstep(monkeypatch, sim)
     out = tmp_path / "run"
-    rc = main(["run", str(mission), "--out", str(out), "--speedup-hint", "20", "--no-report"])
+    try:
+        rc = main(
+            ["run", str(mission), "--out", str(out), "--lockstep", "0.5", "--speedup-hint", "1000000", "--no-report"]
+        )
+    finally:
+        sim.stop()
     cap = capsys.readouterr()
     assert rc == 0, cap.err
     return out, cap

@@ -116,7 +116,7 @@ def _watch_demo(page, demo, out: Path, shots: Path) -> Path:
     _wait(lambda: js(LEGS_DONE) > max(legs0, 0), 180, "the leg counter to advance", demo, out)
     # 4. the end of the demo: the page shows the finished run; keep its screenshot
     _wait(lambda: demo.poll() is not None, 240, "the demo to finish")
-    _wait(lambda: js("window.passtView.last.status") == "complete", 10, "the final state on the page")
+    _wait(lambda: js("window.passtView.last.status") == "complete", 60, "the final state on the page")
     final = shots / "view_end_of_demo.png"
     page.screenshot(path=str(final))
     assert js(LEGS_DONE) == 3

@@ -39,7 +39,7 @@ def test_an_approval_wait_of_600_s_keeps_station_in_loiter_and_drifts_in_hold(tm
     sim.serve([], lockstep=True)
     rd = RunDir(tmp_path / "run").create()
     link = Link(
-        link_config(lockstep_s=1.0, lockstep_pace=1e5, stream_rates_hz=LEAN_STREAMS),
+        link_config(lockstep_s=1.0, lockstep_pace=1e5, stream_rates_hz=LEAN_STREAMS, tlog=str(rd.tlog)),
         connection_factory=inprocess_factory(sim),
     )
     cfg = mission(
@@ -61,6 +61,8 @@ def test_an_approval_wait_of_600_s_keeps_station_in_loiter_and_drifts_in_hold(tm
         (_awaiting(rd, 0), {"boat": 0, "action": "approve", "leg": 0}, None),
         (waited_600_s, {"boat": 0, "action": "approve", "leg": 1}, None),
     ]
+    if wait_mode == "hold":  # 300 m west: out of the start cell, so the leg is planned again from there
+        script.append((_awaiting(rd, 1, attempts=1), {"boat": 0, "action": "approve", "leg": 1}, None))
     link.connect()
     try:
         ctl = controller(cfg, field, link, rd, echo=None)
@@ -76,10 +78,22 @@ def test_an_approval_wait_of_600_s_keeps_station_in_loiter_and_drifts_in_hold(tm
     (wait,) = summary["legs"][1]["waits"]  # from leg 1's end through planning and the approval to leg 2's AUTO
     assert wait["kind"] == "between legs" and wait["mode"] == wait_mode.upper()
     assert wait["vehicle_s"] >= WAIT_S
+    leg2 = summary["legs"][1]
     if wait_mode == "loiter":
         assert wait["drift_m"] <= 2 * WP_RADIUS
+        assert not leg2.get("attempts")
     else:  # the tide's 0.5 m/s over the whole wait, within 10 %
         assert wait["drift_m"] == pytest.approx(0.5 * wait["vehicle_s"], rel=0.10)
         assert wait["to"][1] < wait["from"][1]  # west
+        # the approved plan started where the boat no longer was: planned again from the cell it drifted to
+        (attempt,) = leg2["attempts"]
+        assert attempt["status"] == "drifted while awaiting approval"
+        assert leg2["start_cell"] == list(field.grid.latlon_to_cell(*wait["to"], clip=True))
+        assert leg2["start_cell"] != attempt["start_cell"]
+        # and the log says so: a replay plans both attempts and reproduces every path
+        from passt_mav.analysis.replay import replay
+
+        result = replay(rd.root, out=False)
+        assert result.reproduced, [(x.index, x.differing_cells, x.notes) for x in result.legs]
     # the run ends with the boat loitering, armed (vehicle.on_end: loiter), never armed in HOLD
     assert summary["end"]["mode"] == "LOITER" and summary["end"]["armed"]

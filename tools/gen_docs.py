@@ -4,6 +4,8 @@
   schema in :mod:`passt_mav.mission.config` (a field's docstring is its description).
 * ``docs/cli.md``: every command, subcommand and option of ``passt-mav`` and ``vehicle-sim``, from
   the argparse parsers (:func:`passt_mav.cli.build_parser`, :func:`vehicle_sim.cli.build_parser`).
+* ``docs/formats.md``: every key of the run records (``leg.json``, ``summary.json``, ``events.jsonl``) and
+  their JSON Schema, from the pydantic models in :mod:`passt_mav.runs.records`.
 
 Each page is hand-written prose with one generated block between the markers
 ``<!-- BEGIN GENERATED ... -->`` and ``<!-- END GENERATED -->``; only that block is rewritten.
@@ -222,9 +224,51 @@ def cli_markdown() -> str:
     return "\n".join(out).rstrip("\n")
 
 
+# -- run records ---------------------------------------------------------------------------------
+
+
+def run_records_markdown() -> str:
+    """The run records: one table of keys per record, then each record's JSON Schema."""
+
+    from passt_mav.runs.records import SCHEMA_VERSION, EventRecord, LegRecord, SummaryRecord, plain_text, record_schemas
+
+    records = (("leg.json", LegRecord), ("summary.json", SummaryRecord), ("events.jsonl", EventRecord))
+    out = [f"Records written today carry `schema_version` {SCHEMA_VERSION}."]
+    for name, cls in records:
+        out += ["", f"#### `{name}`", "", _cell(plain_text(cls.__doc__ or "")), "", "| key | type | meaning |"]
+        out.append("|---|---|---|")
+        for key, field in cls.model_fields.items():
+            desc = _cell(plain_text(field.description or ""))
+            if not desc:
+                raise SystemExit(f"gen_docs: record key {name} {key} has no description (give the field a docstring)")
+            out.append(f"| `{key}` | {_type_name(field.annotation)} | {desc} |")
+    out += ["", "#### JSON Schema", "", "One property a line (its description is the table's meaning above)."]
+    for name, schema in record_schemas().items():
+        out += ["", f"`{name}`:", "", "```json", _schema_json(schema), "```"]
+    return "\n".join(out)
+
+
+def _schema_json(schema: dict, indent: str = "") -> str:
+    """``schema`` as JSON with each property (and each definition's property) on one line."""
+    import json
+
+    lines = []
+    for key, value in schema.items():
+        if key in ("properties", "$defs") and isinstance(value, dict):
+            inner = ",\n".join(
+                f'{indent}    "{k}": '
+                + (_schema_json(v, indent + "    ").lstrip() if key == "$defs" else json.dumps(v, ensure_ascii=False))
+                for k, v in value.items()
+            )
+            lines.append(f'{indent}  "{key}": {{\n{inner}\n{indent}  }}')
+        else:
+            lines.append(f"{indent}  {json.dumps(key)}: {json.dumps(value, ensure_ascii=False)}")
+    return f"{indent}{{\n" + ",\n".join(lines) + f"\n{indent}}}"
+
+
 # -- pages ---------------------------------------------------------------------------------------
 
-PAGES = {"missions.md": mission_keys_markdown, "cli.md": cli_markdown}
+PAGES = {"missions.md": mission_keys_markdown, "cli.md": cli_markdown, "formats.md": run_records_markdown}
 
 
 def rendered(page: str, text: str) -> str:

@@ -167,6 +167,7 @@ class Fleet(Clocked):
         self.physics_dt = configs[0].physics_dt
         # one lock for every boat: the serving thread and a client stepping a boat must not interleave
         self._lock = threading.RLock()
+        self._wake = threading.Event()  # set by a write to any boat's in-process endpoint
         self.boats: list[Simulator] = []
         for i, (home, cfg) in enumerate(zip(starts, configs)):
             sim = Simulator(
@@ -179,6 +180,7 @@ class Fleet(Clocked):
             )
             sim._lock = self._lock
             sim._fleet = self
+            sim._wake = self._wake  # a write to any boat's endpoint wakes the fleet's serving thread
             self.boats.append(sim)
         self._thread: threading.Thread | None = None
         self._stop = threading.Event()
@@ -300,7 +302,8 @@ class Fleet(Clocked):
     def _poll(self, timeout: float) -> None:
         socks = [e["sock"] for b in self.boats for e in b._sockets]
         if not socks:
-            time.sleep(timeout)
+            self._wake.wait(timeout)
+            self._wake.clear()  # what was written before this is taken in by the round that follows
             return
         try:
             ready, _, _ = select.select(socks, [], [], timeout)

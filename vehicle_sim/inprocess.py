@@ -10,18 +10,22 @@ on an :class:`vehicle_sim.sim.InProcessEndpoint`, so code written against
 without sockets::
 
     sim = Simulator(field, home=(lat, lon), config=SimConfig.fast())
-    conn = sim.connect_inprocess().mavlink_connection(autostep=0.05)
-    conn.wait_heartbeat()          # steps the simulator while it waits
+    sim.serve([], lockstep=True)   # or speedup=...: the serving thread runs the clock
+    conn = sim.connect_inprocess().mavlink_connection()
+    conn.mav.command_long_send(1, 1, STEP_COMMAND, 0, 2.0, 0, 0, 0, 0, 0, 0)  # run 2 s
+    conn.wait_heartbeat()
 
-Time: with ``autostep=dt`` every poll that finds no data advances the simulator
-by ``dt`` simulated seconds (deterministic lockstep, as fast as the CPU allows);
-with ``autostep=None`` the simulator must be advanced elsewhere (``sim.step`` or
-``sim.serve`` in a thread) and ``select`` just sleeps briefly.
+Time: the connection never advances the simulator itself. Served in lockstep
+(:meth:`Simulator.serve` with ``lockstep=True``), the serving thread runs the clock
+only for the steps a GCS asks for (COMMAND_LONG :data:`vehicle_sim.sim.STEP_COMMAND`,
+acknowledged once they have run, after everything the vehicle sent meanwhile): time
+follows the GCS, whatever the machine's load. Served at a ``speedup``, it follows the
+wall clock; unserved, whoever holds the simulator calls ``sim.step``. ``select`` waits
+until the simulator has delivered bytes (or the timeout), so a reader wakes as soon as
+a step's answer is there.
 """
 
 from __future__ import annotations
-
-import time
 
 from pymavlink import mavutil
 from pymavlink.dialects.v20 import ardupilotmega as mavlink2
@@ -33,14 +37,12 @@ class InProcessMavfile(mavutil.mavfile):
     """``mavutil.mavfile`` on an in-process endpoint (MAVLink 2, ardupilotmega).
 
     Args:
-        endpoint: from :meth:`Simulator.connect_inprocess`.
+        endpoint: from :meth:`Simulator.connect_inprocess` (``read``, ``write``, ``wait_readable``, ``close``).
         source_system, source_component: the GCS identity (255/0 like MAVProxy... 190 like MAVSDK).
-        autostep: simulated seconds to advance per idle poll (lockstep), or None.
     """
 
-    def __init__(self, endpoint, source_system: int = 255, source_component: int = 0, autostep: float | None = None):
+    def __init__(self, endpoint, source_system: int = 255, source_component: int = 0):
         self.endpoint = endpoint
-        self.autostep = autostep
         super().__init__(None, "inprocess", source_system=source_system, source_component=source_component, input=False)
         # talk MAVLink 2 from the first byte, whatever mavutil's global dialect is
         self.mav = mavlink2.MAVLink(self, srcSystem=source_system, srcComponent=source_component, use_native=False)
@@ -49,20 +51,13 @@ class InProcessMavfile(mavutil.mavfile):
         self.first_byte = False
 
     def recv(self, n=None) -> bytes:
-        data = self.endpoint.read(n)
-        if not data and self.autostep:
-            self.endpoint.sim.step(self.autostep)
-            data = self.endpoint.read(n)
-        return data
+        return self.endpoint.read(n)
 
     def write(self, buf) -> int:
         return self.endpoint.write(bytes(buf))
 
     def select(self, timeout: float) -> bool:
-        if self.autostep:
-            return True  # recv() advances the clock itself
-        time.sleep(min(timeout, 0.005))
-        return True
+        return self.endpoint.wait_readable(timeout)
 
     def close(self) -> None:
         self.endpoint.close()

@@ -38,8 +38,10 @@ class InProcessEndpoint:
     """GCS side of an in-memory link: ``write(bytes)`` to the vehicle, ``read() -> bytes`` from it.
 
     Thread-safe. ``read`` returns at once (``b""`` when nothing has arrived); in
-    lockstep nothing arrives until the simulator steps. A pymavlink ``MAVLink``
-    object can use the endpoint as its file (it calls ``write``).
+    lockstep nothing arrives until the simulator steps. ``wait_readable`` blocks until
+    something has arrived, and ``write`` wakes a serving thread, so a GCS and a served
+    simulator hand a lockstep step back and forth without polling delays. A pymavlink
+    ``MAVLink`` object can use the endpoint as its file (it calls ``write``).
     """
 
     def __init__(self, sim: Simulator, link: Link):
@@ -48,6 +50,7 @@ class InProcessEndpoint:
         self._lock = threading.Lock()
         self._inbox: collections.deque[bytes] = collections.deque()  # GCS -> vehicle, not yet taken
         self._outbox = bytearray()  # vehicle -> GCS, delivered
+        self._readable = threading.Event()  # set while the outbox holds bytes
         self.closed = False
 
     def write(self, buf: bytes) -> int:
@@ -55,6 +58,7 @@ class InProcessEndpoint:
             return 0
         with self._lock:
             self._inbox.append(bytes(buf))
+        self.sim._wake.set()
         return len(buf)
 
     def read(self, n: int | None = None) -> bytes:
@@ -62,10 +66,15 @@ class InProcessEndpoint:
             if n is None or n >= len(self._outbox):
                 out = bytes(self._outbox)
                 self._outbox.clear()
+                self._readable.clear()
             else:
                 out = bytes(self._outbox[:n])
                 del self._outbox[:n]
             return out
+
+    def wait_readable(self, timeout: float) -> bool:
+        """Wait at most ``timeout`` wall seconds for delivered bytes; True when some are there."""
+        return self._readable.wait(timeout)
 
     def pending(self) -> int:
         """Bytes delivered and not read yet."""
@@ -83,6 +92,7 @@ class InProcessEndpoint:
         if data:
             with self._lock:
                 self._outbox += data
+                self._readable.set()
 
     def close(self) -> None:
         self.closed = True
@@ -211,6 +221,8 @@ class Simulator(Clocked):
         self._next_index = 0
         self._thread: threading.Thread | None = None
         self._stop = threading.Event()
+        #: set by an in-process endpoint's write: a serving thread without sockets waits on it, not a sleep
+        self._wake = threading.Event()
         self._sockets: list = []
         self.running = False
         self.error: BaseException | None = None
@@ -455,7 +467,8 @@ class Simulator(Clocked):
     def _poll_sockets(self, timeout: float) -> None:
         socks = [e["sock"] for e in self._sockets]
         if not socks:
-            time.sleep(timeout)
+            self._wake.wait(timeout)
+            self._wake.clear()  # what was written before this is taken in by the round that follows
             return
         try:
             ready, _, _ = select.select(socks, [], [], timeout)

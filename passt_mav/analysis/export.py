@@ -67,6 +67,7 @@ from typing import Any
 import numpy as np
 
 from passt_mav.errors import UserError
+from passt_mav.runs.records import RunRecords
 from passt_mav.runs.rundir import RunDir, RunDirError
 from passt_mav.units import MPS, SpeedUnit, run_speed_unit
 
@@ -141,7 +142,8 @@ def load_run(run_dir: str | Path) -> RunData:
         raise RunDirError(f"run directory not found: {rd.root}")
     if not rd.is_run_dir():
         raise RunDirError(f"{rd.root} is not a run directory (no summary.json, mission.yaml, samples or legs)")
-    summary = rd.read_summary() if rd.summary_file.exists() else {}
+    recs = RunRecords(rd)
+    summary = recs.summary_dict() or {}
     try:
         mission = yaml.safe_load(rd.mission_file.read_text()) if rd.mission_file.exists() else {}
     except yaml.YAMLError as exc:
@@ -163,7 +165,7 @@ def load_run(run_dir: str | Path) -> RunData:
                 samples = st.all()
         except (SampleStoreError, sqlite3.DatabaseError) as exc:
             samples, damage = _log_samples(rd, exc)
-    legs = sorted(rd.read_legs(), key=lambda r: int(r.get("index", 0)))
+    legs = recs.leg_dicts()
     return RunData(rd, summary, mission, grid, legs, samples, _boats_of(samples, mission), damage)
 
 

@@ -9,7 +9,10 @@
    order, through the controller's own :class:`~passt_mav.mavlink.SampleCollector`
    (so the pairing of CUR_U/CUR_V with positions is the controller's, not an
    approximation of it). Leg windows follow the controller's: a leg's samples are
-   those emitted between the GCS's switch to AUTO and its next mode command (HOLD);
+   those emitted between the GCS's switch to AUTO and the controller's mark of the
+   leg's end (:func:`~passt_mav.runs.legs.leg_statustext`; in logs without marks its
+   next mode command, HOLD). The wait of an operator's Pause, marked too, stays in the
+   leg, as in the controller's store;
 2. re-runs the between-leg step offline with the controller's own code,
    :class:`~passt_mav.loop.legstep.LegStep` (``plan`` / ``absorb``), legs in order through one
    loop (its GP hyper-parameters, posterior std and planner seed carry from leg to leg
@@ -320,6 +323,7 @@ def _open_source(src: Path, mission) -> _Source:
 
 def _run_dir_source(src: Path) -> _Source:
     """A run directory's log (a fleet's boat logs) and summary.json, checked to hold what a replay needs."""
+    from passt_mav.runs.records import RunRecords
     from passt_mav.runs.rundir import RunDir, RunDirError
 
     rd = RunDir(src)
@@ -328,12 +332,10 @@ def _run_dir_source(src: Path) -> _Source:
     fleet_logs = rd.boat_tlogs()
     if not rd.tlog.is_file() and not fleet_logs:
         raise ReplayError(f"{rd.tlog} not found: the run has no telemetry log to replay")
-    summary = None
-    if rd.summary_file.exists():
-        try:
-            summary = rd.read_summary()
-        except RunDirError as exc:
-            raise ReplayError(str(exc)) from None
+    try:
+        summary = RunRecords(rd).summary_dict()
+    except RunDirError as exc:
+        raise ReplayError(str(exc)) from None
     kind = "fleet" if fleet_logs else "run"
     if kind == "fleet" and not (summary or {}).get("boats"):
         raise ReplayError(f"{src}: a fleet run (flight_boatN.tlog) needs its summary.json (the boats' clocks)")
@@ -449,12 +451,13 @@ def _read_log(inp: _Source, cfg):
 
 def _recorded_legs(rd) -> dict[int, dict]:
     """The run directory's leg records by leg index (none for a bare log)."""
+    from passt_mav.runs.records import RunRecords
     from passt_mav.runs.rundir import RunDirError
 
     if rd is None:
         return {}
     try:
-        return {int(r["index"]): r for r in rd.read_legs()}
+        return {r["index"]: r for r in RunRecords(rd).leg_dicts()}
     except RunDirError as exc:
         raise ReplayError(str(exc)) from None
 
@@ -579,6 +582,7 @@ class _LogReplay:
         self.dt = float(setup.field.dt)
         self.recorded: dict[int, dict] = {}
         self.store_legs: dict[int, set] = {}
+        self.compared: set[int] = set()  # the legs whose store samples were compared with the log's
         self.chosen: list | None = None
 
     def result(self, progress: bool) -> ReplayResult:
@@ -595,6 +599,7 @@ class _LogReplay:
         if self.inp.rd is None:
             self.chosen = self._search_clocks(log, state, t_state, notes)
         legs, first_div = self._replay_legs(log, state, t_state, progress)
+        notes.extend(_store_notes(self.store_legs, self.compared, log.n_samples_outside_legs))
         reproduced, first_div = self._verdict(legs, first_div, notes)
         return ReplayResult(
             source=str(self.inp.src),
@@ -839,6 +844,7 @@ class _LogReplay:
         """Where the log's samples disagree with the run's store or with the recorded count (``key``: the
         controller's leg number)."""
         notes = []
+        self.compared.add(key)
         if key in self.store_legs:  # the controller's own store: the log must give the same measurements
             a = self.store_legs[key]
             b = {(int(x["time_boot_ms"]), x["lat"], x["lon"], x["u"], x["v"]) for x in lg.samples}
@@ -848,7 +854,42 @@ class _LogReplay:
                 )
         if rec is not None and rec.get("n_samples") is not None and int(rec["n_samples"]) != len(lg.samples):
             notes.append(f"{len(lg.samples)} samples rebuilt from the log, {rec['n_samples']} recorded")
-        return notes
+        return notes + _pause_notes(lg, rec)
+
+
+def _pause_notes(lg, rec: dict | None) -> list[str]:
+    """The operator's pauses of a leg: those the log marks (their waits kept inside the leg), and those its record
+    holds (``leg.json`` ``waits`` of kind ``pause``) that the log does not mark: a log of a controller that did
+    not mark them ends the leg at the pause's mode command, and leaves the rest of the leg's readings out."""
+    marked = sum(1 for m, _ in lg.marks if m == "pause")
+    recorded = sum(1 for w in (rec or {}).get("waits") or [] if w.get("kind") == "pause")
+    notes = []
+    if marked:
+        notes.append(f"paused by the operator {marked} time(s) (the log's marks): the waits' readings kept in the leg")
+    if recorded > marked:
+        notes.append(
+            f"{recorded} operator pause(s) recorded, {marked} marked in the log: a log without the marks "
+            "ends the leg at the pause"
+        )
+    return notes
+
+
+def _store_notes(store_legs: dict[int, set], compared: set[int], outside: int) -> list[str]:
+    """The store's readings the replay did not compare with the log: those of legs the log does not hold or the
+    replay did not reach (a leg ``compared`` says its own differences, :meth:`_LogReplay._sample_notes`), and those
+    outside any leg (store leg -1) when the log has fewer of them (``outside``; the log may have more: it begins
+    before the controller's collector and ends after it)."""
+    missing = {k: len(v) for k, v in sorted(store_legs.items()) if k >= 0 and k not in compared and v}
+    notes = []
+    if missing:
+        legs = ", ".join(f"leg {k + 1}: {n}" for k, n in missing.items())
+        notes.append(
+            f"{sum(missing.values())} readings of the run's store not compared with the log: no leg replayed ({legs})"
+        )
+    n_out = len(store_legs.get(-1, ()))
+    if store_legs and n_out > outside:
+        notes.append(f"{n_out} readings outside any leg in the run's store, {outside} in the log")
+    return notes
 
 
 def _absorbed(samples: list, rec: dict | None) -> list:
@@ -948,10 +989,11 @@ def _replay_fleet(rd, summary: dict, cfg, step, rmse_tol: float, say):
 
 def _fleet_records(rd) -> dict[int, dict]:
     """A fleet run's leg records (those with a ``fleet_seq``) by leg index."""
+    from passt_mav.runs.records import RunRecords
     from passt_mav.runs.rundir import RunDirError
 
     try:
-        return {int(r["index"]): r for r in rd.read_legs() if r.get("fleet_seq")}
+        return {r["index"]: r for r in RunRecords(rd).leg_dicts() if r.get("fleet_seq")}
     except RunDirError as exc:
         raise ReplayError(str(exc)) from None
 

@@ -46,6 +46,7 @@ from passt_mav.errors import UserError
 from passt_mav.loop.measurement import leg_number, sample_columns, truth_at
 from passt_mav.loop.measurement import rmse as recon_rmse  # (the name tests and users know) the one RMSE rule
 from passt_mav.runs.live import read_meta
+from passt_mav.runs.records import RunRecords
 from passt_mav.runs.rundir import RunDir, RunDirError
 from passt_mav.units import MPS, SpeedUnit, run_speed_unit
 
@@ -124,12 +125,10 @@ def load_run(root: str | Path) -> Run:
         raise RunDirError(f"run directory not found: {rd.root}")
     if not rd.is_run_dir():
         raise RunDirError(f"{rd.root} is not a run directory (no summary.json, legs/, samples or flight.tlog)")
-    summary = rd.read_summary() if rd.summary_file.exists() else None
-    legs = summary.get("legs") if summary else None
-    if not legs:
-        legs = rd.read_legs()
-    legs = sorted((dict(x) for x in legs if isinstance(x, dict)), key=lambda x: int(x.get("index", 0)))
-    run = Run(rd, summary, legs)
+    recs = RunRecords(rd)
+    # the summary's legs (those completed); while the first leg runs, the leg records on disk
+    legs = (recs.summary.legs if recs.summary is not None else None) or recs.legs
+    run = Run(rd, recs.summary_dict(), [x.as_dict() for x in sorted(legs, key=lambda x: x.index)])
     _load_field(run)
     _load_tlog(run)
     _load_samples(run)

@@ -100,12 +100,25 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     i.add_argument("--start", default=None, help="first time, ISO-8601 UTC (default: the file's first)")
     i.add_argument("--hours", type=int, default=None, help="window length in hours (default: the rest of the file)")
     i.add_argument("--variables", default=None, help="U,V variable names (default: detected)")
-    i.add_argument("--units", default=None, help="override the velocity units of the file (e.g. cm/s)")
+    i.add_argument(
+        "--units",
+        default=None,
+        help="the velocity units of a file whose u/v have no units attribute or a wrong one (e.g. cm/s); "
+        "units other than the file's own are taken, with a warning",
+    )
     i.add_argument(
         "--allow-fast",
         action="store_true",
         help="import speeds no surface current has (median above 2.5 m/s or any above 10 m/s over the "
         "valid cells), which are refused otherwise as a sign of wrong --units",
+    )
+    i.add_argument(
+        "--min-coverage",
+        type=float,
+        default=None,
+        metavar="PERCENT",
+        help="refuse a region whose cell-times hold data less than PERCENT %% of the time (default 20: a region "
+        "or time window that misses the file keeps 0-4 %%); 0 imports any share",
     )
     i.add_argument("--out", required=True, help="output .nc file")
     i.add_argument("--json", action="store_true", help="print the coverage report as JSON")
@@ -251,12 +264,11 @@ def parse_region(text: str, grid_text: str):
 
 
 def _run_import(args) -> int:
-    import sys
-
     from passt_mav.errors import UserError
-    from passt_mav.fields.checks import check_field, check_size
-    from passt_mav.fields.importers import coverage_check, coverage_report, import_currents, speed_check
+    from passt_mav.fields.checks import check_size
+    from passt_mav.fields.importers import coverage_report, import_currents
 
+    floor = _min_coverage(args.min_coverage)
     grid = parse_region(args.region, args.grid)
     if args.hours is not None and args.hours > 0:  # the longest time axis the window can hold, before reading
         check_size((args.hours, 2, grid.rows, grid.cols), f"--hours {args.hours}")
@@ -273,19 +285,12 @@ def _run_import(args) -> int:
         + (["--variables", args.variables] if args.variables else [])
         + (["--units", args.units] if args.units else [])
         + (["--allow-fast"] if args.allow_fast else [])
+        + (["--min-coverage", f"{args.min_coverage:g}"] if args.min_coverage is not None else [])
     )
-    fast = speed_check(f)
-    if fast is not None and not args.allow_fast:
-        problem, units = fast
-        hint = f"{units}? use --units {units}" if units else "check the file's values and units (--units)"
-        raise UserError(f"{args.file}: {problem}; {hint} (or --allow-fast to import them as they are)")
-    check_field(f, str(args.file))  # what every door refuses (no data, infinite values, absurd speeds)
+    warnings = _import_findings(f, args, floor)
     path = f.to_netcdf(args.out)
     rep = coverage_report(f)
-    low = coverage_check(f)
-    rep["warnings"] = [low] if low else []
-    if low:
-        print(f"warning: {low}; check --region and --start against the file", file=sys.stderr)
+    rep["warnings"] = warnings
     rep.update(
         out=str(path),
         time_origin=f.time_origin,
@@ -305,6 +310,54 @@ def _run_import(args) -> int:
         )
         print(f"wrote {path}")
     return 0
+
+
+def _min_coverage(percent: float | None) -> float:
+    """``--min-coverage PERCENT`` as a fraction (None: :data:`~passt_mav.fields.importers.MIN_IMPORT_COVERAGE`)."""
+    from passt_mav.errors import UserError
+    from passt_mav.fields.importers import MIN_IMPORT_COVERAGE
+
+    if percent is None:
+        return MIN_IMPORT_COVERAGE
+    if not 0.0 <= percent <= 100.0:
+        raise UserError(f"--min-coverage must be a percentage from 0 to 100, got {percent:g}")
+    return percent / 100.0
+
+
+def _import_findings(f, args, floor: float) -> list[str]:
+    """What ``data import`` checks in the regridded field ``f`` before writing it: speeds no surface current
+    has (refused unless --allow-fast), what every door refuses (:func:`~passt_mav.fields.checks.check_field`),
+    less of the region's cell-times holding data than ``floor`` (a fraction; refused, one line naming the share
+    and --min-coverage). Returns the warnings (each printed as one line on stderr): a thin region, --units
+    that contradict the file's own units."""
+    import sys
+
+    from passt_mav.errors import UserError
+    from passt_mav.fields.checks import check_field
+    from passt_mav.fields.importers import coverage_check, speed_check, units_conflict
+
+    fast = speed_check(f)
+    if fast is not None and not args.allow_fast:
+        problem, units = fast
+        hint = f"{units}? use --units {units}" if units else "check the file's values and units (--units)"
+        raise UserError(f"{args.file}: {problem}; {hint} (or --allow-fast to import them as they are)")
+    check_field(f, str(args.file))  # what every door refuses (no data, infinite values, absurd speeds)
+    if f.coverage < floor:
+        raise UserError(
+            f"{args.file}: only {100.0 * f.coverage:.1f} % of the region's cell-times hold data (below "
+            f"{100.0 * floor:g} %): check --region, --start and --hours against the file, or give "
+            "--min-coverage 0 to import it anyway"
+        )
+    warnings = []
+    low = coverage_check(f)
+    if low:
+        warnings.append(low)
+        print(f"warning: {low}; check --region and --start against the file", file=sys.stderr)
+    clash = units_conflict(f)
+    if clash:
+        warnings.append(clash)
+        print(f"warning: {clash}", file=sys.stderr)
+    return warnings
 
 
 def _find_key(d, key: str):

@@ -312,6 +312,22 @@ def default_speedup(snapshot_s: float) -> float:
 
 
 def run(args: argparse.Namespace) -> int:
+    """The demo (module docstring). SIGTERM, SIGINT or SIGHUP at any point end it cleanly: the mission as
+    ``run`` ends it (the boat keeps station, summary.json ``stopped``), vehicle-sim and the view stopped, never
+    left running; the exit code is 128 + the signal's number."""
+    from passt_mav.vehicle.flow import Stopped
+    from passt_mav.vehicle.signals import StopSignals, exit_code
+
+    stop = StopSignals(echo=lambda s: print(s, flush=True))
+    try:
+        with stop:
+            return _demo(args, stop)
+    except Stopped as exc:  # before the mission began (the simulator starting, connecting): nothing flown
+        print(f"demo: stopped by {exc.name} before the mission began; nothing flown", flush=True)
+        return exit_code(exc.signum)
+
+
+def _demo(args: argparse.Namespace, stop) -> int:
     import time
     from pathlib import Path
 
@@ -346,7 +362,13 @@ def run(args: argparse.Namespace) -> int:
     clock = f"in lockstep ({lockstep:g} s steps, paced at {args.speedup:g}x)" if lockstep else f"at {args.speedup:g}x"
     print(f"demo: starting vehicle-sim on tcp:127.0.0.1:{port} {clock}", flush=True)
     view = _start_view(args, rd)  # (it exits with this process too, whatever happens)
-    summary = _fly_with_simulator(args, config, data, rd, sim_cmd, port, t_boot0, over, origin, view, lockstep)
+    fly = (args, config, data, rd, sim_cmd, port, t_boot0, over, origin, view, lockstep)
+    summary = _fly_with_simulator(*fly, signals=stop)
+    if summary["status"] == "stopped" and stop.received is not None:
+        from passt_mav.vehicle.signals import exit_code
+
+        print(f"demo: stopped after {len(summary['legs'])} legs; vehicle-sim stopped; run directory {rd.root}")
+        return exit_code(stop.received)
     _print_outcome(args, config, field, summary, rd, view is not None, time.monotonic() - t_start0)
     return 0 if summary["status"] == "complete" else 1
 
@@ -386,21 +408,26 @@ def _sim_command(args: argparse.Namespace, config, port: int, placement: list[st
 
 
 def _fly_with_simulator(
-    args, config, data, rd, sim_cmd, port: int, t_boot0: float, over, origin, view, lockstep: float = 0.0
+    args, config, data, rd, sim_cmd, port: int, t_boot0: float, over, origin, view, lockstep: float = 0.0, signals=None
 ) -> dict:
     """Start vehicle-sim (its output in the run directory's ``vehicle_sim.log``), fly the mission
     against it through :func:`passt_mav.commands.run.execute` (``lockstep`` > 0: the simulator is in
     lockstep, stepped that many simulated seconds at a time), and stop the simulator (and the live
-    view) whatever happens; returns the run's summary."""
+    view) whatever happens (``signals``: the command's StopSignals, passed to the controller); returns the
+    run's summary."""
+    import contextlib
     import subprocess
 
     import yaml
 
     from passt_mav.commands.run import execute
+    from passt_mav.mission.config import recorded_mission_text
 
     sim_log = open(rd.root / "vehicle_sim.log", "w")  # noqa: SIM115 - the simulator child writes it until it ends
-    sim = subprocess.Popen(sim_cmd, stdout=sim_log, stderr=subprocess.STDOUT)
+    sim = None
     try:
+        with signals.critical() if signals is not None else contextlib.nullcontext():
+            sim = subprocess.Popen(sim_cmd, stdout=sim_log, stderr=subprocess.STDOUT)  # (a stop waits for `sim`)
         _wait_listening(port, sim, timeout=60.0)
         extra = {
             "demo": {
@@ -416,23 +443,25 @@ def _fly_with_simulator(
             config,
             connect=f"tcp:127.0.0.1:{port}",
             run_dir=rd,
-            mission_text=yaml.safe_dump(data, sort_keys=False),
+            mission_text=recorded_mission_text(yaml.safe_dump(data, sort_keys=False), config),
             speedup=args.speedup,
             field_time_at_boot=t_boot0,
             echo=lambda s: print(s, flush=True),
             extra_summary=extra,
             report=not args.no_report,
             lockstep_s=lockstep,
+            signals=signals,
         )
     finally:
         if view is not None:
             view.stop(grace_s=1.5)  # the page gets the last changes first
-        sim.terminate()
-        try:
-            sim.wait(timeout=10)
-        except subprocess.TimeoutExpired:
-            sim.kill()
-            sim.wait()
+        if sim is not None:
+            sim.terminate()
+            try:
+                sim.wait(timeout=10)
+            except subprocess.TimeoutExpired:
+                sim.kill()
+                sim.wait()
         sim_log.close()
     return summary
 

@@ -347,6 +347,10 @@ def parse_lengths(s: str) -> list[int]:
         raise PlannerError(f"--path-lengths must be comma-separated integers, got {s!r}") from None
     if not out or min(out) < 1:
         raise PlannerError(f"--path-lengths must be positive integers, got {s!r}")
+    from passt_mav.mission.config import MAX_PATH_LENGTH  # a mission's own bound on planner.path_length
+
+    if max(out) > MAX_PATH_LENGTH:
+        raise PlannerError(f"--path-lengths must be at most {MAX_PATH_LENGTH} moves, got {max(out)}")
     return out
 
 
@@ -420,6 +424,8 @@ def run(args: argparse.Namespace) -> int:
         print(json.dumps({"out": str(out_dir), "window": summary["config"]["window"], "per_L": table}))
     else:
         _print_table(table, window=summary["config"]["window"], trials=args.trials, unit=summary["config"]["rmse_unit"])
+        for line in _drifter_lines(summary):  # virtual drifters through each map vs through the truth
+            print(line)
         print(f"figures: {', '.join(f.name for f in files)}")
     for line in _trivial_lines(summary):  # the maps that do not beat no current / the forecast's time mean
         print(line, file=sys.stderr if args.json else sys.stdout)
@@ -499,6 +505,20 @@ def _trivial_lines(summary: dict) -> list[str]:
         bad = [m for m, ok in (per.get("beats_trivial") or {}).items() if not ok]
         if bad:
             out.append(f"WARNING: L={L}: {', '.join(bad)} do(es) not beat the trivial maps (final-window RMSE {fin})")
+    return out
+
+
+def _drifter_lines(summary: dict) -> list[str]:
+    """Per path length the virtual drifters' mean separation from the true ones after the horizon (km, and
+    km/day) per method and for persistence (results.json ``per_L.*.drifter_sep_km``); none without them."""
+    out = []
+    for L, per in summary["per_L"].items():
+        sep, rate = per.get("drifter_sep_km"), per.get("drifter_km_per_day")
+        if sep:
+            cells = ", ".join(f"{m} {sep[m]:.2f} km ({rate[m]:.2f} km/day)" for m in sep)
+            out.append(
+                f"drifters L={L}: separation after {per['drifter_horizon_h']:.1f} h, {per['drifter_n']} drifters: {cells}"
+            )
     return out
 
 

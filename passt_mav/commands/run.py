@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any
 
 HELP = "Run a PASST mission on a vehicle (real or simulated) over MAVLink"
@@ -19,7 +20,7 @@ EXAMPLES = """examples:
     passt-mav run missions/rtofs.yaml --connect /dev/ttyUSB0,57600 --link-loss-window 900
 
 exit codes: 0 complete; 1 paused, ended from the live page, or aborted (summary.json says why; continue with --resume);
-2 bad input or no vehicle (nothing flown); 128 + N stopped by signal N (SIGINT 130, SIGTERM 143,
+2 bad input or no vehicle (nothing flown, nothing written: no run folder is left); 128 + N stopped by signal N (SIGINT 130, SIGTERM 143,
 SIGHUP 129): the vehicle to HOLD (vehicle.on_signal), the store flushed, status "stopped".
 
     # the same numbers whatever the machine's load: the simulator's clock runs only while the controller waits
@@ -432,58 +433,119 @@ def _live_view(args, rd):
     return start_live_view(rd, args.view, args.view_host, required=not getattr(args, "view_optional", False))
 
 
-def run(args: argparse.Namespace) -> int:
-    import sys
-    from pathlib import Path
+def _checked_mission(args: argparse.Namespace):
+    """(config, mission text) of ``run``'s mission file with the command line's overrides, every option checked:
+    a bad one is one line before anything is written or connected. The text is what the run directory keeps,
+    its relative paths made absolute (:func:`~passt_mav.mission.config.recorded_mission_text`)."""
+    from passt_mav.mission.config import load_mission, recorded_mission_text
 
-    from passt_mav.mission.config import load_mission
-    from passt_mav.runs.rundir import RunDir
-
-    config = load_mission(args.mission)
-    mission_text = Path(args.mission).read_text()
+    recorded = _recorded_mission(args) if args.resume else None
+    if recorded is None:
+        config = load_mission(args.mission)
+        mission_text = Path(args.mission).read_text()
+    else:
+        config, mission_text = recorded
     if args.set:
         config, mission_text = _with_overrides(args.mission, mission_text, args.set)
+        if recorded is not None and not args.quiet:
+            print(f"resume: changed by --set: {', '.join(args.set)}", flush=True)
+    mission_text = recorded_mission_text(mission_text, config)
     if args.legs is not None and args.legs < 1:
         raise _user("--legs must be >= 1")
+    if not 0 <= args.ready_timeout <= 86_400:  # (NaN or 1e20 would wait for the vehicle for ever)
+        raise _user(f"--ready-timeout must be 0..86400 seconds (a day), got {args.ready_timeout:g}")
     if not args.lockstep >= 0:
         raise _user(f"--lockstep must be >= 0 vehicle seconds, got {args.lockstep}")
     if args.lockstep and config.vehicles is not None:
         raise _user("--lockstep flies one boat: a fleet's boats would step one shared simulator clock each")
-    if args.link_loss_window is not None:
-        if not args.link_loss_window > 0:
-            raise _user(f"--link-loss-window must be > 0 seconds, got {args.link_loss_window:g}")
-        vehicle = config.vehicle.model_copy(update={"link_loss_window_s": float(args.link_loss_window)})
-        config = config.model_copy(update={"vehicle": vehicle})
-    _check_view_port(args)
-    from passt_mav.fields.datasets import mission_field
-
-    field = mission_field(config, series=True)  # checked before the run directory is made or a link opened
-    if args.approve:
-        config = config.model_copy(update={"approve": config.approve.model_copy(update={"enabled": True})})
-    if args.resume:
-        if not args.out:
-            raise _user("--resume needs --out RUN_DIR (the run to continue)")
-        rd = RunDir(args.out)
-        if not rd.is_run_dir():
-            raise _user(f"--resume: {args.out} is not a run directory")
-    else:
-        rd = RunDir(args.out).create_fresh() if args.out else RunDir.new("runs", config.name)
-    echo = (lambda s: None) if args.quiet else (lambda s: print(s, flush=True))
     if args.connect and config.vehicles is not None:
         raise _user("--connect names one vehicle; a fleet's connections are in the mission's vehicles:")
     for name in ("source_system", "source_component"):
         v = getattr(args, name)
         if v is not None and not 1 <= v <= 255:
             raise _user(f"--{name.replace('_', '-')} must be 1..255, got {v}")
-    from passt_mav.errors import UserError
-    from passt_mav.vehicle.signals import Stopped, StopSignals, exit_code
+    if args.link_loss_window is not None:
+        if not args.link_loss_window > 0:
+            raise _user(f"--link-loss-window must be > 0 seconds, got {args.link_loss_window:g}")
+        vehicle = config.vehicle.model_copy(update={"link_loss_window_s": float(args.link_loss_window)})
+        config = config.model_copy(update={"vehicle": vehicle})
+    if args.approve:
+        config = config.model_copy(update={"approve": config.approve.model_copy(update={"enabled": True})})
+    return config, mission_text
+
+
+def _recorded_mission(args: argparse.Namespace):
+    """``--resume``: (config, text) of the mission the run was flying, from its summary.json: ``config`` (the mission
+    as validated, with ``--approve`` and ``--link-loss-window`` in it) and ``legs_planned`` (into ``args.legs``
+    unless ``--legs`` is given), so that approve mode, the leg count and the budget go on as they were; the
+    mission file named on the command line is not read again (said on the console). None when the run
+    has no summary yet (its first session stopped before writing one): the mission file is read as for a new run."""
+    import json
+
+    import yaml
+
+    from passt_mav.mission.config import validate_mission
+
+    summary = Path(args.out or ".") / "summary.json"
+    try:
+        rec = json.loads(summary.read_text())
+    except (OSError, ValueError):
+        return None
+    data = rec.get("config") if isinstance(rec, dict) else None
+    if not isinstance(data, dict):
+        return None
+    config = validate_mission(data, source=str(summary), base_dir=summary.parent)
+    if args.legs is None and isinstance(rec.get("legs_planned"), int) and rec["legs_planned"] >= 1:
+        args.legs = rec["legs_planned"]
+    if not args.quiet:
+        ap = "on" if config.approve.enabled else "off"
+        print(
+            f"resume: the run's own mission from {summary} (approve {ap}, {args.legs or config.legs} legs, the "
+            f"same budget); {args.mission} is not read again: --set KEY=VALUE or --legs N change it",
+            flush=True,
+        )
+    return config, yaml.safe_dump(data, sort_keys=False)
+
+
+def _open_run_dir(args: argparse.Namespace, config):
+    """(run directory, the outermost folder this command made for it or None): ``--out`` continued with
+    ``--resume``, ``--out`` made fresh, or ``runs/<UTC>_<mission name>``."""
+    from passt_mav.runs.rundir import RunDir
+
+    if args.resume:
+        if not args.out:
+            raise _user("--resume needs --out RUN_DIR (the run to continue)")
+        rd = RunDir(args.out)
+        if not rd.is_run_dir():
+            raise _user(f"--resume: {args.out} is not a run directory")
+        return rd, None
+    if args.out:
+        made = _new_folder(Path(args.out))
+        return RunDir(args.out).create_fresh(), made
+    made = _new_folder(Path("runs"))
+    rd = RunDir.new("runs", config.name)
+    return rd, made or rd.root.absolute()
+
+
+def run(args: argparse.Namespace) -> int:
+    import sys
+
+    config, mission_text = _checked_mission(args)
+    _check_view_port(args)
+    from passt_mav.fields.datasets import mission_field
+
+    field = mission_field(config, series=True)  # checked before the run directory is made or a link opened
+    rd, made = _open_run_dir(args, config)
+    echo = (lambda s: None) if args.quiet else (lambda s: print(s, flush=True))
+    from passt_mav.errors import MavlinkError, UserError
+    from passt_mav.vehicle.flow import Stopped
+    from passt_mav.vehicle.signals import StopSignals, exit_code
 
     try:
         view = _live_view(args, rd)
     except UserError:
         if not args.resume:
-            (rd.root / "view.log").unlink(missing_ok=True)
-            _remove_if_empty(rd.root)
+            _discard_unflown(rd.root, made)
         raise
     if config.approve.enabled and sys.stdin is not None and sys.stdin.isatty():
         from passt_mav.runs.commands import start_console_keys
@@ -512,18 +574,32 @@ def run(args: argparse.Namespace) -> int:
                 signals=stop,
                 field=field,
             )
-    except Stopped as exc:  # before the mission began (connecting, loading the model): nothing flown
+    except (Stopped, UserError, MavlinkError) as exc:
+        # before the mission began (no vehicle, the field or model refused, a signal) nothing stays behind;
+        # a mission that began keeps its records (_discard_unflown)
+        _stop_view(view)
+        view = None
+        if not args.resume:
+            _discard_unflown(rd.root, made)
+        if not isinstance(exc, Stopped):
+            raise
         print(f"passt-mav: stopped by {exc.name} before the mission began; nothing flown", flush=True)
-        if not args.resume:
-            _remove_if_empty(rd.root)
         return exit_code(exc.signum)
-    except UserError:  # (the mission's field or model refused before connecting: leave nothing behind)
-        if not args.resume:
-            _remove_if_empty(rd.root)
-        raise
     finally:
-        if view is not None:
-            view.stop(grace_s=1.5)
+        _stop_view(view)
+    return _outcome(summary, rd, stop)
+
+
+def _stop_view(view) -> None:
+    """Stop the live view subprocess (None: none runs)."""
+    if view is not None:
+        view.stop(grace_s=1.5)
+
+
+def _outcome(summary: dict, rd, stop) -> int:
+    """Say how the run ended (one line, the readings used, the report) and return the exit code."""
+    from passt_mav.vehicle.signals import exit_code
+
     print(f"run {summary['status']}: {len(summary['legs'])} legs, {summary['n_samples']} samples -> {rd.root}")
     used = [f"{100 * x:.0f} %" for x in summary.get("readings_used") or [] if x is not None]
     bps = [f"{x:.0f}" for x in summary.get("link_vehicle_bytes_per_s") or [] if x is not None]
@@ -536,11 +612,50 @@ def run(args: argparse.Namespace) -> int:
     return 0 if summary["status"] == "complete" else 1
 
 
-def _remove_if_empty(root) -> None:
-    """Remove the run directory ``root`` made by this command if nothing was written into it (only folders)."""
-    import shutil
-    from pathlib import Path
+def _new_folder(path) -> Path | None:
+    """The outermost folder of ``path`` (``path`` itself included) that does not exist yet: the one making
+    ``path`` creates; None when ``path`` exists."""
+    made = None
+    for p in (Path(path).absolute(), *Path(path).absolute().parents):
+        if p.exists():
+            break
+        made = p
+    return made
 
-    root = Path(root)
-    if root.is_dir() and all(p.is_dir() for p in root.rglob("*")):
-        shutil.rmtree(root, ignore_errors=True)
+
+#: what ``run`` writes into a run directory before the mission begins: the telemetry logs of its
+#: connection attempts and the live view's log (a folder holding only these holds no run)
+_BEFORE_THE_MISSION = ("flight.tlog", "flight_boat*.tlog", "view.log")
+
+
+def _discard_unflown(root, made) -> None:
+    """Undo what ``run`` wrote into the run directory ``root`` when its mission never began (no vehicle, a
+    refused field or model, a signal while connecting): the files of :data:`_BEFORE_THE_MISSION` and
+    ``legs/``, then ``root`` itself and the empty folders above it up to ``made``, the outermost folder this
+    command made (None: ``root`` was there before and stays). A directory that holds a run record (the
+    mission, a summary, samples, a leg) is left as it is."""
+    from passt_mav.runs.rundir import RunDir
+
+    rd = RunDir(Path(root).absolute())
+    if not rd.root.is_dir() or rd.leg_indices():
+        return
+    if any(p.exists() for p in (rd.mission_file, rd.summary_file, rd.samples_db)):
+        return
+    for pattern in _BEFORE_THE_MISSION:
+        for p in rd.root.glob(pattern):
+            p.unlink(missing_ok=True)
+    _remove_empty(rd.legs_dir)
+    if made is None:
+        return
+    p = rd.root
+    while _remove_empty(p) and p != Path(made) and p.parent != p:
+        p = p.parent
+
+
+def _remove_empty(folder) -> bool:
+    """Remove ``folder`` if it is an empty directory; True when it is gone."""
+    try:
+        folder.rmdir()
+    except OSError:
+        return not folder.exists()
+    return True

@@ -80,11 +80,14 @@ is well below 2.5 m/s and no surface current reaches 10 m/s, so a field in m/s b
 (over its valid cells) was read in the wrong units (an HF-radar file in cm/s taken for m/s is
 100x too fast); ``passt-mav data import`` refuses it (``--allow-fast`` overrides) and ``plan``,
 ``run`` and ``vehicle-sim`` warn. A region whose cell-times hold data less than half the time
-is imported with a warning.
+is imported with a warning; under :data:`MIN_IMPORT_COVERAGE` (a fifth) ``data import`` refuses it
+(``--min-coverage`` sets the floor). Units given to the import that differ from the file's own
+``units`` attribute (:func:`units_conflict`) are imported as given, with a warning.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import datetime as _dt
 import math
 import re
@@ -106,6 +109,8 @@ __all__ = [
     "MAX_MEDIAN_SPEED",
     "MAX_SPEED",
     "MIN_COVERAGE",
+    "MIN_IMPORT_COVERAGE",
+    "units_conflict",
     "U_NAMES",
     "V_NAMES",
 ]
@@ -153,6 +158,13 @@ MAX_MEDIAN_SPEED = 2.5
 MAX_SPEED = 10.0
 #: fraction of (time, cell) pairs with data below which an imported region is warned about
 MIN_COVERAGE = 0.5
+#: fraction of (time, cell) pairs with data below which ``passt-mav data import`` refuses the region unless
+#: ``--min-coverage`` lowers it: a region or time window that misses the file (a sign or corner off, a --start
+#: past the file's end, the radar's far edge) keeps 0-4 % of its cell-times, while a region chosen over a
+#: model's water or inside a radar's footprint keeps 40-100 % (MARACOOS over the shelf 42 %, RTOFS off
+#: Washington with a third land 65 %); a fifth leaves room for coasts and gaps and still catches the misses
+#: (the radar's whole domain, mostly land and open sea beyond its range, holds 12 %: no mission region)
+MIN_IMPORT_COVERAGE = 0.2
 #: unit factors to m/s a too-fast field is tried with for the hint, smallest first
 _HINT_UNITS = (("cm/s", 0.01), ("mm/s", 0.001))
 
@@ -420,6 +432,8 @@ def import_currents(path, grid, *, start=None, hours=None, variables=None, units
         "regrid": src.window.method,
         "edges": src.window.edges_note(),
         "undeclared_fill_values": src.n_fill,
+        "units_given": None if units is None else str(units),
+        "file_units": list(src.file_units),
     }
     field = FlowField(data, grid, times, origin, "m s-1", attrs)
     field.attrs["coverage"] = round(field.coverage, 6)
@@ -444,6 +458,7 @@ class _SurfaceCurrents:
     attrs: dict[str, str]
     source_grid: str
     rotation: str
+    file_units: tuple[str | None, str | None] = (None, None)
 
 
 def _read_surface_currents(ds, name: str, grid, start, hours, variables, units) -> _SurfaceCurrents:
@@ -452,9 +467,11 @@ def _read_surface_currents(ds, name: str, grid, start, hours, variables, units) 
     u_name, v_name = _find_velocity(ds, variables)
     u, v = ds[u_name], ds[v_name]
     su, sv = _velocity_scales(u, v, units, f"{name} ({u_name}/{v_name})")
+    own = tuple(None if x.attrs.get("units") is None else str(x.attrs["units"]) for x in (u, v))
     horizontal = _horizontal(ds, u) if u.dims == v.dims else None
     if horizontal is None:  # projected, curvilinear or ROMS C grid (module docstring, step 5)
-        return _read_curvilinear(ds, name, grid, start, hours, u, v, (su, sv))
+        src = _read_curvilinear(ds, name, grid, start, hours, u, v, (su, sv))
+        return dataclasses.replace(src, file_units=own)
     lat_dim, lon_dim, lat, lon = horizontal
     tdim = _time_dim(ds, u)
     isel, depth_used = _surface_selection(ds, u, u_name, (lat_dim, lon_dim, tdim))
@@ -479,6 +496,7 @@ def _read_surface_currents(ds, name: str, grid, start, hours, variables, units) 
         n_fill=fill_u + fill_v,
         attrs=_descriptive_attrs(ds),
         source_grid="rectilinear latitude/longitude",
+        file_units=own,
         rotation="none ("
         + (
             "x/y components of a latitude/longitude grid are east/north"
@@ -1084,6 +1102,30 @@ def speed_check(field: FlowField) -> tuple[str, str | None] | None:
     if med > MAX_MEDIAN_SPEED:  # a plausible median with a few wild values is bad data, not wrong units
         units = next((u for u, k in _HINT_UNITS if med * k <= MAX_MEDIAN_SPEED and top * k <= MAX_SPEED), None)
     return problem, units
+
+
+def units_conflict(field: FlowField) -> str | None:
+    """One line when an import was given velocity units (``units=``, ``--units``) other than the file's own
+    ``units`` attribute of u or v: another factor to m/s (``"m/s"`` and ``"m s-1"`` agree), naming both and how
+    many times faster or slower the currents are read than the file says; None without given units, without a
+    readable attribute (what ``--units`` is for), or when they agree."""
+    given = field.attrs.get("units_given")
+    own = [str(x) for x in field.attrs.get("file_units") or () if x is not None]
+    if given is None or not own:
+        return None
+    try:
+        k_given, k_own = velocity_scale(given), {velocity_scale(x) for x in own}
+    except FieldError:
+        return None
+    if len(k_own) != 1 or math.isclose(k_given, next(iter(k_own)), rel_tol=1e-9):
+        return None
+    ratio = k_given / next(iter(k_own))
+    how = f"{ratio:.4g} times faster" if ratio > 1 else f"{1.0 / ratio:.4g} times slower"
+    names = " and ".join(repr(x) for x in dict.fromkeys(own))
+    return (
+        f"--units {given} overrides the file's own units {names} of its currents: they are read {how} than "
+        "the file says; leave --units out unless the file's units attribute is wrong"
+    )
 
 
 def coverage_check(field: FlowField) -> str | None:

@@ -31,7 +31,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-__all__ = ["PRIOR_BLENDS", "PRIOR_CANDIDATES", "PRIOR_START_WEIGHTS", "PriorBlend", "prior_weights"]
+__all__ = ["PRIOR_BLENDS", "PRIOR_CANDIDATES", "PRIOR_START_WEIGHTS", "PriorBlend", "prior_weights", "model_forecast"]
 
 #: the priors a ``prior_blend="bma"`` / ``"select"`` loop weighs, each a whole-field forecast: the model
 #: restarted from the last estimate, the model alone from the first leg's initial state, persistence
@@ -136,3 +136,16 @@ class PriorBlend:
             }
         )
         return w
+
+
+def model_forecast(predictor, state, steps: int, land) -> np.ndarray:
+    """(steps+1, 2, R, C) float32: ``state`` ((2, R, C) field units) then ``predictor``'s ``steps``
+    predictions (``None``: the state held), land (``(R, C)`` bool) filled with 0 at the input, NaN in the output."""
+    s = np.asarray(state, dtype=np.float32)
+    if predictor is None:
+        pred = np.repeat(s[None], steps, axis=0)
+    else:
+        pred = np.asarray(predictor.predict(np.where(land, np.float32(0), s), steps), dtype=np.float32)
+    out = np.concatenate([s[None], pred], axis=0)
+    out[:, :, land] = np.nan
+    return out

@@ -195,12 +195,39 @@ def _method_kw(cfg: dict, m: str, predictor) -> tuple:
     return None, dict(planner=planner, reward=reward or "speed", prior="none", hyper=_hyper_for(h, residual=False))
 
 
-def _summarise_trial(out: dict, m: str, r, truth, cfg: dict, trial: int) -> None:
+def _drifter_geometry(field) -> tuple | None:
+    """(snapshot interval in seconds, (north-south, east-west) cell size in metres) of ``field`` for the
+    drifter skill (:func:`passt_mav.models.drifters.drifter_separation`), or None where a distance per day
+    means nothing: a field not in m/s (the cylinder: non-dimensional speed and time), or with unevenly
+    spaced snapshots."""
+    from passt_mav.errors import FieldError
+    from passt_mav.units import MPS, speed_unit
+
+    if speed_unit(None, field.units).label != MPS:
+        return None
+    try:
+        return float(field.dt), tuple(float(x) for x in field.grid.cell_size_m)
+    except FieldError:
+        return None
+
+
+def _drifters(estimate, truth, geom) -> dict | None:
+    """The drifter separation of ``estimate`` against ``truth`` (each (T+1, 2, R, C), m/s) over the whole
+    evaluated horizon, or None without a geometry (:func:`_drifter_geometry`)."""
+    from passt_mav.models.drifters import drifter_separation
+
+    return None if geom is None else drifter_separation(estimate, truth, geom[0], geom[1])
+
+
+def _summarise_trial(out: dict, m: str, r, truth, cfg: dict, trial: int, geom=None) -> None:
     import numpy as np
 
     from passt_mav.fields.analysis import pod_energy
 
     out["rmse"][m] = _rmse_series(r.estimate, truth).tolist()
+    drift = _drifters(r.estimate, truth, geom)
+    if drift is not None:  # virtual drifters through the estimates vs through the truth (km, km/day)
+        out.setdefault("drifters", {})[m] = drift
     out["pod"][m] = pod_energy(r.estimate, cfg["pod_modes"], cumulative=False).tolist()
     out["plan_ms"][m] = float(np.mean([leg["timings"]["plan"] for leg in r.legs]) * 1e3)
     out.setdefault("timings_s", {})[m] = {
@@ -293,7 +320,7 @@ def _lockstep_body(field, predictor, cfg: dict, L: int, trials: list[int]) -> li
             **run,
         )
         for out, r, i in zip(outs, res, trials):
-            _summarise_trial(out, m, r, truth, cfg, i)
+            _summarise_trial(out, m, r, truth, cfg, i, _drifter_geometry(field))
     return outs
 
 
@@ -308,7 +335,7 @@ def _serial_body(field, predictor, cfg: dict, L: int, trials: list[int]) -> list
                 continue
             pred, opts = _loop_options(cfg, m, predictor, L)
             (r,) = run_trials(field, pred, opts, starts=[[st]], seeds=[sd], **run)
-            _summarise_trial(out, m, r, truth, cfg, i)
+            _summarise_trial(out, m, r, truth, cfg, i, _drifter_geometry(field))
     return outs
 
 
@@ -412,6 +439,7 @@ def run_campaign(field, predictor, **options) -> dict:
     summary = _summarise(
         cfg, results, truth, pure, path_lengths=o.path_lengths, trials=o.trials, window=o.window, n_times=field.n_times
     )
+    _drifter_summary(summary, results, truth, pure, _drifter_geometry(field))
     if o.keep_trials:
         summary["_trials"] = results
     return summary
@@ -571,6 +599,31 @@ def _summarise(
     return summary
 
 
+def _drifter_summary(summary: dict, results: list[dict], truth, pure, geom) -> None:
+    """Per path length ``drifter_sep_km`` and ``drifter_km_per_day``: per method the mean over its trials of
+    the virtual drifters' separation after the whole horizon (:func:`_drifters`), with "model" (the model
+    alone) and "persistence" (the first true snapshot held fixed: the usual reference) beside the loops;
+    ``drifter_horizon_h`` (hours) and ``drifter_n`` (drifters). Nothing without a geometry."""
+    import numpy as np
+
+    if geom is None:
+        return
+    refs = {"persistence": _drifters(np.broadcast_to(truth[:1], truth.shape), truth, geom)}
+    if pure is not None:
+        refs["model"] = _drifters(pure, truth, geom)
+    for L, per in summary["per_L"].items():
+        rs = [r for r in results if str(r["L"]) == L]
+        runs = {m: [r["drifters"][m] for r in rs if m in r.get("drifters", {})] for m in summary["config"]["methods"]}
+        runs.update({k: [v] for k, v in refs.items() if v is not None})
+        runs = {m: d for m, d in runs.items() if d}
+        if not runs:
+            continue
+        per["drifter_sep_km"] = {m: float(np.mean([d["sep_km"] for d in ds])) for m, ds in runs.items()}
+        per["drifter_km_per_day"] = {m: float(np.mean([d["km_per_day"] for d in ds])) for m, ds in runs.items()}
+        first = next(iter(runs.values()))[0]
+        per["drifter_horizon_h"], per["drifter_n"] = first["horizon_h"], first["n"]
+
+
 def _per_length(rs: list[dict], methods, pure_rmse, pod_model, w: int) -> dict:
     """One path length's summary from its trials' records ``rs`` (final window ``w`` steps)."""
     import numpy as np
@@ -594,7 +647,8 @@ def _per_length(rs: list[dict], methods, pure_rmse, pod_model, w: int) -> dict:
         if counts:  # learning at sea, summed over the trials
             per.setdefault("model_update", {})[m] = {k: sum(c[k] for c in counts) for k in counts[0]}
     if "passt" in methods:
-        per["ratio_to_passt"] = {m: per["final_rmse"][m] / per["final_rmse"]["passt"] for m in methods}
+        ref = per["final_rmse"]["passt"]  # 0 where PASST's map is exact (a steady field, a persistence model)
+        per["ratio_to_passt"] = {m: per["final_rmse"][m] / ref if ref > 0 else float("nan") for m in methods}
     per["starts"] = [r["start"] for r in rs]
     return per
 

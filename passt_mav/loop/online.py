@@ -29,6 +29,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 
 from passt_mav.errors import ModelError
+from passt_mav.loop.blend import model_forecast
 
 __all__ = ["MODEL_UPDATES", "ModelUpdate", "OnlineUpdate", "model_update_problem"]
 
@@ -158,7 +159,6 @@ class OnlineUpdate:
     def _update(self, loop, leg, samples, states, interval) -> dict:
         """:func:`update_online` with the leg's innovation log likelihood as the score."""
         from passt_mav.fields.field import FlowField
-        from passt_mav.loop.passt import model_forecast
         from passt_mav.models.online import update_online
 
         fc, o = leg.forecast, self.options

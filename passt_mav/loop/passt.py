@@ -42,7 +42,13 @@ from typing import Any, Protocol, runtime_checkable
 import numpy as np
 
 from passt_mav.errors import PlannerError, ReconstructionError
-from passt_mav.loop.blend import PRIOR_BLENDS, PRIOR_CANDIDATES, PRIOR_START_WEIGHTS, PriorBlend  # noqa: F401 - re-exported
+from passt_mav.loop.blend import (  # noqa: F401 - the blend's names re-exported
+    PRIOR_BLENDS,
+    PRIOR_CANDIDATES,
+    PRIOR_START_WEIGHTS,
+    PriorBlend,
+    model_forecast,
+)
 from passt_mav.loop.guard import GUARDS, OpenLoop, guard_record, relax_to_open_loop
 from passt_mav.loop.online import ModelUpdate, OnlineUpdate
 from passt_mav.loop.presets import DEFAULT
@@ -752,6 +758,9 @@ class PasstLoop:
         if chk is not None:  # the std's own check (GPReconstructor.forward_std_factor): the factor it was widened by
             out["std_inflation"] = float(gp.std_inflation_)
             out["std_check"] = {k: v if isinstance(v, int) else round(float(v), 4) for k, v in chk.items()}
+        if gp.background is not None and getattr(gp, "std_calibration", "off") == "forward":
+            # the share of the background's variance kept in the map's std (estimated by the check above)
+            out["unresolved_share"] = round(gp.share_in_use(), 4)
         if getattr(gp, "bias", False):
             out["offset_var"] = float(getattr(gp, "bias_var_", 0.0))  # (field units)^2, 0 = no offset kept
             out["anomaly_var"] = float(getattr(gp, "scale_var_", 0.0))  # factor variance on the forecast anomaly
@@ -880,19 +889,6 @@ class OfflineResult:
 
     estimate: np.ndarray
     legs: list[dict[str, Any]]
-
-
-def model_forecast(predictor, state, steps: int, land) -> np.ndarray:
-    """(steps+1, 2, R, C) float32: ``state`` ((2, R, C) field units) then ``predictor``'s ``steps``
-    predictions (``None``: the state held), land (``(R, C)`` bool) filled with 0 at the input, NaN in the output."""
-    s = np.asarray(state, dtype=np.float32)
-    if predictor is None:
-        pred = np.repeat(s[None], steps, axis=0)
-    else:
-        pred = np.asarray(predictor.predict(np.where(land, np.float32(0), s), steps), dtype=np.float32)
-    out = np.concatenate([s[None], pred], axis=0)
-    out[:, :, land] = np.nan
-    return out
 
 
 def run_pure_model(field, predictor, *, t0: int = 0, n_steps: int) -> np.ndarray:

@@ -4,7 +4,8 @@ A :class:`Link` wraps one pymavlink ``mavutil`` connection (MAVLink 2,
 ardupilotmega dialect). One background thread reads every message and
 dispatches it (subscriber queues, listener callbacks, latest message per type,
 statistics, tlog); a second thread sends the GCS HEARTBEAT at 1 Hz. Sending is
-thread-safe. All times here are wall-clock seconds (``time.monotonic``).
+thread-safe. All times here are wall-clock seconds on the link's :attr:`Link.clock`
+(:mod:`passt_mav.mavlink.clock`), which every user of the link asks too.
 
 Written to shared/ARDUPILOT_ROVER.md, independently of ``vehicle_sim``::
 
@@ -25,19 +26,19 @@ import os
 import socket
 import struct
 import threading
-import time
 import warnings
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
-from typing import Self
+from typing import Any, Self
 
 os.environ.setdefault("MAVLINK20", "1")  # before pymavlink is imported: talk MAVLink 2
 from pymavlink import mavutil  # noqa: E402
 from pymavlink.dialects.v20 import ardupilotmega as mavlink2  # noqa: E402
 
 from passt_mav.errors import CommandRejected, LinkTimeout, LinkUnavailable, MavlinkError, UserError  # noqa: E402
+from passt_mav.mavlink.clock import SYSTEM_CLOCK, Clock, StepBudget, Timeout  # noqa: E402
 from passt_mav.mavlink.link_stats import LinkAccounting, LinkStats  # noqa: E402
-from passt_mav.mavlink.routing import MessageRouter, Subscription  # noqa: E402
+from passt_mav.mavlink.routing import Message, MessageRouter, Subscription  # noqa: E402
 from passt_mav.mavlink.streams import request_streams  # noqa: E402
 
 __all__ = [
@@ -271,18 +272,74 @@ class _Tlog:
 
     pymavlink's ``setup_logfile`` writes only received frames, from the reader;
     sent frames come from other threads, so one locked writer records both.
+
+    A write the machine refuses (a full disk, a read-only or vanished file system) is the log's fault, not the
+    link's: it never raises. The frame is counted lost (:meth:`lost`), a partial frame is cut off again, the
+    failure is said once, and writing is tried again :attr:`RETRY_S` wall seconds later (once the disk has room,
+    the log goes on; the log's gap is the lost frames).
     """
 
-    def __init__(self, path: str):
+    #: wall seconds between tries once a write failed
+    RETRY_S = 5.0
+
+    def __init__(self, path: str, clock: Clock):
+        self._clock = clock
+        self.path = path
         # unbuffered: every frame reaches the OS as it is logged, so a controller killed with SIGKILL loses none
         self._f = open(path, "ab", buffering=0)  # noqa: SIM115 - the telemetry log stays open for the link's life
         self._lock = threading.Lock()
+        self._lost_frames = self._lost_bytes = 0
+        self._error: str | None = None  # the first failure, as said
+        self._retry_at: float | None = None  # (the clock) the next try after a failure; None = writing
 
     def write(self, frame: bytes) -> None:
-        usec = int(time.time() * 1e6) & ~3
+        usec = int(self._clock.wall() * 1e6) & ~3
+        data = struct.pack(">Q", usec) + bytes(frame)
         with self._lock:
-            if not self._f.closed:
-                self._f.write(struct.pack(">Q", usec) + bytes(frame))
+            if self._f.closed:
+                return
+            if self._retry_at is not None and self._clock.now() < self._retry_at:
+                self._lost(len(data))
+                return
+            try:
+                end = os.fstat(self._f.fileno()).st_size
+                n = self._f.write(data)
+                if n != len(data):
+                    os.ftruncate(self._f.fileno(), end)  # the frame whole or not at all: the log stays readable
+                    raise OSError(f"short write ({n} of {len(data)} bytes)")
+            except OSError as exc:
+                self._failed(exc, len(data))
+                return
+            if self._retry_at is not None:
+                self._retry_at = None
+                log.warning(
+                    "telemetry log %s: writing again (%d messages lost meanwhile)", self.path, self._lost_frames
+                )
+
+    def _lost(self, nbytes: int) -> None:
+        self._lost_frames += 1
+        self._lost_bytes += nbytes
+
+    def _failed(self, exc: OSError, nbytes: int) -> None:
+        self._lost(nbytes)
+        first = self._error is None
+        self._error = self._error or (exc.strerror or str(exc))
+        self._retry_at = self._clock.now() + self.RETRY_S
+        if first:
+            log.warning(
+                "telemetry log %s: write failed (%s); the link goes on, lost messages are counted, retrying every "
+                "%.0f s",
+                self.path,
+                self._error,
+                self.RETRY_S,
+            )
+
+    def lost(self) -> dict | None:
+        """The frames not logged: ``{"frames", "bytes", "error" (the first), "path"}``; None when none was lost."""
+        with self._lock:
+            if not self._lost_frames:
+                return None
+            return {"frames": self._lost_frames, "bytes": self._lost_bytes, "error": self._error, "path": self.path}
 
     def close(self) -> None:
         with self._lock:
@@ -321,9 +378,9 @@ class Lockstep:
     during the step, and the reader thread routes messages in order, so when :meth:`step` returns the
     waiter has seen all of it: what the vehicle does, and what we see of it, depends on the sequence of
     our messages and steps alone, not on the machine's load or the time our own computing takes (the
-    vehicle's clock stands still meanwhile). The wall clock only paces the steps (``pace`` vehicle
-    seconds per wall second at most, for whoever watches) and bounds the wait for one acknowledgement
-    (:attr:`ACK_WALL_S`).
+    vehicle's clock stands still meanwhile). The wall clock (the link's :attr:`Link.clock`) only paces the
+    steps (``pace`` vehicle seconds per wall second at most, for whoever watches) and bounds the wait for
+    one acknowledgement (:attr:`ACK_WALL_S`): the backstop of a vehicle whose clock has stopped.
     """
 
     #: wall seconds to wait for the acknowledgement of one step before the link counts as closed
@@ -336,9 +393,9 @@ class Lockstep:
         self._lock = threading.Lock()
         self._ref: tuple[float, float] | None = None  # (wall, self.t) the pace counts from
 
-    def budget(self, timeout: float | None) -> float:
-        """Vehicle seconds a wait of ``timeout`` wall seconds may step (None: no bound)."""
-        return float("inf") if timeout is None else max(float(timeout), 0.0) * self.pace
+    def budget(self, timeout: float | None) -> StepBudget:
+        """What a wait of ``timeout`` wall seconds may step: ``timeout x pace`` vehicle seconds (None: no bound)."""
+        return StepBudget(timeout, self.pace)
 
     def step(self, seconds: float | None = None) -> bool:
         """Run the vehicle's clock ``seconds`` (default ``step_s``; 0: only its answers to what we sent) and
@@ -359,9 +416,9 @@ class Lockstep:
                     link.send(msg)
                 except MavlinkError:
                     return False
-                end = time.monotonic() + self.ACK_WALL_S
+                ack = Timeout(link.clock, self.ACK_WALL_S)
                 while True:
-                    m = sub.get(end - time.monotonic())
+                    m = sub.get(ack.left())
                     if m is None:
                         if link.closed_reason is None:
                             link.closed_reason = f"no answer to a lockstep step within {self.ACK_WALL_S:g} s"
@@ -376,12 +433,13 @@ class Lockstep:
     def _pace(self, h: float) -> None:
         """Sleep so that the steps run at most :attr:`pace` x wall time; a pace fallen behind (our own
         computing held the clock, or a busy machine) starts again from now instead of catching up in a burst."""
-        now = time.monotonic()
+        clock = self.link.clock
+        now = clock.now()
         if self._ref is None:
             self._ref = (now, self.t)
         due = self._ref[0] + (self.t + h - self._ref[1]) / self.pace
         if due > now:
-            time.sleep(due - now)
+            clock.sleep(due - now)
         elif now - due > 0.25:
             self._ref = (now, self.t)
 
@@ -394,17 +452,26 @@ class Link:
         connection_factory: ``() -> mavutil.mavfile`` to use instead of opening
             ``config.connect`` (tests: an in-process simulator endpoint). Called again
             by :meth:`reconnect`.
+        clock: the :class:`~passt_mav.mavlink.clock.Clock` every wait on this link asks (default the machine's).
     """
 
-    def __init__(self, config: LinkConfig | None = None, *, connection_factory: Callable[[], object] | None = None):
+    def __init__(
+        self,
+        config: LinkConfig | None = None,
+        *,
+        connection_factory: Callable[[], Any] | None = None,
+        clock: Clock | None = None,
+    ):
         self.config = config or LinkConfig()
+        #: the wall clock of every wait, timeout and backstop on this link and of its users
+        self.clock: Clock = SYSTEM_CLOCK if clock is None else clock
         self._factory = connection_factory or self.config.open
-        self.conn = None
+        self.conn: Any = None  # the pymavlink connection (pymavlink has no type hints); None while closed
         self.target_system: int | None = self.config.target_system
         self.target_component: int = 1
         self.vehicle_type: int | None = None
         self.autopilot: int | None = None
-        self._acct = LinkAccounting()
+        self._acct = LinkAccounting(self.clock)
         self._router = MessageRouter()
         #: the vehicle's clock when it runs in lockstep (``config.lockstep_s``), else None
         self.lockstep: Lockstep | None = (
@@ -418,7 +485,7 @@ class Link:
         self._last_hb: float | None = None
         self._stop = threading.Event()
         self._threads: list[threading.Thread] = []
-        self._tlog = _Tlog(self.config.tlog) if self.config.tlog else None
+        self._tlog = _Tlog(self.config.tlog, self.clock) if self.config.tlog else None
         self.texts: collections.deque[tuple[float, int, str]] = collections.deque(maxlen=200)
         self.error: BaseException | None = None
         #: why the transport is dead (EOF, reset, read error), None while it is open and alive
@@ -442,7 +509,7 @@ class Link:
         Raises :class:`LinkUnavailable` (a :class:`LinkTimeout`) naming the address and the last cause.
         """
         say = say or log.warning
-        t0 = time.monotonic()
+        t0 = self.clock.now()
         deadline = t0 + max(float(wait_s), 0.0)
         per_try = self.config.connect_timeout_s if timeout is None else timeout
         delay, max_delay = self.config.reconnect_backoff_s
@@ -452,15 +519,15 @@ class Link:
             self._acct.new_stats()  # what this attempt received (_what_arrived)
             try:
                 self._open()
-                left = deadline - time.monotonic()
+                left = deadline - self.clock.now()
                 # retrying: at least two heartbeat waits fit in the time left (a line each), none past it
                 self._find_vehicle(per_try if wait_s <= 0 else max(min(per_try, max(1.0, left / 2), left), 0.5))
                 break
             except LinkTimeout as exc:
                 self._shutdown()
-                left = deadline - time.monotonic()
+                left = deadline - self.clock.now()
                 if left <= 0:
-                    tries = f" after {attempt} attempts over {time.monotonic() - t0:.0f} s" if attempt > 1 else ""
+                    tries = f" after {attempt} attempts over {self.clock.now() - t0:.0f} s" if attempt > 1 else ""
                     raise LinkUnavailable(
                         f"no vehicle at {self.config.connect}{tries}: {_strip_address(exc, self.config.connect)}"
                     ) from None
@@ -469,7 +536,7 @@ class Link:
                     f"{self.config.connect}: {_strip_address(exc, self.config.connect)}; retrying in {pause:.1f} s "
                     f"(attempt {attempt}, giving up in {left:.0f} s)"
                 )
-                time.sleep(pause)
+                self.clock.sleep(pause)
                 delay = min(delay * 2.0, max_delay)
             except BaseException:
                 self._shutdown()
@@ -505,9 +572,9 @@ class Link:
 
     def _find_vehicle(self, timeout: float) -> None:
         with self.subscribe("HEARTBEAT") as sub:
-            end = time.monotonic() + timeout
+            left = Timeout(self.clock, timeout).left
             while True:
-                m = sub.get(end - time.monotonic())
+                m = sub.get(left())
                 if m is None:
                     raise LinkTimeout(
                         f"no vehicle heartbeat on {self.config.connect} within {timeout:.1f} s"
@@ -533,7 +600,7 @@ class Link:
                 "same link takes our replies and we take its; the vehicle's GCS failsafe counts our heartbeats",
                 *me,
             )
-        self._last_hb = time.monotonic()
+        self._last_hb = self.clock.now()
         if m.type != mavlink2.MAV_TYPE_SURFACE_BOAT or m.autopilot != mavlink2.MAV_AUTOPILOT_ARDUPILOTMEGA:
             warnings.warn(
                 f"vehicle {self.target_system} is {result_name('MAV_TYPE', m.type)} on "
@@ -574,8 +641,8 @@ class Link:
         """
         say = say or log.warning
         attempts = self.config.reconnect_attempts if attempts is None else max(int(attempts), 1)
-        end = None if wait_s is None else time.monotonic() + max(float(wait_s), 0.0)
-        t0 = time.monotonic()
+        end = None if wait_s is None else self.clock.now() + max(float(wait_s), 0.0)
+        t0 = self.clock.now()
         delay, max_delay = self.config.reconnect_backoff_s
         last: BaseException | None = None
         i = 0
@@ -592,7 +659,7 @@ class Link:
                 return self
             except (OSError, MavlinkError) as exc:
                 last = exc
-                left = (attempts - i) if end is None else end - time.monotonic()
+                left = (attempts - i) if end is None else end - self.clock.now()
                 more = left > 0
                 # one line per attempt (never per frame): the console stays readable during an outage
                 of = f"{i}/{attempts}" if end is None else f"{i}"
@@ -605,10 +672,10 @@ class Link:
                 )
                 if not more:
                     break
-                time.sleep(pause)
+                self.clock.sleep(pause)
                 delay = min(delay * 2.0, max_delay)
         self._shutdown()
-        span = f"{i} attempts" if end is None else f"{i} attempts over {time.monotonic() - t0:.0f} s"
+        span = f"{i} attempts" if end is None else f"{i} attempts over {self.clock.now() - t0:.0f} s"
         raise LinkTimeout(f"could not reconnect to {self.config.connect} after {span}: {last}")
 
     def __enter__(self) -> Self:
@@ -650,7 +717,7 @@ class Link:
         if typ == "BAD_DATA":
             self.stats.bad += 1
             return
-        now = time.monotonic()
+        now = self.clock.now()
         if self._tlog is not None:
             self._tlog.write(msg.get_msgbuf())
         from_vehicle = self._acct.count(msg, typ, self.target_system)
@@ -665,7 +732,7 @@ class Link:
 
     def _heartbeat_loop(self) -> None:
         period = self.config.timesync_period_s
-        next_sync = time.monotonic() + period
+        next_sync = self.clock.now() + period
         while not self._stop.is_set():
             if self.closed_reason is not None:
                 return  # nothing to send on: reconnect() starts a new loop
@@ -675,9 +742,9 @@ class Link:
                         mavlink2.MAV_TYPE_GCS, mavlink2.MAV_AUTOPILOT_INVALID, 0, 0, mavlink2.MAV_STATE_ACTIVE, 3
                     )
                 )
-                if period > 0 and time.monotonic() >= next_sync and self.target_system is not None:
+                if period > 0 and self.clock.now() >= next_sync and self.target_system is not None:
                     # TIMESYNC is not a stream on ArduPilot: keep the RTT current with requests (tc1 = 0)
-                    next_sync = time.monotonic() + period
+                    next_sync = self.clock.now() + period
                     self._send_timesync()
             except (OSError, MavlinkError) as exc:
                 log.debug("heartbeat send failed: %s", exc)
@@ -694,11 +761,11 @@ class Link:
         """A queue of every message of ``types`` (None = all) received from now on."""
         return self._router.subscribe(types)
 
-    def add_listener(self, callback: Callable[[object], None], types: str | Iterable[str] | None = None) -> None:
+    def add_listener(self, callback: Callable[[Message], None], types: str | Iterable[str] | None = None) -> None:
         """Call ``callback(msg)`` from the reader thread for each message of ``types`` (keep it quick)."""
         self._router.add_listener(callback, types)
 
-    def remove_listener(self, callback: Callable[[object], None]) -> None:
+    def remove_listener(self, callback: Callable[[Message], None]) -> None:
         self._router.remove_listener(callback)
 
     def latest(self, typ: str):
@@ -712,7 +779,7 @@ class Link:
     # -- state -------------------------------------------------------------------------------
     @property
     def seconds_since_heartbeat(self) -> float:
-        return float("inf") if self._last_hb is None else time.monotonic() - self._last_hb
+        return float("inf") if self._last_hb is None else self.clock.now() - self._last_hb
 
     @property
     def lost(self) -> bool:
@@ -744,6 +811,12 @@ class Link:
         if signing is not None:
             parts.append(signing)
         return f" ({'; '.join(parts)})" if parts else ""
+
+    @property
+    def tlog_lost(self) -> dict | None:
+        """Messages the telemetry log could not write (a full disk: the link goes on without them), as
+        ``{"frames", "bytes", "error", "path"}``; None when none was lost or no log is written."""
+        return None if self._tlog is None else self._tlog.lost()
 
     def signing_hint(self) -> str:
         """``_why()`` for callers outside the link (empty when nothing points at signing or link loss)."""
@@ -809,7 +882,7 @@ class Link:
         if self.lockstep is not None:
             self.lockstep.step()
         else:
-            time.sleep(wall_s)
+            self.clock.sleep(wall_s)
 
     def clear_error(self) -> None:
         """Forget the reader's or sender's last error (:attr:`error`) before a reconnect."""
@@ -818,15 +891,15 @@ class Link:
     def wait(
         self,
         types: str | Iterable[str],
-        condition: Callable[[object], bool] | None = None,
+        condition: Callable[[Message], bool] | None = None,
         timeout: float | None = None,
     ):
         """Next message of ``types`` satisfying ``condition`` within ``timeout`` s; raises LinkTimeout."""
         timeout = self.reply_timeout if timeout is None else timeout
         with self.subscribe(types) as sub:
-            end = time.monotonic() + timeout
+            left = Timeout(self.clock, timeout).left
             while True:
-                m = sub.get(end - time.monotonic())
+                m = sub.get(left())
                 if m is None:
                     raise LinkTimeout(f"no {types} within {timeout:.2f} s" + self._why())
                 if condition is None or condition(m):
@@ -863,13 +936,13 @@ class Link:
             for attempt in range(retries + 1):
                 timeout_ = self.reply_timeout if timeout is None else timeout
                 texts: list[tuple[int, str]] = []
-                t_sent = time.monotonic()
+                t_sent = self.clock.now()
                 self.send(
                     mavlink2.MAVLink_command_long_message(self.target_system, tc, int(command), attempt % 256, *p)
                 )
                 end = t_sent + timeout_
                 while True:
-                    m = sub.get(end - time.monotonic())
+                    m = sub.get(end - self.clock.now())
                     if m is None:
                         break
                     if m.get_type() == "STATUSTEXT":
@@ -878,15 +951,15 @@ class Link:
                     if m.command != int(command) or not self.for_us(m):
                         continue
                     if m.result == mavlink2.MAV_RESULT_IN_PROGRESS:
-                        end = time.monotonic() + timeout_
+                        end = self.clock.now() + timeout_
                         continue
-                    self._acct.add_rtt(time.monotonic() - t_sent)
+                    self._acct.add_rtt(self.clock.now() - t_sent)
                     if m.result in tuple(accept):
                         return m
                     # the STATUSTEXT explaining a refusal may follow the ACK by a moment
-                    grace_end = time.monotonic() + min(0.3, 2 * (self.rtt or 0.05) + 0.05)
+                    grace_end = self.clock.now() + min(0.3, 2 * (self.rtt or 0.05) + 0.05)
                     while True:
-                        t = sub.get(grace_end - time.monotonic())
+                        t = sub.get(grace_end - self.clock.now())
                         if t is None:
                             break
                         if t.get_type() == "STATUSTEXT":
@@ -921,8 +994,8 @@ class Link:
         for _ in range(samples):
             with self.subscribe("TIMESYNC") as sub:
                 ts1 = self._send_timesync()
-                end = time.monotonic() + self.config.timeout_s
-                while (m := sub.get(end - time.monotonic())) is not None:
+                left = Timeout(self.clock, self.config.timeout_s).left
+                while (m := sub.get(left())) is not None:
                     if m.tc1 != 0 and m.ts1 == ts1:
                         break
             self._acct.timesync_abandoned(ts1)

@@ -1,15 +1,16 @@
 """What one MAVLink link received and how long its round trip takes: counters, frame loss, RTT samples.
 
 :class:`LinkAccounting` is fed by the link's reader thread (every frame, every TIMESYNC answer) and by
-the threads that send TIMESYNC requests or time a command. All times are wall-clock seconds
-(``time.monotonic``).
+the threads that send TIMESYNC requests or time a command. All times are wall-clock seconds on the link's
+clock (:meth:`passt_mav.mavlink.clock.Clock.now`).
 """
 
 from __future__ import annotations
 
 import collections
-import time
 from dataclasses import dataclass, field
+
+from passt_mav.mavlink.clock import SYSTEM_CLOCK, Clock
 
 __all__ = ["LinkAccounting", "LinkStats"]
 
@@ -39,9 +40,13 @@ class LinkAccounting:
     Attributes:
         stats: the :class:`LinkStats` since the last :meth:`new_stats`.
         rtt_samples: the last 16 round-trip times, seconds (kept across :meth:`new_stats`).
+
+    Args:
+        clock: the link's clock (TIMESYNC requests: when sent, and their ``ts1``).
     """
 
-    def __init__(self):
+    def __init__(self, clock: Clock = SYSTEM_CLOCK):
+        self.clock = clock
         self.stats = LinkStats()
         self.rtt_samples: collections.deque[float] = collections.deque(maxlen=16)
         self._last_seq: dict[tuple[int, int], int] = {}
@@ -92,15 +97,15 @@ class LinkAccounting:
     def timesync_request(self) -> int:
         """Record a TIMESYNC request about to be sent (dropping those unanswered for 30 s); returns its ts1
         (UTC ns)."""
-        now = time.monotonic()
+        now = self.clock.now()
         for k in [k for k, t in self._timesync_pending.items() if now - t > 30.0]:
             self._timesync_pending.pop(k, None)  # requests the vehicle never answered
-        ts1 = time.time_ns()
+        ts1 = self.clock.wall_ns()
         self._timesync_pending[ts1] = now
         return ts1
 
     def timesync_answered(self, ts1: int, now: float) -> None:
-        """The answer to the request ``ts1`` arrived at ``now`` (monotonic s): one RTT sample (none for a
+        """The answer to the request ``ts1`` arrived at ``now`` (the clock's wall s): one RTT sample (none for a
         request that is not ours or was answered already)."""
         sent = self._timesync_pending.pop(ts1, None)
         if sent is not None:

@@ -31,12 +31,12 @@ from __future__ import annotations
 import logging
 import math
 import struct
-import time
 from collections.abc import Callable, Sequence
 from dataclasses import replace
 
 from passt_mav.errors import CommandRejected, LinkTimeout, MissionRejected, MissionVerifyError
 from passt_mav.mavlink.link import Link, mavlink2, result_name
+from passt_mav.mavlink.modes import ROVER_MODES
 from passt_mav.mission.items import GLOBAL_FRAMES, MAV_FRAME_GLOBAL, MAV_MISSION_TYPE_MISSION, MissionItem
 
 __all__ = [
@@ -202,7 +202,7 @@ def with_home(
     return out
 
 
-def to_msg(item: MissionItem, target_system: int, target_component: int):
+def to_msg(item: MissionItem, target_system: int | None, target_component: int):
     """MISSION_ITEM_INT for ``item`` (lat/lon -> int32 degE7 for global frames)."""
     return M.MAVLink_mission_item_int_message(
         target_system,
@@ -316,11 +316,9 @@ class MissionClient:
                 + n * (0.1 + self._t_item / 4)
                 + self.no_space_retries * self.no_space_delay_s
             )
-        return time.monotonic() + timeout
+        return self.link.clock.now() + timeout
 
     def _initialising(self) -> bool:
-        from passt_mav.mavlink.vehicle import ROVER_MODES  # (vehicle.py imports this module)
-
         hb = self.link.latest("HEARTBEAT")
         if hb is not None and hb.custom_mode == ROVER_MODES["INITIALISING"]:
             return True
@@ -364,11 +362,11 @@ class MissionClient:
             tr = _Upload(self, items, mission_type, timeout, sub)
             tr.send_count()
             while True:
-                remaining = tr.deadline - time.monotonic()
+                remaining = tr.deadline - self.link.clock.now()
                 if remaining <= 0:
                     raise LinkTimeout(
                         f"mission upload of {tr.n} items not finished within the deadline "
-                        f"({time.monotonic() - tr.t0:.1f} s; last item sent {tr.last_seq})"
+                        f"({self.link.clock.now() - tr.t0:.1f} s; last item sent {tr.last_seq})"
                     )
                 m = sub.get(min(self._t_item, remaining))
                 if m is None:
@@ -390,7 +388,7 @@ class MissionClient:
         """
         link = self.link
         ts, tc = link.target_system, link.target_component
-        t0 = time.monotonic()
+        t0 = link.clock.now()
         deadline = self._deadline(0, timeout)
         with link.subscribe(("MISSION_COUNT", "MISSION_ITEM_INT", "MISSION_ACK")) as sub:
 
@@ -398,8 +396,8 @@ class MissionClient:
                 error = None
                 for _ in range(self.retries + 1):
                     send()
-                    end = min(time.monotonic() + self._t_item, deadline)
-                    while (m := sub.get(end - time.monotonic())) is not None:
+                    end = min(link.clock.now() + self._t_item, deadline)
+                    while (m := sub.get(end - link.clock.now())) is not None:
                         if not self._ours(m, mission_type):
                             continue
                         if m.get_type() == "MISSION_ACK":
@@ -415,7 +413,7 @@ class MissionClient:
                             continue
                         if pred(m):
                             return m
-                    if time.monotonic() >= deadline:
+                    if link.clock.now() >= deadline:
                         break
                 if error is not None:
                     raise self._reject(error, t0, f"while downloading ({what})")
@@ -463,18 +461,18 @@ class MissionClient:
     def clear(self, mission_type: int = MAV_MISSION_TYPE_MISSION, *, timeout: float | None = None) -> None:
         """MISSION_CLEAR_ALL for one mission type; waits for MISSION_ACK ACCEPTED."""
         link = self.link
-        t0 = time.monotonic()
+        t0 = link.clock.now()
         deadline = self._deadline(0, timeout)
         with link.subscribe("MISSION_ACK") as sub:
             for _ in range(self.retries + 1):
                 link.send(M.MAVLink_mission_clear_all_message(link.target_system, link.target_component, mission_type))
-                end = min(time.monotonic() + self._t_item, deadline)
-                while (m := sub.get(end - time.monotonic())) is not None:
+                end = min(link.clock.now() + self._t_item, deadline)
+                while (m := sub.get(end - link.clock.now())) is not None:
                     if self._ours(m, mission_type):
                         if m.type != _ACCEPTED:
                             raise self._reject(m.type, t0, "clearing the mission")
                         return
-                if time.monotonic() >= deadline:
+                if link.clock.now() >= deadline:
                     break
         raise LinkTimeout("no MISSION_ACK for MISSION_CLEAR_ALL" + (" (link lost)" if link.lost else ""))
 
@@ -506,7 +504,7 @@ class _Upload:
         self.client, self.items, self.mission_type, self.timeout, self.sub = client, items, mission_type, timeout, sub
         self.link = client.link
         self.n = len(items)
-        self.t0 = time.monotonic()
+        self.t0 = self.link.clock.now()
         self.deadline = client._deadline(self.n, timeout)
         self.res = UploadResult(count=self.n)
         self.requested = False  # a request of this transfer has arrived
@@ -551,7 +549,7 @@ class _Upload:
         result = int(m.type)
         if result == _ACCEPTED:
             if n == 0 or self.last_seq == n - 1:
-                res.seconds = time.monotonic() - self.t0
+                res.seconds = self.link.clock.now() - self.t0
                 res.opaque_id = int(getattr(m, "opaque_id", 0) or 0)
                 return res
             return None  # a stale ACK from an earlier transfer
@@ -586,19 +584,20 @@ class _Upload:
             self.send_count()
             return None
         if result == M.MAV_MISSION_NO_SPACE and not self.requested:
-            return self._no_space(result)
+            self._no_space(result)
+            return None
         raise client._reject(result, self.t0)
 
     def _ack_lost(self, result: int) -> UploadResult:
         """ERROR after our last item was sent again: the vehicle closed the transfer and its ACK was lost."""
         got = self.client.download(
-            self.mission_type, timeout=max(self.deadline - time.monotonic(), self.client._t_item * 4)
+            self.mission_type, timeout=max(self.deadline - self.link.clock.now(), self.client._t_item * 4)
         )
         bad = differences(self.items, got, self.mission_type)
         if bad:
             raise self.client._reject(result, self.t0, f"final ACK lost and the read-back differs: {bad}")
         self.res.ack_lost = True
-        self.res.seconds = time.monotonic() - self.t0
+        self.res.seconds = self.link.clock.now() - self.t0
         log.info("mission upload: final ACK lost, confirmed by read-back")
         return self.res
 
@@ -612,7 +611,7 @@ class _Upload:
                 res.no_space_retries,
                 client.no_space_delay_s,
             )
-            time.sleep(min(client.no_space_delay_s, max(self.deadline - time.monotonic(), 0)))
+            self.link.clock.sleep(min(client.no_space_delay_s, max(self.deadline - self.link.clock.now(), 0)))
             self.sub.drain()
             self.silent = 0
             self.send_count()

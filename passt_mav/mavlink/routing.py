@@ -11,9 +11,12 @@ import logging
 import queue
 import threading
 from collections.abc import Callable, Iterable
-from typing import Self
+from typing import Any, Self, TypeAlias
 
-__all__ = ["MessageRouter", "Subscription"]
+__all__ = ["MessageRouter", "Subscription", "Message"]
+
+#: a pymavlink message: pymavlink has no type hints, its fields are read by name (``m.time_boot_ms``)
+Message: TypeAlias = Any
 
 log = logging.getLogger(__name__)
 
@@ -37,7 +40,7 @@ class Subscription:
         except queue.Full:  # a consumer that stopped reading must not stall the reader
             pass
 
-    def get(self, timeout: float | None) -> object | None:
+    def get(self, timeout: float | None) -> Message | None:
         """The next message, or None after ``timeout`` s (or at once when the link's transport dies).
 
         A vehicle in lockstep (the router's ``stepper``, :class:`passt_mav.mavlink.link.Lockstep`): when
@@ -49,19 +52,19 @@ class Subscription:
                 return self._q.get(timeout=max(timeout, 0.0) if timeout is not None else None)
             except queue.Empty:
                 return None
-        budget, ran, h = step.budget(timeout), 0.0, 0.0  # vehicle seconds: may run, have run, next step
+        budget, h = step.budget(timeout), 0.0  # vehicle seconds it may step; the next step
         while True:
             try:
                 return self._q.get_nowait()
             except queue.Empty:
                 pass
-            if (h > 0 and ran >= budget) or not step.step(h):
+            if (h > 0 and budget.spent()) or not step.step(h):
                 return None
-            ran += h
+            budget.stepped(h)
             h = step.step_s
 
     def drain(self) -> list:
-        out = []
+        out: list[Message] = []
         while True:
             try:
                 m = self._q.get_nowait()
@@ -96,7 +99,7 @@ class MessageRouter:
         self._lock = threading.Lock()
         self._subs: list[Subscription] = []
         self._listeners: list[tuple[Callable, frozenset[str] | None]] = []
-        self._latest: dict[str, object] = {}
+        self._latest: dict[str, Message] = {}
         #: the vehicle's clock in lockstep (:class:`passt_mav.mavlink.link.Lockstep`), None when it keeps its own
         self.stepper = None
 

@@ -44,11 +44,11 @@ from __future__ import annotations
 
 import collections
 import threading
-import time
 from collections.abc import Callable
 
 from geo.track import Track
 from passt_mav.loop.measurement import RULES, BootCounter, HalfPairer
+from passt_mav.mavlink.clock import SYSTEM_CLOCK, Clock, Timeout, clock_of
 
 __all__ = ["SampleCollector"]
 
@@ -73,6 +73,8 @@ class SampleCollector:
         reboot_back_ms: ``time_boot_ms`` going back by more than this is a reboot.
         on_reboot: ``(boot, last_tb_ms, first_tb_ms)`` callback on a reboot (reader thread).
         boot_base: added to the boot number in records (a resumed run continues the stored numbering).
+        clock: the wall clock of the records' ``wall`` and UTC stamps and of :meth:`wait_placed` (default the
+            machine's; :meth:`attach` takes the link's).
     """
 
     TYPES = ("NAMED_VALUE_FLOAT", "GLOBAL_POSITION_INT", "SYSTEM_TIME")
@@ -90,6 +92,7 @@ class SampleCollector:
         on_reboot: Callable[[int, int, int], None] | None = None,
         boot_base: int = 0,
         pair_tolerance_ms: int = RULES.pair_tolerance_ms,
+        clock: Clock = SYSTEM_CLOCK,
     ):
         if u_name == v_name:
             raise ValueError("u_name and v_name must differ")
@@ -106,20 +109,23 @@ class SampleCollector:
         self._leg_counts: collections.Counter = collections.Counter()  # (leg, what) -> n
         self._utc_offset: float | None = None  # unix s - boot s
         self._newest = 0
-        self.counts = collections.Counter()  # readings, emitted, gap, duplicates, expired, reboots
+        #: readings, emitted, gap, duplicates, expired, reboots
+        self.counts: collections.Counter[str] = collections.Counter()
         self._link = None
         self.reboot_back_ms = int(reboot_back_ms)
-        self._clock = BootCounter(self.reboot_back_ms)
+        self._boot_counter = BootCounter(self.reboot_back_ms)
         self.on_reboot = on_reboot
         self.boot = 0  # reboots seen since attach
         self.boot_base = int(boot_base)  # records carry boot_base + boot
         #: per boot: {"utc_boot": vehicle UTC at boot (s) or None, "wall": wall time first seen, "last_tb": ms}
-        self.boots: list[dict] = [{"utc_boot": None, "wall": time.time(), "last_tb": 0}]
+        self.clock = clock
+        self.boots: list[dict] = [{"utc_boot": None, "wall": clock.wall(), "last_tb": 0}]
 
     # -- wiring ------------------------------------------------------------------------------
     def attach(self, link) -> SampleCollector:
         """Listen on a :class:`~passt_mav.mavlink.link.Link` (reader thread)."""
         self._link = link
+        self.clock = clock_of(link, self.clock)
         link.add_listener(self.handle, self.TYPES)
         return self
 
@@ -192,15 +198,15 @@ class SampleCollector:
     def wait_placed(self, leg: int | None, timeout: float) -> bool:
         """Wait up to ``timeout`` wall seconds until no reading of ``leg`` waits for a fix; True if none does.
         On a lockstep link (:class:`~passt_mav.mavlink.link.Lockstep`) the vehicle's clock steps meanwhile."""
-        end = time.monotonic() + timeout
+        deadline = Timeout(self.clock, timeout)
         link = self._link
         while self.held(leg):
-            if time.monotonic() >= end:
+            if deadline.expired():
                 return False
             if link is not None:
                 link.idle(0.02)
             else:
-                time.sleep(0.02)
+                self.clock.sleep(0.02)
         return True
 
     def leg_counts(self, leg: int | None) -> dict[str, int]:
@@ -211,22 +217,23 @@ class SampleCollector:
     # -- internals (lock held) ------------------------------------------------------------------
     def _check_reboot(self, tb: int) -> tuple[int, int, int] | None:
         """Returns ``(boot, last_tb_ms, first_tb_ms)`` when ``tb`` starts a new boot, else None."""
-        last = self._clock.see(tb)
+        last = self._boot_counter.see(tb)
         if last is not None:
             # vehicle time went back: a reboot (passt_mav.loop.measurement.Rules.reboot_back_s). The old keys
             # would shadow the new boot's readings at the same times.
             self.counts["reboots"] += 1
-            self.pairer.clear(), self._seen.clear()
+            self.pairer.clear()
+            self._seen.clear()
             for t in list(self._held):  # the old boot's fix after them will never come
                 self._count("gap", self._held.pop(t)[3])
             self.track.clear()
             self._newest = tb
             self._utc_offset = None
             self.boots[-1]["last_tb"] = last
-            self.boot = self._clock.boot
-            self.boots.append({"utc_boot": None, "wall": time.time(), "last_tb": tb})
+            self.boot = self._boot_counter.boot
+            self.boots.append({"utc_boot": None, "wall": self.clock.wall(), "last_tb": tb})
             return self.boot, last, tb
-        self._newest = max(self._newest, tb)  # (= self._clock.newest)
+        self._newest = max(self._newest, tb)  # (= self._boot_counter.newest)
         self.boots[-1]["last_tb"] = self._newest
         return None
 
@@ -248,7 +255,7 @@ class SampleCollector:
             if self._utc_offset is not None:
                 utc = self._utc_offset + tb / 1e3
             else:
-                utc = rx if rx is not None else time.time()
+                utc = rx if rx is not None else self.clock.wall()
             rec = {
                 "time_boot_ms": tb,
                 "utc": utc,

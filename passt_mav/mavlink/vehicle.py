@@ -16,35 +16,17 @@ from __future__ import annotations
 
 import logging
 import threading
-import time
 
 from passt_mav.errors import CommandRejected, LinkTimeout, MavlinkError, UserError, VehicleNotReady
+from passt_mav.mavlink.clock import Timeout, wall_seconds
 from passt_mav.mavlink.link import Link, mavlink2
 from passt_mav.mavlink.mission_client import MissionClient
+from passt_mav.mavlink.modes import ROVER_MODE_NAMES, ROVER_MODES  # (re-exported: __all__)
 
 __all__ = ["Vehicle", "ROVER_MODES", "ROVER_MODE_NAMES", "mode_number", "MissionProgress", "PARAM_TYPES"]
 
 log = logging.getLogger(__name__)
 M = mavlink2
-
-#: ArduPilot Rover 4.x custom modes (pymavlink still lists LEARNING = 2; Rover no longer has it)
-ROVER_MODES = {
-    "MANUAL": 0,
-    "ACRO": 1,
-    "STEERING": 3,
-    "HOLD": 4,
-    "LOITER": 5,
-    "FOLLOW": 6,
-    "SIMPLE": 7,
-    "DOCK": 8,
-    "CIRCLE": 9,
-    "AUTO": 10,
-    "RTL": 11,
-    "SMART_RTL": 12,
-    "GUIDED": 15,
-    "INITIALISING": 16,
-}
-ROVER_MODE_NAMES = {v: k for k, v in ROVER_MODES.items()}
 
 #: MAV_PARAM_TYPE of the parameters this module sets (ArduPilot keeps WP_RADIUS/WP_SPEED as float)
 PARAM_TYPES = {"WP_RADIUS": M.MAV_PARAM_TYPE_REAL32, "WP_SPEED": M.MAV_PARAM_TYPE_REAL32}
@@ -128,6 +110,9 @@ class Vehicle:
         self.mission = mission or MissionClient(link)
         self.retry_delay_s = retry_delay_s
         self.progress = MissionProgress()
+        #: the vehicle flies a mission this run did not upload, and the run refused to start: its clean-up sends
+        #: nothing (:meth:`keep_station_if_auto`)
+        self.hands_off = False
         self._listening = False
         #: name -> the vehicle's value before this object first changed it (see restore_params)
         self.changed_params: dict[str, float] = {}
@@ -176,12 +161,12 @@ class Vehicle:
         GLOBAL_POSITION_INT is non-zero; raises :class:`VehicleNotReady` naming what is missing."""
         from passt_mav.progress import progress
 
-        end = time.monotonic() + timeout
+        deadline = Timeout(self.link.clock, timeout)
         bar = None  # shown only once there is something to wait for
         with self.link.subscribe(("EKF_STATUS_REPORT", "GLOBAL_POSITION_INT")) as sub:
             try:
                 while reason := self._ready_reason():
-                    if time.monotonic() >= end:
+                    if deadline.expired():
                         raise VehicleNotReady(
                             f"vehicle not ready after {timeout:.1f} s: {reason}"
                             + (" (link lost)" if self.link.lost else "")
@@ -196,7 +181,7 @@ class Vehicle:
                         )
                     bar.note(reason)
                     bar.tick()
-                    sub.get(min(end - time.monotonic(), 1.0))
+                    sub.get(min(deadline.left(), 1.0))
             finally:
                 if bar is not None:
                     bar.close("ready" if not self._ready_reason() else "gave up")
@@ -210,8 +195,8 @@ class Vehicle:
             hb = self.link.latest("HEARTBEAT")
             if hb is not None and cond(hb):
                 return
-            end = time.monotonic() + timeout
-            while (m := sub.get(end - time.monotonic())) is not None:
+            left = Timeout(self.link.clock, timeout).left
+            while (m := sub.get(left())) is not None:
                 if m.get_srcSystem() == self.link.target_system and cond(m):
                     return
         raise LinkTimeout(
@@ -261,11 +246,14 @@ class Vehicle:
             except CommandRejected as exc:
                 if exc.result != M.MAV_RESULT_FAILED or attempt == self.SPEED_TRIES - 1:
                     raise
-                self.link.idle(0.2 / max(float(speedup), 1e-6))
+                self.link.idle(wall_seconds(0.2, speedup))
 
     def keep_station_if_auto(self, *, always: bool = False) -> None:
         """:meth:`keep_station` if the vehicle flies a mission (AUTO; ``always``: whatever its mode); a failure is
-        logged, never raised (the clean-up of a run that stops)."""
+        logged, never raised (the clean-up of a run that stops). Nothing is sent while :attr:`hands_off` (the
+        vehicle flies another controller's mission: a run that refused to start leaves it alone)."""
+        if self.hands_off:
+            return
         try:
             if always or self.mode == ROVER_MODES["AUTO"]:
                 self.keep_station()
@@ -306,14 +294,14 @@ class Vehicle:
         opening the DataFlash log at arming is enough. We armed it a moment ago ourselves, so
         arming again overrides no one.
         """
-        end = time.monotonic() + timeout
+        end = self.link.clock.now() + timeout
         default = max(3 * self.link.config.heartbeat_period_s, self.link.reply_timeout)
         armed = M.MAV_MODE_FLAG_SAFETY_ARMED
         for attempt in range(1, attempts + 1):
             self._arm_command(force, end)
             # the first HEARTBEAT after the ACK was made after arming (one ordered stream);
             # it may lag on a loaded machine: wait within what is left of ``timeout``
-            wait = max(default, end - time.monotonic())
+            wait = max(default, end - self.link.clock.now())
             hb = self._next_heartbeat(wait)
             if hb is None:
                 raise LinkTimeout(
@@ -342,16 +330,16 @@ class Vehicle:
                 transient = (
                     any(s in exc.text.lower() for s in _NOT_YET) or exc.result == M.MAV_RESULT_TEMPORARILY_REJECTED
                 )
-                if not transient or time.monotonic() + self.retry_delay_s > end:
+                if not transient or self.link.clock.now() + self.retry_delay_s > end:
                     raise
                 log.info("arming refused (%s); retrying", exc.text)
-                time.sleep(self.retry_delay_s)
+                self.link.clock.sleep(self.retry_delay_s)
 
     def _next_heartbeat(self, timeout: float):
         """The vehicle's next HEARTBEAT (arriving from now on) within ``timeout`` s, or None."""
         with self.link.subscribe("HEARTBEAT") as sub:
-            end = time.monotonic() + timeout
-            while (m := sub.get(end - time.monotonic())) is not None:
+            left = Timeout(self.link.clock, timeout).left
+            while (m := sub.get(left())) is not None:
                 if m.get_srcSystem() == self.link.target_system:
                     return m
         return None
@@ -369,8 +357,8 @@ class Vehicle:
         with link.subscribe("PARAM_VALUE") as sub:
             for _ in range(link.config.retries + 1):
                 send()
-                end = time.monotonic() + per_try
-                while (m := sub.get(end - time.monotonic())) is not None:
+                left = Timeout(link.clock, per_try).left
+                while (m := sub.get(left())) is not None:
                     if m.get_srcSystem() != link.target_system or _param_name(m.param_id) != name:
                         continue
                     last = float(m.param_value)
@@ -475,10 +463,10 @@ class Vehicle:
         """
         self._listen()
         p = self.progress
-        end = time.monotonic() + timeout
+        end = self.link.clock.now() + timeout
         with p.changed:
             while not ((p.state == M.MISSION_STATE_COMPLETE and p.total == n_items) or n_items in p.reached):
-                left = end - time.monotonic()
+                left = end - self.link.clock.now()
                 if left <= 0:
                     raise LinkTimeout(
                         f"mission not complete after {timeout:.0f} s (item {p.current}/{p.total}, "

@@ -37,11 +37,14 @@ Every problem raises :class:`passt_mav.errors.MissionConfigError` with ONE line
 physical bounds (``vehicle.speed_mps <= 20``, grids of at most :data:`MAX_GRID` rows and columns, ...); a key
 given twice in one mapping, and aliases that expand the file past :data:`MAX_YAML_VALUES` values (an alias
 bomb), are refused as the YAML is read. Relative paths in the file (field
-source, model checkpoint) are relative to the YAML file's directory.
+source, model checkpoint) are relative to the YAML file's directory, not the working directory; the
+validated config holds them absolute, and so does the copy a run directory keeps
+(:func:`recorded_mission_text`).
 """
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
@@ -63,6 +66,7 @@ from passt_mav.reconstruction.background import background_steps_problem
 
 __all__ = [
     "mission_overrides",
+    "recorded_mission_text",
     "MissionConfig",
     "GeographicRegion",
     "MetricRegion",
@@ -114,6 +118,14 @@ class _Strict(BaseModel):
 def _base_dir(info: ValidationInfo) -> Path:
     ctx = info.context or {}
     return Path(ctx.get("base_dir", "."))
+
+
+def _resolved_path(v: str, info: ValidationInfo) -> Path:
+    """The path ``v`` of a mission key made absolute: a relative one is taken from the mission file's folder
+    (the validation's ``base_dir``), not the working directory, so the config (and every record of it: the run
+    directory's ``mission.yaml``, ``summary.json``'s ``config``) names a file that resolves from anywhere."""
+    p = Path(v)
+    return Path(os.path.abspath(p if p.is_absolute() else _base_dir(info) / p))
 
 
 class GeographicRegion(_Strict):
@@ -261,8 +273,7 @@ class FieldConfig(_Strict):
             raise ValueError(
                 "must be builtin:ocean, builtin:cylinder, builtin:oscillating, builtin:rtofs or a path to a .nc file"
             )
-        p = Path(v)
-        p = p if p.is_absolute() else _base_dir(info) / p
+        p = _resolved_path(v, info)
         if not p.exists():
             raise ValueError(f"field file not found: {p}")
         return str(p)
@@ -611,8 +622,7 @@ class MissionConfig(_Strict):
                 )
             return f"builtin:{name}"
         if v.endswith((".pt", ".pth")):
-            p = Path(v)
-            p = p if p.is_absolute() else _base_dir(info) / p
+            p = _resolved_path(v, info)
             if not p.exists():
                 raise ValueError(f"model checkpoint not found: {p}")
             return str(p)
@@ -885,6 +895,30 @@ def load_mission(path: str | Path) -> MissionConfig:
         raise MissionConfigError(f"{p}: nested too deep for a mission file") from None
 
 
+def recorded_mission_text(text: str, config: MissionConfig) -> str:
+    """The text of a mission file as a run directory keeps it (``mission.yaml``): ``text`` unchanged when its
+    paths (``field.source``, a ``.pt``/``.pth`` ``model``) are ``builtin:`` or already as ``config`` resolved
+    them (absolute); else the mission's mapping with those paths replaced by ``config``'s absolute ones (a YAML
+    dump: comments are not kept), so that ``replay RUN_DIR`` and ``report`` find the files from any working
+    directory. ``text`` must be the mission ``config`` was validated from."""
+    import yaml
+
+    data = yaml.load(text, Loader=_mission_loader())  # noqa: S506 - a SafeLoader (refusing more)
+    if not isinstance(data, dict):
+        return text
+    changed = False
+    field = data.get("field")
+    source = field.get("source") if isinstance(field, dict) else field
+    if isinstance(source, str) and config.field.builtin is None and source != config.field.source:
+        data["field"] = {**field, "source": config.field.source} if isinstance(field, dict) else config.field.source
+        changed = True
+    model = data.get("model")
+    if isinstance(model, str) and model.endswith((".pt", ".pth")) and model != config.model:
+        data["model"] = config.model
+        changed = True
+    return yaml.safe_dump(data, sort_keys=False) if changed else text
+
+
 def mission_overrides(data: dict, overrides: dict) -> dict:
     """A copy of a mission mapping with dotted-key overrides (``{"planner.path_length": 6}``)."""
     import copy
@@ -893,7 +927,11 @@ def mission_overrides(data: dict, overrides: dict) -> dict:
     for key, val in overrides.items():
         cur = out
         parts = key.split(".")
-        for p in parts[:-1]:
-            cur = cur.setdefault(p, {})
+        for i, p in enumerate(parts):
+            if not isinstance(cur, dict):  # a dotted key through a value that holds no keys (a name, a list)
+                where = ".".join(parts[:i])
+                raise MissionConfigError(f"{key}: {where} is not a mapping of keys (got {_short(cur)})")
+            if i < len(parts) - 1:
+                cur = cur.setdefault(p, {})
         cur[parts[-1]] = val
     return out

@@ -86,6 +86,8 @@ def make_predictor(name: str, **kw: Any) -> Predictor:
 
 def _paths(path: str | Path) -> tuple[Path, Path]:
     p = Path(path)
+    if not p.name:  # '' or '/': a folder, no file name to add .pt / .json to
+        raise ModelError(f"{str(path)!r} is no checkpoint path (a checkpoint is PATH.pt + PATH.json)")
     if p.suffix in (".pt", ".json"):
         p = p.with_suffix("")
     return p.with_name(p.name + ".pt"), p.with_name(p.name + ".json")

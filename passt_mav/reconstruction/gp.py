@@ -52,8 +52,9 @@ effect as micro-scale variation plus measurement error.)
 
 The map's std (``std_calibration="forward"``, the default): the posterior std of the residual is the
 GP correction's; the map's also carries the forecast's error that the samples cannot remove. With a
-background, :data:`BACKGROUND_UNRESOLVED` of its variance stays; and the std is widened when the leg's
-own later samples fall outside it more often than it says, or when the residuals grow over the leg
+background, a share of its variance stays (``unresolved_share``, estimated from the leg's own held-out
+samples: :func:`unresolved_share`); and the std is widened when the leg's own later samples fall outside
+it more often than it says, or when the residuals grow over the leg
 (:meth:`GPReconstructor.forward_std_factor`, :func:`lead_growth`). Checked against the truth by
 :mod:`passt_mav.models.calibration` wherever the truth is known.
 
@@ -68,7 +69,7 @@ from passt_mav.errors import ReconstructionError
 from passt_mav.reconstruction import lowrank
 from passt_mav.reconstruction.kernels import CrossCovCache, base_kernel, evidence_gate, fit_on_field
 
-__all__ = ["MAX_FIT_POINTS", "GPReconstructor"]
+__all__ = ["MAX_FIT_POINTS", "GPReconstructor", "unresolved_share"]
 
 _PRIORS = ("forecast", "none")
 _KERNELS = ("matern32", "matern52", "rbf")
@@ -81,13 +82,6 @@ STD_HOLDOUT = 1.0 / 3.0
 STD_CHECK_MIN_SAMPLES = 12
 #: the most the std is widened by
 STD_INFLATION_MAX = 5.0
-#: the share of the background covariance's variance (factor x diag B, per cell) that stays in the map's
-#: std whatever the samples say: the modes are the model roll-out's variability, not the error's own
-#: structure, so samples that pin the modes' amplitudes leave an error off the modes' span (representation
-#: error) that the posterior would otherwise drop everywhere at once. Chosen on the default demo's legs
-#: (docs/trust-the-map.md, "A map that says how wrong it is"): without it two of five legs' 95 % intervals
-#: held 0.89 of the truth, with 0.25 0.93-0.96; 0.5 and above over-cover a leg whose factor is large
-BACKGROUND_UNRESOLVED = 0.25
 #: samples a hyper-parameter fit sees at most by default (``max_fit_points``; evenly spread along the track)
 MAX_FIT_POINTS = 60
 #: time length scales a space-time fit tries on its leg's own later samples besides the fitted one, in
@@ -122,6 +116,31 @@ def lead_growth(t, sq, t_map: float) -> float:
         return 1.0
     at_map = a + b * (float(t_map) - float(t.min()))
     return float(max(at_map / mean_fit, 1.0))
+
+
+def unresolved_share(err, post_var, bvar) -> float | None:
+    """The share of the background's variance that a map's std should keep, estimated from samples the map
+    had not seen (a method-of-moments estimate; ``None`` when nothing can be said).
+
+    ``err`` (n, 2): held-out samples minus the map's prediction at them (m/s, east/north; u and v);
+    ``post_var`` (n, 2): the GP posterior's variance there, without any background share ((m/s)^2; the
+    sensor noise included: the variance of one sample); ``bvar`` (n, 2): the background's variance there
+    (factor x diag B, (m/s)^2).
+
+    If the map's std were right with a share ``s``, ``E[err^2] = post_var + s bvar``: solved for ``s``
+    over all valid (sample, component) pairs at once (a ratio of sums: one cell's ``bvar`` can be ~0) and
+    clipped to [0, 1]. Below 0 the posterior was already wide enough there (nothing here narrows a std);
+    above 1 more than the background's whole variance went missing, which the forward check's factor
+    widens. By hand rather than by a likelihood: one number from a few dozen samples, and the moment
+    ratio is unbiased in the variance with no search to tune."""
+    e = np.asarray(err, np.float64).reshape(-1, 2)
+    pv = np.asarray(post_var, np.float64).reshape(-1, 2)
+    bv = np.asarray(bvar, np.float64).reshape(-1, 2)
+    ok = np.isfinite(e) & np.isfinite(pv) & np.isfinite(bv) & (bv >= 0)
+    den = float(np.sum(bv[ok]))
+    if not ok.any() or den <= 0:
+        return None
+    return float(np.clip((np.sum(e[ok] ** 2) - np.sum(pv[ok])) / den, 0.0, 1.0))
 
 
 class GPReconstructor:
@@ -188,14 +207,22 @@ class GPReconstructor:
         nugget: "state" (default) or "noise": what the fitted white variance above the sensor's
             ``noise_std**2`` is (see the module docstring).
         std_calibration: "forward" (default) or "off": the std :meth:`reconstruct` returns is the map's
-            (with a background, :data:`BACKGROUND_UNRESOLVED` of its variance kept; widened when the leg's
+            (with a background, ``unresolved_share`` of its variance kept; widened when the leg's
             later samples fall outside it more often than it says, or its residuals grow over the leg:
             :meth:`forward_std_factor`), or "off" the GP posterior's alone.
+        unresolved_share: with a background and ``std_calibration="forward"``, the share of the
+            background's variance (factor x diag B, per cell) that stays in the map's std whatever the
+            samples say: the modes are the model roll-out's variability, not the error's own structure, so
+            samples that pin the modes' amplitudes leave an error off their span that the posterior would
+            otherwise drop everywhere at once. "estimate" (default): estimated on every reconstruction from
+            the leg's own held-out samples (:meth:`forward_std_factor`, :func:`unresolved_share`; the last
+            estimate, or 0 before any, when the check cannot run); or a number in [0, 1] held fixed.
 
     Learned state: ``kernels_`` (fitted kernel per component), ``nugget_var_`` (per component, the
     state part of the white variance: field units^2, 0 = none), ``cell_m_``,
     ``n_inputs_`` (2 = space, 3 = space-time), ``std_inflation_`` (the factor the last std was
-    widened by, 1 = none; ``std_check_``: its record), ``background_scale_`` (the last factor chosen
+    widened by, 1 = none; ``std_check_``: its record), ``unresolved_share_`` (the last share estimated
+    with ``unresolved_share="estimate"``), ``background_scale_`` (the last factor chosen
     with a background and ``background_scale="ml"``), ``bias_var_`` (the last offset variance
     chosen with ``bias``; field units^2).
     """
@@ -222,8 +249,10 @@ class GPReconstructor:
         bias: bool = False,
         nugget: str = "state",
         std_calibration: str = "forward",
+        unresolved_share="estimate",
     ):
         self.grid_xy = grid_xy
+        self.unresolved_share = unresolved_share
         self.nugget = nugget
         self.std_calibration = std_calibration
         self.bias = bias
@@ -674,6 +703,8 @@ class GPReconstructor:
             raise ReconstructionError(
                 f"unknown GP std_calibration {cal!r}; choose one of {', '.join(_STD_CALIBRATIONS)}"
             )
+        if cal == "forward":
+            self.share_in_use()  # a bad unresolved_share fails here, before any work
         if with_std and cal == "forward":
             factor = self.forward_std_factor(
                 samples_xy,
@@ -687,14 +718,38 @@ class GPReconstructor:
         mean, std = self._reconstruct(
             samples_xy, samples_uv, forecast, forecast_at_samples, mask, samples_t, t, with_std
         )
-        if std is not None and cal == "forward" and self.background is not None and BACKGROUND_UNRESOLVED > 0:
-            X, _ = self.grid_coords()
-            Bg = self.background_modes(X.shape)
-            bvar = self.background_factor() * np.sum(Bg**2, axis=0).reshape((2,) + X.shape)
-            std = np.sqrt(np.square(std, dtype=np.float64) + BACKGROUND_UNRESOLVED * bvar).astype(np.float32)
-        if std is not None and factor != 1.0:
+        if std is not None and cal == "forward":
+            std = self._map_std(std, factor)
+        elif std is not None and factor != 1.0:
             std = (std * np.float32(factor)).astype(np.float32)
         return mean, std
+
+    def share_in_use(self) -> float:
+        """The share of the background's variance the map's std keeps (dimensionless, [0, 1]): the fixed
+        ``unresolved_share``, or with "estimate" the last :meth:`forward_std_factor` estimate (0 before one)."""
+        u = getattr(self, "unresolved_share", "estimate")
+        if u == "estimate":
+            return float(getattr(self, "unresolved_share_", 0.0))
+        try:
+            f = float(u)
+        except (TypeError, ValueError):
+            f = np.nan
+        if not 0.0 <= f <= 1.0:
+            raise ReconstructionError(f"unresolved_share must be 'estimate' or a number in [0, 1], got {u!r}")
+        return f
+
+    def _map_std(self, std, factor: float):
+        """The map's std (2, R, C) float32 (m/s) from the GP posterior's ``std``: with a background,
+        :meth:`share_in_use` of its variance added back (:meth:`background_var`), then times ``factor``."""
+        var = np.square(std, dtype=np.float64)
+        if self.background is not None:
+            var = var + self.share_in_use() * self.background_var().reshape(var.shape)
+        return (np.sqrt(var) * float(factor)).astype(np.float32)
+
+    def background_var(self) -> np.ndarray:
+        """(2, R*C) float64: the background's variance per component and cell, factor x diag B ((m/s)^2)."""
+        X, _ = self.grid_coords()
+        return self.background_factor() * np.sum(self.background_modes(X.shape) ** 2, axis=0)
 
     def forward_std_factor(
         self, samples_xy, samples_uv, forecast=None, *, forecast_at_samples=None, mask=None, samples_t=None, t=None
@@ -712,8 +767,10 @@ class GPReconstructor:
         a few dozen samples). With a forecast prior and sample times, the factor is at least the square root
         of :func:`lead_growth` (the residuals' variance growing over the leg, extrapolated to the map's time
         ``t``). At most :data:`STD_INFLATION_MAX`. Never reads the truth. 1 with fewer than
-        :data:`STD_CHECK_MIN_SAMPLES` valid samples or when the check cannot be computed. Records
-        ``std_inflation_`` and ``std_check_`` (``z_rms``, ``n`` held-out samples, ``lead_growth``)."""
+        :data:`STD_CHECK_MIN_SAMPLES` valid samples or when the check cannot be computed. With a background,
+        the same held-out errors first estimate the share of its variance the map keeps (``unresolved_share``,
+        :meth:`_held_out_factor`), and ``z_rms`` is taken with it. Records ``std_inflation_`` and ``std_check_``
+        (``z_rms``, ``n`` held-out samples, ``lead_growth``, with a background ``unresolved_share``)."""
         self.std_inflation_, self.std_check_ = 1.0, None
         X, Y = self.grid_coords()
         try:
@@ -738,16 +795,8 @@ class GPReconstructor:
             n_late = max(int(np.ceil(idx.size * STD_HOLDOUT)), 2)
             early, late = idx[:-n_late], idx[-n_late:]
             t_q = float(np.median(st[late])) if use_t else t
-            mean, std = self._reconstruct(
-                xy[early],
-                uv[early],
-                forecast,
-                None if fa is None else fa[early],
-                mask,
-                st[early] if use_t else None,
-                t_q,
-                True,
-            )
+            fa_early, st_early = None if fa is None else fa[early], st[early] if use_t else None
+            mean, std = self._reconstruct(xy[early], uv[early], forecast, fa_early, mask, st_early, t_q, True)
         except (ReconstructionError, np.linalg.LinAlgError, ValueError):
             return 1.0
         cells = self._nearest_cells(xy[late], X, Y)
@@ -757,15 +806,33 @@ class GPReconstructor:
         if self.prior == "forecast":  # residuals: the held-out samples against their own forecast
             pred = pred - fc.reshape(2, -1)[:, cells].T
             obs = obs - fa[late]
-        z = (obs - pred) / sd
-        z = z[np.isfinite(z) & (sd > 0)]
-        if z.size < 2:
-            return 1.0
-        zr = float(np.sqrt(np.mean(z**2)))
         growth = 1.0
         if self.prior == "forecast" and use_t:
             growth = lead_growth(st[idx], np.sum((uv[idx] - fa[idx]) ** 2, axis=1) / 2.0, float(t))
-        self.std_check_ = {"z_rms": zr, "n": int(n_late), "lead_growth": growth}
+        return self._held_out_factor(obs - pred, sd, cells, growth)
+
+    def _held_out_factor(self, err, sd, cells, growth: float) -> float:
+        """:meth:`forward_std_factor`'s verdict from the held-out errors ``err`` (n, 2; m/s), the posterior
+        std ``sd`` (n, 2; m/s) of the map made without them at their ``cells`` (n,) and the lead growth.
+        With a background and ``unresolved_share="estimate"``, first the share of the background's variance
+        those errors say the map should keep (:func:`unresolved_share`; set as ``unresolved_share_``),
+        taken into their std before ``z_rms`` (the factor then widens only what the share did not cover)."""
+        var = sd**2
+        if self.background is not None:
+            bvar = self.background_var()[:, cells].T
+            if getattr(self, "unresolved_share", "estimate") == "estimate":
+                share = unresolved_share(err, var, bvar)
+                if share is not None:
+                    self.unresolved_share_ = share
+            var = var + self.share_in_use() * bvar
+        z = err / np.sqrt(var)
+        z = z[np.isfinite(z) & (var > 0)]
+        if z.size < 2:
+            return 1.0
+        zr = float(np.sqrt(np.mean(z**2)))
+        self.std_check_ = {"z_rms": zr, "n": int(len(cells)), "lead_growth": growth}
+        if self.background is not None:
+            self.std_check_["unresolved_share"] = self.share_in_use()
         self.std_inflation_ = float(min(max(zr, np.sqrt(growth), 1.0), STD_INFLATION_MAX))
         return self.std_inflation_
 

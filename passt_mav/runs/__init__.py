@@ -1,6 +1,8 @@
 """Runs, the storage layer: the run directory, the crash-safe sample store and the log readers.
 
 * :class:`RunDir` (``rundir``): the layout of a run directory on disk.
+* :class:`RunRecords` (``records``): its records (``summary.json``, ``leg.json``, ``events.jsonl``) read
+  through their schema, the one reader that the report, exports, live view and replay share.
 * :class:`SampleStore` (``store``): SQLite (WAL) store of current samples.
 * :func:`read_tlog`, :func:`read_dataflash` (``tlog``): rebuild samples, track,
   uploads and legs from MAVLink ``.tlog`` / ArduPilot ``.bin`` logs.
@@ -19,10 +21,11 @@ Submodules are imported on demand: ``import passt_mav.runs`` stays light.
 
 from __future__ import annotations
 
-__all__ = ["RunDir", "SampleStore", "Sample", "read_tlog", "read_dataflash"]
+__all__ = ["RunDir", "RunRecords", "SampleStore", "Sample", "read_tlog", "read_dataflash"]
 
 _WHERE = {
     "RunDir": "rundir",
+    "RunRecords": "records",
     "SampleStore": "store",
     "Sample": "store",
     "read_tlog": "tlog",

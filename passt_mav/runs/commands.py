@@ -17,10 +17,12 @@ Appended under an exclusive ``flock`` and flushed per line, so a reader never se
 
 from __future__ import annotations
 
+import collections
 import datetime as _dt
 import json
 import logging
 import secrets
+from collections.abc import Iterator
 from pathlib import Path
 
 __all__ = [
@@ -127,6 +129,7 @@ class CommandReader:
     def __init__(self, root: str | Path, boat: int = 0, *, skip_existing: bool = True):
         self.root, self.boat = Path(root), int(boat)
         self.offset = 0
+        self._queue: collections.deque[dict] = collections.deque()  # read, not yet taken (:meth:`take`)
         if skip_existing:
             try:
                 self.offset = (self.root / COMMANDS).stat().st_size
@@ -134,9 +137,22 @@ class CommandReader:
                 self.offset = 0
 
     def poll(self) -> list[dict]:
-        """The commands for this boat that arrived since the last call, oldest first."""
+        """The commands for this boat that arrived since the last call, oldest first (those :meth:`take` left
+        queued first)."""
         new, self.offset = read_commands(self.root, self.offset)
-        return [c for c in new if c.get("boat") in (self.boat, "all")]
+        out = [*self._queue, *(c for c in new if c.get("boat") in (self.boat, "all"))]
+        self._queue.clear()
+        return out
+
+    def take(self) -> Iterator[dict]:
+        """This boat's commands, oldest first, one at a time: those that arrived since the last read join the
+        queue, and one leaves it only when the caller asks for the next. A caller that stops early (to carry
+        out a Pause and wait in it, or to end the leg) leaves the rest queued for the next wait, so every
+        command is taken in the order given: a Resume sent right after its Pause resumes that Pause."""
+        new, self.offset = read_commands(self.root, self.offset)
+        self._queue.extend(c for c in new if c.get("boat") in (self.boat, "all"))
+        while self._queue:
+            yield self._queue.popleft()
 
 
 #: console keys (approve mode) -> the command they send

@@ -36,7 +36,10 @@ MAVLink stamp of the same event):
 A leg opens at a change to AUTO that follows a mission upload (anchored at its ``New
 mission``; in a log begun after the upload, at AUTO) and closes at the next
 GCS-commanded change away from AUTO (``Rsn`` 2): as in the tlog, where a leg ends at
-the GCS's next mode command and a pilot's RC takeover does not end it. Samples
+the GCS's next mode command and a pilot's RC takeover does not end it. The operator's
+Pause is no end: between the controller's marks ``PASST leg I pause`` and ``PASST leg I
+resume`` (MSG, :func:`~passt_mav.runs.legs.leg_statustext`) the GCS's mode changes do not
+close the leg; a pause that ends the leg closes it at the mark ``PASST leg I end``. Samples
 (:func:`~passt_mav.runs.tlog.read_dataflash`: an NVF CUR_U paired with the CUR_V and
 placed on the track by interpolating between the positions around it, at most
 ``max_gap_ms`` apart: :mod:`passt_mav.loop.measurement`, the live collector's rules) belong to the leg
@@ -64,10 +67,10 @@ from __future__ import annotations
 import bisect
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 from passt_mav.loop.measurement import RULES
-from passt_mav.runs.legs import LoggedLeg, LogRebuild, parse_clock_statustext
+from passt_mav.runs.legs import LoggedLeg, LogRebuild, parse_clock_statustext, parse_leg_statustext
 from passt_mav.runs.tlog import LogReadError, read_dataflash
 
 __all__ = ["DataflashLeg", "rebuild_from_dataflash"]
@@ -181,6 +184,7 @@ class _DataflashLegs:
         self.boots: list[int] = []
         self.fresh = False  # a mission block since the last leg opened
         self.text = ""  # the last MSG
+        self.paused = False  # the flying leg is paused by the operator (its "pause" mark, no "resume" yet)
 
     @property
     def boot(self) -> int:
@@ -214,6 +218,10 @@ class _DataflashLegs:
         """A text: the controller's clock reading, a mission upload, a waypoint reached, the mission's end."""
         prev_text, self.text = self.text, str(getattr(m, "Message", "") or "")
         text, cur = self.text, self.cur
+        mark = parse_leg_statustext(text)
+        if mark is not None:
+            self._mark(t_ms, mark[1])
+            return
         parsed = parse_clock_statustext(text)
         if parsed is not None:
             self.boots.append(parsed[2])
@@ -235,6 +243,26 @@ class _DataflashLegs:
                 pass
         elif cur is not None and text == "Mission Complete" and cur.complete_ms is None:
             cur.complete_ms = t_ms
+
+    def _mark(self, t_ms: int, mark: str) -> None:
+        """The controller's mark of the flying leg (:func:`~passt_mav.runs.legs.leg_statustext`): ``pause`` makes
+        the GCS's mode changes that follow no end of it, until ``resume``; ``end`` inside a pause ends it here
+        (outside one the GCS's mode change right after it does, as in logs without marks)."""
+        cur = self.cur
+        if cur is None:
+            return
+        cur.marks.append((mark, t_ms))
+        if mark == "end" and self.paused:
+            self._end(t_ms)
+        elif mark != "end":
+            self.paused = mark == "pause"
+
+    def _end(self, t_ms: int) -> None:
+        """The flying leg ends at ``t_ms`` (ms since boot)."""
+        assert self.cur is not None  # (called only while a leg flies)
+        self.cur.closed, self.cur.t_end_ms = True, t_ms
+        self.cur, self.paused = None, False
+        self.t_lo = t_ms
 
     def _cmd(self, m) -> None:
         """A mission item of the block being read (once per ``CNum``)."""
@@ -269,14 +297,13 @@ class _DataflashLegs:
             self._open_pending(t_ms)
         if new == _AUTO and self.cur is None and self.pending is not None:
             self._start(t_ms)
-        elif new != _AUTO and self.cur is not None and rsn == _GCS_COMMAND:
-            self.cur.closed, self.cur.t_end_ms = True, t_ms
-            self.cur = None
-            self.t_lo = t_ms
+        elif new != _AUTO and self.cur is not None and rsn == _GCS_COMMAND and not self.paused:
+            self._end(t_ms)
 
     def _start(self, t_ms: int) -> None:
         """The pending leg starts flying at ``t_ms``: its waypoints are the last mission block's."""
         cur, self.pending, self.fresh = self.pending, None, False
+        assert cur is not None  # (called only with a leg pending)
         self.cur = cur
         cur.t_auto_ms = t_ms
         if cur.start_latlon is None:
@@ -289,18 +316,18 @@ class _DataflashLegs:
 
 def _place_samples(legs: list[DataflashLeg], tl, boot: int) -> int:
     """Count each leg's readings and give it the samples in its [AUTO, end) span; the samples outside any leg."""
-    starts = [lg.t_auto_ms for lg in legs]
+    starts = cast("list[int]", [lg.t_auto_ms for lg in legs])  # every leg here flew: _start set its AUTO time
 
     def leg_at(tb: int) -> DataflashLeg | None:
         i = bisect.bisect_right(starts, tb) - 1
         lg = legs[i] if i >= 0 else None
         return None if lg is None or (lg.t_end_ms is not None and tb >= lg.t_end_ms) else lg
 
-    for lg in legs:
-        lg.n_readings = 0
+    for leg in legs:
+        leg.n_readings = 0
     for tb in tl.reading_times:
         if (lg := leg_at(tb)) is not None:
-            lg.n_readings += 1
+            lg.n_readings = (lg.n_readings or 0) + 1  # (0 from the loop above)
     outside = 0
     for s in tl.samples:
         tb = int(s.time_boot_ms)

@@ -3,7 +3,9 @@
 Storage layer (below the controller): reads logs, imports neither the controller nor
 the analysis on top. :func:`rebuild_from_tlog` reads a MAVLink telemetry log
 (``.tlog``); a leg is the stretch between the GCS's switch to AUTO (after a mission
-upload) and its next mode command. :class:`LoggedLeg` is what
+upload) and the controller's mark of its end (:func:`leg_statustext`), else its next
+mode command that is not AUTO and not inside the operator's pause (the marks of a
+Pause and its Resume). :class:`LoggedLeg` is what
 :func:`passt_mav.analysis.replay.replay` feeds through the between-leg step
 (:class:`passt_mav.loop.legstep.LegStep`).
 """
@@ -16,11 +18,26 @@ from typing import Any
 
 from passt_mav.runs.tlog import LogReadError
 
-__all__ = ["LoggedLeg", "LogRebuild", "rebuild_from_tlog", "clock_statustext", "parse_clock_statustext"]
+__all__ = [
+    "LoggedLeg",
+    "LogRebuild",
+    "rebuild_from_tlog",
+    "clock_statustext",
+    "parse_clock_statustext",
+    "LEG_MARKS",
+    "leg_statustext",
+    "parse_leg_statustext",
+]
 
 _AUTO, _DO_SET_MODE, _MISSION_START = 10, 176, 300
 _NAV_WAYPOINT = 16
 _CLOCK_TEXT = "PASST leg {i} tb {tb} b {boot} k {k}"
+_MARK_TEXT = "PASST leg {i} {mark}"
+
+#: what the controller marks in the log while a leg flies (:func:`leg_statustext`): ``end`` (the controller's
+#: collector stopped giving readings to the leg), ``pause`` (the operator's Pause: the boat waits, the leg goes
+#: on), ``resume`` (the operator's Resume: AUTO again, confirmed)
+LEG_MARKS = ("end", "pause", "resume")
 
 
 def clock_statustext(i: int, tb_ms: int, boot: int, k: int) -> str:
@@ -46,6 +63,30 @@ def parse_clock_statustext(text: str) -> tuple[int, int, int, int] | None:
     return None if m is None else tuple(int(x) for x in m.groups())  # type: ignore[return-value]
 
 
+def leg_statustext(i: int, mark: str) -> str:
+    """The STATUSTEXT the controller sends (GCS -> vehicle) when leg ``i`` ends, pauses or resumes (``mark``, one of
+    :data:`LEG_MARKS`), so that the log tells a pause's wait from a leg's end.
+
+    ``end`` is sent at the moment the controller's collector stops giving readings to the leg, before the mode
+    command that makes the boat wait (both under the link's dispatch lock: no reading is logged between them);
+    ``pause`` before the Pause's mode command (the readings of the wait belong to the leg); ``resume`` once the
+    Resume's AUTO is confirmed. Logs of older controllers lack them: a leg then ends at the GCS's first mode
+    command other than AUTO. At most 50 characters (STATUSTEXT.text).
+    """
+    if mark not in LEG_MARKS:
+        raise ValueError(f"unknown leg mark {mark!r}; one of {', '.join(LEG_MARKS)}")
+    return _MARK_TEXT.format(i=int(i), mark=mark)
+
+
+def parse_leg_statustext(text: str) -> tuple[int, str] | None:
+    """``(leg, mark)`` from :func:`leg_statustext`'s text (any prefix, e.g. DataFlash's ``SRC=255/190:``), None
+    for any other text (the clock reading's included)."""
+    import re
+
+    m = re.search(r"PASST leg (\d+) (" + "|".join(LEG_MARKS) + r")\s*$", (text or "").rstrip("\x00"))
+    return None if m is None else (int(m.group(1)), m.group(2))
+
+
 @dataclass
 class LoggedLeg:
     """One leg as the log shows it.
@@ -61,7 +102,10 @@ class LoggedLeg:
     ``n_readings``: the u/v readings of the leg, ``len(samples)`` of which the track placed;
     ``clock``: ``(time_boot_ms, boot, k)`` the controller planned from, read from its
     :func:`clock_statustext` (None in logs of controllers that did not send it: then only the
-    bracket ``t_lo_ms``..``t_now_ms`` is known).
+    bracket ``t_lo_ms``..``t_now_ms`` is known);
+    ``marks``: the controller's :func:`leg_statustext` marks while the leg flew, in order, as ``(mark, time_boot_ms)``
+    (the vehicle's newest ``time_boot_ms`` then, ms; None before any): a ``pause`` ... ``resume`` is a wait inside
+    the leg, the ``end`` its end (empty in logs of controllers that did not send them).
     """
 
     index: int
@@ -74,6 +118,7 @@ class LoggedLeg:
     clock: tuple[int, int, int] | None = None
     planned_index: int | None = None  # the controller's leg number (a fleet numbers legs across boats)
     n_readings: int | None = None  # u/v readings in the leg, placed or not (len(samples) were placed); None: unknown
+    marks: list[tuple[str, int | None]] = field(default_factory=list)
 
 
 @dataclass
@@ -129,6 +174,7 @@ class _TlogLegs:
         self.clock: tuple[int, int, int] | None = None  # the clock STATUSTEXT not yet given to a leg
         self.clock_leg: int | None = None  # the controller's leg number in it
         self.readings_seen: set[tuple[int, int, int, int]] = set()  # clock STATUSTEXTs read so far
+        self.paused = False  # the flying leg is paused by the operator (its "pause" mark, no "resume" yet)
         self.outside = 0  # samples outside any leg
         self.collector = SampleCollector(self._on_sample, u_name=u_name, v_name=v_name)
 
@@ -174,8 +220,14 @@ class _TlogLegs:
             self.pos = (m.lat * 1e-7, m.lon * 1e-7)
 
     def _statustext(self, m) -> None:
-        """The controller's clock reading (:func:`clock_statustext`), sent before it plans a leg."""
-        parsed = parse_clock_statustext(m.text if isinstance(m.text, str) else m.text.decode(errors="replace"))
+        """The controller's clock reading (:func:`clock_statustext`), sent before it plans a leg, or its mark of
+        the flying leg's end, pause or resume (:func:`leg_statustext`)."""
+        text = m.text if isinstance(m.text, str) else m.text.decode(errors="replace")
+        mark = parse_leg_statustext(text)
+        if mark is not None:
+            self._mark(mark[1])
+            return
+        parsed = parse_clock_statustext(text)
         if parsed is not None and parsed not in self.readings_seen:  # (sent again at arming: the same one)
             self.readings_seen.add(parsed)
             # the boot as the controller numbered it when it read its clock, just now: a resumed controller
@@ -191,6 +243,17 @@ class _TlogLegs:
             self.clock, self.clock_leg = parsed[1:], parsed[0]
             if self.pending is not None:
                 self.pending.clock, self.pending.planned_index = parsed[1:], parsed[0]
+
+    def _mark(self, mark: str) -> None:
+        """The controller's mark of the flying leg: ``end`` ends it here (where the controller's collector stopped
+        giving it readings); ``pause`` makes the mode commands that follow no end of it, until ``resume``."""
+        if self.cur is None:
+            return  # (a leg the log did not open, or one already ended)
+        self.cur.marks.append((mark, self.tb))
+        if mark == "end":
+            self._end_leg()
+        else:
+            self.paused = mark == "pause"
 
     def _mission_count(self, m) -> None:
         """An upload begins; the first of a new leg opens it with the position and time it was planned from."""
@@ -223,13 +286,14 @@ class _TlogLegs:
             self.legs.append(leg)
             self.cur, self.pending = leg, None
             self.collector.leg = leg.index
-        elif mode != _AUTO and self.cur is not None:
+        elif mode != _AUTO and self.cur is not None and not self.paused:
             self._end_leg()
 
     def _end_leg(self) -> None:
         """The flying leg ends (a mode command other than AUTO, or the next controller's clock reading)."""
+        assert self.cur is not None  # (called only while a leg flies)
         self.cur.closed = True
-        self.cur = None
+        self.cur, self.paused = None, False
         self.tb_lo = self.tb
         self.collector.leg = None
 

@@ -3,8 +3,9 @@
 One :class:`RecordWriter` per run (a fleet's boats share it through :meth:`RecordWriter.for_boat`)
 writes, beside the run directory's other files::
 
-    ROOT/events.jsonl         append-only, one JSON object a line: utc (ISO-8601), field_time (None when
-                              the vehicle's clock is not known), boat, kind, level, text       EVENTS
+    ROOT/events.jsonl         append-only, one JSON object a line: schema_version, utc (ISO-8601),
+                              field_time (None when the vehicle's clock is not known), boat, kind,
+                              level, text (schema: passt_mav.runs.records.EventRecord)         EVENTS
     ROOT/live/meta.json       written once at start: grid, land mask, geofence margin, boats, legs,
                               the model's skill warning (anything the page needs that no other file has)
     ROOT/live/boat_K.json     boat K's status, rewritten atomically about once a second: lat, lon,
@@ -25,6 +26,8 @@ import threading
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
+
+from passt_mav.runs.rundir import SCHEMA_VERSION
 
 __all__ = ["RecordWriter", "KINDS", "EVENTS", "read_events", "read_jsonl", "read_statuses"]
 
@@ -76,7 +79,7 @@ class RecordWriter:
         self.root = Path(root)
         self.boat = int(boat)
         self.field_time: Callable[[], float | None] = lambda: None
-        self._shared = _shared if _shared is not None else {"lock": threading.Lock()}
+        self._shared: dict[str, Any] = _shared if _shared is not None else {"lock": threading.Lock()}
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
 
@@ -86,10 +89,17 @@ class RecordWriter:
 
     # -- files -----------------------------------------------------------------------------------
     def _guard(self, what: str, fn: Callable[[], Any]) -> None:
+        failed = self._shared.setdefault("failed", set())  # files the machine refused (a full disk): said once
         try:
             fn()
+        except OSError as exc:  # the machine's fault, not the code's: one line, once, until a write succeeds
+            if what not in failed:
+                failed.add(what)
+                log.warning("live view: could not write %s (%s); the mission goes on", what, exc.strerror or exc)
         except Exception:  # noqa: BLE001 - the view's files must never stop a mission
             log.warning("live view: could not write %s", what, exc_info=True)
+        else:
+            failed.discard(what)
 
     def meta(self, info: dict[str, Any]) -> None:
         """``live/meta.json`` (atomic)."""
@@ -109,6 +119,7 @@ class RecordWriter:
             except Exception:  # noqa: BLE001 - a clock not ready yet
                 t = None
             rec = {
+                "schema_version": SCHEMA_VERSION,
                 "utc": _utc_now(),
                 "field_time": t,
                 "boat": self.boat if boat is None else int(boat),

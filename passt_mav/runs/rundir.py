@@ -33,6 +33,9 @@ Layout (``RunDir(root)``)::
 [...]}`` (field time; None = not evaluated) and ``pod`` ``{"truth"|"passt"|"model":
 [cumulative energy fraction of modes 1..k]}``.
 
+``leg.json`` and ``summary.json`` carry ``schema_version`` (:data:`SCHEMA_VERSION`); their schema, and the
+one reader of a run's records, is :mod:`passt_mav.runs.records`.
+
 JSON files are written atomically (temporary file, fsync, rename): a crash
 leaves either the old or the new file, never half of one.
 """
@@ -48,7 +51,11 @@ from typing import Any
 
 from passt_mav.errors import UserError
 
-__all__ = ["RunDir", "RunDirError", "write_json_atomic"]
+__all__ = ["RunDir", "RunDirError", "SCHEMA_VERSION", "read_json", "write_json_atomic"]
+
+#: the version of the record schema (:mod:`passt_mav.runs.records`) the writers follow: every leg.json,
+#: summary.json and events.jsonl line carries it as ``schema_version``
+SCHEMA_VERSION = 1
 
 
 class RunDirError(UserError):
@@ -76,6 +83,12 @@ def write_json_atomic(path: str | Path, obj: Any) -> Path:
     return path
 
 
+def _versioned(record: dict[str, Any]) -> dict[str, Any]:
+    """A copy of ``record`` whose first key is ``schema_version`` (:data:`SCHEMA_VERSION`): what the writer follows
+    now, whatever the record held before."""
+    return {"schema_version": SCHEMA_VERSION, **{k: v for k, v in record.items() if k != "schema_version"}}
+
+
 def _json_default(x: Any) -> Any:
     # numpy scalars and arrays appear in leg records; convert without importing numpy here
     if hasattr(x, "tolist"):
@@ -85,7 +98,8 @@ def _json_default(x: Any) -> Any:
     raise TypeError(f"{type(x).__name__} is not JSON serialisable")
 
 
-def _read_json(path: Path) -> Any:
+def read_json(path: Path) -> Any:
+    """The JSON value in ``path``; :class:`RunDirError` when it is missing, unreadable or not JSON."""
     try:
         return json.loads(path.read_text())
     except FileNotFoundError:
@@ -230,9 +244,10 @@ class RunDir:
         return self.leg_dir(i, create=False) / "timings.json"
 
     def write_leg(self, i: int, record: dict[str, Any]) -> Path:
-        """Write the leg record ``legs/NNN/leg.json`` (atomic); also ``path.json`` if it has a ``path``."""
+        """Write the leg record ``legs/NNN/leg.json`` (atomic, with ``schema_version``); also ``path.json`` if it
+        has a ``path``."""
         d = self.leg_dir(i)
-        rec = dict(record)
+        rec = _versioned(record)
         rec.setdefault("index", int(i))
         if "path" in rec:
             write_json_atomic(d / "path.json", rec["path"])
@@ -240,7 +255,7 @@ class RunDir:
 
     def read_leg(self, i: int) -> dict[str, Any]:
         """The leg record of leg ``i`` (raises :class:`RunDirError` if absent or invalid)."""
-        rec = _read_json(self.leg_file(i))
+        rec = read_json(self.leg_file(i))
         if not isinstance(rec, dict):
             raise RunDirError(f"{self.leg_file(i)} does not hold a leg record (a JSON object)")
         return rec
@@ -254,13 +269,13 @@ class RunDir:
 
     # -- summary -----------------------------------------------------------------------
     def write_summary(self, summary: dict[str, Any]) -> Path:
-        """Write ``summary.json`` atomically."""
+        """Write ``summary.json`` atomically, with ``schema_version``."""
         self.root.mkdir(parents=True, exist_ok=True)
-        return write_json_atomic(self.summary_file, summary)
+        return write_json_atomic(self.summary_file, _versioned(summary))
 
     def read_summary(self) -> dict[str, Any]:
         """``summary.json`` as a dict (raises :class:`RunDirError` if absent or not a JSON object)."""
-        s = _read_json(self.summary_file)
+        s = read_json(self.summary_file)
         if not isinstance(s, dict):
             raise RunDirError(f"{self.summary_file} does not hold a JSON object")
         return s

@@ -38,11 +38,23 @@ or a store written before the column existed).
 Schema versions (``PRAGMA user_version``): 1 without ``gap_ms``; 2 adds it. A version-1
 store opened for writing gets the column (``ALTER TABLE ... ADD COLUMN``, NULL in the
 old rows); opened read-only it reads ``gap_ms`` as None. Old run folders keep opening.
+
+The machine's faults: a full disk, a file system made read-only, the file removed or replaced under the
+controller. Each write first checks the file (:meth:`SampleStore.check_file`: the same inode at the path, the
+file system writable with some room left) and a failed write is raised as :class:`StoreUnwritable`, whose
+``reason`` says what failed in a few words and the path (``disk full: /run/x/samples.sqlite``): a writer keeps
+the readings elsewhere and the controller stops the run (:mod:`passt_mav.runs.store_guard`). The file is read
+with ``mmap_size=0`` (read() calls, no memory map of the database: a file that shrinks or vanishes under a map
+kills the process with SIGBUS); WAL's small index file (``-shm``) stays mapped, it is what lets a report read
+while the controller writes, and the check before each write keeps it from growing on a read-only or full disk.
 """
 
 from __future__ import annotations
 
+import errno
+import logging
 import math
+import os
 import sqlite3
 import threading
 from collections.abc import Iterable, Mapping
@@ -52,11 +64,61 @@ from typing import Any, Self
 
 from passt_mav.errors import UserError
 
-__all__ = ["Sample", "SampleStore", "SampleStoreError"]
+log = logging.getLogger(__name__)
+
+__all__ = ["Sample", "SampleStore", "SampleStoreError", "StoreUnwritable", "write_fault"]
+
+#: a write is refused (as a full disk) when less than this many bytes are free on the store's file system
+MIN_FREE_BYTES = 256 * 1024
 
 
 class SampleStoreError(UserError):
     """The sample store file cannot be opened or is not a sample store."""
+
+
+class StoreUnwritable(SampleStoreError):
+    """The machine refuses the store's writes (disk full, read-only, the file removed or replaced): ``reason``,
+    one line naming what failed and the path, e.g. ``disk full: /run/x/samples.sqlite``."""
+
+    def __init__(self, reason: str):
+        super().__init__(reason)
+        self.reason = reason
+
+
+#: errno of a failed write -> what failed, in the words of :class:`StoreUnwritable`'s reason
+_ERRNO_WHAT = {
+    errno.ENOSPC: "disk full",
+    errno.EDQUOT: "disk quota exceeded",
+    errno.EROFS: "file system read-only",
+    errno.EACCES: "store not writable",
+    errno.EPERM: "store not writable",
+    errno.ENOENT: "store removed",
+    errno.EIO: "disk I/O error",
+}
+
+
+def write_fault(exc: BaseException, path: str | Path) -> str:
+    """One line of what failed, from a write's OSError or sqlite3.Error on ``path`` (``disk full: PATH``)."""
+    return f"{_fault_what(exc)}: {path}"
+
+
+def _fault_what(exc: BaseException) -> str:
+    if isinstance(exc, StoreUnwritable):
+        return exc.reason.rsplit(": ", 1)[0]
+    if isinstance(exc, OSError) and exc.errno in _ERRNO_WHAT:
+        return _ERRNO_WHAT[exc.errno]
+    text = str(exc).lower()
+    for key, what in (
+        ("full", "disk full"),
+        ("readonly", "store read-only"),
+        ("read-only", "store read-only"),
+        ("i/o", "disk I/O error"),
+        ("malformed", "store damaged"),
+        ("not a database", "store damaged"),
+    ):
+        if key in text:
+            return what
+    return f"store write failed ({type(exc).__name__}: {exc})"
 
 
 @dataclass(frozen=True)
@@ -115,6 +177,15 @@ CREATE INDEX IF NOT EXISTS samples_leg ON samples (leg);
 _SCHEMA_VERSION = 2
 
 
+def _ident(path: Path) -> tuple[int, int] | None:
+    """(device, inode) of ``path``, None when nothing is there."""
+    try:
+        st = os.stat(path)
+    except OSError:
+        return None
+    return st.st_dev, st.st_ino
+
+
 def _row_values(s: Sample) -> tuple:
     for name in ("utc", "lat", "lon", "u", "v"):
         x = getattr(s, name)
@@ -159,6 +230,7 @@ class SampleStore:
                 self.path.parent.mkdir(parents=True, exist_ok=True)
                 # autocommit mode: every statement outside an explicit BEGIN is its own committed transaction
                 self._con = sqlite3.connect(str(self.path), check_same_thread=False, isolation_level=None, timeout=10.0)
+                self._con.execute("PRAGMA mmap_size=0")  # read(), no memory map: see the module docstring
                 self._con.execute("PRAGMA journal_mode=WAL")
                 self._con.execute("PRAGMA synchronous=FULL")
                 self._con.executescript(_SCHEMA)
@@ -171,6 +243,28 @@ class SampleStore:
             self._select_cols = ", ".join(c if c in have else f"NULL AS {c}" for c in _COLUMNS)
         except sqlite3.DatabaseError as exc:
             raise SampleStoreError(f"{self.path} is not a readable sample store: {exc}") from None
+        #: (device, inode) of the file opened for writing: :meth:`check_file` finds it removed or replaced
+        self._ident = None if readonly else _ident(self.path)
+
+    def check_file(self) -> None:
+        """Raise :class:`StoreUnwritable` when a write would fail or land nowhere: the file removed or replaced
+        (another inode at the path: the open connection would go on writing the old one), its file system
+        read-only, the file not writable, or less than :data:`MIN_FREE_BYTES` free."""
+        if self._ident is None:
+            return
+        now = _ident(self.path)
+        if now != self._ident:
+            raise StoreUnwritable(f"{'store removed' if now is None else 'store replaced'}: {self.path}")
+        try:
+            st = os.statvfs(self.path)
+        except OSError as exc:
+            raise StoreUnwritable(write_fault(exc, self.path)) from exc
+        if st.f_flag & os.ST_RDONLY:
+            raise StoreUnwritable(f"file system read-only: {self.path}")
+        if not os.access(self.path, os.W_OK):
+            raise StoreUnwritable(f"store not writable: {self.path}")
+        if st.f_blocks and st.f_bavail * st.f_frsize < MIN_FREE_BYTES:  # (f_blocks 0: a file system that tells none)
+            raise StoreUnwritable(f"disk full: {self.path} ({st.f_bavail * st.f_frsize // 1024} KiB free)")
 
     def _table_columns(self) -> set[str]:
         return {r[1] for r in self._con.execute("PRAGMA table_info(samples)").fetchall()}
@@ -202,9 +296,14 @@ class SampleStore:
                     rows,
                 )
                 self._execute("COMMIT")
-            except BaseException:
+            except BaseException as exc:
                 if self._con.in_transaction:
-                    self._con.execute("ROLLBACK")
+                    try:
+                        self._con.execute("ROLLBACK")
+                    except sqlite3.Error:  # (a full disk may refuse that too: the transaction is lost either way)
+                        log.debug("rollback after a failed write failed too")
+                if isinstance(exc, (OSError, sqlite3.OperationalError, sqlite3.DatabaseError)):
+                    raise StoreUnwritable(write_fault(exc, self.path)) from exc
                 raise
             return self._con.total_changes - before
 

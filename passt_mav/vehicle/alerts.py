@@ -18,7 +18,7 @@ taking over: :meth:`~passt_mav.vehicle.session.VehicleSession.pause`). Nothing h
 
 from __future__ import annotations
 
-import time
+from passt_mav.mavlink.clock import clock_of
 
 __all__ = ["VehicleAlerts", "REPEAT_S"]
 
@@ -29,10 +29,12 @@ _WORDS = ("failsafe", "fence", "breach")
 
 class VehicleAlerts:
     """Fence breaches and failsafes on ``link`` to the live view's events, through ``journal`` (a
-    :class:`~passt_mav.vehicle.session.Journal`). :meth:`attach` / :meth:`detach` start and stop listening."""
+    :class:`~passt_mav.vehicle.session.Journal`). :meth:`attach` / :meth:`detach` start and stop listening.
+    ``clock``: ``() -> wall s`` of the repeat window (default the link's clock's ``now``)."""
 
-    def __init__(self, link, journal, clock=time.monotonic):
-        self.link, self.journal, self.clock = link, journal, clock
+    def __init__(self, link, journal, clock=None):
+        self.link, self.journal = link, journal
+        self.clock = clock_of(link).now if clock is None else clock
         self._breach = 0  # the last FENCE_STATUS breach_status
         self._count = 0  # and its breach_count
         self._said: dict[str, float] = {}

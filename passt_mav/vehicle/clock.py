@@ -11,11 +11,15 @@ earlier sessions from the sample store and the old summary (:meth:`RunClock.resu
 from __future__ import annotations
 
 import datetime as _dt
-import time
+from typing import TYPE_CHECKING
 
 from passt_mav.errors import MavlinkError, UserError
 from passt_mav.loop.legstep import FieldClock, utc_epoch
 from passt_mav.loop.measurement import RULES
+from passt_mav.mavlink.clock import Timeout, wall_seconds
+
+if TYPE_CHECKING:
+    from passt_mav.mavlink.samples import SampleCollector
 
 __all__ = ["RunClock"]
 
@@ -42,7 +46,7 @@ class RunClock:
         self.fixed = False
         self.speedup = max(float(speedup), 1e-6)
         #: the SampleCollector counting this session's boots (set when it is attached)
-        self.collector = None
+        self.collector: SampleCollector | None = None
         # resume: samples of earlier sessions keep their boot numbers; this session's boots count from
         # boot_base (so a vehicle rebooted while we were away cannot reuse their keys), and
         # old_anchors holds t_boot0 of boots 0..boot_base-1 (from the old summary)
@@ -75,7 +79,7 @@ class RunClock:
         if origin is None:
             return "the field has no UTC time origin"
         # SYSTEM_TIME comes at 1 Hz of vehicle time by default (0.2 Hz in LEAN_STREAMS)
-        utc_boot = self._vehicle_utc_boot(max(1.0, 6.0 / self.speedup))
+        utc_boot = self._vehicle_utc_boot(wall_seconds(6.0, self.speedup, at_least=1.0))
         if utc_boot is None:
             return "the vehicle sends no UTC (SYSTEM_TIME time_unix_usec = 0)"
         t_boot0 = (utc_boot - utc_epoch(origin)) / scale
@@ -93,12 +97,12 @@ class RunClock:
 
     def _vehicle_utc_boot(self, timeout: float) -> float | None:
         """The vehicle's UTC at boot (SYSTEM_TIME ``time_unix_usec/1e6 - time_boot_ms/1e3``), None without one."""
-        end = time.monotonic() + timeout
+        deadline = Timeout(self.link.clock, timeout)
         while True:
             st = self.link.latest("SYSTEM_TIME")
             if st is not None and st.time_unix_usec > 0:
                 return st.time_unix_usec / 1e6 - st.time_boot_ms / 1e3
-            if time.monotonic() >= end:
+            if deadline.expired():
                 return None
             self.link.idle(0.02)
 

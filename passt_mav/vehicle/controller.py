@@ -100,7 +100,6 @@ from __future__ import annotations
 import logging
 import queue
 import threading
-import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
@@ -123,17 +122,20 @@ from passt_mav.loop.legstep import (  # noqa: F401 - the between-leg step's buil
     truth_at,
     utc_epoch,
 )
+from passt_mav.mavlink.clock import SYSTEM_CLOCK, Clock
 from passt_mav.runs.legs import clock_statustext
 from passt_mav.runs.live import RecordWriter
 from passt_mav.units import SpeedUnit, speed_unit
 from passt_mav.vehicle.clock import RunClock
-from passt_mav.vehicle.console import Ended
+from passt_mav.vehicle.flow import Ended, Paused, Replan, Stopped, utc_now
+from passt_mav.vehicle.leg_marks import close_leg
 from passt_mav.vehicle.live_record import live_meta, live_status
-from passt_mav.vehicle.operator import OperatorLegs, Replan
+from passt_mav.vehicle.machine_faults import machine_faults_record
+from passt_mav.vehicle.operator import OperatorLegs, place_held
 from passt_mav.vehicle.resume import ResumeRecord
 from passt_mav.vehicle.session import Deadline as _Deadline  # noqa: F401 - tests import it from here
-from passt_mav.vehicle.session import Journal, Paused, VehicleSession, expected_vehicle_s, utc_now
-from passt_mav.vehicle.signals import NO_SIGNALS, Stopped
+from passt_mav.vehicle.session import Journal, VehicleSession, expected_vehicle_s
+from passt_mav.vehicle.signals import NO_SIGNALS
 
 __all__ = [
     "FieldClock",
@@ -152,10 +154,15 @@ log = logging.getLogger(__name__)
 
 
 class StoreWriter:
-    """Appends samples to the store from a thread of its own: the link's reader thread only queues them."""
+    """Appends samples to the store from a thread of its own: the link's reader thread only queues them.
+    ``clock``: the wall clock :meth:`flush` waits on. A store the machine fails (disk full, read-only, removed)
+    is said by :attr:`guard` (:class:`~passt_mav.runs.store_guard.StoreGuard`), which keeps the readings."""
 
-    def __init__(self, store, grid):
-        self.store, self.grid = store, grid
+    def __init__(self, store, grid, clock: Clock = SYSTEM_CLOCK):
+        from passt_mav.runs.store_guard import StoreGuard
+
+        self.store, self.grid, self.clock = store, grid, clock
+        self.guard = StoreGuard(store)
         self.q: queue.Queue = queue.Queue()
         self.new = 0
         # samples queued and samples committed (or failed) so far: flush() waits for the second to reach the first
@@ -183,7 +190,7 @@ class StoreWriter:
                 except queue.Empty:
                     break
             try:
-                self.new += self.store.append_many([self._row(rec) for rec in batch])
+                self.new += self.guard.append_many([self._row(rec) for rec in batch])
             except Exception:  # noqa: BLE001 - a store failure must be seen, but must not kill the thread
                 log.exception("could not store %d samples", len(batch))
             with self._progress:
@@ -213,11 +220,11 @@ class StoreWriter:
         Samples queued meanwhile (a fleet's other boats) are not waited for: a time-based wait for an
         empty queue could return while the last batch was still being committed, and a leg absorbed
         its samples without that batch (its replay, reading the store later, then had more)."""
-        end = time.monotonic() + timeout
+        end = self.clock.now() + timeout
         with self._progress:
             target = self._queued
             while self._committed < target:
-                left = end - time.monotonic()
+                left = end - self.clock.now()
                 if left <= 0:
                     log.warning(
                         "sample store: %d samples not committed after %.1f s", target - self._committed, timeout
@@ -386,7 +393,7 @@ class MissionController(ResumeRecord, OperatorLegs):
         self.leg_records: list[dict] = []
         self.leg_rec: dict | None = None  # the record of the leg in flight
         self.status, self.started_utc = "running", utc_now()
-        self.store = self.collector = self.writer = None  # set by run()
+        self.store = self.collector = self.writer = None  # type: ignore[assignment]  # set by run() before any use
         self.record = parts.record or RecordWriter(run_dir.root)  # the live view's files (passt_mav.runs.live)
         self.journal = Journal(echo or (lambda s: None), self.record)
         self.run_clock = self._make_clock(field_time_at_boot)
@@ -485,7 +492,7 @@ class MissionController(ResumeRecord, OperatorLegs):
         if self.resume:
             self.run_clock.resume_boots(self.store.all(), (self._old_summary() or {}).get("clock") or {})
         self.record.meta(live_meta(self))
-        self._attach(StoreWriter(self.store, self.grid))
+        self._attach(StoreWriter(self.store, self.grid, self.link.clock))
         try:
             state, t_state, first = self._initial_state()
             self._say(
@@ -541,7 +548,7 @@ class MissionController(ResumeRecord, OperatorLegs):
 
     def _prepare_vehicle(self) -> None:
         """Wait for the EKF, choose the clock, set WP_RADIUS (put back by :meth:`_detach`)."""
-        self.session.wait_ready()
+        self.session.wait_ready(new_run=not self.resume)  # (a vehicle flying a mission already: refused)
         self.run_clock.choose()
         if self.config.vehicle.wp_radius_m > 0:
             # a Rover's acceptance radius is WP_RADIUS (it drops a waypoint's param2); put back at the end
@@ -564,7 +571,7 @@ class MissionController(ResumeRecord, OperatorLegs):
 
     def _safe_hold(self) -> None:
         """HOLD if in AUTO (never raises), the leg closed first (:func:`close_leg`)."""
-        close_leg(self.collector)
+        close_leg(self.collector, self.link)
         self.vehicle.keep_station_if_auto()
 
     # -- one leg: plan -> check -> upload (transactional) -> fly -> absorb ---------------------------
@@ -578,7 +585,7 @@ class MissionController(ResumeRecord, OperatorLegs):
             self._approve(i, rec, wm)
         link0, store0 = self.session.link_snapshot(), self.store.count(i)
         items = wm.items()
-        upload_tries, upload_s, t_fly, tb_fly = self._swap(i, items, time.perf_counter())
+        upload_tries, upload_s, t_fly, tb_fly = self._swap(i, items, self.link.clock.now())
         with self.lock, self.signals.critical():
             self._write_prediction(i, planned)  # (the boat is underway meanwhile)
         duration_s, tb_end, cut = self._fly_leg(i, wm, items, t_fly)
@@ -729,17 +736,17 @@ class MissionController(ResumeRecord, OperatorLegs):
         try:
             how = self._fly(i, wm, items, len(items) - 1)  # MISSION_CURRENT.total excludes home
         except BaseException:
-            close_leg(self.collector)  # (a stop, an end, a pause: their own paths command the vehicle)
+            close_leg(self.collector, self.link)  # (a stop, an end, a pause: their own paths command the vehicle)
             raise
         end_leg_at_wait(self.link, self.vehicle, self.collector)
         self.vehicle.keep_station()
         self.session.waits.begin("between legs", i + 1)
         cut = None if how != "cut" else overrun_record(expected, self.config.vehicle, self.vehicle.progress, items)
         self._mark_cut(how)  # the operator's skip/replan, the budget's cut: in the leg record
-        duration_s = time.perf_counter() - t_fly
+        duration_s = self.link.clock.now() - t_fly
         tb_end = self.link.vehicle_uptime_s()
         # the leg's last readings wait for the fix after them (<= the gap bound of vehicle time)
-        self.collector.wait_placed(i, self.collector.track.max_gap_ms / 1000.0 / max(self.speedup, 1.0) + 0.5)
+        place_held(self.collector, i, self.speedup)
         self.writer.flush()
         if how == "replan":
             raise Replan()
@@ -855,7 +862,7 @@ def stop_by_signal(ctl, name: str) -> None:
     ctl._note("stopped", f"stopped by {name} at {utc_now()}: {what}; continue with --resume")
     ctl._say(f"stopped by {name}: {what}; store flushed, summary written; continue with --resume")
     if leave:
-        close_leg(ctl.collector)
+        close_leg(ctl.collector, ctl.link)
     else:  # HOLD whatever the mode seen last: a stop during the swap may precede AUTO's heartbeat
         # the leg closes and the first HOLD is sent under the reader's dispatch lock, as at a leg's end, so no
         # reading is logged before that HOLD but kept out of the leg (a replay ends the leg there)
@@ -866,31 +873,17 @@ def stop_by_signal(ctl, name: str) -> None:
 
 def end_leg_at_wait(link, vehicle, collector) -> None:
     """The leg's readings end where the telemetry log shows it: no reading is logged and routed between the
-    collector's leg closing and the first mode command sent (the vehicle's :attr:`~Vehicle.wait_mode`: LOITER or
-    HOLD; the reader's dispatch lock held over both), so a replay, which ends the leg at that command, assigns
-    every reading as the store did. :meth:`Vehicle.keep_station` confirms the mode afterwards. A failed send (the
-    link down) leaves the mode change to that call."""
+    collector's leg closing, its ``end`` mark (:func:`~passt_mav.vehicle.leg_marks.close_leg`) and the first mode
+    command sent (the vehicle's :attr:`~Vehicle.wait_mode`: LOITER or HOLD; the reader's dispatch lock held over
+    all three), so a replay, which ends the leg at the mark (in older logs at that command), assigns every reading
+    as the store did. :meth:`Vehicle.keep_station` confirms the mode afterwards. A failed send (the link down)
+    leaves the mode change to that call."""
     with link.dispatch_lock:
-        close_leg(collector)
+        close_leg(collector, link)
         try:
             vehicle.request_mode(vehicle.wait_mode)
         except Exception as exc:  # noqa: BLE001 - the confirming keep_station() reports and handles it
             log.debug("%s request at the leg's end not sent: %s", vehicle.wait_mode, exc)
-
-
-def close_leg(collector) -> None:
-    """No reading arriving from now on belongs to a leg (a run that stops with a leg in flight; a stop can come
-    between the swap and the flight): its telemetry log ends the leg at the HOLD sent next, so a replay
-    assigns the readings as the store does."""
-    if collector is not None:
-        collector.leg = None
-
-
-def place_held(collector, leg: int | None, speedup: float) -> None:
-    """Leg ``leg``'s last readings wait for the fix after them (as at a leg's end), up to the gap bound of
-    vehicle time in wall seconds at ``speedup``."""
-    if leg is not None and collector is not None:
-        collector.wait_placed(leg, collector.track.max_gap_ms / 1000.0 / max(speedup, 1.0) + 0.5)
 
 
 def missing_readings(tb_ms: np.ndarray) -> int:
@@ -935,7 +928,7 @@ def leg_warnings(rec: dict, label: str, unit: SpeedUnit, speed_mps: float) -> li
     beaten = beaten_message(rec.get("baselines"), label, unit.text)
     if beaten:
         out.append(("warning", "warn", beaten))
-    flown, planned = rec.get("duration_vehicle_s"), rec.get("planned_duration_vehicle_s")
+    flown, planned = rec.get("duration_vehicle_s") or 0.0, rec.get("planned_duration_vehicle_s") or 0.0
     off = bool(flown and planned) and not 1 / TIMING_WARN_FACTOR <= flown / planned <= TIMING_WARN_FACTOR
     if off and not (rec.get("overrun") or rec.get("outages")):
         text = (
@@ -1030,6 +1023,7 @@ def run_summary(ctl) -> dict:
         "n_samples": ctl._n_samples(),
         "readings_used": [(x.get("readings") or {}).get("fraction_used") for x in legs],
         "stopped_by": getattr(ctl, "stopped_by", None),
+        "machine_faults": machine_faults_record(ctl),  # a store or telemetry log the machine failed
         "sessions": list(getattr(ctl, "sessions", None) or []),
         "outages": list(getattr(getattr(ctl, "session", None), "outages", None) or []),
         "budget": _budget_record(ctl),

@@ -40,16 +40,14 @@ from __future__ import annotations
 
 import logging
 import threading
-import time
 from collections.abc import Callable
 
 from passt_mav.errors import MavlinkError, PlannerError, ReconstructionError
 from passt_mav.loop.legstep import FleetStep, LegStep, build_loop
 from passt_mav.runs.live import RecordWriter
-from passt_mav.vehicle.console import Ended
 from passt_mav.vehicle.controller import BoatParts, MissionController, StoreWriter
+from passt_mav.vehicle.flow import Ended, LinkWindowOver, Paused, utc_now
 from passt_mav.vehicle.live_record import live_meta
-from passt_mav.vehicle.session import LinkWindowOver, Paused, utc_now
 
 __all__ = ["FleetController", "BoatController", "SharedState"]
 
@@ -112,6 +110,8 @@ class BoatController(MissionController):
     :class:`SharedState`, lock, loop, store, live-view writer and summary), plus a boat's life in a
     fleet (:meth:`fly`: dropping out and rejoining)."""
 
+    share: SharedState  # (the fleet's state, in place of a boat's own OwnState)
+
     def __init__(self, fleet: FleetController, boat: int, vehicle_config, link, vehicle, **kw):
         cfg = fleet.config.model_copy(update={"vehicle": vehicle_config})
         echo = fleet.echo
@@ -161,7 +161,8 @@ class BoatController(MissionController):
                         self._prepare_vehicle()
                         ready = True
                     self.status = "flying"
-                    self._leg(self.fleet.claim_leg(), None, None)
+                    # a fleet's boat plans from the fleet's shared state: no state of its own to hand on
+                    self._leg(self.fleet.claim_leg(), None, None)  # type: ignore[arg-type]
                 except (
                     Ended
                 ) as exc:  # the operator or the budget ended this boat's mission (HOLD/RTL set): others go on
@@ -232,7 +233,7 @@ class BoatController(MissionController):
             try:
                 self.link.reconnect(attempts=1)
             except MavlinkError:
-                time.sleep(0.2)
+                self.link.clock.sleep(0.2)
                 continue
             self.fleet.event(f"boat {self.boat} back at {utc_now()}: rejoins", "boat_back", self.boat)
             self._say("link back; rejoining the fleet")
@@ -393,9 +394,12 @@ class FleetController:
                             "status": b.status,
                             "legs": b.legs_done,
                             "clock": b._clock_with_boots().describe(),
+                            # how this boat ended: loitering or disarmed (vehicle.on_end), None while it flies
+                            "end": getattr(getattr(b.session, "waits", None), "end_state", None),
                         }
                         for b in self.boats
                     ],
+                    "end": None,  # per boat, in boats[k].end
                     "lost_boats": [
                         b.boat
                         for b in self.boats

@@ -6,11 +6,19 @@ A mixin: it uses the session's ``link``.
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from passt_mav.mavlink.link import Link
+
 __all__ = ["LinkFigures"]
 
 
 class LinkFigures:
     """Counters at a leg's start (:meth:`link_snapshot`), figures since then (:meth:`link_record`)."""
+
+    if TYPE_CHECKING:  # the session's, which this mixin uses (module docstring)
+        link: Link
 
     def link_snapshot(self) -> tuple:
         """Counters to measure a leg's link figures from (:meth:`link_record`)."""

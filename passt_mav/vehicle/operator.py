@@ -18,28 +18,81 @@ uses the controller's ``rd``, ``link``, ``vehicle``, ``session``, ``journal``, `
 from __future__ import annotations
 
 import logging
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from passt_mav.errors import MavlinkError
-from passt_mav.vehicle.console import Ended
+from passt_mav.mavlink.clock import wall_seconds
+from passt_mav.vehicle.flow import Ended, MachineFault, Replan, utc_now
+from passt_mav.vehicle.machine_faults import (
+    check_store,
+    disk_fault,
+    import_kept,
+    say_tlog_loss,
+    stop_for_store,
+    summary_or_spare,
+)
 
-__all__ = ["OperatorLegs", "Replan"]
+if TYPE_CHECKING:
+    from collections.abc import Callable
+
+    from passt_mav.mavlink.link import Link
+    from passt_mav.mavlink.samples import SampleCollector
+    from passt_mav.mavlink.vehicle import Vehicle
+    from passt_mav.mission.config import MissionConfig
+    from passt_mav.runs.rundir import RunDir
+    from passt_mav.vehicle.budget import SafetyBudget
+    from passt_mav.vehicle.controller import StoreWriter
+    from passt_mav.vehicle.session import Journal, VehicleSession
+
+__all__ = ["OperatorLegs", "Replan", "place_held"]
 
 log = logging.getLogger(__name__)
 
 
-class Replan(Exception):  # noqa: N818 - a request, not an error
-    """Plan the leg again from where the boat is (:meth:`OperatorLegs._leg`); ``status``: what its attempt is
-    called (``replanned by the operator``, ``rejected by the operator``)."""
+#: a leg approved after the boat drifted out of its start cell is planned again from where it is at most
+#: this many times; then it is flown, its approach from where the boat is to the start cell timed
+DRIFT_REPLANS = 3
 
-    def __init__(self, status: str = "replanned by the operator"):
-        super().__init__(status)
-        self.status = status
+
+def place_held(collector, leg: int | None, speedup: float) -> None:
+    """Leg ``leg``'s last readings wait for the fix after them (as at a leg's end), up to the gap bound of
+    vehicle time in wall seconds at ``speedup``."""
+    if leg is not None and collector is not None:
+        collector.wait_placed(leg, wall_seconds(collector.track.max_gap_ms / 1000.0, max(speedup, 1.0)) + 0.5)
 
 
 class OperatorLegs:
     """The controller's side of the console and the budget (module docstring)."""
+
+    if TYPE_CHECKING:  # the controller's, which this mixin uses (module docstring)
+        rd: RunDir
+        link: Link
+        vehicle: Vehicle
+        session: VehicleSession
+        journal: Journal
+        config: MissionConfig
+        collector: SampleCollector  # (run() makes it and the writer)
+        writer: StoreWriter
+        leg_rec: dict | None
+        signals: Any  # a StopSignals, or NO_SIGNALS
+        grid: Any  # the field's grid (geo)
+        live_leg: tuple[int | None, float | None]
+        speedup: float
+        resume: bool
+        sessions: list[dict]
+        _write_summary: Callable[[], None]
+
+        @property
+        def speed(self) -> float: ...
+        def _say(self, s: str) -> None: ...
+        def _note(self, kind: str, text: str) -> None: ...
+        def _leg_once(self, i: int, state: np.ndarray, t_state: float) -> tuple[np.ndarray, float]: ...
+        def _archive_attempt(self, i: int, status: str = "interrupted") -> bool: ...
+        def _expected_vehicle_s(self, wm) -> float: ...
+        def _leg_label(self, i: int) -> str: ...
+        def _old_summary(self) -> dict | None: ...
 
     #: the record of the safety budget's shortening of the leg being planned (:meth:`_fit_budget`), None = none
     shortened: dict | None = None
@@ -54,29 +107,47 @@ class OperatorLegs:
         self.session.budget = SafetyBudget(self.link, self.config.budget)
         self.alerts = VehicleAlerts(self.link, self.journal)
         self.alerts.attach()
+        # a store the machine fails stops the run between steps (passt_mav.vehicle.machine_faults)
+        self.session.store_guard = getattr(self.writer, "guard", None)
+        self._write_summary = summary_or_spare(self, self._write_summary)  # (a full disk refuses summary.json too)
+        if self.resume:
+            import_kept(self)
+
+    def _budget(self) -> SafetyBudget:
+        """The session's safety budget (:meth:`_attach_operator` attached it, for the whole run)."""
+        budget = self.session.budget
+        assert budget is not None, "the safety budget is attached with the sample collector"
+        return budget
 
     def _keep_operator_streams(self) -> None:
         """The streams the budget and the alarms need, asked for now and after every reboot or reconnect:
         BATTERY_STATUS (with a battery reserve) and FENCE_STATUS."""
-        self.session.budget.request_battery()
+        self._budget().request_battery()
         self.alerts.request_fence_status()
 
     def _detach_operator(self) -> None:
         self.alerts.detach()
-        self.session.budget.close()
+        self._budget().close()
+        say_tlog_loss(self)
 
     def _leg(self, i: int, state: np.ndarray, t_state: float) -> tuple[np.ndarray, float]:
         """Leg ``i`` from ``state`` (at field time ``t_state``); planned again from where the boat is, the state
         unchanged, as often as the operator asks (its attempts kept: :class:`Replan`); then, if the safety budget
-        was spent during it, the run's end (:meth:`_end_if_budget_spent`)."""
+        was spent during it, the run's end (:meth:`_end_if_budget_spent`). A store the machine failed stops the run
+        before the leg and after it (:func:`~passt_mav.vehicle.machine_faults.check_store`)."""
         while True:
+            check_store(getattr(self.session, "store_guard", None))
             try:
                 out = self._leg_once(i, state, t_state)
                 break
             except Replan as exc:
                 with self.signals.critical():
                     self._archive_attempt(i, status=exc.status)
+            except OSError as exc:  # a run file the disk refused: stopped as for the store, else as it was
+                disk_fault(exc)
+                raise
         self._end_if_budget_spent()
+        check_store(getattr(self.session, "store_guard", None))
         return out
 
     def _mark_cut(self, how: str | None) -> None:
@@ -87,7 +158,7 @@ class OperatorLegs:
         if how in ("skip", "replan"):
             self.leg_rec["operator"] = {"action": how, "at_item": at}
         elif how == "budget":
-            self.leg_rec["budget_cut"] = {"reason": self.session.budget.reason, "at_item": at}
+            self.leg_rec["budget_cut"] = {"reason": self._budget().reason, "at_item": at}
 
     def _fit_budget(self, i: int, planned) -> np.ndarray:
         """Leg ``i``'s planned grid path fitted to what is left of the safety budget before its upload
@@ -99,7 +170,7 @@ class OperatorLegs:
 
         self.shortened, budget = None, self.session.budget
         left_m, left_s = (None, None) if budget is None else budget.left()
-        if left_m is None and left_s is None:
+        if budget is None or (left_m is None and left_s is None):
             return planned.plan.path
         p, idx = geo.waypoint_indices(self.grid, planned.plan.path)
         wp = geo.path_to_waypoints(self.grid, p)
@@ -172,10 +243,34 @@ class OperatorLegs:
         self.session.waits.begin("approval", i)
         how = self.session.await_approval(i, what, ap.timeout_s, ap.on_timeout)
         rec["status"], rec["approval"]["answer"] = ("rejected" if how == "reject" else "flying"), how
+        moved = None if how == "reject" else self._drifted_from_start(i, wm)
+        if moved is not None:
+            rec["status"], rec["approval"]["drifted_to_cell"] = "drifted", moved
         with self.signals.critical():
             self.rd.write_leg(i, rec)
         if how == "reject":
             raise Replan("rejected by the operator")
+        if moved is not None:
+            text = (
+                f"{self._leg_label(i)}: the boat drifted to cell {tuple(moved)} while awaiting approval; planned again"
+            )
+            self._say(text)
+            raise Replan("drifted while awaiting approval")
+
+    def _drifted_from_start(self, i: int, wm) -> list[int] | None:
+        """The grid cell the boat is in when it is no longer the cell leg ``i`` was planned from (``wm``'s first
+        cell; a boat in HOLD drifts with the current while the operator decides), at most
+        :data:`DRIFT_REPLANS` times a leg; else None (the leg is flown from where the boat is)."""
+        cells = (wm.meta or {}).get("cells")
+        pos = self.vehicle.position()
+        if not cells or pos is None:
+            return None
+        now = [int(x) for x in self.grid.latlon_to_cell(*pos, clip=True)]
+        counts = self.__dict__.setdefault("_drift_replans", {})
+        if now == [int(x) for x in cells[0]] or counts.get(i, 0) >= DRIFT_REPLANS:
+            return None
+        counts[i] = counts.get(i, 0) + 1
+        return now
 
     def _end_if_budget_spent(self) -> None:
         """After a leg: if the safety budget is spent (:mod:`passt_mav.vehicle.budget`), the boat to
@@ -200,20 +295,23 @@ class OperatorLegs:
 
     def _stop_short(self, exc: Exception) -> None:
         """The run stops cleanly before its end: :class:`Ended` (status ``ended``; the vehicle in HOLD or RTL
-        already) or :class:`~passt_mav.vehicle.session.Paused` (status ``paused``; the vehicle to HOLD)."""
-        from passt_mav.vehicle.controller import close_leg, place_held
-        from passt_mav.vehicle.session import utc_now
+        already), :class:`~passt_mav.vehicle.flow.Paused` (status ``paused``; the vehicle to HOLD) or its
+        :class:`~passt_mav.vehicle.flow.MachineFault` (status ``stopped`` by what failed; the vehicle to HOLD)."""
+        from passt_mav.vehicle.leg_marks import close_leg
 
         if isinstance(exc, Ended):
             self.status = "ended"
             self._note("stopped", f"run ended at {utc_now()}: {exc}")
-            close_leg(self.collector)
+            close_leg(self.collector, self.link)
             place_held(self.collector, None if self.link.lost else self.live_leg[0], self.speedup)
             return
-        self.status = "paused"
-        self._note("stopped", str(exc))
-        self._say(f"stopped: {exc}")
-        close_leg(self.collector)
+        if isinstance(exc, MachineFault):
+            stop_for_store(self, exc)
+        else:
+            self.status = "paused"
+            self._note("stopped", str(exc))
+            self._say(f"stopped: {exc}")
+        close_leg(self.collector, self.link)
         try:  # the pilot's RC still overrides HOLD; a vehicle left in an unknown mode would not stop
             self.vehicle.keep_station()
         except MavlinkError as e2:

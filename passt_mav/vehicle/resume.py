@@ -10,15 +10,41 @@ and ``_say``.
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
 
 from passt_mav.errors import UserError
+from passt_mav.vehicle.flow import utc_now
+
+if TYPE_CHECKING:
+    from collections.abc import Callable
+
+    from passt_mav.loop.legstep import LegStep
+    from passt_mav.runs.rundir import RunDir
+    from passt_mav.runs.store import SampleStore
+    from passt_mav.vehicle.clock import RunClock
 
 __all__ = ["ResumeRecord"]
 
 
 class ResumeRecord:
     """The resume part of the mission controller (module docstring)."""
+
+    if TYPE_CHECKING:  # the controller's, which this mixin uses (module docstring)
+        rd: RunDir
+        store: SampleStore  # (run() opens it)
+        step: LegStep
+        run_clock: RunClock
+        resume: bool
+        started_utc: str
+        leg_records: list[dict]
+        status: str
+        _write_summary: Callable[[], None]  # (an attribute: a fleet's boat is handed the fleet's)
+
+        @property
+        def events(self) -> list[str]: ...
+        def _say(self, s: str) -> None: ...
 
     def _init_resume_record(self) -> None:
         self._attempts: dict[int, list[dict]] = {}  # leg -> its interrupted attempts
@@ -36,7 +62,6 @@ class ResumeRecord:
             self.sessions = [{"started_utc": self.started_utc, "first_leg": 0, "planned": []}]
             return state, t_state, 0
         from passt_mav.fields.field import load_field
-        from passt_mav.vehicle.session import utc_now
 
         done = [r for r in self.rd.read_legs() if r.get("status") == "complete"]
         done.sort(key=lambda r: int(r["index"]))
@@ -58,6 +83,10 @@ class ResumeRecord:
             planned = self.sessions[-2].setdefault("planned", [])
             if not planned or planned[-1] != len(done):
                 planned.append(len(done))
+        # summary.json says "running" again (no finished_utc) from this session's start: the live view, which
+        # reads a finished run as a record, takes this session's commands (an approval, a pause)
+        self.status = "running"
+        self._write_summary()
         if not done:
             # killed during leg 0: still say so (the store keeps that leg's samples; it is re-planned)
             self._say(f"resuming {self.rd.root}: no leg completed yet; leg 1 is re-planned from here")

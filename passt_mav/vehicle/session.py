@@ -18,19 +18,19 @@ view's ``events.jsonl``). Everything it sends goes through the public methods of
 
 from __future__ import annotations
 
-import datetime as _dt
 import logging
 import threading
-import time
 from collections.abc import Callable
 
 import numpy as np
 
 from passt_mav.errors import CommandRejected, LinkTimeout, MavlinkError, MissionRejected, MissionVerifyError
+from passt_mav.mavlink.clock import clock_of, vehicle_seconds, wall_seconds
 from passt_mav.mavlink.link import mavlink2 as M
 from passt_mav.mavlink.mission_client import MissionWatch, differences, rover_stored
-from passt_mav.mavlink.vehicle import ROVER_MODE_NAMES, ROVER_MODES
-from passt_mav.vehicle.console import OperatorCommands
+from passt_mav.mavlink.vehicle import ROVER_MODES
+from passt_mav.vehicle.console import OperatorCommands, refuse_if_flying
+from passt_mav.vehicle.flow import LinkWindowOver, Paused, Rebooted, utc_now  # (re-exported: __all__)
 from passt_mav.vehicle.link_figures import LinkFigures
 from passt_mav.vehicle.outages import LinkOutages
 from passt_mav.vehicle.waits import WaitLog
@@ -43,23 +43,6 @@ AUTO = ROVER_MODES["AUTO"]
 INITIALISING = ROVER_MODES["INITIALISING"]
 #: upload results retried as a failed try (the vehicle cancelled the transfer, or answered ERROR)
 _RETRIED = (M.MAV_MISSION_OPERATION_CANCELLED, M.MAV_MISSION_ERROR)
-
-
-def utc_now() -> str:
-    """Now as ISO-8601 UTC, to the second (``2026-01-01T12:00:00Z``)."""
-    return _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds").replace("+00:00", "Z")
-
-
-class Paused(Exception):
-    """The vehicle left AUTO and did not come back in time (or rebooted with on_reboot: hold)."""
-
-
-class LinkWindowOver(Paused):
-    """The link stayed lost for the whole link-loss window (``vehicle.link_loss_window_s``)."""
-
-
-class Rebooted(Exception):
-    """The autopilot rebooted: handled by the leg in flight."""
 
 
 class Journal:
@@ -99,11 +82,13 @@ class Deadline:
 
     def __init__(self, link, budget_s: float, speedup: float):
         self.link, self.speedup = link, max(float(speedup), 1e-6)
+        #: the wall clock of the backstop: the link's (:attr:`passt_mav.mavlink.Link.clock`)
+        self.clock = clock_of(link)
         self.last_up = link.vehicle_uptime_s()
         self.vehicle = None if self.last_up is None else self.last_up + budget_s
-        self.wall = time.monotonic() + 10.0 * budget_s / self.speedup + 60.0
-        #: (wall monotonic s, vehicle uptime s) when the vehicle's clock was last seen advancing
-        self._progress = (time.monotonic(), self.last_up)
+        self.wall = self.clock.now() + wall_seconds(10.0 * budget_s, self.speedup) + 60.0
+        #: (wall s on the clock, vehicle uptime s) when the vehicle's clock was last seen advancing
+        self._progress = (self.clock.now(), self.last_up)
         self.stalled_s = 0.0  # wall seconds the vehicle's clock had stood still when the backstop fired
 
     def extend(self, wall_s: float, *, rebooted: bool = False) -> None:
@@ -117,12 +102,12 @@ class Deadline:
             up = self.last_up = self.link.vehicle_uptime_s()
             self.vehicle = None if up is None else up + left
         else:
-            self.vehicle += wall_s * self.speedup
+            self.vehicle += vehicle_seconds(wall_s, self.speedup)
 
     def waited(self, wall_s: float) -> None:
         """``wall_s`` wall seconds went to a wait of our own (a reconnect): the backstop starts again from now."""
         self.wall += wall_s
-        self._progress = (time.monotonic(), self._progress[1])
+        self._progress = (self.clock.now(), self._progress[1])
 
     def passed(self) -> bool:
         """The budget is spent: in vehicle time (:meth:`vehicle_passed`) or on the wall backstop."""
@@ -138,7 +123,7 @@ class Deadline:
     def wall_passed(self) -> bool:
         """The vehicle's clock has stood still for :attr:`STALL_WALL_S` wall seconds (class docstring); before
         it reported any time: ten times the budget at the nominal speed-up, + 60 s."""
-        now = time.monotonic()
+        now = self.clock.now()
         up = self.link.vehicle_uptime_s()
         t_ref, up_ref = self._progress
         if up is not None and (up_ref is None or up != up_ref):  # any change (a reboot's restart too) is progress
@@ -234,17 +219,20 @@ class VehicleSession(LinkOutages, OperatorCommands, LinkFigures):
 
     @property
     def arm_timeout_s(self) -> float:
-        return max(30.0, 120.0 / self.speedup)
+        return wall_seconds(120.0, self.speedup, at_least=30.0)
 
-    def wait_ready(self) -> None:
-        """Wait for the EKF (``ready_timeout_s``)."""
+    def wait_ready(self, *, new_run: bool = False) -> None:
+        """Wait for the EKF (``ready_timeout_s``); a ``new_run`` refuses a vehicle that flies a mission already
+        (:func:`~passt_mav.vehicle.console.refuse_if_flying`)."""
         self.vehicle.wait_ready(timeout=self.ready_timeout_s)
+        if new_run:
+            refuse_if_flying(self.vehicle)
 
     def position(self, timeout: float = 10.0) -> tuple[float, float]:
         """The vehicle's (lat, lon) degrees; MavlinkError without a GPS position within ``timeout`` wall s."""
-        end = time.monotonic() + timeout
+        end = self.link.clock.now() + timeout
         while (p := self.vehicle.position()) is None:
-            if time.monotonic() > end:
+            if self.link.clock.now() > end:
                 raise MavlinkError("no GPS position from the vehicle")
             self.link.idle(0.02)
         return p
@@ -281,7 +269,7 @@ class VehicleSession(LinkOutages, OperatorCommands, LinkFigures):
         the swap starts again from HOLD, up to ``attempts`` times: the upload is verified by
         reading back, the other steps are idempotent, so a swap half done is never flown.
         ``on_armed()`` after arming a disarmed vehicle, ``on_start()`` just before AUTO.
-        Returns ``(upload_tries, upload_s, t_fly (perf_counter), vehicle uptime at AUTO)``.
+        Returns ``(upload_tries, upload_s, t_fly (the link's clock, wall s), vehicle uptime at AUTO)``.
         """
         for attempt in range(1, attempts + 1):
             try:
@@ -298,7 +286,7 @@ class VehicleSession(LinkOutages, OperatorCommands, LinkFigures):
                     f"again from HOLD (attempt {attempt + 1}/{attempts})"
                 )
                 self.journal.note("link_lost", f"leg {i + 1}: link lost during the swap at {utc_now()}: {exc}")
-                self.reconnect_within_window(i, time.monotonic() - self._silent_s(), "swap")
+                self.reconnect_within_window(i, self.lost_since(), "swap")
         raise AssertionError("unreachable")
 
     def _swap_once(self, i: int, items, t0w: float, attempt: int, on_armed, on_start):
@@ -313,13 +301,13 @@ class VehicleSession(LinkOutages, OperatorCommands, LinkFigures):
         tries = self.upload(i, items)
         # seq 1 is the first mission item (DO_CHANGE_SPEED, then the waypoints): start there
         v.mission.set_current(1)
-        upload_s = time.perf_counter() - t0w
+        upload_s = self.link.clock.now() - t0w
         if not v.armed:
             v.arm(timeout=self.arm_timeout_s)
             on_armed()
         on_start()
         self.resume_seq = 1
-        t_fly = time.perf_counter()
+        t_fly = self.link.clock.now()
         tb_fly = self.link.vehicle_uptime_s()
         v.start_mission()
         self.verify_pending = True  # fly() reads the mission back: another GCS may have uploaded meanwhile
@@ -347,9 +335,9 @@ class VehicleSession(LinkOutages, OperatorCommands, LinkFigures):
                 up = self.vehicle.mission.upload(items)
             except (MissionRejected, LinkTimeout) as exc:
                 if isinstance(exc, MissionRejected) and exc.result == M.MAV_MISSION_DENIED:
-                    denied_since = denied_since or self._denied(i)
-                    if (time.monotonic() - denied_since) * self.speedup < self.FOREIGN_WAIT_S:
-                        time.sleep(max(0.05, 1.0 / self.speedup))
+                    denied_since = self._denied(i) if denied_since is None else denied_since
+                    if self._vehicle_now() - denied_since < self.FOREIGN_WAIT_S:
+                        self.link.idle(wall_seconds(1.0, self.speedup, at_least=0.05))  # lockstep: one step
                         k -= 1  # waiting for the other station is not a failed try
                         continue
                 elif isinstance(exc, MissionRejected) and exc.result not in _RETRIED:
@@ -367,7 +355,7 @@ class VehicleSession(LinkOutages, OperatorCommands, LinkFigures):
                 else f"leg {i + 1}: upload failed {tries} times ({last})"
             )
             self.journal.events.append(f"leg {i + 1}: upload try {k} failed: {last}")
-            time.sleep(0.05)
+            self.link.clock.sleep(0.05)
         assert last is not None
         raise last
 
@@ -379,7 +367,7 @@ class VehicleSession(LinkOutages, OperatorCommands, LinkFigures):
                 got = self.vehicle.mission.download()
             except (MissionRejected, LinkTimeout) as exc:
                 last = exc
-                time.sleep(0.05)
+                self.link.clock.sleep(0.05)
                 continue
             diff = differences(list(items), got, 0)
             if not diff:
@@ -388,16 +376,21 @@ class VehicleSession(LinkOutages, OperatorCommands, LinkFigures):
             return MissionVerifyError(f"mission read back differs from the upload: {diff}")
         return last
 
+    def _vehicle_now(self) -> float:
+        """Vehicle seconds: a lockstep vehicle's stepped clock, else the link's wall clock x the speed-up."""
+        step = self.link.lockstep
+        return step.t if step is not None else vehicle_seconds(self.link.clock.now(), self.speedup)
+
     def _denied(self, i: int) -> float:
         """Our upload was DENIED: ArduPilot serves one upload at a time and another ground station's is in
-        progress. Says so once; returns when (monotonic s) the wait began."""
+        progress. Says so once; returns when (:meth:`_vehicle_now`, vehicle s) the wait began."""
         who = self.watch.changed((0, 0)) or "not visible on this link"
         self._say(
             f"leg {i + 1}: the vehicle denied our upload: another ground station is transferring a mission "
             f"({who}); waiting up to {self.FOREIGN_WAIT_S:g} s (vehicle time) for it to finish"
         )
         self.journal.events.append(f"leg {i + 1}: upload denied at {utc_now()}: another station's transfer ({who})")
-        return time.monotonic()
+        return self._vehicle_now()
 
     def verify_flying(self, i: int, items, resume_seq: int = 1) -> None:
         """Read the mission back while in AUTO: the vehicle must be flying ours.
@@ -497,12 +490,14 @@ class VehicleSession(LinkOutages, OperatorCommands, LinkFigures):
                 deadline.extend(self.after_reboot(i, items, n_items), rebooted=True)
                 continue
             if self.link.lost or self.link.error is not None:
-                t0 = time.monotonic()
+                t0 = self.link.clock.now()
                 self.recover_link(i, items)
                 # the vehicle flew on meanwhile (its clock counts that); only the wall backstop waits longer
-                deadline.waited(time.monotonic() - t0)
+                deadline.waited(self.link.clock.now() - t0)
                 continue
             waited = self._watch_mode(i, n_items)
+            if isinstance(waited, str):  # the page's skip or replan while a pilot held the boat
+                return waited
             if waited:
                 deadline.extend(waited)
 
@@ -564,9 +559,9 @@ class VehicleSession(LinkOutages, OperatorCommands, LinkFigures):
         with p.changed:
             return done()
 
-    def _watch_mode(self, i: int, n_items: int) -> float:
+    def _watch_mode(self, i: int, n_items: int) -> float | str:
         """In AUTO: note the item to resume at and signs of another station. Out of AUTO: a reboot or a pilot.
-        Returns wall seconds spent waiting for a pilot (0 otherwise)."""
+        Returns wall seconds spent waiting for a pilot (0 otherwise), or the page's ``"skip"``/``"replan"``."""
         v, p = self.vehicle, self.vehicle.progress
         mode = v.mode
         if mode == AUTO and v.armed:
@@ -578,7 +573,7 @@ class VehicleSession(LinkOutages, OperatorCommands, LinkFigures):
             if self._reboot_suspected(mode):
                 return 0.0
             try:
-                return self.pause(i, mode)
+                return self.pause(i, mode, n_items)
             except Rebooted:
                 return 0.0
         return 0.0
@@ -588,12 +583,12 @@ class VehicleSession(LinkOutages, OperatorCommands, LinkFigures):
         first time stamp arrives. Wait ~3 s of vehicle time for the signature; True if it came."""
         if self.vehicle.armed and mode != INITIALISING:
             return False  # a pilot's mode change: the vehicle stays armed
-        return self.rebooted.wait(max(0.3, 3.0 / self.speedup))
+        return self.rebooted.wait(wall_seconds(3.0, self.speedup, at_least=0.3))
 
     def after_reboot(self, i: int, items, n_items: int) -> float:
         """The autopilot rebooted mid-leg: wait, verify, re-arm, resume at the interrupted item (or HOLD
         and stop with ``vehicle.on_reboot: hold``). Returns the wall seconds it took."""
-        t0 = time.monotonic()
+        t0 = self.link.clock.now()
         v = self.vehicle
         self.rebooted.clear()
         boot, last_tb, first_tb = self.reboot_info or (0, 0, 0)
@@ -607,7 +602,7 @@ class VehicleSession(LinkOutages, OperatorCommands, LinkFigures):
         )
         self.journal.note("reboot", f"leg {i + 1}: vehicle rebooted at {utc_now()} (boot {boot}, was at item {seq})")
         if self.link.lost:
-            self.reconnect_within_window(i, time.monotonic() - self._silent_s(), "reboot")
+            self.reconnect_within_window(i, self.lost_since(), "reboot")
         self.link.request_streams()  # a reboot forgets the rates set by SET_MESSAGE_INTERVAL
         self.wait_ready()
         if self.on_reboot == "hold":
@@ -630,32 +625,7 @@ class VehicleSession(LinkOutages, OperatorCommands, LinkFigures):
             f"leg {i + 1}: resumed after the reboot at item {seq}/{n_items}"
             + (" (mission re-uploaded)" if diff else " (stored mission verified)"),
         )
-        return time.monotonic() - t0
-
-    def pause(self, i: int, mode: int) -> float:
-        """A pilot took the vehicle out of AUTO: wait up to ``pause_timeout_s`` for AUTO to come back.
-        Returns the wall seconds waited; :class:`Paused` when it did not, :class:`Rebooted` if it rebooted."""
-        name = ROVER_MODE_NAMES.get(mode, str(mode))
-        self._say(
-            f"leg {i + 1}: the vehicle left AUTO (mode {name}): a pilot has control; pausing "
-            f"(waiting up to {self.pause_timeout_s:.0f} s for AUTO)"
-        )
-        self.journal.note("pilot_takeover", f"leg {i + 1}: vehicle left AUTO (mode {name}) at {utc_now()}")
-        t0 = time.monotonic()
-        while time.monotonic() - t0 < self.pause_timeout_s:
-            if self.vehicle.mode == AUTO:
-                self.set_speed_again(i, "the pilot's AUTO")
-                self._say(f"leg {i + 1}: back in AUTO; continuing")
-                self.journal.note("pilot_released", f"leg {i + 1}: back in AUTO")
-                return time.monotonic() - t0
-            if self.rebooted.is_set():
-                raise Rebooted()  # not the pilot after all (or the pilot rebooted it): fly() resumes
-            if self.link.lost:
-                self.reconnect_within_window(i, time.monotonic() - self._silent_s(), "pause")
-            self.link.idle(0.05)
-        raise Paused(
-            f"leg {i + 1}: the vehicle stayed in {name} for {self.pause_timeout_s:.0f} s; stopping in {self.vehicle.wait_mode}"
-        )
+        return self.link.clock.now() - t0
 
 
 def expected_vehicle_s(grid, wm, speed_mps: float) -> float:

@@ -25,7 +25,9 @@ import signal
 import sys
 import threading
 from collections.abc import Callable, Iterator
-from typing import Self
+from typing import Any, Self
+
+from passt_mav.vehicle.flow import Stopped
 
 __all__ = ["Stopped", "StopSignals", "NO_SIGNALS", "exit_code"]
 
@@ -38,15 +40,6 @@ def _in_lock_wait(frame) -> bool:
     not be raised there (``Condition.wait`` re-acquires its lock in a ``finally``; interrupted there, the ``with``
     around it releases a lock another thread holds)."""
     return frame is not None and frame.f_code.co_filename in (threading.__file__, queue.__file__)
-
-
-class Stopped(BaseException):  # noqa: N818 - like KeyboardInterrupt: not caught by ``except Exception``
-    """A stop signal arrived (``signum``; ``name`` e.g. ``SIGTERM``)."""
-
-    def __init__(self, signum: int):
-        self.signum = int(signum)
-        self.name = signal.Signals(self.signum).name
-        super().__init__(f"stopped by {self.name}")
 
 
 def exit_code(signum: int) -> int:
@@ -67,7 +60,7 @@ class StopSignals:
         self._critical = 0
         self._pending = False
         self._disarmed = False
-        self._old: dict[int, object] = {}
+        self._old: dict[int, Any] = {}  # signal -> its handler before (a function, SIG_DFL, SIG_IGN or None)
 
     def __enter__(self) -> Self:
         if threading.current_thread() is threading.main_thread():

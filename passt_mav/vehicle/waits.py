@@ -7,7 +7,9 @@ stops the motor and the boat drifts with the current. Either way the wait's drif
 says how far the current took the boat, and a LOITER that does not hold (a current stronger than the boat)
 shows.
 
-Units: drift in metres (geodesic, WGS84), durations in vehicle seconds (the vehicle's time since boot).
+Units: drift in metres (geodesic, WGS84), durations in vehicle seconds (the vehicle's time since boot); a record's
+``uptime_s`` is ``[begin, end]`` on that clock (s since boot, None where unknown), so a wait can be placed among the
+telemetry log's ``time_boot_ms``.
 """
 
 from __future__ import annotations
@@ -78,6 +80,8 @@ class WaitLog:
             "leg": w.leg,
             "mode": w.mode,
             "vehicle_s": None if dur is None else round(dur, 1),
+            # where the wait lies on the vehicle's clock (s since its boot), to place it in the telemetry log
+            "uptime_s": [_s3(w.uptime_s), _s3(up)],
             "drift_m": None if drift is None else round(drift, 1),
             "from": None if w.latlon is None else [round(w.latlon[0], 7), round(w.latlon[1], 7)],
             "to": None if now is None else [round(now[0], 7), round(now[1], 7)],
@@ -128,3 +132,8 @@ class WaitLog:
     def _where(self) -> tuple[float, float] | None:
         """The vehicle's last GLOBAL_POSITION_INT (lat, lon) degrees, None before its first fix."""
         return self.vehicle.position()
+
+
+def _s3(x: float | None) -> float | None:
+    """Seconds rounded to the millisecond of ``time_boot_ms`` (None stays None)."""
+    return None if x is None else round(float(x), 3)

@@ -1,15 +1,15 @@
 """The live view's picture of a run, read from its run directory only (never from the mission's process).
 
 :class:`RunState` reads what the controller writes (:mod:`passt_mav.runs.live`: ``events.jsonl``,
-``live/*.json``; the leg records, ``estimate.nc`` (with its posterior std ``u_std``/``v_std``); the sample store,
-read-only) and turns it into one JSON-able snapshot for the page and into PNG rasters
+``live/*.json``; the summary, the leg records and the events through their schema
+(:mod:`passt_mav.runs.records`); ``estimate.nc`` (with its posterior std ``u_std``/``v_std``); the sample
+store, read-only) and turns it into one JSON-able snapshot for the page and into PNG rasters
 (speed of the estimate, its posterior std, the reward map of the newest plan, land).
 It works the same on a run in flight and on a finished one.
 """
 
 from __future__ import annotations
 
-import json
 import logging
 import sqlite3
 import threading
@@ -18,7 +18,8 @@ from pathlib import Path
 import numpy as np
 
 from passt_mav.runs.commands import read_commands
-from passt_mav.runs.live import read_events, read_meta, read_statuses
+from passt_mav.runs.live import read_meta, read_statuses
+from passt_mav.runs.records import RunRecords, read_event_records
 from passt_mav.runs.rundir import RunDir
 from passt_mav.runs.store import SampleStore, SampleStoreError
 from passt_mav.units import SpeedUnit, run_speed_unit
@@ -48,11 +49,10 @@ def signature(root: Path) -> tuple:
     return tuple(out)
 
 
-def _read_json(path: Path):
-    try:
-        return json.loads(path.read_text())
-    except (OSError, ValueError):
-        return None
+def _summary(rd: RunDir) -> dict:
+    """``summary.json`` as a dict; empty while there is none, or while it cannot be read or does not fit its
+    schema (the view keeps showing what it can)."""
+    return RunRecords(rd, strict=False).summary_dict() or {}
 
 
 class RunState:
@@ -80,7 +80,7 @@ class RunState:
 
     def finished(self) -> bool:
         """The run is over (summary.json has its end time)."""
-        return bool((_read_json(self.rd.summary_file) or {}).get("finished_utc"))
+        return bool(_summary(self.rd).get("finished_utc"))
 
     def _command_rows(self) -> list[dict]:
         """The operator's commands (newest 50) with the controller's answer: ``result`` the answering event's
@@ -104,7 +104,7 @@ class RunState:
     def meta(self) -> dict:
         m = read_meta(self.root)
         if m is None:  # a run from before the live view: what the summary has
-            s = _read_json(self.rd.summary_file) or {}
+            s = _summary(self.rd)
             m = {
                 "mission": s.get("mission"),
                 "grid": s.get("grid"),
@@ -177,13 +177,8 @@ class RunState:
         return out
 
     def _legs(self) -> list[dict]:
-        out = []
-        for i in self.rd.leg_indices():
-            rec = _read_json(self.rd.leg_file(i))
-            if isinstance(rec, dict):
-                rec.setdefault("index", i)
-                out.append(rec)
-        return out
+        """The leg records on disk, by index (one that cannot be read or does not fit its schema is left out)."""
+        return RunRecords(self.rd, strict=False).leg_dicts()
 
     # -- the snapshot --------------------------------------------------------------------------------
     def snapshot(self) -> dict:
@@ -191,11 +186,11 @@ class RunState:
         with self._lock:
             meta = self.meta()
             grid = self.grid(meta)
-            new, self._ev_offset = read_events(self.root, self._ev_offset)
-            self._events += new
+            new, self._ev_offset = read_event_records(self.root, self._ev_offset, strict=False)
+            self._events += [e.as_dict() for e in new]
             self._new_samples()
             statuses = read_statuses(self.root)
-            summary = _read_json(self.rd.summary_file) or {}
+            summary = _summary(self.rd)
             unit = run_speed_unit(summary, meta)
             legs = self._leg_rows(grid, unit)
             return {
@@ -361,8 +356,8 @@ class RunState:
                     return None
                 return _png(np.where(land, np.nan, np.hypot(std[0], std[1])), "magma")
             if what == "reward":
-                rec = _read_json(self.rd.leg_file(leg)) or {}
-                q = np.asarray(rec.get("reward_map") or [], float)
+                rec = RunRecords(self.rd, strict=False).leg(leg)
+                q = np.asarray((rec.reward_map if rec is not None else None) or [], float)
                 return None if q.ndim != 2 else _png(np.where(land | (q <= 0), np.nan, q), "inferno")
             return None
 
