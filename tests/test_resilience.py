@@ -679,10 +679,13 @@ def test_chaos_six_legs_drops_restart_kill_resume_and_sigterm(tmp_path):
             sensor_ticks += (have[-1] - have[0]) // 1000 + 1 - len(have)
         rdg = leg["readings"]
         assert rdg["missing"] == sensor_ticks >= unseen_sent, (i, rdg, sensor_ticks, unseen_sent)
-    # the drops cost readings, and they were counted: the 10 s drop's within leg 1 (which flies on after it), each
-    # drop's vehicle seconds in its leg's record (the 45 s and 300 s drops may outlast their legs' last waypoint)
+    # the drops cost readings, and they were counted: each drop's vehicle seconds in its leg's record (the 45 s and
+    # 300 s drops may outlast their legs' last waypoint), and the 10 s drop's readings inside leg 1's span counted
+    # missing (on the wall clock a loaded machine can push that drop to the leg's last waypoint, where the readings
+    # after it belong to no leg: 9 of 10 inside the span were seen so in CI)
     by_leg = {int(x["index"]): x for x in final["legs"]}
-    assert by_leg[0]["readings"]["missing"] >= 10, by_leg[0]["readings"]
+    r0 = by_leg[0]["readings"]
+    assert r0["lost_in_outages_vehicle_s"] >= 10.0 and r0["missing"] >= 1, r0
     for o in outages:
         assert by_leg[o["leg"]]["readings"]["lost_in_outages_vehicle_s"] == pytest.approx(o["vehicle_s"])
     res = replay(rd.root, out=False)

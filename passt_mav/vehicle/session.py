@@ -165,6 +165,8 @@ class VehicleSession(LinkOutages, OperatorCommands, LinkFigures):
 
     #: replacements of our mission by another ground station in one leg before the controller stops in HOLD
     FOREIGN_REPLACEMENTS = 2
+    #: the vehicle was ready once in this session (:meth:`wait_ready`)
+    was_ready = False
     #: vehicle seconds to wait for another ground station's mission transfer (our upload DENIED meanwhile)
     FOREIGN_WAIT_S = 60.0
     #: read-backs in AUTO that may fail in a row (a radio drop within one, a broken-off transfer) before the leg fails
@@ -222,11 +224,13 @@ class VehicleSession(LinkOutages, OperatorCommands, LinkFigures):
         return wall_seconds(120.0, self.speedup, at_least=30.0)
 
     def wait_ready(self, *, new_run: bool = False) -> None:
-        """Wait for the EKF (``ready_timeout_s``); a ``new_run`` refuses a vehicle that flies a mission already
-        (:func:`~passt_mav.vehicle.console.refuse_if_flying`)."""
+        """Wait for the EKF (``ready_timeout_s``); the first time in a ``new_run`` a vehicle that flies a mission
+        already is refused (:func:`~passt_mav.vehicle.console.refuse_if_flying`), never later (a fleet's boat that
+        rejoins after a link drop flies its own leg in AUTO)."""
         self.vehicle.wait_ready(timeout=self.ready_timeout_s)
-        if new_run:
+        if new_run and not self.was_ready:
             refuse_if_flying(self.vehicle)
+        self.was_ready = True
 
     def position(self, timeout: float = 10.0) -> tuple[float, float]:
         """The vehicle's (lat, lon) degrees; MavlinkError without a GPS position within ``timeout`` wall s."""
