@@ -480,18 +480,18 @@ def _recorded_mission(args: argparse.Namespace):
     unless ``--legs`` is given), so that approve mode, the leg count and the budget go on as they were; the
     mission file named on the command line is not read again (said on the console). None when the run
     has no summary yet (its first session stopped before writing one): the mission file is read as for a new run."""
-    import json
-
     import yaml
 
     from passt_mav.mission.config import validate_mission
+    from passt_mav.runs.rundir import RunDir, RunDirError
 
-    summary = Path(args.out or ".") / "summary.json"
+    rd = RunDir(args.out or ".")
+    summary = rd.summary_file
     try:
-        rec = json.loads(summary.read_text())
-    except (OSError, ValueError):
+        rec = rd.read_summary()
+    except (RunDirError, OSError):
         return None
-    data = rec.get("config") if isinstance(rec, dict) else None
+    data = rec.get("config")
     if not isinstance(data, dict):
         return None
     config = validate_mission(data, source=str(summary), base_dir=summary.parent)
